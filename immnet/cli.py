@@ -1,0 +1,54 @@
+"""The ``immnet`` command.
+
+``immnet fit|validate|test ...`` go to Lightning's CLI (see ``immnet.training.cli``); every other
+subcommand is a plain argparse command registered by its package (``register(subparsers)``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Each module exposes ``register(subparsers)``; a missing one is skipped so the CLI grows by file.
+_COMMAND_MODULES = (
+    "immnet.data.cli",
+    "immnet.evaluation.cli",
+    "immnet.tracking.cli",
+)
+_LIGHTNING_COMMANDS = ("fit", "validate", "test")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="immnet", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in _COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as err:
+            if err.name != name:
+                raise
+            continue
+        module.register(sub)
+    for name in _LIGHTNING_COMMANDS:
+        sub.add_parser(name, help=f"Lightning CLI: {name} a recipe (immnet {name} --help)", add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in _LIGHTNING_COMMANDS:
+        from immnet.training.cli import lightning_main
+
+        lightning_main(argv)
+        return 0
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        print(f"immnet {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,132 @@
+"""What a motion model is: a named transition ``F(dt)`` and process noise ``Q(sigma_q, dt)``.
+
+A model is data. It names the 3D-LAST mode it stands for (``0 CV, 1 CA, 2 CT+, 3 CT-``) so that
+several experts may share a mode (CT at +3 and +8 deg/s, say). A model set is a list of models,
+written in YAML with ``class_path`` / ``init_args``::
+
+    models:
+      - class_path: immnet.motion.ConstantVelocity
+      - class_path: immnet.motion.CoordinatedTurn
+        init_args: {turn_rate_deg: 5.0}
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Sequence
+
+import torch
+import yaml
+
+from immnet.motion import models as m
+
+
+class MotionModel:
+    """One motion hypothesis. Subclasses give ``F``; ``Q`` uses the noise form ``noise`` (white / wiener)."""
+
+    noise: str = "white"
+    mode: int = 0
+
+    @property
+    def name(self) -> str:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def F(self, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:  # pragma: no cover
+        raise NotImplementedError
+
+    def Q(self, sigma_q: float, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:
+        """``Q = sigma_q^2 G G^T`` with this model's ``G`` (SPEC.md section 3)."""
+        return m.process_noise(sigma_q, dt, self.noise, dtype=dtype, device=device)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name})"
+
+    def __eq__(self, other) -> bool:
+        return type(self) is type(other) and self.__dict__ == other.__dict__
+
+    def __hash__(self) -> int:
+        return hash((type(self).__name__, tuple(sorted(self.__dict__.items()))))
+
+
+class ModelSet:
+    """An ordered list of motion models, stacked on a leading expert dimension ``M``."""
+
+    def __init__(self, models: Sequence[MotionModel]):
+        models = list(models)
+        if not models:
+            raise ValueError("a model set needs at least one motion model")
+        for i, model in enumerate(models):
+            if not isinstance(model, MotionModel):
+                raise TypeError(f"model set entry {i} is {type(model).__name__}, not a MotionModel")
+        self.models = models
+
+    def __len__(self) -> int:
+        return len(self.models)
+
+    def __iter__(self):
+        return iter(self.models)
+
+    def __getitem__(self, i):
+        return self.models[i]
+
+    def __repr__(self) -> str:
+        return f"ModelSet({', '.join(self.names)})"
+
+    @property
+    def names(self) -> list[str]:
+        return [model.name for model in self.models]
+
+    @property
+    def modes(self) -> torch.Tensor:
+        """Data mode each expert stands for, ``[M]`` int64."""
+        return torch.tensor([model.mode for model in self.models], dtype=torch.long)
+
+    def F(self, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:
+        """Stacked transitions ``[M, 9, 9]``."""
+        return torch.stack([model.F(dt, dtype=dtype, device=device) for model in self.models])
+
+    def Q(self, sigma_q, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:
+        """Stacked process noise ``[M, 9, 9]``; ``sigma_q`` a scalar or one per model."""
+        sq = torch.as_tensor(sigma_q, dtype=dtype).expand(len(self)).tolist()
+        return torch.stack(
+            [model.Q(s, dt, dtype=dtype, device=device) for model, s in zip(self.models, sq)]
+        )
+
+    # --- YAML -----------------------------------------------------------------------------
+    @classmethod
+    def from_config(cls, spec) -> "ModelSet":
+        """From a YAML path, a ``{"models": [...]}`` mapping or a list of ``class_path`` entries."""
+        if isinstance(spec, ModelSet):
+            return spec
+        if isinstance(spec, (str, Path)):
+            from immnet.config import resolve_path
+
+            spec = yaml.safe_load(resolve_path(spec).read_text())
+        if isinstance(spec, dict):
+            if "models" not in spec:
+                raise ValueError("a model set mapping needs a 'models' list")
+            spec = spec["models"]
+        if not isinstance(spec, (list, tuple)):
+            raise TypeError(f"a model set is a list of models, got {type(spec).__name__}")
+        return cls([m_ if isinstance(m_, MotionModel) else instantiate(m_) for m_ in spec])
+
+    def to_config(self) -> dict:
+        return {
+            "models": [
+                {"class_path": f"{type(x).__module__}.{type(x).__name__}", "init_args": x.init_args()}
+                for x in self.models
+            ]
+        }
+
+
+def instantiate(entry: dict):
+    """Build ``class_path(**init_args)``; the YAML convention of Lightning's CLI."""
+    if not isinstance(entry, dict) or "class_path" not in entry:
+        raise ValueError(f"expected a mapping with 'class_path', got {entry!r}")
+    module_name, _, cls_name = entry["class_path"].rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module_name), cls_name)
+    except (ImportError, AttributeError, ValueError) as err:
+        raise ValueError(f"unknown class_path {entry['class_path']!r}: {err}") from None
+    return cls(**(entry.get("init_args") or {}))

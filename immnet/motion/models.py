@@ -1,0 +1,107 @@
+"""Motion models of 3D-LAST (SPEC.md section 2) in the 9-D layout.
+
+State ``x = [lx, vx, ax, ly, vy, ay, lz, vz, az]``; every function is batched in torch.
+
+* CV, per axis ``[[1, dt, 0], [0, 1, 0], [0, 0, 0]]`` (acceleration is zero);
+* CA, per axis ``[[1, dt, dt^2/2], [0, 1, dt], [0, 0, 1]]``;
+* CT(w), coordinated turn in the horizontal plane::
+
+      lx' = lx + sin(w dt)/w vx - (1 - cos(w dt))/w vy     vx' = cos(w dt) vx - sin(w dt) vy
+      ly' = ly + (1 - cos(w dt))/w vx + sin(w dt)/w vy     vy' = sin(w dt) vx + cos(w dt) vy
+      ax' = -w vy'                                         ay' = w vx'   (centripetal)
+
+  with the z axis as CV.
+
+Process noise ``Q = sigma_q^2 G G^T`` with ``G`` per axis ``[dt^2/2, dt, 0]`` (white-noise
+acceleration) or ``[dt^2/2, dt, 1]`` (Wiener-process acceleration, the textbook CA filter).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+DEG = math.pi / 180.0
+MODE_NAMES = ("cv", "ca", "ct+", "ct-")
+"""Data mode labels, in the fixed order of SPEC.md: 0 CV, 1 CA, 2 CT+, 3 CT-."""
+
+POS = (0, 3, 6)
+VEL = (1, 4, 7)
+ACC = (2, 5, 8)
+
+_WHITE = "white"
+_WIENER = "wiener"
+
+
+def _per_axis(block: torch.Tensor) -> torch.Tensor:
+    """Block-diagonal ``[..., 9, 9]`` from one ``[..., 3, 3]`` per-axis block."""
+    out = block.new_zeros(*block.shape[:-2], 9, 9)
+    for a in range(3):
+        out[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = block
+    return out
+
+
+def cv_matrix(dt: float, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Constant-velocity transition ``F_CV(dt)``, shape ``[9, 9]``."""
+    b = torch.tensor([[1.0, dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]], dtype=dtype, device=device)
+    return _per_axis(b)
+
+
+def ca_matrix(dt: float, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Constant-acceleration transition ``F_CA(dt)``, shape ``[9, 9]``."""
+    b = torch.tensor(
+        [[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]], dtype=dtype, device=device
+    )
+    return _per_axis(b)
+
+
+def ct_matrix(turn_rate, dt: float, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Coordinated-turn transition ``F_CT(w, dt)``; a batch of turn rates ``[...]`` gives ``[..., 9, 9]``.
+
+    ``w`` in rad/s. At ``w -> 0`` the limits ``sin(w dt)/w -> dt`` and ``(1 - cos(w dt))/w -> 0``
+    are used, so CT(0) is CV in the plane with zero acceleration.
+    """
+    w = torch.as_tensor(turn_rate, dtype=dtype, device=device)
+    small = w.abs() < 1e-9
+    w_safe = torch.where(small, torch.ones_like(w), w)
+    s, c = torch.sin(w * dt), torch.cos(w * dt)
+    s_w = torch.where(small, torch.full_like(w, dt), s / w_safe)
+    c_w = torch.where(small, torch.zeros_like(w), (1.0 - c) / w_safe)
+    F = cv_matrix(dt, dtype=dtype, device=w.device).expand(*w.shape, 9, 9).clone()
+    lx, vx, ax, ly, vy, ay = 0, 1, 2, 3, 4, 5
+    F[..., lx, vx], F[..., lx, vy] = s_w, -c_w
+    F[..., ly, vx], F[..., ly, vy] = c_w, s_w
+    F[..., vx, vx], F[..., vx, vy] = c, -s
+    F[..., vy, vx], F[..., vy, vy] = s, c
+    # ax' = -w vy' = -w (s vx + c vy);  ay' = w vx' = w (c vx - s vy)
+    F[..., ax, vx], F[..., ax, vy] = -w * s, -w * c
+    F[..., ay, vx], F[..., ay, vy] = w * c, -w * s
+    return F
+
+
+def noise_gain(dt: float, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Noise gain ``G`` of shape ``[9, 3]``: per axis ``[dt^2/2, dt, 0]`` (white) or ``[dt^2/2, dt, 1]`` (wiener)."""
+    if kind not in (_WHITE, _WIENER):
+        raise ValueError(f"noise kind must be 'white' or 'wiener', got {kind!r}")
+    g = torch.tensor([0.5 * dt * dt, dt, 1.0 if kind == _WIENER else 0.0], dtype=dtype, device=device)
+    G = torch.zeros(9, 3, dtype=dtype, device=device)
+    for a in range(3):
+        G[3 * a : 3 * a + 3, a] = g
+    return G
+
+
+def process_noise(sigma_q, dt: float, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
+    """``Q = sigma_q^2 G G^T``; a batch of ``sigma_q`` ``[...]`` gives ``[..., 9, 9]``."""
+    G = noise_gain(dt, kind, dtype=dtype, device=device)
+    sq = torch.as_tensor(sigma_q, dtype=dtype, device=device)
+    if (sq < 0).any():
+        raise ValueError(f"sigma_q must be non-negative, got {sigma_q}")
+    return sq[..., None, None] ** 2 * (G @ G.T)
+
+
+def measurement_matrix(dtype=torch.float64, device=None) -> torch.Tensor:
+    """``H`` of shape ``[3, 9]`` picking the three positions."""
+    H = torch.zeros(3, 9, dtype=dtype, device=device)
+    H[0, 0] = H[1, 3] = H[2, 6] = 1.0
+    return H

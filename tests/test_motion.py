@@ -1,0 +1,112 @@
+"""Motion models against closed forms and a fine-step integration of the turn ODE."""
+
+import math
+
+import pytest
+import torch
+
+from immnet.config import REPO_ROOT
+from immnet.motion import (
+    DEG,
+    ConstantAcceleration,
+    ConstantVelocity,
+    CoordinatedTurn,
+    ModelSet,
+    ct_matrix,
+    noise_gain,
+    process_noise,
+)
+
+
+def _state(lx=100.0, vx=120.0, ax=0.0, ly=-50.0, vy=80.0, ay=0.0, lz=3000.0, vz=2.0, az=0.0):
+    return torch.tensor([lx, vx, ax, ly, vy, ay, lz, vz, az], dtype=torch.float64)
+
+
+def test_ca_matches_closed_form_kinematics():
+    x0 = _state(ax=1.5, ay=-0.7, az=0.2)
+    dt, steps = 0.5, 37
+    F = ConstantAcceleration().F(dt)
+    x = x0.clone()
+    for _ in range(steps):
+        x = F @ x
+    t = dt * steps
+    for p, v, a in ((0, 1, 2), (3, 4, 5), (6, 7, 8)):
+        l0, v0, a0 = x0[p].item(), x0[v].item(), x0[a].item()
+        assert x[p].item() == pytest.approx(l0 + v0 * t + 0.5 * a0 * t * t, rel=1e-12)
+        assert x[v].item() == pytest.approx(v0 + a0 * t, rel=1e-12)
+        assert x[a].item() == pytest.approx(x0[a].item(), rel=1e-12)
+
+
+def test_cv_zeroes_acceleration_and_moves_linearly():
+    x = ConstantVelocity().F(2.0) @ _state(ax=3.0)
+    assert x[2] == 0 and x[0] == 100.0 + 2 * 120.0 and x[6] == 3000.0 + 4.0
+
+
+@pytest.mark.parametrize("w_deg", [-10.0, -3.0, 1.0, 8.0], ids=lambda w: f"w={w:+g}")
+def test_ct_keeps_speed_and_matches_turn_ode(w_deg):
+    w = w_deg * DEG
+    dt, steps = 1.0, 50
+    F = CoordinatedTurn(w_deg).F(dt)
+    x = _state()
+    speed0 = math.hypot(x[1], x[4])
+    # reference: RK4 on d(l, v)/dt = (v, w J v), J = [[0, -1], [1, 0]], with 1000 substeps per step
+    ref = [x[0].item(), x[3].item(), x[1].item(), x[4].item()]
+
+    def f(s):
+        return [s[2], s[3], -w * s[3], w * s[2]]
+
+    def add(s, k, c):
+        return [a + c * b for a, b in zip(s, k)]
+
+    h = dt / 1000
+    for _ in range(steps):
+        x = F @ x
+        for _ in range(1000):
+            k1 = f(ref)
+            k2 = f(add(ref, k1, h / 2))
+            k3 = f(add(ref, k2, h / 2))
+            k4 = f(add(ref, k3, h))
+            ref = [r + h / 6 * (a + 2 * b + 2 * c + d) for r, a, b, c, d in zip(ref, k1, k2, k3, k4)]
+        assert math.hypot(x[1], x[4]) == pytest.approx(speed0, rel=1e-12)
+    assert torch.allclose(torch.stack([x[0], x[3], x[1], x[4]]), torch.tensor(ref, dtype=torch.float64), rtol=0, atol=1e-6)
+    # centripetal acceleration: a = w x v, magnitude w * speed
+    assert x[2].item() == pytest.approx(-w * x[4].item(), rel=1e-12)
+    assert x[5].item() == pytest.approx(w * x[1].item(), rel=1e-12)
+    # z axis is CV
+    assert x[6].item() == pytest.approx(3000.0 + 2.0 * steps * dt)
+
+
+def test_ct_batched_and_zero_rate_limit():
+    w = torch.tensor([0.0, 1e-12, 0.1, -0.1])
+    F = ct_matrix(w, 1.0)
+    assert F.shape == (4, 9, 9)
+    cv = ct_matrix(torch.tensor(0.0), 1.0)
+    assert torch.allclose(F[0], cv) and torch.allclose(F[1], cv, atol=1e-10)
+    assert torch.allclose(F[2], ct_matrix(0.1, 1.0)) and torch.allclose(F[3], ct_matrix(-0.1, 1.0))
+
+
+def test_process_noise_forms():
+    G = noise_gain(2.0)
+    assert torch.equal(G[0:3, 0], torch.tensor([2.0, 2.0, 0.0], dtype=torch.float64))
+    Q = process_noise(0.2, 2.0, "wiener")
+    assert Q[2, 2].item() == pytest.approx(0.04)
+    assert torch.allclose(Q, Q.T)
+    assert process_noise(torch.tensor([0.1, 1.0]), 1.0).shape == (2, 9, 9)
+    with pytest.raises(ValueError, match="non-negative"):
+        process_noise(-1.0, 1.0)
+
+
+@pytest.mark.parametrize("name,n", [("imm3", 3), ("imm4", 4), ("imm6", 6)])
+def test_model_sets_load_from_yaml(name, n):
+    ms = ModelSet.from_config(REPO_ROOT / "configs" / "model_sets" / f"{name}.yaml")
+    assert len(ms) == n and ms.F(1.0).shape == (n, 9, 9) and ms.Q(0.2).shape == (n, 9, 9)
+    assert set(ms.modes.tolist()) <= {0, 1, 2, 3}
+
+
+def test_model_set_errors():
+    with pytest.raises(ValueError, match="at least one"):
+        ModelSet([])
+    with pytest.raises(ValueError, match="unknown class_path"):
+        ModelSet.from_config([{"class_path": "immnet.motion.Nope"}])
+    with pytest.raises(ValueError, match="non-zero"):
+        CoordinatedTurn(0.0)
