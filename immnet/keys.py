@@ -1,0 +1,40 @@
+"""The one vocabulary of TensorDict keys, written once and used everywhere.
+
+A 3D-LAST batch (``TensorDict`` with batch size ``[B]``, time second)::
+
+    states [B, T, 9]   measurements [B, T, 3] (NaN = missed detection)   mode [B, T] int64
+    turn_rate [B, T] (rad/s)   r [B]   dt [B]
+
+A method's output (``TensorDict [B]``): ``state [B, T, 9]`` and, where it has them, ``mode_probs
+[B, T, 4]`` over the data modes (0 CV, 1 CA, 2 CT+, 3 CT-).
+
+One tracker step (``immnet.stages``) reads and writes nested keys that say where a value came from.
+"""
+
+# --- data -----------------------------------------------------------------------------------
+STATES = "states"
+MEASUREMENTS = "measurements"
+MODE = "mode"
+TURN_RATE = "turn_rate"
+R = "r"
+DT = "dt"
+DATA_KEYS = (STATES, MEASUREMENTS, MODE, TURN_RATE, R, DT)
+
+# --- a method's output ------------------------------------------------------------------------
+STATE = "state"
+MODE_PROBS = "mode_probs"
+
+# --- one tracker step (immnet.stages) ---------------------------------------------------------
+MEASUREMENT = "measurement"  # z_t [B, 3]
+PREV_MEASUREMENT = ("memory", "measurement")  # z_{t-1} [B, 3]
+FUSED = ("fused", "state")  # x_{t|t} [B, 9]; read as x_{t-1|t-1} at the start of a step
+PREV_FUSED = ("memory", "fused")  # x_{t-2|t-2} [B, 9]
+EXPERT_PRIOR = ("expert", "prior")  # x_{t|t-1}^(i) [B, M, 9]
+PREV_EXPERT_PRIOR = ("memory", "prior")  # x_{t-1|t-2}^(i) [B, M, 9]
+EXPERT_GAIN = ("expert", "gain")  # K^(i) [B, M, 9, 3]
+EXPERT_POST = ("expert", "post")  # x_{t|t}^(i) [B, M, 9]
+EXPERT_HIDDEN = ("expert", "hidden")  # recurrent states of the gain networks
+EXPERT_COV = ("expert", "cov")  # P^(i) for the analytic gain [B, M, 9, 9]
+MODE_LOGITS = ("mode", "logits")  # [B, M]
+EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M]
+HISTORY = ("memory", "history")  # classifier window [B, W, C]
