@@ -1,0 +1,155 @@
+"""What a method is, and building one by name.
+
+A method is any object with ``name: str``, ``needs: tuple[str, ...]`` (data keys it reads beyond
+``measurements``) and ``track(batch: TensorDict[B]) -> TensorDict[B]`` holding ``state [B, T, 9]``
+and, where it has them, ``mode_probs [B, T, 4]`` over the data modes.
+
+Methods are configured, not coded in: ``configs/methods/<name>.yaml`` holds one ``class_path`` /
+``init_args`` mapping. ``build_method(name, checkpoint)`` loads it; a checkpoint (from the YAML's
+``init_args`` or from the caller) reaches the constructor as ``checkpoint=``. The only built-in is
+``measurements`` (:class:`RawMeasurements`), which needs no configuration.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from pathlib import Path
+from typing import Protocol, Sequence, runtime_checkable
+
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.config import REPO_ROOT, load_yaml
+from immnet.motion import POS
+
+METHODS_DIR = REPO_ROOT / "configs" / "methods"
+"""Where ``<name>.yaml`` method configs live."""
+
+ORDER = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "kalmannet", "immnet", "clairvoyant")
+"""Row order of the results table; other configured methods follow alphabetically."""
+
+
+@runtime_checkable
+class Method(Protocol):
+    name: str
+    needs: tuple[str, ...]
+
+    def track(self, batch: TensorDict) -> TensorDict: ...
+
+
+class RawMeasurements:
+    """The measurements as an estimate: ``x_hat_t = [z_t, 0, 0]`` per axis (no velocity/acceleration).
+
+    A missing detection (NaN) takes the last valid measurement; NaNs before the first valid one take
+    that first valid one; a trajectory with no valid measurement at all gets zeros.
+    """
+
+    name = "measurements"
+    needs: tuple[str, ...] = ()
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        z = batch[keys.MEASUREMENTS]
+        B, T, _ = z.shape
+        valid = ~torch.isnan(z).any(dim=-1)  # [B, T]
+        t = torch.arange(T, device=z.device).expand(B, T)
+        idx = torch.where(valid, t, torch.zeros_like(t)).cummax(dim=-1).values
+        first = valid.to(torch.int64).argmax(dim=-1, keepdim=True)  # 0 when none is valid
+        idx = torch.maximum(idx, first)
+        filled = torch.gather(z, 1, idx.unsqueeze(-1).expand(B, T, 3)).nan_to_num(0.0)
+        state = z.new_zeros(B, T, 9)
+        state[..., list(POS)] = filled
+        return TensorDict({keys.STATE: state}, batch_size=batch.batch_size, device=batch.device)
+
+
+BUILTIN = {"measurements": RawMeasurements}
+
+
+def _sort_key(name: str):
+    return (ORDER.index(name), "") if name in ORDER else (len(ORDER), name)
+
+
+def configured_methods(methods_dir: Path | None = None) -> list[str]:
+    """Every method name with a config or a built-in, in table order (not checked for importability)."""
+    d = Path(methods_dir or METHODS_DIR)
+    names = set(BUILTIN) | ({p.stem for p in d.glob("*.yaml")} if d.is_dir() else set())
+    return sorted(names, key=_sort_key)
+
+
+def _method_class(name: str, methods_dir: Path | None = None):
+    """``(class, init_args)`` of a method; ``ValueError`` naming the method when it cannot be had."""
+    if name in BUILTIN:
+        return BUILTIN[name], {}
+    path = Path(methods_dir or METHODS_DIR) / f"{name}.yaml"
+    if not path.exists():
+        raise ValueError(
+            f"unknown method {name!r} (no {path}); available: {', '.join(available_methods(methods_dir))}"
+        )
+    spec = load_yaml(path) or {}
+    if not isinstance(spec, dict) or "class_path" not in spec:
+        raise ValueError(f"method {name!r}: {path} holds no 'class_path' mapping")
+    module_name, _, cls_name = spec["class_path"].rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module_name), cls_name)
+    except (ImportError, AttributeError, ValueError) as err:
+        others = [m for m in available_methods(methods_dir) if m != name]
+        raise ValueError(
+            f"method {name!r} is not available ({spec['class_path']}: {err}); available: {', '.join(others)}"
+        ) from None
+    return cls, dict(spec.get("init_args") or {})
+
+
+def available_methods(methods_dir: Path | None = None) -> list[str]:
+    """Configured methods whose class imports, in table order."""
+    out = []
+    for name in configured_methods(methods_dir):
+        if name in BUILTIN:
+            out.append(name)
+            continue
+        try:
+            spec = load_yaml(Path(methods_dir or METHODS_DIR) / f"{name}.yaml") or {}
+            module_name, _, cls_name = spec["class_path"].rpartition(".")
+            getattr(importlib.import_module(module_name), cls_name)
+        except Exception:  # noqa: BLE001 - anything that stops the import makes it unavailable
+            continue
+        out.append(name)
+    return out
+
+
+def takes_checkpoint(name: str, methods_dir: Path | None = None) -> bool:
+    """Whether a method is built from a checkpoint (its YAML or its constructor names one)."""
+    cls, init_args = _method_class(name, methods_dir)
+    return "checkpoint" in init_args or "checkpoint" in inspect.signature(cls).parameters
+
+
+def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None):
+    """The method configured as ``configs/methods/<name>.yaml`` (or a built-in), ready to ``track``.
+
+    ``checkpoint`` overrides the YAML's ``init_args.checkpoint``; a relative checkpoint path in
+    the YAML is read from the working directory, else from the repository root. The object's
+    ``name`` is set to ``name`` so that rows carry the registry name.
+    """
+    cls, init_args = _method_class(name, methods_dir)
+    if checkpoint is not None:
+        if "checkpoint" not in init_args and "checkpoint" not in inspect.signature(cls).parameters:
+            raise ValueError(f"method {name!r} ({cls.__name__}) does not take a checkpoint")
+        init_args["checkpoint"] = str(checkpoint)
+    ckpt = init_args.get("checkpoint")
+    if ckpt is not None and not Path(ckpt).exists():
+        if (REPO_ROOT / ckpt).exists():
+            init_args["checkpoint"] = str(REPO_ROOT / ckpt)
+        else:
+            raise FileNotFoundError(f"method {name!r}: checkpoint not found: {ckpt}")
+    method = cls(**init_args)
+    try:
+        method.name = name
+    except AttributeError:  # a read-only property: keep the method's own name
+        pass
+    return method
+
+
+def missing_keys(method, data_keys: Sequence[str]) -> list[str]:
+    """The data arrays a method needs that ``data_keys`` lack."""
+    have = set(data_keys)
+    return [k for k in (keys.MEASUREMENTS, *getattr(method, "needs", ())) if k not in have]

@@ -1,0 +1,48 @@
+"""The results table: one row per method; RMSE x, y, z, Average, post-switch Average, and, where
+they apply, mode accuracy and the ratio of Average to the clairvoyant bound's."""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+BOUND = "clairvoyant"
+
+
+def _rows(results: Mapping[str, dict]):
+    """Header and string cells; ``results`` maps a method to its JSON row (see ``runner.to_json``)."""
+    has_mode = any(r.get("mode_accuracy") is not None for r in results.values())
+    bound = results.get(BOUND, {}).get("rmse", {}).get("avg")
+    header = ["method", "x [m]", "y [m]", "z [m]", "Average [m]", "post-switch [m]"]
+    if has_mode:
+        header.append("mode acc.")
+    if bound:
+        header.append("/ bound")
+    rows = []
+    for name, r in results.items():
+        rm = r["rmse"]
+        post = r.get("rmse_post_switch")
+        row = [name, *(f"{rm[a]:.3f}" for a in ("x", "y", "z", "avg")), f"{post['avg']:.3f}" if post else "-"]
+        if has_mode:
+            acc = r.get("mode_accuracy")
+            row.append(f"{100 * acc:.1f} %" if acc is not None else "-")
+        if bound:
+            row.append(f"{rm['avg'] / bound:.3f}")
+        rows.append(row)
+    return header, rows
+
+
+def format_table(results: Mapping[str, dict]) -> str:
+    """A fixed-width text table for the terminal."""
+    header, rows = _rows(results)
+    widths = [max(len(c[i]) for c in [header, *rows]) for i in range(len(header))]
+    fmt = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
+    lines = [fmt(header), "  ".join("-" * w for w in widths), *(fmt(r) for r in rows)]
+    return "\n".join(lines)
+
+
+def format_markdown(results: Mapping[str, dict]) -> str:
+    """The same table in GitHub markdown (numbers right-aligned), for the README."""
+    header, rows = _rows(results)
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":---"] + ["---:"] * (len(header) - 1)) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
