@@ -1,0 +1,77 @@
+"""What a method is: ``name``, ``needs`` (data keys beyond measurements) and ``track(batch)``.
+
+``track`` maps a 3D-LAST batch (``TensorDict [B]``, ``measurements [B, T, 3]``) to a
+``TensorDict [B]`` with ``state [B, T, 9]`` and, where the method has them, ``mode_probs [B, T, 4]``
+over the data modes (0 CV, 1 CA, 2 CT+, 3 CT-).
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.motion import MODE_NAMES
+
+_DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
+
+
+class Method:
+    """The protocol every tracker, baseline and bound follows."""
+
+    name: str = "method"
+    needs: tuple[str, ...] = ()
+    ground_truth: bool = False
+    """True where ``needs`` are ground truth (a bound, not a tracker): said in the error message."""
+
+    def track(self, batch: TensorDict) -> TensorDict:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def check(self, batch: TensorDict) -> None:
+        """Raise a ValueError naming the first array this method needs and ``batch`` lacks."""
+        for key in (keys.MEASUREMENTS, *self.needs):
+            if key not in batch.keys():
+                kind = " (ground truth)" if self.ground_truth and key != keys.MEASUREMENTS else ""
+                raise ValueError(f"{self.name} needs {key!r}{kind}, which this data lacks")
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r})"
+
+
+def as_dtype(dtype) -> torch.dtype:
+    if isinstance(dtype, torch.dtype):
+        return dtype
+    if dtype not in _DTYPES:
+        raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {dtype!r}")
+    return _DTYPES[dtype]
+
+
+def batch_dt(batch: TensorDict, dtype, device) -> torch.Tensor:
+    """Sampling interval per track ``[B]`` (1 s where the data carries none)."""
+    B = batch.batch_size[0]
+    if keys.DT in batch.keys():
+        return torch.as_tensor(batch[keys.DT], dtype=dtype, device=device).reshape(-1).expand(B)
+    return torch.ones(B, dtype=dtype, device=device)
+
+
+def per_dt(build, dt: torch.Tensor) -> torch.Tensor:
+    """``build(float dt) -> [..., n, n]`` for each track's ``dt`` ``[B]``: ``[..., n, n]`` if all equal, else ``[B, ..., n, n]``."""
+    values, inverse = torch.unique(dt, return_inverse=True)
+    if len(values) == 1:
+        return build(float(values[0]))
+    return torch.stack([build(float(v)) for v in values])[inverse]
+
+
+def data_mode_probs(probs: torch.Tensor, modes: torch.Tensor) -> torch.Tensor:
+    """Expert probabilities ``[..., M]`` summed per data mode -> ``[..., 4]`` (absent modes get 0)."""
+    onehot = torch.nn.functional.one_hot(modes.to(probs.device), len(MODE_NAMES)).to(probs.dtype)
+    return probs @ onehot
+
+
+def output(state: torch.Tensor, extra: dict | None = None) -> TensorDict:
+    """A method's output ``TensorDict [B]``: ``state`` plus any non-None ``extra`` entries."""
+    td = TensorDict({keys.STATE: state}, batch_size=[state.shape[0]])
+    for key, value in (extra or {}).items():
+        if value is not None:
+            td[key] = value
+    return td

@@ -1,0 +1,86 @@
+"""The clairvoyant Kalman filter: the bound no causal tracker beats on average (SPEC.md section 3).
+
+It knows each trajectory's true mode sequence ``mode[t]``, turn rates ``turn_rate[t]`` and
+measurement noise ``r``, and runs one Kalman filter with the truth's time-varying transition:
+
+* ``F_t = F_CV``, ``F_CA`` or ``F_CT(turn_rate[t])`` by ``mode[t]`` (the step ``t-1 -> t``);
+* the truth's process noise ``Q = sigma_q^2 G G^T``, ``G`` per axis ``[dt^2/2, dt, 0]``,
+  ``sigma_q = 0.2``;  ``R = r^2 I``.
+
+At the first step of a CA segment (``mode[t] = CA != mode[t-1]``, ``t >= 1``) the generator writes a
+newly drawn acceleration into the state before ``F_CA``. The bound knows a switch happened, not
+the draw: before predicting it resets the acceleration mean to 0, removes its correlations, and
+sets its variance to that of the draw: horizontal magnitude ``a ~ U[0.5, 3]`` m/s^2 at a uniform
+direction gives ``E[a_x^2] = E[a^2] / 2 = (3^3 - 0.5^3) / (3 * 2.5) / 2 = 1.7917`` per horizontal
+axis; vertical ``U[-0.3, 0.3]`` gives ``0.6^2 / 12 = 0.03``.
+
+It starts like every other method: from the first measurement (``initial_state`` with the true r),
+except that where the first segment is CA it gives the acceleration the draw's variance above.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.filters.base import Method, as_dtype, batch_dt, output
+from immnet.filters.imm import initial_state
+from immnet.filters.kalman import predict, update
+from immnet.motion import ca_matrix, ct_matrix, cv_matrix, process_noise
+
+CA_ACC_VAR = ((3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0, (3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0, 0.6**2 / 12.0)
+"""Variance of a newly drawn CA acceleration per axis (x, y, z), from SPEC.md section 2."""
+
+CV, CA, CT_POS, CT_NEG = 0, 1, 2, 3
+
+
+class ClairvoyantKF(Method):
+    """Kalman filter with the true modes, turn rates and r of each trajectory; a bound, not a tracker."""
+
+    needs = (keys.MODE, keys.TURN_RATE, keys.R)
+    ground_truth = True
+
+    def __init__(self, sigma_q: float = 0.2, acc_var=CA_ACC_VAR, dtype="float64", name: str = "clairvoyant"):
+        if sigma_q < 0:
+            raise ValueError(f"sigma_q must be >= 0, got {sigma_q}")
+        self.sigma_q, self.acc_var = float(sigma_q), tuple(float(v) for v in acc_var)
+        self.dtype, self.name = as_dtype(dtype), name
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        self.check(batch)
+        dtype = self.dtype
+        z = batch[keys.MEASUREMENTS].to(dtype)
+        dev = z.device
+        B, T, _ = z.shape
+        mode = batch[keys.MODE].to(dev)
+        w = batch[keys.TURN_RATE].to(dtype)
+        r = torch.as_tensor(batch[keys.R], dtype=dtype, device=dev).reshape(B)
+        dt = batch_dt(batch, dtype, dev)
+        if not torch.all(dt == dt[0]):
+            raise ValueError(f"{self.name} needs one dt for the whole batch, got several")
+        d = float(dt[0])
+        Fcv, Fca = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
+        Q = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
+        R = r**2
+        acc = torch.tensor([2, 5, 8], device=dev)
+        acc_P = torch.diag(torch.tensor(self.acc_var, dtype=dtype, device=dev))
+        x, P = initial_state(z, r)
+        first_ca = mode[:, 0] == CA  # the generator writes the first CA segment's draw into x_0
+        P[first_ca, 2::3, 2::3] = acc_P
+        states = z.new_empty(B, T, 9)
+        states[:, 0] = x
+        for t in range(1, T):
+            m = mode[:, t]
+            F = torch.where((m == CV)[:, None, None], Fcv, torch.where((m == CA)[:, None, None], Fca, ct_matrix(w[:, t], d, dtype, dev)))
+            new_ca = (m == CA) & (mode[:, t - 1] != CA)
+            if new_ca.any():
+                x, P = x.clone(), P.clone()
+                x[new_ca.nonzero()[:, 0][:, None], acc] = 0.0
+                P[new_ca, :, 2::3] = 0.0
+                P[new_ca, 2::3, :] = 0.0
+                P[new_ca, 2::3, 2::3] = acc_P
+            x, P = predict(x, P, F, Q)
+            x, P, _ = update(x, P, z[:, t], None, R)
+            states[:, t] = x
+        return output(states)

@@ -1,0 +1,144 @@
+"""Model-based trackers as methods: a single-model Kalman filter and the IMM (SPEC.md section 3).
+
+Both start from the first measurement (``immnet.filters.imm.initial_state``): position at
+``z_0`` with variance ``r^2`` (the filter's assumed ``r``), zero velocity and acceleration with
+standard deviations 300 m/s and 10 m/s^2 on every axis. At ``t = 0`` the output is that state.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.filters.base import Method, as_dtype, batch_dt, data_mode_probs, output, per_dt
+from immnet.filters.imm import imm_filter, imm_step, initial_state
+from immnet.filters.kalman import predict, update
+from immnet.motion import ModelSet, MotionModel, instantiate
+
+
+def _positive(name: str, value, allow_zero: bool = True) -> None:
+    values = [float(v) for v in (value if isinstance(value, (list, tuple)) else [value])]
+    for v in values:
+        if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+            bound = ">= 0" if allow_zero else "> 0"
+            raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
+
+
+def transition_matrix(p_stay, M: int, dtype=torch.float64) -> torch.Tensor:
+    """``Pi [M, M]`` from ``p_stay`` (``p_stay`` on the diagonal, the rest shared evenly) or a matrix; validated."""
+    if isinstance(p_stay, (int, float)):
+        if not 0.0 <= p_stay <= 1.0:
+            raise ValueError(f"p_stay must be in [0, 1], got {p_stay}")
+        off = (1.0 - p_stay) / (M - 1) if M > 1 else 0.0
+        Pi = torch.full((M, M), off, dtype=dtype)
+        Pi.fill_diagonal_(p_stay if M > 1 else 1.0)
+        return Pi
+    Pi = torch.as_tensor(p_stay, dtype=dtype)
+    if Pi.shape != (M, M):
+        raise ValueError(f"transition matrix must be {M}x{M} for {M} models, got shape {tuple(Pi.shape)}")
+    if (Pi < 0).any() or not torch.isfinite(Pi).all():
+        raise ValueError("transition matrix entries must be finite and non-negative")
+    rows = Pi.sum(-1)
+    if not torch.allclose(rows, torch.ones_like(rows), atol=1e-9):
+        raise ValueError(f"transition matrix rows must sum to 1 (row-stochastic), got row sums {rows.tolist()}")
+    return Pi
+
+
+class KalmanFilterTracker(Method):
+    """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r``."""
+
+    def __init__(self, model: MotionModel | dict, r: float, sigma_q: float, dtype="float64", name: str | None = None):
+        self.model = model if isinstance(model, MotionModel) else instantiate(model)
+        _positive("r", r, allow_zero=False)
+        _positive("sigma_q", sigma_q)
+        self.r, self.sigma_q, self.dtype = float(r), float(sigma_q), as_dtype(dtype)
+        self.name = name or f"kf-{self.model.name}"
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        self.check(batch)
+        z = batch[keys.MEASUREMENTS].to(self.dtype)
+        dev, dt = z.device, batch_dt(batch, self.dtype, z.device)
+        F = per_dt(lambda d: self.model.F(d, dtype=self.dtype, device=dev), dt)
+        Q = per_dt(lambda d: self.model.Q(self.sigma_q, d, dtype=self.dtype, device=dev), dt)
+        x, P = initial_state(z, self.r)
+        R = torch.tensor(self.r**2, dtype=self.dtype, device=dev)
+        states = z.new_empty(z.shape[0], z.shape[1], 9)
+        states[:, 0] = x
+        for t in range(1, z.shape[1]):
+            x, P = predict(x, P, F, Q)
+            x, P, _ = update(x, P, z[:, t], None, R)
+            states[:, t] = x
+        return output(states)
+
+
+class IMMTracker(Method):
+    """The standard IMM over a model set.
+
+    ``model_set``: a YAML path, a list of ``class_path`` entries or a ``ModelSet``; ``r``: the
+    filter's assumed measurement std (m); ``sigma_q``: process-noise scale, one for all models or
+    one per model; ``p_stay``: the Markov chain's staying probability (the rest spread evenly), or
+    a full row-stochastic matrix ``[M, M]``; ``mu0``: initial mode probabilities (uniform if None).
+    ``track`` gives ``state``, ``mode_probs`` over data modes and, with ``return_experts``, the
+    experts' posteriors ``("expert", "post") [B, T, M, 9]`` and probabilities ``("mode", "probs")``.
+    """
+
+    def __init__(
+        self,
+        model_set,
+        r: float,
+        sigma_q: float | Sequence[float],
+        p_stay: float | Sequence[Sequence[float]] = 0.8,
+        mu0: Sequence[float] | None = None,
+        dtype="float64",
+        name: str = "imm",
+        return_experts: bool = False,
+        compile: bool = False,
+    ):
+        self.model_set = ModelSet.from_config(model_set)
+        M = len(self.model_set)
+        shapes = {tuple(m.F(1.0).shape) for m in self.model_set}
+        if len(shapes) != 1 or any(len(s) != 2 or s[0] != s[1] for s in shapes):
+            raise ValueError(f"model set {self.model_set} mixes state dimensions: F shapes {sorted(shapes)}")
+        _positive("r", r, allow_zero=False)
+        _positive("sigma_q", sigma_q)
+        if isinstance(sigma_q, (list, tuple)) and len(sigma_q) != M:
+            raise ValueError(f"sigma_q has {len(sigma_q)} values for {M} models")
+        self.Pi = transition_matrix(p_stay, M)
+        if mu0 is None:
+            self.mu0 = torch.full((M,), 1.0 / M, dtype=torch.float64)
+        else:
+            self.mu0 = torch.as_tensor(mu0, dtype=torch.float64)
+            if self.mu0.shape != (M,):
+                raise ValueError(f"mu0 must have one probability per model ({M}), got shape {tuple(self.mu0.shape)}")
+            if (self.mu0 < 0).any() or abs(float(self.mu0.sum()) - 1.0) > 1e-6:
+                raise ValueError(f"mu0 must be non-negative and sum to 1, got {self.mu0.tolist()}")
+        self.r = float(r)
+        self.sigma_q = [float(s) for s in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
+        self.dtype = as_dtype(dtype)
+        self.name = name
+        self.return_experts = return_experts
+        self._step = torch.compile(imm_step, dynamic=False) if compile else imm_step
+
+    def matrices(self, dt, device=None):
+        """``F, Q`` of the experts ``[M, 9, 9]`` (``[B, M, 9, 9]`` if ``dt [B]`` varies), ``Pi``, ``mu0``."""
+        dt = torch.as_tensor(dt, dtype=self.dtype, device=device).reshape(-1)
+        F = per_dt(lambda d: self.model_set.F(d, dtype=self.dtype, device=device), dt)
+        Q = per_dt(lambda d: self.model_set.Q(self.sigma_q, d, dtype=self.dtype, device=device), dt)
+        return F, Q, self.Pi.to(self.dtype).to(device), self.mu0.to(self.dtype).to(device)
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        self.check(batch)
+        z = batch[keys.MEASUREMENTS].to(self.dtype)
+        F, Q, Pi, mu0 = self.matrices(batch_dt(batch, self.dtype, z.device), z.device)
+        x0, P0 = initial_state(z, self.r)
+        R = torch.tensor(self.r**2, dtype=self.dtype, device=z.device)
+        states, probs, experts = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts, step=self._step)
+        extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes)}
+        if self.return_experts:
+            extra[keys.EXPERT_POST] = experts
+            extra[keys.EXPERT_PROBS] = probs
+        return output(states, extra)
