@@ -1,0 +1,182 @@
+"""``immnet evaluate`` (score methods on a data set) and ``immnet tune-imm`` (the IMM-Tuned search).
+
+    immnet evaluate --data /tmp/eval1k --split all --json results.json --figures figs/
+    immnet tune-imm --data data/train
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from immnet.evaluation.methods import available_methods, build_method, missing_keys, takes_checkpoint
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("evaluate", help="score tracking methods on a data set (RMSE table, JSON, figures)",
+                              description="Score tracking methods on a 3D-LAST data set: RMSE table, JSON, figures.")
+    p.add_argument("--data", required=True, help="a data set directory (immnet data generate) or an .npz file")
+    p.add_argument("--split", choices=("test", "all"), default="test",
+                   help="test: the DataModule's test split of a generated directory (default); all: every "
+                        "trajectory (an .npz is always taken whole)")
+    p.add_argument("--methods", help="comma-separated method names (default: every available one the data allows)")
+    p.add_argument("--checkpoint", action="append", default=[], metavar="[NAME=]CKPT",
+                   help="checkpoint for a neural method; a bare path goes to every selected method that takes one")
+    p.add_argument("--batch-size", type=int, default=256, help="trajectories per batch (default 256)")
+    p.add_argument("--limit", type=int, help="only the first N trajectories of the split")
+    p.add_argument("--json", type=Path, help="write the results as JSON here")
+    p.add_argument("--figures", type=Path, metavar="DIR", help="write the PNG figures into DIR")
+    p.add_argument("--seed", type=int, default=0, help="picks the case-study trajectories of --figures (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run_evaluate)
+
+    t = subparsers.add_parser("tune-imm", help="search the IMM-Tuned configuration on validation data",
+                              description="Choose IMM-Tuned's model set and sigma_q on the validation split "
+                                          "(never the test split) and write its method config.")
+    t.add_argument("--data", required=True, help="a data set directory or an .npz file")
+    t.add_argument("--split", choices=("val",), default="val", help="only the validation split is allowed")
+    t.add_argument("--n", type=int, default=500, help="validation trajectories used (the first N; default 500)")
+    t.add_argument("--out", type=Path, default=None, help="config to write (default configs/methods/imm-tuned.yaml)")
+    t.set_defaults(func=run_tune)
+
+
+# --- data -------------------------------------------------------------------------------------
+def load_split(path, split: str, limit: int | None = None):
+    """``(TensorDict [N], meta)``: the named split of a data set (see docs/evaluation.md)."""
+    from immnet.data.storage import load_dataset
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"data not found: {path}")
+    data, meta = load_dataset(path)
+    if split != "all" and path.is_dir():
+        from immnet.data.datamodule import LASTDataModule
+
+        dm = LASTDataModule(data)
+        if hasattr(dm, "setup"):
+            dm.setup()
+        data = dm.split(split)
+    if limit is not None:
+        if limit < 1:
+            raise ValueError("--limit must be positive")
+        data = data[:limit]
+    return data, meta
+
+
+def pick_cases(data, n: int = 2, seed: int = 0) -> list[int]:
+    """``n`` trajectory indices drawn with ``seed``, preferring ones with at least two switches."""
+    import torch
+
+    from immnet import keys
+    from immnet.evaluation.metrics import switch_steps
+
+    N = data.batch_size[0]
+    g = torch.Generator().manual_seed(seed)
+    order = torch.randperm(N, generator=g)
+    if keys.MODE in data.keys():
+        n_sw = switch_steps(data[keys.MODE]).sum(dim=-1)[order]
+        order = order[torch.argsort(-(n_sw.clamp(max=2)), stable=True)]
+    return sorted(order[:n].tolist())
+
+
+# --- methods ----------------------------------------------------------------------------------
+def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
+    named, bare = {}, []
+    for s in specs:
+        name, sep, ck = s.partition("=")
+        if sep and name in names:
+            named[name] = ck
+        elif sep and not Path(s).exists():
+            raise ValueError(f"--checkpoint {s}: {name!r} is not a selected method ({', '.join(names)})")
+        else:
+            bare.append(s)
+    if len(bare) > 1:
+        raise ValueError("give at most one bare --checkpoint; name the others as NAME=CKPT")
+    if bare:
+        takers = [n for n in names if n not in named and takes_checkpoint(n)]
+        if not takers:
+            raise ValueError(f"--checkpoint {bare[0]}: none of the selected methods ({', '.join(names)}) takes one")
+        named.update({n: bare[0] for n in takers})
+    return named
+
+
+def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print) -> dict:
+    """``{name: method}``: the requested names (errors are errors) or, by default, every available
+    method that builds and whose ``needs`` the data meet (the others skipped with a note)."""
+    explicit = requested is not None
+    names = [n.strip() for n in requested.split(",") if n.strip()] if explicit else available_methods()
+    if explicit and not names:
+        raise ValueError("--methods is empty")
+    ckpt = _checkpoints(checkpoints, names)
+    methods = {}
+    for name in names:
+        try:
+            method = build_method(name, checkpoint=ckpt.get(name))
+        except (ValueError, FileNotFoundError, TypeError) as err:
+            if explicit:
+                raise
+            note(f"note: skipping {name}: {err}")
+            continue
+        missing = missing_keys(method, data_keys)
+        if missing:
+            msg = f"method {name!r} needs {', '.join(missing)}, which the data lacks"
+            if explicit:
+                raise ValueError(msg)
+            note(f"note: skipping {name}: {msg}")
+            continue
+        methods[name] = method
+    if not methods:
+        raise ValueError("no method to evaluate")
+    return methods
+
+
+# --- commands ---------------------------------------------------------------------------------
+def run_evaluate(args) -> int:
+    from immnet.evaluation.runner import evaluate, to_json
+    from immnet.evaluation.table import format_table
+
+    data, _ = load_split(args.data, args.split, args.limit)
+    note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
+    methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note)
+    if args.batch_size < 1:
+        raise ValueError("--batch-size must be positive")
+    cases = pick_cases(data, 2, args.seed) if args.figures else []
+    split = "all" if Path(args.data).is_file() else args.split
+    note(f"evaluating {', '.join(methods)} on {data.batch_size[0]} trajectories ({args.data}, split {split})")
+    results = evaluate(methods, data, batch_size=args.batch_size, progress=not args.quiet, keep=cases)
+    rows = to_json(results)
+    print(format_table(rows))
+    if args.json:
+        doc = {"n_trajectories": data.batch_size[0], "data": str(args.data), "split": split, "seed": args.seed,
+               "methods": rows}
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=2) + "\n")
+        note(f"wrote {args.json}")
+    if args.figures:
+        from immnet.evaluation.figures import write_figures
+
+        paths = write_figures(results, data, cases, args.figures)
+        note(f"wrote {len(paths)} figures to {args.figures} (case studies: trajectories {cases})")
+    return 0
+
+
+def run_tune(args) -> int:
+    from immnet.config import REPO_ROOT
+
+    if args.n < 1:
+        raise ValueError("--n must be positive")
+    if not Path(args.data).is_dir():
+        raise ValueError(f"tune-imm needs a generated data directory (it tunes on its validation split): {args.data}")
+    try:
+        from immnet.filters.tuning import tune_imm
+    except ImportError as err:
+        raise ValueError(f"the IMM tuning search is not available ({err})") from None
+    data, _ = load_split(args.data, args.split, args.n)
+    out = args.out or REPO_ROOT / "configs" / "methods" / "imm-tuned.yaml"
+    print(f"tuning IMM on {data.batch_size[0]} validation trajectories of {args.data}", file=sys.stderr)
+    best = tune_imm(data, out, progress=True)
+    print(json.dumps(best, indent=2, default=str))
+    print(f"wrote {out}", file=sys.stderr)
+    return 0
