@@ -120,8 +120,11 @@ class ModelSet:
         }
 
 
-def instantiate(entry: dict):
-    """Build ``class_path(**init_args)``; the YAML convention of Lightning's CLI."""
+def instantiate(entry: dict, **extra):
+    """Build ``class_path(**init_args, **extra)``; the YAML convention of Lightning's CLI.
+
+    ``extra`` carries what the caller knows and the YAML should not repeat (a stage's model set).
+    """
     if not isinstance(entry, dict) or "class_path" not in entry:
         raise ValueError(f"expected a mapping with 'class_path', got {entry!r}")
     module_name, _, cls_name = entry["class_path"].rpartition(".")
@@ -129,4 +132,4 @@ def instantiate(entry: dict):
         cls = getattr(importlib.import_module(module_name), cls_name)
     except (ImportError, AttributeError, ValueError) as err:
         raise ValueError(f"unknown class_path {entry['class_path']!r}: {err}") from None
-    return cls(**(entry.get("init_args") or {}))
+    return cls(**(entry.get("init_args") or {}), **extra)

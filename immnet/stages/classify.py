@@ -1,0 +1,200 @@
+"""Stage 4, classify: mode probabilities ``mu_t`` over the experts.
+
+``TransformerClassifier`` (the paper's Transformer, SPEC.md section 4): an encoder over the last
+``W`` scans of two streams, measurements ``z_tau`` and fused estimates ``x_{tau-1|tau-1}``, in a
+frame that is translation-invariant and scaled: positions relative to the latest fused estimate
+``x_{t-1|t-1}``, the horizontal plane rotated to its heading, residuals against the
+constant-velocity guess ``p_ref + v_ref (tau - t + 1) dt``, each through ``slog``. The two streams
+are two token sets in one sequence (a stream embedding tells them apart), so self-attention relates
+scans within a stream and across the streams. Each expert's current innovation (rotated, scaled)
+joins the pooled encoding in the head: it says which expert's prediction fits ``z_t``.
+
+Ablations, same keys: ``UniformMix`` (``mu = 1/M``) and ``BayesianModeUpdate`` (the IMM's
+``mu_t ∝ N(nu^(i); 0, S^(i)) (Pi^T mu_{t-1})^(i)`` with each expert's steady-state ``S``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as Fn
+from torch import nn
+
+from immnet import keys
+from immnet.motion import ModelSet
+from immnet.stages.base import Stage, measured, per_expert
+from immnet.stages.features import slog
+from immnet.stages.update import innovation
+
+_MODE_KEYS_IN = [keys.MEASUREMENT, keys.FUSED, keys.EXPERT_PRIOR]
+_MODE_KEYS_OUT = [keys.MODE_LOGITS, keys.EXPERT_PROBS]
+
+
+def heading_frame(v: torch.Tensor):
+    """cos and sin of the horizontal heading of velocities ``v [B, 3]`` (heading 0 when at rest)."""
+    speed = torch.sqrt(v[:, 0] ** 2 + v[:, 1] ** 2)
+    ok = speed > 1e-3
+    c = torch.where(ok, v[:, 0] / speed.clamp_min(1e-3), 1.0)
+    s = torch.where(ok, v[:, 1] / speed.clamp_min(1e-3), 0.0)
+    return c, s
+
+
+def rotate(d: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Express ``d [B, ..., 3]`` in the heading frame: (along-track, left, up)."""
+    shape = (-1,) + (1,) * (d.dim() - 2)
+    c, s = c.view(shape), s.view(shape)
+    along = c * d[..., 0] + s * d[..., 1]
+    left = -s * d[..., 0] + c * d[..., 1]
+    return torch.stack([along, left, d[..., 2]], -1)
+
+
+class _Block(nn.Module):
+    """Pre-norm Transformer encoder block (multi-head self-attention + MLP)."""
+
+    def __init__(self, d: int, heads: int, ff: int):
+        super().__init__()
+        self.heads = heads
+        self.norm1, self.norm2 = nn.LayerNorm(d), nn.LayerNorm(d)
+        self.qkv = nn.Linear(d, 3 * d)
+        self.proj = nn.Linear(d, d)
+        self.ff = nn.Sequential(nn.Linear(d, ff), nn.GELU(), nn.Linear(ff, d))
+
+    def forward(self, x, mask):
+        B, L, D = x.shape
+        q, k, v = self.qkv(self.norm1(x)).view(B, L, 3, self.heads, D // self.heads).permute(2, 0, 3, 1, 4)
+        a = Fn.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+        x = x + self.proj(a.transpose(1, 2).reshape(B, L, D))
+        return x + self.ff(self.norm2(x))
+
+
+class TransformerClassifier(Stage):
+    in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN]
+    out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN]
+
+    def __init__(
+        self,
+        model_set: ModelSet,
+        dt: float = 1.0,
+        window: int = 20,
+        d_model: int = 32,
+        heads: int = 4,
+        layers: int = 2,
+        ff: int = 64,
+    ):
+        super().__init__(model_set)
+        self.window, self.dt = window, dt
+        self.embed_z = nn.Linear(6, d_model)
+        self.embed_x = nn.Linear(12, d_model)
+        self.pos = nn.Parameter(torch.randn(2, window, d_model) * 0.02)
+        self.blocks = nn.ModuleList(_Block(d_model, heads, ff) for _ in range(layers))
+        self.norm = nn.LayerNorm(d_model)
+        M = self.n_experts
+        self.head = nn.Sequential(nn.Linear(d_model + 3 * M, 64), nn.GELU(), nn.Linear(64, M))
+
+    def initial_history(self, batch: int, dtype=torch.float32, device=None):
+        return torch.zeros(batch, self.window, 12, dtype=dtype, device=device)
+
+    def tokens(self, hist, fused):
+        """Frame the window: ``hist [B, W, 12]`` of (z_tau, x_{tau-1}) against ``fused = x_{t-1|t-1}``."""
+        W = self.window
+        p_ref, v_ref = fused[:, [0, 3, 6]], fused[:, [1, 4, 7]]
+        c, s = heading_frame(v_ref)
+        # scan tau = t - W + 1 + k holds z_tau; its CV guess is p_ref + v_ref (tau - t + 1) dt
+        lag = torch.arange(W, device=hist.device, dtype=hist.dtype) - (W - 2)
+        guess_z = p_ref[:, None] + v_ref[:, None] * (lag * self.dt)[None, :, None]
+        z = hist[..., :3]
+        tz = torch.cat([slog(rotate(z - p_ref[:, None], c, s), 100.0), slog(rotate(z - guess_z, c, s), 10.0)], -1)
+        x = hist[..., 3:]
+        px, vx, ax = x[..., [0, 3, 6]], x[..., [1, 4, 7]], x[..., [2, 5, 8]]
+        guess_x = guess_z - v_ref[:, None] * self.dt
+        tx = torch.cat(
+            [
+                slog(rotate(px - p_ref[:, None], c, s), 100.0),
+                slog(rotate(vx - v_ref[:, None], c, s), 10.0),
+                slog(rotate(ax, c, s), 1.0),
+                slog(rotate(px - guess_x, c, s), 10.0),
+            ],
+            -1,
+        )
+        return tz, tx, (c, s)
+
+    def forward(self, td):
+        z = td.get(keys.MEASUREMENT)
+        fused = td.get(keys.FUSED)
+        hist, n = td.get(keys.HISTORY), td.get(keys.HISTORY_LEN)
+        # a missing measurement enters the window as the predicted position of the fused estimate
+        z_fill = torch.where(measured(z), z, fused[:, [0, 3, 6]] + fused[:, [1, 4, 7]] * self.dt)
+        hist = torch.cat([hist[:, 1:], torch.cat([z_fill, fused], -1)[:, None]], 1)
+        n = (n + 1).clamp(max=self.window)
+        tz, tx, (c, s) = self.tokens(hist, fused)
+        h = torch.cat([self.embed_z(tz) + self.pos[0], self.embed_x(tx) + self.pos[1]], 1)
+        valid = torch.arange(self.window, device=n.device)[None] >= (self.window - n)[:, None]
+        valid = torch.cat([valid, valid], 1)  # [B, 2W]
+        mask = valid[:, None, None, :]
+        for block in self.blocks:
+            h = block(h, mask)
+        h = self.norm(h)
+        w = valid.to(h.dtype).unsqueeze(-1)
+        pooled = (h * w).sum(1) / w.sum(1).clamp_min(1.0)
+        nu = rotate(innovation(z, td.get(keys.EXPERT_PRIOR)), c, s)
+        logits = self.head(torch.cat([pooled, slog(nu, 10.0).flatten(1)], -1))
+        td.set(keys.MODE_LOGITS, logits)
+        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        td.set(keys.HISTORY, hist)
+        td.set(keys.HISTORY_LEN, n)
+        return td
+
+
+class UniformMix(Stage):
+    """Ablation: a fixed uniform mix ``mu = 1/M``."""
+
+    in_keys = [keys.FUSED]
+    out_keys = _MODE_KEYS_OUT
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0):
+        super().__init__(model_set)
+
+    def forward(self, td):
+        x = td.get(keys.FUSED)
+        logits = x.new_zeros(x.shape[0], self.n_experts)
+        td.set(keys.MODE_LOGITS, logits)
+        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        return td
+
+
+class BayesianModeUpdate(Stage):
+    """Ablation: the IMM's Bayesian mode update with a Markov transition ``Pi`` (``p_stay`` on the diagonal).
+
+    ``mu_t^(i) ∝ N(nu_t^(i); 0, S^(i)) sum_j Pi_ji mu_{t-1}^(j)``, in log space; ``S^(i)`` is the
+    expert's steady-state innovation covariance for ``sigma_q`` and ``r``.
+    """
+
+    in_keys = _MODE_KEYS_IN + [keys.EXPERT_PROBS]
+    out_keys = _MODE_KEYS_OUT
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0):
+        super().__init__(model_set)
+        from immnet.stages.gain import steady_state
+
+        M = self.n_experts
+        if not 0.0 < p_stay <= 1.0:
+            raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
+        off = (1.0 - p_stay) / max(M - 1, 1)
+        Pi = torch.full((M, M), off) + torch.eye(M) * (p_stay - off)
+        self.register_buffer("log_pi", torch.log(Pi.clamp_min(1e-30)))
+        _, _, S = steady_state(model_set, sigma_q, r, dt)
+        self.register_buffer("S_inv", torch.linalg.inv(S).float())
+        self.register_buffer("log_norm", (-0.5 * torch.logdet(2 * math.pi * S)).float())
+
+    def forward(self, td):
+        nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
+        has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))[..., 0]
+        loglik = self.log_norm - 0.5 * torch.einsum("bmi,mij,bmj->bm", nu, self.S_inv, nu)
+        loglik = torch.where(has_z, loglik, 0.0)
+        prev = td.get(keys.EXPERT_PROBS)
+        log_pred = torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + self.log_pi, dim=1)
+        logits = log_pred + loglik
+        td.set(keys.MODE_LOGITS, logits)
+        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        return td

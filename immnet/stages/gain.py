@@ -1,0 +1,174 @@
+"""Stage 2, gain: one Kalman gain ``K^(i)`` (9 x 3) per expert.
+
+``KalmanNetGain`` is KalmanNet's "architecture 2" (Revach et al. 2022): three GRUs tracking the
+process-noise covariance Q, the state covariance Sigma and the innovation covariance S, with fully
+connected layers FC1..FC7, for every expert at once (weights stacked on the expert dimension).
+Causal features, each normalized by ``slog`` (``immnet.stages.features``):
+
+* F1 ``z_t - z_{t-1}``, F2 ``z_t - H x_{t|t-1}^(i)``,
+* F3 ``x_{t-1|t-1} - x_{t-2|t-2}``, F4 ``x_{t-1|t-1} - x_{t-1|t-2}^(i)``.
+
+The network learns a bounded correction around its expert's steady-state Kalman gain:
+``K = K_ss + K_scale * tanh(FC2(...))`` with FC2's last layer started small, so an untrained
+expert is a steady-state Kalman filter and no finite input can produce an unbounded gain.
+
+``AnalyticGain`` is the ablation: the textbook Kalman gain from each expert's covariance
+``P^(i)_{t|t-1} = F^(i) P_{t-1|t-1} F^(i)T + Q^(i)``, ``K = P H^T (H P H^T + R)^-1``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from immnet import keys
+from immnet.motion import POS, ModelSet
+from immnet.stages.base import Stage, measured, per_expert
+from immnet.stages.features import F1_SCALE, F2_SCALE, F3_SCALE, F4_SCALE, slog, state_scale
+from immnet.stages.layers import StackedGRUCell, StackedLinear
+from immnet.stages.update import innovation
+
+_P = list(POS)
+
+
+def steady_state(model_set: ModelSet, sigma_q: float, r: float, dt: float = 1.0, iters: int = 2000):
+    """Steady-state prior covariance, gain and innovation covariance of each expert's KF (float64).
+
+    Iterates the Riccati recursion ``P <- F (I - K H) P F^T + Q`` to convergence; returns
+    ``(P [M, 9, 9], K [M, 9, 3], S [M, 3, 3])``.
+    """
+    F = model_set.F(dt)
+    Q = model_set.Q(sigma_q, dt)
+    R = r * r * torch.eye(3, dtype=torch.float64)
+    P = Q + torch.eye(9, dtype=torch.float64) * 1e2
+    for _ in range(iters):
+        S = P[:, _P][:, :, _P] + R
+        K = torch.linalg.solve(S, P[:, _P, :]).transpose(-1, -2)
+        IKH = torch.eye(9, dtype=torch.float64).expand_as(P).clone()
+        IKH[:, :, _P] -= K
+        post = IKH @ P @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
+        P = F @ post @ F.transpose(-1, -2) + Q
+    S = P[:, _P][:, :, _P] + R
+    K = torch.linalg.solve(S, P[:, _P, :]).transpose(-1, -2)
+    return P, K, S
+
+
+class KalmanNetGain(Stage):
+    """KalmanNet architecture 2 per expert, stacked. ``in_mult`` and ``out_mult`` as in KalmanNet."""
+
+    in_keys = [
+        keys.MEASUREMENT, keys.PREV_MEASUREMENT, keys.FUSED, keys.PREV_FUSED,
+        keys.EXPERT_PRIOR, keys.PREV_EXPERT_PRIOR, keys.EXPERT_HIDDEN,
+    ]
+    out_keys = [keys.EXPERT_GAIN, keys.EXPERT_HIDDEN]
+
+    def __init__(
+        self,
+        model_set: ModelSet,
+        dt: float = 1.0,
+        in_mult: int = 5,
+        out_mult: int = 4,
+        init_sigma_q: float = 1.0,
+        init_r: float = 4.0,
+        gain_scale: tuple[float, float, float] = (1.0, 0.5, 0.1),
+        init_out_scale: float = 0.01,
+    ):
+        super().__init__(model_set)
+        M, m, n = self.n_experts, 9, 3
+        self.d_q, self.d_sigma, self.d_s = m * m, m * m, n * n
+        self.fc5 = StackedLinear(M, m, m * in_mult)  # F4 -> GRU_Q
+        self.gru_q = StackedGRUCell(M, m * in_mult, self.d_q)
+        self.fc6 = StackedLinear(M, m, m * in_mult)  # F3 -> GRU_Sigma
+        self.gru_sigma = StackedGRUCell(M, self.d_q + m * in_mult, self.d_sigma)
+        self.fc1 = StackedLinear(M, self.d_sigma, n * n)
+        self.fc7 = StackedLinear(M, 2 * n, 2 * n * in_mult)  # F1, F2 -> GRU_S
+        self.gru_s = StackedGRUCell(M, n * n + 2 * n * in_mult, self.d_s)
+        d2 = self.d_s + self.d_sigma
+        self.fc2a = StackedLinear(M, d2, d2 * out_mult)
+        self.fc2b = StackedLinear(M, d2 * out_mult, m * n)
+        self.fc3 = StackedLinear(M, self.d_s + m * n, m * m)
+        self.fc4 = StackedLinear(M, self.d_sigma + m * m, self.d_sigma)
+        with torch.no_grad():
+            self.fc2b.weight.mul_(init_out_scale)
+            self.fc2b.bias.zero_()
+        self.h0_q = nn.Parameter(torch.zeros(M, self.d_q))
+        self.h0_sigma = nn.Parameter(torch.zeros(M, self.d_sigma))
+        self.h0_s = nn.Parameter(torch.zeros(M, self.d_s))
+        _, K_ss, _ = steady_state(model_set, init_sigma_q, init_r, dt)
+        self.register_buffer("K_ss", K_ss.float())
+        row = state_scale(*gain_scale)
+        self.register_buffer("K_scale", row[:, None].expand(9, 3).clone())
+        self.register_buffer("f3_scale", state_scale(*F3_SCALE))
+        self.register_buffer("f4_scale", state_scale(*F4_SCALE))
+
+    def initial_hidden(self, batch: int) -> dict:
+        return {
+            "q": self.h0_q.expand(batch, -1, -1),
+            "sigma": self.h0_sigma.expand(batch, -1, -1),
+            "s": self.h0_s.expand(batch, -1, -1),
+        }
+
+    def features(self, td):
+        M = self.n_experts
+        z = per_expert(td.get(keys.MEASUREMENT), M)
+        has_z = measured(z)
+        fused = per_expert(td.get(keys.FUSED), M)
+        prior = td.get(keys.EXPERT_PRIOR)
+        f1 = torch.where(has_z, z - per_expert(td.get(keys.PREV_MEASUREMENT), M), 0.0)
+        f2 = innovation(z, prior)
+        f3 = fused - per_expert(td.get(keys.PREV_FUSED), M)
+        f4 = fused - td.get(keys.PREV_EXPERT_PRIOR)
+        return (
+            slog(f1, F1_SCALE), slog(f2, F2_SCALE), slog(f3, self.f3_scale), slog(f4, self.f4_scale)
+        )
+
+    def forward(self, td):
+        f1, f2, f3, f4 = self.features(td)
+        h = td.get(keys.EXPERT_HIDDEN)
+        relu = torch.relu
+        h_q = self.gru_q(relu(self.fc5(f4)), h.get("q"))
+        h_sigma = self.gru_sigma(torch.cat([h_q, relu(self.fc6(f3))], -1), h.get("sigma"))
+        out_fc1 = relu(self.fc1(h_sigma))
+        out_fc7 = relu(self.fc7(torch.cat([f1, f2], -1)))
+        h_s = self.gru_s(torch.cat([out_fc1, out_fc7], -1), h.get("s"))
+        out_fc2 = self.fc2b(relu(self.fc2a(torch.cat([h_sigma, h_s], -1))))
+        out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
+        h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
+        delta = torch.tanh(out_fc2.unflatten(-1, (9, 3)))
+        td.set(keys.EXPERT_GAIN, self.K_ss + self.K_scale * delta)
+        td.set(keys.EXPERT_HIDDEN, {"q": h_q, "sigma": h_sigma, "s": h_s})
+        return td
+
+
+class AnalyticGain(Stage):
+    """The Kalman gain of each expert from its covariance (ablation; no learned parameters).
+
+    Reads the fused covariance ``P_{t-1|t-1}`` (``("fused", "cov")``), writes each expert's prior
+    gain and posterior covariance ``P^(i)_{t|t}`` (Joseph form) to ``("expert", "cov")``.
+    """
+
+    in_keys = [keys.MEASUREMENT, keys.FUSED_COV]
+    out_keys = [keys.EXPERT_GAIN, keys.EXPERT_COV]
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, sigma_q: float = 1.0, r: float = 4.0):
+        super().__init__(model_set)
+        if r <= 0 or sigma_q < 0:
+            raise ValueError(f"AnalyticGain needs r > 0 and sigma_q >= 0, got r={r}, sigma_q={sigma_q}")
+        self.r = r
+        self.register_buffer("F", model_set.F(dt))
+        self.register_buffer("Q", model_set.Q(sigma_q, dt))
+
+    def forward(self, td):
+        P = per_expert(td.get(keys.FUSED_COV), self.n_experts, event_dims=2).to(self.F.dtype)
+        P = self.F @ P @ self.F.transpose(-1, -2) + self.Q
+        R = self.r**2 * torch.eye(3, dtype=P.dtype, device=P.device)
+        S = P[..., _P, :][..., _P] + R
+        K = torch.linalg.solve(S, P[..., _P, :]).transpose(-1, -2)
+        has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts)).unsqueeze(-1)
+        K = torch.where(has_z, K, 0.0)
+        IKH = torch.eye(9, dtype=P.dtype, device=P.device).expand_as(P).clone()
+        IKH[..., _P] -= K
+        post = IKH @ P @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
+        td.set(keys.EXPERT_GAIN, K.to(td.get(keys.FUSED).dtype))
+        td.set(keys.EXPERT_COV, post)
+        return td

@@ -1,0 +1,177 @@
+"""IMMNet: one tracker step as a ``TensorDictSequential`` of five stages, and its rollout over time.
+
+    predict -> gain -> update -> classify -> fuse          (SPEC.md section 4)
+
+Every component is chosen by configuration (``class_path`` / ``init_args``); the model set is a
+YAML list of motion models. A track starts from two measurements: at its first scan the estimate
+is ``[z_0, 0, 0]``, at its second ``[z_1, (z_1 - z_0)/dt, 0]`` (position and differenced
+velocity), and from its third scan on the learned step runs. Tracks start independently: the carry
+holds each track's age, so one code path serves batched rollouts and the streaming ``Tracker``.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictSequential
+from torch import nn
+
+from immnet import keys
+from immnet.motion import POS, VEL, ModelSet, instantiate
+from immnet.stages.base import measured
+from immnet.stages.fuse import Fuse
+from immnet.stages.predict import Predict
+from immnet.stages.update import Update
+
+DEFAULT_GAIN = {"class_path": "immnet.stages.KalmanNetGain"}
+DEFAULT_CLASSIFIER = {"class_path": "immnet.stages.TransformerClassifier"}
+
+
+def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:
+    """Leafwise ``where(cond, a, b)`` with a batch mask ``cond [B]`` broadcast over each leaf."""
+    out = b.empty()
+    for key in b.keys(True, True):
+        x, y = a.get(key), b.get(key)
+        c = cond.view(-1, *([1] * (y.dim() - 1)))
+        out.set(key, torch.where(c, x.to(y.dtype), y))
+    return out
+
+
+class IMMNet(nn.Module):
+    """The hybrid tracker. ``model_set``: a YAML path or a list of ``class_path`` entries."""
+
+    def __init__(
+        self,
+        model_set="configs/model_sets/imm4.yaml",
+        gain: dict | None = None,
+        classifier: dict | None = None,
+        dt: float = 1.0,
+    ):
+        super().__init__()
+        self.model_set = ModelSet.from_config(model_set)
+        self.model_set_config = self.model_set.to_config()
+        self.dt = dt
+        ms = self.model_set
+        self.predict = Predict(ms, dt)
+        self.gain = instantiate(gain or DEFAULT_GAIN, model_set=ms, dt=dt)
+        self.update = Update(ms)
+        self.classify = instantiate(classifier or DEFAULT_CLASSIFIER, model_set=ms, dt=dt)
+        self.fuse = Fuse(ms)
+        self.step = TensorDictSequential(self.predict, self.gain, self.update, self.classify, self.fuse)
+        self.expert_step = TensorDictSequential(self.predict, self.gain, self.update, Fuse(ms, per_expert=True))
+        onehot = torch.zeros(len(ms), 4)
+        onehot[torch.arange(len(ms)), ms.modes] = 1.0
+        self.register_buffer("mode_onehot", onehot)
+
+    @property
+    def n_experts(self) -> int:
+        return len(self.model_set)
+
+    def to_mode_probs(self, expert_probs: torch.Tensor) -> torch.Tensor:
+        """Expert probabilities ``[..., M]`` summed per data mode ``[..., 4]``."""
+        return expert_probs @ self.mode_onehot.to(expert_probs.dtype)
+
+    # --- the carry ------------------------------------------------------------------------
+    def initial_carry(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> TensorDict:
+        """A carry of ``batch`` tracks that have not started (age 0)."""
+        M = self.n_experts
+        shape = (batch, M, 9) if experts_alone else (batch, 9)
+        zeros = torch.zeros(shape, dtype=dtype, device=device)
+        td = TensorDict(
+            {
+                keys.FUSED: zeros,
+                keys.PREV_FUSED: zeros,
+                keys.PREV_EXPERT_PRIOR: torch.zeros(batch, M, 9, dtype=dtype, device=device),
+                keys.PREV_MEASUREMENT: torch.zeros(shape[:-1] + (3,), dtype=dtype, device=device),
+                keys.AGE: torch.zeros(batch, dtype=torch.long, device=device),
+                keys.EXPERT_PROBS: torch.full((batch, M), 1.0 / M, dtype=dtype, device=device),
+            },
+            batch_size=[batch],
+            device=device,
+        )
+        if hasattr(self.gain, "initial_hidden"):
+            td.set(keys.EXPERT_HIDDEN, {k: v.to(dtype) for k, v in self.gain.initial_hidden(batch).items()})
+        if hasattr(self.gain, "initial_cov"):
+            td.set(keys.FUSED_COV, self.gain.initial_cov(shape[:-1], first=True))
+        if hasattr(self.classify, "initial_history") and not experts_alone:
+            td.set(keys.HISTORY, self.classify.initial_history(batch, dtype=dtype, device=device))
+            td.set(keys.HISTORY_LEN, torch.zeros(batch, dtype=torch.long, device=device))
+        return td
+
+    def _start(self, carry: TensorDict, z: torch.Tensor, second: bool) -> TensorDict:
+        """The carry after a track's first (``second=False``) or second measurement."""
+        M = self.n_experts
+        fresh = self.initial_carry(carry.batch_size[0], z.dim() == 3, z.dtype, z.device)
+        x = torch.zeros(z.shape[:-1] + (9,), dtype=z.dtype, device=z.device)
+        x[..., list(POS)] = z
+        if second:
+            x[..., list(VEL)] = (z - carry.get(keys.PREV_MEASUREMENT)) / self.dt
+            fresh.set(keys.PREV_FUSED, carry.get(keys.FUSED))
+            if fresh.get(keys.HISTORY_LEN, None) is not None:
+                # the classifier has just stored (z_1, x_0): the window holds one scan
+                fresh.set(keys.HISTORY_LEN, torch.ones_like(carry.get(keys.AGE)))
+                fresh.set(keys.HISTORY, carry.get(keys.HISTORY))
+            if fresh.get(keys.FUSED_COV, None) is not None:
+                fresh.set(keys.FUSED_COV, self.gain.initial_cov(z.shape[:-1], first=False))
+        else:
+            fresh.set(keys.PREV_FUSED, x)
+        fresh.set(keys.FUSED, x)
+        fresh.set(keys.PREV_EXPERT_PRIOR, (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone())
+        fresh.set(keys.PREV_MEASUREMENT, z)
+        fresh.set(keys.AGE, carry.get(keys.AGE) + 1)
+        return fresh
+
+    # --- one scan -------------------------------------------------------------------------
+    def scan(self, carry: TensorDict, z: torch.Tensor, experts_alone: bool = False) -> TensorDict:
+        """Advance every track by one scan of measurements ``z [B, 3]`` (``[B, M, 3]`` experts alone).
+
+        Returns the new carry, which also holds this scan's outputs (``("fused", "state")``,
+        ``("expert", "post")``, ``("mode", "probs")``, ...). NaN in ``z`` is a missed detection.
+        """
+        step = self.expert_step if experts_alone else self.step
+        td = carry.copy()
+        td.set(keys.MEASUREMENT, z)
+        age = carry.get(keys.AGE)
+        if bool((age >= 2).all()):
+            out = step(td)
+            out.set(keys.AGE, age)
+            return out
+        has = measured(z).reshape(z.shape[0], -1).all(-1)
+        out = step(td)
+        first = self._start(carry, z, second=False)
+        second = self._start(carry, z, second=True)
+        carry_keys = list(first.keys(True, True))
+        stepped = out.select(*carry_keys)
+        new = _where(has & (age == 1), second, stepped)
+        new = _where(has & (age == 0), first, new)
+        new = _where((age < 2) & ~has, carry.select(*carry_keys), new)
+        uniform = torch.full_like(new.get(keys.EXPERT_PROBS), 1.0 / self.n_experts)
+        new.set(keys.EXPERT_PROBS, torch.where((age < 2)[:, None], uniform, new.get(keys.EXPERT_PROBS)))
+        for key in out.keys(True, True):
+            if key not in carry_keys:
+                new.set(key, out.get(key))
+        return new
+
+    # --- a whole sequence -----------------------------------------------------------------
+    def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False):
+        """Run over ``measurements [B, T, 3]`` (``[B, M, T, 3]`` experts alone).
+
+        Returns ``(outputs, carry)``: ``outputs`` a TensorDict ``[B, T]`` with ``state``
+        (``[B, T, 9]``, or ``[B, T, M, 9]`` experts alone), ``expert_probs`` and ``mode_logits``
+        ``[B, T, M]``; ``carry`` continues the rollout (truncated BPTT detaches it between chunks).
+        """
+        B, T = measurements.shape[0], measurements.shape[-2]
+        if carry is None:
+            carry = self.initial_carry(B, experts_alone, measurements.dtype, measurements.device)
+        states, probs, logits = [], [], []
+        for t in range(T):
+            carry = self.scan(carry, measurements[..., t, :], experts_alone)
+            states.append(carry.get(keys.FUSED))
+            if not experts_alone:
+                probs.append(carry.get(keys.EXPERT_PROBS))
+                logits.append(carry.get(keys.MODE_LOGITS))
+        out = {keys.STATE: torch.stack(states, 1)}
+        if not experts_alone:
+            out["expert_probs"] = torch.stack(probs, 1)
+            out["mode_logits"] = torch.stack(logits, 1)
+        return TensorDict(out, batch_size=[B, T]), carry

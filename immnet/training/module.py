@@ -1,0 +1,194 @@
+"""The two-stage curriculum as LightningModules (SPEC.md section 4).
+
+* ``Stage1Module``: every expert alone (its own posterior is its estimate), each on a batch of 60 %
+  trajectories of its own mode and 40 % maneuvering ones; state loss only; only the gain networks train.
+* ``Stage2Module``: IMMNet end to end, ``gamma * state loss + (1 - gamma) * CE(mode)``, starting from
+  a stage-1 checkpoint's experts.
+
+Both use truncated back-propagation through time: a 400-step sequence is cut into chunks of
+``tbptt`` steps, each chunk is a backward pass and an optimizer step, and the carry is detached
+between chunks. Gradients are clipped; a chunk whose loss or gradient is not finite is skipped and
+counted (``train/skipped``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import lightning as L
+import torch
+
+from immnet import keys
+from immnet.stages import IMMNet
+from immnet.training.losses import component_weights, mode_loss, state_loss
+
+AXES = ("x", "y", "z")
+
+
+def position_rmse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """Per-axis position RMSE (SPEC.md section 5): per trajectory over time, then mean; ``[3]``."""
+    e = (est[..., [0, 3, 6]] - truth[..., [0, 3, 6]]).square().mean(1).sqrt()
+    return e.reshape(-1, 3).mean(0)
+
+
+class _TrackerModule(L.LightningModule):
+    def __init__(
+        self,
+        net: dict | None = None,
+        lr: float = 1e-3,
+        weight_decay: float = 0.0,
+        tbptt: int = 20,
+        grad_clip: float = 1.0,
+        loss_weights: tuple[float, float, float] = (1.0, 0.1, 0.02),
+        lr_decay: float = 1.0,
+    ):
+        super().__init__()
+        self.save_hyperparameters()
+        self.automatic_optimization = False
+        self.net = IMMNet(**(net or {}))
+        self.register_buffer("w_state", component_weights(*loss_weights), persistent=False)
+        self.skipped = 0
+
+    def trainable_parameters(self):
+        return self.parameters()
+
+    def configure_optimizers(self):
+        opt = torch.optim.Adam(self.trainable_parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=self.hparams.lr_decay)
+        return {"optimizer": opt, "lr_scheduler": sched}
+
+    def on_train_epoch_end(self):
+        sched = self.lr_schedulers()
+        if sched is not None:
+            sched.step()
+
+    def _optimize(self, loss: torch.Tensor) -> bool:
+        opt = self.optimizers()
+        if not torch.isfinite(loss):
+            self.skipped += 1
+            return False
+        opt.zero_grad(set_to_none=True)
+        self.manual_backward(loss)
+        norm = torch.nn.utils.clip_grad_norm_(list(self.trainable_parameters()), self.hparams.grad_clip)
+        if not torch.isfinite(norm):
+            opt.zero_grad(set_to_none=True)
+            self.skipped += 1
+            return False
+        opt.step()
+        return True
+
+    def chunks(self, T: int):
+        step = self.hparams.tbptt if self.hparams.tbptt and self.hparams.tbptt > 0 else T
+        return [(s, min(s + step, T)) for s in range(0, T, step)]
+
+    def _log_rmse(self, prefix: str, est, truth, batch_size):
+        rmse = position_rmse(est, truth)
+        for a, v in zip(AXES, rmse):
+            self.log(f"{prefix}/rmse_{a}", v, batch_size=batch_size)
+        self.log(f"{prefix}/rmse_avg", rmse.mean(), batch_size=batch_size, prog_bar=True)
+
+
+class Stage1Module(_TrackerModule):
+    """Stage 1: experts alone. Batches are TensorDicts ``[M, B]`` (expert ``i``'s mix on row ``i``)."""
+
+    def __init__(self, net: dict | None = None, lr: float = 1e-2, **kwargs):
+        super().__init__(net=net, lr=lr, **kwargs)
+
+    def trainable_parameters(self):
+        return self.net.gain.parameters()
+
+    def training_step(self, batch, batch_idx):
+        M = self.net.n_experts
+        if batch.batch_dims != 2 or batch.batch_size[0] != M:
+            raise ValueError(f"stage 1 needs batches [M={M}, B] (one row per expert), got {tuple(batch.batch_size)}")
+        z = batch[keys.MEASUREMENTS].transpose(0, 1)  # [B, M, T, 3]
+        x = batch[keys.STATES].transpose(0, 1).transpose(1, 2)  # [B, T, M, 9]
+        r = batch[keys.R].transpose(0, 1)  # [B, M]
+        carry, total = None, 0.0
+        for s, e in self.chunks(z.shape[-2]):
+            out, carry = self.net.rollout(z[..., s:e, :], carry, experts_alone=True)
+            loss = state_loss(out[keys.STATE], x[:, s:e], r, self.w_state)
+            self._optimize(loss)
+            carry = carry.detach()
+            total += loss.detach() * (e - s)
+        self.log("train/loss", total / z.shape[-2], prog_bar=True, batch_size=z.shape[0])
+        self.log("train/skipped", float(self.skipped))
+
+    def validation_step(self, batch, batch_idx):
+        M = self.net.n_experts
+        z = batch[keys.MEASUREMENTS].unsqueeze(1).expand(-1, M, -1, -1)
+        x = batch[keys.STATES].unsqueeze(2).expand(-1, -1, M, -1)
+        out, _ = self.net.rollout(z, experts_alone=True)
+        loss = state_loss(out[keys.STATE], x, batch[keys.R].unsqueeze(1).expand(-1, M), self.w_state)
+        self.log("val/loss", loss, prog_bar=True, batch_size=z.shape[0])
+        est = out[keys.STATE]
+        for i, name in enumerate(self.net.model_set.names):
+            rmse = position_rmse(est[:, :, i], batch[keys.STATES])
+            self.log(f"val/rmse_avg_{name}", rmse.mean(), batch_size=z.shape[0])
+
+
+class Stage2Module(_TrackerModule):
+    """Stage 2: IMMNet end to end, ``gamma * MSE + (1 - gamma) * CE``."""
+
+    def __init__(
+        self,
+        net: dict | None = None,
+        stage1_checkpoint: str | None = None,
+        lr: float = 1e-3,
+        gamma: float = 0.7,
+        **kwargs,
+    ):
+        super().__init__(net=net, lr=lr, **kwargs)
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        if stage1_checkpoint:
+            self.load_experts(stage1_checkpoint)
+
+    def load_experts(self, path: str):
+        """Start from the gain networks of a stage-1 checkpoint (same model set)."""
+        state = torch.load(path, map_location="cpu", weights_only=False)["state_dict"]
+        gain = {k[len("net.gain."):]: v for k, v in state.items() if k.startswith("net.gain.")}
+        if not gain:
+            raise ValueError(f"{path} holds no gain-network weights (net.gain.*)")
+        missing, unexpected = self.net.gain.load_state_dict(gain, strict=False)
+        if unexpected or [m for m in missing if not m.startswith("K_")]:
+            raise ValueError(f"stage-1 checkpoint {path} does not match this model set: missing {missing}, unexpected {unexpected}")
+
+    def losses(self, out, batch, s: int = 0, e: int | None = None):
+        e = e if e is not None else out.batch_size[1] + s
+        mse = state_loss(out[keys.STATE], batch[keys.STATES][:, s:e], batch.get(keys.R, None), self.w_state)
+        ce = mode_loss(self.net.to_mode_probs(out["expert_probs"]), batch[keys.MODE][:, s:e])
+        g = self.hparams.gamma
+        return g * mse + (1 - g) * ce, mse, ce
+
+    def training_step(self, batch, batch_idx):
+        z = batch[keys.MEASUREMENTS]
+        carry, tot = None, torch.zeros(3)
+        for s, e in self.chunks(z.shape[1]):
+            out, carry = self.net.rollout(z[:, s:e], carry)
+            loss, mse, ce = self.losses(out, batch, s, e)
+            self._optimize(loss)
+            carry = carry.detach()
+            tot += torch.stack([loss.detach(), mse.detach(), ce.detach()]) * (e - s)
+        tot /= z.shape[1]
+        B = z.shape[0]
+        self.log("train/loss", tot[0], prog_bar=True, batch_size=B)
+        self.log("train/mse", tot[1], batch_size=B)
+        self.log("train/ce", tot[2], batch_size=B)
+        self.log("train/skipped", float(self.skipped))
+
+    def validation_step(self, batch, batch_idx):
+        self._evaluate(batch, "val")
+
+    def test_step(self, batch, batch_idx):
+        self._evaluate(batch, "test")
+
+    def _evaluate(self, batch, prefix):
+        out, _ = self.net.rollout(batch[keys.MEASUREMENTS])
+        loss, mse, ce = self.losses(out, batch)
+        B = batch.batch_size[0]
+        self.log(f"{prefix}/loss", loss, prog_bar=True, batch_size=B)
+        self.log(f"{prefix}/ce", ce, batch_size=B)
+        self._log_rmse(prefix, out[keys.STATE], batch[keys.STATES], B)
+        pred = self.net.to_mode_probs(out["expert_probs"]).argmax(-1)
+        self.log(f"{prefix}/mode_accuracy", (pred == batch[keys.MODE]).float().mean(), batch_size=B)
