@@ -84,6 +84,8 @@ def update(x, P, z, H=None, R=1.0):
     P_post = P - K @ PHt.transpose(-1, -2)
     P_post = 0.5 * (P_post + P_post.transpose(-1, -2))
     loglik = -0.5 * ((y * Siy).sum(-1) + logdet + m * LOG_2PI)
+    if not torch.is_grad_enabled() and missed.device.type == "cpu" and not bool(missed.any()):
+        return x_post, P_post, loglik  # nothing missed: skip three passes over P (CPU only, no sync)
     # Broadcast ``missed`` over what F, Q or R may have added in front, then keep the prior.
     keep = missed.expand(loglik.shape)
     x_post = torch.where(keep[..., None], x.expand_as(x_post), x_post)

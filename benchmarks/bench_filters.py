@@ -1,0 +1,136 @@
+"""IMM throughput (track-steps/s) and single-track step latency, against FilterPy's IMMEstimator.
+
+Run:  .venv/bin/python benchmarks/bench_filters.py [--steps 50] [--model-set configs/model_sets/imm3.yaml]
+It prints a table and rewrites the ``## Filters`` section of BENCHMARKS.md (other sections are kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from immnet.config import REPO_ROOT
+from immnet.filters import imm_filter, initial_state
+from immnet.filters.trackers import transition_matrix
+from immnet.motion import ModelSet, measurement_matrix
+
+BATCHES = (1, 64, 1024, 8192)
+
+
+def _data(B, T, dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(T, dtype=torch.float64)
+    pos = torch.stack([1e4 + 150 * t, -5e3 + 80 * t, 3e3 + 2 * t], -1)
+    return (pos + 4 * torch.randn(B, T, 3, generator=g, dtype=torch.float64)).to(dtype)
+
+
+def bench_imm(ms: ModelSet, B: int, T: int, dtype, sigma_q=0.5, r=4.0):
+    """(track-steps/s, us per step) of ``imm_filter`` over ``B`` tracks and ``T`` steps."""
+    F, Q = ms.F(1.0, dtype=dtype), ms.Q(sigma_q, dtype=dtype)
+    Pi, M = transition_matrix(0.8, len(ms)).to(dtype), len(ms)
+    mu0 = torch.full((M,), 1.0 / M, dtype=dtype)
+    z = _data(B, T, dtype)
+    x0, P0 = initial_state(z, r)
+    R = torch.tensor(r * r, dtype=dtype)
+    with torch.no_grad():
+        imm_filter(z[:, :4], x0, P0, F, Q, R, Pi, mu0)  # warm-up
+        t0 = time.perf_counter()
+        imm_filter(z, x0, P0, F, Q, R, Pi, mu0)
+        el = time.perf_counter() - t0
+    return B * (T - 1) / el, el / (T - 1) * 1e6
+
+
+def bench_filterpy(ms: ModelSet, tracks: int, T: int, sigma_q=0.5, r=4.0):
+    from filterpy.kalman import IMMEstimator, KalmanFilter
+
+    F, Q = ms.F(1.0).numpy(), ms.Q(sigma_q).numpy()
+    Pi = transition_matrix(0.8, len(ms)).numpy()
+    z = _data(tracks, T, torch.float64)
+    x0, P0 = initial_state(z, r)
+    z = z.numpy()
+    t0 = time.perf_counter()
+    for b in range(tracks):
+        filters = []
+        for Fm, Qm in zip(F, Q):
+            kf = KalmanFilter(9, 3)
+            kf.F, kf.Q, kf.H, kf.R = Fm, Qm, measurement_matrix().numpy(), r * r * np.eye(3)
+            kf.x, kf.P = x0[b].numpy().copy(), P0[b].numpy().copy()
+            filters.append(kf)
+        imm = IMMEstimator(filters, np.full(len(ms), 1.0 / len(ms)), Pi)
+        for zt in z[b, 1:]:
+            imm.predict()
+            imm.update(zt)
+    el = time.perf_counter() - t0
+    return tracks * (T - 1) / el, el / (tracks * (T - 1)) * 1e6
+
+
+def machine() -> str:
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
+    return f"{os.cpu_count()} CPUs ({cpu}), torch {torch.__version__}, {torch.get_num_threads()} threads, load average {load}"
+
+
+def write_section(text: str, path: Path) -> None:
+    """Replace (or append) the ``## Filters`` section of ``path``, keeping every other section."""
+    old = path.read_text() if path.exists() else "# Benchmarks\n"
+    section = "## Filters\n\n" + text.strip() + "\n"
+    pattern = re.compile(r"^## Filters\n.*?(?=^## |\Z)", re.S | re.M)
+    new = pattern.sub(lambda _: section + "\n", old) if pattern.search(old) else old.rstrip() + "\n\n" + section
+    path.write_text(new.rstrip() + "\n")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--steps", type=int, default=50, help="time steps per run (default 50)")
+    p.add_argument("--model-set", default="configs/model_sets/imm3.yaml")
+    p.add_argument("--filterpy-tracks", type=int, default=4)
+    p.add_argument("--out", type=Path, default=REPO_ROOT / "BENCHMARKS.md")
+    p.add_argument("--no-write", action="store_true")
+    args = p.parse_args(argv)
+    ms = ModelSet.from_config(args.model_set)
+    rows = []
+    for dtype in (torch.float64, torch.float32):
+        for B in BATCHES:
+            T = args.steps if B > 1 else 4 * args.steps
+            rate, us = bench_imm(ms, B, T, dtype)
+            rows.append((f"IMMNet imm_filter, {str(dtype)[6:]}", B, rate, us))
+            print(f"{rows[-1][0]:32s} B={B:5d} {rate:12,.0f} track-steps/s {us:10.0f} us/step", flush=True)
+    rate, us = bench_filterpy(ms, args.filterpy_tracks, args.steps)
+    rows.append(("FilterPy IMMEstimator, float64", 1, rate, us))
+    print(f"{rows[-1][0]:32s} B={1:5d} {rate:12,.0f} track-steps/s {us:10.0f} us/step")
+    cmd = "PYTHONPATH=. .venv/bin/python benchmarks/bench_filters.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    lines = [
+        f"IMM with {len(ms)} models ({', '.join(ms.names)}), {args.steps} steps (batch 1: {4 * args.steps}), "
+        f"{datetime.date.today().isoformat()}; {machine()}.",
+        f"Command: `{cmd.strip()}`",
+        "",
+        "| implementation | batch | track-steps/s | us per step (whole batch) |",
+        "|---|---:|---:|---:|",
+        *[f"| {name} | {B} | {rate:,.0f} | {us:,.0f} |" for name, B, rate, us in rows],
+        "",
+        "Targets: >= 1,000,000 track-steps/s at batch >= 4096 (3 models) and < 200 us per single-track step.",
+    ]
+    if not args.no_write:
+        write_section("\n".join(lines), args.out)
+        print(f"wrote the Filters section of {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

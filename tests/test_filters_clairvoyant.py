@@ -1,0 +1,38 @@
+"""The clairvoyant KF is a bound: no IMM configuration beats it on generated 3D-LAST data."""
+
+import pytest
+import torch
+
+from immnet import keys
+from immnet.config import REPO_ROOT, build
+from immnet.evaluation.metrics import position_error, rmse
+from immnet.filters import ClairvoyantKF
+
+IMM_CONFIGS = ["imm-accurate", "imm-min", "imm-max", "imm-tuned"]
+
+
+@pytest.fixture(scope="module")
+def data():
+    generate = pytest.importorskip("immnet.data.generate").generate
+    return generate(200, seed=4242)
+
+
+@pytest.fixture(scope="module")
+def bound(data):
+    return rmse(position_error(ClairvoyantKF().track(data)[keys.STATE], data[keys.STATES]))["avg"]
+
+
+def test_clairvoyant_beats_raw_measurements(data, bound):
+    raw = data[keys.MEASUREMENTS].repeat_interleave(3, dim=-1)
+    assert bound < 0.7 * rmse(position_error(raw, data[keys.STATES]))["avg"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", IMM_CONFIGS, ids=IMM_CONFIGS)
+def test_no_imm_beats_the_clairvoyant_bound(data, bound, name):
+    path = REPO_ROOT / "configs" / "methods" / f"{name}.yaml"
+    if not path.exists():
+        pytest.skip(f"{path.name} not written yet (immnet.filters.tuning.tune_imm)")
+    with torch.no_grad():
+        imm = rmse(position_error(build(path).track(data)[keys.STATE], data[keys.STATES]))["avg"]
+    assert bound < imm, f"{name} {imm:.3f} m beat the clairvoyant bound {bound:.3f} m"
