@@ -62,16 +62,20 @@ def score(setting: dict, batch: TensorDict) -> float:
 
 
 def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: str | None = None,
-             max_passes: int = 2) -> dict:
+             max_passes: int = 2, grid: dict | None = None, start: dict | None = None) -> dict:
     """Coordinate search on ``val_batch``; writes the winner to ``out_path`` (YAML) and returns
-    ``{"best": setting, "score": avg_rmse, "table": [{**setting, "score", "seconds"}, ...]}``."""
+    ``{"best": setting, "score": avg_rmse, "table": [{**setting, "score", "seconds"}, ...]}``.
+
+    ``grid`` / ``start`` replace (some knobs of) ``GRID`` / ``START`` for a cheaper search."""
+    grid = {**GRID, **(grid or {})}
+    start = {**START, **(start or {})}
     if keys.STATES not in val_batch.keys():
         raise ValueError("tune_imm needs 'states' (ground truth) in the validation data to score settings")
     cache: dict[tuple, float] = {}
     table: list[dict] = []
 
     def run(setting):
-        key = tuple(setting[k] for k in GRID)
+        key = tuple(setting[k] for k in grid)
         if key not in cache:
             t0 = time.perf_counter()
             cache[key] = score(setting, val_batch)
@@ -80,10 +84,10 @@ def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: 
                 print(f"[tune-imm] {len(table):3d} {setting} -> {cache[key]:.4f} m", file=sys.stderr, flush=True)
         return cache[key]
 
-    best, best_score = dict(START), run(START)
+    best, best_score = dict(start), run(start)
     for _ in range(max_passes):
         changed = False
-        for knob, values in GRID.items():
+        for knob, values in grid.items():
             for v in values:
                 trial = {**best, knob: v}
                 s = run(trial)
@@ -91,15 +95,16 @@ def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: 
                     best, best_score, changed = trial, s, True
         if not changed:
             break
-    write_config(best, best_score, out_path, val_batch.batch_size[0], len(table), data_desc)
+    write_config(best, best_score, out_path, val_batch.batch_size[0], len(table), data_desc, grid)
     return {"best": best, "score": best_score, "table": sorted(table, key=lambda row: row["score"])}
 
 
-def write_config(setting: dict, avg_rmse: float, out_path, n: int, evaluated: int, data_desc: str | None) -> None:
+def write_config(setting: dict, avg_rmse: float, out_path, n: int, evaluated: int, data_desc: str | None,
+                 grid: dict | None = None) -> None:
     tracker = make_tracker(setting)
     header = [
         "# IMM-Tuned (SPEC.md section 3): written by immnet.filters.tuning.tune_imm, do not edit by hand.",
-        f"# Coordinate search over {', '.join(GRID)} ({evaluated} settings scored),",
+        f"# Coordinate search over {grid or GRID} ({evaluated} settings scored),",
         f"# chosen on validation data only: {data_desc or 'validation batch'}, {n} trajectories.",
         f"# Validation Average RMSE {avg_rmse:.4f} m; {datetime.date.today().isoformat()}.",
         f"# Setting: {setting}",
