@@ -1,0 +1,113 @@
+"""Every parameter of the 3D-LAST scenario (SPEC.md section 2, spec version 1), as one dataclass.
+
+Units SI (m, s, m/s, m/s^2), angles in degrees where the name says ``_deg``. A YAML file of
+``field: value`` lines overrides any subset (``immnet data generate --config FILE``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+SPEC_VERSION = 1
+"""Bumped whenever the generator's output for a given (seed, n, spec) changes."""
+
+NM = 1852.0
+"""One nautical mile in metres."""
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """The 3D-LAST scenario. Defaults are SPEC.md section 2."""
+
+    # time and noise
+    T: int = 400
+    dt: float = 1.0
+    r_min: float = 1.0  # measurement noise std r ~ U[r_min, r_max] m, once per trajectory
+    r_max: float = 7.0
+    sigma_q: float = 0.2  # truth process noise (m/s^2), G per axis [dt^2/2, dt, 0]
+    # initial state
+    range_min: float = 5_000.0  # horizontal range U[range_min, range_max], uniform azimuth
+    range_max: float = 30_000.0
+    alt_min: float = 1_000.0
+    alt_max: float = 10_000.0
+    speed_min: float = 50.0  # horizontal speed, uniform heading
+    speed_max: float = 300.0
+    vz_max: float = 5.0  # vertical speed U[-vz_max, vz_max]
+    # schedule and segment parameters
+    n_segments: int = 3
+    min_segment: int = 40
+    turn_rate_min_deg: float = 1.0  # |w| ~ U[min, max] deg/s, sign by mode
+    turn_rate_max_deg: float = 10.0
+    ca_acc_h_min: float = 0.5  # CA horizontal magnitude U[min, max] at a uniform direction
+    ca_acc_h_max: float = 3.0
+    ca_acc_v_max: float = 0.3  # CA vertical U[-max, max]
+    # soft bounds
+    bound_range_outer: float = 33_000.0
+    bound_range_inner: float = 4_000.0
+    bound_speed_min: float = 40.0
+    bound_speed_max: float = 330.0
+    bound_vz: float = 25.0
+    bound_turn_rate_deg: float = 8.0
+    bound_clear_heading_deg: float = 30.0
+    # hard bounds (a trajectory leaving them is redrawn)
+    hard_range_min: float = 0.5 * NM  # 926 m
+    hard_range_max: float = 20.0 * NM  # 37,040 m
+    hard_speed_max: float = 340.0
+    hard_alt_min: float = 100.0
+    hard_alt_max: float = 15_000.0
+
+    def __post_init__(self):
+        if self.T < 1:
+            raise ValueError(f"T must be >= 1, got {self.T}")
+        if self.dt <= 0:
+            raise ValueError(f"dt must be > 0, got {self.dt}")
+        if self.n_segments < 1:
+            raise ValueError(f"n_segments must be >= 1, got {self.n_segments}")
+        if self.n_segments * self.min_segment > self.T:
+            raise ValueError(
+                f"{self.n_segments} segments of at least {self.min_segment} steps do not fit in T={self.T}"
+            )
+        for lo, hi in (("r_min", "r_max"), ("range_min", "range_max"), ("alt_min", "alt_max"),
+                       ("speed_min", "speed_max"), ("turn_rate_min_deg", "turn_rate_max_deg"),
+                       ("ca_acc_h_min", "ca_acc_h_max"), ("hard_range_min", "hard_range_max"),
+                       ("hard_alt_min", "hard_alt_max")):
+            if getattr(self, lo) > getattr(self, hi):
+                raise ValueError(f"{lo}={getattr(self, lo)} exceeds {hi}={getattr(self, hi)}")
+
+    # --- dict / YAML --------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "DataSpec":
+        """Defaults overridden by ``d``; an unknown field is a ``ValueError`` naming it."""
+        d = dict(d or {})
+        names = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - set(names))
+        if unknown:
+            raise ValueError(f"unknown DataSpec field(s) {unknown}; valid fields: {sorted(names)}")
+        out = {}
+        for k, v in d.items():
+            typ = int if names[k].type in ("int", int) else float
+            try:
+                out[k] = typ(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"DataSpec field {k!r} needs a number, got {v!r}") from None
+        return cls(**out)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "DataSpec":
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"data config not found: {path}")
+        d = yaml.safe_load(path.read_text()) or {}
+        if not isinstance(d, dict):
+            raise ValueError(f"{path}: a data config is a mapping of DataSpec fields")
+        return cls.from_dict(d)
+
+    def to_yaml(self, path: str | Path) -> None:
+        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))

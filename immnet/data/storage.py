@@ -1,0 +1,293 @@
+"""3D-LAST data sets on disk: a memory-mapped TensorDict directory, or an ``.npz`` interchange file.
+
+A data set directory::
+
+    DIR/meta.json      spec version, seed, n, single_mode, every DataSpec parameter, counts per mode, dtypes
+    DIR/tensors/       TensorDict.memmap_ layout (tensordict's own meta.json + one .memmap file per key)
+
+Floats are stored as float32 (positions of tens of km keep ~2 mm resolution, far below the
+1-7 m measurement noise); ``mode`` as int64, so that a loaded set stays lazily memory-mapped
+with int64 labels (int8 would save 280 MB per 100k x 400 but need a cast of every read). Generation writes block by
+block straight into a preallocated memmap (peak memory bounded by one block, whatever ``n``),
+in a temporary sibling directory renamed into place only once complete.
+
+The ``.npz`` interchange format (SPEC.md section 2): ``measurements [N,T,3]`` (NaN = missed
+detection), optional ``states [N,T,9]``, ``mode [N,T]``, ``turn_rate [N,T]`` (rad/s), ``r [N]``,
+and ``dt`` (scalar).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
+from immnet.data.spec import SPEC_VERSION, DataSpec
+from immnet.motion import MODE_NAMES
+
+META = "meta.json"
+TENSORS = "tensors"
+FORMAT = "3d-last"
+STORE_DTYPES = {
+    keys.STATES: torch.float32, keys.MEASUREMENTS: torch.float32, keys.MODE: torch.int64,
+    keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32,
+}
+# trailing shapes after [N] (T filled in): the contract of a data set
+_NPZ_SHAPES = {keys.MEASUREMENTS: ("T", 3), keys.STATES: ("T", 9), keys.MODE: ("T",),
+               keys.TURN_RATE: ("T",), keys.R: ()}
+
+
+# --- writing ----------------------------------------------------------------------------------
+def _check_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise FileExistsError(f"{out} exists and is not empty (pass overwrite=True / --overwrite)")
+
+
+def _tmp_sibling(out: Path) -> Path:
+    return out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+
+
+def _replace(tmp: Path, out: Path) -> None:
+    """Move the finished ``tmp`` to ``out`` (removing an old ``out``)."""
+    if out.exists():
+        old = _tmp_sibling(out)
+        os.replace(out, old)
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
+    else:
+        os.replace(tmp, out)
+
+
+def _allocate(tensors_dir: Path, n: int, T: int) -> None:
+    td = TensorDict({}, batch_size=[n])
+    td.memmap_(tensors_dir)
+    for key, trail in ((keys.STATES, (T, 9)), (keys.MEASUREMENTS, (T, 3)), (keys.MODE, (T,)),
+                       (keys.TURN_RATE, (T,)), (keys.R, ()), (keys.DT, ())):
+        td.make_memmap(key, shape=[n, *trail], dtype=STORE_DTYPES[key])
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, threads=1):
+    torch.set_num_threads(threads)
+    _WORKER.update(td=TensorDict.load_memmap(tensors_dir), seed=seed, n=n,
+                   spec=DataSpec.from_dict(spec_dict), single=single_mode)
+
+
+def _write_block(b: int) -> list[int]:
+    """Generate block ``b`` into the open memmap; return its label counts per mode."""
+    w = _WORKER
+    block = generate_block(w["seed"], b, w["n"], w["spec"], w["single"])
+    out = w["td"]
+    start = b * BLOCK
+    for key, dtype in STORE_DTYPES.items():
+        out[key][start : start + block.batch_size[0]] = block[key].to(dtype)
+    return torch.bincount(block[keys.MODE].flatten(), minlength=len(MODE_NAMES)).tolist()
+
+
+def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | None = None,
+                  overwrite: bool = False, workers: int = 1, progress: bool = False) -> Path:
+    """Generate ``n`` trajectories from ``seed`` into the data set directory ``out``; return ``out``.
+
+    ``workers`` processes each generate whole blocks into the same preallocated memmap; the
+    bytes are identical for any ``workers``. ``out`` must be absent or empty unless ``overwrite``.
+    """
+    out = Path(out)
+    n, workers = int(n), int(workers)
+    if n <= 0:
+        raise ValueError(f"n must be a positive number of trajectories, got {n}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    mode_index(single_mode)  # validates the name
+    _check_out(out, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(out)
+    try:
+        tmp.mkdir()
+        _allocate(tmp / TENSORS, n, spec.T)
+        counts = [0] * len(MODE_NAMES)
+        blocks = list(range(n_blocks(n)))
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=n, desc=f"3D-LAST -> {out.name}", unit="traj")
+        init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
+        if workers == 1 or len(blocks) == 1:
+            threads = torch.get_num_threads()
+            _init_worker(*init, threads=1)  # elementwise ops on ~4k elements: one thread is fastest
+            try:
+                results = (_write_block(b) for b in blocks)
+                for b, c in zip(blocks, results):
+                    counts = [a + x for a, x in zip(counts, c)]
+                    if bar is not None:
+                        bar.update(min(BLOCK, n - b * BLOCK))
+            finally:
+                torch.set_num_threads(threads)
+                _WORKER.clear()
+        else:
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(min(workers, len(blocks)), initializer=_init_worker, initargs=init) as pool:
+                for b, c in zip(blocks, pool.imap(_write_block, blocks)):
+                    counts = [a + x for a, x in zip(counts, c)]
+                    if bar is not None:
+                        bar.update(min(BLOCK, n - b * BLOCK))
+        if bar is not None:
+            bar.close()
+        meta = {
+            "format": FORMAT, "spec_version": SPEC_VERSION, "seed": int(seed), "n": n, "T": spec.T,
+            "single_mode": single_mode, "block": BLOCK, "spec": spec.to_dict(),
+            "counts_per_mode": dict(zip(MODE_NAMES, counts)),
+            "dtype": {k: str(v).removeprefix("torch.") for k, v in STORE_DTYPES.items()},
+        }
+        (tmp / META).write_text(json.dumps(meta, indent=1) + "\n")
+        _replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+# --- reading ----------------------------------------------------------------------------------
+def _load_dir(path: Path) -> tuple[TensorDict, dict]:
+    meta_path = path / META
+    if not meta_path.exists():
+        raise FileNotFoundError(f"{path} is not a 3D-LAST data set: {META} is missing")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{meta_path}: not valid JSON ({err})") from None
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{meta_path}: format is {meta.get('format')!r}, expected {FORMAT!r}")
+    if int(meta.get("spec_version", -1)) > SPEC_VERSION:
+        raise ValueError(f"{meta_path}: spec version {meta.get('spec_version')} is newer than {SPEC_VERSION}")
+    for k in ("n", "T", "counts_per_mode"):
+        if k not in meta:
+            raise ValueError(f"{meta_path}: field {k!r} is missing")
+    if not (path / TENSORS).is_dir():
+        raise FileNotFoundError(f"{path}: the tensors directory {TENSORS}/ is missing")
+    td = TensorDict.load_memmap(path / TENSORS)
+    n, T = int(meta["n"]), int(meta["T"])
+    if tuple(td.batch_size) != (n,):
+        raise ValueError(f"{path}: {META} says n={n} but the tensors hold {tuple(td.batch_size)}")
+    _check_shapes(td, n, T, str(path))
+    if keys.MODE in td.keys():
+        counts = torch.bincount(td[keys.MODE].flatten().to(torch.int64), minlength=len(MODE_NAMES))
+        expected = [int(meta["counts_per_mode"].get(name, 0)) for name in MODE_NAMES]
+        if counts.tolist()[: len(MODE_NAMES)] != expected or len(counts) > len(MODE_NAMES):
+            raise ValueError(
+                f"{path}: mode counts {counts.tolist()} do not match {META}'s counts_per_mode {expected}"
+            )
+    return td, meta
+
+
+def _check_shapes(td: TensorDict, n: int, T: int, where: str) -> None:
+    for key, trail in _NPZ_SHAPES.items():
+        if key in td.keys():
+            want = (n, *(T if d == "T" else d for d in trail))
+            got = tuple(td[key].shape)
+            if got != want:
+                raise ValueError(f"{where}: array {key!r} has shape {got}, expected {want}")
+
+
+def _load_npz(path: Path) -> tuple[TensorDict, dict]:
+    try:
+        z = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: not a readable .npz file ({err})") from None
+    with z:
+        if keys.MEASUREMENTS not in z.files:
+            raise ValueError(f"{path}: the required array 'measurements' [N,T,3] is missing (has {z.files})")
+        meas = z[keys.MEASUREMENTS]
+        if meas.ndim != 3 or meas.shape[2] != 3:
+            raise ValueError(f"{path}: array 'measurements' has shape {meas.shape}, expected [N,T,3]")
+        n, T = meas.shape[:2]
+        arrays = {k: z[k] for k in _NPZ_SHAPES if k in z.files}
+        dt = float(np.asarray(z[keys.DT]).reshape(-1)[0]) if keys.DT in z.files else 1.0
+        if keys.DT in z.files and np.asarray(z[keys.DT]).size != 1:
+            raise ValueError(f"{path}: array 'dt' has shape {z[keys.DT].shape}, expected a scalar")
+    for key, trail in _NPZ_SHAPES.items():
+        if key in arrays:
+            want = (n, *(T if d == "T" else d for d in trail))
+            if tuple(arrays[key].shape) != want:
+                raise ValueError(f"{path}: array {key!r} has shape {arrays[key].shape}, expected {list(want)}")
+    data = {}
+    for key, a in arrays.items():
+        if key == keys.MODE:
+            if not np.issubdtype(a.dtype, np.integer):
+                raise ValueError(f"{path}: array 'mode' must be integer, got {a.dtype}")
+            data[key] = torch.from_numpy(a.astype(np.int64))
+        else:
+            data[key] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+    data[keys.DT] = torch.full((n,), dt, dtype=torch.float32)
+    td = TensorDict(data, batch_size=[n])
+    counts = None
+    if keys.MODE in data:
+        counts = dict(zip(MODE_NAMES, torch.bincount(data[keys.MODE].flatten().clamp(0, 3), minlength=4).tolist()))
+    meta = {"format": "npz", "source": str(path), "n": int(n), "T": int(T), "dt": dt,
+            "keys": sorted(data), "counts_per_mode": counts}
+    return td, meta
+
+
+def load_dataset(path) -> tuple[TensorDict, dict]:
+    """A data set directory or ``.npz`` file -> ``(TensorDict [N], meta)``.
+
+    A directory's tensors stay memory-mapped (floats float32, ``mode`` int64); an ``.npz`` is
+    read into memory (floats float32, ``mode`` int64). Only the keys present are returned.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no data set at {path}")
+    if path.is_dir():
+        return _load_dir(path)
+    if path.suffix == ".npz":
+        return _load_npz(path)
+    raise ValueError(f"{path}: expected a data set directory or an .npz file")
+
+
+def as_batch(td: TensorDict, float_dtype=torch.float32) -> TensorDict:
+    """A loaded (memmapped) slice as plain tensors: floats in ``float_dtype``, ``mode`` int64."""
+    out = {}
+    for key, v in td.items():
+        if key == keys.MODE:
+            out[key] = v.to(torch.int64)
+        elif v.is_floating_point():
+            out[key] = v.to(float_dtype)
+        else:
+            out[key] = v
+    return TensorDict(out, batch_size=td.batch_size)
+
+
+def export_npz(path_in, out_npz) -> Path:
+    """Write a data set (directory or ``.npz``) as one ``.npz`` interchange file, atomically."""
+    out_npz = Path(out_npz)
+    if out_npz.suffix != ".npz":
+        raise ValueError(f"{out_npz}: the output must end in .npz")
+    td, meta = load_dataset(path_in)
+    arrays = {}
+    for key in _NPZ_SHAPES:
+        if key in td.keys():
+            v = td[key]
+            arrays[key] = v.to(torch.int64).numpy() if key == keys.MODE else np.asarray(v.numpy())
+    arrays[keys.DT] = np.asarray(float(td[keys.DT][0]) if keys.DT in td.keys() else 1.0)
+    out_npz.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_npz.parent / f".{out_npz.stem}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}.npz"
+    try:
+        np.savez(tmp, **arrays)
+        os.replace(tmp, out_npz)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return out_npz
