@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDict
+from tensordict import MemoryMappedTensor, TensorDict
 
 from immnet import keys
 from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
@@ -261,6 +261,8 @@ def as_batch(td: TensorDict, float_dtype=torch.float32) -> TensorDict:
     """A loaded (memmapped) slice as plain tensors: floats in ``float_dtype``, ``mode`` int64."""
     out = {}
     for key, v in td.items():
+        if isinstance(v, MemoryMappedTensor):
+            v = v.as_subclass(torch.Tensor)
         if key == keys.MODE:
             out[key] = v.to(torch.int64)
         elif v.is_floating_point():

@@ -1,0 +1,218 @@
+"""``LASTDataModule``: 3D-LAST data sets as Lightning batches of TensorDicts.
+
+A batch is a ``TensorDict`` of batch size ``[B]`` with the data keys of ``immnet.keys`` (floats
+float32, ``mode`` int64). One batch is one fancy-index read of the memmap (a batch sampler hands
+the whole index list to ``__getitems__``; indices are sorted inside a batch for locality).
+
+Splits: with ``test_data`` absent, a permutation seeded by ``split_seed`` puts
+``round(test_fraction N)`` trajectories in test, ``round(val_fraction N)`` in validation, the rest
+in train; with ``test_data`` given, the whole of it is the test split and ``data`` is split into
+train and validation only.
+
+Stage 1 (``single_mode`` given, a mapping mode name -> data set of that mode): each training batch
+is a ``TensorDict [M, B]``; row ``m`` is for expert ``m`` (``expert_modes[m]`` names its mode) and
+holds ``round(own_fraction B)`` trajectories of its own mode followed by ``B - round(own_fraction B)``
+maneuvering ones from the train split. Validation and test batches are always maneuvering ``[B]``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import lightning as L
+import torch
+from tensordict import TensorDict
+from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
+
+from immnet.data.storage import as_batch, load_dataset
+from immnet.motion import MODE_NAMES
+
+SPLITS = ("train", "val", "test")
+
+
+def _identity(batch):
+    return batch
+
+
+class TrajectoryDataset(Dataset):
+    """Rows ``indices`` of a data set TensorDict; ``__getitems__`` reads a whole batch at once."""
+
+    def __init__(self, td: TensorDict, indices: torch.Tensor):
+        self.td, self.indices = td, indices
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitems__(self, idx) -> TensorDict:
+        rows = self.indices[torch.as_tensor(idx, dtype=torch.long)].sort().values
+        return as_batch(self.td[rows])
+
+    def __getitem__(self, i) -> TensorDict:
+        return self.__getitems__([i])[0]
+
+
+class _Stage1Sampler:
+    """Per batch, per expert: indices of its own-mode set and of the maneuvering train split."""
+
+    def __init__(self, own_sizes, n_train, n_own, n_mix, n_batches, seed):
+        self.own_sizes, self.n_train = own_sizes, n_train
+        self.n_own, self.n_mix, self.n_batches, self.seed = n_own, n_mix, n_batches, seed
+        self.epoch = 0
+
+    def __len__(self):
+        return self.n_batches
+
+    @staticmethod
+    def _stream(g, size, k, n_batches):
+        """``n_batches`` draws of ``k`` indices from ``range(size)``, walking through permutations."""
+        need = k * n_batches
+        perms = [torch.randperm(size, generator=g) for _ in range(max(1, math.ceil(need / max(size, 1))))]
+        return torch.cat(perms)[:need].view(n_batches, k)
+
+    def __iter__(self):
+        g = torch.Generator().manual_seed(hash((self.seed, self.epoch)) & 0x7FFFFFFF)
+        self.epoch += 1
+        own = [self._stream(g, s, self.n_own, self.n_batches) for s in self.own_sizes]
+        mix = [self._stream(g, self.n_train, self.n_mix, self.n_batches) for _ in self.own_sizes]
+        for b in range(self.n_batches):
+            yield [(m, own[m][b], mix[m][b]) for m in range(len(self.own_sizes))]
+
+
+class _Stage1Dataset(Dataset):
+    def __init__(self, own: list[TrajectoryDataset], train: TrajectoryDataset, keys):
+        self.own, self.train, self.keys = own, train, list(keys)
+
+    def __len__(self):
+        return len(self.train)
+
+    def __getitems__(self, plan) -> TensorDict:
+        rows = []
+        for m, own_idx, mix_idx in plan:
+            parts = []
+            if len(own_idx):
+                parts.append(self.own[m].__getitems__(own_idx).select(*self.keys))
+            if len(mix_idx):
+                parts.append(self.train.__getitems__(mix_idx).select(*self.keys))
+            rows.append(torch.cat(parts, 0))
+        return torch.stack(rows, 0)
+
+
+class LASTDataModule(L.LightningDataModule):
+    """3D-LAST train / val / test loaders (see the module doc for the splits and stage-1 batches)."""
+
+    def __init__(self, data, test_data=None, val_fraction: float = 0.1, test_fraction: float = 0.1,
+                 batch_size: int = 100, num_workers: int = 0, split_seed: int = 0,
+                 single_mode: dict | None = None, own_fraction: float = 0.6,
+                 expert_modes: list[str] | None = None):
+        super().__init__()
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        for name, f in (("val_fraction", val_fraction), ("test_fraction", test_fraction),
+                        ("own_fraction", own_fraction)):
+            if not 0.0 <= f <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {f}")
+        if test_data is None and val_fraction + test_fraction >= 1.0:
+            raise ValueError("val_fraction + test_fraction must leave some training data")
+        self.data, self.test_data = data, test_data
+        self.val_fraction, self.test_fraction = val_fraction, test_fraction
+        self.batch_size, self.num_workers, self.split_seed = batch_size, num_workers, split_seed
+        self.single_mode = dict(single_mode) if single_mode else None
+        self.own_fraction = own_fraction
+        if self.single_mode:
+            for name in self.single_mode:
+                if name not in MODE_NAMES:
+                    raise ValueError(f"single_mode key {name!r} is not a mode; valid: {', '.join(MODE_NAMES)}")
+            expert_modes = list(expert_modes or [n for n in MODE_NAMES if n in self.single_mode])
+            missing = [n for n in expert_modes if n not in self.single_mode]
+            if missing:
+                raise ValueError(f"expert_modes {missing} have no single_mode data set")
+        self.expert_modes = expert_modes
+        self._ready = False
+
+    # --- data ---------------------------------------------------------------------------------
+    def setup(self, stage: str | None = None) -> None:
+        if self._ready:
+            return
+        td, self.meta = load_dataset(self.data)
+        n = td.batch_size[0]
+        g = torch.Generator().manual_seed(int(self.split_seed))
+        perm = torch.randperm(n, generator=g)
+        n_test = 0 if self.test_data is not None else round(self.test_fraction * n)
+        n_val = round(self.val_fraction * n)
+        if n - n_test - n_val < 1:
+            raise ValueError(f"{n} trajectories leave no training data after the val/test split")
+        self._td = {"train": td, "val": td}
+        self._idx = {
+            "test": perm[:n_test].sort().values,
+            "val": perm[n_test : n_test + n_val].sort().values,
+            "train": perm[n_test + n_val :].sort().values,
+        }
+        if self.test_data is not None:
+            test_td, _ = load_dataset(self.test_data)
+            self._td["test"] = test_td
+            self._idx["test"] = torch.arange(test_td.batch_size[0])
+        else:
+            self._td["test"] = td
+        self._own = None
+        if self.single_mode:
+            loaded = {name: load_dataset(path)[0] for name, path in self.single_mode.items()}
+            T = td["measurements"].shape[1]
+            for name, sm in loaded.items():
+                if sm["measurements"].shape[1] != T:
+                    raise ValueError(f"single-mode set {name!r} has T={sm['measurements'].shape[1]}, data has T={T}")
+            self._own = [TrajectoryDataset(loaded[name], torch.arange(loaded[name].batch_size[0]))
+                         for name in self.expert_modes]
+            common = set(td.keys())
+            for sm in loaded.values():
+                common &= set(sm.keys())
+            self._common_keys = sorted(common)
+        self._ready = True
+
+    def dataset(self, name: str) -> TrajectoryDataset:
+        if name not in SPLITS:
+            raise ValueError(f"unknown split {name!r}; valid: {', '.join(SPLITS)}")
+        self.setup()
+        return TrajectoryDataset(self._td[name], self._idx[name])
+
+    def split(self, name: str) -> TensorDict:
+        """The whole split ``name`` (train / val / test) as an in-memory TensorDict [N_split]."""
+        ds = self.dataset(name)
+        return ds.__getitems__(torch.arange(len(ds)))
+
+    @property
+    def train_dataset(self):
+        return self.dataset("train")
+
+    @property
+    def val_dataset(self):
+        return self.dataset("val")
+
+    @property
+    def test_dataset(self):
+        return self.dataset("test")
+
+    # --- loaders ------------------------------------------------------------------------------
+    def _loader(self, ds, sampler) -> DataLoader:
+        return DataLoader(ds, batch_sampler=sampler, collate_fn=_identity, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0)
+
+    def train_dataloader(self) -> DataLoader:
+        ds = self.dataset("train")
+        if not self.single_mode:
+            g = torch.Generator().manual_seed(int(self.split_seed) + 1)
+            return self._loader(ds, BatchSampler(RandomSampler(ds, generator=g), self.batch_size, drop_last=False))
+        n_own = round(self.own_fraction * self.batch_size)
+        sampler = _Stage1Sampler([len(o) for o in self._own], len(ds), n_own, self.batch_size - n_own,
+                                 max(1, math.ceil(len(ds) / self.batch_size)), self.split_seed)
+        return self._loader(_Stage1Dataset(self._own, ds, self._common_keys), sampler)
+
+    def _eval_loader(self, name) -> DataLoader:
+        ds = self.dataset(name)
+        return self._loader(ds, BatchSampler(SequentialSampler(ds), self.batch_size, drop_last=False))
+
+    def val_dataloader(self) -> DataLoader:
+        return self._eval_loader("val")
+
+    def test_dataloader(self) -> DataLoader:
+        return self._eval_loader("test")

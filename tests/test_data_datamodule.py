@@ -1,0 +1,76 @@
+"""LASTDataModule: split sizes and disjointness, batch layout, stage-1 mixing."""
+
+import pytest
+import torch
+
+from immnet.data import LASTDataModule, write_dataset
+from immnet.data.spec import DataSpec
+
+SPEC = DataSpec(T=40, min_segment=10)
+
+
+@pytest.fixture(scope="module")
+def sets(tmp_path_factory):
+    d = tmp_path_factory.mktemp("dm")
+    paths = {"main": write_dataset(d / "main", 1000, 0, SPEC), "test": write_dataset(d / "test", 120, 9, SPEC)}
+    for i, m in enumerate(("cv", "ca", "ct+", "ct-")):
+        paths[m] = write_dataset(d / m, 150, 100 + i, SPEC, single_mode=m)
+    return paths
+
+
+def _ids(td):
+    """Identify trajectories by their first true position."""
+    return {tuple(x) for x in td["states"][:, 0, [0, 3, 6]].tolist()}
+
+
+def test_split_sizes_disjoint_and_deterministic(sets):
+    dm = LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.2, batch_size=64, split_seed=3)
+    tr, va, te = dm.split("train"), dm.split("val"), dm.split("test")
+    assert (tr.batch_size[0], va.batch_size[0], te.batch_size[0]) == (700, 100, 200)
+    a, b, c = _ids(tr), _ids(va), _ids(te)
+    assert len(a | b | c) == 1000 and not (a & b) and not (a & c) and not (b & c)
+    again = LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.2, split_seed=3)
+    assert _ids(again.split("test")) == c
+    other = LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.2, split_seed=4)
+    assert _ids(other.split("test")) != c
+    with pytest.raises(ValueError, match="split"):
+        dm.split("holdout")
+
+
+def test_batches_are_tensordicts(sets):
+    dm = LASTDataModule(sets["main"], test_data=sets["test"], batch_size=64)
+    assert dm.split("test").batch_size[0] == 120 and dm.split("train").batch_size[0] == 900
+    batches = list(dm.train_dataloader())
+    assert len(batches) == 15 and batches[0].batch_size == torch.Size([64]) and batches[-1].batch_size == torch.Size([4])
+    b = batches[0]
+    assert b["states"].dtype == torch.float32 and b["mode"].dtype == torch.int64
+    assert b["measurements"].shape == (64, 40, 3)
+    seen = set().union(*(_ids(x) for x in batches))
+    assert seen == _ids(dm.split("train"))  # an epoch covers the train split once
+    v = next(iter(dm.val_dataloader()))
+    assert v.batch_size == torch.Size([64])
+    assert sum(x.batch_size[0] for x in dm.test_dataloader()) == 120
+
+
+def test_stage1_batches_mix_own_mode_and_maneuvering(sets):
+    modes = ["cv", "ca", "ct+", "ct-"]
+    dm = LASTDataModule(sets["main"], batch_size=50, own_fraction=0.6, expert_modes=modes,
+                        single_mode={m: sets[m] for m in modes})
+    own_ids = [_ids(LASTDataModule(sets[m], val_fraction=0, test_fraction=0).split("train")) for m in modes]
+    train_ids = _ids(dm.split("train"))
+    loader = dm.train_dataloader()
+    assert len(loader) == 16  # ceil(800 / 50)
+    for k, batch in enumerate(loader):
+        assert batch.batch_size == torch.Size([4, 50])
+        for m in range(4):
+            row = _ids(batch[m])
+            first = {tuple(x) for x in batch[m, :30]["states"][:, 0, [0, 3, 6]].tolist()}
+            rest = {tuple(x) for x in batch[m, 30:]["states"][:, 0, [0, 3, 6]].tolist()}
+            assert first <= own_ids[m] and rest <= train_ids and len(row) == 50
+            assert (batch[m, :30]["mode"][:, 0] == m).all()
+        if k == 3:
+            break
+    v = next(iter(dm.val_dataloader()))
+    assert v.batch_size == torch.Size([50])
+    with pytest.raises(ValueError, match="no single_mode"):
+        LASTDataModule(sets["main"], single_mode={"cv": sets["cv"]}, expert_modes=["cv", "ca"])
