@@ -82,18 +82,28 @@ _WORKER: dict = {}
 
 def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, threads=1):
     torch.set_num_threads(threads)
-    _WORKER.update(td=TensorDict.load_memmap(tensors_dir), seed=seed, n=n,
-                   spec=DataSpec.from_dict(spec_dict), single=single_mode)
+    td = TensorDict.load_memmap(tensors_dir)
+    files = {k: (td[k].filename, tuple(td[k].shape[1:])) for k in STORE_DTYPES}
+    _WORKER.update(files=files, seed=seed, n=n, spec=DataSpec.from_dict(spec_dict), single=single_mode)
 
 
 def _write_block(b: int) -> list[int]:
-    """Generate block ``b`` into the open memmap; return its label counts per mode."""
+    """Generate block ``b`` into the preallocated files; return its label counts per mode.
+
+    Each block maps only its own rows (``np.memmap`` with an offset) and unmaps them once
+    written, so that the resident memory of a writer stays one block whatever ``n``.
+    """
     w = _WORKER
     block = generate_block(w["seed"], b, w["n"], w["spec"], w["single"])
-    out = w["td"]
-    start = b * BLOCK
+    m, start = block.batch_size[0], b * BLOCK
     for key, dtype in STORE_DTYPES.items():
-        out[key][start : start + block.batch_size[0]] = block[key].to(dtype)
+        filename, trail = w["files"][key]
+        a = block[key].to(dtype).numpy()
+        row = a.itemsize * int(np.prod(trail, dtype=np.int64))
+        mm = np.memmap(filename, dtype=a.dtype, mode="r+", offset=start * row, shape=(m, *trail))
+        mm[:] = a
+        mm.flush()
+        del mm
     return torch.bincount(block[keys.MODE].flatten(), minlength=len(MODE_NAMES)).tolist()
 
 
