@@ -55,3 +55,15 @@ def test_single_mode_and_errors(tmp_path, main, capsys):
     assert "measurements" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["data", "generate", "--out", str(tmp_path / "z"), "--n", "5", "--seed", "1", "--single-mode", "loop"])
+
+
+def test_every_data_preset_loads():
+    from immnet.config import REPO_ROOT
+    from immnet.data.spec import DataSpec
+
+    presets = sorted((REPO_ROOT / "configs" / "data").glob("*.yaml"))
+    assert presets
+    for p in presets:
+        spec = DataSpec.from_yaml(p)
+        assert spec.T * spec.dt > 0
+    assert DataSpec.from_yaml(REPO_ROOT / "configs/data/paper.yaml") == DataSpec()
