@@ -27,6 +27,7 @@ def register(subparsers) -> None:
     p.add_argument("--batch-size", type=int, default=256, help="trajectories per batch (default 256)")
     p.add_argument("--limit", type=int, help="only the first N trajectories of the split")
     p.add_argument("--json", type=Path, help="write the results as JSON here")
+    p.add_argument("--markdown", type=Path, help="write the table as Markdown here (for a README)")
     p.add_argument("--figures", type=Path, metavar="DIR", help="write the PNG figures into DIR")
     p.add_argument("--seed", type=int, default=0, help="picks the case-study trajectories of --figures (default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -135,7 +136,7 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
 # --- commands ---------------------------------------------------------------------------------
 def run_evaluate(args) -> int:
     from immnet.evaluation.runner import evaluate, to_json
-    from immnet.evaluation.table import format_table
+    from immnet.evaluation.table import format_markdown, format_table
 
     data, _ = load_split(args.data, args.split, args.limit)
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
@@ -148,6 +149,10 @@ def run_evaluate(args) -> int:
     results = evaluate(methods, data, batch_size=args.batch_size, progress=not args.quiet, keep=cases)
     rows = to_json(results)
     print(format_table(rows))
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        args.markdown.write_text(format_markdown(rows) + "\n")
+        note(f"wrote {args.markdown}")
     if args.json:
         doc = {"n_trajectories": data.batch_size[0], "data": str(args.data), "split": split, "seed": args.seed,
                "methods": rows}

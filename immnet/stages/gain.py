@@ -154,9 +154,17 @@ class AnalyticGain(Stage):
         super().__init__(model_set)
         if r <= 0 or sigma_q < 0:
             raise ValueError(f"AnalyticGain needs r > 0 and sigma_q >= 0, got r={r}, sigma_q={sigma_q}")
-        self.r = r
+        self.r, self.dt = r, dt
         self.register_buffer("F", model_set.F(dt))
         self.register_buffer("Q", model_set.Q(sigma_q, dt))
+
+    def initial_cov(self, shape, first: bool) -> torch.Tensor:
+        """Covariance of a starting track: after one scan ``diag(r^2, 300^2, 10^2)`` per axis;
+        after two (differenced velocity) ``diag(r^2, 2 r^2 / dt^2, 10^2)``."""
+        r2 = self.r**2
+        vel = 300.0**2 if first else 2.0 * r2 / self.dt**2
+        d = torch.tensor([r2, vel, 100.0] * 3, dtype=self.F.dtype, device=self.F.device)
+        return torch.diag(d).expand(*shape, 9, 9).clone()
 
     def forward(self, td):
         P = per_expert(td.get(keys.FUSED_COV), self.n_experts, event_dims=2).to(self.F.dtype)

@@ -64,15 +64,20 @@ def run_stages(recipe: dict, extra: list[str]) -> str:
     ckpt = None
     for i, stage in enumerate(recipe["stages"]):
         if isinstance(stage, str):
-            stage = yaml.safe_load(resolve_path(stage).read_text())
-        with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as f:
-            yaml.safe_dump(stage, f)
-        args = ["fit", "--config", f.name, *extra]
+            path, tmp = str(resolve_path(stage)), None
+        else:
+            with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as f:
+                yaml.safe_dump(stage, f)
+            path = tmp = f.name
+        args = ["fit", "--config", path, *extra]
         if ckpt is not None:
             args += ["--model.init_args.stage1_checkpoint", ckpt]
         print(f"[immnet fit] stage {i + 1}/{len(recipe['stages'])}", file=sys.stderr, flush=True)
-        cli = _cli(args)
-        Path(f.name).unlink(missing_ok=True)
+        try:
+            cli = _cli(args)
+        finally:
+            if tmp:
+                Path(tmp).unlink(missing_ok=True)
         callback = cli.trainer.checkpoint_callback
         ckpt = callback.best_model_path or callback.last_model_path if callback else None
         if not ckpt:
@@ -82,11 +87,15 @@ def run_stages(recipe: dict, extra: list[str]) -> str:
 
 
 def lightning_main(argv: list[str]) -> None:
+    """Run Lightning's CLI; a first ``--config`` holding ``stages:`` runs the chain, and every
+    further argument (another ``--config`` too, e.g. an ablation) applies to each stage."""
+    sys.argv = [sys.argv[0]]  # the arguments travel in ``args``
     config = _config_arg(argv)
     if argv[0] == "fit" and config is not None:
         recipe = yaml.safe_load(resolve_path(config).read_text())
         if isinstance(recipe, dict) and "stages" in recipe:
-            rest = [a for i, a in enumerate(argv[1:], 1) if a != "--config" and argv[i - 1] != "--config" and not a.startswith("--config=")]
-            run_stages(recipe, rest)
+            i = argv.index("--config") if "--config" in argv else argv.index(f"--config={config}")
+            width = 2 if argv[i] == "--config" else 1
+            run_stages(recipe, argv[1:i] + argv[i + width :])
             return
     _cli(argv)

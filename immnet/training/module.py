@@ -99,8 +99,10 @@ class Stage1Module(_TrackerModule):
 
     def training_step(self, batch, batch_idx):
         M = self.net.n_experts
+        if batch.batch_dims == 1:  # no own-mode mix (e.g. a single expert on maneuvering data)
+            batch = batch.unsqueeze(0).expand(M, *batch.batch_size)
         if batch.batch_dims != 2 or batch.batch_size[0] != M:
-            raise ValueError(f"stage 1 needs batches [M={M}, B] (one row per expert), got {tuple(batch.batch_size)}")
+            raise ValueError(f"stage 1 needs batches [M={M}, B] (one row per expert) or [B], got {tuple(batch.batch_size)}")
         z = batch[keys.MEASUREMENTS].transpose(0, 1)  # [B, M, T, 3]
         x = batch[keys.STATES].transpose(0, 1).transpose(1, 2)  # [B, T, M, 9]
         r = batch[keys.R].transpose(0, 1)  # [B, M]

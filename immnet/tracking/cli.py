@@ -1,0 +1,47 @@
+"""``immnet track --input FILE --output FILE [--checkpoint CKPT]``: estimates for your own measurements."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "track",
+        help="track your own measurements (CSV track_id,t,x,y,z or .npz) with a trained IMMNet",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
+    p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
+    p.add_argument("--checkpoint", default=None, help="Lightning checkpoint (default: the shipped weights)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from immnet.tracking.tracker import PRETRAINED, Tracker
+
+    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED)
+    suffix_in, suffix_out = args.input.suffix.lower(), args.output.suffix.lower()
+    if suffix_in not in (".csv", ".npz") or suffix_out != suffix_in:
+        raise ValueError(f"--input and --output must both be .csv or both .npz (got {args.input.name}, {args.output.name})")
+    if suffix_in == ".csv":
+        from immnet.tracking.io import read_tracks_csv, write_tracks_csv
+
+        ids, z, rows = read_tracks_csv(args.input, tracker.net.dt)
+        out = tracker.track(z)
+        write_tracks_csv(args.output, rows, out["state"].numpy(), out["mode_probs"].numpy())
+        print(f"tracked {len(ids)} tracks, {len(rows)} scans -> {args.output}", file=sys.stderr)
+        return 0
+    from immnet.data.storage import load_dataset
+
+    data, _ = load_dataset(args.input)
+    out = tracker.track(data["measurements"])
+    tmp = args.output.with_name(args.output.stem + ".partial.npz")
+    np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt))
+    tmp.replace(args.output)
+    print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
+    return 0

@@ -1,0 +1,58 @@
+"""IMMNet and plain KalmanNet as methods of ``immnet evaluate`` (the ``name / needs / track`` protocol)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.tracking.tracker import PRETRAINED, Tracker, load_network
+
+
+class IMMNetMethod:
+    """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights)."""
+
+    needs: tuple[str, ...] = ()
+
+    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500):
+        self.name = name
+        self.tracker = Tracker(load_network(checkpoint or PRETRAINED))
+        self.batch_size = batch_size
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size)
+        return TensorDict(
+            {keys.STATE: out[keys.STATE].double(), keys.MODE_PROBS: out[keys.MODE_PROBS].double()},
+            batch_size=batch.batch_size,
+        )
+
+
+class KalmanNetMethod:
+    """Plain KalmanNet: one trained expert running alone (its own posterior is its estimate).
+
+    ``expert`` names the expert of the checkpoint's model set (e.g. ``"ca"``); a checkpoint of the
+    single-expert ablation has one.
+    """
+
+    needs: tuple[str, ...] = ()
+
+    def __init__(self, checkpoint: str | None = None, expert: str | None = None, name: str = "kalmannet", batch_size: int = 500):
+        self.name = name
+        self.net = load_network(checkpoint or PRETRAINED)
+        names = self.net.model_set.names
+        if expert is None and len(names) > 1:
+            raise ValueError(f"kalmannet needs `expert` naming one of {names} for a checkpoint with several experts")
+        if expert is not None and expert not in names:
+            raise ValueError(f"expert {expert!r} is not in this checkpoint's model set {names}")
+        self.index = names.index(expert) if expert is not None else 0
+        self.batch_size = batch_size
+
+    @torch.no_grad()
+    def track(self, batch: TensorDict) -> TensorDict:
+        z = batch[keys.MEASUREMENTS].float()
+        M, states = self.net.n_experts, []
+        for i in range(0, z.shape[0], self.batch_size):
+            zi = z[i : i + self.batch_size].unsqueeze(1).expand(-1, M, -1, -1)
+            out, _ = self.net.rollout(zi, experts_alone=True)
+            states.append(out[keys.STATE][:, :, self.index])
+        return TensorDict({keys.STATE: torch.cat(states).double()}, batch_size=batch.batch_size)

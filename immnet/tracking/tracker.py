@@ -1,0 +1,94 @@
+"""Run a trained IMMNet online: one scan at a time, many tracks at once.
+
+    tracker = Tracker.pretrained()            # or Tracker.from_checkpoint("runs/.../best.ckpt")
+    tracker.reset(n_tracks=3)
+    out = tracker.step(z)                     # z [3, 3]; NaN row = missed detection
+    out["fused", "state"], out["expert", "post"], out["mode", "probs"], out["mode_probs"]
+
+Tracks start and end independently: ``step(z, reset=mask)`` restarts the tracks in ``mask`` (a new
+target on that slot); a track starts from its first two measurements (see ``immnet.stages.network``).
+``step`` over a sequence gives the same numbers as the batched ``track``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.stages import IMMNet
+
+PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet-quick.ckpt"
+
+
+def load_network(path: str | Path) -> IMMNet:
+    """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # a truncated or foreign file
+        raise ValueError(f"{path} is not a readable checkpoint: {err}") from None
+    if "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
+        raise ValueError(f"{path} is not an IMMNet checkpoint (no state_dict / hyper_parameters)")
+    net = IMMNet(**(ckpt["hyper_parameters"].get("net") or {}))
+    state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
+    net.load_state_dict(state)
+    return net.eval()
+
+
+class Tracker:
+    """A stateful wrapper around ``IMMNet.scan`` for streaming use (inference only)."""
+
+    def __init__(self, net: IMMNet):
+        self.net = net.eval()
+        self.carry: TensorDict | None = None
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path) -> "Tracker":
+        return cls(load_network(path))
+
+    @classmethod
+    def pretrained(cls) -> "Tracker":
+        """The weights shipped inside the package (see ``immnet/pretrained/PROVENANCE.md``)."""
+        return cls.from_checkpoint(PRETRAINED)
+
+    def reset(self, n_tracks: int) -> None:
+        self.carry = self.net.initial_carry(n_tracks)
+
+    @torch.no_grad()
+    def step(self, z: torch.Tensor, reset: torch.Tensor | None = None) -> TensorDict:
+        """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks."""
+        z = torch.as_tensor(z, dtype=torch.float32)
+        if z.dim() != 2 or z.shape[-1] != 3:
+            raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
+        if self.carry is None or self.carry.batch_size[0] != z.shape[0]:
+            self.reset(z.shape[0])
+        if reset is not None:
+            fresh = self.net.initial_carry(z.shape[0])
+            mask = torch.as_tensor(reset, dtype=torch.bool)
+            self.carry = _select(mask, fresh, self.carry)
+        self.carry = self.net.scan(self.carry, z)
+        out = self.carry.select(keys.FUSED, keys.EXPERT_PROBS, keys.EXPERT_POST, strict=False).clone()
+        out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))
+        return out
+
+    @torch.no_grad()
+    def track(self, measurements: torch.Tensor, batch_size: int = 512) -> TensorDict:
+        """Whole sequences ``[B, T, 3]`` -> ``state [B, T, 9]``, ``mode_probs [B, T, 4]``, ``expert_probs``."""
+        z = torch.as_tensor(measurements, dtype=torch.float32)
+        outs = []
+        for i in range(0, z.shape[0], batch_size):
+            out, _ = self.net.rollout(z[i : i + batch_size])
+            out.set(keys.MODE_PROBS, self.net.to_mode_probs(out["expert_probs"]))
+            outs.append(out)
+        return torch.cat(outs, 0)
+
+
+def _select(mask, a: TensorDict, b: TensorDict) -> TensorDict:
+    from immnet.stages.network import _where
+
+    return _where(mask, a, b.select(*a.keys(True, True)))
