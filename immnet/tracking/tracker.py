@@ -20,7 +20,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.stages import IMMNet
 
-PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet-quick.ckpt"
+PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet.ckpt"
 
 
 def load_network(path: str | Path) -> IMMNet:

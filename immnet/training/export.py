@@ -1,0 +1,44 @@
+"""Ship a trained IMMNet: strip a Lightning checkpoint to its weights and hyperparameters.
+
+    python -m immnet.training.export CKPT OUT.ckpt
+
+The file keeps ``state_dict`` and ``hyper_parameters`` (what ``Tracker.from_checkpoint`` reads),
+without optimizer state, and is written to a temporary name renamed when complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+
+from immnet.motion import ModelSet
+
+
+def export_weights(ckpt: str | Path, out: str | Path) -> Path:
+    src = torch.load(ckpt, map_location="cpu", weights_only=False)
+    if "state_dict" not in src or "hyper_parameters" not in src:
+        raise ValueError(f"{ckpt} is not a Lightning checkpoint of an IMMNet module")
+    net = dict(src["hyper_parameters"].get("net") or {})
+    # the model set inline, so that the file works without this repository's configs/
+    net["model_set"] = ModelSet.from_config(net.get("model_set", "configs/model_sets/imm4.yaml")).to_config()["models"]
+    slim = {
+        "state_dict": {k: v for k, v in src["state_dict"].items() if k.startswith("net.")},
+        "hyper_parameters": {"net": net},
+        "global_step": src.get("global_step"),
+    }
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".partial")
+    torch.save(slim, tmp)
+    tmp.replace(out)
+    return out
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("ckpt")
+    parser.add_argument("out")
+    a = parser.parse_args()
+    print(export_weights(a.ckpt, a.out))
