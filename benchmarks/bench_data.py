@@ -11,8 +11,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
-import re
 import resource
 import shutil
 import subprocess
@@ -21,33 +19,11 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import machine, write_section  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
-SECTION = "## Data generation"
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def _loadavg() -> str:
-    try:
-        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
-    except OSError:
-        return "n/a"
-
-
-def _update_benchmarks(text: str) -> None:
-    path = ROOT / "BENCHMARKS.md"
-    old = path.read_text() if path.exists() else "# Benchmarks\n"
-    pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
-    new = pattern.sub(text, old) if pattern.search(old) else old.rstrip("\n") + "\n\n" + text
-    path.write_text(new)
+SECTION = "Data generation"
 
 
 def main(argv=None) -> int:
@@ -68,12 +44,12 @@ def main(argv=None) -> int:
     if out is None:
         tmp = Path(tempfile.mkdtemp(prefix="bench-data-"))
         out = tmp / "ds"
-    load_before = _loadavg()
+    load_before = ' '.join(f'{v:.2f}' for v in os.getloadavg())
     try:
         t0 = time.perf_counter()
         write_dataset(out, args.n, args.seed, workers=args.workers, overwrite=True, progress=True)
         gen_s = time.perf_counter() - t0
-        load_after = _loadavg()
+        load_after = ' '.join(f'{v:.2f}' for v in os.getloadavg())
         rss_self = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
         rss_child = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
         size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 2**30
@@ -100,9 +76,8 @@ def main(argv=None) -> int:
     cmd = f".venv/bin/python benchmarks/bench_data.py --n {args.n} --workers {args.workers}"
     ok_t, ok_m = gen_s < 60, max(rss_self, rss_child) < 4
     text = (
-        f"{SECTION}\n\n"
-        f"`{cmd}` ({datetime.date.today().isoformat()}, commit {commit}; nproc {os.cpu_count()}, {_cpu_model()}; "
-        f"CPU shared with other engineers' jobs: load average {load_before} before, {load_after} after generation)\n\n"
+        f"`{cmd}` ({datetime.date.today().isoformat()}, commit {commit}; {machine()}; "
+        f"load average {load_before} before, {load_after} after generation)\n\n"
         f"| what | value | target |\n|---|---|---|\n"
         f"| generate {args.n:,} x 400 into a memmapped dir, {args.workers} worker(s) | {gen_s:.1f} s "
         f"({args.n / gen_s:,.0f} trajectories/s) | < 60 s {'(met)' if ok_t else '(missed)'} |\n"
@@ -113,7 +88,7 @@ def main(argv=None) -> int:
     )
     print(text)
     if not args.no_write:
-        _update_benchmarks(text)
+        write_section(SECTION, text)
     return 0
 
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
-import platform
-import re
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import machine, write_section  # noqa: E402
 
 import numpy as np
 import torch
@@ -73,28 +73,6 @@ def bench_filterpy(ms: ModelSet, tracks: int, T: int, sigma_q=0.5, r=4.0):
     return tracks * (T - 1) / el, el / (tracks * (T - 1)) * 1e6
 
 
-def machine() -> str:
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
-    return f"{os.cpu_count()} CPUs ({cpu}), torch {torch.__version__}, {torch.get_num_threads()} threads, load average {load}"
-
-
-def write_section(text: str, path: Path) -> None:
-    """Replace (or append) the ``## Filters`` section of ``path``, keeping every other section."""
-    old = path.read_text() if path.exists() else "# Benchmarks\n"
-    section = "## Filters\n\n" + text.strip() + "\n"
-    pattern = re.compile(r"^## Filters\n.*?(?=^## |\Z)", re.S | re.M)
-    new = pattern.sub(lambda _: section + "\n", old) if pattern.search(old) else old.rstrip() + "\n\n" + section
-    path.write_text(new.rstrip() + "\n")
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--steps", type=int, default=50, help="time steps per run (default 50)")
@@ -130,7 +108,7 @@ def main(argv=None) -> int:
         "(torch eager, one kernel per op; torch.compile of the step was slower on this CPU).",
     ]
     if not args.no_write:
-        write_section("\n".join(lines), args.out)
+        write_section("Filters", "\n".join(lines), args.out)
         print(f"wrote the Filters section of {args.out}")
     return 0
 

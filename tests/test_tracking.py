@@ -10,7 +10,6 @@ import torch
 from immnet.cli import main
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
-from immnet.stages import IMMNet
 from immnet.tracking import Tracker
 from immnet.training import Stage2Module
 

@@ -18,7 +18,7 @@ maneuvering ones from the train split. Validation and test batches are always ma
 from __future__ import annotations
 
 import math
-from pathlib import Path
+
 
 import lightning as L
 import torch

@@ -13,7 +13,6 @@ counted (``train/skipped``).
 
 from __future__ import annotations
 
-import math
 
 import lightning as L
 import torch

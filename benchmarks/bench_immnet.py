@@ -1,0 +1,109 @@
+"""IMMNet speed: inference track-steps/s (eager and ``torch.compile``), training trajectory-steps/s.
+
+Run:  .venv/bin/python benchmarks/bench_immnet.py [--steps 40] [--no-compile]
+It prints a table and rewrites the ``## IMMNet`` section of BENCHMARKS.md (other sections are kept).
+Inference runs the streaming step (``IMMNet.scan``) over already-started tracks, the per-scan cost
+of tracking; training runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import machine, write_section  # noqa: E402
+
+from immnet.data.generate import generate  # noqa: E402
+from immnet.data.spec import DataSpec  # noqa: E402
+from immnet.stages import IMMNet  # noqa: E402
+from immnet.training import Stage1Module, Stage2Module  # noqa: E402
+
+
+def scans(B: int, T: int) -> torch.Tensor:
+    td = generate(min(B, 256), seed=0, spec=DataSpec(T=T, min_segment=T // 3))
+    z = td["measurements"].float()
+    return z.repeat((B + z.shape[0] - 1) // z.shape[0], 1, 1)[:B]
+
+
+@torch.no_grad()
+def inference(net: IMMNet, B: int, steps: int, step_fn) -> float:
+    z = scans(B, steps + 2)
+    carry = net.initial_carry(B)
+    for t in range(2):  # start the tracks
+        carry = net.scan(carry, z[:, t])
+    for t in range(2, 5):  # warm-up (and compilation)
+        carry = step_fn(carry, z[:, t])
+    t0 = time.perf_counter()
+    for t in range(2, steps + 2):
+        carry = step_fn(carry, z[:, t])
+    return B * steps / (time.perf_counter() - t0)
+
+
+def training(module, batch, chunks: int) -> float:
+    opt = torch.optim.Adam(module.trainable_parameters(), 1e-4)
+    module.optimizers = lambda: opt  # Lightning is not attached: the module's own loop, our optimizer
+    module.manual_backward = lambda loss: loss.backward()
+    module.log = lambda *a, **k: None
+    T = 20 * chunks
+    crop = batch.apply(lambda v: v[..., :T, :] if v.dim() >= 3 else (v[..., :T] if v.dim() == 2 and v.shape[-1] > 20 else v))
+    module.training_step(crop, 0)  # warm-up
+    t0 = time.perf_counter()
+    module.training_step(crop, 0)
+    rows = crop.batch_size[-1]
+    return rows * T / (time.perf_counter() - t0)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--steps", type=int, default=40, help="scans timed per inference run")
+    p.add_argument("--no-compile", action="store_true")
+    p.add_argument("--out", type=Path, default=None)
+    args = p.parse_args(argv)
+    torch.manual_seed(0)
+    net = IMMNet().eval()
+    rows = []
+    for B in (1, 64, 1024):
+        eager = inference(net, B, args.steps, net.scan)
+        compiled = None
+        if not args.no_compile:
+            step = torch.compile(net.step, fullgraph=False, dynamic=False)
+
+            def compiled_scan(carry, z, step=step):
+                td = carry.copy()
+                td.set("measurement", z)
+                return step(td)
+
+            compiled = inference(net, B, args.steps, compiled_scan)
+        rows.append((B, eager, compiled))
+        print(f"inference batch {B}: eager {eager:,.0f}, compiled {compiled or 0:,.0f} track-steps/s", flush=True)
+    td = generate(64, seed=1, spec=DataSpec(T=60, min_segment=20))
+    td = td.apply(lambda v: v.float() if v.is_floating_point() else v)
+    s1 = Stage1Module()
+    stage1 = training(s1, td.unsqueeze(0).expand(s1.net.n_experts, 64), chunks=2)
+    stage2 = training(Stage2Module(), td, chunks=2)
+    print(f"training: stage 1 {stage1:,.0f}, stage 2 {stage2:,.0f} trajectory-steps/s", flush=True)
+    cmd = "`.venv/bin/python benchmarks/bench_immnet.py" + (" --no-compile" if args.no_compile else "") + "`"
+    lines = [
+        f"{cmd} ({datetime.date.today().isoformat()}; {machine()}).",
+        "",
+        "| inference (4 experts, streaming step) | eager track-steps/s | compiled track-steps/s |",
+        "|---|---:|---:|",
+        *[f"| batch {B} | {e:,.0f} | {'-' if c is None else f'{c:,.0f}'} |" for B, e, c in rows],
+        "",
+        "| training (batch 64, TBPTT 20, forward + backward + Adam) | trajectory-steps/s |",
+        "|---|---:|",
+        f"| stage 1 (4 experts alone; a step = one trajectory through all 4) | {stage1:,.0f} |",
+        f"| stage 2 (end to end) | {stage2:,.0f} |",
+    ]
+    write_section("IMMNet", "\n".join(lines), args.out or Path(__file__).resolve().parents[1] / "BENCHMARKS.md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
