@@ -14,10 +14,13 @@ counted (``train/skipped``).
 from __future__ import annotations
 
 
+from pathlib import Path
+
 import lightning as L
 import torch
 
 from immnet import keys
+from immnet.evaluation.metrics import confusion, per_trajectory_rmse, position_error
 from immnet.stages import IMMNet
 from immnet.training.losses import component_weights, mode_loss, state_loss
 
@@ -25,9 +28,8 @@ AXES = ("x", "y", "z")
 
 
 def position_rmse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-    """Per-axis position RMSE (SPEC.md section 5): per trajectory over time, then mean; ``[3]``."""
-    e = (est[..., [0, 3, 6]] - truth[..., [0, 3, 6]]).square().mean(1).sqrt()
-    return e.reshape(-1, 3).mean(0)
+    """Per-axis position RMSE of SPEC.md section 5 (``immnet.evaluation.metrics``), ``[3]``."""
+    return per_trajectory_rmse(position_error(est.detach(), truth)).mean(0)
 
 
 class _TrackerModule(L.LightningModule):
@@ -179,7 +181,21 @@ class Stage2Module(_TrackerModule):
         self.log("train/skipped", float(self.skipped))
 
     def validation_step(self, batch, batch_idx):
-        self._evaluate(batch, "val")
+        probs = self._evaluate(batch, "val")
+        conf = confusion(probs.detach().cpu(), batch[keys.MODE].cpu())
+        self._confusion = conf if batch_idx == 0 else self._confusion + conf
+
+    def on_validation_epoch_end(self):
+        """Log the validation confusion matrix as a figure (W&B), beside the scalar metrics."""
+        from lightning.pytorch.loggers import WandbLogger
+
+        if self.trainer.sanity_checking or not isinstance(self.logger, WandbLogger) or not hasattr(self, "_confusion"):
+            return
+        from immnet.evaluation.figures import plot_confusion
+
+        path = plot_confusion(self._confusion, Path(self.logger.save_dir or ".") / "figures" / f"confusion-{self.global_step}.png",
+                              title=f"validation, step {self.global_step}")
+        self.logger.log_image(key="val/confusion", images=[str(path)], step=self.global_step)
 
     def test_step(self, batch, batch_idx):
         self._evaluate(batch, "test")
@@ -191,5 +207,6 @@ class Stage2Module(_TrackerModule):
         self.log(f"{prefix}/loss", loss, prog_bar=True, batch_size=B)
         self.log(f"{prefix}/ce", ce, batch_size=B)
         self._log_rmse(prefix, out[keys.STATE], batch[keys.STATES], B)
-        pred = self.net.to_mode_probs(out["expert_probs"]).argmax(-1)
-        self.log(f"{prefix}/mode_accuracy", (pred == batch[keys.MODE]).float().mean(), batch_size=B)
+        probs = self.net.to_mode_probs(out["expert_probs"])
+        self.log(f"{prefix}/mode_accuracy", (probs.argmax(-1) == batch[keys.MODE]).float().mean(), batch_size=B)
+        return probs

@@ -1,0 +1,71 @@
+"""Train the ablations of configs/ablations with the quick recipe's budgets, then score them beside
+the full quick IMMNet on the quick test set in one run; writes runs/ablations/results.md.
+
+Run (after `bash scripts/main.sh`, which makes the data and the quick run):
+    .venv/bin/python scripts/ablations.py [--skip-training]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+QUICK = ROOT / "runs/quick"
+ABLATIONS = {  # name: (base recipe, needs the quick stage-1 experts)
+    "uniform-mix": ("recipes/quick-stage2.yaml", True),
+    "bayes-mode": ("recipes/quick-stage2.yaml", True),
+    "analytic-gain": ("recipes/quick-stage2.yaml", False),
+    "single-expert": ("recipes/quick-stage1.yaml", False),
+}
+
+
+def ckpt(name: str) -> Path:
+    return ROOT / "runs/ablations" / name / "checkpoints/best.ckpt"
+
+
+def train(name: str) -> None:
+    base, from_stage1 = ABLATIONS[name]
+    args = [sys.executable, "-m", "immnet.cli", "fit", "--config", base, "--config", f"configs/ablations/{name}.yaml"]
+    if from_stage1:
+        args += ["--model.init_args.stage1_checkpoint", str(QUICK / "stage1/checkpoints/best.ckpt")]
+    print(f"[ablations] training {name}", file=sys.stderr, flush=True)
+    subprocess.run(args, cwd=ROOT, check=True)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--skip-training", action="store_true", help="only evaluate existing checkpoints")
+    p.add_argument("--only", nargs="*", default=None, help="train only these ablations")
+    a = p.parse_args()
+    if not a.skip_training:
+        for name in a.only or ABLATIONS:
+            train(name)
+    from immnet.data.storage import load_dataset
+    from immnet.evaluation.runner import evaluate, to_json
+    from immnet.evaluation.table import format_markdown, format_table
+    from immnet.evaluation.methods import build_method
+    from immnet.tracking import IMMNetMethod, KalmanNetMethod
+
+    data, _ = load_dataset(QUICK / "data/test")
+    methods = {
+        "immnet (full)": IMMNetMethod(QUICK / "stage2/checkpoints/best.ckpt", name="immnet (full)"),
+        "classifier -> uniform mix": IMMNetMethod(ckpt("uniform-mix")),
+        "classifier -> IMM Bayesian update": IMMNetMethod(ckpt("bayes-mode")),
+        "KalmanNet -> analytic gain": IMMNetMethod(ckpt("analytic-gain")),
+        "single expert (plain KalmanNet, CA)": KalmanNetMethod(ckpt("single-expert"), expert="ca"),
+        "clairvoyant": build_method("clairvoyant"),
+    }
+    rows = to_json(evaluate(methods, data, progress=True))
+    print(format_table(rows))
+    out = ROOT / "runs/ablations/results.md"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(format_markdown(rows) + "\n")
+    print(f"wrote {out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
