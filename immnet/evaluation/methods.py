@@ -12,7 +12,6 @@ Methods are configured, not coded in: ``configs/methods/<name>.yaml`` holds one 
 
 from __future__ import annotations
 
-import importlib
 import inspect
 from pathlib import Path
 from typing import Protocol, Sequence, runtime_checkable
@@ -23,6 +22,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.config import REPO_ROOT, load_yaml
 from immnet.motion import POS
+from immnet.motion.base import import_class
 
 METHODS_DIR = REPO_ROOT / "configs" / "methods"
 """Where ``<name>.yaml`` method configs live."""
@@ -89,14 +89,11 @@ def _method_class(name: str, methods_dir: Path | None = None):
     spec = load_yaml(path) or {}
     if not isinstance(spec, dict) or "class_path" not in spec:
         raise ValueError(f"method {name!r}: {path} holds no 'class_path' mapping")
-    module_name, _, cls_name = spec["class_path"].rpartition(".")
     try:
-        cls = getattr(importlib.import_module(module_name), cls_name)
-    except (ImportError, AttributeError, ValueError) as err:
+        cls = import_class(spec["class_path"])
+    except ValueError as err:
         others = [m for m in available_methods(methods_dir) if m != name]
-        raise ValueError(
-            f"method {name!r} is not available ({spec['class_path']}: {err}); available: {', '.join(others)}"
-        ) from None
+        raise ValueError(f"method {name!r} is not available ({err}); available: {', '.join(others)}") from None
     return cls, dict(spec.get("init_args") or {})
 
 
@@ -109,8 +106,7 @@ def available_methods(methods_dir: Path | None = None) -> list[str]:
             continue
         try:
             spec = load_yaml(Path(methods_dir or METHODS_DIR) / f"{name}.yaml") or {}
-            module_name, _, cls_name = spec["class_path"].rpartition(".")
-            getattr(importlib.import_module(module_name), cls_name)
+            import_class(spec["class_path"])
         except Exception:  # noqa: BLE001 - anything that stops the import makes it unavailable
             continue
         out.append(name)

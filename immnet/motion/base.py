@@ -120,6 +120,15 @@ class ModelSet:
         }
 
 
+def import_class(class_path: str):
+    """The class named by a dotted ``class_path``; ``ValueError`` naming it if it cannot be imported."""
+    module_name, _, cls_name = class_path.rpartition(".")
+    try:
+        return getattr(importlib.import_module(module_name), cls_name)
+    except (ImportError, AttributeError, ValueError) as err:
+        raise ValueError(f"unknown class_path {class_path!r}: {err}") from None
+
+
 def instantiate(entry: dict, **extra):
     """Build ``class_path(**init_args, **extra)``; the YAML convention of Lightning's CLI.
 
@@ -127,9 +136,4 @@ def instantiate(entry: dict, **extra):
     """
     if not isinstance(entry, dict) or "class_path" not in entry:
         raise ValueError(f"expected a mapping with 'class_path', got {entry!r}")
-    module_name, _, cls_name = entry["class_path"].rpartition(".")
-    try:
-        cls = getattr(importlib.import_module(module_name), cls_name)
-    except (ImportError, AttributeError, ValueError) as err:
-        raise ValueError(f"unknown class_path {entry['class_path']!r}: {err}") from None
-    return cls(**(entry.get("init_args") or {}), **extra)
+    return import_class(entry["class_path"])(**(entry.get("init_args") or {}), **extra)
