@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from immnet.filters.kalman import update
+from immnet.filters.kalman import _as_cov, update
 
 VEL_STD = 300.0
 """Initial velocity standard deviation (m/s), every axis: covers the 340 m/s speed bound."""
@@ -94,6 +94,8 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, step=i
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
+    if step is imm_step and _lean_ok(F, Q, R, M, x0.shape[-1]):
+        return _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts)
     x = x0.unsqueeze(1).expand(B, M, 9).contiguous()
     P = P0.unsqueeze(1).expand(B, M, 9, 9).contiguous()
     mu = mu0.to(z).expand(B, M).contiguous()
@@ -109,4 +111,93 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, step=i
         states[:, t], probs[:, t] = xf, mu
         if return_experts:
             experts[:, t] = x
+    return states, probs, experts
+
+
+def _lean_ok(F, Q, R, M, n) -> bool:
+    """Whether ``_imm_filter_lean`` applies: the same ``F``, ``Q`` for every track, scalar or 3x3 ``R``."""
+    R = torch.as_tensor(R)
+    return (
+        n == 9 and F.shape == (M, 9, 9) and Q.dim() <= 3 and Q.shape[-2:] == (9, 9) and Q.shape[0] in (1, M)
+        and (R.numel() == 1 or R.shape == (3, 3))
+    )
+
+
+def _kron_t(F):
+    """``(F (x) F)^T``, symmetrized, ``[M, n^2, n^2]``: ``vec(P) @ K`` is ``vec(F sym(P) F^T)``."""
+    M, n, _ = F.shape
+    K = torch.einsum("mli,mkj->mlkij", F, F).reshape(M, n * n, n * n)
+    K = 0.5 * (K + K.reshape(M, n, n, n * n).transpose(1, 2).reshape(M, n * n, n * n))
+    return K.transpose(1, 2).contiguous()
+
+
+def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
+    """``imm_filter`` for shared ``F``, ``Q`` ``[M, 9, 9]``: the same steps, fewer and larger ops.
+
+    Experts lie first (``x [M, B, 9]``, ``P [M, B, 81]``) so that the prediction of every track is one
+    GEMM per model, ``vec(P) (F (x) F)^T + vec(Q)`` (symmetrizing ``P`` on the way, which replaces the
+    update's symmetrization), and the update uses the position block of ``P`` directly (``H`` selects
+    positions) with the adjugate inverse of ``S``. Missed detections zero the gain and the likelihood,
+    which leaves the prior exactly; steps without one skip that work. The mode update drops the
+    constant ``-3/2 log 2 pi``, which cancels in the normalization.
+    """
+    B, T, _ = z.shape
+    M = Pi.shape[-1]
+    KT = _kron_t(F)
+    Qv = Q.expand(M, 9, 9).reshape(M, 1, 81)
+    Rm = _as_cov(R, 3, z)
+    FT = F.transpose(1, 2)
+    PiT = Pi.T.contiguous()
+    tiny = torch.finfo(z.dtype).tiny
+    x = x0.unsqueeze(0).expand(M, B, 9).contiguous()
+    P = P0.reshape(1, B, 81).expand(M, B, 81).contiguous()
+    mu = mu0.to(z).expand(B, M).contiguous()
+    missed = torch.isnan(z).any(-1)  # [B, T]
+    miss_t = missed.any(0).tolist()
+    states = z.new_empty(B, T, 9)
+    probs = z.new_empty(B, T, M)
+    experts = z.new_empty(B, T, M, 9) if return_experts else None
+    states[:, 0], probs[:, 0] = x0, mu
+    if return_experts:
+        experts[:, 0] = x0[:, None]
+    for t in range(1, T):
+        # 1. mixing, w^T [j, i, B]
+        cbar = mu @ Pi
+        wT = (PiT * mu[:, None, :] / cbar.clamp_min(tiny)[:, :, None]).permute(1, 2, 0)
+        wx = wT[..., None]
+        xm = (wx * x).sum(1)  # [j, B, 9]
+        d = x - xm[:, None]  # [j, i, B, 9]: x_i - x0_j
+        Pm = torch.einsum("jib,ibk->jbk", wT, P) + torch.einsum("jibm,jibn->jbmn", wx * d, d).reshape(M, B, 81)
+        # 2. prediction
+        xp = torch.bmm(xm, FT)
+        Pp = torch.baddbmm(Qv, Pm, KT)
+        # 3. update with the positions
+        PHt = Pp.view(M, B, 9, 9)[..., 0::3]  # [M, B, 9, 3]
+        S = PHt[..., 0::3, :] + Rm
+        C = torch.linalg.cross(S.roll(-1, -2), S.roll(1, -2), dim=-1)  # rows: cofactors of S's rows
+        det = (S[..., 0, :] * C[..., 0, :]).sum(-1)
+        Si = C.mT / det[..., None, None]
+        zt = z[:, t]
+        if miss_t[t]:
+            zt = zt.nan_to_num(0.0)
+        y = zt - xp[..., 0::3]
+        if miss_t[t]:
+            y = y.masked_fill(missed[:, t, None], 0.0)
+        K = PHt @ Si
+        if miss_t[t]:
+            K = K.masked_fill(missed[:, t, None, None], 0.0)
+        Siy = Si @ y[..., None]
+        x = xp + (PHt @ Siy).squeeze(-1)
+        P = torch.baddbmm(Pp.view(M * B, 9, 9), K.view(M * B, 9, 3), PHt.mT.reshape(M * B, 3, 9), alpha=-1)
+        P = P.view(M, B, 81)
+        # 4. mode probabilities, 5. fused state
+        ll = ((y[..., None, :] @ Siy).view(M, B) + det.log()) * -0.5
+        if miss_t[t]:
+            ll = ll.masked_fill(missed[:, t], 0.0)
+        mu = torch.softmax(cbar.log() + ll.T, -1)
+        xs = x.transpose(0, 1)
+        states[:, t] = (mu[:, None, :] @ xs).squeeze(1)
+        probs[:, t] = mu
+        if return_experts:
+            experts[:, t] = xs
     return states, probs, experts
