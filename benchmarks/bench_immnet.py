@@ -33,7 +33,7 @@ def scans(B: int, T: int) -> torch.Tensor:
 
 @torch.no_grad()
 def inference(net: IMMNet, B: int, steps: int, step_fn) -> float:
-    z = scans(B, steps + 2)
+    z = scans(B, max(steps, 3) + 2)
     carry = net.initial_carry(B)
     for t in range(2):  # start the tracks
         carry = net.scan(carry, z[:, t])
@@ -45,18 +45,17 @@ def inference(net: IMMNet, B: int, steps: int, step_fn) -> float:
     return B * steps / (time.perf_counter() - t0)
 
 
-def training(module, batch, chunks: int) -> float:
+def training(module, batch) -> float:
+    """Trajectory-steps/s of one ``training_step`` (forward, backward and Adam per TBPTT chunk)."""
     opt = torch.optim.Adam(module.trainable_parameters(), 1e-4)
     module.optimizers = lambda: opt  # Lightning is not attached: the module's own loop, our optimizer
     module.manual_backward = lambda loss: loss.backward()
     module.log = lambda *a, **k: None
-    T = 20 * chunks
-    crop = batch.apply(lambda v: v[..., :T, :] if v.dim() >= 3 else (v[..., :T] if v.dim() == 2 and v.shape[-1] > 20 else v))
-    module.training_step(crop, 0)  # warm-up
+    T = batch["measurements"].shape[-2]
+    module.training_step(batch, 0)  # warm-up
     t0 = time.perf_counter()
-    module.training_step(crop, 0)
-    rows = crop.batch_size[-1]
-    return rows * T / (time.perf_counter() - t0)
+    module.training_step(batch, 0)
+    return batch.batch_size[-1] * T / (time.perf_counter() - t0)
 
 
 def main(argv=None) -> int:
@@ -82,11 +81,11 @@ def main(argv=None) -> int:
             compiled = inference(net, B, args.steps, compiled_scan)
         rows.append((B, eager, compiled))
         print(f"inference batch {B}: eager {eager:,.0f}, compiled {compiled or 0:,.0f} track-steps/s", flush=True)
-    td = generate(64, seed=1, spec=DataSpec(T=60, min_segment=20))
+    td = generate(64, seed=1, spec=DataSpec(T=40, min_segment=12))  # two TBPTT chunks of 20
     td = td.apply(lambda v: v.float() if v.is_floating_point() else v)
     s1 = Stage1Module()
-    stage1 = training(s1, td.unsqueeze(0).expand(s1.net.n_experts, 64), chunks=2)
-    stage2 = training(Stage2Module(), td, chunks=2)
+    stage1 = training(s1, td.unsqueeze(0).expand(s1.net.n_experts, 64))
+    stage2 = training(Stage2Module(), td)
     print(f"training: stage 1 {stage1:,.0f}, stage 2 {stage2:,.0f} trajectory-steps/s", flush=True)
     cmd = "`.venv/bin/python benchmarks/bench_immnet.py" + (" --no-compile" if args.no_compile else "") + "`"
     lines = [
