@@ -114,6 +114,10 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, step=i
     return states, probs, experts
 
 
+_MIX = 1
+_SMALL = 1024
+
+
 def _lean_ok(F, Q, R, M, n) -> bool:
     """Whether ``_imm_filter_lean`` applies: the same ``F``, ``Q`` for every track, scalar or 3x3 ``R``."""
     R = torch.as_tensor(R)
@@ -160,6 +164,7 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
     states[:, 0], probs[:, 0] = x0, mu
     if return_experts:
         experts[:, 0] = x0[:, None]
+    small = B * M * M <= _SMALL
     for t in range(1, T):
         # 1. mixing, w^T [j, i, B]
         cbar = mu @ Pi
@@ -167,7 +172,17 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
         wx = wT[..., None]
         xm = (wx * x).sum(1)  # [j, B, 9]
         d = x - xm[:, None]  # [j, i, B, 9]: x_i - x0_j
-        Pm = torch.einsum("jib,ibk->jbk", wT, P) + torch.einsum("jibm,jibn->jbmn", wx * d, d).reshape(M, B, 81)
+        if small:  # few ops: E_ji = P_i + d_ji d_ji^T [j, i, B, 81], then the weighted sum over i
+            Pm = (wx * torch.addcmul(P.view(M, B, 9, 9), d[..., :, None], d[..., None, :]).view(M, M, B, 81)).sum(1)
+        elif _MIX == 0:
+            C = ((wx * d).permute(0, 2, 3, 1) @ d.permute(0, 2, 1, 3)).view(M, B, 81)
+            Pm = torch.einsum("jib,ibk->jbk", wT, P) + C
+        else:
+            C = ((wx * d).permute(0, 2, 3, 1) @ d.permute(0, 2, 1, 3)).view(M, B, 81)
+            wP = wT[..., None]
+            Pm = torch.addcmul(C, wP[:, 0], P[0])
+            for i in range(1, M):
+                Pm = Pm.addcmul_(wP[:, i], P[i])
         # 2. prediction
         xp = torch.bmm(xm, FT)
         Pp = torch.baddbmm(Qv, Pm, KT)
