@@ -158,12 +158,8 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
     mu = mu0.to(z).expand(B, M).contiguous()
     missed = torch.isnan(z).any(-1)  # [B, T]
     miss_t = missed.any(0).tolist()
-    states = z.new_empty(B, T, 9)
-    probs = z.new_empty(B, T, M)
-    experts = z.new_empty(B, T, M, 9) if return_experts else None
-    states[:, 0], probs[:, 0] = x0, mu
-    if return_experts:
-        experts[:, 0] = x0[:, None]
+    states, probs, experts = [x0], [mu], [x.transpose(0, 1)]
+    rows = torch.tensor([1, 2, 0, 2, 0, 1], device=z.device)
     small = B * M * M <= _SMALL
     for t in range(1, T):
         # 1. mixing, w^T [j, i, B]
@@ -189,7 +185,8 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
         # 3. update with the positions
         PHt = Pp.view(M, B, 9, 9)[..., 0::3]  # [M, B, 9, 3]
         S = PHt[..., 0::3, :] + Rm
-        C = torch.linalg.cross(S.roll(-1, -2), S.roll(1, -2), dim=-1)  # rows: cofactors of S's rows
+        S2 = S.index_select(-2, rows).unflatten(-2, (2, 3))  # rows (1, 2, 0) and (2, 0, 1)
+        C = torch.linalg.cross(S2[..., 0, :, :], S2[..., 1, :, :], dim=-1)  # rows: cofactors of S's rows
         det = (S[..., 0, :] * C[..., 0, :]).sum(-1)
         Si = C.mT / det[..., None, None]
         zt = z[:, t]
@@ -202,7 +199,7 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
         if miss_t[t]:
             K = K.masked_fill(missed[:, t, None, None], 0.0)
         Siy = Si @ y[..., None]
-        x = xp + (PHt @ Siy).squeeze(-1)
+        x = torch.baddbmm(xp.view(M * B, 9, 1), PHt.reshape(M * B, 9, 3), Siy.view(M * B, 3, 1)).view(M, B, 9)
         P = torch.baddbmm(Pp.view(M * B, 9, 9), K.view(M * B, 9, 3), PHt.mT.reshape(M * B, 3, 9), alpha=-1)
         P = P.view(M, B, 81)
         # 4. mode probabilities, 5. fused state
@@ -211,8 +208,9 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
             ll = ll.masked_fill(missed[:, t], 0.0)
         mu = torch.softmax(cbar.log() + ll.T, -1)
         xs = x.transpose(0, 1)
-        states[:, t] = (mu[:, None, :] @ xs).squeeze(1)
-        probs[:, t] = mu
+        states.append((mu[:, None, :] @ xs).squeeze(1))
+        probs.append(mu)
         if return_experts:
-            experts[:, t] = xs
-    return states, probs, experts
+            experts.append(xs)
+    stack = lambda seq: torch.stack(seq, 1)  # noqa: E731
+    return stack(states), stack(probs), stack(experts) if return_experts else None
