@@ -114,7 +114,6 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, step=i
     return states, probs, experts
 
 
-_MIX = 1
 _SMALL = 1024
 
 
@@ -170,15 +169,13 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
         d = x - xm[:, None]  # [j, i, B, 9]: x_i - x0_j
         if small:  # few ops: E_ji = P_i + d_ji d_ji^T [j, i, B, 81], then the weighted sum over i
             Pm = (wx * torch.addcmul(P.view(M, B, 9, 9), d[..., :, None], d[..., None, :]).view(M, M, B, 81)).sum(1)
-        elif _MIX == 0:
-            C = ((wx * d).permute(0, 2, 3, 1) @ d.permute(0, 2, 1, 3)).view(M, B, 81)
-            Pm = torch.einsum("jib,ibk->jbk", wT, P) + C
-        else:
-            C = ((wx * d).permute(0, 2, 3, 1) @ d.permute(0, 2, 1, 3)).view(M, B, 81)
-            wP = wT[..., None]
-            Pm = torch.addcmul(C, wP[:, 0], P[0])
+        else:  # many tracks: accumulate w_ji P_i + (w_ji d_ji) d_ji^T in place (no batches of tiny matmuls)
+            wd = wx * d
+            Pm = (wx[:, 0] * P[0]).view(M, B, 9, 9).addcmul_(wd[:, 0, ..., :, None], d[:, 0, ..., None, :])
             for i in range(1, M):
-                Pm = Pm.addcmul_(wP[:, i], P[i])
+                Pm.view(M, B, 81).addcmul_(wx[:, i], P[i])
+                Pm.addcmul_(wd[:, i, ..., :, None], d[:, i, ..., None, :])
+            Pm = Pm.view(M, B, 81)
         # 2. prediction
         xp = torch.bmm(xm, FT)
         Pp = torch.baddbmm(Qv, Pm, KT)
@@ -195,20 +192,33 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
         y = zt - xp[..., 0::3]
         if miss_t[t]:
             y = y.masked_fill(missed[:, t, None], 0.0)
-        K = PHt @ Si
+        if small:
+            K = PHt @ Si
+        else:  # contractions over 3 as broadcast multiply-adds
+            K = (PHt[..., 0:1] * Si[..., 0:1, :]).addcmul_(PHt[..., 1:2], Si[..., 1:2, :])
+            K = K.addcmul_(PHt[..., 2:3], Si[..., 2:3, :])
         if miss_t[t]:
             K = K.masked_fill(missed[:, t, None, None], 0.0)
-        Siy = Si @ y[..., None]
-        x = torch.baddbmm(xp.view(M * B, 9, 1), PHt.reshape(M * B, 9, 3), Siy.view(M * B, 3, 1)).view(M, B, 9)
-        P = torch.baddbmm(Pp.view(M * B, 9, 9), K.view(M * B, 9, 3), PHt.mT.reshape(M * B, 3, 9), alpha=-1)
+        if small:
+            Siy = Si @ y[..., None]
+            x = torch.baddbmm(xp.view(M * B, 9, 1), PHt.reshape(M * B, 9, 3), Siy.view(M * B, 3, 1)).view(M, B, 9)
+            P = torch.baddbmm(Pp.view(M * B, 9, 9), K.view(M * B, 9, 3), PHt.mT.reshape(M * B, 3, 9), alpha=-1)
+            q = (y[..., None, :] @ Siy).view(M, B)
+        else:
+            Siy = (Si * y[..., None, :]).sum(-1)
+            x = xp + (PHt * Siy[..., None, :]).sum(-1)
+            P = torch.addcmul(Pp.view(M, B, 9, 9), K[..., :, 0, None], PHt[..., None, :, 0], value=-1)
+            P = P.addcmul_(K[..., :, 1, None], PHt[..., None, :, 1], value=-1)
+            P = P.addcmul_(K[..., :, 2, None], PHt[..., None, :, 2], value=-1)
+            q = (y * Siy).sum(-1)
         P = P.view(M, B, 81)
         # 4. mode probabilities, 5. fused state
-        ll = ((y[..., None, :] @ Siy).view(M, B) + det.log()) * -0.5
+        ll = (q + det.log()) * -0.5
         if miss_t[t]:
             ll = ll.masked_fill(missed[:, t], 0.0)
         mu = torch.softmax(cbar.log() + ll.T, -1)
         xs = x.transpose(0, 1)
-        states.append((mu[:, None, :] @ xs).squeeze(1))
+        states.append((mu[:, None, :] @ xs).squeeze(1) if small else (mu.T[..., None] * x).sum(0))
         probs.append(mu)
         if return_experts:
             experts.append(xs)
