@@ -107,3 +107,19 @@ def test_float32_close_to_float64():
     assert (s32[..., 0::3].double() - s64[..., 0::3]).abs().max() < 0.05  # metres, at ~10 km from the radar
     assert (s32[..., 1::3].double() - s64[..., 1::3]).abs().max() < 0.05  # m/s
     assert (p32.double() - p64).abs().max() < 1e-3
+
+
+@pytest.mark.parametrize("B", [2, 400], ids=["few-tracks", "many-tracks"])
+def test_lean_path_equals_general_step(B):
+    """``imm_filter``'s lean path (shared F, Q; both batch regimes) equals looping ``imm_step``."""
+    from immnet.filters import imm_step
+
+    F, Q, Pi, mu0, r, z = _problem(SETS["imm6"], seed=11, B=B, T=25)
+    z[0, 5:9] = float("nan")
+    z[-1, 12, 2] = float("nan")
+    R = torch.tensor(r * r, dtype=torch.float64)
+    x0, P0 = initial_state(z, r)
+    lean = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True)
+    general = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True, step=lambda *a: imm_step(*a))
+    for a, b in zip(lean, general):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-7)
