@@ -104,7 +104,7 @@ def main(argv=None) -> int:
         "",
         "Targets: >= 1,000,000 track-steps/s at batch >= 4096 (3 models) and < 200 us per single-track step.",
         f"Status: best large-batch rate {max(r for _, B, r, _ in rows if B >= 4096):,.0f} track-steps/s, "
-        f"single-track step {min(us for _, B, _, us in rows if B == 1 and 'IMMNet' in _):,.0f} us "
+        f"single-track step {min(us for name, B, _, us in rows if B == 1 and 'IMMNet' in name):,.0f} us "
         "(torch eager, one kernel per op; torch.compile of the step was slower on this CPU).",
     ]
     if not args.no_write:
