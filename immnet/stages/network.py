@@ -132,12 +132,10 @@ class IMMNet(nn.Module):
         td = carry.copy()
         td.set(keys.MEASUREMENT, z)
         age = carry.get(keys.AGE)
-        if bool((age >= 2).all()):
-            out = step(td)
-            out.set(keys.AGE, age)
+        out = step(td)
+        if bool((age >= 2).all()):  # every track running: the step is the whole scan
             return out
         has = measured(z).reshape(z.shape[0], -1).all(-1)
-        out = step(td)
         first = self._start(carry, z, second=False)
         second = self._start(carry, z, second=True)
         carry_keys = list(first.keys(True, True))
