@@ -24,6 +24,10 @@ DATA_KEYS = (STATES, MEASUREMENTS, MODE, TURN_RATE, R, DT)
 STATE = "state"
 MODE_PROBS = "mode_probs"
 
+# --- an IMMNet rollout's outputs over time (TensorDict [B, T]), besides ``state`` ------------------
+ROLLOUT_EXPERT_PROBS = "expert_probs"  # mu_t over the experts [B, T, M]
+ROLLOUT_MODE_LOGITS = "mode_logits"  # the classifier's logits [B, T, M]
+
 # --- one tracker step (immnet.stages) ---------------------------------------------------------
 MEASUREMENT = "measurement"  # z_t [B, 3]
 PREV_MEASUREMENT = ("memory", "measurement")  # z_{t-1} [B, 3]

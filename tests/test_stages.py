@@ -50,7 +50,7 @@ def test_every_stage_writes_its_keys_with_shapes(model_set, M, data):
         for key, shape in written.items():
             assert tuple(td.get(key).shape) == shape, (stage, key)
     assert torch.allclose(td.get(keys.EXPERT_PROBS).sum(-1), torch.ones(B))
-    assert out[keys.STATE].shape == (B, 5, 9) and out["expert_probs"].shape == (B, 5, M)
+    assert out[keys.STATE].shape == (B, 5, 9) and out[keys.ROLLOUT_EXPERT_PROBS].shape == (B, 5, M)
 
 
 def test_stage_swap_by_configuration_alone(data):
@@ -60,7 +60,7 @@ def test_stage_swap_by_configuration_alone(data):
     assert torch.isfinite(out[keys.STATE]).all()
     uniform = IMMNet(classifier=UNIFORM)
     out, _ = uniform.rollout(data[keys.MEASUREMENTS][:, :10])
-    assert torch.allclose(out["expert_probs"][:, 3:], torch.full((6, 7, 4), 0.25))
+    assert torch.allclose(out[keys.ROLLOUT_EXPERT_PROBS][:, 3:], torch.full((6, 7, 4), 0.25))
 
 
 def test_analytic_gain_with_cv_expert_equals_our_kalman_filter(data):

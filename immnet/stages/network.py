@@ -170,6 +170,6 @@ class IMMNet(nn.Module):
                 logits.append(carry.get(keys.MODE_LOGITS))
         out = {keys.STATE: torch.stack(states, 1)}
         if not experts_alone:
-            out["expert_probs"] = torch.stack(probs, 1)
-            out["mode_logits"] = torch.stack(logits, 1)
+            out[keys.ROLLOUT_EXPERT_PROBS] = torch.stack(probs, 1)
+            out[keys.ROLLOUT_MODE_LOGITS] = torch.stack(logits, 1)
         return TensorDict(out, batch_size=[B, T]), carry

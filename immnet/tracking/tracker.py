@@ -83,7 +83,7 @@ class Tracker:
         outs = []
         for i in range(0, z.shape[0], batch_size):
             out, _ = self.net.rollout(z[i : i + batch_size])
-            out.set(keys.MODE_PROBS, self.net.to_mode_probs(out["expert_probs"]))
+            out.set(keys.MODE_PROBS, self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
             outs.append(out)
         return torch.cat(outs, 0)
 

@@ -160,7 +160,7 @@ class Stage2Module(_TrackerModule):
     def losses(self, out, batch, s: int = 0, e: int | None = None):
         e = e if e is not None else out.batch_size[1] + s
         mse = state_loss(out[keys.STATE], batch[keys.STATES][:, s:e], batch.get(keys.R, None), self.w_state)
-        ce = mode_loss(self.net.to_mode_probs(out["expert_probs"]), batch[keys.MODE][:, s:e])
+        ce = mode_loss(self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]), batch[keys.MODE][:, s:e])
         g = self.hparams.gamma
         return g * mse + (1 - g) * ce, mse, ce
 
@@ -207,6 +207,6 @@ class Stage2Module(_TrackerModule):
         self.log(f"{prefix}/loss", loss, prog_bar=True, batch_size=B)
         self.log(f"{prefix}/ce", ce, batch_size=B)
         self._log_rmse(prefix, out[keys.STATE], batch[keys.STATES], B)
-        probs = self.net.to_mode_probs(out["expert_probs"])
+        probs = self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS])
         self.log(f"{prefix}/mode_accuracy", (probs.argmax(-1) == batch[keys.MODE]).float().mean(), batch_size=B)
         return probs
