@@ -93,8 +93,9 @@ class _Wide(MotionModel):
         ({"mu0": [0.5, 0.5]}, "one probability per model"),
         ({"mu0": [0.5, 0.4, 0.3]}, "sum to 1"),
         ({"dtype": "float16"}, "dtype"),
+        ({"model_set": "configs/model_sets/imm4-adaptive.yaml"}, "state-dependent"),
     ],
-    ids=["dims", "rows", "negative", "shape", "p_stay", "neg-sigma", "sigma-len", "r", "mu0-len", "mu0-sum", "dtype"],
+    ids=["dims", "rows", "negative", "shape", "p_stay", "neg-sigma", "sigma-len", "r", "mu0-len", "mu0-sum", "dtype", "state-dependent"],
 )
 def test_imm_rejects_bad_configuration(kwargs, message):
     args = {"model_set": "configs/model_sets/imm3.yaml", "r": 3.0, "sigma_q": 0.5, **kwargs}

@@ -8,13 +8,16 @@ import torch
 from immnet.config import REPO_ROOT
 from immnet.motion import (
     DEG,
+    AdaptiveTurn,
     ConstantAcceleration,
     ConstantVelocity,
     CoordinatedTurn,
     ModelSet,
     ct_matrix,
+    ct_propagate,
     noise_gain,
     process_noise,
+    turn_rate_of,
 )
 
 
@@ -96,7 +99,7 @@ def test_process_noise_forms():
         process_noise(-1.0, 1.0)
 
 
-@pytest.mark.parametrize("name,n", [("imm3", 3), ("imm4", 4), ("imm6", 6)])
+@pytest.mark.parametrize("name,n", [("imm3", 3), ("imm4", 4), ("imm4-adaptive", 4), ("imm6", 6)])
 def test_model_sets_load_from_yaml(name, n):
     ms = ModelSet.from_config(REPO_ROOT / "configs" / "model_sets" / f"{name}.yaml")
     assert len(ms) == n and ms.F(1.0).shape == (n, 9, 9) and ms.Q(0.2).shape == (n, 9, 9)
@@ -110,3 +113,38 @@ def test_model_set_errors():
         ModelSet.from_config([{"class_path": "immnet.motion.Nope"}])
     with pytest.raises(ValueError, match="non-zero"):
         CoordinatedTurn(0.0)
+
+
+def test_ct_propagate_equals_the_transition_matrix():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(64, 9, dtype=torch.float64, generator=g) * 100.0
+    w = (torch.rand(64, dtype=torch.float64, generator=g) - 0.5) * 0.5
+    w[:3] = 0.0  # the w -> 0 limit
+    for dt in (1.0, 0.4):
+        expected = (ct_matrix(w, dt) @ x.unsqueeze(-1)).squeeze(-1)
+        torch.testing.assert_close(ct_propagate(x, w, dt), expected, rtol=1e-12, atol=1e-9)
+
+
+def test_turn_rate_of_a_coordinated_turn_is_its_rate():
+    """After one CT step the acceleration is centripetal, ``a = w x v``: the rate is recovered."""
+    for w_deg in (1.0, 4.5, -7.0, 10.0):
+        x = ct_matrix(w_deg * DEG, 1.0) @ _state()
+        assert turn_rate_of(x).item() == pytest.approx(w_deg * DEG, rel=1e-12)
+    assert turn_rate_of(_state()).item() == 0.0  # straight flight
+
+
+@pytest.mark.parametrize("w_deg", [2.0, 9.0, -3.0])
+def test_adaptive_turn_follows_the_state_within_its_bounds(w_deg):
+    x = ct_matrix(w_deg * DEG, 1.0) @ _state()
+    plus, minus = AdaptiveTurn(5.0), AdaptiveTurn(-5.0)
+    own, other = (plus, minus) if w_deg > 0 else (minus, plus)
+    torch.testing.assert_close(own.propagate(x), ct_matrix(w_deg * DEG, 1.0) @ x, rtol=1e-12, atol=1e-9)
+    # the other sign is bounded to its slowest rate, 1 deg/s the other way
+    edge = -1.0 if w_deg > 0 else 1.0
+    torch.testing.assert_close(other.propagate(x), ct_matrix(edge * DEG, 1.0) @ x, rtol=1e-12, atol=1e-9)
+    # faster than max_deg is clamped to max_deg
+    fast = ct_matrix(math.copysign(15.0, w_deg) * DEG, 1.0) @ _state()
+    torch.testing.assert_close(own.propagate(fast), ct_matrix(math.copysign(10.0, w_deg) * DEG, 1.0) @ fast, rtol=1e-12, atol=1e-9)
+    assert own.mode == (2 if w_deg > 0 else 3) and own.state_dependent
+    with pytest.raises(ValueError, match="min_deg"):
+        AdaptiveTurn(5.0, min_deg=6.0)

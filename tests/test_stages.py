@@ -27,7 +27,7 @@ def data():
     return td.apply(lambda v: v.float() if v.is_floating_point() else v)
 
 
-@pytest.mark.parametrize("model_set,M", [("imm3", 3), ("imm4", 4), ("imm6", 6)])
+@pytest.mark.parametrize("model_set,M", [("imm3", 3), ("imm4", 4), ("imm4-adaptive", 4), ("imm6", 6)])
 def test_every_stage_writes_its_keys_with_shapes(model_set, M, data):
     net = IMMNet(model_set=f"configs/model_sets/{model_set}.yaml")
     carry, _ = None, None
@@ -127,3 +127,22 @@ def test_tracks_start_independently(data):
         out = tracker.step(z[:, t], reset=torch.tensor([False, t == 10]))
         if t >= 10:  # float32, and another batch composition: the BLAS sums differ in the last bits
             torch.testing.assert_close(out.get(keys.FUSED)[1], alone[t - 10], rtol=1e-4, atol=2e-3)
+
+
+def test_predict_propagates_adaptive_experts_at_their_state_turn_rate():
+    """Each expert's prior against the closed form of its own model (CV/CA: F x; CT: F_CT(w(x)) x)."""
+    from immnet.motion import DEG, ct_matrix
+    from immnet.stages.predict import Predict
+    from tensordict import TensorDict
+
+    ms = ModelSet.from_config("configs/model_sets/imm4-adaptive.yaml")
+    base = torch.tensor([1e4, 150.0, 0.0, -5e3, 80.0, 0.0, 3e3, 2.0, 0.0], dtype=torch.float64)
+    rates = torch.tensor([3.0, -6.0, 0.0, 20.0]) * DEG
+    x = torch.stack([ct_matrix(w.item(), 1.0) @ base for w in rates])  # centripetal acceleration of rate w
+    prior = Predict(ms)(TensorDict({keys.FUSED: x.float()}, batch_size=[4]))[keys.EXPERT_PRIOR].double()
+    bounded = {2: rates.clamp(1 * DEG, 10 * DEG), 3: rates.clamp(-10 * DEG, -1 * DEG)}
+    for b in range(4):
+        torch.testing.assert_close(prior[b, 0], ms[0].F(1.0) @ x[b], rtol=1e-5, atol=1e-2)
+        torch.testing.assert_close(prior[b, 1], ms[1].F(1.0) @ x[b], rtol=1e-5, atol=1e-2)
+        for i in (2, 3):
+            torch.testing.assert_close(prior[b, i], ct_matrix(bounded[i][b].item(), 1.0) @ x[b], rtol=1e-5, atol=1e-2)

@@ -103,6 +103,9 @@ class IMMTracker(Method):
         shapes = {tuple(m.F(1.0).shape) for m in self.model_set}
         if len(shapes) != 1 or any(len(s) != 2 or s[0] != s[1] for s in shapes):
             raise ValueError(f"model set {self.model_set} mixes state dimensions: F shapes {sorted(shapes)}")
+        moving = [m.name for m in self.model_set if m.state_dependent]
+        if moving:
+            raise ValueError(f"the IMM needs a constant F per model; {moving} are state-dependent (IMMNet experts only)")
         _positive("r", r, allow_zero=False)
         _positive("sigma_q", sigma_q)
         if isinstance(sigma_q, (list, tuple)) and len(sigma_q) != M:

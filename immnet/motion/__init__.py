@@ -1,7 +1,7 @@
 """Motion models as data: ``F(dt)``, ``Q(sigma_q, dt)``, names and the mode each stands for."""
 
 from immnet.motion.base import ModelSet, MotionModel, instantiate
-from immnet.motion.kinds import ConstantAcceleration, ConstantVelocity, CoordinatedTurn
+from immnet.motion.kinds import AdaptiveTurn, ConstantAcceleration, ConstantVelocity, CoordinatedTurn
 from immnet.motion.models import (
     ACC,
     DEG,
@@ -10,15 +10,17 @@ from immnet.motion.models import (
     VEL,
     ca_matrix,
     ct_matrix,
+    ct_propagate,
     cv_matrix,
     measurement_matrix,
     noise_gain,
     process_noise,
+    turn_rate_of,
 )
 
 __all__ = [
-    "ACC", "DEG", "MODE_NAMES", "POS", "VEL",
+    "ACC", "AdaptiveTurn", "DEG", "MODE_NAMES", "POS", "VEL",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
-    "ca_matrix", "ct_matrix", "cv_matrix", "instantiate", "measurement_matrix", "noise_gain",
-    "process_noise",
+    "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate", "measurement_matrix", "noise_gain",
+    "process_noise", "turn_rate_of",
 ]

@@ -27,6 +27,8 @@ class MotionModel:
 
     noise: str = "white"
     mode: int = 0
+    state_dependent: bool = False
+    """True where the transition depends on the state (``propagate(x, dt)``), not ``F`` alone."""
 
     @property
     def name(self) -> str:  # pragma: no cover - overridden

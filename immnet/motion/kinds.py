@@ -70,3 +70,44 @@ class CoordinatedTurn(MotionModel):
 
     def F(self, dt=1.0, dtype=torch.float64, device=None):
         return m.ct_matrix(self.turn_rate, dt, dtype=dtype, device=device)
+
+
+class AdaptiveTurn(CoordinatedTurn):
+    """CT whose turn rate comes from the state it propagates: ``w = (vx ay - vy ax) / |v_h|^2``.
+
+    In a coordinated turn the acceleration is centripetal (``a = w x v``), so a state that carries
+    acceleration carries its turn rate. The rate is bounded to ``[min_deg, max_deg]`` deg/s in the
+    sign of ``turn_rate_deg`` (CT+ or CT-): at the start of a turn, with no acceleration yet, the
+    expert turns at the slowest rate and its gain builds the acceleration up from the innovations.
+    ``turn_rate_deg`` is the nominal rate, used where a constant ``F`` is needed (a learned
+    expert's steady-state gain at initialization, the analytic-gain ablation's covariance).
+    IMMNet's predict stage calls ``propagate``; the model-based IMM filters need a constant ``F``
+    and refuse it.
+    """
+
+    state_dependent = True
+
+    def __init__(self, turn_rate_deg: float = 5.0, min_deg: float = 1.0, max_deg: float = 10.0, noise: str = "white"):
+        super().__init__(turn_rate_deg, noise)
+        if not 0 < min_deg <= abs(turn_rate_deg) <= max_deg:
+            raise ValueError(
+                f"AdaptiveTurn needs 0 < min_deg <= |turn_rate_deg| <= max_deg, got {min_deg}, {turn_rate_deg}, {max_deg}"
+            )
+        self.min_deg, self.max_deg = float(min_deg), float(max_deg)
+
+    @property
+    def name(self) -> str:
+        return f"ct{'+' if self.turn_rate_deg > 0 else '-'}adaptive"
+
+    def init_args(self) -> dict:
+        return {**super().init_args(), "min_deg": self.min_deg, "max_deg": self.max_deg}
+
+    def rate_bounds(self) -> tuple[float, float]:
+        """``(lo, hi)`` turn-rate bounds in rad/s."""
+        lo, hi = self.min_deg * m.DEG, self.max_deg * m.DEG
+        return (lo, hi) if self.turn_rate_deg > 0 else (-hi, -lo)
+
+    def propagate(self, x: torch.Tensor, dt: float = 1.0) -> torch.Tensor:
+        """``F_CT(w(x), dt) x`` with the bounded state-implied turn rate ``w(x)``."""
+        lo, hi = self.rate_bounds()
+        return m.ct_propagate(x, m.turn_rate_of(x).clamp(lo, hi), dt)

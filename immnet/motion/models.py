@@ -80,6 +80,40 @@ def ct_matrix(turn_rate, dt: float, dtype=torch.float64, device=None) -> torch.T
     return F
 
 
+def ct_propagate(x: torch.Tensor, turn_rate: torch.Tensor, dt: float) -> torch.Tensor:
+    """``F_CT(w, dt) x`` for states ``x [..., 9]`` and turn rates ``w [...]`` (rad/s), in closed form.
+
+    The same map as ``ct_matrix`` without building a matrix per state; ``w -> 0`` uses the limits.
+    """
+    w = turn_rate
+    small = w.abs() < 1e-9
+    w_safe = torch.where(small, torch.ones_like(w), w)
+    s, c = torch.sin(w * dt), torch.cos(w * dt)
+    s_w = torch.where(small, torch.full_like(w, dt), s / w_safe)
+    c_w = torch.where(small, torch.zeros_like(w), (1.0 - c) / w_safe)
+    lx, vx, ly, vy = x[..., 0], x[..., 1], x[..., 3], x[..., 4]
+    vx1, vy1 = c * vx - s * vy, s * vx + c * vy
+    return torch.stack(
+        [
+            lx + s_w * vx - c_w * vy, vx1, -w * vy1,
+            ly + c_w * vx + s_w * vy, vy1, w * vx1,
+            x[..., 6] + dt * x[..., 7], x[..., 7], torch.zeros_like(w),
+        ],
+        -1,
+    )
+
+
+def turn_rate_of(x: torch.Tensor, min_speed: float = 1.0) -> torch.Tensor:
+    """Turn rate implied by a state's horizontal velocity and acceleration, ``[...]`` (rad/s).
+
+    In a coordinated turn the acceleration is centripetal, ``a = w x v`` (``ax = -w vy``,
+    ``ay = w vx``), so ``w = (vx ay - vy ax) / (vx^2 + vy^2)``; speeds under ``min_speed`` are
+    taken as ``min_speed`` (no division by zero at rest).
+    """
+    vx, vy, ax, ay = x[..., 1], x[..., 4], x[..., 2], x[..., 5]
+    return (vx * ay - vy * ax) / (vx * vx + vy * vy).clamp_min(min_speed * min_speed)
+
+
 def noise_gain(dt: float, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
     """Noise gain ``G`` of shape ``[9, 3]``: per axis ``[dt^2/2, dt, 0]`` (white) or ``[dt^2/2, dt, 1]`` (wiener)."""
     if kind not in (_WHITE, _WIENER):
