@@ -1,12 +1,15 @@
-"""``immnet data generate|export|plot``: make, convert and look at 3D-LAST data sets.
+"""``immnet data generate|merge|export|plot``: make, convert and look at 3D-LAST data sets.
 
     immnet data generate --out data/train --n 100000 --seed 0 [--single-mode ct+] [--config configs/data/small.yaml] [--workers 2]
+    immnet data generate --out data/train-1 --n 1000000 --seed 0 --shard 1/4      # shard 1 of 4 (one machine's part)
+    immnet data merge --out data/train data/train-0 data/train-1 data/train-2 data/train-3
     immnet data export --data data/train --out train.npz
     immnet data plot --data data/train --out trajectories.png [--n 400] [--seed 0]
 """
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from immnet.motion import MODE_NAMES
@@ -22,8 +25,35 @@ def _generate(args) -> int:
 
         spec = DataSpec.from_yaml(resolve_path(args.config))
     out = write_dataset(args.out, args.n, args.seed, spec, single_mode=args.single_mode,
-                        overwrite=args.overwrite, workers=args.workers, progress=not args.quiet)
-    print(f"wrote {args.n} trajectories (T={spec.T}, seed {args.seed}) to {out}")
+                        overwrite=args.overwrite, workers=args.workers, progress=not args.quiet,
+                        shard=args.shard)
+    if args.shard is None:
+        print(f"wrote {args.n} trajectories (T={spec.T}, seed {args.seed}) to {out}")
+    else:
+        from immnet.data.storage import shard_rows
+
+        a, b = shard_rows(args.n, *args.shard)
+        print(f"wrote shard {args.shard[0]} of {args.shard[1]}: trajectories [{a}, {b}) of {args.n} "
+              f"(T={spec.T}, seed {args.seed}) to {out}")
+    return 0
+
+
+def _shard(text: str) -> tuple[int, int]:
+    """``"i/K"`` -> ``(i, K)``; the range is checked by ``write_dataset`` (with ``n`` known)."""
+    i, sep, k = text.partition("/")
+    try:
+        if not sep:
+            raise ValueError
+        return int(i), int(k)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected INDEX/COUNT such as 0/4, got {text!r}") from None
+
+
+def _merge(args) -> int:
+    from immnet.data.shards import merge_shards
+
+    out = merge_shards(args.out, args.shards, overwrite=args.overwrite, progress=not args.quiet)
+    print(f"merged {len(args.shards)} shards into {out}")
     return 0
 
 
@@ -46,7 +76,7 @@ def _plot(args) -> int:
 
 
 def register(subparsers) -> None:
-    data = subparsers.add_parser("data", help="generate, export and plot 3D-LAST data sets",
+    data = subparsers.add_parser("data", help="generate, merge, export and plot 3D-LAST data sets",
                                  description=__doc__.splitlines()[0])
     sub = data.add_subparsers(dest="data_command", required=True, metavar="ACTION")
 
@@ -59,8 +89,17 @@ def register(subparsers) -> None:
     g.add_argument("--config", default=None, help="YAML of DataSpec fields to override (e.g. configs/data/small.yaml)")
     g.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     g.add_argument("--workers", type=int, default=1, help="processes to shard generation over (same bytes)")
+    g.add_argument("--shard", type=_shard, default=None, metavar="I/K",
+                   help="write only shard I of K (whole blocks; for several machines), joined by `immnet data merge`")
     g.add_argument("--quiet", action="store_true", help="no progress bar")
     g.set_defaults(func=_generate)
+
+    m = sub.add_parser("merge", help="join the K shards of one data set (generate --shard I/K) into one directory")
+    m.add_argument("--out", required=True, type=Path, help="output directory (must be absent or empty)")
+    m.add_argument("shards", nargs="+", type=Path, metavar="SHARD_DIR", help="every shard directory, any order")
+    m.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
+    m.add_argument("--quiet", action="store_true", help="no progress bar")
+    m.set_defaults(func=_merge)
 
     e = sub.add_parser("export", help="write a data set as one .npz interchange file")
     e.add_argument("--data", required=True, type=Path, help="data set directory or .npz")

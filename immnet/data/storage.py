@@ -80,39 +80,94 @@ def _allocate(tensors_dir: Path, n: int, T: int) -> None:
 _WORKER: dict = {}
 
 
-def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, threads=1):
+def shard_blocks(n: int, index: int, count: int) -> range:
+    """The blocks of shard ``index`` of ``count`` of a data set of ``n`` trajectories.
+
+    With ``B = ceil(n / BLOCK)`` blocks, shard ``i`` of ``K`` holds blocks
+    ``[floor(i B / K), floor((i + 1) B / K))``: contiguous, whole blocks, sizes differing by at
+    most one block, every block in exactly one shard. ``K`` may not exceed ``B`` (no empty shard).
+    """
+    n, index, count = int(n), int(index), int(count)
+    if count < 1:
+        raise ValueError(f"the shard count must be >= 1, got {count}")
+    if not 0 <= index < count:
+        raise ValueError(f"shard index {index} is out of range for {count} shards (valid: 0..{count - 1})")
+    nb = n_blocks(n)
+    if count > nb:
+        raise ValueError(f"{n} trajectories make {nb} block(s) of {BLOCK}; they cannot be split into "
+                         f"{count} shards (at most {nb})")
+    return range(index * nb // count, (index + 1) * nb // count)
+
+
+def shard_rows(n: int, index: int, count: int) -> tuple[int, int]:
+    """``(start, stop)``: the trajectories of shard ``index`` of ``count`` (see :func:`shard_blocks`)."""
+    blocks = shard_blocks(n, index, count)
+    return blocks[0] * BLOCK, min(int(n), blocks[-1] * BLOCK + BLOCK)
+
+
+def _rows(filename, dtype, trail, start: int, m: int, mode: str) -> np.memmap:
+    """Rows ``[start, start + m)`` of one ``.memmap`` file of trailing shape ``trail``, mapped alone."""
+    dtype = np.dtype(dtype)
+    row = dtype.itemsize * int(np.prod(trail, dtype=np.int64))
+    return np.memmap(filename, dtype=dtype, mode=mode, offset=start * row, shape=(m, *trail))
+
+
+def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, threads=1, row0=0):
     torch.set_num_threads(threads)
     td = TensorDict.load_memmap(tensors_dir)
     files = {k: (td[k].filename, tuple(td[k].shape[1:])) for k in STORE_DTYPES}
-    _WORKER.update(files=files, seed=seed, n=n, spec=DataSpec.from_dict(spec_dict), single=single_mode)
+    _WORKER.update(files=files, seed=seed, n=n, spec=DataSpec.from_dict(spec_dict), single=single_mode, row0=row0)
 
 
 def _write_block(b: int) -> list[int]:
     """Generate block ``b`` into the preallocated files; return its label counts per mode.
 
+    Block ``b`` goes to rows ``b * BLOCK - row0`` on (``row0``: the first row of a shard, else 0).
     Each block maps only its own rows (``np.memmap`` with an offset) and unmaps them once
     written, so that the resident memory of a writer stays one block whatever ``n``.
     """
     w = _WORKER
     block = generate_block(w["seed"], b, w["n"], w["spec"], w["single"])
-    m, start = block.batch_size[0], b * BLOCK
+    m, start = block.batch_size[0], b * BLOCK - w["row0"]
     for key, dtype in STORE_DTYPES.items():
         filename, trail = w["files"][key]
         a = block[key].to(dtype).numpy()
-        row = a.itemsize * int(np.prod(trail, dtype=np.int64))
-        mm = np.memmap(filename, dtype=a.dtype, mode="r+", offset=start * row, shape=(m, *trail))
+        mm = _rows(filename, a.dtype, trail, start, m, "r+")
         mm[:] = a
         mm.flush()
         del mm
     return torch.bincount(block[keys.MODE].flatten(), minlength=len(MODE_NAMES)).tolist()
 
 
+def _meta(seed: int, n: int, spec_dict: dict, single_mode, counts, shard: dict | None = None) -> dict:
+    """A data set's ``meta.json`` (``shard`` only for one shard of a larger whole)."""
+    meta = {
+        "format": FORMAT, "spec_version": SPEC_VERSION, "seed": int(seed), "n": int(n), "T": int(spec_dict["T"]),
+        "single_mode": single_mode, "block": BLOCK, "spec": spec_dict,
+        "counts_per_mode": dict(zip(MODE_NAMES, counts)),
+        "dtype": {k: str(v).removeprefix("torch.") for k, v in STORE_DTYPES.items()},
+    }
+    if shard is not None:
+        meta["shard"] = shard
+    return meta
+
+
+def _write_meta(directory: Path, meta: dict) -> None:
+    (directory / META).write_text(json.dumps(meta, indent=1) + "\n")
+
+
 def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | None = None,
-                  overwrite: bool = False, workers: int = 1, progress: bool = False) -> Path:
+                  overwrite: bool = False, workers: int = 1, progress: bool = False,
+                  shard: tuple[int, int] | None = None) -> Path:
     """Generate ``n`` trajectories from ``seed`` into the data set directory ``out``; return ``out``.
 
     ``workers`` processes each generate whole blocks into the same preallocated memmap; the
     bytes are identical for any ``workers``. ``out`` must be absent or empty unless ``overwrite``.
+
+    ``shard=(i, K)`` writes only shard ``i`` of ``K`` of those ``n`` (the blocks of
+    :func:`shard_blocks`) as a complete data set of its own, its ``meta.json`` saying which
+    shard of which whole it is; :func:`immnet.data.shards.merge_shards` joins the ``K`` shards
+    into the very bytes of the unsharded set.
     """
     out = Path(out)
     n, workers = int(n), int(workers)
@@ -121,23 +176,25 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     mode_index(single_mode)  # validates the name
+    blocks = range(n_blocks(n)) if shard is None else shard_blocks(n, *shard)
+    row0, row1 = blocks[0] * BLOCK, min(n, blocks[-1] * BLOCK + BLOCK)
     _check_out(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_sibling(out)
     try:
         tmp.mkdir()
-        _allocate(tmp / TENSORS, n, spec.T)
+        _allocate(tmp / TENSORS, row1 - row0, spec.T)
         counts = [0] * len(MODE_NAMES)
-        blocks = list(range(n_blocks(n)))
+        blocks = list(blocks)
         bar = None
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=n, desc=f"3D-LAST -> {out.name}", unit="traj")
+            bar = tqdm(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
         init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
         if workers == 1 or len(blocks) == 1:
             threads = torch.get_num_threads()
-            _init_worker(*init, threads=1)  # elementwise ops on ~4k elements: one thread is fastest
+            _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
             try:
                 results = (_write_block(b) for b in blocks)
                 for b, c in zip(blocks, results):
@@ -149,20 +206,18 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
                 _WORKER.clear()
         else:
             ctx = mp.get_context("spawn")
-            with ctx.Pool(min(workers, len(blocks)), initializer=_init_worker, initargs=init) as pool:
+            with ctx.Pool(min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)) as pool:
                 for b, c in zip(blocks, pool.imap(_write_block, blocks)):
                     counts = [a + x for a, x in zip(counts, c)]
                     if bar is not None:
                         bar.update(min(BLOCK, n - b * BLOCK))
         if bar is not None:
             bar.close()
-        meta = {
-            "format": FORMAT, "spec_version": SPEC_VERSION, "seed": int(seed), "n": n, "T": spec.T,
-            "single_mode": single_mode, "block": BLOCK, "spec": spec.to_dict(),
-            "counts_per_mode": dict(zip(MODE_NAMES, counts)),
-            "dtype": {k: str(v).removeprefix("torch.") for k, v in STORE_DTYPES.items()},
-        }
-        (tmp / META).write_text(json.dumps(meta, indent=1) + "\n")
+        info = None
+        if shard is not None:
+            info = {"index": int(shard[0]), "count": int(shard[1]), "n_total": n, "rows": [row0, row1],
+                    "blocks": [blocks[0], blocks[-1] + 1]}
+        _write_meta(tmp, _meta(seed, row1 - row0, spec.to_dict(), single_mode, counts, info))
         _replace(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

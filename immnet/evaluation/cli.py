@@ -102,9 +102,10 @@ def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
     return named
 
 
-def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print) -> dict:
+def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print, data=None) -> dict:
     """``{name: method}``: the requested names (errors are errors) or, by default, every available
-    method that builds and whose ``needs`` the data meet (the others skipped with a note)."""
+    method that builds, whose ``needs`` the data meet and whose ``check(data)`` (where it has one
+    and ``data`` is given) passes; the others skipped with a note."""
     explicit = requested is not None
     names = [n.strip() for n in requested.split(",") if n.strip()] if explicit else available_methods()
     if explicit and not names:
@@ -126,6 +127,14 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
                 raise ValueError(msg)
             note(f"note: skipping {name}: {msg}")
             continue
+        if data is not None and callable(getattr(method, "check", None)):
+            try:
+                method.check(data)
+            except ValueError as err:
+                if explicit:
+                    raise
+                note(f"note: skipping {name}: {err}")
+                continue
         methods[name] = method
     if not methods:
         raise ValueError("no method to evaluate")
@@ -139,7 +148,7 @@ def run_evaluate(args) -> int:
 
     data, _ = load_split(args.data, args.split, args.limit)
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
-    methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note)
+    methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data)
     if args.batch_size < 1:
         raise ValueError("--batch-size must be positive")
     cases = pick_cases(data, 2, args.seed) if args.figures else []

@@ -2,7 +2,9 @@
 
 A method is any object with ``name: str``, ``needs: tuple[str, ...]`` (data keys it reads beyond
 ``measurements``) and ``track(batch: TensorDict[B]) -> TensorDict[B]`` holding ``state [B, T, 9]``
-and, where it has them, ``mode_probs [B, T, 4]`` over the data modes.
+and, where it has them, ``mode_probs [B, T, 4]`` over the data modes. An optional
+``check(data)`` raises a ValueError for data the method cannot score (``evaluate`` calls it on the
+whole data before running any method: a learned tracker refuses a ``dt`` it was not trained at).
 
 Methods are configured, not coded in: ``configs/methods/<name>.yaml`` holds one ``class_path`` /
 ``init_args`` mapping. ``build_method(name, checkpoint)`` loads it; a checkpoint (from the YAML's

@@ -43,6 +43,8 @@ def evaluate(
         missing = missing_keys(method, list(data.keys()))
         if missing:
             raise ValueError(f"method {name!r} needs {', '.join(missing)}, which the data lacks")
+        if callable(getattr(method, "check", None)):
+            method.check(data)  # e.g. a learned tracker refusing another dt: before any method runs
     has_mode = keys.MODE in data.keys()
     n = data.batch_size[0]
     keep = sorted(set(keep))

@@ -38,7 +38,10 @@ def run(args) -> int:
         return 0
     from immnet.data.storage import load_dataset
 
+    from immnet.tracking.methods import check_dt
+
     data, _ = load_dataset(args.input)
+    check_dt(tracker.net, data["dt"], "the checkpoint")
     out = tracker.track(data["measurements"])
     tmp = args.output.with_name(args.output.stem + ".partial.npz")
     np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt))

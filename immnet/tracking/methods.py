@@ -9,6 +9,24 @@ from immnet import keys
 from immnet.tracking.tracker import PRETRAINED, Tracker, load_network
 
 
+def check_dt(net, dt, name: str = "immnet") -> None:
+    """A ValueError unless every sampling interval in ``dt`` is the ``net.dt`` the network was trained at.
+
+    The learned gains and the mode classifier are tied to that interval: on data sampled at
+    another ``dt`` the network would run as if each step lasted ``net.dt`` (a velocity of
+    ``(z_1 - z_0) / net.dt``, turn rates and accelerations per step), so its velocities and
+    accelerations would be off by ``dt / net.dt`` without any sign of it.
+    """
+    values = torch.unique(torch.as_tensor(dt, dtype=torch.float64).reshape(-1))
+    bad = [float(v) for v in values if abs(float(v) - net.dt) > 1e-6 * max(1.0, net.dt)]
+    if bad:
+        raise ValueError(
+            f"{name} was trained on data sampled at dt = {net.dt:g} s but this data has dt = "
+            f"{', '.join(f'{v:g}' for v in bad)} s; a learned tracker only knows its training interval "
+            f"(its velocities would be off by the ratio): resample the data to dt = {net.dt:g} s or "
+            "train a model at this dt (DataSpec dt)")
+
+
 class IMMNetMethod:
     """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights)."""
 
@@ -19,7 +37,13 @@ class IMMNetMethod:
         self.tracker = Tracker(load_network(checkpoint or PRETRAINED))
         self.batch_size = batch_size
 
+    def check(self, batch: TensorDict) -> None:
+        """A ValueError when the data's ``dt`` is not the one the network was trained at (:func:`check_dt`)."""
+        if keys.DT in batch.keys():
+            check_dt(self.tracker.net, batch[keys.DT], self.name)
+
     def track(self, batch: TensorDict) -> TensorDict:
+        self.check(batch)
         out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size)
         return TensorDict(
             {keys.STATE: out[keys.STATE].double(), keys.MODE_PROBS: out[keys.MODE_PROBS].double()},
@@ -47,8 +71,14 @@ class KalmanNetMethod:
         self.index = names.index(expert) if expert is not None else 0
         self.batch_size = batch_size
 
+    def check(self, batch: TensorDict) -> None:
+        """A ValueError when the data's ``dt`` is not the one the network was trained at (:func:`check_dt`)."""
+        if keys.DT in batch.keys():
+            check_dt(self.net, batch[keys.DT], self.name)
+
     @torch.no_grad()
     def track(self, batch: TensorDict) -> TensorDict:
+        self.check(batch)
         z = batch[keys.MEASUREMENTS].float()
         M, states = self.net.n_experts, []
         for i in range(0, z.shape[0], self.batch_size):
