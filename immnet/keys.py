@@ -45,3 +45,4 @@ EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M]
 HISTORY = ("memory", "history")  # classifier window [B, W, 12]: z_tau and x_{tau-1|tau-1}
 HISTORY_LEN = ("memory", "history_len")  # valid entries of the window [B]
 AGE = ("memory", "age")  # scans since the track started, capped at 2 [B]
+START_SCANS = ("memory", "start_scans")  # scans since a starting track's first detection [B]

@@ -146,3 +146,20 @@ def test_predict_propagates_adaptive_experts_at_their_state_turn_rate():
         torch.testing.assert_close(prior[b, 1], ms[1].F(1.0) @ x[b], rtol=1e-5, atol=1e-2)
         for i in (2, 3):
             torch.testing.assert_close(prior[b, i], ct_matrix(bounded[i][b].item(), 1.0) @ x[b], rtol=1e-5, atol=1e-2)
+
+
+@pytest.mark.parametrize("misses", [0, 1, 3])
+def test_start_velocity_spans_the_missed_scans(misses):
+    """A track whose second detection comes ``1 + misses`` scans after its first starts at the true
+    velocity of a straight, noise-free flight (the difference over the time elapsed)."""
+    net = IMMNet()
+    v = torch.tensor([120.0, -80.0, 3.0])
+    p0 = torch.tensor([1e4, 2e3, 5e3])
+    carry = net.initial_carry(1)
+    for t in range(misses + 2):
+        detected = t in (0, misses + 1)
+        z = (p0 + v * t)[None] if detected else torch.full((1, 3), float("nan"))
+        carry = net.scan(carry, z)
+    x = carry.get(keys.FUSED)[0]
+    torch.testing.assert_close(x[[1, 4, 7]], v, rtol=1e-5, atol=1e-3)
+    torch.testing.assert_close(x[[0, 3, 6]], p0 + v * (misses + 1), rtol=1e-6, atol=1e-2)

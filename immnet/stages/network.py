@@ -84,6 +84,7 @@ class IMMNet(nn.Module):
                 keys.PREV_EXPERT_PRIOR: torch.zeros(batch, M, 9, dtype=dtype, device=device),
                 keys.PREV_MEASUREMENT: torch.zeros(shape[:-1] + (3,), dtype=dtype, device=device),
                 keys.AGE: torch.zeros(batch, dtype=torch.long, device=device),
+                keys.START_SCANS: torch.zeros(batch, dtype=torch.long, device=device),
                 keys.EXPERT_PROBS: torch.full((batch, M), 1.0 / M, dtype=dtype, device=device),
             },
             batch_size=[batch],
@@ -105,7 +106,9 @@ class IMMNet(nn.Module):
         x = torch.zeros(z.shape[:-1] + (9,), dtype=z.dtype, device=z.device)
         x[..., list(POS)] = z
         if second:
-            x[..., list(VEL)] = (z - carry.get(keys.PREV_MEASUREMENT)) / self.dt
+            # differenced velocity over the time since the first detection (missed scans between count)
+            elapsed = (carry.get(keys.START_SCANS).clamp_min(1) * self.dt).to(z.dtype)
+            x[..., list(VEL)] = (z - carry.get(keys.PREV_MEASUREMENT)) / elapsed.view(-1, *([1] * (z.dim() - 1)))
             fresh.set(keys.PREV_FUSED, carry.get(keys.FUSED))
             if fresh.get(keys.HISTORY_LEN, None) is not None:
                 # the classifier has just stored (z_1, x_0): the window holds one scan
@@ -115,6 +118,7 @@ class IMMNet(nn.Module):
                 fresh.set(keys.FUSED_COV, self.gain.initial_cov(z.shape[:-1], first=False))
         else:
             fresh.set(keys.PREV_FUSED, x)
+            fresh.set(keys.START_SCANS, torch.ones_like(carry.get(keys.AGE)))
         fresh.set(keys.FUSED, x)
         fresh.set(keys.PREV_EXPERT_PRIOR, (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone())
         fresh.set(keys.PREV_MEASUREMENT, z)
@@ -143,6 +147,8 @@ class IMMNet(nn.Module):
         new = _where(has & (age == 1), second, stepped)
         new = _where(has & (age == 0), first, new)
         new = _where((age < 2) & ~has, carry.select(*carry_keys), new)
+        waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
+        new.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, new.get(keys.START_SCANS)))
         uniform = torch.full_like(new.get(keys.EXPERT_PROBS), 1.0 / self.n_experts)
         new.set(keys.EXPERT_PROBS, torch.where((age < 2)[:, None], uniform, new.get(keys.EXPERT_PROBS)))
         for key in out.keys(True, True):
