@@ -85,16 +85,26 @@ def imm_step(x, P, mu, z, F, Ft, Q, R, Pi):
     return x, P, mu, xf
 
 
-def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, step=imm_step):
+def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, step=imm_step, compile: bool = False):
     """Run the IMM over ``z [B, T, 3]`` from ``x0 [B, 9]``, ``P0 [B, 9, 9]`` and ``mu0 [M]``.
 
     At ``t = 0`` the output is the initial state (every expert at ``x0, P0``); steps ``t >= 1``
     filter ``z_t``. Returns ``state [B, T, 9]``, ``probs [B, T, M]`` and, with ``return_experts``,
     the experts' posteriors ``[B, T, M, 9]`` (else None).
+
+    ``compile=True`` runs the step of ``immnet.filters.imm_fused`` through ``torch.compile`` where ``F``,
+    ``Q`` are shared (the first call per dtype, device and model count compiles, seconds); if compiling
+    fails it logs a warning and runs the eager path.
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
     if step is imm_step and _lean_ok(F, Q, R, M, x0.shape[-1]):
+        if compile:
+            from immnet.filters.imm_fused import imm_filter_fused
+
+            out = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts)
+            if out is not None:
+                return out
         return _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts)
     x = x0.unsqueeze(1).expand(B, M, 9).contiguous()
     P = P0.unsqueeze(1).expand(B, M, 9, 9).contiguous()
