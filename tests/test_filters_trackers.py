@@ -6,6 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from immnet import keys
 from immnet.config import REPO_ROOT, build
 from immnet.filters import ClairvoyantKF, IMMTracker, KalmanFilterTracker, data_mode_probs
 from immnet.motion import ConstantVelocity, ModelSet, MotionModel
@@ -108,3 +109,13 @@ def test_clairvoyant_names_missing_ground_truth(missing):
     batch = _batch().exclude(missing)
     with pytest.raises(ValueError, match=f"clairvoyant needs '{missing}' \\(ground truth\\), which this data lacks"):
         ClairvoyantKF().track(batch)
+
+
+@pytest.mark.slow
+def test_compiled_imm_tracker_equals_eager():
+    """``IMMTracker(compile=True)`` takes the compiled fused step and gives the eager IMM's numbers."""
+    batch = _batch()
+    args = {"model_set": "configs/model_sets/imm3.yaml", "r": 4.0, "sigma_q": 0.5}
+    eager, compiled = IMMTracker(**args).track(batch), IMMTracker(**args, compile=True).track(batch)
+    torch.testing.assert_close(compiled[keys.STATE], eager[keys.STATE], rtol=1e-9, atol=1e-7)
+    torch.testing.assert_close(compiled[keys.MODE_PROBS], eager[keys.MODE_PROBS], rtol=1e-8, atol=1e-10)
