@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import sys
 import time
 from pathlib import Path
@@ -92,6 +93,7 @@ def main(argv=None) -> int:
     p.add_argument("--filterpy-tracks", type=int, default=4)
     p.add_argument("--out", type=Path, default=REPO_ROOT / "BENCHMARKS.md")
     p.add_argument("--no-write", action="store_true")
+    p.add_argument("--section", default="Filters", help="BENCHMARKS.md section to (re)write (default: Filters)")
     args = p.parse_args(argv)
     ms = ModelSet.from_config(args.model_set)
     rows = []
@@ -105,7 +107,8 @@ def main(argv=None) -> int:
     rate, us = bench_filterpy(ms, args.filterpy_tracks, args.steps)
     rows.append(("FilterPy IMMEstimator, float64", 1, rate, us))
     print(f"{rows[-1][0]:46s} B={1:5d} {rate:12,.0f} track-steps/s {us:10.0f} us/step")
-    cmd = "PYTHONPATH=. .venv/bin/python benchmarks/bench_filters.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    env = " ".join(f"{k}={v}" for k, v in sorted(os.environ.items()) if k.startswith("MALLOC_"))  # glibc tuning
+    cmd = f"{env} PYTHONPATH=. .venv/bin/python benchmarks/bench_filters.py " + " ".join(argv if argv is not None else sys.argv[1:])
     lines = [
         f"IMM with {len(ms)} models ({', '.join(ms.names)}), {args.steps} steps (batch 1: {4 * args.steps}), "
         f"{datetime.date.today().isoformat()}; {machine()}.",
@@ -123,8 +126,8 @@ def main(argv=None) -> int:
         "13 ms per step, 8 ms with MALLOC_TRIM_THRESHOLD_/MALLOC_MMAP_THRESHOLD_ raised).",
     ]
     if not args.no_write:
-        write_section("Filters", "\n".join(lines), args.out)
-        print(f"wrote the Filters section of {args.out}")
+        write_section(args.section, "\n".join(lines), args.out)
+        print(f"wrote the {args.section} section of {args.out}")
     return 0
 
 
