@@ -62,10 +62,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--steps", type=int, default=40, help="scans timed per inference run")
     p.add_argument("--no-compile", action="store_true")
+    p.add_argument("--model-set", default="configs/model_sets/imm4-adaptive.yaml",
+                   help="experts (default: the quick and pretrained recipes' set)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     torch.manual_seed(0)
-    net = IMMNet().eval()
+    net = IMMNet(model_set=args.model_set).eval()
     rows = []
     for B in (1, 64, 1024):
         eager = inference(net, B, args.steps, net.scan)
@@ -83,21 +85,21 @@ def main(argv=None) -> int:
         print(f"inference batch {B}: eager {eager:,.0f}, compiled {compiled or 0:,.0f} track-steps/s", flush=True)
     td = generate(64, seed=1, spec=DataSpec(T=40, min_segment=12))  # two TBPTT chunks of 20
     td = td.apply(lambda v: v.float() if v.is_floating_point() else v)
-    s1 = Stage1Module()
+    s1 = Stage1Module(net={"model_set": args.model_set})
     stage1 = training(s1, td.unsqueeze(0).expand(s1.net.n_experts, 64))
-    stage2 = training(Stage2Module(), td)
+    stage2 = training(Stage2Module(net={"model_set": args.model_set}), td)
     print(f"training: stage 1 {stage1:,.0f}, stage 2 {stage2:,.0f} trajectory-steps/s", flush=True)
-    cmd = "`.venv/bin/python benchmarks/bench_immnet.py" + (" --no-compile" if args.no_compile else "") + "`"
+    cmd = "`.venv/bin/python benchmarks/bench_immnet.py" + "".join(f" {a}" for a in (argv if argv is not None else sys.argv[1:])) + "`"
     lines = [
-        f"{cmd} ({datetime.date.today().isoformat()}; {machine()}).",
+        f"{cmd} ({datetime.date.today().isoformat()}; {machine()}); experts {', '.join(net.model_set.names)}.",
         "",
-        "| inference (4 experts, streaming step) | eager track-steps/s | compiled track-steps/s |",
+        "| inference (streaming step) | eager track-steps/s | compiled track-steps/s |",
         "|---|---:|---:|",
         *[f"| batch {B} | {e:,.0f} | {'-' if c is None else f'{c:,.0f}'} |" for B, e, c in rows],
         "",
         "| training (batch 64, TBPTT 20, forward + backward + Adam) | trajectory-steps/s |",
         "|---|---:|",
-        f"| stage 1 (4 experts alone; a step = one trajectory through all 4) | {stage1:,.0f} |",
+        f"| stage 1 (experts alone; a step = one trajectory through every expert) | {stage1:,.0f} |",
         f"| stage 2 (end to end) | {stage2:,.0f} |",
     ]
     write_section("IMMNet", "\n".join(lines), args.out or Path(__file__).resolve().parents[1] / "BENCHMARKS.md")
