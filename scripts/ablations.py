@@ -19,6 +19,7 @@ ABLATIONS = {  # name: (base recipe, needs the quick stage-1 experts)
     "bayes-mode": ("recipes/quick-stage2.yaml", True),
     "analytic-gain": ("recipes/quick-stage2.yaml", False),
     "single-expert": ("recipes/quick-stage1.yaml", False),
+    "fixed-turn-rate": ("recipes/quick.yaml", False),  # both stages: the experts change
 }
 
 
@@ -56,6 +57,7 @@ def main() -> int:
         "classifier -> IMM Bayesian update": IMMNetMethod(ckpt("bayes-mode")),
         "KalmanNet -> analytic gain": IMMNetMethod(ckpt("analytic-gain")),
         "single expert (plain KalmanNet, CA)": KalmanNetMethod(ckpt("single-expert"), expert="ca"),
+        "adaptive -> fixed +/-5 deg/s turn experts": IMMNetMethod(ckpt("fixed-turn-rate")),
         "clairvoyant": build_method("clairvoyant"),
     }
     rows = to_json(evaluate(methods, data, progress=True))

@@ -52,3 +52,6 @@ def test_ablation_overrides_a_quick_stage(ablation, capsys):
     base = "quick-stage1.yaml" if "single-expert" in ablation.name else "quick-stage2.yaml"
     cfg = _print_config(["--config", str(REPO_ROOT / "recipes" / base), "--config", str(ablation)], capsys)
     assert cfg["trainer"]["default_root_dir"].startswith("runs/ablations/")
+    # a second --config replaces the `net` mapping whole: an ablation that forgot the model set
+    # would silently train IMMNet's default experts instead of the recipe's
+    assert "model_set" in (cfg["model"]["init_args"]["net"] or {}), f"{ablation.name} must name its model set"
