@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -108,7 +109,7 @@ def main(argv=None) -> int:
     rows.append(("FilterPy IMMEstimator, float64", 1, rate, us))
     print(f"{rows[-1][0]:46s} B={1:5d} {rate:12,.0f} track-steps/s {us:10.0f} us/step")
     env = " ".join(f"{k}={v}" for k, v in sorted(os.environ.items()) if k.startswith("MALLOC_"))  # glibc tuning
-    cmd = f"{env} PYTHONPATH=. .venv/bin/python benchmarks/bench_filters.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = f"{env} PYTHONPATH=. .venv/bin/python benchmarks/bench_filters.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     lines = [
         f"IMM with {len(ms)} models ({', '.join(ms.names)}), {args.steps} steps (batch 1: {4 * args.steps}), "
         f"{datetime.date.today().isoformat()}; {machine()}.",
@@ -121,9 +122,10 @@ def main(argv=None) -> int:
         "Targets: >= 1,000,000 track-steps/s at batch >= 4096 (3 models) and < 200 us per single-track step.",
         _status(rows),
         "compile=True: torch.compile (inductor) of `immnet/filters/imm_fused.py`; its compile time (seconds, the "
-        "first call per dtype) is in the untimed warm-up. At large batch a share of its step is page faults on the "
-        "fresh covariance buffers each step (glibc returns them to the OS; measured pinned, batch 8192 float32: "
-        "13 ms per step, 8 ms with MALLOC_TRIM_THRESHOLD_/MALLOC_MMAP_THRESHOLD_ raised).",
+        "first call per dtype) is in the untimed warm-up. At large batch part of its step is page faults on the "
+        "fresh covariance buffers of each step, which glibc returns to the OS; raising MALLOC_MMAP_THRESHOLD_ and "
+        "MALLOC_TRIM_THRESHOLD_ (a process-wide setting the library leaves alone) keeps them: the section "
+        "'Filters, glibc malloc tuned' is that run.",
     ]
     if not args.no_write:
         write_section(args.section, "\n".join(lines), args.out)
