@@ -24,7 +24,7 @@ class Predict(Stage):
         super().__init__(model_set)
         self.dt = dt
         self.register_buffer("F", model_set.F(dt, dtype=torch.float32))
-        adaptive = [getattr(m, "state_dependent", False) for m in model_set]
+        adaptive = [m.state_dependent for m in model_set]
         self.adaptive = any(adaptive)
         if self.adaptive:
             bounds = [m.rate_bounds() if a else (0.0, 0.0) for m, a in zip(model_set, adaptive)]

@@ -42,7 +42,6 @@ class _TrackerModule(L.LightningModule):
         grad_clip: float = 1.0,
         loss_weights: tuple[float, float, float] = (1.0, 0.1, 0.02),
         lr_decay: float = 1.0,
-        classifier_lr: float | None = None,
     ):
         super().__init__()
         self.save_hyperparameters()
@@ -54,20 +53,8 @@ class _TrackerModule(L.LightningModule):
     def trainable_parameters(self):
         return self.parameters()
 
-    def param_groups(self) -> list[dict]:
-        """The trainable parameters; with ``classifier_lr``, the classifier's in a group of its own."""
-        params = list(self.trainable_parameters())
-        if self.hparams.classifier_lr is None:
-            return [{"params": params}]
-        own = {id(p) for p in self.net.classify.parameters()}
-        groups = [
-            {"params": [p for p in params if id(p) not in own]},
-            {"params": [p for p in params if id(p) in own], "lr": self.hparams.classifier_lr},
-        ]
-        return [g for g in groups if g["params"]]
-
     def configure_optimizers(self):
-        opt = torch.optim.Adam(self.param_groups(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        opt = torch.optim.Adam(self.trainable_parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=self.hparams.lr_decay)
         return {"optimizer": opt, "lr_scheduler": sched}
 
