@@ -99,10 +99,14 @@ def shard_blocks(n: int, index: int, count: int) -> range:
     return range(index * nb // count, (index + 1) * nb // count)
 
 
+def _block_rows(blocks: range, n: int) -> tuple[int, int]:
+    """``(start, stop)``: the trajectories held by a contiguous range of blocks of a set of ``n``."""
+    return blocks[0] * BLOCK, min(int(n), blocks[-1] * BLOCK + BLOCK)
+
+
 def shard_rows(n: int, index: int, count: int) -> tuple[int, int]:
     """``(start, stop)``: the trajectories of shard ``index`` of ``count`` (see :func:`shard_blocks`)."""
-    blocks = shard_blocks(n, index, count)
-    return blocks[0] * BLOCK, min(int(n), blocks[-1] * BLOCK + BLOCK)
+    return _block_rows(shard_blocks(n, index, count), n)
 
 
 def _rows(filename, dtype, trail, start: int, m: int, mode: str) -> np.memmap:
@@ -177,7 +181,7 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
         raise ValueError(f"workers must be >= 1, got {workers}")
     mode_index(single_mode)  # validates the name
     blocks = range(n_blocks(n)) if shard is None else shard_blocks(n, *shard)
-    row0, row1 = blocks[0] * BLOCK, min(n, blocks[-1] * BLOCK + BLOCK)
+    row0, row1 = _block_rows(blocks, n)
     _check_out(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = _tmp_sibling(out)
