@@ -1,10 +1,12 @@
-"""IMMNet stages: shapes and keys, swaps by configuration, the analytic gain against our KF,
-gradients, missed detections and streaming against batched rollouts."""
+"""IMMNet stages: shapes and keys, the stacked layers against torch's, swaps by configuration,
+the analytic gain against our KF, gradients, missed detections and streaming against batched
+rollouts."""
 
 import math
 
 import pytest
 import torch
+from torch import nn
 
 from immnet import keys
 from immnet.data.generate import generate
@@ -12,6 +14,7 @@ from immnet.data.spec import DataSpec
 from immnet.filters import kalman
 from immnet.motion import ModelSet
 from immnet.stages import IMMNet
+from immnet.stages.layers import StackedGRUCell, StackedLinear
 from immnet.tracking.tracker import Tracker
 from immnet.training import Stage2Module
 
@@ -163,3 +166,20 @@ def test_start_velocity_spans_the_missed_scans(misses):
     x = carry.get(keys.FUSED)[0]
     torch.testing.assert_close(x[[1, 4, 7]], v, rtol=1e-5, atol=1e-3)
     torch.testing.assert_close(x[[0, 3, 6]], p0 + v * (misses + 1), rtol=1e-6, atol=1e-2)
+
+
+def test_stacked_layers_equal_one_torch_layer_per_expert():
+    """Expert i of the stacked (expert-major) layers is nn.Linear / nn.GRUCell with weights W[i]."""
+    torch.manual_seed(0)
+    M, B = 3, 5
+    lin, gru = StackedLinear(M, 7, 4).double(), StackedGRUCell(M, 7, 6).double()
+    x, h = torch.randn(M, B, 7, dtype=torch.float64), torch.randn(M, B, 6, dtype=torch.float64)
+    y, h_new = lin(x), gru(x, h)
+    for i in range(M):
+        ref = nn.Linear(7, 4).double()
+        ref.weight.data, ref.bias.data = lin.weight[i].detach(), lin.bias[i].detach()
+        torch.testing.assert_close(y[i], ref(x[i]), rtol=0, atol=1e-12)
+        cell = nn.GRUCell(7, 6).double()
+        for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"):
+            getattr(cell, name).data = getattr(gru, name)[i].detach()
+        torch.testing.assert_close(h_new[i], cell(x[i], h[i]), rtol=0, atol=1e-12)

@@ -123,20 +123,21 @@ class KalmanNetGain(Stage):
         )
 
     def forward(self, td):
-        f1, f2, f3, f4 = self.features(td)
+        # the layers run expert-major ([M, B, .]): features and hidden states turn once per step
+        f1, f2, f3, f4 = (f.transpose(0, 1) for f in self.features(td))
         h = td.get(keys.EXPERT_HIDDEN)
         relu = torch.relu
-        h_q = self.gru_q(relu(self.fc5(f4)), h.get("q"))
-        h_sigma = self.gru_sigma(torch.cat([h_q, relu(self.fc6(f3))], -1), h.get("sigma"))
+        h_q = self.gru_q(relu(self.fc5(f4)), h.get("q").transpose(0, 1))
+        h_sigma = self.gru_sigma(torch.cat([h_q, relu(self.fc6(f3))], -1), h.get("sigma").transpose(0, 1))
         out_fc1 = relu(self.fc1(h_sigma))
         out_fc7 = relu(self.fc7(torch.cat([f1, f2], -1)))
-        h_s = self.gru_s(torch.cat([out_fc1, out_fc7], -1), h.get("s"))
+        h_s = self.gru_s(torch.cat([out_fc1, out_fc7], -1), h.get("s").transpose(0, 1))
         out_fc2 = self.fc2b(relu(self.fc2a(torch.cat([h_sigma, h_s], -1))))
         out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
         h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
-        delta = torch.tanh(out_fc2.unflatten(-1, (9, 3)))
+        delta = torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
         td.set(keys.EXPERT_GAIN, self.K_ss + self.K_scale * delta)
-        td.set(keys.EXPERT_HIDDEN, {"q": h_q, "sigma": h_sigma, "s": h_s})
+        td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
         return td
 
 
