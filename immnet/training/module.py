@@ -13,7 +13,7 @@ counted (``train/skipped``).
 
 from __future__ import annotations
 
-
+import math
 from pathlib import Path
 
 import lightning as L
@@ -41,7 +41,8 @@ class _TrackerModule(L.LightningModule):
         tbptt: int = 20,
         grad_clip: float = 1.0,
         loss_weights: tuple[float, float, float] = (1.0, 0.1, 0.02),
-        lr_decay: float = 1.0,
+        lr_schedule: str = "constant",
+        lr_floor: float = 0.05,
     ):
         super().__init__()
         self.save_hyperparameters()
@@ -49,19 +50,29 @@ class _TrackerModule(L.LightningModule):
         self.net = IMMNet(**(net or {}))
         self.register_buffer("w_state", component_weights(*loss_weights), persistent=False)
         self.skipped = 0
+        if lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"lr_schedule must be 'constant' or 'cosine', got {lr_schedule!r}")
+        if not 0.0 <= lr_floor <= 1.0:
+            raise ValueError(f"lr_floor must be in [0, 1], got {lr_floor}")
 
     def trainable_parameters(self):
         return self.parameters()
 
     def configure_optimizers(self):
+        """Adam; with ``lr_schedule: cosine`` the rate falls per optimizer step from ``lr`` to
+        ``lr_floor * lr`` along a half cosine over ``trainer.max_steps``."""
         opt = torch.optim.Adam(self.trainable_parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
-        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=self.hparams.lr_decay)
-        return {"optimizer": opt, "lr_scheduler": sched}
+        if self.hparams.lr_schedule == "constant":
+            return opt
+        total = self.trainer.max_steps
+        if total is None or total <= 0:
+            raise ValueError("lr_schedule: cosine needs trainer.max_steps > 0 (the length of the schedule)")
+        floor = self.hparams.lr_floor
 
-    def on_train_epoch_end(self):
-        sched = self.lr_schedulers()
-        if sched is not None:
-            sched.step()
+        def factor(step: int) -> float:
+            return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total))
+
+        return {"optimizer": opt, "lr_scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor)}
 
     def _optimize(self, loss: torch.Tensor) -> bool:
         opt = self.optimizers()
@@ -76,6 +87,9 @@ class _TrackerModule(L.LightningModule):
             self.skipped += 1
             return False
         opt.step()
+        sched = self.lr_schedulers()
+        if sched is not None:
+            sched.step()
         return True
 
     def chunks(self, T: int):

@@ -1,0 +1,106 @@
+"""Training end to end at tiny sizes: the quick recipe's two chained stages and every ablation
+train through `immnet fit` and evaluate through `immnet evaluate`, in a scratch directory laid out
+as `bash scripts/main.sh` lays out the repository (runs/quick/data/...)."""
+
+import json
+import math
+
+import pytest
+import torch
+import yaml
+
+from immnet.cli import main
+from immnet.config import REPO_ROOT
+from immnet.data.spec import DataSpec
+from immnet.data.storage import write_dataset
+from immnet.training import Stage2Module
+
+pytestmark = pytest.mark.slow
+TINY = DataSpec(T=40, min_segment=12)
+# a few optimizer steps, one validation on one batch, small batches: minutes become seconds
+FAST = ["--trainer.max_steps", "4", "--trainer.val_check_interval", "2", "--trainer.limit_val_batches", "1",
+        "--data.batch_size", "4", "--trainer.logger", "false"]
+ABLATIONS = sorted((REPO_ROOT / "configs" / "ablations").glob("*.yaml"))
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    """runs/quick/data with a train set, the four single-mode sets and a test set, all tiny."""
+    root = tmp_path_factory.mktemp("work")
+    data = root / "runs/quick/data"
+    write_dataset(data / "train", 24, seed=11, spec=TINY)
+    for i, mode in enumerate(("cv", "ca", "ct+", "ct-")):
+        write_dataset(data / f"single-{mode}", 8, seed=12 + i, spec=TINY, single_mode=mode)
+    write_dataset(data / "test", 6, seed=99, spec=TINY)
+    return root
+
+
+@pytest.fixture(scope="module")
+def quick(workdir):
+    """The quick recipe, both stages chained, at tiny size; returns the stage checkpoints."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(workdir)
+        main(["fit", "--config", str(REPO_ROOT / "recipes/quick.yaml"), *FAST])
+    s1, s2 = (workdir / f"runs/quick/stage{i}/checkpoints/best.ckpt" for i in (1, 2))
+    assert s1.is_file() and s2.is_file()
+    return s1, s2
+
+
+def _evaluate(workdir, methods: str, *checkpoints: str) -> dict:
+    out = workdir / "results.json"
+    args = ["evaluate", "--data", str(workdir / "runs/quick/data/test"), "--split", "all", "--methods", methods,
+            "--json", str(out), "--quiet"]
+    for c in checkpoints:
+        args += ["--checkpoint", c]
+    assert main(args) == 0
+    return json.loads(out.read_text())["methods"]
+
+
+def test_quick_recipe_trains_both_stages_and_evaluates(workdir, quick):
+    s1, s2 = quick
+    state = torch.load(s2, map_location="cpu", weights_only=False)
+    assert 0 < state["global_step"] <= 4
+    # stage 2 started from stage 1's experts: the gain weights moved on from there, not from scratch
+    g1 = torch.load(s1, map_location="cpu", weights_only=False)["state_dict"]["net.gain.fc2a.weight"]
+    g2 = state["state_dict"]["net.gain.fc2a.weight"]
+    fresh = Stage2Module(net={"model_set": "configs/model_sets/imm4-adaptive.yaml"}).net.gain.fc2a.weight
+    assert (g2 - g1).abs().max() < (g2 - fresh).abs().max()
+    res = _evaluate(workdir, "measurements,immnet,kalmannet", f"immnet={s2}", f"kalmannet={s1}")
+    for name in ("immnet", "kalmannet"):
+        assert math.isfinite(res[name]["rmse"]["avg"])
+    assert 0.0 <= res["immnet"]["mode_accuracy"] <= 1.0
+
+
+@pytest.mark.parametrize("ablation", ABLATIONS, ids=lambda p: p.stem)
+def test_every_ablation_trains_and_evaluates(workdir, quick, ablation):
+    cfg = yaml.safe_load(ablation.read_text())
+    name = ablation.stem
+    is_stage1 = cfg.get("data", {}).get("single_mode", "absent") is None  # the single expert: stage 1 alone
+    chain = name == "fixed-turn-rate"  # the experts change: both stages
+    base = "recipes/quick.yaml" if chain else "recipes/quick-stage1.yaml" if is_stage1 else "recipes/quick-stage2.yaml"
+    args = ["fit", "--config", str(REPO_ROOT / base), "--config", str(ablation), *FAST]
+    if not (chain or is_stage1) and "stage1_checkpoint" not in cfg["model"]["init_args"]:
+        args += ["--model.init_args.stage1_checkpoint", str(quick[0])]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(workdir)
+        main(args)
+    ckpt = workdir / f"runs/ablations/{name}/checkpoints/best.ckpt"
+    assert ckpt.is_file()
+    method = "kalmannet" if is_stage1 else "immnet"
+    res = _evaluate(workdir, f"measurements,{method}", f"{method}={ckpt}")
+    assert math.isfinite(res[method]["rmse"]["avg"])
+
+
+def test_cosine_schedule_ends_at_its_floor(workdir, quick):
+    """lr_schedule: cosine falls from lr to lr_floor * lr over max_steps (closed form at the end)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(workdir)
+        main(["fit", "--config", str(REPO_ROOT / "recipes/quick-stage2.yaml"), *FAST,
+              "--model.init_args.lr_schedule", "cosine", "--model.init_args.lr_floor", "0.1",
+              "--model.init_args.stage1_checkpoint", str(quick[0]),
+              "--trainer.default_root_dir", "runs/cosine"])
+    state = torch.load(workdir / "runs/quick/stage2/checkpoints/best.ckpt", map_location="cpu", weights_only=False)
+    sched = state["lr_schedulers"][0]
+    lr = state["hyper_parameters"]["lr"]
+    assert sched["last_epoch"] == state["global_step"]
+    assert sched["_last_lr"][0] == pytest.approx(lr * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * state["global_step"] / 4))))
