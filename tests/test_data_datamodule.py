@@ -74,3 +74,38 @@ def test_stage1_batches_mix_own_mode_and_maneuvering(sets):
     assert v.batch_size == torch.Size([50])
     with pytest.raises(ValueError, match="no single_mode"):
         LASTDataModule(sets["main"], single_mode={"cv": sets["cv"]}, expert_modes=["cv", "ca"])
+
+
+class _FakeTrainer:
+    def __init__(self, world_size, global_rank):
+        self.world_size, self.global_rank = world_size, global_rank
+
+
+def _ranked(sets, rank, world=2, **kwargs):
+    dm = LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.2, batch_size=64, split_seed=3, **kwargs)
+    dm.trainer = _FakeTrainer(world, rank)
+    return dm
+
+
+def test_ranks_share_out_the_train_split_and_cover_validation(sets):
+    """Under DDP each rank reads its own share: the train shares are disjoint and cover the
+    split; the validation shares cover it (the shorter share padded)."""
+    whole = LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.2, batch_size=64, split_seed=3)
+    shares = [[_ids(b) for b in _ranked(sets, r).train_dataloader()] for r in (0, 1)]
+    train = [set().union(*s) for s in shares]
+    assert not train[0] & train[1]
+    assert train[0] | train[1] == _ids(whole.split("train"))
+    assert [len(s) for s in shares] == [6, 6]  # 700 / 2 ranks = 350 = 6 batches of <= 64 each
+    val = [set().union(*(_ids(b) for b in _ranked(sets, r).val_dataloader())) for r in (0, 1)]
+    assert val[0] | val[1] == _ids(whole.split("val"))
+
+
+def test_ranks_draw_their_own_stage1_streams(sets):
+    single = {m: sets[m] for m in ("cv", "ca", "ct+", "ct-")}
+    first = [next(iter(_ranked(sets, r, single_mode=single).train_dataloader())) for r in (0, 1)]
+    assert first[0].batch_size == first[1].batch_size == torch.Size([4, 64])
+    assert _ids(first[0][0]) != _ids(first[1][0])
+    # an epoch is one pass over the train split in all: each of 2 ranks draws half the batches
+    alone = LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.2, batch_size=64, split_seed=3,
+                           single_mode=single)
+    assert len(alone.train_dataloader()) == 11 and len(_ranked(sets, 0, single_mode=single).train_dataloader()) == 6

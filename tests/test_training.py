@@ -4,6 +4,9 @@ as `bash scripts/main.sh` lays out the repository (runs/quick/data/...)."""
 
 import json
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -104,3 +107,20 @@ def test_cosine_schedule_ends_at_its_floor(workdir, quick):
     lr = state["hyper_parameters"]["lr"]
     assert sched["last_epoch"] == state["global_step"]
     assert sched["_last_lr"][0] == pytest.approx(lr * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * state["global_step"] / 4))))
+
+
+def test_chained_recipe_trains_under_ddp(workdir, tmp_path):
+    """Two CPU processes (gloo) through Lightning's DDP strategy, the chain unchanged: each stage's
+    workers are launched afresh, batches are sharded per rank, progress is printed by rank 0 only."""
+    (tmp_path / "runs/quick").mkdir(parents=True)
+    (tmp_path / "runs/quick/data").symlink_to(workdir / "runs/quick/data")
+    cmd = [sys.executable, "-m", "immnet.cli", "fit", "--config", str(REPO_ROOT / "recipes/quick.yaml"), *FAST,
+           "--trainer.accelerator", "cpu", "--trainer.strategy", "ddp", "--trainer.devices", "2"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stderr.count("Initializing distributed: GLOBAL_RANK: 1") == 2  # once per stage
+    assert done.stderr.count("[train] Stage2Module") == 1
+    for i in (1, 2):
+        state = torch.load(tmp_path / f"runs/quick/stage{i}/checkpoints/best.ckpt", map_location="cpu", weights_only=False)
+        assert 0 < state["global_step"] <= 4

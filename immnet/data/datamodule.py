@@ -13,6 +13,12 @@ Stage 1 (``single_mode`` given, a mapping mode name -> data set of that mode): e
 is a ``TensorDict [M, B]``; row ``m`` is for expert ``m`` (``expert_modes[m]`` names its mode) and
 holds ``round(own_fraction B)`` trajectories of its own mode followed by ``B - round(own_fraction B)``
 maneuvering ones from the train split. Validation and test batches are always maneuvering ``[B]``.
+
+Under a distributed strategy (``trainer.world_size > 1``, e.g. DDP) the module shards the batches
+itself, and the CLI sets ``trainer.use_distributed_sampler`` to false: each rank reads its own
+share of the train split (a ``DistributedSampler``, reshuffled per epoch), of the validation and
+test splits (in order, padded to equal shares), and stage 1 draws its own-mode and maneuvering
+streams per rank (seeded by rank). ``batch_size`` is per rank.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import math
 import lightning as L
 import torch
 from tensordict import TensorDict
-from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
+from torch.utils.data import BatchSampler, DataLoader, Dataset, DistributedSampler, RandomSampler, SequentialSampler
 
 from immnet.data.storage import as_batch, load_dataset
 from immnet.motion import MODE_NAMES
@@ -55,9 +61,10 @@ class TrajectoryDataset(Dataset):
 class _Stage1Sampler:
     """Per batch, per expert: indices of its own-mode set and of the maneuvering train split."""
 
-    def __init__(self, own_sizes, n_train, n_own, n_mix, n_batches, seed):
+    def __init__(self, own_sizes, n_train, n_own, n_mix, n_batches, seed, rank: int = 0):
         self.own_sizes, self.n_train = own_sizes, n_train
         self.n_own, self.n_mix, self.n_batches, self.seed = n_own, n_mix, n_batches, seed
+        self.rank = rank
         self.epoch = 0
 
     def __len__(self):
@@ -71,7 +78,8 @@ class _Stage1Sampler:
         return torch.cat(perms)[:need].view(n_batches, k)
 
     def __iter__(self):
-        g = torch.Generator().manual_seed(hash((self.seed, self.epoch)) & 0x7FFFFFFF)
+        key = (self.seed, self.epoch) if self.rank == 0 else (self.seed, self.epoch, self.rank)
+        g = torch.Generator().manual_seed(hash(key) & 0x7FFFFFFF)
         self.epoch += 1
         own = [self._stream(g, s, self.n_own, self.n_batches) for s in self.own_sizes]
         mix = [self._stream(g, self.n_train, self.n_mix, self.n_batches) for _ in self.own_sizes]
@@ -197,19 +205,31 @@ class LASTDataModule(L.LightningDataModule):
         return DataLoader(ds, batch_sampler=sampler, collate_fn=_identity, num_workers=self.num_workers,
                           persistent_workers=self.num_workers > 0)
 
+    def _ranks(self) -> tuple[int, int]:
+        """``(world_size, rank)`` of the attached trainer; ``(1, 0)`` without one."""
+        trainer = getattr(self, "trainer", None)
+        return (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
+
     def train_dataloader(self) -> DataLoader:
         ds = self.dataset("train")
+        world, rank = self._ranks()
         if not self.single_mode:
-            g = torch.Generator().manual_seed(int(self.split_seed) + 1)
-            return self._loader(ds, BatchSampler(RandomSampler(ds, generator=g), self.batch_size, drop_last=False))
+            if world > 1:
+                sampler = DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=True, seed=int(self.split_seed) + 1)
+            else:
+                sampler = RandomSampler(ds, generator=torch.Generator().manual_seed(int(self.split_seed) + 1))
+            return self._loader(ds, BatchSampler(sampler, self.batch_size, drop_last=False))
         n_own = round(self.own_fraction * self.batch_size)
         sampler = _Stage1Sampler([len(o) for o in self._own], len(ds), n_own, self.batch_size - n_own,
-                                 max(1, math.ceil(len(ds) / self.batch_size)), self.split_seed)
+                                 max(1, math.ceil(len(ds) / (self.batch_size * world))), self.split_seed, rank)
         return self._loader(_Stage1Dataset(self._own, ds, self._common_keys), sampler)
 
     def _eval_loader(self, name) -> DataLoader:
         ds = self.dataset(name)
-        return self._loader(ds, BatchSampler(SequentialSampler(ds), self.batch_size, drop_last=False))
+        world, rank = self._ranks()
+        sampler = (DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=False) if world > 1
+                   else SequentialSampler(ds))
+        return self._loader(ds, BatchSampler(sampler, self.batch_size, drop_last=False))
 
     def val_dataloader(self) -> DataLoader:
         return self._eval_loader("val")

@@ -4,11 +4,16 @@ A recipe is a LightningCLI config (``class_path`` / ``init_args``; ``--print_con
 A recipe may also chain runs: a top-level ``stages:`` list of such configs runs them in order and
 hands each run's best checkpoint to the next as ``model.init_args.stage1_checkpoint`` (stage 1,
 then stage 2). W&B is the default logger, offline unless ``WANDB_MODE=online``.
+
+Each stage of a chain runs as its own ``immnet fit`` process, and every run leaves its own command
+line in ``sys.argv``: Lightning's DDP launcher starts its workers by re-running that command, so a
+worker runs exactly one stage, and the next stage launches its workers afresh.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -18,6 +23,9 @@ import yaml
 from lightning.pytorch.cli import LightningCLI
 
 from immnet.config import resolve_path
+
+_RESULT_ENV = "IMMNET_FIT_RESULT"
+"""Where a ``fit`` run started by a chain writes its best checkpoint's path (rank 0 only)."""
 
 
 def _default_logger() -> dict:
@@ -33,7 +41,8 @@ def _default_logger() -> dict:
 
 class IMMNetCLI(LightningCLI):
     def add_arguments_to_parser(self, parser):
-        parser.set_defaults({"trainer.logger": _default_logger()})
+        # LASTDataModule shards its batches per rank itself (its samplers are batch samplers)
+        parser.set_defaults({"trainer.logger": _default_logger(), "trainer.use_distributed_sampler": False})
 
 
 def _cli(args: list[str]) -> IMMNetCLI:
@@ -60,36 +69,46 @@ def _config_arg(argv: list[str]) -> str | None:
 
 
 def run_stages(recipe: dict, extra: list[str]) -> str:
-    """Run a chained recipe; returns the last run's best checkpoint."""
+    """Run a chained recipe, each stage in its own process; returns the last run's best checkpoint."""
     ckpt = None
+    n = len(recipe["stages"])
     for i, stage in enumerate(recipe["stages"]):
-        if isinstance(stage, str):
-            path, tmp = str(resolve_path(stage)), None
-        else:
-            with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as f:
-                yaml.safe_dump(stage, f)
-            path = tmp = f.name
-        args = ["fit", "--config", path, *extra]
-        if ckpt is not None:
-            args += ["--model.init_args.stage1_checkpoint", ckpt]
-        print(f"[immnet fit] stage {i + 1}/{len(recipe['stages'])}", file=sys.stderr, flush=True)
-        try:
-            cli = _cli(args)
-        finally:
-            if tmp:
-                Path(tmp).unlink(missing_ok=True)
-        callback = cli.trainer.checkpoint_callback
-        ckpt = callback.best_model_path or callback.last_model_path if callback else None
+        with tempfile.TemporaryDirectory(prefix="immnet-stage-") as tmp:
+            if isinstance(stage, str):
+                path = str(resolve_path(stage))
+            else:
+                path = str(Path(tmp) / "stage.yaml")
+                Path(path).write_text(yaml.safe_dump(stage))
+            cmd = [sys.executable, "-m", "immnet.cli", "fit", "--config", path, *extra]
+            if ckpt is not None:
+                cmd += ["--model.init_args.stage1_checkpoint", ckpt]
+            print(f"[immnet fit] stage {i + 1}/{n}: {path}", file=sys.stderr, flush=True)
+            result = Path(tmp) / "best"
+            done = subprocess.run(cmd, env={**os.environ, _RESULT_ENV: str(result)})
+            if done.returncode != 0:
+                raise SystemExit(f"[immnet fit] stage {i + 1}/{n} ({path}) failed with exit code {done.returncode}")
+            ckpt = result.read_text().strip() if result.is_file() else ""
         if not ckpt:
             raise RuntimeError(f"stage {i + 1} left no checkpoint (is a ModelCheckpoint configured?)")
         print(f"[immnet fit] stage {i + 1} checkpoint: {ckpt}", file=sys.stderr, flush=True)
     return ckpt
 
 
+def _run(argv: list[str]) -> IMMNetCLI:
+    """One Lightning run; ``sys.argv`` becomes its command line (what a DDP launcher re-runs)."""
+    sys.argv = [sys.argv[0], *argv]
+    cli = _cli(argv)
+    out = os.environ.get(_RESULT_ENV)
+    if out and argv[0] == "fit" and cli.trainer.is_global_zero:
+        callback = cli.trainer.checkpoint_callback
+        best = (callback.best_model_path or callback.last_model_path) if callback else ""
+        Path(out).write_text(best or "")
+    return cli
+
+
 def lightning_main(argv: list[str]) -> None:
     """Run Lightning's CLI; a first ``--config`` holding ``stages:`` runs the chain, and every
     further argument (another ``--config`` too, e.g. an ablation) applies to each stage."""
-    sys.argv = [sys.argv[0]]  # the arguments travel in ``args``
     config = _config_arg(argv)
     if argv[0] == "fit" and config is not None:
         recipe = yaml.safe_load(resolve_path(config).read_text())
@@ -98,4 +117,4 @@ def lightning_main(argv: list[str]) -> None:
             width = 2 if argv[i] == "--config" else 1
             run_stages(recipe, argv[1:i] + argv[i + width :])
             return
-    _cli(argv)
+    _run(argv)

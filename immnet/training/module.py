@@ -75,12 +75,27 @@ class _TrackerModule(L.LightningModule):
         return {"optimizer": opt, "lr_scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor)}
 
     def _optimize(self, loss: torch.Tensor) -> bool:
+        """One optimizer step on ``loss`` (a TBPTT chunk); skipped, and counted, when the loss or
+        the gradient is not finite.
+
+        Several backward passes make one training step here, so under DDP the gradients are
+        averaged by one all-reduce per chunk rather than by DDP's reducer (which expects a single
+        backward per forward and every parameter in each: the learned initial GRU states only
+        enter a sequence's first chunk). A non-finite loss still runs its backward there, so that
+        every rank joins the all-reduce, and the NaN it spreads makes every rank skip together.
+        """
         opt = self.optimizers()
-        if not torch.isfinite(loss):
+        distributed = self.trainer.world_size > 1
+        if not distributed and not torch.isfinite(loss):
             self.skipped += 1
             return False
         opt.zero_grad(set_to_none=True)
-        self.manual_backward(loss)
+        if distributed:
+            with self.trainer.strategy.block_backward_sync():
+                self.manual_backward(loss)
+            self._average_gradients()
+        else:
+            self.manual_backward(loss)
         norm = torch.nn.utils.clip_grad_norm_(list(self.trainable_parameters()), self.hparams.grad_clip)
         if not torch.isfinite(norm):
             opt.zero_grad(set_to_none=True)
@@ -92,6 +107,20 @@ class _TrackerModule(L.LightningModule):
             sched.step()
         return True
 
+    def _average_gradients(self) -> None:
+        """Average the gradients over ranks, one all-reduce of one flat buffer."""
+        params = [p for p in self.trainable_parameters() if p.grad is not None]
+        if not params:
+            return
+        flat = torch.cat([p.grad.reshape(-1) for p in params])
+        torch.distributed.all_reduce(flat)
+        flat /= self.trainer.world_size
+        offset = 0
+        for p in params:
+            n = p.grad.numel()
+            p.grad.copy_(flat[offset : offset + n].view_as(p.grad))
+            offset += n
+
     def chunks(self, T: int):
         step = self.hparams.tbptt if self.hparams.tbptt and self.hparams.tbptt > 0 else T
         return [(s, min(s + step, T)) for s in range(0, T, step)]
@@ -99,8 +128,8 @@ class _TrackerModule(L.LightningModule):
     def _log_rmse(self, prefix: str, est, truth, batch_size):
         rmse = position_rmse(est, truth)
         for a, v in zip(AXES, rmse):
-            self.log(f"{prefix}/rmse_{a}", v, batch_size=batch_size)
-        self.log(f"{prefix}/rmse_avg", rmse.mean(), batch_size=batch_size, prog_bar=True)
+            self.log(f"{prefix}/rmse_{a}", v, batch_size=batch_size, sync_dist=True)
+        self.log(f"{prefix}/rmse_avg", rmse.mean(), batch_size=batch_size, prog_bar=True, sync_dist=True)
 
 
 class Stage1Module(_TrackerModule):
@@ -108,6 +137,10 @@ class Stage1Module(_TrackerModule):
 
     def __init__(self, net: dict | None = None, lr: float = 1e-2, **kwargs):
         super().__init__(net=net, lr=lr, **kwargs)
+        # only the gain networks train; the rest is frozen, so that DDP finds no unused parameter
+        gain = {id(p) for p in self.net.gain.parameters()}
+        for p in self.parameters():
+            p.requires_grad_(id(p) in gain)
 
     def trainable_parameters(self):
         return self.net.gain.parameters()
@@ -137,11 +170,11 @@ class Stage1Module(_TrackerModule):
         x = batch[keys.STATES].unsqueeze(2).expand(-1, -1, M, -1)
         out, _ = self.net.rollout(z, experts_alone=True)
         loss = state_loss(out[keys.STATE], x, batch[keys.R].unsqueeze(1).expand(-1, M), self.w_state)
-        self.log("val/loss", loss, prog_bar=True, batch_size=z.shape[0])
+        self.log("val/loss", loss, prog_bar=True, batch_size=z.shape[0], sync_dist=True)
         est = out[keys.STATE]
         for i, name in enumerate(self.net.model_set.names):
             rmse = position_rmse(est[:, :, i], batch[keys.STATES])
-            self.log(f"val/rmse_avg_{name}", rmse.mean(), batch_size=z.shape[0])
+            self.log(f"val/rmse_avg_{name}", rmse.mean(), batch_size=z.shape[0], sync_dist=True)
 
 
 class Stage2Module(_TrackerModule):
@@ -218,9 +251,9 @@ class Stage2Module(_TrackerModule):
         out, _ = self.net.rollout(batch[keys.MEASUREMENTS])
         loss, mse, ce = self.losses(out, batch)
         B = batch.batch_size[0]
-        self.log(f"{prefix}/loss", loss, prog_bar=True, batch_size=B)
-        self.log(f"{prefix}/ce", ce, batch_size=B)
+        self.log(f"{prefix}/loss", loss, prog_bar=True, batch_size=B, sync_dist=True)
+        self.log(f"{prefix}/ce", ce, batch_size=B, sync_dist=True)
         self._log_rmse(prefix, out[keys.STATE], batch[keys.STATES], B)
         probs = self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS])
-        self.log(f"{prefix}/mode_accuracy", (probs.argmax(-1) == batch[keys.MODE]).float().mean(), batch_size=B)
+        self.log(f"{prefix}/mode_accuracy", (probs.argmax(-1) == batch[keys.MODE]).float().mean(), batch_size=B, sync_dist=True)
         return probs
