@@ -70,7 +70,7 @@ class KalmanNetGain(Stage):
         out_mult: int = 4,
         init_sigma_q: float = 1.0,
         init_r: float = 4.0,
-        gain_scale: tuple[float, float, float] = (1.0, 0.5, 0.1),
+        gain_scale: tuple[float, float, float] = (1.0, 1.0, 0.5),
         init_out_scale: float = 0.01,
     ):
         super().__init__(model_set)
