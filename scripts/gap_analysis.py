@@ -1,0 +1,87 @@
+"""Where IMMNet loses to the clairvoyant bound: pooled position RMSE (per axis) by true mode, by noise
+level and by time since the last mode switch, beside each expert's own posterior, the "oracle pick"
+(the posterior of the true mode's expert) and the mean probability on the true mode.
+
+Run (after `bash scripts/main.sh`):
+    .venv/bin/python scripts/gap_analysis.py [--checkpoint runs/quick/stage2/checkpoints/best.ckpt]
+        [--data runs/quick/data/test] [--n 1000]
+Scans from 20 on (the tracks' start is excluded). Needs states, mode, turn_rate and r in the data.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from immnet import keys
+from immnet.data.storage import as_batch, load_dataset
+from immnet.filters.clairvoyant import ClairvoyantKF
+from immnet.motion import MODE_NAMES
+from immnet.tracking.tracker import load_network
+
+POS = [0, 3, 6]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--checkpoint", default="runs/quick/stage2/checkpoints/best.ckpt")
+    p.add_argument("--data", default="runs/quick/data/test")
+    p.add_argument("--n", type=int, default=1000)
+    a = p.parse_args()
+    torch.set_grad_enabled(False)
+    net = load_network(a.checkpoint)
+    td, _ = load_dataset(a.data)
+    b = as_batch(td[: a.n])
+    z, truth, mode, r = b[keys.MEASUREMENTS], b[keys.STATES], b[keys.MODE], b[keys.R]
+    carry, posts, probs, fused = net.initial_carry(z.shape[0]), [], [], []
+    for t in range(z.shape[1]):
+        carry = net.scan(carry, z[:, t])
+        posts.append(carry.get(keys.EXPERT_POST))
+        probs.append(net.to_mode_probs(carry.get(keys.EXPERT_PROBS)))
+        fused.append(carry.get(keys.FUSED))
+    post, prob, fused = torch.stack(posts, 1), torch.stack(probs, 1), torch.stack(fused, 1)
+    bound = ClairvoyantKF().track(b)[keys.STATE].float()
+
+    def sq(x):  # squared 3D position error [N, T]
+        return (x[..., POS] - truth[..., POS]).square().sum(-1)
+
+    ef, ec = sq(fused), sq(bound)
+    M = post.shape[2]
+    ee = torch.stack([sq(post[:, :, i]) for i in range(M)], -1)
+    expert_mode = net.mode_onehot.argmax(-1)  # the data mode of each expert
+    own = torch.stack([(expert_mode == m).nonzero()[0, 0] for m in range(4)]) if M >= 4 else None
+    since = torch.zeros_like(mode)
+    for t in range(1, mode.shape[1]):
+        since[:, t] = torch.where(mode[:, t] == mode[:, t - 1], since[:, t - 1] + 1, 0)
+    late = torch.zeros_like(mode, dtype=torch.bool)
+    late[:, 20:] = True
+
+    def rms(e, m):
+        return (e[m].mean() / 3).sqrt().item()
+
+    print(f"{a.checkpoint} on {z.shape[0]} trajectories of {a.data}; pooled RMSE per axis [m], scans >= 20")
+    print("experts: " + ", ".join(net.model_set.names))
+    for label, rm in (("r <= 4 m", r <= 4), ("r > 4 m", r > 4)):
+        print(label)
+        for k, name in enumerate(MODE_NAMES):
+            m = late & (mode == k) & rm[:, None]
+            line = f"  {name:4s} fused {rms(ef, m):.3f} bound {rms(ec, m):.3f}"
+            if own is not None:
+                pick = ee.gather(-1, own[mode].unsqueeze(-1)).squeeze(-1)
+                line += f" oracle-pick {rms(pick, m):.3f}"
+            line += " experts " + " ".join(f"{rms(ee[..., i], m):.3f}" for i in range(M))
+            line += f"  p(true mode) {prob.gather(-1, mode.unsqueeze(-1)).squeeze(-1)[m].mean():.3f}"
+            print(line)
+    print("by scans since the last switch: fused / bound (ratio), and each mode; excess = share of the MSE excess")
+    total = (ef - ec)[late].sum()
+    for lo, hi in ((0, 5), (5, 10), (10, 20), (20, 40), (40, 10**6)):
+        m = late & (since >= lo) & (since < hi)
+        print(f"  [{lo}, {hi if hi < 10**6 else 'end'}) n={int(m.sum())} {rms(ef, m):.3f} / {rms(ec, m):.3f} "
+              f"({rms(ef, m) / rms(ec, m):.3f}) excess {float((ef - ec)[m].sum() / total):.0%}  "
+              + " ".join(f"{n} {rms(ef, m & (mode == k)) / rms(ec, m & (mode == k)):.3f}"
+                         for k, n in enumerate(MODE_NAMES) if bool((m & (mode == k)).any())))
+
+
+if __name__ == "__main__":
+    main()
