@@ -96,8 +96,11 @@ def run_stages(recipe: dict, extra: list[str]) -> str:
 
 def _run(argv: list[str]) -> IMMNetCLI:
     """One Lightning run; ``sys.argv`` becomes its command line (what a DDP launcher re-runs)."""
-    sys.argv = [sys.argv[0], *argv]
-    cli = _cli(argv)
+    saved, sys.argv = sys.argv, [sys.argv[0], *argv]
+    try:
+        cli = _cli(argv)
+    finally:
+        sys.argv = saved
     out = os.environ.get(_RESULT_ENV)
     if out and argv[0] == "fit" and cli.trainer.is_global_zero:
         callback = cli.trainer.checkpoint_callback
