@@ -26,6 +26,8 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--skip-training", action="store_true")
     a = p.parse_args()
+    # the commit the weights were trained at (read before training: later commits may land meanwhile)
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     if not a.skip_training:
         subprocess.run([sys.executable, "-m", "immnet.cli", "fit", "--config", "recipes/pretrained.yaml"], cwd=ROOT, check=True)
     from immnet.data.storage import load_dataset, write_dataset
@@ -45,7 +47,6 @@ def main() -> int:
     rows = to_json(evaluate(methods, data, progress=True))
     print(format_table(rows))
     avg = {n: r["rmse"]["avg"] for n, r in rows.items()}
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     from immnet.tracking import Tracker
 
     prov = {
