@@ -85,7 +85,7 @@ class _TrackerModule(L.LightningModule):
         every rank joins the all-reduce, and the NaN it spreads makes every rank skip together.
         """
         opt = self.optimizers()
-        distributed = self.trainer.world_size > 1
+        distributed = self._trainer is not None and self.trainer.world_size > 1
         if not distributed and not torch.isfinite(loss):
             self.skipped += 1
             return False
@@ -102,7 +102,7 @@ class _TrackerModule(L.LightningModule):
             self.skipped += 1
             return False
         opt.step()
-        sched = self.lr_schedulers()
+        sched = self.lr_schedulers() if self._trainer is not None else None
         if sched is not None:
             sched.step()
         return True
