@@ -8,6 +8,7 @@ from immnet.motion.models import (
     MODE_NAMES,
     POS,
     VEL,
+    adaptive_ct_propagate,
     ca_matrix,
     ct_matrix,
     ct_propagate,
@@ -21,6 +22,6 @@ from immnet.motion.models import (
 __all__ = [
     "ACC", "AdaptiveTurn", "DEG", "MODE_NAMES", "POS", "VEL",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
-    "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate", "measurement_matrix", "noise_gain",
-    "process_noise", "turn_rate_of",
+    "adaptive_ct_propagate", "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate",
+    "measurement_matrix", "noise_gain", "process_noise", "turn_rate_of",
 ]

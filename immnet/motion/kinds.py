@@ -81,7 +81,8 @@ class AdaptiveTurn(CoordinatedTurn):
     expert turns at the slowest rate and its gain builds the acceleration up from the innovations.
     ``turn_rate_deg`` is the nominal rate, used where a constant ``F`` is needed (a learned
     expert's steady-state gain at initialization, the analytic-gain ablation's covariance).
-    IMMNet's predict stage calls ``propagate``; the model-based IMM filters need a constant ``F``
+    ``propagate`` is ``adaptive_ct_propagate`` at this model's bounds; IMMNet's predict stage applies
+    that map to all its adaptive experts at once. The model-based IMM filters need a constant ``F``
     and refuse it.
     """
 
@@ -109,5 +110,4 @@ class AdaptiveTurn(CoordinatedTurn):
 
     def propagate(self, x: torch.Tensor, dt: float = 1.0) -> torch.Tensor:
         """``F_CT(w(x), dt) x`` with the bounded state-implied turn rate ``w(x)``."""
-        lo, hi = self.rate_bounds()
-        return m.ct_propagate(x, m.turn_rate_of(x).clamp(lo, hi), dt)
+        return m.adaptive_ct_propagate(x, *self.rate_bounds(), dt)

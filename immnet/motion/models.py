@@ -114,6 +114,12 @@ def turn_rate_of(x: torch.Tensor, min_speed: float = 1.0) -> torch.Tensor:
     return (vx * ay - vy * ax) / (vx * vx + vy * vy).clamp_min(min_speed * min_speed)
 
 
+def adaptive_ct_propagate(x: torch.Tensor, lo, hi, dt: float) -> torch.Tensor:
+    """``F_CT(w, dt) x`` at the turn rate the state implies, ``w = turn_rate_of(x)`` bounded to
+    ``[lo, hi]`` rad/s (floats, or tensors broadcasting against ``x[..., 0]``: one bound per expert)."""
+    return ct_propagate(x, torch.clamp(turn_rate_of(x), lo, hi), dt)
+
+
 def noise_gain(dt: float, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
     """Noise gain ``G`` of shape ``[9, 3]``: per axis ``[dt^2/2, dt, 0]`` (white) or ``[dt^2/2, dt, 1]`` (wiener)."""
     if kind not in (_WHITE, _WIENER):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 
 from immnet import keys
-from immnet.motion import ModelSet, ct_propagate, turn_rate_of
+from immnet.motion import ModelSet, adaptive_ct_propagate
 from immnet.stages.base import Stage, per_expert
 
 
@@ -36,7 +36,7 @@ class Predict(Stage):
         x = per_expert(td.get(keys.FUSED), self.n_experts)
         prior = torch.einsum("mij,bmj->bmi", self.F, x)
         if self.adaptive:
-            w = torch.clamp(turn_rate_of(x), self.w_lo.to(x.dtype), self.w_hi.to(x.dtype))
-            prior = torch.where(self.is_adaptive, ct_propagate(x, w, self.dt), prior)
+            turned = adaptive_ct_propagate(x, self.w_lo.to(x.dtype), self.w_hi.to(x.dtype), self.dt)
+            prior = torch.where(self.is_adaptive, turned, prior)
         td.set(keys.EXPERT_PRIOR, prior)
         return td
