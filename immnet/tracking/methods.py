@@ -27,20 +27,26 @@ def check_dt(net, dt, name: str = "immnet") -> None:
             "train a model at this dt (DataSpec dt)")
 
 
-class IMMNetMethod:
-    """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights)."""
+class _LearnedMethod:
+    """What the learned methods share: ``net`` (an ``IMMNet``), ``name``, and the ``dt`` check."""
 
     needs: tuple[str, ...] = ()
-
-    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500):
-        self.name = name
-        self.tracker = Tracker(load_network(checkpoint or PRETRAINED))
-        self.batch_size = batch_size
+    net = None
 
     def check(self, batch: TensorDict) -> None:
         """A ValueError when the data's ``dt`` is not the one the network was trained at (:func:`check_dt`)."""
         if keys.DT in batch.keys():
-            check_dt(self.tracker.net, batch[keys.DT], self.name)
+            check_dt(self.net, batch[keys.DT], self.name)
+
+
+class IMMNetMethod(_LearnedMethod):
+    """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights)."""
+
+    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500):
+        self.name = name
+        self.tracker = Tracker(load_network(checkpoint or PRETRAINED))
+        self.net = self.tracker.net
+        self.batch_size = batch_size
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
@@ -51,14 +57,12 @@ class IMMNetMethod:
         )
 
 
-class KalmanNetMethod:
+class KalmanNetMethod(_LearnedMethod):
     """Plain KalmanNet: one trained expert running alone (its own posterior is its estimate).
 
     ``expert`` names the expert of the checkpoint's model set (e.g. ``"ca"``); a checkpoint of the
     single-expert ablation has one.
     """
-
-    needs: tuple[str, ...] = ()
 
     def __init__(self, checkpoint: str | None = None, expert: str | None = None, name: str = "kalmannet", batch_size: int = 500):
         self.name = name
@@ -70,11 +74,6 @@ class KalmanNetMethod:
             raise ValueError(f"expert {expert!r} is not in this checkpoint's model set {names}")
         self.index = names.index(expert) if expert is not None else 0
         self.batch_size = batch_size
-
-    def check(self, batch: TensorDict) -> None:
-        """A ValueError when the data's ``dt`` is not the one the network was trained at (:func:`check_dt`)."""
-        if keys.DT in batch.keys():
-            check_dt(self.net, batch[keys.DT], self.name)
 
     @torch.no_grad()
     def track(self, batch: TensorDict) -> TensorDict:
