@@ -2,6 +2,7 @@
 train through `immnet fit` and evaluate through `immnet evaluate`, in a scratch directory laid out
 as `bash scripts/main.sh` lays out the repository (runs/quick/data/...)."""
 
+import importlib.util
 import json
 import math
 import os
@@ -10,7 +11,6 @@ import sys
 
 import pytest
 import torch
-import yaml
 
 from immnet.cli import main
 from immnet.config import REPO_ROOT
@@ -74,15 +74,23 @@ def test_quick_recipe_trains_both_stages_and_evaluates(workdir, quick):
     assert 0.0 <= res["immnet"]["mode_accuracy"] <= 1.0
 
 
+def _ablation_plan() -> dict:
+    """``{name: (base recipe, from the quick stage-1 experts)}`` of ``scripts/ablations.py``."""
+    spec = importlib.util.spec_from_file_location("ablations_script", REPO_ROOT / "scripts/ablations.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.ABLATIONS
+
+
 @pytest.mark.parametrize("ablation", ABLATIONS, ids=lambda p: p.stem)
 def test_every_ablation_trains_and_evaluates(workdir, quick, ablation):
-    cfg = yaml.safe_load(ablation.read_text())
+    plan = _ablation_plan()
     name = ablation.stem
-    is_stage1 = cfg.get("data", {}).get("single_mode", "absent") is None  # the single expert: stage 1 alone
-    chain = name == "fixed-turn-rate"  # the experts change: both stages
-    base = "recipes/quick.yaml" if chain else "recipes/quick-stage1.yaml" if is_stage1 else "recipes/quick-stage2.yaml"
+    assert name in plan, f"scripts/ablations.py does not train {ablation.name}"
+    base, from_stage1 = plan[name]
+    is_stage1 = base.endswith("quick-stage1.yaml")  # the single expert: stage 1 alone
     args = ["fit", "--config", str(REPO_ROOT / base), "--config", str(ablation), *FAST]
-    if not (chain or is_stage1) and "stage1_checkpoint" not in cfg["model"]["init_args"]:
+    if from_stage1:
         args += ["--model.init_args.stage1_checkpoint", str(quick[0])]
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(workdir)
