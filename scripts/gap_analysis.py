@@ -51,6 +51,8 @@ def main() -> None:
     ee = torch.stack([sq(post[:, :, i]) for i in range(M)], -1)
     expert_mode = net.mode_onehot.argmax(-1)  # the data mode of each expert
     own = torch.stack([(expert_mode == m).nonzero()[0, 0] for m in range(4)]) if M >= 4 else None
+    pick = ee.gather(-1, own[mode].unsqueeze(-1)).squeeze(-1) if own is not None else None  # true mode's expert
+    p_true = prob.gather(-1, mode.unsqueeze(-1)).squeeze(-1)
     since = torch.zeros_like(mode)
     for t in range(1, mode.shape[1]):
         since[:, t] = torch.where(mode[:, t] == mode[:, t - 1], since[:, t - 1] + 1, 0)
@@ -67,11 +69,10 @@ def main() -> None:
         for k, name in enumerate(MODE_NAMES):
             m = late & (mode == k) & rm[:, None]
             line = f"  {name:4s} fused {rms(ef, m):.3f} bound {rms(ec, m):.3f}"
-            if own is not None:
-                pick = ee.gather(-1, own[mode].unsqueeze(-1)).squeeze(-1)
+            if pick is not None:
                 line += f" oracle-pick {rms(pick, m):.3f}"
             line += " experts " + " ".join(f"{rms(ee[..., i], m):.3f}" for i in range(M))
-            line += f"  p(true mode) {prob.gather(-1, mode.unsqueeze(-1)).squeeze(-1)[m].mean():.3f}"
+            line += f"  p(true mode) {p_true[m].mean():.3f}"
             print(line)
     print("by scans since the last switch: fused / bound (ratio), and each mode; excess = share of the MSE excess")
     total = (ef - ec)[late].sum()
