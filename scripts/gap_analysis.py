@@ -53,9 +53,11 @@ def main() -> None:
     own = torch.stack([(expert_mode == m).nonzero()[0, 0] for m in range(4)]) if M >= 4 else None
     pick = ee.gather(-1, own[mode].unsqueeze(-1)).squeeze(-1) if own is not None else None  # true mode's expert
     p_true = prob.gather(-1, mode.unsqueeze(-1)).squeeze(-1)
-    since = torch.zeros_like(mode)
+    since, prev = torch.zeros_like(mode), torch.full_like(mode, -1)  # scans since the last switch, mode before it
     for t in range(1, mode.shape[1]):
-        since[:, t] = torch.where(mode[:, t] == mode[:, t - 1], since[:, t - 1] + 1, 0)
+        same = mode[:, t] == mode[:, t - 1]
+        since[:, t] = torch.where(same, since[:, t - 1] + 1, 0)
+        prev[:, t] = torch.where(same, prev[:, t - 1], mode[:, t - 1])
     late = torch.zeros_like(mode, dtype=torch.bool)
     late[:, 20:] = True
 
@@ -82,6 +84,20 @@ def main() -> None:
               f"({rms(ef, m) / rms(ec, m):.3f}) excess {float((ef - ec)[m].sum() / total):.0%}  "
               + " ".join(f"{n} {rms(ef, m & (mode == k)) / rms(ec, m & (mode == k)):.3f}"
                          for k, n in enumerate(MODE_NAMES) if bool((m & (mode == k)).any())))
+
+    print("the 20 scans after a switch, by switch: fused / bound (ratio), share of the MSE excess; "
+          "p(true mode) and fused / bound at 0, 2, 5 and 10 scans after it")
+    for a_ in range(4):
+        for b_ in range(4):
+            m = late & (since < 20) & (prev == a_) & (mode == b_)
+            if not bool(m.any()):
+                continue
+            at = []
+            for s_ in (0, 2, 5, 10):
+                ms = m & (since == s_)
+                at.append(f"{p_true[ms].mean():.2f}/{rms(ef, ms) / rms(ec, ms):.2f}" if bool(ms.any()) else "-")
+            print(f"  {MODE_NAMES[a_]:>3s} -> {MODE_NAMES[b_]:3s} n={int(m.sum()):6d} {rms(ef, m) / rms(ec, m):.3f} "
+                  f"excess {float((ef - ec)[m].sum() / total):.1%}  " + " ".join(at))
 
 
 if __name__ == "__main__":
