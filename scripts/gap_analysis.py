@@ -16,11 +16,10 @@ import torch
 
 from immnet import keys
 from immnet.data.storage import as_batch, load_dataset
+from immnet.evaluation.metrics import position_error
 from immnet.filters.clairvoyant import ClairvoyantKF
 from immnet.motion import MODE_NAMES
 from immnet.tracking.tracker import load_network
-
-POS = [0, 3, 6]
 
 
 def main() -> None:
@@ -44,14 +43,16 @@ def main() -> None:
     bound = ClairvoyantKF().track(b)[keys.STATE].float()
 
     def sq(x):  # squared 3D position error [N, T]
-        return (x[..., POS] - truth[..., POS]).square().sum(-1)
+        return position_error(x, truth).square().sum(-1)
 
     ef, ec = sq(fused), sq(bound)
     M = post.shape[2]
     ee = torch.stack([sq(post[:, :, i]) for i in range(M)], -1)
     expert_mode = net.mode_onehot.argmax(-1)  # the data mode of each expert
-    own = torch.stack([(expert_mode == m).nonzero()[0, 0] for m in range(4)]) if M >= 4 else None
-    pick = ee.gather(-1, own[mode].unsqueeze(-1)).squeeze(-1) if own is not None else None  # true mode's expert
+    pick = None  # the squared error of the true mode's (first) expert, where every mode has one
+    if all(bool((expert_mode == m).any()) for m in range(len(MODE_NAMES))):
+        own = torch.stack([(expert_mode == m).nonzero()[0, 0] for m in range(len(MODE_NAMES))])
+        pick = ee.gather(-1, own[mode].unsqueeze(-1)).squeeze(-1)
     p_true = prob.gather(-1, mode.unsqueeze(-1)).squeeze(-1)
     since, prev = torch.zeros_like(mode), torch.full_like(mode, -1)  # scans since the last switch, mode before it
     for t in range(1, mode.shape[1]):
@@ -63,6 +64,9 @@ def main() -> None:
 
     def rms(e, m):
         return (e[m].mean() / 3).sqrt().item()
+
+    def ratio(m):  # IMMNet / bound over the scans of mask m
+        return rms(ef, m) / rms(ec, m)
 
     print(f"{a.checkpoint} on {z.shape[0]} trajectories of {a.data}; pooled RMSE per axis [m], scans >= 20")
     print("experts: " + ", ".join(net.model_set.names))
@@ -81,8 +85,8 @@ def main() -> None:
     for lo, hi in ((0, 5), (5, 10), (10, 20), (20, 40), (40, 10**6)):
         m = late & (since >= lo) & (since < hi)
         print(f"  [{lo}, {hi if hi < 10**6 else 'end'}) n={int(m.sum())} {rms(ef, m):.3f} / {rms(ec, m):.3f} "
-              f"({rms(ef, m) / rms(ec, m):.3f}) excess {float((ef - ec)[m].sum() / total):.0%}  "
-              + " ".join(f"{n} {rms(ef, m & (mode == k)) / rms(ec, m & (mode == k)):.3f}"
+              f"({ratio(m):.3f}) excess {float((ef - ec)[m].sum() / total):.0%}  "
+              + " ".join(f"{n} {ratio(m & (mode == k)):.3f}"
                          for k, n in enumerate(MODE_NAMES) if bool((m & (mode == k)).any())))
 
     print("the 20 scans after a switch, by switch: fused / bound (ratio), share of the MSE excess; "
@@ -95,8 +99,8 @@ def main() -> None:
             at = []
             for s_ in (0, 2, 5, 10):
                 ms = m & (since == s_)
-                at.append(f"{p_true[ms].mean():.2f}/{rms(ef, ms) / rms(ec, ms):.2f}" if bool(ms.any()) else "-")
-            print(f"  {MODE_NAMES[a_]:>3s} -> {MODE_NAMES[b_]:3s} n={int(m.sum()):6d} {rms(ef, m) / rms(ec, m):.3f} "
+                at.append(f"{p_true[ms].mean():.2f}/{ratio(ms):.2f}" if bool(ms.any()) else "-")
+            print(f"  {MODE_NAMES[a_]:>3s} -> {MODE_NAMES[b_]:3s} n={int(m.sum()):6d} {ratio(m):.3f} "
                   f"excess {float((ef - ec)[m].sum() / total):.1%}  " + " ".join(at))
 
 
