@@ -25,10 +25,15 @@ import torch
 
 from immnet import keys
 from immnet.data.storage import as_batch, load_dataset
-from immnet.evaluation.metrics import position_error
+from immnet.evaluation.metrics import per_trajectory_rmse, position_error
 from immnet.filters.clairvoyant import ClairvoyantKF
 from immnet.motion import MODE_NAMES
 from immnet.tracking.tracker import load_network
+
+
+def table_average(err: torch.Tensor) -> float:
+    """The README table's Average RMSE of position errors ``[N, T, 3]`` (SPEC.md section 5)."""
+    return per_trajectory_rmse(err).mean().item()
 
 
 def main() -> None:
@@ -55,12 +60,10 @@ def main() -> None:
     post, prob, fused = torch.stack(posts, 1), torch.stack(probs, 1), torch.stack(fused, 1)
     bound = ClairvoyantKF().track(b)[keys.STATE].float()
 
-    def sq(x):  # squared 3D position error [N, T]
-        return position_error(x, truth).square().sum(-1)
-
-    ef, ec = sq(fused), sq(bound)
+    err_f, err_c = position_error(fused, truth), position_error(bound, truth)  # [N, T, 3]
+    ef, ec = err_f.square().sum(-1), err_c.square().sum(-1)  # squared 3D position errors [N, T]
     M = post.shape[2]
-    ee = torch.stack([sq(post[:, :, i]) for i in range(M)], -1)
+    ee = torch.stack([position_error(post[:, :, i], truth).square().sum(-1) for i in range(M)], -1)
     expert_mode = net.mode_onehot.argmax(-1)  # the data mode of each expert
     pick = None  # the squared error of the true mode's (first) expert, where every mode has one
     if all(bool((expert_mode == m).any()) for m in range(len(MODE_NAMES))):
@@ -116,13 +119,7 @@ def main() -> None:
             print(f"  {MODE_NAMES[a_]:>3s} -> {MODE_NAMES[b_]:3s} n={int(m.sum()):6d} {ratio(m):.3f} "
                   f"excess {float((ef - ec)[m].sum() / total):.1%}  " + " ".join(at))
 
-    # the metric itself: per trajectory and axis sqrt(mean_t e^2), then the mean (all scans count)
-    ef3, ec3 = position_error(fused, truth).square(), position_error(bound, truth).square()
-
-    def average(e):
-        return e.mean(1).sqrt().mean().item()
-
-    full, floor = average(ef3), average(ec3)
+    full, floor = table_average(err_f), table_average(err_c)  # the metric itself: all scans count
     print(f"the Average RMSE (all scans) {full:.3f} m, {full / floor:.3f}x the bound's {floor:.3f} m; "
           "with the bound's errors in place of IMMNet's in one group of scans:")
     after = (since < 20) & (since < torch.arange(mode.shape[1]))  # a switch inside the track, not its start
@@ -135,7 +132,7 @@ def main() -> None:
         groups[f"steady {name} (20+ scans on)"] = late & ~after & (mode == k)
     for label, m in groups.items():
         print(f"  {label:28s} share {float(m.float().mean()):.3f}: "
-              f"{average(torch.where(m[..., None], ec3, ef3)) / floor:.3f}x")
+              f"{table_average(torch.where(m[..., None], err_c, err_f)) / floor:.3f}x")
 
 
 def experts_alone(net, datasets, n: int, checkpoint: str) -> None:
@@ -147,20 +144,18 @@ def experts_alone(net, datasets, n: int, checkpoint: str) -> None:
         b = as_batch(td[:n])
         z, truth, mode = b[keys.MEASUREMENTS], b[keys.STATES], b[keys.MODE]
         out, _ = net.rollout(z.unsqueeze(1).expand(-1, M, -1, -1).contiguous(), experts_alone=True)
-        bound = ClairvoyantKF().track(b)[keys.STATE].float()
-        steady = (mode == mode[:, :1]).cumprod(1).bool()
+        steady = (mode == mode[:, :1]).cumprod(1).bool()  # still in the first segment
         steady[:, :20] = False
 
-        def average(x):
-            return position_error(x, truth).square().mean(1).sqrt().mean().item()
+        def scores(x):  # (the metric, pooled RMSE over the steady scans)
+            err = position_error(x, truth)
+            return table_average(err), err.square()[steady].mean().sqrt().item()
 
-        def pooled(x):
-            return position_error(x, truth).square()[steady].mean().sqrt().item()
-
-        cells = [
-            f"{name} {average(out[keys.STATE][:, :, i]) / average(bound):.3f} / {pooled(out[keys.STATE][:, :, i]) / pooled(bound):.3f}"
-            for i, name in enumerate(net.model_set.names)
-        ]
+        full_c, steady_c = scores(ClairvoyantKF().track(b)[keys.STATE].float())
+        cells = []
+        for i, name in enumerate(net.model_set.names):
+            full_i, steady_i = scores(out[keys.STATE][:, :, i])
+            cells.append(f"{name} {full_i / full_c:.3f} / {steady_i / steady_c:.3f}")
         print(f"  {data} ({z.shape[0]} trajectories): " + "  ".join(cells))
 
 
