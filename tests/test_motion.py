@@ -113,6 +113,15 @@ def test_model_set_errors():
         ModelSet.from_config([{"class_path": "immnet.motion.Nope"}])
     with pytest.raises(ValueError, match="non-zero"):
         CoordinatedTurn(0.0)
+    with pytest.raises(ValueError, match="ct\\+3 appears more than once"):
+        ModelSet([ConstantVelocity(), CoordinatedTurn(3.0), CoordinatedTurn(3.0)])
+
+
+def test_turn_experts_of_one_sign_keep_distinct_names():
+    slow, fast = AdaptiveTurn(3.0, 1.0, 10.0), AdaptiveTurn(7.0, 5.0, 10.0)
+    ms = ModelSet([ConstantVelocity(), AdaptiveTurn(5.0), slow, fast, AdaptiveTurn(-5.0)])
+    assert ms.names == ["cv", "ct+adaptive", "ct+adaptive1-10@3", "ct+adaptive5-10@7", "ct-adaptive"]
+    assert ms.modes.tolist() == [0, 2, 2, 2, 3]
 
 
 def test_ct_propagate_equals_the_transition_matrix():

@@ -61,6 +61,10 @@ class ModelSet:
         for i, model in enumerate(models):
             if not isinstance(model, MotionModel):
                 raise TypeError(f"model set entry {i} is {type(model).__name__}, not a MotionModel")
+        names = [model.name for model in models]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:  # names key the logs, the per-expert outputs and `kalmannet --expert`
+            raise ValueError(f"a model set needs distinct experts; {', '.join(twice)} appears more than once")
         self.models = models
 
     def __len__(self) -> int:

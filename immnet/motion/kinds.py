@@ -98,7 +98,12 @@ class AdaptiveTurn(CoordinatedTurn):
 
     @property
     def name(self) -> str:
-        return f"ct{'+' if self.turn_rate_deg > 0 else '-'}adaptive"
+        """``ct+adaptive`` / ``ct-adaptive`` at the default bounds (1..10 deg/s, nominal 5), else
+        with the bounds and nominal rate, so that two turn experts of one sign keep distinct names."""
+        sign = "+" if self.turn_rate_deg > 0 else "-"
+        if (self.min_deg, self.max_deg, abs(self.turn_rate_deg)) == (1.0, 10.0, 5.0):
+            return f"ct{sign}adaptive"
+        return f"ct{sign}adaptive{self.min_deg:g}-{self.max_deg:g}@{abs(self.turn_rate_deg):g}"
 
     def init_args(self) -> dict:
         return {**super().init_args(), "min_deg": self.min_deg, "max_deg": self.max_deg}
