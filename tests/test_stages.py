@@ -120,6 +120,28 @@ def test_streaming_step_equals_batched_rollout(data):
         torch.testing.assert_close(step.get(keys.MODE_PROBS), batched[keys.MODE_PROBS][:, t], rtol=1e-5, atol=1e-5)
 
 
+def test_a_starting_track_reports_its_start_estimate_for_every_expert(data):
+    """Scan 0: the first measurement, zero velocity; scan 1: the second, with the differenced velocity.
+    A track whose first detection is missed starts one scan later; nothing else is an expert estimate."""
+    net = IMMNet()
+    z = data[keys.MEASUREMENTS][:2, :4].clone()
+    z[1, 0] = math.nan
+    carry = net.initial_carry(2)
+    posts = []
+    for t in range(4):
+        carry = net.scan(carry, z[:, t])
+        posts.append(carry.get(keys.EXPERT_POST))
+    pos, vel = [0, 3, 6], [1, 4, 7]
+    for b, t0 in ((0, 0), (1, 1)):
+        first, second = posts[t0][b], posts[t0 + 1][b]  # [M, 9]
+        torch.testing.assert_close(first[:, pos], z[b, t0].expand(4, 3))
+        assert (first[:, vel] == 0).all()
+        torch.testing.assert_close(second[:, pos], z[b, t0 + 1].expand(4, 3))
+        torch.testing.assert_close(second[:, vel], (z[b, t0 + 1] - z[b, t0]).expand(4, 3))
+    # from the third scan on the experts differ (each its own prediction and gain)
+    assert (posts[3][0, 0] != posts[3][0, 1]).any()
+
+
 def test_tracks_start_independently(data):
     """A track reset mid-stream behaves exactly like a track started on its own."""
     tracker = Tracker(IMMNet())

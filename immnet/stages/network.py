@@ -154,6 +154,11 @@ class IMMNet(nn.Module):
         for key in out.keys(True, True):
             if key not in carry_keys:
                 new.set(key, out.get(key))
+        # a starting track has no expert estimates of its own yet: each expert's is the start estimate
+        # (the step above ran on an empty carry, so its posteriors there mean nothing)
+        start = new.get(keys.FUSED)
+        start = start if start.dim() == 3 else start.unsqueeze(1).expand(-1, self.n_experts, -1)
+        new.set(keys.EXPERT_POST, torch.where((age < 2)[:, None, None], start, new.get(keys.EXPERT_POST)))
         return new
 
     # --- a whole sequence -----------------------------------------------------------------
