@@ -27,6 +27,7 @@ MODE_PROBS = "mode_probs"
 # --- an IMMNet rollout's outputs over time (TensorDict [B, T]), besides ``state`` ------------------
 ROLLOUT_EXPERT_PROBS = "expert_probs"  # mu_t over the experts [B, T, M]
 ROLLOUT_MODE_LOGITS = "mode_logits"  # the classifier's logits [B, T, M]
+ROLLOUT_EXPERT_POST = "expert_post"  # each expert's posterior x_{t|t}^(i) [B, T, M, 9]
 
 # --- one tracker step (immnet.stages) ---------------------------------------------------------
 MEASUREMENT = "measurement"  # z_t [B, 3]

@@ -84,10 +84,11 @@ def test_analytic_gain_with_cv_expert_equals_our_kalman_filter(data):
         torch.testing.assert_close(out[keys.STATE][:, t], x, rtol=1e-6, atol=1e-6)
 
 
-def test_gradients_reach_every_parameter_in_stage_2(data):
-    module = Stage2Module(net={"model_set": "configs/model_sets/imm4.yaml"})
+@pytest.mark.parametrize("expert_weight", [0.0, 0.3])
+def test_gradients_reach_every_parameter_in_stage_2(data, expert_weight):
+    module = Stage2Module(net={"model_set": "configs/model_sets/imm4.yaml"}, expert_weight=expert_weight)
     out, _ = module.net.rollout(data[keys.MEASUREMENTS][:, :30])
-    loss, _, _ = module.losses(out, _crop(data, 30))
+    loss = module.losses(out, _crop(data, 30))[0]
     loss.backward()
     dead = [n for n, p in module.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all() or p.grad.abs().sum() == 0]
     assert not dead, f"no gradient for {dead}"
@@ -205,3 +206,31 @@ def test_stacked_layers_equal_one_torch_layer_per_expert():
         for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh"):
             getattr(cell, name).data = getattr(gru, name)[i].detach()
         torch.testing.assert_close(h_new[i], cell(x[i], h[i]), rtol=0, atol=1e-12)
+
+
+def test_stage_2_loss_is_the_papers_plus_the_own_mode_term(data):
+    """gamma * MSE + (1 - gamma) * CE, plus expert_weight * each expert's loss on its own mode's scans,
+    recomputed here scan by scan in float64 from the rollout's expert posteriors."""
+    batch = _crop(data, 30)
+    torch.manual_seed(0)
+    paper, extra = Stage2Module(), Stage2Module(expert_weight=0.5)
+    extra.net.load_state_dict(paper.net.state_dict())
+    out, _ = paper.net.rollout(batch[keys.MEASUREMENTS])
+    loss0, mse, ce, _ = paper.losses(out, batch)
+    assert torch.allclose(loss0, 0.7 * mse + 0.3 * ce)
+    loss1, mse1, ce1, own = extra.losses(out, batch)
+    torch.testing.assert_close((mse1, ce1), (mse, ce))
+    post, truth = out[keys.ROLLOUT_EXPERT_POST].double(), batch[keys.STATES].double()
+    w = torch.tensor([1.0, 0.1, 0.02] * 3, dtype=torch.float64)
+    modes = extra.net.model_set.modes.tolist()
+    num = den = 0.0
+    for b in range(truth.shape[0]):
+        for t in range(truth.shape[1]):
+            for i, m in enumerate(modes):
+                if m == batch[keys.MODE][b, t]:
+                    num += float(((post[b, t, i] - truth[b, t]) ** 2 * w).sum()) / float(batch[keys.R][b])
+                    den += 1.0 / float(batch[keys.R][b])
+    assert own.item() == pytest.approx(num / den, rel=1e-5)
+    assert loss1.item() == pytest.approx(loss0.item() + 0.5 * num / den, rel=1e-5)
+    with pytest.raises(ValueError, match="expert_weight"):
+        Stage2Module(expert_weight=-1.0)

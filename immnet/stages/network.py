@@ -167,20 +167,22 @@ class IMMNet(nn.Module):
 
         Returns ``(outputs, carry)``: ``outputs`` a TensorDict ``[B, T]`` with ``state``
         (``[B, T, 9]``, or ``[B, T, M, 9]`` experts alone), ``expert_probs`` and ``mode_logits``
-        ``[B, T, M]``; ``carry`` continues the rollout (truncated BPTT detaches it between chunks).
+        ``[B, T, M]`` and ``expert_post [B, T, M, 9]`` (not experts alone); ``carry`` continues the rollout (truncated BPTT detaches it between chunks).
         """
         B, T = measurements.shape[0], measurements.shape[-2]
         if carry is None:
             carry = self.initial_carry(B, experts_alone, measurements.dtype, measurements.device)
-        states, probs, logits = [], [], []
+        states, probs, logits, posts = [], [], [], []
         for t in range(T):
             carry = self.scan(carry, measurements[..., t, :], experts_alone)
             states.append(carry.get(keys.FUSED))
             if not experts_alone:
                 probs.append(carry.get(keys.EXPERT_PROBS))
                 logits.append(carry.get(keys.MODE_LOGITS))
+                posts.append(carry.get(keys.EXPERT_POST))
         out = {keys.STATE: torch.stack(states, 1)}
         if not experts_alone:
             out[keys.ROLLOUT_EXPERT_PROBS] = torch.stack(probs, 1)
             out[keys.ROLLOUT_MODE_LOGITS] = torch.stack(logits, 1)
+            out[keys.ROLLOUT_EXPERT_POST] = torch.stack(posts, 1)
         return TensorDict(out, batch_size=[B, T]), carry
