@@ -167,7 +167,8 @@ class IMMNet(nn.Module):
 
         Returns ``(outputs, carry)``: ``outputs`` a TensorDict ``[B, T]`` with ``state``
         (``[B, T, 9]``, or ``[B, T, M, 9]`` experts alone), ``expert_probs`` and ``mode_logits``
-        ``[B, T, M]`` and ``expert_post [B, T, M, 9]`` (not experts alone); ``carry`` continues the rollout (truncated BPTT detaches it between chunks).
+        ``[B, T, M]`` and ``expert_post [B, T, M, 9]`` (not experts alone); ``carry`` continues the
+        rollout (truncated BPTT detaches it between chunks).
         """
         B, T = measurements.shape[0], measurements.shape[-2]
         if carry is None:
