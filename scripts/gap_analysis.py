@@ -51,13 +51,9 @@ def main() -> None:
     td, _ = load_dataset(a.data)
     b = as_batch(td[: a.n])
     z, truth, mode, r = b[keys.MEASUREMENTS], b[keys.STATES], b[keys.MODE], b[keys.R]
-    carry, posts, probs, fused = net.initial_carry(z.shape[0]), [], [], []
-    for t in range(z.shape[1]):
-        carry = net.scan(carry, z[:, t])
-        posts.append(carry.get(keys.EXPERT_POST))
-        probs.append(net.to_mode_probs(carry.get(keys.EXPERT_PROBS)))
-        fused.append(carry.get(keys.FUSED))
-    post, prob, fused = torch.stack(posts, 1), torch.stack(probs, 1), torch.stack(fused, 1)
+    out, _ = net.rollout(z)
+    post, fused = out[keys.ROLLOUT_EXPERT_POST], out[keys.STATE]
+    prob = net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS])
     bound = ClairvoyantKF().track(b)[keys.STATE].float()
 
     err_f, err_c = position_error(fused, truth), position_error(bound, truth)  # [N, T, 3]
