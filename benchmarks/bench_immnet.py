@@ -9,6 +9,7 @@ of tracking; training runs forward + backward + Adam over TBPTT chunks of 20 sca
 from __future__ import annotations
 
 import argparse
+import statistics
 import datetime
 import sys
 import time
@@ -39,23 +40,31 @@ def inference(net: IMMNet, B: int, steps: int, step_fn) -> float:
         carry = net.scan(carry, z[:, t])
     for t in range(2, 5):  # warm-up (and compilation)
         carry = step_fn(carry, z[:, t])
-    t0 = time.perf_counter()
-    for t in range(2, steps + 2):
-        carry = step_fn(carry, z[:, t])
-    return B * steps / (time.perf_counter() - t0)
+    times = []
+    for _ in range(3):  # the median of three timed passes over the same scans
+        c = carry
+        t0 = time.perf_counter()
+        for t in range(2, steps + 2):
+            c = step_fn(c, z[:, t])
+        times.append(time.perf_counter() - t0)
+    return B * steps / statistics.median(times)
 
 
-def training(module, batch) -> float:
-    """Trajectory-steps/s of one ``training_step`` (forward, backward and Adam per TBPTT chunk)."""
+def training(module, batch, repeats: int = 5) -> float:
+    """Trajectory-steps/s of a ``training_step`` (forward, backward and Adam per TBPTT chunk), the
+    median of ``repeats`` timed calls after one warm-up."""
     opt = torch.optim.Adam(module.trainable_parameters(), 1e-4)
     module.optimizers = lambda: opt  # Lightning is not attached: the module's own loop, our optimizer
     module.manual_backward = lambda loss: loss.backward()
     module.log = lambda *a, **k: None
     T = batch["measurements"].shape[-2]
     module.training_step(batch, 0)  # warm-up
-    t0 = time.perf_counter()
-    module.training_step(batch, 0)
-    return batch.batch_size[-1] * T / (time.perf_counter() - t0)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        module.training_step(batch, 0)
+        times.append(time.perf_counter() - t0)
+    return batch.batch_size[-1] * T / statistics.median(times)
 
 
 def main(argv=None) -> int:
@@ -64,6 +73,8 @@ def main(argv=None) -> int:
     p.add_argument("--no-compile", action="store_true")
     p.add_argument("--model-set", default="configs/model_sets/imm4-adaptive.yaml",
                    help="experts (default: the quick and pretrained recipes' set)")
+    p.add_argument("--expert-weight", type=float, default=0.3,
+                   help="stage 2's own-mode term for the second stage-2 row (the quick recipe's value)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     torch.manual_seed(0)
@@ -88,19 +99,25 @@ def main(argv=None) -> int:
     s1 = Stage1Module(net={"model_set": args.model_set})
     stage1 = training(s1, td.unsqueeze(0).expand(s1.net.n_experts, 64))
     stage2 = training(Stage2Module(net={"model_set": args.model_set}), td)
-    print(f"training: stage 1 {stage1:,.0f}, stage 2 {stage2:,.0f} trajectory-steps/s", flush=True)
+    own = training(Stage2Module(net={"model_set": args.model_set}, expert_weight=args.expert_weight), td)
+    print(f"training: stage 1 {stage1:,.0f}, stage 2 {stage2:,.0f}, with the own-mode term {own:,.0f} "
+          "trajectory-steps/s", flush=True)
     cmd = "`.venv/bin/python benchmarks/bench_immnet.py" + "".join(f" {a}" for a in (argv if argv is not None else sys.argv[1:])) + "`"
     lines = [
         f"{cmd} ({datetime.date.today().isoformat()}; {machine()}); experts {', '.join(net.model_set.names)}.",
         "",
-        "| inference (streaming step) | eager track-steps/s | compiled track-steps/s |",
+        "| inference (streaming step; median of 3 passes) | eager track-steps/s | compiled track-steps/s |",
         "|---|---:|---:|",
         *[f"| batch {B} | {e:,.0f} | {'-' if c is None else f'{c:,.0f}'} |" for B, e, c in rows],
         "",
-        "| training (batch 64, TBPTT 20, forward + backward + Adam) | trajectory-steps/s |",
+        "| training (batch 64, TBPTT 20, forward + backward + Adam; median of 5 calls) | trajectory-steps/s |",
         "|---|---:|",
         f"| stage 1 (experts alone; a step = one trajectory through every expert) | {stage1:,.0f} |",
-        f"| stage 2 (end to end) | {stage2:,.0f} |",
+        f"| stage 2 (end to end, the paper's loss) | {stage2:,.0f} |",
+        f"| stage 2 with the own-mode term (expert_weight {args.expert_weight:g}, as the quick recipe) | {own:,.0f} |",
+        "",
+        "One run on a machine other jobs may share (see the load average): repeated runs have differed by up to",
+        "a quarter, so compare rows of one run, not numbers across runs.",
     ]
     write_section("IMMNet", "\n".join(lines), args.out or Path(__file__).resolve().parents[1] / "BENCHMARKS.md")
     return 0
