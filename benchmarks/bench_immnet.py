@@ -9,8 +9,8 @@ of tracking; training runs forward + backward + Adam over TBPTT chunks of 20 sca
 from __future__ import annotations
 
 import argparse
-import statistics
 import datetime
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -32,6 +32,16 @@ def scans(B: int, T: int) -> torch.Tensor:
     return z.repeat((B + z.shape[0] - 1) // z.shape[0], 1, 1)[:B]
 
 
+def median_seconds(fn, repeats: int) -> float:
+    """The median wall time of ``repeats`` calls of ``fn()``."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
 @torch.no_grad()
 def inference(net: IMMNet, B: int, steps: int, step_fn) -> float:
     z = scans(B, max(steps, 3) + 2)
@@ -40,14 +50,13 @@ def inference(net: IMMNet, B: int, steps: int, step_fn) -> float:
         carry = net.scan(carry, z[:, t])
     for t in range(2, 5):  # warm-up (and compilation)
         carry = step_fn(carry, z[:, t])
-    times = []
-    for _ in range(3):  # the median of three timed passes over the same scans
+
+    def timed_pass():  # the same scans each time, from the same carry
         c = carry
-        t0 = time.perf_counter()
         for t in range(2, steps + 2):
             c = step_fn(c, z[:, t])
-        times.append(time.perf_counter() - t0)
-    return B * steps / statistics.median(times)
+
+    return B * steps / median_seconds(timed_pass, 3)
 
 
 def training(module, batch, repeats: int = 5) -> float:
@@ -59,12 +68,7 @@ def training(module, batch, repeats: int = 5) -> float:
     module.log = lambda *a, **k: None
     T = batch["measurements"].shape[-2]
     module.training_step(batch, 0)  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        module.training_step(batch, 0)
-        times.append(time.perf_counter() - t0)
-    return batch.batch_size[-1] * T / statistics.median(times)
+    return batch.batch_size[-1] * T / median_seconds(lambda: module.training_step(batch, 0), repeats)
 
 
 def main(argv=None) -> int:

@@ -120,8 +120,7 @@ def main() -> None:
     b4 = b.clone()
     b4.set(keys.R, torch.full_like(r, 4.0))
     err_4 = position_error(ClairvoyantKF().track(b4)[keys.STATE].float(), truth)
-    traj = lambda e: e.square().mean(1).sqrt().mean(-1)  # noqa: E731  per-trajectory Average RMSE [N]
-    tf, tc, t4 = traj(err_f), traj(err_c), traj(err_4)
+    tf, tc, t4 = (per_trajectory_rmse(e).mean(-1) for e in (err_f, err_c, err_4))  # Average per trajectory [N]
     print("by measurement noise r: Average RMSE of IMMNet / bound, and the bound told r = 4 m / bound")
     for lo in range(1, 7):
         m = (r >= lo) & (r < lo + 1)
