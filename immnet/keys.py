@@ -41,6 +41,15 @@ EXPERT_GAIN = ("expert", "gain")  # K^(i) [B, M, 9, 3]
 EXPERT_POST = ("expert", "post")  # x_{t|t}^(i) [B, M, 9]
 EXPERT_HIDDEN = ("expert", "hidden")  # recurrent states of the gain networks
 EXPERT_COV = ("expert", "cov")  # P^(i) for the analytic gain [B, M, 9, 9]
+EXPERT_RATE = ("expert", "rate")  # a filter expert's own turn rate w^(i) [B, M] (rad/s)
+EXPERT_LOGLIK = ("expert", "loglik")  # a filter expert's innovation log-likelihood log N(nu; 0, S) [B, M]
+EXPERT_RATE_GAIN = ("expert", "rate_gain")  # its gain row for w [B, M, 3]
+EXPERT_AUG_PRIOR_COV = ("expert", "aug_prior_cov")  # a filter expert's prior covariance of [x, w] [B, M, 10, 10]
+EXPERT_AUG_COV = ("expert", "aug_cov")  # and its posterior covariance [B, M, 10, 10]
+NOISE_VAR = ("memory", "r2")  # running estimate of the measurement variance r^2 [B]
+NOISE_SUM = ("memory", "r2_sum")  # its sum of (d^3 z)^2 / 20 [B]
+NOISE_COUNT = ("memory", "r2_count")  # and the number of terms [B]
+Z_HISTORY = ("memory", "z_history")  # z_{t-1}, z_{t-2}, z_{t-3} [B, 3, 3] (NaN = none)
 MODE_LOGITS = ("mode", "logits")  # [B, M]
 EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M]
 HISTORY = ("memory", "history")  # classifier window [B, W, 12]: z_tau and x_{tau-1|tau-1}

@@ -52,9 +52,12 @@ class IMMNet(nn.Module):
         self.model_set_config = self.model_set.to_config()
         self.dt = dt
         ms = self.model_set
-        self.predict = Predict(ms, dt)
         self.gain = instantiate(gain or DEFAULT_GAIN, model_set=ms, dt=dt)
-        self.update = Update(ms)
+        # a gain may bring the predict and update stages its experts need (filter experts keep their
+        # own covariance and mode parameter: immnet.stages.filtering)
+        self.predict = getattr(self.gain, "predict_stage", Predict)(ms, dt)
+        update = getattr(self.gain, "update_stage", None)
+        self.update = update(ms, dt) if update is not None else Update(ms)
         self.classify = instantiate(classifier or DEFAULT_CLASSIFIER, model_set=ms, dt=dt)
         self.fuse = Fuse(ms)
         self.step = TensorDictSequential(self.predict, self.gain, self.update, self.classify, self.fuse)
@@ -94,6 +97,9 @@ class IMMNet(nn.Module):
             td.set(keys.EXPERT_HIDDEN, {k: v.to(dtype) for k, v in self.gain.initial_hidden(batch).items()})
         if hasattr(self.gain, "initial_cov"):
             td.set(keys.FUSED_COV, self.gain.initial_cov(shape[:-1], first=True))
+        if hasattr(self.gain, "initial_memory"):
+            for key, value in self.gain.initial_memory(shape[:-1], dtype=dtype, device=device).items():
+                td.set(key, value)
         if hasattr(self.classify, "initial_history") and not experts_alone:
             td.set(keys.HISTORY, self.classify.initial_history(batch, dtype=dtype, device=device))
             td.set(keys.HISTORY_LEN, torch.zeros(batch, dtype=torch.long, device=device))
@@ -119,6 +125,9 @@ class IMMNet(nn.Module):
         else:
             fresh.set(keys.PREV_FUSED, x)
             fresh.set(keys.START_SCANS, torch.ones_like(carry.get(keys.AGE)))
+        if hasattr(self.gain, "start_memory"):
+            for key, value in self.gain.start_memory(carry, z, x, second).items():
+                fresh.set(key, value)
         fresh.set(keys.FUSED, x)
         fresh.set(keys.PREV_EXPERT_PRIOR, (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone())
         fresh.set(keys.PREV_MEASUREMENT, z)

@@ -1,0 +1,417 @@
+"""Experts that are Kalman filters of their own mode, whose process noise KalmanNet learns.
+
+``KalmanNetFilterGain`` is a gain stage in which each expert keeps what an IMM's mode-matched filter
+keeps: its own covariance, and its own mode parameter (a CA expert's acceleration, a turn expert's
+turn rate ``w``). The gain is the Kalman gain of that covariance, and the KalmanNet network
+(architecture 2, as in ``KalmanNetGain``) learns what a filter designer hand-tunes: the process
+noise of each scan (large at a maneuver onset, small in steady flight), plus a bounded correction
+of the gain. Why: a CA segment's acceleration and a turn's rate are constant, so the best gain on
+them falls as the segment goes on (1/n-like), which a covariance recursion does by itself and a
+gain network must learn to count; and a turn rate carried as a state of its own is estimated far
+better than one implied by a noisy acceleration (docs/immnet.md, "Filter experts").
+
+The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
+
+* input point ``x~``: the previous fused estimate (SPEC.md section 4), except the expert's own mode
+  parameter: a model that carries acceleration (``F[acc, acc] != 0``, CA) keeps its own posterior
+  acceleration; an ``AdaptiveTurn`` expert turns at its own rate ``w^(i)`` (bounded to its range);
+* prior ``x^(i)_{t|t-1} = f_i(x~, w~)``; covariance ``P- = J (P^(i) + d d^T) J^T + Q^(i)_t``, ``J``
+  the Jacobian of ``f_i`` and ``d = x~ - x^(i)_{t-1|t-1}`` the IMM's spread-of-means term for
+  having started from the fused estimate rather than the expert's own;
+* ``Q^(i)_t = sum_k exp(u_k) Q_k^(i)``: base components (velocity noise horizontal / vertical,
+  acceleration noise horizontal / vertical, turn-rate noise), each scaled by the network's output
+  ``u = U tanh(raw / U)``;
+* ``K = P- H^T (H P- H^T + r^2 I)^-1 + [K_scale tanh(FC2); 0]``; update of ``x``, ``w`` and
+  ``P`` (Joseph form, with the gain actually used).
+
+The measurement noise ``r`` is estimated per track from the third differences of the altitude
+measurements, which cancel CV and CA motion: ``E[(d^3 z)^2] = 20 r^2``, a running mean started from
+a prior of ``r0`` with the weight of ``k0`` samples.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from immnet import keys
+from immnet.filters.clairvoyant import CA_ACC_VAR
+from immnet.filters.kalman import inv3
+from immnet.motion import ACC, POS, VEL, ModelSet, ct_propagate, noise_gain
+from immnet.stages.base import Stage, measured, per_expert
+from immnet.stages.features import slog
+from immnet.stages.gain import KalmanNetGain
+from immnet.stages.layers import StackedLinear
+from immnet.stages.predict import Predict
+from immnet.stages.update import Update, innovation
+
+N_AUG = 10
+RATE = 9  # index of w in the augmented state
+N_NOISE = 5  # velocity h / v, acceleration h / v, turn rate
+_P = list(POS)
+
+
+def ct_rate_derivative(x: torch.Tensor, w: torch.Tensor, dt: float) -> torch.Tensor:
+    """``d/dw ct_propagate(x, w, dt)``, ``[..., 9]``, in closed form (``w -> 0`` by its limit)."""
+    small = w.abs() < 1e-6
+    ws = torch.where(small, torch.ones_like(w), w)
+    s, c = torch.sin(w * dt), torch.cos(w * dt)
+    # d/dw sin(w dt)/w and d/dw (1 - cos(w dt))/w; limits 0 and dt^2/2 at w = 0
+    ds = torch.where(small, torch.zeros_like(w), (dt * c * ws - s) / (ws * ws))
+    dc = torch.where(small, torch.full_like(w, 0.5 * dt * dt), (dt * s * ws - (1.0 - c)) / (ws * ws))
+    vx, vy = x[..., 1], x[..., 4]
+    vx1, vy1 = c * vx - s * vy, s * vx + c * vy
+    dvx1, dvy1 = -dt * vy1, dt * vx1
+    z = torch.zeros_like(w)
+    return torch.stack(
+        [ds * vx - dc * vy, dvx1, -vy1 - w * dvy1, dc * vx + ds * vy, dvy1, vx1 + w * dvx1, z, z, z], -1
+    )
+
+
+def _kinds(model_set: ModelSet, dt: float):
+    """Per expert: keeps its own acceleration (bool), turns at its own rate (bool), rate bounds."""
+    own_acc, own_rate, lo, hi, nominal = [], [], [], [], []
+    for model in model_set:
+        rate = bool(model.state_dependent) and hasattr(model, "rate_bounds")
+        F = model.F(dt)
+        own_rate.append(rate)
+        own_acc.append((not rate) and bool(F[2, 2] != 0))
+        b = model.rate_bounds() if rate else (0.0, 0.0)
+        lo.append(b[0])
+        hi.append(b[1])
+        nominal.append(model.turn_rate if rate else 0.0)
+    return own_acc, own_rate, lo, hi, nominal
+
+
+def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
+    """Unit process-noise components ``[M, 5, 10, 10]`` (velocity h / v as white acceleration on
+    position and velocity, acceleration h / v on a CA expert's acceleration, turn rate on ``w``)."""
+    G = noise_gain(dt, "white")  # [9, 3]
+    out = torch.zeros(len(own_acc), N_NOISE, N_AUG, N_AUG, dtype=torch.float64)
+    for i, (acc, rate) in enumerate(zip(own_acc, own_rate)):
+        for axis, k in ((0, 0), (1, 0), (2, 1)):
+            g = torch.zeros(N_AUG, dtype=torch.float64)
+            g[:9] = G[:, axis]
+            out[i, k] += g[:, None] * g[None, :]
+        if acc:
+            for axis, k in ((0, 2), (1, 2), (2, 3)):
+                a = ACC[axis]
+                out[i, k, a, a] = 1.0
+        if rate:
+            out[i, 4, RATE, RATE] = 1.0
+    return out
+
+
+class FilterPredict(Predict):
+    """Predict for filter experts: the prior mean from the fused estimate and the expert's own mode
+    parameter, and the prior covariance before process noise, ``J (P + d d^T) J^T``."""
+
+    in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
+    out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV]
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0):
+        super().__init__(model_set, dt)
+        own_acc, own_rate, lo, hi, _ = _kinds(model_set, dt)
+        self.register_buffer("own_acc", torch.tensor(own_acc))
+        self.register_buffer("own_rate", torch.tensor(own_rate))
+        self.register_buffer("rate_lo", torch.tensor(lo))
+        self.register_buffer("rate_hi", torch.tensor(hi))
+        J = torch.zeros(len(model_set), N_AUG, N_AUG)
+        J[:, :9, :9] = model_set.F(dt, dtype=torch.float32)
+        self.register_buffer("J_const", J)
+
+    def forward(self, td):
+        M = self.n_experts
+        fused = per_expert(td.get(keys.FUSED), M)
+        own = td.get(keys.EXPERT_POST)
+        acc = list(ACC)
+        x = fused.clone()
+        x[..., acc] = torch.where(self.own_acc[:, None], own[..., acc], fused[..., acc])
+        w = torch.clamp(td.get(keys.EXPERT_RATE), self.rate_lo, self.rate_hi)
+        w = torch.where(self.own_rate, w, torch.zeros_like(w))
+        prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
+        J = self.J_const.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
+        if bool(self.own_rate.any()):
+            turned = ct_propagate(x, w, self.dt)
+            prior = torch.where(self.own_rate[:, None], turned, prior)
+            from immnet.motion import ct_matrix
+
+            J_turn = torch.zeros_like(J)
+            J_turn[..., :9, :9] = ct_matrix(w, self.dt, dtype=x.dtype, device=x.device)
+            J_turn[..., :9, RATE] = ct_rate_derivative(x, w, self.dt)
+            J_turn[..., RATE, RATE] = 1.0
+            J = torch.where(self.own_rate[:, None, None], J_turn, J)
+        d = torch.cat([x - own, torch.zeros_like(x[..., :1])], -1)
+        P0 = td.get(keys.EXPERT_AUG_COV) + d.unsqueeze(-1) * d.unsqueeze(-2)
+        td.set(keys.EXPERT_PRIOR, prior)
+        td.set(keys.EXPERT_RATE, w)
+        td.set(keys.EXPERT_AUG_PRIOR_COV, J @ P0 @ J.transpose(-1, -2))
+        return td
+
+
+class _FilterExperts:
+    """What every filter-expert gain shares: the measurement-noise estimate, the carry of a starting
+    track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
+    Mixed into a ``Stage`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
+
+    predict_stage = FilterPredict
+    update_stage = None  # FilterUpdate, set below
+
+    def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float):
+        if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
+            raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")
+        if len(noise_std) != N_NOISE or min(noise_std) < 0:
+            raise ValueError(f"noise_std needs {N_NOISE} standard deviations >= 0, got {noise_std}")
+        own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
+        std = torch.tensor(noise_std, dtype=torch.float64)
+        self.register_buffer("Q_parts", (_noise_components(own_acc, own_rate, dt) * std.square()[None, :, None, None]).float())
+        self.register_buffer("rate_nominal", torch.tensor(nominal))
+        self.register_buffer("own_rate", torch.tensor(own_rate))
+        self.register_buffer("acc_var0", torch.tensor(CA_ACC_VAR))
+        self.r0, self.k0, self.dt = float(r0), float(k0), dt
+        self.rate_var0 = float((rate_std0_deg * math.pi / 180.0) ** 2)
+
+    # --- the measurement noise --------------------------------------------------------------
+    def noise(self, td):
+        """Push ``z_t`` into the history; the running estimate of ``r^2`` from altitude third differences."""
+        z = td.get(keys.MEASUREMENT)
+        hist = td.get(keys.Z_HISTORY)  # [..., 3, 3]: z_{t-1}, z_{t-2}, z_{t-3} (NaN = none)
+        d3 = z[..., 2] - 3.0 * hist[..., 0, 2] + 3.0 * hist[..., 1, 2] - hist[..., 2, 2]
+        ok = torch.isfinite(d3)
+        total = td.get(keys.NOISE_SUM) + torch.where(ok, d3 * d3 / 20.0, 0.0)
+        count = td.get(keys.NOISE_COUNT) + ok.to(total.dtype)
+        td.set(keys.NOISE_SUM, total)
+        td.set(keys.NOISE_COUNT, count)
+        td.set(keys.Z_HISTORY, torch.cat([z.unsqueeze(-2), hist[..., :2, :]], -2))
+        r2 = (self.k0 * self.r0**2 + total) / (self.k0 + count)
+        td.set(keys.NOISE_VAR, r2)
+        return r2
+
+    # --- a starting track ---------------------------------------------------------------------
+    def initial_memory(self, shape, dtype=torch.float32, device=None) -> dict:
+        """The gain's part of a carry for tracks that have not started; ``shape`` is ``[B]`` or ``[B, M]``."""
+        M = self.n_experts
+        B = shape[0]
+        return {
+            keys.EXPERT_POST: torch.zeros(B, M, 9, dtype=dtype, device=device),
+            keys.EXPERT_RATE: self.rate_nominal.to(dtype).expand(B, M).clone(),
+            keys.EXPERT_AUG_COV: self.start_cov(B, torch.full((B, M), self.r0**2, dtype=dtype, device=device), False),
+            keys.NOISE_VAR: torch.full(shape, self.r0**2, dtype=dtype, device=device),
+            keys.NOISE_SUM: torch.zeros(shape, dtype=dtype, device=device),
+            keys.NOISE_COUNT: torch.zeros(shape, dtype=dtype, device=device),
+            keys.Z_HISTORY: torch.full((*shape, 3, 3), float("nan"), dtype=dtype, device=device),
+        }
+
+    def start_cov(self, B: int, r2: torch.Tensor, second: bool) -> torch.Tensor:
+        """Covariance of a starting track ``[B, M, 10, 10]``: after one scan position ``r^2``,
+        velocity ``300^2``; after two (differenced velocity) velocity ``2 r^2 / dt^2`` with the
+        position-velocity covariance ``r^2 / dt``; acceleration the CA draw's, turn rate
+        ``rate_std0``."""
+        P = r2.new_zeros(B, self.n_experts, N_AUG, N_AUG)
+        for a in range(3):
+            p, v, c = POS[a], VEL[a], ACC[a]
+            P[..., p, p] = r2
+            P[..., v, v] = 2.0 * r2 / self.dt**2 if second else 300.0**2
+            if second:
+                P[..., p, v] = P[..., v, p] = r2 / self.dt
+            P[..., c, c] = float(self.acc_var0[a])
+        P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
+        return P
+
+    def start_memory(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        """The gain's carry after a track's first or second detection ``z`` (start estimate ``x``)."""
+        M = self.n_experts
+        B = z.shape[0]
+        hist = carry.get(keys.Z_HISTORY)
+        if second:  # the first detection is the previous scan's only where no scan was missed between
+            adjacent = (carry.get(keys.START_SCANS) == 1).view(-1, *([1] * (z.dim() - 1)))
+            prev = torch.where(adjacent, hist[..., 0, :], float("nan"))
+        else:
+            prev = torch.full_like(z, float("nan"))
+        nan = torch.full_like(z, float("nan"))
+        r2_track = (self.k0 * self.r0**2 + carry.get(keys.NOISE_SUM)) / (self.k0 + carry.get(keys.NOISE_COUNT))
+        r2 = r2_track if r2_track.dim() == 2 else r2_track.unsqueeze(1).expand(B, M)
+        return {
+            keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
+            keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
+            keys.EXPERT_AUG_COV: self.start_cov(B, r2, second),
+            keys.Z_HISTORY: torch.stack([z, prev, nan], -2),
+            keys.NOISE_VAR: r2_track,
+            keys.NOISE_SUM: carry.get(keys.NOISE_SUM),
+            keys.NOISE_COUNT: carry.get(keys.NOISE_COUNT),
+        }
+
+    # --- one scan ----------------------------------------------------------------------------
+    def _r2(self, td) -> torch.Tensor:
+        """This scan's ``r^2`` estimate as ``[B, M, 1, 1]``."""
+        r2 = self.noise(td)
+        return (r2 if r2.dim() == 2 else r2.unsqueeze(1).expand(-1, self.n_experts))[..., None, None]
+
+    def _finish(self, td, r2, P, delta=None):
+        """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
+        zero where the measurement is missing; the innovation log-likelihood ``log N(nu; 0, S)``."""
+        S = P[..., _P, :][..., _P] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
+        S_inv, det = inv3(S)
+        K = P[..., :, _P] @ S_inv  # [B, M, 10, 3]
+        has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))  # [B, M, 1]
+        gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
+        nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
+        maha = (nu.unsqueeze(-2) @ S_inv @ nu.unsqueeze(-1))[..., 0, 0]
+        loglik = -0.5 * (maha + torch.log(det) + 3.0 * math.log(2.0 * math.pi))
+        td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
+        td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
+        td.set(keys.EXPERT_AUG_PRIOR_COV, P)
+        td.set(keys.EXPERT_LOGLIK, torch.where(has_z[..., 0], loglik, 0.0))
+        return td
+
+
+_FILTER_IN = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_AUG_PRIOR_COV, keys.NOISE_SUM, keys.NOISE_COUNT, keys.Z_HISTORY]
+_FILTER_OUT = [
+    keys.EXPERT_GAIN, keys.EXPERT_RATE_GAIN, keys.EXPERT_AUG_PRIOR_COV, keys.EXPERT_LOGLIK,
+    keys.NOISE_VAR, keys.NOISE_SUM, keys.NOISE_COUNT, keys.Z_HISTORY,
+]
+
+
+class FilterGain(_FilterExperts, Stage):
+    """Filter experts with their base process noise and nothing learned: each expert is the
+    extended Kalman filter of its own model (the ablation of the KalmanNet part; only the
+    classifier trains)."""
+
+    in_keys = _FILTER_IN
+    out_keys = _FILTER_OUT
+
+    def __init__(
+        self,
+        model_set: ModelSet,
+        dt: float = 1.0,
+        noise_std: tuple[float, float, float, float, float] = (0.2, 0.2, 0.01, 0.002, 1e-5),
+        r0: float = 4.0,
+        k0: float = 3.0,
+        rate_std0_deg: float = 5.0,
+    ):
+        super().__init__(model_set)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg)
+
+    def forward(self, td):
+        r2 = self._r2(td)
+        P = td.get(keys.EXPERT_AUG_PRIOR_COV)
+        return self._finish(td, r2, P + self.Q_parts.to(P.dtype).sum(1))
+
+
+class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
+    """KalmanNet architecture 2 that sets each filter expert's process noise and corrects its gain.
+
+    ``noise_std``: base standard deviations of the five noise components (velocity h / v in m/s^2 of
+    white acceleration, acceleration h / v in m/s^2 per scan, turn rate in rad/s per scan);
+    ``u_max`` bounds the learned log-multiplier of each component's variance (``u = u_max tanh(u_slope
+    raw / u_max)``: a maneuver onset needs a turn-rate variance ~1e8 times the steady one, which the
+    slope lets the network reach without large weights); ``gain_scale`` bounds the learned
+    correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
+    measurement-noise estimate. Beside F1..F4, GRU_S reads the innovation whitened by the base
+    noise's ``S`` (``nu / sqrt(diag S)``, a maneuver detector's statistic).
+    """
+
+    # written out, not KalmanNetGain.in_keys + [...]: tensordict turns a module's key lists into
+    # properties once one is built, so a class body must not read another class's
+    in_keys = [
+        keys.PREV_MEASUREMENT, keys.FUSED, keys.PREV_FUSED, keys.PREV_EXPERT_PRIOR, keys.EXPERT_HIDDEN,
+    ] + _FILTER_IN
+    out_keys = [keys.EXPERT_HIDDEN] + _FILTER_OUT
+
+    def __init__(
+        self,
+        model_set: ModelSet,
+        dt: float = 1.0,
+        in_mult: int = 5,
+        out_mult: int = 4,
+        noise_std: tuple[float, float, float, float, float] = (0.2, 0.2, 0.01, 0.002, 1e-5),
+        u_max: float = 20.0,
+        u_slope: float = 4.0,
+        gain_scale: tuple[float, float, float] = (0.3, 0.3, 0.1),
+        init_out_scale: float = 0.01,
+        r0: float = 4.0,
+        k0: float = 3.0,
+        rate_std0_deg: float = 5.0,
+    ):
+        if not (u_max > 0 and u_slope > 0):
+            raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
+        super().__init__(model_set, dt, in_mult, out_mult, gain_scale=gain_scale, init_out_scale=init_out_scale)
+        M, n = self.n_experts, 3
+        # F1, F2 and the whitened innovation into GRU_S; FC2 gives the 27 gain corrections and 5 noise scales
+        self.fc7 = StackedLinear(M, 3 * n, 2 * n * in_mult)
+        d2 = self.d_s + self.d_sigma
+        self.fc2b = StackedLinear(M, d2 * out_mult, 9 * n + N_NOISE)
+        with torch.no_grad():
+            self.fc2b.weight.mul_(init_out_scale)
+            self.fc2b.bias.zero_()
+        del self.K_ss  # the base gain is the filter's own
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg)
+        self.u_max, self.u_slope = float(u_max), float(u_slope)
+
+    def forward(self, td):
+        r2 = self._r2(td)
+        base = td.get(keys.EXPERT_AUG_PRIOR_COV)
+        Q_parts = self.Q_parts.to(base.dtype)
+        S0 = (base + Q_parts.sum(1))[..., _P, :][..., _P] + r2 * torch.eye(3, dtype=base.dtype, device=base.device)
+        nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
+        white = slog(nu / torch.diagonal(S0, dim1=-2, dim2=-1).sqrt(), 1.0)
+        f1, f2, f3, f4, white = (f.transpose(0, 1) for f in (*self.features(td), white))
+        h = td.get(keys.EXPERT_HIDDEN)
+        relu = torch.relu
+        h_q = self.gru_q(relu(self.fc5(f4)), h.get("q").transpose(0, 1))
+        h_sigma = self.gru_sigma(torch.cat([h_q, relu(self.fc6(f3))], -1), h.get("sigma").transpose(0, 1))
+        out_fc1 = relu(self.fc1(h_sigma))
+        out_fc7 = relu(self.fc7(torch.cat([f1, f2, white], -1)))
+        h_s = self.gru_s(torch.cat([out_fc1, out_fc7], -1), h.get("s").transpose(0, 1))
+        out = self.fc2b(relu(self.fc2a(torch.cat([h_sigma, h_s], -1))))
+        out_fc2 = out[..., : 9 * 3]
+        out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
+        h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
+        u = self.u_max * torch.tanh(out[..., 9 * 3 :].transpose(0, 1) * (self.u_slope / self.u_max))  # [B, M, 5]
+        P = base + (torch.exp(u)[..., None, None] * Q_parts).sum(-3)
+        delta = self.K_scale * torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
+        td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
+        return self._finish(td, r2, P, delta)
+
+
+class FilterUpdate(Update):
+    """Update for filter experts: the state as ``Update``, then the turn rate ``w`` (bounded to the
+    expert's range) and the augmented covariance (Joseph form, with the gain actually used)."""
+
+    in_keys = [
+        keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_GAIN,
+        keys.EXPERT_RATE, keys.EXPERT_RATE_GAIN, keys.EXPERT_AUG_PRIOR_COV, keys.NOISE_VAR,
+    ]
+    out_keys = [keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0):
+        super().__init__(model_set)
+        _, own_rate, lo, hi, _ = _kinds(model_set, dt)
+        self.register_buffer("own_rate", torch.tensor(own_rate))
+        self.register_buffer("rate_lo", torch.tensor(lo))
+        self.register_buffer("rate_hi", torch.tensor(hi))
+
+    def forward(self, td):
+        return filter_update(super().forward(td), self.rate_lo, self.rate_hi, self.own_rate)
+
+
+def filter_update(td, rate_lo, rate_hi, own_rate):
+    """The filter experts' part of the update: ``w`` and the augmented covariance (Joseph form)."""
+    nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
+    w = td.get(keys.EXPERT_RATE) + (td.get(keys.EXPERT_RATE_GAIN) * nu).sum(-1)
+    w = torch.where(own_rate, torch.clamp(w, rate_lo, rate_hi), w)
+    K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
+    P = td.get(keys.EXPERT_AUG_PRIOR_COV)
+    r2 = td.get(keys.NOISE_VAR)
+    r2 = (r2 if r2.dim() == 2 else r2.unsqueeze(1).expand(-1, P.shape[1]))[..., None, None]
+    IKH = torch.eye(N_AUG, dtype=P.dtype, device=P.device).expand_as(P).clone()
+    IKH[..., :, _P] = IKH[..., :, _P] - K
+    post = IKH @ P @ IKH.transpose(-1, -2) + r2 * (K @ K.transpose(-1, -2))
+    td.set(keys.EXPERT_RATE, w)
+    td.set(keys.EXPERT_AUG_COV, 0.5 * (post + post.transpose(-1, -2)))
+    return td
+
+
+_FilterExperts.update_stage = FilterUpdate
