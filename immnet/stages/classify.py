@@ -169,13 +169,16 @@ class BayesianModeUpdate(Stage):
     """Ablation: the IMM's Bayesian mode update with a Markov transition ``Pi`` (``p_stay`` on the diagonal).
 
     ``mu_t^(i) ∝ N(nu_t^(i); 0, S^(i)) sum_j Pi_ji mu_{t-1}^(j)``, in log space; ``S^(i)`` is the
-    expert's steady-state innovation covariance for ``sigma_q`` and ``r``.
+    expert's steady-state innovation covariance for ``sigma_q`` and ``r``, or, with
+    ``from_experts``, the filter experts' own likelihoods (``("expert", "loglik")``, each with its
+    own ``S``: the IMM's mode update exactly).
     """
 
     in_keys = _MODE_KEYS_IN + [keys.EXPERT_PROBS]
     out_keys = _MODE_KEYS_OUT
 
-    def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0):
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0,
+                 from_experts: bool = False):
         super().__init__(model_set)
         from immnet.stages.gain import steady_state
 
@@ -185,15 +188,22 @@ class BayesianModeUpdate(Stage):
         off = (1.0 - p_stay) / max(M - 1, 1)
         Pi = torch.full((M, M), off) + torch.eye(M) * (p_stay - off)
         self.register_buffer("log_pi", torch.log(Pi.clamp_min(1e-30)))
-        _, _, S = steady_state(model_set, sigma_q, r, dt)
-        self.register_buffer("S_inv", torch.linalg.inv(S).float())
-        self.register_buffer("log_norm", (-0.5 * torch.logdet(2 * math.pi * S)).float())
+        self.from_experts = bool(from_experts)
+        if self.from_experts:
+            self.in_keys = [keys.EXPERT_LOGLIK, keys.EXPERT_PROBS]
+        else:
+            _, _, S = steady_state(model_set, sigma_q, r, dt)
+            self.register_buffer("S_inv", torch.linalg.inv(S).float())
+            self.register_buffer("log_norm", (-0.5 * torch.logdet(2 * math.pi * S)).float())
 
     def forward(self, td):
-        nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
-        has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))[..., 0]
-        loglik = self.log_norm - 0.5 * torch.einsum("bmi,mij,bmj->bm", nu, self.S_inv, nu)
-        loglik = torch.where(has_z, loglik, 0.0)
+        if self.from_experts:
+            loglik = td.get(keys.EXPERT_LOGLIK)
+        else:
+            nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
+            has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))[..., 0]
+            loglik = self.log_norm - 0.5 * torch.einsum("bmi,mij,bmj->bm", nu, self.S_inv, nu)
+            loglik = torch.where(has_z, loglik, 0.0)
         prev = td.get(keys.EXPERT_PROBS)
         log_pred = torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + self.log_pi, dim=1)
         logits = log_pred + loglik
