@@ -70,6 +70,27 @@ def ct_rate_derivative(x: torch.Tensor, w: torch.Tensor, dt: float) -> torch.Ten
     )
 
 
+# (row, column) of a turn expert's Jacobian entries that depend on w or on the velocity
+_TURN_ENTRIES = (
+    (0, 1), (0, 4), (3, 1), (3, 4), (1, 1), (1, 4), (4, 1), (4, 4), (2, 1), (2, 4), (5, 1), (5, 4),
+    (0, RATE), (1, RATE), (2, RATE), (3, RATE), (4, RATE), (5, RATE),
+)
+
+
+def _turn_entries(x: torch.Tensor, w: torch.Tensor, dt: float) -> torch.Tensor:
+    """The values of ``_TURN_ENTRIES`` of ``d ct_propagate(x, w) / d[x, w]``, ``[..., 18]``."""
+    small = w.abs() < 1e-6
+    ws = torch.where(small, torch.ones_like(w), w)
+    s, c = torch.sin(w * dt), torch.cos(w * dt)
+    s_w = torch.where(small, torch.full_like(w, dt), s / ws)
+    c_w = torch.where(small, torch.zeros_like(w), (1.0 - c) / ws)
+    d = ct_rate_derivative(x, w, dt)
+    return torch.stack(
+        [s_w, -c_w, c_w, s_w, c, -s, s, c, -w * s, -w * c, w * c, -w * s, d[..., 0], d[..., 1], d[..., 2], d[..., 3], d[..., 4], d[..., 5]],
+        -1,
+    )
+
+
 def _kinds(model_set: ModelSet, dt: float):
     """Per expert: keeps its own acceleration (bool), turns at its own rate (bool), rate bounds."""
     own_acc, own_rate, lo, hi, nominal = [], [], [], [], []
@@ -115,34 +136,40 @@ class FilterPredict(Predict):
         super().__init__(model_set, dt)
         own_acc, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_acc", torch.tensor(own_acc))
+        acc_mask = torch.zeros(len(model_set), 9, dtype=torch.bool)
+        acc_mask[:, list(ACC)] = torch.tensor(own_acc)[:, None]
+        self.register_buffer("own_acc_mask", acc_mask, persistent=False)
         self.register_buffer("own_rate", torch.tensor(own_rate))
         self.register_buffer("rate_lo", torch.tensor(lo))
         self.register_buffer("rate_hi", torch.tensor(hi))
+        # the Jacobian's constant part: F for the constant models, for a turn expert F_CT's entries
+        # that do not depend on w (position and the vertical CV block, w's own 1); the rest of a turn
+        # expert's Jacobian is written at _TURN_ENTRIES each scan
         J = torch.zeros(len(model_set), N_AUG, N_AUG)
         J[:, :9, :9] = model_set.F(dt, dtype=torch.float32)
-        self.register_buffer("J_const", J)
+        for i, rate in enumerate(own_rate):
+            if rate:
+                J[i] = 0.0
+                for r, c, v in ((0, 0, 1.0), (3, 3, 1.0), (6, 6, 1.0), (6, 7, dt), (7, 7, 1.0), (RATE, RATE, 1.0)):
+                    J[i, r, c] = v
+        self.register_buffer("J_base", J, persistent=False)
+        self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in _TURN_ENTRIES]), persistent=False)
 
     def forward(self, td):
         M = self.n_experts
         fused = per_expert(td.get(keys.FUSED), M)
         own = td.get(keys.EXPERT_POST)
-        acc = list(ACC)
-        x = fused.clone()
-        x[..., acc] = torch.where(self.own_acc[:, None], own[..., acc], fused[..., acc])
+        x = torch.where(self.own_acc_mask, own, fused)
         w = torch.clamp(td.get(keys.EXPERT_RATE), self.rate_lo, self.rate_hi)
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
-        J = self.J_const.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
+        J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
         if bool(self.own_rate.any()):
             turned = ct_propagate(x, w, self.dt)
             prior = torch.where(self.own_rate[:, None], turned, prior)
-            from immnet.motion import ct_matrix
-
-            J_turn = torch.zeros_like(J)
-            J_turn[..., :9, :9] = ct_matrix(w, self.dt, dtype=x.dtype, device=x.device)
-            J_turn[..., :9, RATE] = ct_rate_derivative(x, w, self.dt)
-            J_turn[..., RATE, RATE] = 1.0
-            J = torch.where(self.own_rate[:, None, None], J_turn, J)
+            entries = _turn_entries(x, w, self.dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
+            scattered = entries.new_zeros(*entries.shape[:2], N_AUG * N_AUG).index_copy(-1, self.turn_index, entries)
+            J = J + scattered.view(*entries.shape[:2], N_AUG, N_AUG)
         d = torch.cat([x - own, torch.zeros_like(x[..., :1])], -1)
         P0 = td.get(keys.EXPERT_AUG_COV) + d.unsqueeze(-1) * d.unsqueeze(-2)
         td.set(keys.EXPERT_PRIOR, prior)
@@ -406,9 +433,12 @@ def filter_update(td, rate_lo, rate_hi, own_rate):
     P = td.get(keys.EXPERT_AUG_PRIOR_COV)
     r2 = td.get(keys.NOISE_VAR)
     r2 = (r2 if r2.dim() == 2 else r2.unsqueeze(1).expand(-1, P.shape[1]))[..., None, None]
-    IKH = torch.eye(N_AUG, dtype=P.dtype, device=P.device).expand_as(P).clone()
-    IKH[..., :, _P] = IKH[..., :, _P] - K
-    post = IKH @ P @ IKH.transpose(-1, -2) + r2 * (K @ K.transpose(-1, -2))
+    # Joseph's (I - K H) P (I - K H)^T + K R K^T, expanded: P - K H P - (K H P)^T + K S K^T with
+    # H P the position rows and S = H P H^T + R (exact for any gain; fewer and smaller products)
+    HP = P[..., _P, :]
+    S = HP[..., _P] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
+    KHP = K @ HP
+    post = P - KHP - KHP.transpose(-1, -2) + (K @ S) @ K.transpose(-1, -2)
     td.set(keys.EXPERT_RATE, w)
     td.set(keys.EXPERT_AUG_COV, 0.5 * (post + post.transpose(-1, -2)))
     return td
