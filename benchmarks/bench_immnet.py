@@ -4,6 +4,8 @@ Run:  .venv/bin/python benchmarks/bench_immnet.py [--steps 40] [--no-compile]
 It prints a table and rewrites the ``## IMMNet`` section of BENCHMARKS.md (other sections are kept).
 Inference runs the streaming step (``IMMNet.scan``) over already-started tracks, the per-scan cost
 of tracking; training runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64.
+Both gains are measured in one run: the filter experts of the quick and pretrained recipes
+(``KalmanNetFilterGain``) and KalmanNet gain experts (``KalmanNetGain``, the paper's).
 """
 
 from __future__ import annotations
@@ -71,6 +73,44 @@ def training(module, batch, repeats: int = 5) -> float:
     return batch.batch_size[-1] * T / median_seconds(lambda: module.training_step(batch, 0), repeats)
 
 
+GAINS = {  # label: the gain's YAML entry
+    "filter experts (KalmanNetFilterGain, the recipes')": {"class_path": "immnet.stages.filtering.KalmanNetFilterGain"},
+    "KalmanNet gain experts (KalmanNetGain, the paper's)": {"class_path": "immnet.stages.KalmanNetGain"},
+}
+
+
+def measure(model_set: str, gain: dict, steps: int, compile_: bool, expert_weight: float):
+    """Inference rows ``[(B, eager, compiled)]`` and training ``(stage 1, stage 2, stage 2 + own-mode term)``."""
+    torch.manual_seed(0)
+    net = IMMNet(model_set=model_set, gain=gain).eval()
+    rows = []
+    for B in (1, 64, 1024):
+        eager = inference(net, B, steps, net.scan)
+        compiled = None
+        if compile_:
+            step = torch.compile(net.step, fullgraph=False, dynamic=False)
+
+            def compiled_scan(carry, z, step=step):
+                td = carry.copy()
+                td.set("measurement", z)
+                return step(td)
+
+            compiled = inference(net, B, steps, compiled_scan)
+        rows.append((B, eager, compiled))
+        print(f"  inference batch {B}: eager {eager:,.0f}, compiled {compiled or 0:,.0f} track-steps/s", flush=True)
+    td = generate(64, seed=1, spec=DataSpec(T=40, min_segment=12))  # two TBPTT chunks of 20
+    td = td.apply(lambda v: v.float() if v.is_floating_point() else v)
+    cfg = {"model_set": model_set, "gain": gain}
+    s1 = Stage1Module(net=cfg)
+    train = (
+        training(s1, td.unsqueeze(0).expand(s1.net.n_experts, 64)),
+        training(Stage2Module(net=cfg), td),
+        training(Stage2Module(net=cfg, expert_weight=expert_weight), td),
+    )
+    print("  training: stage 1 {:,.0f}, stage 2 {:,.0f}, with the own-mode term {:,.0f} trajectory-steps/s".format(*train), flush=True)
+    return net.model_set.names, rows, train
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--steps", type=int, default=40, help="scans timed per inference run")
@@ -81,44 +121,30 @@ def main(argv=None) -> int:
                    help="stage 2's own-mode term for the second stage-2 row (the quick recipe's value)")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
-    torch.manual_seed(0)
-    net = IMMNet(model_set=args.model_set).eval()
-    rows = []
-    for B in (1, 64, 1024):
-        eager = inference(net, B, args.steps, net.scan)
-        compiled = None
-        if not args.no_compile:
-            step = torch.compile(net.step, fullgraph=False, dynamic=False)
-
-            def compiled_scan(carry, z, step=step):
-                td = carry.copy()
-                td.set("measurement", z)
-                return step(td)
-
-            compiled = inference(net, B, args.steps, compiled_scan)
-        rows.append((B, eager, compiled))
-        print(f"inference batch {B}: eager {eager:,.0f}, compiled {compiled or 0:,.0f} track-steps/s", flush=True)
-    td = generate(64, seed=1, spec=DataSpec(T=40, min_segment=12))  # two TBPTT chunks of 20
-    td = td.apply(lambda v: v.float() if v.is_floating_point() else v)
-    s1 = Stage1Module(net={"model_set": args.model_set})
-    stage1 = training(s1, td.unsqueeze(0).expand(s1.net.n_experts, 64))
-    stage2 = training(Stage2Module(net={"model_set": args.model_set}), td)
-    own = training(Stage2Module(net={"model_set": args.model_set}, expert_weight=args.expert_weight), td)
-    print(f"training: stage 1 {stage1:,.0f}, stage 2 {stage2:,.0f}, with the own-mode term {own:,.0f} "
-          "trajectory-steps/s", flush=True)
+    results = {}
+    for label, gain in GAINS.items():
+        print(label, flush=True)
+        results[label] = measure(args.model_set, gain, args.steps, not args.no_compile, args.expert_weight)
+    names = next(iter(results.values()))[0]
     cmd = "`.venv/bin/python benchmarks/bench_immnet.py" + "".join(f" {a}" for a in (argv if argv is not None else sys.argv[1:])) + "`"
+    labels = list(results)
     lines = [
-        f"{cmd} ({datetime.date.today().isoformat()}; {machine()}); experts {', '.join(net.model_set.names)}.",
+        f"{cmd} ({datetime.date.today().isoformat()}; {machine()}); experts {', '.join(names)}.",
         "",
-        "| inference (streaming step; median of 3 passes) | eager track-steps/s | compiled track-steps/s |",
-        "|---|---:|---:|",
-        *[f"| batch {B} | {e:,.0f} | {'-' if c is None else f'{c:,.0f}'} |" for B, e, c in rows],
+        "| inference (streaming step; median of 3 passes), track-steps/s | " + " | ".join(f"{l}: eager | compiled" for l in labels) + " |",
+        "|---|" + "---:|---:|" * len(labels),
+        *[
+            f"| batch {B} | " + " | ".join(
+                f"{results[l][1][i][1]:,.0f} | " + ("-" if results[l][1][i][2] is None else f"{results[l][1][i][2]:,.0f}") for l in labels
+            ) + " |"
+            for i, B in enumerate((1, 64, 1024))
+        ],
         "",
-        "| training (batch 64, TBPTT 20, forward + backward + Adam; median of 5 calls) | trajectory-steps/s |",
-        "|---|---:|",
-        f"| stage 1 (experts alone; a step = one trajectory through every expert) | {stage1:,.0f} |",
-        f"| stage 2 (end to end, the paper's loss) | {stage2:,.0f} |",
-        f"| stage 2 with the own-mode term (expert_weight {args.expert_weight:g}, as the quick recipe) | {own:,.0f} |",
+        "| training (batch 64, TBPTT 20, forward + backward + Adam; median of 5 calls), trajectory-steps/s | " + " | ".join(labels) + " |",
+        "|---|" + "---:|" * len(labels),
+        "| stage 1 (experts alone; a step = one trajectory through every expert) | " + " | ".join(f"{results[l][2][0]:,.0f}" for l in labels) + " |",
+        "| stage 2 (end to end, the paper's loss) | " + " | ".join(f"{results[l][2][1]:,.0f}" for l in labels) + " |",
+        f"| stage 2 with the own-mode term (expert_weight {args.expert_weight:g}, as the quick recipe) | " + " | ".join(f"{results[l][2][2]:,.0f}" for l in labels) + " |",
         "",
         "One run on a machine other jobs may share (see the load average): repeated runs have differed by up to",
         "a quarter, so compare rows of one run, not numbers across runs.",
