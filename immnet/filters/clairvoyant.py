@@ -16,6 +16,13 @@ axis; vertical ``U[-0.3, 0.3]`` gives ``0.6^2 / 12 = 0.03``.
 
 It starts like every other method: from the first measurement (``initial_state`` with the true r),
 except that where the first segment is CA it gives the acceleration the draw's variance above.
+
+``SwitchClairvoyantKF`` is told less: the true mode sequence (so when a switch happens) and r, not
+the turn rates. It runs an extended Kalman filter of ``[x, w]``: at every turn onset, and wherever
+the turn rate changes within a turn (a soft-bound turn), ``w`` restarts from the prior of a 3D-LAST
+turn, ``|w| ~ U[1, 10]`` deg/s in the mode's sign (mean 5.5, standard deviation 2.6 deg/s), and is
+estimated from the measurements. It is a tighter reference than the bound for what a tracker that
+detected every switch at once could reach.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ from immnet import keys
 from immnet.filters.base import Method, as_dtype, batch_dt, output
 from immnet.filters.imm import initial_state
 from immnet.filters.kalman import predict, update
-from immnet.motion import ca_matrix, ct_matrix, cv_matrix, process_noise
+from immnet.motion import DEG, ca_matrix, ct_matrix, ct_propagate, cv_matrix, process_noise
 
 CA_ACC_VAR = ((3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0, (3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0, 0.6**2 / 12.0)
 """Variance of a newly drawn CA acceleration per axis (x, y, z), from SPEC.md section 2."""
@@ -83,4 +90,90 @@ class ClairvoyantKF(Method):
             x, P = predict(x, P, F, Q)
             x, P, _ = update(x, P, z[:, t], None, R)
             states[:, t] = x
+        return output(states)
+
+
+TURN_PRIOR_DEG = (5.5, 9.0 / 12.0**0.5)
+"""Mean and standard deviation of a 3D-LAST turn rate's magnitude, ``U[1, 10]`` deg/s (SPEC.md section 2)."""
+
+
+class SwitchClairvoyantKF(ClairvoyantKF):
+    """Knows the true modes (the switches) and r, estimates each turn's rate: a tighter reference."""
+
+    def __init__(self, sigma_q: float = 0.2, acc_var=CA_ACC_VAR, turn_prior_deg=TURN_PRIOR_DEG, dtype="float64",
+                 name: str = "clairvoyant-switch"):
+        super().__init__(sigma_q, acc_var, dtype, name)
+        mean, std = (float(v) for v in turn_prior_deg)
+        if not (mean > 0 and std >= 0):
+            raise ValueError(f"turn_prior_deg needs a mean > 0 and a std >= 0, got {turn_prior_deg}")
+        self.w_mean, self.w_var = mean * DEG, (std * DEG) ** 2
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        from immnet.stages.filtering import ct_rate_derivative
+
+        self.check(batch)
+        dtype = self.dtype
+        z = batch[keys.MEASUREMENTS].to(dtype)
+        dev = z.device
+        B, T, _ = z.shape
+        mode = batch[keys.MODE].to(dev)
+        rate = batch[keys.TURN_RATE].to(dtype)
+        r = torch.as_tensor(batch[keys.R], dtype=dtype, device=dev).reshape(B)
+        dt = batch_dt(batch, dtype, dev)
+        if not torch.all(dt == dt[0]):
+            raise ValueError(f"{self.name} needs one dt for the whole batch, got several")
+        d = float(dt[0])
+        eye = torch.eye(10, dtype=dtype, device=dev)
+        Fcv, Fca = torch.zeros(10, 10, dtype=dtype, device=dev), torch.zeros(10, 10, dtype=dtype, device=dev)
+        Fcv[:9, :9], Fca[:9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
+        Q = torch.zeros(10, 10, dtype=dtype, device=dev)
+        Q[:9, :9] = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
+        acc = [2, 5, 8]
+        acc_P = torch.diag(torch.tensor(self.acc_var, dtype=dtype, device=dev))
+        x9, P9 = initial_state(z, r)
+        x = torch.cat([x9, torch.zeros(B, 1, dtype=dtype, device=dev)], -1)
+        P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
+        P[:, :9, :9] = P9
+        P[mode[:, 0] == CA, 2::3, 2::3] = acc_P[: 3, : 3]
+        R = r[:, None, None] ** 2 * torch.eye(3, dtype=dtype, device=dev)
+        states = z.new_empty(B, T, 9)
+        states[:, 0] = x[:, :9]
+        for t in range(T):
+            m = mode[:, t]
+            turn = m >= CT_POS
+            onset = turn & ((m != mode[:, t - 1]) | (rate[:, t] != rate[:, t - 1])) if t else turn
+            if onset.any():  # a turn starts (or changes rate): w from the prior, in the mode's sign
+                x, P = x.clone(), P.clone()
+                sign = torch.where(m[onset] == CT_POS, 1.0, -1.0).to(dtype)  # python floats in where: float32
+                x[onset, 9] = sign * self.w_mean
+                P[onset, 9, :] = 0.0
+                P[onset, :, 9] = 0.0
+                P[onset, 9, 9] = self.w_var
+            if t == 0:
+                continue
+            new_ca = (m == CA) & (mode[:, t - 1] != CA)
+            if new_ca.any():
+                x, P = x.clone(), P.clone()
+                x[new_ca.nonzero()[:, 0][:, None], torch.tensor(acc, device=dev)] = 0.0
+                P[new_ca, :, 2:9:3] = 0.0
+                P[new_ca, 2:9:3, :] = 0.0
+                P[new_ca, 2:9:3, 2:9:3] = acc_P
+            w = x[:, 9]
+            J = torch.where((m == CV)[:, None, None], Fcv, Fca).expand(B, 10, 10).clone()
+            J_turn = torch.zeros_like(J)
+            J_turn[:, :9, :9] = ct_matrix(w, d, dtype, dev)
+            J_turn[:, :9, 9] = ct_rate_derivative(x[:, :9], w, d)
+            J_turn[:, 9, 9] = 1.0
+            J = torch.where(turn[:, None, None], J_turn, J)
+            prior = (J @ x.unsqueeze(-1)).squeeze(-1)
+            x = torch.where(turn[:, None], torch.cat([ct_propagate(x[:, :9], w, d), w[:, None]], -1), prior)
+            P = J @ P @ J.transpose(-1, -2) + Q
+            S = P[:, 0:9:3][:, :, 0:9:3] + R
+            K = torch.linalg.solve(S, P[:, 0:9:3, :]).transpose(-1, -2)
+            seen = ~torch.isnan(z[:, t]).any(-1)  # a missed detection: the prior stands
+            K = torch.where(seen[:, None, None], K, 0.0)
+            x = x + (K @ torch.nan_to_num(z[:, t] - x[:, 0:9:3]).unsqueeze(-1)).squeeze(-1)
+            IKH = eye - K @ torch.eye(10, dtype=dtype, device=dev)[0:9:3]
+            P = IKH @ P @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
+            states[:, t] = x[:, :9]
         return output(states)
