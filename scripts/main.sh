@@ -29,16 +29,25 @@ CKPT=$RUN/stage2/checkpoints/best.ckpt
 if [ -f "$CKPT" ] && [ -z "${IMMNET_RETRAIN:-}" ]; then
   say "2/4 training: reusing the finished quick run $CKPT (IMMNET_RETRAIN=1 to train again)"
 else
-  say "2/4 training: recipes/quick.yaml (stage 1 about 3 min, stage 2 about 7.5 min)"
+  say "2/4 training: recipes/quick.yaml (stage 1 about 3.5 min, stage 2 about 7.5 min)"
   rm -rf "$RUN/stage1" "$RUN/stage2"
   "$IMMNET" fit --config recipes/quick.yaml
 fi
-STAGE1=$RUN/stage1/checkpoints/best.ckpt
+# the table's plain KalmanNet: one KalmanNet (architecture 2, CA) alone on maneuvering data, at the
+# quick stage-1 budget (the single-expert ablation; scripts/ablations.py reuses it)
+KNET=runs/ablations/single-expert/checkpoints/best.ckpt
+if [ -f "$KNET" ] && [ -z "${IMMNET_RETRAIN:-}" ]; then
+  say "2/4 training: reusing the plain KalmanNet $KNET"
+else
+  say "2/4 training: plain KalmanNet (configs/ablations/single-expert.yaml, about 1 min)"
+  rm -rf runs/ablations/single-expert
+  "$IMMNET" fit --config recipes/quick-stage1.yaml --config configs/ablations/single-expert.yaml
+fi
 
 say "3/4 evaluation: every method on the test set, one run"
 "$IMMNET" evaluate --data "$DATA/test" --split all \
-  --methods measurements,imm-accurate,imm-min,imm-max,imm-tuned,kalmannet,immnet,clairvoyant \
-  --checkpoint "immnet=$CKPT" --checkpoint "kalmannet=$STAGE1" \
+  --methods measurements,imm-accurate,imm-min,imm-max,imm-tuned,kalmannet,immnet,clairvoyant-switch,clairvoyant \
+  --checkpoint "immnet=$CKPT" --checkpoint "kalmannet=$KNET" \
   --json "$RUN/results.json" --markdown "$RUN/results.md" --figures "$RUN/figures"
 
 say "4/4 figures: dataset overview"
@@ -47,5 +56,5 @@ say "4/4 figures: dataset overview"
 say "done. Artifacts:
   results table  $RUN/results.md   (JSON: $RUN/results.json)
   figures        $RUN/figures/  (dataset overview, RMSE over time, case-study tracks, mode probabilities, confusion)
-  checkpoints    $RUN/stage1/checkpoints/best.ckpt, $CKPT
+  checkpoints    $RUN/stage1/checkpoints/best.ckpt, $CKPT, $KNET (plain KalmanNet)
   W&B (offline)  runs/wandb/   (wandb sync runs/wandb/offline-run-* to upload)"
