@@ -13,6 +13,7 @@ RECIPES = sorted((REPO_ROOT / "recipes").glob("*.yaml"))
 STAGE_RECIPES = [p for p in RECIPES if "stages" not in yaml.safe_load(p.read_text())]
 CHAINS = [p for p in RECIPES if p not in STAGE_RECIPES]
 ABLATIONS = sorted((REPO_ROOT / "configs" / "ablations").glob("*.yaml"))
+KALMANNET_GAIN_ABLATIONS = {"single-expert", "kalmannet-experts"}  # the ablations whose point is KalmanNet's own gain
 
 
 def _print_config(args, capsys) -> dict:
@@ -54,4 +55,8 @@ def test_ablation_overrides_a_quick_stage(ablation, capsys):
     assert cfg["trainer"]["default_root_dir"].startswith("runs/ablations/")
     # a second --config replaces the `net` mapping whole: an ablation that forgot the model set
     # would silently train IMMNet's default experts instead of the recipe's
-    assert "model_set" in (cfg["model"]["init_args"]["net"] or {}), f"{ablation.name} must name its model set"
+    net = cfg["model"]["init_args"]["net"] or {}
+    assert "model_set" in net, f"{ablation.name} must name its model set"
+    # ... and its gain: the quick recipe's experts are filter experts, the default gain is KalmanNet's
+    if ablation.stem not in KALMANNET_GAIN_ABLATIONS:
+        assert "filtering" in (net.get("gain") or {}).get("class_path", ""), f"{ablation.name} must name the filter-expert gain"
