@@ -54,24 +54,42 @@ class ClairvoyantKF(Method):
         self.sigma_q, self.acc_var = float(sigma_q), tuple(float(v) for v in acc_var)
         self.dtype, self.name = as_dtype(dtype), name
 
-    def track(self, batch: TensorDict) -> TensorDict:
+    def _inputs(self, batch: TensorDict):
+        """``z [B, T, 3]``, ``mode [B, T]``, ``turn_rate [B, T]``, ``r [B]`` in this method's dtype, and ``dt``."""
         self.check(batch)
-        dtype = self.dtype
-        z = batch[keys.MEASUREMENTS].to(dtype)
+        z = batch[keys.MEASUREMENTS].to(self.dtype)
         dev = z.device
-        B, T, _ = z.shape
-        mode = batch[keys.MODE].to(dev)
-        w = batch[keys.TURN_RATE].to(dtype)
-        r = torch.as_tensor(batch[keys.R], dtype=dtype, device=dev).reshape(B)
-        dt = batch_dt(batch, dtype, dev)
+        r = torch.as_tensor(batch[keys.R], dtype=self.dtype, device=dev).reshape(z.shape[0])
+        dt = batch_dt(batch, self.dtype, dev)
         if not torch.all(dt == dt[0]):
             raise ValueError(f"{self.name} needs one dt for the whole batch, got several")
-        d = float(dt[0])
+        return z, batch[keys.MODE].to(dev), batch[keys.TURN_RATE].to(self.dtype), r, float(dt[0])
+
+    def _acc_cov(self, like: torch.Tensor) -> torch.Tensor:
+        return torch.diag(torch.tensor(self.acc_var, dtype=like.dtype, device=like.device))
+
+    @staticmethod
+    def _ca_onset(x, P, new_ca, acc_P):
+        """A CA segment starts: acceleration mean 0, uncorrelated, with the draw's variance ``acc_P``
+        (on the first 9 components: the acceleration slots ``2::3`` of the state's 9-D part)."""
+        if not new_ca.any():
+            return x, P
+        x, P = x.clone(), P.clone()
+        acc = torch.tensor([2, 5, 8], device=x.device)
+        x[new_ca.nonzero()[:, 0][:, None], acc] = 0.0
+        P[new_ca, :, 2:9:3] = 0.0
+        P[new_ca, 2:9:3, :] = 0.0
+        P[new_ca, 2:9:3, 2:9:3] = acc_P
+        return x, P
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        z, mode, w, r, d = self._inputs(batch)
+        dtype, dev = z.dtype, z.device
+        B, T, _ = z.shape
         Fcv, Fca = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
         Q = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
         R = r**2
-        acc = torch.tensor([2, 5, 8], device=dev)
-        acc_P = torch.diag(torch.tensor(self.acc_var, dtype=dtype, device=dev))
+        acc_P = self._acc_cov(z)
         x, P = initial_state(z, r)
         first_ca = mode[:, 0] == CA  # the generator writes the first CA segment's draw into x_0
         P[first_ca, 2::3, 2::3] = acc_P
@@ -80,13 +98,7 @@ class ClairvoyantKF(Method):
         for t in range(1, T):
             m = mode[:, t]
             F = torch.where((m == CV)[:, None, None], Fcv, torch.where((m == CA)[:, None, None], Fca, ct_matrix(w[:, t], d, dtype, dev)))
-            new_ca = (m == CA) & (mode[:, t - 1] != CA)
-            if new_ca.any():
-                x, P = x.clone(), P.clone()
-                x[new_ca.nonzero()[:, 0][:, None], acc] = 0.0
-                P[new_ca, :, 2::3] = 0.0
-                P[new_ca, 2::3, :] = 0.0
-                P[new_ca, 2::3, 2::3] = acc_P
+            x, P = self._ca_onset(x, P, (m == CA) & (mode[:, t - 1] != CA), acc_P)
             x, P = predict(x, P, F, Q)
             x, P, _ = update(x, P, z[:, t], None, R)
             states[:, t] = x
@@ -111,25 +123,15 @@ class SwitchClairvoyantKF(ClairvoyantKF):
     def track(self, batch: TensorDict) -> TensorDict:
         from immnet.stages.filtering import ct_rate_derivative
 
-        self.check(batch)
-        dtype = self.dtype
-        z = batch[keys.MEASUREMENTS].to(dtype)
-        dev = z.device
+        z, mode, rate, r, d = self._inputs(batch)
+        dtype, dev = z.dtype, z.device
         B, T, _ = z.shape
-        mode = batch[keys.MODE].to(dev)
-        rate = batch[keys.TURN_RATE].to(dtype)
-        r = torch.as_tensor(batch[keys.R], dtype=dtype, device=dev).reshape(B)
-        dt = batch_dt(batch, dtype, dev)
-        if not torch.all(dt == dt[0]):
-            raise ValueError(f"{self.name} needs one dt for the whole batch, got several")
-        d = float(dt[0])
         eye = torch.eye(10, dtype=dtype, device=dev)
         Fcv, Fca = torch.zeros(10, 10, dtype=dtype, device=dev), torch.zeros(10, 10, dtype=dtype, device=dev)
         Fcv[:9, :9], Fca[:9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
         Q = torch.zeros(10, 10, dtype=dtype, device=dev)
         Q[:9, :9] = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
-        acc = [2, 5, 8]
-        acc_P = torch.diag(torch.tensor(self.acc_var, dtype=dtype, device=dev))
+        acc_P = self._acc_cov(z)
         x9, P9 = initial_state(z, r)
         x = torch.cat([x9, torch.zeros(B, 1, dtype=dtype, device=dev)], -1)
         P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
@@ -151,13 +153,7 @@ class SwitchClairvoyantKF(ClairvoyantKF):
                 P[onset, 9, 9] = self.w_var
             if t == 0:
                 continue
-            new_ca = (m == CA) & (mode[:, t - 1] != CA)
-            if new_ca.any():
-                x, P = x.clone(), P.clone()
-                x[new_ca.nonzero()[:, 0][:, None], torch.tensor(acc, device=dev)] = 0.0
-                P[new_ca, :, 2:9:3] = 0.0
-                P[new_ca, 2:9:3, :] = 0.0
-                P[new_ca, 2:9:3, 2:9:3] = acc_P
+            x, P = self._ca_onset(x, P, (m == CA) & (mode[:, t - 1] != CA), acc_P)
             w = x[:, 9]
             J = torch.where((m == CV)[:, None, None], Fcv, Fca).expand(B, 10, 10).clone()
             J_turn = torch.zeros_like(J)
