@@ -19,8 +19,8 @@ The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
   the Jacobian of ``f_i`` and ``d = x~ - x^(i)_{t-1|t-1}`` the IMM's spread-of-means term for
   having started from the fused estimate rather than the expert's own;
 * ``Q^(i)_t = sum_k exp(u_k) Q_k^(i)``: base components (velocity noise horizontal / vertical,
-  acceleration noise horizontal / vertical, turn-rate noise), each scaled by the network's output
-  ``u = U tanh(raw / U)``;
+  acceleration noise horizontal / vertical, turn-rate noise), each scaled by the network's bounded
+  output ``u = u_max tanh(u_slope raw / u_max)``;
 * ``K = P- H^T (H P- H^T + r^2 I)^-1 + [K_scale tanh(FC2); 0]``; update of ``x``, ``w`` and
   ``P`` (Joseph form, with the gain actually used).
 
@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 
 import torch
-from torch import nn
 
 from immnet import keys
 from immnet.filters.clairvoyant import CA_ACC_VAR
