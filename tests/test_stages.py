@@ -1,6 +1,6 @@
 """IMMNet stages: shapes and keys, the stacked layers against torch's, swaps by configuration,
-the analytic gains (the paper architecture's and the recipes' ablation) against our KF, gradients, missed detections and streaming against batched
-rollouts."""
+the analytic gains (the paper architecture's and the recipes' ablation) against our KF,
+gradients, missed detections and streaming against batched rollouts."""
 
 import math
 from pathlib import Path
