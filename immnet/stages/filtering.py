@@ -177,13 +177,50 @@ class FilterPredict(Predict):
         return td
 
 
+class FilterUpdate(Update):
+    """Update for filter experts: the state as ``Update``, then the turn rate ``w`` (bounded to the
+    expert's range) and the augmented covariance (Joseph form, with the gain actually used)."""
+
+    in_keys = [
+        keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_GAIN,
+        keys.EXPERT_RATE, keys.EXPERT_RATE_GAIN, keys.EXPERT_AUG_PRIOR_COV, keys.NOISE_VAR,
+    ]
+    out_keys = [keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0):
+        super().__init__(model_set)
+        _, own_rate, lo, hi, _ = _kinds(model_set, dt)
+        self.register_buffer("own_rate", torch.tensor(own_rate))
+        self.register_buffer("rate_lo", torch.tensor(lo))
+        self.register_buffer("rate_hi", torch.tensor(hi))
+
+    def forward(self, td):
+        td = super().forward(td)  # the state
+        nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
+        w = td.get(keys.EXPERT_RATE) + (td.get(keys.EXPERT_RATE_GAIN) * nu).sum(-1)
+        w = torch.where(self.own_rate, torch.clamp(w, self.rate_lo, self.rate_hi), w)
+        K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
+        P = td.get(keys.EXPERT_AUG_PRIOR_COV)
+        r2 = td.get(keys.NOISE_VAR)
+        r2 = (r2 if r2.dim() == 2 else r2.unsqueeze(1).expand(-1, P.shape[1]))[..., None, None]
+        # Joseph's (I - K H) P (I - K H)^T + K R K^T, expanded: P - K H P - (K H P)^T + K S K^T with
+        # H P the position rows and S = H P H^T + R (exact for any gain; fewer and smaller products)
+        HP = P[..., _P, :]
+        S = HP[..., _P] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
+        KHP = K @ HP
+        post = P - KHP - KHP.transpose(-1, -2) + (K @ S) @ K.transpose(-1, -2)
+        td.set(keys.EXPERT_RATE, w)
+        td.set(keys.EXPERT_AUG_COV, 0.5 * (post + post.transpose(-1, -2)))
+        return td
+
+
 class _FilterExperts:
     """What every filter-expert gain shares: the measurement-noise estimate, the carry of a starting
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
     Mixed into a ``Stage`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
     predict_stage = FilterPredict
-    update_stage = None  # FilterUpdate, set below
+    update_stage = FilterUpdate
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float):
         if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
@@ -275,15 +312,17 @@ class _FilterExperts:
         r2 = self.noise(td)
         return (r2 if r2.dim() == 2 else r2.unsqueeze(1).expand(-1, self.n_experts))[..., None, None]
 
-    def _finish(self, td, r2, P, delta=None):
+    def _finish(self, td, r2, P, delta=None, nu=None):
         """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
-        zero where the measurement is missing; the innovation log-likelihood ``log N(nu; 0, S)``."""
+        zero where the measurement is missing; the innovation log-likelihood ``log N(nu; 0, S)``
+        (``nu`` the innovation, if the caller has it)."""
         S = P[..., _P, :][..., _P] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
         S_inv, det = inv3(S)
         K = P[..., :, _P] @ S_inv  # [B, M, 10, 3]
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))  # [B, M, 1]
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
-        nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
+        if nu is None:
+            nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         maha = (nu.unsqueeze(-2) @ S_inv @ nu.unsqueeze(-1))[..., 0, 0]
         loglik = -0.5 * (maha + torch.log(det) + 3.0 * math.log(2.0 * math.pi))
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
@@ -399,48 +438,6 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         P = base + (torch.exp(u)[..., None, None] * Q_parts).sum(-3)
         delta = self.K_scale * torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
         td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
-        return self._finish(td, r2, P, delta)
+        return self._finish(td, r2, P, delta, nu)
 
 
-class FilterUpdate(Update):
-    """Update for filter experts: the state as ``Update``, then the turn rate ``w`` (bounded to the
-    expert's range) and the augmented covariance (Joseph form, with the gain actually used)."""
-
-    in_keys = [
-        keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_GAIN,
-        keys.EXPERT_RATE, keys.EXPERT_RATE_GAIN, keys.EXPERT_AUG_PRIOR_COV, keys.NOISE_VAR,
-    ]
-    out_keys = [keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
-
-    def __init__(self, model_set: ModelSet, dt: float = 1.0):
-        super().__init__(model_set)
-        _, own_rate, lo, hi, _ = _kinds(model_set, dt)
-        self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("rate_lo", torch.tensor(lo))
-        self.register_buffer("rate_hi", torch.tensor(hi))
-
-    def forward(self, td):
-        return filter_update(super().forward(td), self.rate_lo, self.rate_hi, self.own_rate)
-
-
-def filter_update(td, rate_lo, rate_hi, own_rate):
-    """The filter experts' part of the update: ``w`` and the augmented covariance (Joseph form)."""
-    nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
-    w = td.get(keys.EXPERT_RATE) + (td.get(keys.EXPERT_RATE_GAIN) * nu).sum(-1)
-    w = torch.where(own_rate, torch.clamp(w, rate_lo, rate_hi), w)
-    K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
-    P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-    r2 = td.get(keys.NOISE_VAR)
-    r2 = (r2 if r2.dim() == 2 else r2.unsqueeze(1).expand(-1, P.shape[1]))[..., None, None]
-    # Joseph's (I - K H) P (I - K H)^T + K R K^T, expanded: P - K H P - (K H P)^T + K S K^T with
-    # H P the position rows and S = H P H^T + R (exact for any gain; fewer and smaller products)
-    HP = P[..., _P, :]
-    S = HP[..., _P] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
-    KHP = K @ HP
-    post = P - KHP - KHP.transpose(-1, -2) + (K @ S) @ K.transpose(-1, -2)
-    td.set(keys.EXPERT_RATE, w)
-    td.set(keys.EXPERT_AUG_COV, 0.5 * (post + post.transpose(-1, -2)))
-    return td
-
-
-_FilterExperts.update_stage = FilterUpdate
