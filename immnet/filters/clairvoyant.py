@@ -126,7 +126,7 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         z, mode, rate, r, d = self._inputs(batch)
         dtype, dev = z.dtype, z.device
         B, T, _ = z.shape
-        eye = torch.eye(10, dtype=dtype, device=dev)
+        H = torch.eye(10, dtype=dtype, device=dev)[0:9:3]  # the positions of [x, w]
         Fcv, Fca = torch.zeros(10, 10, dtype=dtype, device=dev), torch.zeros(10, 10, dtype=dtype, device=dev)
         Fcv[:9, :9], Fca[:9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
         Q = torch.zeros(10, 10, dtype=dtype, device=dev)
@@ -136,8 +136,8 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         x = torch.cat([x9, torch.zeros(B, 1, dtype=dtype, device=dev)], -1)
         P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
         P[:, :9, :9] = P9
-        P[mode[:, 0] == CA, 2::3, 2::3] = acc_P[: 3, : 3]
-        R = r[:, None, None] ** 2 * torch.eye(3, dtype=dtype, device=dev)
+        P[mode[:, 0] == CA, 2::3, 2::3] = acc_P
+        R = r**2
         states = z.new_empty(B, T, 9)
         states[:, 0] = x[:, :9]
         for t in range(T):
@@ -164,12 +164,6 @@ class SwitchClairvoyantKF(ClairvoyantKF):
             prior = (J @ x.unsqueeze(-1)).squeeze(-1)
             x = torch.where(turn[:, None], torch.cat([ct_propagate(x[:, :9], w, d), w[:, None]], -1), prior)
             P = J @ P @ J.transpose(-1, -2) + Q
-            S = P[:, 0:9:3][:, :, 0:9:3] + R
-            K = torch.linalg.solve(S, P[:, 0:9:3, :]).transpose(-1, -2)
-            seen = ~torch.isnan(z[:, t]).any(-1)  # a missed detection: the prior stands
-            K = torch.where(seen[:, None, None], K, 0.0)
-            x = x + (K @ torch.nan_to_num(z[:, t] - x[:, 0:9:3]).unsqueeze(-1)).squeeze(-1)
-            IKH = eye - K @ torch.eye(10, dtype=dtype, device=dev)[0:9:3]
-            P = IKH @ P @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
+            x, P, _ = update(x, P, z[:, t], H, R)  # a missed detection: the prior stands
             states[:, t] = x[:, :9]
         return output(states)
