@@ -68,22 +68,30 @@ def test_stage_swap_by_configuration_alone(data):
     assert torch.allclose(out[keys.ROLLOUT_EXPERT_PROBS][:, 3:], torch.full((6, 7, 4), 0.25))
 
 
-def test_analytic_gain_with_cv_expert_equals_our_kalman_filter(data):
-    """IMMNet(CV, analytic gain) from its two-point start equals immnet.filters.kalman step by step."""
-    net = IMMNet(model_set=CV_ONLY, gain=ANALYTIC, classifier=UNIFORM).double()
-    z = data[keys.MEASUREMENTS].double()
+def _assert_cv_rollout_is_our_kalman_filter(net, z, sigma, r, P_start):
+    """``net`` (one CV expert) rolled out over ``z`` equals immnet.filters.kalman with white-noise
+    ``sigma`` and measurement noise ``r``, from the two-point start (position ``z_1``, velocity
+    ``z_1 - z_0``) with covariance ``P_start`` [9, 9], scan by scan."""
     out, _ = net.rollout(z)
-    dt, r, ms = 1.0, 3.0, ModelSet.from_config(CV_ONLY)
-    F, Q = ms.F(dt)[0], ms.Q(0.5, dt)[0]
+    dt, ms = 1.0, ModelSet.from_config(CV_ONLY)
+    F, Q = ms.F(dt)[0], ms.Q(sigma, dt)[0]
     x = torch.zeros(z.shape[0], 9, dtype=torch.float64)
     x[:, [0, 3, 6]] = z[:, 1]
     x[:, [1, 4, 7]] = (z[:, 1] - z[:, 0]) / dt
-    P = torch.diag(torch.tensor([r * r, 2 * r * r / dt**2, 100.0] * 3, dtype=torch.float64)).expand(z.shape[0], 9, 9)
-    assert torch.allclose(out[keys.STATE][:, 1], x)
+    P = P_start.expand(z.shape[0], 9, 9)
+    torch.testing.assert_close(out[keys.STATE][:, 1], x)
     for t in range(2, z.shape[1]):
         x, P = kalman.predict(x, P, F, Q)
         x, P, _ = kalman.update(x, P, z[:, t], None, r * r)
         torch.testing.assert_close(out[keys.STATE][:, t], x, rtol=1e-6, atol=1e-6)
+
+
+def test_analytic_gain_with_cv_expert_equals_our_kalman_filter(data):
+    """IMMNet(CV, analytic gain) from its two-point start equals immnet.filters.kalman step by step."""
+    net = IMMNet(model_set=CV_ONLY, gain=ANALYTIC, classifier=UNIFORM).double()
+    r = 3.0
+    P = torch.diag(torch.tensor([r * r, 2 * r * r, 100.0] * 3, dtype=torch.float64))
+    _assert_cv_rollout_is_our_kalman_filter(net, data[keys.MEASUREMENTS].double(), 0.5, r, P)
 
 
 def test_analytic_gain_ablation_with_cv_expert_equals_our_kalman_filter(data):
@@ -96,23 +104,11 @@ def test_analytic_gain_ablation_with_cv_expert_equals_our_kalman_filter(data):
     sigma, r = 0.5, 3.0
     gain["init_args"] = {"noise_std": (sigma, sigma, 0.01, 0.002, 1e-5), "r0": r, "k0": 1e15}
     net = IMMNet(model_set=CV_ONLY, gain=gain, classifier=UNIFORM).double()
-    z = data[keys.MEASUREMENTS].double()
-    out, _ = net.rollout(z)
-    dt, ms = 1.0, ModelSet.from_config(CV_ONLY)
-    F, Q = ms.F(dt)[0], ms.Q(sigma, dt)[0]
-    x = torch.zeros(z.shape[0], 9, dtype=torch.float64)
-    x[:, [0, 3, 6]] = z[:, 1]
-    x[:, [1, 4, 7]] = (z[:, 1] - z[:, 0]) / dt
     P = torch.zeros(9, 9, dtype=torch.float64)
     for p_, v_, a_ in ((0, 1, 2), (3, 4, 5), (6, 7, 8)):
-        P[p_, p_], P[v_, v_], P[p_, v_], P[v_, p_] = r * r, 2 * r * r / dt**2, r * r / dt, r * r / dt
+        P[p_, p_], P[v_, v_], P[p_, v_], P[v_, p_] = r * r, 2 * r * r, r * r, r * r
         P[a_, a_] = 1.0  # CV carries no acceleration: its value never reaches the estimate
-    P = P.expand(z.shape[0], 9, 9)
-    torch.testing.assert_close(out[keys.STATE][:, 1], x)
-    for t in range(2, z.shape[1]):
-        x, P = kalman.predict(x, P, F, Q)
-        x, P, _ = kalman.update(x, P, z[:, t], None, r * r)
-        torch.testing.assert_close(out[keys.STATE][:, t], x, rtol=1e-6, atol=1e-6)
+    _assert_cv_rollout_is_our_kalman_filter(net, data[keys.MEASUREMENTS].double(), sigma, r, P)
 
 
 @pytest.mark.parametrize("expert_weight", [0.0, 0.3])
