@@ -202,7 +202,7 @@ class FilterUpdate(Update):
         K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = td.get(keys.NOISE_VAR)
-        r2 = (r2 if r2.dim() == 2 else r2.unsqueeze(1).expand(-1, P.shape[1]))[..., None, None]
+        r2 = per_expert(r2, P.shape[1], event_dims=0)[..., None, None]
         # Joseph's (I - K H) P (I - K H)^T + K R K^T, expanded: P - K H P - (K H P)^T + K S K^T with
         # H P the position rows and S = H P H^T + R (exact for any gain; fewer and smaller products)
         HP = P[..., _P, :]
@@ -295,7 +295,7 @@ class _FilterExperts:
             prev = torch.full_like(z, float("nan"))
         nan = torch.full_like(z, float("nan"))
         r2_track = (self.k0 * self.r0**2 + carry.get(keys.NOISE_SUM)) / (self.k0 + carry.get(keys.NOISE_COUNT))
-        r2 = r2_track if r2_track.dim() == 2 else r2_track.unsqueeze(1).expand(B, M)
+        r2 = per_expert(r2_track, M, event_dims=0)
         return {
             keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
             keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
@@ -310,7 +310,7 @@ class _FilterExperts:
     def _r2(self, td) -> torch.Tensor:
         """This scan's ``r^2`` estimate as ``[B, M, 1, 1]``."""
         r2 = self.noise(td)
-        return (r2 if r2.dim() == 2 else r2.unsqueeze(1).expand(-1, self.n_experts))[..., None, None]
+        return per_expert(r2, self.n_experts, event_dims=0)[..., None, None]
 
     def _finish(self, td, r2, P, delta=None, nu=None):
         """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
