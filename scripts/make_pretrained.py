@@ -1,6 +1,6 @@
-"""Produce the shipped weights: train recipes/pretrained.yaml, export the stage-2 checkpoint into
-immnet/pretrained/immnet.ckpt, score it on a fresh test set beside the baselines, and write
-immnet/pretrained/provenance.json and PROVENANCE.md.
+"""Produce the shipped weights: write stage 2's training data, train recipes/pretrained.yaml, export
+the stage-2 checkpoint into immnet/pretrained/immnet.ckpt, score it on a fresh test set beside the
+baselines, and write immnet/pretrained/provenance.json and PROVENANCE.md.
 
 Run (needs the quick data: `bash scripts/main.sh` makes it):
     .venv/bin/python scripts/make_pretrained.py [--skip-training]
@@ -20,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "runs/pretrained"
 OUT = ROOT / "immnet/pretrained"
 TEST_SEED, TEST_N = 77, 1000
+TRAIN_SEED, TRAIN_N = 41, 12000  # stage 2's data (recipes/pretrained-stage2.yaml reads runs/pretrained/data/train)
 
 
 def main() -> int:
@@ -28,9 +29,13 @@ def main() -> int:
     a = p.parse_args()
     # the commit the weights were trained at (read before training: later commits may land meanwhile)
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    if not a.skip_training:
-        subprocess.run([sys.executable, "-m", "immnet.cli", "fit", "--config", "recipes/pretrained.yaml"], cwd=ROOT, check=True)
     from immnet.data.storage import load_dataset, write_dataset
+
+    train_dir = RUN / "data/train"
+    if not a.skip_training:
+        if not (train_dir / "meta.json").exists():
+            write_dataset(train_dir, n=TRAIN_N, seed=TRAIN_SEED, overwrite=True, workers=2, progress=True)
+        subprocess.run([sys.executable, "-m", "immnet.cli", "fit", "--config", "recipes/pretrained.yaml"], cwd=ROOT, check=True)
     from immnet.evaluation.methods import build_method
     from immnet.evaluation.runner import evaluate, to_json
     from immnet.evaluation.table import format_markdown, format_table
@@ -56,8 +61,9 @@ def main() -> int:
         "date": datetime.date.today().isoformat(),
         "commit": commit,
         "model_set": Tracker.pretrained().net.model_set.names,
-        "data": {"train": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
-                 "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)"},
+        "data": {"stage1": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
+                 "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)",
+                 "stage2": f"runs/pretrained/data/train: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)"},
         "test": {"n": TEST_N, "seed": TEST_SEED, "note": "fresh 3D-LAST, never seen in training or tuning"},
         "metrics": {n: r["rmse"] for n, r in rows.items()},
         "mode_accuracy": rows["immnet"].get("mode_accuracy"),
@@ -73,7 +79,8 @@ def main() -> int:
         f"`immnet.ckpt` ({(OUT / 'immnet.ckpt').stat().st_size / 2**20:.1f} MB): IMMNet with experts "
         f"{', '.join(prov['model_set'])}, trained by `{prov['recipe']}` at commit `{commit[:10]}` "
         f"({prov['date']}) and exported by `{prov['made_by']}`.\n\n"
-        f"Training data: {prov['data']['train']}; stage-1 single-mode data: {prov['data']['stage1_single_mode']}.\n\n"
+        f"Training data: stage 1 {prov['data']['stage1']}, with the single-mode data {prov['data']['stage1_single_mode']}; "
+        f"stage 2 {prov['data']['stage2']}.\n\n"
         f"Test set: {TEST_N} fresh trajectories (seed {TEST_SEED}). RMSE of position in metres:\n\n"
         + format_markdown(rows)
         + f"\n\nClaims checked by `tests/test_pretrained.py` on freshly generated data: Average RMSE at most "
