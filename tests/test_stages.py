@@ -3,7 +3,6 @@ the analytic gains (the paper architecture's and the recipes' ablation) against 
 gradients, missed detections and streaming against batched rollouts."""
 
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -11,6 +10,7 @@ import yaml
 from torch import nn
 
 from immnet import keys
+from immnet.config import REPO_ROOT
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.filters import kalman
@@ -98,7 +98,7 @@ def test_analytic_gain_ablation_with_cv_expert_equals_our_kalman_filter(data):
     """The analytic-gain ablation of the recipes (``FilterGain``: filter experts with their base noise,
     nothing learned), with one CV expert and its r estimate pinned to r0 (prior weight k0 huge),
     equals immnet.filters.kalman from the same two-point start, scan by scan."""
-    cfg = yaml.safe_load(Path("configs/ablations/analytic-gain.yaml").read_text())
+    cfg = yaml.safe_load((REPO_ROOT / "configs/ablations/analytic-gain.yaml").read_text())
     gain = dict(cfg["model"]["init_args"]["net"]["gain"])
     assert gain["class_path"] == "immnet.stages.filtering.FilterGain"
     sigma, r = 0.5, 3.0
