@@ -16,11 +16,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import yaml
+
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "runs/pretrained"
 OUT = ROOT / "immnet/pretrained"
 TEST_SEED, TEST_N = 77, 1000
-TRAIN_SEED, TRAIN_N = 41, 12000  # stage 2's data (recipes/pretrained-stage2.yaml reads runs/pretrained/data/train)
+TRAIN_SEED, TRAIN_N = 41, 12000  # stage 2's data, written where recipes/pretrained-stage2.yaml reads it
+STAGE2_DATA = yaml.safe_load((ROOT / "recipes/pretrained-stage2.yaml").read_text())["data"]["data"]
 
 
 def main() -> int:
@@ -31,7 +34,7 @@ def main() -> int:
     commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     from immnet.data.storage import load_dataset, write_dataset
 
-    train_dir = RUN / "data/train"
+    train_dir = ROOT / STAGE2_DATA
     if not a.skip_training:
         if not (train_dir / "meta.json").exists():
             write_dataset(train_dir, n=TRAIN_N, seed=TRAIN_SEED, overwrite=True, workers=2, progress=True)
@@ -63,7 +66,7 @@ def main() -> int:
         "model_set": Tracker.pretrained().net.model_set.names,
         "data": {"stage1": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
                  "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)",
-                 "stage2": f"runs/pretrained/data/train: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)"},
+                 "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)"},
         "test": {"n": TEST_N, "seed": TEST_SEED, "note": "fresh 3D-LAST, never seen in training or tuning"},
         "metrics": {n: r["rmse"] for n, r in rows.items()},
         "mode_accuracy": rows["immnet"].get("mode_accuracy"),
