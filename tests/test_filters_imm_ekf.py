@@ -1,0 +1,182 @@
+"""IMM-EKF against an independent float64 numpy IMM written from SPEC.md's equations, scan by scan.
+
+The reference loops over tracks, filters and mixing pairs, writes the coordinated turn out from SPEC.md
+section 2, takes the turn filters' Jacobians by central differences and inverts ``S`` with numpy: it
+shares no code with ``immnet.filters.imm_ekf`` beyond the constants of the generator it is told.
+"""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from immnet import keys
+from immnet.config import REPO_ROOT
+from immnet.evaluation.metrics import position_error, rmse
+from immnet.evaluation.methods import build_method
+from immnet.filters import IMMEKF, ClairvoyantKF, altitude_noise_var
+
+DEG = math.pi / 180.0
+ACC_VAR = [(3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0] * 2 + [0.6**2 / 12.0]  # SPEC: |a| ~ U[0.5, 3] at a uniform direction; U[-0.3, 0.3]
+W_MEAN, W_VAR = 5.5 * DEG, (9.0 * DEG) ** 2 / 12.0  # |w| ~ U[1, 10] deg/s
+
+
+def _noise_var_reference(alt, r0, k0):
+    out, total, count = [], 0.0, 0
+    for t in range(len(alt)):
+        if t >= 3:
+            d3 = alt[t] - 3 * alt[t - 1] + 3 * alt[t - 2] - alt[t - 3]
+            if np.isfinite(d3):
+                total, count = total + d3 * d3 / 20.0, count + 1
+        out.append((k0 * r0 * r0 + total) / (k0 + count))
+    return np.array(out)
+
+
+def _f(j, x, dt):
+    """Filter ``j``'s motion (CV, CA, CT+, CT-) of ``[lx, vx, ax, ly, vy, ay, lz, vz, az, w]``, from SPEC.md."""
+    lx, vx, ax, ly, vy, ay, lz, vz, az, w = x
+    if j == 0:
+        return np.array([lx + dt * vx, vx, 0, ly + dt * vy, vy, 0, lz + dt * vz, vz, 0, w])
+    if j == 1:
+        h = dt * dt / 2
+        return np.array([lx + dt * vx + h * ax, vx + dt * ax, ax, ly + dt * vy + h * ay, vy + dt * ay, ay,
+                         lz + dt * vz + h * az, vz + dt * az, az, w])
+    s, c = math.sin(w * dt), math.cos(w * dt)
+    vx1, vy1 = c * vx - s * vy, s * vx + c * vy
+    return np.array([lx + s / w * vx - (1 - c) / w * vy, vx1, -w * vy1, ly + (1 - c) / w * vx + s / w * vy, vy1, w * vx1,
+                     lz + dt * vz, vz, 0, w])
+
+
+def _jacobian(j, x, dt):
+    """Central differences, at the positions moved to 0 (the motion is translation-invariant), so that
+    the differences are not lost in the positions' magnitude."""
+    J, x = np.zeros((10, 10)), x.copy()
+    x[0:9:3] = 0.0
+    for k in range(10):
+        h = 1e-5 * max(1.0, abs(x[k])) if k < 9 else 1e-6
+        e = np.zeros(10)
+        e[k] = h
+        J[:, k] = (_f(j, x + e, dt) - _f(j, x - e, dt)) / (2 * h)
+    return J
+
+
+def _reference(z, p_stay, sigma_q, r0, k0, dt=1.0, lo=1.0 * DEG, hi=10.0 * DEG):
+    """One track ``z [T, 3]`` (NaN = missed): fused states ``[T, 9]`` and mode probabilities ``[T, 4]``."""
+    T, M = len(z), 4
+    r2 = _noise_var_reference(z[:, 2], r0, k0)
+    Pi = np.full((M, M), (1 - p_stay) / 3)
+    np.fill_diagonal(Pi, p_stay)
+    G = np.array([dt * dt / 2, dt, 0.0])
+    Q = np.zeros((10, 10))
+    for a in range(3):
+        Q[3 * a:3 * a + 3, 3 * a:3 * a + 3] = sigma_q**2 * np.outer(G, G)
+    first = next(t for t in range(T) if np.isfinite(z[t]).all())
+    x0 = np.zeros(10)
+    x0[0:9:3] = z[first]
+    P0 = np.diag([r0 * r0, 300.0**2, 10.0**2] * 3 + [0.0])
+
+    def enter(j, x, P):  # the generator's draw at a switch into j
+        x, P = x.copy(), P.copy()
+        if j == 1:
+            for a, v in zip((2, 5, 8), ACC_VAR):
+                x[a] = 0
+                P[a, :] = P[:, a] = 0
+                P[a, a] = v
+        if j >= 2:
+            x[9] = W_MEAN if j == 2 else -W_MEAN
+            P[9, :] = P[:, 9] = 0
+            P[9, 9] = W_VAR
+        return x, P
+
+    xs = [enter(j, x0, P0)[0] for j in range(M)]
+    Ps = [enter(j, x0, P0)[1] for j in range(M)]
+    mu = np.full(M, 0.25)
+    out, probs = [x0[:9]], [mu.copy()]
+    for t in range(1, T):
+        cbar = Pi.T @ mu
+        new_x, new_P, logl = [], [], []
+        for j in range(M):
+            parts = [(mu[i] * Pi[i, j] / cbar[j],) + ((xs[i], Ps[i]) if i == j else enter(j, xs[i], Ps[i])) for i in range(M)]
+            xm = sum(w * xi for w, xi, _ in parts)
+            Pm = sum(w * (Pi_ + np.outer(xi - xm, xi - xm)) for w, xi, Pi_ in parts)
+            J = _jacobian(j, xm, dt)
+            xp, Pp = _f(j, xm, dt), J @ Pm @ J.T + Q
+            if np.isfinite(z[t]).all():
+                y = z[t] - xp[0:9:3]
+                S = Pp[0:9:3][:, 0:9:3] + r2[t] * np.eye(3)
+                K = Pp[:, 0:9:3] @ np.linalg.inv(S)
+                xp, Pp = xp + K @ y, Pp - K @ S @ K.T
+                logl.append(-0.5 * (y @ np.linalg.solve(S, y) + np.log(np.linalg.det(S)) + 3 * np.log(2 * np.pi)))
+            else:
+                logl.append(0.0)
+            if j >= 2:
+                xp[9] = np.clip(xp[9], lo, hi) if j == 2 else np.clip(xp[9], -hi, -lo)
+            new_x.append(xp)
+            new_P.append(Pp)
+        xs, Ps = new_x, new_P
+        a = np.log(cbar) + np.array(logl)
+        mu = np.exp(a - a.max())
+        mu /= mu.sum()
+        out.append(sum(m * xj[:9] for m, xj in zip(mu, xs)))
+        probs.append(mu.copy())
+    return np.array(out), np.array(probs)
+
+
+@pytest.fixture(scope="module")
+def data():
+    from immnet.data.spec import DataSpec
+
+    generate = pytest.importorskip("immnet.data.generate").generate
+    return generate(4, seed=707, spec=DataSpec(T=120, min_segment=30))
+
+
+def test_noise_estimate_equals_a_loop():
+    z = torch.randn(3, 50, 3, dtype=torch.float64).cumsum(1) * 5.0
+    z[1, 10, 2] = float("nan")  # a missed altitude drops the four third differences that need it
+    z[2, :4] = float("nan")
+    r2 = altitude_noise_var(z, r0=4.0, k0=3.0)
+    for b in range(3):
+        np.testing.assert_allclose(r2[b].numpy(), _noise_var_reference(z[b, :, 2].numpy(), 4.0, 3.0), rtol=1e-12)
+
+
+@pytest.mark.parametrize("missed", [False, True], ids=["all-detected", "missed"])
+def test_imm_ekf_equals_a_numpy_imm(data, missed):
+    data = data.clone()
+    if missed:
+        data[keys.MEASUREMENTS][0, 30:33] = float("nan")
+        data[keys.MEASUREMENTS][2, 0] = float("nan")  # the track starts at its first detection
+    method = IMMEKF(p_stay=0.97, sigma_q=0.3, r0=3.0, k0=2.0)
+    out = method.track(data)
+    for b in range(data.shape[0]):
+        states, probs = _reference(data[keys.MEASUREMENTS][b].numpy(), 0.97, 0.3, 3.0, 2.0)
+        np.testing.assert_allclose(out[keys.STATE][b].numpy(), states, rtol=1e-7, atol=1e-6)
+        np.testing.assert_allclose(out[keys.MODE_PROBS][b].numpy(), probs, rtol=1e-6, atol=1e-7)
+
+
+def test_imm_ekf_is_between_the_bound_and_the_measurements(data):
+    data = pytest.importorskip("immnet.data.generate").generate(60, seed=708)
+    truth = data[keys.STATES]
+    ekf = rmse(position_error(build_method("imm-ekf").track(data)[keys.STATE], truth))["avg"]
+    bound = rmse(position_error(ClairvoyantKF().track(data)[keys.STATE], truth))["avg"]
+    raw = rmse(position_error(data[keys.MEASUREMENTS].repeat_interleave(3, dim=-1), truth))["avg"]
+    assert bound < ekf < 0.7 * raw
+    assert (REPO_ROOT / "configs" / "methods" / "imm-ekf.yaml").exists()
+
+
+def test_imm_ekf_keeps_finite_states_through_a_long_gap(data):
+    data = data.clone()
+    data[keys.MEASUREMENTS][1, 20:80] = float("nan")
+    out = IMMEKF().track(data)
+    assert torch.isfinite(out[keys.STATE]).all() and torch.isfinite(out[keys.MODE_PROBS]).all()
+    np.testing.assert_allclose(out[keys.MODE_PROBS].sum(-1).numpy(), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "kwargs, words",
+    [({"p_stay": 1.5}, "p_stay"), ({"rate_bounds_deg": (6.0, 10.0)}, "rate_bounds_deg"), ({"r": -1.0}, "r must"),
+     ({"sigma_q": float("nan")}, "sigma_q")],
+)
+def test_imm_ekf_rejects_bad_settings(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        IMMEKF(**kwargs)
