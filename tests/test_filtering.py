@@ -251,3 +251,84 @@ def test_bayes_mode_update_from_filter_experts_is_the_imm_mode_update(data):
         expected /= expected.sum(-1, keepdims=True)
         # rtol 1e-6: the module stores log(Pi) as computed in float32
         np.testing.assert_allclose(carry.get(keys.EXPERT_PROBS).numpy(), expected, rtol=1e-6, atol=1e-10)
+
+
+def _mix_reference(y, P, mu, Pi, own_acc, turn_sign):
+    """The IMM's mixing with the generator's onset priors, one track at a time in numpy."""
+    acc_var = [(3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0] * 2 + [0.6**2 / 12.0]
+    w_mean, w_var = 5.5 * math.pi / 180.0, (9.0 * math.pi / 180.0) ** 2 / 12.0
+    B, M, _ = y.shape
+    y0, P0 = np.zeros((B, M, 10)), np.zeros((B, M, 10, 10))
+    for b in range(B):
+        cbar = Pi.T @ mu[b]
+        for j in range(M):
+            parts = []
+            for i in range(M):
+                yi, Pi_ = y[b, i].copy(), P[b, i].copy()
+                if i != j and own_acc[j]:
+                    for a, v in zip((2, 5, 8), acc_var):
+                        yi[a] = 0.0
+                        Pi_[a, :] = Pi_[:, a] = 0.0
+                        Pi_[a, a] = v
+                if i != j and turn_sign[j]:
+                    yi[9] = turn_sign[j] * w_mean
+                    Pi_[9, :] = Pi_[:, 9] = 0.0
+                    Pi_[9, 9] = w_var
+                parts.append((mu[b, i] * Pi[i, j] / cbar[j], yi, Pi_))
+            y0[b, j] = sum(w * yi for w, yi, _ in parts)
+            P0[b, j] = sum(w * (Pk + np.outer(yi - y0[b, j], yi - y0[b, j])) for w, yi, Pk in parts)
+    return y0, P0
+
+
+def test_imm_interaction_is_the_imm_mixing_with_onset_priors():
+    from tensordict import TensorDict
+
+    from immnet.stages.filtering import FilterPredict
+
+    ms = ModelSet.from_config(ADAPTIVE)  # CV, CA, CT+ (own rate), CT- (own rate)
+    stage = FilterPredict(ms, 1.0, interaction="imm", p_stay=0.97).double()
+    g = torch.Generator().manual_seed(3)
+    B, M = 5, 4
+    A = torch.randn(B, M, 10, 10, generator=g, dtype=torch.float64)
+    P = A @ A.transpose(-1, -2) + 0.1 * torch.eye(10, dtype=torch.float64)
+    y = torch.randn(B, M, 10, generator=g, dtype=torch.float64) * 50
+    mu = torch.softmax(torch.randn(B, M, generator=g, dtype=torch.float64) * 2, -1)
+    td = TensorDict({keys.EXPERT_POST: y[..., :9], keys.EXPERT_RATE: y[..., 9], keys.EXPERT_AUG_COV: P,
+                     keys.EXPERT_PROBS: mu, keys.FUSED: y[:, 0, :9]}, batch_size=[B])
+    y0, P0 = stage._mix(td)
+    Pi = np.full((M, M), 0.01)
+    np.fill_diagonal(Pi, 0.97)
+    ry0, rP0 = _mix_reference(y.numpy(), P.numpy(), mu.numpy(), Pi, [False, True, False, False], [0, 0, 1, -1])
+    np.testing.assert_allclose(y0.numpy(), ry0, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(P0.numpy(), rP0, rtol=1e-10, atol=1e-8)
+    with pytest.raises(ValueError, match="interaction"):
+        FilterPredict(ms, 1.0, interaction="mixed")
+
+
+def test_imm_interaction_with_base_noise_and_bayes_update_tracks_like_the_imm_ekf():
+    """Nothing learned, the IMM's mode update: IMMNet's filter experts with the IMM interaction are the
+    IMM-EKF baseline but for the track start (two measurements against one), so their errors agree."""
+    from immnet.evaluation.metrics import position_error, rmse
+    from immnet.filters import IMMEKF
+
+    data = generate(40, seed=8)
+    gain = {"class_path": "immnet.stages.filtering.FilterGain",
+            "init_args": {"noise_std": [0.2, 0.2, 0.0, 0.0, 0.0], "interaction": "imm", "p_stay": 0.995}}
+    bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"p_stay": 0.995, "from_experts": True}}
+    net = IMMNet(model_set=ADAPTIVE, gain=gain, classifier=bayes).double()
+    with torch.no_grad():
+        out, _ = net.rollout(data[keys.MEASUREMENTS])
+    ours = rmse(position_error(out[keys.STATE], data[keys.STATES]))["avg"]
+    ekf = rmse(position_error(IMMEKF().track(data)[keys.STATE], data[keys.STATES]))["avg"]
+    assert abs(ours / ekf - 1.0) < 0.02, (ours, ekf)
+
+
+def test_experts_alone_start_from_their_own_posterior_with_either_interaction(data):
+    z = data[keys.MEASUREMENTS][:, :40]
+    outs = []
+    for inter in ("fused", "imm"):
+        torch.manual_seed(0)
+        net = IMMNet(model_set=ADAPTIVE, gain={**FILTER, "init_args": {"interaction": inter}})
+        with torch.no_grad():
+            outs.append(net.rollout(z.unsqueeze(1).expand(-1, net.n_experts, -1, -1), experts_alone=True)[0][keys.STATE])
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=0)

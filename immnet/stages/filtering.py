@@ -36,7 +36,7 @@ import math
 import torch
 
 from immnet import keys
-from immnet.filters.clairvoyant import CA_ACC_VAR
+from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
 from immnet.filters.kalman import inv3
 from immnet.motion import ACC, POS, VEL, ModelSet, ct_propagate, noise_gain
 from immnet.stages.base import Stage, measured, per_expert
@@ -126,14 +126,47 @@ def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
 
 class FilterPredict(Predict):
     """Predict for filter experts: the prior mean from the fused estimate and the expert's own mode
-    parameter, and the prior covariance before process noise, ``J (P + d d^T) J^T``."""
+    parameter, and the prior covariance before process noise, ``J (P + d d^T) J^T``.
 
-    in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
+    ``interaction="imm"`` starts each expert from the IMM's mixed estimate instead: the experts' own
+    posteriors ``[x, w]`` and covariances mixed with ``mu_{i|j} = Pi_ij mu_i / sum_k Pi_kj mu_k``
+    (``mu`` the previous scan's mode probabilities, ``Pi`` with ``p_stay`` on the diagonal), where
+    what enters expert ``j`` from an expert ``i != j`` (a switch into ``j``) carries the generator's
+    onset prior for what ``j`` keeps of its own: a CA expert's acceleration (mean 0, the draw's
+    variance), a turn expert's rate (``+/- 5.5`` deg/s, standard deviation 2.6 deg/s), as
+    ``immnet.filters.IMMEKF`` does. Experts alone (stage 1) start from their own posterior either way.
+    """
+
+    in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV, keys.EXPERT_PROBS]
     out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV]
 
-    def __init__(self, model_set: ModelSet, dt: float = 1.0):
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995):
         super().__init__(model_set, dt)
-        own_acc, own_rate, lo, hi, _ = _kinds(model_set, dt)
+        if interaction not in ("fused", "imm"):
+            raise ValueError(f"interaction must be 'fused' or 'imm', got {interaction!r}")
+        if not 0.0 < p_stay < 1.0:
+            raise ValueError(f"p_stay must be in (0, 1), got {p_stay}")
+        self.interaction = interaction
+        own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
+        M = len(model_set)
+        off, f64 = (1.0 - p_stay) / max(M - 1, 1), torch.float64  # float64, so that a .double() model is exact
+        self.register_buffer("Pi", torch.full((M, M), off, dtype=f64) + torch.eye(M, dtype=f64) * (p_stay - off), persistent=False)
+        keep = torch.ones(M, M, N_AUG, dtype=f64)
+        mean, cov = torch.zeros(M, M, N_AUG, dtype=f64), torch.zeros(M, M, N_AUG, N_AUG, dtype=f64)
+        w_mean, w_std = TURN_PRIOR_DEG[0] * math.pi / 180.0, TURN_PRIOR_DEG[1] * math.pi / 180.0
+        for j in range(M):
+            others = [i for i in range(M) if i != j]
+            if own_acc[j]:
+                for a, v in zip(ACC, CA_ACC_VAR):
+                    keep[others, j, a] = 0.0
+                    cov[others, j, a, a] = v
+            if own_rate[j]:
+                keep[others, j, RATE] = 0.0
+                mean[others, j, RATE] = math.copysign(w_mean, nominal[j])
+                cov[others, j, RATE, RATE] = w_std**2
+        self.register_buffer("mix_keep", keep, persistent=False)
+        self.register_buffer("mix_mean", mean, persistent=False)
+        self.register_buffer("mix_cov", cov, persistent=False)
         self.register_buffer("own_acc", torch.tensor(own_acc))
         acc_mask = torch.zeros(len(model_set), 9, dtype=torch.bool)
         acc_mask[:, list(ACC)] = torch.tensor(own_acc)[:, None]
@@ -154,12 +187,32 @@ class FilterPredict(Predict):
         self.register_buffer("J_base", J, persistent=False)
         self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in _TURN_ENTRIES]), persistent=False)
 
+    def _mix(self, td):
+        """The IMM's mixed estimate of each expert ``[B, M, 10]`` and its covariance ``[B, M, 10, 10]``."""
+        y = torch.cat([td.get(keys.EXPERT_POST), td.get(keys.EXPERT_RATE).unsqueeze(-1)], -1)  # [B, i, 10]
+        P = td.get(keys.EXPERT_AUG_COV)
+        mu = td.get(keys.EXPERT_PROBS)
+        Pi = self.Pi.to(y.dtype)
+        w = mu.unsqueeze(-1) * Pi / (mu @ Pi).unsqueeze(-2)  # mu_{i|j} [B, i, j]
+        keep = self.mix_keep.to(y.dtype)
+        yc = y.unsqueeze(2) * keep + self.mix_mean.to(y.dtype)  # [B, i, j, 10]
+        Pc = P.unsqueeze(2) * (keep.unsqueeze(-1) * keep.unsqueeze(-2)) + self.mix_cov.to(y.dtype)
+        y0 = (w.unsqueeze(-1) * yc).sum(1)
+        d = yc - y0.unsqueeze(1)
+        P0 = (w[..., None, None] * (Pc + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(1)
+        return y0, P0
+
     def forward(self, td):
         M = self.n_experts
-        fused = per_expert(td.get(keys.FUSED), M)
         own = td.get(keys.EXPERT_POST)
-        x = torch.where(self.own_acc_mask, own, fused)
-        w = torch.clamp(td.get(keys.EXPERT_RATE), self.rate_lo, self.rate_hi)
+        mixed = self.interaction == "imm" and td.get(keys.FUSED).dim() == 2  # not experts alone
+        if mixed:
+            y0, P0 = self._mix(td)
+            x, w = y0[..., :9], y0[..., RATE]
+        else:
+            x = torch.where(self.own_acc_mask, own, per_expert(td.get(keys.FUSED), M))
+            w = td.get(keys.EXPERT_RATE)
+        w = torch.clamp(w, self.rate_lo, self.rate_hi)
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
         J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
@@ -169,8 +222,9 @@ class FilterPredict(Predict):
             entries = _turn_entries(x, w, self.dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
             scattered = entries.new_zeros(*entries.shape[:2], N_AUG * N_AUG).index_copy(-1, self.turn_index, entries)
             J = J + scattered.view(*entries.shape[:2], N_AUG, N_AUG)
-        d = torch.cat([x - own, torch.zeros_like(x[..., :1])], -1)
-        P0 = td.get(keys.EXPERT_AUG_COV) + d.unsqueeze(-1) * d.unsqueeze(-2)
+        if not mixed:
+            d = torch.cat([x - own, torch.zeros_like(x[..., :1])], -1)
+            P0 = td.get(keys.EXPERT_AUG_COV) + d.unsqueeze(-1) * d.unsqueeze(-2)
         td.set(keys.EXPERT_PRIOR, prior)
         td.set(keys.EXPERT_RATE, w)
         td.set(keys.EXPERT_AUG_PRIOR_COV, J @ P0 @ J.transpose(-1, -2))
@@ -219,10 +273,16 @@ class _FilterExperts:
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
     Mixed into a ``Stage`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
-    predict_stage = FilterPredict
     update_stage = FilterUpdate
 
-    def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float):
+    def predict_stage(self, model_set: ModelSet, dt: float) -> FilterPredict:
+        """The predict stage these experts need, with this gain's interaction (``FilterPredict``)."""
+        return FilterPredict(model_set, dt, self.interaction, self.p_stay)
+
+    def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
+                     interaction: str = "fused", p_stay: float = 0.995):
+        FilterPredict(model_set, dt, interaction, p_stay)  # validates both
+        self.interaction, self.p_stay = interaction, float(p_stay)
         if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
             raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")
         if len(noise_std) != N_NOISE or min(noise_std) < 0:
@@ -355,9 +415,11 @@ class FilterGain(_FilterExperts, Stage):
         r0: float = 4.0,
         k0: float = 3.0,
         rate_std0_deg: float = 5.0,
+        interaction: str = "fused",
+        p_stay: float = 0.995,
     ):
         super().__init__(model_set)
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -399,6 +461,8 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         r0: float = 4.0,
         k0: float = 3.0,
         rate_std0_deg: float = 5.0,
+        interaction: str = "fused",
+        p_stay: float = 0.995,
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
@@ -412,7 +476,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
         del self.K_ss  # the base gain is the filter's own
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def forward(self, td):
