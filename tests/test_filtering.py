@@ -332,3 +332,18 @@ def test_experts_alone_start_from_their_own_posterior_with_either_interaction(da
         with torch.no_grad():
             outs.append(net.rollout(z.unsqueeze(1).expand(-1, net.n_experts, -1, -1), experts_alone=True)[0][keys.STATE])
     torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=0)
+
+
+def test_bayes_transformer_classifier_starts_as_the_imm_mode_update(data):
+    """Its Transformer's head starts at zero: untrained, it is ``BayesianModeUpdate(from_experts)``."""
+    gain = {**FILTER, "init_args": {"interaction": "imm"}}
+    probs = []
+    for classifier in ({"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"p_stay": 0.99, "from_experts": True}},
+                       {"class_path": "immnet.stages.BayesTransformerClassifier", "init_args": {"p_stay": 0.99}}):
+        torch.manual_seed(0)
+        net = IMMNet(model_set=ADAPTIVE, gain=gain, classifier=classifier).double()
+        with torch.no_grad():
+            probs.append(net.rollout(data[keys.MEASUREMENTS].double())[0][keys.ROLLOUT_EXPERT_PROBS])
+    # atol 1e-6: BayesianModeUpdate keeps log(Pi) in float32
+    torch.testing.assert_close(probs[1], probs[0], rtol=0, atol=1e-6)
+    assert probs[0][:, 3:].std() > 0.01  # the probabilities move: the comparison is not between constants

@@ -1,6 +1,6 @@
 """The IMMNet stages as TensorDict modules, and the tracker that chains them."""
 
-from immnet.stages.classify import BayesianModeUpdate, TransformerClassifier, UniformMix
+from immnet.stages.classify import BayesianModeUpdate, BayesTransformerClassifier, TransformerClassifier, UniformMix
 from immnet.stages.fuse import Fuse
 from immnet.stages.gain import AnalyticGain, KalmanNetGain, steady_state
 from immnet.stages.network import IMMNet
@@ -8,6 +8,6 @@ from immnet.stages.predict import Predict
 from immnet.stages.update import Update
 
 __all__ = [
-    "AnalyticGain", "BayesianModeUpdate", "Fuse", "IMMNet", "KalmanNetGain", "Predict",
+    "AnalyticGain", "BayesTransformerClassifier", "BayesianModeUpdate", "Fuse", "IMMNet", "KalmanNetGain", "Predict",
     "TransformerClassifier", "UniformMix", "Update", "steady_state",
 ]

@@ -210,3 +210,43 @@ class BayesianModeUpdate(Stage):
         td.set(keys.MODE_LOGITS, logits)
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
         return td
+
+
+class BayesTransformerClassifier(TransformerClassifier):
+    """The IMM's Bayesian mode update, corrected by the Transformer: logits
+    ``log (Pi^T mu_{t-1}) + log N(nu^(i); 0, S^(i)) + transformer(window)``.
+
+    The first two terms are ``BayesianModeUpdate(from_experts=True)``: each filter expert's own
+    innovation likelihood (``("expert", "loglik")``) and a Markov prior with ``p_stay`` on the
+    diagonal. The Transformer (``TransformerClassifier``, same inputs and frame) adds a learned
+    correction in log space; its head's last layer starts at zero, so an untrained classifier is the
+    IMM's mode update exactly, and training moves it only where the data says the IMM is wrong.
+    """
+
+    # written out: tensordict turns a built module's key lists into properties (see filtering.py)
+    in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN, keys.EXPERT_LOGLIK, keys.EXPERT_PROBS]
+    out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN]
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.995, window: int = 20,
+                 d_model: int = 32, heads: int = 4, layers: int = 2, ff: int = 64):
+        super().__init__(model_set, dt, window, d_model, heads, layers, ff)
+        if not 0.0 < p_stay <= 1.0:
+            raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
+        M = self.n_experts
+        off = (1.0 - p_stay) / max(M - 1, 1)
+        Pi = torch.full((M, M), off, dtype=torch.float64) + torch.eye(M, dtype=torch.float64) * (p_stay - off)
+        self.register_buffer("log_pi", torch.log(Pi.clamp_min(1e-300)))
+        with torch.no_grad():
+            self.head[-1].weight.zero_()
+            self.head[-1].bias.zero_()
+
+    def forward(self, td):
+        prev = td.get(keys.EXPERT_PROBS)
+        log_pi = self.log_pi.to(prev.dtype)
+        prior = torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + log_pi, dim=1)
+        bayes = prior + td.get(keys.EXPERT_LOGLIK)
+        td = super().forward(td)
+        logits = bayes + td.get(keys.MODE_LOGITS)
+        td.set(keys.MODE_LOGITS, logits)
+        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        return td
