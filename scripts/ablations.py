@@ -18,6 +18,8 @@ QUICK = ROOT / "runs/quick"
 ABLATIONS = {  # name: (base recipe, needs the quick stage-1 experts)
     "uniform-mix": ("recipes/quick-stage2.yaml", True),
     "bayes-mode": ("recipes/quick-stage2.yaml", True),
+    "transformer-mode": ("recipes/quick-stage2.yaml", True),
+    "fused-input": ("recipes/quick-stage2.yaml", True),
     "analytic-gain": ("recipes/quick-stage2.yaml", False),
     "single-expert": ("recipes/quick-stage1.yaml", False),
     "fixed-turn-rate": ("recipes/quick.yaml", False),  # both stages: the experts change
@@ -60,11 +62,14 @@ def main() -> int:
     methods = {
         "immnet (full)": IMMNetMethod(QUICK / "stage2/checkpoints/best.ckpt", name="immnet (full)"),
         "classifier -> uniform mix": IMMNetMethod(ckpt("uniform-mix")),
-        "classifier -> IMM Bayesian update": IMMNetMethod(ckpt("bayes-mode")),
+        "classifier -> IMM Bayesian update alone": IMMNetMethod(ckpt("bayes-mode")),
+        "classifier -> Transformer alone (the paper's)": IMMNetMethod(ckpt("transformer-mode")),
+        "IMM interaction -> fused input (SPEC's predict)": IMMNetMethod(ckpt("fused-input")),
         "KalmanNet -> analytic gain (fixed noise)": IMMNetMethod(ckpt("analytic-gain")),
         "single expert (plain KalmanNet, CA)": KalmanNetMethod(ckpt("single-expert"), expert="ca"),
         "adaptive -> fixed +/-5 deg/s turn experts": IMMNetMethod(ckpt("fixed-turn-rate")),
-        "filter experts -> KalmanNet gain experts": IMMNetMethod(ckpt("kalmannet-experts")),
+        "the paper's experts and classifier (KalmanNet gain, Transformer)": IMMNetMethod(ckpt("kalmannet-experts")),
+        "imm-ekf": build_method("imm-ekf"),
         "clairvoyant": build_method("clairvoyant"),
     }
     rows = to_json(evaluate(methods, data, progress=True))

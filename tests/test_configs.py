@@ -60,3 +60,6 @@ def test_ablation_overrides_a_quick_stage(ablation, capsys):
     # ... and its gain: the quick recipe's experts are filter experts, the default gain is KalmanNet's
     if ablation.stem not in KALMANNET_GAIN_ABLATIONS:
         assert "filtering" in (net.get("gain") or {}).get("class_path", ""), f"{ablation.name} must name the filter-expert gain"
+        # ... with the quick recipe's IMM interaction, but where the interaction is the point
+        interaction = ((net.get("gain") or {}).get("init_args") or {}).get("interaction")
+        assert interaction == ("fused" if ablation.stem == "fused-input" else "imm"), f"{ablation.name}: interaction {interaction}"
