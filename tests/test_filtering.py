@@ -203,8 +203,28 @@ def test_gradients_reach_every_parameter_in_stage_2_with_filter_experts(data):
     assert not dead, f"no gradient for {dead}"
 
 
-def test_filter_experts_coast_through_missed_detections_and_stream_as_they_roll_out(data):
-    net = IMMNet(model_set=ADAPTIVE, gain=FILTER)
+RECIPE_NET = {  # the quick and pretrained recipes' model: the IMM interaction, the Bayes-corrected classifier
+    "gain": {**FILTER, "init_args": {"interaction": "imm"}},
+    "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier"},
+}
+
+
+def test_gradients_reach_every_parameter_in_stage_2_with_the_recipes_model(data):
+    """Through the IMM interaction and the Bayes-corrected classifier; its head's last layer starts at
+    zero (no gradient behind it until the first step), so it is nudged off zero as a first step would."""
+    module = Stage2Module(net={"model_set": ADAPTIVE, **RECIPE_NET}, expert_weight=0.3)
+    with torch.no_grad():
+        module.net.classify.head[-1].weight.normal_(0.0, 1e-3)
+    out, _ = module.net.rollout(data[keys.MEASUREMENTS][:, :30])
+    batch = data.apply(lambda v: v[:, :30] if v.dim() >= 2 else v)
+    module.losses(out, batch)[0].backward()
+    dead = [n for n, p in module.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all() or p.grad.abs().sum() == 0]
+    assert not dead, f"no gradient for {dead}"
+
+
+@pytest.mark.parametrize("net_cfg", [{"gain": FILTER}, RECIPE_NET], ids=["fused-transformer", "imm-bayes-transformer"])
+def test_filter_experts_coast_through_missed_detections_and_stream_as_they_roll_out(data, net_cfg):
+    net = IMMNet(model_set=ADAPTIVE, **net_cfg)
     z = data[keys.MEASUREMENTS][:, :50].clone()
     z[:, 10:14] = math.nan
     z[0, 0] = math.nan
