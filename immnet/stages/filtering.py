@@ -14,7 +14,8 @@ The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
 
 * input point ``x~``: the previous fused estimate (SPEC.md section 4), except the expert's own mode
   parameter: a model that carries acceleration (``F[acc, acc] != 0``, CA) keeps its own posterior
-  acceleration; an ``AdaptiveTurn`` expert turns at its own rate ``w^(i)`` (bounded to its range);
+  acceleration; an ``AdaptiveTurn`` expert turns at its own rate ``w^(i)`` (bounded to its range).
+  With ``interaction="imm"`` (the recipes'), the IMM's mixed estimate instead (``FilterPredict``);
 * prior ``x^(i)_{t|t-1} = f_i(x~, w~)``; covariance ``P- = J (P^(i) + d d^T) J^T + Q^(i)_t``, ``J``
   the Jacobian of ``f_i`` and ``d = x~ - x^(i)_{t-1|t-1}`` the IMM's spread-of-means term for
   having started from the fused estimate rather than the expert's own;
@@ -124,6 +125,13 @@ def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
     return out
 
 
+def _check_interaction(interaction: str, p_stay: float) -> None:
+    if interaction not in ("fused", "imm"):
+        raise ValueError(f"interaction must be 'fused' or 'imm', got {interaction!r}")
+    if not 0.0 < p_stay < 1.0:
+        raise ValueError(f"p_stay must be in (0, 1), got {p_stay}")
+
+
 class FilterPredict(Predict):
     """Predict for filter experts: the prior mean from the fused estimate and the expert's own mode
     parameter, and the prior covariance before process noise, ``J (P + d d^T) J^T``.
@@ -142,10 +150,7 @@ class FilterPredict(Predict):
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995):
         super().__init__(model_set, dt)
-        if interaction not in ("fused", "imm"):
-            raise ValueError(f"interaction must be 'fused' or 'imm', got {interaction!r}")
-        if not 0.0 < p_stay < 1.0:
-            raise ValueError(f"p_stay must be in (0, 1), got {p_stay}")
+        _check_interaction(interaction, p_stay)
         self.interaction = interaction
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         M = len(model_set)
@@ -281,7 +286,7 @@ class _FilterExperts:
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
                      interaction: str = "fused", p_stay: float = 0.995):
-        FilterPredict(model_set, dt, interaction, p_stay)  # validates both
+        _check_interaction(interaction, p_stay)
         self.interaction, self.p_stay = interaction, float(p_stay)
         if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
             raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")
