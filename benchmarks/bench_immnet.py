@@ -4,8 +4,10 @@ Run:  .venv/bin/python benchmarks/bench_immnet.py [--steps 40] [--no-compile]
 It prints a table and rewrites the ``## IMMNet`` section of BENCHMARKS.md (other sections are kept).
 Inference runs the streaming step (``IMMNet.scan``) over already-started tracks, the per-scan cost
 of tracking; training runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64.
-Both gains are measured in one run: the filter experts of the quick and pretrained recipes
-(``KalmanNetFilterGain``) and KalmanNet gain experts (``KalmanNetGain``, the paper's).
+Three models are measured in one run: the quick and pretrained recipes' (filter experts with the IMM
+interaction, the Bayes-corrected Transformer classifier), the same experts from the fused estimate
+with the Transformer alone (the recipes' until 2026-11-30), and the paper's (``KalmanNetGain``
+experts, the Transformer).
 """
 
 from __future__ import annotations
@@ -73,20 +75,24 @@ def training(module, batch, repeats: int = 5) -> float:
     return batch.batch_size[-1] * T / median_seconds(lambda: module.training_step(batch, 0), repeats)
 
 
-GAINS = {  # label: the gain's YAML entry
-    "filter experts (KalmanNetFilterGain, the recipes')": {"class_path": "immnet.stages.filtering.KalmanNetFilterGain"},
-    "KalmanNet gain experts (KalmanNetGain, the paper's)": {"class_path": "immnet.stages.KalmanNetGain"},
+MODELS = {  # label: the gain's and the classifier's YAML entries (None: IMMNet's default classifier)
+    "the recipes' (filter experts, IMM interaction, Bayes + Transformer)": (
+        {"class_path": "immnet.stages.filtering.KalmanNetFilterGain", "init_args": {"interaction": "imm"}},
+        {"class_path": "immnet.stages.BayesTransformerClassifier"},
+    ),
+    "filter experts, fused input, Transformer": ({"class_path": "immnet.stages.filtering.KalmanNetFilterGain"}, None),
+    "the paper's (KalmanNetGain, Transformer)": ({"class_path": "immnet.stages.KalmanNetGain"}, None),
 }
 
 
-def measure(model_set: str, gain: dict, steps: int, compile_: bool, expert_weight: float):
+def measure(model_set: str, gain: dict, classifier: dict | None, steps: int, compile_: bool, expert_weight: float):
     """Inference rows ``[(B, eager, compiled)]`` and training ``(stage 1, stage 2, stage 2 + own-mode term)``."""
     torch._dynamo.reset()
     torch.manual_seed(0)
     # training first, eager, before anything is compiled in this process
     td = generate(64, seed=1, spec=DataSpec(T=40, min_segment=12))  # two TBPTT chunks of 20
     td = td.apply(lambda v: v.float() if v.is_floating_point() else v)
-    cfg = {"model_set": model_set, "gain": gain}
+    cfg = {"model_set": model_set, "gain": gain, "classifier": classifier}
     s1 = Stage1Module(net=cfg)
     train = (
         training(s1, td.unsqueeze(0).expand(s1.net.n_experts, 64)),
@@ -94,7 +100,7 @@ def measure(model_set: str, gain: dict, steps: int, compile_: bool, expert_weigh
         training(Stage2Module(net=cfg, expert_weight=expert_weight), td),
     )
     print("  training: stage 1 {:,.0f}, stage 2 {:,.0f}, with the own-mode term {:,.0f} trajectory-steps/s".format(*train), flush=True)
-    net = IMMNet(model_set=model_set, gain=gain).eval()
+    net = IMMNet(model_set=model_set, gain=gain, classifier=classifier).eval()
     rows = []
     for B in (1, 64, 1024):
         eager = inference(net, B, steps, net.scan)
@@ -125,9 +131,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     results = {}
-    for label, gain in GAINS.items():
+    for label, (gain, classifier) in MODELS.items():
         print(label, flush=True)
-        results[label] = measure(args.model_set, gain, args.steps, not args.no_compile, args.expert_weight)
+        results[label] = measure(args.model_set, gain, classifier, args.steps, not args.no_compile, args.expert_weight)
     names = next(iter(results.values()))[0]
     cmd = "`.venv/bin/python benchmarks/bench_immnet.py" + "".join(f" {a}" for a in (argv if argv is not None else sys.argv[1:])) + "`"
     labels = list(results)
