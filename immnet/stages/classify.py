@@ -22,6 +22,7 @@ import torch
 from torch import nn
 
 from immnet import keys
+from immnet.filters.trackers import transition_matrix
 from immnet.motion import ModelSet
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
@@ -148,6 +149,11 @@ class TransformerClassifier(Stage):
         return td
 
 
+def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor) -> torch.Tensor:
+    """The IMM's predicted mode log-probabilities ``log (Pi^T mu_{t-1})`` ``[B, M]`` from ``mu_{t-1} [B, M]``."""
+    return torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + log_pi, dim=1)
+
+
 class UniformMix(Stage):
     """Ablation: a fixed uniform mix ``mu = 1/M``."""
 
@@ -205,7 +211,7 @@ class BayesianModeUpdate(Stage):
             loglik = self.log_norm - 0.5 * torch.einsum("bmi,mij,bmj->bm", nu, self.S_inv, nu)
             loglik = torch.where(has_z, loglik, 0.0)
         prev = td.get(keys.EXPERT_PROBS)
-        log_pred = torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + self.log_pi, dim=1)
+        log_pred = markov_prior(prev, self.log_pi)
         logits = log_pred + loglik
         td.set(keys.MODE_LOGITS, logits)
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
@@ -232,19 +238,14 @@ class BayesTransformerClassifier(TransformerClassifier):
         super().__init__(model_set, dt, window, d_model, heads, layers, ff)
         if not 0.0 < p_stay <= 1.0:
             raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
-        M = self.n_experts
-        off = (1.0 - p_stay) / max(M - 1, 1)
-        Pi = torch.full((M, M), off, dtype=torch.float64) + torch.eye(M, dtype=torch.float64) * (p_stay - off)
-        self.register_buffer("log_pi", torch.log(Pi.clamp_min(1e-300)))
+        self.register_buffer("log_pi", torch.log(transition_matrix(p_stay, self.n_experts).clamp_min(1e-300)))
         with torch.no_grad():
             self.head[-1].weight.zero_()
             self.head[-1].bias.zero_()
 
     def forward(self, td):
         prev = td.get(keys.EXPERT_PROBS)
-        log_pi = self.log_pi.to(prev.dtype)
-        prior = torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + log_pi, dim=1)
-        bayes = prior + td.get(keys.EXPERT_LOGLIK)
+        bayes = markov_prior(prev, self.log_pi.to(prev.dtype)) + td.get(keys.EXPERT_LOGLIK)
         td = super().forward(td)
         logits = bayes + td.get(keys.MODE_LOGITS)
         td.set(keys.MODE_LOGITS, logits)

@@ -39,6 +39,7 @@ import torch
 from immnet import keys
 from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
 from immnet.filters.kalman import inv3
+from immnet.filters.trackers import transition_matrix
 from immnet.motion import ACC, POS, VEL, ModelSet, ct_propagate, noise_gain
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
@@ -154,8 +155,8 @@ class FilterPredict(Predict):
         self.interaction = interaction
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         M = len(model_set)
-        off, f64 = (1.0 - p_stay) / max(M - 1, 1), torch.float64  # float64, so that a .double() model is exact
-        self.register_buffer("Pi", torch.full((M, M), off, dtype=f64) + torch.eye(M, dtype=f64) * (p_stay - off), persistent=False)
+        f64 = torch.float64  # float64, so that a .double() model is exact
+        self.register_buffer("Pi", transition_matrix(p_stay, M), persistent=False)
         keep = torch.ones(M, M, N_AUG, dtype=f64)
         mean, cov = torch.zeros(M, M, N_AUG, dtype=f64), torch.zeros(M, M, N_AUG, N_AUG, dtype=f64)
         w_mean, w_std = TURN_PRIOR_DEG[0] * math.pi / 180.0, TURN_PRIOR_DEG[1] * math.pi / 180.0
