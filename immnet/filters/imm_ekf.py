@@ -20,6 +20,10 @@ is the model-based counterpart of IMMNet's filter experts, told what the data's 
   measurements (``E[(d^3 z)^2] = 20 r^2``), a running mean from a prior ``r0`` worth ``k0``
   samples, as IMMNet's filter experts do (``r`` fixed instead if given).
 
+With ``guard`` (``immnet.filters.guard.RangeGuard``: ``True`` for the generator's soft range bounds, or
+its fields as a dict) the Markov matrix becomes state-dependent per track and source filter, and a turn
+entered at a range bound starts at the bound's rate (``configs/methods/imm-ekf-guard.yaml``).
+
 It starts like the other IMMs: from the first measurement (``initial_state``, with ``r0``), the CA
 filter's acceleration at the draw's variance and the turn filters' rates at their prior.
 ``p_stay`` 0.995 was chosen on the dev set (seed 21), among 0.98, 0.99, 0.995, 0.998 and 0.999.
@@ -33,6 +37,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, batch_dt, output
 from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
+from immnet.filters.guard import RangeGuard, blend_rate, guarded_transition
 from immnet.filters.imm import initial_state
 from immnet.filters.kalman import update
 from immnet.filters.trackers import _positive, transition_matrix
@@ -71,6 +76,7 @@ class IMMEKF(Method):
         k0: float = 3.0,
         rate_bounds_deg: tuple[float, float] = (1.0, 10.0),
         rate_noise_deg: float = 0.0,
+        guard=None,
         dtype="float64",
         name: str = "imm-ekf",
     ):
@@ -86,6 +92,7 @@ class IMMEKF(Method):
         self.Pi = transition_matrix(p_stay, 4)
         self.sigma_q, self.r, self.r0, self.k0 = float(sigma_q), None if r is None else float(r), float(r0), float(k0)
         self.rate_lo, self.rate_hi, self.rate_noise = lo * DEG, hi * DEG, float(rate_noise_deg) * DEG
+        self.guard = RangeGuard.from_config(guard)
         self.dtype, self.name = as_dtype(dtype), name
 
     def onset_priors(self, dtype=torch.float64, device=None):
@@ -133,6 +140,9 @@ class IMMEKF(Method):
         keep, prior_mean, prior_cov = self.onset_priors(dtype, dev)
         keep2 = keep[..., :, None] * keep[..., None, :]
         Pi = self.Pi.to(dtype=dtype, device=dev)
+        modes = torch.arange(M, device=dev)  # CV, CA, CT+, CT-
+        if self.guard is not None:
+            bound_rate = torch.tensor([0.0, 0.0, 1.0, -1.0], dtype=dtype, device=dev) * self.guard.rate_deg * DEG
 
         x9, P9 = initial_state(z, self.r if self.r is not None else self.r0)
         x = torch.zeros(B, M, n, dtype=dtype, device=dev)
@@ -148,10 +158,15 @@ class IMMEKF(Method):
         states[:, 0], probs[:, 0] = x9, mu
         for t in range(1, T):
             # interaction: x0_j = sum_i mu_{i|j} x_{i->j}, with the onset priors where i != j
-            cbar = mu @ Pi  # [B, j]
-            w = mu[:, :, None] * Pi / cbar[:, None, :]  # mu_{i|j} [B, i, j]
+            Pi_t = Pi
+            if self.guard is not None:  # state-dependent transitions (immnet.filters.guard)
+                Pi_t, share = guarded_transition(Pi, self.guard.events(x[..., :9], x[..., RATE], d), modes)
+            cbar = (mu[:, :, None] * Pi_t).sum(1)  # [B, j]
+            w = mu[:, :, None] * Pi_t / cbar[:, None, :]  # mu_{i|j} [B, i, j]
             xc = x[:, :, None] * keep + prior_mean  # [B, i, j, n]
             Pc = P[:, :, None] * keep2 + prior_cov
+            if self.guard is not None:  # a turn entered (or re-entered) at a range bound has the bound's rate
+                xc, Pc = blend_rate(xc, Pc, share, bound_rate, (self.guard.rate_std_deg * DEG) ** 2, RATE)
             x0 = (w[..., None] * xc).sum(1)  # [B, j, n]
             dx = xc - x0[:, None]
             P0 = (w[..., None, None] * (Pc + dx[..., :, None] * dx[..., None, :])).sum(1)

@@ -1,0 +1,166 @@
+"""State-dependent mode transitions at the edge of the surveillance region (a "range guard").
+
+An IMM's Markov chain says a switch is as likely anywhere. Some switches are not: an aircraft that
+reaches the edge of the airspace it must stay in turns back, whatever it was doing. Estimators with
+state-dependent transition probabilities (Seah & Hwang, "State-dependent transition hybrid
+estimation", IEEE TAC 2009) let the *estimated state* drive the transition matrix through such
+guard conditions. The 3D-LAST generator has exactly such rules, the soft range bounds of SPEC.md
+section 2: a target outside ``outer`` (33 km) moving outward, or inside ``inner`` (4 km) moving
+inward, turns at ``rate_deg`` (8 deg/s) toward (away from) the radar until its heading points back
+by 30 degrees (radial speed beyond ``clear_share`` of its speed), then flies CV.
+
+``RangeGuard.events`` evaluates these rules on each mode-matched filter's previous posterior (as the
+generator does on ``x_{t-1}``), softened by logistic ramps of a few standard errors so that an
+estimate near a threshold gives a probability, not a jump:
+
+* onset, from any mode: ``P(rho > outer) P(v_r > 0)`` (or the inner rule), into the turn mode of the
+  turn's sign (``sign(l x v)`` at the outer bound, the opposite at the inner);
+* clear, from a turn mode: the first scan at which ``v_r / |v| < -clear_share`` (outer, within
+  ``clear_margin`` of the bound) or ``> clear_share`` (inner): the condition on the posterior and not on
+  the same velocity turned back one scan at the filter's rate; weighted by how close that rate is to
+  the bound's rate (a scheduled turn flying past the threshold is not told to stop);
+
+``guarded_transition`` turns them into a transition matrix per track and source mode,
+``Pi_eff[b, i, :] = (1 - g) Pi[i, :] + g (event target)``, and reports the share of each entry that a
+bound turn made, so that the interaction can give a turn entered at the bound its known rate.
+
+The speed bounds (one scan of turn when a CA segment leaves [40, 330] m/s) are not modelled: a
+guard told them on time is worth a fifth of what the range rules are (docs/baselines.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+
+DEG = math.pi / 180.0
+G_MAX = 0.999  # the most probable a guard event is made
+
+
+@dataclass(frozen=True)
+class RangeGuard:
+    """The soft range bounds of the 3D-LAST generator as guard conditions (module doc)."""
+
+    outer: float = 33_000.0  # m: beyond, moving outward -> turn toward the radar
+    inner: float = 4_000.0  # m: within, moving inward -> turn away from it
+    rate_deg: float = 8.0  # the bound turn's rate
+    clear_share: float = 0.5  # the turn clears once the radial speed is beyond this share of the speed
+    clear_margin: float = 3_000.0  # m: a clear is looked for within this distance of the bound
+    range_soft: float = 10.0  # m: logistic width of the range thresholds
+    speed_soft: float = 1.0  # m/s: of the radial-speed sign
+    share_soft: float = 0.02  # of the radial share at a clear
+    rate_tol_deg: float = 2.0  # how close a turn's rate must be to rate_deg to be the bound's turn
+    rate_std_deg: float = 0.2  # the rate prior of a turn entered at the bound
+
+    def __post_init__(self):
+        for name in ("outer", "inner", "rate_deg", "clear_share", "clear_margin", "range_soft", "speed_soft",
+                     "share_soft", "rate_tol_deg", "rate_std_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"RangeGuard.{name} must be a positive number, got {value!r}")
+        if self.inner >= self.outer:
+            raise ValueError(f"RangeGuard.inner ({self.inner}) must be below outer ({self.outer})")
+        if self.clear_share >= 1:
+            raise ValueError(f"RangeGuard.clear_share must be below 1, got {self.clear_share}")
+
+    @classmethod
+    def from_config(cls, config) -> "RangeGuard | None":
+        """``None``/``False`` (no guard), ``True`` (the 3D-LAST defaults), a dict of fields or a ``RangeGuard``."""
+        if config is None or config is False:
+            return None
+        if config is True:
+            return cls()
+        if isinstance(config, cls):
+            return config
+        if isinstance(config, dict):
+            unknown = set(config) - set(cls.__dataclass_fields__)
+            if unknown:
+                raise ValueError(f"unknown RangeGuard field(s) {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
+            return cls(**config)
+        raise ValueError(f"guard must be None, a bool, a dict of RangeGuard fields or a RangeGuard, got {config!r}")
+
+    def to_config(self) -> dict:
+        return asdict(self)
+
+    def events(self, x: torch.Tensor, w: torch.Tensor, dt: float):
+        """Guard event probabilities per track and mode-matched filter, from posteriors ``x [..., 9]``
+        and turn rates ``w [...]`` (rad/s): ``(onset_pos, onset_neg, clear)``, each ``[...]``.
+
+        ``onset_pos`` / ``onset_neg``: a bound turn starts with ``w > 0`` / ``w < 0``; ``clear``: a bound
+        turn flown at ``w`` ends (meaningful for turn filters only).
+        """
+        lx, vx, ly, vy = x[..., 0], x[..., 1], x[..., 3], x[..., 4]
+        rho = torch.sqrt(lx * lx + ly * ly).clamp_min(1.0)
+        hs = torch.sqrt(vx * vx + vy * vy).clamp_min(1e-3)
+        vr = (lx * vx + ly * vy) / rho
+        ccw = torch.sigmoid((lx * vy - ly * vx) / (rho * self.speed_soft))  # P(l x v > 0)
+        outer = torch.sigmoid((rho - self.outer) / self.range_soft) * torch.sigmoid(vr / self.speed_soft)
+        inner = torch.sigmoid((self.inner - rho) / self.range_soft) * torch.sigmoid(-vr / self.speed_soft)
+        onset_pos = outer * ccw + inner * (1 - ccw)
+        onset_neg = outer * (1 - ccw) + inner * ccw
+        # the velocity one scan earlier at this filter's rate: rotated back by w dt
+        c, s = torch.cos(w * dt), torch.sin(w * dt)
+        vx0, vy0 = c * vx + s * vy, -s * vx + c * vy
+        share, share0 = vr / hs, (lx * vx0 + ly * vy0) / (rho * hs)
+        k = self.clear_share
+        out_clear = torch.sigmoid((-k - share) / self.share_soft) * torch.sigmoid((share0 + k) / self.share_soft)
+        in_clear = torch.sigmoid((share - k) / self.share_soft) * torch.sigmoid((k - share0) / self.share_soft)
+        near_out = torch.sigmoid((rho - (self.outer - self.clear_margin)) / self.range_soft)
+        near_in = torch.sigmoid(((self.inner + self.clear_margin) - rho) / self.range_soft)
+        at_rate = torch.exp(-0.5 * ((w.abs() - self.rate_deg * DEG) / (self.rate_tol_deg * DEG)) ** 2)
+        clear = (out_clear * near_out + in_clear * near_in).clamp(max=1.0) * at_rate
+        return onset_pos, onset_neg, clear
+
+
+def guarded_transition(
+    Pi: torch.Tensor,
+    events: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    modes: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The transition matrix per track ``[B, M, M]`` (rows: from, columns: to) and the bound-turn
+    share of each entry ``[B, M, M]``.
+
+    ``Pi [M, M]``: the Markov matrix; ``events``: ``RangeGuard.events`` of each source filter, each
+    ``[B, M]``; ``modes [M]``: each filter's data mode (0 CV, 1 CA, 2 CT+, 3 CT-). An event's target
+    mode is shared evenly among the filters of that mode; a clear applies to turn filters only, and a
+    model set without the target mode ignores the event.
+    """
+    onset_pos, onset_neg, clear = events
+    dtype = onset_pos.dtype
+
+    def target(mode: int) -> torch.Tensor:
+        hit = (modes == mode).to(dtype)
+        return hit / hit.sum().clamp_min(1.0)
+
+    to_pos, to_neg, to_cv = target(2), target(3), target(0)
+    is_turn = (modes >= 2).to(dtype)
+    onset_pos = onset_pos * to_pos.sum()
+    onset_neg = onset_neg * to_neg.sum()
+    clear = clear * is_turn * to_cv.sum()
+    # the events are exclusive (the ramps may overlap a little); g stays below 1 so that every mode keeps
+    # some prior mass (a certain event would leave the others' mixing weights 0 / 0)
+    g = (onset_pos + onset_neg + clear).clamp(max=G_MAX)
+    scale = torch.where(g > 0, g / (onset_pos + onset_neg + clear).clamp_min(1e-30), torch.zeros_like(g))
+    onset_pos, onset_neg, clear = onset_pos * scale, onset_neg * scale, clear * scale
+    bound = onset_pos[..., None] * to_pos + onset_neg[..., None] * to_neg  # [B, i, j]
+    Pi_eff = (1 - g)[..., None] * Pi.to(dtype) + bound + clear[..., None] * to_cv
+    return Pi_eff, (bound / Pi_eff.clamp_min(1e-30)).clamp(max=1.0)
+
+
+def blend_rate(y: torch.Tensor, P: torch.Tensor, share: torch.Tensor, rate: torch.Tensor, var: float, index: int):
+    """What enters a turn filter when a ``share [...]`` of that entry is a bound turn: the two-component
+    mixture of ``N(y, P)`` (``y [..., n]``, ``P [..., n, n]``: the scheduled entry, or the filter's own
+    posterior for its own mode) and the same with the rate (``y[index]``) replaced by ``N(rate, var)``,
+    moment-matched. The rate's cross-covariances shrink by ``1 - share``; its variance takes the spread
+    of the two means."""
+    a = share.to(y.dtype)
+    old, old_var = y[..., index], P[..., index, index]
+    y = y.clone()
+    y[..., index] = (1 - a) * old + a * rate
+    keep = torch.ones_like(y)
+    keep[..., index] = 1 - a
+    P = P * keep[..., :, None] * keep[..., None, :]
+    P[..., index, index] = (1 - a) * old_var + a * var + a * (1 - a) * (old - rate) ** 2
+    return y, P
