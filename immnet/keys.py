@@ -51,6 +51,7 @@ NOISE_SUM = ("memory", "r2_sum")  # its sum of (d^3 z)^2 / 20 [B]
 NOISE_COUNT = ("memory", "r2_count")  # and the number of terms [B]
 Z_HISTORY = ("memory", "z_history")  # z_{t-1}, z_{t-2}, z_{t-3} [B, 3, 3] (NaN = none)
 MODE_LOGITS = ("mode", "logits")  # [B, M]
+MODE_TRANSITION = ("mode", "transition")  # a guarded interaction's transition matrix Pi[b, from, to] [B, M, M]
 EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M]
 HISTORY = ("memory", "history")  # classifier window [B, W, 12]: z_tau and x_{tau-1|tau-1}
 HISTORY_LEN = ("memory", "history_len")  # valid entries of the window [B]

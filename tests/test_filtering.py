@@ -273,17 +273,31 @@ def test_bayes_mode_update_from_filter_experts_is_the_imm_mode_update(data):
         np.testing.assert_allclose(carry.get(keys.EXPERT_PROBS).numpy(), expected, rtol=1e-6, atol=1e-10)
 
 
-def _mix_reference(y, P, mu, Pi, own_acc, turn_sign):
-    """The IMM's mixing with the generator's onset priors, one track at a time in numpy."""
+def _mix_reference(y, P, mu, Pi, own_acc, turn_sign, bound=None, bound_rate=0.0, bound_var=0.0):
+    """The IMM's mixing with the generator's onset priors, one track at a time in numpy. ``Pi`` is
+    ``[M, M]`` or one per track ``[B, M, M]``; ``bound [B, M, M]``, where given, is the part of each
+    transition that enters a turn at a range bound: a mixture component of its own, whose rate is
+    ``turn_sign[j] * bound_rate`` with variance ``bound_var``."""
     acc_var = [(3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0] * 2 + [0.6**2 / 12.0]
     w_mean, w_var = 5.5 * math.pi / 180.0, (9.0 * math.pi / 180.0) ** 2 / 12.0
     B, M, _ = y.shape
     y0, P0 = np.zeros((B, M, 10)), np.zeros((B, M, 10, 10))
+    Pis = np.broadcast_to(Pi, (B, M, M))
     for b in range(B):
+        Pi = Pis[b]
         cbar = Pi.T @ mu[b]
         for j in range(M):
             parts = []
             for i in range(M):
+                if bound is not None and bound[b, i, j] > 0:
+                    yb, Pb = y[b, i].copy(), P[b, i].copy()
+                    yb[9] = turn_sign[j] * bound_rate
+                    Pb[9, :] = Pb[:, 9] = 0.0
+                    Pb[9, 9] = bound_var
+                    if i != j and own_acc[j]:
+                        raise AssertionError("a bound turn enters a turn filter only")
+                    parts.append((mu[b, i] * bound[b, i, j] / cbar[j], yb, Pb))
+                scheduled = Pi[i, j] - (0.0 if bound is None else bound[b, i, j])
                 yi, Pi_ = y[b, i].copy(), P[b, i].copy()
                 if i != j and own_acc[j]:
                     for a, v in zip((2, 5, 8), acc_var):
@@ -294,7 +308,7 @@ def _mix_reference(y, P, mu, Pi, own_acc, turn_sign):
                     yi[9] = turn_sign[j] * w_mean
                     Pi_[9, :] = Pi_[:, 9] = 0.0
                     Pi_[9, 9] = w_var
-                parts.append((mu[b, i] * Pi[i, j] / cbar[j], yi, Pi_))
+                parts.append((mu[b, i] * scheduled / cbar[j], yi, Pi_))
             y0[b, j] = sum(w * yi for w, yi, _ in parts)
             P0[b, j] = sum(w * (Pk + np.outer(yi - y0[b, j], yi - y0[b, j])) for w, yi, Pk in parts)
     return y0, P0
@@ -325,7 +339,60 @@ def test_imm_interaction_is_the_imm_mixing_with_onset_priors():
         FilterPredict(ms, 1.0, interaction="mixed")
 
 
-def test_imm_interaction_with_base_noise_and_bayes_update_tracks_like_the_imm_ekf():
+def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_and_a_bound_turn_component():
+    from tensordict import TensorDict
+
+    from immnet.filters.guard import G_MAX, RangeGuard
+    from immnet.stages.filtering import FilterPredict
+
+    ms = ModelSet.from_config(ADAPTIVE)
+    guard = RangeGuard()
+    stage = FilterPredict(ms, 1.0, interaction="imm", p_stay=0.97, guard=True).double()
+    g = torch.Generator().manual_seed(4)
+    B, M = 6, 4
+    A = torch.randn(B, M, 10, 10, generator=g, dtype=torch.float64)
+    P = A @ A.transpose(-1, -2) + 0.1 * torch.eye(10, dtype=torch.float64)
+    y = torch.randn(B, M, 10, generator=g, dtype=torch.float64)
+    # tracks 0-1 beyond the outer bound flying out (one each way round), 2 within the inner flying in,
+    # 3 in a turn just past the clear, 4-5 inside the region: the filters' estimates scatter around these
+    base = [(34_000, 0, 150, 60), (0, 33_500, 40, 180), (3_000, 500, -120, 30), (0, 34_000, -110, -100),
+            (20_000, 5_000, 100, 0), (10_000, -9_000, -50, 200)]
+    for b, (lx, ly, vx, vy) in enumerate(base):
+        y[b, :, [0, 3, 1, 4]] = torch.tensor([lx, ly, vx, vy], dtype=torch.float64) + 5 * y[b, :, [0, 3, 1, 4]]
+    y[:, :, 9] = torch.tensor([0.0, 0.0, 1.0, -1.0], dtype=torch.float64) * 8.0 * math.pi / 180 + 0.01 * y[:, :, 9]
+    mu = torch.softmax(torch.randn(B, M, generator=g, dtype=torch.float64) * 2, -1)
+    td = TensorDict({keys.EXPERT_POST: y[..., :9], keys.EXPERT_RATE: y[..., 9], keys.EXPERT_AUG_COV: P,
+                     keys.EXPERT_PROBS: mu, keys.FUSED: y[:, 0, :9]}, batch_size=[B])
+    y0, P0 = stage._mix(td)
+    # the transition matrix per track, from the guard's events of each filter's estimate
+    pos, neg, clear = (e.numpy() for e in guard.events(y[..., :9], y[..., 9], 1.0))
+    clear = clear * np.array([0, 0, 1, 1])
+    gsum = pos + neg + clear
+    assert gsum.max() > 0.9 and gsum[4:].max() < 1e-6, "the tracks must both meet and miss the bounds"
+    cap = np.minimum(1.0, G_MAX / np.maximum(gsum, 1e-300))  # no event is made certain
+    pos, neg, clear, gsum = pos * cap, neg * cap, clear * cap, gsum * cap
+    Pi = np.full((M, M), 0.01)
+    np.fill_diagonal(Pi, 0.97)
+    Pi_b = np.zeros((B, M, M))
+    bound = np.zeros((B, M, M))
+    for b in range(B):
+        for i in range(M):
+            Pi_b[b, i] = (1 - gsum[b, i]) * Pi[i]
+            Pi_b[b, i, 2] += pos[b, i]
+            Pi_b[b, i, 3] += neg[b, i]
+            Pi_b[b, i, 0] += clear[b, i]
+            bound[b, i, 2], bound[b, i, 3] = pos[b, i], neg[b, i]
+    torch.testing.assert_close(td.get(keys.MODE_TRANSITION), torch.from_numpy(Pi_b), rtol=1e-10, atol=1e-12)
+    ry0, rP0 = _mix_reference(y.numpy(), P.numpy(), mu.numpy(), Pi_b, [False, True, False, False], [0, 0, 1, -1],
+                              bound=bound, bound_rate=8.0 * math.pi / 180, bound_var=(0.2 * math.pi / 180) ** 2)
+    np.testing.assert_allclose(y0.numpy(), ry0, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(P0.numpy(), rP0, rtol=1e-9, atol=1e-7)
+    with pytest.raises(ValueError, match="interaction='imm'"):
+        FilterPredict(ms, 1.0, interaction="fused", guard=True)
+
+
+@pytest.mark.parametrize("guard", [False, True], ids=["markov", "range-guard"])
+def test_imm_interaction_with_base_noise_and_bayes_update_tracks_like_the_imm_ekf(guard):
     """Nothing learned, the IMM's mode update: IMMNet's filter experts with the IMM interaction are the
     IMM-EKF baseline but for the track start (two measurements against one), so their errors agree."""
     from immnet.evaluation.metrics import position_error, rmse
@@ -333,13 +400,13 @@ def test_imm_interaction_with_base_noise_and_bayes_update_tracks_like_the_imm_ek
 
     data = generate(40, seed=8)
     gain = {"class_path": "immnet.stages.filtering.FilterGain",
-            "init_args": {"noise_std": [0.2, 0.2, 0.0, 0.0, 0.0], "interaction": "imm", "p_stay": 0.995}}
+            "init_args": {"noise_std": [0.2, 0.2, 0.0, 0.0, 0.0], "interaction": "imm", "p_stay": 0.995, "guard": guard}}
     bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"p_stay": 0.995, "from_experts": True}}
     net = IMMNet(model_set=ADAPTIVE, gain=gain, classifier=bayes).double()
     with torch.no_grad():
         out, _ = net.rollout(data[keys.MEASUREMENTS])
     ours = rmse(position_error(out[keys.STATE], data[keys.STATES]))["avg"]
-    ekf = rmse(position_error(IMMEKF().track(data)[keys.STATE], data[keys.STATES]))["avg"]
+    ekf = rmse(position_error(IMMEKF(guard=guard).track(data)[keys.STATE], data[keys.STATES]))["avg"]
     assert abs(ours / ekf - 1.0) < 0.02, (ours, ekf)
 
 
@@ -367,3 +434,30 @@ def test_bayes_transformer_classifier_starts_as_the_imm_mode_update(data):
     # atol 1e-6: BayesianModeUpdate keeps log(Pi) in float32
     torch.testing.assert_close(probs[1], probs[0], rtol=0, atol=1e-6)
     assert probs[0][:, 3:].std() > 0.01  # the probabilities move: the comparison is not between constants
+
+
+@pytest.mark.parametrize("classifier", ["immnet.stages.BayesianModeUpdate", "immnet.stages.BayesTransformerClassifier"])
+def test_bayes_mode_updates_predict_with_the_guarded_transitions(classifier):
+    """With a guard, ``mu_t ∝ N(nu; 0, S) (Pi_t^T mu_{t-1})`` with the step's own transition matrix
+    ``Pi_t`` (``("mode", "transition")``), not the classifier's fixed one; checked scan by scan in numpy
+    on generated trajectories that meet the range bounds (the Transformer's correction starts at zero)."""
+    data = generate(6, seed=31)
+    gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {"interaction": "imm", "guard": True}}
+    args = {"p_stay": 0.995} | ({"from_experts": True} if classifier.endswith("Update") else {})
+    net = IMMNet(model_set=ADAPTIVE, gain=gain, classifier={"class_path": classifier, "init_args": args}).double()
+    z = data[keys.MEASUREMENTS].double()
+    carry = net.initial_carry(z.shape[0], dtype=torch.float64)
+    moved = 0.0
+    with torch.no_grad():
+        for t in range(z.shape[1]):
+            prev = carry.get(keys.EXPERT_PROBS).numpy()
+            carry = net.scan(carry, z[:, t])
+            if t < 3:
+                continue
+            Pi = carry.get(keys.MODE_TRANSITION).numpy()
+            logp = np.log(np.einsum("bi,bij->bj", prev, Pi)) + carry.get(keys.EXPERT_LOGLIK).numpy()
+            expected = np.exp(logp - logp.max(-1, keepdims=True))
+            expected /= expected.sum(-1, keepdims=True)
+            np.testing.assert_allclose(carry.get(keys.EXPERT_PROBS).numpy(), expected, rtol=1e-6, atol=1e-9)
+            moved = max(moved, float(np.abs(Pi - np.diag([0.995] * 4) - (1 - np.eye(4)) * 0.005 / 3).max()))
+    assert moved > 0.5, "the guard never fired: the check would not tell the transitions apart"

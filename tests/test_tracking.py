@@ -107,3 +107,29 @@ def test_checkpoint_errors(tmp_path):
     (tmp_path / "junk.ckpt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="not a readable checkpoint"):
         Tracker.from_checkpoint(tmp_path / "junk.ckpt")
+
+
+def test_track_guard_option_matches_the_python_api(tmp_path, capsys):
+    """``--guard none`` / ``OUTER,INNER`` load the shipped weights with no range guard / another region,
+    as ``Tracker.pretrained(guard=...)`` does; the region changes the tracks that fly beyond it."""
+    from immnet.tracking.tracker import PRETRAINED
+
+    z = generate(4, seed=31, spec=DataSpec(T=60, min_segment=20))["measurements"].float().numpy()
+    np.savez(tmp_path / "in.npz", measurements=z, dt=1.0)
+    outs = {}
+    for text, guard in (("none", None), ("15000,4000", {"outer": 15_000.0, "inner": 4_000.0})):
+        assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz"), "--guard", text]) == 0
+        outs[text] = np.load(tmp_path / "out.npz")["state"]
+        api = Tracker.from_checkpoint(PRETRAINED, guard=guard).track(torch.from_numpy(z))
+        np.testing.assert_allclose(outs[text], api["state"].numpy(), rtol=1e-5, atol=1e-4)
+    rho = np.hypot(z[..., 0], z[..., 1])
+    assert (rho > 15_000).any(), "no track flies beyond the region: the comparison below would be empty"
+    assert np.abs(outs["none"] - outs["15000,4000"]).max() > 0.1
+    capsys.readouterr()
+    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz"), "--guard", "far"]) == 2
+    assert "--guard must be 'checkpoint', 'none' or 'OUTER,INNER'" in capsys.readouterr().err
+
+
+def test_a_guard_needs_filter_experts(checkpoint):
+    with pytest.raises(ValueError, match="range guard needs filter experts"):
+        Tracker.from_checkpoint(checkpoint, guard=None)

@@ -149,8 +149,15 @@ class TransformerClassifier(Stage):
         return td
 
 
-def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor) -> torch.Tensor:
-    """The IMM's predicted mode log-probabilities ``log (Pi^T mu_{t-1})`` ``[B, M]`` from ``mu_{t-1} [B, M]``."""
+def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, td=None) -> torch.Tensor:
+    """The IMM's predicted mode log-probabilities ``log (Pi^T mu_{t-1})`` ``[B, M]`` from ``mu_{t-1} [B, M]``.
+
+    Where the step's interaction wrote a transition matrix per track (``("mode", "transition")``, a
+    guarded IMM: ``immnet.filters.guard``) it is used instead of ``log_pi``, so that the mode update
+    predicts with the transitions the experts were mixed with."""
+    transition = None if td is None else td.get(keys.MODE_TRANSITION, None)
+    if transition is not None:
+        return torch.log((prev.unsqueeze(-1) * transition.to(prev.dtype)).sum(1).clamp_min(1e-30))
     return torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + log_pi, dim=1)
 
 
@@ -211,7 +218,7 @@ class BayesianModeUpdate(Stage):
             loglik = self.log_norm - 0.5 * torch.einsum("bmi,mij,bmj->bm", nu, self.S_inv, nu)
             loglik = torch.where(has_z, loglik, 0.0)
         prev = td.get(keys.EXPERT_PROBS)
-        log_pred = markov_prior(prev, self.log_pi)
+        log_pred = markov_prior(prev, self.log_pi, td)
         logits = log_pred + loglik
         td.set(keys.MODE_LOGITS, logits)
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
@@ -245,7 +252,7 @@ class BayesTransformerClassifier(TransformerClassifier):
 
     def forward(self, td):
         prev = td.get(keys.EXPERT_PROBS)
-        bayes = markov_prior(prev, self.log_pi.to(prev.dtype)) + td.get(keys.EXPERT_LOGLIK)
+        bayes = markov_prior(prev, self.log_pi.to(prev.dtype), td) + td.get(keys.EXPERT_LOGLIK)
         td = super().forward(td)
         logits = bayes + td.get(keys.MODE_LOGITS)
         td.set(keys.MODE_LOGITS, logits)

@@ -38,6 +38,7 @@ import torch
 
 from immnet import keys
 from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
+from immnet.filters.guard import RangeGuard, blend_rate, guarded_transition
 from immnet.filters.kalman import inv3
 from immnet.filters.trackers import transition_matrix
 from immnet.motion import ACC, POS, VEL, ModelSet, ct_propagate, noise_gain
@@ -126,11 +127,16 @@ def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
     return out
 
 
-def _check_interaction(interaction: str, p_stay: float) -> None:
+def _check_interaction(interaction: str, p_stay: float, guard=None) -> RangeGuard | None:
+    """Checks the interaction's arguments; returns the guard (``RangeGuard.from_config``)."""
     if interaction not in ("fused", "imm"):
         raise ValueError(f"interaction must be 'fused' or 'imm', got {interaction!r}")
     if not 0.0 < p_stay < 1.0:
         raise ValueError(f"p_stay must be in (0, 1), got {p_stay}")
+    guard = RangeGuard.from_config(guard)
+    if guard is not None and interaction != "imm":
+        raise ValueError("a guard changes the IMM's transition matrix: it needs interaction='imm'")
+    return guard
 
 
 class FilterPredict(Predict):
@@ -144,15 +150,23 @@ class FilterPredict(Predict):
     onset prior for what ``j`` keeps of its own: a CA expert's acceleration (mean 0, the draw's
     variance), a turn expert's rate (``+/- 5.5`` deg/s, standard deviation 2.6 deg/s), as
     ``immnet.filters.IMMEKF`` does. Experts alone (stage 1) start from their own posterior either way.
+
+    ``guard`` (``immnet.filters.guard.RangeGuard``, or its fields as a dict; ``True`` for 3D-LAST's)
+    makes ``Pi`` state-dependent, per track and source expert, from each expert's previous posterior,
+    gives a turn entered at a range bound the bound's rate, and writes the transition matrix
+    (``("mode", "transition")``) for a Bayesian classifier to predict the modes with.
     """
 
     in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV, keys.EXPERT_PROBS]
     out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV]
 
-    def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995):
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995,
+                 guard=None):
         super().__init__(model_set, dt)
-        _check_interaction(interaction, p_stay)
+        self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction = interaction
+        if self.guard is not None:
+            self.out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV, keys.MODE_TRANSITION]
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         M = len(model_set)
         f64 = torch.float64  # float64, so that a .double() model is exact
@@ -180,6 +194,10 @@ class FilterPredict(Predict):
         self.register_buffer("own_rate", torch.tensor(own_rate))
         self.register_buffer("rate_lo", torch.tensor(lo))
         self.register_buffer("rate_hi", torch.tensor(hi))
+        modes = model_set.modes
+        self.register_buffer("data_modes", modes, persistent=False)
+        bound_sign = torch.where(modes == 2, 1.0, torch.where(modes == 3, -1.0, 0.0)) * torch.tensor(own_rate, dtype=f64)
+        self.register_buffer("bound_sign", bound_sign, persistent=False)  # a bound turn's rate sign per expert (0: none)
         # the Jacobian's constant part: F for the constant models, for a turn expert F_CT's entries
         # that do not depend on w (position and the vertical CV block, w's own 1); the rest of a turn
         # expert's Jacobian is written at _TURN_ENTRIES each scan
@@ -199,10 +217,18 @@ class FilterPredict(Predict):
         P = td.get(keys.EXPERT_AUG_COV)
         mu = td.get(keys.EXPERT_PROBS)
         Pi = self.Pi.to(y.dtype)
-        w = mu.unsqueeze(-1) * Pi / (mu @ Pi).unsqueeze(-2)  # mu_{i|j} [B, i, j]
+        if self.guard is not None:  # per track and source expert [B, i, j]; a prior: no gradient flows through it
+            with torch.no_grad():
+                Pi, share = guarded_transition(Pi, self.guard.events(y[..., :9], y[..., RATE], self.dt), self.data_modes)
+            share = share * (self.bound_sign != 0).to(share.dtype)
+            td.set(keys.MODE_TRANSITION, Pi)
+        w = mu.unsqueeze(-1) * Pi / (mu.unsqueeze(-1) * Pi).sum(-2, keepdim=True)  # mu_{i|j} [B, i, j]
         keep = self.mix_keep.to(y.dtype)
         yc = y.unsqueeze(2) * keep + self.mix_mean.to(y.dtype)  # [B, i, j, 10]
         Pc = P.unsqueeze(2) * (keep.unsqueeze(-1) * keep.unsqueeze(-2)) + self.mix_cov.to(y.dtype)
+        if self.guard is not None:  # a turn entered (or re-entered) at a range bound has the bound's rate
+            rate = self.bound_sign.to(y.dtype) * (self.guard.rate_deg * math.pi / 180.0)
+            yc, Pc = blend_rate(yc, Pc, share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
         y0 = (w.unsqueeze(-1) * yc).sum(1)
         d = yc - y0.unsqueeze(1)
         P0 = (w[..., None, None] * (Pc + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(1)
@@ -283,11 +309,11 @@ class _FilterExperts:
 
     def predict_stage(self, model_set: ModelSet, dt: float) -> FilterPredict:
         """The predict stage these experts need, with this gain's interaction (``FilterPredict``)."""
-        return FilterPredict(model_set, dt, self.interaction, self.p_stay)
+        return FilterPredict(model_set, dt, self.interaction, self.p_stay, self.guard)
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
-                     interaction: str = "fused", p_stay: float = 0.995):
-        _check_interaction(interaction, p_stay)
+                     interaction: str = "fused", p_stay: float = 0.995, guard=None):
+        self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction, self.p_stay = interaction, float(p_stay)
         if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
             raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")
@@ -423,9 +449,10 @@ class FilterGain(_FilterExperts, Stage):
         rate_std0_deg: float = 5.0,
         interaction: str = "fused",
         p_stay: float = 0.995,
+        guard: bool | dict | None = None,
     ):
         super().__init__(model_set)
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -469,6 +496,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         rate_std0_deg: float = 5.0,
         interaction: str = "fused",
         p_stay: float = 0.995,
+        guard: bool | dict | None = None,
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
@@ -482,7 +510,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
         del self.K_ss  # the base gain is the filter's own
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def forward(self, td):

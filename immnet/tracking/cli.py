@@ -18,13 +18,34 @@ def register(subparsers) -> None:
     p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
     p.add_argument("--checkpoint", default=None, help="Lightning checkpoint (default: the shipped weights)")
+    p.add_argument(
+        "--guard", default="checkpoint",
+        help="range guard: 'checkpoint' (as trained; the shipped weights: 3D-LAST's region, turns back beyond 33 km "
+             "and within 4 km), 'none' (data from another region), or 'OUTER,INNER' in metres",
+    )
     p.set_defaults(func=run)
+
+
+def parse_guard(text: str):
+    """``--guard``: ``checkpoint``, ``none`` or ``OUTER,INNER`` (metres) -> ``load_network``'s guard."""
+    from immnet.tracking.tracker import KEEP
+
+    text = text.strip().lower()
+    if text == KEEP:
+        return KEEP
+    if text == "none":
+        return None
+    try:
+        outer, inner = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--guard must be 'checkpoint', 'none' or 'OUTER,INNER' in metres, got {text!r}") from None
+    return {"outer": outer, "inner": inner}
 
 
 def run(args) -> int:
     from immnet.tracking.tracker import PRETRAINED, Tracker
 
-    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED)
+    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard))
     suffix_in, suffix_out = args.input.suffix.lower(), args.output.suffix.lower()
     if suffix_in not in (".csv", ".npz") or suffix_out != suffix_in:
         raise ValueError(f"--input and --output must both be .csv or both .npz (got {args.input.name}, {args.output.name})")

@@ -8,10 +8,15 @@
 Tracks start and end independently: ``step(z, reset=mask)`` restarts the tracks in ``mask`` (a new
 target on that slot); a track starts from its first two measurements (see ``immnet.stages.network``).
 ``step`` over a sequence gives the same numbers as the batched ``track``.
+
+The recipes' models carry a range guard (``immnet.filters.guard``): 3D-LAST's surveillance region,
+where a target turns back beyond 33 km and within 4 km of the radar. For data from another region,
+load with ``guard=None`` (no guard) or ``guard={"outer": ..., "inner": ...}`` (``immnet track --guard``).
 """
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import torch
@@ -23,8 +28,15 @@ from immnet.stages import IMMNet
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet.ckpt"
 
 
-def load_network(path: str | Path) -> IMMNet:
-    """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights."""
+KEEP = "checkpoint"  # load_network's guard: as the checkpoint was trained
+
+
+def load_network(path: str | Path, guard=KEEP) -> IMMNet:
+    """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
+
+    ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
+    (``True`` for 3D-LAST's, or a dict of ``RangeGuard`` fields); it has no weights, so any choice loads.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
@@ -34,7 +46,13 @@ def load_network(path: str | Path) -> IMMNet:
         raise ValueError(f"{path} is not a readable checkpoint: {err}") from None
     if "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
         raise ValueError(f"{path} is not an IMMNet checkpoint (no state_dict / hyper_parameters)")
-    net = IMMNet(**(ckpt["hyper_parameters"].get("net") or {}))
+    config = copy.deepcopy(ckpt["hyper_parameters"].get("net") or {})
+    if not (isinstance(guard, str) and guard == KEEP):
+        gain = config.get("gain") or {}
+        if "filtering" not in gain.get("class_path", ""):
+            raise ValueError(f"{path}: a range guard needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
+        config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), "guard": guard}}
+    net = IMMNet(**config)
     state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
     net.load_state_dict(state)
     return net.eval()
@@ -48,13 +66,15 @@ class Tracker:
         self.carry: TensorDict | None = None
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path) -> "Tracker":
-        return cls(load_network(path))
+    def from_checkpoint(cls, path: str | Path, guard=KEEP) -> "Tracker":
+        """The IMMNet of a checkpoint; ``guard`` as in ``load_network``."""
+        return cls(load_network(path, guard))
 
     @classmethod
-    def pretrained(cls) -> "Tracker":
-        """The weights shipped inside the package (see ``immnet/pretrained/PROVENANCE.md``)."""
-        return cls.from_checkpoint(PRETRAINED)
+    def pretrained(cls, guard=KEEP) -> "Tracker":
+        """The weights shipped inside the package (see ``immnet/pretrained/PROVENANCE.md``); they carry
+        3D-LAST's range guard: ``guard=None`` for data from another surveillance region."""
+        return cls.from_checkpoint(PRETRAINED, guard)
 
     def reset(self, n_tracks: int) -> None:
         self.carry = self.net.initial_carry(n_tracks)
