@@ -76,11 +76,14 @@ def training(module, batch, repeats: int = 5) -> float:
 
 
 MODELS = {  # label: the gain's and the classifier's YAML entries (None: IMMNet's default classifier)
-    "the recipes' (filter experts, IMM interaction, Bayes + Transformer)": (
+    "the recipes' (filter experts, IMM interaction with the range guard, Bayes + Transformer)": (
+        {"class_path": "immnet.stages.filtering.KalmanNetFilterGain", "init_args": {"interaction": "imm", "guard": True}},
+        {"class_path": "immnet.stages.BayesTransformerClassifier"},
+    ),
+    "the same without the guard": (
         {"class_path": "immnet.stages.filtering.KalmanNetFilterGain", "init_args": {"interaction": "imm"}},
         {"class_path": "immnet.stages.BayesTransformerClassifier"},
     ),
-    "filter experts, fused input, Transformer": ({"class_path": "immnet.stages.filtering.KalmanNetFilterGain"}, None),
     "the paper's (KalmanNetGain, Transformer)": ({"class_path": "immnet.stages.KalmanNetGain"}, None),
 }
 

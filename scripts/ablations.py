@@ -16,6 +16,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "runs/quick"
 ABLATIONS = {  # name: (base recipe, needs the quick stage-1 experts)
+    "no-guard": ("recipes/quick-stage2.yaml", True),
     "uniform-mix": ("recipes/quick-stage2.yaml", True),
     "bayes-mode": ("recipes/quick-stage2.yaml", True),
     "transformer-mode": ("recipes/quick-stage2.yaml", True),
@@ -61,6 +62,7 @@ def main() -> int:
     data, _ = load_dataset(QUICK / "data/test")
     methods = {
         "immnet (full)": IMMNetMethod(QUICK / "stage2/checkpoints/best.ckpt", name="immnet (full)"),
+        "range guard removed (Markov transitions alone)": IMMNetMethod(ckpt("no-guard")),
         "classifier -> uniform mix": IMMNetMethod(ckpt("uniform-mix")),
         "classifier -> IMM Bayesian update alone": IMMNetMethod(ckpt("bayes-mode")),
         "classifier -> Transformer alone (the paper's)": IMMNetMethod(ckpt("transformer-mode")),
@@ -70,6 +72,7 @@ def main() -> int:
         "adaptive -> fixed +/-5 deg/s turn experts": IMMNetMethod(ckpt("fixed-turn-rate")),
         "the paper's experts and classifier (KalmanNet gain, Transformer)": IMMNetMethod(ckpt("kalmannet-experts")),
         "imm-ekf": build_method("imm-ekf"),
+        "imm-ekf-guard": build_method("imm-ekf-guard"),
         "clairvoyant": build_method("clairvoyant"),
     }
     rows = to_json(evaluate(methods, data, progress=True))

@@ -63,3 +63,6 @@ def test_ablation_overrides_a_quick_stage(ablation, capsys):
         # ... with the quick recipe's IMM interaction, but where the interaction is the point
         interaction = ((net.get("gain") or {}).get("init_args") or {}).get("interaction")
         assert interaction == ("fused" if ablation.stem == "fused-input" else "imm"), f"{ablation.name}: interaction {interaction}"
+        # ... and the quick recipe's range guard, but where the guard is the point (the fused input has none)
+        guard = ((net.get("gain") or {}).get("init_args") or {}).get("guard")
+        assert bool(guard) == (ablation.stem not in ("no-guard", "fused-input")), f"{ablation.name}: guard {guard}"
