@@ -45,7 +45,7 @@ def train(name: str) -> None:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--skip-training", action="store_true", help="only evaluate existing checkpoints")
-    p.add_argument("--only", nargs="*", default=None, help="train only these ablations")
+    p.add_argument("--only", nargs="*", default=None, help="train and score only these ablations (beside the full model and the references)")
     a = p.parse_args()
     if not a.skip_training:
         for name in a.only or ABLATIONS:
@@ -60,21 +60,27 @@ def main() -> int:
     from immnet.tracking import IMMNetMethod, KalmanNetMethod
 
     data, _ = load_dataset(QUICK / "data/test")
-    methods = {
-        "immnet (full)": IMMNetMethod(QUICK / "stage2/checkpoints/best.ckpt", name="immnet (full)"),
-        "range guard removed (Markov transitions alone)": IMMNetMethod(ckpt("no-guard")),
-        "classifier -> uniform mix": IMMNetMethod(ckpt("uniform-mix")),
-        "classifier -> IMM Bayesian update alone": IMMNetMethod(ckpt("bayes-mode")),
-        "classifier -> Transformer alone (the paper's)": IMMNetMethod(ckpt("transformer-mode")),
-        "IMM interaction -> fused input (SPEC's predict)": IMMNetMethod(ckpt("fused-input")),
-        "KalmanNet -> analytic gain (fixed noise)": IMMNetMethod(ckpt("analytic-gain")),
-        "single expert (plain KalmanNet, CA)": KalmanNetMethod(ckpt("single-expert"), expert="ca"),
-        "adaptive -> fixed +/-5 deg/s turn experts": IMMNetMethod(ckpt("fixed-turn-rate")),
-        "the paper's experts and classifier (KalmanNet gain, Transformer)": IMMNetMethod(ckpt("kalmannet-experts")),
-        "imm-ekf": build_method("imm-ekf"),
-        "imm-ekf-guard": build_method("imm-ekf-guard"),
-        "clairvoyant": build_method("clairvoyant"),
+    rows_of = {  # ablation: (row label, method)
+        "no-guard": ("range guard removed (Markov transitions alone)", lambda: IMMNetMethod(ckpt("no-guard"))),
+        "uniform-mix": ("classifier -> uniform mix", lambda: IMMNetMethod(ckpt("uniform-mix"))),
+        "bayes-mode": ("classifier -> IMM Bayesian update alone", lambda: IMMNetMethod(ckpt("bayes-mode"))),
+        "transformer-mode": ("classifier -> Transformer alone (the paper's)", lambda: IMMNetMethod(ckpt("transformer-mode"))),
+        "fused-input": ("IMM interaction -> fused input (SPEC's predict; no guard)", lambda: IMMNetMethod(ckpt("fused-input"))),
+        "analytic-gain": ("KalmanNet -> analytic gain (fixed noise)", lambda: IMMNetMethod(ckpt("analytic-gain"))),
+        "single-expert": ("single expert (plain KalmanNet, CA)", lambda: KalmanNetMethod(ckpt("single-expert"), expert="ca")),
+        "fixed-turn-rate": ("adaptive -> fixed +/-5 deg/s turn experts", lambda: IMMNetMethod(ckpt("fixed-turn-rate"))),
+        "kalmannet-experts": ("the paper's experts and classifier (KalmanNet gain, Transformer; no guard)",
+                              lambda: IMMNetMethod(ckpt("kalmannet-experts"))),
     }
+    unknown = set(a.only or ()) - set(rows_of)
+    if unknown:
+        raise SystemExit(f"unknown ablation(s) {sorted(unknown)}; known: {sorted(rows_of)}")
+    methods = {"immnet (full)": IMMNetMethod(QUICK / "stage2/checkpoints/best.ckpt", name="immnet (full)")}
+    for name in a.only or rows_of:
+        label, make = rows_of[name]
+        methods[label] = make()
+    methods |= {"imm-ekf": build_method("imm-ekf"), "imm-ekf-guard": build_method("imm-ekf-guard"),
+                "clairvoyant": build_method("clairvoyant")}
     rows = to_json(evaluate(methods, data, progress=True))
     print(format_table(rows))
     out = ROOT / "runs/ablations/results.md"

@@ -64,6 +64,7 @@ def main() -> int:
         "date": datetime.date.today().isoformat(),
         "commit": commit,
         "model_set": Tracker.pretrained().net.model_set.names,
+        "guard": (lambda g: g.to_config() if g is not None else None)(Tracker.pretrained().net.predict.guard),
         "data": {"stage1": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
                  "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)",
                  "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)"},
@@ -82,7 +83,14 @@ def main() -> int:
         f"`immnet.ckpt` ({(OUT / 'immnet.ckpt').stat().st_size / 2**20:.1f} MB): IMMNet with experts "
         f"{', '.join(prov['model_set'])}, trained by `{prov['recipe']}` at commit `{commit[:10]}` "
         f"({prov['date']}) and exported by `{prov['made_by']}`.\n\n"
-        f"Training data: stage 1 {prov['data']['stage1']}, with the single-mode data {prov['data']['stage1_single_mode']}; "
+        + (
+            "It carries a range guard (`immnet/filters/guard.py`: 3D-LAST's surveillance region, where a target turns "
+            f"back beyond {prov['guard']['outer']:.0f} m and within {prov['guard']['inner']:.0f} m of the radar). For radar "
+            "data from another region load it with `Tracker.pretrained(guard=None)` or a region of your own, or run "
+            "`immnet track --guard none` (or `--guard OUTER,INNER`).\n\n"
+            if prov["guard"] else ""
+        )
+        + f"Training data: stage 1 {prov['data']['stage1']}, with the single-mode data {prov['data']['stage1_single_mode']}; "
         f"stage 2 {prov['data']['stage2']}.\n\n"
         f"Test set: {TEST_N} fresh trajectories (seed {TEST_SEED}). RMSE of position in metres:\n\n"
         + format_markdown(rows)
