@@ -2,6 +2,7 @@
 the analytic gains (the paper architecture's and the recipes' ablation) against our KF,
 gradients, missed detections and streaming against batched rollouts."""
 
+import copy
 import math
 
 import pytest
@@ -261,3 +262,29 @@ def test_stage_2_loss_is_the_papers_plus_the_own_mode_term(data):
     assert loss1.item() == pytest.approx(loss0.item() + 0.5 * num / den, rel=1e-5)
     with pytest.raises(ValueError, match="expert_weight"):
         Stage2Module(expert_weight=-1.0)
+
+
+def test_stage_2_fine_tunes_from_a_whole_immnet(tmp_path):
+    """``init_checkpoint`` starts from every weight of the shipped IMMNet; the interaction's p_stay may
+    change, the classifier's stored Markov prior may not, and a checkpoint of another model set is refused."""
+    path = REPO_ROOT / "immnet/pretrained/immnet.ckpt"
+    raw = torch.load(path, map_location="cpu", weights_only=False)
+    net = copy.deepcopy(raw["hyper_parameters"]["net"])
+    net["gain"]["init_args"]["p_stay"] = 0.998
+    module = Stage2Module(net=net, init_checkpoint=str(path))
+    shipped = {k[len("net."):]: v for k, v in raw["state_dict"].items() if k.startswith("net.")}
+    mine = module.net.state_dict()
+    assert mine.keys() == shipped.keys()
+    for k, v in shipped.items():
+        assert torch.equal(mine[k], v), k
+    # the interaction runs with the new p_stay: Pi's diagonal is 0.998, off-diagonal shares the rest
+    Pi = module.net.predict.Pi.double()
+    torch.testing.assert_close(Pi.diagonal(), torch.full((4,), 0.998, dtype=torch.float64), rtol=0, atol=1e-7)
+    torch.testing.assert_close(Pi.sum(-1), torch.ones(4, dtype=torch.float64), rtol=0, atol=1e-6)
+    net["classifier"]["init_args"]["p_stay"] = 0.998
+    with pytest.raises(ValueError, match=r"classify\.log_pi"):
+        Stage2Module(net=net, init_checkpoint=str(path))
+    with pytest.raises(ValueError, match="does not match this IMMNet"):
+        Stage2Module(net={"model_set": "configs/model_sets/imm4.yaml"}, init_checkpoint=str(path))
+    with pytest.raises(ValueError, match="not both"):
+        Stage2Module(net=raw["hyper_parameters"]["net"], init_checkpoint=str(path), stage1_checkpoint=str(path))

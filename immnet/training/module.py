@@ -185,12 +185,18 @@ class Stage2Module(_TrackerModule):
     the mode it stands for. End to end, only the fused estimate is scored, and stage 2 trades an
     expert's accuracy on its own mode for the mix (the CA expert alone on CA flight went from 1.09x
     to 1.14x the bound); this term keeps the experts experts (docs/immnet.md).
+
+    ``init_checkpoint`` starts from a whole IMMNet instead (a stage-2 checkpoint or exported weights,
+    such as the shipped ones): fine-tuning. Settings that only shape the computation (the interaction's
+    ``p_stay``, the guard) come from ``net``, so a fine-tune can change them; one the checkpoint stores
+    as a buffer (the classifier's ``p_stay``) must match it.
     """
 
     def __init__(
         self,
         net: dict | None = None,
         stage1_checkpoint: str | None = None,
+        init_checkpoint: str | None = None,
         lr: float = 1e-3,
         gamma: float = 0.7,
         expert_weight: float = 0.0,
@@ -201,8 +207,31 @@ class Stage2Module(_TrackerModule):
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         if not (math.isfinite(expert_weight) and expert_weight >= 0.0):
             raise ValueError(f"expert_weight must be finite and >= 0, got {expert_weight}")
+        if stage1_checkpoint and init_checkpoint:
+            raise ValueError("give stage1_checkpoint (the experts) or init_checkpoint (the whole IMMNet), not both")
         if stage1_checkpoint:
             self.load_experts(stage1_checkpoint)
+        if init_checkpoint:
+            self.load_net(init_checkpoint)
+
+    def load_net(self, path: str):
+        """Start from every weight of a trained IMMNet (same model set and architecture)."""
+        state = torch.load(path, map_location="cpu", weights_only=False)["state_dict"]
+        net = {k[len("net."):]: v for k, v in state.items() if k.startswith("net.")}
+        if not net:
+            raise ValueError(f"{path} holds no IMMNet weights (net.*)")
+        try:
+            own = {k: v.clone() for k, v in self.net.state_dict().items()}  # state_dict() holds the live tensors
+            self.net.load_state_dict(net)
+        except RuntimeError as err:
+            raise ValueError(f"checkpoint {path} does not match this IMMNet: {err}") from None
+        # buffers are built from settings (the classifier's Markov prior from its p_stay, ...): a checkpoint
+        # that stores other values was trained with other settings, which loading would bring back silently
+        buffers = {n for n, _ in self.net.named_buffers()}
+        differ = [k for k in sorted(buffers & own.keys()) if not torch.equal(own[k], net[k].to(own[k].dtype))]
+        if differ:
+            raise ValueError(f"checkpoint {path} was trained with other settings than `net` gives: its buffers {differ} differ "
+                             "(set net's settings, such as the classifier's p_stay, to the checkpoint's)")
 
     def load_experts(self, path: str):
         """Start from the gain networks of a stage-1 checkpoint (same model set)."""
