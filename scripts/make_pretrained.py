@@ -29,9 +29,14 @@ STAGE2_DATA = yaml.safe_load((ROOT / "recipes/pretrained-stage2.yaml").read_text
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--skip-training", action="store_true")
+    p.add_argument("--commit", default="", help="with --skip-training: the commit the weights were trained at (default: HEAD)")
+    p.add_argument("--note", default="", help="how this training run departed from the recipe, if it did (kept in the provenance)")
     a = p.parse_args()
     # the commit the weights were trained at (read before training: later commits may land meanwhile)
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    rev = a.commit if a.skip_training and a.commit else "HEAD"
+    commit = subprocess.run(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    if not commit:
+        p.error(f"--commit {a.commit!r} is not a commit of this repository")
     from immnet.data.storage import load_dataset, write_dataset
 
     train_dir = ROOT / STAGE2_DATA
@@ -68,6 +73,7 @@ def main() -> int:
         "data": {"stage1": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
                  "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)",
                  "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)"},
+        "note": a.note,
         "test": {"n": TEST_N, "seed": TEST_SEED, "note": "fresh 3D-LAST, never seen in training or tuning"},
         "metrics": {n: r["rmse"] for n, r in rows.items()},
         "mode_accuracy": rows["immnet"].get("mode_accuracy"),
@@ -90,6 +96,7 @@ def main() -> int:
             "`immnet track --guard none` (or `--guard OUTER,INNER`).\n\n"
             if prov["guard"] else ""
         )
+        + (f"Departure from the recipe: {a.note}\n\n" if a.note else "")
         + f"Training data: stage 1 {prov['data']['stage1']}, with the single-mode data {prov['data']['stage1_single_mode']}; "
         f"stage 2 {prov['data']['stage2']}.\n\n"
         f"Test set: {TEST_N} fresh trajectories (seed {TEST_SEED}). RMSE of position in metres:\n\n"
