@@ -132,3 +132,33 @@ def test_chained_recipe_trains_under_ddp(workdir, tmp_path):
     for i in (1, 2):
         state = torch.load(tmp_path / f"runs/quick/stage{i}/checkpoints/best.ckpt", map_location="cpu", weights_only=False)
         assert 0 < state["global_step"] <= 4
+
+
+def test_shipped_recipe_chains_a_fine_tune_of_the_whole_immnet(workdir, tmp_path):
+    """recipes/pretrained.yaml, its three stages at tiny size: stage 3 takes stage 2's best checkpoint as
+    init_checkpoint (every weight, the Transformer's too), not as stage1_checkpoint (the experts only)."""
+    (tmp_path / "runs/quick").mkdir(parents=True)
+    (tmp_path / "runs/quick/data").symlink_to(workdir / "runs/quick/data")
+    (tmp_path / "runs/pretrained/data").mkdir(parents=True)
+    (tmp_path / "runs/pretrained/data/train").symlink_to(workdir / "runs/quick/data/train")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(tmp_path)
+        main(["fit", "--config", str(REPO_ROOT / "recipes/pretrained.yaml"), *FAST])
+    s2, s3 = (torch.load(tmp_path / f"runs/pretrained/stage{i}/checkpoints/best.ckpt", map_location="cpu", weights_only=False)
+              for i in (2, 3))
+    assert s3["hyper_parameters"]["init_checkpoint"].endswith("stage2/checkpoints/best.ckpt")
+    assert s3["hyper_parameters"]["net"]["gain"]["init_args"]["p_stay"] == 0.998
+    # stage 3 started from stage 2's Transformer: its weights moved a few small steps from there, far less
+    # than stage 2's own moved from a fresh start
+    key = "net.classify.blocks.0.qkv.weight"
+    fresh = Stage2Module(net=s3["hyper_parameters"]["net"]).state_dict()[key]
+    assert (s3["state_dict"][key] - s2["state_dict"][key]).abs().max() < (s2["state_dict"][key] - fresh).abs().max()
+
+
+def test_a_chained_stage_names_how_it_takes_the_checkpoint(tmp_path):
+    from immnet.training.cli import run_stages
+
+    with pytest.raises(ValueError, match="checkpoint_as must be"):
+        run_stages({"stages": [{"config": "a.yaml", "checkpoint_as": "ckpt_path"}]}, [])
+    with pytest.raises(ValueError, match="takes only"):
+        run_stages({"stages": [{"config": "a.yaml", "trainer": {}}]}, [])

@@ -3,7 +3,8 @@
 A recipe is a LightningCLI config (``class_path`` / ``init_args``; ``--print_config`` prints it).
 A recipe may also chain runs: a top-level ``stages:`` list of such configs runs them in order and
 hands each run's best checkpoint to the next as ``model.init_args.stage1_checkpoint`` (stage 1,
-then stage 2). W&B is the default logger, offline unless ``WANDB_MODE=online``.
+then stage 2). A stage written ``{config: PATH, checkpoint_as: init_checkpoint}`` takes it under that
+argument instead (a fine-tune of the whole IMMNet after stage 2). W&B is the default logger, offline unless ``WANDB_MODE=online``.
 
 Each stage of a chain runs as its own ``immnet fit`` process, and every run leaves its own command
 line in ``sys.argv``: Lightning's DDP launcher starts its workers by re-running that command, so a
@@ -73,6 +74,14 @@ def run_stages(recipe: dict, extra: list[str]) -> str:
     ckpt = None
     n = len(recipe["stages"])
     for i, stage in enumerate(recipe["stages"]):
+        arg = "stage1_checkpoint"
+        if isinstance(stage, dict) and "config" in stage:  # {config: PATH, checkpoint_as: ARG}
+            if set(stage) - {"config", "checkpoint_as"} or not isinstance(stage["config"], str):
+                raise ValueError(f"stage {i + 1}: a stage with `config:` takes only `config` (a path) and `checkpoint_as`, got {sorted(stage)}")
+            arg = stage.get("checkpoint_as", arg)
+            if arg not in ("stage1_checkpoint", "init_checkpoint"):
+                raise ValueError(f"stage {i + 1}: checkpoint_as must be stage1_checkpoint or init_checkpoint, got {arg!r}")
+            stage = stage["config"]
         with tempfile.TemporaryDirectory(prefix="immnet-stage-") as tmp:
             if isinstance(stage, str):
                 path = str(resolve_path(stage))
@@ -81,7 +90,7 @@ def run_stages(recipe: dict, extra: list[str]) -> str:
                 Path(path).write_text(yaml.safe_dump(stage))
             cmd = [sys.executable, "-m", "immnet.cli", "fit", "--config", path, *extra]
             if ckpt is not None:
-                cmd += ["--model.init_args.stage1_checkpoint", ckpt]
+                cmd += [f"--model.init_args.{arg}", ckpt]
             print(f"[immnet fit] stage {i + 1}/{n}: {path}", file=sys.stderr, flush=True)
             result = Path(tmp) / "best"
             done = subprocess.run(cmd, env={**os.environ, _RESULT_ENV: str(result)})
