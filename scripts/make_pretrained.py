@@ -1,9 +1,9 @@
 """Produce the shipped weights: write stage 2's training data, train recipes/pretrained.yaml, export
-the stage-2 checkpoint into immnet/pretrained/immnet.ckpt, score it on a fresh test set beside the
+the last stage's checkpoint into immnet/pretrained/immnet.ckpt, score it on a fresh test set beside the
 baselines, and write immnet/pretrained/provenance.json and PROVENANCE.md.
 
 Run (needs the quick data: `bash scripts/main.sh` makes it):
-    .venv/bin/python scripts/make_pretrained.py [--skip-training]
+    .venv/bin/python scripts/make_pretrained.py [--skip-training [--commit C] [--note TEXT]]
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def main() -> int:
     from immnet.evaluation.table import format_markdown, format_table
     from immnet.training.export import export_weights
 
-    ckpt = RUN / "stage2/checkpoints/best.ckpt"
+    ckpt = RUN / "stage3/checkpoints/best.ckpt"  # the last stage of recipes/pretrained.yaml
     export_weights(ckpt, OUT / "immnet.ckpt")
     test_dir = RUN / "test"
     if not (test_dir / "meta.json").exists():
@@ -72,7 +72,8 @@ def main() -> int:
         "guard": (lambda g: g.to_config() if g is not None else None)(Tracker.pretrained().net.predict.guard),
         "data": {"stage1": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
                  "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)",
-                 "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)"},
+                 "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)",
+                 "stage3": "the same as stage 2"},
         "note": a.note,
         "test": {"n": TEST_N, "seed": TEST_SEED, "note": "fresh 3D-LAST, never seen in training or tuning"},
         "metrics": {n: r["rmse"] for n, r in rows.items()},
@@ -98,7 +99,7 @@ def main() -> int:
         )
         + (f"Departure from the recipe: {a.note}\n\n" if a.note else "")
         + f"Training data: stage 1 {prov['data']['stage1']}, with the single-mode data {prov['data']['stage1_single_mode']}; "
-        f"stage 2 {prov['data']['stage2']}.\n\n"
+        f"stages 2 and 3 {prov['data']['stage2']}.\n\n"
         f"Test set: {TEST_N} fresh trajectories (seed {TEST_SEED}). RMSE of position in metres:\n\n"
         + format_markdown(rows)
         + f"\n\nClaims checked by `tests/test_pretrained.py` on freshly generated data: Average RMSE at most "
