@@ -79,7 +79,7 @@ def main() -> int:
     for name in a.only or rows_of:
         label, make = rows_of[name]
         methods[label] = make()
-    methods |= {"imm-ekf": build_method("imm-ekf"), "imm-ekf-guard": build_method("imm-ekf-guard"),
+    methods |= {"imm-ekf": build_method("imm-ekf"), "imm-ekf-guard": build_method("imm-ekf-guard"), "imm-ekf-guard-sticky": build_method("imm-ekf-guard-sticky"),
                 "clairvoyant": build_method("clairvoyant")}
     rows = to_json(evaluate(methods, data, progress=True))
     print(format_table(rows))

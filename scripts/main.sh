@@ -46,7 +46,7 @@ fi
 
 say "3/4 evaluation: every method on the test set, one run"
 "$IMMNET" evaluate --data "$DATA/test" --split all \
-  --methods measurements,imm-accurate,imm-min,imm-max,imm-tuned,imm-ekf,imm-ekf-guard,kalmannet,immnet,clairvoyant-switch,clairvoyant \
+  --methods measurements,imm-accurate,imm-min,imm-max,imm-tuned,imm-ekf,imm-ekf-guard,imm-ekf-guard-sticky,kalmannet,immnet,clairvoyant-switch,clairvoyant \
   --checkpoint "immnet=$CKPT" --checkpoint "kalmannet=$KNET" \
   --json "$RUN/results.json" --markdown "$RUN/results.md" --figures "$RUN/figures"
 

@@ -55,7 +55,7 @@ def main() -> int:
     if not (test_dir / "meta.json").exists():
         write_dataset(test_dir, n=TEST_N, seed=TEST_SEED, overwrite=True)
     data, _ = load_dataset(test_dir)
-    names = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "imm-ekf", "imm-ekf-guard", "immnet", "clairvoyant-switch", "clairvoyant")
+    names = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "immnet", "clairvoyant-switch", "clairvoyant")
     methods = {n: build_method(n, OUT / "immnet.ckpt" if n == "immnet" else None) for n in names}
     rows = to_json(evaluate(methods, data, progress=True))
     print(format_table(rows))

@@ -270,18 +270,18 @@ def test_stage_2_fine_tunes_from_a_whole_immnet(tmp_path):
     path = REPO_ROOT / "immnet/pretrained/immnet.ckpt"
     raw = torch.load(path, map_location="cpu", weights_only=False)
     net = copy.deepcopy(raw["hyper_parameters"]["net"])
-    net["gain"]["init_args"]["p_stay"] = 0.998
+    net["gain"]["init_args"]["p_stay"] = 0.999
     module = Stage2Module(net=net, init_checkpoint=str(path))
     shipped = {k[len("net."):]: v for k, v in raw["state_dict"].items() if k.startswith("net.")}
     mine = module.net.state_dict()
     assert mine.keys() == shipped.keys()
     for k, v in shipped.items():
         assert torch.equal(mine[k], v), k
-    # the interaction runs with the new p_stay: Pi's diagonal is 0.998, off-diagonal shares the rest
+    # the interaction runs with the new p_stay: Pi's diagonal is 0.999, off-diagonal shares the rest
     Pi = module.net.predict.Pi.double()
-    torch.testing.assert_close(Pi.diagonal(), torch.full((4,), 0.998, dtype=torch.float64), rtol=0, atol=1e-7)
+    torch.testing.assert_close(Pi.diagonal(), torch.full((4,), 0.999, dtype=torch.float64), rtol=0, atol=1e-7)
     torch.testing.assert_close(Pi.sum(-1), torch.ones(4, dtype=torch.float64), rtol=0, atol=1e-6)
-    net["classifier"]["init_args"]["p_stay"] = 0.998
+    net["classifier"]["init_args"]["p_stay"] = 0.999
     with pytest.raises(ValueError, match=r"classify\.log_pi"):
         Stage2Module(net=net, init_checkpoint=str(path))
     with pytest.raises(ValueError, match="does not match this IMMNet"):

@@ -29,7 +29,7 @@ from immnet.motion.base import import_class
 METHODS_DIR = REPO_ROOT / "configs" / "methods"
 """Where ``<name>.yaml`` method configs live."""
 
-ORDER = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "imm-ekf", "imm-ekf-guard", "kalmannet", "immnet", "clairvoyant-switch", "clairvoyant")
+ORDER = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "kalmannet", "immnet", "clairvoyant-switch", "clairvoyant")
 """Row order of the results table; other configured methods follow alphabetically."""
 
 
