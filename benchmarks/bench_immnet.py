@@ -5,9 +5,8 @@ It prints a table and rewrites the ``## IMMNet`` section of BENCHMARKS.md (other
 Inference runs the streaming step (``IMMNet.scan``) over already-started tracks, the per-scan cost
 of tracking; training runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64.
 Three models are measured in one run: the quick and pretrained recipes' (filter experts with the IMM
-interaction, the Bayes-corrected Transformer classifier), the same experts from the fused estimate
-with the Transformer alone (the recipes' until 2026-11-30), and the paper's (``KalmanNetGain``
-experts, the Transformer).
+interaction and the range guard, the Bayes-corrected Transformer classifier), the same without the
+guard (the recipes' until 2026-11-30), and the paper's (``KalmanNetGain`` experts, the Transformer).
 """
 
 from __future__ import annotations
