@@ -44,7 +44,7 @@ def main() -> int:
         if not (train_dir / "meta.json").exists():
             write_dataset(train_dir, n=TRAIN_N, seed=TRAIN_SEED, overwrite=True, workers=2, progress=True)
         subprocess.run([sys.executable, "-m", "immnet.cli", "fit", "--config", "recipes/pretrained.yaml"], cwd=ROOT, check=True)
-    from immnet.evaluation.methods import build_method
+    from immnet.evaluation.methods import ORDER, build_method
     from immnet.evaluation.runner import evaluate, to_json
     from immnet.evaluation.table import format_markdown, format_table
     from immnet.training.export import export_weights
@@ -55,7 +55,7 @@ def main() -> int:
     if not (test_dir / "meta.json").exists():
         write_dataset(test_dir, n=TEST_N, seed=TEST_SEED, overwrite=True)
     data, _ = load_dataset(test_dir)
-    names = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "immnet", "clairvoyant-switch", "clairvoyant")
+    names = tuple(n for n in ORDER if n != "kalmannet")  # every method of the results table but the plain KalmanNet
     methods = {n: build_method(n, OUT / "immnet.ckpt" if n == "immnet" else None) for n in names}
     rows = to_json(evaluate(methods, data, progress=True))
     print(format_table(rows))

@@ -31,12 +31,9 @@ PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet.ckpt"
 KEEP = "checkpoint"  # load_network's guard: as the checkpoint was trained
 
 
-def load_network(path: str | Path, guard=KEEP) -> IMMNet:
-    """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
-
-    ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
-    (``True`` for 3D-LAST's, or a dict of ``RangeGuard`` fields); it has no weights, so any choice loads.
-    """
+def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
+    """The ``net`` config and the IMMNet weights (``net.`` prefix removed) of a Lightning checkpoint or
+    exported weights; a clear error for a missing, unreadable or foreign file."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
@@ -46,14 +43,23 @@ def load_network(path: str | Path, guard=KEEP) -> IMMNet:
         raise ValueError(f"{path} is not a readable checkpoint: {err}") from None
     if "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
         raise ValueError(f"{path} is not an IMMNet checkpoint (no state_dict / hyper_parameters)")
-    config = copy.deepcopy(ckpt["hyper_parameters"].get("net") or {})
+    state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
+    return copy.deepcopy(ckpt["hyper_parameters"].get("net") or {}), state
+
+
+def load_network(path: str | Path, guard=KEEP) -> IMMNet:
+    """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
+
+    ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
+    (``True`` for 3D-LAST's, or a dict of ``RangeGuard`` fields); it has no weights, so any choice loads.
+    """
+    config, state = read_checkpoint(path)
     if not (isinstance(guard, str) and guard == KEEP):
         gain = config.get("gain") or {}
         if "filtering" not in gain.get("class_path", ""):
             raise ValueError(f"{path}: a range guard needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
         config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), "guard": guard}}
     net = IMMNet(**config)
-    state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
     net.load_state_dict(state)
     return net.eval()
 

@@ -23,6 +23,7 @@ import torch
 from immnet import keys
 from immnet.evaluation.metrics import confusion, per_trajectory_rmse, position_error
 from immnet.stages import IMMNet
+from immnet.tracking.tracker import read_checkpoint
 from immnet.training.losses import component_weights, mode_loss, own_mode_loss, state_loss
 
 AXES = ("x", "y", "z")
@@ -216,27 +217,25 @@ class Stage2Module(_TrackerModule):
 
     def load_net(self, path: str):
         """Start from every weight of a trained IMMNet (same model set and architecture)."""
-        state = torch.load(path, map_location="cpu", weights_only=False)["state_dict"]
-        net = {k[len("net."):]: v for k, v in state.items() if k.startswith("net.")}
+        _, net = read_checkpoint(path)
         if not net:
             raise ValueError(f"{path} holds no IMMNet weights (net.*)")
+        # buffers are built from settings (the classifier's Markov prior from its p_stay, ...): a checkpoint
+        # that stores other values was trained with other settings, which loading would bring back silently
+        own = {k: b.clone() for k, b in self.net.named_buffers()}
         try:
-            own = {k: v.clone() for k, v in self.net.state_dict().items()}  # state_dict() holds the live tensors
             self.net.load_state_dict(net)
         except RuntimeError as err:
             raise ValueError(f"checkpoint {path} does not match this IMMNet: {err}") from None
-        # buffers are built from settings (the classifier's Markov prior from its p_stay, ...): a checkpoint
-        # that stores other values was trained with other settings, which loading would bring back silently
-        buffers = {n for n, _ in self.net.named_buffers()}
-        differ = [k for k in sorted(buffers & own.keys()) if not torch.equal(own[k], net[k].to(own[k].dtype))]
+        differ = [k for k in sorted(own.keys() & net.keys()) if not torch.equal(own[k], net[k].to(own[k].dtype))]
         if differ:
             raise ValueError(f"checkpoint {path} was trained with other settings than `net` gives: its buffers {differ} differ "
                              "(set net's settings, such as the classifier's p_stay, to the checkpoint's)")
 
     def load_experts(self, path: str):
         """Start from the gain networks of a stage-1 checkpoint (same model set)."""
-        state = torch.load(path, map_location="cpu", weights_only=False)["state_dict"]
-        gain = {k[len("net.gain."):]: v for k, v in state.items() if k.startswith("net.gain.")}
+        _, net = read_checkpoint(path)
+        gain = {k[len("gain."):]: v for k, v in net.items() if k.startswith("gain.")}
         if not gain:
             raise ValueError(f"{path} holds no gain-network weights (net.gain.*)")
         missing, unexpected = self.net.gain.load_state_dict(gain, strict=False)
