@@ -52,6 +52,7 @@ NOISE_COUNT = ("memory", "r2_count")  # and the number of terms [B]
 Z_HISTORY = ("memory", "z_history")  # z_{t-1}, z_{t-2}, z_{t-3} [B, 3, 3] (NaN = none)
 MODE_LOGITS = ("mode", "logits")  # [B, M]
 MODE_TRANSITION = ("mode", "transition")  # a guarded interaction's transition matrix Pi[b, from, to] [B, M, M]
+GUARD_FRESH = ("expert", "speed_fresh")  # a guarded interaction: prior share of each expert entered at a speed bound [B, M]
 EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M]
 HISTORY = ("memory", "history")  # classifier window [B, W, 12]: z_tau and x_{tau-1|tau-1}
 HISTORY_LEN = ("memory", "history_len")  # valid entries of the window [B]

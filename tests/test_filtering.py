@@ -349,40 +349,67 @@ def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_
     guard = RangeGuard()
     stage = FilterPredict(ms, 1.0, interaction="imm", p_stay=0.97, guard=True).double()
     g = torch.Generator().manual_seed(4)
-    B, M = 6, 4
+    B, M = 8, 4
     A = torch.randn(B, M, 10, 10, generator=g, dtype=torch.float64)
     P = A @ A.transpose(-1, -2) + 0.1 * torch.eye(10, dtype=torch.float64)
     y = torch.randn(B, M, 10, generator=g, dtype=torch.float64)
     # tracks 0-1 beyond the outer bound flying out (one each way round), 2 within the inner flying in,
-    # 3 in a turn just past the clear, 4-5 inside the region: the filters' estimates scatter around these
+    # 3 in a turn just past the clear, 4-5 inside the region, 6-7 inside it at a speed bound: the filters'
+    # estimates scatter around these
     base = [(34_000, 0, 150, 60), (0, 33_500, 40, 180), (3_000, 500, -120, 30), (0, 34_000, -110, -100),
-            (20_000, 5_000, 100, 0), (10_000, -9_000, -50, 200)]
+            (20_000, 5_000, 100, 0), (10_000, -9_000, -50, 200), (15_000, 0, 0, 330), (0, 15_000, 41, 0)]
     for b, (lx, ly, vx, vy) in enumerate(base):
         y[b, :, [0, 3, 1, 4]] = torch.tensor([lx, ly, vx, vy], dtype=torch.float64) + 5 * y[b, :, [0, 3, 1, 4]]
+    # track 6: the CA filter has just passed 330 m/s accelerating (at 331.5 after +2 m/s^2: 329.5 a scan ago);
+    # track 7: it has just dropped below 40 m/s (39.5, decelerating at 1.5 m/s^2)
+    y[6, 1, [1, 4, 2, 5]] = torch.tensor([0.0, 331.5, 0.0, 2.0], dtype=torch.float64)
+    y[7, 1, [1, 4, 2, 5]] = torch.tensor([39.5, 0.0, -1.5, 0.0], dtype=torch.float64)
     y[:, :, 9] = torch.tensor([0.0, 0.0, 1.0, -1.0], dtype=torch.float64) * 8.0 * math.pi / 180 + 0.01 * y[:, :, 9]
     mu = torch.softmax(torch.randn(B, M, generator=g, dtype=torch.float64) * 2, -1)
+    # a speed-bound turn entered on the last scan (track 5: 70 % of the CT+ filter's prior) clears to CV
+    fresh = torch.zeros(B, M, dtype=torch.float64)
+    fresh[5, 2] = 0.7
     td = TensorDict({keys.EXPERT_POST: y[..., :9], keys.EXPERT_RATE: y[..., 9], keys.EXPERT_AUG_COV: P,
-                     keys.EXPERT_PROBS: mu, keys.FUSED: y[:, 0, :9]}, batch_size=[B])
+                     keys.EXPERT_PROBS: mu, keys.FUSED: y[:, 0, :9], keys.GUARD_FRESH: fresh}, batch_size=[B])
     y0, P0 = stage._mix(td)
     # the transition matrix per track, from the guard's events of each filter's estimate
-    pos, neg, clear = (e.numpy() for e in guard.events(y[..., :9], y[..., 9], 1.0))
-    clear = clear * np.array([0, 0, 1, 1])
-    gsum = pos + neg + clear
-    assert gsum.max() > 0.9 and gsum[4:].max() < 1e-6, "the tracks must both meet and miss the bounds"
+    pos, neg, clear, _ = (e.numpy() for e in guard.events(y[..., :9], y[..., 9], 1.0))
+
+    def out_of_bounds(vx, vy, vz):  # the speed rules, softened by 1 m/s
+        sig = lambda u: 1 / (1 + np.exp(-u))  # noqa: E731
+        hs = np.hypot(vx, vy)
+        return 1 - sig(hs - 40.0) * sig(330.0 - hs) * sig(25.0 - np.abs(vz))
+
+    yn = y.numpy()
+    now = out_of_bounds(yn[..., 1], yn[..., 4], yn[..., 7])
+    before = out_of_bounds(yn[..., 1] - yn[..., 2], yn[..., 4] - yn[..., 5], yn[..., 7] - yn[..., 8])
+    speed = np.clip((now - before) / np.maximum(1 - before, 1e-6), 0, 1) * np.array([0, 1, 0, 0])  # CA only
+    assert speed[6:, 1].min() > 0.4 and speed[:6].max() < 1e-3, speed
+    clear = np.minimum(clear + fresh.numpy(), 1.0) * np.array([0, 0, 1, 1])
+    gsum = pos + neg + clear + speed
+    assert gsum.max() > 0.9 and gsum[4].max() < 1e-6, "the tracks must both meet and miss the bounds"
     cap = np.minimum(1.0, G_MAX / np.maximum(gsum, 1e-300))  # no event is made certain
-    pos, neg, clear, gsum = pos * cap, neg * cap, clear * cap, gsum * cap
+    pos, neg, clear, speed, gsum = pos * cap, neg * cap, clear * cap, speed * cap, gsum * cap
     Pi = np.full((M, M), 0.01)
     np.fill_diagonal(Pi, 0.97)
     Pi_b = np.zeros((B, M, M))
     bound = np.zeros((B, M, M))
+    by_speed = np.zeros((B, M, M))
     for b in range(B):
         for i in range(M):
             Pi_b[b, i] = (1 - gsum[b, i]) * Pi[i]
-            Pi_b[b, i, 2] += pos[b, i]
-            Pi_b[b, i, 3] += neg[b, i]
+            Pi_b[b, i, 2] += pos[b, i] + speed[b, i] / 2  # a speed-bound turn's sign is a coin flip
+            Pi_b[b, i, 3] += neg[b, i] + speed[b, i] / 2
             Pi_b[b, i, 0] += clear[b, i]
-            bound[b, i, 2], bound[b, i, 3] = pos[b, i], neg[b, i]
+            bound[b, i, 2], bound[b, i, 3] = pos[b, i] + speed[b, i] / 2, neg[b, i] + speed[b, i] / 2
+            by_speed[b, i, 2] = by_speed[b, i, 3] = speed[b, i] / 2
     torch.testing.assert_close(td.get(keys.MODE_TRANSITION), torch.from_numpy(Pi_b), rtol=1e-10, atol=1e-12)
+    assert Pi_b[5, 2, 0] > 0.69  # the fresh speed-bound turn clears
+    # carried to the next scan: the share of each filter's mixed prior that entered at a speed bound
+    cbar = np.einsum("bi,bij->bj", mu.numpy(), Pi_b)
+    expect_fresh = np.einsum("bi,bij->bj", mu.numpy(), by_speed) / cbar
+    np.testing.assert_allclose(td.get(keys.GUARD_FRESH).numpy(), expect_fresh, rtol=1e-10, atol=1e-14)
+    assert expect_fresh[6:, 2:].min() > 0.01 and expect_fresh[:, :2].max() == 0
     ry0, rP0 = _mix_reference(y.numpy(), P.numpy(), mu.numpy(), Pi_b, [False, True, False, False], [0, 0, 1, -1],
                               bound=bound, bound_rate=8.0 * math.pi / 180, bound_var=(0.2 * math.pi / 180) ** 2)
     np.testing.assert_allclose(y0.numpy(), ry0, rtol=1e-9, atol=1e-8)

@@ -15,7 +15,7 @@ estimate near a threshold gives a probability, not a jump:
 
 * onset, from any mode: ``P(rho > outer) P(v_r > 0)`` (or the inner rule), into the turn mode of the
   turn's sign (``sign(l x v)`` at the outer bound, the opposite at the inner);
-* clear, from a turn mode: the first scan at which ``v_r / |v| < -clear_share`` (outer, within
+* range clear, from a turn mode: the first scan at which ``v_r / |v| < -clear_share`` (outer, within
   ``clear_margin`` of the bound) or ``> clear_share`` (inner): the condition on the posterior and not on
   the same velocity turned back one scan at the filter's rate; weighted by how close that rate is to
   the bound's rate (a scheduled turn flying past the threshold is not told to stop);
@@ -24,8 +24,14 @@ estimate near a threshold gives a probability, not a jump:
 ``Pi_eff[b, i, :] = (1 - g) Pi[i, :] + g (event target)``, and reports the share of each entry that a
 bound turn made, so that the interaction can give a turn entered at the bound its known rate.
 
-The speed bounds (one scan of turn when a CA segment leaves [40, 330] m/s) are not modelled: a
-guard told them on time is worth a fifth of what the range rules are (docs/baselines.md).
+* speed onset, from a CA filter only: ``P(|v| < speed_min or |v| > speed_max or |vz| > vz_max)``,
+  into either turn mode with even odds (the generator draws the bound turn's sign at random);
+* speed clear: such a turn lasts one scan, then the target flies CV. A filter's posterior does not
+  say how its mode was entered, so the caller carries it: ``fresh [B, M]``, the share of each turn
+  filter's mixed prior that entered at a speed bound on the last scan (``guarded_transition``
+  returns each entry's speed share; ``fresh_j = sum_i mu_{i|j} speed_ij``), clears to CV.
+
+``speeds=False`` leaves the speed rules out (the range rules alone, as first shipped).
 """
 
 from __future__ import annotations
@@ -53,15 +59,25 @@ class RangeGuard:
     share_soft: float = 0.02  # of the radial share at a clear
     rate_tol_deg: float = 2.0  # how close a turn's rate must be to rate_deg to be the bound's turn
     rate_std_deg: float = 0.2  # the rate prior of a turn entered at the bound
+    speeds: bool = True  # the speed rules too: a CA leaving the speed bounds turns for one scan
+    speed_min: float = 40.0  # m/s: horizontal speed bounds of a CA segment
+    speed_max: float = 330.0
+    vz_max: float = 25.0  # m/s: vertical speed bound of a CA segment
+    bound_speed_soft: float = 1.0  # m/s: logistic width of the speed bounds (a CA filter's speed error)
 
     def __post_init__(self):
         for name in ("outer", "inner", "rate_deg", "clear_share", "clear_margin", "range_soft", "speed_soft",
-                     "share_soft", "rate_tol_deg", "rate_std_deg"):
+                     "share_soft", "rate_tol_deg", "rate_std_deg", "speed_min", "speed_max", "vz_max",
+                     "bound_speed_soft"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"RangeGuard.{name} must be a positive number, got {value!r}")
+        if not isinstance(self.speeds, bool):
+            raise ValueError(f"RangeGuard.speeds must be true or false, got {self.speeds!r}")
         if self.inner >= self.outer:
             raise ValueError(f"RangeGuard.inner ({self.inner}) must be below outer ({self.outer})")
+        if self.speed_min >= self.speed_max:
+            raise ValueError(f"RangeGuard.speed_min ({self.speed_min}) must be below speed_max ({self.speed_max})")
         if self.clear_share >= 1:
             raise ValueError(f"RangeGuard.clear_share must be below 1, got {self.clear_share}")
 
@@ -86,10 +102,11 @@ class RangeGuard:
 
     def events(self, x: torch.Tensor, w: torch.Tensor, dt: float):
         """Guard event probabilities per track and mode-matched filter, from posteriors ``x [..., 9]``
-        and turn rates ``w [...]`` (rad/s): ``(onset_pos, onset_neg, clear)``, each ``[...]``.
+        and turn rates ``w [...]`` (rad/s): ``(onset_pos, onset_neg, clear, speed)``, each ``[...]``.
 
-        ``onset_pos`` / ``onset_neg``: a bound turn starts with ``w > 0`` / ``w < 0``; ``clear``: a bound
-        turn flown at ``w`` ends (meaningful for turn filters only).
+        ``onset_pos`` / ``onset_neg``: a range-bound turn starts with ``w > 0`` / ``w < 0``; ``clear``: a
+        range-bound turn flown at ``w`` ends (meaningful for turn filters only); ``speed``: the estimate is
+        outside the speed bounds (a CA there turns for one scan; 0 with ``speeds=False``).
         """
         lx, vx, ly, vy = x[..., 0], x[..., 1], x[..., 3], x[..., 4]
         rho = torch.sqrt(lx * lx + ly * ly).clamp_min(1.0)
@@ -111,23 +128,42 @@ class RangeGuard:
         near_in = torch.sigmoid(((self.inner + self.clear_margin) - rho) / self.range_soft)
         at_rate = torch.exp(-0.5 * ((w.abs() - self.rate_deg * DEG) / (self.rate_tol_deg * DEG)) ** 2)
         clear = (out_clear * near_out + in_clear * near_in).clamp(max=1.0) * at_rate
-        return onset_pos, onset_neg, clear
+        if self.speeds:
+            # the first scan out of bounds, not every one: the chance of being out now but not a scan ago,
+            # the speeds a scan ago from the estimate's own acceleration (a CA filter's)
+            ax, ay, vz, az = x[..., 2], x[..., 5], x[..., 7], x[..., 8]
+            hs0 = torch.sqrt((vx - ax * dt) ** 2 + (vy - ay * dt) ** 2)
+            now, before = self._speed_out(hs, vz), self._speed_out(hs0, vz - az * dt)
+            speed = ((now - before) / (1 - before).clamp_min(1e-6)).clamp(0.0, 1.0)
+        else:
+            speed = torch.zeros_like(clear)
+        return onset_pos, onset_neg, clear, speed
+
+    def _speed_out(self, hs: torch.Tensor, vz: torch.Tensor) -> torch.Tensor:
+        """P(outside the speed bounds), softened by ``bound_speed_soft``."""
+        s = self.bound_speed_soft
+        inside = (torch.sigmoid((hs - self.speed_min) / s) * torch.sigmoid((self.speed_max - hs) / s)
+                  * torch.sigmoid((self.vz_max - vz.abs()) / s))
+        return 1 - inside
 
 
 def guarded_transition(
     Pi: torch.Tensor,
-    events: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    events: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
     modes: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The transition matrix per track ``[B, M, M]`` (rows: from, columns: to) and the bound-turn
-    share of each entry ``[B, M, M]``.
+    fresh: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The transition matrix per track ``[B, M, M]`` (rows: from, columns: to), the bound-turn share of
+    each entry and its speed-bound part, each ``[B, M, M]``.
 
     ``Pi [M, M]``: the Markov matrix; ``events``: ``RangeGuard.events`` of each source filter, each
-    ``[B, M]``; ``modes [M]``: each filter's data mode (0 CV, 1 CA, 2 CT+, 3 CT-). An event's target
-    mode is shared evenly among the filters of that mode; a clear applies to turn filters only, and a
-    model set without the target mode ignores the event.
+    ``[B, M]``; ``modes [M]``: each filter's data mode (0 CV, 1 CA, 2 CT+, 3 CT-); ``fresh [B, M]``: the
+    share of each filter's last mixed prior that entered at a speed bound (the one-scan turn clears to
+    CV; ``None``: none). An event's target mode is shared evenly among the filters of that mode; a speed
+    onset leaves CA filters only, a clear turn filters only, and a model set without the target mode
+    ignores the event.
     """
-    onset_pos, onset_neg, clear = events
+    onset_pos, onset_neg, clear, speed = events
     dtype = onset_pos.dtype
 
     def target(mode: int) -> torch.Tensor:
@@ -136,17 +172,31 @@ def guarded_transition(
 
     to_pos, to_neg, to_cv = target(2), target(3), target(0)
     is_turn = (modes >= 2).to(dtype)
+    is_ca = (modes == 1).to(dtype)
     onset_pos = onset_pos * to_pos.sum()
     onset_neg = onset_neg * to_neg.sum()
+    speed_pos = 0.5 * speed * is_ca * to_pos.sum()  # the speed-bound turn's sign is a coin flip
+    speed_neg = 0.5 * speed * is_ca * to_neg.sum()
+    if fresh is not None:
+        clear = (clear + fresh.to(dtype)).clamp(max=1.0)
     clear = clear * is_turn * to_cv.sum()
     # the events are exclusive (the ramps may overlap a little); g stays below 1 so that every mode keeps
     # some prior mass (a certain event would leave the others' mixing weights 0 / 0)
-    g = (onset_pos + onset_neg + clear).clamp(max=G_MAX)
-    scale = torch.where(g > 0, g / (onset_pos + onset_neg + clear).clamp_min(1e-30), torch.zeros_like(g))
-    onset_pos, onset_neg, clear = onset_pos * scale, onset_neg * scale, clear * scale
-    bound = onset_pos[..., None] * to_pos + onset_neg[..., None] * to_neg  # [B, i, j]
+    total = onset_pos + onset_neg + speed_pos + speed_neg + clear
+    g = total.clamp(max=G_MAX)
+    scale = torch.where(g > 0, g / total.clamp_min(1e-30), torch.zeros_like(g))
+    onset_pos, onset_neg, speed_pos, speed_neg, clear = (e * scale for e in (onset_pos, onset_neg, speed_pos, speed_neg, clear))
+    by_speed = speed_pos[..., None] * to_pos + speed_neg[..., None] * to_neg  # [B, i, j]
+    bound = onset_pos[..., None] * to_pos + onset_neg[..., None] * to_neg + by_speed
     Pi_eff = (1 - g)[..., None] * Pi.to(dtype) + bound + clear[..., None] * to_cv
-    return Pi_eff, (bound / Pi_eff.clamp_min(1e-30)).clamp(max=1.0)
+    denom = Pi_eff.clamp_min(1e-30)
+    return Pi_eff, (bound / denom).clamp(max=1.0), (by_speed / denom).clamp(max=1.0)
+
+
+def fresh_share(w: torch.Tensor, speed_share: torch.Tensor) -> torch.Tensor:
+    """The share of each filter's mixed prior that entered at a speed bound, ``[B, M]``, from the mixing
+    weights ``mu_{i|j}`` ``w [B, i, j]`` and ``guarded_transition``'s speed share of each entry."""
+    return (w * speed_share).sum(-2)
 
 
 def blend_rate(y: torch.Tensor, P: torch.Tensor, share: torch.Tensor, rate: torch.Tensor, var: float, index: int):

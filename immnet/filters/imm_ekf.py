@@ -20,9 +20,9 @@ is the model-based counterpart of IMMNet's filter experts, told what the data's 
   measurements (``E[(d^3 z)^2] = 20 r^2``), a running mean from a prior ``r0`` worth ``k0``
   samples, as IMMNet's filter experts do (``r`` fixed instead if given).
 
-With ``guard`` (``immnet.filters.guard.RangeGuard``: ``True`` for the generator's soft range bounds, or
-its fields as a dict) the Markov matrix becomes state-dependent per track and source filter, and a turn
-entered at a range bound starts at the bound's rate (``configs/methods/imm-ekf-guard.yaml``).
+With ``guard`` (``immnet.filters.guard.RangeGuard``: ``True`` for the generator's soft range and speed
+bounds, or its fields as a dict) the Markov matrix becomes state-dependent per track and source filter,
+and a turn entered at a bound starts at the bound's rate (``configs/methods/imm-ekf-guard.yaml``).
 
 It starts like the other IMMs: from the first measurement (``initial_state``, with ``r0``), the CA
 filter's acceleration at the draw's variance and the turn filters' rates at their prior.
@@ -37,7 +37,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, batch_dt, output
 from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
-from immnet.filters.guard import RangeGuard, blend_rate, guarded_transition
+from immnet.filters.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
 from immnet.filters.imm import initial_state
 from immnet.filters.kalman import update
 from immnet.filters.trackers import _positive, transition_matrix
@@ -152,6 +152,7 @@ class IMMEKF(Method):
         x = x * start + prior_mean[CV]
         P = P * (start[..., :, None] * start[..., None, :]) + prior_cov[CV]
         mu = torch.full((B, M), 1.0 / M, dtype=dtype, device=dev)
+        fresh = torch.zeros(B, M, dtype=dtype, device=dev)  # prior share entered at a speed bound (guard)
 
         states = z.new_empty(B, T, 9)
         probs = z.new_empty(B, T, M)
@@ -160,9 +161,12 @@ class IMMEKF(Method):
             # interaction: x0_j = sum_i mu_{i|j} x_{i->j}, with the onset priors where i != j
             Pi_t = Pi
             if self.guard is not None:  # state-dependent transitions (immnet.filters.guard)
-                Pi_t, share = guarded_transition(Pi, self.guard.events(x[..., :9], x[..., RATE], d), modes)
+                Pi_t, share, speed_share = guarded_transition(
+                    Pi, self.guard.events(x[..., :9], x[..., RATE], d), modes, fresh)
             cbar = (mu[:, :, None] * Pi_t).sum(1)  # [B, j]
             w = mu[:, :, None] * Pi_t / cbar[:, None, :]  # mu_{i|j} [B, i, j]
+            if self.guard is not None:
+                fresh = fresh_share(w, speed_share)
             xc = x[:, :, None] * keep + prior_mean  # [B, i, j, n]
             Pc = P[:, :, None] * keep2 + prior_cov
             if self.guard is not None:  # a turn entered (or re-entered) at a range bound has the bound's rate

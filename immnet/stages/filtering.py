@@ -38,7 +38,7 @@ import torch
 
 from immnet import keys
 from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
-from immnet.filters.guard import RangeGuard, blend_rate, guarded_transition
+from immnet.filters.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
 from immnet.filters.kalman import inv3
 from immnet.filters.trackers import transition_matrix
 from immnet.motion import ACC, POS, VEL, ModelSet, ct_propagate, noise_gain
@@ -153,8 +153,10 @@ class FilterPredict(Predict):
 
     ``guard`` (``immnet.filters.guard.RangeGuard``, or its fields as a dict; ``True`` for 3D-LAST's)
     makes ``Pi`` state-dependent, per track and source expert, from each expert's previous posterior,
-    gives a turn entered at a range bound the bound's rate, and writes the transition matrix
-    (``("mode", "transition")``) for a Bayesian classifier to predict the modes with.
+    gives a turn entered at a bound the bound's rate, and writes the transition matrix
+    (``("mode", "transition")``) for a Bayesian classifier to predict the modes with, and the share of
+    each expert's mixed prior that entered at a speed bound (``("expert", "speed_fresh")``, carried to
+    the next scan, where that one-scan turn clears).
     """
 
     in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV, keys.EXPERT_PROBS]
@@ -166,7 +168,8 @@ class FilterPredict(Predict):
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction = interaction
         if self.guard is not None:
-            self.out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV, keys.MODE_TRANSITION]
+            self.out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV, keys.MODE_TRANSITION,
+                             keys.GUARD_FRESH]
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         M = len(model_set)
         f64 = torch.float64  # float64, so that a .double() model is exact
@@ -219,10 +222,15 @@ class FilterPredict(Predict):
         Pi = self.Pi.to(y.dtype)
         if self.guard is not None:  # per track and source expert [B, i, j]; a prior: no gradient flows through it
             with torch.no_grad():
-                Pi, share = guarded_transition(Pi, self.guard.events(y[..., :9], y[..., RATE], self.dt), self.data_modes)
+                fresh = td.get(keys.GUARD_FRESH, None)
+                Pi, share, speed_share = guarded_transition(
+                    Pi, self.guard.events(y[..., :9], y[..., RATE], self.dt), self.data_modes,
+                    None if fresh is None else fresh.to(y.dtype))
             share = share * (self.bound_sign != 0).to(share.dtype)
             td.set(keys.MODE_TRANSITION, Pi)
         w = mu.unsqueeze(-1) * Pi / (mu.unsqueeze(-1) * Pi).sum(-2, keepdim=True)  # mu_{i|j} [B, i, j]
+        if self.guard is not None:
+            td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
         keep = self.mix_keep.to(y.dtype)
         yc = y.unsqueeze(2) * keep + self.mix_mean.to(y.dtype)  # [B, i, j, 10]
         Pc = P.unsqueeze(2) * (keep.unsqueeze(-1) * keep.unsqueeze(-2)) + self.mix_cov.to(y.dtype)

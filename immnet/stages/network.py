@@ -100,6 +100,8 @@ class IMMNet(nn.Module):
         if hasattr(self.gain, "initial_memory"):
             for key, value in self.gain.initial_memory(shape[:-1], dtype=dtype, device=device).items():
                 td.set(key, value)
+        if getattr(self.predict, "guard", None) is not None and not experts_alone:
+            td.set(keys.GUARD_FRESH, torch.zeros(batch, M, dtype=dtype, device=device))
         if hasattr(self.classify, "initial_history") and not experts_alone:
             td.set(keys.HISTORY, self.classify.initial_history(batch, dtype=dtype, device=device))
             td.set(keys.HISTORY_LEN, torch.zeros(batch, dtype=torch.long, device=device))
