@@ -26,6 +26,17 @@ TRAIN_SEED, TRAIN_N = 41, 12000  # stage 2's data, written where recipes/pretrai
 STAGE2_DATA = yaml.safe_load((ROOT / "recipes/pretrained-stage2.yaml").read_text())["data"]["data"]
 
 
+def last_checkpoint(chain: Path) -> Path:
+    """Where the last stage of a chained recipe writes its best checkpoint (its ModelCheckpoint's dirpath/filename)."""
+    last = yaml.safe_load(chain.read_text())["stages"][-1]
+    stage = yaml.safe_load((ROOT / (last["config"] if isinstance(last, dict) else last)).read_text())
+    for cb in stage["trainer"].get("callbacks") or []:
+        if cb.get("class_path", "").endswith("ModelCheckpoint"):
+            args = cb["init_args"]
+            return ROOT / args["dirpath"] / f"{args.get('filename', 'best')}.ckpt"
+    raise ValueError(f"{chain}: its last stage has no ModelCheckpoint callback to export from")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--skip-training", action="store_true")
@@ -49,7 +60,7 @@ def main() -> int:
     from immnet.evaluation.table import format_markdown, format_table
     from immnet.training.export import export_weights
 
-    ckpt = RUN / "stage3/checkpoints/best.ckpt"  # the last stage of recipes/pretrained.yaml
+    ckpt = last_checkpoint(ROOT / "recipes/pretrained.yaml")
     export_weights(ckpt, OUT / "immnet.ckpt")
     test_dir = RUN / "test"
     if not (test_dir / "meta.json").exists():
@@ -73,7 +84,7 @@ def main() -> int:
         "data": {"stage1": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
                  "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)",
                  "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)",
-                 "stage3": "the same as stage 2"},
+                 "stage3": "the same as stage 2", "stage4": "the same as stage 2"},
         "note": a.note,
         "test": {"n": TEST_N, "seed": TEST_SEED, "note": "fresh 3D-LAST, never seen in training or tuning"},
         "metrics": {n: r["rmse"] for n, r in rows.items()},
@@ -92,14 +103,17 @@ def main() -> int:
         f"({prov['date']}) and exported by `{prov['made_by']}`.\n\n"
         + (
             "It carries a range guard (`immnet/filters/guard.py`: 3D-LAST's surveillance region, where a target turns "
-            f"back beyond {prov['guard']['outer']:.0f} m and within {prov['guard']['inner']:.0f} m of the radar). For radar "
+            f"back beyond {prov['guard']['outer']:.0f} m and within {prov['guard']['inner']:.0f} m of the radar"
+            + (f", and its speed bounds, {prov['guard']['speed_min']:.0f}-{prov['guard']['speed_max']:.0f} m/s, where a "
+               "CA maneuver turns for one scan" if prov["guard"].get("speeds") else "")
+            + "). For radar "
             "data from another region load it with `Tracker.pretrained(guard=None)` or a region of your own, or run "
             "`immnet track --guard none` (or `--guard OUTER,INNER`).\n\n"
             if prov["guard"] else ""
         )
         + (f"Departure from the recipe: {a.note}\n\n" if a.note else "")
         + f"Training data: stage 1 {prov['data']['stage1']}, with the single-mode data {prov['data']['stage1_single_mode']}; "
-        f"stages 2 and 3 {prov['data']['stage2']}.\n\n"
+        f"stages 2 to 4 {prov['data']['stage2']}.\n\n"
         f"Test set: {TEST_N} fresh trajectories (seed {TEST_SEED}). RMSE of position in metres:\n\n"
         + format_markdown(rows)
         + f"\n\nClaims checked by `tests/test_pretrained.py` on freshly generated data: Average RMSE at most "

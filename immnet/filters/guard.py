@@ -1,4 +1,5 @@
-"""State-dependent mode transitions at the edge of the surveillance region (a "range guard").
+"""State-dependent mode transitions at the edge of the surveillance region and of the flight envelope
+(a "range guard", which also knows the speed bounds).
 
 An IMM's Markov chain says a switch is as likely anywhere. Some switches are not: an aircraft that
 reaches the edge of the airspace it must stay in turns back, whatever it was doing. Estimators with
