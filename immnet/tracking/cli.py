@@ -21,7 +21,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--guard", default="checkpoint",
         help="range guard: 'checkpoint' (as trained; the shipped weights: 3D-LAST's region, turns back beyond 33 km "
-             "and within 4 km), 'none' (data from another region), or 'OUTER,INNER' in metres",
+             "and within 4 km, and its speed envelope, 40-330 m/s), 'none' (data from another region), or "
+             "'OUTER,INNER' in metres (another region, 3D-LAST's speed envelope)",
     )
     p.set_defaults(func=run)
 

@@ -10,8 +10,10 @@ target on that slot); a track starts from its first two measurements (see ``immn
 ``step`` over a sequence gives the same numbers as the batched ``track``.
 
 The recipes' models carry a range guard (``immnet.filters.guard``): 3D-LAST's surveillance region,
-where a target turns back beyond 33 km and within 4 km of the radar. For data from another region,
-load with ``guard=None`` (no guard) or ``guard={"outer": ..., "inner": ...}`` (``immnet track --guard``).
+where a target turns back beyond 33 km and within 4 km of the radar, and its speed envelope, where a
+CA maneuver leaving 40-330 m/s turns for one scan. For data from another region, load with
+``guard=None`` (no guard) or ``guard={"outer": ..., "inner": ...}`` (``immnet track --guard``; add
+``"speeds": False`` to drop the speed rules, or ``speed_min``/``speed_max``/``vz_max`` to move them).
 """
 
 from __future__ import annotations
