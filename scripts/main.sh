@@ -5,13 +5,14 @@
 # A finished quick run (runs/quick/stage2/checkpoints/best.ckpt) is reused; IMMNET_RETRAIN=1 retrains.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+T0=$(date +%s)  # the elapsed time in each progress line counts from here, set-up included
 bash scripts/setup.sh
 VENV=${IMMNET_VENV:-.venv}
 IMMNET="$VENV/bin/immnet"
 export WANDB_MODE=${WANDB_MODE:-offline} WANDB_SILENT=true
 RUN=runs/quick
 DATA=$RUN/data
-say() { printf '\n[main] %s\n' "$*" >&2; }
+say() { local e=$(( $(date +%s) - T0 )); printf '\n[main %dm%02ds] %s\n' $((e / 60)) $((e % 60)) "$*" >&2; }
 
 say "1/4 data: 3D-LAST train 3000 + 4 x 600 single-mode (stage 1) + a fresh test set of 1000 (seed 99)"
 gen() {  # name n seed [mode]
