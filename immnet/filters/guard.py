@@ -25,8 +25,10 @@ estimate near a threshold gives a probability, not a jump:
 ``Pi_eff[b, i, :] = (1 - g) Pi[i, :] + g (event target)``, and reports the share of each entry that a
 bound turn made, so that the interaction can give a turn entered at the bound its known rate.
 
-* speed onset, from a CA filter only: ``P(|v| < speed_min or |v| > speed_max or |vz| > vz_max)``,
-  into either turn mode with even odds (the generator draws the bound turn's sign at random);
+* speed onset, from a CA filter only: the chance that the estimate has just left the speed bounds
+  (``|v| < speed_min or |v| > speed_max or |vz| > vz_max`` now but not a scan ago, the estimate's own
+  acceleration taking it back: ``(F_now - F_before) / (1 - F_before)``), into either turn mode with
+  even odds (the generator draws the bound turn's sign at random);
 * speed clear: such a turn lasts one scan, then the target flies CV. A filter's posterior does not
   say how its mode was entered, so the caller carries it: ``fresh [B, M]``, the share of each turn
   filter's mixed prior that entered at a speed bound on the last scan (``guarded_transition``
@@ -106,8 +108,8 @@ class RangeGuard:
         and turn rates ``w [...]`` (rad/s): ``(onset_pos, onset_neg, clear, speed)``, each ``[...]``.
 
         ``onset_pos`` / ``onset_neg``: a range-bound turn starts with ``w > 0`` / ``w < 0``; ``clear``: a
-        range-bound turn flown at ``w`` ends (meaningful for turn filters only); ``speed``: the estimate is
-        outside the speed bounds (a CA there turns for one scan; 0 with ``speeds=False``).
+        range-bound turn flown at ``w`` ends (meaningful for turn filters only); ``speed``: the estimate has
+        just left the speed bounds (a CA there turns for one scan; 0 with ``speeds=False``).
         """
         lx, vx, ly, vy = x[..., 0], x[..., 1], x[..., 3], x[..., 4]
         rho = torch.sqrt(lx * lx + ly * ly).clamp_min(1.0)
