@@ -30,7 +30,7 @@ CKPT=$RUN/stage2/checkpoints/best.ckpt
 if [ -f "$CKPT" ] && [ -z "${IMMNET_RETRAIN:-}" ]; then
   say "2/4 training: reusing the finished quick run $CKPT (IMMNET_RETRAIN=1 to train again)"
 else
-  say "2/4 training: recipes/quick.yaml (stage 1 about 3.5 min, stage 2 about 4.5 min)"
+  say "2/4 training: recipes/quick.yaml (stage 1 about 3.5 min, stage 2 about 5 min)"
   rm -rf "$RUN/stage1" "$RUN/stage2"
   "$IMMNET" fit --config recipes/quick.yaml
 fi
