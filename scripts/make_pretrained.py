@@ -28,8 +28,12 @@ STAGE2_DATA = yaml.safe_load((ROOT / "recipes/pretrained-stage2.yaml").read_text
 
 def last_checkpoint(chain: Path) -> Path:
     """Where the last stage of a chained recipe writes its best checkpoint (its ModelCheckpoint's dirpath/filename)."""
-    last = yaml.safe_load(chain.read_text())["stages"][-1]
-    stage = yaml.safe_load((ROOT / (last["config"] if isinstance(last, dict) else last)).read_text())
+    from immnet.training.cli import stage_entry
+
+    stages = yaml.safe_load(chain.read_text())["stages"]
+    stage, _ = stage_entry(stages[-1], len(stages) - 1)
+    if isinstance(stage, str):
+        stage = yaml.safe_load((ROOT / stage).read_text())
     for cb in stage["trainer"].get("callbacks") or []:
         if cb.get("class_path", "").endswith("ModelCheckpoint"):
             args = cb["init_args"]

@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from immnet.config import REPO_ROOT
-from immnet.training.cli import _cli
+from immnet.training.cli import _cli, stage_entry
 
 RECIPES = sorted((REPO_ROOT / "recipes").glob("*.yaml"))
 STAGE_RECIPES = [p for p in RECIPES if "stages" not in yaml.safe_load(p.read_text())]
@@ -44,8 +44,8 @@ def test_recipe_parses_with_lightning_cli(recipe, capsys):
 def test_chained_recipes_name_existing_stages(chain):
     stages = yaml.safe_load(chain.read_text())["stages"]
     assert len(stages) >= 2
-    for s in stages:
-        path = s["config"] if isinstance(s, dict) else s  # {config: PATH, checkpoint_as: ...}
+    for i, s in enumerate(stages):
+        path, _ = stage_entry(s, i)  # PATH or {config: PATH, checkpoint_as: ...}
         assert (REPO_ROOT / path).is_file(), path
 
 

@@ -69,19 +69,26 @@ def _config_arg(argv: list[str]) -> str | None:
     return None
 
 
+def stage_entry(stage, i: int) -> tuple[str | dict, str]:
+    """A chain's ``i``-th entry (0-based) as ``(config, checkpoint_as)``: ``config`` a path or an inline
+    config, ``checkpoint_as`` the argument that receives the previous stage's checkpoint."""
+    arg = "stage1_checkpoint"
+    if isinstance(stage, dict) and "config" in stage:  # {config: PATH, checkpoint_as: ARG}
+        if set(stage) - {"config", "checkpoint_as"} or not isinstance(stage["config"], str):
+            raise ValueError(f"stage {i + 1}: a stage with `config:` takes only `config` (a path) and `checkpoint_as`, got {sorted(stage)}")
+        arg = stage.get("checkpoint_as", arg)
+        if arg not in ("stage1_checkpoint", "init_checkpoint"):
+            raise ValueError(f"stage {i + 1}: checkpoint_as must be stage1_checkpoint or init_checkpoint, got {arg!r}")
+        stage = stage["config"]
+    return stage, arg
+
+
 def run_stages(recipe: dict, extra: list[str]) -> str:
     """Run a chained recipe, each stage in its own process; returns the last run's best checkpoint."""
     ckpt = None
     n = len(recipe["stages"])
     for i, stage in enumerate(recipe["stages"]):
-        arg = "stage1_checkpoint"
-        if isinstance(stage, dict) and "config" in stage:  # {config: PATH, checkpoint_as: ARG}
-            if set(stage) - {"config", "checkpoint_as"} or not isinstance(stage["config"], str):
-                raise ValueError(f"stage {i + 1}: a stage with `config:` takes only `config` (a path) and `checkpoint_as`, got {sorted(stage)}")
-            arg = stage.get("checkpoint_as", arg)
-            if arg not in ("stage1_checkpoint", "init_checkpoint"):
-                raise ValueError(f"stage {i + 1}: checkpoint_as must be stage1_checkpoint or init_checkpoint, got {arg!r}")
-            stage = stage["config"]
+        stage, arg = stage_entry(stage, i)
         with tempfile.TemporaryDirectory(prefix="immnet-stage-") as tmp:
             if isinstance(stage, str):
                 path = str(resolve_path(stage))
