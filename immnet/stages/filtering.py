@@ -222,10 +222,9 @@ class FilterPredict(Predict):
         Pi = self.Pi.to(y.dtype)
         if self.guard is not None:  # per track and source expert [B, i, j]; a prior: no gradient flows through it
             with torch.no_grad():
-                fresh = td.get(keys.GUARD_FRESH, None)
                 Pi, share, speed_share = guarded_transition(
                     Pi, self.guard.events(y[..., :9], y[..., RATE], self.dt), self.data_modes,
-                    None if fresh is None else fresh.to(y.dtype))
+                    td.get(keys.GUARD_FRESH, None))
             share = share * (self.bound_sign != 0).to(share.dtype)
             td.set(keys.MODE_TRANSITION, Pi)
         w = mu.unsqueeze(-1) * Pi / (mu.unsqueeze(-1) * Pi).sum(-2, keepdim=True)  # mu_{i|j} [B, i, j]
