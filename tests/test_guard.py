@@ -186,19 +186,24 @@ def test_an_unreachable_guard_changes_nothing(bounded):
     torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
 
 
+def _excess_over_bound(data, mask, **methods):
+    """Each method's position errors ``[N, T, 3]`` and its mean excess squared error over the clairvoyant
+    bound's on the scans in ``mask [N, T]``."""
+    from immnet.filters import ClairvoyantKF
+
+    truth = data[keys.STATES]
+    e = {name: position_error(meth.track(data)[keys.STATE], truth) for name, meth in methods.items()}
+    bound = position_error(ClairvoyantKF().track(data)[keys.STATE], truth).pow(2).sum(-1)
+    return e, {name: (err.pow(2).sum(-1) - bound)[mask].mean() for name, err in e.items()}
+
+
 def test_the_guard_halves_the_imm_ekf_error_at_bound_turn_onsets(bounded):
     """The soft bounds are the generator's rules (SPEC.md section 2): told them, the IMM-EKF's excess over
     the clairvoyant bound on the scans that start a bound turn falls by more than half, and its RMSE falls."""
-    from immnet.filters import ClairvoyantKF
-
-    truth = bounded[keys.STATES]
     m, w = bounded[keys.MODE], bounded[keys.TURN_RATE]
     onset = torch.zeros_like(m, dtype=torch.bool)
     onset[:, 1:] = (m[:, 1:] != m[:, :-1]) & (m[:, 1:] >= 2) & ((w[:, 1:].abs() - 8 * DEG).abs() < 1e-9)
-    e = {name: position_error(meth.track(bounded)[keys.STATE], truth)
-         for name, meth in (("base", IMMEKF()), ("guard", IMMEKF(guard=True)), ("bound", ClairvoyantKF()))}
-    sq = {k: v.pow(2).sum(-1) for k, v in e.items()}
-    excess = {k: (sq[k] - sq["bound"])[onset].mean() for k in ("base", "guard")}
+    e, excess = _excess_over_bound(bounded, onset, base=IMMEKF(), guard=IMMEKF(guard=True))
     assert excess["guard"] < 0.5 * excess["base"], excess
     assert rmse(e["guard"])["avg"] < rmse(e["base"])["avg"]
 
@@ -207,9 +212,6 @@ def test_the_speed_rules_cut_the_imm_ekf_error_after_speed_bound_turns(bounded):
     """A CA that leaves the speed bounds turns at 8 deg/s for one scan, then flies CV (SPEC.md section 2):
     told this, the IMM-EKF's excess over the clairvoyant bound on the scan of that turn and the five after
     it falls by more than half (to about a quarter on these 40 trajectories, 13 such turns)."""
-    from immnet.filters import ClairvoyantKF
-
-    truth = bounded[keys.STATES]
     m, w = bounded[keys.MODE], bounded[keys.TURN_RATE]
     turn = torch.zeros_like(m, dtype=torch.bool)  # CA, one scan of an 8 deg/s turn, CV (a range turn is longer)
     turn[:, 1:-1] = (m[:, :-2] == 1) & (m[:, 1:-1] >= 2) & ((w[:, 1:-1].abs() - 8 * DEG).abs() < 1e-9) & (m[:, 2:] == 0)
@@ -217,9 +219,6 @@ def test_the_speed_rules_cut_the_imm_ekf_error_after_speed_bound_turns(bounded):
     for k in range(1, 6):
         after[:, k:] |= turn[:, :-k]
     assert int(turn.sum()) >= 5, "the data must hold speed-bound turns"
-    e = {name: position_error(meth.track(bounded)[keys.STATE], truth)
-         for name, meth in (("range", IMMEKF(p_stay=0.999, guard={"speeds": False})),
-                            ("speed", IMMEKF(p_stay=0.999, guard=True)), ("bound", ClairvoyantKF()))}
-    sq = {k: v.pow(2).sum(-1) for k, v in e.items()}
-    excess = {k: (sq[k] - sq["bound"])[after].mean() for k in ("range", "speed")}
+    _, excess = _excess_over_bound(bounded, after, range=IMMEKF(p_stay=0.999, guard={"speeds": False}),
+                                   speed=IMMEKF(p_stay=0.999, guard=True))
     assert excess["speed"] < 0.5 * excess["range"], excess
