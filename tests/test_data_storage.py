@@ -259,3 +259,14 @@ def test_directory_values_are_checked(tmp_path, key, value, msg):
     del a, td
     with pytest.raises(ValueError, match=msg):
         load_dataset(out)
+
+
+@pytest.mark.parametrize("field", ["dt", "sigma_q", "r_max", "range_max"])
+def test_a_non_finite_spec_is_refused_before_anything_is_written(tmp_path, field):
+    """Issue 20, items 2 and 3: a DataSpec field of NaN or inf (``dt: .nan`` in a data config) is
+    refused by name, instead of generating a set whose meta.json holds a bare NaN (invalid JSON)."""
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=rf"DataSpec field '{field}' must be a finite number"):
+            DataSpec.from_dict({field: bad})
+    out = write_dataset(tmp_path / "ds", 10, 0, SPEC)
+    json.loads((out / "meta.json").read_text(), parse_constant=lambda c: pytest.fail(f"meta.json holds {c}"))

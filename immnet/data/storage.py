@@ -160,7 +160,7 @@ def _meta(seed: int, n: int, spec_dict: dict, single_mode, counts, shard: dict |
 
 
 def _write_meta(directory: Path, meta: dict) -> None:
-    (directory / META).write_text(json.dumps(meta, indent=1) + "\n")
+    (directory / META).write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n")  # strict JSON
 
 
 def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | None = None,

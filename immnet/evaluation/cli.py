@@ -178,11 +178,9 @@ def scan_notes(scans: dict, results, limit: float) -> list[str]:
 
 # --- commands ---------------------------------------------------------------------------------
 def run_evaluate(args) -> int:
-    from immnet.evaluation.runner import evaluate, to_json
-    from immnet.evaluation.table import format_markdown, format_table
-
     from immnet.data.validate import MAX_ABS_POSITION, check_limit
-    from immnet.evaluation.runner import finite_or_none
+    from immnet.evaluation.runner import evaluate, finite_or_none, to_json
+    from immnet.evaluation.table import format_markdown, format_table
 
     limit = check_limit(MAX_ABS_POSITION if args.max_position is None else args.max_position)
     data, _ = load_split(args.data, args.split, args.limit)

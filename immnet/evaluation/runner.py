@@ -40,8 +40,9 @@ def evaluate(
 
     Returns ``{name: result}``, ``result`` holding the metrics of
     :meth:`MetricAccumulator.compute`, ``seconds`` (wall time inside ``track``, summed over
-    batches) and ``kept``: the outputs (``state``, ``mode_probs`` if any) of the trajectories
-    at indices ``keep`` (in sorted order), for case-study figures, and ``gated``: how many
+    batches) and ``kept``: the outputs (``state``, ``mode_probs`` if any) and the gated
+    ``measurements`` of the trajectories at indices ``keep`` (in sorted order), for case-study
+    figures, and ``gated``: how many
     measurements were beyond what a sensor reports (non-finite, or ``|z_a| > max_position`` m) and
     were given to every method as missed detections. Needs ground-truth ``states``; ``mode``
     enables the post-switch RMSE and, with ``mode_probs``, the mode accuracy and confusion.
@@ -85,6 +86,7 @@ def evaluate(
             local = [i - start for i in keep if start <= i < start + batch.batch_size[0]]
             if local:
                 kept.setdefault(keys.STATE, []).append(state[local].detach().cpu())
+                kept.setdefault(keys.MEASUREMENTS, []).append(z[local].cpu())  # as the method saw them
                 if probs is not None:
                     kept.setdefault(keys.MODE_PROBS, []).append(probs[local].detach().cpu())
         result = acc.compute()
