@@ -184,7 +184,8 @@ def test_gating_is_reported_and_its_limit_configurable(arrays, tmp_path, capsys)
     for limit, n in ((None, 2), ("1e6", 3)):
         out = tmp_path / "r.json"
         extra = [] if limit is None else ["--max-position", limit]
-        assert main(["evaluate", "--data", str(path), "--methods", "imm-ekf", "--quiet", "--json", str(out), *extra]) == 0
+        args = ["evaluate", "--data", str(path), "--methods", "imm-ekf", "--quiet", "--json", str(out), *extra]
+        assert main(args) == 0
         err = capsys.readouterr().err
         assert f"note: {n} measurements beyond what a sensor reports" in err and "missed detections" in err
         doc = json.loads(out.read_text())
