@@ -119,3 +119,19 @@ def check_arrays(arrays: dict, where: str) -> tuple[int, int]:
         for start in range(0, n, ROWS):
             check_values(key, np.asarray(a[start : start + ROWS]), where, row0=start)
     return n, T
+
+
+def check_complete(arrays: dict, where: str) -> None:
+    """A ValueError if a scan has no truth (a NaN row of ``states``) or no label (``mode`` -1):
+    training needs both at every scan (padded tracks are for evaluation). Assumes
+    :func:`check_arrays` passed, so that a row's first component tells whether it is NaN."""
+    for key, a in arrays.items():
+        if key not in (keys.STATES, keys.MODE):
+            continue
+        for start in range(0, a.shape[0], ROWS):
+            chunk = np.asarray(a[start : start + ROWS])
+            bad = np.isnan(chunk[..., 0]) if key == keys.STATES else chunk == NO_LABEL
+            if bad.any():
+                what = "no truth (a NaN row of 'states')" if key == keys.STATES else f"no label (mode {NO_LABEL})"
+                raise ValueError(f"{where}: the scan at {_first(bad, start)} has {what}; training needs truth "
+                                 f"and a label at every scan (padded tracks are for evaluation, docs/data.md)")
