@@ -99,7 +99,7 @@ def main() -> int:
             "ratio_to_imm_tuned": math.ceil(100 * avg["immnet"] / avg["imm-tuned"]) / 100,
         },
     }
-    (OUT / "provenance.json").write_text(json.dumps(prov, indent=2) + "\n")
+    (OUT / "provenance.json").write_text(json.dumps(prov, indent=2, allow_nan=False) + "\n")
     (OUT / "PROVENANCE.md").write_text(
         "# Shipped IMMNet weights\n\n"
         f"`immnet.ckpt` ({(OUT / 'immnet.ckpt').stat().st_size / 2**20:.1f} MB): IMMNet with experts "

@@ -109,3 +109,27 @@ def test_ranks_draw_their_own_stage1_streams(sets):
     alone = LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.2, batch_size=64, split_seed=3,
                            single_mode=single)
     assert len(alone.train_dataloader()) == 11 and len(_ranked(sets, 0, single_mode=single).train_dataloader()) == 6
+
+
+@pytest.mark.parametrize("pad", ["states", "mode"], ids=["truth-padded", "label-padded"])
+def test_training_refuses_padded_tracks(tmp_path, pad):
+    """Issue 20, items 2 and 3: padding (a NaN row of states, mode -1; docs/data.md) is accepted
+    for evaluation but would make the training losses NaN (or index mode -1): the train and
+    validation loaders refuse it by name, before any batch is drawn."""
+    import numpy as np
+
+    from immnet.data.generate import generate
+
+    td = generate(20, seed=2, spec=DataSpec(T=50, min_segment=10))
+    a = {k: td[k].numpy() for k in ("states", "measurements", "mode", "turn_rate", "r")}
+    if pad == "states":
+        a["states"][7, 30:] = np.nan
+    else:
+        a["mode"][7, 30:] = -1
+    np.savez(tmp_path / "p.npz", dt=1.0, **a)
+    dm = LASTDataModule(str(tmp_path / "p.npz"), batch_size=4)
+    what = "no truth" if pad == "states" else "no label"
+    for loader in (dm.train_dataloader, dm.val_dataloader):
+        with pytest.raises(ValueError, match=rf"the scan at \[7, 30\] has {what} .*; training needs truth and a label"):
+            loader()
+    assert len(dm.split("test")) > 0  # the evaluation side still takes the data

@@ -130,3 +130,143 @@ def test_directory_errors(tmp_path):
         load_dataset(out)
     with pytest.raises(ValueError, match=".npz"):
         export_npz(out, tmp_path / "x.csv")
+
+
+# --- the contract of a data set's arrays (immnet.data.contract) -------------------------------
+def _good(n=3, T=8):
+    rng = np.random.default_rng(5)
+    return {"measurements": rng.normal(size=(n, T, 3)) * 1e4, "states": rng.normal(size=(n, T, 9)) * 1e4,
+            "mode": rng.integers(0, 4, size=(n, T)), "turn_rate": rng.normal(size=(n, T)) * 0.05,
+            "r": rng.uniform(1, 7, n), "dt": np.float64(1.0)}
+
+
+def _with(key, fn):
+    def make():
+        a = _good()
+        a[key] = fn(a[key])
+        return a
+    return make
+
+
+def _at(value, idx):
+    def fn(a):
+        a = a.copy()
+        a[idx] = value
+        return a
+    return fn
+
+
+BAD_NPZ = {
+    "dt-zero": (_with("dt", lambda a: np.float64(0)), r"'dt' is 0; it must be finite and > 0"),
+    "dt-negative": (_with("dt", lambda a: np.float64(-0.5)), r"'dt' is -0\.5; it must be finite and > 0"),
+    "dt-nan": (_with("dt", lambda a: np.float64(np.nan)), r"'dt' is nan; it must be finite"),
+    "dt-inf": (_with("dt", lambda a: np.float64(np.inf)), r"'dt' is inf; it must be finite"),
+    "dt-empty": (_with("dt", lambda a: np.array([])), r"'dt' has shape \(0,\), expected a scalar"),
+    "T-zero": (lambda: {k: (v[:, :0] if np.ndim(v) >= 2 else v) for k, v in _good().items()},
+               r"shape \(3, 0, 3\): a data set needs N >= 1 trajectories of T >= 1 scans"),
+    "N-zero": (lambda: {k: (v[:0] if np.ndim(v) >= 1 else v) for k, v in _good().items()},
+               r"shape \(0, 8, 3\): a data set needs N >= 1"),
+    "mode-7": (_with("mode", _at(7, (2, 5))), r"'mode' holds 7 at \[2, 5\]; valid: 0\.\.3"),
+    "mode-minus-2": (_with("mode", _at(-2, (0, 1))), r"'mode' holds -2 at \[0, 1\]"),
+    "states-float16": (_with("states", lambda a: a.astype(np.float16)), r"'states' is float16, which rounds"),
+    "measurements-float16": (_with("measurements", lambda a: a.astype(np.float16)), r"'measurements' is float16"),
+    "r-zero": (_with("r", _at(0.0, 1)), r"'r' at \[1\] is 0; it must be finite and > 0"),
+    "r-nan": (_with("r", _at(np.nan, 2)), r"'r' at \[2\] is nan"),
+    "states-inf": (_with("states", _at(np.inf, (1, 3, 4))), r"'states' at \[1, 3\] is neither all finite nor all NaN"),
+    "states-partly-nan": (_with("states", _at(np.nan, (2, 7, 0))), r"'states' at \[2, 7\] is neither"),
+    "turn-rate-inf": (_with("turn_rate", _at(-np.inf, (0, 6))), r"'turn_rate' at \[0, 6\] is -inf"),
+    "states-complex": (_with("states", lambda a: a.astype(np.complex64)), r"'states' must be float32 or float64"),
+}
+
+
+@pytest.mark.parametrize("make, msg", list(BAD_NPZ.values()), ids=list(BAD_NPZ))
+def test_npz_bad_values_are_refused_by_name(tmp_path, make, msg):
+    """Issue 20, item 2: every array's dtype, shape, finiteness and range is checked on loading,
+    with a one-line ValueError naming the array, the value and where it is."""
+    np.savez(tmp_path / "bad.npz", **make())
+    with pytest.raises(ValueError, match=msg) as err:
+        load_dataset(tmp_path / "bad.npz")
+    assert "\n" not in str(err.value) and str(tmp_path / "bad.npz") in str(err.value)
+
+
+def _corrupt_member(path):
+    """An uncompressed .npz with bytes of its 'measurements' member changed (the CRC no longer fits)."""
+    np.savez(path, **_good())
+    b = bytearray(path.read_bytes())
+    i = b.index(b"measurements.npy") + 200
+    b[i : i + 16] = bytes(16)
+    path.write_bytes(bytes(b))
+
+
+UNREADABLE = {
+    "empty-file": lambda p: p.write_bytes(b""),
+    "truncated": lambda p: (np.savez(p, **_good()), p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])),
+    "corrupt-member": _corrupt_member,
+    "bare-npy-array": lambda p: p.write_bytes(_npy_bytes(np.zeros((2, 5, 3)))),
+    "pickled-object-array": lambda p: np.savez(p, measurements=np.array([object()], dtype=object)),
+}
+
+
+def _npy_bytes(a):
+    import io
+
+    f = io.BytesIO()
+    np.save(f, a)
+    return f.getvalue()
+
+
+@pytest.mark.parametrize("make", list(UNREADABLE.values()), ids=list(UNREADABLE))
+def test_unreadable_npz_is_refused_in_one_line(tmp_path, make):
+    """Issue 20, item 2: an empty, truncated or corrupt .npz (or one holding pickles) is refused as
+    "not a readable .npz" with a ValueError, not a traceback of zipfile or numpy."""
+    path = tmp_path / "x.npz"
+    make(path)
+    with pytest.raises(ValueError, match=r"x\.npz: not a readable \.npz file \(") as err:
+        load_dataset(path)
+    assert "\n" not in str(err.value)
+
+
+def test_npz_padding_is_accepted_and_not_counted(tmp_path):
+    """Issue 20, item 3: truth padded with NaN rows after a track's end, and mode -1 (no label)
+    there, load as they are; -1 is no label, so counts_per_mode counts only the labelled scans."""
+    a = _good()
+    a["states"][1, 5:] = np.nan
+    a["mode"][1, 5:] = -1
+    a["turn_rate"][1, 5:] = np.nan
+    np.savez(tmp_path / "p.npz", **a)
+    td, meta = load_dataset(tmp_path / "p.npz")
+    assert torch.isnan(td["states"][1, 5:]).all() and torch.isfinite(td["states"][1, :5]).all()
+    assert (td["mode"][1, 5:] == -1).all()
+    want = np.bincount(a["mode"][a["mode"] >= 0], minlength=4)
+    assert list(meta["counts_per_mode"].values()) == want.tolist() and sum(want) == 3 * 8 - 3
+
+
+@pytest.mark.parametrize(
+    "key, value, msg",
+    [("dt", 0.0, r"'dt' at \[3\] is 0"), ("mode", 9, r"'mode' holds 9 at \[4, 7\]"),
+     ("states", float("inf"), r"'states' at \[4, 7\] is neither"), ("r", float("nan"), r"'r' at \[3\] is nan")],
+    ids=["dt-zero", "mode-9", "states-inf", "r-nan"],
+)
+def test_directory_values_are_checked(tmp_path, key, value, msg):
+    """Issue 20, item 2: a data set directory's arrays pass the same checks as an .npz (a tensor
+    edited on disk is refused by name, not trained or scored on)."""
+    out = write_dataset(tmp_path / "ds", 20, 0, SPEC)
+    td, _ = load_dataset(out)
+    a = np.memmap(td[key].filename, dtype=td[key].numpy().dtype, mode="r+", shape=tuple(td[key].shape))
+    idx = 3 if key in ("dt", "r") else (4, 7) if key == "mode" else (4, 7, 1)
+    a[idx] = value
+    a.flush()
+    del a, td
+    with pytest.raises(ValueError, match=msg):
+        load_dataset(out)
+
+
+@pytest.mark.parametrize("field", ["dt", "sigma_q", "r_max", "range_max"])
+def test_a_non_finite_spec_is_refused_before_anything_is_written(tmp_path, field):
+    """Issue 20, items 2 and 3: a DataSpec field of NaN or inf (``dt: .nan`` in a data config) is
+    refused by name, instead of generating a set whose meta.json holds a bare NaN (invalid JSON)."""
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match=rf"DataSpec field '{field}' must be a finite number"):
+            DataSpec.from_dict({field: bad})
+    out = write_dataset(tmp_path / "ds", 10, 0, SPEC)
+    json.loads((out / "meta.json").read_text(), parse_constant=lambda c: pytest.fail(f"meta.json holds {c}"))

@@ -55,8 +55,10 @@ def test_raw_measurements_fill_missing_detections():
     out = RawMeasurements().track(TensorDict({keys.MEASUREMENTS: z}, batch_size=[2]))
     s = out[keys.STATE]
     assert s.shape == (2, 5, 9)
-    assert s[0, :, 0].tolist() == [1, 1, 1, 4, 4] and s[0, :, 6].tolist() == [3, 3, 3, 6, 6]
-    assert torch.all(s[..., [1, 2, 4, 5, 7, 8]] == 0) and torch.all(s[1] == 0)
+    assert s[0, 1:, 0].tolist() == [1, 1, 4, 4] and s[0, 1:, 6].tolist() == [3, 3, 6, 6]
+    assert torch.all(s[0, 1:, [1, 2, 4, 5, 7, 8]] == 0)
+    # Issue 20, item 3: nothing made up before a track's first detection, nor for a track never detected
+    assert torch.isnan(s[0, 0]).all() and torch.isnan(s[1]).all()
 
 
 def test_build_method_from_yaml_and_checkpoint(methods_dir, tmp_path):
@@ -109,8 +111,9 @@ def test_json_rows_and_tables():
     data = _data()
     res = to_json(evaluate({"measurements": RawMeasurements(), "offset": Offset(3.0),
                             "clairvoyant": Offset(1.5)}, data, progress=False))
-    assert set(res["offset"]) == {"rmse", "rmse_pooled", "rmse_post_switch", "seconds", "mode_accuracy", "confusion"}
-    assert set(res["measurements"]) == {"rmse", "rmse_pooled", "rmse_post_switch", "seconds"}
+    base = {"rmse", "rmse_pooled", "rmse_post_switch", "seconds", "nan_scans", "diverged"}
+    assert set(res["offset"]) == base | {"mode_accuracy", "confusion"} and set(res["measurements"]) == base
+    assert res["offset"]["nan_scans"] == 0 and res["offset"]["diverged"] == 0
     assert set(res["offset"]["rmse"]) == {"x", "y", "z", "avg"}
     text = format_table(res)
     lines = text.splitlines()

@@ -114,3 +114,104 @@ def test_accumulator_equals_whole_tensor_functions(case, batch):
     assert torch.allclose(r["rmse_over_time"], M.rmse_over_time(err))
     assert r["mode_accuracy"] == pytest.approx(M.mode_accuracy(probs, mode))
     assert torch.equal(r["confusion"], M.confusion(probs, mode))
+
+
+# --- what is scored: truth padded with NaN, scans before the first detection, failures -------------
+@pytest.fixture
+def padded(case):
+    """The case above as variable-length tracks: trajectory 0 ends at 25 (truth NaN, mode -1 after),
+    trajectory 1 is first detected at 7, trajectory 3 has no truth at all, trajectory 4 no detection."""
+    est, truth, mode, probs = (x.clone() for x in case)
+    T = truth.shape[1]
+    z = truth[..., [0, 3, 6]].clone()
+    truth[0, 25:] = np.nan
+    mode[0, 25:] = -1
+    z[0, 25:] = np.nan
+    z[1, :7] = np.nan
+    est[1, :7] = np.nan  # a tracker has no estimate before the first detection
+    z[1, 15] = np.nan  # a missed detection after the start is still scored
+    truth[3] = np.nan
+    mode[3] = -1
+    z[4] = np.nan
+    est[4] = np.nan
+    valid = np.ones((5, T), bool)
+    valid[0, 25:] = valid[1, :7] = valid[3] = valid[4] = False
+    return est, truth, mode, probs, z, valid
+
+
+def _np_metrics(est, truth, mode, probs, valid):
+    """The metrics over the valid pairs only, in float64 numpy, by loops where that is clearer."""
+    e = _np_err(est, truth)
+    n, T = valid.shape
+    rows = [np.sqrt((e[i][valid[i]] ** 2).mean(axis=0)) for i in range(n) if valid[i].any()]
+    rmse = np.mean(rows, axis=0)
+    pooled = np.sqrt((e[valid] ** 2).mean(axis=0))
+    over_time = np.full((T, 3), np.nan)
+    for t in range(T):
+        if valid[:, t].any():
+            over_time[t] = np.sqrt((e[valid[:, t], t] ** 2).mean(axis=0))
+    m = mode.numpy()
+    window = np.zeros((n, T), bool)
+    for i in range(n):
+        for s in range(1, T):
+            if m[i, s] != m[i, s - 1] and m[i, s] >= 0 and m[i, s - 1] >= 0:
+                window[i, s : s + 20] = True
+    post = np.sqrt((e[window & valid] ** 2).mean(axis=0))
+    lab = valid & (m >= 0)
+    acc = (probs.numpy().argmax(-1)[lab] == m[lab]).mean()
+    return rmse, pooled, over_time, post, acc
+
+
+def test_nan_padded_truth_scores_only_the_scans_with_truth(padded):
+    """Issue 20, item 3: truth padded with NaN after a track's end, a track without truth, and scans
+    before a track's first detection are not scored; every metric equals a float64 numpy computation
+    over the remaining pairs, and what was left out is counted."""
+    est, truth, mode, probs, z, valid = padded
+    acc = M.MetricAccumulator()
+    for s in range(0, 5, 2):
+        acc.update(est[s : s + 2], truth[s : s + 2], mode[s : s + 2], probs[s : s + 2], measurements=z[s : s + 2])
+    r = acc.compute()
+    rmse, pooled, over_time, post, accuracy = _np_metrics(est, truth, mode, probs, valid)
+    assert [r["rmse"][a] for a in "xyz"] == pytest.approx(rmse, rel=1e-12)
+    assert [r["rmse_pooled"][a] for a in "xyz"] == pytest.approx(pooled, rel=1e-12)
+    assert [r["rmse_post_switch"][a] for a in "xyz"] == pytest.approx(post, rel=1e-12)
+    np.testing.assert_allclose(r["rmse_over_time"].numpy(), over_time, rtol=1e-12)
+    assert r["mode_accuracy"] == pytest.approx(accuracy, rel=1e-12)
+    assert int(r["confusion"].sum()) == int((valid & (mode.numpy() >= 0)).sum())
+    c = r["counts"]
+    assert c["scored"] == valid.sum() and c["scans"] == 5 * 37
+    assert c["without_truth"] == 12 + 37 and c["before_first_detection"] == 7 + 37
+    assert c["excluded"] == 2 and c["nan_scans"] == 0 and c["diverged"] == 0
+    assert torch.isnan(r["per_trajectory"][[3, 4]]).all() and torch.isfinite(r["per_trajectory"][[0, 1, 2]]).all()
+    # the whole-tensor functions with the same mask agree
+    mask = M.scored_mask(truth, z)
+    np.testing.assert_array_equal(mask.numpy(), valid)
+    err = M.position_error(est, truth)
+    assert M.rmse(err, mask) == pytest.approx(r["rmse"], rel=1e-12)
+    assert M.rmse_pooled(err, mask) == pytest.approx(r["rmse_pooled"], rel=1e-12)
+
+
+def test_a_nan_estimate_after_the_start_is_a_failure_not_a_skip(padded):
+    """Issue 20, item 3: an estimate that is NaN after its track has started is a tracker failure:
+    counted (scans and trajectories) and reported as no number (None), never averaged away; the
+    same estimate NaN before the first detection is skipped as the data say."""
+    est, truth, mode, probs, z, valid = padded
+    est[2, 20] = np.nan
+    est[0, 3, 3] = np.inf
+    acc = M.MetricAccumulator()
+    acc.update(est, truth, mode, probs, measurements=z)
+    r = acc.compute()
+    assert r["counts"]["nan_scans"] == 2 and r["counts"]["diverged"] == 2
+    assert r["rmse"] is None and r["rmse_pooled"] is None and r["rmse_post_switch"] is None
+    assert r["mode_accuracy"] is None
+    fin = torch.isfinite(r["per_trajectory"]).all(dim=-1)
+    assert fin.tolist() == [False, True, False, False, False]  # 0, 2 diverged; 3, 4 had nothing scored
+
+
+def test_nothing_to_score_is_an_error():
+    """Issue 20, item 3: data with no scan holding both truth and a started track give no number."""
+    truth = torch.full((2, 5, 9), np.nan, dtype=torch.float64)
+    acc = M.MetricAccumulator()
+    acc.update(torch.zeros(2, 5, 9), truth)
+    with pytest.raises(ValueError, match="no trajectory has a scan"):
+        acc.compute()

@@ -31,6 +31,8 @@ import torch
 from tensordict import TensorDict
 from torch.utils.data import BatchSampler, DataLoader, Dataset, DistributedSampler, RandomSampler, SequentialSampler
 
+from immnet import keys
+from immnet.data.contract import check_complete
 from immnet.data.storage import as_batch, load_dataset
 from immnet.motion import MODE_NAMES
 
@@ -210,7 +212,18 @@ class LASTDataModule(L.LightningDataModule):
         trainer = getattr(self, "trainer", None)
         return (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
 
+    def _check_trainable(self) -> None:
+        """Training and validation batches need truth and a label at every scan (contract.check_complete)."""
+        if getattr(self, "_trainable", False):
+            return
+        self.setup()
+        for name, td in [("data", self._td["train"]), *((f"single-mode set {k!r}", o.td) for k, o in
+                                                        zip(self.expert_modes or (), self._own or ()))]:
+            check_complete({k: td[k].numpy() for k in (keys.STATES, keys.MODE) if k in td.keys()}, name)
+        self._trainable = True
+
     def train_dataloader(self) -> DataLoader:
+        self._check_trainable()
         ds = self.dataset("train")
         world, rank = self._ranks()
         if not self.single_mode:
@@ -232,6 +245,7 @@ class LASTDataModule(L.LightningDataModule):
         return self._loader(ds, BatchSampler(sampler, self.batch_size, drop_last=False))
 
     def val_dataloader(self) -> DataLoader:
+        self._check_trainable()
         return self._eval_loader("val")
 
     def test_dataloader(self) -> DataLoader:

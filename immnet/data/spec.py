@@ -7,6 +7,8 @@ Units SI (m, s, m/s, m/s^2), angles in degrees where the name says ``_deg``. A Y
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,6 +63,10 @@ class DataSpec:
     hard_alt_max: float = 15_000.0
 
     def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not isinstance(v, numbers.Real) or not math.isfinite(v):
+                raise ValueError(f"DataSpec field {f.name!r} must be a finite number, got {v!r}")
         if self.T < 1:
             raise ValueError(f"T must be >= 1, got {self.T}")
         if self.dt <= 0:

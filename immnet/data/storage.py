@@ -11,9 +11,11 @@ with int64 labels (int8 would save 280 MB per 100k x 400 but need a cast of ever
 block straight into a preallocated memmap (peak memory bounded by one block, whatever ``n``),
 in a temporary sibling directory renamed into place only once complete.
 
-The ``.npz`` interchange format (SPEC.md section 2): ``measurements [N,T,3]`` (NaN = missed
-detection), optional ``states [N,T,9]``, ``mode [N,T]``, ``turn_rate [N,T]`` (rad/s), ``r [N]``,
-and ``dt`` (scalar).
+The ``.npz`` interchange format (docs/data.md): ``measurements [N,T,3]`` (NaN = missed
+detection), optional ``states [N,T,9]`` (a NaN row: no truth at that scan), ``mode [N,T]``
+(-1: no label), ``turn_rate [N,T]`` (rad/s), ``r [N]``, and ``dt`` (scalar, default 1). Both
+formats are checked on loading by :func:`immnet.data.contract.check_arrays`; an ``.npz`` is read
+with ``allow_pickle=False`` (nothing in it is executed).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ import multiprocessing as mp
 import os
 import shutil
 import uuid
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +34,7 @@ import torch
 from tensordict import MemoryMappedTensor, TensorDict
 
 from immnet import keys
+from immnet.data.contract import TRAIL, check_arrays
 from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
 from immnet.data.spec import SPEC_VERSION, DataSpec
 from immnet.motion import MODE_NAMES
@@ -41,9 +46,7 @@ STORE_DTYPES = {
     keys.STATES: torch.float32, keys.MEASUREMENTS: torch.float32, keys.MODE: torch.int64,
     keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32,
 }
-# trailing shapes after [N] (T filled in): the contract of a data set
-_NPZ_SHAPES = {keys.MEASUREMENTS: ("T", 3), keys.STATES: ("T", 9), keys.MODE: ("T",),
-               keys.TURN_RATE: ("T",), keys.R: ()}
+_NPZ_SHAPES = TRAIL  # trailing shapes after [N]: the arrays of a data set besides dt
 
 
 # --- writing ----------------------------------------------------------------------------------
@@ -157,7 +160,7 @@ def _meta(seed: int, n: int, spec_dict: dict, single_mode, counts, shard: dict |
 
 
 def _write_meta(directory: Path, meta: dict) -> None:
-    (directory / META).write_text(json.dumps(meta, indent=1) + "\n")
+    (directory / META).write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n")  # strict JSON
 
 
 def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | None = None,
@@ -238,8 +241,9 @@ def _load_dir(path: Path) -> tuple[TensorDict, dict]:
         meta = json.loads(meta_path.read_text())
     except json.JSONDecodeError as err:
         raise ValueError(f"{meta_path}: not valid JSON ({err})") from None
-    if meta.get("format") != FORMAT:
-        raise ValueError(f"{meta_path}: format is {meta.get('format')!r}, expected {FORMAT!r}")
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        got = meta.get("format") if isinstance(meta, dict) else meta
+        raise ValueError(f"{meta_path}: format is {got!r}, expected {FORMAT!r}")
     if int(meta.get("spec_version", -1)) > SPEC_VERSION:
         raise ValueError(f"{meta_path}: spec version {meta.get('spec_version')} is newer than {SPEC_VERSION}")
     for k in ("n", "T", "counts_per_mode"):
@@ -247,64 +251,63 @@ def _load_dir(path: Path) -> tuple[TensorDict, dict]:
             raise ValueError(f"{meta_path}: field {k!r} is missing")
     if not (path / TENSORS).is_dir():
         raise FileNotFoundError(f"{path}: the tensors directory {TENSORS}/ is missing")
-    td = TensorDict.load_memmap(path / TENSORS)
+    try:
+        td = TensorDict.load_memmap(path / TENSORS)
+    except (OSError, ValueError, KeyError, RuntimeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: the tensors in {TENSORS}/ cannot be read ({type(err).__name__}: {err})") from None
     n, T = int(meta["n"]), int(meta["T"])
     if tuple(td.batch_size) != (n,):
         raise ValueError(f"{path}: {META} says n={n} but the tensors hold {tuple(td.batch_size)}")
-    _check_shapes(td, n, T, str(path))
+    arrays = {k: td[k].numpy() for k in (*_NPZ_SHAPES, keys.DT) if k in td.keys()}
+    if arrays.get(keys.MEASUREMENTS) is not None and tuple(arrays[keys.MEASUREMENTS].shape[1:2]) != (T,):
+        raise ValueError(f"{path}: {META} says T={T} but 'measurements' has shape "
+                         f"{tuple(arrays[keys.MEASUREMENTS].shape)}")
+    check_arrays(arrays, str(path))
     if keys.MODE in td.keys():
-        counts = torch.bincount(td[keys.MODE].flatten().to(torch.int64), minlength=len(MODE_NAMES))
+        counts = _mode_counts(td[keys.MODE])
         expected = [int(meta["counts_per_mode"].get(name, 0)) for name in MODE_NAMES]
-        if counts.tolist()[: len(MODE_NAMES)] != expected or len(counts) > len(MODE_NAMES):
-            raise ValueError(
-                f"{path}: mode counts {counts.tolist()} do not match {META}'s counts_per_mode {expected}"
-            )
+        if counts != expected:
+            raise ValueError(f"{path}: mode counts {counts} do not match {META}'s counts_per_mode {expected}")
     return td, meta
 
 
-def _check_shapes(td: TensorDict, n: int, T: int, where: str) -> None:
-    for key, trail in _NPZ_SHAPES.items():
-        if key in td.keys():
-            want = (n, *(T if d == "T" else d for d in trail))
-            got = tuple(td[key].shape)
-            if got != want:
-                raise ValueError(f"{where}: array {key!r} has shape {got}, expected {want}")
+def _mode_counts(mode: torch.Tensor) -> list[int]:
+    """Labels per mode (``NO_LABEL`` scans not counted), in ``MODE_NAMES`` order."""
+    counts = torch.bincount(mode.flatten().to(torch.int64) + 1, minlength=len(MODE_NAMES) + 1)  # checked >= -1
+    return counts[1:].tolist()
+
+
+# what np.load raises on a file that is not a whole .npz (truncated, empty, corrupt member, pickled object)
+_UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
 
 
 def _load_npz(path: Path) -> tuple[TensorDict, dict]:
     try:
-        z = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as err:
-        raise ValueError(f"{path}: not a readable .npz file ({err})") from None
-    with z:
-        if keys.MEASUREMENTS not in z.files:
-            raise ValueError(f"{path}: the required array 'measurements' [N,T,3] is missing (has {z.files})")
-        meas = z[keys.MEASUREMENTS]
-        if meas.ndim != 3 or meas.shape[2] != 3:
-            raise ValueError(f"{path}: array 'measurements' has shape {meas.shape}, expected [N,T,3]")
-        n, T = meas.shape[:2]
-        arrays = {k: z[k] for k in _NPZ_SHAPES if k in z.files}
-        dt = float(np.asarray(z[keys.DT]).reshape(-1)[0]) if keys.DT in z.files else 1.0
-        if keys.DT in z.files and np.asarray(z[keys.DT]).size != 1:
-            raise ValueError(f"{path}: array 'dt' has shape {z[keys.DT].shape}, expected a scalar")
-    for key, trail in _NPZ_SHAPES.items():
-        if key in arrays:
-            want = (n, *(T if d == "T" else d for d in trail))
-            if tuple(arrays[key].shape) != want:
-                raise ValueError(f"{path}: array {key!r} has shape {arrays[key].shape}, expected {list(want)}")
+        with open(path, "rb") as f:  # ours to close, whatever np.load raises
+            z = np.load(f, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):
+                raise ValueError("it holds one bare array, not an archive of named arrays")
+            arrays = {k: z[k] for k in (*_NPZ_SHAPES, keys.DT) if k in z.files}
+            names = list(z.files)
+    except _UNREADABLE as err:
+        raise ValueError(f"{path}: not a readable .npz file ({type(err).__name__}: {err})") from None
+    if keys.MEASUREMENTS not in arrays:
+        raise ValueError(f"{path}: the required array 'measurements' [N,T,3] is missing (has {names})")
+    if keys.DT in arrays and arrays[keys.DT].size != 1:
+        raise ValueError(f"{path}: array 'dt' has shape {arrays[keys.DT].shape}, expected a scalar")
+    if keys.DT not in arrays:
+        arrays[keys.DT] = np.asarray(1.0)
+    n, T = check_arrays(arrays, str(path))
+    dt = float(arrays.pop(keys.DT).reshape(()))
     data = {}
     for key, a in arrays.items():
         if key == keys.MODE:
-            if not np.issubdtype(a.dtype, np.integer):
-                raise ValueError(f"{path}: array 'mode' must be integer, got {a.dtype}")
             data[key] = torch.from_numpy(a.astype(np.int64))
         else:
             data[key] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
     data[keys.DT] = torch.full((n,), dt, dtype=torch.float32)
     td = TensorDict(data, batch_size=[n])
-    counts = None
-    if keys.MODE in data:
-        counts = dict(zip(MODE_NAMES, torch.bincount(data[keys.MODE].flatten().clamp(0, 3), minlength=4).tolist()))
+    counts = dict(zip(MODE_NAMES, _mode_counts(data[keys.MODE]))) if keys.MODE in data else None
     meta = {"format": "npz", "source": str(path), "n": int(n), "T": int(T), "dt": dt,
             "keys": sorted(data), "counts_per_mode": counts}
     return td, meta
@@ -314,7 +317,8 @@ def load_dataset(path) -> tuple[TensorDict, dict]:
     """A data set directory or ``.npz`` file -> ``(TensorDict [N], meta)``.
 
     A directory's tensors stay memory-mapped (floats float32, ``mode`` int64); an ``.npz`` is
-    read into memory (floats float32, ``mode`` int64). Only the keys present are returned.
+    read into memory (floats float32, ``mode`` int64). Only the keys present are returned. Every
+    array is checked (:func:`immnet.data.contract.check_arrays`): a ValueError names what is wrong.
     """
     path = Path(path)
     if not path.exists():

@@ -22,6 +22,7 @@ from immnet.evaluation.metrics import (
     rmse_over_time,
     rmse_pooled,
     rmse_post_switch,
+    scored_mask,
 )
 from immnet.evaluation.runner import evaluate, to_json
 from immnet.evaluation.table import format_markdown, format_table
@@ -30,5 +31,5 @@ __all__ = [
     "Method", "MetricAccumulator", "RawMeasurements", "available_methods", "build_method",
     "configured_methods", "confusion", "evaluate", "format_markdown", "format_table", "mode_accuracy",
     "position_error", "post_switch_mask", "rmse", "rmse_over_time", "rmse_pooled", "rmse_post_switch",
-    "to_json",
+    "scored_mask", "to_json",
 ]

@@ -25,6 +25,10 @@ def register(subparsers) -> None:
                    help="checkpoint for a neural method; a bare path goes to every selected method that takes one")
     p.add_argument("--batch-size", type=int, default=256, help="trajectories per batch (default 256)")
     p.add_argument("--limit", type=int, help="only the first N trajectories of the split")
+    p.add_argument("--max-position", type=float, default=None, metavar="M",
+                   help="a measurement with a component beyond M metres from the radar (or not finite) is "
+                        "beyond what a sensor reports: it is treated as a missed detection, counted and "
+                        "reported (default 1e7; inf turns the limit off, non-finite ones are still gated)")
     p.add_argument("--json", type=Path, help="write the results as JSON here")
     p.add_argument("--markdown", type=Path, help="write the table as Markdown here (for a README)")
     p.add_argument("--figures", type=Path, metavar="DIR", help="write the PNG figures into DIR")
@@ -141,11 +145,44 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     return methods
 
 
+# --- what was scored -------------------------------------------------------------------------
+def scan_summary(results) -> dict:
+    """What the data left unscored, the same for every method (taken from the first): ``gated``
+    measurements, ``scored`` / ``without_truth`` / ``before_first_detection`` scans, and the
+    trajectories ``excluded`` for want of any scored scan (see docs/evaluation.md)."""
+    first = next(iter(results.values()))
+    c = first["counts"]
+    keep = ("scans", "scored", "without_truth", "before_first_detection", "trajectories", "excluded")
+    return {"gated": first["gated"], **{k: c[k] for k in keep}}
+
+
+def scan_notes(scans: dict, results, limit: float) -> list[str]:
+    """The notes on stderr: gated measurements, unscored scans, excluded and diverged trajectories."""
+    notes = []
+    if scans["gated"]:
+        notes.append(f"note: {scans['gated']} measurements beyond what a sensor reports (not finite, or a "
+                     f"component beyond {limit:g} m) were treated as missed detections")
+    if scans["without_truth"] or scans["before_first_detection"]:
+        notes.append(f"note: scored {scans['scored']} of {scans['scans']} scans: {scans['without_truth']} have no "
+                     f"truth, {scans['before_first_detection']} come before their track's first detection")
+    if scans["excluded"]:
+        notes.append(f"note: {scans['excluded']} of {scans['trajectories']} trajectories have no scan to score "
+                     f"(no truth, or no detection while there is truth) and are excluded")
+    for name, r in results.items():
+        c = r["counts"]
+        if c["diverged"]:
+            notes.append(f"note: {name}: the estimate is not finite at {c['nan_scans']} scored scans of "
+                         f"{c['diverged']} trajectories (diverged): no RMSE is reported")
+    return notes
+
+
 # --- commands ---------------------------------------------------------------------------------
 def run_evaluate(args) -> int:
-    from immnet.evaluation.runner import evaluate, to_json
+    from immnet.data.validate import MAX_ABS_POSITION, check_limit
+    from immnet.evaluation.runner import evaluate, finite_or_none, to_json
     from immnet.evaluation.table import format_markdown, format_table
 
+    limit = check_limit(MAX_ABS_POSITION if args.max_position is None else args.max_position)
     data, _ = load_split(args.data, args.split, args.limit)
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data)
@@ -154,7 +191,11 @@ def run_evaluate(args) -> int:
     cases = pick_cases(data, 2, args.seed) if args.figures else []
     split = "all" if Path(args.data).is_file() else args.split
     note(f"evaluating {', '.join(methods)} on {data.batch_size[0]} trajectories ({args.data}, split {split})")
-    results = evaluate(methods, data, batch_size=args.batch_size, progress=not args.quiet, keep=cases)
+    results = evaluate(methods, data, batch_size=args.batch_size, progress=not args.quiet, keep=cases,
+                       max_position=limit)
+    scans = scan_summary(results)
+    for msg in scan_notes(scans, results, limit):
+        note(msg)
     rows = to_json(results)
     print(format_table(rows))
     if args.markdown:
@@ -163,9 +204,9 @@ def run_evaluate(args) -> int:
         note(f"wrote {args.markdown}")
     if args.json:
         doc = {"n_trajectories": data.batch_size[0], "data": str(args.data), "split": split, "seed": args.seed,
-               "methods": rows}
+               "max_position": limit, "scans": scans, "methods": rows}
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(doc, indent=2) + "\n")
+        args.json.write_text(json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
         note(f"wrote {args.json}")
     if args.figures:
         from immnet.evaluation.figures import write_figures
@@ -190,6 +231,8 @@ def run_tune(args) -> int:
     out = args.out or REPO_ROOT / "configs" / "methods" / "imm-tuned.yaml"
     print(f"tuning IMM on {data.batch_size[0]} validation trajectories of {args.data}", file=sys.stderr)
     best = tune_imm(data, out, progress=True)
-    print(json.dumps(best, indent=2, default=str))
+    from immnet.evaluation.runner import finite_or_none
+
+    print(json.dumps(finite_or_none(best), indent=2, default=str, allow_nan=False))
     print(f"wrote {out}", file=sys.stderr)
     return 0

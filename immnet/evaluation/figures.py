@@ -203,7 +203,9 @@ def write_figures(results: Mapping[str, dict], data, cases: Sequence[int], out_d
         err = {n: avg_curve((s[..., list(POS)].double() - traj[keys.STATES][..., list(POS)].double()).abs())
                for n, s in states.items()}
         written.append(plot_rmse_over_time(err, out / f"case{i}_rmse.png", title=f"trajectory {i}: position error per axis (RMS over axes)", mode=mode))
-        written.append(plot_track(traj[keys.STATES], traj[keys.MEASUREMENTS], states, out / f"case{i}_track.png",
+        kept = next(iter(results.values()))["kept"]
+        z = kept[keys.MEASUREMENTS][row] if keys.MEASUREMENTS in kept else traj[keys.MEASUREMENTS]  # gated
+        written.append(plot_track(traj[keys.STATES], z, states, out / f"case{i}_track.png",
                                   mode=mode, title=f"trajectory {i}"))
         probs = {n: r["kept"][keys.MODE_PROBS][row] for n, r in results.items() if keys.MODE_PROBS in r["kept"]}
         if probs and mode is not None:

@@ -1,5 +1,6 @@
 """The results table: one row per method; RMSE x, y, z, Average, post-switch Average, and, where
-they apply, mode accuracy and the ratio of Average to the clairvoyant bound's."""
+they apply, mode accuracy and the ratio of Average to the clairvoyant bound's. A method whose
+estimate is not finite on a scored scan shows "diverged (K tracks)" instead of numbers."""
 
 from __future__ import annotations
 
@@ -8,10 +9,14 @@ from typing import Mapping
 BOUND = "clairvoyant"
 
 
+def _num(x) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
 def _rows(results: Mapping[str, dict]):
     """Header and string cells; ``results`` maps a method to its JSON row (see ``runner.to_json``)."""
     has_mode = any(r.get("mode_accuracy") is not None for r in results.values())
-    bound = results.get(BOUND, {}).get("rmse", {}).get("avg")
+    bound = (results.get(BOUND, {}).get("rmse") or {}).get("avg")
     header = ["method", "x [m]", "y [m]", "z [m]", "Average [m]", "post-switch [m]"]
     if has_mode:
         header.append("mode acc.")
@@ -21,12 +26,16 @@ def _rows(results: Mapping[str, dict]):
     for name, r in results.items():
         rm = r["rmse"]
         post = r.get("rmse_post_switch")
-        row = [name, *(f"{rm[a]:.3f}" for a in ("x", "y", "z", "avg")), f"{post['avg']:.3f}" if post else "-"]
+        if rm is None:  # a non-finite estimate on a scored scan: no number to show (runner.to_json)
+            cells = ["-", "-", "-", f"diverged ({r.get('diverged', '?')} tracks)"]
+        else:
+            cells = [_num(rm[a]) for a in ("x", "y", "z", "avg")]
+        row = [name, *cells, _num(post["avg"]) if post else "-"]
         if has_mode:
             acc = r.get("mode_accuracy")
             row.append(f"{100 * acc:.1f} %" if acc is not None else "-")
         if bound:
-            row.append(f"{rm['avg'] / bound:.3f}")
+            row.append(_num(rm["avg"] / bound) if rm is not None and rm["avg"] is not None else "-")
         rows.append(row)
     return header, rows
 
