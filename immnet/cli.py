@@ -38,9 +38,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in _LIGHTNING_COMMANDS:
+        from immnet.checkpoints import CheckpointError
         from immnet.training.cli import lightning_main
 
-        lightning_main(argv)
+        try:
+            lightning_main(argv)
+        except CheckpointError as err:  # a refused --ckpt_path, stage1_checkpoint or init_checkpoint
+            print(f"immnet {argv[0]}: error: {err}", file=sys.stderr)
+            return 2
         return 0
     args = build_parser().parse_args(argv)
     try:

@@ -75,10 +75,12 @@ def main() -> int:
     rows = to_json(evaluate(methods, data, progress=True))
     print(format_table(rows))
     avg = {n: r["rmse"]["avg"] for n, r in rows.items()}
+    from immnet.checkpoints import CHECKSUM_KEY, load_checkpoint
     from immnet.tracking import Tracker
 
     prov = {
         "file": "immnet/pretrained/immnet.ckpt",
+        "weights_sha256": load_checkpoint(OUT / "immnet.ckpt")[CHECKSUM_KEY],
         "recipe": "recipes/pretrained.yaml",
         "made_by": ".venv/bin/python scripts/make_pretrained.py",
         "date": datetime.date.today().isoformat(),
@@ -105,6 +107,9 @@ def main() -> int:
         f"`immnet.ckpt` ({(OUT / 'immnet.ckpt').stat().st_size / 2**20:.1f} MB): IMMNet with experts "
         f"{', '.join(prov['model_set'])}, trained by `{prov['recipe']}` at commit `{commit[:10]}` "
         f"({prov['date']}) and exported by `{prov['made_by']}`.\n\n"
+        f"The file carries the SHA-256 of its weights (`weights_sha256`: {prov['weights_sha256']}, over the state_dict's "
+        "names, dtypes, shapes and bytes); every load checks it and refuses the file if the weights disagree "
+        "(`immnet.checkpoints`, docs/checkpoints.md).\n\n"
         + (
             "It carries a range guard (`immnet/filters/guard.py`: 3D-LAST's surveillance region, where a target turns "
             f"back beyond {prov['guard']['outer']:.0f} m and within {prov['guard']['inner']:.0f} m of the radar"

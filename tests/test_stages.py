@@ -11,6 +11,7 @@ import yaml
 from torch import nn
 
 from immnet import keys
+from immnet.checkpoints import load_checkpoint
 from immnet.config import REPO_ROOT
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
@@ -268,7 +269,7 @@ def test_stage_2_fine_tunes_from_a_whole_immnet(tmp_path):
     """``init_checkpoint`` starts from every weight of the shipped IMMNet; the interaction's p_stay may
     change, the classifier's stored Markov prior may not, and a checkpoint of another model set is refused."""
     path = REPO_ROOT / "immnet/pretrained/immnet.ckpt"
-    raw = torch.load(path, map_location="cpu", weights_only=False)
+    raw = load_checkpoint(path)
     net = copy.deepcopy(raw["hyper_parameters"]["net"])
     net["gain"]["init_args"]["p_stay"] = 0.999
     module = Stage2Module(net=net, init_checkpoint=str(path))

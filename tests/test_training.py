@@ -10,8 +10,8 @@ import subprocess
 import sys
 
 import pytest
-import torch
 
+from immnet.checkpoints import load_checkpoint
 from immnet.cli import main
 from immnet.config import REPO_ROOT
 from immnet.data.spec import DataSpec
@@ -61,10 +61,10 @@ def _evaluate(workdir, methods: str, *checkpoints: str) -> dict:
 
 def test_quick_recipe_trains_both_stages_and_evaluates(workdir, quick):
     s1, s2 = quick
-    state = torch.load(s2, map_location="cpu", weights_only=False)
+    state = load_checkpoint(s2)
     assert 0 < state["global_step"] <= 4
     # stage 2 started from stage 1's experts: the gain weights moved on from there, not from scratch
-    g1 = torch.load(s1, map_location="cpu", weights_only=False)["state_dict"]["net.gain.fc2a.weight"]
+    g1 = load_checkpoint(s1)["state_dict"]["net.gain.fc2a.weight"]
     g2 = state["state_dict"]["net.gain.fc2a.weight"]
     fresh = Stage2Module(net={"model_set": "configs/model_sets/imm4-adaptive.yaml"}).net.gain.fc2a.weight
     assert (g2 - g1).abs().max() < (g2 - fresh).abs().max()
@@ -110,7 +110,7 @@ def test_cosine_schedule_ends_at_its_floor(workdir, quick):
               "--model.init_args.lr_schedule", "cosine", "--model.init_args.lr_floor", "0.1",
               "--model.init_args.stage1_checkpoint", str(quick[0]),
               "--trainer.default_root_dir", "runs/cosine"])
-    state = torch.load(workdir / "runs/quick/stage2/checkpoints/best.ckpt", map_location="cpu", weights_only=False)
+    state = load_checkpoint(workdir / "runs/quick/stage2/checkpoints/best.ckpt")
     sched = state["lr_schedulers"][0]
     lr = state["hyper_parameters"]["lr"]
     assert sched["last_epoch"] == state["global_step"]
@@ -130,7 +130,7 @@ def test_chained_recipe_trains_under_ddp(workdir, tmp_path):
     assert done.stderr.count("Initializing distributed: GLOBAL_RANK: 1") == 2  # once per stage
     assert done.stderr.count("[train] Stage2Module") == 1
     for i in (1, 2):
-        state = torch.load(tmp_path / f"runs/quick/stage{i}/checkpoints/best.ckpt", map_location="cpu", weights_only=False)
+        state = load_checkpoint(tmp_path / f"runs/quick/stage{i}/checkpoints/best.ckpt")
         assert 0 < state["global_step"] <= 4
 
 
@@ -144,7 +144,7 @@ def test_shipped_recipe_chains_a_fine_tune_of_the_whole_immnet(workdir, tmp_path
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(tmp_path)
         main(["fit", "--config", str(REPO_ROOT / "recipes/pretrained.yaml"), *FAST])
-    s2, s3 = (torch.load(tmp_path / f"runs/pretrained/stage{i}/checkpoints/best.ckpt", map_location="cpu", weights_only=False)
+    s2, s3 = (load_checkpoint(tmp_path / f"runs/pretrained/stage{i}/checkpoints/best.ckpt")
               for i in (2, 3))
     assert s3["hyper_parameters"]["init_checkpoint"].endswith("stage2/checkpoints/best.ckpt")
     assert s3["hyper_parameters"]["net"]["gain"]["init_args"]["p_stay"] == 0.998

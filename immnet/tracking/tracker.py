@@ -25,6 +25,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
+from immnet.checkpoints import load_checkpoint
 from immnet.stages import IMMNet
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet.ckpt"
@@ -35,18 +36,17 @@ KEEP = "checkpoint"  # load_network's guard: as the checkpoint was trained
 
 def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
     """The ``net`` config and the IMMNet weights (``net.`` prefix removed) of a Lightning checkpoint or
-    exported weights; a clear error for a missing, unreadable or foreign file."""
+    exported weights, read by ``immnet.checkpoints.load_checkpoint`` (plain data only, checksum verified);
+    a one-line error naming the file for a missing, unreadable, unsafe, altered or foreign one."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # a truncated or foreign file
-        raise ValueError(f"{path} is not a readable checkpoint: {err}") from None
-    if "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
+    ckpt = load_checkpoint(path)
+    if not (isinstance(ckpt.get("state_dict"), dict) and isinstance(ckpt.get("hyper_parameters"), dict)):
         raise ValueError(f"{path} is not an IMMNet checkpoint (no state_dict / hyper_parameters)")
-    state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("net.")}
-    return copy.deepcopy(ckpt["hyper_parameters"].get("net") or {}), state
+    config = ckpt["hyper_parameters"].get("net") or {}
+    if not isinstance(config, dict):
+        raise ValueError(f"{path} is not an IMMNet checkpoint (its hyper_parameters' net is a {type(config).__name__})")
+    state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if isinstance(k, str) and k.startswith("net.")}
+    return copy.deepcopy(config), state
 
 
 def load_network(path: str | Path, guard=KEEP) -> IMMNet:

@@ -24,6 +24,7 @@ import yaml
 from lightning.pytorch.cli import LightningCLI
 
 from immnet.config import resolve_path
+from immnet.training.checkpoint_io import check_checkpoints
 
 _RESULT_ENV = "IMMNET_FIT_RESULT"
 """Where a ``fit`` run started by a chain writes its best checkpoint's path (rank 0 only)."""
@@ -42,8 +43,14 @@ def _default_logger() -> dict:
 
 class IMMNetCLI(LightningCLI):
     def add_arguments_to_parser(self, parser):
-        # LASTDataModule shards its batches per rank itself (its samplers are batch samplers)
-        parser.set_defaults({"trainer.logger": _default_logger(), "trainer.use_distributed_sampler": False})
+        # LASTDataModule shards its batches per rank itself (its samplers are batch samplers);
+        # checkpoints are read as plain data with their checksum verified (docs/checkpoints.md)
+        parser.set_defaults({"trainer.logger": _default_logger(), "trainer.use_distributed_sampler": False,
+                             "trainer.plugins": [{"class_path": "immnet.training.checkpoint_io.SafeCheckpointIO"}]})
+
+    def parse_arguments(self, parser, args):
+        super().parse_arguments(parser, args)
+        check_checkpoints(self.config)
 
 
 def _cli(args: list[str]) -> IMMNetCLI:

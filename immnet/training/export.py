@@ -3,7 +3,9 @@
     python -m immnet.training.export CKPT OUT.ckpt
 
 The file keeps ``state_dict`` and ``hyper_parameters`` (what ``Tracker.from_checkpoint`` reads),
-without optimizer state, and is written to a temporary name renamed when complete.
+without optimizer state, with the checksum of its weights (``immnet.checkpoints``, docs/checkpoints.md),
+and is written to a temporary name renamed when complete. The source is read as plain data and its own
+checksum, if it has one, verified; the weights are copied unchanged.
 """
 
 from __future__ import annotations
@@ -13,21 +15,22 @@ from pathlib import Path
 
 import torch
 
+from immnet.checkpoints import add_checksum, load_checkpoint
 from immnet.motion import ModelSet
 
 
 def export_weights(ckpt: str | Path, out: str | Path) -> Path:
-    src = torch.load(ckpt, map_location="cpu", weights_only=False)
-    if "state_dict" not in src or "hyper_parameters" not in src:
+    src = load_checkpoint(ckpt)
+    if not (isinstance(src.get("state_dict"), dict) and isinstance(src.get("hyper_parameters"), dict)):
         raise ValueError(f"{ckpt} is not a Lightning checkpoint of an IMMNet module")
     net = dict(src["hyper_parameters"].get("net") or {})
     # the model set inline, so that the file works without this repository's configs/
     net["model_set"] = ModelSet.from_config(net.get("model_set", "configs/model_sets/imm4.yaml")).to_config()["models"]
-    slim = {
+    slim = add_checksum({
         "state_dict": {k: v for k, v in src["state_dict"].items() if k.startswith("net.")},
         "hyper_parameters": {"net": net},
         "global_step": src.get("global_step"),
-    }
+    })
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".partial")

@@ -21,6 +21,7 @@ import lightning as L
 import torch
 
 from immnet import keys
+from immnet.checkpoints import add_checksum, verify_checksum
 from immnet.evaluation.metrics import confusion, per_trajectory_rmse, position_error
 from immnet.stages import IMMNet
 from immnet.tracking.tracker import read_checkpoint
@@ -59,6 +60,15 @@ class _TrackerModule(L.LightningModule):
 
     def trainable_parameters(self):
         return self.parameters()
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Every checkpoint carries the SHA-256 of its weights (``immnet.checkpoints``, docs/checkpoints.md)."""
+        add_checksum(checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Refuse weights that disagree with their checksum, whichever reader Lightning was given."""
+        trainer = self._trainer
+        verify_checksum(checkpoint, (trainer.ckpt_path if trainer is not None else None) or "the checkpoint")
 
     def configure_optimizers(self):
         """Adam; with ``lr_schedule: cosine`` the rate falls per optimizer step from ``lr`` to

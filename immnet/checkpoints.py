@@ -1,0 +1,114 @@
+"""Checkpoint files read without running anything from them, and a checksum of the weights they hold.
+
+    ckpt = load_checkpoint("runs/quick/stage2/checkpoints/best.ckpt")   # a dict; CheckpointError if refused
+    add_checksum(ckpt)                                                 # before torch.save of a checkpoint
+
+``load_checkpoint`` is the one reader of checkpoint files in the package (the tracker, Stage2Module's
+``stage1_checkpoint`` / ``init_checkpoint``, the exporter, and Lightning's resume through
+``immnet.training.checkpoint_io.SafeCheckpointIO``). It unpickles with ``torch.load(weights_only=True)``:
+tensors, dicts, lists, tuples, strings and numbers, plus ``ALLOWED_GLOBALS``; any other global in the
+pickle (a function to call, a class to build) refuses the file before anything in it runs.
+
+The checksum (``CHECKSUM_KEY``, docs/checkpoints.md) is a SHA-256 over the ``state_dict``: for each entry
+in sorted name order, the UTF-8 JSON line ``["name", "torch.float32", [shape...]]\\n`` then the tensor's
+bytes (C order, little-endian). A file whose weights disagree with its stored checksum is refused; a
+file without one (written before checkpoints carried it) is accepted, read as safely as any other.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+import re
+import warnings
+from pathlib import Path
+
+import torch
+
+CHECKSUM_KEY = "weights_sha256"
+
+ALLOWED_GLOBALS: tuple = ()
+"""Globals a checkpoint of ours may hold beyond torch's weights-only set (tensors, storages, dtypes,
+``OrderedDict``, ``torch.Size``, plain Python containers and scalars). Our Lightning checkpoints of
+``Stage1Module`` / ``Stage2Module`` (state_dict, hyper_parameters from LightningCLI's YAML, loops,
+ModelCheckpoint's and Timer's state, Adam's and LambdaLR's state) and the exported weights need none."""
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file that is refused: unreadable, holding code, or with weights that fail its checksum."""
+
+
+def weights_checksum(state_dict: dict) -> str:
+    """SHA-256 (hex) of a ``state_dict``: names, dtypes, shapes and bytes, in sorted name order."""
+    digest = hashlib.sha256()
+    for name in sorted(state_dict):
+        t = state_dict[name]
+        if not isinstance(t, torch.Tensor):
+            raise ValueError(f"state_dict entry {name!r} is a {type(t).__name__}, not a tensor")
+        t = t.detach().to("cpu").contiguous()
+        digest.update((json.dumps([name, str(t.dtype), list(t.shape)]) + "\n").encode())
+        digest.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
+def add_checksum(checkpoint: dict) -> dict:
+    """Store the checksum of ``checkpoint["state_dict"]`` in ``checkpoint`` (in place); returns it."""
+    checkpoint[CHECKSUM_KEY] = weights_checksum(checkpoint["state_dict"])
+    return checkpoint
+
+
+def verify_checksum(checkpoint: dict, name) -> None:
+    """Refuse ``checkpoint`` (read from ``name``) if its weights disagree with its stored checksum;
+    one without a checksum passes."""
+    stored = checkpoint.get(CHECKSUM_KEY)
+    if stored is None:
+        return
+    if not (isinstance(stored, str) and re.fullmatch(r"[0-9a-f]{64}", stored)):
+        raise CheckpointError(f"{name}: its {CHECKSUM_KEY} is not a SHA-256 hex digest")
+    if not isinstance(checkpoint.get("state_dict"), dict):
+        raise CheckpointError(f"{name}: it carries a checksum but no state_dict")
+    try:
+        actual = weights_checksum(checkpoint["state_dict"])
+    except ValueError as err:
+        raise CheckpointError(f"{name}: {err}") from None
+    if actual != stored:
+        raise CheckpointError(f"{name}: its weights do not match the checksum stored in it "
+                              f"(stored sha256 {stored[:16]}..., the weights give {actual[:16]}...): the file was altered or damaged")
+
+
+def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
+    """Read a checkpoint file as plain data (``weights_only=True`` with ``ALLOWED_GLOBALS``) and verify its
+    checksum. ``FileNotFoundError`` for a missing file, ``CheckpointError`` (one line naming the file) for
+    one that is unreadable, holds a global outside the allow-list, is not a dict, or fails its checksum."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        with torch.serialization.safe_globals(list(ALLOWED_GLOBALS)), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")
+            ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as err:
+        found = re.search(r"GLOBAL ([\w.]+)", str(err))
+        if found:
+            raise CheckpointError(f"{path} is refused: it holds the global {found.group(1)}, which is not on "
+                                  "the checkpoint allow-list (docs/checkpoints.md); nothing in it was run") from None
+        raise CheckpointError(f"{path} is not a readable checkpoint: {_reason(err)}") from None
+    except Exception as err:  # a truncated, empty or foreign file
+        raise CheckpointError(f"{path} is not a readable checkpoint: {_reason(err)}") from None
+    if not isinstance(ckpt, dict):
+        raise CheckpointError(f"{path} is not a checkpoint: it holds a {type(ckpt).__name__}, not a dict")
+    verify_checksum(ckpt, path)
+    return ckpt
+
+
+_BOILERPLATE = ("Weights only load failed", "Please file an issue", "Check the documentation")
+
+
+def _reason(err: Exception) -> str:
+    """The informative line of a ``torch.load`` error, first sentence only."""
+    lines = [s.strip() for s in str(err).splitlines() if s.strip() and not s.strip().startswith(_BOILERPLATE)]
+    if not lines:
+        return "the file is empty or cut short" if isinstance(err, EOFError) else type(err).__name__
+    end = re.search(r"\.\s+[A-Z]", lines[-1])
+    return (lines[-1][: end.start()] if end else lines[-1]).rstrip(".")
