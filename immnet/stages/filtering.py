@@ -41,7 +41,7 @@ from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
 from immnet.filters.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
 from immnet.filters.kalman import inv3
 from immnet.filters.trackers import transition_matrix
-from immnet.motion import ACC, POS, VEL, ModelSet, ct_propagate, noise_gain
+from immnet.motion import ACC, POS, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_propagate, noise_gain
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.gain import KalmanNetGain
@@ -94,7 +94,12 @@ def _turn_entries(x: torch.Tensor, w: torch.Tensor, dt: float) -> torch.Tensor:
 
 
 def _kinds(model_set: ModelSet, dt: float):
-    """Per expert: keeps its own acceleration (bool), turns at its own rate (bool), rate bounds."""
+    """Per expert: keeps its own acceleration (bool), turns at its own rate (bool), rate bounds.
+
+    A turn expert's rate is bounded to its model's slow edge and, on the fast side, to the larger of its
+    model's edge and ``TURN_RATE_LIMIT_DEG``: the model's range is its prior (where its turns start), not
+    what a target can fly; bounded there, a faster turn's rate stays below the truth and the expert falls
+    behind the target (docs/robustness.md)."""
     own_acc, own_rate, lo, hi, nominal = [], [], [], [], []
     for model in model_set:
         rate = bool(model.state_dependent) and hasattr(model, "rate_bounds")
@@ -102,10 +107,21 @@ def _kinds(model_set: ModelSet, dt: float):
         own_rate.append(rate)
         own_acc.append((not rate) and bool(F[2, 2] != 0))
         b = model.rate_bounds() if rate else (0.0, 0.0)
+        if rate:
+            limit = TURN_RATE_LIMIT_DEG * math.pi / 180.0
+            b = (b[0], max(b[1], limit)) if b[0] > 0 else (min(b[0], -limit), b[1])
         lo.append(b[0])
         hi.append(b[1])
         nominal.append(model.turn_rate if rate else 0.0)
     return own_acc, own_rate, lo, hi, nominal
+
+
+def _load_without_rate_bounds(self, state_dict, prefix, *args, **kwargs):
+    """``_load_from_state_dict`` of the filter stages: the rate bounds follow the model set (:func:`_kinds`), so
+    a checkpoint's stored copies (checkpoints written before they were derived hold them) are not read."""
+    for name in ("rate_lo", "rate_hi"):
+        state_dict.pop(prefix + name, None)
+    torch.nn.Module._load_from_state_dict(self, state_dict, prefix, *args, **kwargs)
 
 
 def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
@@ -195,8 +211,8 @@ class FilterPredict(Predict):
         acc_mask[:, list(ACC)] = torch.tensor(own_acc)[:, None]
         self.register_buffer("own_acc_mask", acc_mask, persistent=False)
         self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("rate_lo", torch.tensor(lo))
-        self.register_buffer("rate_hi", torch.tensor(hi))
+        self.register_buffer("rate_lo", torch.tensor(lo), persistent=False)  # from the model set (_kinds)
+        self.register_buffer("rate_hi", torch.tensor(hi), persistent=False)
         modes = model_set.modes
         self.register_buffer("data_modes", modes, persistent=False)
         bound_sign = torch.where(modes == 2, 1.0, torch.where(modes == 3, -1.0, 0.0)) * torch.tensor(own_rate, dtype=f64)
@@ -213,6 +229,8 @@ class FilterPredict(Predict):
                     J[i, r, c] = v
         self.register_buffer("J_base", J, persistent=False)
         self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in _TURN_ENTRIES]), persistent=False)
+
+    _load_from_state_dict = _load_without_rate_bounds
 
     def _mix(self, td):
         """The IMM's mixed estimate of each expert ``[B, M, 10]`` and its covariance ``[B, M, 10, 10]``."""
@@ -284,8 +302,10 @@ class FilterUpdate(Update):
         super().__init__(model_set)
         _, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("rate_lo", torch.tensor(lo))
-        self.register_buffer("rate_hi", torch.tensor(hi))
+        self.register_buffer("rate_lo", torch.tensor(lo), persistent=False)  # from the model set (_kinds)
+        self.register_buffer("rate_hi", torch.tensor(hi), persistent=False)
+
+    _load_from_state_dict = _load_without_rate_bounds
 
     def forward(self, td):
         td = super().forward(td)  # the state
