@@ -97,7 +97,7 @@ def main(argv=None) -> int:
             print(f"{name}: done", file=sys.stderr)
         for method, cell in column.items():
             cells.setdefault(method, {})[name] = cell
-    head = [f"{n}: {SETS[n][0]} (--guard {SETS[n][1]})" for n in names]
+    head = [f"{n} (guard {SETS[n][1]})" for n in names]
     lines = ["| method | " + " | ".join(head) + " |", "|---|" + "---|" * len(names)]
     lines += [f"| {m} | " + " | ".join(row.get(n, "") for n in names) + " |" for m, row in cells.items()]
     table = "\n".join(lines)
