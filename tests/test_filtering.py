@@ -120,6 +120,8 @@ def _ekf_alone(z, model, idx, r0=4.0, k0=3.0, noise=(0.2, 0.2, 0.01, 0.002, 1e-5
     B, T, _ = z.shape
     turn = model.state_dependent
     lo, hi = model.rate_bounds() if turn else (0.0, 0.0)
+    if turn:  # the fast edge at an aircraft's 30 deg/s where the model's range ends before it
+        lo, hi = (lo, max(hi, 30.0 * math.pi / 180)) if lo > 0 else (min(lo, -30.0 * math.pi / 180), hi)
     own_acc = (not turn) and bool(model.F(1.0)[2, 2] != 0)
     F = model.F(1.0)
 

@@ -61,7 +61,7 @@ def _jacobian(j, x, dt):
     return J
 
 
-def _reference(z, p_stay, sigma_q, r0, k0, dt=1.0, lo=1.0 * DEG, hi=10.0 * DEG):
+def _reference(z, p_stay, sigma_q, r0, k0, dt=1.0, lo=1.0 * DEG, hi=30.0 * DEG):
     """One track ``z [T, 3]`` (NaN = missed): fused states ``[T, 9]`` and mode probabilities ``[T, 4]``."""
     T, M = len(z), 4
     r2 = _noise_var_reference(z[:, 2], r0, k0)

@@ -1,7 +1,8 @@
 """The 3D-LAST generator (SPEC.md section 2), vectorized over trajectories, float64.
 
 Truth: ``x_t = F_{m_t}(w_t) x_{t-1} + G n_t``, ``n_t ~ N(0, sigma_q^2 I3)``, ``G`` per axis
-``[dt^2/2, dt, 0]`` for every mode; measurements ``z_t = H x_t + v_t``, ``v_t ~ N(0, r^2 I3)``.
+``[dt^2/2, dt, 0]`` for every mode; measurements ``z_t = H x_t + v_t``, ``v_t ~ N(0, r^2 I3)``;
+with ``p_miss > 0`` each scan from the third on is missed (NaN) with that probability.
 
 Label semantics (other packages rely on them):
 
@@ -223,6 +224,10 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     states = states.transpose(0, 1).contiguous()
     mode, turn = mode.T.contiguous(), turn.T.contiguous()
     meas = states[..., [0, 3, 6]] + v
+    if spec.p_miss > 0:  # drawn last, so that p_miss = 0 leaves every other draw as it was
+        missed = torch.rand(m, T, generator=g, dtype=_DT) < spec.p_miss
+        missed[:, :2] = False  # a track starts from two detections
+        meas[missed] = float("nan")
     rho, hs = torch.hypot(lx, ly), torch.hypot(vx, vy)  # the last state
     bad |= (rho < spec.hard_range_min) | (rho > spec.hard_range_max) | (hs > spec.hard_speed_max)
     bad |= (lz < spec.hard_alt_min) | (lz > spec.hard_alt_max) | ~torch.isfinite(lx + ly + lz + vx + vy + vz)

@@ -31,6 +31,7 @@ class DataSpec:
     r_min: float = 1.0  # measurement noise std r ~ U[r_min, r_max] m, once per trajectory
     r_max: float = 7.0
     sigma_q: float = 0.2  # truth process noise (m/s^2), G per axis [dt^2/2, dt, 0]
+    p_miss: float = 0.0  # probability that a scan's detection is missed (NaN), from the third scan on
     # initial state
     range_min: float = 5_000.0  # horizontal range U[range_min, range_max], uniform azimuth
     range_max: float = 30_000.0
@@ -71,6 +72,8 @@ class DataSpec:
             raise ValueError(f"T must be >= 1, got {self.T}")
         if self.dt <= 0:
             raise ValueError(f"dt must be > 0, got {self.dt}")
+        if not 0.0 <= self.p_miss < 1.0:
+            raise ValueError(f"p_miss must be in [0, 1), got {self.p_miss}")
         if self.n_segments < 1:
             raise ValueError(f"n_segments must be >= 1, got {self.n_segments}")
         if self.n_segments * self.min_segment > self.T:

@@ -10,7 +10,7 @@ import json
 import sys
 from pathlib import Path
 
-from immnet.evaluation.methods import available_methods, build_method, missing_keys, takes_checkpoint
+from immnet.evaluation.methods import KEEP_GUARD, available_methods, build_method, missing_keys, takes_checkpoint
 
 
 def register(subparsers) -> None:
@@ -23,6 +23,14 @@ def register(subparsers) -> None:
     p.add_argument("--methods", help="comma-separated method names (default: every available one the data allows)")
     p.add_argument("--checkpoint", action="append", default=[], metavar="[NAME=]CKPT",
                    help="checkpoint for a neural method; a bare path goes to every selected method that takes one")
+    p.add_argument("--guard", default="checkpoint",
+                   help="range guard of the methods that have one (immnet, imm-ekf-guard, imm-ekf-guard-sticky): "
+                        "'checkpoint' (as configured: 3D-LAST's region, turns back beyond 33 km and within 4 km), "
+                        "'none' (data from another region; imm-ekf-guard becomes imm-ekf's twin), or 'OUTER,INNER' "
+                        "in metres (another region, 3D-LAST's speed envelope); as `immnet track --guard`")
+    p.add_argument("--sigma-q", type=float, default=None, metavar="SIGMA_Q",
+                   help="the truth's process noise (m/s^2) for the clairvoyant references (default: the data's "
+                        "meta.json spec; 3D-LAST's 0.2 for an .npz)")
     p.add_argument("--batch-size", type=int, default=256, help="trajectories per batch (default 256)")
     p.add_argument("--limit", type=int, help="only the first N trajectories of the split")
     p.add_argument("--max-position", type=float, default=None, metavar="M",
@@ -106,10 +114,12 @@ def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
     return named
 
 
-def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print, data=None) -> dict:
+def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print, data=None,
+                   meta: dict | None = None, guard=KEEP_GUARD, sigma_q: float | None = None) -> dict:
     """``{name: method}``: the requested names (errors are errors) or, by default, every available
     method that builds, whose ``needs`` the data meet and whose ``check(data)`` (where it has one
-    and ``data`` is given) passes; the others skipped with a note."""
+    and ``data`` is given) passes; the others skipped with a note. ``guard`` goes to ``build_method``;
+    a method with ``configure`` is told the data's ``meta`` and ``sigma_q`` (``--sigma-q``)."""
     explicit = requested is not None
     names = [n.strip() for n in requested.split(",") if n.strip()] if explicit else available_methods()
     if explicit and not names:
@@ -118,7 +128,7 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     methods = {}
     for name in names:
         try:
-            method = build_method(name, checkpoint=ckpt.get(name))
+            method = build_method(name, checkpoint=ckpt.get(name), guard=guard)
         except (ValueError, FileNotFoundError, TypeError) as err:
             if explicit:
                 raise
@@ -142,6 +152,13 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
         methods[name] = method
     if not methods:
         raise ValueError("no method to evaluate")
+    told = [m for m in methods.values() if callable(getattr(m, "configure", None))]
+    if sigma_q is not None and not told:
+        raise ValueError(f"--sigma-q is for the clairvoyant references; none is selected ({', '.join(methods)})")
+    for method in told:
+        msg = method.configure(meta, sigma_q=sigma_q)
+        if msg:
+            note(f"note: {msg}")
     return methods
 
 
@@ -181,11 +198,13 @@ def run_evaluate(args) -> int:
     from immnet.data.validate import MAX_ABS_POSITION, check_limit
     from immnet.evaluation.runner import evaluate, finite_or_none, to_json
     from immnet.evaluation.table import format_markdown, format_table
+    from immnet.tracking.cli import parse_guard
 
     limit = check_limit(MAX_ABS_POSITION if args.max_position is None else args.max_position)
-    data, _ = load_split(args.data, args.split, args.limit)
+    guard = parse_guard(args.guard)
+    data, meta = load_split(args.data, args.split, args.limit)
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
-    methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data)
+    methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data, meta, guard, args.sigma_q)
     if args.batch_size < 1:
         raise ValueError("--batch-size must be positive")
     cases = pick_cases(data, 2, args.seed) if args.figures else []
@@ -204,7 +223,7 @@ def run_evaluate(args) -> int:
         note(f"wrote {args.markdown}")
     if args.json:
         doc = {"n_trajectories": data.batch_size[0], "data": str(args.data), "split": split, "seed": args.seed,
-               "max_position": limit, "scans": scans, "methods": rows}
+               "guard": args.guard, "max_position": limit, "scans": scans, "methods": rows}
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
         note(f"wrote {args.json}")

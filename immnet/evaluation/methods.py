@@ -8,8 +8,11 @@ whole data before running any method: a learned tracker refuses a ``dt`` it was 
 
 Methods are configured, not coded in: ``configs/methods/<name>.yaml`` holds one ``class_path`` /
 ``init_args`` mapping. ``build_method(name, checkpoint)`` loads it; a checkpoint (from the YAML's
-``init_args`` or from the caller) reaches the constructor as ``checkpoint=``. The only built-in is
-``measurements`` (:class:`RawMeasurements`), which needs no configuration.
+``init_args`` or from the caller) reaches the constructor as ``checkpoint=``, and a range guard
+(``immnet evaluate --guard``) as ``guard=``. A method may also have ``configure(meta, sigma_q=None)``:
+told the data set's ``meta`` (``load_dataset``'s, holding the generator's ``spec`` where the data has
+one) before it runs; the clairvoyant references take the data's statistics from it. The only built-in
+is ``measurements`` (:class:`RawMeasurements`), which needs no configuration.
 """
 
 from __future__ import annotations
@@ -122,14 +125,28 @@ def takes_checkpoint(name: str, methods_dir: Path | None = None) -> bool:
     return "checkpoint" in init_args or "checkpoint" in inspect.signature(cls).parameters
 
 
-def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None):
+KEEP_GUARD = "checkpoint"
+"""``build_method``'s ``guard`` that leaves every method's range guard as configured."""
+
+
+def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None, guard=KEEP_GUARD):
     """The method configured as ``configs/methods/<name>.yaml`` (or a built-in), ready to ``track``.
 
     ``checkpoint`` overrides the YAML's ``init_args.checkpoint``; a relative checkpoint path in
     the YAML is read from the working directory, else from the repository root. The object's
     ``name`` is set to ``name`` so that rows carry the registry name.
+
+    ``guard`` (``immnet.tracking.cli.parse_guard``'s: ``"checkpoint"``, ``None`` or ``{"outer", "inner"}``)
+    replaces the range guard (``immnet.filters.guard``) of every method that has one: a constructor taking
+    ``guard`` whose configured value is not off (IMMNet's ``"checkpoint"``, imm-ekf-guard's ``true``). A
+    method configured without a guard (imm-ekf) keeps none: ``--guard none`` makes imm-ekf-guard its
+    unguarded twin, never the reverse.
     """
     cls, init_args = _method_class(name, methods_dir)
+    if not (isinstance(guard, str) and guard == KEEP_GUARD):
+        param = inspect.signature(cls).parameters.get("guard")
+        if param is not None and init_args.get("guard", param.default) not in (None, False):
+            init_args["guard"] = guard
     if checkpoint is not None:
         if "checkpoint" not in init_args and "checkpoint" not in inspect.signature(cls).parameters:
             raise ValueError(f"method {name!r} ({cls.__name__}) does not take a checkpoint")

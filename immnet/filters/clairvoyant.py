@@ -4,25 +4,30 @@ It knows each trajectory's true mode sequence ``mode[t]``, turn rates ``turn_rat
 measurement noise ``r``, and runs one Kalman filter with the truth's time-varying transition:
 
 * ``F_t = F_CV``, ``F_CA`` or ``F_CT(turn_rate[t])`` by ``mode[t]`` (the step ``t-1 -> t``);
-* the truth's process noise ``Q = sigma_q^2 G G^T``, ``G`` per axis ``[dt^2/2, dt, 0]``,
-  ``sigma_q = 0.2``;  ``R = r^2 I``.
+* the truth's process noise ``Q = sigma_q^2 G G^T``, ``G`` per axis ``[dt^2/2, dt, 0]``;  ``R = r^2 I``.
+
+Every generator statistic it uses comes from the data's ``DataSpec`` (``immnet.data.spec``): ``sigma_q``,
+the CA draw's variance and (``SwitchClairvoyantKF``) the turn-rate prior. A bound only stays a bound when
+told the statistics of the data it scores, so ``configure(meta)`` takes them from a data set's
+``meta.json`` (``immnet evaluate`` calls it; ``--sigma-q`` overrides ``sigma_q``); without meta they are
+3D-LAST's (``DataSpec()``: sigma_q 0.2). See docs/evaluation.md.
 
 At the first step of a CA segment (``mode[t] = CA != mode[t-1]``, ``t >= 1``) the generator writes a
 newly drawn acceleration into the state before ``F_CA``. The bound knows a switch happened, not
 the draw: before predicting it resets the acceleration mean to 0, removes its correlations, and
-sets its variance to that of the draw: horizontal magnitude ``a ~ U[0.5, 3]`` m/s^2 at a uniform
-direction gives ``E[a_x^2] = E[a^2] / 2 = (3^3 - 0.5^3) / (3 * 2.5) / 2 = 1.7917`` per horizontal
-axis; vertical ``U[-0.3, 0.3]`` gives ``0.6^2 / 12 = 0.03``.
+sets its variance to that of the draw (:func:`ca_acc_var`): horizontal magnitude
+``a ~ U[lo, hi]`` m/s^2 at a uniform direction gives ``E[a_x^2] = E[a^2] / 2 = (hi^3 - lo^3) / (3 (hi - lo)) / 2``
+per horizontal axis (3D-LAST's ``U[0.5, 3]``: 1.7917); vertical ``U[-v, v]`` gives ``v^2 / 3`` (0.03).
 
 It starts like every other method: from the first measurement (``initial_state`` with the true r),
 except that where the first segment is CA it gives the acceleration the draw's variance above.
 
 ``SwitchClairvoyantKF`` is told less: the true mode sequence (so when a switch happens) and r, not
 the turn rates. It runs an extended Kalman filter of ``[x, w]``: at every turn onset, and wherever
-the turn rate changes within a turn (a soft-bound turn), ``w`` restarts from the prior of a 3D-LAST
-turn, ``|w| ~ U[1, 10]`` deg/s in the mode's sign (mean 5.5, standard deviation 2.6 deg/s), and is
-estimated from the measurements. It is a tighter reference than the bound for what a tracker that
-detected every switch at once could reach.
+the turn rate changes within a turn (a soft-bound turn), ``w`` restarts from the prior of a turn,
+``|w| ~ U[turn_rate_min_deg, turn_rate_max_deg]`` in the mode's sign (:func:`turn_rate_prior_deg`; 3D-LAST's
+``U[1, 10]`` deg/s: mean 5.5, standard deviation 2.6), and is estimated from the measurements. It is a
+tighter reference than the bound for what a tracker that detected every switch at once could reach.
 """
 
 from __future__ import annotations
@@ -31,13 +36,31 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
+from immnet.data.spec import DataSpec
 from immnet.filters.base import Method, as_dtype, batch_dt, output
 from immnet.filters.imm import initial_state
 from immnet.filters.kalman import predict, update
 from immnet.motion import DEG, ca_matrix, ct_matrix, ct_propagate, cv_matrix, process_noise
 
-CA_ACC_VAR = ((3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0, (3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0, 0.6**2 / 12.0)
-"""Variance of a newly drawn CA acceleration per axis (x, y, z), from SPEC.md section 2."""
+
+def ca_acc_var(spec: DataSpec) -> tuple[float, float, float]:
+    """Variance per axis (x, y, z) of a newly drawn CA acceleration of ``spec`` (module doc)."""
+    lo, hi, v = spec.ca_acc_h_min, spec.ca_acc_h_max, spec.ca_acc_v_max
+    mean_sq = (hi**3 - lo**3) / (3.0 * (hi - lo)) if hi > lo else lo**2
+    return mean_sq / 2.0, mean_sq / 2.0, v**2 / 3.0
+
+
+def turn_rate_prior_deg(spec: DataSpec) -> tuple[float, float]:
+    """Mean and standard deviation (deg/s) of a turn rate's magnitude ``U[turn_rate_min_deg, turn_rate_max_deg]``."""
+    lo, hi = spec.turn_rate_min_deg, spec.turn_rate_max_deg
+    return (lo + hi) / 2.0, (hi - lo) / 12.0**0.5
+
+
+CA_ACC_VAR = ca_acc_var(DataSpec())
+"""Variance of a newly drawn 3D-LAST CA acceleration per axis (x, y, z), SPEC.md section 2."""
+
+TURN_PRIOR_DEG = turn_rate_prior_deg(DataSpec())
+"""Mean and standard deviation of a 3D-LAST turn rate's magnitude, ``U[1, 10]`` deg/s (SPEC.md section 2)."""
 
 CV, CA, CT_POS, CT_NEG = 0, 1, 2, 3
 
@@ -48,11 +71,37 @@ class ClairvoyantKF(Method):
     needs = (keys.MODE, keys.TURN_RATE, keys.R)
     ground_truth = True
 
-    def __init__(self, sigma_q: float = 0.2, acc_var=CA_ACC_VAR, dtype="float64", name: str = "clairvoyant"):
-        if sigma_q < 0:
+    def __init__(self, sigma_q: float | None = None, acc_var=None, spec=None, dtype="float64", name: str = "clairvoyant"):
+        """``spec``: the data's ``DataSpec`` (or a dict of its fields; default 3D-LAST's), where every statistic
+        not given comes from; ``sigma_q`` and ``acc_var`` fix those two whatever the spec says."""
+        if sigma_q is not None and not sigma_q >= 0:
             raise ValueError(f"sigma_q must be >= 0, got {sigma_q}")
-        self.sigma_q, self.acc_var = float(sigma_q), tuple(float(v) for v in acc_var)
+        self.fixed_sigma_q = None if sigma_q is None else float(sigma_q)
+        self.fixed_acc_var = None if acc_var is None else tuple(float(v) for v in acc_var)
         self.dtype, self.name = as_dtype(dtype), name
+        self.set_spec(spec)
+
+    def set_spec(self, spec) -> None:
+        """Take the statistics not fixed at construction from ``spec`` (a ``DataSpec``, a dict of its fields, None: 3D-LAST)."""
+        spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)
+        self.spec = spec
+        self.sigma_q = spec.sigma_q if self.fixed_sigma_q is None else self.fixed_sigma_q
+        self.acc_var = ca_acc_var(spec) if self.fixed_acc_var is None else self.fixed_acc_var
+
+    def configure(self, meta: dict | None, sigma_q: float | None = None) -> str | None:
+        """Take the generator statistics of the data set described by ``meta`` (``load_dataset``'s): its
+        ``spec`` where it has one; ``sigma_q`` (``immnet evaluate --sigma-q``) overrides. Returns a note
+        when the data carries no spec and 3D-LAST's statistics stand (an ``.npz``), else None."""
+        if sigma_q is not None:
+            if not sigma_q >= 0:
+                raise ValueError(f"--sigma-q must be >= 0, got {sigma_q}")
+            self.fixed_sigma_q = float(sigma_q)
+        spec = (meta or {}).get("spec")
+        self.set_spec(spec)
+        if spec is None and sigma_q is None and self.fixed_sigma_q is None:
+            return (f"{self.name}: the data carries no generator spec (no meta.json); using 3D-LAST's statistics "
+                    f"(sigma_q {self.sigma_q:g}); give --sigma-q for data generated with another")
+        return None
 
     def _inputs(self, batch: TensorDict):
         """``z [B, T, 3]``, ``mode [B, T]``, ``turn_rate [B, T]``, ``r [B]`` in this method's dtype, and ``dt``."""
@@ -105,19 +154,22 @@ class ClairvoyantKF(Method):
         return output(states)
 
 
-TURN_PRIOR_DEG = (5.5, 9.0 / 12.0**0.5)
-"""Mean and standard deviation of a 3D-LAST turn rate's magnitude, ``U[1, 10]`` deg/s (SPEC.md section 2)."""
-
-
 class SwitchClairvoyantKF(ClairvoyantKF):
     """Knows the true modes (the switches) and r, estimates each turn's rate: a tighter reference."""
 
-    def __init__(self, sigma_q: float = 0.2, acc_var=CA_ACC_VAR, turn_prior_deg=TURN_PRIOR_DEG, dtype="float64",
+    def __init__(self, sigma_q: float | None = None, acc_var=None, turn_prior_deg=None, spec=None, dtype="float64",
                  name: str = "clairvoyant-switch"):
-        super().__init__(sigma_q, acc_var, dtype, name)
-        mean, std = (float(v) for v in turn_prior_deg)
-        if not (mean > 0 and std >= 0):
-            raise ValueError(f"turn_prior_deg needs a mean > 0 and a std >= 0, got {turn_prior_deg}")
+        """As :class:`ClairvoyantKF`; ``turn_prior_deg`` ``(mean, std)`` fixes the turn-rate prior too."""
+        if turn_prior_deg is not None:
+            mean, std = (float(v) for v in turn_prior_deg)
+            if not (mean > 0 and std >= 0):
+                raise ValueError(f"turn_prior_deg needs a mean > 0 and a std >= 0, got {turn_prior_deg}")
+        self.fixed_turn_prior = None if turn_prior_deg is None else (mean, std)
+        super().__init__(sigma_q, acc_var, spec, dtype, name)
+
+    def set_spec(self, spec) -> None:
+        super().set_spec(spec)
+        mean, std = turn_rate_prior_deg(self.spec) if self.fixed_turn_prior is None else self.fixed_turn_prior
         self.w_mean, self.w_var = mean * DEG, (std * DEG) ** 2
 
     def track(self, batch: TensorDict) -> TensorDict:

@@ -7,7 +7,9 @@ is the model-based counterpart of IMMNet's filter experts, told what the data's 
 
 * four mode-matched filters, CV, CA, CT+ and CT-, all over the augmented state ``[x (9), w]``; the
   turn filters are extended Kalman filters that estimate their turn rate ``w`` (its Jacobian
-  ``immnet.stages.filtering.ct_rate_derivative``), bounded to ``1 <= |w| <= 10`` deg/s in their sign;
+  ``immnet.stages.filtering.ct_rate_derivative``), bounded to ``1 <= |w| <= 30`` deg/s in their sign
+  (``TURN_RATE_LIMIT_DEG``, what an aircraft can fly: the prior's 10 deg/s as a bound would hold a
+  faster turn's rate below the truth, and the track would fall behind it; docs/robustness.md);
 * the truth's process noise (white acceleration, ``sigma_q`` 0.2 m/s^2 on position and velocity);
   a CA segment's acceleration is constant, a turn's rate too (``rate_noise_deg`` per scan, 0);
 * the IMM interaction (Blom & Bar-Shalom) with the generator's **onset priors**: where the mixed
@@ -41,7 +43,7 @@ from immnet.filters.guard import RangeGuard, blend_rate, fresh_share, guarded_tr
 from immnet.filters.imm import initial_state
 from immnet.filters.kalman import update
 from immnet.filters.trackers import _positive, transition_matrix
-from immnet.motion import DEG, ca_matrix, ct_matrix, ct_propagate, cv_matrix, process_noise
+from immnet.motion import DEG, TURN_RATE_LIMIT_DEG, ca_matrix, ct_matrix, ct_propagate, cv_matrix, process_noise
 
 CV, CA, CT_POS, CT_NEG = 0, 1, 2, 3
 RATE = 9  # the turn rate's slot in the augmented state
@@ -74,7 +76,7 @@ class IMMEKF(Method):
         r: float | None = None,
         r0: float = 4.0,
         k0: float = 3.0,
-        rate_bounds_deg: tuple[float, float] = (1.0, 10.0),
+        rate_bounds_deg: tuple[float, float] = (1.0, TURN_RATE_LIMIT_DEG),
         rate_noise_deg: float = 0.0,
         guard=None,
         dtype="float64",

@@ -7,6 +7,7 @@ from immnet.motion.models import (
     DEG,
     MODE_NAMES,
     POS,
+    TURN_RATE_LIMIT_DEG,
     VEL,
     adaptive_ct_propagate,
     ca_matrix,
@@ -20,7 +21,7 @@ from immnet.motion.models import (
 )
 
 __all__ = [
-    "ACC", "AdaptiveTurn", "DEG", "MODE_NAMES", "POS", "VEL",
+    "ACC", "AdaptiveTurn", "DEG", "MODE_NAMES", "POS", "TURN_RATE_LIMIT_DEG", "VEL",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
     "adaptive_ct_propagate", "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate",
     "measurement_matrix", "noise_gain", "process_noise", "turn_rate_of",

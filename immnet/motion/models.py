@@ -23,6 +23,11 @@ import math
 import torch
 
 DEG = math.pi / 180.0
+
+TURN_RATE_LIMIT_DEG = 30.0
+"""The fastest turn a tracker's rate estimate may reach (deg/s): an aircraft's limit (30 deg/s is 4.9 g at
+150 m/s), not a data set's range. A turn filter bounded at its prior's edge (3D-LAST's 10 deg/s) holds a
+faster turn's rate below the truth and falls behind the target (docs/robustness.md)."""
 MODE_NAMES = ("cv", "ca", "ct+", "ct-")
 """Data mode labels, in the fixed order of SPEC.md: 0 CV, 1 CA, 2 CT+, 3 CT-."""
 

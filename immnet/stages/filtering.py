@@ -14,7 +14,7 @@ The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
 
 * input point ``x~``: the previous fused estimate (SPEC.md section 4), except the expert's own mode
   parameter: a model that carries acceleration (``F[acc, acc] != 0``, CA) keeps its own posterior
-  acceleration; an ``AdaptiveTurn`` expert turns at its own rate ``w^(i)`` (bounded to its range).
+  acceleration; an ``AdaptiveTurn`` expert turns at its own rate ``w^(i)`` (bounded by ``_rate_limits``).
   With ``interaction="imm"`` (the recipes'), the IMM's mixed estimate instead (``FilterPredict``);
 * prior ``x^(i)_{t|t-1} = f_i(x~, w~)``; covariance ``P- = J (P^(i) + d d^T) J^T + Q^(i)_t``, ``J``
   the Jacobian of ``f_i`` and ``d = x~ - x^(i)_{t-1|t-1}`` the IMM's spread-of-means term for
@@ -41,7 +41,7 @@ from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
 from immnet.filters.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
 from immnet.filters.kalman import inv3
 from immnet.filters.trackers import transition_matrix
-from immnet.motion import ACC, POS, VEL, ModelSet, ct_propagate, noise_gain
+from immnet.motion import ACC, POS, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_propagate, noise_gain
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.gain import KalmanNetGain
@@ -94,7 +94,7 @@ def _turn_entries(x: torch.Tensor, w: torch.Tensor, dt: float) -> torch.Tensor:
 
 
 def _kinds(model_set: ModelSet, dt: float):
-    """Per expert: keeps its own acceleration (bool), turns at its own rate (bool), rate bounds."""
+    """Per expert: keeps its own acceleration (bool), turns at its own rate (bool), its model's rate range."""
     own_acc, own_rate, lo, hi, nominal = [], [], [], [], []
     for model in model_set:
         rate = bool(model.state_dependent) and hasattr(model, "rate_bounds")
@@ -106,6 +106,15 @@ def _kinds(model_set: ModelSet, dt: float):
         hi.append(b[1])
         nominal.append(model.turn_rate if rate else 0.0)
     return own_acc, own_rate, lo, hi, nominal
+
+
+def _rate_limits(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The bounds of each expert's turn rate from its model's range ``[lo, hi]`` (rad/s; 0, 0 for no turn):
+    the slow edge as the model's, the fast edge the larger of the model's and ``TURN_RATE_LIMIT_DEG``.
+    The model's range is its prior (where its turns start), not what a target can fly: bounded there, a
+    faster turn's rate stays below the truth and the expert falls behind the target (docs/robustness.md)."""
+    limit = TURN_RATE_LIMIT_DEG * math.pi / 180.0
+    return torch.where(lo < 0, lo.clamp(max=-limit), lo), torch.where(hi > 0, hi.clamp(min=limit), hi)
 
 
 def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
@@ -195,7 +204,7 @@ class FilterPredict(Predict):
         acc_mask[:, list(ACC)] = torch.tensor(own_acc)[:, None]
         self.register_buffer("own_acc_mask", acc_mask, persistent=False)
         self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("rate_lo", torch.tensor(lo))
+        self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range; bounds by _rate_limits
         self.register_buffer("rate_hi", torch.tensor(hi))
         modes = model_set.modes
         self.register_buffer("data_modes", modes, persistent=False)
@@ -251,7 +260,7 @@ class FilterPredict(Predict):
         else:
             x = torch.where(self.own_acc_mask, own, per_expert(td.get(keys.FUSED), M))
             w = td.get(keys.EXPERT_RATE)
-        w = torch.clamp(w, self.rate_lo, self.rate_hi)
+        w = torch.clamp(w, *_rate_limits(self.rate_lo, self.rate_hi))
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
         J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
@@ -284,14 +293,14 @@ class FilterUpdate(Update):
         super().__init__(model_set)
         _, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("rate_lo", torch.tensor(lo))
+        self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range; bounds by _rate_limits
         self.register_buffer("rate_hi", torch.tensor(hi))
 
     def forward(self, td):
         td = super().forward(td)  # the state
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         w = td.get(keys.EXPERT_RATE) + (td.get(keys.EXPERT_RATE_GAIN) * nu).sum(-1)
-        w = torch.where(self.own_rate, torch.clamp(w, self.rate_lo, self.rate_hi), w)
+        w = torch.where(self.own_rate, torch.clamp(w, *_rate_limits(self.rate_lo, self.rate_hi)), w)
         K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = td.get(keys.NOISE_VAR)

@@ -6,7 +6,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.tracking.tracker import PRETRAINED, Tracker, load_network
+from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker, load_network
 
 
 def check_dt(net, dt, name: str = "immnet") -> None:
@@ -40,11 +40,12 @@ class _LearnedMethod:
 
 
 class IMMNetMethod(_LearnedMethod):
-    """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights)."""
+    """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights); ``guard``
+    its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``)."""
 
-    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500):
+    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP):
         self.name = name
-        self.tracker = Tracker(load_network(checkpoint or PRETRAINED))
+        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard))
         self.net = self.tracker.net
         self.batch_size = batch_size
 
