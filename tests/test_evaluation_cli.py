@@ -250,3 +250,21 @@ def test_json_is_strict_with_padded_truth_and_a_diverged_method(arrays, tmp_path
                 sq.append((held - s32[i, t, [0, 3, 6]]) ** 2)
         rows.append(np.sqrt(np.mean(sq, axis=0)))
     assert [doc["methods"]["measurements"]["rmse"][a] for a in "xyz"] == pytest.approx(np.mean(rows, 0), rel=1e-12)
+
+
+def test_default_split_of_a_directory_is_its_test_split(tmp_path, capsys):
+    """Issue 20, item 2: ``immnet evaluate --data DIR`` (default ``--split test``) used to end in a
+    TypeError traceback (the loaded TensorDict was handed to the DataModule as a path). It scores the
+    DataModule's test split: checked against a float64 numpy RMSE of the raw measurements on it."""
+    from immnet.data.datamodule import LASTDataModule
+    from immnet.data.storage import write_dataset
+
+    d = write_dataset(tmp_path / "set", n=40, seed=3, spec=DataSpec(T=60, min_segment=20))
+    out = tmp_path / "r.json"
+    assert main(["evaluate", "--data", str(d), "--methods", "measurements", "--quiet", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    test = LASTDataModule(d).split("test")
+    assert doc["split"] == "test" and doc["n_trajectories"] == test.batch_size[0] == 4
+    err = test[keys.MEASUREMENTS].double().numpy() - test[keys.STATES][..., [0, 3, 6]].double().numpy()
+    want = np.sqrt((err ** 2).mean(axis=1)).mean(axis=0).mean()
+    assert doc["methods"]["measurements"]["rmse"]["avg"] == pytest.approx(want, rel=1e-6)

@@ -66,10 +66,7 @@ def load_split(path, split: str, limit: int | None = None):
     if split != "all" and path.is_dir():
         from immnet.data.datamodule import LASTDataModule
 
-        dm = LASTDataModule(data)
-        if hasattr(dm, "setup"):
-            dm.setup()
-        data = dm.split(split)
+        data = LASTDataModule(path).split(split)
     if limit is not None:
         if limit < 1:
             raise ValueError("--limit must be positive")
