@@ -36,18 +36,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from immnet.data.scratch import Terminated
+
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in _LIGHTNING_COMMANDS:
         from immnet.training.cli import lightning_main
 
-        lightning_main(argv)
-        return 0
+        try:
+            return lightning_main(argv)
+        except (FileNotFoundError, FileExistsError) as err:  # what a run finds in its checkpoint directory
+            print(f"immnet {argv[0]}: error: {err}", file=sys.stderr)
+            return 2
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         print(f"immnet {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except Terminated:
+        print(f"immnet {args.command}: terminated (SIGTERM); its temporary files are removed", file=sys.stderr)
+        return 128 + 15
 
 
 if __name__ == "__main__":
