@@ -36,23 +36,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from immnet.data.scratch import Terminated
+
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in _LIGHTNING_COMMANDS:
         from immnet.checkpoints import CheckpointError
         from immnet.training.cli import lightning_main
 
         try:
-            lightning_main(argv)
-        except CheckpointError as err:  # a refused --ckpt_path, stage1_checkpoint or init_checkpoint
+            return lightning_main(argv)
+        except (CheckpointError, FileNotFoundError, FileExistsError) as err:
+            # a refused --ckpt_path / stage1_checkpoint / init_checkpoint, or what a run finds in its
+            # checkpoint directory
             print(f"immnet {argv[0]}: error: {err}", file=sys.stderr)
             return 2
-        return 0
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except (ValueError, FileNotFoundError, FileExistsError) as err:
         print(f"immnet {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except Terminated:
+        print(f"immnet {args.command}: terminated (SIGTERM); its temporary files are removed", file=sys.stderr)
+        return 128 + 15
 
 
 if __name__ == "__main__":

@@ -35,7 +35,8 @@ def ckpt(name: str) -> Path:
 
 def train(name: str) -> None:
     base, from_stage1 = ABLATIONS[name]
-    args = [sys.executable, "-m", "immnet.cli", "fit", "--config", base, "--config", f"configs/ablations/{name}.yaml"]
+    args = [sys.executable, "-m", "immnet.cli", "fit", "--config", base, "--config", f"configs/ablations/{name}.yaml",
+            "--overwrite_checkpoints", "true"]  # retrain: replace an earlier run's checkpoints
     if from_stage1:
         args += ["--model.init_args.stage1_checkpoint", str(QUICK / "stage1/checkpoints/best.ckpt")]
     print(f"[ablations] training {name}", file=sys.stderr, flush=True)

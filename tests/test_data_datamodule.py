@@ -133,3 +133,50 @@ def test_training_refuses_padded_tracks(tmp_path, pad):
         with pytest.raises(ValueError, match=rf"the scan at \[7, 30\] has {what} .*; training needs truth and a label"):
             loader()
     assert len(dm.split("test")) > 0  # the evaluation side still takes the data
+
+
+def test_a_training_pass_is_a_function_of_its_epoch(sets):
+    """Issue 20, item 5: a resumed run sees the batches of an uninterrupted one. Pass `e` of the shuffled
+    loader, set by Lightning's `set_epoch(e)` alone, is the `e`-th pass of torch's own `RandomSampler`
+    with the same seed (as an uninterrupted run iterates it); the stage-1 streams likewise."""
+    from torch.utils.data import BatchSampler, RandomSampler
+
+    from lightning.fabric.utilities.data import _set_sampler_epoch
+
+    dm = LASTDataModule(sets["main"], batch_size=64, split_seed=2)
+    n = len(dm.dataset("train"))
+    reference = BatchSampler(RandomSampler(range(n), generator=torch.Generator().manual_seed(3)), 64, drop_last=False)
+    passes = [list(reference) for _ in range(3)]
+    for e in (2, 0, 1):  # in any order, each from a fresh loader, as after a restart
+        loader = dm.train_dataloader()
+        _set_sampler_epoch(loader, e)
+        assert list(loader.batch_sampler) == passes[e]
+    modes = ["cv", "ca", "ct+", "ct-"]
+    stage1 = LASTDataModule(sets["main"], batch_size=20, expert_modes=modes, single_mode={m: sets[m] for m in modes})
+    one_run = stage1.train_dataloader().batch_sampler
+    run = [[[(m, o.tolist(), x.tolist()) for m, o, x in b] for b in one_run] for _ in range(2)]
+    loader = stage1.train_dataloader()
+    _set_sampler_epoch(loader, 1)
+    assert [[(m, o.tolist(), x.tolist()) for m, o, x in b] for b in loader.batch_sampler] == run[1] != run[0]
+
+
+def test_the_training_loader_resumes_part_way_through_a_pass(sets):
+    """Issue 20, item 5: the training loader's state (Lightning's loader-state protocol) says which
+    pass and how many of its batches were finished; a fresh loader given it starts at the next batch,
+    in that pass only (the following pass is whole)."""
+    dm = LASTDataModule(sets["main"], batch_size=64, split_seed=2)
+    loader = dm.train_dataloader()
+    loader.batch_sampler.sampler.set_epoch(1)
+    whole = list(loader.batch_sampler)
+    assert loader.state_dict() == {"epoch": 1, "batches": 0}  # no trainer attached: nothing finished
+    fresh = dm.train_dataloader()
+    fresh.load_state_dict({"epoch": 1, "batches": 5})
+    fresh.batch_sampler.sampler.set_epoch(1)
+    assert list(fresh.batch_sampler) == whole[5:]
+    assert list(fresh.batch_sampler) == whole  # the next pass (same epoch here) starts at its first batch
+    other = dm.train_dataloader()
+    other.load_state_dict({"epoch": 1, "batches": 5})
+    other.batch_sampler.sampler.set_epoch(2)  # a state of another pass does not cut this one
+    assert len(list(other.batch_sampler)) == len(whole)
+    got = [b["states"] for b in fresh]
+    assert len(got) == len(whole) and torch.equal(got[0], dm.dataset("train").__getitems__(whole[0])["states"])

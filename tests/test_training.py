@@ -109,7 +109,7 @@ def test_cosine_schedule_ends_at_its_floor(workdir, quick):
         main(["fit", "--config", str(REPO_ROOT / "recipes/quick-stage2.yaml"), *FAST,
               "--model.init_args.lr_schedule", "cosine", "--model.init_args.lr_floor", "0.1",
               "--model.init_args.stage1_checkpoint", str(quick[0]),
-              "--trainer.default_root_dir", "runs/cosine"])
+              "--trainer.default_root_dir", "runs/cosine", "--overwrite_checkpoints", "true"])
     state = load_checkpoint(workdir / "runs/quick/stage2/checkpoints/best.ckpt")
     sched = state["lr_schedulers"][0]
     lr = state["hyper_parameters"]["lr"]

@@ -19,6 +19,14 @@ itself, and the CLI sets ``trainer.use_distributed_sampler`` to false: each rank
 share of the train split (a ``DistributedSampler``, reshuffled per epoch), of the validation and
 test splits (in order, padded to equal shares), and stage 1 draws its own-mode and maneuvering
 streams per rank (seeded by rank). ``batch_size`` is per rank.
+
+Resuming (``immnet fit --ckpt_path last``) sees the very batches an uninterrupted run sees: each
+training pass is a function of its epoch alone (Lightning's ``set_epoch``, restored from the
+checkpoint's loop state): the shuffled order is the ``RandomSampler``'s ``e``-th pass with the same
+seed, the stage-1 streams are seeded by ``(split_seed, e)``, the distributed shards by
+``DistributedSampler``'s epoch; and the training loader is stateful (Lightning saves its
+``state_dict`` in every checkpoint), so that a run stopped part-way through a pass starts at the
+first batch the training loop had not finished.
 """
 
 from __future__ import annotations
@@ -29,7 +37,7 @@ import math
 import lightning as L
 import torch
 from tensordict import TensorDict
-from torch.utils.data import BatchSampler, DataLoader, Dataset, DistributedSampler, RandomSampler, SequentialSampler
+from torch.utils.data import BatchSampler, DataLoader, Dataset, DistributedSampler, SequentialSampler
 
 from immnet import keys
 from immnet.data.contract import check_complete
@@ -60,6 +68,66 @@ class TrajectoryDataset(Dataset):
         return self.__getitems__([i])[0]
 
 
+class _EpochRandomSampler(torch.utils.data.Sampler):
+    """Pass ``e`` (``set_epoch(e)``) is exactly the ``e``-th pass of ``RandomSampler(range(n),
+    generator=manual_seed(seed))`` (each full pass of it draws two permutations), whatever passes ran before."""
+
+    def __init__(self, n: int, seed: int):
+        self.n, self.seed, self.epoch = n, seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self):
+        return self.n
+
+    def __iter__(self):
+        g = torch.Generator().manual_seed(self.seed)
+        for _ in range(2 * self.epoch):
+            torch.randperm(self.n, generator=g)
+        yield from torch.randperm(self.n, generator=g).tolist()
+
+
+class _ResumableBatches:
+    """A batch sampler whose next pass can start part-way: ``resume_at(epoch, k)`` drops the first ``k``
+    batches of the next pass if it is pass ``epoch``. ``sampler`` is what Lightning's ``set_epoch`` reaches."""
+
+    def __init__(self, batches):
+        self.batches = batches
+        self.sampler = getattr(batches, "sampler", batches)
+        self.pass_epoch, self._resume = None, None
+
+    def __len__(self):
+        return len(self.batches)
+
+    def resume_at(self, epoch: int, k: int) -> None:
+        self._resume = (int(epoch), int(k))
+
+    def __iter__(self):
+        self.pass_epoch = int(getattr(self.sampler, "epoch", 0))
+        skip = self._resume[1] if self._resume is not None and self._resume[0] == self.pass_epoch else 0
+        self._resume = None
+        for i, batch in enumerate(self.batches):
+            if i >= skip:
+                yield batch
+
+
+class ResumableLoader(DataLoader):
+    """The training loader, with Lightning's loader-state protocol (``state_dict`` / ``load_state_dict``):
+    the epoch of the current pass and the batches of it the training loop has finished (``position()``)."""
+
+    def __init__(self, dataset, batches, position, **kwargs):
+        super().__init__(dataset, batch_sampler=_ResumableBatches(batches), **kwargs)
+        self.position = position
+
+    def state_dict(self) -> dict:
+        return {"epoch": self.batch_sampler.pass_epoch, "batches": int(self.position())}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state.get("epoch") is not None:
+            self.batch_sampler.resume_at(state["epoch"], state["batches"])
+
+
 class _Stage1Sampler:
     """Per batch, per expert: indices of its own-mode set and of the maneuvering train split."""
 
@@ -68,6 +136,9 @@ class _Stage1Sampler:
         self.n_own, self.n_mix, self.n_batches, self.seed = n_own, n_mix, n_batches, seed
         self.rank = rank
         self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
 
     def __len__(self):
         return self.n_batches
@@ -207,6 +278,15 @@ class LASTDataModule(L.LightningDataModule):
         return DataLoader(ds, batch_sampler=sampler, collate_fn=_identity, num_workers=self.num_workers,
                           persistent_workers=self.num_workers > 0)
 
+    def _train_loader(self, ds, sampler) -> ResumableLoader:
+        return ResumableLoader(ds, sampler, self._train_position, collate_fn=_identity, num_workers=self.num_workers,
+                               persistent_workers=self.num_workers > 0)
+
+    def _train_position(self) -> int:
+        """The training batches of the current pass the attached trainer has finished."""
+        trainer = getattr(self, "trainer", None)
+        return trainer.fit_loop.epoch_loop.batch_progress.current.completed if trainer is not None else 0
+
     def _ranks(self) -> tuple[int, int]:
         """``(world_size, rank)`` of the attached trainer; ``(1, 0)`` without one."""
         trainer = getattr(self, "trainer", None)
@@ -230,12 +310,12 @@ class LASTDataModule(L.LightningDataModule):
             if world > 1:
                 sampler = DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=True, seed=int(self.split_seed) + 1)
             else:
-                sampler = RandomSampler(ds, generator=torch.Generator().manual_seed(int(self.split_seed) + 1))
-            return self._loader(ds, BatchSampler(sampler, self.batch_size, drop_last=False))
+                sampler = _EpochRandomSampler(len(ds), int(self.split_seed) + 1)
+            return self._train_loader(ds, BatchSampler(sampler, self.batch_size, drop_last=False))
         n_own = round(self.own_fraction * self.batch_size)
         sampler = _Stage1Sampler([len(o) for o in self._own], len(ds), n_own, self.batch_size - n_own,
                                  max(1, math.ceil(len(ds) / (self.batch_size * world))), self.split_seed, rank)
-        return self._loader(_Stage1Dataset(self._own, ds, self._common_keys), sampler)
+        return self._train_loader(_Stage1Dataset(self._own, ds, self._common_keys), sampler)
 
     def _eval_loader(self, name) -> DataLoader:
         ds = self.dataset(name)

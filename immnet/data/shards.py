@@ -14,15 +14,14 @@ what ``immnet data generate --n N --seed S`` writes in one go, ``meta.json`` inc
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 from tensordict import TensorDict
 
 from immnet.data.generate import BLOCK
+from immnet.data.scratch import remove, remove_stale, replace, terminating_raises, tmp_sibling
 from immnet.data.storage import (
-    META, STORE_DTYPES, TENSORS, _allocate, _check_out, _meta, _replace, _rows, _tmp_sibling, _write_meta,
-    load_dataset, shard_rows,
+    META, STORE_DTYPES, TENSORS, _allocate, _check_out, _meta, _rows, _write_meta, load_dataset, shard_rows,
 )
 from immnet.motion import MODE_NAMES
 
@@ -108,42 +107,44 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
     n_total, T, block = first["shard"]["n_total"], first["T"], first["block"]
     _check_out(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_sibling(out)
+    remove_stale(out)
+    tmp = tmp_sibling(out)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=n_total, desc=f"merge -> {out.name}", unit="traj")
-    try:
-        tmp.mkdir()
-        _allocate(tmp / TENSORS, n_total, T)
-        dst_td = TensorDict.load_memmap(tmp / TENSORS)
-        counts = [0] * len(MODE_NAMES)
-        for d, meta in shards:
-            src_td, _ = load_dataset(d)
-            row0, n = meta["shard"]["rows"][0], meta["n"]
-            for key, dtype in STORE_DTYPES.items():
-                dtype = str(dtype).removeprefix("torch.")
-                trail = tuple(src_td[key].shape[1:])
-                for a in range(0, n, block):
-                    m = min(block, n - a)
-                    src = _rows(src_td[key].filename, dtype, trail, a, m, "r")
-                    dst = _rows(dst_td[key].filename, dtype, trail, row0 + a, m, "r+")
-                    dst[:] = src
-                    dst.flush()
-                    del src, dst
-            counts = [c + int(meta["counts_per_mode"][name]) for c, name in zip(counts, MODE_NAMES)]
+    with terminating_raises():
+        try:
+            tmp.mkdir()
+            _allocate(tmp / TENSORS, n_total, T)
+            dst_td = TensorDict.load_memmap(tmp / TENSORS)
+            counts = [0] * len(MODE_NAMES)
+            for d, meta in shards:
+                src_td, _ = load_dataset(d)
+                row0, n = meta["shard"]["rows"][0], meta["n"]
+                for key, dtype in STORE_DTYPES.items():
+                    dtype = str(dtype).removeprefix("torch.")
+                    trail = tuple(src_td[key].shape[1:])
+                    for a in range(0, n, block):
+                        m = min(block, n - a)
+                        src = _rows(src_td[key].filename, dtype, trail, a, m, "r")
+                        dst = _rows(dst_td[key].filename, dtype, trail, row0 + a, m, "r+")
+                        dst[:] = src
+                        dst.flush()
+                        del src, dst
+                counts = [c + int(meta["counts_per_mode"][name]) for c, name in zip(counts, MODE_NAMES)]
+                if bar is not None:
+                    bar.update(n)
+            del dst_td
+            _write_meta(tmp, _meta(first["seed"], n_total, first["spec"], first["single_mode"], counts))
+            load_dataset(tmp)  # the merged set passes the same checks as any other
+            replace(tmp, out)
+        except BaseException:
+            remove(tmp)
+            raise
+        finally:
             if bar is not None:
-                bar.update(n)
-        del dst_td
-        _write_meta(tmp, _meta(first["seed"], n_total, first["spec"], first["single_mode"], counts))
-        load_dataset(tmp)  # the merged set passes the same checks as any other
-        _replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    finally:
-        if bar is not None:
-            bar.close()
+                bar.close()
     return out
 

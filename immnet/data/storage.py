@@ -9,7 +9,9 @@ Floats are stored as float32 (positions of tens of km keep ~2 mm resolution, far
 1-7 m measurement noise); ``mode`` as int64, so that a loaded set stays lazily memory-mapped
 with int64 labels (int8 would save 280 MB per 100k x 400 but need a cast of every read). Generation writes block by
 block straight into a preallocated memmap (peak memory bounded by one block, whatever ``n``),
-in a temporary sibling directory renamed into place only once complete.
+in a temporary sibling directory renamed into place only once complete; an exception, SIGTERM or
+SIGINT removes it, and the next writer of the same output removes one left by a killed run
+(``kill -9``; see :mod:`immnet.data.scratch`).
 
 The ``.npz`` interchange format (docs/data.md): ``measurements [N,T,3]`` (NaN = missed
 detection), optional ``states [N,T,9]`` (a NaN row: no truth at that scan), ``mode [N,T]``
@@ -22,9 +24,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
-import os
-import shutil
-import uuid
 import zipfile
 import zlib
 from pathlib import Path
@@ -36,6 +35,7 @@ from tensordict import MemoryMappedTensor, TensorDict
 from immnet import keys
 from immnet.data.contract import TRAIL, check_arrays
 from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
+from immnet.data.scratch import remove, remove_stale, replace, terminating_raises, tmp_sibling
 from immnet.data.spec import SPEC_VERSION, DataSpec
 from immnet.motion import MODE_NAMES
 
@@ -55,21 +55,6 @@ def _check_out(out: Path, overwrite: bool) -> None:
         raise FileExistsError(f"{out} exists and is not a directory")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty (pass overwrite=True / --overwrite)")
-
-
-def _tmp_sibling(out: Path) -> Path:
-    return out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-
-
-def _replace(tmp: Path, out: Path) -> None:
-    """Move the finished ``tmp`` to ``out`` (removing an old ``out``)."""
-    if out.exists():
-        old = _tmp_sibling(out)
-        os.replace(out, old)
-        os.replace(tmp, out)
-        shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
-    else:
-        os.replace(tmp, out)
 
 
 def _allocate(tensors_dir: Path, n: int, T: int) -> None:
@@ -187,48 +172,50 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     row0, row1 = _block_rows(blocks, n)
     _check_out(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _tmp_sibling(out)
-    try:
-        tmp.mkdir()
-        _allocate(tmp / TENSORS, row1 - row0, spec.T)
-        counts = [0] * len(MODE_NAMES)
-        blocks = list(blocks)
-        bar = None
-        if progress:
-            from tqdm import tqdm
+    remove_stale(out)
+    tmp = tmp_sibling(out)
+    with terminating_raises():
+        try:
+            tmp.mkdir()
+            _allocate(tmp / TENSORS, row1 - row0, spec.T)
+            counts = [0] * len(MODE_NAMES)
+            blocks = list(blocks)
+            bar = None
+            if progress:
+                from tqdm import tqdm
 
-            bar = tqdm(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
-        init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
-        if workers == 1 or len(blocks) == 1:
-            threads = torch.get_num_threads()
-            _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
-            try:
-                results = (_write_block(b) for b in blocks)
-                for b, c in zip(blocks, results):
-                    counts = [a + x for a, x in zip(counts, c)]
-                    if bar is not None:
-                        bar.update(min(BLOCK, n - b * BLOCK))
-            finally:
-                torch.set_num_threads(threads)
-                _WORKER.clear()
-        else:
-            ctx = mp.get_context("spawn")
-            with ctx.Pool(min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)) as pool:
-                for b, c in zip(blocks, pool.imap(_write_block, blocks)):
-                    counts = [a + x for a, x in zip(counts, c)]
-                    if bar is not None:
-                        bar.update(min(BLOCK, n - b * BLOCK))
-        if bar is not None:
-            bar.close()
-        info = None
-        if shard is not None:
-            info = {"index": int(shard[0]), "count": int(shard[1]), "n_total": n, "rows": [row0, row1],
-                    "blocks": [blocks[0], blocks[-1] + 1]}
-        _write_meta(tmp, _meta(seed, row1 - row0, spec.to_dict(), single_mode, counts, info))
-        _replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+                bar = tqdm(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
+            init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
+            if workers == 1 or len(blocks) == 1:
+                threads = torch.get_num_threads()
+                _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
+                try:
+                    results = (_write_block(b) for b in blocks)
+                    for b, c in zip(blocks, results):
+                        counts = [a + x for a, x in zip(counts, c)]
+                        if bar is not None:
+                            bar.update(min(BLOCK, n - b * BLOCK))
+                finally:
+                    torch.set_num_threads(threads)
+                    _WORKER.clear()
+            else:
+                ctx = mp.get_context("spawn")
+                with ctx.Pool(min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)) as pool:
+                    for b, c in zip(blocks, pool.imap(_write_block, blocks)):
+                        counts = [a + x for a, x in zip(counts, c)]
+                        if bar is not None:
+                            bar.update(min(BLOCK, n - b * BLOCK))
+            if bar is not None:
+                bar.close()
+            info = None
+            if shard is not None:
+                info = {"index": int(shard[0]), "count": int(shard[1]), "n_total": n, "rows": [row0, row1],
+                        "blocks": [blocks[0], blocks[-1] + 1]}
+            _write_meta(tmp, _meta(seed, row1 - row0, spec.to_dict(), single_mode, counts, info))
+            replace(tmp, out)
+        except BaseException:
+            remove(tmp)
+            raise
     return out
 
 
@@ -358,11 +345,13 @@ def export_npz(path_in, out_npz) -> Path:
             arrays[key] = v.to(torch.int64).numpy() if key == keys.MODE else np.asarray(v.numpy())
     arrays[keys.DT] = np.asarray(float(td[keys.DT][0]) if keys.DT in td.keys() else 1.0)
     out_npz.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_npz.parent / f".{out_npz.stem}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}.npz"
-    try:
-        np.savez(tmp, **arrays)
-        os.replace(tmp, out_npz)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    remove_stale(out_npz)
+    tmp = tmp_sibling(out_npz, suffix=".npz")
+    with terminating_raises():
+        try:
+            np.savez(tmp, **arrays)
+            replace(tmp, out_npz)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
     return out_npz

@@ -1,5 +1,6 @@
-"""Plain-text progress for training: one line per validation, readable in logs and CI (no TTY needed).
-Under DDP only rank 0 prints (its validation metrics are averaged over the ranks)."""
+"""Callbacks of every training run: plain-text progress (one line per validation, readable in logs and
+CI; under DDP only rank 0 prints, its validation metrics averaged over the ranks) and the last
+checkpoint a run resumes from."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import sys
 import time
 
 import lightning as L
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 
 class PrintProgress(L.Callback):
@@ -34,3 +37,37 @@ class PrintProgress(L.Callback):
     def on_validation_end(self, trainer, pl_module):
         if self.start is not None and not trainer.sanity_checking:
             print(self._line(trainer, ""), file=sys.stderr, flush=True)
+
+
+class LastCheckpoint(ModelCheckpoint):
+    """``last.ckpt`` beside the run's best checkpoint, the state ``immnet fit --ckpt_path last`` resumes.
+
+    Written at every validation (after the best checkpoint's callback, so that it holds the best
+    score of that validation too), when training ends, and when the run stops on SIGTERM: Lightning
+    then finishes the running batch and raises ``SIGTERMException``, and this callback saves that
+    batch's state. An interrupt (SIGINT) can stop the run inside a batch, so it writes nothing and the
+    last validation's ``last.ckpt`` stays. Each save is atomic (Lightning writes a temporary file and
+    renames it), so a ``kill -9`` leaves the previous ``last.ckpt`` whole. ``dirpath`` defaults to the
+    directory of the run's first other ``ModelCheckpoint`` (its best checkpoint).
+
+    ``immnet fit`` adds it to every run (``last_checkpoint:`` in a config sets its ``dirpath``).
+    """
+
+    def __init__(self, dirpath: str | None = None):
+        super().__init__(dirpath=dirpath, filename=self.CHECKPOINT_NAME_LAST, monitor=None, save_top_k=1,
+                         save_on_exception=True, enable_version_counter=False)
+
+    def setup(self, trainer, pl_module, stage):
+        if self.dirpath is None:
+            best = [c for c in trainer.checkpoint_callbacks if isinstance(c, ModelCheckpoint) and c is not self]
+            if best and best[0].dirpath:
+                self.dirpath = best[0].dirpath
+        super().setup(trainer, pl_module, stage)
+
+    def on_exception(self, trainer, pl_module, exception):
+        if isinstance(exception, SIGTERMException):  # raised between batches: a consistent state
+            super().on_exception(trainer, pl_module, exception)
+
+    def on_train_end(self, trainer, pl_module):
+        if self._last_global_step_saved != trainer.global_step and not trainer.sanity_checking:
+            self._save_none_monitor_checkpoint(trainer, self._monitor_candidates(trainer))

@@ -9,14 +9,23 @@ argument instead (a fine-tune of the whole IMMNet after stage 2). W&B is the def
 Each stage of a chain runs as its own ``immnet fit`` process, and every run leaves its own command
 line in ``sys.argv``: Lightning's DDP launcher starts its workers by re-running that command, so a
 worker runs exactly one stage, and the next stage launches its workers afresh.
+
+Crash safety (docs/immnet.md, "Training"): every run saves ``last.ckpt`` beside its best checkpoint
+(:class:`immnet.training.callbacks.LastCheckpoint`), ``--ckpt_path last`` resumes from it, and a fresh
+run never overwrites an earlier run's checkpoints unless told to (:mod:`immnet.training.resume`). A
+chain rerun skips its finished stages and resumes the unfinished one. A stage's process gets SIGTERM
+when the chain's process dies (Linux: ``PR_SET_PDEATHSIG``), and the chain forwards SIGTERM and SIGINT
+to it; the stage then saves its last checkpoint and stops. Nothing is written outside the runs'
+checkpoint directories: an inline stage config goes to the stage as a YAML string, and its best
+checkpoint's path comes back through a pipe.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import lightning as L
@@ -26,8 +35,8 @@ from lightning.pytorch.cli import LightningCLI
 from immnet.config import resolve_path
 from immnet.training.checkpoint_io import check_checkpoints
 
-_RESULT_ENV = "IMMNET_FIT_RESULT"
-"""Where a ``fit`` run started by a chain writes its best checkpoint's path (rank 0 only)."""
+_RESULT_ENV = "IMMNET_FIT_RESULT_FD"
+"""The pipe a ``fit`` run started by a chain writes its best checkpoint's path to (rank 0 only)."""
 
 
 def _default_logger() -> dict:
@@ -43,14 +52,63 @@ def _default_logger() -> dict:
 
 class IMMNetCLI(LightningCLI):
     def add_arguments_to_parser(self, parser):
+        from immnet.training.callbacks import LastCheckpoint
+
         # LASTDataModule shards its batches per rank itself (its samplers are batch samplers);
         # checkpoints are read as plain data with their checksum verified (docs/checkpoints.md)
         parser.set_defaults({"trainer.logger": _default_logger(), "trainer.use_distributed_sampler": False,
                              "trainer.plugins": [{"class_path": "immnet.training.checkpoint_io.SafeCheckpointIO"}]})
+        parser.add_lightning_class_args(LastCheckpoint, "last_checkpoint")  # every run: last.ckpt
+        parser.add_argument("--overwrite_checkpoints", type=bool, default=False,
+                            help="start afresh over an earlier run's checkpoints (else refused)")
 
     def parse_arguments(self, parser, args):
         super().parse_arguments(parser, args)
         check_checkpoints(self.config)
+
+    def fit(self, model, **kwargs):
+        """``trainer.fit`` after :func:`immnet.training.resume.plan`; a chained stage reports its best checkpoint."""
+        from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+        from immnet.training import resume
+        from immnet.training.callbacks import LastCheckpoint
+
+        trainer = self.trainer
+        report = os.environ.pop(_RESULT_ENV, None)  # before DDP workers copy the environment
+        overwrite = bool(self.config[self.subcommand].get("overwrite_checkpoints"))
+        ckpt_path = resume.plan(trainer, kwargs.pop("ckpt_path", None), overwrite)
+        if isinstance(ckpt_path, resume.Finished):
+            if trainer.is_global_zero:
+                print(f"[immnet fit] stage {os.environ[resume.CHAIN_ENV]} has finished earlier ({ckpt_path.marker}): "
+                      f"skipped, its best checkpoint is {ckpt_path.best}", file=sys.stderr, flush=True)
+                _report(report, ckpt_path.best)
+            return
+        try:
+            trainer.fit(model, ckpt_path=ckpt_path, **kwargs)
+        except SIGTERMException:
+            if trainer.is_global_zero:
+                last = [Path(c.dirpath) / resume.LAST for c in trainer.checkpoint_callbacks
+                        if isinstance(c, LastCheckpoint) and c.dirpath and (Path(c.dirpath) / resume.LAST).is_file()]
+                print(f"[immnet fit] stopped by SIGTERM at step {trainer.global_step}; its last checkpoint is "
+                      f"{last[0] if last else 'not written'} (resume: the same command with --ckpt_path last)",
+                      file=sys.stderr, flush=True)
+            raise SystemExit(128 + signal.SIGTERM) from None
+        resume.mark_finished(trainer)
+        if trainer.is_global_zero:
+            _report(report, resume.best_checkpoint(trainer))
+
+
+def _report(fd: str | None, best: str) -> None:
+    """Hand a chained stage's best checkpoint to the chain (through the pipe ``fd`` that ``run_stages`` opened)."""
+    import stat
+
+    if fd:
+        try:
+            if stat.S_ISFIFO(os.fstat(int(fd)).st_mode):
+                os.write(int(fd), (best or "").encode())
+                os.close(int(fd))
+        except OSError:  # not a pipe this process holds
+            pass
 
 
 def _cli(args: list[str]) -> IMMNetCLI:
@@ -90,27 +148,69 @@ def stage_entry(stage, i: int) -> tuple[str | dict, str]:
     return stage, arg
 
 
+def _die_with_parent(parent: int) -> None:
+    """In a stage's process, before it runs: SIGTERM when the chain's process dies (Linux)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        if os.getppid() != parent:  # the chain died before the line above
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _run_stage(cmd: list[str], env: dict) -> tuple[int, str, int | None]:
+    """Run one stage's process; ``(exit code, best checkpoint it reported, signal the chain got)``.
+    SIGTERM or SIGINT sent to the chain meanwhile is passed on to the stage as SIGTERM."""
+    read, write = os.pipe()
+    parent, got = os.getpid(), []
+    proc = subprocess.Popen(cmd, env={**env, _RESULT_ENV: str(write)}, pass_fds=(write,),
+                            preexec_fn=lambda: _die_with_parent(parent))
+    os.close(write)
+
+    def forward(signum, frame):
+        got.append(signum)
+        proc.send_signal(signal.SIGTERM)
+
+    old = {s: signal.signal(s, forward) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        code = proc.wait()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    os.set_blocking(read, False)  # the stage has written and closed its end, or never will
+    try:
+        best = os.read(read, 1 << 16).decode().strip()
+    except BlockingIOError:
+        best = ""
+    finally:
+        os.close(read)
+    return code, best, (got[0] if got else None)
+
+
 def run_stages(recipe: dict, extra: list[str]) -> str:
-    """Run a chained recipe, each stage in its own process; returns the last run's best checkpoint."""
+    """Run a chained recipe, each stage in its own process; returns the last run's best checkpoint.
+
+    A rerun skips the stages that have finished (each says so) and resumes the unfinished one from
+    its last checkpoint (:func:`immnet.training.resume.plan`)."""
+    from immnet.training.resume import CHAIN_ENV
+
     ckpt = None
     n = len(recipe["stages"])
     for i, stage in enumerate(recipe["stages"]):
         stage, arg = stage_entry(stage, i)
-        with tempfile.TemporaryDirectory(prefix="immnet-stage-") as tmp:
-            if isinstance(stage, str):
-                path = str(resolve_path(stage))
-            else:
-                path = str(Path(tmp) / "stage.yaml")
-                Path(path).write_text(yaml.safe_dump(stage))
-            cmd = [sys.executable, "-m", "immnet.cli", "fit", "--config", path, *extra]
-            if ckpt is not None:
-                cmd += [f"--model.init_args.{arg}", ckpt]
-            print(f"[immnet fit] stage {i + 1}/{n}: {path}", file=sys.stderr, flush=True)
-            result = Path(tmp) / "best"
-            done = subprocess.run(cmd, env={**os.environ, _RESULT_ENV: str(result)})
-            if done.returncode != 0:
-                raise SystemExit(f"[immnet fit] stage {i + 1}/{n} ({path}) failed with exit code {done.returncode}")
-            ckpt = result.read_text().strip() if result.is_file() else ""
+        config = str(resolve_path(stage)) if isinstance(stage, str) else yaml.safe_dump(stage)
+        name = config if isinstance(stage, str) else "an inline config"
+        cmd = [sys.executable, "-m", "immnet.cli", "fit", "--config", config, *extra]
+        if ckpt is not None:
+            cmd += [f"--model.init_args.{arg}", ckpt]
+        print(f"[immnet fit] stage {i + 1}/{n}: {name}", file=sys.stderr, flush=True)
+        code, ckpt, signum = _run_stage(cmd, {**os.environ, CHAIN_ENV: f"{i + 1}/{n}"})
+        if signum is not None:
+            print(f"[immnet fit] stopped by signal {signum} in stage {i + 1}/{n} ({name}); the same command "
+                  "resumes it", file=sys.stderr, flush=True)
+            raise SystemExit(128 + signum)
+        if code != 0:
+            raise SystemExit(f"[immnet fit] stage {i + 1}/{n} ({name}) failed with exit code {code}")
         if not ckpt:
             raise RuntimeError(f"stage {i + 1} left no checkpoint (is a ModelCheckpoint configured?)")
         print(f"[immnet fit] stage {i + 1} checkpoint: {ckpt}", file=sys.stderr, flush=True)
@@ -121,26 +221,24 @@ def _run(argv: list[str]) -> IMMNetCLI:
     """One Lightning run; ``sys.argv`` becomes its command line (what a DDP launcher re-runs)."""
     saved, sys.argv = sys.argv, [sys.argv[0], *argv]
     try:
-        cli = _cli(argv)
+        return _cli(argv)
     finally:
         sys.argv = saved
-    out = os.environ.get(_RESULT_ENV)
-    if out and argv[0] == "fit" and cli.trainer.is_global_zero:
-        callback = cli.trainer.checkpoint_callback
-        best = (callback.best_model_path or callback.last_model_path) if callback else ""
-        Path(out).write_text(best or "")
-    return cli
 
 
-def lightning_main(argv: list[str]) -> None:
+def lightning_main(argv: list[str]) -> int:
     """Run Lightning's CLI; a first ``--config`` holding ``stages:`` runs the chain, and every
     further argument (another ``--config`` too, e.g. an ablation) applies to each stage."""
     config = _config_arg(argv)
     if argv[0] == "fit" and config is not None:
-        recipe = yaml.safe_load(resolve_path(config).read_text())
+        try:
+            recipe = yaml.safe_load(resolve_path(config).read_text())
+        except OSError:  # no such file: a YAML string (an inline stage), or an error for Lightning's CLI to report
+            recipe = None
         if isinstance(recipe, dict) and "stages" in recipe:
             i = argv.index("--config") if "--config" in argv else argv.index(f"--config={config}")
             width = 2 if argv[i] == "--config" else 1
             run_stages(recipe, argv[1:i] + argv[i + width :])
-            return
+            return 0
     _run(argv)
+    return 0
