@@ -13,6 +13,7 @@ import lightning as L
 import pytest
 import torch
 
+from immnet.checkpoints import load_checkpoint
 from immnet.cli import main
 from immnet.config import REPO_ROOT
 from immnet.data.spec import DataSpec
@@ -60,7 +61,7 @@ def _wait_for(path: Path, proc: subprocess.Popen) -> None:
 
 
 def _weights(path: Path) -> dict:
-    return torch.load(path, map_location="cpu", weights_only=False)
+    return load_checkpoint(path)
 
 
 @pytest.fixture(scope="module")
