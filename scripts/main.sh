@@ -2,7 +2,7 @@
 # The main job, from nothing to the results table, on a CPU in about 15 minutes:
 #   set up -> generate 3D-LAST data -> train IMMNet (recipes/quick.yaml) -> evaluate every method on a
 #   held-out test set in one run -> table + figures.
-# A finished quick run (runs/quick/stage2/checkpoints/best.ckpt) is reused; IMMNET_RETRAIN=1 retrains.
+# A finished quick run is reused, an interrupted one resumes; IMMNET_RETRAIN=1 retrains from scratch.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 T0=$(date +%s)  # the elapsed time in each progress line counts from here, set-up included
@@ -27,22 +27,29 @@ gen single-ct- 600 15 ct-
 gen test 1000 99
 
 CKPT=$RUN/stage2/checkpoints/best.ckpt
-if [ -f "$CKPT" ] && [ -z "${IMMNET_RETRAIN:-}" ]; then
+# a run that ended has finished.json beside its checkpoints; an interrupted one resumes (the chain skips a
+# finished stage and resumes the other from its last.ckpt: docs/immnet.md, "What a run saves")
+if [ -n "${IMMNET_RETRAIN:-}" ]; then
+  rm -rf "$RUN/stage1" "$RUN/stage2" runs/ablations/single-expert
+fi
+if [ -f "$RUN/stage2/checkpoints/finished.json" ]; then
   say "2/4 training: reusing the finished quick run $CKPT (IMMNET_RETRAIN=1 to train again)"
 else
-  say "2/4 training: recipes/quick.yaml (stage 1 about 3.5 min, stage 2 about 5 min)"
-  rm -rf "$RUN/stage1" "$RUN/stage2"
+  say "2/4 training: recipes/quick.yaml (stage 1 about 3.5 min, stage 2 about 5 min; an interrupted run resumes)"
   "$IMMNET" fit --config recipes/quick.yaml
 fi
 # the table's plain KalmanNet: one KalmanNet (architecture 2, CA) alone on maneuvering data, at the
 # quick stage-1 budget (the single-expert ablation; scripts/ablations.py reuses it)
-KNET=runs/ablations/single-expert/checkpoints/best.ckpt
-if [ -f "$KNET" ] && [ -z "${IMMNET_RETRAIN:-}" ]; then
+KDIR=runs/ablations/single-expert/checkpoints
+KNET=$KDIR/best.ckpt
+if [ -f "$KDIR/finished.json" ]; then
   say "2/4 training: reusing the plain KalmanNet $KNET"
+elif [ -f "$KDIR/last.ckpt" ]; then
+  say "2/4 training: plain KalmanNet, resuming $KDIR/last.ckpt"
+  "$IMMNET" fit --config recipes/quick-stage1.yaml --config configs/ablations/single-expert.yaml --ckpt_path last
 else
   say "2/4 training: plain KalmanNet (configs/ablations/single-expert.yaml, about 1 min)"
-  rm -rf runs/ablations/single-expert
-  "$IMMNET" fit --config recipes/quick-stage1.yaml --config configs/ablations/single-expert.yaml
+  "$IMMNET" fit --config recipes/quick-stage1.yaml --config configs/ablations/single-expert.yaml --overwrite_checkpoints true
 fi
 
 say "3/4 evaluation: every method on the test set, one run"
