@@ -55,8 +55,9 @@ def test_raw_measurements_fill_missing_detections():
     out = RawMeasurements().track(TensorDict({keys.MEASUREMENTS: z}, batch_size=[2]))
     s = out[keys.STATE]
     assert s.shape == (2, 5, 9)
-    assert s[0, :, 0].tolist() == [1, 1, 1, 4, 4] and s[0, :, 6].tolist() == [3, 3, 3, 6, 6]
-    assert torch.all(s[..., [1, 2, 4, 5, 7, 8]] == 0) and torch.all(s[1] == 0)
+    assert torch.isnan(s[0, 0]).all() and torch.isnan(s[1]).all()  # no detection yet: no estimate
+    assert s[0, 1:, 0].tolist() == [1, 1, 4, 4] and s[0, 1:, 6].tolist() == [3, 3, 6, 6]
+    assert torch.all(s[0, 1:, [1, 2, 4, 5, 7, 8]] == 0)
 
 
 def test_build_method_from_yaml_and_checkpoint(methods_dir, tmp_path):

@@ -23,6 +23,7 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.config import REPO_ROOT, load_yaml
+from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.motion import POS
 from immnet.motion.base import import_class
 
@@ -44,8 +45,8 @@ class Method(Protocol):
 class RawMeasurements:
     """The measurements as an estimate: ``x_hat_t = [z_t, 0, 0]`` per axis (no velocity/acceleration).
 
-    A missing detection (NaN) takes the last valid measurement; NaNs before the first valid one take
-    that first valid one; a trajectory with no valid measurement at all gets zeros.
+    A missing detection (NaN) takes the last valid measurement; before the first valid one there is
+    no estimate (NaN), and a trajectory with no valid measurement at all is NaN throughout.
     """
 
     name = "measurements"
@@ -57,11 +58,10 @@ class RawMeasurements:
         valid = ~torch.isnan(z).any(dim=-1)  # [B, T]
         t = torch.arange(T, device=z.device).expand(B, T)
         idx = torch.where(valid, t, torch.zeros_like(t)).cummax(dim=-1).values
-        first = valid.to(torch.int64).argmax(dim=-1, keepdim=True)  # 0 when none is valid
-        idx = torch.maximum(idx, first)
-        filled = torch.gather(z, 1, idx.unsqueeze(-1).expand(B, T, 3)).nan_to_num(0.0)
+        filled = torch.gather(z, 1, idx.unsqueeze(-1).expand(B, T, 3))
         state = z.new_zeros(B, T, 9)
         state[..., list(POS)] = filled
+        state = blank_before_first_detection(state, before_first_detection(z))
         return TensorDict({keys.STATE: state}, batch_size=batch.batch_size, device=batch.device)
 
 

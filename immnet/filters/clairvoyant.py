@@ -15,7 +15,8 @@ direction gives ``E[a_x^2] = E[a^2] / 2 = (3^3 - 0.5^3) / (3 * 2.5) / 2 = 1.7917
 axis; vertical ``U[-0.3, 0.3]`` gives ``0.6^2 / 12 = 0.03``.
 
 It starts like every other method: from the first measurement (``initial_state`` with the true r),
-except that where the first segment is CA it gives the acceleration the draw's variance above.
+except that where the first segment is CA it gives the acceleration the draw's variance above; no
+estimate (NaN) before a track's first detection.
 
 ``SwitchClairvoyantKF`` is told less: the true mode sequence (so when a switch happens) and r, not
 the turn rates. It runs an extended Kalman filter of ``[x, w]``: at every turn onset, and wherever
@@ -102,7 +103,7 @@ class ClairvoyantKF(Method):
             x, P = predict(x, P, F, Q)
             x, P, _ = update(x, P, z[:, t], None, R)
             states[:, t] = x
-        return output(states)
+        return output(states, measurements=z)
 
 
 TURN_PRIOR_DEG = (5.5, 9.0 / 12.0**0.5)
@@ -166,4 +167,4 @@ class SwitchClairvoyantKF(ClairvoyantKF):
             P = J @ P @ J.transpose(-1, -2) + Q
             x, P, _ = update(x, P, z[:, t], H, R)  # a missed detection: the prior stands
             states[:, t] = x[:, :9]
-        return output(states)
+        return output(states, measurements=z)
