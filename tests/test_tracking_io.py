@@ -17,6 +17,9 @@ from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.tracking import Tracker
 
+TOL = 0.1
+"""Tracking the same scans in another batch composition (float32, other BLAS sums) moves an estimate by up
+to a few cm (cm/s); a wrong segment or a coasted gap moves it by metres."""
 COLUMNS = ("x", "vx", "ax", "y", "vy", "ay", "z", "vz", "az", "p_cv", "p_ca", "p_ctp", "p_ctm")
 
 
@@ -27,7 +30,7 @@ def tracker():
 
 @pytest.fixture(scope="module")
 def scans():
-    return generate(3, seed=8, spec=DataSpec(T=45, min_segment=15))["measurements"].double().numpy()
+    return generate(3, seed=8, spec=DataSpec(T=60, min_segment=15))["measurements"].double().numpy()
 
 
 def _write(path, rows, bom=False):
@@ -131,7 +134,7 @@ def test_the_tracker_gates_and_counts(tracker, scans):
     tracker.reset(3)
     for t in range(20):
         out = tracker.step(bad[:, t])
-        torch.testing.assert_close(out[keys.FUSED], want["state"][:, t], rtol=1e-5, atol=1e-2)
+        torch.testing.assert_close(out[keys.FUSED], want["state"][:, t], rtol=1e-5, atol=TOL)
     assert tracker.n_gated == 2
 
 
@@ -149,7 +152,7 @@ def test_immnet_has_no_estimate_before_the_first_detection(tracker, scans):
         assert torch.isnan(out[key][0, :4]).all() and torch.isnan(out[key][1]).all(), key
         assert torch.isfinite(out[key][0, 4:]).all() and torch.isfinite(out[key][2]).all(), key
     alone = tracker.track(z[0:1, 4:])
-    torch.testing.assert_close(out["state"][0, 4:], alone["state"][0], rtol=1e-5, atol=1e-2)
+    torch.testing.assert_close(out["state"][0, 4:], alone["state"][0], rtol=1e-5, atol=TOL)
     tracker.reset(3)
     for t in range(20):
         step = tracker.step(z[:, t])
@@ -208,30 +211,29 @@ def test_epoch_second_times_round_trip_as_text(tmp_path, scans):
     assert np.isfinite(np.stack([_values(r) for r in out])).all()
 
 
-def _gap_rows(scans, gap):
-    first, second = scans[0, :30], scans[1, :30]
-    return _rows(first, "a", 1_733_070_000.0) + _rows(second, "a", 1_733_070_000.0 + 29 + gap)
-
-
 def test_a_huge_gap_costs_memory_by_rows_and_both_segments_are_tracked(tmp_path, scans, tracker):
-    """Issue 20, item 4: a 1e9 s gap inside a track allocates by rows (not 1e9 scans: 24 GB of z) and
-    both sides are tracked, each as the track started at its first row."""
-    rows = _gap_rows(scans, 1e9)
+    """Issue 20, item 4: 1e9 s gaps inside two tracks allocate by rows (not 2e9 scans: 48 GB of z) and
+    both sides of each gap are tracked, each as the track started at its first row."""
+    t0 = 1_733_070_000.0
+    parts = [(tid, t, scans[i, 30 * j : 30 * j + 30]) for i, tid in enumerate("ab")
+             for j, t in enumerate((t0, t0 + 29 + 1e9))]
+    rows = [row for tid, t, z in parts for row in _rows(z, tid, t)]
     _write(tmp_path / "in.csv", rows)
-    main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(tmp_path / "warm.csv"), "--guard", "none"])
+    args = ["track", "--input", str(tmp_path / "in.csv"), "--guard", "none", "--output"]
+    main(args + [str(tmp_path / "warm.csv")])  # imports and caches outside the measurement
     tracemalloc.start()
     try:
-        code = main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(tmp_path / "out.csv"), "--guard", "none"])
+        code = main(args + [str(tmp_path / "out.csv")])
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
     assert code == 0
-    assert peak < 20e6, f"peak {peak / 1e6:.1f} MB traced for 60 rows"
+    assert peak < 20e6, f"peak {peak / 1e6:.1f} MB traced for 120 rows"
     with open(tmp_path / "out.csv", newline="") as f:
         got = np.stack([_values(r)[:9] for r in csv.DictReader(f)])
-    for part, z in ((slice(0, 30), scans[0, :30]), (slice(30, 60), scans[1, :30])):
+    for k, (_, _, z) in enumerate(parts):
         alone = tracker.track(torch.from_numpy(z[None]).float())["state"][0].double().numpy()
-        np.testing.assert_allclose(got[part], alone, rtol=1e-5, atol=1e-2)
+        np.testing.assert_allclose(got[30 * k : 30 * k + 30], alone, rtol=1e-5, atol=TOL)
 
 
 def test_a_track_is_split_at_coasting_gaps(tmp_path, scans, tracker):
@@ -250,9 +252,9 @@ def test_a_track_is_split_at_coasting_gaps(tmp_path, scans, tracker):
     seg1[t[:20]] = z[:20]
     for idx, seg, steps in ((slice(0, 20), seg1, t[:20]), (slice(20, 40), z[20:], np.arange(20))):
         alone = tracker.track(torch.from_numpy(seg[None]).float())["state"][0].double().numpy()
-        np.testing.assert_allclose(got[idx], alone[steps], rtol=1e-5, atol=1e-2)
+        np.testing.assert_allclose(got[idx], alone[steps], rtol=1e-5, atol=TOL)
     # a limit below the 21 s gap splits there too
     rows.pop(20)
     short = np.stack([_values(r)[:9] for r in _track(tmp_path, rows, "--max-coast", "15", name="short.csv")])
     alone = tracker.track(torch.from_numpy(z[None, 10:20]).float())["state"][0].double().numpy()
-    np.testing.assert_allclose(short[10:20], alone, rtol=1e-5, atol=1e-2)
+    np.testing.assert_allclose(short[10:20], alone, rtol=1e-5, atol=TOL)

@@ -70,6 +70,8 @@ def check_paths(source: Path, target: Path) -> None:
         raise FileNotFoundError(f"input not found: {source}")
     if not target.parent.is_dir():
         raise FileNotFoundError(f"the folder of --output does not exist: {target.parent}")
+    if target.is_dir():
+        raise ValueError(f"--output {target} is a folder; name the file to write")
     if target.resolve() == source.resolve() or (target.exists() and os.path.samefile(source, target)):
         raise FileExistsError(f"--output {target} is the input file {source}: refusing to overwrite the input")
 
