@@ -234,10 +234,11 @@ def test_filter_experts_coast_through_missed_detections_and_stream_as_they_roll_
     tracker = Tracker(net)
     batched = tracker.track(z)
     assert torch.isfinite(batched[keys.STATE][:, 1:]).all()
+    assert torch.isnan(batched[keys.STATE][0, 0]).all()  # no detection yet: no estimate
     tracker.reset(z.shape[0])
     for t in range(z.shape[1]):
         step = tracker.step(z[:, t])
-        torch.testing.assert_close(step.get(keys.FUSED), batched[keys.STATE][:, t], rtol=1e-5, atol=1e-4)
+        torch.testing.assert_close(step.get(keys.FUSED), batched[keys.STATE][:, t], rtol=1e-5, atol=1e-4, equal_nan=True)
 
 
 def test_filter_gain_refuses_bad_settings():

@@ -120,7 +120,9 @@ def _reference(z, p_stay, sigma_q, r0, k0, dt=1.0, lo=1.0 * DEG, hi=30.0 * DEG):
         mu /= mu.sum()
         out.append(sum(m * xj[:9] for m, xj in zip(mu, xs)))
         probs.append(mu.copy())
-    return np.array(out), np.array(probs)
+    out, probs = np.array(out), np.array(probs)
+    out[:first], probs[:first] = np.nan, np.nan  # no estimate before the first detection
+    return out, probs
 
 
 @pytest.fixture(scope="module")

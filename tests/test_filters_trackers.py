@@ -66,11 +66,13 @@ def test_non_uniform_dt_and_float32():
 
 def test_missed_detections_keep_estimates_finite():
     batch = _batch()
-    batch["measurements"][0, 0] = float("nan")  # first scan missed: start at the first detection
+    batch["measurements"][0, 0] = float("nan")  # first scan missed: no estimate until the first detection
     batch["measurements"][1, 10:15] = float("nan")
     batch["measurements"][2, 7, 1] = float("nan")
     for method in (IMMTracker("configs/model_sets/imm4.yaml", 3.0, 0.5), ClairvoyantKF()):
-        assert torch.isfinite(method.track(batch)["state"]).all()
+        state = method.track(batch)["state"]
+        assert torch.isnan(state[0, 0]).all()
+        assert torch.isfinite(state[0, 1:]).all() and torch.isfinite(state[1:]).all()
 
 
 class _Wide(MotionModel):

@@ -26,6 +26,7 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.config import REPO_ROOT, load_yaml
+from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.motion import POS
 from immnet.motion.base import import_class
 
@@ -62,10 +63,9 @@ class RawMeasurements:
         t = torch.arange(T, device=z.device).expand(B, T)
         idx = torch.where(valid, t, torch.zeros_like(t)).cummax(dim=-1).values
         filled = torch.gather(z, 1, idx.unsqueeze(-1).expand(B, T, 3))
-        started = valid.cummax(dim=-1).values
         state = z.new_zeros(B, T, 9)
         state[..., list(POS)] = filled
-        state[~started] = float("nan")
+        state = blank_before_first_detection(state, before_first_detection(z))
         return TensorDict({keys.STATE: state}, batch_size=batch.batch_size, device=batch.device)
 
 

@@ -3,6 +3,10 @@
 ``track`` maps a 3D-LAST batch (``TensorDict [B]``, ``measurements [B, T, 3]``) to a
 ``TensorDict [B]`` with ``state [B, T, 9]`` and, where the method has them, ``mode_probs [B, T, 4]``
 over the data modes (0 CV, 1 CA, 2 CT+, 3 CT-).
+
+No made-up output: a track has no estimate before its first detection (its first measurement
+row without NaN), so every output ``[B, T, ...]`` is NaN there, and all NaN for a track with no
+detection at all (:func:`output` does it for every method; the filters' own state stays finite).
 """
 
 from __future__ import annotations
@@ -68,10 +72,27 @@ def data_mode_probs(probs: torch.Tensor, modes: torch.Tensor) -> torch.Tensor:
     return probs @ onehot
 
 
-def output(state: torch.Tensor, extra: dict | None = None) -> TensorDict:
-    """A method's output ``TensorDict [B]``: ``state`` plus any non-None ``extra`` entries."""
-    td = TensorDict({keys.STATE: state}, batch_size=[state.shape[0]])
+def before_first_detection(z: torch.Tensor) -> torch.Tensor:
+    """``[B, T]`` mask of the scans of ``z [B, T, 3]`` before each track's first detection (a row with
+    no NaN component); every scan of a track without any detection."""
+    detected = ~torch.isnan(z).any(-1)
+    return torch.cumsum(detected.to(torch.int32), -1) == 0
+
+
+def blank_before_first_detection(value: torch.Tensor, waiting: torch.Tensor) -> torch.Tensor:
+    """``value [B, T, ...]`` with NaN wherever ``waiting [B, T]`` (a copy; integer tensors as they are)."""
+    if not value.is_floating_point() or not waiting.any():
+        return value
+    mask = waiting.to(value.device).view(*waiting.shape, *([1] * (value.dim() - waiting.dim())))
+    return value.masked_fill(mask, float("nan"))
+
+
+def output(state: torch.Tensor, extra: dict | None = None, *, measurements: torch.Tensor) -> TensorDict:
+    """A method's output ``TensorDict [B]``: ``state`` plus any non-None ``extra`` entries, each NaN
+    before its track's first detection in ``measurements [B, T, 3]`` (no estimate yet)."""
+    waiting = before_first_detection(measurements)
+    td = TensorDict({keys.STATE: blank_before_first_detection(state, waiting)}, batch_size=[state.shape[0]])
     for key, value in (extra or {}).items():
         if value is not None:
-            td[key] = value
+            td[key] = blank_before_first_detection(value, waiting)
     return td

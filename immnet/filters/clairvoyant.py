@@ -20,7 +20,8 @@ sets its variance to that of the draw (:func:`ca_acc_var`): horizontal magnitude
 per horizontal axis (3D-LAST's ``U[0.5, 3]``: 1.7917); vertical ``U[-v, v]`` gives ``v^2 / 3`` (0.03).
 
 It starts like every other method: from the first measurement (``initial_state`` with the true r),
-except that where the first segment is CA it gives the acceleration the draw's variance above.
+except that where the first segment is CA it gives the acceleration the draw's variance above; no
+estimate (NaN) before a track's first detection.
 
 ``SwitchClairvoyantKF`` is told less: the true mode sequence (so when a switch happens) and r, not
 the turn rates. It runs an extended Kalman filter of ``[x, w]``: at every turn onset, and wherever
@@ -151,7 +152,7 @@ class ClairvoyantKF(Method):
             x, P = predict(x, P, F, Q)
             x, P, _ = update(x, P, z[:, t], None, R)
             states[:, t] = x
-        return output(states)
+        return output(states, measurements=z)
 
 
 class SwitchClairvoyantKF(ClairvoyantKF):
@@ -218,4 +219,4 @@ class SwitchClairvoyantKF(ClairvoyantKF):
             P = J @ P @ J.transpose(-1, -2) + Q
             x, P, _ = update(x, P, z[:, t], H, R)  # a missed detection: the prior stands
             states[:, t] = x[:, :9]
-        return output(states)
+        return output(states, measurements=z)

@@ -32,7 +32,8 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     ``z [B, T, 3]``; ``r`` the filter's assumed measurement standard deviation (scalar or ``[B]``).
     ``x0 = [z0x, 0, 0, z0y, 0, 0, z0z, 0, 0]`` and ``P0 = diag(r^2, vel_std^2, acc_std^2)`` per axis.
     A track whose first measurement is missing starts at its first detected position (zeros if it
-    has none), the one place where an estimate looks ahead.
+    has none); the methods output NaN until that detection (``immnet.filters.base.output``), so the
+    state carried over the scans before it stays finite but is never reported.
     """
     finite = ~torch.isnan(z).any(-1)  # [B, T]
     first = torch.where(finite.any(-1), finite.long().argmax(-1), torch.zeros_like(finite[:, 0], dtype=torch.long))

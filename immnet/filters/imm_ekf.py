@@ -27,7 +27,8 @@ bounds, or its fields as a dict) the Markov matrix becomes state-dependent per t
 and a turn entered at a bound starts at the bound's rate (``configs/methods/imm-ekf-guard.yaml``).
 
 It starts like the other IMMs: from the first measurement (``initial_state``, with ``r0``), the CA
-filter's acceleration at the draw's variance and the turn filters' rates at their prior.
+filter's acceleration at the draw's variance and the turn filters' rates at their prior; no
+estimate (NaN) before a track's first detection.
 ``p_stay`` 0.995 was chosen on the dev set (seed 21), among 0.98, 0.99, 0.995, 0.998 and 0.999.
 """
 
@@ -194,7 +195,7 @@ class IMMEKF(Method):
             mu = torch.softmax(torch.log(cbar.clamp_min(1e-300)) + loglik, -1)
             states[:, t] = (mu[..., None] * x[..., :9]).sum(1)
             probs[:, t] = mu
-        return output(states, {keys.MODE_PROBS: probs})
+        return output(states, {keys.MODE_PROBS: probs}, measurements=z)
 
 
 def _rate_jacobian(x, w, dt):

@@ -2,7 +2,9 @@
 
 Both start from the first measurement (``immnet.filters.imm.initial_state``): position at
 ``z_0`` with variance ``r^2`` (the filter's assumed ``r``), zero velocity and acceleration with
-standard deviations 300 m/s and 10 m/s^2 on every axis. At ``t = 0`` the output is that state.
+standard deviations 300 m/s and 10 m/s^2 on every axis. At ``t = 0`` the output is that state; a
+track whose first scans are missed has no estimate (NaN) until its first detection
+(``immnet.filters.base.output``).
 """
 
 from __future__ import annotations
@@ -72,7 +74,7 @@ class KalmanFilterTracker(Method):
             x, P = predict(x, P, F, Q)
             x, P, _ = update(x, P, z[:, t], None, R)
             states[:, t] = x
-        return output(states)
+        return output(states, measurements=z)
 
 
 class IMMTracker(Method):
@@ -146,4 +148,4 @@ class IMMTracker(Method):
         if self.return_experts:
             extra[keys.EXPERT_POST] = experts
             extra[keys.EXPERT_PROBS] = probs
-        return output(states, extra)
+        return output(states, extra, measurements=z)

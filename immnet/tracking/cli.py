@@ -1,12 +1,23 @@
-"""``immnet track --input FILE --output FILE [--checkpoint CKPT]``: estimates for your own measurements."""
+"""``immnet track --input FILE --output FILE [--checkpoint CKPT]``: estimates for your own measurements.
+
+The input is checked before anything is written, and never written: an ``--output`` that is the
+input file (by any path, symlink or hard link) is refused. A measurement a sensor cannot report
+(non-finite, or ``|z_a| > --max-position``) is a missed detection, counted on stderr. CSV rows are
+tracked in segments (``immnet.tracking.segments``: a track with no detection for more than
+``--max-coast`` seconds is dropped and restarts at its next detection). See ``docs/tracking.md``.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from immnet.data.validate import MAX_ABS_POSITION
+from immnet.tracking.segments import MAX_COAST
 
 
 def register(subparsers) -> None:
@@ -18,6 +29,12 @@ def register(subparsers) -> None:
     p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
     p.add_argument("--checkpoint", default=None, help="Lightning checkpoint (default: the shipped weights)")
+    p.add_argument("--max-position", type=float, default=MAX_ABS_POSITION,
+                   help="largest |x|, |y|, |z| (m) a detection may have; beyond it, or non-finite, a measurement "
+                        "is a missed detection (counted on stderr); 'inf' keeps every finite one")
+    p.add_argument("--max-coast", type=float, default=MAX_COAST,
+                   help="CSV: seconds a track may go without a detection before it is dropped; its next "
+                        "detection starts it again ('inf': never dropped)")
     p.add_argument(
         "--guard", default="checkpoint",
         help="range guard: 'checkpoint' (as trained; the shipped weights: 3D-LAST's region, turns back beyond 33 km "
@@ -43,30 +60,65 @@ def parse_guard(text: str):
     return {"outer": outer, "inner": inner}
 
 
+def check_paths(source: Path, target: Path) -> None:
+    """A clear error unless ``source`` exists, ``target``'s folder does, both are .csv or both .npz,
+    and ``target`` is not ``source`` (compared as files: symlinks and hard links included)."""
+    suffix_in, suffix_out = source.suffix.lower(), target.suffix.lower()
+    if suffix_in not in (".csv", ".npz") or suffix_out != suffix_in:
+        raise ValueError(f"--input and --output must both be .csv or both .npz (got {source.name}, {target.name})")
+    if not source.is_file():
+        raise FileNotFoundError(f"input not found: {source}")
+    if not target.parent.is_dir():
+        raise FileNotFoundError(f"the folder of --output does not exist: {target.parent}")
+    if target.is_dir():
+        raise ValueError(f"--output {target} is a folder; name the file to write")
+    if target.resolve() == source.resolve() or (target.exists() and os.path.samefile(source, target)):
+        raise FileExistsError(f"--output {target} is the input file {source}: refusing to overwrite the input")
+
+
+def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
+    if n_gated:
+        print(f"gated {n_gated} measurement(s) a sensor cannot report (non-finite, or |x|, |y| or |z| > {limit:g} m)"
+              f"{where}: tracked as missed detections", file=sys.stderr)
+
+
 def run(args) -> int:
+    from immnet.data.validate import check_limit, gate_measurements
     from immnet.tracking.tracker import PRETRAINED, Tracker
 
-    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard))
-    suffix_in, suffix_out = args.input.suffix.lower(), args.output.suffix.lower()
-    if suffix_in not in (".csv", ".npz") or suffix_out != suffix_in:
-        raise ValueError(f"--input and --output must both be .csv or both .npz (got {args.input.name}, {args.output.name})")
-    if suffix_in == ".csv":
+    check_paths(args.input, args.output)
+    limit = check_limit(args.max_position)
+    if args.input.suffix.lower() == ".csv":
         from immnet.tracking.io import read_tracks_csv, write_tracks_csv
+        from immnet.tracking.segments import split_segments, track_segments
 
-        ids, z, rows = read_tracks_csv(args.input, tracker.net.dt)
-        out = tracker.track(z)
-        write_tracks_csv(args.output, rows, out["state"].numpy(), out["mode_probs"].numpy())
-        print(f"tracked {len(ids)} tracks, {len(rows)} scans -> {args.output}", file=sys.stderr)
+        rows = read_tracks_csv(args.input)
+        tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), limit)
+        z, n_gated = gate_measurements(rows.z, limit)
+        gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
+        lines = ", ".join(str(rows.lines[r]) for r in gated[:5]) + (", ..." if len(gated) > 5 else "")
+        segs = split_segments(rows.ids, rows.t, z, tracker.net.dt, args.max_coast, rows.lines, rows.times)
+        state, probs = track_segments(tracker, segs)
+        write_tracks_csv(args.output, rows, state, probs)
+        _report_gated(n_gated, limit, f" on line(s) {lines}" if n_gated else "")
+        print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows -> {args.output}",
+              file=sys.stderr)
         return 0
     from immnet.data.storage import load_dataset
 
     from immnet.tracking.methods import check_dt
 
     data, _ = load_dataset(args.input)
+    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), limit)
     check_dt(tracker.net, data["dt"], "the checkpoint")
     out = tracker.track(data["measurements"])
-    tmp = args.output.with_name(args.output.stem + ".partial.npz")
-    np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt))
-    tmp.replace(args.output)
+    tmp = args.output.with_name(f".{args.output.stem}.{os.getpid()}.partial.npz")
+    try:
+        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt))
+        tmp.replace(args.output)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _report_gated(tracker.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
     return 0

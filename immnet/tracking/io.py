@@ -1,14 +1,20 @@
 """Tracks as CSV: ``track_id, t, x, y, z`` in (missing values allowed), estimates out.
 
-Rows of many tracks may interleave. Within a track, ``t`` must increase; scans are ``dt`` apart
-and a jump of ``k dt`` means ``k - 1`` missed scans (the tracker coasts over them). An empty
-``x, y, z`` is a missed detection. Every problem is reported with its line number.
+Rows of many tracks may interleave. Within a track, ``t`` must increase and be finite; an empty
+``x, y, z`` (or ``nan``) is a missed detection. The file may start with a UTF-8 byte-order mark.
+Every problem is reported with its line number. How rows become tracked segments (scans ``dt``
+apart, the coasting limit) is ``immnet.tracking.segments``; the output has one line per input line,
+in input order, its ``t`` written exactly as the input gave it, and empty fields where there is no
+estimate (before a track's first detection, or after it was dropped for coasting too long).
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import os
+from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -19,24 +25,52 @@ OUT_COLUMNS = (
 )
 
 
-def _number(value: str, column: str, line: int, allow_empty: bool) -> float:
+@dataclass
+class CsvTracks:
+    """The rows of a tracks CSV, in file order: ``ids [R]`` (track), ``times [R]`` (the ``t`` text as
+    given, stripped), ``t [R]`` (the same as exact decimals), ``z [R, 3]`` (NaN = missed) and
+    ``lines [R]`` (line numbers, for messages)."""
+
+    ids: list[str]
+    times: list[str]
+    t: list[Decimal]
+    z: np.ndarray
+    lines: list[int]
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def _number(value: str, column: str, line: int) -> float:
     value = value.strip()
     if value == "" or value.lower() == "nan":
-        if allow_empty:
-            return math.nan
-        raise ValueError(f"line {line}: column {column!r} is empty")
+        return math.nan
     try:
         return float(value)
     except ValueError:
         raise ValueError(f"line {line}: column {column!r} is not a number: {value!r}") from None
 
 
-def read_tracks_csv(path: str | Path, dt: float):
-    """Parse a CSV into ``(ids, z [N, T, 3], rows)``; ``rows`` lists ``(track, step, t)`` per input line."""
+def _time(value: str, line: int) -> Decimal:
+    if value == "":
+        raise ValueError(f"line {line}: column 't' is empty")
+    try:
+        t = Decimal(value)
+    except InvalidOperation:
+        raise ValueError(f"line {line}: column 't' is not a number: {value!r}") from None
+    if not t.is_finite():
+        raise ValueError(f"line {line}: column 't' is not a finite time: {value!r}")
+    return t
+
+
+def read_tracks_csv(path: str | Path) -> CsvTracks:
+    """Parse and check a tracks CSV (module doc); memory proportional to its rows."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"input not found: {path}")
-    with path.open(newline="") as f:
+    ids, times, ts, zs, lines = [], [], [], [], []
+    last: dict[str, tuple[Decimal, str]] = {}
+    with path.open(newline="", encoding="utf-8-sig") as f:  # utf-8-sig: a byte-order mark is not a column name
         reader = csv.reader(f)
         header = next(reader, None)
         if header is None:
@@ -46,8 +80,6 @@ def read_tracks_csv(path: str | Path, dt: float):
         if missing:
             raise ValueError(f"line 1: missing column(s) {', '.join(missing)} (expected {','.join(IN_COLUMNS)})")
         col = {c: header.index(c) for c in IN_COLUMNS}
-        tracks: dict[str, list] = {}
-        rows = []
         for line, rec in enumerate(reader, start=2):
             if not rec or all(not v.strip() for v in rec):
                 continue
@@ -56,39 +88,40 @@ def read_tracks_csv(path: str | Path, dt: float):
             tid = rec[col["track_id"]].strip()
             if not tid:
                 raise ValueError(f"line {line}: column 'track_id' is empty")
-            t = _number(rec[col["t"]], "t", line, allow_empty=False)
-            xyz = [_number(rec[col[c]], c, line, allow_empty=True) for c in "xyz"]
-            seq = tracks.setdefault(tid, [])
-            if seq:
-                t0, t_last = seq[0][0], seq[-1][0]
-                if t <= t_last:
-                    raise ValueError(f"line {line}: time {t:g} of track {tid!r} is not after its previous time {t_last:g} (rows of a track must be in time order)")
-                k = (t - t0) / dt
-                if abs(k - round(k)) > 1e-6:
-                    raise ValueError(f"line {line}: time {t:g} of track {tid!r} is not a whole number of scans (dt = {dt:g}) after its start {t0:g}")
-            seq.append((t, xyz, line))
-            rows.append((tid, t))
-    if not tracks:
+            text = rec[col["t"]].strip()
+            t = _time(text, line)
+            xyz = [_number(rec[col[c]], c, line) for c in "xyz"]
+            if tid in last and t <= last[tid][0]:
+                raise ValueError(f"line {line}: time {text} of track {tid!r} is not after its previous time "
+                                 f"{last[tid][1]} (rows of a track must be in time order)")
+            last[tid] = (t, text)
+            ids.append(tid)
+            times.append(text)
+            ts.append(t)
+            zs.append(xyz)
+            lines.append(line)
+    if not ids:
         raise ValueError(f"{path}: no data rows")
-    ids = list(tracks)
-    steps = {tid: [round((t - seq[0][0]) / dt) for t, _, _ in seq] for tid, seq in tracks.items()}
-    T = max(s[-1] for s in steps.values()) + 1
-    z = np.full((len(ids), T, 3), np.nan)
-    for i, tid in enumerate(ids):
-        for (t, xyz, _), k in zip(tracks[tid], steps[tid]):
-            z[i, k] = xyz
-    index = {tid: i for i, tid in enumerate(ids)}
-    step_of = {(tid, t): k for tid in ids for (t, _, _), k in zip(tracks[tid], steps[tid])}
-    return ids, z, [(index[tid], step_of[(tid, t)], tid, t) for tid, t in rows]
+    return CsvTracks(ids, times, ts, np.asarray(zs, dtype=np.float64).reshape(-1, 3), lines)
 
 
-def write_tracks_csv(path: str | Path, rows, state: np.ndarray, mode_probs: np.ndarray) -> None:
-    """Write one output line per input line, in input order."""
+def _field(v: float) -> str:
+    return "" if math.isnan(v) else f"{v:.6f}"
+
+
+def write_tracks_csv(path: str | Path, tracks: CsvTracks, state: np.ndarray, mode_probs: np.ndarray) -> None:
+    """One output line per input row (``state [R, 9]``, ``mode_probs [R, 4]``; NaN -> an empty field),
+    written to a temporary file beside ``path`` and moved onto it only when complete."""
     path = Path(path)
-    tmp = path.with_name(path.name + ".partial")
-    with tmp.open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(OUT_COLUMNS)
-        for i, k, tid, t in rows:
-            w.writerow([tid, f"{t:g}", *(f"{v:.6f}" for v in state[i, k]), *(f"{p:.6f}" for p in mode_probs[i, k])])
-    tmp.replace(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    f = tmp.open("x", newline="")  # "x": never onto an existing file
+    try:
+        with f:
+            w = csv.writer(f)
+            w.writerow(OUT_COLUMNS)
+            for r in range(len(tracks)):
+                w.writerow([tracks.ids[r], tracks.times[r], *map(_field, state[r]), *map(_field, mode_probs[r])])
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

@@ -6,6 +6,8 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
+from immnet.data.validate import gate_measurements
+from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker, load_network
 
 
@@ -41,7 +43,9 @@ class _LearnedMethod:
 
 class IMMNetMethod(_LearnedMethod):
     """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights); ``guard``
-    its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``)."""
+    its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``).
+
+    Its estimates are ``Tracker.track``'s: NaN before a track's first detection."""
 
     def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP):
         self.name = name
@@ -62,7 +66,8 @@ class KalmanNetMethod(_LearnedMethod):
     """Plain KalmanNet: one trained expert running alone (its own posterior is its estimate).
 
     ``expert`` names the expert of the checkpoint's model set (e.g. ``"ca"``); a checkpoint of the
-    single-expert ablation has one.
+    single-expert ablation has one. Measurements a sensor cannot report are missed detections
+    (``immnet.data.validate.gate_measurements``); the estimate is NaN before a track's first detection.
     """
 
     def __init__(self, checkpoint: str | None = None, expert: str | None = None, name: str = "kalmannet", batch_size: int = 500):
@@ -79,10 +84,11 @@ class KalmanNetMethod(_LearnedMethod):
     @torch.no_grad()
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
-        z = batch[keys.MEASUREMENTS].float()
+        z, _ = gate_measurements(batch[keys.MEASUREMENTS].float())
         M, states = self.net.n_experts, []
         for i in range(0, z.shape[0], self.batch_size):
             zi = z[i : i + self.batch_size].unsqueeze(1).expand(-1, M, -1, -1)
             out, _ = self.net.rollout(zi, experts_alone=True)
             states.append(out[keys.STATE][:, :, self.index])
-        return TensorDict({keys.STATE: torch.cat(states).double()}, batch_size=batch.batch_size)
+        state = blank_before_first_detection(torch.cat(states).double(), before_first_detection(z))
+        return TensorDict({keys.STATE: state}, batch_size=batch.batch_size)

@@ -9,6 +9,12 @@ Tracks start and end independently: ``step(z, reset=mask)`` restarts the tracks 
 target on that slot); a track starts from its first two measurements (see ``immnet.stages.network``).
 ``step`` over a sequence gives the same numbers as the batched ``track``.
 
+No made-up output: until a track's first detection every output of it (state, expert posteriors,
+mode probabilities) is NaN, and a track with no detection at all is NaN throughout; the carry stays
+finite. A measurement a sensor cannot report (a non-finite component, or ``|z_a| > max_position``,
+default 1e7 m: ``immnet.data.validate.gate_measurements``) is a missed detection; ``tracker.n_gated``
+counts them: in the last ``track`` call, or over the ``step`` calls since the last ``reset``.
+
 The recipes' models carry a range guard (``immnet.filters.guard``): 3D-LAST's surveillance region,
 where a target turns back beyond 33 km and within 4 km of the radar, and its speed envelope, where a
 CA maneuver leaving 40-330 m/s turns for one scan. For data from another region, load with
@@ -26,6 +32,8 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.checkpoints import load_checkpoint
+from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
+from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet.ckpt"
@@ -67,34 +75,48 @@ def load_network(path: str | Path, guard=KEEP) -> IMMNet:
 
 
 class Tracker:
-    """A stateful wrapper around ``IMMNet.scan`` for streaming use (inference only)."""
+    """A stateful wrapper around ``IMMNet.scan`` for streaming use (inference only).
 
-    def __init__(self, net: IMMNet):
+    ``max_position``: the largest ``|z_a|`` (m) a detection may have; beyond it, or non-finite, a
+    measurement is a missed detection, counted in ``n_gated`` (module doc).
+    """
+
+    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION):
         self.net = net.eval()
+        self.max_position = check_limit(max_position)
         self.carry: TensorDict | None = None
+        self.n_gated = 0
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, guard=KEEP) -> "Tracker":
+    def from_checkpoint(cls, path: str | Path, guard=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
         """The IMMNet of a checkpoint; ``guard`` as in ``load_network``."""
-        return cls(load_network(path, guard))
+        return cls(load_network(path, guard), max_position)
 
     @classmethod
-    def pretrained(cls, guard=KEEP) -> "Tracker":
+    def pretrained(cls, guard=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
         """The weights shipped inside the package (see ``immnet/pretrained/PROVENANCE.md``); they carry
         3D-LAST's range guard: ``guard=None`` for data from another surveillance region."""
-        return cls.from_checkpoint(PRETRAINED, guard)
+        return cls.from_checkpoint(PRETRAINED, guard, max_position)
 
     def reset(self, n_tracks: int) -> None:
+        """``n_tracks`` tracks that have not started; ``n_gated`` back to 0."""
         self.carry = self.net.initial_carry(n_tracks)
+        self.n_gated = 0
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None) -> TensorDict:
-        """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks."""
+        """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks.
+
+        The outputs of a track that has had no detection yet are NaN; a gated measurement (module doc)
+        is a missed detection and adds one to ``n_gated``.
+        """
         z = torch.as_tensor(z, dtype=torch.float32)
         if z.dim() != 2 or z.shape[-1] != 3:
             raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
         if self.carry is None or self.carry.batch_size[0] != z.shape[0]:
             self.reset(z.shape[0])
+        z, n_gated = gate_measurements(z, self.max_position)
+        self.n_gated += n_gated
         if reset is not None:
             fresh = self.net.initial_carry(z.shape[0])
             mask = torch.as_tensor(reset, dtype=torch.bool)
@@ -102,17 +124,24 @@ class Tracker:
         self.carry = self.net.scan(self.carry, z)
         out = self.carry.select(keys.FUSED, keys.EXPERT_PROBS, keys.EXPERT_POST, strict=False).clone()
         out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))
-        return out
+        waiting = (self.carry.get(keys.AGE) == 0)[:, None]  # no detection yet: no estimate
+        return out.apply(lambda v: blank_before_first_detection(v.unsqueeze(1), waiting).squeeze(1))
 
     @torch.no_grad()
     def track(self, measurements: torch.Tensor, batch_size: int = 512) -> TensorDict:
-        """Whole sequences ``[B, T, 3]`` -> ``state [B, T, 9]``, ``mode_probs [B, T, 4]``, ``expert_probs``."""
+        """Whole sequences ``[B, T, 3]`` -> ``state [B, T, 9]``, ``mode_probs [B, T, 4]``, ``expert_probs``,
+        ``expert_post`` and ``mode_logits``, NaN before each track's first detection; ``n_gated``
+        counts the measurements gated in this call (module doc)."""
         z = torch.as_tensor(measurements, dtype=torch.float32)
+        if z.dim() != 3 or z.shape[-1] != 3:
+            raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
+        z, self.n_gated = gate_measurements(z, self.max_position)
         outs = []
         for i in range(0, z.shape[0], batch_size):
             out, _ = self.net.rollout(z[i : i + batch_size])
             out.set(keys.MODE_PROBS, self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
-            outs.append(out)
+            waiting = before_first_detection(z[i : i + batch_size])
+            outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))
         return torch.cat(outs, 0)
 
 

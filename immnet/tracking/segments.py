@@ -1,0 +1,121 @@
+"""Rows of tracks (a track id and a time per row) -> segments the network tracks on its scan grid.
+
+A radar track that misses more than ``max_coast`` seconds of detections is dropped and restarted at
+its next detection, as a tracker on the sensor would (default :data:`MAX_COAST`, ``immnet track
+--max-coast``). Per track, in time order:
+
+* a detection starts a new segment if the track has none or its last detection is more than
+  ``max_coast`` seconds before it; otherwise it joins the current segment;
+* a missed detection (a NaN row) joins the current segment while the last detection is at most
+  ``max_coast`` seconds before it (the track coasts); otherwise, and before the track's first
+  detection, it has no estimate (NaN).
+
+Within a segment a row's scan is ``k = (t - t_start) / dt``, which must be a whole number (the
+network runs on its fixed grid ``net.dt``); the scans between rows are missed detections that no row
+asks for. A segment spans at most ``max_coast / dt + 1`` scans per detection, so memory and time are
+proportional to the rows, whatever the gaps between them. Segments are tracked as fresh tracks,
+batched by span (similar spans together, so that little padding is run), and each row's estimate
+is its scan's: the same numbers as tracking each segment alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from decimal import Decimal
+
+import numpy as np
+
+from immnet import keys
+
+MAX_COAST = 30.0
+"""Default coasting limit in seconds: a track with no detection for longer is dropped."""
+
+
+@dataclass
+class Segments:
+    """``segment [R]`` (-1: the row has no estimate), ``step [R]`` (its scan within the segment),
+    ``span [S]`` (scans per segment) and ``z [R, 3]`` (the rows' measurements)."""
+
+    segment: np.ndarray
+    step: np.ndarray
+    span: np.ndarray
+    z: np.ndarray
+
+
+def check_coast(max_coast: float, dt: float) -> float:
+    """``max_coast`` as a float; a ValueError unless it is at least one scan (``inf``: never dropped)."""
+    max_coast = float(max_coast)
+    if not max_coast >= dt:  # also NaN
+        raise ValueError(f"--max-coast must be at least one scan (dt = {dt:g} s), got {max_coast:g}")
+    return max_coast
+
+
+def split_segments(ids, t, z: np.ndarray, dt: float, max_coast: float = MAX_COAST, lines=None, texts=None) -> Segments:
+    """Segments of rows ``ids [R]`` (track), ``t [R]`` (Decimal or float times, increasing per track)
+    and ``z [R, 3]`` (module doc). ``lines``/``texts`` name a row in the error for an off-grid time."""
+    max_coast = check_coast(max_coast, dt)
+    coast = Decimal(max_coast) if math.isfinite(max_coast) else None
+    step_dt = Decimal(dt)
+    R = len(ids)
+    segment = np.full(R, -1, dtype=np.int64)
+    step = np.zeros(R, dtype=np.int64)
+    detected = ~np.isnan(z).any(-1)
+    spans: list[int] = []
+    current: dict[str, tuple[int, Decimal, Decimal]] = {}  # track -> (segment, its start, last detection)
+    for r in range(R):
+        tid, tr = ids[r], Decimal(t[r])
+        seg = current.get(tid)
+        alive = seg is not None and (coast is None or tr - seg[2] <= coast)
+        if not alive:
+            if not detected[r]:
+                continue  # no track to coast: no estimate
+            seg = (len(spans), tr, tr)
+            spans.append(0)
+        k_exact = (tr - seg[1]) / step_dt
+        k = int(k_exact.to_integral_value())
+        if abs(k_exact - k) > Decimal("1e-6"):
+            where = f"line {lines[r]}: " if lines is not None else ""
+            raise ValueError(f"{where}time {texts[r] if texts is not None else tr} of track {tid!r} is not a whole "
+                             f"number of scans (dt = {dt:g}) after its start {seg[1]}")
+        segment[r], step[r] = seg[0], k
+        spans[seg[0]] = k + 1
+        current[tid] = (seg[0], seg[1], tr if detected[r] else seg[2])
+    return Segments(segment, step, np.asarray(spans, dtype=np.int64), z)
+
+
+def batches(span: np.ndarray, batch_size: int = 512) -> list[np.ndarray]:
+    """Segment indices in groups of at most ``batch_size``, sorted by span, a group's longest span at
+    most twice its shortest (or 16 scans longer): the padding run is at most about the scans run."""
+    order = np.argsort(span, kind="stable")
+    groups, start = [], 0
+    while start < len(order):
+        lo = int(span[order[start]])
+        end = start + 1
+        while end < len(order) and end - start < batch_size and span[order[end]] <= max(2 * lo, lo + 16):
+            end += 1
+        groups.append(order[start:end])
+        start = end
+    return groups
+
+
+def track_segments(tracker, segs: Segments, batch_size: int = 512):
+    """``state [R, 9]``, ``mode_probs [R, 4]`` (float64) per row: each row's estimate at its scan of its
+    segment, each segment tracked as a fresh track by ``tracker.track``; NaN where a row has none."""
+    R = len(segs.segment)
+    state = np.full((R, 9), np.nan)
+    probs = np.full((R, 4), np.nan)
+    rows_of = np.argsort(segs.segment, kind="stable")
+    first = np.searchsorted(segs.segment[rows_of], np.arange(len(segs.span) + 1))
+    for group in batches(segs.span, batch_size):
+        T = int(segs.span[group].max())
+        z = np.full((len(group), T, 3), np.nan, dtype=np.float32)
+        rows = [rows_of[first[s] : first[s + 1]] for s in group]
+        for i, r in enumerate(rows):
+            z[i, segs.step[r]] = segs.z[r]
+        out = tracker.track(z, batch_size=len(group))
+        st, pr = out[keys.STATE].numpy(), out[keys.MODE_PROBS].numpy()
+        for i, r in enumerate(rows):
+            state[r] = st[i, segs.step[r]]
+            probs[r] = pr[i, segs.step[r]]
+    return state, probs
