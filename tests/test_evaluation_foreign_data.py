@@ -40,7 +40,7 @@ def simulate(n: int, T: int, dt: float, seed: int = 0, p_miss: float = 0.03):
     r = rng.uniform(2, 6, n)
     z = states[:, :, 0::3] + r[:, None, None] * rng.standard_normal((n, T, 3))
     miss = rng.random((n, T)) < p_miss
-    miss[:, 0] = False  # a track without its first detection has no estimate yet (IMMNet reports the origin)
+    miss[:, 0] = False  # every track detected at its first scan (before it, no tracker has an estimate)
     miss[0, 1:3] = True  # one track misses its second and third scans: the start spans the gap
     z[miss] = np.nan
     return states, z

@@ -28,7 +28,7 @@ import yaml
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.evaluation.metrics import position_error, rmse
+from immnet.evaluation.metrics import position_error, rmse, scored_mask
 from immnet.filters.trackers import IMMTracker
 from immnet.motion import ModelSet
 
@@ -55,10 +55,12 @@ def make_tracker(setting: dict, name: str = "imm-tuned") -> IMMTracker:
 
 
 def score(setting: dict, batch: TensorDict) -> float:
-    """Average RMSE (m) of the setting's IMM on ``batch``."""
+    """Average RMSE (m) of the setting's IMM on ``batch``, over the scans ``immnet evaluate`` scores
+    (truth there and the track started: ``scored_mask``)."""
     with torch.no_grad():
         state = make_tracker(setting).track(batch)[keys.STATE]
-    return rmse(position_error(state, batch[keys.STATES]))["avg"]
+    mask = scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS])
+    return rmse(position_error(state, batch[keys.STATES]), mask)["avg"]
 
 
 def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: str | None = None,
