@@ -49,18 +49,24 @@ def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
     return copy.deepcopy(config), state
 
 
-def load_network(path: str | Path, guard=KEEP) -> IMMNet:
+def load_network(path: str | Path, guard=KEEP, adapt=KEEP) -> IMMNet:
     """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
 
     ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
     (``True`` for 3D-LAST's, or a dict of ``RangeGuard`` fields); it has no weights, so any choice loads.
+    ``adapt``: the filter experts' adaptive process noise (``immnet.filters.adaptive.AdaptiveNoise``), as
+    the checkpoint has it (``"checkpoint"``), off (``None``/``False``), on (``True``) or a dict of its
+    fields; no weights either.
     """
     config, state = read_checkpoint(path)
-    if not (isinstance(guard, str) and guard == KEEP):
+    for name, value in (("guard", guard), ("adapt", adapt)):
+        if isinstance(value, str) and value == KEEP:
+            continue
         gain = config.get("gain") or {}
         if "filtering" not in gain.get("class_path", ""):
-            raise ValueError(f"{path}: a range guard needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
-        config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), "guard": guard}}
+            what = "a range guard" if name == "guard" else "adaptive process noise"
+            raise ValueError(f"{path}: {what} needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
+        config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}
     net = IMMNet(**config)
     net.load_state_dict(state)
     return net.eval()
