@@ -26,6 +26,11 @@ With ``guard`` (``immnet.filters.guard.RangeGuard``: ``True`` for the generator'
 bounds, or its fields as a dict) the Markov matrix becomes state-dependent per track and source filter,
 and a turn entered at a bound starts at the bound's rate (``configs/methods/imm-ekf-guard.yaml``).
 
+With ``adapt`` (``immnet.filters.adaptive.AdaptiveNoise``: ``True`` for its defaults, or its fields as a dict)
+each track's white-acceleration noise is scaled by ``lambda`` in [1, 100], grown by covariance matching when
+the filters' NIS (weighted by the predicted mode probabilities) shows them too confident: data with more
+process noise than ``sigma_q`` (``configs/methods/imm-ekf-adaptive.yaml``; docs/baselines.md).
+
 It starts like the other IMMs: from the first measurement (``initial_state``, with ``r0``), the CA
 filter's acceleration at the draw's variance and the turn filters' rates at their prior.
 ``p_stay`` 0.995 was chosen on the dev set (seed 21), among 0.98, 0.99, 0.995, 0.998 and 0.999.

@@ -22,6 +22,10 @@ The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
 * ``Q^(i)_t = sum_k exp(u_k) Q_k^(i)``: base components (velocity noise horizontal / vertical,
   acceleration noise horizontal / vertical, turn-rate noise), each scaled by the network's bounded
   output ``u = u_max tanh(u_slope raw / u_max)``;
+* with ``adapt`` (``immnet.filters.adaptive.AdaptiveNoise``, set at load: ``load_network(adapt=...)``), the
+  white-acceleration components (velocity h / v) times the track's ``lambda`` in [1, 100], grown by
+  covariance matching on the experts' NIS weighted by the previous mode probabilities
+  (docs/immnet.md, "Adaptive process noise");
 * ``K = P- H^T (H P- H^T + r^2 I)^-1 + [K_scale tanh(FC2); 0]``; update of ``x``, ``w`` and
   ``P`` (Joseph form, with the gain actually used).
 
@@ -522,7 +526,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     raw / u_max)``: a maneuver onset needs a turn-rate variance ~1e8 times the steady one, which the
     slope lets the network reach without large weights); ``gain_scale`` bounds the learned
     correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
-    measurement-noise estimate. Beside F1..F4, GRU_S reads the innovation whitened by the base
+    measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by default). Beside F1..F4, GRU_S reads the innovation whitened by the base
     noise's ``S`` (``nu / sqrt(diag S)``, a maneuver detector's statistic).
     """
 
