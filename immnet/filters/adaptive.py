@@ -39,7 +39,7 @@ class AdaptiveNoise:
     """The adaptation rule's settings (module doc); ``True`` in a config means these defaults."""
 
     rate: float = 0.02  # forgetting: a memory of ~50 scans
-    deadband: float = 0.3  # mean NIS / m above 1 + deadband before the scale grows
+    deadband: float = 0.15  # mean NIS / m above 1 + deadband before the scale grows
     nis_clip: float = 4.0  # one scan's NIS / m counts at most this much
     max_scale: float = 100.0  # lambda in [1, max_scale]
     dim: int = 3  # m, the measurement's dimension

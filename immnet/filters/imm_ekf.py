@@ -198,11 +198,11 @@ class IMMEKF(Method):
             )
             lam = AdaptiveNoise.scale(log_scale)[:, None, None, None]
             Pp = J @ P0 @ J.transpose(-1, -2) + lam * Q + Q_rate
-            if self.adapt is not None:  # the NIS of each filter, weighted by the predicted mode probabilities
+            if self.adapt is not None:  # the smallest NIS of the mode-matched filters
                 nu = z[:, t, None] - xp[..., 0:9:3]
                 S = Pp[..., 0:9:3, :][..., 0:9:3] + r2[:, t, None, None, None] * torch.eye(3, dtype=dtype, device=dev)
                 S_inv, _ = inv3(S)
-                nis = (cbar * (nu.unsqueeze(-2) @ S_inv @ nu.unsqueeze(-1))[..., 0, 0]).sum(-1)
+                nis = (nu.unsqueeze(-2) @ S_inv @ nu.unsqueeze(-1))[..., 0, 0].min(-1).values
                 log_scale = self.adapt.update(log_scale, nis, torch.isfinite(z[:, t]).all(-1))
             x, P, loglik = update(xp, Pp, z[:, t, None].expand(B, M, 3), H, r2[:, t, None].expand(B, M))
             x = x.clone()

@@ -337,8 +337,8 @@ class _FilterExperts:
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None):
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.adapt = AdaptiveNoise.from_config(adapt)
-        if self.adapt is not None:  # the track's log lambda is carried; the NIS weights are the previous mode probabilities
-            self.in_keys = [*self.in_keys, keys.Q_SCALE, keys.EXPERT_PROBS]
+        if self.adapt is not None:  # the track's log lambda is carried
+            self.in_keys = [*self.in_keys, keys.Q_SCALE]
             self.out_keys = [*self.out_keys, keys.Q_SCALE]
         white = torch.zeros(N_NOISE, dtype=torch.bool)
         white[list(WHITE)] = True
@@ -444,13 +444,11 @@ class _FilterExperts:
         return torch.where(self.white_mask, lam.unsqueeze(-1), torch.ones_like(lam).unsqueeze(-1))
 
     def _adapt(self, td, maha: torch.Tensor, has_z: torch.Tensor) -> None:
-        """The track's next ``log lambda`` from this scan's NIS ``maha [B, M]``: the experts' NIS weighted by
-        the previous scan's mode probabilities (experts alone: each expert's own)."""
+        """The track's next ``log lambda`` from this scan's NIS ``maha [B, M]``: the smallest of the experts'
+        (experts alone: each expert's own)."""
         log_scale = td.get(keys.Q_SCALE)
         if log_scale.dim() == 1:
-            mu = td.get(keys.EXPERT_PROBS, None)
-            mu = torch.full_like(maha, 1.0 / self.n_experts) if mu is None else mu.to(maha.dtype)
-            nis, ok = (mu * maha).sum(-1), has_z[:, 0, 0]
+            nis, ok = maha.min(-1).values, has_z[:, 0, 0]
         else:
             nis, ok = maha, has_z[..., 0]
         td.set(keys.Q_SCALE, self.adapt.update(log_scale, torch.where(ok, nis, 0.0), ok))
