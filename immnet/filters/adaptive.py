@@ -22,8 +22,10 @@ filter only ever gets less confident than designed, and never more than ``max_sc
 
 The filters that use it (``immnet.filters.IMMEKF(adapt=...)``, IMMNet's filter experts
 ``immnet.stages.filtering``) scale the white-acceleration part of each mode-matched filter's ``Q``
-by the track's ``lambda`` and feed it the NIS of its filters weighted by the predicted mode
-probabilities (docs/baselines.md, docs/immnet.md "Adaptive process noise").
+by the track's ``lambda`` and feed it the smallest NIS of their mode-matched filters: the scale grows
+only when every mode's filter is too confident (too little process noise), not when one mode is the
+wrong one (a maneuver, which the IMM's mode switch handles) (docs/baselines.md, docs/immnet.md
+"Adaptive process noise").
 """
 
 from __future__ import annotations

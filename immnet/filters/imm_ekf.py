@@ -28,7 +28,7 @@ and a turn entered at a bound starts at the bound's rate (``configs/methods/imm-
 
 With ``adapt`` (``immnet.filters.adaptive.AdaptiveNoise``: ``True`` for its defaults, or its fields as a dict)
 each track's white-acceleration noise is scaled by ``lambda`` in [1, 100], grown by covariance matching when
-the filters' NIS (weighted by the predicted mode probabilities) shows them too confident: data with more
+the smallest NIS of the four filters shows every one too confident: data with more
 process noise than ``sigma_q`` (``configs/methods/imm-ekf-adaptive.yaml``; docs/baselines.md).
 
 It starts like the other IMMs: from the first measurement (``initial_state``, with ``r0``), the CA

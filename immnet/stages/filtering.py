@@ -24,7 +24,7 @@ The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
   output ``u = u_max tanh(u_slope raw / u_max)``;
 * with ``adapt`` (``immnet.filters.adaptive.AdaptiveNoise``, set at load: ``load_network(adapt=...)``), the
   white-acceleration components (velocity h / v) times the track's ``lambda`` in [1, 100], grown by
-  covariance matching on the experts' NIS weighted by the previous mode probabilities
+  covariance matching on the smallest NIS of the experts
   (docs/immnet.md, "Adaptive process noise");
 * ``K = P- H^T (H P- H^T + r^2 I)^-1 + [K_scale tanh(FC2); 0]``; update of ``x``, ``w`` and
   ``P`` (Joseph form, with the gain actually used).

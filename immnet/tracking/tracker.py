@@ -80,15 +80,16 @@ class Tracker:
         self.carry: TensorDict | None = None
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, guard=KEEP) -> "Tracker":
-        """The IMMNet of a checkpoint; ``guard`` as in ``load_network``."""
-        return cls(load_network(path, guard))
+    def from_checkpoint(cls, path: str | Path, guard=KEEP, adapt=KEEP) -> "Tracker":
+        """The IMMNet of a checkpoint; ``guard`` and ``adapt`` as in ``load_network``."""
+        return cls(load_network(path, guard, adapt))
 
     @classmethod
-    def pretrained(cls, guard=KEEP) -> "Tracker":
+    def pretrained(cls, guard=KEEP, adapt=KEEP) -> "Tracker":
         """The weights shipped inside the package (see ``immnet/pretrained/PROVENANCE.md``); they carry
-        3D-LAST's range guard: ``guard=None`` for data from another surveillance region."""
-        return cls.from_checkpoint(PRETRAINED, guard)
+        3D-LAST's range guard: ``guard=None`` for data from another surveillance region; ``adapt=True``
+        adds adaptive process noise (targets noisier than 3D-LAST's; docs/immnet.md)."""
+        return cls.from_checkpoint(PRETRAINED, guard, adapt)
 
     def reset(self, n_tracks: int) -> None:
         self.carry = self.net.initial_carry(n_tracks)
