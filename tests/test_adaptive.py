@@ -111,3 +111,21 @@ def test_imm_ekf_adaptive_improves_the_baseline(high_process_noise):
     measurements on sigma_q = 1 data."""
     avg, _ = high_process_noise
     assert avg["imm-ekf-adaptive"] < 0.95 * min(avg["imm-ekf"], avg["measurements"])  # 3.27 against 3.63 m
+
+
+def test_track_adapt_option_matches_the_python_api(tmp_path, capsys):
+    """``immnet track --adapt`` loads the shipped weights with adaptive process noise, as
+    ``Tracker.pretrained(adapt=True)`` does; on sigma_q = 1 data it changes the estimates."""
+    from immnet.cli import main
+    from immnet.tracking.tracker import Tracker
+
+    z = generate(3, seed=5, spec=DataSpec(T=120, min_segment=40, sigma_q=1.0))[keys.MEASUREMENTS].float().numpy()
+    np.savez(tmp_path / "in.npz", measurements=z, dt=1.0)
+    outs = {}
+    for flag in ([], ["--adapt"]):
+        assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz"), *flag]) == 0
+        outs[bool(flag)] = np.load(tmp_path / "out.npz")["state"]
+    api = Tracker.pretrained(adapt=True).track(torch.from_numpy(z))
+    np.testing.assert_allclose(outs[True], api["state"].numpy(), rtol=1e-5, atol=1e-4)
+    assert np.abs(outs[True] - outs[False]).max() > 0.1
+    capsys.readouterr()

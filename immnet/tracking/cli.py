@@ -24,6 +24,11 @@ def register(subparsers) -> None:
              "and within 4 km, and its speed envelope, 40-330 m/s), 'none' (data from another region), or "
              "'OUTER,INNER' in metres (another region, 3D-LAST's speed envelope)",
     )
+    p.add_argument(
+        "--adapt", action="store_true",
+        help="adaptive process noise in the filter experts (immnet.filters.adaptive.AdaptiveNoise): for targets "
+             "that fly rougher than the training data (docs/immnet.md, 'Adaptive process noise')",
+    )
     p.set_defaults(func=run)
 
 
@@ -44,9 +49,9 @@ def parse_guard(text: str):
 
 
 def run(args) -> int:
-    from immnet.tracking.tracker import PRETRAINED, Tracker
+    from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker
 
-    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard))
+    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP)
     suffix_in, suffix_out = args.input.suffix.lower(), args.output.suffix.lower()
     if suffix_in not in (".csv", ".npz") or suffix_out != suffix_in:
         raise ValueError(f"--input and --output must both be .csv or both .npz (got {args.input.name}, {args.output.name})")
