@@ -5,7 +5,7 @@ its own innovation covariance ``S_t`` says, and the normalized innovation square
 ``eps_t = nu_t^T S_t^-1 nu_t`` averages above its expected value ``m`` (the measurement's dimension;
 ``eps ~ chi^2_m`` for a consistent filter). ``AdaptiveNoise`` keeps, per track, a scale ``lambda`` of
 the process noise ``Q`` and moves it so that the mean NIS matches ``m`` (covariance matching on the
-innovations, Mehra 1972; Bar-Shalom, Li & Kirubarajan 2001, section 11.7), by a stochastic
+innovations, Mehra 1972; Bar-Shalom, Li & Kirubarajan 2001, chapter 11), by a stochastic
 approximation on ``log lambda`` with exponential forgetting:
 
     ``log lambda_t = clip(log lambda_{t-1} + rate * (min(eps_t / m, nis_clip) - 1 - deadband), 0, log max_scale)``

@@ -445,8 +445,8 @@ class _FilterExperts:
 
     def _adapt(self, td, maha: torch.Tensor, has_z: torch.Tensor) -> None:
         """The track's next ``log lambda`` from this scan's NIS ``maha [B, M]``: the smallest of the experts'
-        (experts alone: each expert's own)."""
-        log_scale = td.get(keys.Q_SCALE)
+        (experts alone: each expert's own). An estimator, not a learned part: no gradient flows through it."""
+        log_scale, maha = td.get(keys.Q_SCALE).detach(), maha.detach()
         if log_scale.dim() == 1:
             nis, ok = maha.min(-1).values, has_z[:, 0, 0]
         else:
@@ -524,8 +524,9 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     raw / u_max)``: a maneuver onset needs a turn-rate variance ~1e8 times the steady one, which the
     slope lets the network reach without large weights); ``gain_scale`` bounds the learned
     correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
-    measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by default). Beside F1..F4, GRU_S reads the innovation whitened by the base
-    noise's ``S`` (``nu / sqrt(diag S)``, a maneuver detector's statistic).
+    measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by
+    default). Beside F1..F4, GRU_S reads the innovation whitened by the base noise's ``S`` (times the
+    adaptive scale, where on) (``nu / sqrt(diag S)``, a maneuver detector's statistic).
     """
 
     # written out, not KalmanNetGain.in_keys + [...]: tensordict turns a module's key lists into
