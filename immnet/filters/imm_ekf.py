@@ -26,6 +26,11 @@ With ``guard`` (``immnet.filters.guard.RangeGuard``: ``True`` for the generator'
 bounds, or its fields as a dict) the Markov matrix becomes state-dependent per track and source filter,
 and a turn entered at a bound starts at the bound's rate (``configs/methods/imm-ekf-guard.yaml``).
 
+With ``adapt`` (``immnet.filters.adaptive.AdaptiveNoise``: ``True`` for its defaults, or its fields as a dict)
+each track's white-acceleration noise is scaled by ``lambda`` in [1, 100], grown by covariance matching when
+the smallest NIS of the four filters shows every one too confident: data with more
+process noise than ``sigma_q`` (``configs/methods/imm-ekf-adaptive.yaml``; docs/baselines.md).
+
 It starts like the other IMMs: from the first measurement (``initial_state``, with ``r0``), the CA
 filter's acceleration at the draw's variance and the turn filters' rates at their prior; no
 estimate (NaN) before a track's first detection.
@@ -38,11 +43,12 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
+from immnet.filters.adaptive import AdaptiveNoise
 from immnet.filters.base import Method, as_dtype, batch_dt, output
 from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
 from immnet.filters.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
 from immnet.filters.imm import initial_state
-from immnet.filters.kalman import update
+from immnet.filters.kalman import inv3, update
 from immnet.filters.trackers import _positive, transition_matrix
 from immnet.motion import DEG, TURN_RATE_LIMIT_DEG, ca_matrix, ct_matrix, ct_propagate, cv_matrix, process_noise
 
@@ -80,6 +86,7 @@ class IMMEKF(Method):
         rate_bounds_deg: tuple[float, float] = (1.0, TURN_RATE_LIMIT_DEG),
         rate_noise_deg: float = 0.0,
         guard=None,
+        adapt=None,
         dtype="float64",
         name: str = "imm-ekf",
     ):
@@ -96,6 +103,7 @@ class IMMEKF(Method):
         self.sigma_q, self.r, self.r0, self.k0 = float(sigma_q), None if r is None else float(r), float(r0), float(k0)
         self.rate_lo, self.rate_hi, self.rate_noise = lo * DEG, hi * DEG, float(rate_noise_deg) * DEG
         self.guard = RangeGuard.from_config(guard)
+        self.adapt = AdaptiveNoise.from_config(adapt)
         self.dtype, self.name = as_dtype(dtype), name
 
     def onset_priors(self, dtype=torch.float64, device=None):
@@ -136,9 +144,11 @@ class IMMEKF(Method):
         F = torch.zeros(2, n, n, dtype=dtype, device=dev)  # CV, CA; the rate slot carried unchanged
         F[0, :9, :9], F[1, :9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
         F[:, RATE, RATE] = 1.0
-        Q = torch.zeros(M, n, n, dtype=dtype, device=dev)
+        Q = torch.zeros(M, n, n, dtype=dtype, device=dev)  # white acceleration (scaled by the adaptation)
         Q[:, :9, :9] = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
-        Q[2:, RATE, RATE] = self.rate_noise**2
+        Q_rate = torch.zeros(M, n, n, dtype=dtype, device=dev)
+        Q_rate[2:, RATE, RATE] = self.rate_noise**2
+        log_scale = torch.zeros(B, dtype=dtype, device=dev)  # AdaptiveNoise's log lambda per track
         H = torch.eye(n, dtype=dtype, device=dev)[0:9:3]
         keep, prior_mean, prior_cov = self.onset_priors(dtype, dev)
         keep2 = keep[..., :, None] * keep[..., None, :]
@@ -187,7 +197,14 @@ class IMMEKF(Method):
             xp = torch.cat(
                 [(F @ x0[:, :2, :, None])[..., 0], torch.cat([ct_propagate(x0[:, 2:, :9], rate, d), rate[..., None]], -1)], 1
             )
-            Pp = J @ P0 @ J.transpose(-1, -2) + Q
+            lam = AdaptiveNoise.scale(log_scale)[:, None, None, None]
+            Pp = J @ P0 @ J.transpose(-1, -2) + lam * Q + Q_rate
+            if self.adapt is not None:  # the smallest NIS of the mode-matched filters
+                nu = z[:, t, None] - xp[..., 0:9:3]
+                S = Pp[..., 0:9:3, :][..., 0:9:3] + r2[:, t, None, None, None] * torch.eye(3, dtype=dtype, device=dev)
+                S_inv, _ = inv3(S)
+                nis = (nu.unsqueeze(-2) @ S_inv @ nu.unsqueeze(-1))[..., 0, 0].min(-1).values
+                log_scale = self.adapt.update(log_scale, nis, torch.isfinite(z[:, t]).all(-1))
             x, P, loglik = update(xp, Pp, z[:, t, None].expand(B, M, 3), H, r2[:, t, None].expand(B, M))
             x = x.clone()
             x[:, CT_POS, RATE] = x[:, CT_POS, RATE].clamp(self.rate_lo, self.rate_hi)

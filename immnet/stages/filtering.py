@@ -22,6 +22,10 @@ The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
 * ``Q^(i)_t = sum_k exp(u_k) Q_k^(i)``: base components (velocity noise horizontal / vertical,
   acceleration noise horizontal / vertical, turn-rate noise), each scaled by the network's bounded
   output ``u = u_max tanh(u_slope raw / u_max)``;
+* with ``adapt`` (``immnet.filters.adaptive.AdaptiveNoise``, set at load: ``load_network(adapt=...)``), the
+  white-acceleration components (velocity h / v) times the track's ``lambda`` in [1, 100], grown by
+  covariance matching on the smallest NIS of the experts
+  (docs/immnet.md, "Adaptive process noise");
 * ``K = P- H^T (H P- H^T + r^2 I)^-1 + [K_scale tanh(FC2); 0]``; update of ``x``, ``w`` and
   ``P`` (Joseph form, with the gain actually used).
 
@@ -37,6 +41,7 @@ import math
 import torch
 
 from immnet import keys
+from immnet.filters.adaptive import AdaptiveNoise
 from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
 from immnet.filters.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
 from immnet.filters.kalman import inv3
@@ -52,6 +57,7 @@ from immnet.stages.update import Update, innovation
 N_AUG = 10
 RATE = 9  # index of w in the augmented state
 N_NOISE = 5  # velocity h / v, acceleration h / v, turn rate
+WHITE = (0, 1)  # the white-acceleration components, which AdaptiveNoise's scale multiplies
 _P = list(POS)
 
 
@@ -328,8 +334,15 @@ class _FilterExperts:
         return FilterPredict(model_set, dt, self.interaction, self.p_stay, self.guard)
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
-                     interaction: str = "fused", p_stay: float = 0.995, guard=None):
+                     interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None):
         self.guard = _check_interaction(interaction, p_stay, guard)
+        self.adapt = AdaptiveNoise.from_config(adapt)
+        if self.adapt is not None:  # the track's log lambda is carried
+            self.in_keys = [*self.in_keys, keys.Q_SCALE]
+            self.out_keys = [*self.out_keys, keys.Q_SCALE]
+        white = torch.zeros(N_NOISE, dtype=torch.bool)
+        white[list(WHITE)] = True
+        self.register_buffer("white_mask", white, persistent=False)
         self.interaction, self.p_stay = interaction, float(p_stay)
         if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
             raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")
@@ -365,7 +378,8 @@ class _FilterExperts:
         """The gain's part of a carry for tracks that have not started; ``shape`` is ``[B]`` or ``[B, M]``."""
         M = self.n_experts
         B = shape[0]
-        return {
+        adapt = {} if self.adapt is None else {keys.Q_SCALE: torch.zeros(shape, dtype=dtype, device=device)}
+        return adapt | {
             keys.EXPERT_POST: torch.zeros(B, M, 9, dtype=dtype, device=device),
             keys.EXPERT_RATE: self.rate_nominal.to(dtype).expand(B, M).clone(),
             keys.EXPERT_AUG_COV: self.start_cov(B, torch.full((B, M), self.r0**2, dtype=dtype, device=device), False),
@@ -404,7 +418,8 @@ class _FilterExperts:
         nan = torch.full_like(z, float("nan"))
         r2_track = (self.k0 * self.r0**2 + carry.get(keys.NOISE_SUM)) / (self.k0 + carry.get(keys.NOISE_COUNT))
         r2 = per_expert(r2_track, M, event_dims=0)
-        return {
+        adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
+        return adapt | {
             keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
             keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
             keys.EXPERT_AUG_COV: self.start_cov(B, r2, second),
@@ -419,6 +434,24 @@ class _FilterExperts:
         """This scan's ``r^2`` estimate as ``[B, M, 1, 1]``."""
         r2 = self.noise(td)
         return per_expert(r2, self.n_experts, event_dims=0)[..., None, None]
+
+    def _noise_scale(self, td, like: torch.Tensor) -> torch.Tensor | None:
+        """Multipliers of the five noise components ``[B, M, 5]``: the track's ``lambda``
+        (``AdaptiveNoise``) on the white-acceleration ones, 1 on the rest; None without adaptation."""
+        if self.adapt is None:
+            return None
+        lam = per_expert(AdaptiveNoise.scale(td.get(keys.Q_SCALE)).to(like.dtype), self.n_experts, event_dims=0)
+        return torch.where(self.white_mask, lam.unsqueeze(-1), torch.ones_like(lam).unsqueeze(-1))
+
+    def _adapt(self, td, maha: torch.Tensor, has_z: torch.Tensor) -> None:
+        """The track's next ``log lambda`` from this scan's NIS ``maha [B, M]``: the smallest of the experts'
+        (experts alone: each expert's own). An estimator, not a learned part: no gradient flows through it."""
+        log_scale, maha = td.get(keys.Q_SCALE).detach(), maha.detach()
+        if log_scale.dim() == 1:
+            nis, ok = maha.min(-1).values, has_z[:, 0, 0]
+        else:
+            nis, ok = maha, has_z[..., 0]
+        td.set(keys.Q_SCALE, self.adapt.update(log_scale, torch.where(ok, nis, 0.0), ok))
 
     def _finish(self, td, r2, P, delta=None, nu=None):
         """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
@@ -437,6 +470,8 @@ class _FilterExperts:
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
         td.set(keys.EXPERT_AUG_PRIOR_COV, P)
         td.set(keys.EXPERT_LOGLIK, torch.where(has_z[..., 0], loglik, 0.0))
+        if self.adapt is not None:
+            self._adapt(td, maha, has_z)
         return td
 
 
@@ -466,14 +501,18 @@ class FilterGain(_FilterExperts, Stage):
         interaction: str = "fused",
         p_stay: float = 0.995,
         guard: bool | dict | None = None,
+        adapt: bool | dict | None = None,
     ):
         super().__init__(model_set)
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt)
 
     def forward(self, td):
         r2 = self._r2(td)
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        return self._finish(td, r2, P + self.Q_parts.to(P.dtype).sum(1))
+        Q_parts = self.Q_parts.to(P.dtype)
+        scale = self._noise_scale(td, P)
+        Q = Q_parts.sum(1) if scale is None else (scale[..., None, None] * Q_parts).sum(-3)
+        return self._finish(td, r2, P + Q)
 
 
 class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
@@ -485,8 +524,9 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     raw / u_max)``: a maneuver onset needs a turn-rate variance ~1e8 times the steady one, which the
     slope lets the network reach without large weights); ``gain_scale`` bounds the learned
     correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
-    measurement-noise estimate. Beside F1..F4, GRU_S reads the innovation whitened by the base
-    noise's ``S`` (``nu / sqrt(diag S)``, a maneuver detector's statistic).
+    measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by
+    default). Beside F1..F4, GRU_S reads the innovation whitened by the base noise's ``S`` (times the
+    adaptive scale, where on) (``nu / sqrt(diag S)``, a maneuver detector's statistic).
     """
 
     # written out, not KalmanNetGain.in_keys + [...]: tensordict turns a module's key lists into
@@ -513,6 +553,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         interaction: str = "fused",
         p_stay: float = 0.995,
         guard: bool | dict | None = None,
+        adapt: bool | dict | None = None,
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
@@ -526,14 +567,17 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
         del self.K_ss  # the base gain is the filter's own
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def forward(self, td):
         r2 = self._r2(td)
         base = td.get(keys.EXPERT_AUG_PRIOR_COV)
         Q_parts = self.Q_parts.to(base.dtype)
-        S0 = (base + Q_parts.sum(1))[..., _P, :][..., _P] + r2 * torch.eye(3, dtype=base.dtype, device=base.device)
+        scale = self._noise_scale(td, base)
+        if scale is not None:  # per track [B, M, 5, 10, 10]; the whitening below uses the scaled noise too
+            Q_parts = scale[..., None, None] * Q_parts
+        S0 = (base + Q_parts.sum(-3))[..., _P, :][..., _P] + r2 * torch.eye(3, dtype=base.dtype, device=base.device)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         white = slog(nu / torch.diagonal(S0, dim1=-2, dim2=-1).sqrt(), 1.0)
         f1, f2, f3, f4, white = (f.transpose(0, 1) for f in (*self.features(td), white))

@@ -41,6 +41,11 @@ def register(subparsers) -> None:
              "and within 4 km, and its speed envelope, 40-330 m/s), 'none' (data from another region), or "
              "'OUTER,INNER' in metres (another region, 3D-LAST's speed envelope)",
     )
+    p.add_argument(
+        "--adapt", action="store_true",
+        help="adaptive process noise in the filter experts (immnet.filters.adaptive.AdaptiveNoise): for targets "
+             "that fly rougher than the training data (docs/immnet.md, 'Adaptive process noise')",
+    )
     p.set_defaults(func=run)
 
 
@@ -84,7 +89,7 @@ def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
 
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
-    from immnet.tracking.tracker import PRETRAINED, Tracker
+    from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker
 
     check_paths(args.input, args.output)
     limit = check_limit(args.max_position)
@@ -93,7 +98,7 @@ def run(args) -> int:
         from immnet.tracking.segments import split_segments, track_segments
 
         rows = read_tracks_csv(args.input)
-        tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), limit)
+        tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)
         z, n_gated = gate_measurements(rows.z, limit)
         gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
         lines = ", ".join(str(rows.lines[r]) for r in gated[:5]) + (", ..." if len(gated) > 5 else "")
@@ -109,7 +114,7 @@ def run(args) -> int:
     from immnet.tracking.methods import check_dt
 
     data, _ = load_dataset(args.input)
-    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), limit)
+    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)
     check_dt(tracker.net, data["dt"], "the checkpoint")
     out = tracker.track(data["measurements"])
     tmp = args.output.with_name(f".{args.output.stem}.{os.getpid()}.partial.npz")

@@ -43,13 +43,15 @@ class _LearnedMethod:
 
 class IMMNetMethod(_LearnedMethod):
     """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights); ``guard``
-    its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``).
+    its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``), ``adapt``
+    its filter experts' adaptive process noise as ``load_network``'s..
 
     Its estimates are ``Tracker.track``'s: NaN before a track's first detection."""
 
-    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP):
+    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP,
+                 adapt=KEEP):
         self.name = name
-        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard))
+        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt))
         self.net = self.tracker.net
         self.batch_size = batch_size
 

@@ -57,18 +57,24 @@ def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
     return copy.deepcopy(config), state
 
 
-def load_network(path: str | Path, guard=KEEP) -> IMMNet:
+def load_network(path: str | Path, guard=KEEP, adapt=KEEP) -> IMMNet:
     """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
 
     ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
     (``True`` for 3D-LAST's, or a dict of ``RangeGuard`` fields); it has no weights, so any choice loads.
+    ``adapt``: the filter experts' adaptive process noise (``immnet.filters.adaptive.AdaptiveNoise``), as
+    the checkpoint has it (``"checkpoint"``), off (``None``/``False``), on (``True``) or a dict of its
+    fields; no weights either.
     """
     config, state = read_checkpoint(path)
-    if not (isinstance(guard, str) and guard == KEEP):
+    for name, value in (("guard", guard), ("adapt", adapt)):
+        if isinstance(value, str) and value == KEEP:
+            continue
         gain = config.get("gain") or {}
         if "filtering" not in gain.get("class_path", ""):
-            raise ValueError(f"{path}: a range guard needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
-        config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), "guard": guard}}
+            what = "a range guard" if name == "guard" else "adaptive process noise"
+            raise ValueError(f"{path}: {what} needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
+        config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}
     net = IMMNet(**config)
     net.load_state_dict(state)
     return net.eval()
@@ -88,15 +94,17 @@ class Tracker:
         self.n_gated = 0
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, guard=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
-        """The IMMNet of a checkpoint; ``guard`` as in ``load_network``."""
-        return cls(load_network(path, guard), max_position)
+    def from_checkpoint(cls, path: str | Path, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
+        """The IMMNet of a checkpoint; ``guard`` and ``adapt`` as in ``load_network``; ``max_position`` the
+        gate on measurements (``immnet.data.validate``)."""
+        return cls(load_network(path, guard, adapt), max_position)
 
     @classmethod
-    def pretrained(cls, guard=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
+    def pretrained(cls, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
         """The weights shipped inside the package (see ``immnet/pretrained/PROVENANCE.md``); they carry
-        3D-LAST's range guard: ``guard=None`` for data from another surveillance region."""
-        return cls.from_checkpoint(PRETRAINED, guard, max_position)
+        3D-LAST's range guard: ``guard=None`` for data from another surveillance region; ``adapt=True``
+        adds adaptive process noise (targets noisier than 3D-LAST's; docs/immnet.md)."""
+        return cls.from_checkpoint(PRETRAINED, guard, adapt, max_position)
 
     def reset(self, n_tracks: int) -> None:
         """``n_tracks`` tracks that have not started; ``n_gated`` back to 0."""
