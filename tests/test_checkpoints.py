@@ -18,11 +18,11 @@ from immnet.cli import main
 from immnet.config import REPO_ROOT
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
-from immnet.data.storage import write_dataset
 from immnet.tracking.tracker import PRETRAINED, Tracker
 from immnet.training import Stage2Module
 
-TINY = DataSpec(T=40, min_segment=12)
+from tiny_runs import TINY, write_quick_data
+
 FAST = ["--trainer.max_steps", "4", "--trainer.val_check_interval", "2", "--trainer.limit_val_batches", "1",
         "--data.batch_size", "4", "--trainer.logger", "false"]
 STAGE1, STAGE2 = (str(REPO_ROOT / f"recipes/quick-stage{i}.yaml") for i in (1, 2))
@@ -192,11 +192,7 @@ def test_fit_refuses_a_checkpoint_before_building_anything(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     """A tiny real stage-1 run (``immnet fit``, recipes/quick-stage1.yaml): ``(workdir, best.ckpt)``."""
-    root = tmp_path_factory.mktemp("fit")
-    data = root / "runs/quick/data"
-    write_dataset(data / "train", 24, seed=11, spec=TINY)
-    for i, mode in enumerate(("cv", "ca", "ct+", "ct-")):
-        write_dataset(data / f"single-{mode}", 8, seed=12 + i, spec=TINY, single_mode=mode)
+    root = write_quick_data(tmp_path_factory.mktemp("fit"), TINY)
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(root)
         assert main(["fit", "--config", STAGE1, *FAST]) == 0

@@ -14,12 +14,11 @@ import pytest
 from immnet.checkpoints import load_checkpoint
 from immnet.cli import main
 from immnet.config import REPO_ROOT
-from immnet.data.spec import DataSpec
-from immnet.data.storage import write_dataset
 from immnet.training import Stage2Module
 
+from tiny_runs import TINY, write_quick_data
+
 pytestmark = pytest.mark.slow
-TINY = DataSpec(T=40, min_segment=12)
 # a few optimizer steps, one validation on one batch, small batches: minutes become seconds
 FAST = ["--trainer.max_steps", "4", "--trainer.val_check_interval", "2", "--trainer.limit_val_batches", "1",
         "--data.batch_size", "4", "--trainer.logger", "false"]
@@ -29,13 +28,7 @@ ABLATIONS = sorted((REPO_ROOT / "configs" / "ablations").glob("*.yaml"))
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory):
     """runs/quick/data with a train set, the four single-mode sets and a test set, all tiny."""
-    root = tmp_path_factory.mktemp("work")
-    data = root / "runs/quick/data"
-    write_dataset(data / "train", 24, seed=11, spec=TINY)
-    for i, mode in enumerate(("cv", "ca", "ct+", "ct-")):
-        write_dataset(data / f"single-{mode}", 8, seed=12 + i, spec=TINY, single_mode=mode)
-    write_dataset(data / "test", 6, seed=99, spec=TINY)
-    return root
+    return write_quick_data(tmp_path_factory.mktemp("work"), TINY, test=True)
 
 
 @pytest.fixture(scope="module")

@@ -31,14 +31,18 @@ wrong one (a maneuver, which the IMM's mode switch handles) (docs/baselines.md, 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
 
+from immnet.filters.option import Option
+
 
 @dataclass(frozen=True)
-class AdaptiveNoise:
+class AdaptiveNoise(Option):
     """The adaptation rule's settings (module doc); ``True`` in a config means these defaults."""
+
+    ARG = "adapt"
 
     rate: float = 0.02  # forgetting: a memory of ~50 scans
     deadband: float = 0.15  # mean NIS / m above 1 + deadband before the scale grows
@@ -56,24 +60,6 @@ class AdaptiveNoise:
         if not (isinstance(self.dim, int) and self.dim >= 1):
             raise ValueError(f"AdaptiveNoise.dim must be an int >= 1, got {self.dim}")
 
-    @classmethod
-    def from_config(cls, config) -> "AdaptiveNoise | None":
-        """``None``/``False`` (off), ``True`` (the defaults), a dict of fields or an ``AdaptiveNoise``."""
-        if config is None or config is False:
-            return None
-        if config is True:
-            return cls()
-        if isinstance(config, cls):
-            return config
-        if isinstance(config, dict):
-            unknown = set(config) - set(cls.__dataclass_fields__)
-            if unknown:
-                raise ValueError(f"unknown AdaptiveNoise field(s) {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
-            return cls(**config)
-        raise ValueError(f"adapt must be None, a bool, a dict of AdaptiveNoise fields or an AdaptiveNoise, got {config!r}")
-
-    def to_config(self) -> dict:
-        return asdict(self)
 
     @staticmethod
     def scale(log_scale: torch.Tensor) -> torch.Tensor:

@@ -40,17 +40,21 @@ bound turn made, so that the interaction can give a turn entered at the bound it
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import torch
+
+from immnet.filters.option import Option
 
 DEG = math.pi / 180.0
 G_MAX = 0.999  # the most probable a guard event is made
 
 
 @dataclass(frozen=True)
-class RangeGuard:
+class RangeGuard(Option):
     """The soft range bounds of the 3D-LAST generator as guard conditions (module doc)."""
+
+    ARG = "guard"
 
     outer: float = 33_000.0  # m: beyond, moving outward -> turn toward the radar
     inner: float = 4_000.0  # m: within, moving inward -> turn away from it
@@ -84,24 +88,6 @@ class RangeGuard:
         if self.clear_share >= 1:
             raise ValueError(f"RangeGuard.clear_share must be below 1, got {self.clear_share}")
 
-    @classmethod
-    def from_config(cls, config) -> "RangeGuard | None":
-        """``None``/``False`` (no guard), ``True`` (the 3D-LAST defaults), a dict of fields or a ``RangeGuard``."""
-        if config is None or config is False:
-            return None
-        if config is True:
-            return cls()
-        if isinstance(config, cls):
-            return config
-        if isinstance(config, dict):
-            unknown = set(config) - set(cls.__dataclass_fields__)
-            if unknown:
-                raise ValueError(f"unknown RangeGuard field(s) {sorted(unknown)}; known: {sorted(cls.__dataclass_fields__)}")
-            return cls(**config)
-        raise ValueError(f"guard must be None, a bool, a dict of RangeGuard fields or a RangeGuard, got {config!r}")
-
-    def to_config(self) -> dict:
-        return asdict(self)
 
     def events(self, x: torch.Tensor, w: torch.Tensor, dt: float):
         """Guard event probabilities per track and mode-matched filter, from posteriors ``x [..., 9]``

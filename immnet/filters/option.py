@@ -1,0 +1,33 @@
+"""An optional filter component set from configuration: off, its defaults, or some of its fields."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, fields
+
+
+class Option:
+    """Mixin of a frozen dataclass that a tracker takes as an optional setting (``RangeGuard``,
+    ``AdaptiveNoise``); ``ARG`` names the constructor argument in error messages."""
+
+    ARG = "option"
+
+    @classmethod
+    def from_config(cls, config):
+        """``None``/``False`` (off: ``None``), ``True`` (the defaults), a dict of fields, or an instance."""
+        if config is None or config is False:
+            return None
+        if config is True:
+            return cls()
+        if isinstance(config, cls):
+            return config
+        if isinstance(config, dict):
+            known = sorted(f.name for f in fields(cls))
+            unknown = set(config) - set(known)
+            if unknown:
+                raise ValueError(f"unknown {cls.__name__} field(s) {sorted(unknown)}; known: {known}")
+            return cls(**config)
+        raise ValueError(f"{cls.ARG} must be None, a bool, a dict of {cls.__name__} fields or an instance of {cls.__name__}, "
+                         f"got {config!r}")
+
+    def to_config(self) -> dict:
+        return asdict(self)
