@@ -4,7 +4,7 @@ A writer of ``DIR/NAME`` works in the hidden sibling ``DIR/.NAME.tmp-PID-HEX`` (
 id) and renames it onto ``NAME`` only when complete (:func:`replace`, atomic on one file system),
 so a reader never sees a partial output.
 
-Leftovers: a writer removes its own sibling on any exception, and :func:`terminating_raises`
+:func:`publishing` is that whole protocol around one writer's work. Leftovers: a writer removes its own sibling on any exception, and :func:`terminating_raises`
 turns SIGTERM into an exception (as Python does SIGINT) for the time of the writing, so that it is cleaned
 too. ``kill -9`` cannot be caught: the next writer of the same ``NAME`` removes (:func:`remove_stale`)
 every ``.NAME.tmp-PID-*`` whose ``PID`` is no running process. A sibling of a live process (a
@@ -96,3 +96,21 @@ def terminating_raises():
         yield
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+@contextlib.contextmanager
+def publishing(out, suffix: str = ""):
+    """Write ``out`` (a file or a directory) through a temporary sibling: removes the stale siblings
+    of dead writers, yields a fresh :func:`tmp_sibling` (nothing created: the body makes the file or
+    directory), moves it onto ``out`` when the body ends normally, and removes it on any exception,
+    SIGTERM included (:func:`terminating_raises`)."""
+    out = Path(out)
+    remove_stale(out)
+    tmp = tmp_sibling(out, suffix)
+    with terminating_raises():
+        try:
+            yield tmp
+            replace(tmp, out)
+        except BaseException:
+            remove(tmp)
+            raise

@@ -19,7 +19,7 @@ from pathlib import Path
 from tensordict import TensorDict
 
 from immnet.data.generate import BLOCK
-from immnet.data.scratch import remove, remove_stale, replace, terminating_raises, tmp_sibling
+from immnet.data.scratch import publishing
 from immnet.data.storage import (
     META, STORE_DTYPES, TENSORS, _allocate, _check_out, _meta, _rows, _write_meta, load_dataset, shard_rows,
 )
@@ -107,15 +107,13 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
     n_total, T, block = first["shard"]["n_total"], first["T"], first["block"]
     _check_out(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale(out)
-    tmp = tmp_sibling(out)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=n_total, desc=f"merge -> {out.name}", unit="traj")
-    with terminating_raises():
-        try:
+    try:
+        with publishing(out) as tmp:
             tmp.mkdir()
             _allocate(tmp / TENSORS, n_total, T)
             dst_td = TensorDict.load_memmap(tmp / TENSORS)
@@ -139,12 +137,8 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
             del dst_td
             _write_meta(tmp, _meta(first["seed"], n_total, first["spec"], first["single_mode"], counts))
             load_dataset(tmp)  # the merged set passes the same checks as any other
-            replace(tmp, out)
-        except BaseException:
-            remove(tmp)
-            raise
-        finally:
-            if bar is not None:
-                bar.close()
+    finally:
+        if bar is not None:
+            bar.close()
     return out
 

@@ -35,7 +35,7 @@ from tensordict import MemoryMappedTensor, TensorDict
 from immnet import keys
 from immnet.data.contract import TRAIL, check_arrays
 from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
-from immnet.data.scratch import remove, remove_stale, replace, terminating_raises, tmp_sibling
+from immnet.data.scratch import publishing
 from immnet.data.spec import SPEC_VERSION, DataSpec
 from immnet.motion import MODE_NAMES
 
@@ -172,50 +172,43 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     row0, row1 = _block_rows(blocks, n)
     _check_out(out, overwrite)
     out.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale(out)
-    tmp = tmp_sibling(out)
-    with terminating_raises():
-        try:
-            tmp.mkdir()
-            _allocate(tmp / TENSORS, row1 - row0, spec.T)
-            counts = [0] * len(MODE_NAMES)
-            blocks = list(blocks)
-            bar = None
-            if progress:
-                from tqdm import tqdm
+    with publishing(out) as tmp:
+        tmp.mkdir()
+        _allocate(tmp / TENSORS, row1 - row0, spec.T)
+        counts = [0] * len(MODE_NAMES)
+        blocks = list(blocks)
+        bar = None
+        if progress:
+            from tqdm import tqdm
 
-                bar = tqdm(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
-            init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
-            if workers == 1 or len(blocks) == 1:
-                threads = torch.get_num_threads()
-                _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
-                try:
-                    results = (_write_block(b) for b in blocks)
-                    for b, c in zip(blocks, results):
-                        counts = [a + x for a, x in zip(counts, c)]
-                        if bar is not None:
-                            bar.update(min(BLOCK, n - b * BLOCK))
-                finally:
-                    torch.set_num_threads(threads)
-                    _WORKER.clear()
-            else:
-                ctx = mp.get_context("spawn")
-                with ctx.Pool(min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)) as pool:
-                    for b, c in zip(blocks, pool.imap(_write_block, blocks)):
-                        counts = [a + x for a, x in zip(counts, c)]
-                        if bar is not None:
-                            bar.update(min(BLOCK, n - b * BLOCK))
-            if bar is not None:
-                bar.close()
-            info = None
-            if shard is not None:
-                info = {"index": int(shard[0]), "count": int(shard[1]), "n_total": n, "rows": [row0, row1],
-                        "blocks": [blocks[0], blocks[-1] + 1]}
-            _write_meta(tmp, _meta(seed, row1 - row0, spec.to_dict(), single_mode, counts, info))
-            replace(tmp, out)
-        except BaseException:
-            remove(tmp)
-            raise
+            bar = tqdm(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
+        init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
+        if workers == 1 or len(blocks) == 1:
+            threads = torch.get_num_threads()
+            _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
+            try:
+                results = (_write_block(b) for b in blocks)
+                for b, c in zip(blocks, results):
+                    counts = [a + x for a, x in zip(counts, c)]
+                    if bar is not None:
+                        bar.update(min(BLOCK, n - b * BLOCK))
+            finally:
+                torch.set_num_threads(threads)
+                _WORKER.clear()
+        else:
+            ctx = mp.get_context("spawn")
+            with ctx.Pool(min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)) as pool:
+                for b, c in zip(blocks, pool.imap(_write_block, blocks)):
+                    counts = [a + x for a, x in zip(counts, c)]
+                    if bar is not None:
+                        bar.update(min(BLOCK, n - b * BLOCK))
+        if bar is not None:
+            bar.close()
+        info = None
+        if shard is not None:
+            info = {"index": int(shard[0]), "count": int(shard[1]), "n_total": n, "rows": [row0, row1],
+                    "blocks": [blocks[0], blocks[-1] + 1]}
+        _write_meta(tmp, _meta(seed, row1 - row0, spec.to_dict(), single_mode, counts, info))
     return out
 
 
@@ -345,13 +338,6 @@ def export_npz(path_in, out_npz) -> Path:
             arrays[key] = v.to(torch.int64).numpy() if key == keys.MODE else np.asarray(v.numpy())
     arrays[keys.DT] = np.asarray(float(td[keys.DT][0]) if keys.DT in td.keys() else 1.0)
     out_npz.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale(out_npz)
-    tmp = tmp_sibling(out_npz, suffix=".npz")
-    with terminating_raises():
-        try:
-            np.savez(tmp, **arrays)
-            replace(tmp, out_npz)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+    with publishing(out_npz, suffix=".npz") as tmp:
+        np.savez(tmp, **arrays)
     return out_npz

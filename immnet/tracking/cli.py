@@ -109,21 +109,16 @@ def run(args) -> int:
         print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows -> {args.output}",
               file=sys.stderr)
         return 0
+    from immnet.data.scratch import publishing
     from immnet.data.storage import load_dataset
-
     from immnet.tracking.methods import check_dt
 
     data, _ = load_dataset(args.input)
     tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)
     check_dt(tracker.net, data["dt"], "the checkpoint")
     out = tracker.track(data["measurements"])
-    tmp = args.output.with_name(f".{args.output.stem}.{os.getpid()}.partial.npz")
-    try:
+    with publishing(args.output, suffix=".npz") as tmp:
         np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt))
-        tmp.replace(args.output)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     _report_gated(tracker.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
     return 0

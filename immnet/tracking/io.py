@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
+
+from immnet.data.scratch import publishing
 
 IN_COLUMNS = ("track_id", "t", "x", "y", "z")
 OUT_COLUMNS = (
@@ -111,17 +112,9 @@ def _field(v: float) -> str:
 
 def write_tracks_csv(path: str | Path, tracks: CsvTracks, state: np.ndarray, mode_probs: np.ndarray) -> None:
     """One output line per input row (``state [R, 9]``, ``mode_probs [R, 4]``; NaN -> an empty field),
-    written to a temporary file beside ``path`` and moved onto it only when complete."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    f = tmp.open("x", newline="")  # "x": never onto an existing file
-    try:
-        with f:
-            w = csv.writer(f)
-            w.writerow(OUT_COLUMNS)
-            for r in range(len(tracks)):
-                w.writerow([tracks.ids[r], tracks.times[r], *map(_field, state[r]), *map(_field, mode_probs[r])])
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    written to a temporary sibling of ``path`` and moved onto it only when complete (``immnet.data.scratch``)."""
+    with publishing(path) as tmp, tmp.open("x", newline="") as f:  # "x": never onto an existing file
+        w = csv.writer(f)
+        w.writerow(OUT_COLUMNS)
+        for r in range(len(tracks)):
+            w.writerow([tracks.ids[r], tracks.times[r], *map(_field, state[r]), *map(_field, mode_probs[r])])

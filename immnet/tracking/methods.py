@@ -44,7 +44,7 @@ class _LearnedMethod:
 class IMMNetMethod(_LearnedMethod):
     """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights); ``guard``
     its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``), ``adapt``
-    its filter experts' adaptive process noise as ``load_network``'s..
+    its filter experts' adaptive process noise as ``load_network``'s.
 
     Its estimates are ``Tracker.track``'s: NaN before a track's first detection."""
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from immnet.checkpoints import add_checksum, load_checkpoint
+from immnet.data.scratch import publishing
 from immnet.motion import ModelSet
 
 
@@ -33,9 +34,8 @@ def export_weights(ckpt: str | Path, out: str | Path) -> Path:
     })
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".partial")
-    torch.save(slim, tmp)
-    tmp.replace(out)
+    with publishing(out) as tmp:
+        torch.save(slim, tmp)
     return out
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from immnet.data.scratch import publishing
 from immnet.training.callbacks import LastCheckpoint
 
 FINISHED = "finished.json"
@@ -106,6 +107,5 @@ def mark_finished(trainer) -> None:
     record = {"best": best_checkpoint(trainer), "global_step": int(trainer.global_step)}
     for d in checkpoint_dirs(trainer):
         d.mkdir(parents=True, exist_ok=True)
-        tmp = d / f".{FINISHED}.tmp-{os.getpid()}"
-        tmp.write_text(json.dumps(record, indent=1) + "\n")
-        os.replace(tmp, d / FINISHED)
+        with publishing(d / FINISHED) as tmp:
+            tmp.write_text(json.dumps(record, indent=1) + "\n")
