@@ -60,7 +60,6 @@ class AdaptiveNoise(Option):
         if not (isinstance(self.dim, int) and self.dim >= 1):
             raise ValueError(f"AdaptiveNoise.dim must be an int >= 1, got {self.dim}")
 
-
     @staticmethod
     def scale(log_scale: torch.Tensor) -> torch.Tensor:
         """``lambda = exp(log lambda)``."""

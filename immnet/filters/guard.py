@@ -88,7 +88,6 @@ class RangeGuard(Option):
         if self.clear_share >= 1:
             raise ValueError(f"RangeGuard.clear_share must be below 1, got {self.clear_share}")
 
-
     def events(self, x: torch.Tensor, w: torch.Tensor, dt: float):
         """Guard event probabilities per track and mode-matched filter, from posteriors ``x [..., 9]``
         and turn rates ``w [...]`` (rad/s): ``(onset_pos, onset_neg, clear, speed)``, each ``[...]``.

@@ -210,8 +210,11 @@ class FilterPredict(Predict):
         acc_mask[:, list(ACC)] = torch.tensor(own_acc)[:, None]
         self.register_buffer("own_acc_mask", acc_mask, persistent=False)
         self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range; bounds by _rate_limits
+        self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range (kept in checkpoints)
         self.register_buffer("rate_hi", torch.tensor(hi))
+        rate_min, rate_max = _rate_limits(self.rate_lo, self.rate_hi)  # the bounds, derived once
+        self.register_buffer("rate_min", rate_min, persistent=False)
+        self.register_buffer("rate_max", rate_max, persistent=False)
         modes = model_set.modes
         self.register_buffer("data_modes", modes, persistent=False)
         bound_sign = torch.where(modes == 2, 1.0, torch.where(modes == 3, -1.0, 0.0)) * torch.tensor(own_rate, dtype=f64)
@@ -266,7 +269,7 @@ class FilterPredict(Predict):
         else:
             x = torch.where(self.own_acc_mask, own, per_expert(td.get(keys.FUSED), M))
             w = td.get(keys.EXPERT_RATE)
-        w = torch.clamp(w, *_rate_limits(self.rate_lo, self.rate_hi))
+        w = torch.clamp(w, self.rate_min, self.rate_max)
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
         J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
@@ -299,14 +302,17 @@ class FilterUpdate(Update):
         super().__init__(model_set)
         _, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range; bounds by _rate_limits
+        self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range (kept in checkpoints)
         self.register_buffer("rate_hi", torch.tensor(hi))
+        rate_min, rate_max = _rate_limits(self.rate_lo, self.rate_hi)  # the bounds, derived once
+        self.register_buffer("rate_min", rate_min, persistent=False)
+        self.register_buffer("rate_max", rate_max, persistent=False)
 
     def forward(self, td):
         td = super().forward(td)  # the state
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         w = td.get(keys.EXPERT_RATE) + (td.get(keys.EXPERT_RATE_GAIN) * nu).sum(-1)
-        w = torch.where(self.own_rate, torch.clamp(w, *_rate_limits(self.rate_lo, self.rate_hi)), w)
+        w = torch.where(self.own_rate, torch.clamp(w, self.rate_min, self.rate_max), w)
         K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = td.get(keys.NOISE_VAR)
