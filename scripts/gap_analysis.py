@@ -1,7 +1,7 @@
 """Where IMMNet loses to the clairvoyant bound: pooled position RMSE (per axis) by true mode, by noise
 level and by time since the last mode switch, beside each expert's own posterior, the "oracle pick"
 (the posterior of the true mode's expert) and the mean probability on the true mode. Last, in the
-metric's own terms (SPEC.md section 5, all scans): the Average RMSE if IMMNet's errors were the
+metric's own terms (docs/spec.md section 5, all scans): the Average RMSE if IMMNet's errors were the
 bound's in one group of scans (start, after a switch, steady flight per mode), i.e. what closing the
 gap there would buy.
 
@@ -32,7 +32,7 @@ from immnet.tracking.tracker import load_network
 
 
 def table_average(err: torch.Tensor) -> float:
-    """The README table's Average RMSE of position errors ``[N, T, 3]`` (SPEC.md section 5)."""
+    """The README table's Average RMSE of position errors ``[N, T, 3]`` (docs/spec.md section 5)."""
     return per_trajectory_rmse(err).mean().item()
 
 

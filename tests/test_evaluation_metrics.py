@@ -1,4 +1,4 @@
-"""Metrics of SPEC.md section 5 against float64 numpy computations and closed forms."""
+"""Metrics of docs/spec.md section 5 against float64 numpy computations and closed forms."""
 
 import numpy as np
 import pytest

@@ -33,7 +33,7 @@ def _evaluate(capsys, data, methods, *extra):
 
 def _kf_float64(z, mode, w, r, spec: DataSpec):
     """Per-trajectory FilterPy Kalman filter with the truth's modes, turn rates, r, sigma_q and CA draw
-    variance, written from SPEC.md section 2 independently of immnet.filters: states ``[N, T, 9]``."""
+    variance, written from docs/spec.md section 2 independently of immnet.filters: states ``[N, T, 9]``."""
     from filterpy.kalman import KalmanFilter
 
     dt = spec.dt

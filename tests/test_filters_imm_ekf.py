@@ -1,6 +1,6 @@
-"""IMM-EKF against an independent float64 numpy IMM written from SPEC.md's equations, scan by scan.
+"""IMM-EKF against an independent float64 numpy IMM written from docs/spec.md's equations, scan by scan.
 
-The reference loops over tracks, filters and mixing pairs, writes the coordinated turn out from SPEC.md
+The reference loops over tracks, filters and mixing pairs, writes the coordinated turn out from docs/spec.md
 section 2, takes the turn filters' Jacobians by central differences and inverts ``S`` with numpy: it
 shares no code with ``immnet.filters.imm_ekf`` beyond the constants of the generator it is told.
 """
@@ -34,7 +34,7 @@ def _noise_var_reference(alt, r0, k0):
 
 
 def _f(j, x, dt):
-    """Filter ``j``'s motion (CV, CA, CT+, CT-) of ``[lx, vx, ax, ly, vy, ay, lz, vz, az, w]``, from SPEC.md."""
+    """Filter ``j``'s motion (CV, CA, CT+, CT-) of ``[lx, vx, ax, ly, vy, ay, lz, vz, az, w]``, from docs/spec.md."""
     lx, vx, ax, ly, vy, ay, lz, vz, az, w = x
     if j == 0:
         return np.array([lx + dt * vx, vx, 0, ly + dt * vy, vy, 0, lz + dt * vz, vz, 0, w])

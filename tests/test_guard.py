@@ -88,7 +88,7 @@ def _ca(vx, vy, ax, ay, vz=0.0, az=0.0):
 
 
 def test_speed_onset_is_the_first_scan_out_of_the_speed_bounds():
-    """A CA leaving [40, 330] m/s (or |vz| 25 m/s) turns for one scan (SPEC.md section 2): the event is the
+    """A CA leaving [40, 330] m/s (or |vz| 25 m/s) turns for one scan (docs/spec.md section 2): the event is the
     chance that the speed is out now but was in a scan ago (the estimate's own acceleration taking it back),
     with ramps bound_speed_soft = 1 m/s wide: 1 - sigmoid(x) at 1.5 m/s past a bound is 0.18, at 0.5 m/s 0.38."""
     sig = lambda u: 1 / (1 + math.exp(-u))  # noqa: E731
@@ -171,7 +171,7 @@ def test_guard_settings_are_checked():
 
 @pytest.fixture(scope="module")
 def bounded():
-    """Generated trajectories (SPEC.md defaults), most of which meet a soft range bound."""
+    """Generated trajectories (docs/spec.md defaults), most of which meet a soft range bound."""
     data = generate(40, seed=31)
     m, w = data[keys.MODE], data[keys.TURN_RATE]
     bound_turn = (m >= 2) & ((w.abs() - 8 * DEG).abs() < 1e-9)
@@ -198,7 +198,7 @@ def _excess_over_bound(data, mask, **methods):
 
 
 def test_the_guard_halves_the_imm_ekf_error_at_bound_turn_onsets(bounded):
-    """The soft bounds are the generator's rules (SPEC.md section 2): told them, the IMM-EKF's excess over
+    """The soft bounds are the generator's rules (docs/spec.md section 2): told them, the IMM-EKF's excess over
     the clairvoyant bound on the scans that start a bound turn falls by more than half, and its RMSE falls."""
     m, w = bounded[keys.MODE], bounded[keys.TURN_RATE]
     onset = torch.zeros_like(m, dtype=torch.bool)
@@ -209,7 +209,7 @@ def test_the_guard_halves_the_imm_ekf_error_at_bound_turn_onsets(bounded):
 
 
 def test_the_speed_rules_cut_the_imm_ekf_error_after_speed_bound_turns(bounded):
-    """A CA that leaves the speed bounds turns at 8 deg/s for one scan, then flies CV (SPEC.md section 2):
+    """A CA that leaves the speed bounds turns at 8 deg/s for one scan, then flies CV (docs/spec.md section 2):
     told this, the IMM-EKF's excess over the clairvoyant bound on the scan of that turn and the five after
     it falls by more than half (to about a quarter on these 40 trajectories, 13 such turns)."""
     m, w = bounded[keys.MODE], bounded[keys.TURN_RATE]

@@ -1,4 +1,4 @@
-"""The 3D-LAST generator (SPEC.md section 2), vectorized over trajectories, float64.
+"""The 3D-LAST generator (docs/spec.md section 2), vectorized over trajectories, float64.
 
 Truth: ``x_t = F_{m_t}(w_t) x_{t-1} + G n_t``, ``n_t ~ N(0, sigma_q^2 I3)``, ``G`` per axis
 ``[dt^2/2, dt, 0]`` for every mode; measurements ``z_t = H x_t + v_t``, ``v_t ~ N(0, r^2 I3)``;

@@ -1,4 +1,4 @@
-"""Every parameter of the 3D-LAST scenario (SPEC.md section 2, spec version 1), as one dataclass.
+"""Every parameter of the 3D-LAST scenario (docs/spec.md section 2, spec version 1), as one dataclass.
 
 Units SI (m, s, m/s, m/s^2), angles in degrees where the name says ``_deg``. A YAML file of
 ``field: value`` lines overrides any subset (``immnet data generate --config FILE``).
@@ -23,7 +23,7 @@ NM = 1852.0
 
 @dataclass(frozen=True)
 class DataSpec:
-    """The 3D-LAST scenario. Defaults are SPEC.md section 2."""
+    """The 3D-LAST scenario. Defaults are docs/spec.md section 2."""
 
     # time and noise
     T: int = 400

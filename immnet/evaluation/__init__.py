@@ -1,4 +1,4 @@
-"""Evaluation: the metrics of SPEC.md section 5, methods by name, the runner, tables and figures.
+"""Evaluation: the metrics of docs/spec.md section 5, methods by name, the runner, tables and figures.
 
     from immnet.evaluation import build_method, evaluate, format_table, to_json
     results = evaluate({"imm-accurate": build_method("imm-accurate")}, data)

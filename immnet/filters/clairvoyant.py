@@ -1,4 +1,4 @@
-"""The clairvoyant Kalman filter: the bound no causal tracker beats on average (SPEC.md section 3).
+"""The clairvoyant Kalman filter: the bound no causal tracker beats on average (docs/spec.md section 3).
 
 It knows each trajectory's true mode sequence ``mode[t]``, turn rates ``turn_rate[t]`` and
 measurement noise ``r``, and runs one Kalman filter with the truth's time-varying transition:
@@ -58,10 +58,10 @@ def turn_rate_prior_deg(spec: DataSpec) -> tuple[float, float]:
 
 
 CA_ACC_VAR = ca_acc_var(DataSpec())
-"""Variance of a newly drawn 3D-LAST CA acceleration per axis (x, y, z), SPEC.md section 2."""
+"""Variance of a newly drawn 3D-LAST CA acceleration per axis (x, y, z), docs/spec.md section 2."""
 
 TURN_PRIOR_DEG = turn_rate_prior_deg(DataSpec())
-"""Mean and standard deviation of a 3D-LAST turn rate's magnitude, ``U[1, 10]`` deg/s (SPEC.md section 2)."""
+"""Mean and standard deviation of a 3D-LAST turn rate's magnitude, ``U[1, 10]`` deg/s (docs/spec.md section 2)."""
 
 CV, CA, CT_POS, CT_NEG = 0, 1, 2, 3
 

@@ -5,7 +5,7 @@ An IMM's Markov chain says a switch is as likely anywhere. Some switches are not
 reaches the edge of the airspace it must stay in turns back, whatever it was doing. Estimators with
 state-dependent transition probabilities (Seah & Hwang, "State-dependent transition hybrid
 estimation", IEEE TAC 2009) let the *estimated state* drive the transition matrix through such
-guard conditions. The 3D-LAST generator has exactly such rules, the soft range bounds of SPEC.md
+guard conditions. The 3D-LAST generator has exactly such rules, the soft range bounds of docs/spec.md
 section 2: a target outside ``outer`` (33 km) moving outward, or inside ``inner`` (4 km) moving
 inward, turns at ``rate_deg`` (8 deg/s) toward (away from) the radar until its heading points back
 by 30 degrees (radial speed beyond ``clear_share`` of its speed), then flies CV.

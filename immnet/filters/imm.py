@@ -27,7 +27,7 @@ ACC_STD = 10.0
 
 
 def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float = ACC_STD):
-    """``x0``, ``P0`` from the first measurement of each track (SPEC.md section 3).
+    """``x0``, ``P0`` from the first measurement of each track (docs/spec.md section 3).
 
     ``z [B, T, 3]``; ``r`` the filter's assumed measurement standard deviation (scalar or ``[B]``).
     ``x0 = [z0x, 0, 0, z0y, 0, 0, z0z, 0, 0]`` and ``P0 = diag(r^2, vel_std^2, acc_std^2)`` per axis.

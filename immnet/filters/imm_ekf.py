@@ -3,7 +3,7 @@
 The paper's IMM variants (``IMMTracker``) are linear: CT at a fixed turn rate, a CA model that must
 find each new acceleration through its process noise, and one ``r`` for every track. This method
 is the model-based counterpart of IMMNet's filter experts, told what the data's *statistics* are
-(SPEC.md section 2), never a trajectory's truth:
+(docs/spec.md section 2), never a trajectory's truth:
 
 * four mode-matched filters, CV, CA, CT+ and CT-, all over the augmented state ``[x (9), w]``; the
   turn filters are extended Kalman filters that estimate their turn rate ``w`` (its Jacobian

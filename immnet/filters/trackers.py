@@ -1,4 +1,4 @@
-"""Model-based trackers as methods: a single-model Kalman filter and the IMM (SPEC.md section 3).
+"""Model-based trackers as methods: a single-model Kalman filter and the IMM (docs/spec.md section 3).
 
 Both start from the first measurement (``immnet.filters.imm.initial_state``): position at
 ``z_0`` with variance ``r^2`` (the filter's assumed ``r``), zero velocity and acceleration with

@@ -38,7 +38,7 @@ class MotionModel:
         raise NotImplementedError
 
     def Q(self, sigma_q: float, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:
-        """``Q = sigma_q^2 G G^T`` with this model's ``G`` (SPEC.md section 3)."""
+        """``Q = sigma_q^2 G G^T`` with this model's ``G`` (docs/spec.md section 3)."""
         return m.process_noise(sigma_q, dt, self.noise, dtype=dtype, device=device)
 
     def __repr__(self) -> str:

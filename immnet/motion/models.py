@@ -1,4 +1,4 @@
-"""Motion models of 3D-LAST (SPEC.md section 2) in the 9-D layout.
+"""Motion models of 3D-LAST (docs/spec.md section 2) in the 9-D layout.
 
 State ``x = [lx, vx, ax, ly, vy, ay, lz, vz, az]``; every function is batched in torch.
 
@@ -29,7 +29,7 @@ TURN_RATE_LIMIT_DEG = 30.0
 150 m/s), not a data set's range. A turn filter bounded at its prior's edge (3D-LAST's 10 deg/s) holds a
 faster turn's rate below the truth and falls behind the target (docs/robustness.md)."""
 MODE_NAMES = ("cv", "ca", "ct+", "ct-")
-"""Data mode labels, in the fixed order of SPEC.md: 0 CV, 1 CA, 2 CT+, 3 CT-."""
+"""Data mode labels, in the fixed order of docs/spec.md: 0 CV, 1 CA, 2 CT+, 3 CT-."""
 
 POS = (0, 3, 6)
 VEL = (1, 4, 7)

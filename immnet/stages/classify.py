@@ -1,6 +1,6 @@
 """Stage 4, classify: mode probabilities ``mu_t`` over the experts.
 
-``TransformerClassifier`` (the paper's Transformer, SPEC.md section 4): an encoder over the last
+``TransformerClassifier`` (the paper's Transformer, docs/spec.md section 4): an encoder over the last
 ``W`` scans of two streams, measurements ``z_tau`` and fused estimates ``x_{tau-1|tau-1}``, in a
 frame that is translation-invariant and scaled: positions relative to the latest fused estimate
 ``x_{t-1|t-1}``, the horizontal plane rotated to its heading, residuals against the

@@ -2,7 +2,7 @@
 
 KalmanNet's L2 normalization throws the magnitude away; ``slog(f / s) = sign(f) log(1 + |f| / s)``
 keeps it, is O(1) for the magnitudes that matter, and grows only logarithmically for outliers.
-Scales (SPEC.md section 6): F1 /100 m, F2 /10 m, F3 /[100 m, 10 m/s, 1 m/s^2], F4 /[10, 1, 0.1].
+Scales (docs/spec.md section 6): F1 /100 m, F2 /10 m, F3 /[100 m, 10 m/s, 1 m/s^2], F4 /[10, 1, 0.1].
 """
 
 from __future__ import annotations

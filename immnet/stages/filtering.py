@@ -12,7 +12,7 @@ better than one implied by a noisy acceleration (docs/immnet.md, "Filter experts
 
 The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
 
-* input point ``x~``: the previous fused estimate (SPEC.md section 4), except the expert's own mode
+* input point ``x~``: the previous fused estimate (docs/spec.md section 4), except the expert's own mode
   parameter: a model that carries acceleration (``F[acc, acc] != 0``, CA) keeps its own posterior
   acceleration; an ``AdaptiveTurn`` expert turns at its own rate ``w^(i)`` (bounded by ``_rate_limits``).
   With ``interaction="imm"`` (the recipes'), the IMM's mixed estimate instead (``FilterPredict``);

@@ -1,6 +1,6 @@
 """IMMNet: one tracker step as a ``TensorDictSequential`` of five stages, and its rollout over time.
 
-    predict -> gain -> update -> classify -> fuse          (SPEC.md section 4)
+    predict -> gain -> update -> classify -> fuse          (docs/spec.md section 4)
 
 Every component is chosen by configuration (``class_path`` / ``init_args``); the model set is a
 YAML list of motion models. A track starts from two measurements: at its first scan the estimate

@@ -1,6 +1,6 @@
 """Stage 1, predict: every expert propagates the previous fused estimate with its own model.
 
-``x_{t|t-1}^(i) = F^(i) x_{t-1|t-1}``  (SPEC.md section 4, step 1).
+``x_{t|t-1}^(i) = F^(i) x_{t-1|t-1}``  (docs/spec.md section 4, step 1).
 
 An expert whose transition depends on the state (``AdaptiveTurn``: a coordinated turn at the turn
 rate its state implies, ``w = (vx ay - vy ax) / |v_h|^2``, bounded) is propagated in closed form,

@@ -1,4 +1,4 @@
-"""Training losses (SPEC.md sections 4 and 6).
+"""Training losses (docs/spec.md sections 4 and 6).
 
 State loss: a weighted MSE, position 1, velocity 0.1, acceleration 0.02 (per component), each
 trajectory weighted by ``1 / r`` (normalized to mean 1 over the batch) so low-noise trajectories

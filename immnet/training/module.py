@@ -1,4 +1,4 @@
-"""The two-stage curriculum as LightningModules (SPEC.md section 4).
+"""The two-stage curriculum as LightningModules (docs/spec.md section 4).
 
 * ``Stage1Module``: every expert alone (its own posterior is its estimate), each on a batch of 60 %
   trajectories of its own mode and 40 % maneuvering ones; state loss only; only the gain networks train.
@@ -31,7 +31,7 @@ AXES = ("x", "y", "z")
 
 
 def position_rmse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
-    """Per-axis position RMSE of SPEC.md section 5 (``immnet.evaluation.metrics``), ``[3]``."""
+    """Per-axis position RMSE of docs/spec.md section 5 (``immnet.evaluation.metrics``), ``[3]``."""
     return per_trajectory_rmse(position_error(est.detach(), truth)).mean(0)
 
 
