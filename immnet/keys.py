@@ -49,7 +49,7 @@ EXPERT_AUG_COV = ("expert", "aug_cov")  # and its posterior covariance [B, M, 10
 NOISE_VAR = ("memory", "r2")  # running estimate of the measurement variance r^2 [B]
 NOISE_SUM = ("memory", "r2_sum")  # its sum of (d^3 z)^2 / 20 [B]
 NOISE_COUNT = ("memory", "r2_count")  # and the number of terms [B]
-Q_SCALE = ("memory", "q_log_scale")  # adaptive process noise: log lambda per track [B] (immnet.filters.adaptive)
+Q_SCALE = ("memory", "q_log_scale")  # adaptive process noise: log lambda per track [B] (immnet.imm.adaptive)
 Z_HISTORY = ("memory", "z_history")  # z_{t-1}, z_{t-2}, z_{t-3} [B, 3, 3] (NaN = none)
 MODE_LOGITS = ("mode", "logits")  # [B, M]
 MODE_TRANSITION = ("mode", "transition")  # a guarded interaction's transition matrix Pi[b, from, to] [B, M, M]

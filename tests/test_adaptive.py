@@ -1,4 +1,4 @@
-"""Adaptive process noise (immnet.filters.adaptive): the rule against a closed form, and the trackers on
+"""Adaptive process noise (immnet.imm.adaptive): the rule against a closed form, and the trackers on
 data with five times 3D-LAST's process noise (docs/robustness.md, "sigma_q 1")."""
 
 import math
@@ -12,7 +12,7 @@ from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.metrics import per_trajectory_rmse, position_error
-from immnet.filters.adaptive import AdaptiveNoise
+from immnet.imm.adaptive import AdaptiveNoise
 
 
 def _expected_nis(q_f: float, q: float, r: float) -> float:

@@ -11,9 +11,9 @@ import torch
 from immnet import keys
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
-from immnet.motion import ModelSet, ct_propagate, process_noise
+from immnet.motion import ModelSet, ct_propagate, ct_rate_derivative, process_noise
 from immnet.stages import IMMNet
-from immnet.stages.filtering import KalmanNetFilterGain, ct_rate_derivative
+from immnet.stages.filtering import KalmanNetFilterGain
 from immnet.tracking.tracker import Tracker
 from immnet.training import Stage2Module
 
@@ -115,7 +115,7 @@ def _ekf_alone(z, model, idx, r0=4.0, k0=3.0, noise=(0.2, 0.2, 0.01, 0.002, 1e-5
     """An independent float64 extended Kalman filter of one expert, started from two detections:
     state ``[x, w]``, autograd Jacobians, the process noise built from ``process_noise`` and the
     same components, the running r^2 of ``_r2_reference``."""
-    from immnet.filters.clairvoyant import CA_ACC_VAR
+    CA_ACC_VAR = DataSpec().ca_acc_var()
 
     B, T, _ = z.shape
     turn = model.state_dependent
@@ -345,7 +345,7 @@ def test_imm_interaction_is_the_imm_mixing_with_onset_priors():
 def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_and_a_bound_turn_component():
     from tensordict import TensorDict
 
-    from immnet.filters.guard import G_MAX, RangeGuard
+    from immnet.imm.guard import G_MAX, RangeGuard
     from immnet.stages.filtering import FilterPredict
 
     ms = ModelSet.from_config(ADAPTIVE)
@@ -421,23 +421,30 @@ def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_
         FilterPredict(ms, 1.0, interaction="fused", guard=True)
 
 
-@pytest.mark.parametrize("guard", [False, True], ids=["markov", "range-guard"])
-def test_imm_interaction_with_base_noise_and_bayes_update_tracks_like_the_imm_ekf(guard):
-    """Nothing learned, the IMM's mode update: IMMNet's filter experts with the IMM interaction are the
-    IMM-EKF baseline but for the track start (two measurements against one), so their errors agree."""
-    from immnet.evaluation.metrics import position_error, rmse
-    from immnet.filters import IMMEKF
+@pytest.mark.parametrize("method", ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive"])
+def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
+    """Issue 21, item 1: the model-based IMM that IMMNet is compared with is IMMNet with nothing learned: the
+    registry's method, built from its YAML, equals an ``IMMNet`` of filter experts with their base noise
+    (the method's sigma_q on the white acceleration, nothing on the rest) and the IMM's Bayesian mode update,
+    p_stay, guard and adaptation as the YAML says, exactly: the same start, interaction, filters and mode update."""
+    import yaml
 
-    data = generate(40, seed=8)
-    gain = {"class_path": "immnet.stages.filtering.FilterGain",
-            "init_args": {"noise_std": [0.2, 0.2, 0.0, 0.0, 0.0], "interaction": "imm", "p_stay": 0.995, "guard": guard}}
-    bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"p_stay": 0.995, "from_experts": True}}
+    from immnet.config import resolve_path
+    from immnet.evaluation.methods import build_method
+
+    args = yaml.safe_load(resolve_path(f"configs/methods/{method}.yaml").read_text())["init_args"]
+    data = generate(12, seed=8, spec=DataSpec(T=150, min_segment=40))
+    data[keys.MEASUREMENTS][3, 40:45] = float("nan")
+    gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
+        "noise_std": [args["sigma_q"], args["sigma_q"], 0.0, 0.0, 0.0], "interaction": "imm", "p_stay": args["p_stay"],
+        "guard": args.get("guard"), "adapt": args.get("adapt")}}
+    bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"p_stay": args["p_stay"], "from_experts": True}}
     net = IMMNet(model_set=ADAPTIVE, gain=gain, classifier=bayes).double()
     with torch.no_grad():
-        out, _ = net.rollout(data[keys.MEASUREMENTS])
-    ours = rmse(position_error(out[keys.STATE], data[keys.STATES]))["avg"]
-    ekf = rmse(position_error(IMMEKF(guard=guard).track(data)[keys.STATE], data[keys.STATES]))["avg"]
-    assert abs(ours / ekf - 1.0) < 0.02, (ours, ekf)
+        out, _ = net.rollout(data[keys.MEASUREMENTS].double())
+    ours = build_method(method).track(data)
+    torch.testing.assert_close(ours[keys.STATE], out[keys.STATE], rtol=0, atol=0)
+    torch.testing.assert_close(ours[keys.MODE_PROBS], out[keys.ROLLOUT_EXPERT_PROBS], rtol=0, atol=0)
 
 
 def test_experts_alone_start_from_their_own_posterior_with_either_interaction(data):

@@ -2,7 +2,8 @@
 
 The reference loops over tracks, filters and mixing pairs, writes the coordinated turn out from docs/spec.md
 section 2, takes the turn filters' Jacobians by central differences and inverts ``S`` with numpy: it
-shares no code with ``immnet.filters.imm_ekf`` beyond the constants of the generator it is told.
+shares no code with ``immnet.stages.filtering`` (which IMM-EKF runs) beyond the constants of the generator it is
+told. It starts as IMMNet does (two detections).
 """
 
 import math
@@ -15,7 +16,7 @@ from immnet import keys
 from immnet.config import REPO_ROOT
 from immnet.evaluation.metrics import position_error, rmse
 from immnet.evaluation.methods import build_method
-from immnet.filters import IMMEKF, ClairvoyantKF, altitude_noise_var
+from immnet.filters import IMMEKF, ClairvoyantKF
 
 DEG = math.pi / 180.0
 ACC_VAR = [(3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0] * 2 + [0.6**2 / 12.0]  # SPEC: |a| ~ U[0.5, 3] at a uniform direction; U[-0.3, 0.3]
@@ -73,10 +74,18 @@ def _reference(z, p_stay, sigma_q, r0, k0, dt=1.0, lo=1.0 * DEG, hi=30.0 * DEG, 
     Q = np.zeros((10, 10))
     for a in range(3):
         Q[3 * a:3 * a + 3, 3 * a:3 * a + 3] = sigma_q**2 * np.outer(G, G)
-    first = next(t for t in range(T) if np.isfinite(z[t]).all())
+    # IMMNet's start (immnet.stages.network): the first detection's position, at the second the differenced
+    # velocity; the filters' covariance from the r^2 known before it, their turn rates at the nominal +/-5 deg/s
+    detected = [t for t in range(T) if np.isfinite(z[t]).all()]
+    first, second = detected[0], detected[1]
     x0 = np.zeros(10)
-    x0[0:9:3] = z[first]
-    P0 = np.diag([r0 * r0, 300.0**2, 10.0**2] * 3 + [0.0])
+    x0[0:9:3] = z[second]
+    x0[1:9:3] = (z[second] - z[first]) / ((second - first) * dt)
+    rs = r2[second - 1]
+    P0 = np.zeros((10, 10))
+    for a in range(3):
+        p, v, c = 3 * a, 3 * a + 1, 3 * a + 2
+        P0[p, p], P0[v, v], P0[p, v], P0[v, p], P0[c, c] = rs, 2 * rs / dt**2, rs / dt, rs / dt, ACC_VAR[a]
 
     def enter(j, x, P):  # the generator's draw at a switch into j
         x, P = x.copy(), P.copy()
@@ -91,12 +100,20 @@ def _reference(z, p_stay, sigma_q, r0, k0, dt=1.0, lo=1.0 * DEG, hi=30.0 * DEG, 
             P[9, 9] = W_VAR
         return x, P
 
-    xs = [enter(j, x0, P0)[0] for j in range(M)]
-    Ps = [enter(j, x0, P0)[1] for j in range(M)]
+    xs, Ps = [], []
+    for j in range(M):
+        x, P = x0.copy(), P0.copy()
+        if j >= 2:
+            x[9], P[9, 9] = (5.0 if j == 2 else -5.0) * DEG, (5.0 * DEG) ** 2
+        xs.append(x)
+        Ps.append(P)
     mu = np.full(M, 0.25)
-    out, probs = [x0[:9]], [mu.copy()]
+    start = np.zeros(9)
+    start[0:9:3] = z[first]
+    out = [start if t < second else x0[:9] for t in range(second + 1)]
+    probs = [mu.copy() for _ in range(second + 1)]
     log_scale = 0.0
-    for t in range(1, T):
+    for t in range(second + 1, T):
         cbar = Pi.T @ mu
         new_x, new_P, logl, nis = [], [], [], []
         for j in range(M):
@@ -140,15 +157,6 @@ def data():
     return generate(4, seed=707, spec=DataSpec(T=120, min_segment=30))
 
 
-def test_noise_estimate_equals_a_loop():
-    z = torch.randn(3, 50, 3, dtype=torch.float64).cumsum(1) * 5.0
-    z[1, 10, 2] = float("nan")  # a missed altitude drops the four third differences that need it
-    z[2, :4] = float("nan")
-    r2 = altitude_noise_var(z, r0=4.0, k0=3.0)
-    for b in range(3):
-        np.testing.assert_allclose(r2[b].numpy(), _noise_var_reference(z[b, :, 2].numpy(), 4.0, 3.0), rtol=1e-12)
-
-
 @pytest.mark.parametrize("missed", [False, True], ids=["all-detected", "missed"])
 def test_imm_ekf_equals_a_numpy_imm(data, missed):
     data = data.clone()
@@ -165,7 +173,7 @@ def test_imm_ekf_equals_a_numpy_imm(data, missed):
 
 @pytest.mark.parametrize("missed", [False, True], ids=["all-detected", "missed"])
 def test_adaptive_imm_ekf_equals_a_numpy_imm(data, missed):
-    """Issue 20, item 7: ``IMMEKF(adapt=...)`` (adaptive process noise, immnet.filters.adaptive) is the numpy
+    """Issue 20, item 7: ``IMMEKF(adapt=...)`` (adaptive process noise, immnet.imm.adaptive) is the numpy
     IMM with its Q scaled per track by the rule, written out here; assuming a quarter of the truth's
     sigma_q, the scale grows (the states differ from the fixed-noise filter's)."""
     data = data.clone()
@@ -201,7 +209,7 @@ def test_imm_ekf_keeps_finite_states_through_a_long_gap(data):
 
 @pytest.mark.parametrize(
     "kwargs, words",
-    [({"p_stay": 1.5}, "p_stay"), ({"rate_bounds_deg": (6.0, 10.0)}, "rate_bounds_deg"), ({"r": -1.0}, "r must"),
+    [({"p_stay": 1.5}, "p_stay"), ({"rate_noise_deg": -1.0}, "rate_noise_deg"), ({"r": -1.0}, "r must"),
      ({"sigma_q": float("nan")}, "sigma_q")],
 )
 def test_imm_ekf_rejects_bad_settings(kwargs, words):

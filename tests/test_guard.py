@@ -1,4 +1,4 @@
-"""The range guard (``immnet.filters.guard``): its events on geometry worked out by hand, the
+"""The range guard (``immnet.imm.guard``): its events on geometry worked out by hand, the
 transition matrix and rate blend against closed forms, and what it is worth on the generator's data."""
 
 import math
@@ -11,7 +11,7 @@ from immnet import keys
 from immnet.data.generate import generate
 from immnet.evaluation.metrics import position_error, rmse
 from immnet.filters import IMMEKF, transition_matrix
-from immnet.filters.guard import G_MAX, RangeGuard, blend_rate, fresh_share, guarded_transition
+from immnet.imm.guard import G_MAX, RangeGuard, blend_rate, fresh_share, guarded_transition
 
 DEG = math.pi / 180.0
 MODES = torch.tensor([0, 1, 2, 3])

@@ -71,7 +71,7 @@ def test_stage_swap_by_configuration_alone(data):
 
 
 def _assert_cv_rollout_is_our_kalman_filter(net, z, sigma, r, P_start):
-    """``net`` (one CV expert) rolled out over ``z`` equals immnet.filters.kalman with white-noise
+    """``net`` (one CV expert) rolled out over ``z`` equals immnet.imm.kalman with white-noise
     ``sigma`` and measurement noise ``r``, from the two-point start (position ``z_1``, velocity
     ``z_1 - z_0``) with covariance ``P_start`` [9, 9], scan by scan."""
     out, _ = net.rollout(z)
@@ -89,7 +89,7 @@ def _assert_cv_rollout_is_our_kalman_filter(net, z, sigma, r, P_start):
 
 
 def test_analytic_gain_with_cv_expert_equals_our_kalman_filter(data):
-    """IMMNet(CV, analytic gain) from its two-point start equals immnet.filters.kalman step by step."""
+    """IMMNet(CV, analytic gain) from its two-point start equals immnet.imm.kalman step by step."""
     net = IMMNet(model_set=CV_ONLY, gain=ANALYTIC, classifier=UNIFORM).double()
     r = 3.0
     P = torch.diag(torch.tensor([r * r, 2 * r * r, 100.0] * 3, dtype=torch.float64))
@@ -99,7 +99,7 @@ def test_analytic_gain_with_cv_expert_equals_our_kalman_filter(data):
 def test_analytic_gain_ablation_with_cv_expert_equals_our_kalman_filter(data):
     """The analytic-gain ablation of the recipes (``FilterGain``: filter experts with their base noise,
     nothing learned), with one CV expert and its r estimate pinned to r0 (prior weight k0 huge),
-    equals immnet.filters.kalman from the same two-point start, scan by scan."""
+    equals immnet.imm.kalman from the same two-point start, scan by scan."""
     cfg = yaml.safe_load((REPO_ROOT / "configs/ablations/analytic-gain.yaml").read_text())
     gain = dict(cfg["model"]["init_args"]["net"]["gain"])
     assert gain["class_path"] == "immnet.stages.filtering.FilterGain"

@@ -87,6 +87,22 @@ class DataSpec:
             if getattr(self, lo) > getattr(self, hi):
                 raise ValueError(f"{lo}={getattr(self, lo)} exceeds {hi}={getattr(self, hi)}")
 
+    # --- what a filter told this spec's statistics needs ------------------------------------------
+    def ca_acc_var(self) -> tuple[float, float, float]:
+        """Variance per axis (x, y, z) of a newly drawn CA acceleration (docs/spec.md section 2): horizontal
+        magnitude ``a ~ U[lo, hi]`` at a uniform direction gives ``E[a_x^2] = E[a^2] / 2`` with
+        ``E[a^2] = (hi^3 - lo^3) / (3 (hi - lo))`` (3D-LAST's ``U[0.5, 3]``: 1.7917); vertical ``U[-v, v]``
+        gives ``v^2 / 3`` (0.03)."""
+        lo, hi, v = self.ca_acc_h_min, self.ca_acc_h_max, self.ca_acc_v_max
+        mean_sq = (hi**3 - lo**3) / (3.0 * (hi - lo)) if hi > lo else lo**2
+        return mean_sq / 2.0, mean_sq / 2.0, v**2 / 3.0
+
+    def turn_rate_prior_deg(self) -> tuple[float, float]:
+        """Mean and standard deviation (deg/s) of a turn rate's magnitude ``U[turn_rate_min_deg,
+        turn_rate_max_deg]`` (3D-LAST's ``U[1, 10]``: 5.5 and 2.6)."""
+        lo, hi = self.turn_rate_min_deg, self.turn_rate_max_deg
+        return (lo + hi) / 2.0, (hi - lo) / 12.0**0.5
+
     # --- dict / YAML --------------------------------------------------------------------------
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -137,7 +137,7 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
     ``name`` is set to ``name`` so that rows carry the registry name.
 
     ``guard`` (``immnet.tracking.cli.parse_guard``'s: ``"checkpoint"``, ``None`` or ``{"outer", "inner"}``)
-    replaces the range guard (``immnet.filters.guard``) of every method that has one: a constructor taking
+    replaces the range guard (``immnet.imm.guard``) of every method that has one: a constructor taking
     ``guard`` whose configured value is not off (IMMNet's ``"checkpoint"``, imm-ekf-guard's ``true``). A
     method configured without a guard (imm-ekf) keeps none: ``--guard none`` makes imm-ekf-guard its
     unguarded twin, never the reverse.

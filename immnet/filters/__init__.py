@@ -5,13 +5,14 @@ Every method has ``name``, ``needs`` and ``track(batch) -> TensorDict[B]`` (``im
 
 from immnet.filters.base import Method, data_mode_probs
 from immnet.filters.clairvoyant import ClairvoyantKF, SwitchClairvoyantKF
-from immnet.filters.guard import RangeGuard
-from immnet.filters.imm import combine, imm_filter, imm_step, initial_state, mix
-from immnet.filters.imm_ekf import IMMEKF, altitude_noise_var
-from immnet.filters.kalman import inv3, predict, update
-from immnet.filters.trackers import IMMTracker, KalmanFilterTracker, transition_matrix
+from immnet.imm.guard import RangeGuard
+from immnet.filters.imm import imm_filter, imm_step, initial_state
+from immnet.filters.imm_ekf import IMMEKF
+from immnet.imm.kalman import inv3, predict, update
+from immnet.filters.trackers import IMMTracker, KalmanFilterTracker
+from immnet.imm.interaction import combine, mix, transition_matrix
 
 __all__ = [
-    "ClairvoyantKF", "IMMEKF", "IMMTracker", "SwitchClairvoyantKF", "KalmanFilterTracker", "Method", "RangeGuard", "altitude_noise_var",
+    "ClairvoyantKF", "IMMEKF", "IMMTracker", "SwitchClairvoyantKF", "KalmanFilterTracker", "Method", "RangeGuard",
     "combine", "data_mode_probs", "imm_filter", "imm_step", "initial_state", "inv3", "mix", "predict", "transition_matrix", "update",
 ]

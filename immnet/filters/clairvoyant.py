@@ -15,7 +15,7 @@ told the statistics of the data it scores, so ``configure(meta)`` takes them fro
 At the first step of a CA segment (``mode[t] = CA != mode[t-1]``, ``t >= 1``) the generator writes a
 newly drawn acceleration into the state before ``F_CA``. The bound knows a switch happened, not
 the draw: before predicting it resets the acceleration mean to 0, removes its correlations, and
-sets its variance to that of the draw (:func:`ca_acc_var`): horizontal magnitude
+sets its variance to that of the draw (``DataSpec.ca_acc_var``): horizontal magnitude
 ``a ~ U[lo, hi]`` m/s^2 at a uniform direction gives ``E[a_x^2] = E[a^2] / 2 = (hi^3 - lo^3) / (3 (hi - lo)) / 2``
 per horizontal axis (3D-LAST's ``U[0.5, 3]``: 1.7917); vertical ``U[-v, v]`` gives ``v^2 / 3`` (0.03).
 
@@ -26,7 +26,7 @@ estimate (NaN) before a track's first detection.
 ``SwitchClairvoyantKF`` is told less: the true mode sequence (so when a switch happens) and r, not
 the turn rates. It runs an extended Kalman filter of ``[x, w]``: at every turn onset, and wherever
 the turn rate changes within a turn (a soft-bound turn), ``w`` restarts from the prior of a turn,
-``|w| ~ U[turn_rate_min_deg, turn_rate_max_deg]`` in the mode's sign (:func:`turn_rate_prior_deg`; 3D-LAST's
+``|w| ~ U[turn_rate_min_deg, turn_rate_max_deg]`` in the mode's sign (``DataSpec.turn_rate_prior_deg``; 3D-LAST's
 ``U[1, 10]`` deg/s: mean 5.5, standard deviation 2.6), and is estimated from the measurements. It is a
 tighter reference than the bound for what a tracker that detected every switch at once could reach.
 """
@@ -40,30 +40,8 @@ from immnet import keys
 from immnet.data.spec import DataSpec
 from immnet.filters.base import Method, as_dtype, batch_dt, output
 from immnet.filters.imm import initial_state
-from immnet.filters.kalman import predict, update
-from immnet.motion import DEG, ca_matrix, ct_matrix, ct_propagate, cv_matrix, process_noise
-
-
-def ca_acc_var(spec: DataSpec) -> tuple[float, float, float]:
-    """Variance per axis (x, y, z) of a newly drawn CA acceleration of ``spec`` (module doc)."""
-    lo, hi, v = spec.ca_acc_h_min, spec.ca_acc_h_max, spec.ca_acc_v_max
-    mean_sq = (hi**3 - lo**3) / (3.0 * (hi - lo)) if hi > lo else lo**2
-    return mean_sq / 2.0, mean_sq / 2.0, v**2 / 3.0
-
-
-def turn_rate_prior_deg(spec: DataSpec) -> tuple[float, float]:
-    """Mean and standard deviation (deg/s) of a turn rate's magnitude ``U[turn_rate_min_deg, turn_rate_max_deg]``."""
-    lo, hi = spec.turn_rate_min_deg, spec.turn_rate_max_deg
-    return (lo + hi) / 2.0, (hi - lo) / 12.0**0.5
-
-
-CA_ACC_VAR = ca_acc_var(DataSpec())
-"""Variance of a newly drawn 3D-LAST CA acceleration per axis (x, y, z), docs/spec.md section 2."""
-
-TURN_PRIOR_DEG = turn_rate_prior_deg(DataSpec())
-"""Mean and standard deviation of a 3D-LAST turn rate's magnitude, ``U[1, 10]`` deg/s (docs/spec.md section 2)."""
-
-CV, CA, CT_POS, CT_NEG = 0, 1, 2, 3
+from immnet.imm.kalman import predict, update
+from immnet.motion import CA, CT_POS, CV, DEG, ca_matrix, ct_matrix, ct_propagate, ct_rate_derivative, cv_matrix, process_noise
 
 
 class ClairvoyantKF(Method):
@@ -87,7 +65,7 @@ class ClairvoyantKF(Method):
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)
         self.spec = spec
         self.sigma_q = spec.sigma_q if self.fixed_sigma_q is None else self.fixed_sigma_q
-        self.acc_var = ca_acc_var(spec) if self.fixed_acc_var is None else self.fixed_acc_var
+        self.acc_var = spec.ca_acc_var() if self.fixed_acc_var is None else self.fixed_acc_var
 
     def configure(self, meta: dict | None, sigma_q: float | None = None) -> str | None:
         """Take the generator statistics of the data set described by ``meta`` (``load_dataset``'s): its
@@ -170,12 +148,10 @@ class SwitchClairvoyantKF(ClairvoyantKF):
 
     def set_spec(self, spec) -> None:
         super().set_spec(spec)
-        mean, std = turn_rate_prior_deg(self.spec) if self.fixed_turn_prior is None else self.fixed_turn_prior
+        mean, std = self.spec.turn_rate_prior_deg() if self.fixed_turn_prior is None else self.fixed_turn_prior
         self.w_mean, self.w_var = mean * DEG, (std * DEG) ** 2
 
     def track(self, batch: TensorDict) -> TensorDict:
-        from immnet.stages.filtering import ct_rate_derivative
-
         z, mode, rate, r, d = self._inputs(batch)
         dtype, dev = z.dtype, z.device
         B, T, _ = z.shape

@@ -6,19 +6,22 @@ probabilities ``mu_{t-1}`` ``[B, M]`` and the Markov transition ``Pi[i, j] = P(j
 1. mixing: ``cbar_j = sum_i Pi_ij mu_i``, ``w_ij = Pi_ij mu_i / cbar_j``,
    ``x0_j = sum_i w_ij x_i``, ``P0_j = sum_i w_ij (P_i + (x_i - x0_j)(x_i - x0_j)^T)``;
 2. mode-matched prediction: ``x_j = F_j x0_j``, ``P_j = F_j P0_j F_j^T + Q_j``;
-3. mode-matched update with ``z_t`` (``immnet.filters.kalman.update``), log-likelihoods ``l_j``;
+3. mode-matched update with ``z_t`` (``immnet.imm.kalman.update``), log-likelihoods ``l_j``;
 4. mode update in log space: ``log mu_j = log cbar_j + l_j - logsumexp_k(log cbar_k + l_k)``
    (a missed detection gives ``l_j = 0``, so ``mu = cbar``);
 5. combination: ``x = sum_j mu_j x_j`` (and ``P = sum_j mu_j (P_j + (x_j - x)(x_j - x)^T)``).
 
-Everything is one batched tensor expression per stage: no loop over tracks or experts.
+Everything is one batched tensor expression per stage: no loop over tracks or experts. The stages are
+``immnet.imm``'s (``imm_step``); ``_imm_filter_lean`` and ``immnet.filters.imm_fused`` are the same
+equations rearranged for speed where every track shares ``F`` and ``Q`` (the tests hold them to ``imm_step``).
 """
 
 from __future__ import annotations
 
 import torch
 
-from immnet.filters.kalman import _as_cov, update
+from immnet.imm.interaction import combine, mix, mixing_weights, mode_update
+from immnet.imm.kalman import _as_cov, update
 
 VEL_STD = 300.0
 """Initial velocity standard deviation (m/s), every axis: covers the 340 m/s speed bound."""
@@ -50,39 +53,18 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     return x0, torch.diag_embed(diag)
 
 
-def mix(x, P, mu, Pi):
-    """Mixing stage: ``x [B, M, n]``, ``P [B, M, n, n]``, ``mu [B, M]``, ``Pi [M, M]`` -> ``x0, P0, cbar``."""
-    cbar = mu @ Pi  # [B, M]
-    w = Pi * mu[..., :, None] / cbar.clamp_min(torch.finfo(mu.dtype).tiny)[..., None, :]  # [B, i, j]
-    wt = w.transpose(-1, -2)  # [B, j, i]
-    x0 = wt @ x  # [B, j, n]
-    d = x.unsqueeze(-3) - x0.unsqueeze(-2)  # [B, j, i, n]: x_i - x0_j
-    wd = wt.unsqueeze(-1) * d
-    P0 = torch.einsum("bji,bimn->bjmn", wt, P) + wd.transpose(-1, -2) @ d
-    return x0, P0, cbar
-
-
-def combine(x, P, mu):
-    """Moment-matched fusion ``x = sum mu_j x_j``, ``P = sum mu_j (P_j + d_j d_j^T)``."""
-    xf = (mu.unsqueeze(-2) @ x).squeeze(-2)
-    d = x - xf.unsqueeze(-2)
-    Pf = torch.einsum("bm,bmij->bij", mu, P) + (mu.unsqueeze(-1) * d).transpose(-1, -2) @ d
-    return xf, Pf
-
-
 def imm_step(x, P, mu, z, F, Ft, Q, R, Pi):
     """One IMM cycle: ``x [B, M, 9]``, ``P [B, M, 9, 9]``, ``mu [B, M]``, ``z [B, 3]`` (NaN = missed).
 
     ``F``, ``Ft = F^T`` and ``Q`` broadcast to ``[B, M, 9, 9]``; ``R`` broadcasts to ``[B, M, 3, 3]``
     (e.g. ``r^2 I`` as ``[B, 1, 3, 3]`` or a scalar variance). Returns ``x, P, mu, x_fused``.
     """
-    x0, P0, cbar = mix(x, P, mu, Pi)
+    x0, P0 = mix(mixing_weights(mu, Pi), x, P)
     x = (F @ x0.unsqueeze(-1)).squeeze(-1)
     P = F @ P0 @ Ft + Q
     x, P, ll = update(x, P, z.unsqueeze(-2), None, R)
-    logp = torch.log(cbar) + ll
-    mu = torch.softmax(logp, dim=-1)
-    xf = (mu.unsqueeze(-2) @ x).squeeze(-2)
+    mu = mode_update(torch.log(mu @ Pi), ll)
+    xf, _ = combine(x, None, mu)
     return x, P, mu, xf
 
 

@@ -94,7 +94,7 @@ def imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool, step=Non
     runs the eager path. ``step`` replaces the compiled step (tests run ``fused_step`` eagerly).
     """
     global _broken
-    from immnet.filters.kalman import _as_cov
+    from immnet.imm.kalman import _as_cov
 
     if step is None:
         if _broken:

@@ -18,7 +18,8 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, batch_dt, data_mode_probs, output, per_dt
 from immnet.filters.imm import imm_filter, initial_state
-from immnet.filters.kalman import predict, update
+from immnet.imm.interaction import transition_matrix
+from immnet.imm.kalman import predict, update
 from immnet.motion import ModelSet, MotionModel, instantiate
 
 
@@ -28,26 +29,6 @@ def _positive(name: str, value, allow_zero: bool = True) -> None:
         if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
             bound = ">= 0" if allow_zero else "> 0"
             raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
-
-
-def transition_matrix(p_stay, M: int, dtype=torch.float64) -> torch.Tensor:
-    """``Pi [M, M]`` from ``p_stay`` (``p_stay`` on the diagonal, the rest shared evenly) or a matrix; validated."""
-    if isinstance(p_stay, (int, float)):
-        if not 0.0 <= p_stay <= 1.0:
-            raise ValueError(f"p_stay must be in [0, 1], got {p_stay}")
-        off = (1.0 - p_stay) / (M - 1) if M > 1 else 0.0
-        Pi = torch.full((M, M), off, dtype=dtype)
-        Pi.fill_diagonal_(p_stay if M > 1 else 1.0)
-        return Pi
-    Pi = torch.as_tensor(p_stay, dtype=dtype)
-    if Pi.shape != (M, M):
-        raise ValueError(f"transition matrix must be {M}x{M} for {M} models, got shape {tuple(Pi.shape)}")
-    if (Pi < 0).any() or not torch.isfinite(Pi).all():
-        raise ValueError("transition matrix entries must be finite and non-negative")
-    rows = Pi.sum(-1)
-    if not torch.allclose(rows, torch.ones_like(rows), atol=1e-9):
-        raise ValueError(f"transition matrix rows must sum to 1 (row-stochastic), got row sums {rows.tolist()}")
-    return Pi
 
 
 class KalmanFilterTracker(Method):

@@ -1,18 +1,29 @@
-"""Motion models as data: ``F(dt)``, ``Q(sigma_q, dt)``, names and the mode each stands for."""
+"""Motion models as data: ``F(dt)``, ``Q(sigma_q, dt)``, the coordinated turn's map and Jacobian, names and
+the mode each stands for."""
 
 from immnet.motion.base import ModelSet, MotionModel, instantiate
 from immnet.motion.kinds import AdaptiveTurn, ConstantAcceleration, ConstantVelocity, CoordinatedTurn
 from immnet.motion.models import (
     ACC,
+    CA,
+    CT_NEG,
+    CT_POS,
+    CV,
     DEG,
     MODE_NAMES,
+    N_AUG,
     POS,
+    RATE,
+    TURN_ENTRIES,
     TURN_RATE_LIMIT_DEG,
     VEL,
     adaptive_ct_propagate,
     ca_matrix,
+    ct_jacobian,
+    ct_jacobian_entries,
     ct_matrix,
     ct_propagate,
+    ct_rate_derivative,
     cv_matrix,
     measurement_matrix,
     noise_gain,
@@ -21,7 +32,8 @@ from immnet.motion.models import (
 )
 
 __all__ = [
-    "ACC", "AdaptiveTurn", "DEG", "MODE_NAMES", "POS", "TURN_RATE_LIMIT_DEG", "VEL",
+    "ACC", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODE_NAMES", "N_AUG", "POS", "RATE",
+    "TURN_ENTRIES", "TURN_RATE_LIMIT_DEG", "VEL", "ct_jacobian", "ct_jacobian_entries", "ct_rate_derivative",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
     "adaptive_ct_propagate", "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate",
     "measurement_matrix", "noise_gain", "process_noise", "turn_rate_of",

@@ -30,6 +30,11 @@ TURN_RATE_LIMIT_DEG = 30.0
 faster turn's rate below the truth and falls behind the target (docs/robustness.md)."""
 MODE_NAMES = ("cv", "ca", "ct+", "ct-")
 """Data mode labels, in the fixed order of docs/spec.md: 0 CV, 1 CA, 2 CT+, 3 CT-."""
+CV, CA, CT_POS, CT_NEG = range(len(MODE_NAMES))
+"""The data modes by name (the one set of mode constants)."""
+RATE = 9
+"""The turn rate's slot in a filter's augmented state ``[x (9), w]``."""
+N_AUG = 10
 
 POS = (0, 3, 6)
 VEL = (1, 4, 7)
@@ -68,11 +73,7 @@ def ct_matrix(turn_rate, dt: float, dtype=torch.float64, device=None) -> torch.T
     are used, so CT(0) is CV in the plane with zero acceleration.
     """
     w = torch.as_tensor(turn_rate, dtype=dtype, device=device)
-    small = w.abs() < 1e-9
-    w_safe = torch.where(small, torch.ones_like(w), w)
-    s, c = torch.sin(w * dt), torch.cos(w * dt)
-    s_w = torch.where(small, torch.full_like(w, dt), s / w_safe)
-    c_w = torch.where(small, torch.zeros_like(w), (1.0 - c) / w_safe)
+    _, _, s, c, s_w, c_w = _turn_terms(w, dt, 1e-9)
     F = cv_matrix(dt, dtype=dtype, device=w.device).expand(*w.shape, 9, 9).clone()
     lx, vx, ax, ly, vy, ay = 0, 1, 2, 3, 4, 5
     F[..., lx, vx], F[..., lx, vy] = s_w, -c_w
@@ -85,17 +86,25 @@ def ct_matrix(turn_rate, dt: float, dtype=torch.float64, device=None) -> torch.T
     return F
 
 
-def ct_propagate(x: torch.Tensor, turn_rate: torch.Tensor, dt: float) -> torch.Tensor:
+def _turn_terms(w: torch.Tensor, dt, eps: float):
+    """``sin(w dt)``, ``cos(w dt)``, ``sin(w dt) / w`` and ``(1 - cos(w dt)) / w`` (limits ``dt`` and 0 for
+    ``|w| < eps``), ``dt`` a float or a tensor broadcasting against ``w`` (one interval per track)."""
+    small = w.abs() < eps
+    w_safe = torch.where(small, torch.ones_like(w), w)
+    s, c = torch.sin(w * dt), torch.cos(w * dt)
+    s_w = torch.where(small, torch.as_tensor(dt, dtype=w.dtype, device=w.device).expand_as(w), s / w_safe)
+    c_w = torch.where(small, torch.zeros_like(w), (1.0 - c) / w_safe)
+    return small, w_safe, s, c, s_w, c_w
+
+
+def ct_propagate(x: torch.Tensor, turn_rate: torch.Tensor, dt) -> torch.Tensor:
     """``F_CT(w, dt) x`` for states ``x [..., 9]`` and turn rates ``w [...]`` (rad/s), in closed form.
 
     The same map as ``ct_matrix`` without building a matrix per state; ``w -> 0`` uses the limits.
+    ``dt`` is a float or a tensor broadcasting against ``w`` (one interval per track).
     """
     w = turn_rate
-    small = w.abs() < 1e-9
-    w_safe = torch.where(small, torch.ones_like(w), w)
-    s, c = torch.sin(w * dt), torch.cos(w * dt)
-    s_w = torch.where(small, torch.full_like(w, dt), s / w_safe)
-    c_w = torch.where(small, torch.zeros_like(w), (1.0 - c) / w_safe)
+    _, _, s, c, s_w, c_w = _turn_terms(w, dt, 1e-9)
     lx, vx, ly, vy = x[..., 0], x[..., 1], x[..., 3], x[..., 4]
     vx1, vy1 = c * vx - s * vy, s * vx + c * vy
     return torch.stack(
@@ -106,6 +115,54 @@ def ct_propagate(x: torch.Tensor, turn_rate: torch.Tensor, dt: float) -> torch.T
         ],
         -1,
     )
+
+
+def ct_rate_derivative(x: torch.Tensor, w: torch.Tensor, dt) -> torch.Tensor:
+    """``d/dw ct_propagate(x, w, dt)``, ``[..., 9]``, in closed form (``w -> 0`` by its limit); ``dt`` as
+    ``ct_propagate``'s."""
+    small, ws, s, c, _, _ = _turn_terms(w, dt, 1e-6)
+    # d/dw sin(w dt)/w and d/dw (1 - cos(w dt))/w; limits 0 and dt^2/2 at w = 0
+    ds = torch.where(small, torch.zeros_like(w), (dt * c * ws - s) / (ws * ws))
+    dc = torch.where(small, (0.5 * dt * dt) * torch.ones_like(w), (dt * s * ws - (1.0 - c)) / (ws * ws))
+    vx, vy = x[..., 1], x[..., 4]
+    vx1, vy1 = c * vx - s * vy, s * vx + c * vy
+    dvx1, dvy1 = -dt * vy1, dt * vx1
+    z = torch.zeros_like(w)
+    return torch.stack(
+        [ds * vx - dc * vy, dvx1, -vy1 - w * dvy1, dc * vx + ds * vy, dvy1, vx1 + w * dvx1, z, z, z], -1
+    )
+
+
+TURN_ENTRIES = (
+    (0, 1), (0, 4), (3, 1), (3, 4), (1, 1), (1, 4), (4, 1), (4, 4), (2, 1), (2, 4), (5, 1), (5, 4),
+    (0, RATE), (1, RATE), (2, RATE), (3, RATE), (4, RATE), (5, RATE),
+)
+"""(row, column) of the entries of a turn filter's Jacobian ``d ct_propagate(x, w) / d[x, w]`` (augmented
+state ``[x, w]``) that depend on ``w`` or the velocity; the rest of it is constant (``ct_jacobian``)."""
+
+
+def ct_jacobian_entries(x: torch.Tensor, w: torch.Tensor, dt) -> torch.Tensor:
+    """The values of ``TURN_ENTRIES`` of ``d ct_propagate(x, w) / d[x, w]``, ``[..., 18]``."""
+    small, _, s, c, s_w, c_w = _turn_terms(w, dt, 1e-6)
+    d = ct_rate_derivative(x, w, dt)
+    return torch.stack(
+        [s_w, -c_w, c_w, s_w, c, -s, s, c, -w * s, -w * c, w * c, -w * s, d[..., 0], d[..., 1], d[..., 2], d[..., 3], d[..., 4], d[..., 5]],
+        -1,
+    )
+
+
+def ct_jacobian(x: torch.Tensor, w: torch.Tensor, dt) -> torch.Tensor:
+    """The full Jacobian ``d ct_propagate(x, w) / d[x, w]`` of the augmented state, ``[..., 10, 10]``: the
+    constant entries (positions, the vertical CV block, ``w``'s own 1) and ``TURN_ENTRIES``."""
+    dt_ = torch.as_tensor(dt, dtype=x.dtype, device=x.device).expand(w.shape)
+    J = x.new_zeros(*w.shape, N_AUG, N_AUG)
+    for r, c in ((0, 0), (3, 3), (6, 6), (7, 7), (RATE, RATE)):
+        J[..., r, c] = 1.0
+    J[..., 6, 7] = dt_
+    entries = ct_jacobian_entries(x, w, dt)
+    for k, (r, c) in enumerate(TURN_ENTRIES):
+        J[..., r, c] = entries[..., k]
+    return J
 
 
 def turn_rate_of(x: torch.Tensor, min_speed: float = 1.0) -> torch.Tensor:

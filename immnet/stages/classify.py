@@ -22,7 +22,7 @@ import torch
 from torch import nn
 
 from immnet import keys
-from immnet.filters.trackers import transition_matrix
+from immnet.imm.interaction import transition_matrix
 from immnet.motion import ModelSet
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
@@ -153,7 +153,7 @@ def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, td=None) -> torch.Ten
     """The IMM's predicted mode log-probabilities ``log (Pi^T mu_{t-1})`` ``[B, M]`` from ``mu_{t-1} [B, M]``.
 
     Where the step's interaction wrote a transition matrix per track (``("mode", "transition")``, a
-    guarded IMM: ``immnet.filters.guard``) it is used instead of ``log_pi``, so that the mode update
+    guarded IMM: ``immnet.imm.guard``) it is used instead of ``log_pi``, so that the mode update
     predicts with the transitions the experts were mixed with."""
     transition = None if td is None else td.get(keys.MODE_TRANSITION, None)
     if transition is not None:

@@ -22,7 +22,7 @@ The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
 * ``Q^(i)_t = sum_k exp(u_k) Q_k^(i)``: base components (velocity noise horizontal / vertical,
   acceleration noise horizontal / vertical, turn-rate noise), each scaled by the network's bounded
   output ``u = u_max tanh(u_slope raw / u_max)``;
-* with ``adapt`` (``immnet.filters.adaptive.AdaptiveNoise``, set at load: ``load_network(adapt=...)``), the
+* with ``adapt`` (``immnet.imm.adaptive.AdaptiveNoise``, set at load: ``load_network(adapt=...)``), the
   white-acceleration components (velocity h / v) times the track's ``lambda`` in [1, 100], grown by
   covariance matching on the smallest NIS of the experts
   (docs/immnet.md, "Adaptive process noise");
@@ -41,12 +41,14 @@ import math
 import torch
 
 from immnet import keys
-from immnet.filters.adaptive import AdaptiveNoise
-from immnet.filters.clairvoyant import CA_ACC_VAR, TURN_PRIOR_DEG
-from immnet.filters.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
-from immnet.filters.kalman import inv3
-from immnet.filters.trackers import transition_matrix
-from immnet.motion import ACC, POS, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_propagate, noise_gain
+from immnet.imm.adaptive import AdaptiveNoise
+from immnet.data.spec import DataSpec
+from immnet.imm.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
+from immnet.imm.interaction import entering, mix, mixing_weights, onset_priors, transition_matrix
+from immnet.imm.kalman import inv3
+from immnet.motion import (
+    ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries, ct_propagate, noise_gain,
+)
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.gain import KalmanNetGain
@@ -54,49 +56,9 @@ from immnet.stages.layers import StackedLinear
 from immnet.stages.predict import Predict
 from immnet.stages.update import Update, innovation
 
-N_AUG = 10
-RATE = 9  # index of w in the augmented state
 N_NOISE = 5  # velocity h / v, acceleration h / v, turn rate
 WHITE = (0, 1)  # the white-acceleration components, which AdaptiveNoise's scale multiplies
 _P = list(POS)
-
-
-def ct_rate_derivative(x: torch.Tensor, w: torch.Tensor, dt: float) -> torch.Tensor:
-    """``d/dw ct_propagate(x, w, dt)``, ``[..., 9]``, in closed form (``w -> 0`` by its limit)."""
-    small = w.abs() < 1e-6
-    ws = torch.where(small, torch.ones_like(w), w)
-    s, c = torch.sin(w * dt), torch.cos(w * dt)
-    # d/dw sin(w dt)/w and d/dw (1 - cos(w dt))/w; limits 0 and dt^2/2 at w = 0
-    ds = torch.where(small, torch.zeros_like(w), (dt * c * ws - s) / (ws * ws))
-    dc = torch.where(small, torch.full_like(w, 0.5 * dt * dt), (dt * s * ws - (1.0 - c)) / (ws * ws))
-    vx, vy = x[..., 1], x[..., 4]
-    vx1, vy1 = c * vx - s * vy, s * vx + c * vy
-    dvx1, dvy1 = -dt * vy1, dt * vx1
-    z = torch.zeros_like(w)
-    return torch.stack(
-        [ds * vx - dc * vy, dvx1, -vy1 - w * dvy1, dc * vx + ds * vy, dvy1, vx1 + w * dvx1, z, z, z], -1
-    )
-
-
-# (row, column) of a turn expert's Jacobian entries that depend on w or on the velocity
-_TURN_ENTRIES = (
-    (0, 1), (0, 4), (3, 1), (3, 4), (1, 1), (1, 4), (4, 1), (4, 4), (2, 1), (2, 4), (5, 1), (5, 4),
-    (0, RATE), (1, RATE), (2, RATE), (3, RATE), (4, RATE), (5, RATE),
-)
-
-
-def _turn_entries(x: torch.Tensor, w: torch.Tensor, dt: float) -> torch.Tensor:
-    """The values of ``_TURN_ENTRIES`` of ``d ct_propagate(x, w) / d[x, w]``, ``[..., 18]``."""
-    small = w.abs() < 1e-6
-    ws = torch.where(small, torch.ones_like(w), w)
-    s, c = torch.sin(w * dt), torch.cos(w * dt)
-    s_w = torch.where(small, torch.full_like(w, dt), s / ws)
-    c_w = torch.where(small, torch.zeros_like(w), (1.0 - c) / ws)
-    d = ct_rate_derivative(x, w, dt)
-    return torch.stack(
-        [s_w, -c_w, c_w, s_w, c, -s, s, c, -w * s, -w * c, w * c, -w * s, d[..., 0], d[..., 1], d[..., 2], d[..., 3], d[..., 4], d[..., 5]],
-        -1,
-    )
 
 
 def _kinds(model_set: ModelSet, dt: float):
@@ -166,7 +128,7 @@ class FilterPredict(Predict):
     variance), a turn expert's rate (``+/- 5.5`` deg/s, standard deviation 2.6 deg/s), as
     ``immnet.filters.IMMEKF`` does. Experts alone (stage 1) start from their own posterior either way.
 
-    ``guard`` (``immnet.filters.guard.RangeGuard``, or its fields as a dict; ``True`` for 3D-LAST's)
+    ``guard`` (``immnet.imm.guard.RangeGuard``, or its fields as a dict; ``True`` for 3D-LAST's)
     makes ``Pi`` state-dependent, per track and source expert, from each expert's previous posterior,
     gives a turn entered at a bound the bound's rate, and writes the transition matrix
     (``("mode", "transition")``) for a Bayesian classifier to predict the modes with, and the share of
@@ -178,8 +140,9 @@ class FilterPredict(Predict):
     out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995,
-                 guard=None):
+                 guard=None, spec: DataSpec | dict | None = None):
         super().__init__(model_set, dt)
+        spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction = interaction
         if self.guard is not None:
@@ -189,19 +152,7 @@ class FilterPredict(Predict):
         M = len(model_set)
         f64 = torch.float64  # float64, so that a .double() model is exact
         self.register_buffer("Pi", transition_matrix(p_stay, M), persistent=False)
-        keep = torch.ones(M, M, N_AUG, dtype=f64)
-        mean, cov = torch.zeros(M, M, N_AUG, dtype=f64), torch.zeros(M, M, N_AUG, N_AUG, dtype=f64)
-        w_mean, w_std = TURN_PRIOR_DEG[0] * math.pi / 180.0, TURN_PRIOR_DEG[1] * math.pi / 180.0
-        for j in range(M):
-            others = [i for i in range(M) if i != j]
-            if own_acc[j]:
-                for a, v in zip(ACC, CA_ACC_VAR):
-                    keep[others, j, a] = 0.0
-                    cov[others, j, a, a] = v
-            if own_rate[j]:
-                keep[others, j, RATE] = 0.0
-                mean[others, j, RATE] = math.copysign(w_mean, nominal[j])
-                cov[others, j, RATE, RATE] = w_std**2
+        keep, mean, cov = onset_priors(own_acc, own_rate, nominal, spec)
         self.register_buffer("mix_keep", keep, persistent=False)
         self.register_buffer("mix_mean", mean, persistent=False)
         self.register_buffer("mix_cov", cov, persistent=False)
@@ -212,7 +163,7 @@ class FilterPredict(Predict):
         self.register_buffer("own_rate", torch.tensor(own_rate))
         self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range (kept in checkpoints)
         self.register_buffer("rate_hi", torch.tensor(hi))
-        rate_min, rate_max = _rate_limits(self.rate_lo, self.rate_hi)  # the bounds, derived once
+        rate_min, rate_max = _rate_limits(torch.tensor(lo, dtype=f64), torch.tensor(hi, dtype=f64))  # derived once
         self.register_buffer("rate_min", rate_min, persistent=False)
         self.register_buffer("rate_max", rate_max, persistent=False)
         modes = model_set.modes
@@ -221,16 +172,16 @@ class FilterPredict(Predict):
         self.register_buffer("bound_sign", bound_sign, persistent=False)  # a bound turn's rate sign per expert (0: none)
         # the Jacobian's constant part: F for the constant models, for a turn expert F_CT's entries
         # that do not depend on w (position and the vertical CV block, w's own 1); the rest of a turn
-        # expert's Jacobian is written at _TURN_ENTRIES each scan
-        J = torch.zeros(len(model_set), N_AUG, N_AUG)
-        J[:, :9, :9] = model_set.F(dt, dtype=torch.float32)
+        # expert's Jacobian is written at TURN_ENTRIES each scan
+        J = torch.zeros(len(model_set), N_AUG, N_AUG, dtype=f64)
+        J[:, :9, :9] = model_set.F(dt, dtype=f64)
         for i, rate in enumerate(own_rate):
             if rate:
                 J[i] = 0.0
                 for r, c, v in ((0, 0, 1.0), (3, 3, 1.0), (6, 6, 1.0), (6, 7, dt), (7, 7, 1.0), (RATE, RATE, 1.0)):
                     J[i, r, c] = v
         self.register_buffer("J_base", J, persistent=False)
-        self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in _TURN_ENTRIES]), persistent=False)
+        self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in TURN_ENTRIES]), persistent=False)
 
     def _mix(self, td):
         """The IMM's mixed estimate of each expert ``[B, M, 10]`` and its covariance ``[B, M, 10, 10]``."""
@@ -245,19 +196,14 @@ class FilterPredict(Predict):
                     td.get(keys.GUARD_FRESH, None))
             share = share * (self.bound_sign != 0).to(share.dtype)
             td.set(keys.MODE_TRANSITION, Pi)
-        w = mu.unsqueeze(-1) * Pi / (mu.unsqueeze(-1) * Pi).sum(-2, keepdim=True)  # mu_{i|j} [B, i, j]
+        w = mixing_weights(mu, Pi)  # mu_{i|j} [B, i, j]
         if self.guard is not None:
             td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
-        keep = self.mix_keep.to(y.dtype)
-        yc = y.unsqueeze(2) * keep + self.mix_mean.to(y.dtype)  # [B, i, j, 10]
-        Pc = P.unsqueeze(2) * (keep.unsqueeze(-1) * keep.unsqueeze(-2)) + self.mix_cov.to(y.dtype)
+        yc, Pc = entering(y, P, self.mix_keep, self.mix_mean, self.mix_cov)  # [B, i, j, 10]
         if self.guard is not None:  # a turn entered (or re-entered) at a range bound has the bound's rate
             rate = self.bound_sign.to(y.dtype) * (self.guard.rate_deg * math.pi / 180.0)
             yc, Pc = blend_rate(yc, Pc, share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
-        y0 = (w.unsqueeze(-1) * yc).sum(1)
-        d = yc - y0.unsqueeze(1)
-        P0 = (w[..., None, None] * (Pc + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(1)
-        return y0, P0
+        return mix(w, yc, Pc)
 
     def forward(self, td):
         M = self.n_experts
@@ -269,14 +215,14 @@ class FilterPredict(Predict):
         else:
             x = torch.where(self.own_acc_mask, own, per_expert(td.get(keys.FUSED), M))
             w = td.get(keys.EXPERT_RATE)
-        w = torch.clamp(w, self.rate_min, self.rate_max)
+        w = torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype))
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
         J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
         if bool(self.own_rate.any()):
             turned = ct_propagate(x, w, self.dt)
             prior = torch.where(self.own_rate[:, None], turned, prior)
-            entries = _turn_entries(x, w, self.dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
+            entries = ct_jacobian_entries(x, w, self.dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
             scattered = entries.new_zeros(*entries.shape[:2], N_AUG * N_AUG).index_copy(-1, self.turn_index, entries)
             J = J + scattered.view(*entries.shape[:2], N_AUG, N_AUG)
         if not mixed:
@@ -304,7 +250,8 @@ class FilterUpdate(Update):
         self.register_buffer("own_rate", torch.tensor(own_rate))
         self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range (kept in checkpoints)
         self.register_buffer("rate_hi", torch.tensor(hi))
-        rate_min, rate_max = _rate_limits(self.rate_lo, self.rate_hi)  # the bounds, derived once
+        f64 = torch.float64  # float64, so that a .double() model is exact
+        rate_min, rate_max = _rate_limits(torch.tensor(lo, dtype=f64), torch.tensor(hi, dtype=f64))  # derived once
         self.register_buffer("rate_min", rate_min, persistent=False)
         self.register_buffer("rate_max", rate_max, persistent=False)
 
@@ -312,7 +259,7 @@ class FilterUpdate(Update):
         td = super().forward(td)  # the state
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         w = td.get(keys.EXPERT_RATE) + (td.get(keys.EXPERT_RATE_GAIN) * nu).sum(-1)
-        w = torch.where(self.own_rate, torch.clamp(w, self.rate_min, self.rate_max), w)
+        w = torch.where(self.own_rate, torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype)), w)
         K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = td.get(keys.NOISE_VAR)
@@ -337,11 +284,15 @@ class _FilterExperts:
 
     def predict_stage(self, model_set: ModelSet, dt: float) -> FilterPredict:
         """The predict stage these experts need, with this gain's interaction (``FilterPredict``)."""
-        return FilterPredict(model_set, dt, self.interaction, self.p_stay, self.guard)
+        return FilterPredict(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec)
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
-                     interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None):
+                     interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None):
         self.guard = _check_interaction(interaction, p_stay, guard)
+        self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
+        if r is not None and not (math.isfinite(r) and r > 0):
+            raise ValueError(f"r must be finite and > 0 (or None: estimated per track), got {r}")
+        self.r = None if r is None else float(r)
         self.adapt = AdaptiveNoise.from_config(adapt)
         if self.adapt is not None:  # the track's log lambda is carried
             self.in_keys = [*self.in_keys, keys.Q_SCALE]
@@ -356,14 +307,21 @@ class _FilterExperts:
             raise ValueError(f"noise_std needs {N_NOISE} standard deviations >= 0, got {noise_std}")
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         std = torch.tensor(noise_std, dtype=torch.float64)
-        self.register_buffer("Q_parts", (_noise_components(own_acc, own_rate, dt) * std.square()[None, :, None, None]).float())
+        self.register_buffer("Q_parts", _noise_components(own_acc, own_rate, dt) * std.square()[None, :, None, None])
         self.register_buffer("rate_nominal", torch.tensor(nominal))
         self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("acc_var0", torch.tensor(CA_ACC_VAR))
+        self.register_buffer("acc_var0", torch.tensor(self.spec.ca_acc_var(), dtype=torch.float64))
         self.r0, self.k0, self.dt = float(r0), float(k0), dt
         self.rate_var0 = float((rate_std0_deg * math.pi / 180.0) ** 2)
 
     # --- the measurement noise --------------------------------------------------------------
+    def noise_var(self, total: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+        """``r^2`` per track: the running mean ``(k0 r0^2 + total) / (k0 + count)`` of the third-difference
+        samples, or the fixed ``r^2`` where ``r`` was given."""
+        if self.r is not None:
+            return torch.full_like(total, self.r**2)
+        return (self.k0 * self.r0**2 + total) / (self.k0 + count)
+
     def noise(self, td):
         """Push ``z_t`` into the history; the running estimate of ``r^2`` from altitude third differences."""
         z = td.get(keys.MEASUREMENT)
@@ -375,7 +333,7 @@ class _FilterExperts:
         td.set(keys.NOISE_SUM, total)
         td.set(keys.NOISE_COUNT, count)
         td.set(keys.Z_HISTORY, torch.cat([z.unsqueeze(-2), hist[..., :2, :]], -2))
-        r2 = (self.k0 * self.r0**2 + total) / (self.k0 + count)
+        r2 = self.noise_var(total, count)
         td.set(keys.NOISE_VAR, r2)
         return r2
 
@@ -385,11 +343,12 @@ class _FilterExperts:
         M = self.n_experts
         B = shape[0]
         adapt = {} if self.adapt is None else {keys.Q_SCALE: torch.zeros(shape, dtype=dtype, device=device)}
+        r2 = (self.r if self.r is not None else self.r0) ** 2
         return adapt | {
             keys.EXPERT_POST: torch.zeros(B, M, 9, dtype=dtype, device=device),
             keys.EXPERT_RATE: self.rate_nominal.to(dtype).expand(B, M).clone(),
-            keys.EXPERT_AUG_COV: self.start_cov(B, torch.full((B, M), self.r0**2, dtype=dtype, device=device), False),
-            keys.NOISE_VAR: torch.full(shape, self.r0**2, dtype=dtype, device=device),
+            keys.EXPERT_AUG_COV: self.start_cov(B, torch.full((B, M), r2, dtype=dtype, device=device), False),
+            keys.NOISE_VAR: torch.full(shape, r2, dtype=dtype, device=device),
             keys.NOISE_SUM: torch.zeros(shape, dtype=dtype, device=device),
             keys.NOISE_COUNT: torch.zeros(shape, dtype=dtype, device=device),
             keys.Z_HISTORY: torch.full((*shape, 3, 3), float("nan"), dtype=dtype, device=device),
@@ -422,7 +381,7 @@ class _FilterExperts:
         else:
             prev = torch.full_like(z, float("nan"))
         nan = torch.full_like(z, float("nan"))
-        r2_track = (self.k0 * self.r0**2 + carry.get(keys.NOISE_SUM)) / (self.k0 + carry.get(keys.NOISE_COUNT))
+        r2_track = self.noise_var(carry.get(keys.NOISE_SUM), carry.get(keys.NOISE_COUNT))
         r2 = per_expert(r2_track, M, event_dims=0)
         adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
         return adapt | {
@@ -508,9 +467,11 @@ class FilterGain(_FilterExperts, Stage):
         p_stay: float = 0.995,
         guard: bool | dict | None = None,
         adapt: bool | dict | None = None,
+        r: float | None = None,
+        spec: DataSpec | dict | None = None,
     ):
         super().__init__(model_set)
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -560,6 +521,8 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         p_stay: float = 0.995,
         guard: bool | dict | None = None,
         adapt: bool | dict | None = None,
+        r: float | None = None,
+        spec: DataSpec | dict | None = None,
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
@@ -573,7 +536,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
         del self.K_ss  # the base gain is the filter's own
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def forward(self, td):

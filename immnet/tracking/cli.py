@@ -43,7 +43,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--adapt", action="store_true",
-        help="adaptive process noise in the filter experts (immnet.filters.adaptive.AdaptiveNoise): for targets "
+        help="adaptive process noise in the filter experts (immnet.imm.adaptive.AdaptiveNoise): for targets "
              "that fly rougher than the training data (docs/immnet.md, 'Adaptive process noise')",
     )
     p.set_defaults(func=run)

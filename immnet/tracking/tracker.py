@@ -15,7 +15,7 @@ finite. A measurement a sensor cannot report (a non-finite component, or ``|z_a|
 default 1e7 m: ``immnet.data.validate.gate_measurements``) is a missed detection; ``tracker.n_gated``
 counts them: in the last ``track`` call, or over the ``step`` calls since the last ``reset``.
 
-The recipes' models carry a range guard (``immnet.filters.guard``): 3D-LAST's surveillance region,
+The recipes' models carry a range guard (``immnet.imm.guard``): 3D-LAST's surveillance region,
 where a target turns back beyond 33 km and within 4 km of the radar, and its speed envelope, where a
 CA maneuver leaving 40-330 m/s turns for one scan. For data from another region, load with
 ``guard=None`` (no guard) or ``guard={"outer": ..., "inner": ...}`` (``immnet track --guard``; add
@@ -62,7 +62,7 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP) -> IMMNet:
 
     ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
     (``True`` for 3D-LAST's, or a dict of ``RangeGuard`` fields); it has no weights, so any choice loads.
-    ``adapt``: the filter experts' adaptive process noise (``immnet.filters.adaptive.AdaptiveNoise``), as
+    ``adapt``: the filter experts' adaptive process noise (``immnet.imm.adaptive.AdaptiveNoise``), as
     the checkpoint has it (``"checkpoint"``), off (``None``/``False``), on (``True``) or a dict of its
     fields; no weights either.
     """

@@ -44,22 +44,26 @@ from dataclasses import dataclass
 
 import torch
 
-from immnet.filters.option import Option
+from immnet.data.spec import DataSpec
+from immnet.imm.option import Option
+from immnet.motion import DEG
 
-DEG = math.pi / 180.0
 G_MAX = 0.999  # the most probable a guard event is made
+_SPEC = DataSpec()  # 3D-LAST's bounds: the defaults (``RangeGuard.from_spec`` for another spec's)
 
 
 @dataclass(frozen=True)
 class RangeGuard(Option):
-    """The soft range bounds of the 3D-LAST generator as guard conditions (module doc)."""
+    """The soft range and speed bounds of the 3D-LAST generator as guard conditions (module doc); the bounds
+    default to ``DataSpec()``'s, the ramps' widths and tolerances are the guard's own."""
 
     ARG = "guard"
 
-    outer: float = 33_000.0  # m: beyond, moving outward -> turn toward the radar
-    inner: float = 4_000.0  # m: within, moving inward -> turn away from it
-    rate_deg: float = 8.0  # the bound turn's rate
-    clear_share: float = 0.5  # the turn clears once the radial speed is beyond this share of the speed
+    outer: float = _SPEC.bound_range_outer  # m: beyond, moving outward -> turn toward the radar
+    inner: float = _SPEC.bound_range_inner  # m: within, moving inward -> turn away from it
+    rate_deg: float = _SPEC.bound_turn_rate_deg  # the bound turn's rate
+    clear_share: float = math.sin(math.radians(_SPEC.bound_clear_heading_deg))  # the turn clears once the radial
+    # speed is beyond this share of the speed (its heading back by bound_clear_heading_deg)
     clear_margin: float = 3_000.0  # m: a clear is looked for within this distance of the bound
     range_soft: float = 10.0  # m: logistic width of the range thresholds
     speed_soft: float = 1.0  # m/s: of the radial-speed sign
@@ -67,10 +71,18 @@ class RangeGuard(Option):
     rate_tol_deg: float = 2.0  # how close a turn's rate must be to rate_deg to be the bound's turn
     rate_std_deg: float = 0.2  # the rate prior of a turn entered at the bound
     speeds: bool = True  # the speed rules too: a CA leaving the speed bounds turns for one scan
-    speed_min: float = 40.0  # m/s: horizontal speed bounds of a CA segment
-    speed_max: float = 330.0
-    vz_max: float = 25.0  # m/s: vertical speed bound of a CA segment
+    speed_min: float = _SPEC.bound_speed_min  # m/s: horizontal speed bounds of a CA segment
+    speed_max: float = _SPEC.bound_speed_max
+    vz_max: float = _SPEC.bound_vz  # m/s: vertical speed bound of a CA segment
     bound_speed_soft: float = 1.0  # m/s: logistic width of the speed bounds (a CA filter's speed error)
+
+    @classmethod
+    def from_spec(cls, spec: DataSpec, **fields) -> "RangeGuard":
+        """The guard of the soft bounds of ``spec`` (a ``DataSpec``); ``fields`` override the rest."""
+        bounds = {"outer": spec.bound_range_outer, "inner": spec.bound_range_inner, "rate_deg": spec.bound_turn_rate_deg,
+                  "clear_share": math.sin(math.radians(spec.bound_clear_heading_deg)), "speed_min": spec.bound_speed_min,
+                  "speed_max": spec.bound_speed_max, "vz_max": spec.bound_vz}
+        return cls(**(bounds | fields))
 
     def __post_init__(self):
         for name in ("outer", "inner", "rate_deg", "clear_share", "clear_margin", "range_soft", "speed_soft",

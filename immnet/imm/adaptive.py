@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import torch
 
-from immnet.filters.option import Option
+from immnet.imm.option import Option
 
 
 @dataclass(frozen=True)
