@@ -111,7 +111,7 @@ def main() -> int:
         "names, dtypes, shapes and bytes); every load checks it and refuses the file if the weights disagree "
         "(`immnet.checkpoints`, docs/checkpoints.md).\n\n"
         + (
-            "It carries a range guard (`immnet/filters/guard.py`: 3D-LAST's surveillance region, where a target turns "
+            "It carries a range guard (`immnet/imm/guard.py`: 3D-LAST's surveillance region, where a target turns "
             f"back beyond {prov['guard']['outer']:.0f} m and within {prov['guard']['inner']:.0f} m of the radar"
             + (f", and its speed bounds, {prov['guard']['speed_min']:.0f}-{prov['guard']['speed_max']:.0f} m/s, where a "
                "CA maneuver turns for one scan" if prov["guard"].get("speeds") else "")
