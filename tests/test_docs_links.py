@@ -54,6 +54,7 @@ def references(page: Path) -> list[tuple[int, str, Path]]:
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_reference_is_a_file_of_the_repository(page):
+    """Issue 21, item 5: each page cites files of the repository only, and each of them exists."""
     bad = [f"{page.relative_to(ROOT)}:{n}: {ref} ({'outside the repository' if _outside(p) else 'no such file'})"
            for n, ref, p in references(page) if _outside(p) or not p.exists()]
     assert not bad, "\n".join(bad)
@@ -62,12 +63,12 @@ def test_every_reference_is_a_file_of_the_repository(page):
 def test_the_checker_sees_what_it_must_refuse(tmp_path):
     """The check itself: a link to a missing page and a path outside the repository are both found."""
     page = tmp_path / "x.md"
-    page.write_text("see [spec](spec.md), [gone](gone.md) and `../shared/SPEC.md`; `docs/spec.md`, "
+    page.write_text("see [spec](spec.md), [gone](gone.md) and `../shared/SPEC.md`; `tests/test_docs_links.py`, "
                     "`/work/shared/SPEC.md`, `runs/quick/x.ckpt`, `configs/data/ood/<name>.yaml`, `README.md`")
     (tmp_path / "spec.md").write_text("")
     refs = {ref: p for _, ref, p in references(page)}
-    assert set(refs) == {"spec.md", "gone.md", "../shared/SPEC.md", "docs/spec.md", "/work/shared/SPEC.md",
+    assert set(refs) == {"spec.md", "gone.md", "../shared/SPEC.md", "tests/test_docs_links.py", "/work/shared/SPEC.md",
                          "README.md"}
-    assert refs["spec.md"].exists() and refs["docs/spec.md"].exists() and not refs["gone.md"].exists()
+    assert refs["spec.md"].exists() and refs["tests/test_docs_links.py"].exists() and not refs["gone.md"].exists()
     assert _outside(refs["../shared/SPEC.md"]) and _outside(refs["/work/shared/SPEC.md"])
-    assert not _outside(refs["docs/spec.md"]) and refs["README.md"] == ROOT / "README.md"
+    assert not _outside(refs["tests/test_docs_links.py"]) and refs["README.md"] == ROOT / "README.md"
