@@ -6,7 +6,7 @@ Inference runs the streaming step (``IMMNet.scan``) over already-started tracks,
 of tracking; training runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64.
 Three models are measured in one run: the quick and pretrained recipes' (filter experts with the IMM
 interaction and the range guard, the Bayes-corrected Transformer classifier), the same without the
-guard (the recipes' until 2026-11-30), and the paper's (``KalmanNetGain`` experts, the Transformer).
+guard (``configs/ablations/no-guard.yaml``), and the paper's (``KalmanNetGain`` experts, the Transformer).
 """
 
 from __future__ import annotations

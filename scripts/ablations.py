@@ -66,7 +66,7 @@ def main() -> int:
         "uniform-mix": ("classifier -> uniform mix", lambda: IMMNetMethod(ckpt("uniform-mix"))),
         "bayes-mode": ("classifier -> IMM Bayesian update alone", lambda: IMMNetMethod(ckpt("bayes-mode"))),
         "transformer-mode": ("classifier -> Transformer alone (the paper's)", lambda: IMMNetMethod(ckpt("transformer-mode"))),
-        "fused-input": ("IMM interaction -> fused input (SPEC's predict; no guard)", lambda: IMMNetMethod(ckpt("fused-input"))),
+        "fused-input": ("IMM interaction -> fused input (the paper's predict; no guard)", lambda: IMMNetMethod(ckpt("fused-input"))),
         "analytic-gain": ("KalmanNet -> analytic gain (fixed noise)", lambda: IMMNetMethod(ckpt("analytic-gain"))),
         "single-expert": ("single expert (plain KalmanNet, CA)", lambda: KalmanNetMethod(ckpt("single-expert"), expert="ca")),
         "fixed-turn-rate": ("adaptive -> fixed +/-5 deg/s turn experts", lambda: IMMNetMethod(ckpt("fixed-turn-rate"))),

@@ -47,7 +47,7 @@ def simulate(n: int, T: int, dt: float, seed: int = 0, p_miss: float = 0.03):
 
 
 def raw_measurement_rmse(states, z):
-    """SPEC section 5's table RMSE of ``x_hat_t = z_t``, a miss holding the last detection: ``{x, y, z, avg}``."""
+    """docs/spec.md section 5's table RMSE of ``x_hat_t = z_t``, a miss holding the last detection: ``{x, y, z, avg}``."""
     filled = z.copy()
     for t in range(1, z.shape[1]):
         gap = np.isnan(filled[:, t]).any(-1)

@@ -19,7 +19,7 @@ from immnet.evaluation.methods import build_method
 from immnet.filters import IMMEKF, ClairvoyantKF
 
 DEG = math.pi / 180.0
-ACC_VAR = [(3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0] * 2 + [0.6**2 / 12.0]  # SPEC: |a| ~ U[0.5, 3] at a uniform direction; U[-0.3, 0.3]
+ACC_VAR = [(3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0] * 2 + [0.6**2 / 12.0]  # docs/spec.md section 2: |a| ~ U[0.5, 3] at a uniform direction; U[-0.3, 0.3]
 W_MEAN, W_VAR = 5.5 * DEG, (9.0 * DEG) ** 2 / 12.0  # |w| ~ U[1, 10] deg/s
 
 

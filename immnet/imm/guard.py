@@ -34,7 +34,7 @@ bound turn made, so that the interaction can give a turn entered at the bound it
   filter's mixed prior that entered at a speed bound on the last scan (``guarded_transition``
   returns each entry's speed share; ``fresh_j = sum_i mu_{i|j} speed_ij``), clears to CV.
 
-``speeds=False`` leaves the speed rules out (the range rules alone, as first shipped).
+``speeds=False`` leaves the speed rules out (the range rules alone).
 """
 
 from __future__ import annotations
