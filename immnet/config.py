@@ -1,7 +1,18 @@
-"""Finding and building configured components (``class_path`` / ``init_args`` YAML)."""
+"""Finding and building configured components (``class_path`` / ``init_args`` YAML).
+
+The configs the package reads at run time (method registry, model sets, data sizes, ablations) ship
+inside it: a checkout's top-level ``configs/`` is installed as ``immnet/configs`` (docs/configs.md).
+A config path is looked for, in this order:
+
+1. as given: absolute, or relative to the working directory (a user's own file wins);
+2. among the packaged configs, a leading ``configs/`` dropped (``configs/model_sets/imm4.yaml`` and
+   ``model_sets/imm4.yaml`` name the same file);
+3. when the package runs from a checkout, relative to the checkout (``recipes/quick.yaml``).
+"""
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 
 import yaml
@@ -9,18 +20,44 @@ import yaml
 from immnet.motion.base import instantiate
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-"""The checkout holding ``configs/`` and ``recipes/`` (an editable install or a clone)."""
+"""The directory above the package: the checkout holding ``configs/`` and ``recipes/`` when the package
+runs from one (a clone, an editable install); ``site-packages`` in an installed wheel."""
+
+
+def checkout() -> Path | None:
+    """The checkout the package runs from, or ``None`` for an installed wheel."""
+    is_checkout = (REPO_ROOT / "pyproject.toml").is_file() and (REPO_ROOT / "configs").is_dir()
+    return REPO_ROOT if is_checkout else None
+
+
+def packaged_configs() -> Path:
+    """The configs that ship with the package: ``immnet/configs`` of an installed wheel, or their source,
+    the checkout's ``configs/``, when the package runs from a checkout."""
+    installed = resources.files("immnet") / "configs"
+    if installed.is_dir():
+        return Path(str(installed))
+    return REPO_ROOT / "configs"
+
+
+def _packaged_part(path: Path) -> Path:
+    return Path(*path.parts[1:]) if path.parts[:1] == ("configs",) else path
 
 
 def resolve_path(path: str | Path) -> Path:
-    """A config path as given, else relative to the repository root; a clear error if neither exists."""
+    """``path`` found as the module doc says; ``FileNotFoundError`` listing every place looked in."""
     p = Path(path)
     if p.exists():
         return p
-    q = REPO_ROOT / p
-    if q.exists():
-        return q
-    raise FileNotFoundError(f"config file not found: {path} (looked in . and {REPO_ROOT})")
+    looked = [Path.cwd() / p]
+    if not p.is_absolute():
+        candidates = [packaged_configs() / _packaged_part(p)]
+        if checkout() is not None:
+            candidates.append(REPO_ROOT / p)
+        for q in candidates:
+            if q.exists():
+                return q
+            looked.append(q)
+    raise FileNotFoundError(f"config file not found: {path} (looked for {', '.join(map(str, dict.fromkeys(looked)))})")
 
 
 def load_yaml(path: str | Path) -> dict:

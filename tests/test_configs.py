@@ -67,3 +67,19 @@ def test_ablation_overrides_a_quick_stage(ablation, capsys):
         # ... and the quick recipe's range guard, but where the guard is the point (the fused input has none)
         guard = ((net.get("gain") or {}).get("init_args") or {}).get("guard")
         assert bool(guard) == (ablation.stem not in ("no-guard", "fused-input")), f"{ablation.name}: guard {guard}"
+
+
+def test_a_packaged_ablation_runs_from_another_directory(tmp_path, monkeypatch, capsys):
+    """Issue 21, item 4: ``immnet fit --config RECIPE --config configs/ablations/no-guard.yaml`` finds the
+    packaged ablation from a directory that does not hold it (docs/configs.md) and configures what the
+    ablation's own file does."""
+    from immnet.cli import main
+
+    recipe = str(REPO_ROOT / "recipes" / "quick-stage2.yaml")
+    want = _print_config(["--config", recipe, "--config", str(REPO_ROOT / "configs/ablations/no-guard.yaml")], capsys)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(["fit", "--config", recipe, "--config", "configs/ablations/no-guard.yaml", "--print_config"])
+    assert exit_.value.code in (0, None)
+    got = yaml.safe_load(capsys.readouterr().out)
+    assert got["model"] == want["model"] and not got["model"]["init_args"]["net"]["gain"]["init_args"]["guard"]

@@ -128,3 +128,23 @@ def test_json_rows_and_tables():
     assert md[3] == "| offset | 3.000 | 3.000 | 3.000 | 3.000 | 3.000 | 100.0 % | 2.000 |"
     no_bound = format_table({k: v for k, v in res.items() if k != "clairvoyant"})
     assert "/ bound" not in no_bound
+
+
+def test_the_working_directorys_method_configs_come_first(tmp_path, monkeypatch):
+    """Issue 21, item 4: ``configs/methods/<name>.yaml`` of the working directory is looked in before the
+    packaged registry (docs/configs.md): it replaces a shipped method and adds new ones; an unknown name's
+    error lists both places."""
+    from immnet.config import packaged_configs
+
+    monkeypatch.chdir(tmp_path)
+    mine = tmp_path / "configs" / "methods"
+    mine.mkdir(parents=True)
+    (mine / "imm-ekf.yaml").write_text("class_path: immnet.filters.IMMEKF\ninit_args: {p_stay: 0.9}\n")
+    (mine / "my-imm.yaml").write_text("class_path: immnet.filters.IMMEKF\ninit_args: {p_stay: 0.8}\n")
+    assert build_method("imm-ekf").Pi[0, 0].item() == pytest.approx(0.9)
+    assert build_method("my-imm").Pi[0, 0].item() == pytest.approx(0.8)
+    shipped = {p.stem for p in (packaged_configs() / "methods").glob("*.yaml")}
+    assert shipped | {"my-imm", "measurements"} == set(configured_methods())
+    with pytest.raises(ValueError, match="unknown method 'nope'") as err:
+        build_method("nope")
+    assert str(mine / "nope.yaml") in str(err.value) and str(packaged_configs() / "methods" / "nope.yaml") in str(err.value)

@@ -1,6 +1,6 @@
 """``immnet data generate|merge|export|plot``: make, convert and look at 3D-LAST data sets.
 
-    immnet data generate --out data/train --n 100000 --seed 0 [--single-mode ct+] [--config configs/data/small.yaml] [--workers 2]
+    immnet data generate --out data/train --n 100000 --seed 0 [--single-mode ct+] [--config configs/data/tiny.yaml] [--workers 2]
     immnet data generate --out data/train-1 --n 1000000 --seed 0 --shard 1/4      # shard 1 of 4 (one machine's part)
     immnet data merge --out data/train data/train-0 data/train-1 data/train-2 data/train-3
     immnet data export --data data/train --out train.npz
@@ -86,7 +86,7 @@ def register(subparsers) -> None:
     g.add_argument("--seed", required=True, type=int)
     g.add_argument("--single-mode", choices=MODE_NAMES, default=None,
                    help="one-segment trajectories of this mode (stage-1 data)")
-    g.add_argument("--config", default=None, help="YAML of DataSpec fields to override (e.g. configs/data/small.yaml)")
+    g.add_argument("--config", default=None, help="YAML of DataSpec fields to override (e.g. configs/data/tiny.yaml)")
     g.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     g.add_argument("--workers", type=int, default=1, help="processes to shard generation over (same bytes)")
     g.add_argument("--shard", type=_shard, default=None, metavar="I/K",

@@ -50,7 +50,10 @@ def register(subparsers) -> None:
     t.add_argument("--data", required=True, help="a data set directory or an .npz file")
     t.add_argument("--split", choices=("val",), default="val", help="only the validation split is allowed")
     t.add_argument("--n", type=int, default=500, help="validation trajectories used (the first N; default 500)")
-    t.add_argument("--out", type=Path, default=None, help="config to write (default configs/methods/imm-tuned.yaml)")
+    t.add_argument("--out", type=Path, default=None,
+                   help="config to write (default: configs/methods/imm-tuned.yaml of the checkout the package runs "
+                        "from; for an installed package, of the working directory, where `immnet evaluate` "
+                        "looks first: docs/configs.md)")
     t.set_defaults(func=run_tune)
 
 
@@ -233,7 +236,7 @@ def run_evaluate(args) -> int:
 
 
 def run_tune(args) -> int:
-    from immnet.config import REPO_ROOT
+    from immnet.config import checkout
 
     if args.n < 1:
         raise ValueError("--n must be positive")
@@ -244,7 +247,8 @@ def run_tune(args) -> int:
     except ImportError as err:
         raise ValueError(f"the IMM tuning search is not available ({err})") from None
     data, _ = load_split(args.data, args.split, args.n)
-    out = args.out or REPO_ROOT / "configs" / "methods" / "imm-tuned.yaml"
+    out = args.out or (checkout() or Path(".")) / "configs" / "methods" / "imm-tuned.yaml"
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
     print(f"tuning IMM on {data.batch_size[0]} validation trajectories of {args.data}", file=sys.stderr)
     best = tune_imm(data, out, progress=True)
     from immnet.evaluation.runner import finite_or_none

@@ -7,7 +7,9 @@ and, where it has them, ``mode_probs [B, T, 4]`` over the data modes. An optiona
 whole data before running any method: a learned tracker refuses a ``dt`` it was not trained at).
 
 Methods are configured, not coded in: ``configs/methods/<name>.yaml`` holds one ``class_path`` /
-``init_args`` mapping. ``build_method(name, checkpoint)`` loads it; a checkpoint (from the YAML's
+``init_args`` mapping, looked for in the working directory's ``configs/methods/`` first (a user's own
+or tuned methods), then among the packaged configs (``immnet.config``; docs/configs.md).
+``build_method(name, checkpoint)`` loads it; a checkpoint (from the YAML's
 ``init_args`` or from the caller) reaches the constructor as ``checkpoint=``, and a range guard
 (``immnet evaluate --guard``) as ``guard=``. A method may also have ``configure(meta, sigma_q=None)``:
 told the data set's ``meta`` (``load_dataset``'s, holding the generator's ``spec`` where the data has
@@ -25,13 +27,15 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.config import REPO_ROOT, load_yaml
+from immnet.config import REPO_ROOT, load_yaml, packaged_configs
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.motion import POS
 from immnet.motion.base import import_class
 
-METHODS_DIR = REPO_ROOT / "configs" / "methods"
-"""Where ``<name>.yaml`` method configs live."""
+METHODS_DIR = packaged_configs() / "methods"
+"""Where the packaged ``<name>.yaml`` method configs live."""
+USER_METHODS_DIR = Path("configs") / "methods"
+"""The working directory's own method configs, looked in before ``METHODS_DIR``."""
 
 ORDER = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "kalmannet", "immnet", "clairvoyant-switch", "clairvoyant")
 """Row order of the results table; other configured methods follow alphabetically."""
@@ -76,10 +80,25 @@ def _sort_key(name: str):
     return (ORDER.index(name), "") if name in ORDER else (len(ORDER), name)
 
 
+def _method_dirs(methods_dir: Path | None) -> list[Path]:
+    return [Path(methods_dir)] if methods_dir else [USER_METHODS_DIR, Path(METHODS_DIR)]
+
+
+def method_config(name: str, methods_dir: Path | None = None) -> Path:
+    """The YAML of method ``name``: in ``methods_dir`` when given, else the first of the working
+    directory's ``configs/methods/`` and the packaged ones that has it; ``ValueError`` listing where
+    it looked and the methods there are."""
+    paths = list(dict.fromkeys(d.absolute() / f"{name}.yaml" for d in _method_dirs(methods_dir)))
+    for path in paths:
+        if path.is_file():
+            return path
+    raise ValueError(f"unknown method {name!r} (no {' or '.join(map(str, paths))}); "
+                     f"available: {', '.join(available_methods(methods_dir))}")
+
+
 def configured_methods(methods_dir: Path | None = None) -> list[str]:
     """Every method name with a config or a built-in, in table order (not checked for importability)."""
-    d = Path(methods_dir or METHODS_DIR)
-    names = set(BUILTIN) | ({p.stem for p in d.glob("*.yaml")} if d.is_dir() else set())
+    names = set(BUILTIN) | {p.stem for d in _method_dirs(methods_dir) if d.is_dir() for p in d.glob("*.yaml")}
     return sorted(names, key=_sort_key)
 
 
@@ -87,11 +106,7 @@ def _method_class(name: str, methods_dir: Path | None = None):
     """``(class, init_args)`` of a method; ``ValueError`` naming the method when it cannot be had."""
     if name in BUILTIN:
         return BUILTIN[name], {}
-    path = Path(methods_dir or METHODS_DIR) / f"{name}.yaml"
-    if not path.exists():
-        raise ValueError(
-            f"unknown method {name!r} (no {path}); available: {', '.join(available_methods(methods_dir))}"
-        )
+    path = method_config(name, methods_dir)
     spec = load_yaml(path) or {}
     if not isinstance(spec, dict) or "class_path" not in spec:
         raise ValueError(f"method {name!r}: {path} holds no 'class_path' mapping")
@@ -111,7 +126,7 @@ def available_methods(methods_dir: Path | None = None) -> list[str]:
             out.append(name)
             continue
         try:
-            spec = load_yaml(Path(methods_dir or METHODS_DIR) / f"{name}.yaml") or {}
+            spec = load_yaml(method_config(name, methods_dir)) or {}
             import_class(spec["class_path"])
         except Exception:  # noqa: BLE001 - anything that stops the import makes it unavailable
             continue
@@ -133,7 +148,8 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
     """The method configured as ``configs/methods/<name>.yaml`` (or a built-in), ready to ``track``.
 
     ``checkpoint`` overrides the YAML's ``init_args.checkpoint``; a relative checkpoint path in
-    the YAML is read from the working directory, else from the repository root. The object's
+    the YAML is read from the working directory, else from the directory above the package (the
+    checkout, or ``site-packages``: ``immnet/pretrained/...`` works in both). The object's
     ``name`` is set to ``name`` so that rows carry the registry name.
 
     ``guard`` (``immnet.tracking.cli.parse_guard``'s: ``"checkpoint"``, ``None`` or ``{"outer", "inner"}``)

@@ -25,6 +25,7 @@ CA maneuver leaving 40-330 m/s turns for one scan. For data from another region,
 from __future__ import annotations
 
 import copy
+import inspect
 from pathlib import Path
 
 import torch
@@ -34,7 +35,9 @@ from immnet import keys
 from immnet.checkpoints import load_checkpoint
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
+from immnet.motion.base import import_class
 from immnet.stages import IMMNet
+from immnet.stages.network import DEFAULT_GAIN
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet.ckpt"
 
@@ -70,8 +73,8 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP) -> IMMNet:
     for name, value in (("guard", guard), ("adapt", adapt)):
         if isinstance(value, str) and value == KEEP:
             continue
-        gain = config.get("gain") or {}
-        if "filtering" not in gain.get("class_path", ""):
+        gain = config.get("gain") or DEFAULT_GAIN
+        if name not in inspect.signature(import_class(gain.get("class_path", ""))).parameters:
             what = "a range guard" if name == "guard" else "adaptive process noise"
             raise ValueError(f"{path}: {what} needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
         config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}

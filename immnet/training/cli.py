@@ -134,6 +134,26 @@ def _config_arg(argv: list[str]) -> str | None:
     return None
 
 
+def _found(value: str) -> str:
+    try:
+        return str(resolve_path(value))
+    except (OSError, ValueError):  # a YAML string, or a missing file for Lightning's CLI to report
+        return value
+
+
+def resolve_configs(argv: list[str]) -> list[str]:
+    """``argv`` with each ``--config`` file found as ``immnet.config.resolve_path`` finds a path (as
+    given, among the packaged configs, in the checkout; docs/configs.md), so that a packaged ablation
+    (``--config configs/ablations/no-guard.yaml``) runs from any directory."""
+    out = list(argv)
+    for i, a in enumerate(out):
+        if a == "--config" and i + 1 < len(out):
+            out[i + 1] = _found(out[i + 1])
+        elif a.startswith("--config="):
+            out[i] = "--config=" + _found(a.split("=", 1)[1])
+    return out
+
+
 def stage_entry(stage, i: int) -> tuple[str | dict, str]:
     """A chain's ``i``-th entry (0-based) as ``(config, checkpoint_as)``: ``config`` a path or an inline
     config, ``checkpoint_as`` the argument that receives the previous stage's checkpoint."""
@@ -229,6 +249,7 @@ def _run(argv: list[str]) -> IMMNetCLI:
 def lightning_main(argv: list[str]) -> int:
     """Run Lightning's CLI; a first ``--config`` holding ``stages:`` runs the chain, and every
     further argument (another ``--config`` too, e.g. an ablation) applies to each stage."""
+    argv = resolve_configs(argv)
     config = _config_arg(argv)
     if argv[0] == "fit" and config is not None:
         try:
