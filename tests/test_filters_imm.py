@@ -111,16 +111,14 @@ def test_float32_close_to_float64():
 
 @pytest.mark.parametrize("B", [2, 400], ids=["few-tracks", "many-tracks"])
 def test_lean_path_equals_general_step(B):
-    """``imm_filter``'s lean path (shared F, Q; both batch regimes) equals looping ``imm_step``."""
-    from immnet.filters import imm_step
-
+    """``imm_filter``'s lean path (shared F, Q; both batch regimes) equals the core's scan loop (``immnet.imm.runner.run``)."""
     F, Q, Pi, mu0, r, z = _problem(SETS["imm6"], seed=11, B=B, T=25)
     z[0, 5:9] = float("nan")
     z[-1, 12, 2] = float("nan")
     R = torch.tensor(r * r, dtype=torch.float64)
     x0, P0 = initial_state(z, r)
     lean = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True)
-    general = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True, step=lambda *a: imm_step(*a))
+    general = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True, general=True)
     for a, b in zip(lean, general):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-7)
 
@@ -147,16 +145,14 @@ def test_fused_step_equals_filterpy(set_name):
 @pytest.mark.slow
 @pytest.mark.parametrize("set_name", ["cv-ca-ct+5", "wienerCV-ca-ct+4-ct-9"], ids=["cv-ca-ct+5", "wienerCV-ca-ct+4-ct-9"])
 def test_compiled_equals_general_step(set_name):
-    """``imm_filter(compile=True)`` (inductor) equals looping the general ``imm_step`` in float64, and its
+    """``imm_filter(compile=True)`` (inductor) equals the core's scan loop in float64, and its
     float32 stays near float64; several batch sizes through one compiled graph (dynamic batch)."""
-    from immnet.filters import imm_step
-
     F, Q, Pi, mu0, r, z = _problem(SETS[set_name], seed=13, B=5, T=30)
     z[0, 5:9] = float("nan")
     z[3, 12, 2] = float("nan")
     R = torch.tensor(r * r, dtype=torch.float64)
     x0, P0 = initial_state(z, r)
-    general = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True, step=lambda *a: imm_step(*a))
+    general = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True, general=True)
     for B in (1, 5, 3):
         compiled = imm_filter(z[:B], x0[:B], P0[:B], F, Q, R, Pi, mu0, True, compile=True)
         for a, b in zip(compiled, general):

@@ -6,7 +6,7 @@ Every method has ``name``, ``needs`` and ``track(batch) -> TensorDict[B]`` (``im
 from immnet.filters.base import Method, data_mode_probs
 from immnet.filters.clairvoyant import ClairvoyantKF, SwitchClairvoyantKF
 from immnet.imm.guard import RangeGuard
-from immnet.filters.imm import imm_filter, imm_step, initial_state
+from immnet.filters.imm import imm_filter, initial_state
 from immnet.filters.imm_ekf import IMMEKF
 from immnet.imm.kalman import inv3, predict, update
 from immnet.filters.trackers import IMMTracker, KalmanFilterTracker
@@ -14,5 +14,5 @@ from immnet.imm.interaction import combine, mix, transition_matrix
 
 __all__ = [
     "ClairvoyantKF", "IMMEKF", "IMMTracker", "SwitchClairvoyantKF", "KalmanFilterTracker", "Method", "RangeGuard",
-    "combine", "data_mode_probs", "imm_filter", "imm_step", "initial_state", "inv3", "mix", "predict", "transition_matrix", "update",
+    "combine", "data_mode_probs", "imm_filter", "initial_state", "inv3", "mix", "predict", "transition_matrix", "update",
 ]

@@ -40,7 +40,9 @@ from immnet import keys
 from immnet.data.spec import DataSpec
 from immnet.filters.base import Method, as_dtype, batch_dt, output
 from immnet.filters.imm import initial_state
+from immnet.imm.interaction import onset_priors
 from immnet.imm.kalman import predict, update
+from immnet.imm.runner import run
 from immnet.motion import CA, CT_POS, CV, DEG, ca_matrix, ct_matrix, ct_propagate, ct_rate_derivative, cv_matrix, process_noise
 
 
@@ -96,40 +98,28 @@ class ClairvoyantKF(Method):
     def _acc_cov(self, like: torch.Tensor) -> torch.Tensor:
         return torch.diag(torch.tensor(self.acc_var, dtype=like.dtype, device=like.device))
 
-    @staticmethod
-    def _ca_onset(x, P, new_ca, acc_P):
-        """A CA segment starts: acceleration mean 0, uncorrelated, with the draw's variance ``acc_P``
-        (on the first 9 components: the acceleration slots ``2::3`` of the state's 9-D part)."""
-        if not new_ca.any():
-            return x, P
-        x, P = x.clone(), P.clone()
-        acc = torch.tensor([2, 5, 8], device=x.device)
-        x[new_ca.nonzero()[:, 0][:, None], acc] = 0.0
-        P[new_ca, :, 2:9:3] = 0.0
-        P[new_ca, 2:9:3, :] = 0.0
-        P[new_ca, 2:9:3, 2:9:3] = acc_P
-        return x, P
-
     def track(self, batch: TensorDict) -> TensorDict:
+        """One Kalman filter with the truth's transition at each scan: the core's scan loop
+        (``immnet.imm.runner.run``) over the filters CV, CA and CT at the true rate, whose mode
+        probabilities are the truth's (``oracle``), so that each scan predicts with the true mode's model
+        from the previous true mode's posterior, with the CA draw's prior where a CA segment starts (the
+        interaction's onset prior)."""
         z, mode, w, r, d = self._inputs(batch)
         dtype, dev = z.dtype, z.device
         B, T, _ = z.shape
         Fcv, Fca = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
         Q = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
-        R = r**2
-        acc_P = self._acc_cov(z)
         x, P = initial_state(z, r)
-        first_ca = mode[:, 0] == CA  # the generator writes the first CA segment's draw into x_0
-        P[first_ca, 2::3, 2::3] = acc_P
-        states = z.new_empty(B, T, 9)
-        states[:, 0] = x
-        for t in range(1, T):
-            m = mode[:, t]
-            F = torch.where((m == CV)[:, None, None], Fcv, torch.where((m == CA)[:, None, None], Fca, ct_matrix(w[:, t], d, dtype, dev)))
-            x, P = self._ca_onset(x, P, (m == CA) & (mode[:, t - 1] != CA), acc_P)
-            x, P = predict(x, P, F, Q)
-            x, P, _ = update(x, P, z[:, t], None, R)
-            states[:, t] = x
+        P[mode[:, 0] == CA, 2::3, 2::3] = self._acc_cov(z)  # the generator writes the first CA segment's draw into x_0
+        onset = onset_priors([False, True, False], [False] * 3, [0.0] * 3, n=9, acc_var=self.acc_var)
+
+        def transition(t, x0, P0):
+            F = torch.stack([Fcv.expand(B, 9, 9), Fca.expand(B, 9, 9), ct_matrix(w[:, t], d, dtype, dev)], 1)
+            return predict(x0, P0, F, Q)
+
+        one = torch.full((3, 3), 1.0 / 3.0, dtype=dtype, device=dev)
+        states, _, _ = run(z, x[:, None].expand(B, 3, 9), P[:, None].expand(B, 3, 9, 9), one[0].expand(B, 3), one,
+                           transition, r**2, onset=onset, oracle=mode.clamp(max=CT_POS))
         return output(states, measurements=z)
 
 
@@ -145,6 +135,20 @@ class SwitchClairvoyantKF(ClairvoyantKF):
                 raise ValueError(f"turn_prior_deg needs a mean > 0 and a std >= 0, got {turn_prior_deg}")
         self.fixed_turn_prior = None if turn_prior_deg is None else (mean, std)
         super().__init__(sigma_q, acc_var, spec, dtype, name)
+
+    @staticmethod
+    def _ca_onset(x, P, new_ca, acc_P):
+        """A CA segment starts: acceleration mean 0, uncorrelated, with the draw's variance ``acc_P``
+        (on the first 9 components: the acceleration slots ``2::3`` of the state's 9-D part)."""
+        if not new_ca.any():
+            return x, P
+        x, P = x.clone(), P.clone()
+        acc = torch.tensor([2, 5, 8], device=x.device)
+        x[new_ca.nonzero()[:, 0][:, None], acc] = 0.0
+        P[new_ca, :, 2:9:3] = 0.0
+        P[new_ca, 2:9:3, :] = 0.0
+        P[new_ca, 2:9:3, 2:9:3] = acc_P
+        return x, P
 
     def set_spec(self, spec) -> None:
         super().set_spec(spec)

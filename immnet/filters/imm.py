@@ -12,16 +12,17 @@ probabilities ``mu_{t-1}`` ``[B, M]`` and the Markov transition ``Pi[i, j] = P(j
 5. combination: ``x = sum_j mu_j x_j`` (and ``P = sum_j mu_j (P_j + (x_j - x)(x_j - x)^T)``).
 
 Everything is one batched tensor expression per stage: no loop over tracks or experts. The stages are
-``immnet.imm``'s (``imm_step``); ``_imm_filter_lean`` and ``immnet.filters.imm_fused`` are the same
-equations rearranged for speed where every track shares ``F`` and ``Q`` (the tests hold them to ``imm_step``).
+``immnet.imm``'s, in ``immnet.imm.runner.run``'s loop; ``_imm_filter_lean`` and ``immnet.filters.imm_fused``
+are the same equations rearranged for speed where every track shares ``F`` and ``Q`` (the tests hold them
+to the core's loop and to FilterPy).
 """
 
 from __future__ import annotations
 
 import torch
 
-from immnet.imm.interaction import combine, mix, mixing_weights, mode_update
-from immnet.imm.kalman import _as_cov, update
+from immnet.imm.kalman import _as_cov
+from immnet.imm.runner import linear_transition, run
 
 VEL_STD = 300.0
 """Initial velocity standard deviation (m/s), every axis: covers the 340 m/s speed bound."""
@@ -53,35 +54,23 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     return x0, torch.diag_embed(diag)
 
 
-def imm_step(x, P, mu, z, F, Ft, Q, R, Pi):
-    """One IMM cycle: ``x [B, M, 9]``, ``P [B, M, 9, 9]``, ``mu [B, M]``, ``z [B, 3]`` (NaN = missed).
-
-    ``F``, ``Ft = F^T`` and ``Q`` broadcast to ``[B, M, 9, 9]``; ``R`` broadcasts to ``[B, M, 3, 3]``
-    (e.g. ``r^2 I`` as ``[B, 1, 3, 3]`` or a scalar variance). Returns ``x, P, mu, x_fused``.
-    """
-    x0, P0 = mix(mixing_weights(mu, Pi), x, P)
-    x = (F @ x0.unsqueeze(-1)).squeeze(-1)
-    P = F @ P0 @ Ft + Q
-    x, P, ll = update(x, P, z.unsqueeze(-2), None, R)
-    mu = mode_update(torch.log(mu @ Pi), ll)
-    xf, _ = combine(x, None, mu)
-    return x, P, mu, xf
-
-
-def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, step=imm_step, compile: bool = False):
+def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False, general: bool = False):
     """Run the IMM over ``z [B, T, 3]`` from ``x0 [B, 9]``, ``P0 [B, 9, 9]`` and ``mu0 [M]``.
 
     At ``t = 0`` the output is the initial state (every expert at ``x0, P0``); steps ``t >= 1``
     filter ``z_t``. Returns ``state [B, T, 9]``, ``probs [B, T, M]`` and, with ``return_experts``,
     the experts' posteriors ``[B, T, M, 9]`` (else None).
 
-    ``compile=True`` runs the step of ``immnet.filters.imm_fused`` through ``torch.compile`` where ``F``,
-    ``Q`` are shared (the first call per dtype, device and model count compiles, seconds); if compiling
-    fails it logs a warning and runs the eager path.
+    ``F``, ``Q`` are ``[M, 9, 9]`` (every track's), ``[B, M, 9, 9]`` (one interval per track) or
+    ``[B, T, M, 9, 9]`` (one per track and scan). The scan loop is ``immnet.imm.runner.run``; where every
+    track shares ``F`` and ``Q`` the same equations run rearranged for speed (``_imm_filter_lean``;
+    ``general=True`` runs the core's loop anyway). ``compile=True`` runs the step of
+    ``immnet.filters.imm_fused`` through ``torch.compile`` there (the first call per dtype, device and model
+    count compiles, seconds); if compiling fails it logs a warning and runs the eager path.
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
-    if step is imm_step and _lean_ok(F, Q, R, M, x0.shape[-1]):
+    if not general and _lean_ok(F, Q, R, M, x0.shape[-1]):
         if compile:
             from immnet.filters.imm_fused import imm_filter_fused
 
@@ -92,19 +81,10 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, step=i
     x = x0.unsqueeze(1).expand(B, M, 9).contiguous()
     P = P0.unsqueeze(1).expand(B, M, 9, 9).contiguous()
     mu = mu0.to(z).expand(B, M).contiguous()
-    Ft = F.transpose(-1, -2).contiguous()
-    states = z.new_empty(B, T, 9)
-    probs = z.new_empty(B, T, M)
-    experts = z.new_empty(B, T, M, 9) if return_experts else None
-    states[:, 0], probs[:, 0] = x0, mu
-    if return_experts:
-        experts[:, 0] = x
-    for t in range(1, T):
-        x, P, mu, xf = step(x, P, mu, z[:, t], F, Ft, Q, R, Pi)
-        states[:, t], probs[:, t] = xf, mu
-        if return_experts:
-            experts[:, t] = x
-    return states, probs, experts
+    R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
+    if R.dim() >= 2 and R.shape[-2:] == (3, 3) and R.dim() == 3:
+        R = R[:, None]  # one covariance per track [B, 3, 3], for every filter
+    return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts)
 
 
 _SMALL = 1024

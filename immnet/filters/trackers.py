@@ -19,7 +19,7 @@ from immnet import keys
 from immnet.filters.base import Method, as_dtype, batch_dt, data_mode_probs, output, per_dt
 from immnet.filters.imm import imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
-from immnet.imm.kalman import predict, update
+from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, instantiate
 
 
@@ -49,12 +49,8 @@ class KalmanFilterTracker(Method):
         Q = per_dt(lambda d: self.model.Q(self.sigma_q, d, dtype=self.dtype, device=dev), dt)
         x, P = initial_state(z, self.r)
         R = torch.tensor(self.r**2, dtype=self.dtype, device=dev)
-        states = z.new_empty(z.shape[0], z.shape[1], 9)
-        states[:, 0] = x
-        for t in range(1, z.shape[1]):
-            x, P = predict(x, P, F, Q)
-            x, P, _ = update(x, P, z[:, t], None, R)
-            states[:, t] = x
+        one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
+        states, _, _ = run(z, x[:, None], P[:, None], one, one[:1], linear_transition(F.unsqueeze(-3), Q.unsqueeze(-3)), R)
         return output(states, measurements=z)
 
 

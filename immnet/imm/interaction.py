@@ -46,14 +46,15 @@ def transition_matrix(p_stay, M: int, dtype=torch.float64) -> torch.Tensor:
     return Pi
 
 
-def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: int = RATE + 1):
+def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: int = RATE + 1, acc_var=None):
     """What the interaction does to filter ``i``'s posterior entering filter ``j != i``, float64:
     ``keep [M, M, n]`` (1 where a component is kept, 0 where it is replaced), the prior's mean
     ``mean [M, M, n]`` and covariance ``cov [M, M, n, n]`` on the replaced components.
 
     ``own_acc [M]``: the filters that keep an acceleration of their own (CA: a switch into it draws a new
     one, mean 0 and ``spec.ca_acc_var()``); ``own_rate [M]``: the turn filters that estimate their rate
-    (a switch into one draws a rate, ``spec.turn_rate_prior_deg()`` in the sign of ``nominal [M]``)."""
+    (a switch into one draws a rate, ``spec.turn_rate_prior_deg()`` in the sign of ``nominal [M]``); ``n`` the
+    state's size (9: no turn rate of its own); ``acc_var`` fixes the acceleration's variances instead."""
     spec = spec or DataSpec()
     M = len(own_acc)
     f64 = torch.float64
@@ -63,7 +64,7 @@ def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: in
     for j in range(M):
         others = [i for i in range(M) if i != j]
         if own_acc[j]:
-            for a, v in zip(ACC, spec.ca_acc_var()):
+            for a, v in zip(ACC, spec.ca_acc_var() if acc_var is None else acc_var):
                 keep[others, j, a] = 0.0
                 cov[others, j, a, a] = v
         if own_rate[j]:

@@ -88,15 +88,16 @@ class ModelSet:
         """Data mode each expert stands for, ``[M]`` int64."""
         return torch.tensor([model.mode for model in self.models], dtype=torch.long)
 
-    def F(self, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:
-        """Stacked transitions ``[M, 9, 9]``."""
-        return torch.stack([model.F(dt, dtype=dtype, device=device) for model in self.models])
+    def F(self, dt=1.0, dtype=torch.float64, device=None) -> torch.Tensor:
+        """Stacked transitions ``[M, 9, 9]`` (``[..., M, 9, 9]`` for a tensor ``dt [...]``, one interval per track)."""
+        return torch.stack([model.F(dt, dtype=dtype, device=device) for model in self.models], -3)
 
-    def Q(self, sigma_q, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:
-        """Stacked process noise ``[M, 9, 9]``; ``sigma_q`` a scalar or one per model."""
+    def Q(self, sigma_q, dt=1.0, dtype=torch.float64, device=None) -> torch.Tensor:
+        """Stacked process noise ``[M, 9, 9]`` (``[..., M, 9, 9]`` for a tensor ``dt [...]``); ``sigma_q`` a
+        scalar or one per model."""
         sq = torch.as_tensor(sigma_q, dtype=dtype).expand(len(self)).tolist()
         return torch.stack(
-            [model.Q(s, dt, dtype=dtype, device=device) for model, s in zip(self.models, sq)]
+            [model.Q(s, dt, dtype=dtype, device=device) for model, s in zip(self.models, sq)], -3
         )
 
     # --- YAML -----------------------------------------------------------------------------

@@ -52,29 +52,41 @@ def _per_axis(block: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def cv_matrix(dt: float, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Constant-velocity transition ``F_CV(dt)``, shape ``[9, 9]``."""
-    b = torch.tensor([[1.0, dt, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]], dtype=dtype, device=device)
-    return _per_axis(b)
+def _dt(dt, dtype, device) -> torch.Tensor:
+    """``dt`` as a tensor: a float gives a scalar, a tensor ``[...]`` (one interval per track) stays as it is."""
+    return torch.as_tensor(dt, dtype=dtype, device=device)
 
 
-def ca_matrix(dt: float, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Constant-acceleration transition ``F_CA(dt)``, shape ``[9, 9]``."""
-    b = torch.tensor(
-        [[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]], dtype=dtype, device=device
-    )
-    return _per_axis(b)
+def _block(rows, dt: torch.Tensor) -> torch.Tensor:
+    """A per-axis block ``[..., 3, 3]`` of entries that are numbers or tensors of ``dt``'s shape."""
+    full = [[torch.as_tensor(v, dtype=dt.dtype, device=dt.device).expand(dt.shape) for v in row] for row in rows]
+    return torch.stack([torch.stack(row, -1) for row in full], -2)
 
 
-def ct_matrix(turn_rate, dt: float, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Coordinated-turn transition ``F_CT(w, dt)``; a batch of turn rates ``[...]`` gives ``[..., 9, 9]``.
+def cv_matrix(dt, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Constant-velocity transition ``F_CV(dt)``, ``[9, 9]`` (``[..., 9, 9]`` for a tensor ``dt [...]``)."""
+    d = _dt(dt, dtype, device)
+    return _per_axis(_block([[1.0, d, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]], d))
+
+
+def ca_matrix(dt, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Constant-acceleration transition ``F_CA(dt)``, ``[9, 9]`` (``[..., 9, 9]`` for a tensor ``dt [...]``)."""
+    d = _dt(dt, dtype, device)
+    return _per_axis(_block([[1.0, d, 0.5 * d * d], [0.0, 1.0, d], [0.0, 0.0, 1.0]], d))
+
+
+def ct_matrix(turn_rate, dt, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Coordinated-turn transition ``F_CT(w, dt)``; a batch of turn rates ``[...]`` (and of intervals ``dt``
+    broadcasting against them) gives ``[..., 9, 9]``.
 
     ``w`` in rad/s. At ``w -> 0`` the limits ``sin(w dt)/w -> dt`` and ``(1 - cos(w dt))/w -> 0``
     are used, so CT(0) is CV in the plane with zero acceleration.
     """
     w = torch.as_tensor(turn_rate, dtype=dtype, device=device)
-    _, _, s, c, s_w, c_w = _turn_terms(w, dt, 1e-9)
-    F = cv_matrix(dt, dtype=dtype, device=w.device).expand(*w.shape, 9, 9).clone()
+    d = _dt(dt, dtype, w.device)
+    w, d = torch.broadcast_tensors(w, d)
+    _, _, s, c, s_w, c_w = _turn_terms(w, d, 1e-9)
+    F = cv_matrix(d, dtype=dtype, device=w.device).clone()
     lx, vx, ax, ly, vy, ay = 0, 1, 2, 3, 4, 5
     F[..., lx, vx], F[..., lx, vy] = s_w, -c_w
     F[..., ly, vx], F[..., ly, vy] = c_w, s_w
@@ -182,24 +194,26 @@ def adaptive_ct_propagate(x: torch.Tensor, lo, hi, dt: float) -> torch.Tensor:
     return ct_propagate(x, torch.clamp(turn_rate_of(x), lo, hi), dt)
 
 
-def noise_gain(dt: float, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Noise gain ``G`` of shape ``[9, 3]``: per axis ``[dt^2/2, dt, 0]`` (white) or ``[dt^2/2, dt, 1]`` (wiener)."""
+def noise_gain(dt, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Noise gain ``G`` ``[9, 3]`` (``[..., 9, 3]`` for a tensor ``dt [...]``): per axis ``[dt^2/2, dt, 0]``
+    (white) or ``[dt^2/2, dt, 1]`` (wiener)."""
     if kind not in (_WHITE, _WIENER):
         raise ValueError(f"noise kind must be 'white' or 'wiener', got {kind!r}")
-    g = torch.tensor([0.5 * dt * dt, dt, 1.0 if kind == _WIENER else 0.0], dtype=dtype, device=device)
-    G = torch.zeros(9, 3, dtype=dtype, device=device)
+    d = _dt(dt, dtype, device)
+    g = torch.stack([0.5 * d * d, d, torch.full_like(d, 1.0 if kind == _WIENER else 0.0)], -1)
+    G = d.new_zeros(*d.shape, 9, 3)
     for a in range(3):
-        G[3 * a : 3 * a + 3, a] = g
+        G[..., 3 * a : 3 * a + 3, a] = g
     return G
 
 
-def process_noise(sigma_q, dt: float, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
-    """``Q = sigma_q^2 G G^T``; a batch of ``sigma_q`` ``[...]`` gives ``[..., 9, 9]``."""
+def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
+    """``Q = sigma_q^2 G G^T``; a batch of ``sigma_q`` or of intervals ``dt`` ``[...]`` gives ``[..., 9, 9]``."""
     G = noise_gain(dt, kind, dtype=dtype, device=device)
     sq = torch.as_tensor(sigma_q, dtype=dtype, device=device)
     if (sq < 0).any():
         raise ValueError(f"sigma_q must be non-negative, got {sigma_q}")
-    return sq[..., None, None] ** 2 * (G @ G.T)
+    return sq[..., None, None] ** 2 * (G @ G.transpose(-1, -2))
 
 
 def measurement_matrix(dtype=torch.float64, device=None) -> torch.Tensor:

@@ -1,0 +1,93 @@
+"""The model-based IMM's scan loop: ``immnet.imm``'s stages in order, over a whole sequence.
+
+One scan, for every track at once (FilterPy's ``IMMEstimator`` order)::
+
+    w = mixing_weights(mu, Pi)           x0, P0 = mix(w, entering(x, P, onset))   # the interaction
+    xp, Pp = transition(t, x0, P0)       # each filter's mode-matched prediction over t-1 -> t
+    x, P, l = update(xp, Pp, z_t, R_t)   # the Kalman update; a NaN row is a missed detection (l = 0)
+    mu = mode_update(log cbar, l)        x_t = combine(x, mu)
+
+``transition(t, x0, P0)`` is the motion: a linear model set gives ``F x0`` and ``F P0 F^T + Q`` with ``F``,
+``Q`` of the interval before scan ``t`` (``linear_transition``; one interval per track, ``dt [B, T]``),
+the clairvoyant bound the truth's model of each track at ``t``. ``oracle [B, T]`` replaces the
+Bayesian mode update by the truth's mode (a bound, not a tracker: the interaction then takes each
+filter's prior from the true mode's filter, with the onset priors where the mode switched).
+
+A Kalman filter is the case of one model; the paper's IMMs and IMM-Tuned the case of a linear model set
+without onset priors. IMMNet's filter experts run the same stages inside ``immnet.stages`` (the
+model-based IMM-EKF is one of its configurations).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from immnet.imm.interaction import combine, entering, mix, mixing_weights, mode_update
+from immnet.imm.kalman import predict, update
+
+
+def linear_transition(F: torch.Tensor, Q: torch.Tensor) -> Callable:
+    """``transition`` of a linear model set: ``F``, ``Q`` ``[M, n, n]`` (shared), ``[B, M, n, n]`` (one
+    interval per track) or ``[B, T, M, n, n]`` (one per track and scan: the interval before scan ``t``)."""
+    per_scan = F.dim() == 5
+
+    def transition(t: int, x0: torch.Tensor, P0: torch.Tensor):
+        Ft, Qt = (F[:, t], Q[:, t]) if per_scan else (F, Q)
+        return predict(x0, P0, Ft, Qt)
+
+    return transition
+
+
+def _per_filter(R, like: torch.Tensor) -> torch.Tensor:
+    """The measurement variance or covariance broadcast over the filters: ``[B]`` -> ``[B, 1]``."""
+    R = torch.as_tensor(R, dtype=like.dtype, device=like.device)
+    return R[:, None] if R.dim() == 1 else R
+
+
+def run(
+    z: torch.Tensor,
+    x: torch.Tensor,
+    P: torch.Tensor,
+    mu: torch.Tensor,
+    Pi: torch.Tensor,
+    transition: Callable,
+    R,
+    onset: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    oracle: torch.Tensor | None = None,
+    return_experts: bool = False,
+):
+    """Filter ``z [B, T, 3]`` from the filters' states at scan 0, ``x [B, M, n]``, ``P [B, M, n, n]``, and
+    ``mu [B, M]``; ``Pi [M, M]``; ``R`` the measurement variance (a scalar, ``[B]``, or a covariance
+    ``[B, 1, 3, 3]``) or a callable ``R(t)`` of the scan; ``onset`` ``onset_priors``' ``(keep, mean, cov)``.
+
+    Returns ``state [B, T, n]`` (at scan 0 the combination of the given states), ``probs [B, T, M]`` and,
+    with ``return_experts``, the filters' posteriors ``[B, T, M, n]`` (else None).
+    """
+    B, T, _ = z.shape
+    M = x.shape[1]
+    onehot = None if oracle is None else torch.nn.functional.one_hot(oracle.long(), M).to(z.dtype)  # [B, T, M]
+    if onehot is not None:
+        mu = onehot[:, 0]
+    states, probs = z.new_empty(B, T, x.shape[-1]), z.new_empty(B, T, M)
+    experts = z.new_empty(B, T, M, x.shape[-1]) if return_experts else None
+    states[:, 0], probs[:, 0] = combine(x, None, mu)[0], mu
+    if return_experts:
+        experts[:, 0] = x
+    for t in range(1, T):
+        w = mixing_weights(mu, Pi)
+        if onset is not None:
+            x0, P0 = mix(w, *entering(x, P, *onset))
+        else:
+            x0, P0 = mix(w, x, P)
+        xp, Pp = transition(t, x0, P0)
+        x, P, ll = update(xp, Pp, z[:, t, None], None, _per_filter(R(t) if callable(R) else R, z))
+        if onehot is not None:
+            mu = onehot[:, t]
+        else:
+            mu = mode_update(torch.log(mu @ Pi if Pi.dim() == 2 else (mu.unsqueeze(-1) * Pi).sum(-2)), ll)
+        states[:, t], probs[:, t] = combine(x, None, mu)[0], mu
+        if return_experts:
+            experts[:, t] = x
+    return states, probs, experts
