@@ -12,12 +12,12 @@ A config path is looked for, in this order:
 
 from __future__ import annotations
 
+import importlib
 from importlib import resources
 from pathlib import Path
 
 import yaml
 
-from immnet.motion.base import instantiate
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 """The directory above the package: the checkout holding ``configs/`` and ``recipes/`` when the package
@@ -69,3 +69,22 @@ def build(spec):
     if isinstance(spec, (str, Path)):
         spec = load_yaml(spec)
     return instantiate(spec)
+
+
+def import_class(class_path: str):
+    """The class named by a dotted ``class_path``; ``ValueError`` naming it if it cannot be imported."""
+    module_name, _, cls_name = class_path.rpartition(".")
+    try:
+        return getattr(importlib.import_module(module_name), cls_name)
+    except (ImportError, AttributeError, ValueError) as err:
+        raise ValueError(f"unknown class_path {class_path!r}: {err}") from None
+
+
+def instantiate(entry: dict, **extra):
+    """Build ``class_path(**init_args, **extra)``; the YAML convention of Lightning's CLI.
+
+    ``extra`` carries what the caller knows and the YAML should not repeat (a stage's model set).
+    """
+    if not isinstance(entry, dict) or "class_path" not in entry:
+        raise ValueError(f"expected a mapping with 'class_path', got {entry!r}")
+    return import_class(entry["class_path"])(**(entry.get("init_args") or {}), **extra)

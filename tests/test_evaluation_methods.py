@@ -141,8 +141,8 @@ def test_the_working_directorys_method_configs_come_first(tmp_path, monkeypatch)
     mine.mkdir(parents=True)
     (mine / "imm-ekf.yaml").write_text("class_path: immnet.filters.IMMEKF\ninit_args: {p_stay: 0.9}\n")
     (mine / "my-imm.yaml").write_text("class_path: immnet.filters.IMMEKF\ninit_args: {p_stay: 0.8}\n")
-    assert build_method("imm-ekf").Pi[0, 0].item() == pytest.approx(0.9)
-    assert build_method("my-imm").Pi[0, 0].item() == pytest.approx(0.8)
+    assert build_method("imm-ekf").p_stay == pytest.approx(0.9)
+    assert build_method("my-imm").p_stay == pytest.approx(0.8)
     shipped = {p.stem for p in (packaged_configs() / "methods").glob("*.yaml")}
     assert shipped | {"my-imm", "measurements"} == set(configured_methods())
     with pytest.raises(ValueError, match="unknown method 'nope'") as err:

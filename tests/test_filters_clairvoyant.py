@@ -32,7 +32,7 @@ def test_clairvoyant_beats_raw_measurements(data, bound):
 def test_no_imm_beats_the_clairvoyant_bound(data, bound, name):
     path = REPO_ROOT / "configs" / "methods" / f"{name}.yaml"
     if not path.exists():
-        pytest.skip(f"{path.name} not written yet (immnet.filters.tuning.tune_imm)")
+        pytest.skip(f"{path.name} not written yet (immnet.evaluation.tuning.tune_imm)")
     with torch.no_grad():
         imm = rmse(position_error(build(path).track(data)[keys.STATE], data[keys.STATES]))["avg"]
     assert bound < imm, f"{name} {imm:.3f} m beat the clairvoyant bound {bound:.3f} m"

@@ -243,7 +243,7 @@ def run_tune(args) -> int:
     if not Path(args.data).is_dir():
         raise ValueError(f"tune-imm needs a generated data directory (it tunes on its validation split): {args.data}")
     try:
-        from immnet.filters.tuning import tune_imm
+        from immnet.evaluation.tuning import tune_imm
     except ImportError as err:
         raise ValueError(f"the IMM tuning search is not available ({err})") from None
     data, _ = load_split(args.data, args.split, args.n)

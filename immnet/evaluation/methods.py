@@ -30,7 +30,7 @@ from immnet import keys
 from immnet.config import REPO_ROOT, load_yaml, packaged_configs
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.motion import POS
-from immnet.motion.base import import_class
+from immnet.config import import_class
 
 METHODS_DIR = packaged_configs() / "methods"
 """Where the packaged ``<name>.yaml`` method configs live."""

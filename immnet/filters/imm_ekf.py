@@ -77,7 +77,7 @@ class IMMEKF(Method):
             "adapt": adapt, "spec": spec}}
         self.classifier = {"class_path": "immnet.stages.BayesianModeUpdate",
                            "init_args": {"p_stay": p_stay, "from_experts": True}}
-        self.dtype, self.name = as_dtype(dtype), name
+        self.p_stay, self.dtype, self.name = float(p_stay), as_dtype(dtype), name
         self._nets: dict = {}
         self.network(1.0)  # every argument checked now, not at the first batch
 

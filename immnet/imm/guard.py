@@ -62,8 +62,8 @@ class RangeGuard(Option):
     outer: float = _SPEC.bound_range_outer  # m: beyond, moving outward -> turn toward the radar
     inner: float = _SPEC.bound_range_inner  # m: within, moving inward -> turn away from it
     rate_deg: float = _SPEC.bound_turn_rate_deg  # the bound turn's rate
-    clear_share: float = math.sin(math.radians(_SPEC.bound_clear_heading_deg))  # the turn clears once the radial
-    # speed is beyond this share of the speed (its heading back by bound_clear_heading_deg)
+    clear_share: float = round(math.sin(math.radians(_SPEC.bound_clear_heading_deg)), 12)  # the turn clears once the
+    # radial speed is beyond this share of the speed (its heading back by bound_clear_heading_deg; sin 30 deg = 0.5)
     clear_margin: float = 3_000.0  # m: a clear is looked for within this distance of the bound
     range_soft: float = 10.0  # m: logistic width of the range thresholds
     speed_soft: float = 1.0  # m/s: of the radial-speed sign
@@ -80,7 +80,7 @@ class RangeGuard(Option):
     def from_spec(cls, spec: DataSpec, **fields) -> "RangeGuard":
         """The guard of the soft bounds of ``spec`` (a ``DataSpec``); ``fields`` override the rest."""
         bounds = {"outer": spec.bound_range_outer, "inner": spec.bound_range_inner, "rate_deg": spec.bound_turn_rate_deg,
-                  "clear_share": math.sin(math.radians(spec.bound_clear_heading_deg)), "speed_min": spec.bound_speed_min,
+                  "clear_share": round(math.sin(math.radians(spec.bound_clear_heading_deg)), 12), "speed_min": spec.bound_speed_min,
                   "speed_max": spec.bound_speed_max, "vz_max": spec.bound_vz}
         return cls(**(bounds | fields))
 

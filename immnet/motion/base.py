@@ -12,13 +12,13 @@ written in YAML with ``class_path`` / ``init_args``::
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 from typing import Sequence
 
 import torch
 import yaml
 
+from immnet.config import instantiate, resolve_path
 from immnet.motion import models as m
 
 
@@ -107,8 +107,6 @@ class ModelSet:
         if isinstance(spec, ModelSet):
             return spec
         if isinstance(spec, (str, Path)):
-            from immnet.config import resolve_path
-
             spec = yaml.safe_load(resolve_path(spec).read_text())
         if isinstance(spec, dict):
             if "models" not in spec:
@@ -125,22 +123,3 @@ class ModelSet:
                 for x in self.models
             ]
         }
-
-
-def import_class(class_path: str):
-    """The class named by a dotted ``class_path``; ``ValueError`` naming it if it cannot be imported."""
-    module_name, _, cls_name = class_path.rpartition(".")
-    try:
-        return getattr(importlib.import_module(module_name), cls_name)
-    except (ImportError, AttributeError, ValueError) as err:
-        raise ValueError(f"unknown class_path {class_path!r}: {err}") from None
-
-
-def instantiate(entry: dict, **extra):
-    """Build ``class_path(**init_args, **extra)``; the YAML convention of Lightning's CLI.
-
-    ``extra`` carries what the caller knows and the YAML should not repeat (a stage's model set).
-    """
-    if not isinstance(entry, dict) or "class_path" not in entry:
-        raise ValueError(f"expected a mapping with 'class_path', got {entry!r}")
-    return import_class(entry["class_path"])(**(entry.get("init_args") or {}), **extra)

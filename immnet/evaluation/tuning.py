@@ -105,7 +105,7 @@ def write_config(setting: dict, avg_rmse: float, out_path, n: int, evaluated: in
                  grid: dict | None = None) -> None:
     tracker = make_tracker(setting)
     header = [
-        "# IMM-Tuned (docs/spec.md section 3): written by immnet.filters.tuning.tune_imm, do not edit by hand.",
+        "# IMM-Tuned (docs/spec.md section 3): written by immnet.evaluation.tuning.tune_imm, do not edit by hand.",
         f"# Coordinate search over {grid or GRID} ({evaluated} settings scored),",
         f"# chosen on validation data only: {data_desc or 'validation batch'}, {n} trajectories.",
         f"# Validation Average RMSE {avg_rmse:.4f} m; {datetime.date.today().isoformat()}.",
