@@ -1,0 +1,145 @@
+"""Issue 21, item 3: stages that tell the truth.
+
+Every stage of every IMMNet configuration that changes a stage's keys is run on a real scan's
+TensorDict (an IMMNet rollout up to that scan, then the stages before it), on
+``td.select(*stage.in_keys)`` alone: it must not miss a key, it must write exactly its ``out_keys``
+(a key is written when it is new or its tensor changed identity or value), it must give the same outputs there as on the whole scan (it reads nothing else), and every key it
+declares to read must matter (without it the stage fails or gives other outputs).
+"""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.utils import unravel_key
+
+from immnet import keys
+from immnet.data.generate import generate
+from immnet.data.spec import DataSpec
+from immnet.stages import IMMNet
+
+FILTERING = "immnet.stages.filtering."
+CONFIGS = {
+    "kalmannet+transformer": {},
+    "kalmannet-adaptive-ct": {"model_set": "configs/model_sets/imm4-adaptive.yaml"},
+    "analytic+bayes": {"model_set": "configs/model_sets/imm3.yaml",
+                       "gain": {"class_path": "immnet.stages.AnalyticGain"},
+                       "classifier": {"class_path": "immnet.stages.BayesianModeUpdate"}},
+    "analytic+uniform": {"gain": {"class_path": "immnet.stages.AnalyticGain"},
+                         "classifier": {"class_path": "immnet.stages.UniformMix"}},
+    "filter-fused+bayes-transformer": {"model_set": "configs/model_sets/imm4-adaptive.yaml",
+                                       "gain": {"class_path": FILTERING + "FilterGain"},
+                                       "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier"}},
+    "filter-imm-guard+bayes-experts": {
+        "model_set": "configs/model_sets/imm4-adaptive.yaml",
+        "gain": {"class_path": FILTERING + "FilterGain", "init_args": {"interaction": "imm", "guard": True}},
+        "classifier": {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}},
+    "kalmannet-filter-imm-guard+bayes-transformer": {
+        "model_set": "configs/model_sets/imm4-adaptive.yaml",
+        "gain": {"class_path": FILTERING + "KalmanNetFilterGain",
+                 "init_args": {"interaction": "imm", "p_stay": 0.999, "guard": True}},
+        "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier", "init_args": {"p_stay": 0.999}}},
+    "kalmannet-filter-imm-guard-adapt+bayes-guarded": {
+        "model_set": "configs/model_sets/imm4-adaptive.yaml",
+        "gain": {"class_path": FILTERING + "KalmanNetFilterGain",
+                 "init_args": {"interaction": "imm", "guard": True, "adapt": True}},
+        "classifier": {"class_path": "immnet.stages.BayesianModeUpdate"}},
+    "kalmannet-filter-imm+transformer": {
+        "model_set": "configs/model_sets/imm4-adaptive.yaml",
+        "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {"interaction": "imm"}}},
+    "kalmannet-filter-fused-adapt+uniform": {
+        "model_set": "configs/model_sets/imm4-adaptive.yaml",
+        "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {"adapt": True}},
+        "classifier": {"class_path": "immnet.stages.UniformMix"}},
+    "single-ca": {"model_set": [{"class_path": "immnet.motion.ConstantAcceleration"}]},
+}
+# (configuration, experts alone): stage 1 runs each expert alone (``IMMNet.expert_step``)
+CASES = [(name, False) for name in CONFIGS if name != "single-ca"] + [
+    (name, True) for name in ("kalmannet+transformer", "filter-fused+bayes-transformer",
+                              "kalmannet-filter-imm-guard+bayes-transformer",
+                              "kalmannet-filter-imm-guard-adapt+bayes-guarded", "single-ca")
+]
+SCANS = 6  # the scan the stages are checked on: every track has started and run a few learned steps
+
+
+@pytest.fixture(scope="module")
+def data():
+    td = generate(6, seed=3, spec=DataSpec(T=SCANS + 1, min_segment=1, n_segments=1))
+    return td[keys.MEASUREMENTS].float()
+
+
+def _net(name: str) -> IMMNet:
+    torch.manual_seed(0)
+    return IMMNet(**CONFIGS[name])
+
+
+def _scan_inputs(net: IMMNet, z: torch.Tensor, alone: bool):
+    """The stages of one scan, each with the TensorDict it receives in a real rollout."""
+    if alone:
+        z = z.unsqueeze(1).expand(-1, net.n_experts, -1, -1)
+    with torch.no_grad():
+        _, carry = net.rollout(z[..., :SCANS, :], experts_alone=alone)
+    td = carry.copy()
+    td.set(keys.MEASUREMENT, z[..., SCANS, :])
+    step = net.expert_step if alone else net.step
+    for stage in step.module:
+        yield stage, td.copy()
+        with torch.no_grad():
+            td = stage(td)
+
+
+def _leaves(td: TensorDict) -> dict:
+    return {unravel_key(k): v for k, v in td.items(True, True)}
+
+
+def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
+    return a.shape == b.shape and a.dtype == b.dtype and bool(((a == b) | (a.isnan() & b.isnan())).all())
+
+
+def _owner(leaf, declared):
+    """The declared key a leaf lies under (a key, or a prefix of it: a nested TensorDict), or None."""
+    for key in declared:
+        key_t = (key,) if isinstance(key, str) else key
+        leaf_t = (leaf,) if isinstance(leaf, str) else leaf
+        if leaf_t[: len(key_t)] == key_t:
+            return key
+    return None
+
+
+def _written(stage, td: TensorDict) -> tuple[dict, set]:
+    """Run ``stage`` on ``td``; its outputs and the leaves it wrote (new, re-set or changed in place)."""
+    before = _leaves(td)
+    values = {k: v.clone() for k, v in before.items()}
+    with torch.no_grad():
+        out = stage(td)
+    after = _leaves(out)
+    written = {k for k, v in after.items() if k not in before or v is not before[k] or not _same(v, values[k])}
+    return after, written
+
+
+@pytest.mark.parametrize("name,alone", CASES, ids=[f"{n}{'-alone' if a else ''}" for n, a in CASES])
+def test_every_stage_reads_and_writes_exactly_its_declared_keys(name, alone, data):
+    net = _net(name)
+    for stage, td in _scan_inputs(net, data, alone):
+        what = f"{type(stage).__name__} ({name}{', experts alone' if alone else ''})"
+        missing = [k for k in stage.in_keys if k not in td.keys(True)]
+        assert not missing, f"{what} declares inputs {missing} that nothing before it provides"
+        try:
+            out, written = _written(stage, td.select(*stage.in_keys))
+        except Exception as err:  # tensordict's get of a missing key gives None: any error
+            pytest.fail(f"{what} fails on its declared inputs alone (it reads a key it does not declare): {err!r}")
+        full, _ = _written(stage, td.copy())
+        other = sorted(str(k) for k in out if not _same(out[k], full[k]))
+        assert not other, f"{what} gives other {other} on its declared inputs than on the whole scan: it reads more"
+        declared = [unravel_key(k) for k in stage.out_keys]
+        undeclared = sorted(str(k) for k in written if _owner(k, declared) is None)
+        assert not undeclared, f"{what} writes {undeclared}, not in its out_keys {declared}"
+        unwritten = [k for k in declared if not any(_owner(w, [k]) is not None for w in written)]
+        assert not unwritten, f"{what} declares outputs {unwritten} it does not write"
+        for key in stage.in_keys:
+            rest = [k for k in stage.in_keys if k != key]
+            try:
+                out2, _ = _written(stage, td.select(*rest))
+            except Exception:
+                continue  # it needs the key
+            changed = any(k not in out2 or not _same(out[k], out2[k]) for k in out if _owner(k, declared) is not None)
+            assert changed, f"{what} declares the input {key} but gives the same outputs without it"
