@@ -137,9 +137,69 @@ def test_every_stage_reads_and_writes_exactly_its_declared_keys(name, alone, dat
         assert not unwritten, f"{what} declares outputs {unwritten} it does not write"
         for key in stage.in_keys:
             rest = [k for k in stage.in_keys if k != key]
-            try:
-                out2, _ = _written(stage, td.select(*rest))
-            except Exception:
-                continue  # it needs the key
-            changed = any(k not in out2 or not _same(out[k], out2[k]) for k in out if _owner(k, declared) is not None)
-            assert changed, f"{what} declares the input {key} but gives the same outputs without it"
+            assert _needs(stage, td.select(*rest), out, declared) or _needs(
+                stage, _perturbed(td.select(*stage.in_keys), key), out, declared
+            ), f"{what} declares the input {key} but gives the same outputs without it or with it changed"
+
+
+def _needs(stage, td, out, declared) -> bool:
+    """Whether ``stage`` on ``td`` fails or gives other outputs than ``out``."""
+    try:
+        other, _ = _written(stage, td)
+    except Exception:
+        return True
+    return any(k not in other or not _same(out[k], other[k]) for k in out if _owner(k, declared) is not None)
+
+
+def _perturbed(td: TensorDict, key) -> TensorDict:
+    """``td`` with the leaves under ``key`` moved (floats by a quarter of their size plus one, NaN to 1,
+    integers by one): for a key whose value in the scan checked happens not to matter (zeros, say)."""
+    td = td.copy()
+    for leaf, v in _leaves(td).items():
+        if _owner(leaf, [unravel_key(key)]) is not None:
+            moved = torch.nan_to_num(v, nan=1.0) + 0.25 * (1.0 + v.abs()) if v.is_floating_point() else v + 1
+            td.set(leaf, torch.nan_to_num(moved, nan=1.0))
+    return td
+
+
+def _renamed(key):
+    return ("renamed", *((key,) if isinstance(key, str) else key))
+
+
+@pytest.mark.parametrize("name,alone", CASES, ids=[f"{n}{'-alone' if a else ''}" for n, a in CASES])
+def test_set_keys_renames_what_every_stage_reads_and_writes(name, alone, data):
+    """``set_keys`` (TorchRL's): every key of a stage moved under ``"renamed"``; the stage reads and
+    writes the new names, gives the outputs of the default names, and leaves a default-named key
+    of the TensorDict that is no longer its own alone."""
+    from immnet.stages.base import KEY_NAMES
+
+    by_key = {v: n for n, v in KEY_NAMES.items()}
+    for stage, td in _scan_inputs(_net(name), data, alone):
+        inputs = td.select(*stage.in_keys)
+        out, _ = _written(stage, inputs.copy())
+        default_in, default_out = [unravel_key(k) for k in stage.in_keys], [unravel_key(k) for k in stage.out_keys]
+        mine = dict.fromkeys(default_in + default_out)
+        stage.set_keys(**{by_key[k]: _renamed(k) for k in mine})
+        assert [unravel_key(k) for k in stage.in_keys] == [_renamed(k) for k in default_in]
+        assert [unravel_key(k) for k in stage.out_keys] == [_renamed(k) for k in default_out]
+        moved = TensorDict({_renamed(k): v for k, v in _leaves(inputs).items()}, batch_size=inputs.batch_size)
+        decoy = torch.full((inputs.batch_size[0], 1), 7.0)
+        moved.set("measurement" if keys.MEASUREMENT not in mine else ("fused", "state"), decoy)
+        result = _leaves(stage(moved))
+        for k, v in out.items():
+            if _owner(k, default_out) is not None:
+                assert _same(result[_renamed(k)], v), (type(stage).__name__, k)
+        assert [k for k in result if k[0] != "renamed"] == [k for k in _leaves(moved) if k[0] != "renamed"]
+        assert all(result[k] is decoy for k in result if k[0] != "renamed")
+        stage.set_keys(**{by_key[k]: k for k in mine})  # back to the defaults
+        assert [unravel_key(k) for k in stage.in_keys] == default_in
+
+
+def test_set_keys_refuses_a_key_the_stage_does_not_have():
+    net = _net("kalmannet+transformer")
+    with pytest.raises(ValueError, match="not one of its keys"):
+        net.predict.set_keys(mode_logits="x")
+    with pytest.raises(ValueError, match="no key named"):
+        net.predict.set_keys(fusd="x")
+    with pytest.raises(ValueError, match="already the key of"):
+        net.fuse.set_keys(fused=keys.PREV_FUSED)

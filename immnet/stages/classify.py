@@ -149,16 +149,32 @@ class TransformerClassifier(Stage):
         return td
 
 
-def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, td=None) -> torch.Tensor:
+def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, transition: torch.Tensor | None = None) -> torch.Tensor:
     """The IMM's predicted mode log-probabilities ``log (Pi^T mu_{t-1})`` ``[B, M]`` from ``mu_{t-1} [B, M]``.
 
-    Where the step's interaction wrote a transition matrix per track (``("mode", "transition")``, a
-    guarded IMM: ``immnet.filters.guard``) it is used instead of ``log_pi``, so that the mode update
-    predicts with the transitions the experts were mixed with."""
-    transition = None if td is None else td.get(keys.MODE_TRANSITION, None)
+    A transition matrix per track ``transition [B, M, M]`` (``("mode", "transition")``, a guarded
+    IMM's interaction: ``immnet.filters.guard``) is used instead of ``log_pi``, so that the mode
+    update predicts with the transitions the experts were mixed with."""
     if transition is not None:
         return torch.log((prev.unsqueeze(-1) * transition.to(prev.dtype)).sum(1).clamp_min(1e-30))
     return torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + log_pi, dim=1)
+
+
+class _MarkovPrior:
+    """What the Bayesian mode updates share: the Markov prior ``log (Pi^T mu_{t-1})``, from the
+    transition matrix the step's interaction writes (``("mode", "transition")``, a guarded IMM) where
+    it writes one (``wire``), else from ``log_pi``."""
+
+    reads_transition = False
+
+    def wire(self, upstream: set) -> None:
+        if keys.MODE_TRANSITION in upstream and not self.reads_transition:
+            self.reads_transition = True
+            self.in_keys = [*self.in_keys, keys.MODE_TRANSITION]
+
+    def markov_prior(self, td, prev: torch.Tensor) -> torch.Tensor:
+        transition = td.get(keys.MODE_TRANSITION) if self.reads_transition else None
+        return markov_prior(prev, self.log_pi.to(prev.dtype), transition)
 
 
 class UniformMix(Stage):
@@ -178,7 +194,7 @@ class UniformMix(Stage):
         return td
 
 
-class BayesianModeUpdate(Stage):
+class BayesianModeUpdate(_MarkovPrior, Stage):
     """Ablation: the IMM's Bayesian mode update with a Markov transition ``Pi`` (``p_stay`` on the diagonal).
 
     ``mu_t^(i) ∝ N(nu_t^(i); 0, S^(i)) sum_j Pi_ji mu_{t-1}^(j)``, in log space; ``S^(i)`` is the
@@ -187,7 +203,7 @@ class BayesianModeUpdate(Stage):
     own ``S``: the IMM's mode update exactly).
     """
 
-    in_keys = _MODE_KEYS_IN + [keys.EXPERT_PROBS]
+    in_keys = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_PROBS]
     out_keys = _MODE_KEYS_OUT
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0,
@@ -218,14 +234,14 @@ class BayesianModeUpdate(Stage):
             loglik = self.log_norm - 0.5 * torch.einsum("bmi,mij,bmj->bm", nu, self.S_inv, nu)
             loglik = torch.where(has_z, loglik, 0.0)
         prev = td.get(keys.EXPERT_PROBS)
-        log_pred = markov_prior(prev, self.log_pi, td)
+        log_pred = self.markov_prior(td, prev)
         logits = log_pred + loglik
         td.set(keys.MODE_LOGITS, logits)
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
         return td
 
 
-class BayesTransformerClassifier(TransformerClassifier):
+class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
     """The IMM's Bayesian mode update, corrected by the Transformer: logits
     ``log (Pi^T mu_{t-1}) + log N(nu^(i); 0, S^(i)) + transformer(window)``.
 
@@ -252,7 +268,7 @@ class BayesTransformerClassifier(TransformerClassifier):
 
     def forward(self, td):
         prev = td.get(keys.EXPERT_PROBS)
-        bayes = markov_prior(prev, self.log_pi.to(prev.dtype), td) + td.get(keys.EXPERT_LOGLIK)
+        bayes = self.markov_prior(td, prev) + td.get(keys.EXPERT_LOGLIK)
         td = super().forward(td)
         logits = bayes + td.get(keys.MODE_LOGITS)
         td.set(keys.MODE_LOGITS, logits)

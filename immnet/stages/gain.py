@@ -145,10 +145,11 @@ class AnalyticGain(Stage):
     """The Kalman gain of each expert from its covariance (ablation; no learned parameters).
 
     Reads the fused covariance ``P_{t-1|t-1}`` (``("fused", "cov")``), writes each expert's prior
-    gain and posterior covariance ``P^(i)_{t|t}`` (Joseph form) to ``("expert", "cov")``.
+    gain and posterior covariance ``P^(i)_{t|t}`` (Joseph form) to ``("expert", "cov")``; the gain
+    takes the fused state's dtype.
     """
 
-    in_keys = [keys.MEASUREMENT, keys.FUSED_COV]
+    in_keys = [keys.MEASUREMENT, keys.FUSED_COV, keys.FUSED]
     out_keys = [keys.EXPERT_GAIN, keys.EXPERT_COV]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, sigma_q: float = 1.0, r: float = 4.0):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictSequential
+from tensordict.utils import unravel_key
 from torch import nn
 
 from immnet import keys
@@ -35,6 +36,15 @@ def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:
         c = cond.view(-1, *([1] * (y.dim() - 1)))
         out.set(key, torch.where(c, x.to(y.dtype), y))
     return out
+
+
+def _wired(*stages):
+    """The stages of a step, each told the keys the stages before it write (``Stage.wire``)."""
+    upstream = set()
+    for stage in stages:
+        stage.wire(set(upstream))
+        upstream |= {unravel_key(k) for k in stage.out_keys}
+    return stages
 
 
 class IMMNet(nn.Module):
@@ -60,8 +70,9 @@ class IMMNet(nn.Module):
         self.update = update(ms, dt) if update is not None else Update(ms)
         self.classify = instantiate(classifier or DEFAULT_CLASSIFIER, model_set=ms, dt=dt)
         self.fuse = Fuse(ms)
-        self.step = TensorDictSequential(self.predict, self.gain, self.update, self.classify, self.fuse)
-        self.expert_step = TensorDictSequential(self.predict, self.gain, self.update, Fuse(ms, per_expert=True))
+        self.step = TensorDictSequential(*_wired(self.predict, self.gain, self.update, self.classify, self.fuse))
+        alone = (self.predict, self.gain, self.update, self.fuse)
+        self.expert_step = TensorDictSequential(*_wired(*(stage.for_experts_alone() for stage in alone)))
         onehot = torch.zeros(len(ms), 4)
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
         self.register_buffer("mode_onehot", onehot)
