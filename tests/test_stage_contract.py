@@ -203,3 +203,40 @@ def test_set_keys_refuses_a_key_the_stage_does_not_have():
         net.predict.set_keys(fusd="x")
     with pytest.raises(ValueError, match="already the key of"):
         net.fuse.set_keys(fused=keys.PREV_FUSED)
+
+
+@pytest.mark.parametrize("name,alone", CASES, ids=[f"{n}{'-alone' if a else ''}" for n, a in CASES])
+def test_the_carry_is_what_the_stages_declare(name, alone, data):
+    """``IMMNet.initial_carry`` is the union of the stages' ``carry_spec`` (no key declared twice) and
+    the track-start counts; it primes every key the step reads besides the measurement, holds only
+    keys the step writes (so each moves on every scan), and has the keys, shapes and dtypes a real
+    rollout's carry has; a stage's ``start_carry`` sets only keys it carries."""
+    net = _net(name)
+    B, M = data.shape[0], net.n_experts
+    z = data.unsqueeze(1).expand(-1, M, -1, -1) if alone else data
+    step = net.expert_step if alone else net.step
+    carry = _leaves(net.initial_carry(B, alone))
+    declared = {keys.AGE: None, keys.START_SCANS: None}
+    for stage in step.module:
+        spec = _leaves(TensorDict(stage.carry_spec(B, alone), batch_size=[B]))
+        twice = set(spec) & set(declared)
+        assert not twice, f"{type(stage).__name__} carries {twice}, declared before it"
+        declared.update(spec)
+    assert set(carry) == set(declared)
+    step_in = {unravel_key(k) for k in step.in_keys} - {keys.MEASUREMENT}
+    unprimed = [k for k in step_in if not any(_owner(leaf, [k]) for leaf in carry)]
+    assert not unprimed, f"the step reads {unprimed}, which no stage carries"
+    step_out = [unravel_key(k) for k in step.out_keys]
+    assert all(_owner(k, step_out) is not None for k in carry if k not in (keys.AGE, keys.START_SCANS))
+    with torch.no_grad():
+        _, after_one = net.rollout(z[..., :1, :], experts_alone=alone)
+        _, after = net.rollout(z[..., :SCANS, :], experts_alone=alone)
+    rolled = _leaves(after)
+    for key, value in carry.items():
+        assert rolled[key].shape == value.shape and rolled[key].dtype == value.dtype, key
+    x = torch.zeros(z.shape[:-2] + (9,))
+    for stage in step.module:
+        own = set(_leaves(TensorDict(stage.carry_spec(B, alone), batch_size=[B])))
+        for second, before in ((False, net.initial_carry(B, alone)), (True, after_one)):
+            started = _leaves(TensorDict(stage.start_carry(before, z[..., 1, :], x, second), batch_size=[B]))
+            assert set(started) <= own, (type(stage).__name__, set(started) - own)

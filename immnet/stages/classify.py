@@ -32,6 +32,11 @@ _MODE_KEYS_IN = [keys.MEASUREMENT, keys.FUSED, keys.EXPERT_PRIOR]
 _MODE_KEYS_OUT = [keys.MODE_LOGITS, keys.EXPERT_PROBS]
 
 
+def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None) -> dict:
+    """A classifier's carry before a track starts: the mode probabilities ``mu = 1/M``."""
+    return {keys.EXPERT_PROBS: torch.full((batch, n_experts), 1.0 / n_experts, dtype=dtype, device=device)}
+
+
 def heading_frame(v: torch.Tensor):
     """cos and sin of the horizontal heading of velocities ``v [B, 3]`` (heading 0 when at rest)."""
     speed = torch.sqrt(v[:, 0] ** 2 + v[:, 1] ** 2)
@@ -96,6 +101,19 @@ class TransformerClassifier(Stage):
 
     def initial_history(self, batch: int, dtype=torch.float32, device=None):
         return torch.zeros(batch, self.window, 12, dtype=dtype, device=device)
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The mode probabilities (uniform) and an empty window."""
+        return uniform_probs(batch, self.n_experts, dtype, device) | {
+            keys.HISTORY: self.initial_history(batch, dtype=dtype, device=device),
+            keys.HISTORY_LEN: torch.zeros(batch, dtype=torch.long, device=device),
+        }
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        """At a track's second detection the window holds the scan the first stored, ``(z_1, x_0)``."""
+        if not second:
+            return {}
+        return {keys.HISTORY_LEN: torch.ones_like(carry.get(keys.HISTORY_LEN)), keys.HISTORY: carry.get(keys.HISTORY)}
 
     def tokens(self, hist, fused):
         """Frame the window: ``hist [B, W, 12]`` of (z_tau, x_{tau-1}) against ``fused = x_{t-1|t-1}``."""
@@ -172,6 +190,10 @@ class _MarkovPrior:
             self.reads_transition = True
             self.in_keys = [*self.in_keys, keys.MODE_TRANSITION]
 
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The mode probabilities ``mu_{t-1}`` the prior predicts from (uniform), and what else the stage carries."""
+        return uniform_probs(batch, self.n_experts, dtype, device) | super().carry_spec(batch, experts_alone, dtype, device)
+
     def markov_prior(self, td, prev: torch.Tensor) -> torch.Tensor:
         transition = td.get(keys.MODE_TRANSITION) if self.reads_transition else None
         return markov_prior(prev, self.log_pi.to(prev.dtype), transition)
@@ -185,6 +207,9 @@ class UniformMix(Stage):
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0):
         super().__init__(model_set)
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        return uniform_probs(batch, self.n_experts, dtype, device)
 
     def forward(self, td):
         x = td.get(keys.FUSED)

@@ -394,6 +394,14 @@ class _FilterExperts:
         return r2
 
     # --- a starting track ---------------------------------------------------------------------
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """What the gain it is mixed into carries (KalmanNet's hidden states), and ``initial_memory``."""
+        shape = (batch, self.n_experts) if experts_alone else (batch,)
+        return super().carry_spec(batch, experts_alone, dtype, device) | self.initial_memory(shape, dtype, device)
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        return super().start_carry(carry, z, x, second) | self.start_memory(carry, z, x, second)
+
     def initial_memory(self, shape, dtype=torch.float32, device=None) -> dict:
         """The gain's part of a carry for tracks that have not started; ``shape`` is ``[B]`` or ``[B, M]``."""
         M = self.n_experts

@@ -42,6 +42,26 @@ class Fuse(Stage):
     def for_experts_alone(self) -> "Fuse":
         return self if self.per_expert else Fuse(self.model_set, per_expert=True, cov=self.cov)
 
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The step's memory, zero before a track starts: ``x``, ``x_{t-2}``, the experts' priors, ``z_{t-1}``."""
+        lead = (batch, self.n_experts) if experts_alone else (batch,)
+        return {
+            keys.FUSED: torch.zeros(*lead, 9, dtype=dtype, device=device),
+            keys.PREV_FUSED: torch.zeros(*lead, 9, dtype=dtype, device=device),
+            keys.PREV_EXPERT_PRIOR: torch.zeros(batch, self.n_experts, 9, dtype=dtype, device=device),
+            keys.PREV_MEASUREMENT: torch.zeros(*lead, 3, dtype=dtype, device=device),
+        }
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        """A starting track's memory: its start estimate ``x`` as the fused state and every expert's
+        prior, ``z`` as the previous measurement, and as ``x_{t-2}`` the first scan's estimate."""
+        return {
+            keys.PREV_FUSED: carry.get(keys.FUSED) if second else x,
+            keys.FUSED: x,
+            keys.PREV_EXPERT_PRIOR: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, self.n_experts, -1)).clone(),
+            keys.PREV_MEASUREMENT: z,
+        }
+
     def forward(self, td):
         post = td.get(keys.EXPERT_POST)
         cov = td.get(keys.EXPERT_COV) if self.cov else None

@@ -7,6 +7,8 @@ YAML list of motion models. A track starts from two measurements: at its first s
 is ``[z_0, 0, 0]``, at its second ``[z_1, (z_1 - z_0)/dt, 0]`` (position and differenced
 velocity), and from its third scan on the learned step runs. Tracks start independently: the carry
 holds each track's age, so one code path serves batched rollouts and the streaming ``Tracker``.
+The carry is what the stages declare they carry (``Stage.carry_spec``, ``Stage.start_carry``;
+docs/stages.md), and each stage is told what the stages before it write (``Stage.wire``).
 """
 
 from __future__ import annotations
@@ -86,64 +88,47 @@ class IMMNet(nn.Module):
         return expert_probs @ self.mode_onehot.to(expert_probs.dtype)
 
     # --- the carry ------------------------------------------------------------------------
+    def _steps(self, experts_alone: bool):
+        return (self.expert_step if experts_alone else self.step).module
+
     def initial_carry(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> TensorDict:
-        """A carry of ``batch`` tracks that have not started (age 0)."""
-        M = self.n_experts
-        shape = (batch, M, 9) if experts_alone else (batch, 9)
-        zeros = torch.zeros(shape, dtype=dtype, device=device)
+        """A carry of ``batch`` tracks that have not started (age 0): the track-start counts and what each
+        stage of the step declares it carries (``Stage.carry_spec``, docs/stages.md)."""
         td = TensorDict(
             {
-                keys.FUSED: zeros,
-                keys.PREV_FUSED: zeros,
-                keys.PREV_EXPERT_PRIOR: torch.zeros(batch, M, 9, dtype=dtype, device=device),
-                keys.PREV_MEASUREMENT: torch.zeros(shape[:-1] + (3,), dtype=dtype, device=device),
                 keys.AGE: torch.zeros(batch, dtype=torch.long, device=device),
                 keys.START_SCANS: torch.zeros(batch, dtype=torch.long, device=device),
-                keys.EXPERT_PROBS: torch.full((batch, M), 1.0 / M, dtype=dtype, device=device),
             },
             batch_size=[batch],
             device=device,
         )
-        if hasattr(self.gain, "initial_hidden"):
-            td.set(keys.EXPERT_HIDDEN, {k: v.to(dtype) for k, v in self.gain.initial_hidden(batch).items()})
-        if hasattr(self.gain, "initial_cov"):
-            td.set(keys.FUSED_COV, self.gain.initial_cov(shape[:-1], first=True))
-        if hasattr(self.gain, "initial_memory"):
-            for key, value in self.gain.initial_memory(shape[:-1], dtype=dtype, device=device).items():
+        owner = {}
+        for stage in self._steps(experts_alone):
+            for key, value in stage.carry_spec(batch, experts_alone, dtype, device).items():
+                key = unravel_key(key)
+                if key in owner or key in (keys.AGE, keys.START_SCANS):
+                    raise ValueError(f"{type(stage).__name__} and {owner.get(key, 'IMMNet')} both carry {key}")
+                owner[key] = type(stage).__name__
                 td.set(key, value)
-        if getattr(self.predict, "guard", None) is not None and not experts_alone:
-            td.set(keys.GUARD_FRESH, torch.zeros(batch, M, dtype=dtype, device=device))
-        if hasattr(self.classify, "initial_history") and not experts_alone:
-            td.set(keys.HISTORY, self.classify.initial_history(batch, dtype=dtype, device=device))
-            td.set(keys.HISTORY_LEN, torch.zeros(batch, dtype=torch.long, device=device))
         return td
 
     def _start(self, carry: TensorDict, z: torch.Tensor, second: bool) -> TensorDict:
-        """The carry after a track's first (``second=False``) or second measurement."""
-        M = self.n_experts
-        fresh = self.initial_carry(carry.batch_size[0], z.dim() == 3, z.dtype, z.device)
+        """The carry after a track's first (``second=False``) or second measurement: the start estimate
+        ``[z, 0, 0]`` (first) or ``[z, differenced velocity, 0]`` (second), and what each stage sets at a
+        track start (``Stage.start_carry``); the rest as ``initial_carry``."""
+        alone = z.dim() == 3
+        fresh = self.initial_carry(carry.batch_size[0], alone, z.dtype, z.device)
         x = torch.zeros(z.shape[:-1] + (9,), dtype=z.dtype, device=z.device)
         x[..., list(POS)] = z
         if second:
             # differenced velocity over the time since the first detection (missed scans between count)
             elapsed = (carry.get(keys.START_SCANS).clamp_min(1) * self.dt).to(z.dtype)
             x[..., list(VEL)] = (z - carry.get(keys.PREV_MEASUREMENT)) / elapsed.view(-1, *([1] * (z.dim() - 1)))
-            fresh.set(keys.PREV_FUSED, carry.get(keys.FUSED))
-            if fresh.get(keys.HISTORY_LEN, None) is not None:
-                # the classifier has just stored (z_1, x_0): the window holds one scan
-                fresh.set(keys.HISTORY_LEN, torch.ones_like(carry.get(keys.AGE)))
-                fresh.set(keys.HISTORY, carry.get(keys.HISTORY))
-            if fresh.get(keys.FUSED_COV, None) is not None:
-                fresh.set(keys.FUSED_COV, self.gain.initial_cov(z.shape[:-1], first=False))
         else:
-            fresh.set(keys.PREV_FUSED, x)
             fresh.set(keys.START_SCANS, torch.ones_like(carry.get(keys.AGE)))
-        if hasattr(self.gain, "start_memory"):
-            for key, value in self.gain.start_memory(carry, z, x, second).items():
+        for stage in self._steps(alone):
+            for key, value in stage.start_carry(carry, z, x, second).items():
                 fresh.set(key, value)
-        fresh.set(keys.FUSED, x)
-        fresh.set(keys.PREV_EXPERT_PRIOR, (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone())
-        fresh.set(keys.PREV_MEASUREMENT, z)
         fresh.set(keys.AGE, carry.get(keys.AGE) + 1)
         return fresh
 
@@ -171,8 +156,9 @@ class IMMNet(nn.Module):
         new = _where((age < 2) & ~has, carry.select(*carry_keys), new)
         waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
         new.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, new.get(keys.START_SCANS)))
-        uniform = torch.full_like(new.get(keys.EXPERT_PROBS), 1.0 / self.n_experts)
-        new.set(keys.EXPERT_PROBS, torch.where((age < 2)[:, None], uniform, new.get(keys.EXPERT_PROBS)))
+        if keys.EXPERT_PROBS in carry_keys:  # a starting track's modes are uniform (experts alone have none)
+            uniform = torch.full_like(new.get(keys.EXPERT_PROBS), 1.0 / self.n_experts)
+            new.set(keys.EXPERT_PROBS, torch.where((age < 2)[:, None], uniform, new.get(keys.EXPERT_PROBS)))
         for key in out.keys(True, True):
             if key not in carry_keys:
                 new.set(key, out.get(key))
