@@ -15,9 +15,8 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictSequential
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import unravel_key
-from torch import nn
 
 from immnet import keys
 from immnet.motion import POS, VEL, ModelSet, instantiate
@@ -49,8 +48,18 @@ def _wired(*stages):
     return stages
 
 
-class IMMNet(nn.Module):
-    """The hybrid tracker. ``model_set``: a YAML path or a list of ``class_path`` entries."""
+class IMMNet(TensorDictModuleBase):
+    """The hybrid tracker. ``model_set``: a YAML path or a list of ``class_path`` entries.
+
+    As a TensorDict module (a policy of ``immnet.data.env.LASTEnv``, TorchRL's recurrent-module
+    conventions) one call is one scan: it reads ``measurement`` ``z_t [B, 3]``, its carry (the leaves of
+    ``initial_carry``) and ``is_init [B, 1]`` (True: the track restarts from ``initial_carry``), and
+    writes ``action`` (``x_{t|t}``) and the next carry under ``"next"``. In an environment, append
+    ``make_tensordict_primer()`` (the carry in its specs) and ``torchrl.envs.InitTracker()``::
+
+        env = TransformedEnv(LASTEnv.generate(B, seed), Compose(InitTracker(), net.make_tensordict_primer()))
+        rollout = env.rollout(env.base_env.T, net)      # rollout["action"] == net.rollout(z)[0]["state"]
+    """
 
     def __init__(
         self,
@@ -75,6 +84,10 @@ class IMMNet(nn.Module):
         self.step = TensorDictSequential(*_wired(self.predict, self.gain, self.update, self.classify, self.fuse))
         alone = (self.predict, self.gain, self.update, self.fuse)
         self.expert_step = TensorDictSequential(*_wired(*(stage.for_experts_alone() for stage in alone)))
+        carry = [unravel_key(k) for k in self.initial_carry(1).keys(True, True)]
+        self.carry_keys = carry
+        self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry]
+        self.out_keys = [keys.ACTION, *(("next", *k) for k in carry)]
         onehot = torch.zeros(len(ms), 4)
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
         self.register_buffer("mode_onehot", onehot)
@@ -168,6 +181,39 @@ class IMMNet(nn.Module):
         start = start if start.dim() == 3 else start.unsqueeze(1).expand(-1, self.n_experts, -1)
         new.set(keys.EXPERT_POST, torch.where((age < 2)[:, None, None], start, new.get(keys.EXPERT_POST)))
         return new
+
+    # --- a policy -------------------------------------------------------------------------
+    def make_tensordict_primer(self, dtype=torch.float32):
+        """The carry as a ``torchrl.envs.TensorDictPrimer`` (its keys in the environment's specs; zero
+        at a reset, where ``is_init`` makes the policy start from ``initial_carry``)."""
+        from torchrl.data import Unbounded
+        from torchrl.envs import TensorDictPrimer
+
+        carry = self.initial_carry(1, dtype=dtype)
+        return TensorDictPrimer(
+            {k: Unbounded(shape=carry.get(k).shape[1:], dtype=carry.get(k).dtype) for k in self.carry_keys},
+            expand_specs=True,
+        )
+
+    def forward(self, td: TensorDict) -> TensorDict:
+        """One scan as a TensorDict module (class doc): the carry read from ``td`` (``initial_carry`` where
+        ``is_init`` or where ``td`` holds none), ``action`` and ``("next", carry)`` written."""
+        z = td.get(keys.MEASUREMENT)
+        B = z.shape[0]
+        fresh = self.initial_carry(B, dtype=z.dtype, device=z.device)
+        present = set(td.keys(True, True))
+        if all(k in present for k in self.carry_keys):
+            carry = td.select(*self.carry_keys)
+            init = td.get(keys.IS_INIT, None)
+            if init is not None:
+                carry = _where(init.reshape(B), fresh, carry)
+        else:
+            carry = fresh
+        new = self.scan(carry, z)
+        td.set(keys.ACTION, new.get(keys.FUSED))
+        for key in self.carry_keys:
+            td.set(("next", *key), new.get(key))
+        return td
 
     # --- a whole sequence -----------------------------------------------------------------
     def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False):
