@@ -69,3 +69,15 @@ def test_the_policys_keys_are_the_carry_and_the_measurement(net):
     carry = set(net.initial_carry(2).keys(True, True))
     assert set(net.in_keys) == {keys.MEASUREMENT, keys.IS_INIT} | carry
     assert set(net.out_keys) == {keys.ACTION} | {("next", *k) for k in carry}
+
+
+def test_a_policy_without_its_carry_is_refused_by_name(data, net):
+    """Without the primer the carry does not come back from the environment: a clear error, not a restart."""
+    z = data[keys.MEASUREMENTS].float()
+    td = TensorDict({keys.MEASUREMENT: z[:, 0], keys.IS_INIT: torch.zeros(z.shape[0], 1, dtype=torch.bool)},
+                    batch_size=[z.shape[0]])
+    with pytest.raises(ValueError, match="make_tensordict_primer"):
+        net(td)
+    env = TransformedEnv(LASTEnv(data), InitTracker())
+    with pytest.raises(ValueError, match="make_tensordict_primer"):
+        env.rollout(3, net)

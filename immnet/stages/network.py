@@ -202,13 +202,18 @@ class IMMNet(TensorDictModuleBase):
         B = z.shape[0]
         fresh = self.initial_carry(B, dtype=z.dtype, device=z.device)
         present = set(td.keys(True, True))
-        if all(k in present for k in self.carry_keys):
+        missing = [k for k in self.carry_keys if k not in present]
+        init = td.get(keys.IS_INIT, None)
+        if not missing:
             carry = td.select(*self.carry_keys)
-            init = td.get(keys.IS_INIT, None)
             if init is not None:
                 carry = _where(init.reshape(B), fresh, carry)
+        elif len(missing) == len(self.carry_keys) and (init is None or bool(init.all())):
+            carry = fresh  # the first scan of tracks that all start
         else:
-            carry = fresh
+            raise ValueError(f"IMMNet: the TensorDict holds no carry {missing[:3]}{'...' if len(missing) > 3 else ''} for "
+                             "tracks that are not starting (is_init False); in an environment, append "
+                             "net.make_tensordict_primer()")
         new = self.scan(carry, z)
         td.set(keys.ACTION, new.get(keys.FUSED))
         for key in self.carry_keys:
