@@ -29,6 +29,10 @@ ROLLOUT_EXPERT_PROBS = "expert_probs"  # mu_t over the experts [B, T, M]
 ROLLOUT_MODE_LOGITS = "mode_logits"  # the classifier's logits [B, T, M]
 ROLLOUT_EXPERT_POST = "expert_post"  # each expert's posterior x_{t|t}^(i) [B, T, M, 9]
 
+# --- IMMNet as a policy of a TorchRL environment (immnet.data.env.LASTEnv) -------------------------
+ACTION = "action"  # the policy's action: its state estimate x_{t|t} [B, 9]
+IS_INIT = "is_init"  # [B, 1] bool, True where a track (re)starts (TorchRL's InitTracker)
+
 # --- one tracker step (immnet.stages) ---------------------------------------------------------
 MEASUREMENT = "measurement"  # z_t [B, 3]
 PREV_MEASUREMENT = ("memory", "measurement")  # z_{t-1} [B, 3]

@@ -15,7 +15,7 @@ from immnet.checkpoints import load_checkpoint
 from immnet.config import REPO_ROOT
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
-from immnet.filters import kalman
+from immnet.imm import kalman
 from immnet.motion import ModelSet
 from immnet.stages import IMMNet
 from immnet.stages.layers import StackedGRUCell, StackedLinear

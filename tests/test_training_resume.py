@@ -156,11 +156,20 @@ def _children(pid: int) -> list[int]:
     return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
 
 
-def _alive(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except FileNotFoundError:
-        return False
+def _alive(pid: int, grace: float = 10.0) -> bool:
+    """Whether ``pid`` still runs ``grace`` seconds from now (a process that closed its pipes is still
+    finishing its exit for a moment; an orphan that trains on stays alive)."""
+    import time
+
+    end = time.monotonic() + grace
+    while True:
+        try:
+            running = Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+        except FileNotFoundError:
+            running = False
+        if not running or time.monotonic() > end:
+            return running
+        time.sleep(0.1)
 
 
 @pytest.mark.slow

@@ -1,18 +1,71 @@
 """What a stage is: a ``TensorDictModuleBase`` over the key vocabulary of ``immnet.keys``.
 
-Every stage reads the keys it names in ``in_keys`` and writes those in ``out_keys``; a tracker step
-is a ``TensorDictSequential`` of five stages (predict, gain, update, classify, fuse). Tensors are
-``[B, ...]`` for a fused quantity and ``[B, M, ...]`` for one per expert. In stage-1 training each
-expert runs alone on its own trajectories, so the "fused" state is itself ``[B, M, 9]``;
-``per_expert`` lets every stage accept both.
+A tracker step is a ``TensorDictSequential`` of five stages (predict, gain, update, classify, fuse).
+Tensors are ``[B, ...]`` for a fused quantity and ``[B, M, ...]`` for one per expert. In stage-1
+training each expert runs alone on its own trajectories, so the "fused" state is itself
+``[B, M, 9]``; ``per_expert`` lets every stage accept both.
+
+Each stage tells the truth about itself (docs/stages.md; ``tests/test_stage_contract.py`` holds it to it):
+
+* ``in_keys`` / ``out_keys``: exactly what this instance, as configured, reads and writes;
+* ``set_keys(**names)``: renames its keys (TorchRL's ``set_keys``), by the lower-case names of
+  ``immnet.keys`` (``fused=("track", "x")``); the stage reads and writes the new names;
+* ``wire(upstream)``: told what the stages before it in the step write, a stage whose inputs depend
+  on them declares them (a Bayesian mode update reads the guarded transition matrix where the
+  interaction writes one);
+* ``carry_spec(batch, experts_alone, dtype, device)``: the state it carries from one scan to the
+  next, with its value for a track that has not started (TorchRL's primer), and
+  ``start_carry(carry, z, x, second)`` its value after a track's first or second detection;
+* ``for_experts_alone()``: the stage as stage 1 runs it (each expert alone), where its keys differ.
 """
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import unravel_key
 
+from immnet import keys
 from immnet.motion import ModelSet
+
+KEY_NAMES = {
+    name.lower(): unravel_key(value)
+    for name, value in vars(keys).items()
+    if name.isupper() and name != "DATA_KEYS" and isinstance(value, (str, tuple))
+}
+"""``set_keys``'s vocabulary: the lower-case name of each key constant of ``immnet.keys``."""
+
+
+def _renaming(body):
+    """``forward`` that runs ``body`` under the default key names where ``set_keys`` renamed some."""
+
+    @functools.wraps(body)
+    def forward(self, td, *args, **kwargs):
+        renamed = self._renamed
+        if not renamed or self._under_defaults:
+            return body(self, td, *args, **kwargs)
+        present = set(td.keys(True))
+        stash = {d: td.pop(d) for d in renamed if d in present}  # a default name used for something else
+        for default, custom in renamed.items():
+            if custom in present:
+                td.set(default, td.pop(custom))
+        self._under_defaults = True
+        try:
+            td = body(self, td, *args, **kwargs)
+        finally:
+            self._under_defaults = False
+        present = set(td.keys(True))
+        for default, custom in renamed.items():
+            if default in present:
+                td.set(custom, td.pop(default))
+        for default, value in stash.items():
+            td.set(default, value)
+        return td
+
+    forward._renaming = True
+    return forward
 
 
 class Stage(TensorDictModuleBase):
@@ -21,10 +74,60 @@ class Stage(TensorDictModuleBase):
     in_keys: list = []
     out_keys: list = []
 
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        body = cls.__dict__.get("forward")
+        if body is not None and not getattr(body, "_renaming", False):
+            cls.forward = _renaming(body)
+
     def __init__(self, model_set: ModelSet | None = None):
         super().__init__()
         self.model_set = model_set
         self.n_experts = len(model_set) if model_set is not None else 1
+        self._renamed: dict = {}  # default key -> this instance's name for it (set_keys)
+        self._under_defaults = False
+
+    # --- keys ---------------------------------------------------------------------------------
+    def set_keys(self, **names) -> "Stage":
+        """Rename this stage's keys: ``name=new_key`` with ``name`` a lower-case key name of
+        ``immnet.keys`` among this stage's keys; returns the stage."""
+        mine = {unravel_key(k) for k in (*self.in_keys, *self.out_keys)}
+        current = {self._renamed.get(d, d): d for d in KEY_NAMES.values()}
+        for name, new in names.items():
+            if name not in KEY_NAMES:
+                raise ValueError(f"{type(self).__name__}.set_keys: no key named {name!r} in immnet.keys")
+            default = KEY_NAMES[name]
+            old = self._renamed.get(default, default)
+            if old not in mine:
+                raise ValueError(f"{type(self).__name__}.set_keys: {name!r} ({default}) is not one of its keys")
+            new = unravel_key(new)
+            if new in current and current[new] != default:
+                raise ValueError(f"{type(self).__name__}.set_keys: {new} is already the key of {current[new]}")
+            self.in_keys = [new if unravel_key(k) == old else k for k in self.in_keys]
+            self.out_keys = [new if unravel_key(k) == old else k for k in self.out_keys]
+            if new == default:
+                self._renamed.pop(default, None)
+            else:
+                self._renamed[default] = new
+        return self
+
+    def wire(self, upstream: set) -> None:
+        """Told the keys the stages before it in a step write (default names); by default nothing changes."""
+
+    def for_experts_alone(self) -> "Stage":
+        """This stage as stage 1 runs it, each expert alone; itself where its keys are the same."""
+        return self
+
+    # --- the carry ------------------------------------------------------------------------------
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The keys this stage carries from one scan to the next, each with its value for ``batch``
+        tracks that have not started (``[B, ...]``, or ``[B, M, ...]`` per expert and experts alone)."""
+        return {}
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        """The carried keys that a track's first (``second=False``) or second detection ``z`` sets
+        (start estimate ``x``), from the ``carry`` before it; the others take ``carry_spec``'s value."""
+        return {}
 
 
 def per_expert(x: torch.Tensor, n_experts: int, event_dims: int = 1) -> torch.Tensor:

@@ -32,6 +32,11 @@ _MODE_KEYS_IN = [keys.MEASUREMENT, keys.FUSED, keys.EXPERT_PRIOR]
 _MODE_KEYS_OUT = [keys.MODE_LOGITS, keys.EXPERT_PROBS]
 
 
+def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None) -> dict:
+    """A classifier's carry before a track starts: the mode probabilities ``mu = 1/M``."""
+    return {keys.EXPERT_PROBS: torch.full((batch, n_experts), 1.0 / n_experts, dtype=dtype, device=device)}
+
+
 def heading_frame(v: torch.Tensor):
     """cos and sin of the horizontal heading of velocities ``v [B, 3]`` (heading 0 when at rest)."""
     speed = torch.sqrt(v[:, 0] ** 2 + v[:, 1] ** 2)
@@ -97,6 +102,19 @@ class TransformerClassifier(Stage):
     def initial_history(self, batch: int, dtype=torch.float32, device=None):
         return torch.zeros(batch, self.window, 12, dtype=dtype, device=device)
 
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The mode probabilities (uniform) and an empty window."""
+        return uniform_probs(batch, self.n_experts, dtype, device) | {
+            keys.HISTORY: self.initial_history(batch, dtype=dtype, device=device),
+            keys.HISTORY_LEN: torch.zeros(batch, dtype=torch.long, device=device),
+        }
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        """At a track's second detection the window holds the scan the first stored, ``(z_1, x_0)``."""
+        if not second:
+            return {}
+        return {keys.HISTORY_LEN: torch.ones_like(carry.get(keys.HISTORY_LEN)), keys.HISTORY: carry.get(keys.HISTORY)}
+
     def tokens(self, hist, fused):
         """Frame the window: ``hist [B, W, 12]`` of (z_tau, x_{tau-1}) against ``fused = x_{t-1|t-1}``."""
         W = self.window
@@ -149,16 +167,36 @@ class TransformerClassifier(Stage):
         return td
 
 
-def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, td=None) -> torch.Tensor:
+def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, transition: torch.Tensor | None = None) -> torch.Tensor:
     """The IMM's predicted mode log-probabilities ``log (Pi^T mu_{t-1})`` ``[B, M]`` from ``mu_{t-1} [B, M]``.
 
-    Where the step's interaction wrote a transition matrix per track (``("mode", "transition")``, a
-    guarded IMM: ``immnet.imm.guard``) it is used instead of ``log_pi``, so that the mode update
-    predicts with the transitions the experts were mixed with."""
-    transition = None if td is None else td.get(keys.MODE_TRANSITION, None)
+    A transition matrix per track ``transition [B, M, M]`` (``("mode", "transition")``, a guarded
+    IMM's interaction: ``immnet.imm.guard``) is used instead of ``log_pi``, so that the mode
+    update predicts with the transitions the experts were mixed with."""
     if transition is not None:
         return torch.log((prev.unsqueeze(-1) * transition.to(prev.dtype)).sum(1).clamp_min(1e-30))
     return torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + log_pi, dim=1)
+
+
+class _MarkovPrior:
+    """What the Bayesian mode updates share: the Markov prior ``log (Pi^T mu_{t-1})``, from the
+    transition matrix the step's interaction writes (``("mode", "transition")``, a guarded IMM) where
+    it writes one (``wire``), else from ``log_pi``."""
+
+    reads_transition = False
+
+    def wire(self, upstream: set) -> None:
+        if keys.MODE_TRANSITION in upstream and not self.reads_transition:
+            self.reads_transition = True
+            self.in_keys = [*self.in_keys, keys.MODE_TRANSITION]
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The mode probabilities ``mu_{t-1}`` the prior predicts from (uniform), and what else the stage carries."""
+        return uniform_probs(batch, self.n_experts, dtype, device) | super().carry_spec(batch, experts_alone, dtype, device)
+
+    def markov_prior(self, td, prev: torch.Tensor) -> torch.Tensor:
+        transition = td.get(keys.MODE_TRANSITION) if self.reads_transition else None
+        return markov_prior(prev, self.log_pi.to(prev.dtype), transition)
 
 
 class UniformMix(Stage):
@@ -170,6 +208,9 @@ class UniformMix(Stage):
     def __init__(self, model_set: ModelSet, dt: float = 1.0):
         super().__init__(model_set)
 
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        return uniform_probs(batch, self.n_experts, dtype, device)
+
     def forward(self, td):
         x = td.get(keys.FUSED)
         logits = x.new_zeros(x.shape[0], self.n_experts)
@@ -178,7 +219,7 @@ class UniformMix(Stage):
         return td
 
 
-class BayesianModeUpdate(Stage):
+class BayesianModeUpdate(_MarkovPrior, Stage):
     """Ablation: the IMM's Bayesian mode update with a Markov transition ``Pi`` (``p_stay`` on the diagonal).
 
     ``mu_t^(i) ∝ N(nu_t^(i); 0, S^(i)) sum_j Pi_ji mu_{t-1}^(j)``, in log space; ``S^(i)`` is the
@@ -187,7 +228,7 @@ class BayesianModeUpdate(Stage):
     own ``S``: the IMM's mode update exactly).
     """
 
-    in_keys = _MODE_KEYS_IN + [keys.EXPERT_PROBS]
+    in_keys = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_PROBS]
     out_keys = _MODE_KEYS_OUT
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0,
@@ -218,14 +259,14 @@ class BayesianModeUpdate(Stage):
             loglik = self.log_norm - 0.5 * torch.einsum("bmi,mij,bmj->bm", nu, self.S_inv, nu)
             loglik = torch.where(has_z, loglik, 0.0)
         prev = td.get(keys.EXPERT_PROBS)
-        log_pred = markov_prior(prev, self.log_pi, td)
+        log_pred = self.markov_prior(td, prev)
         logits = log_pred + loglik
         td.set(keys.MODE_LOGITS, logits)
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
         return td
 
 
-class BayesTransformerClassifier(TransformerClassifier):
+class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
     """The IMM's Bayesian mode update, corrected by the Transformer: logits
     ``log (Pi^T mu_{t-1}) + log N(nu^(i); 0, S^(i)) + transformer(window)``.
 
@@ -252,7 +293,7 @@ class BayesTransformerClassifier(TransformerClassifier):
 
     def forward(self, td):
         prev = td.get(keys.EXPERT_PROBS)
-        bayes = markov_prior(prev, self.log_pi.to(prev.dtype), td) + td.get(keys.EXPERT_LOGLIK)
+        bayes = self.markov_prior(td, prev) + td.get(keys.EXPERT_LOGLIK)
         td = super().forward(td)
         logits = bayes + td.get(keys.MODE_LOGITS)
         td.set(keys.MODE_LOGITS, logits)

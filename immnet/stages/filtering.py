@@ -136,7 +136,7 @@ class FilterPredict(Predict):
     the next scan, where that one-scan turn clears).
     """
 
-    in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV, keys.EXPERT_PROBS]
+    in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
     out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995,
@@ -144,10 +144,12 @@ class FilterPredict(Predict):
         super().__init__(model_set, dt)
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
-        self.interaction = interaction
-        if self.guard is not None:
-            self.out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV, keys.MODE_TRANSITION,
-                             keys.GUARD_FRESH]
+        self.interaction, self.p_stay = interaction, float(p_stay)
+        if interaction == "imm":  # the mix reads the previous scan's mode probabilities
+            self.in_keys = [*self.in_keys, keys.EXPERT_PROBS]
+        if self.guard is not None:  # and the speed-bound shares it carries; it writes both for the mode update
+            self.in_keys = [*self.in_keys, keys.GUARD_FRESH]
+            self.out_keys = [*self.out_keys, keys.MODE_TRANSITION, keys.GUARD_FRESH]
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         M = len(model_set)
         f64 = torch.float64  # float64, so that a .double() model is exact
@@ -182,6 +184,18 @@ class FilterPredict(Predict):
                     J[i, r, c] = v
         self.register_buffer("J_base", J, persistent=False)
         self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in TURN_ENTRIES]), persistent=False)
+
+    def for_experts_alone(self) -> "FilterPredict":
+        """Experts alone start from their own posterior with either interaction: no mix, no guard."""
+        if self.interaction == "fused":
+            return self
+        return FilterPredict(self.model_set, self.dt, "fused", self.p_stay)
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The guard's speed-bound shares (none entered yet)."""
+        if self.guard is None or experts_alone:
+            return {}
+        return {keys.GUARD_FRESH: torch.zeros(batch, self.n_experts, dtype=dtype, device=device)}
 
     def _mix(self, td):
         """The IMM's mixed estimate of each expert ``[B, M, 10]`` and its covariance ``[B, M, 10, 10]``."""
@@ -338,6 +352,14 @@ class _FilterExperts:
         return r2
 
     # --- a starting track ---------------------------------------------------------------------
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """What the gain it is mixed into carries (KalmanNet's hidden states), and ``initial_memory``."""
+        shape = (batch, self.n_experts) if experts_alone else (batch,)
+        return super().carry_spec(batch, experts_alone, dtype, device) | self.initial_memory(shape, dtype, device)
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        return super().start_carry(carry, z, x, second) | self.start_memory(carry, z, x, second)
+
     def initial_memory(self, shape, dtype=torch.float32, device=None) -> dict:
         """The gain's part of a carry for tracks that have not started; ``shape`` is ``[B]`` or ``[B, M]``."""
         M = self.n_experts

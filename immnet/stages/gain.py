@@ -108,6 +108,10 @@ class KalmanNetGain(Stage):
             "s": self.h0_s.expand(batch, -1, -1),
         }
 
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The GRUs' hidden states, started at their learned ``h0``."""
+        return {keys.EXPERT_HIDDEN: {k: v.to(dtype) for k, v in self.initial_hidden(batch).items()}}
+
     def features(self, td):
         M = self.n_experts
         z = per_expert(td.get(keys.MEASUREMENT), M)
@@ -145,10 +149,11 @@ class AnalyticGain(Stage):
     """The Kalman gain of each expert from its covariance (ablation; no learned parameters).
 
     Reads the fused covariance ``P_{t-1|t-1}`` (``("fused", "cov")``), writes each expert's prior
-    gain and posterior covariance ``P^(i)_{t|t}`` (Joseph form) to ``("expert", "cov")``.
+    gain and posterior covariance ``P^(i)_{t|t}`` (Joseph form) to ``("expert", "cov")``; the gain
+    takes the fused state's dtype.
     """
 
-    in_keys = [keys.MEASUREMENT, keys.FUSED_COV]
+    in_keys = [keys.MEASUREMENT, keys.FUSED_COV, keys.FUSED]
     out_keys = [keys.EXPERT_GAIN, keys.EXPERT_COV]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, sigma_q: float = 1.0, r: float = 4.0):
@@ -166,6 +171,13 @@ class AnalyticGain(Stage):
         vel = 300.0**2 if first else 2.0 * r2 / self.dt**2
         d = torch.tensor([r2, vel, 100.0] * 3, dtype=self.F.dtype, device=self.F.device)
         return torch.diag(d).expand(*shape, 9, 9).clone()
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The fused covariance, a one-scan track's (what a first detection sets)."""
+        return {keys.FUSED_COV: self.initial_cov((batch, self.n_experts) if experts_alone else (batch,), first=True)}
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        return {keys.FUSED_COV: self.initial_cov(z.shape[:-1], first=False)} if second else {}
 
     def forward(self, td):
         P = per_expert(td.get(keys.FUSED_COV), self.n_experts, event_dims=2).to(self.F.dtype)

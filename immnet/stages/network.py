@@ -7,14 +7,16 @@ YAML list of motion models. A track starts from two measurements: at its first s
 is ``[z_0, 0, 0]``, at its second ``[z_1, (z_1 - z_0)/dt, 0]`` (position and differenced
 velocity), and from its third scan on the learned step runs. Tracks start independently: the carry
 holds each track's age, so one code path serves batched rollouts and the streaming ``Tracker``.
+The carry is what the stages declare they carry (``Stage.carry_spec``, ``Stage.start_carry``;
+docs/stages.md), and each stage is told what the stages before it write (``Stage.wire``).
 """
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import TensorDictSequential
-from torch import nn
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from tensordict.utils import unravel_key
 
 from immnet import keys
 from immnet.motion import POS, VEL, ModelSet, instantiate
@@ -37,8 +39,27 @@ def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:
     return out
 
 
-class IMMNet(nn.Module):
-    """The hybrid tracker. ``model_set``: a YAML path or a list of ``class_path`` entries."""
+def _wired(*stages):
+    """The stages of a step, each told the keys the stages before it write (``Stage.wire``)."""
+    upstream = set()
+    for stage in stages:
+        stage.wire(set(upstream))
+        upstream |= {unravel_key(k) for k in stage.out_keys}
+    return stages
+
+
+class IMMNet(TensorDictModuleBase):
+    """The hybrid tracker. ``model_set``: a YAML path or a list of ``class_path`` entries.
+
+    As a TensorDict module (a policy of ``immnet.data.env.LASTEnv``, TorchRL's recurrent-module
+    conventions) one call is one scan: it reads ``measurement`` ``z_t [B, 3]``, its carry (the leaves of
+    ``initial_carry``) and ``is_init [B, 1]`` (True: the track restarts from ``initial_carry``), and
+    writes ``action`` (``x_{t|t}``) and the next carry under ``"next"``. In an environment, append
+    ``make_tensordict_primer()`` (the carry in its specs) and ``torchrl.envs.InitTracker()``::
+
+        env = TransformedEnv(LASTEnv.generate(B, seed), Compose(InitTracker(), net.make_tensordict_primer()))
+        rollout = env.rollout(env.base_env.T, net)      # rollout["action"] == net.rollout(z)[0]["state"]
+    """
 
     def __init__(
         self,
@@ -60,8 +81,13 @@ class IMMNet(nn.Module):
         self.update = update(ms, dt) if update is not None else Update(ms)
         self.classify = instantiate(classifier or DEFAULT_CLASSIFIER, model_set=ms, dt=dt)
         self.fuse = Fuse(ms)
-        self.step = TensorDictSequential(self.predict, self.gain, self.update, self.classify, self.fuse)
-        self.expert_step = TensorDictSequential(self.predict, self.gain, self.update, Fuse(ms, per_expert=True))
+        self.step = TensorDictSequential(*_wired(self.predict, self.gain, self.update, self.classify, self.fuse))
+        alone = (self.predict, self.gain, self.update, self.fuse)
+        self.expert_step = TensorDictSequential(*_wired(*(stage.for_experts_alone() for stage in alone)))
+        carry = [unravel_key(k) for k in self.initial_carry(1).keys(True, True)]
+        self.carry_keys = carry
+        self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry]
+        self.out_keys = [keys.ACTION, *(("next", *k) for k in carry)]
         onehot = torch.zeros(len(ms), 4)
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
         self.register_buffer("mode_onehot", onehot)
@@ -75,64 +101,47 @@ class IMMNet(nn.Module):
         return expert_probs @ self.mode_onehot.to(expert_probs.dtype)
 
     # --- the carry ------------------------------------------------------------------------
+    def _steps(self, experts_alone: bool):
+        return (self.expert_step if experts_alone else self.step).module
+
     def initial_carry(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> TensorDict:
-        """A carry of ``batch`` tracks that have not started (age 0)."""
-        M = self.n_experts
-        shape = (batch, M, 9) if experts_alone else (batch, 9)
-        zeros = torch.zeros(shape, dtype=dtype, device=device)
+        """A carry of ``batch`` tracks that have not started (age 0): the track-start counts and what each
+        stage of the step declares it carries (``Stage.carry_spec``, docs/stages.md)."""
         td = TensorDict(
             {
-                keys.FUSED: zeros,
-                keys.PREV_FUSED: zeros,
-                keys.PREV_EXPERT_PRIOR: torch.zeros(batch, M, 9, dtype=dtype, device=device),
-                keys.PREV_MEASUREMENT: torch.zeros(shape[:-1] + (3,), dtype=dtype, device=device),
                 keys.AGE: torch.zeros(batch, dtype=torch.long, device=device),
                 keys.START_SCANS: torch.zeros(batch, dtype=torch.long, device=device),
-                keys.EXPERT_PROBS: torch.full((batch, M), 1.0 / M, dtype=dtype, device=device),
             },
             batch_size=[batch],
             device=device,
         )
-        if hasattr(self.gain, "initial_hidden"):
-            td.set(keys.EXPERT_HIDDEN, {k: v.to(dtype) for k, v in self.gain.initial_hidden(batch).items()})
-        if hasattr(self.gain, "initial_cov"):
-            td.set(keys.FUSED_COV, self.gain.initial_cov(shape[:-1], first=True))
-        if hasattr(self.gain, "initial_memory"):
-            for key, value in self.gain.initial_memory(shape[:-1], dtype=dtype, device=device).items():
+        owner = {}
+        for stage in self._steps(experts_alone):
+            for key, value in stage.carry_spec(batch, experts_alone, dtype, device).items():
+                key = unravel_key(key)
+                if key in owner or key in (keys.AGE, keys.START_SCANS):
+                    raise ValueError(f"{type(stage).__name__} and {owner.get(key, 'IMMNet')} both carry {key}")
+                owner[key] = type(stage).__name__
                 td.set(key, value)
-        if getattr(self.predict, "guard", None) is not None and not experts_alone:
-            td.set(keys.GUARD_FRESH, torch.zeros(batch, M, dtype=dtype, device=device))
-        if hasattr(self.classify, "initial_history") and not experts_alone:
-            td.set(keys.HISTORY, self.classify.initial_history(batch, dtype=dtype, device=device))
-            td.set(keys.HISTORY_LEN, torch.zeros(batch, dtype=torch.long, device=device))
         return td
 
     def _start(self, carry: TensorDict, z: torch.Tensor, second: bool) -> TensorDict:
-        """The carry after a track's first (``second=False``) or second measurement."""
-        M = self.n_experts
-        fresh = self.initial_carry(carry.batch_size[0], z.dim() == 3, z.dtype, z.device)
+        """The carry after a track's first (``second=False``) or second measurement: the start estimate
+        ``[z, 0, 0]`` (first) or ``[z, differenced velocity, 0]`` (second), and what each stage sets at a
+        track start (``Stage.start_carry``); the rest as ``initial_carry``."""
+        alone = z.dim() == 3
+        fresh = self.initial_carry(carry.batch_size[0], alone, z.dtype, z.device)
         x = torch.zeros(z.shape[:-1] + (9,), dtype=z.dtype, device=z.device)
         x[..., list(POS)] = z
         if second:
             # differenced velocity over the time since the first detection (missed scans between count)
             elapsed = (carry.get(keys.START_SCANS).clamp_min(1) * self.dt).to(z.dtype)
             x[..., list(VEL)] = (z - carry.get(keys.PREV_MEASUREMENT)) / elapsed.view(-1, *([1] * (z.dim() - 1)))
-            fresh.set(keys.PREV_FUSED, carry.get(keys.FUSED))
-            if fresh.get(keys.HISTORY_LEN, None) is not None:
-                # the classifier has just stored (z_1, x_0): the window holds one scan
-                fresh.set(keys.HISTORY_LEN, torch.ones_like(carry.get(keys.AGE)))
-                fresh.set(keys.HISTORY, carry.get(keys.HISTORY))
-            if fresh.get(keys.FUSED_COV, None) is not None:
-                fresh.set(keys.FUSED_COV, self.gain.initial_cov(z.shape[:-1], first=False))
         else:
-            fresh.set(keys.PREV_FUSED, x)
             fresh.set(keys.START_SCANS, torch.ones_like(carry.get(keys.AGE)))
-        if hasattr(self.gain, "start_memory"):
-            for key, value in self.gain.start_memory(carry, z, x, second).items():
+        for stage in self._steps(alone):
+            for key, value in stage.start_carry(carry, z, x, second).items():
                 fresh.set(key, value)
-        fresh.set(keys.FUSED, x)
-        fresh.set(keys.PREV_EXPERT_PRIOR, (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone())
-        fresh.set(keys.PREV_MEASUREMENT, z)
         fresh.set(keys.AGE, carry.get(keys.AGE) + 1)
         return fresh
 
@@ -160,8 +169,9 @@ class IMMNet(nn.Module):
         new = _where((age < 2) & ~has, carry.select(*carry_keys), new)
         waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
         new.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, new.get(keys.START_SCANS)))
-        uniform = torch.full_like(new.get(keys.EXPERT_PROBS), 1.0 / self.n_experts)
-        new.set(keys.EXPERT_PROBS, torch.where((age < 2)[:, None], uniform, new.get(keys.EXPERT_PROBS)))
+        if keys.EXPERT_PROBS in carry_keys:  # a starting track's modes are uniform (experts alone have none)
+            uniform = torch.full_like(new.get(keys.EXPERT_PROBS), 1.0 / self.n_experts)
+            new.set(keys.EXPERT_PROBS, torch.where((age < 2)[:, None], uniform, new.get(keys.EXPERT_PROBS)))
         for key in out.keys(True, True):
             if key not in carry_keys:
                 new.set(key, out.get(key))
@@ -171,6 +181,44 @@ class IMMNet(nn.Module):
         start = start if start.dim() == 3 else start.unsqueeze(1).expand(-1, self.n_experts, -1)
         new.set(keys.EXPERT_POST, torch.where((age < 2)[:, None, None], start, new.get(keys.EXPERT_POST)))
         return new
+
+    # --- a policy -------------------------------------------------------------------------
+    def make_tensordict_primer(self, dtype=torch.float32):
+        """The carry as a ``torchrl.envs.TensorDictPrimer`` (its keys in the environment's specs; zero
+        at a reset, where ``is_init`` makes the policy start from ``initial_carry``)."""
+        from torchrl.data import Unbounded
+        from torchrl.envs import TensorDictPrimer
+
+        carry = self.initial_carry(1, dtype=dtype)
+        return TensorDictPrimer(
+            {k: Unbounded(shape=carry.get(k).shape[1:], dtype=carry.get(k).dtype) for k in self.carry_keys},
+            expand_specs=True,
+        )
+
+    def forward(self, td: TensorDict) -> TensorDict:
+        """One scan as a TensorDict module (class doc): the carry read from ``td`` (``initial_carry`` where
+        ``is_init`` or where ``td`` holds none), ``action`` and ``("next", carry)`` written."""
+        z = td.get(keys.MEASUREMENT)
+        B = z.shape[0]
+        fresh = self.initial_carry(B, dtype=z.dtype, device=z.device)
+        present = set(td.keys(True, True))
+        missing = [k for k in self.carry_keys if k not in present]
+        init = td.get(keys.IS_INIT, None)
+        if not missing:
+            carry = td.select(*self.carry_keys)
+            if init is not None:
+                carry = _where(init.reshape(B), fresh, carry)
+        elif len(missing) == len(self.carry_keys) and (init is None or bool(init.all())):
+            carry = fresh  # the first scan of tracks that all start
+        else:
+            raise ValueError(f"IMMNet: the TensorDict holds no carry {missing[:3]}{'...' if len(missing) > 3 else ''} for "
+                             "tracks that are not starting (is_init False); in an environment, append "
+                             "net.make_tensordict_primer()")
+        new = self.scan(carry, z)
+        td.set(keys.ACTION, new.get(keys.FUSED))
+        for key in self.carry_keys:
+            td.set(("next", *key), new.get(key))
+        return td
 
     # --- a whole sequence -----------------------------------------------------------------
     def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False):

@@ -237,7 +237,7 @@ class Stage2Module(_TrackerModule):
             self.net.load_state_dict(net)
         except RuntimeError as err:
             raise ValueError(f"checkpoint {path} does not match this IMMNet: {err}") from None
-        differ = [k for k in sorted(own.keys() & net.keys()) if not torch.equal(own[k], net[k].to(own[k].dtype))]
+        differ = [k for k in sorted(own.keys() & net.keys()) if not torch.equal(own[k].to(net[k].dtype), net[k])]  # in the file's precision
         if differ:
             raise ValueError(f"checkpoint {path} was trained with other settings than `net` gives: its buffers {differ} differ "
                              "(set net's settings, such as the classifier's p_stay, to the checkpoint's)")
