@@ -1,13 +1,15 @@
 """Finding and building configured components (``class_path`` / ``init_args`` YAML).
 
-The configs the package reads at run time (method registry, model sets, data sizes, ablations) ship
-inside it: a checkout's top-level ``configs/`` is installed as ``immnet/configs`` (docs/configs.md).
+The configs the package reads at run time (method registry, model sets, data sizes, ablations) and the
+recipes ship inside it: a checkout's top-level ``configs/`` and ``recipes/`` are installed as
+``immnet/configs`` and ``immnet/recipes`` (docs/configs.md).
 A config path is looked for, in this order:
 
 1. as given: absolute, or relative to the working directory (a user's own file wins);
 2. among the packaged configs, a leading ``configs/`` dropped (``configs/model_sets/imm4.yaml`` and
    ``model_sets/imm4.yaml`` name the same file);
-3. when the package runs from a checkout, relative to the checkout (``recipes/quick.yaml``).
+   ``recipes/X`` among the packaged recipes (``immnet/recipes``), which the ablations start from;
+3. when the package runs from a checkout, relative to the checkout.
 """
 
 from __future__ import annotations
@@ -39,8 +41,21 @@ def packaged_configs() -> Path:
     return REPO_ROOT / "configs"
 
 
-def _packaged_part(path: Path) -> Path:
-    return Path(*path.parts[1:]) if path.parts[:1] == ("configs",) else path
+def packaged_recipes() -> Path:
+    """The recipes that ship with the package (``immnet/recipes``; the checkout's ``recipes/`` in a checkout):
+    the ablations of ``configs/ablations`` start from them."""
+    installed = resources.files("immnet") / "recipes"
+    if installed.is_dir():
+        return Path(str(installed))
+    return REPO_ROOT / "recipes"
+
+
+def _packaged(path: Path) -> Path:
+    """Where ``path`` lies among the packaged files: ``recipes/X`` among the recipes, the rest among the
+    configs with a leading ``configs/`` dropped."""
+    if path.parts[:1] == ("recipes",):
+        return packaged_recipes() / Path(*path.parts[1:])
+    return packaged_configs() / (Path(*path.parts[1:]) if path.parts[:1] == ("configs",) else path)
 
 
 def resolve_path(path: str | Path) -> Path:
@@ -50,7 +65,7 @@ def resolve_path(path: str | Path) -> Path:
         return p
     looked = [Path.cwd() / p]
     if not p.is_absolute():
-        candidates = [packaged_configs() / _packaged_part(p)]
+        candidates = [_packaged(p)]
         if checkout() is not None:
             candidates.append(REPO_ROOT / p)
         for q in candidates:

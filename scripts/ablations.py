@@ -1,5 +1,6 @@
 """Train the ablations of configs/ablations with the quick recipe's budgets, then score them beside
-the full quick IMMNet on the quick test set in one run; writes runs/ablations/results.md.
+the full quick IMMNet on the quick test set in one run; writes runs/ablations/results.md. Each ablation's
+file says everything: what it runs (a chain of stages), its row's label and its weights.
 
 Run (after `bash scripts/main.sh`, which makes the data, the quick run and the single-expert
 ablation, the main table's plain KalmanNet, which is not trained again here):
@@ -13,32 +14,30 @@ import subprocess
 import sys
 from pathlib import Path
 
+import yaml
+
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "runs/quick"
-ABLATIONS = {  # name: (base recipe, needs the quick stage-1 experts)
-    "no-guard": ("recipes/quick-stage2.yaml", True),
-    "uniform-mix": ("recipes/quick-stage2.yaml", True),
-    "bayes-mode": ("recipes/quick-stage2.yaml", True),
-    "transformer-mode": ("recipes/quick-stage2.yaml", True),
-    "fused-input": ("recipes/quick-stage2.yaml", True),
-    "analytic-gain": ("recipes/quick-stage2.yaml", False),
-    "single-expert": ("recipes/quick-stage1.yaml", False),
-    "fixed-turn-rate": ("recipes/quick.yaml", False),  # both stages: the experts change
-    "kalmannet-experts": ("recipes/quick.yaml", False),
-}
+ABLATIONS = ROOT / "configs/ablations"
 MADE_BY_MAIN = {"single-expert"}  # scripts/main.sh trains it (the main table's plain KalmanNet)
 
 
-def ckpt(name: str) -> Path:
-    return ROOT / "runs/ablations" / name / "checkpoints/best.ckpt"
+def ablations() -> dict:
+    """Every ``configs/ablations/NAME.yaml``: its row ``label``, its weights ``checkpoint`` and how it is
+    scored (``evaluate``: IMMNet unless it says ``method: kalmannet``), from the file itself."""
+    out = {}
+    for path in sorted(ABLATIONS.glob("*.yaml")):
+        spec = yaml.safe_load(path.read_text())
+        missing = [k for k in ("label", "checkpoint", "stages") if k not in spec]
+        if missing:
+            raise SystemExit(f"{path}: an ablation names its {', '.join(missing)}")
+        out[path.stem] = spec
+    return out
 
 
 def train(name: str) -> None:
-    base, from_stage1 = ABLATIONS[name]
-    args = [sys.executable, "-m", "immnet.cli", "fit", "--config", base, "--config", f"configs/ablations/{name}.yaml",
+    args = [sys.executable, "-m", "immnet.cli", "fit", "--config", str(ABLATIONS / f"{name}.yaml"),
             "--overwrite_checkpoints", "true"]  # retrain: replace an earlier run's checkpoints
-    if from_stage1:
-        args += ["--model.init_args.stage1_checkpoint", str(QUICK / "stage1/checkpoints/best.ckpt")]
     print(f"[ablations] training {name}", file=sys.stderr, flush=True)
     subprocess.run(args, cwd=ROOT, check=True)
 
@@ -48,10 +47,16 @@ def main() -> int:
     p.add_argument("--skip-training", action="store_true", help="only evaluate existing checkpoints")
     p.add_argument("--only", nargs="*", default=None, help="train and score only these ablations (beside the full model and the references)")
     a = p.parse_args()
+    table = ablations()
+    unknown = set(a.only or ()) - set(table)
+    if unknown:
+        raise SystemExit(f"unknown ablation(s) {sorted(unknown)}; known: {sorted(table)}")
+    chosen = a.only or list(table)
     if not a.skip_training:
-        for name in a.only or ABLATIONS:
-            if a.only is None and name in MADE_BY_MAIN and ckpt(name).is_file():
-                print(f"[ablations] {name}: using {ckpt(name)} from scripts/main.sh", file=sys.stderr)
+        for name in chosen:
+            done = ROOT / table[name]["checkpoint"]
+            if a.only is None and name in MADE_BY_MAIN and done.is_file():
+                print(f"[ablations] {name}: using {done} from scripts/main.sh", file=sys.stderr)
                 continue
             train(name)
     from immnet.data.storage import load_dataset
@@ -61,25 +66,15 @@ def main() -> int:
     from immnet.tracking import IMMNetMethod, KalmanNetMethod
 
     data, _ = load_dataset(QUICK / "data/test")
-    rows_of = {  # ablation: (row label, method)
-        "no-guard": ("range guard removed (Markov transitions alone)", lambda: IMMNetMethod(ckpt("no-guard"))),
-        "uniform-mix": ("classifier -> uniform mix", lambda: IMMNetMethod(ckpt("uniform-mix"))),
-        "bayes-mode": ("classifier -> IMM Bayesian update alone", lambda: IMMNetMethod(ckpt("bayes-mode"))),
-        "transformer-mode": ("classifier -> Transformer alone (the paper's)", lambda: IMMNetMethod(ckpt("transformer-mode"))),
-        "fused-input": ("IMM interaction -> fused input (the paper's predict; no guard)", lambda: IMMNetMethod(ckpt("fused-input"))),
-        "analytic-gain": ("KalmanNet -> analytic gain (fixed noise)", lambda: IMMNetMethod(ckpt("analytic-gain"))),
-        "single-expert": ("single expert (plain KalmanNet, CA)", lambda: KalmanNetMethod(ckpt("single-expert"), expert="ca")),
-        "fixed-turn-rate": ("adaptive -> fixed +/-5 deg/s turn experts", lambda: IMMNetMethod(ckpt("fixed-turn-rate"))),
-        "kalmannet-experts": ("the paper's experts and classifier (KalmanNet gain, Transformer; no guard)",
-                              lambda: IMMNetMethod(ckpt("kalmannet-experts"))),
-    }
-    unknown = set(a.only or ()) - set(rows_of)
-    if unknown:
-        raise SystemExit(f"unknown ablation(s) {sorted(unknown)}; known: {sorted(rows_of)}")
     methods = {"immnet (full)": IMMNetMethod(QUICK / "stage2/checkpoints/best.ckpt", name="immnet (full)")}
-    for name in a.only or rows_of:
-        label, make = rows_of[name]
-        methods[label] = make()
+    for name in chosen:
+        spec = table[name]
+        how = spec.get("evaluate") or {}
+        ckpt = ROOT / spec["checkpoint"]
+        if how.get("method") == "kalmannet":
+            methods[spec["label"]] = KalmanNetMethod(ckpt, expert=how.get("expert"))
+        else:
+            methods[spec["label"]] = IMMNetMethod(ckpt)
     methods |= {"imm-ekf": build_method("imm-ekf"), "imm-ekf-guard": build_method("imm-ekf-guard"), "imm-ekf-guard-sticky": build_method("imm-ekf-guard-sticky"),
                 "clairvoyant": build_method("clairvoyant")}
     rows = to_json(evaluate(methods, data, progress=True))

@@ -46,10 +46,10 @@ if [ -f "$KDIR/finished.json" ]; then
   say "2/4 training: reusing the plain KalmanNet $KNET"
 elif [ -f "$KDIR/last.ckpt" ]; then
   say "2/4 training: plain KalmanNet, resuming $KDIR/last.ckpt"
-  "$IMMNET" fit --config recipes/quick-stage1.yaml --config configs/ablations/single-expert.yaml --ckpt_path last
+  "$IMMNET" fit --config configs/ablations/single-expert.yaml --ckpt_path last
 else
   say "2/4 training: plain KalmanNet (configs/ablations/single-expert.yaml, about 1 min)"
-  "$IMMNET" fit --config recipes/quick-stage1.yaml --config configs/ablations/single-expert.yaml --overwrite_checkpoints true
+  "$IMMNET" fit --config configs/ablations/single-expert.yaml --overwrite_checkpoints true
 fi
 
 say "3/4 evaluation: every method on the test set, one run"

@@ -31,13 +31,14 @@ def last_checkpoint(chain: Path) -> Path:
     from immnet.training.cli import stage_entry
 
     stages = yaml.safe_load(chain.read_text())["stages"]
-    stage, _ = stage_entry(stages[-1], len(stages) - 1)
-    if isinstance(stage, str):
-        stage = yaml.safe_load((ROOT / stage).read_text())
-    for cb in stage["trainer"].get("callbacks") or []:
-        if cb.get("class_path", "").endswith("ModelCheckpoint"):
-            args = cb["init_args"]
-            return ROOT / args["dirpath"] / f"{args.get('filename', 'best')}.ckpt"
+    configs, _ = stage_entry(stages[-1], len(stages) - 1)
+    for config in reversed(configs):  # the last config that names the callbacks wins
+        if isinstance(config, str):
+            config = yaml.safe_load((ROOT / config).read_text())
+        for cb in (config.get("trainer") or {}).get("callbacks") or []:
+            if cb.get("class_path", "").endswith("ModelCheckpoint"):
+                args = cb["init_args"]
+                return ROOT / args["dirpath"] / f"{args.get('filename', 'best')}.ckpt"
     raise ValueError(f"{chain}: its last stage has no ModelCheckpoint callback to export from")
 
 

@@ -7,13 +7,12 @@ import pytest
 import yaml
 
 from immnet.config import REPO_ROOT
-from immnet.training.cli import _cli, stage_entry
+from immnet.training.cli import _cli, config_args, stage_entry
 
 RECIPES = sorted((REPO_ROOT / "recipes").glob("*.yaml"))
 STAGE_RECIPES = [p for p in RECIPES if "stages" not in yaml.safe_load(p.read_text())]
 CHAINS = [p for p in RECIPES if p not in STAGE_RECIPES]
 ABLATIONS = sorted((REPO_ROOT / "configs" / "ablations").glob("*.yaml"))
-KALMANNET_GAIN_ABLATIONS = {"single-expert", "kalmannet-experts"}  # the ablations whose point is KalmanNet's own gain
 
 
 def _print_config(args, capsys) -> dict:
@@ -45,41 +44,77 @@ def test_chained_recipes_name_existing_stages(chain):
     stages = yaml.safe_load(chain.read_text())["stages"]
     assert len(stages) >= 2
     for i, s in enumerate(stages):
-        path, _ = stage_entry(s, i)  # PATH or {config: PATH, checkpoint_as: ...}
-        assert (REPO_ROOT / path).is_file(), path
+        configs, _ = stage_entry(s, i)  # PATH, or {config: PATH or [PATH or INLINE, ...], checkpoint_as: ...}
+        for path in configs:
+            assert isinstance(path, dict) or (REPO_ROOT / path).is_file(), path
+
+
+def _ablation_stages(ablation: Path, capsys):
+    """Each stage of an ablation's chain as Lightning's CLI configures it, and the IMMNet it builds."""
+    from immnet.stages import IMMNet
+    from immnet.stages.network import net_arguments
+
+    spec = yaml.safe_load(ablation.read_text())
+    out = []
+    for i, stage in enumerate(spec["stages"]):
+        configs, _ = stage_entry(stage, i)
+        cfg = _print_config(config_args(configs), capsys)
+        out.append((cfg, IMMNet(**net_arguments(cfg["model"]["init_args"]["net"]))))
+    return spec, out
+
+
+EXPECT = {  # ablation: (gain class, interaction, guard on, classifier class, model set size) of its last stage
+    "no-guard": ("KalmanNetFilterGain", "imm", False, "BayesTransformerClassifier", 4),
+    "uniform-mix": ("KalmanNetFilterGain", "imm", True, "UniformMix", 4),
+    "bayes-mode": ("KalmanNetFilterGain", "imm", True, "BayesianModeUpdate", 4),
+    "transformer-mode": ("KalmanNetFilterGain", "imm", True, "TransformerClassifier", 4),
+    "fused-input": ("KalmanNetFilterGain", "fused", False, "BayesTransformerClassifier", 4),
+    "analytic-gain": ("FilterGain", "imm", True, "BayesTransformerClassifier", 4),
+    "single-expert": ("KalmanNetGain", None, False, "TransformerClassifier", 1),
+    "fixed-turn-rate": ("KalmanNetFilterGain", "imm", True, "BayesTransformerClassifier", 4),
+    "kalmannet-experts": ("KalmanNetGain", None, False, "TransformerClassifier", 4),
+}
 
 
 @pytest.mark.parametrize("ablation", ABLATIONS, ids=lambda p: p.stem)
-def test_ablation_overrides_a_quick_stage(ablation, capsys):
-    base = "quick-stage1.yaml" if "single-expert" in ablation.name else "quick-stage2.yaml"
-    cfg = _print_config(["--config", str(REPO_ROOT / "recipes" / base), "--config", str(ablation)], capsys)
-    assert cfg["trainer"]["default_root_dir"].startswith("runs/ablations/")
-    # a second --config replaces the `net` mapping whole: an ablation that forgot the model set
-    # would silently train IMMNet's default experts instead of the recipe's
-    net = cfg["model"]["init_args"]["net"] or {}
-    assert "model_set" in net, f"{ablation.name} must name its model set"
-    # ... and its gain: the quick recipe's experts are filter experts, the default gain is KalmanNet's
-    if ablation.stem not in KALMANNET_GAIN_ABLATIONS:
-        assert "filtering" in (net.get("gain") or {}).get("class_path", ""), f"{ablation.name} must name the filter-expert gain"
-        # ... with the quick recipe's IMM interaction, but where the interaction is the point
-        interaction = ((net.get("gain") or {}).get("init_args") or {}).get("interaction")
-        assert interaction == ("fused" if ablation.stem == "fused-input" else "imm"), f"{ablation.name}: interaction {interaction}"
-        # ... and the quick recipe's range guard, but where the guard is the point (the fused input has none)
-        guard = ((net.get("gain") or {}).get("init_args") or {}).get("guard")
-        assert bool(guard) == (ablation.stem not in ("no-guard", "fused-input")), f"{ablation.name}: guard {guard}"
+def test_every_ablation_is_a_self_contained_chain(ablation, capsys):
+    """Issue 21, item 4: each ablation is one runnable file (``immnet fit --config configs/ablations/NAME.yaml``):
+    a chain whose stages name their base recipe and what changes, merged by Lightning's CLI argument by
+    argument; it names its row's label and weights; the network it builds has the parts the ablation says."""
+    spec, stages = _ablation_stages(ablation, capsys)
+    assert spec["label"] and spec["checkpoint"].startswith(f"runs/ablations/{ablation.stem}/")
+    cfg, net = stages[-1]
+    assert cfg["trainer"]["default_root_dir"].startswith(f"runs/ablations/{ablation.stem}")
+    gain, interaction, guard, classifier, M = EXPECT[ablation.stem]
+    assert type(net.gain).__name__ == gain and type(net.classify).__name__ == classifier and net.n_experts == M
+    assert getattr(net.gain, "interaction", None) == interaction
+    assert (getattr(net.predict, "guard", None) is not None) == guard
+    if ablation.stem == "no-guard":  # the recipe's dev-set choice without the guard, set once
+        assert net.predict.Pi[0, 0].item() == pytest.approx(0.995) and net.classify.p_stay == pytest.approx(0.995)
+    if ablation.stem == "fixed-turn-rate":
+        assert [type(m).__name__ for m in net.model_set] == ["ConstantVelocity", "ConstantAcceleration", "CoordinatedTurn", "CoordinatedTurn"]
+
+
+def test_a_second_config_merges_into_the_network_argument_by_argument(tmp_path, capsys):
+    """Issue 21, item 4: the tracker's components are typed arguments: a second ``--config`` that changes one
+    of the gain's arguments keeps the rest of the recipe's network (model set, p_stay, guard, classifier), and a
+    command-line override reaches one argument."""
+    over = tmp_path / "over.yaml"
+    over.write_text("model: {init_args: {net: {init_args: {gain: {init_args: {u_max: 7.0}}}}}}\n")
+    recipe = str(REPO_ROOT / "recipes" / "quick-stage2.yaml")
+    cfg = _print_config(["--config", recipe, "--config", str(over), "--model.init_args.net.init_args.p_stay", "0.99"], capsys)
+    net = cfg["model"]["init_args"]["net"]["init_args"]
+    assert net["model_set"] == "configs/model_sets/imm4-adaptive.yaml" and net["guard"] is True and net["p_stay"] == 0.99
+    assert net["gain"]["class_path"].endswith("KalmanNetFilterGain") and net["gain"]["init_args"]["u_max"] == 7.0
+    assert net["classifier"]["class_path"].endswith("BayesTransformerClassifier")
 
 
 def test_a_packaged_ablation_runs_from_another_directory(tmp_path, monkeypatch, capsys):
-    """Issue 21, item 4: ``immnet fit --config RECIPE --config configs/ablations/no-guard.yaml`` finds the
-    packaged ablation from a directory that does not hold it (docs/configs.md) and configures what the
-    ablation's own file does."""
-    from immnet.cli import main
-
-    recipe = str(REPO_ROOT / "recipes" / "quick-stage2.yaml")
-    want = _print_config(["--config", recipe, "--config", str(REPO_ROOT / "configs/ablations/no-guard.yaml")], capsys)
+    """Issue 21, item 4: an ablation's stages find the packaged recipes' and configs' paths from a directory
+    that does not hold them (docs/configs.md) and configure what they do from the checkout."""
+    spec = yaml.safe_load((REPO_ROOT / "configs/ablations/no-guard.yaml").read_text())
+    configs, _ = stage_entry(spec["stages"][0], 0)
+    want = _print_config(config_args(configs), capsys)
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(SystemExit) as exit_:
-        main(["fit", "--config", recipe, "--config", "configs/ablations/no-guard.yaml", "--print_config"])
-    assert exit_.value.code in (0, None)
-    got = yaml.safe_load(capsys.readouterr().out)
-    assert got["model"] == want["model"] and not got["model"]["init_args"]["net"]["gain"]["init_args"]["guard"]
+    got = _print_config(config_args(configs), capsys)
+    assert got["model"] == want["model"] and got["model"]["init_args"]["net"]["init_args"]["guard"] is False

@@ -51,7 +51,7 @@ def install(tmp_path_factory):
     src.mkdir()
     for name in ("pyproject.toml", "README.md"):
         shutil.copy2(ROOT / name, src / name)
-    for name in ("immnet", "configs"):
+    for name in ("immnet", "configs", "recipes"):
         shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     _run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-index", "--no-build-isolation",
           "-w", base / "wheel", src], cwd=base)
@@ -71,10 +71,11 @@ def install(tmp_path_factory):
 
 def test_the_wheel_holds_the_package_its_configs_and_weights(install):
     """Issue 21, item 4: the method registry and configs ship inside the package: every module, every
-    YAML of configs/ (as immnet/configs/) and the shipped weights are in the wheel."""
+    YAML of configs/ (as immnet/configs/), every recipe (as immnet/recipes/) and the shipped weights are in the wheel."""
     names = set(zipfile.ZipFile(install[0]).namelist())
     want = {p.relative_to(ROOT).as_posix() for p in (ROOT / "immnet").rglob("*.py") if "__pycache__" not in p.parts}
     want |= {"immnet/configs/" + p.relative_to(ROOT / "configs").as_posix() for p in (ROOT / "configs").rglob("*.yaml")}
+    want |= {"immnet/recipes/" + p.name for p in (ROOT / "recipes").glob("*.yaml")}
     want |= {p.relative_to(ROOT).as_posix() for p in (ROOT / "immnet" / "pretrained").iterdir() if p.is_file()}
     assert "immnet/configs/methods/imm-tuned.yaml" in want and "immnet/pretrained/immnet.ckpt" in want
     assert sorted(want - names) == []
@@ -89,6 +90,11 @@ def test_the_installed_package_works_outside_the_checkout(install, tmp_path, mon
     _, python, immnet, purelib, cwd = install
     where = Path(_run([python, "-c", "import immnet; print(immnet.__file__)"], cwd).strip())
     assert where.is_relative_to(purelib) and not where.is_relative_to(ROOT)
+    # an ablation's chain finds its base recipe among the installed package's recipes
+    found = _run([python, "-c", "from immnet.config import resolve_path; import yaml; from immnet.training.cli import "
+                  "stage_entry; s = yaml.safe_load(resolve_path('configs/ablations/no-guard.yaml').read_text())['stages'][0]; "
+                  "print(resolve_path(stage_entry(s, 0)[0][0]))"], cwd).strip()
+    assert Path(found).is_relative_to(purelib) and found.endswith("recipes/quick-stage2.yaml")
 
     _run([immnet, "data", "generate", "--out", "d", "--n", "40", "--seed", "3", "--config", "configs/data/tiny.yaml",
           "--quiet"], cwd)

@@ -180,10 +180,16 @@ def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, transition: torch.Ten
 
 class _MarkovPrior:
     """What the Bayesian mode updates share: the Markov prior ``log (Pi^T mu_{t-1})``, from the
-    transition matrix the step's interaction writes (``("mode", "transition")``, a guarded IMM) where
-    it writes one (``wire``), else from ``log_pi``."""
+    transition matrix the step's IMM interaction writes (``("mode", "transition")``: the chain the experts
+    were mixed with, guarded or not) where it writes one (``wire``), else from ``log_pi`` (its own
+    ``p_stay``: a step without the IMM interaction). ``log_pi`` is derived from ``p_stay``, not a weight:
+    a checkpoint's stored copy is not loaded."""
 
     reads_transition = False
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        state_dict.pop(prefix + "log_pi", None)  # derived from p_stay (checkpoints that stored it)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def wire(self, upstream: set) -> None:
         if keys.MODE_TRANSITION in upstream and not self.reads_transition:
@@ -239,9 +245,10 @@ class BayesianModeUpdate(_MarkovPrior, Stage):
         M = self.n_experts
         if not 0.0 < p_stay <= 1.0:
             raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
+        self.p_stay = float(p_stay)
         off = (1.0 - p_stay) / max(M - 1, 1)
         Pi = torch.full((M, M), off) + torch.eye(M) * (p_stay - off)
-        self.register_buffer("log_pi", torch.log(Pi.clamp_min(1e-30)))
+        self.register_buffer("log_pi", torch.log(Pi.clamp_min(1e-30)), persistent=False)
         self.from_experts = bool(from_experts)
         if self.from_experts:
             self.in_keys = [keys.EXPERT_LOGLIK, keys.EXPERT_PROBS]
@@ -286,7 +293,8 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
         super().__init__(model_set, dt, window, d_model, heads, layers, ff)
         if not 0.0 < p_stay <= 1.0:
             raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
-        self.register_buffer("log_pi", torch.log(transition_matrix(p_stay, self.n_experts).clamp_min(1e-300)))
+        self.p_stay = float(p_stay)
+        self.register_buffer("log_pi", torch.log(transition_matrix(p_stay, self.n_experts).clamp_min(1e-300)), persistent=False)
         with torch.no_grad():
             self.head[-1].weight.zero_()
             self.head[-1].bias.zero_()

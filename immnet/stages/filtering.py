@@ -145,11 +145,12 @@ class FilterPredict(Predict):
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction, self.p_stay = interaction, float(p_stay)
-        if interaction == "imm":  # the mix reads the previous scan's mode probabilities
-            self.in_keys = [*self.in_keys, keys.EXPERT_PROBS]
-        if self.guard is not None:  # and the speed-bound shares it carries; it writes both for the mode update
+        if interaction == "imm":  # the mix reads the previous scan's mode probabilities and writes the transition
+            self.in_keys = [*self.in_keys, keys.EXPERT_PROBS]  # it mixed with, for the mode update (one p_stay)
+            self.out_keys = [*self.out_keys, keys.MODE_TRANSITION]
+        if self.guard is not None:  # and the speed-bound shares it carries
             self.in_keys = [*self.in_keys, keys.GUARD_FRESH]
-            self.out_keys = [*self.out_keys, keys.MODE_TRANSITION, keys.GUARD_FRESH]
+            self.out_keys = [*self.out_keys, keys.GUARD_FRESH]
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         M = len(model_set)
         f64 = torch.float64  # float64, so that a .double() model is exact
@@ -209,7 +210,8 @@ class FilterPredict(Predict):
                     Pi, self.guard.events(y[..., :9], y[..., RATE], self.dt), self.data_modes,
                     td.get(keys.GUARD_FRESH, None))
             share = share * (self.bound_sign != 0).to(share.dtype)
-            td.set(keys.MODE_TRANSITION, Pi)
+        # the transition the experts are mixed with is the one the mode update predicts with
+        td.set(keys.MODE_TRANSITION, Pi if Pi.dim() == 3 else Pi.expand(mu.shape[0], *Pi.shape))
         w = mixing_weights(mu, Pi)  # mu_{i|j} [B, i, j]
         if self.guard is not None:
             td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))

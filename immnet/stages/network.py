@@ -13,20 +13,69 @@ docs/stages.md), and each stage is told what the stages before it write (``Stage
 
 from __future__ import annotations
 
+import functools
+import inspect
+from typing import Callable
+
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import unravel_key
 
 from immnet import keys
-from immnet.motion import POS, VEL, ModelSet, instantiate
-from immnet.stages.base import measured
+from immnet.config import import_class
+from immnet.motion import POS, VEL, ModelSet
+from immnet.stages.base import Stage, measured
 from immnet.stages.fuse import Fuse
 from immnet.stages.predict import Predict
 from immnet.stages.update import Update
 
 DEFAULT_GAIN = {"class_path": "immnet.stages.KalmanNetGain"}
 DEFAULT_CLASSIFIER = {"class_path": "immnet.stages.TransformerClassifier"}
+SET_ONCE = ("p_stay", "guard")
+"""Settings the interaction and the mode update must agree on: ``IMMNet``'s own arguments, handed to each
+component that takes them (docs/configs.md, "IMMNet's configuration")."""
+
+Component = Callable[[ModelSet, float], Stage]
+"""A stage to be built for the model set and interval: a ``class_path`` / ``init_args`` mapping, or what
+LightningCLI (jsonargparse) makes of one for a ``Callable[[ModelSet, float], Stage]`` argument."""
+
+
+def component_config(component) -> dict:
+    """``{"class_path", "init_args"}`` of a component given as a mapping or as the callable jsonargparse
+    builds for ``Component`` (a ``functools.partial`` of the class's instantiation); a ValueError otherwise."""
+    if isinstance(component, dict):
+        if "class_path" not in component:
+            raise ValueError(f"a component needs a 'class_path', got {component!r}")
+        return {"class_path": component["class_path"], "init_args": dict(component.get("init_args") or {})}
+    if isinstance(component, functools.partial):
+        classes = [a for a in (component.func, *component.args) if inspect.isclass(a)]
+        if classes:
+            cls = classes[-1]
+            return {"class_path": f"{cls.__module__}.{cls.__qualname__}", "init_args": dict(component.keywords)}
+    raise ValueError(f"a component is a class_path / init_args mapping, got {component!r}")
+
+
+def net_arguments(config: dict | None) -> dict:
+    """``IMMNet``'s keyword arguments from a ``net`` config: its arguments themselves (``model_set``, ``gain``,
+    ...), or the ``class_path: immnet.stages.IMMNet`` / ``init_args`` form LightningCLI writes."""
+    config = dict(config or {})
+    if "class_path" in config:
+        cls = import_class(config["class_path"])
+        if not (inspect.isclass(cls) and issubclass(cls, IMMNet)):
+            raise ValueError(f"net must be an immnet.stages.IMMNet, got class_path {config['class_path']!r}")
+        config = dict(config.get("init_args") or {})
+    return config
+
+
+def build_component(component, model_set: ModelSet, dt: float, settings: dict) -> Stage:
+    """The stage ``component`` names, for ``model_set`` and ``dt``, with the ``settings`` (``SET_ONCE``, set on
+    ``IMMNet``) in place of the component's own values wherever its class takes them."""
+    config = component_config(component)
+    cls = import_class(config["class_path"])
+    params = inspect.signature(cls).parameters
+    args = dict(config["init_args"]) | {name: value for name, value in settings.items() if name in params}
+    return cls(model_set=model_set, dt=dt, **args)
 
 
 def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:
@@ -63,23 +112,34 @@ class IMMNet(TensorDictModuleBase):
 
     def __init__(
         self,
-        model_set="configs/model_sets/imm4.yaml",
-        gain: dict | None = None,
-        classifier: dict | None = None,
+        model_set: str | list = "configs/model_sets/imm4.yaml",
+        gain: Component | None = None,
+        classifier: Component | None = None,
         dt: float = 1.0,
+        p_stay: float | None = None,
+        guard: bool | dict | None = None,
     ):
+        """``gain``, ``classifier``: the components (``Component``: a ``class_path`` / ``init_args`` mapping);
+        ``p_stay``, ``guard``: the Markov chain's staying probability and the range guard, set here once for
+        every component that takes them, in place of the components' own values (``None``: as the components
+        say). With the IMM interaction the mode update predicts with the transition the
+        experts were mixed with (``("mode", "transition")``), so the chain is the interaction's."""
         super().__init__()
         self.model_set = ModelSet.from_config(model_set)
         self.model_set_config = self.model_set.to_config()
         self.dt = dt
         ms = self.model_set
-        self.gain = instantiate(gain or DEFAULT_GAIN, model_set=ms, dt=dt)
+        settings = {k: v for k, v in (("p_stay", p_stay), ("guard", guard)) if v is not None}
+        self.config = {  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
+            "model_set": self.model_set_config["models"], "gain": component_config(gain or DEFAULT_GAIN),
+            "classifier": component_config(classifier or DEFAULT_CLASSIFIER), "dt": dt, **settings}
+        self.gain = build_component(gain or DEFAULT_GAIN, ms, dt, settings)
+        self.classify = build_component(classifier or DEFAULT_CLASSIFIER, ms, dt, settings)
         # a gain may bring the predict and update stages its experts need (filter experts keep their
         # own covariance and mode parameter: immnet.stages.filtering)
         self.predict = getattr(self.gain, "predict_stage", Predict)(ms, dt)
         update = getattr(self.gain, "update_stage", None)
         self.update = update(ms, dt) if update is not None else Update(ms)
-        self.classify = instantiate(classifier or DEFAULT_CLASSIFIER, model_set=ms, dt=dt)
         self.fuse = Fuse(ms)
         self.step = TensorDictSequential(*_wired(self.predict, self.gain, self.update, self.classify, self.fuse))
         alone = (self.predict, self.gain, self.update, self.fuse)

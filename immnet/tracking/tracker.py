@@ -37,7 +37,7 @@ from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurement
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.config import import_class
 from immnet.stages import IMMNet
-from immnet.stages.network import DEFAULT_GAIN
+from immnet.stages.network import DEFAULT_GAIN, net_arguments
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet.ckpt"
 
@@ -57,7 +57,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
     if not isinstance(config, dict):
         raise ValueError(f"{path} is not an IMMNet checkpoint (its hyper_parameters' net is a {type(config).__name__})")
     state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if isinstance(k, str) and k.startswith("net.")}
-    return copy.deepcopy(config), state
+    return net_arguments(copy.deepcopy(config)), state
 
 
 def load_network(path: str | Path, guard=KEEP, adapt=KEEP) -> IMMNet:
@@ -77,6 +77,7 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP) -> IMMNet:
         if name not in inspect.signature(import_class(gain.get("class_path", ""))).parameters:
             what = "a range guard" if name == "guard" else "adaptive process noise"
             raise ValueError(f"{path}: {what} needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
+        config.pop(name, None)  # set once: on the gain, for this load
         config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}
     net = IMMNet(**config)
     net.load_state_dict(state)

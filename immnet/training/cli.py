@@ -154,18 +154,30 @@ def resolve_configs(argv: list[str]) -> list[str]:
     return out
 
 
-def stage_entry(stage, i: int) -> tuple[str | dict, str]:
-    """A chain's ``i``-th entry (0-based) as ``(config, checkpoint_as)``: ``config`` a path or an inline
-    config, ``checkpoint_as`` the argument that receives the previous stage's checkpoint."""
+def stage_entry(stage, i: int) -> tuple[list, str]:
+    """A chain's ``i``-th entry (0-based) as ``(configs, checkpoint_as)``: ``configs`` the paths or inline
+    configs given to the stage in order (each a ``--config``: a later one merges into the earlier), and
+    ``checkpoint_as`` the argument that receives the previous stage's checkpoint."""
     arg = "stage1_checkpoint"
-    if isinstance(stage, dict) and "config" in stage:  # {config: PATH, checkpoint_as: ARG}
-        if set(stage) - {"config", "checkpoint_as"} or not isinstance(stage["config"], str):
-            raise ValueError(f"stage {i + 1}: a stage with `config:` takes only `config` (a path) and `checkpoint_as`, got {sorted(stage)}")
+    if isinstance(stage, dict) and "config" in stage:  # {config: PATH or [PATH or INLINE, ...], checkpoint_as: ARG}
+        configs = stage["config"] if isinstance(stage["config"], list) else [stage["config"]]
+        if set(stage) - {"config", "checkpoint_as"} or not configs or not all(isinstance(c, (str, dict)) for c in configs):
+            raise ValueError(f"stage {i + 1}: a stage with `config:` takes `config` (a path, or a list of paths and "
+                             f"inline configs) and `checkpoint_as`, got {sorted(stage)}")
         arg = stage.get("checkpoint_as", arg)
         if arg not in ("stage1_checkpoint", "init_checkpoint"):
             raise ValueError(f"stage {i + 1}: checkpoint_as must be stage1_checkpoint or init_checkpoint, got {arg!r}")
-        stage = stage["config"]
-    return stage, arg
+        return configs, arg
+    return [stage], arg
+
+
+def config_args(configs: list) -> list[str]:
+    """``--config`` arguments of a stage's configs in order: paths resolved (``immnet.config.resolve_path``),
+    inline configs as YAML text."""
+    out = []
+    for config in configs:
+        out += ["--config", str(resolve_path(config)) if isinstance(config, str) else yaml.safe_dump(config)]
+    return out
 
 
 def _die_with_parent(parent: int) -> None:
@@ -217,10 +229,9 @@ def run_stages(recipe: dict, extra: list[str]) -> str:
     ckpt = None
     n = len(recipe["stages"])
     for i, stage in enumerate(recipe["stages"]):
-        stage, arg = stage_entry(stage, i)
-        config = str(resolve_path(stage)) if isinstance(stage, str) else yaml.safe_dump(stage)
-        name = config if isinstance(stage, str) else "an inline config"
-        cmd = [sys.executable, "-m", "immnet.cli", "fit", "--config", config, *extra]
+        configs, arg = stage_entry(stage, i)
+        cmd = [sys.executable, "-m", "immnet.cli", "fit", *config_args(configs), *extra]
+        name = " + ".join(c if isinstance(c, str) else "an inline config" for c in configs)
         if ckpt is not None:
             cmd += [f"--model.init_args.{arg}", ckpt]
         print(f"[immnet fit] stage {i + 1}/{n}: {name}", file=sys.stderr, flush=True)

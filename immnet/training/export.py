@@ -18,13 +18,14 @@ import torch
 from immnet.checkpoints import add_checksum, load_checkpoint
 from immnet.data.scratch import publishing
 from immnet.motion import ModelSet
+from immnet.stages.network import net_arguments
 
 
 def export_weights(ckpt: str | Path, out: str | Path) -> Path:
     src = load_checkpoint(ckpt)
     if not (isinstance(src.get("state_dict"), dict) and isinstance(src.get("hyper_parameters"), dict)):
         raise ValueError(f"{ckpt} is not a Lightning checkpoint of an IMMNet module")
-    net = dict(src["hyper_parameters"].get("net") or {})
+    net = net_arguments(src["hyper_parameters"].get("net"))  # the network's arguments, in either config form
     # the model set inline, so that the file works without this repository's configs/
     net["model_set"] = ModelSet.from_config(net.get("model_set", "configs/model_sets/imm4.yaml")).to_config()["models"]
     slim = add_checksum({

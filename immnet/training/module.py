@@ -24,6 +24,7 @@ from immnet import keys
 from immnet.checkpoints import add_checksum, verify_checksum
 from immnet.evaluation.metrics import confusion, per_trajectory_rmse, position_error
 from immnet.stages import IMMNet
+from immnet.stages.network import net_arguments
 from immnet.tracking.tracker import read_checkpoint
 from immnet.training.losses import component_weights, mode_loss, own_mode_loss, state_loss
 
@@ -38,7 +39,7 @@ def position_rmse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
 class _TrackerModule(L.LightningModule):
     def __init__(
         self,
-        net: dict | None = None,
+        net: IMMNet | None = None,  # or its arguments as a mapping (Python; old checkpoints)
         lr: float = 1e-3,
         weight_decay: float = 0.0,
         tbptt: int = 20,
@@ -50,7 +51,11 @@ class _TrackerModule(L.LightningModule):
         super().__init__()
         self.save_hyperparameters()
         self.automatic_optimization = False
-        self.net = IMMNet(**(net or {}))
+        # the network as typed components (LightningCLI: ``net: {class_path: immnet.stages.IMMNet, init_args:
+        # ...}``, each argument overridable on its own; docs/configs.md) or its arguments as a mapping
+        self.net = net if isinstance(net, IMMNet) else IMMNet(**net_arguments(net))
+        if isinstance(self.hparams.get("net"), torch.nn.Module):  # built in Python: keep plain data, not the module
+            self.hparams["net"] = self.net.config
         self.register_buffer("w_state", component_weights(*loss_weights), persistent=False)
         self.skipped = 0
         if lr_schedule not in ("constant", "cosine"):
@@ -147,7 +152,7 @@ class _TrackerModule(L.LightningModule):
 class Stage1Module(_TrackerModule):
     """Stage 1: experts alone. Batches are TensorDicts ``[M, B]`` (expert ``i``'s mix on row ``i``)."""
 
-    def __init__(self, net: dict | None = None, lr: float = 1e-2, **kwargs):
+    def __init__(self, net: IMMNet | None = None, lr: float = 1e-2, **kwargs):
         super().__init__(net=net, lr=lr, **kwargs)
         # only the gain networks train; the rest is frozen, so that DDP finds no unused parameter
         gain = {id(p) for p in self.net.gain.parameters()}
@@ -205,7 +210,7 @@ class Stage2Module(_TrackerModule):
 
     def __init__(
         self,
-        net: dict | None = None,
+        net: IMMNet | None = None,
         stage1_checkpoint: str | None = None,
         init_checkpoint: str | None = None,
         lr: float = 1e-3,
@@ -232,7 +237,8 @@ class Stage2Module(_TrackerModule):
             raise ValueError(f"{path} holds no IMMNet weights (net.*)")
         # buffers are built from settings (the classifier's Markov prior from its p_stay, ...): a checkpoint
         # that stores other values was trained with other settings, which loading would bring back silently
-        own = {k: b.clone() for k, b in self.net.named_buffers()}
+        kept = self.net.state_dict()  # the persistent buffers: what a checkpoint stores
+        own = {k: b.clone() for k, b in self.net.named_buffers() if k in kept}
         try:
             self.net.load_state_dict(net)
         except RuntimeError as err:
