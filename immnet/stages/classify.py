@@ -170,9 +170,9 @@ class TransformerClassifier(Stage):
 def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, transition: torch.Tensor | None = None) -> torch.Tensor:
     """The IMM's predicted mode log-probabilities ``log (Pi^T mu_{t-1})`` ``[B, M]`` from ``mu_{t-1} [B, M]``.
 
-    A transition matrix per track ``transition [B, M, M]`` (``("mode", "transition")``, a guarded
-    IMM's interaction: ``immnet.imm.guard``) is used instead of ``log_pi``, so that the mode
-    update predicts with the transitions the experts were mixed with."""
+    The transition the step's IMM interaction mixed with, ``transition [B, M, M]`` (``("mode", "transition")``;
+    per track where a range guard, ``immnet.imm.guard``, makes it state-dependent), is used instead of
+    ``log_pi``, so that the mode update predicts with the transitions the experts were mixed with."""
     if transition is not None:
         return torch.log((prev.unsqueeze(-1) * transition.to(prev.dtype)).sum(1).clamp_min(1e-30))
     return torch.logsumexp(torch.log(prev.clamp_min(1e-30))[:, :, None] + log_pi, dim=1)

@@ -246,7 +246,7 @@ class Stage2Module(_TrackerModule):
         differ = [k for k in sorted(own.keys() & net.keys()) if not torch.equal(own[k].to(net[k].dtype), net[k])]  # in the file's precision
         if differ:
             raise ValueError(f"checkpoint {path} was trained with other settings than `net` gives: its buffers {differ} differ "
-                             "(set net's settings, such as the classifier's p_stay, to the checkpoint's)")
+                             "(set net's settings to the checkpoint's)")
 
     def load_experts(self, path: str):
         """Start from the gain networks of a stage-1 checkpoint (same model set)."""
