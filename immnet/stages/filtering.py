@@ -43,8 +43,8 @@ import torch
 from immnet import keys
 from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
-from immnet.imm.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
-from immnet.imm.interaction import entering, mix, mixing_weights, onset_priors, transition_matrix
+from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
+from immnet.imm.interaction import mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import inv3
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries, ct_propagate, noise_gain,
@@ -164,6 +164,7 @@ class FilterPredict(Predict):
         acc_mask[:, list(ACC)] = torch.tensor(own_acc)[:, None]
         self.register_buffer("own_acc_mask", acc_mask, persistent=False)
         self.register_buffer("own_rate", torch.tensor(own_rate))
+        self.has_turn = any(own_rate)  # a python bool: no data-dependent branch in a compiled step
         self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range (kept in checkpoints)
         self.register_buffer("rate_hi", torch.tensor(hi))
         rate_min, rate_max = _rate_limits(torch.tensor(lo, dtype=f64), torch.tensor(hi, dtype=f64))  # derived once
@@ -213,13 +214,12 @@ class FilterPredict(Predict):
         # the transition the experts are mixed with is the one the mode update predicts with
         td.set(keys.MODE_TRANSITION, Pi if Pi.dim() == 3 else Pi.expand(mu.shape[0], *Pi.shape))
         w = mixing_weights(mu, Pi)  # mu_{i|j} [B, i, j]
-        if self.guard is not None:
-            td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
-        yc, Pc = entering(y, P, self.mix_keep, self.mix_mean, self.mix_cov)  # [B, i, j, 10]
+        bound = None
         if self.guard is not None:  # a turn entered (or re-entered) at a range bound has the bound's rate
+            td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
             rate = self.bound_sign.to(y.dtype) * (self.guard.rate_deg * math.pi / 180.0)
-            yc, Pc = blend_rate(yc, Pc, share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
-        return mix(w, yc, Pc)
+            bound = (share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
+        return mix(w, y, P, (self.mix_keep, self.mix_mean, self.mix_cov), bound)
 
     def forward(self, td):
         M = self.n_experts
@@ -235,7 +235,7 @@ class FilterPredict(Predict):
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
         J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
-        if bool(self.own_rate.any()):
+        if self.has_turn:
             turned = ct_propagate(x, w, self.dt)
             prior = torch.where(self.own_rate[:, None], turned, prior)
             entries = ct_jacobian_entries(x, w, self.dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
