@@ -6,10 +6,11 @@ Inference runs the streaming step (``IMMNet.scan``) over already-started tracks,
 of tracking, eager and compiled (``torch.compile`` of the step, a ``TensorDictSequential``, as one
 graph; where that fails, with graph breaks, and where that fails, eager), for the shipped weights
 (``immnet/pretrained/immnet.ckpt``) and IMM-EKF (IMMNet with nothing learned, ``immnet.filters.IMMEKF``);
-then where the time of one scan of the shipped weights goes at batch 1024, stage by stage. Training runs forward + backward + Adam over TBPTT chunks of 20
-scans at batch 64, for the quick and pretrained recipes' model (filter experts with the IMM
-interaction and the range guard, the Bayes-corrected Transformer classifier), the same without the
-guard (``configs/ablations/no-guard.yaml``), and the paper's.
+then where the time of one scan of the shipped weights goes at batch 1024, stage by stage. Training
+runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64, for the quick and pretrained
+recipes' model (filter experts with the IMM interaction and the range guard, the Bayes-corrected
+Transformer classifier), the same without the guard, and the paper's. On a shared machine run it with
+``OMP_NUM_THREADS=1`` (the command it records names it): under other jobs' load two threads stall.
 """
 
 from __future__ import annotations
