@@ -108,7 +108,8 @@ def main(argv=None) -> int:
     rate, us = bench_filterpy(ms, args.filterpy_tracks, args.steps)
     rows.append(("FilterPy IMMEstimator, float64", 1, rate, us))
     print(f"{rows[-1][0]:46s} B={1:5d} {rate:12,.0f} track-steps/s {us:10.0f} us/step")
-    env = " ".join(f"{k}={v}" for k, v in sorted(os.environ.items()) if k.startswith("MALLOC_"))  # glibc tuning
+    env = " ".join(f"{k}={v}" for k, v in sorted(os.environ.items())  # glibc tuning, threads
+                   if k.startswith("MALLOC_") or k == "OMP_NUM_THREADS")
     cmd = f"{env} PYTHONPATH=. .venv/bin/python benchmarks/bench_filters.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     lines = [
         f"IMM with {len(ms)} models ({', '.join(ms.names)}), {args.steps} steps (batch 1: {4 * args.steps}), "

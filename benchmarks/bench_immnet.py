@@ -1,18 +1,23 @@
 """IMMNet speed: inference track-steps/s (eager and ``torch.compile``), training trajectory-steps/s.
 
 Run:  .venv/bin/python benchmarks/bench_immnet.py [--steps 40] [--no-compile]
-It prints a table and rewrites the ``## IMMNet`` section of BENCHMARKS.md (other sections are kept).
+It prints tables and rewrites the ``## IMMNet`` section of BENCHMARKS.md (other sections are kept).
 Inference runs the streaming step (``IMMNet.scan``) over already-started tracks, the per-scan cost
-of tracking; training runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64.
-Three models are measured in one run: the quick and pretrained recipes' (filter experts with the IMM
-interaction and the range guard, the Bayes-corrected Transformer classifier), the same without the
-guard (``configs/ablations/no-guard.yaml``), and the paper's (``KalmanNetGain`` experts, the Transformer).
+of tracking, eager and compiled (``torch.compile`` of the step, a ``TensorDictSequential``, as one
+graph; where that fails, with graph breaks, and where that fails, eager), for the shipped weights
+(``immnet/pretrained/immnet.ckpt``) and IMM-EKF (IMMNet with nothing learned, ``immnet.filters.IMMEKF``);
+then where the time of one scan of the shipped weights goes at batch 1024, stage by stage. Training
+runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64, for the quick and pretrained
+recipes' model (filter experts with the IMM interaction and the range guard, the Bayes-corrected
+Transformer classifier), the same without the guard, and the paper's. On a shared machine run it with
+``OMP_NUM_THREADS=1`` (the command it records names it): under other jobs' load two threads stall.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import statistics
 import sys
 import time
@@ -25,8 +30,13 @@ from common import machine, write_section  # noqa: E402
 
 from immnet.data.generate import generate  # noqa: E402
 from immnet.data.spec import DataSpec  # noqa: E402
+from immnet.filters import IMMEKF  # noqa: E402
 from immnet.stages import IMMNet  # noqa: E402
+from immnet.tracking.tracker import load_network  # noqa: E402
 from immnet.training import Stage1Module, Stage2Module  # noqa: E402
+
+PRETRAINED = Path(__file__).resolve().parents[1] / "immnet" / "pretrained" / "immnet.ckpt"
+STAGES = ("predict", "gain", "update", "classify", "fuse")
 
 
 def scans(B: int, T: int) -> torch.Tensor:
@@ -86,12 +96,82 @@ MODELS = {  # label: the gain's and the classifier's YAML entries (None: IMMNet'
     "the paper's (KalmanNetGain, Transformer)": ({"class_path": "immnet.stages.KalmanNetGain"}, None),
 }
 
+INFERENCE = {  # label: a function of the model set that builds the network
+    "the shipped weights (immnet/pretrained/immnet.ckpt)": lambda model_set: load_network(PRETRAINED),
+    "IMM-EKF (IMMNet with nothing learned)": lambda model_set: IMMEKF(model_set=model_set, dtype="float32").network(),
+}
 
-def measure(model_set: str, gain: dict, classifier: dict | None, steps: int, compile_: bool, expert_weight: float):
-    """Inference rows ``[(B, eager, compiled)]`` and training ``(stage 1, stage 2, stage 2 + own-mode term)``."""
+
+def compiled_step(net: IMMNet, carry, z):
+    """``(scan, how)``: a scan through ``torch.compile`` of ``net.step`` as one graph (``how`` "fullgraph"),
+    else with graph breaks ("graph breaks"), else eager ("eager"), whichever first runs on ``carry, z``."""
+    for fullgraph in (True, False):
+        torch._dynamo.reset()
+        step = torch.compile(net.step, fullgraph=fullgraph, dynamic=False)
+
+        def scan(carry, z, step=step):
+            td = carry.copy()
+            td.set("measurement", z)
+            return step(td)
+
+        try:
+            scan(carry, z)
+        except Exception as err:  # noqa: BLE001 - any failure to compile falls back
+            print(f"  torch.compile(fullgraph={fullgraph}) failed: {type(err).__name__}: {str(err)[:200]}", flush=True)
+            continue
+        return scan, "fullgraph" if fullgraph else "graph breaks"
+    return net.scan, "eager"
+
+
+@torch.no_grad()
+def stage_times(net: IMMNet, B: int, compile_: bool) -> list[float]:
+    """Milliseconds of each stage of one scan at batch ``B`` (median of 5 calls), each stage compiled alone
+    with ``compile_`` (as one graph, else with graph breaks)."""
+    z = scans(B, 12)
+    carry = net.initial_carry(B)
+    for t in range(10):
+        carry = net.scan(carry, z[:, t])
+    td = carry.copy()
+    td.set("measurement", z[:, 10])
+    out = []
+    for stage in net.step.module:
+        fn = torch.compile(stage, fullgraph=True, dynamic=False) if compile_ else stage
+        try:
+            fn(td.copy())
+        except Exception:  # noqa: BLE001 - a stage that does not trace as one graph compiles with breaks
+            torch._dynamo.reset()
+            fn = torch.compile(stage, dynamic=False)
+            fn(td.copy())
+        fn(td.copy())
+        out.append(1e3 * median_seconds(lambda fn=fn: fn(td.copy()), 5))
+        td = stage(td)
+    return out
+
+
+def measure_inference(net: IMMNet, steps: int, compile_: bool, batches=(1, 64, 1024)):
+    """Rows ``[(B, eager, compiled, how)]`` of inference track-steps/s."""
+    net = net.eval()
+    rows = []
+    for B in batches:
+        eager = inference(net, B, steps, net.scan)
+        compiled, how = None, "-"
+        if compile_:
+            with torch.no_grad():
+                z = scans(B, 3)
+                carry = net.initial_carry(B)
+                for t in range(2):
+                    carry = net.scan(carry, z[:, t])
+                step, how = compiled_step(net, carry, z[:, 2])
+            compiled = inference(net, B, steps, step)
+        rows.append((B, eager, compiled, how))
+        print(f"  inference batch {B}: eager {eager:,.0f}, compiled ({how}) {compiled or 0:,.0f} track-steps/s", flush=True)
+    return rows
+
+
+def measure_training(model_set: str, gain: dict, classifier: dict | None, expert_weight: float):
+    """Training trajectory-steps/s ``(stage 1, stage 2, stage 2 + own-mode term)``, eager."""
     torch._dynamo.reset()
     torch.manual_seed(0)
-    # training first, eager, before anything is compiled in this process
     td = generate(64, seed=1, spec=DataSpec(T=40, min_segment=12))  # two TBPTT chunks of 20
     td = td.apply(lambda v: v.float() if v.is_floating_point() else v)
     cfg = {"model_set": model_set, "gain": gain, "classifier": classifier}
@@ -102,24 +182,7 @@ def measure(model_set: str, gain: dict, classifier: dict | None, steps: int, com
         training(Stage2Module(net=cfg, expert_weight=expert_weight), td),
     )
     print("  training: stage 1 {:,.0f}, stage 2 {:,.0f}, with the own-mode term {:,.0f} trajectory-steps/s".format(*train), flush=True)
-    net = IMMNet(model_set=model_set, gain=gain, classifier=classifier).eval()
-    rows = []
-    for B in (1, 64, 1024):
-        eager = inference(net, B, steps, net.scan)
-        compiled = None
-        if compile_:
-            torch._dynamo.reset()  # each (gain, batch) compiles afresh, within dynamo's recompile limit
-            step = torch.compile(net.step, fullgraph=False, dynamic=False)
-
-            def compiled_scan(carry, z, step=step):
-                td = carry.copy()
-                td.set("measurement", z)
-                return step(td)
-
-            compiled = inference(net, B, steps, compiled_scan)
-        rows.append((B, eager, compiled))
-        print(f"  inference batch {B}: eager {eager:,.0f}, compiled {compiled or 0:,.0f} track-steps/s", flush=True)
-    return net.model_set.names, rows, train
+    return train
 
 
 def main(argv=None) -> int:
@@ -130,32 +193,53 @@ def main(argv=None) -> int:
                    help="experts (default: the quick and pretrained recipes' set)")
     p.add_argument("--expert-weight", type=float, default=0.3,
                    help="stage 2's own-mode term for the second stage-2 row (the quick recipe's value)")
+    p.add_argument("--batches", type=lambda v: tuple(int(b) for b in v.split(",")), default=(1, 64, 1024),
+                   help="inference batch sizes, comma-separated (default 1,64,1024)")
+    p.add_argument("--stage-batch", type=int, default=1024, help="batch of the stage-by-stage table")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
-    results = {}
+    train = {}  # training first, eager, before anything is compiled in this process
     for label, (gain, classifier) in MODELS.items():
         print(label, flush=True)
-        results[label] = measure(args.model_set, gain, classifier, args.steps, not args.no_compile, args.expert_weight)
-    names = next(iter(results.values()))[0]
-    cmd = "`.venv/bin/python benchmarks/bench_immnet.py" + "".join(f" {a}" for a in (argv if argv is not None else sys.argv[1:])) + "`"
-    labels = list(results)
+        train[label] = measure_training(args.model_set, gain, classifier, args.expert_weight)
+    infer = {}
+    for label, make in INFERENCE.items():
+        print(label, flush=True)
+        infer[label] = measure_inference(make(args.model_set), args.steps, not args.no_compile, args.batches)
+    net = INFERENCE["the shipped weights (immnet/pretrained/immnet.ckpt)"](args.model_set).eval()
+    print(f"stages of one scan at batch {args.stage_batch} (ms)", flush=True)
+    eager_ms = stage_times(net, args.stage_batch, False)
+    compiled_ms = stage_times(net, args.stage_batch, True) if not args.no_compile else [None] * len(STAGES)
+    print("  eager " + ", ".join(f"{n} {v:.1f}" for n, v in zip(STAGES, eager_ms)), flush=True)
+    names = net.model_set.names
+    env = "".join(f"{k}={os.environ[k]} " for k in ("OMP_NUM_THREADS",) if k in os.environ)
+    cmd = f"`{env}.venv/bin/python benchmarks/bench_immnet.py" + "".join(f" {a}" for a in (argv if argv is not None else sys.argv[1:])) + "`"
+    labels, tlabels = list(infer), list(train)
+    fmt = lambda v: "-" if v is None else f"{v:,.0f}"  # noqa: E731
     lines = [
         f"{cmd} ({datetime.date.today().isoformat()}; {machine()}); experts {', '.join(names)}.",
         "",
         "| inference (streaming step; median of 3 passes), track-steps/s | " + " | ".join(f"{l}: eager | compiled" for l in labels) + " |",
         "|---|" + "---:|---:|" * len(labels),
         *[
-            f"| batch {B} | " + " | ".join(
-                f"{results[l][1][i][1]:,.0f} | " + ("-" if results[l][1][i][2] is None else f"{results[l][1][i][2]:,.0f}") for l in labels
-            ) + " |"
-            for i, B in enumerate((1, 64, 1024))
+            f"| batch {B} | " + " | ".join(f"{fmt(infer[l][i][1])} | {fmt(infer[l][i][2])}" for l in labels) + " |"
+            for i, B in enumerate(args.batches)
         ],
         "",
-        "| training (batch 64, TBPTT 20, forward + backward + Adam; median of 5 calls), trajectory-steps/s | " + " | ".join(labels) + " |",
-        "|---|" + "---:|" * len(labels),
-        "| stage 1 (experts alone; a step = one trajectory through every expert) | " + " | ".join(f"{results[l][2][0]:,.0f}" for l in labels) + " |",
-        "| stage 2 (end to end, the paper's loss) | " + " | ".join(f"{results[l][2][1]:,.0f}" for l in labels) + " |",
-        f"| stage 2 with the own-mode term (expert_weight {args.expert_weight:g}, as the quick recipe) | " + " | ".join(f"{results[l][2][2]:,.0f}" for l in labels) + " |",
+        "Compiled: " + "; ".join(f"{l}: {', '.join(sorted({r[3] for r in infer[l]}))}" for l in labels) + ".",
+        "",
+        f"| one scan of the shipped weights at batch {args.stage_batch}, ms (median of 5 calls; compiled: each stage alone) | "
+        + " | ".join(STAGES) + " | sum |",
+        "|---|" + "---:|" * (len(STAGES) + 1),
+        "| eager | " + " | ".join(f"{v:.1f}" for v in eager_ms) + f" | {sum(eager_ms):.1f} |",
+        "| compiled | " + " | ".join("-" if v is None else f"{v:.1f}" for v in compiled_ms)
+        + (" | - |" if compiled_ms[0] is None else f" | {sum(compiled_ms):.1f} |"),
+        "",
+        "| training (batch 64, TBPTT 20, forward + backward + Adam; median of 5 calls), trajectory-steps/s | " + " | ".join(tlabels) + " |",
+        "|---|" + "---:|" * len(tlabels),
+        "| stage 1 (experts alone; a step = one trajectory through every expert) | " + " | ".join(fmt(train[l][0]) for l in tlabels) + " |",
+        "| stage 2 (end to end, the paper's loss) | " + " | ".join(fmt(train[l][1]) for l in tlabels) + " |",
+        f"| stage 2 with the own-mode term (expert_weight {args.expert_weight:g}, as the quick recipe) | " + " | ".join(fmt(train[l][2]) for l in tlabels) + " |",
         "",
         "One run on a machine other jobs may share (see the load average): repeated runs have differed by up to",
         "a quarter, so compare rows of one run, not numbers across runs.",

@@ -498,3 +498,27 @@ def test_bayes_mode_updates_predict_with_the_guarded_transitions(classifier):
             np.testing.assert_allclose(carry.get(keys.EXPERT_PROBS).numpy(), expected, rtol=1e-6, atol=1e-9)
             moved = max(moved, float(np.abs(Pi - np.diag([0.995] * 4) - (1 - np.eye(4)) * 0.005 / 3).max()))
     assert moved > 0.5, "the guard never fired: the check would not tell the transitions apart"
+
+
+@pytest.mark.parametrize("adapt", [False, True], ids=["shipped", "adaptive-noise"])
+def test_the_filter_experts_step_traces_as_one_graph_and_gives_the_eager_outputs(data, adapt):
+    """Issue 21, item 1: the IMM core runs eager and under ``torch.compile`` through the same code. The step
+    of the shipped weights (filter experts, the IMM interaction with the range guard, Bayes + Transformer)
+    has no data-dependent branch, so dynamo traces it as one graph (``fullgraph=True``; the ``eager``
+    backend runs the traced graph, so the check needs no C++ compiler), and the graph's outputs are the
+    eager step's."""
+    from immnet.tracking.tracker import PRETRAINED, load_network
+
+    net = load_network(PRETRAINED, adapt=adapt or "checkpoint")
+    z = data["measurements"]
+    with torch.no_grad():
+        carry = net.initial_carry(z.shape[0])
+        for t in range(6):
+            carry = net.scan(carry, z[:, t])
+        td = carry.copy()
+        td.set(keys.MEASUREMENT, z[:, 6])
+        torch._dynamo.reset()
+        traced = torch.compile(net.step, fullgraph=True, backend="eager")(td.copy())
+        eager = net.step(td.copy())
+    for key in eager.keys(True, True):
+        torch.testing.assert_close(traced.get(key), eager.get(key), rtol=1e-6, atol=1e-6, msg=str(key))

@@ -11,7 +11,8 @@ from immnet import keys
 from immnet.data.generate import generate
 from immnet.evaluation.metrics import position_error, rmse
 from immnet.filters import IMMEKF, transition_matrix
-from immnet.imm.guard import G_MAX, RangeGuard, blend_rate, fresh_share, guarded_transition
+from immnet.imm.guard import G_MAX, RangeGuard, fresh_share, guarded_transition
+from immnet.imm.interaction import mix
 
 DEG = math.pi / 180.0
 MODES = torch.tensor([0, 1, 2, 3])
@@ -135,7 +136,10 @@ def test_rate_blend_is_the_moment_matched_two_component_mixture():
     y = torch.randn(4, 10, generator=g, dtype=torch.float64)
     share = torch.tensor([0.0, 0.3, 0.8, 1.0], dtype=torch.float64)
     rate, var = torch.tensor(0.14, dtype=torch.float64), 1e-4
-    y2, P2 = blend_rate(y, P, share, rate, var, 9)
+    # one filter entering itself (w = 1), a share of it the bound turn: rate ``N(0.14, var)``
+    one = torch.ones(4, 1, 1, dtype=torch.float64)
+    y2, P2 = mix(one, y[:, None], P[:, None], bound=(share[:, None, None], rate.reshape(1), var, 9))
+    y2, P2 = y2[:, 0], P2[:, 0]
     for b in range(4):
         a = float(share[b])
         m1, C1 = y[b].numpy(), P[b].numpy()

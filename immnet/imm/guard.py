@@ -197,20 +197,3 @@ def fresh_share(w: torch.Tensor, speed_share: torch.Tensor) -> torch.Tensor:
     """The share of each filter's mixed prior that entered at a speed bound, ``[B, M]``, from the mixing
     weights ``mu_{i|j}`` ``w [B, i, j]`` and ``guarded_transition``'s speed share of each entry."""
     return (w * speed_share).sum(-2)
-
-
-def blend_rate(y: torch.Tensor, P: torch.Tensor, share: torch.Tensor, rate: torch.Tensor, var: float, index: int):
-    """What enters a turn filter when a ``share [...]`` of that entry is a bound turn: the two-component
-    mixture of ``N(y, P)`` (``y [..., n]``, ``P [..., n, n]``: the scheduled entry, or the filter's own
-    posterior for its own mode) and the same with the rate (``y[index]``) replaced by ``N(rate, var)``,
-    moment-matched. The rate's cross-covariances shrink by ``1 - share``; its variance takes the spread
-    of the two means."""
-    a = share.to(y.dtype)
-    old, old_var = y[..., index], P[..., index, index]
-    y = y.clone()
-    y[..., index] = (1 - a) * old + a * rate
-    keep = torch.ones_like(y)
-    keep[..., index] = 1 - a
-    P = P * keep[..., :, None] * keep[..., None, :]
-    P[..., index, index] = (1 - a) * old_var + a * var + a * (1 - a) * (old - rate) ** 2
-    return y, P

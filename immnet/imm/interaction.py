@@ -8,7 +8,8 @@ t-1)`` (``[M, M]``, or ``[B, M, M]`` per track where a range guard makes it stat
    has the quantity a switch draws anew replaced by its prior (``onset_priors``: a CA filter's
    acceleration, a turn filter's rate; none for the paper's linear IMMs);
 3. mixed estimate ``x0_j = sum_i mu_{i|j} x_{i->j}``, ``P0_j = sum_i mu_{i|j} (P_{i->j} + d d^T)``,
-   ``d = x_{i->j} - x0_j``;
+   ``d = x_{i->j} - x0_j``, as products over ``i`` (``mix``: the ``[B, i, j, n, n]`` entering
+   covariances are never formed);
 4. (after the mode-matched predict and update) the mode update in log space,
    ``mu_j = softmax_j(log cbar_j + l_j)`` (a missed detection gives ``l_j = 0``, so ``mu = cbar``);
 5. the combination ``x = sum_j mu_j x_j``, ``P = sum_j mu_j (P_j + (x_j - x)(x_j - x)^T)``.
@@ -47,9 +48,9 @@ def transition_matrix(p_stay, M: int, dtype=torch.float64) -> torch.Tensor:
 
 
 def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: int = RATE + 1, acc_var=None):
-    """What the interaction does to filter ``i``'s posterior entering filter ``j != i``, float64:
-    ``keep [M, M, n]`` (1 where a component is kept, 0 where it is replaced), the prior's mean
-    ``mean [M, M, n]`` and covariance ``cov [M, M, n, n]`` on the replaced components.
+    """What enters filter ``j`` from any other filter (a switch into ``j``), float64: ``keep [M, n]`` (1
+    where a component is kept, 0 where it is replaced), the prior's mean ``mean [M, n]`` and covariance
+    ``cov [M, n, n]`` on the replaced components. What a filter brings into itself is kept whole.
 
     ``own_acc [M]``: the filters that keep an acceleration of their own (CA: a switch into it draws a new
     one, mean 0 and ``spec.ca_acc_var()``); ``own_rate [M]``: the turn filters that estimate their rate
@@ -58,19 +59,18 @@ def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: in
     spec = spec or DataSpec()
     M = len(own_acc)
     f64 = torch.float64
-    keep = torch.ones(M, M, n, dtype=f64)
-    mean, cov = torch.zeros(M, M, n, dtype=f64), torch.zeros(M, M, n, n, dtype=f64)
+    keep = torch.ones(M, n, dtype=f64)
+    mean, cov = torch.zeros(M, n, dtype=f64), torch.zeros(M, n, n, dtype=f64)
     w_mean, w_std = (v * math.pi / 180.0 for v in spec.turn_rate_prior_deg())
     for j in range(M):
-        others = [i for i in range(M) if i != j]
         if own_acc[j]:
             for a, v in zip(ACC, spec.ca_acc_var() if acc_var is None else acc_var):
-                keep[others, j, a] = 0.0
-                cov[others, j, a, a] = v
+                keep[j, a] = 0.0
+                cov[j, a, a] = v
         if own_rate[j]:
-            keep[others, j, RATE] = 0.0
-            mean[others, j, RATE] = math.copysign(w_mean, nominal[j])
-            cov[others, j, RATE, RATE] = w_std**2
+            keep[j, RATE] = 0.0
+            mean[j, RATE] = math.copysign(w_mean, nominal[j])
+            cov[j, RATE, RATE] = w_std**2
     return keep, mean, cov
 
 
@@ -81,25 +81,69 @@ def mixing_weights(mu: torch.Tensor, Pi: torch.Tensor) -> torch.Tensor:
     return joint / joint.sum(-2, keepdim=True)
 
 
-def entering(x: torch.Tensor, P: torch.Tensor, keep: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor):
-    """What each filter ``i``'s posterior (``x [B, i, n]``, ``P [B, i, n, n]``) brings into each filter ``j``:
-    ``x_{i->j} [B, i, j, n]``, ``P_{i->j} [B, i, j, n, n]``, with ``onset_priors``' ``keep, mean, cov``."""
-    keep, mean, cov = keep.to(x.dtype), mean.to(x.dtype), cov.to(x.dtype)
-    xc = x.unsqueeze(2) * keep + mean
-    Pc = P.unsqueeze(2) * (keep.unsqueeze(-1) * keep.unsqueeze(-2)) + cov
-    return xc, Pc
+def entering(x: torch.Tensor, keep: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    """The mean each filter ``i`` (``x [B, i, n]``) brings into each filter ``j``, ``x_{i->j} [B, i, j, n]``:
+    ``x_i`` itself for ``i = j``, ``keep_j x_i + mean_j`` from ``i != j`` (``onset_priors``' ``keep, mean``)."""
+    M = x.shape[-2]
+    own = torch.eye(M, dtype=torch.bool, device=x.device)[..., None]
+    xi = x.unsqueeze(2)
+    return torch.where(own, xi, xi * keep.to(x.dtype) + mean.to(x.dtype))
 
 
-def mix(w: torch.Tensor, xc: torch.Tensor, Pc: torch.Tensor):
+def _weighted(W: torch.Tensor, P: torch.Tensor, mask=None, cov=None) -> torch.Tensor:
+    """``sum_i W_ij P_{i->j}`` ``[B, j, r, n]`` of the entering covariances (rows ``r`` of them): ``P_i``
+    (``P [B, i, r, n]``) from ``i = j``, ``mask_j * P_i + cov_j`` (``[j, r, n]``) from ``i != j``; one
+    product over ``i``, no ``[B, i, j, n, n]`` tensor."""
+    if mask is None:
+        return torch.einsum("bij,birn->bjrn", W, P)
+    M = W.shape[-1]
+    own = torch.diagonal(W, 0, -2, -1)  # W_jj [B, j]
+    off = W.masked_fill(torch.eye(M, dtype=torch.bool, device=W.device), 0.0)
+    return own[..., None, None] * P + mask * torch.einsum("bij,birn->bjrn", off, P) + off.sum(1)[..., None, None] * cov
+
+
+def _spread(W: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """``sum_i W_ij d_ij d_ij^T`` ``[B, j, n, n]`` from ``W [B, i, j]`` and ``d [B, i, j, n]``."""
+    return (W.unsqueeze(-1) * d).permute(0, 2, 3, 1) @ d.transpose(1, 2)
+
+
+def mix(w: torch.Tensor, x: torch.Tensor, P: torch.Tensor, priors=None, bound=None):
     """The mixed estimate of each filter ``x0 [B, j, n]``, ``P0 [B, j, n, n]`` from the mixing weights
-    ``w [B, i, j]`` and the entering estimates ``xc [B, i, j, n]``, ``Pc [B, i, j, n, n]`` (or ``[B, i, n]``
-    and ``[B, i, n, n]``, the same for every ``j``: no onset priors)."""
-    if xc.dim() == w.dim():
-        xc, Pc = xc.unsqueeze(2), Pc.unsqueeze(2)
-    x0 = (w.unsqueeze(-1) * xc).sum(1)
-    d = xc - x0.unsqueeze(1)
-    P0 = (w[..., None, None] * (Pc + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(1)
-    return x0, P0
+    ``w [B, i, j]`` and the filters' posteriors ``x [B, i, n]``, ``P [B, i, n, n]``:
+    ``x0_j = sum_i w_ij x_{i->j}``, ``P0_j = sum_i w_ij (P_{i->j} + d d^T)``, ``d = x_{i->j} - x0_j``.
+
+    ``priors``: ``onset_priors``' ``(keep, mean, cov)``, what enters ``j`` from another filter,
+    ``x_{i->j} = keep_j x_i + mean_j``, ``P_{i->j} = (keep_j keep_j^T) P_i + cov_j`` (None: every
+    filter enters whole). ``bound``: ``(share [B, i, j], rate [j], var, index)``, a range guard's
+    bound turn: a ``share`` of each entry is a second mixture component, the entry with its component
+    ``index`` replaced by ``N(rate_j, var)`` (its cross-covariances 0). The sums over ``i`` are products
+    (``_weighted``, ``_spread``): nothing of size ``[B, i, j, n, n]`` is formed."""
+    if priors is None:
+        xc, mask, cov = x.unsqueeze(2).expand(*w.shape, x.shape[-1]), None, None
+    else:
+        keep, mean, cov = (v.to(x.dtype) for v in priors)
+        xc, mask = entering(x, keep, mean), keep[:, :, None] * keep[:, None, :]
+    if bound is None:
+        x0 = (w.unsqueeze(-1) * xc).sum(1)
+        return x0, _weighted(w, P, mask, cov) + _spread(w, xc - x0.unsqueeze(1))
+    share, rate, var, index = bound
+    a = share.to(x.dtype)
+    wb = w * a  # the bound components' weights; the scheduled ones' are w (1 - a)
+    ws = w * (1 - a)
+    at = torch.arange(x.shape[-1], device=x.device) == index
+    rate = rate.to(x.dtype)[:, None]  # [j, 1]
+    xb = torch.where(at, rate, xc)  # the bound components' means
+    x0 = (w.unsqueeze(-1) * torch.where(at, (1 - a).unsqueeze(-1) * xc + a.unsqueeze(-1) * rate, xc)).sum(1)
+    x0_ = x0.unsqueeze(1)
+    spread = _spread(torch.cat([ws, wb], 1), torch.cat([xc - x0_, xb - x0_], 1))
+    # the bound components zero the rows and columns ``index`` of what they bring: those of the sum are the
+    # scheduled components' alone, plus the bound rate's variance
+    row = _weighted(ws, P[..., index:index + 1, :], None if mask is None else mask[:, index:index + 1],
+                    None if cov is None else cov[:, index:index + 1])
+    row = row + (wb.sum(1) * var)[..., None, None] * at.to(x.dtype)
+    P0 = _weighted(w, P, mask, cov)
+    P0 = torch.where(at[:, None], row, torch.where(at, row.transpose(-1, -2), P0))
+    return x0, P0 + spread
 
 
 def mode_update(prior_log: torch.Tensor, loglik: torch.Tensor) -> torch.Tensor:

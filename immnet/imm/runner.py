@@ -2,7 +2,7 @@
 
 One scan, for every track at once (FilterPy's ``IMMEstimator`` order)::
 
-    w = mixing_weights(mu, Pi)           x0, P0 = mix(w, entering(x, P, onset))   # the interaction
+    w = mixing_weights(mu, Pi)           x0, P0 = mix(w, x, P, onset)           # the interaction
     xp, Pp = transition(t, x0, P0)       # each filter's mode-matched prediction over t-1 -> t
     x, P, l = update(xp, Pp, z_t, R_t)   # the Kalman update; a NaN row is a missed detection (l = 0)
     mu = mode_update(log cbar, l)        x_t = combine(x, mu)
@@ -24,7 +24,7 @@ from typing import Callable
 
 import torch
 
-from immnet.imm.interaction import combine, entering, mix, mixing_weights, mode_update
+from immnet.imm.interaction import combine, mix, mixing_weights, mode_update
 from immnet.imm.kalman import predict, update
 
 
@@ -77,10 +77,7 @@ def run(
         experts[:, 0] = x
     for t in range(1, T):
         w = mixing_weights(mu, Pi)
-        if onset is not None:
-            x0, P0 = mix(w, *entering(x, P, *onset))
-        else:
-            x0, P0 = mix(w, x, P)
+        x0, P0 = mix(w, x, P, onset)
         xp, Pp = transition(t, x0, P0)
         x, P, ll = update(xp, Pp, z[:, t, None], None, _per_filter(R(t) if callable(R) else R, z))
         if onehot is not None:

@@ -43,9 +43,9 @@ import torch
 from immnet import keys
 from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
-from immnet.imm.guard import RangeGuard, blend_rate, fresh_share, guarded_transition
-from immnet.imm.interaction import entering, mix, mixing_weights, onset_priors, transition_matrix
-from immnet.imm.kalman import inv3
+from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
+from immnet.imm.interaction import mix, mixing_weights, onset_priors, transition_matrix
+from immnet.imm.kalman import inv3, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries, ct_propagate, noise_gain,
 )
@@ -58,7 +58,6 @@ from immnet.stages.update import Update, innovation
 
 N_NOISE = 5  # velocity h / v, acceleration h / v, turn rate
 WHITE = (0, 1)  # the white-acceleration components, which AdaptiveNoise's scale multiplies
-_P = list(POS)
 
 
 def _kinds(model_set: ModelSet, dt: float):
@@ -102,6 +101,12 @@ def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
         if rate:
             out[i, 4, RATE, RATE] = 1.0
     return out
+
+
+def _noise(scale: torch.Tensor, Q_parts: torch.Tensor) -> torch.Tensor:
+    """``Q_t = sum_k scale_k Q_k`` ``[B, M, 10, 10]`` from the components' multipliers ``scale [B, M, 5]`` and
+    ``Q_parts [M, 5, 10, 10]``: one product over ``k`` per expert."""
+    return torch.einsum("bmk,mkq->bmq", scale, Q_parts.flatten(-2)).unflatten(-1, Q_parts.shape[-2:])
 
 
 def _check_interaction(interaction: str, p_stay: float, guard=None) -> RangeGuard | None:
@@ -164,6 +169,7 @@ class FilterPredict(Predict):
         acc_mask[:, list(ACC)] = torch.tensor(own_acc)[:, None]
         self.register_buffer("own_acc_mask", acc_mask, persistent=False)
         self.register_buffer("own_rate", torch.tensor(own_rate))
+        self.has_turn = any(own_rate)  # a python bool: no data-dependent branch in a compiled step
         self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range (kept in checkpoints)
         self.register_buffer("rate_hi", torch.tensor(hi))
         rate_min, rate_max = _rate_limits(torch.tensor(lo, dtype=f64), torch.tensor(hi, dtype=f64))  # derived once
@@ -213,13 +219,12 @@ class FilterPredict(Predict):
         # the transition the experts are mixed with is the one the mode update predicts with
         td.set(keys.MODE_TRANSITION, Pi if Pi.dim() == 3 else Pi.expand(mu.shape[0], *Pi.shape))
         w = mixing_weights(mu, Pi)  # mu_{i|j} [B, i, j]
-        if self.guard is not None:
-            td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
-        yc, Pc = entering(y, P, self.mix_keep, self.mix_mean, self.mix_cov)  # [B, i, j, 10]
+        bound = None
         if self.guard is not None:  # a turn entered (or re-entered) at a range bound has the bound's rate
+            td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
             rate = self.bound_sign.to(y.dtype) * (self.guard.rate_deg * math.pi / 180.0)
-            yc, Pc = blend_rate(yc, Pc, share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
-        return mix(w, yc, Pc)
+            bound = (share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
+        return mix(w, y, P, (self.mix_keep, self.mix_mean, self.mix_cov), bound)
 
     def forward(self, td):
         M = self.n_experts
@@ -235,7 +240,7 @@ class FilterPredict(Predict):
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
         J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
-        if bool(self.own_rate.any()):
+        if self.has_turn:
             turned = ct_propagate(x, w, self.dt)
             prior = torch.where(self.own_rate[:, None], turned, prior)
             entries = ct_jacobian_entries(x, w, self.dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
@@ -282,10 +287,10 @@ class FilterUpdate(Update):
         r2 = per_expert(r2, P.shape[1], event_dims=0)[..., None, None]
         # Joseph's (I - K H) P (I - K H)^T + K R K^T, expanded: P - K H P - (K H P)^T + K S K^T with
         # H P the position rows and S = H P H^T + R (exact for any gain; fewer and smaller products)
-        HP = P[..., _P, :]
-        S = HP[..., _P] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
-        KHP = K @ HP
-        post = P - KHP - KHP.transpose(-1, -2) + (K @ S) @ K.transpose(-1, -2)
+        HP = P[..., 0:7:3, :]  # the position rows (POS)
+        S = HP[..., 0:7:3] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
+        KHP = small_matmul(K, HP)
+        post = P - KHP - KHP.transpose(-1, -2) + small_matmul(small_matmul(K, S), K.transpose(-1, -2))
         td.set(keys.EXPERT_RATE, w)
         td.set(keys.EXPERT_AUG_COV, 0.5 * (post + post.transpose(-1, -2)))
         return td
@@ -446,14 +451,14 @@ class _FilterExperts:
         """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
         zero where the measurement is missing; the innovation log-likelihood ``log N(nu; 0, S)``
         (``nu`` the innovation, if the caller has it)."""
-        S = P[..., _P, :][..., _P] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
+        S = P[..., 0:7:3, 0:7:3] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)  # the positions (POS)
         S_inv, det = inv3(S)
-        K = P[..., :, _P] @ S_inv  # [B, M, 10, 3]
+        K = small_matmul(P[..., :, 0:7:3], S_inv)  # [B, M, 10, 3]
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))  # [B, M, 1]
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
-        maha = (nu.unsqueeze(-2) @ S_inv @ nu.unsqueeze(-1))[..., 0, 0]
+        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
         loglik = -0.5 * (maha + torch.log(det) + 3.0 * math.log(2.0 * math.pi))
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
@@ -502,7 +507,7 @@ class FilterGain(_FilterExperts, Stage):
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         Q_parts = self.Q_parts.to(P.dtype)
         scale = self._noise_scale(td, P)
-        Q = Q_parts.sum(1) if scale is None else (scale[..., None, None] * Q_parts).sum(-3)
+        Q = Q_parts.sum(1) if scale is None else _noise(scale, Q_parts)
         return self._finish(td, r2, P + Q)
 
 
@@ -567,10 +572,9 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         r2 = self._r2(td)
         base = td.get(keys.EXPERT_AUG_PRIOR_COV)
         Q_parts = self.Q_parts.to(base.dtype)
-        scale = self._noise_scale(td, base)
-        if scale is not None:  # per track [B, M, 5, 10, 10]; the whitening below uses the scaled noise too
-            Q_parts = scale[..., None, None] * Q_parts
-        S0 = (base + Q_parts.sum(-3))[..., _P, :][..., _P] + r2 * torch.eye(3, dtype=base.dtype, device=base.device)
+        scale = self._noise_scale(td, base)  # [B, M, 5] or None; the whitening below uses the scaled noise too
+        Q0 = Q_parts.sum(-3) if scale is None else _noise(scale, Q_parts)
+        S0 = (base + Q0)[..., 0:7:3, 0:7:3] + r2 * torch.eye(3, dtype=base.dtype, device=base.device)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         white = slog(nu / torch.diagonal(S0, dim1=-2, dim2=-1).sqrt(), 1.0)
         f1, f2, f3, f4, white = (f.transpose(0, 1) for f in (*self.features(td), white))
@@ -586,7 +590,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
         h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
         u = self.u_max * torch.tanh(out[..., 9 * 3 :].transpose(0, 1) * (self.u_slope / self.u_max))  # [B, M, 5]
-        P = base + (torch.exp(u)[..., None, None] * Q_parts).sum(-3)
+        P = base + _noise(torch.exp(u) if scale is None else torch.exp(u) * scale, self.Q_parts.to(base.dtype))
         delta = self.K_scale * torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
         td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
         return self._finish(td, r2, P, delta, nu)
