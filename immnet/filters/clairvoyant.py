@@ -40,10 +40,10 @@ from immnet import keys
 from immnet.data.spec import DataSpec
 from immnet.filters.base import Method, as_dtype, batch_dt, output
 from immnet.filters.imm import initial_state
-from immnet.imm.interaction import onset_priors
+from immnet.imm.interaction import enter, onset_priors
 from immnet.imm.kalman import predict, update
 from immnet.imm.runner import run
-from immnet.motion import CA, CT_POS, CV, DEG, ca_matrix, ct_matrix, ct_propagate, ct_rate_derivative, cv_matrix, process_noise
+from immnet.motion import CA, CT_POS, CV, ca_matrix, ct_jacobian, ct_matrix, ct_propagate, cv_matrix, process_noise
 
 
 class ClairvoyantKF(Method):
@@ -136,24 +136,9 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         self.fixed_turn_prior = None if turn_prior_deg is None else (mean, std)
         super().__init__(sigma_q, acc_var, spec, dtype, name)
 
-    @staticmethod
-    def _ca_onset(x, P, new_ca, acc_P):
-        """A CA segment starts: acceleration mean 0, uncorrelated, with the draw's variance ``acc_P``
-        (on the first 9 components: the acceleration slots ``2::3`` of the state's 9-D part)."""
-        if not new_ca.any():
-            return x, P
-        x, P = x.clone(), P.clone()
-        acc = torch.tensor([2, 5, 8], device=x.device)
-        x[new_ca.nonzero()[:, 0][:, None], acc] = 0.0
-        P[new_ca, :, 2:9:3] = 0.0
-        P[new_ca, 2:9:3, :] = 0.0
-        P[new_ca, 2:9:3, 2:9:3] = acc_P
-        return x, P
-
     def set_spec(self, spec) -> None:
         super().set_spec(spec)
-        mean, std = self.spec.turn_rate_prior_deg() if self.fixed_turn_prior is None else self.fixed_turn_prior
-        self.w_mean, self.w_var = mean * DEG, (std * DEG) ** 2
+        self.turn_prior_deg = self.spec.turn_rate_prior_deg() if self.fixed_turn_prior is None else self.fixed_turn_prior
 
     def track(self, batch: TensorDict) -> TensorDict:
         z, mode, rate, r, d = self._inputs(batch)
@@ -164,36 +149,33 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         Fcv[:9, :9], Fca[:9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
         Q = torch.zeros(10, 10, dtype=dtype, device=dev)
         Q[:9, :9] = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
-        acc_P = self._acc_cov(z)
+        # what a track's filter becomes where the truth switches into CA (a new acceleration) or into a turn, or
+        # changes its rate within one (a new rate, in the mode's sign): the onset priors of the filters CV, CA, CT+, CT-
+        prior = onset_priors([False, True, False, False], [False, False, True, True], [0.0, 0.0, 1.0, -1.0], n=10,
+                             acc_var=self.acc_var, rate_prior_deg=self.turn_prior_deg)
+        keep, mean, cov = (v.to(device=dev) for v in prior)
         x9, P9 = initial_state(z, r)
         x = torch.cat([x9, torch.zeros(B, 1, dtype=dtype, device=dev)], -1)
         P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
         P[:, :9, :9] = P9
-        P[mode[:, 0] == CA, 2::3, 2::3] = acc_P
+        P[mode[:, 0] == CA, 2::3, 2::3] = self._acc_cov(z)
         R = r**2
         states = z.new_empty(B, T, 9)
         states[:, 0] = x[:, :9]
         for t in range(T):
             m = mode[:, t]
             turn = m >= CT_POS
-            onset = turn & ((m != mode[:, t - 1]) | (rate[:, t] != rate[:, t - 1])) if t else turn
-            if onset.any():  # a turn starts (or changes rate): w from the prior, in the mode's sign
-                x, P = x.clone(), P.clone()
-                sign = torch.where(m[onset] == CT_POS, 1.0, -1.0).to(dtype)  # python floats in where: float32
-                x[onset, 9] = sign * self.w_mean
-                P[onset, 9, :] = 0.0
-                P[onset, :, 9] = 0.0
-                P[onset, 9, 9] = self.w_var
+            switch = turn & ((m != mode[:, t - 1]) | (rate[:, t] != rate[:, t - 1])) if t else turn
+            if t:
+                switch = switch | ((m == CA) & (mode[:, t - 1] != CA))
+            if switch.any():
+                xe, Pe = enter(x, P, keep[m], mean[m], cov[m])
+                x, P = torch.where(switch[:, None], xe, x), torch.where(switch[:, None, None], Pe, P)
             if t == 0:
                 continue
-            x, P = self._ca_onset(x, P, (m == CA) & (mode[:, t - 1] != CA), acc_P)
             w = x[:, 9]
-            J = torch.where((m == CV)[:, None, None], Fcv, Fca).expand(B, 10, 10).clone()
-            J_turn = torch.zeros_like(J)
-            J_turn[:, :9, :9] = ct_matrix(w, d, dtype, dev)
-            J_turn[:, :9, 9] = ct_rate_derivative(x[:, :9], w, d)
-            J_turn[:, 9, 9] = 1.0
-            J = torch.where(turn[:, None, None], J_turn, J)
+            J = torch.where((m == CV)[:, None, None], Fcv, Fca).expand(B, 10, 10)
+            J = torch.where(turn[:, None, None], ct_jacobian(x[:, :9], w, d), J)
             prior = (J @ x.unsqueeze(-1)).squeeze(-1)
             x = torch.where(turn[:, None], torch.cat([ct_propagate(x[:, :9], w, d), w[:, None]], -1), prior)
             P = J @ P @ J.transpose(-1, -2) + Q

@@ -82,7 +82,7 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     P = P0.unsqueeze(1).expand(B, M, 9, 9).contiguous()
     mu = mu0.to(z).expand(B, M).contiguous()
     R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
-    if R.dim() >= 2 and R.shape[-2:] == (3, 3) and R.dim() == 3:
+    if R.dim() == 3:
         R = R[:, None]  # one covariance per track [B, 3, 3], for every filter
     return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts)
 

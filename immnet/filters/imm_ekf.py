@@ -65,9 +65,7 @@ class IMMEKF(Method):
         name: str = "imm-ekf",
     ):
         _positive("sigma_q", sigma_q)
-        _positive("rate_noise_deg", rate_noise_deg)
-        if not 0.0 < p_stay < 1.0:
-            raise ValueError(f"p_stay must be in (0, 1), got {p_stay}")
+        _positive("rate_noise_deg", rate_noise_deg)  # p_stay, r, r0 and k0 are checked by the network's stages
         from immnet.motion import DEG, ModelSet
 
         self.model_set = ModelSet.from_config(model_set)

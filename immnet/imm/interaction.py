@@ -47,7 +47,8 @@ def transition_matrix(p_stay, M: int, dtype=torch.float64) -> torch.Tensor:
     return Pi
 
 
-def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: int = RATE + 1, acc_var=None):
+def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: int = RATE + 1, acc_var=None,
+                 rate_prior_deg=None):
     """What enters filter ``j`` from any other filter (a switch into ``j``), float64: ``keep [M, n]`` (1
     where a component is kept, 0 where it is replaced), the prior's mean ``mean [M, n]`` and covariance
     ``cov [M, n, n]`` on the replaced components. What a filter brings into itself is kept whole.
@@ -55,13 +56,14 @@ def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: in
     ``own_acc [M]``: the filters that keep an acceleration of their own (CA: a switch into it draws a new
     one, mean 0 and ``spec.ca_acc_var()``); ``own_rate [M]``: the turn filters that estimate their rate
     (a switch into one draws a rate, ``spec.turn_rate_prior_deg()`` in the sign of ``nominal [M]``); ``n`` the
-    state's size (9: no turn rate of its own); ``acc_var`` fixes the acceleration's variances instead."""
+    state's size (9: no turn rate of its own); ``acc_var`` fixes the acceleration's variances instead, and
+    ``rate_prior_deg`` ``(mean, std)`` the turn rate's prior."""
     spec = spec or DataSpec()
     M = len(own_acc)
     f64 = torch.float64
     keep = torch.ones(M, n, dtype=f64)
     mean, cov = torch.zeros(M, n, dtype=f64), torch.zeros(M, n, n, dtype=f64)
-    w_mean, w_std = (v * math.pi / 180.0 for v in spec.turn_rate_prior_deg())
+    w_mean, w_std = (v * math.pi / 180.0 for v in (rate_prior_deg or spec.turn_rate_prior_deg()))
     for j in range(M):
         if own_acc[j]:
             for a, v in zip(ACC, spec.ca_acc_var() if acc_var is None else acc_var):
@@ -72,6 +74,14 @@ def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: in
             mean[j, RATE] = math.copysign(w_mean, nominal[j])
             cov[j, RATE, RATE] = w_std**2
     return keep, mean, cov
+
+
+def enter(x: torch.Tensor, P: torch.Tensor, keep: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor):
+    """One posterior ``x [..., n]``, ``P [..., n, n]`` entering a filter it is not, with that filter's onset
+    prior (a row of ``onset_priors``: ``keep [..., n]``, ``mean [..., n]``, ``cov [..., n, n]``):
+    ``keep x + mean`` and ``(keep keep^T) P + cov``."""
+    keep, mean, cov = keep.to(x.dtype), mean.to(x.dtype), cov.to(x.dtype)
+    return x * keep + mean, P * (keep[..., :, None] * keep[..., None, :]) + cov
 
 
 def mixing_weights(mu: torch.Tensor, Pi: torch.Tensor) -> torch.Tensor:

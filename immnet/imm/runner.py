@@ -83,7 +83,7 @@ def run(
         if onehot is not None:
             mu = onehot[:, t]
         else:
-            mu = mode_update(torch.log(mu @ Pi if Pi.dim() == 2 else (mu.unsqueeze(-1) * Pi).sum(-2)), ll)
+            mu = mode_update(torch.log(mu @ Pi), ll)
         states[:, t], probs[:, t] = combine(x, None, mu)[0], mu
         if return_experts:
             experts[:, t] = x

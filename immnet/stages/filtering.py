@@ -84,6 +84,16 @@ def _rate_limits(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torc
     return torch.where(lo < 0, lo.clamp(max=-limit), lo), torch.where(hi > 0, hi.clamp(min=limit), hi)
 
 
+def _register_rate_bounds(stage, lo: list, hi: list) -> None:
+    """The model set's rate range ``rate_lo``, ``rate_hi`` (kept in checkpoints) and the bounds derived from
+    it once, ``rate_min``, ``rate_max`` (``_rate_limits``, float64 so that a ``.double()`` model is exact)."""
+    stage.register_buffer("rate_lo", torch.tensor(lo))
+    stage.register_buffer("rate_hi", torch.tensor(hi))
+    rate_min, rate_max = _rate_limits(torch.tensor(lo, dtype=torch.float64), torch.tensor(hi, dtype=torch.float64))
+    stage.register_buffer("rate_min", rate_min, persistent=False)
+    stage.register_buffer("rate_max", rate_max, persistent=False)
+
+
 def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
     """Unit process-noise components ``[M, 5, 10, 10]`` (velocity h / v as white acceleration on
     position and velocity, acceleration h / v on a CA expert's acceleration, turn rate on ``w``)."""
@@ -130,8 +140,8 @@ class FilterPredict(Predict):
     (``mu`` the previous scan's mode probabilities, ``Pi`` with ``p_stay`` on the diagonal), where
     what enters expert ``j`` from an expert ``i != j`` (a switch into ``j``) carries the generator's
     onset prior for what ``j`` keeps of its own: a CA expert's acceleration (mean 0, the draw's
-    variance), a turn expert's rate (``+/- 5.5`` deg/s, standard deviation 2.6 deg/s), as
-    ``immnet.filters.IMMEKF`` does. Experts alone (stage 1) start from their own posterior either way.
+    variance), a turn expert's rate (``+/- 5.5`` deg/s, standard deviation 2.6 deg/s;
+    ``immnet.imm.interaction.onset_priors``). Experts alone (stage 1) start from their own posterior either way.
 
     ``guard`` (``immnet.imm.guard.RangeGuard``, or its fields as a dict; ``True`` for 3D-LAST's)
     makes ``Pi`` state-dependent, per track and source expert, from each expert's previous posterior,
@@ -170,11 +180,7 @@ class FilterPredict(Predict):
         self.register_buffer("own_acc_mask", acc_mask, persistent=False)
         self.register_buffer("own_rate", torch.tensor(own_rate))
         self.has_turn = any(own_rate)  # a python bool: no data-dependent branch in a compiled step
-        self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range (kept in checkpoints)
-        self.register_buffer("rate_hi", torch.tensor(hi))
-        rate_min, rate_max = _rate_limits(torch.tensor(lo, dtype=f64), torch.tensor(hi, dtype=f64))  # derived once
-        self.register_buffer("rate_min", rate_min, persistent=False)
-        self.register_buffer("rate_max", rate_max, persistent=False)
+        _register_rate_bounds(self, lo, hi)
         modes = model_set.modes
         self.register_buffer("data_modes", modes, persistent=False)
         bound_sign = torch.where(modes == 2, 1.0, torch.where(modes == 3, -1.0, 0.0)) * torch.tensor(own_rate, dtype=f64)
@@ -269,12 +275,7 @@ class FilterUpdate(Update):
         super().__init__(model_set)
         _, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.register_buffer("rate_lo", torch.tensor(lo))  # the model set's range (kept in checkpoints)
-        self.register_buffer("rate_hi", torch.tensor(hi))
-        f64 = torch.float64  # float64, so that a .double() model is exact
-        rate_min, rate_max = _rate_limits(torch.tensor(lo, dtype=f64), torch.tensor(hi, dtype=f64))  # derived once
-        self.register_buffer("rate_min", rate_min, persistent=False)
-        self.register_buffer("rate_max", rate_max, persistent=False)
+        _register_rate_bounds(self, lo, hi)
 
     def forward(self, td):
         td = super().forward(td)  # the state

@@ -129,12 +129,12 @@ class IMMNet(TensorDictModuleBase):
         self.model_set_config = self.model_set.to_config()
         self.dt = dt
         ms = self.model_set
-        settings = {k: v for k, v in (("p_stay", p_stay), ("guard", guard)) if v is not None}
+        settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None}
+        gain, classifier = component_config(gain or DEFAULT_GAIN), component_config(classifier or DEFAULT_CLASSIFIER)
         self.config = {  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
-            "model_set": self.model_set_config["models"], "gain": component_config(gain or DEFAULT_GAIN),
-            "classifier": component_config(classifier or DEFAULT_CLASSIFIER), "dt": dt, **settings}
-        self.gain = build_component(gain or DEFAULT_GAIN, ms, dt, settings)
-        self.classify = build_component(classifier or DEFAULT_CLASSIFIER, ms, dt, settings)
+            "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt, **settings}
+        self.gain = build_component(gain, ms, dt, settings)
+        self.classify = build_component(classifier, ms, dt, settings)
         # a gain may bring the predict and update stages its experts need (filter experts keep their
         # own covariance and mode parameter: immnet.stages.filtering)
         self.predict = getattr(self.gain, "predict_stage", Predict)(ms, dt)
