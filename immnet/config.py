@@ -32,22 +32,22 @@ def checkout() -> Path | None:
     return REPO_ROOT if is_checkout else None
 
 
+def _packaged_dir(name: str) -> Path:
+    """``immnet/<name>`` of an installed wheel, or its source, the checkout's ``<name>/``, in a checkout."""
+    installed = resources.files("immnet") / name
+    return Path(str(installed)) if installed.is_dir() else REPO_ROOT / name
+
+
 def packaged_configs() -> Path:
     """The configs that ship with the package: ``immnet/configs`` of an installed wheel, or their source,
     the checkout's ``configs/``, when the package runs from a checkout."""
-    installed = resources.files("immnet") / "configs"
-    if installed.is_dir():
-        return Path(str(installed))
-    return REPO_ROOT / "configs"
+    return _packaged_dir("configs")
 
 
 def packaged_recipes() -> Path:
     """The recipes that ship with the package (``immnet/recipes``; the checkout's ``recipes/`` in a checkout):
     the ablations of ``configs/ablations`` start from them."""
-    installed = resources.files("immnet") / "recipes"
-    if installed.is_dir():
-        return Path(str(installed))
-    return REPO_ROOT / "recipes"
+    return _packaged_dir("recipes")
 
 
 def _packaged(path: Path) -> Path:

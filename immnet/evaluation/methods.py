@@ -27,10 +27,9 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.config import REPO_ROOT, load_yaml, packaged_configs
+from immnet.config import REPO_ROOT, import_class, load_yaml, packaged_configs
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.motion import POS
-from immnet.config import import_class
 
 METHODS_DIR = packaged_configs() / "methods"
 """Where the packaged ``<name>.yaml`` method configs live."""

@@ -42,6 +42,8 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, batch_dt, data_mode_probs, output
 from immnet.filters.trackers import _positive
+from immnet.motion import DEG, ModelSet
+from immnet.stages.network import IMMNet
 
 IMM4 = "configs/model_sets/imm4-adaptive.yaml"
 
@@ -66,25 +68,21 @@ class IMMEKF(Method):
     ):
         _positive("sigma_q", sigma_q)
         _positive("rate_noise_deg", rate_noise_deg)  # p_stay, r, r0 and k0 are checked by the network's stages
-        from immnet.motion import DEG, ModelSet
-
         self.model_set = ModelSet.from_config(model_set)
         noise = (float(sigma_q), float(sigma_q), 0.0, 0.0, float(rate_noise_deg) * DEG)
         self.gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
-            "noise_std": noise, "r0": r0, "k0": k0, "r": r, "interaction": "imm", "p_stay": p_stay, "guard": guard,
-            "adapt": adapt, "spec": spec}}
-        self.classifier = {"class_path": "immnet.stages.BayesianModeUpdate",
-                           "init_args": {"p_stay": p_stay, "from_experts": True}}
-        self.p_stay, self.dtype, self.name = float(p_stay), as_dtype(dtype), name
+            "noise_std": noise, "r0": r0, "k0": k0, "r": r, "interaction": "imm", "adapt": adapt, "spec": spec}}
+        self.classifier = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
+        self.p_stay, self.guard = float(p_stay), guard  # set once, on the network (IMMNet's SET_ONCE)
+        self.dtype, self.name = as_dtype(dtype), name
         self._nets: dict = {}
         self.network(1.0)  # every argument checked now, not at the first batch
 
     def network(self, dt: float = 1.0):
         """The ``IMMNet`` this method is at the sampling interval ``dt`` (in this method's dtype)."""
         if dt not in self._nets:
-            from immnet.stages.network import IMMNet
-
-            net = IMMNet(model_set=self.model_set, gain=self.gain, classifier=self.classifier, dt=dt)
+            net = IMMNet(model_set=self.model_set, gain=self.gain, classifier=self.classifier, dt=dt, p_stay=self.p_stay,
+                         guard=self.guard)
             self._nets[dt] = net.to(self.dtype).eval()
         return self._nets[dt]
 

@@ -33,9 +33,9 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.checkpoints import load_checkpoint
+from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
-from immnet.config import import_class
 from immnet.stages import IMMNet
 from immnet.stages.network import DEFAULT_GAIN, net_arguments
 
