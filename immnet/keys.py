@@ -3,7 +3,11 @@
 A 3D-LAST batch (``TensorDict`` with batch size ``[B]``, time second)::
 
     states [B, T, 9]   measurements [B, T, 3] (NaN = missed detection)   mode [B, T] int64
-    turn_rate [B, T] (rad/s)   r [B]   dt [B]
+    turn_rate [B, T] (rad/s)   r [B]   dt [B]   and optionally t [B, T] (s)
+
+``dt`` is a track's nominal interval; ``t``, where present, the time of each scan (any spacing,
+strictly increasing along T). Without ``t`` scan ``k`` is at ``k dt``. What every tracker reads is
+``immnet.data.times.scan_intervals(batch)``: the interval before each scan ``[B, T]``.
 
 A method's output (``TensorDict [B]``): ``state [B, T, 9]`` and, where it has them, ``mode_probs
 [B, T, 4]`` over the data modes (0 CV, 1 CA, 2 CT+, 3 CT-).
@@ -18,7 +22,8 @@ MODE = "mode"
 TURN_RATE = "turn_rate"
 R = "r"
 DT = "dt"
-DATA_KEYS = (STATES, MEASUREMENTS, MODE, TURN_RATE, R, DT)
+TIME = "t"
+DATA_KEYS = (STATES, MEASUREMENTS, MODE, TURN_RATE, R, DT, TIME)
 
 # --- a method's output ------------------------------------------------------------------------
 STATE = "state"
@@ -35,6 +40,7 @@ IS_INIT = "is_init"  # [B, 1] bool, True where a track (re)starts (TorchRL's Ini
 
 # --- one tracker step (immnet.stages) ---------------------------------------------------------
 MEASUREMENT = "measurement"  # z_t [B, 3]
+INTERVAL = "interval"  # the time since the previous scan [B] (s); absent: the network's nominal dt
 PREV_MEASUREMENT = ("memory", "measurement")  # z_{t-1} [B, 3]
 FUSED = ("fused", "state")  # x_{t|t} [B, 9]; read as x_{t-1|t-1} at the start of a step
 FUSED_COV = ("fused", "cov")  # P_{t|t} [B, 9, 9], only with the analytic gain
