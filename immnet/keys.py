@@ -61,11 +61,15 @@ NOISE_SUM = ("memory", "r2_sum")  # its sum of (d^3 z)^2 / 20 [B]
 NOISE_COUNT = ("memory", "r2_count")  # and the number of terms [B]
 Q_SCALE = ("memory", "q_log_scale")  # adaptive process noise: log lambda per track [B] (immnet.imm.adaptive)
 Z_HISTORY = ("memory", "z_history")  # z_{t-1}, z_{t-2}, z_{t-3} [B, 3, 3] (NaN = none)
+INTERVAL_HISTORY = ("memory", "interval_history")  # the intervals z_{t-2} -> z_{t-1}, z_{t-3} -> z_{t-2} [B, 2] (s)
 MODE_LOGITS = ("mode", "logits")  # [B, M]
 MODE_TRANSITION = ("mode", "transition")  # a guarded interaction's transition matrix Pi[b, from, to] [B, M, M]
 GUARD_FRESH = ("expert", "speed_fresh")  # a guarded interaction: prior share of each expert entered at a speed bound [B, M]
 EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M]
 HISTORY = ("memory", "history")  # classifier window [B, W, 12]: z_tau and x_{tau-1|tau-1}
 HISTORY_LEN = ("memory", "history_len")  # valid entries of the window [B]
+HISTORY_INTERVAL = ("memory", "history_interval")  # the interval before each entry's scan [B, W] (s)
+PREV_INTERVAL = ("memory", "interval")  # the previous scan's interval [B] (s)
 AGE = ("memory", "age")  # scans since the track started, capped at 2 [B]
 START_SCANS = ("memory", "start_scans")  # scans since a starting track's first detection [B]
+START_TIME = ("memory", "start_time")  # the time since a starting track's first detection [B] (s)

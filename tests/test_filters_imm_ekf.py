@@ -23,13 +23,20 @@ ACC_VAR = [(3.0**3 - 0.5**3) / (3.0 * 2.5) / 2.0] * 2 + [0.6**2 / 12.0]  # docs/
 W_MEAN, W_VAR = 5.5 * DEG, (9.0 * DEG) ** 2 / 12.0  # |w| ~ U[1, 10] deg/s
 
 
-def _noise_var_reference(alt, r0, k0):
+def _noise_var_reference(alt, r0, k0, times=None):
+    """The running r^2 estimate; at scan ``times`` the third divided difference, whose weights
+    ``c_k = 1 / prod_{j != k} (t_k - t_j)`` cancel any quadratic, normalized to E = r^2 by ``sum c_k^2``."""
     out, total, count = [], 0.0, 0
     for t in range(len(alt)):
         if t >= 3:
-            d3 = alt[t] - 3 * alt[t - 1] + 3 * alt[t - 2] - alt[t - 3]
+            if times is None:
+                d3, norm = alt[t] - 3 * alt[t - 1] + 3 * alt[t - 2] - alt[t - 3], 20.0
+            else:
+                s = times[t - 3 : t + 1]
+                c = np.array([1.0 / np.prod([s[k] - s[j] for j in range(4) if j != k]) for k in range(4)])
+                d3, norm = c @ alt[t - 3 : t + 1], c @ c
             if np.isfinite(d3):
-                total, count = total + d3 * d3 / 20.0, count + 1
+                total, count = total + d3 * d3 / norm, count + 1
         out.append((k0 * r0 * r0 + total) / (k0 + count))
     return np.array(out)
 
@@ -64,28 +71,37 @@ def _jacobian(j, x, dt):
 
 def _reference(z, p_stay, sigma_q, r0, k0, dt=1.0, lo=1.0 * DEG, hi=30.0 * DEG, adapt=None):
     """One track ``z [T, 3]`` (NaN = missed): fused states ``[T, 9]`` and mode probabilities ``[T, 4]``.
+    ``dt``: the interval, or the interval before each scan ``[T]`` (F, Q and the start of each step's own).
     ``adapt`` ``(rate, deadband, nis_clip, max_scale)``: Q times ``lambda``, whose log moves by
     ``rate (min(min_j NIS_j / 3, nis_clip) - 1 - deadband)`` on a detected scan, clipped to [0, log max_scale]."""
     T, M = len(z), 4
-    r2 = _noise_var_reference(z[:, 2], r0, k0)
+    irregular = np.ndim(dt) > 0
+    dts = np.broadcast_to(np.asarray(dt, dtype=float), (T,))
+    times = np.cumsum(dts)
+    r2 = _noise_var_reference(z[:, 2], r0, k0, times if irregular else None)
     Pi = np.full((M, M), (1 - p_stay) / 3)
     np.fill_diagonal(Pi, p_stay)
-    G = np.array([dt * dt / 2, dt, 0.0])
-    Q = np.zeros((10, 10))
-    for a in range(3):
-        Q[3 * a:3 * a + 3, 3 * a:3 * a + 3] = sigma_q**2 * np.outer(G, G)
+
+    def noise(d):
+        G = np.array([d * d / 2, d, 0.0])
+        Q = np.zeros((10, 10))
+        for a in range(3):
+            Q[3 * a:3 * a + 3, 3 * a:3 * a + 3] = sigma_q**2 * np.outer(G, G)
+        return Q
     # IMMNet's start (immnet.stages.network): the first detection's position, at the second the differenced
     # velocity; the filters' covariance from the r^2 known before it, their turn rates at the nominal +/-5 deg/s
     detected = [t for t in range(T) if np.isfinite(z[t]).all()]
     first, second = detected[0], detected[1]
     x0 = np.zeros(10)
     x0[0:9:3] = z[second]
-    x0[1:9:3] = (z[second] - z[first]) / ((second - first) * dt)
+    e = times[second] - times[first] if irregular else (second - first) * dt  # the time between them
+    x0[1:9:3] = (z[second] - z[first]) / e
+    e = e if irregular else dt  # the start covariance at the nominal interval where all are one
     rs = r2[second - 1]
     P0 = np.zeros((10, 10))
     for a in range(3):
         p, v, c = 3 * a, 3 * a + 1, 3 * a + 2
-        P0[p, p], P0[v, v], P0[p, v], P0[v, p], P0[c, c] = rs, 2 * rs / dt**2, rs / dt, rs / dt, ACC_VAR[a]
+        P0[p, p], P0[v, v], P0[p, v], P0[v, p], P0[c, c] = rs, 2 * rs / e**2, rs / e, rs / e, ACC_VAR[a]
 
     def enter(j, x, P):  # the generator's draw at a switch into j
         x, P = x.copy(), P.copy()
@@ -120,8 +136,8 @@ def _reference(z, p_stay, sigma_q, r0, k0, dt=1.0, lo=1.0 * DEG, hi=30.0 * DEG, 
             parts = [(mu[i] * Pi[i, j] / cbar[j],) + ((xs[i], Ps[i]) if i == j else enter(j, xs[i], Ps[i])) for i in range(M)]
             xm = sum(w * xi for w, xi, _ in parts)
             Pm = sum(w * (Pi_ + np.outer(xi - xm, xi - xm)) for w, xi, Pi_ in parts)
-            J = _jacobian(j, xm, dt)
-            xp, Pp = _f(j, xm, dt), J @ Pm @ J.T + np.exp(log_scale) * Q
+            J = _jacobian(j, xm, dts[t])
+            xp, Pp = _f(j, xm, dts[t]), J @ Pm @ J.T + np.exp(log_scale) * noise(dts[t])
             if np.isfinite(z[t]).all():
                 y = z[t] - xp[0:9:3]
                 S = Pp[0:9:3][:, 0:9:3] + r2[t] * np.eye(3)
@@ -187,6 +203,33 @@ def test_adaptive_imm_ekf_equals_a_numpy_imm(data, missed):
         states, probs = _reference(data[keys.MEASUREMENTS][b].numpy(), 0.97, 0.05, 3.0, 2.0, adapt=tuple(adapt.values()))
         np.testing.assert_allclose(out[keys.STATE][b].numpy(), states, rtol=1e-7, atol=1e-6)
         np.testing.assert_allclose(out[keys.MODE_PROBS][b].numpy(), probs, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("missed", [False, True], ids=["all-detected", "missed"])
+def test_imm_ekf_at_irregular_intervals_equals_a_numpy_imm(missed):
+    """Issue 22: with scan times ``t [B, T]`` each step predicts over its own interval; the numpy IMM fed the same
+    intervals agrees. The scans are 1 s trajectories kept at irregular gaps of 1-4 s (so that the motion between
+    them is the truth's), their times from an epoch origin."""
+    from immnet.data.spec import DataSpec
+
+    full = pytest.importorskip("immnet.data.generate").generate(3, seed=709, spec=DataSpec(T=300, min_segment=60))
+    gen = torch.Generator().manual_seed(3)
+    keep = torch.randint(1, 5, (100,), generator=gen).cumsum(0)
+    keep = keep[keep < 300]
+    data = full.apply(lambda v: v[:, keep] if v.dim() >= 2 else v, batch_size=[3])
+    data[keys.TIME] = 1.7e9 + 0.37 + keep.to(torch.float64).expand(3, -1).clone()
+    if missed:
+        data[keys.MEASUREMENTS][0, 30:33] = float("nan")
+        data[keys.MEASUREMENTS][1, 1] = float("nan")  # the second detection after a missed scan
+    out = IMMEKF(p_stay=0.97, sigma_q=0.3, r0=3.0, k0=2.0).track(data)
+    assert not torch.equal(out[keys.STATE].nan_to_num(0), IMMEKF(p_stay=0.97, sigma_q=0.3, r0=3.0, k0=2.0).track(
+        data.exclude(keys.TIME))[keys.STATE].nan_to_num(0))  # the times change the estimates
+    for b in range(3):
+        dts = np.diff(data[keys.TIME][b].numpy() - 1.7e9, prepend=np.nan)
+        dts[0] = 1.0  # no interval before the first scan (never used)
+        states, probs = _reference(data[keys.MEASUREMENTS][b].numpy(), 0.97, 0.3, 3.0, 2.0, dt=dts)
+        np.testing.assert_allclose(out[keys.STATE][b].numpy(), states, rtol=1e-7, atol=1e-5)
+        np.testing.assert_allclose(out[keys.MODE_PROBS][b].numpy(), probs, rtol=1e-6, atol=1e-6)
 
 
 def test_imm_ekf_is_between_the_bound_and_the_measurements(data):

@@ -216,7 +216,7 @@ def test_the_carry_is_what_the_stages_declare(name, alone, data):
     z = data.unsqueeze(1).expand(-1, M, -1, -1) if alone else data
     step = net.expert_step if alone else net.step
     carry = _leaves(net.initial_carry(B, alone))
-    declared = {keys.AGE: None, keys.START_SCANS: None}
+    declared = {keys.AGE: None, keys.START_SCANS: None, keys.START_TIME: None}
     for stage in step.module:
         spec = _leaves(TensorDict(stage.carry_spec(B, alone), batch_size=[B]))
         twice = set(spec) & set(declared)
@@ -227,7 +227,7 @@ def test_the_carry_is_what_the_stages_declare(name, alone, data):
     unprimed = [k for k in step_in if not any(_owner(leaf, [k]) for leaf in carry)]
     assert not unprimed, f"the step reads {unprimed}, which no stage carries"
     step_out = [unravel_key(k) for k in step.out_keys]
-    assert all(_owner(k, step_out) is not None for k in carry if k not in (keys.AGE, keys.START_SCANS))
+    assert all(_owner(k, step_out) is not None for k in carry if k not in (keys.AGE, keys.START_SCANS, keys.START_TIME))
     with torch.no_grad():
         _, after_one = net.rollout(z[..., :1, :], experts_alone=alone)
         _, after = net.rollout(z[..., :SCANS, :], experts_alone=alone)

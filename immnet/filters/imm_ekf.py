@@ -40,7 +40,8 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.filters.base import Method, as_dtype, batch_dt, data_mode_probs, output
+from immnet.data.times import regular, scan_intervals
+from immnet.filters.base import Method, as_dtype, data_mode_probs, output
 from immnet.filters.trackers import _positive
 from immnet.motion import DEG, ModelSet
 from immnet.stages.network import IMMNet
@@ -50,6 +51,8 @@ IMM4 = "configs/model_sets/imm4-adaptive.yaml"
 
 class IMMEKF(Method):
     """IMMNet with nothing learned: filter experts with their base noise and the IMM's mode update (module doc)."""
+
+    any_interval = True  # each scan's interval per track (scan_intervals)
 
     def __init__(
         self,
@@ -90,10 +93,10 @@ class IMMEKF(Method):
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
-        dts = batch_dt(batch, self.dtype, z.device)
-        if not torch.all(dts == dts[0]):
-            raise ValueError(f"{self.name} needs one dt for the whole batch, got several")
-        net = self.network(float(dts[0])).to(z.device)
-        out, _ = net.rollout(z)
+        intervals = scan_intervals(batch, self.dtype, z.device)
+        if regular(intervals):  # one interval for every track and scan: the network at that interval
+            out, _ = self.network(float(intervals[0, -1])).to(z.device).rollout(z)
+        else:  # each scan's interval per track (docs/baselines.md, "Any scan interval")
+            out, _ = self.network(1.0).to(z.device).rollout(z, intervals=intervals)
         probs = data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], self.model_set.modes)
         return output(out[keys.STATE], {keys.MODE_PROBS: probs}, measurements=z)

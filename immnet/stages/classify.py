@@ -77,8 +77,8 @@ class _Block(nn.Module):
 
 
 class TransformerClassifier(Stage):
-    in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN]
-    out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN]
+    in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
+    out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
 
     def __init__(
         self,
@@ -89,10 +89,13 @@ class TransformerClassifier(Stage):
         heads: int = 4,
         layers: int = 2,
         ff: int = 64,
+        interval_input: bool = False,
     ):
+        """``interval_input``: each token also reads its scan's interval, ``log(interval / dt)`` (a network
+        trained over a range of intervals, docs/immnet.md "Any scan interval")."""
         super().__init__(model_set)
-        self.window, self.dt = window, dt
-        self.embed = nn.Linear(6 + 12, d_model)
+        self.window, self.dt, self.interval_input = window, dt, bool(interval_input)
+        self.embed = nn.Linear(6 + 12 + int(self.interval_input), d_model)
         self.pos = nn.Parameter(torch.randn(window, d_model) * 0.02)
         self.blocks = nn.ModuleList(_Block(d_model, heads, ff) for _ in range(layers))
         self.norm = nn.LayerNorm(d_model)
@@ -107,27 +110,35 @@ class TransformerClassifier(Stage):
         return uniform_probs(batch, self.n_experts, dtype, device) | {
             keys.HISTORY: self.initial_history(batch, dtype=dtype, device=device),
             keys.HISTORY_LEN: torch.zeros(batch, dtype=torch.long, device=device),
+            keys.HISTORY_INTERVAL: torch.full((batch, self.window), float(self.dt), dtype=dtype, device=device),
         }
 
     def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
         """At a track's second detection the window holds the scan the first stored, ``(z_1, x_0)``."""
         if not second:
             return {}
-        return {keys.HISTORY_LEN: torch.ones_like(carry.get(keys.HISTORY_LEN)), keys.HISTORY: carry.get(keys.HISTORY)}
+        return {keys.HISTORY_LEN: torch.ones_like(carry.get(keys.HISTORY_LEN)), keys.HISTORY: carry.get(keys.HISTORY),
+                keys.HISTORY_INTERVAL: carry.get(keys.HISTORY_INTERVAL)}
 
-    def tokens(self, hist, fused):
-        """Frame the window: ``hist [B, W, 12]`` of (z_tau, x_{tau-1}) against ``fused = x_{t-1|t-1}``."""
+    def tokens(self, hist, fused, gaps=None):
+        """Frame the window: ``hist [B, W, 12]`` of (z_tau, x_{tau-1}) against ``fused = x_{t-1|t-1}``;
+        ``gaps [B, W]`` the interval before each entry's scan (None: the nominal ``dt`` at every scan)."""
         W = self.window
         p_ref, v_ref = fused[:, [0, 3, 6]], fused[:, [1, 4, 7]]
         c, s = heading_frame(v_ref)
-        # scan tau = t - W + 1 + k holds z_tau; its CV guess is p_ref + v_ref (tau - t + 1) dt
-        lag = torch.arange(W, device=hist.device, dtype=hist.dtype) - (W - 2)
-        guess_z = p_ref[:, None] + v_ref[:, None] * (lag * self.dt)[None, :, None]
+        # scan tau = t - W + 1 + k holds z_tau; its CV guess is p_ref + v_ref (time(tau) - time(t - 1))
+        if gaps is None:  # (tau - t + 1) dt
+            lag = torch.arange(W, device=hist.device, dtype=hist.dtype) - (W - 2)
+            guess_z = p_ref[:, None] + v_ref[:, None] * (lag * self.dt)[None, :, None]
+        else:  # time(tau_k) - time(t - 1) = gap_t - (the gaps after entry k)
+            after = gaps.flip(-1).cumsum(-1).flip(-1) - gaps
+            rel = gaps[:, -1:] - after
+            guess_z = p_ref[:, None] + v_ref[:, None] * rel[..., None]
         z = hist[..., :3]
         tz = torch.cat([slog(rotate(z - p_ref[:, None], c, s), 100.0), slog(rotate(z - guess_z, c, s), 10.0)], -1)
         x = hist[..., 3:]
         px, vx, ax = x[..., [0, 3, 6]], x[..., [1, 4, 7]], x[..., [2, 5, 8]]
-        guess_x = guess_z - v_ref[:, None] * self.dt
+        guess_x = guess_z - v_ref[:, None] * (self.dt if gaps is None else gaps[..., None])
         tx = torch.cat(
             [
                 slog(rotate(px - p_ref[:, None], c, s), 100.0),
@@ -145,12 +156,20 @@ class TransformerClassifier(Stage):
         z = td.get(keys.MEASUREMENT)
         fused = td.get(keys.FUSED).detach()
         hist, n = td.get(keys.HISTORY).detach(), td.get(keys.HISTORY_LEN)
+        interval = td.get(keys.INTERVAL, None)
+        gaps = td.get(keys.HISTORY_INTERVAL)
+        # the window's intervals move with it (unchanged at the nominal interval)
+        gaps = gaps.clone() if interval is None else torch.cat([gaps[:, 1:], interval.to(gaps.dtype)[:, None]], 1)
+        step = self.dt if interval is None else interval.to(fused.dtype)[:, None]
         # a missing measurement enters the window as the predicted position of the fused estimate
-        z_fill = torch.where(measured(z), z, fused[:, [0, 3, 6]] + fused[:, [1, 4, 7]] * self.dt)
+        z_fill = torch.where(measured(z), z, fused[:, [0, 3, 6]] + fused[:, [1, 4, 7]] * step)
         hist = torch.cat([hist[:, 1:], torch.cat([z_fill, fused], -1)[:, None]], 1)
         n = (n + 1).clamp(max=self.window)
-        tz, tx, (c, s) = self.tokens(hist, fused)
-        h = self.embed(torch.cat([tz, tx], -1)) + self.pos
+        tz, tx, (c, s) = self.tokens(hist, fused, None if interval is None else gaps)
+        feats = [tz, tx]
+        if self.interval_input:
+            feats.append(torch.log(gaps / self.dt).to(tz.dtype).unsqueeze(-1))
+        h = self.embed(torch.cat(feats, -1)) + self.pos
         valid = torch.arange(self.window, device=n.device)[None] >= (self.window - n)[:, None]  # [B, W]
         mask = valid[:, None, None, :]
         for block in self.blocks:
@@ -164,6 +183,7 @@ class TransformerClassifier(Stage):
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
         td.set(keys.HISTORY, hist)
         td.set(keys.HISTORY_LEN, n)
+        td.set(keys.HISTORY_INTERVAL, gaps)
         return td
 
 
@@ -285,12 +305,13 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
     """
 
     # written out: tensordict turns a built module's key lists into properties (see filtering.py)
-    in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN, keys.EXPERT_LOGLIK, keys.EXPERT_PROBS]
-    out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN]
+    in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL, keys.EXPERT_LOGLIK,
+                               keys.EXPERT_PROBS]
+    out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.995, window: int = 20,
-                 d_model: int = 32, heads: int = 4, layers: int = 2, ff: int = 64):
-        super().__init__(model_set, dt, window, d_model, heads, layers, ff)
+                 d_model: int = 32, heads: int = 4, layers: int = 2, ff: int = 64, interval_input: bool = False):
+        super().__init__(model_set, dt, window, d_model, heads, layers, ff, interval_input)
         if not 0.0 < p_stay <= 1.0:
             raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
         self.p_stay = float(p_stay)

@@ -94,29 +94,63 @@ def _register_rate_bounds(stage, lo: list, hi: list) -> None:
     stage.register_buffer("rate_max", rate_max, persistent=False)
 
 
-def _noise_components(own_acc, own_rate, dt: float) -> torch.Tensor:
+def _noise_components(own_acc, own_rate, dt, nominal: float | None = None) -> torch.Tensor:
     """Unit process-noise components ``[M, 5, 10, 10]`` (velocity h / v as white acceleration on
-    position and velocity, acceleration h / v on a CA expert's acceleration, turn rate on ``w``)."""
-    G = noise_gain(dt, "white")  # [9, 3]
-    out = torch.zeros(len(own_acc), N_NOISE, N_AUG, N_AUG, dtype=torch.float64)
+    position and velocity, acceleration h / v on a CA expert's acceleration, turn rate on ``w``).
+
+    ``dt`` a float (the nominal interval: the acceleration and turn-rate components are per scan) or a
+    tensor ``[B]`` of intervals (``[B, M, 5, 10, 10]``): the white-acceleration components of that interval,
+    the random-walk ones (acceleration, turn rate) scaled by ``dt / nominal``, a variance per unit time
+    (docs/immnet.md, "Any scan interval")."""
+    dtype = dt.dtype if isinstance(dt, torch.Tensor) else torch.float64
+    G = noise_gain(dt, "white", dtype=dtype, device=dt.device if isinstance(dt, torch.Tensor) else None)  # [..., 9, 3]
+    lead = G.shape[:-2]
+    walk = 1.0 if nominal is None else (dt / nominal)
+    out = torch.zeros(*lead, len(own_acc), N_NOISE, N_AUG, N_AUG, dtype=dtype, device=G.device)
     for i, (acc, rate) in enumerate(zip(own_acc, own_rate)):
         for axis, k in ((0, 0), (1, 0), (2, 1)):
-            g = torch.zeros(N_AUG, dtype=torch.float64)
-            g[:9] = G[:, axis]
-            out[i, k] += g[:, None] * g[None, :]
+            g = G.new_zeros(*lead, N_AUG)
+            g[..., :9] = G[..., axis]
+            out[..., i, k, :, :] += g[..., :, None] * g[..., None, :]
         if acc:
             for axis, k in ((0, 2), (1, 2), (2, 3)):
                 a = ACC[axis]
-                out[i, k, a, a] = 1.0
+                out[..., i, k, a, a] = walk
         if rate:
-            out[i, 4, RATE, RATE] = 1.0
+            out[..., i, 4, RATE, RATE] = walk
     return out
+
+
+def _jacobian_base(model_set: ModelSet, own_rate, dt, dtype=torch.float64) -> torch.Tensor:
+    """The Jacobian's constant part ``[M, 10, 10]`` (``[B, M, 10, 10]`` for intervals ``dt [B]``): ``F`` for the
+    constant models, for a turn expert ``F_CT``'s entries that do not depend on ``w`` (position and the
+    vertical CV block, ``w``'s own 1); the rest of a turn expert's Jacobian is written at ``TURN_ENTRIES``
+    each scan."""
+    d = torch.as_tensor(dt, dtype=dtype)
+    F = model_set.F(d, dtype=dtype, device=d.device)  # [..., M, 9, 9]
+    J = F.new_zeros(*F.shape[:-2], N_AUG, N_AUG)
+    J[..., :9, :9] = F
+    for i, rate in enumerate(own_rate):
+        if rate:
+            J[..., i, :, :] = 0.0
+            for r, c in ((0, 0), (3, 3), (6, 6), (7, 7), (RATE, RATE)):
+                J[..., i, r, c] = 1.0
+            J[..., i, 6, 7] = d
+    return J
+
+
+def scan_interval(td, nominal: float):
+    """This scan's interval: ``("interval")`` ``[B]`` where the step carries it, else the ``nominal`` float.
+    Returns ``(dt, per_track)``: ``dt`` a float or ``[B, 1]`` (broadcasting against ``[B, M]``)."""
+    d = td.get(keys.INTERVAL, None)
+    return (nominal, False) if d is None else (d.unsqueeze(-1), True)
 
 
 def _noise(scale: torch.Tensor, Q_parts: torch.Tensor) -> torch.Tensor:
     """``Q_t = sum_k scale_k Q_k`` ``[B, M, 10, 10]`` from the components' multipliers ``scale [B, M, 5]`` and
-    ``Q_parts [M, 5, 10, 10]``: one product over ``k`` per expert."""
-    return torch.einsum("bmk,mkq->bmq", scale, Q_parts.flatten(-2)).unflatten(-1, Q_parts.shape[-2:])
+    ``Q_parts [M, 5, 10, 10]`` (``[B, M, 5, 10, 10]`` per track's interval): one product over ``k`` per expert."""
+    spec = "bmk,mkq->bmq" if Q_parts.dim() == 4 else "bmk,bmkq->bmq"
+    return torch.einsum(spec, scale, Q_parts.flatten(-2)).unflatten(-1, Q_parts.shape[-2:])
 
 
 def _check_interaction(interaction: str, p_stay: float, guard=None) -> RangeGuard | None:
@@ -185,17 +219,8 @@ class FilterPredict(Predict):
         self.register_buffer("data_modes", modes, persistent=False)
         bound_sign = torch.where(modes == 2, 1.0, torch.where(modes == 3, -1.0, 0.0)) * torch.tensor(own_rate, dtype=f64)
         self.register_buffer("bound_sign", bound_sign, persistent=False)  # a bound turn's rate sign per expert (0: none)
-        # the Jacobian's constant part: F for the constant models, for a turn expert F_CT's entries
-        # that do not depend on w (position and the vertical CV block, w's own 1); the rest of a turn
-        # expert's Jacobian is written at TURN_ENTRIES each scan
-        J = torch.zeros(len(model_set), N_AUG, N_AUG, dtype=f64)
-        J[:, :9, :9] = model_set.F(dt, dtype=f64)
-        for i, rate in enumerate(own_rate):
-            if rate:
-                J[i] = 0.0
-                for r, c, v in ((0, 0, 1.0), (3, 3, 1.0), (6, 6, 1.0), (6, 7, dt), (7, 7, 1.0), (RATE, RATE, 1.0)):
-                    J[i, r, c] = v
-        self.register_buffer("J_base", J, persistent=False)
+        self._own_rate = own_rate
+        self.register_buffer("J_base", _jacobian_base(model_set, own_rate, dt), persistent=False)
         self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in TURN_ENTRIES]), persistent=False)
 
     def for_experts_alone(self) -> "FilterPredict":
@@ -219,7 +244,7 @@ class FilterPredict(Predict):
         if self.guard is not None:  # per track and source expert [B, i, j]; a prior: no gradient flows through it
             with torch.no_grad():
                 Pi, share, speed_share = guarded_transition(
-                    Pi, self.guard.events(y[..., :9], y[..., RATE], self.dt), self.data_modes,
+                    Pi, self.guard.events(y[..., :9], y[..., RATE], scan_interval(td, self.dt)[0]), self.data_modes,
                     td.get(keys.GUARD_FRESH, None))
             share = share * (self.bound_sign != 0).to(share.dtype)
         # the transition the experts are mixed with is the one the mode update predicts with
@@ -244,12 +269,19 @@ class FilterPredict(Predict):
             w = td.get(keys.EXPERT_RATE)
         w = torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype))
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
-        prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
-        J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
+        dt, per_track = scan_interval(td, self.dt)
+        if per_track:  # this scan's interval per track: F and the Jacobian's constant part of it
+            d = dt[:, 0].to(x.dtype)
+            prior = torch.einsum("bmij,bmj->bmi", self.model_set.F(d, dtype=x.dtype, device=x.device), x)
+            J = _jacobian_base(self.model_set, self._own_rate, d, x.dtype)
+            dt = dt.to(x.dtype)
+        else:
+            prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
+            J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
         if self.has_turn:
-            turned = ct_propagate(x, w, self.dt)
+            turned = ct_propagate(x, w, dt)
             prior = torch.where(self.own_rate[:, None], turned, prior)
-            entries = ct_jacobian_entries(x, w, self.dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
+            entries = ct_jacobian_entries(x, w, dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
             scattered = entries.new_zeros(*entries.shape[:2], N_AUG * N_AUG).index_copy(-1, self.turn_index, entries)
             J = J + scattered.view(*entries.shape[:2], N_AUG, N_AUG)
         if not mixed:
@@ -330,11 +362,22 @@ class _FilterExperts:
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         std = torch.tensor(noise_std, dtype=torch.float64)
         self.register_buffer("Q_parts", _noise_components(own_acc, own_rate, dt) * std.square()[None, :, None, None])
+        self.register_buffer("noise_var_std", std.square(), persistent=False)
+        self._own_acc, self._own_rate = own_acc, own_rate
         self.register_buffer("rate_nominal", torch.tensor(nominal))
         self.register_buffer("own_rate", torch.tensor(own_rate))
         self.register_buffer("acc_var0", torch.tensor(self.spec.ca_acc_var(), dtype=torch.float64))
         self.r0, self.k0, self.dt = float(r0), float(k0), dt
         self.rate_var0 = float((rate_std0_deg * math.pi / 180.0) ** 2)
+
+    def q_parts(self, td, like: torch.Tensor) -> torch.Tensor:
+        """The base noise components of this scan: ``Q_parts [M, 5, 10, 10]`` at the nominal interval, or
+        ``[B, M, 5, 10, 10]`` for the step's interval per track (``_noise_components``)."""
+        dt, per_track = scan_interval(td, self.dt)
+        if not per_track:
+            return self.Q_parts.to(like.dtype)
+        parts = _noise_components(self._own_acc, self._own_rate, dt[:, 0].to(like.dtype), self.dt)
+        return parts * self.noise_var_std.to(like.dtype)[:, None, None]
 
     # --- the measurement noise --------------------------------------------------------------
     def noise_var(self, total: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
@@ -348,9 +391,26 @@ class _FilterExperts:
         """Push ``z_t`` into the history; the running estimate of ``r^2`` from altitude third differences."""
         z = td.get(keys.MEASUREMENT)
         hist = td.get(keys.Z_HISTORY)  # [..., 3, 3]: z_{t-1}, z_{t-2}, z_{t-3} (NaN = none)
-        d3 = z[..., 2] - 3.0 * hist[..., 0, 2] + 3.0 * hist[..., 1, 2] - hist[..., 2, 2]
+        gaps = td.get(keys.INTERVAL_HISTORY)  # [..., 2]: the intervals z_{t-2} -> z_{t-1} and z_{t-3} -> z_{t-2}
+        dt, per_track = scan_interval(td, self.dt)
+        if per_track:  # a third divided difference at the scans' times cancels CV and CA motion at any spacing
+            d = dt.view(-1, *([1] * (z.dim() - 1))).to(z.dtype)  # [B, 1] or [B, 1, 1]
+            s1 = -d[..., 0]
+            s2 = s1 - gaps[..., 0]
+            s3 = s2 - gaps[..., 1]
+            s = torch.stack([torch.zeros_like(s1), s1, s2, s3], -1)  # [..., 4]
+            diff = s.unsqueeze(-1) - s.unsqueeze(-2) + torch.eye(4, dtype=s.dtype, device=s.device)
+            c = 1.0 / diff.prod(-1)  # divided-difference weights, up to a common factor
+            alt = torch.stack([z[..., 2], hist[..., 0, 2], hist[..., 1, 2], hist[..., 2, 2]], -1)
+            d3 = (c * alt).sum(-1)
+            sample = d3 * d3 / (c * c).sum(-1)  # E = r^2, as (d^3 z)^2 / 20 at equal spacing
+            td.set(keys.INTERVAL_HISTORY, torch.stack([d[..., 0].expand_as(s1), gaps[..., 0]], -1))
+        else:
+            d3 = z[..., 2] - 3.0 * hist[..., 0, 2] + 3.0 * hist[..., 1, 2] - hist[..., 2, 2]
+            sample = d3 * d3 / 20.0
+            td.set(keys.INTERVAL_HISTORY, gaps.clone())  # unchanged: the nominal intervals
         ok = torch.isfinite(d3)
-        total = td.get(keys.NOISE_SUM) + torch.where(ok, d3 * d3 / 20.0, 0.0)
+        total = td.get(keys.NOISE_SUM) + torch.where(ok, sample, 0.0)
         count = td.get(keys.NOISE_COUNT) + ok.to(total.dtype)
         td.set(keys.NOISE_SUM, total)
         td.set(keys.NOISE_COUNT, count)
@@ -382,20 +442,22 @@ class _FilterExperts:
             keys.NOISE_SUM: torch.zeros(shape, dtype=dtype, device=device),
             keys.NOISE_COUNT: torch.zeros(shape, dtype=dtype, device=device),
             keys.Z_HISTORY: torch.full((*shape, 3, 3), float("nan"), dtype=dtype, device=device),
+            keys.INTERVAL_HISTORY: torch.full((*shape, 2), float(self.dt), dtype=dtype, device=device),
         }
 
-    def start_cov(self, B: int, r2: torch.Tensor, second: bool) -> torch.Tensor:
+    def start_cov(self, B: int, r2: torch.Tensor, second: bool, elapsed=None) -> torch.Tensor:
         """Covariance of a starting track ``[B, M, 10, 10]``: after one scan position ``r^2``,
-        velocity ``300^2``; after two (differenced velocity) velocity ``2 r^2 / dt^2`` with the
-        position-velocity covariance ``r^2 / dt``; acceleration the CA draw's, turn rate
-        ``rate_std0``."""
+        velocity ``300^2``; after two (differenced velocity over ``elapsed``, the time between the
+        detections ``[B]``; the nominal ``dt`` where None) velocity ``2 r^2 / elapsed^2`` with the
+        position-velocity covariance ``r^2 / elapsed``; acceleration the CA draw's, turn rate ``rate_std0``."""
         P = r2.new_zeros(B, self.n_experts, N_AUG, N_AUG)
+        e = self.dt if elapsed is None else elapsed.to(r2.dtype).view(B, *([1] * (r2.dim() - 1)))
         for a in range(3):
             p, v, c = POS[a], VEL[a], ACC[a]
             P[..., p, p] = r2
-            P[..., v, v] = 2.0 * r2 / self.dt**2 if second else 300.0**2
+            P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
             if second:
-                P[..., p, v] = P[..., v, p] = r2 / self.dt
+                P[..., p, v] = P[..., v, p] = r2 / e
             P[..., c, c] = float(self.acc_var0[a])
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
@@ -411,14 +473,19 @@ class _FilterExperts:
         else:
             prev = torch.full_like(z, float("nan"))
         nan = torch.full_like(z, float("nan"))
+        elapsed = carry.get(keys.START_TIME) if second else None  # the time since the first detection
+        gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
+        gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
+        gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
         r2_track = self.noise_var(carry.get(keys.NOISE_SUM), carry.get(keys.NOISE_COUNT))
         r2 = per_expert(r2_track, M, event_dims=0)
         adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
         return adapt | {
             keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
             keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
-            keys.EXPERT_AUG_COV: self.start_cov(B, r2, second),
+            keys.EXPERT_AUG_COV: self.start_cov(B, r2, second, elapsed),
             keys.Z_HISTORY: torch.stack([z, prev, nan], -2),
+            keys.INTERVAL_HISTORY: gaps.clone(),
             keys.NOISE_VAR: r2_track,
             keys.NOISE_SUM: carry.get(keys.NOISE_SUM),
             keys.NOISE_COUNT: carry.get(keys.NOISE_COUNT),
@@ -470,10 +537,11 @@ class _FilterExperts:
         return td
 
 
-_FILTER_IN = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_AUG_PRIOR_COV, keys.NOISE_SUM, keys.NOISE_COUNT, keys.Z_HISTORY]
+_FILTER_IN = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_AUG_PRIOR_COV, keys.NOISE_SUM, keys.NOISE_COUNT,
+              keys.Z_HISTORY, keys.INTERVAL_HISTORY]
 _FILTER_OUT = [
     keys.EXPERT_GAIN, keys.EXPERT_RATE_GAIN, keys.EXPERT_AUG_PRIOR_COV, keys.EXPERT_LOGLIK,
-    keys.NOISE_VAR, keys.NOISE_SUM, keys.NOISE_COUNT, keys.Z_HISTORY,
+    keys.NOISE_VAR, keys.NOISE_SUM, keys.NOISE_COUNT, keys.Z_HISTORY, keys.INTERVAL_HISTORY,
 ]
 
 
@@ -506,9 +574,9 @@ class FilterGain(_FilterExperts, Stage):
     def forward(self, td):
         r2 = self._r2(td)
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        Q_parts = self.Q_parts.to(P.dtype)
+        Q_parts = self.q_parts(td, P)
         scale = self._noise_scale(td, P)
-        Q = Q_parts.sum(1) if scale is None else _noise(scale, Q_parts)
+        Q = Q_parts.sum(-3) if scale is None else _noise(scale, Q_parts)
         return self._finish(td, r2, P + Q)
 
 
@@ -530,8 +598,9 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     # properties once one is built, so a class body must not read another class's
     in_keys = [
         keys.PREV_MEASUREMENT, keys.FUSED, keys.PREV_FUSED, keys.PREV_EXPERT_PRIOR, keys.EXPERT_HIDDEN,
+        keys.PREV_INTERVAL,
     ] + _FILTER_IN
-    out_keys = [keys.EXPERT_HIDDEN] + _FILTER_OUT
+    out_keys = [keys.EXPERT_HIDDEN, keys.PREV_INTERVAL] + _FILTER_OUT
 
     def __init__(
         self,
@@ -553,13 +622,16 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         adapt: bool | dict | None = None,
         r: float | None = None,
         spec: DataSpec | dict | None = None,
+        interval_input: bool = False,
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
-        super().__init__(model_set, dt, in_mult, out_mult, gain_scale=gain_scale, init_out_scale=init_out_scale)
+        super().__init__(model_set, dt, in_mult, out_mult, gain_scale=gain_scale, init_out_scale=init_out_scale,
+                         interval_input=interval_input)
         M, n = self.n_experts, 3
-        # F1, F2 and the whitened innovation into GRU_S; FC2 gives the 27 gain corrections and 5 noise scales
-        self.fc7 = StackedLinear(M, 3 * n, 2 * n * in_mult)
+        # F1, F2 (with the interval, where an input) and the whitened innovation into GRU_S; FC2 gives the 27
+        # gain corrections and 5 noise scales
+        self.fc7 = StackedLinear(M, 3 * n + int(self.interval_input), 2 * n * in_mult)
         d2 = self.d_s + self.d_sigma
         self.fc2b = StackedLinear(M, d2 * out_mult, 9 * n + N_NOISE)
         with torch.no_grad():
@@ -572,7 +644,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     def forward(self, td):
         r2 = self._r2(td)
         base = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        Q_parts = self.Q_parts.to(base.dtype)
+        Q_parts = self.q_parts(td, base)
         scale = self._noise_scale(td, base)  # [B, M, 5] or None; the whitening below uses the scaled noise too
         Q0 = Q_parts.sum(-3) if scale is None else _noise(scale, Q_parts)
         S0 = (base + Q0)[..., 0:7:3, 0:7:3] + r2 * torch.eye(3, dtype=base.dtype, device=base.device)
@@ -591,7 +663,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
         h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
         u = self.u_max * torch.tanh(out[..., 9 * 3 :].transpose(0, 1) * (self.u_slope / self.u_max))  # [B, M, 5]
-        P = base + _noise(torch.exp(u) if scale is None else torch.exp(u) * scale, self.Q_parts.to(base.dtype))
+        P = base + _noise(torch.exp(u) if scale is None else torch.exp(u) * scale, Q_parts)
         delta = self.K_scale * torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
         td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
         return self._finish(td, r2, P, delta, nu)

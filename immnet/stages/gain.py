@@ -8,6 +8,11 @@ Causal features, each normalized by ``slog`` (``immnet.stages.features``):
 * F1 ``z_t - z_{t-1}``, F2 ``z_t - H x_{t|t-1}^(i)``,
 * F3 ``x_{t-1|t-1} - x_{t-2|t-2}``, F4 ``x_{t-1|t-1} - x_{t-1|t-2}^(i)``.
 
+F1 and F3 are differences over an interval: where the step carries its interval (``("interval")``),
+they are scaled to the nominal ``dt`` (``F dt / interval``, F3 by the previous scan's interval, carried),
+so a network sees rates, not spans; at the nominal interval they are as above. With ``interval_input``
+GRU_S also reads ``log(interval / dt)`` (a network trained over a range of intervals).
+
 The network learns a bounded correction around its expert's steady-state Kalman gain:
 ``K = K_ss + K_scale * tanh(FC2(...))`` with FC2's last layer started small, so an untrained
 expert is a steady-state Kalman filter and no finite input can produce an unbounded gain.
@@ -58,9 +63,9 @@ class KalmanNetGain(Stage):
 
     in_keys = [
         keys.MEASUREMENT, keys.PREV_MEASUREMENT, keys.FUSED, keys.PREV_FUSED,
-        keys.EXPERT_PRIOR, keys.PREV_EXPERT_PRIOR, keys.EXPERT_HIDDEN,
+        keys.EXPERT_PRIOR, keys.PREV_EXPERT_PRIOR, keys.EXPERT_HIDDEN, keys.PREV_INTERVAL,
     ]
-    out_keys = [keys.EXPERT_GAIN, keys.EXPERT_HIDDEN]
+    out_keys = [keys.EXPERT_GAIN, keys.EXPERT_HIDDEN, keys.PREV_INTERVAL]
 
     def __init__(
         self,
@@ -72,8 +77,10 @@ class KalmanNetGain(Stage):
         init_r: float = 4.0,
         gain_scale: tuple[float, float, float] = (1.0, 1.0, 0.5),
         init_out_scale: float = 0.01,
+        interval_input: bool = False,
     ):
         super().__init__(model_set)
+        self.dt, self.interval_input = dt, bool(interval_input)
         M, m, n = self.n_experts, 9, 3
         self.d_q, self.d_sigma, self.d_s = m * m, m * m, n * n
         self.fc5 = StackedLinear(M, m, m * in_mult)  # F4 -> GRU_Q
@@ -81,7 +88,7 @@ class KalmanNetGain(Stage):
         self.fc6 = StackedLinear(M, m, m * in_mult)  # F3 -> GRU_Sigma
         self.gru_sigma = StackedGRUCell(M, self.d_q + m * in_mult, self.d_sigma)
         self.fc1 = StackedLinear(M, self.d_sigma, n * n)
-        self.fc7 = StackedLinear(M, 2 * n, 2 * n * in_mult)  # F1, F2 -> GRU_S
+        self.fc7 = StackedLinear(M, 2 * n + int(self.interval_input), 2 * n * in_mult)  # F1, F2 -> GRU_S
         self.gru_s = StackedGRUCell(M, n * n + 2 * n * in_mult, self.d_s)
         d2 = self.d_s + self.d_sigma
         self.fc2a = StackedLinear(M, d2, d2 * out_mult)
@@ -109,8 +116,31 @@ class KalmanNetGain(Stage):
         }
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        """The GRUs' hidden states, started at their learned ``h0``."""
-        return {keys.EXPERT_HIDDEN: {k: v.to(dtype) for k, v in self.initial_hidden(batch).items()}}
+        """The GRUs' hidden states, started at their learned ``h0``, and the previous scan's interval."""
+        shape = (batch, self.n_experts) if experts_alone else (batch,)
+        return {keys.EXPERT_HIDDEN: {k: v.to(dtype) for k, v in self.initial_hidden(batch).items()},
+                keys.PREV_INTERVAL: torch.full(shape[:1], float(self.dt), dtype=dtype, device=device)}
+
+    def interval_features(self, td, like: torch.Tensor):
+        """``(rate_now, rate_before, extra)``: the factors ``dt / interval`` that scale F1 and F3 (1.0 at the
+        nominal interval), and the ``log(interval / dt)`` inputs ``[B, M, 1]`` (None without ``interval_input``).
+        Writes this scan's interval as the next scan's previous one."""
+        interval = td.get(keys.INTERVAL, None)
+        prev = td.get(keys.PREV_INTERVAL)
+        if interval is None:
+            td.set(keys.PREV_INTERVAL, prev.clone())  # unchanged: the nominal interval
+            extra = None
+            if self.interval_input:
+                extra = like.new_zeros(*like.shape[:2], 1)
+            return 1.0, 1.0, extra
+        d = interval.to(like.dtype)
+        view = (-1, *([1] * (like.dim() - 1)))
+        now, before = (self.dt / d).view(view), (self.dt / prev.to(like.dtype)).view(view)
+        td.set(keys.PREV_INTERVAL, interval.to(prev.dtype))
+        extra = None
+        if self.interval_input:
+            extra = torch.log(d / self.dt).view(-1, 1, 1).expand(*like.shape[:2], 1)
+        return now, before, extra
 
     def features(self, td):
         M = self.n_experts
@@ -118,10 +148,14 @@ class KalmanNetGain(Stage):
         has_z = measured(z)
         fused = per_expert(td.get(keys.FUSED), M)
         prior = td.get(keys.EXPERT_PRIOR)
+        now, before, extra = self.interval_features(td, prior)
         f1 = torch.where(has_z, z - per_expert(td.get(keys.PREV_MEASUREMENT), M), 0.0)
         f2 = innovation(z, prior)
         f3 = fused - per_expert(td.get(keys.PREV_FUSED), M)
         f4 = fused - td.get(keys.PREV_EXPERT_PRIOR)
+        if not isinstance(now, float):  # differences over an interval, as rates at the nominal one
+            f1, f3 = f1 * now, f3 * before
+        f2 = f2 if extra is None else torch.cat([f2, extra], -1)  # the interval rides with F2 into FC7
         return (
             slog(f1, F1_SCALE), slog(f2, F2_SCALE), slog(f3, self.f3_scale), slog(f4, self.f4_scale)
         )
@@ -160,16 +194,22 @@ class AnalyticGain(Stage):
         super().__init__(model_set)
         if r <= 0 or sigma_q < 0:
             raise ValueError(f"AnalyticGain needs r > 0 and sigma_q >= 0, got r={r}, sigma_q={sigma_q}")
-        self.r, self.dt = r, dt
+        self.r, self.dt, self.sigma_q = r, dt, sigma_q
         self.register_buffer("F", model_set.F(dt))
         self.register_buffer("Q", model_set.Q(sigma_q, dt))
 
-    def initial_cov(self, shape, first: bool) -> torch.Tensor:
+    def initial_cov(self, shape, first: bool, elapsed=None) -> torch.Tensor:
         """Covariance of a starting track: after one scan ``diag(r^2, 300^2, 10^2)`` per axis;
-        after two (differenced velocity) ``diag(r^2, 2 r^2 / dt^2, 10^2)``."""
+        after two (differenced velocity over ``elapsed [B]``, the nominal ``dt`` where None)
+        ``diag(r^2, 2 r^2 / elapsed^2, 10^2)``."""
         r2 = self.r**2
-        vel = 300.0**2 if first else 2.0 * r2 / self.dt**2
-        d = torch.tensor([r2, vel, 100.0] * 3, dtype=self.F.dtype, device=self.F.device)
+        d = torch.tensor([r2, 300.0**2, 100.0] * 3, dtype=self.F.dtype, device=self.F.device)
+        if not first:
+            e = torch.full(shape[:1], float(self.dt), dtype=d.dtype, device=d.device) if elapsed is None else elapsed
+            d = d.expand(*shape[:1], 9).clone()
+            d[:, 1::3] = (2.0 * r2 / e.to(d.dtype) ** 2)[:, None]
+            d = d.view(shape[0], *([1] * (len(shape) - 1)), 9).expand(*shape, 9)
+            return torch.diag_embed(d).clone()
         return torch.diag(d).expand(*shape, 9, 9).clone()
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
@@ -177,11 +217,18 @@ class AnalyticGain(Stage):
         return {keys.FUSED_COV: self.initial_cov((batch, self.n_experts) if experts_alone else (batch,), first=True)}
 
     def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
-        return {keys.FUSED_COV: self.initial_cov(z.shape[:-1], first=False)} if second else {}
+        return {keys.FUSED_COV: self.initial_cov(z.shape[:-1], first=False, elapsed=carry.get(keys.START_TIME))} if second else {}
 
     def forward(self, td):
         P = per_expert(td.get(keys.FUSED_COV), self.n_experts, event_dims=2).to(self.F.dtype)
-        P = self.F @ P @ self.F.transpose(-1, -2) + self.Q
+        interval = td.get(keys.INTERVAL, None)  # this scan's interval per track, where the step carries it
+        if interval is None:
+            F, Q = self.F, self.Q
+        else:
+            d = interval.to(P.dtype)
+            F = self.model_set.F(d, dtype=P.dtype, device=P.device)  # [B, M, 9, 9]
+            Q = self.model_set.Q(self.sigma_q, d, dtype=P.dtype, device=P.device)
+        P = F @ P @ F.transpose(-1, -2) + Q
         R = self.r**2 * torch.eye(3, dtype=P.dtype, device=P.device)
         S = P[..., _P, :][..., _P] + R
         K = torch.linalg.solve(S, P[..., _P, :]).transpose(-1, -2)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import math
 from typing import Callable
 
 import torch
@@ -24,6 +25,7 @@ from tensordict.utils import unravel_key
 
 from immnet import keys
 from immnet.config import import_class
+from immnet.data.times import scan_intervals
 from immnet.motion import POS, VEL, ModelSet
 from immnet.stages.base import Stage, measured
 from immnet.stages.fuse import Fuse
@@ -118,21 +120,32 @@ class IMMNet(TensorDictModuleBase):
         dt: float = 1.0,
         p_stay: float | None = None,
         guard: bool | dict | None = None,
+        interval_range: tuple[float, float] | None = None,
     ):
         """``gain``, ``classifier``: the components (``Component``: a ``class_path`` / ``init_args`` mapping);
         ``p_stay``, ``guard``: the Markov chain's staying probability and the range guard, set here once for
         every component that takes them, in place of the components' own values (``None``: as the components
         say). With the IMM interaction the mode update predicts with the transition the
-        experts were mixed with (``("mode", "transition")``), so the chain is the interaction's."""
+        experts were mixed with (``("mode", "transition")``), so the chain is the interaction's.
+        ``interval_range``: the scan intervals ``(lo, hi)`` (s) the network was trained over; None: trained at
+        ``dt`` alone (a tracker refuses data at other intervals, ``immnet.tracking.methods.check_dt``)."""
         super().__init__()
         self.model_set = ModelSet.from_config(model_set)
         self.model_set_config = self.model_set.to_config()
         self.dt = dt
+        if interval_range is not None:
+            lo, hi = (float(v) for v in interval_range)
+            if not (0 < lo <= hi and math.isfinite(hi)):
+                raise ValueError(f"interval_range must be (lo, hi) with 0 < lo <= hi, got {interval_range!r}")
+            interval_range = (lo, hi)
+        self.interval_range = interval_range
         ms = self.model_set
         settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None}
         gain, classifier = component_config(gain or DEFAULT_GAIN), component_config(classifier or DEFAULT_CLASSIFIER)
         self.config = {  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
             "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt, **settings}
+        if interval_range is not None:
+            self.config["interval_range"] = list(interval_range)
         self.gain = build_component(gain, ms, dt, settings)
         self.classify = build_component(classifier, ms, dt, settings)
         # a gain may bring the predict and update stages its experts need (filter experts keep their
@@ -151,6 +164,15 @@ class IMMNet(TensorDictModuleBase):
         onehot = torch.zeros(len(ms), 4)
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
         self.register_buffer("mode_onehot", onehot)
+
+    def intervals_for(self, batch: TensorDict) -> torch.Tensor | None:
+        """The interval before each scan of ``batch`` ``[B, T]`` (``immnet.data.times.scan_intervals``) in its
+        measurements' dtype, or None where every one is this network's ``dt`` (the step then uses its own)."""
+        z = batch[keys.MEASUREMENTS]
+        intervals = scan_intervals(batch, torch.float64, z.device)
+        if bool((intervals[:, 1:] == self.dt).all()):
+            return None
+        return intervals.to(z.dtype)
 
     @property
     def n_experts(self) -> int:
@@ -171,6 +193,7 @@ class IMMNet(TensorDictModuleBase):
             {
                 keys.AGE: torch.zeros(batch, dtype=torch.long, device=device),
                 keys.START_SCANS: torch.zeros(batch, dtype=torch.long, device=device),
+                keys.START_TIME: torch.zeros(batch, dtype=dtype, device=device),
             },
             batch_size=[batch],
             device=device,
@@ -179,24 +202,30 @@ class IMMNet(TensorDictModuleBase):
         for stage in self._steps(experts_alone):
             for key, value in stage.carry_spec(batch, experts_alone, dtype, device).items():
                 key = unravel_key(key)
-                if key in owner or key in (keys.AGE, keys.START_SCANS):
+                if key in owner or key in (keys.AGE, keys.START_SCANS, keys.START_TIME):
                     raise ValueError(f"{type(stage).__name__} and {owner.get(key, 'IMMNet')} both carry {key}")
                 owner[key] = type(stage).__name__
                 td.set(key, value)
         return td
 
-    def _start(self, carry: TensorDict, z: torch.Tensor, second: bool) -> TensorDict:
+    def _start(self, carry: TensorDict, z: torch.Tensor, second: bool, interval=None) -> TensorDict:
         """The carry after a track's first (``second=False``) or second measurement: the start estimate
         ``[z, 0, 0]`` (first) or ``[z, differenced velocity, 0]`` (second), and what each stage sets at a
-        track start (``Stage.start_carry``); the rest as ``initial_carry``."""
+        track start (``Stage.start_carry``, which reads the time since the first detection as the carry's
+        ``START_TIME``); the rest as ``initial_carry``."""
         alone = z.dim() == 3
         fresh = self.initial_carry(carry.batch_size[0], alone, z.dtype, z.device)
         x = torch.zeros(z.shape[:-1] + (9,), dtype=z.dtype, device=z.device)
         x[..., list(POS)] = z
         if second:
             # differenced velocity over the time since the first detection (missed scans between count)
-            elapsed = (carry.get(keys.START_SCANS).clamp_min(1) * self.dt).to(z.dtype)
+            if interval is None:
+                elapsed = (carry.get(keys.START_SCANS).clamp_min(1) * self.dt).to(z.dtype)
+            else:
+                elapsed = (carry.get(keys.START_TIME) + interval).to(z.dtype)
             x[..., list(VEL)] = (z - carry.get(keys.PREV_MEASUREMENT)) / elapsed.view(-1, *([1] * (z.dim() - 1)))
+            carry = carry.clone(False)
+            carry.set(keys.START_TIME, elapsed)
         else:
             fresh.set(keys.START_SCANS, torch.ones_like(carry.get(keys.AGE)))
         for stage in self._steps(alone):
@@ -206,22 +235,28 @@ class IMMNet(TensorDictModuleBase):
         return fresh
 
     # --- one scan -------------------------------------------------------------------------
-    def scan(self, carry: TensorDict, z: torch.Tensor, experts_alone: bool = False) -> TensorDict:
+    def scan(self, carry: TensorDict, z: torch.Tensor, experts_alone: bool = False, interval=None) -> TensorDict:
         """Advance every track by one scan of measurements ``z [B, 3]`` (``[B, M, 3]`` experts alone).
 
-        Returns the new carry, which also holds this scan's outputs (``("fused", "state")``,
-        ``("expert", "post")``, ``("mode", "probs")``, ...). NaN in ``z`` is a missed detection.
+        ``interval [B]``: the time since the previous scan per track (s); None: the nominal ``dt``. Returns
+        the new carry, which also holds this scan's outputs (``("fused", "state")``, ``("expert", "post")``,
+        ``("mode", "probs")``, ...). NaN in ``z`` is a missed detection.
         """
         step = self.expert_step if experts_alone else self.step
         td = carry.copy()
         td.set(keys.MEASUREMENT, z)
+        if interval is not None:
+            interval = torch.as_tensor(interval, dtype=z.dtype, device=z.device).reshape(-1).expand(z.shape[0])
+            td.set(keys.INTERVAL, interval)
         age = carry.get(keys.AGE)
         out = step(td)
+        if interval is not None:
+            out.del_(keys.INTERVAL)
         if bool((age >= 2).all()):  # every track running: the step is the whole scan
             return out
         has = measured(z).reshape(z.shape[0], -1).all(-1)
-        first = self._start(carry, z, second=False)
-        second = self._start(carry, z, second=True)
+        first = self._start(carry, z, second=False, interval=interval)
+        second = self._start(carry, z, second=True, interval=interval)
         carry_keys = list(first.keys(True, True))
         stepped = out.select(*carry_keys)
         new = _where(has & (age == 1), second, stepped)
@@ -229,6 +264,8 @@ class IMMNet(TensorDictModuleBase):
         new = _where((age < 2) & ~has, carry.select(*carry_keys), new)
         waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
         new.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, new.get(keys.START_SCANS)))
+        step_time = self.dt if interval is None else interval
+        new.set(keys.START_TIME, torch.where(waiting, carry.get(keys.START_TIME) + step_time, new.get(keys.START_TIME)))
         if keys.EXPERT_PROBS in carry_keys:  # a starting track's modes are uniform (experts alone have none)
             uniform = torch.full_like(new.get(keys.EXPERT_PROBS), 1.0 / self.n_experts)
             new.set(keys.EXPERT_PROBS, torch.where((age < 2)[:, None], uniform, new.get(keys.EXPERT_PROBS)))
@@ -274,15 +311,17 @@ class IMMNet(TensorDictModuleBase):
             raise ValueError(f"IMMNet: the TensorDict holds no carry {missing[:3]}{'...' if len(missing) > 3 else ''} for "
                              "tracks that are not starting (is_init False); in an environment, append "
                              "net.make_tensordict_primer()")
-        new = self.scan(carry, z)
+        new = self.scan(carry, z, interval=td.get(keys.INTERVAL, None))
         td.set(keys.ACTION, new.get(keys.FUSED))
         for key in self.carry_keys:
             td.set(("next", *key), new.get(key))
         return td
 
     # --- a whole sequence -----------------------------------------------------------------
-    def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False):
-        """Run over ``measurements [B, T, 3]`` (``[B, M, T, 3]`` experts alone).
+    def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False,
+                intervals: torch.Tensor | None = None):
+        """Run over ``measurements [B, T, 3]`` (``[B, M, T, 3]`` experts alone), with the interval before each
+        scan ``intervals [B, T]`` (``immnet.data.times.scan_intervals``; None: the nominal ``dt`` at every scan).
 
         Returns ``(outputs, carry)``: ``outputs`` a TensorDict ``[B, T]`` with ``state``
         (``[B, T, 9]``, or ``[B, T, M, 9]`` experts alone), ``expert_probs`` and ``mode_logits``
@@ -294,7 +333,8 @@ class IMMNet(TensorDictModuleBase):
             carry = self.initial_carry(B, experts_alone, measurements.dtype, measurements.device)
         states, probs, logits, posts = [], [], [], []
         for t in range(T):
-            carry = self.scan(carry, measurements[..., t, :], experts_alone)
+            carry = self.scan(carry, measurements[..., t, :], experts_alone,
+                              None if intervals is None else intervals[:, t])
             states.append(carry.get(keys.FUSED))
             if not experts_alone:
                 probs.append(carry.get(keys.EXPERT_PROBS))

@@ -1,6 +1,7 @@
 """Stage 1, predict: every expert propagates the previous fused estimate with its own model.
 
-``x_{t|t-1}^(i) = F^(i) x_{t-1|t-1}``  (docs/spec.md section 4, step 1).
+``x_{t|t-1}^(i) = F^(i) x_{t-1|t-1}``  (docs/spec.md section 4, step 1), ``F`` of the nominal ``dt`` or of
+the step's interval per track (``("interval")``, where it carries one).
 
 An expert whose transition depends on the state (``AdaptiveTurn``: a coordinated turn at the turn
 rate its state implies, ``w = (vx ay - vy ax) / |v_h|^2``, bounded) is propagated in closed form,
@@ -34,9 +35,15 @@ class Predict(Stage):
 
     def forward(self, td):
         x = per_expert(td.get(keys.FUSED), self.n_experts)
-        prior = torch.einsum("mij,bmj->bmi", self.F, x)
+        interval = td.get(keys.INTERVAL, None)  # this scan's interval per track, where the step carries it
+        if interval is None:
+            prior, dt = torch.einsum("mij,bmj->bmi", self.F, x), self.dt
+        else:
+            d = interval.to(x.dtype)
+            prior = torch.einsum("bmij,bmj->bmi", self.model_set.F(d, dtype=x.dtype, device=x.device), x)
+            dt = d[:, None]
         if self.adaptive:
-            turned = adaptive_ct_propagate(x, self.w_lo.to(x.dtype), self.w_hi.to(x.dtype), self.dt)
+            turned = adaptive_ct_propagate(x, self.w_lo.to(x.dtype), self.w_hi.to(x.dtype), dt)
             prior = torch.where(self.is_adaptive, turned, prior)
         td.set(keys.EXPERT_PRIOR, prior)
         return td

@@ -273,9 +273,10 @@ class Stage2Module(_TrackerModule):
 
     def training_step(self, batch, batch_idx):
         z = batch[keys.MEASUREMENTS]
+        intervals = self.net.intervals_for(batch)  # None at the network's own dt
         carry, tot = None, torch.zeros(4)
         for s, e in self.chunks(z.shape[1]):
-            out, carry = self.net.rollout(z[:, s:e], carry)
+            out, carry = self.net.rollout(z[:, s:e], carry, intervals=None if intervals is None else intervals[:, s:e])
             parts = self.losses(out, batch, s, e)
             self._optimize(parts[0])
             carry = carry.detach()
@@ -310,7 +311,7 @@ class Stage2Module(_TrackerModule):
         self._evaluate(batch, "test")
 
     def _evaluate(self, batch, prefix):
-        out, _ = self.net.rollout(batch[keys.MEASUREMENTS])
+        out, _ = self.net.rollout(batch[keys.MEASUREMENTS], intervals=self.net.intervals_for(batch))
         loss, mse, ce, own = self.losses(out, batch)
         B = batch.batch_size[0]
         self.log(f"{prefix}/loss", loss, prog_bar=True, batch_size=B, sync_dist=True)
