@@ -72,14 +72,18 @@ def _net(name: str) -> IMMNet:
     return IMMNet(**CONFIGS[name])
 
 
-def _scan_inputs(net: IMMNet, z: torch.Tensor, alone: bool):
-    """The stages of one scan, each with the TensorDict it receives in a real rollout."""
+def _scan_inputs(net: IMMNet, z: torch.Tensor, alone: bool, interval: float | None = None):
+    """The stages of one scan, each with the TensorDict it receives in a real rollout (``interval``: every scan's,
+    carried by the step as ``("interval")``)."""
     if alone:
         z = z.unsqueeze(1).expand(-1, net.n_experts, -1, -1)
+    gaps = None if interval is None else torch.full((z.shape[0], SCANS), interval)
     with torch.no_grad():
-        _, carry = net.rollout(z[..., :SCANS, :], experts_alone=alone)
+        _, carry = net.rollout(z[..., :SCANS, :], experts_alone=alone, intervals=gaps)
     td = carry.copy()
     td.set(keys.MEASUREMENT, z[..., SCANS, :])
+    if interval is not None:
+        td.set(keys.INTERVAL, torch.full((z.shape[0],), interval))
     step = net.expert_step if alone else net.step
     for stage in step.module:
         yield stage, td.copy()
@@ -140,6 +144,28 @@ def test_every_stage_reads_and_writes_exactly_its_declared_keys(name, alone, dat
             assert _needs(stage, td.select(*rest), out, declared) or _needs(
                 stage, _perturbed(td.select(*stage.in_keys), key), out, declared
             ), f"{what} declares the input {key} but gives the same outputs without it or with it changed"
+
+
+@pytest.mark.parametrize("name,alone", CASES, ids=[f"{n}{'-alone' if a else ''}" for n, a in CASES])
+def test_with_the_scan_interval_every_stage_writes_exactly_its_declared_keys(name, alone, data):
+    """Issue 22: where the step carries each scan's interval (``("interval")``, optional: absent, the stages
+    use the network's ``dt``), a stage given its declared inputs and the interval writes exactly its
+    ``out_keys``, and a rollout at intervals equal to ``dt`` is the rollout without them (float32 rounding),
+    one at 2 s is not."""
+    net = _net(name)
+    for stage, td in _scan_inputs(net, data, alone, interval=2.0):
+        what = f"{type(stage).__name__} ({name}{', experts alone' if alone else ''})"
+        out, written = _written(stage, td.select(*stage.in_keys, keys.INTERVAL))
+        declared = [unravel_key(k) for k in stage.out_keys]
+        extra = sorted(str(k) for k in written if _owner(k, declared) is None and k != keys.INTERVAL)
+        assert not extra, f"{what} writes {extra} with the interval, not in its out_keys {declared}"
+    z = data.unsqueeze(1).expand(-1, net.n_experts, -1, -1) if alone else data
+    with torch.no_grad():
+        plain = net.rollout(z, experts_alone=alone)[0][keys.STATE]
+        same = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 1.0))[0][keys.STATE]
+        other = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 2.0))[0][keys.STATE]
+    torch.testing.assert_close(same, plain, rtol=1e-5, atol=1e-2)
+    assert (other - plain).abs().max() > 1.0
 
 
 def _needs(stage, td, out, declared) -> bool:

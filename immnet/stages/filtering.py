@@ -395,7 +395,7 @@ class _FilterExperts:
         dt, per_track = scan_interval(td, self.dt)
         if per_track:  # a third divided difference at the scans' times cancels CV and CA motion at any spacing
             d = dt.view(-1, *([1] * (z.dim() - 1))).to(z.dtype)  # [B, 1] or [B, 1, 1]
-            s1 = -d[..., 0]
+            s1 = (-d[..., 0]).expand_as(gaps[..., 0])
             s2 = s1 - gaps[..., 0]
             s3 = s2 - gaps[..., 1]
             s = torch.stack([torch.zeros_like(s1), s1, s2, s3], -1)  # [..., 4]
