@@ -118,12 +118,18 @@ class ClairvoyantKF(Method):
         P[mode[:, 0] == CA, 2::3, 2::3] = self._acc_cov(z)  # the generator writes the first CA segment's draw into x_0
         onset = onset_priors([False, True, False], [False] * 3, [0.0] * 3, n=9, acc_var=self.acc_var)
 
+        def matrices(d):
+            """``F_CV``, ``F_CA`` ``[B, 9, 9]`` and ``Q`` (``[9, 9]``; ``[B, 1, 9, 9]`` for ``d [B]``: the 3 filters')."""
+            Q = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
+            return (cv_matrix(d, dtype, dev).expand(B, 9, 9), ca_matrix(d, dtype, dev).expand(B, 9, 9),
+                    Q if Q.dim() == 2 else Q[:, None])
+
+        fixed = matrices(interval(0)) if isinstance(interval(0), float) else None  # one interval: built once
+
         def transition(t, x0, P0):
             d = interval(t)
-            Fcv, Fca = cv_matrix(d, dtype, dev).expand(B, 9, 9), ca_matrix(d, dtype, dev).expand(B, 9, 9)
-            Q = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
-            F = torch.stack([Fcv, Fca, ct_matrix(w[:, t], d, dtype, dev)], 1)
-            return predict(x0, P0, F, Q if Q.dim() == 2 else Q[:, None])  # [B, 9, 9]: the same for the 3 filters
+            Fcv, Fca, Q = fixed if fixed is not None else matrices(d)
+            return predict(x0, P0, torch.stack([Fcv, Fca, ct_matrix(w[:, t], d, dtype, dev)], 1), Q)
 
         one = torch.full((3, 3), 1.0 / 3.0, dtype=dtype, device=dev)
         states, _, _ = run(z, x[:, None].expand(B, 3, 9), P[:, None].expand(B, 3, 9, 9), one[0].expand(B, 3), one,
