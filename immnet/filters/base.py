@@ -15,6 +15,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
+from immnet.data.times import nominal_dt, regular
 from immnet.motion import MODE_NAMES
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
@@ -27,6 +28,9 @@ class Method:
     needs: tuple[str, ...] = ()
     ground_truth: bool = False
     """True where ``needs`` are ground truth (a bound, not a tracker): said in the error message."""
+    any_interval: bool = False
+    """True where ``track`` takes any interval before each scan (``immnet.data.times.scan_intervals``):
+    the model-based filters, which build ``F`` and ``Q`` per track and scan (docs/baselines.md)."""
 
     def track(self, batch: TensorDict) -> TensorDict:  # pragma: no cover - interface
         raise NotImplementedError
@@ -51,19 +55,20 @@ def as_dtype(dtype) -> torch.dtype:
 
 
 def batch_dt(batch: TensorDict, dtype, device) -> torch.Tensor:
-    """Sampling interval per track ``[B]`` (1 s where the data carries none)."""
-    B = batch.batch_size[0]
-    if keys.DT in batch.keys():
-        return torch.as_tensor(batch[keys.DT], dtype=dtype, device=device).reshape(-1).expand(B)
-    return torch.ones(B, dtype=dtype, device=device)
+    """The nominal interval per track ``[B]`` (``immnet.data.times.nominal_dt``)."""
+    return nominal_dt(batch, dtype, device)
 
 
-def per_dt(build, dt: torch.Tensor) -> torch.Tensor:
-    """``build(float dt) -> [..., n, n]`` for each track's ``dt`` ``[B]``: ``[..., n, n]`` if all equal, else ``[B, ..., n, n]``."""
-    values, inverse = torch.unique(dt, return_inverse=True)
-    if len(values) == 1:
-        return build(float(values[0]))
-    return torch.stack([build(float(v)) for v in values])[inverse]
+def fixed_interval(intervals: torch.Tensor) -> float | None:
+    """The one interval of every scan after scan 0 of ``intervals [B, T]`` (``scan_intervals``'), or None
+    where they differ (per track or per scan). With one scan, scan 0's interval where all tracks share it:
+    no step uses it. The fixed-interval fast paths build ``F`` and ``Q`` once from this float."""
+    if intervals.numel() == 0:
+        return None
+    if intervals.shape[1] == 1:
+        first = intervals[:, 0]
+        return float(first[0]) if bool((first == first[0]).all()) else None
+    return float(intervals[0, 1]) if regular(intervals) else None
 
 
 def data_mode_probs(probs: torch.Tensor, modes: torch.Tensor) -> torch.Tensor:

@@ -4,7 +4,10 @@ It knows each trajectory's true mode sequence ``mode[t]``, turn rates ``turn_rat
 measurement noise ``r``, and runs one Kalman filter with the truth's time-varying transition:
 
 * ``F_t = F_CV``, ``F_CA`` or ``F_CT(turn_rate[t])`` by ``mode[t]`` (the step ``t-1 -> t``);
-* the truth's process noise ``Q = sigma_q^2 G G^T``, ``G`` per axis ``[dt^2/2, dt, 0]``;  ``R = r^2 I``.
+* the truth's process noise ``Q = sigma_q^2 G G^T``, ``G`` per axis ``[dt^2/2, dt, 0]``;  ``R = r^2 I``;
+
+each of the interval ``dt`` before scan ``t`` (``immnet.data.times.scan_intervals``: any interval, per track
+and scan; where all are one value the matrices are built once from it).
 
 Every generator statistic it uses comes from the data's ``DataSpec`` (``immnet.data.spec``): ``sigma_q``,
 the CA draw's variance and (``SwitchClairvoyantKF``) the turn-rate prior. A bound only stays a bound when
@@ -38,7 +41,8 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.data.spec import DataSpec
-from immnet.filters.base import Method, as_dtype, batch_dt, output
+from immnet.data.times import scan_intervals
+from immnet.filters.base import Method, as_dtype, fixed_interval, output
 from immnet.filters.imm import initial_state
 from immnet.imm.interaction import enter, onset_priors
 from immnet.imm.kalman import predict, update
@@ -51,6 +55,7 @@ class ClairvoyantKF(Method):
 
     needs = (keys.MODE, keys.TURN_RATE, keys.R)
     ground_truth = True
+    any_interval = True
 
     def __init__(self, sigma_q: float | None = None, acc_var=None, spec=None, dtype="float64", name: str = "clairvoyant"):
         """``spec``: the data's ``DataSpec`` (or a dict of its fields; default 3D-LAST's), where every statistic
@@ -85,15 +90,17 @@ class ClairvoyantKF(Method):
         return None
 
     def _inputs(self, batch: TensorDict):
-        """``z [B, T, 3]``, ``mode [B, T]``, ``turn_rate [B, T]``, ``r [B]`` in this method's dtype, and ``dt``."""
+        """``z [B, T, 3]``, ``mode [B, T]``, ``turn_rate [B, T]``, ``r [B]`` in this method's dtype, and the
+        interval of scan ``t`` as a function ``interval(t)``: a float where every scan's is one value, else
+        the tracks' ``[B]`` (``scan_intervals``)."""
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         dev = z.device
         r = torch.as_tensor(batch[keys.R], dtype=self.dtype, device=dev).reshape(z.shape[0])
-        dt = batch_dt(batch, self.dtype, dev)
-        if not torch.all(dt == dt[0]):
-            raise ValueError(f"{self.name} needs one dt for the whole batch, got several")
-        return z, batch[keys.MODE].to(dev), batch[keys.TURN_RATE].to(self.dtype), r, float(dt[0])
+        intervals = scan_intervals(batch, self.dtype, dev)
+        fixed = fixed_interval(intervals)
+        interval = (lambda t: fixed) if fixed is not None else (lambda t: intervals[:, t])
+        return z, batch[keys.MODE].to(dev), batch[keys.TURN_RATE].to(self.dtype), r, interval
 
     def _acc_cov(self, like: torch.Tensor) -> torch.Tensor:
         return torch.diag(torch.tensor(self.acc_var, dtype=like.dtype, device=like.device))
@@ -104,18 +111,25 @@ class ClairvoyantKF(Method):
         probabilities are the truth's (``oracle``), so that each scan predicts with the true mode's model
         from the previous true mode's posterior, with the CA draw's prior where a CA segment starts (the
         interaction's onset prior)."""
-        z, mode, w, r, d = self._inputs(batch)
+        z, mode, w, r, interval = self._inputs(batch)
         dtype, dev = z.dtype, z.device
         B, T, _ = z.shape
-        Fcv, Fca = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
-        Q = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
         x, P = initial_state(z, r)
         P[mode[:, 0] == CA, 2::3, 2::3] = self._acc_cov(z)  # the generator writes the first CA segment's draw into x_0
         onset = onset_priors([False, True, False], [False] * 3, [0.0] * 3, n=9, acc_var=self.acc_var)
 
+        def matrices(d):
+            """``F_CV``, ``F_CA`` ``[B, 9, 9]`` and ``Q`` (``[9, 9]``; ``[B, 1, 9, 9]`` for ``d [B]``: the 3 filters')."""
+            Q = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
+            return (cv_matrix(d, dtype, dev).expand(B, 9, 9), ca_matrix(d, dtype, dev).expand(B, 9, 9),
+                    Q if Q.dim() == 2 else Q[:, None])
+
+        fixed = matrices(interval(0)) if isinstance(interval(0), float) else None  # one interval: built once
+
         def transition(t, x0, P0):
-            F = torch.stack([Fcv.expand(B, 9, 9), Fca.expand(B, 9, 9), ct_matrix(w[:, t], d, dtype, dev)], 1)
-            return predict(x0, P0, F, Q)
+            d = interval(t)
+            Fcv, Fca, Q = fixed if fixed is not None else matrices(d)
+            return predict(x0, P0, torch.stack([Fcv, Fca, ct_matrix(w[:, t], d, dtype, dev)], 1), Q)
 
         one = torch.full((3, 3), 1.0 / 3.0, dtype=dtype, device=dev)
         states, _, _ = run(z, x[:, None].expand(B, 3, 9), P[:, None].expand(B, 3, 9, 9), one[0].expand(B, 3), one,
@@ -141,14 +155,20 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         self.turn_prior_deg = self.spec.turn_rate_prior_deg() if self.fixed_turn_prior is None else self.fixed_turn_prior
 
     def track(self, batch: TensorDict) -> TensorDict:
-        z, mode, rate, r, d = self._inputs(batch)
+        z, mode, rate, r, interval = self._inputs(batch)
         dtype, dev = z.dtype, z.device
         B, T, _ = z.shape
         H = torch.eye(10, dtype=dtype, device=dev)[0:9:3]  # the positions of [x, w]
-        Fcv, Fca = torch.zeros(10, 10, dtype=dtype, device=dev), torch.zeros(10, 10, dtype=dtype, device=dev)
-        Fcv[:9, :9], Fca[:9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
-        Q = torch.zeros(10, 10, dtype=dtype, device=dev)
-        Q[:9, :9] = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
+
+        def matrices(d):
+            """``F_CV``, ``F_CA`` and ``Q`` of ``[x, w]`` over an interval ``d`` (``[10, 10]``; ``[B, 10, 10]`` for ``d [B]``)."""
+            lead = () if isinstance(d, float) else (B,)
+            Fcv, Fca, Q = (torch.zeros(*lead, 10, 10, dtype=dtype, device=dev) for _ in range(3))
+            Fcv[..., :9, :9], Fca[..., :9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
+            Q[..., :9, :9] = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
+            return Fcv, Fca, Q
+
+        fixed = matrices(interval(0)) if isinstance(interval(0), float) else None  # one interval: built once
         # what a track's filter becomes where the truth switches into CA (a new acceleration) or into a turn, or
         # changes its rate within one (a new rate, in the mode's sign): the onset priors of the filters CV, CA, CT+, CT-
         prior = onset_priors([False, True, False, False], [False, False, True, True], [0.0, 0.0, 1.0, -1.0], n=10,
@@ -173,6 +193,8 @@ class SwitchClairvoyantKF(ClairvoyantKF):
                 x, P = torch.where(switch[:, None], xe, x), torch.where(switch[:, None, None], Pe, P)
             if t == 0:
                 continue
+            d = interval(t)
+            Fcv, Fca, Q = fixed if fixed is not None else matrices(d)
             w = x[:, 9]
             J = torch.where((m == CV)[:, None, None], Fcv, Fca).expand(B, 10, 10)
             J = torch.where(turn[:, None, None], ct_jacobian(x[:, :9], w, d), J)

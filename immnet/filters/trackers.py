@@ -5,6 +5,10 @@ Both start from the first measurement (``immnet.filters.imm.initial_state``): po
 standard deviations 300 m/s and 10 m/s^2 on every axis. At ``t = 0`` the output is that state; a
 track whose first scans are missed has no estimate (NaN) until its first detection
 (``immnet.filters.base.output``).
+
+Both take any interval before each scan (``immnet.data.times.scan_intervals``, docs/baselines.md): where every
+track's every interval is one value, ``F`` and ``Q`` are built once from it (the fixed-interval fast paths);
+else per track and scan, ``[B, T, M, 9, 9]``, from the motion models' tensor ``dt``, for the core's scan loop.
 """
 
 from __future__ import annotations
@@ -16,7 +20,8 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.filters.base import Method, as_dtype, batch_dt, data_mode_probs, output, per_dt
+from immnet.data.times import scan_intervals
+from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
 from immnet.filters.imm import imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
@@ -31,8 +36,18 @@ def _positive(name: str, value, allow_zero: bool = True) -> None:
             raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
 
 
+def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Tensor:
+    """The one interval of every scan of ``batch`` as a float (the fast paths' shared ``F``, ``Q``), else the
+    intervals before each scan ``[B, T]`` (``scan_intervals``) for ``F``, ``Q`` per track and scan."""
+    intervals = scan_intervals(batch, dtype, device)
+    fixed = fixed_interval(intervals)
+    return intervals if fixed is None else fixed
+
+
 class KalmanFilterTracker(Method):
     """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r``."""
+
+    any_interval = True
 
     def __init__(self, model: MotionModel | dict, r: float, sigma_q: float, dtype="float64", name: str | None = None):
         self.model = model if isinstance(model, MotionModel) else instantiate(model)
@@ -44,9 +59,10 @@ class KalmanFilterTracker(Method):
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
-        dev, dt = z.device, batch_dt(batch, self.dtype, z.device)
-        F = per_dt(lambda d: self.model.F(d, dtype=self.dtype, device=dev), dt)
-        Q = per_dt(lambda d: self.model.Q(self.sigma_q, d, dtype=self.dtype, device=dev), dt)
+        dev = z.device
+        dt = _interval_or_intervals(batch, self.dtype, dev)
+        F = self.model.F(dt, dtype=self.dtype, device=dev)
+        Q = self.model.Q(self.sigma_q, dt, dtype=self.dtype, device=dev)
         x, P = initial_state(z, self.r)
         R = torch.tensor(self.r**2, dtype=self.dtype, device=dev)
         one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
@@ -64,8 +80,10 @@ class IMMTracker(Method):
     ``track`` gives ``state``, ``mode_probs`` over data modes and, with ``return_experts``, the
     experts' posteriors ``("expert", "post") [B, T, M, 9]`` and probabilities ``("mode", "probs")``.
     ``compile``: run the step through ``torch.compile`` (``imm_filter(compile=True)``; seconds to compile
-    on first use, then several times faster on CPU for one track or thousands).
+    on first use, then several times faster on CPU for one track or thousands; fixed intervals only).
     """
+
+    any_interval = True
 
     def __init__(
         self,
@@ -108,16 +126,16 @@ class IMMTracker(Method):
         self.compile = compile
 
     def matrices(self, dt, device=None):
-        """``F, Q`` of the experts ``[M, 9, 9]`` (``[B, M, 9, 9]`` if ``dt [B]`` varies), ``Pi``, ``mu0``."""
-        dt = torch.as_tensor(dt, dtype=self.dtype, device=device).reshape(-1)
-        F = per_dt(lambda d: self.model_set.F(d, dtype=self.dtype, device=device), dt)
-        Q = per_dt(lambda d: self.model_set.Q(self.sigma_q, d, dtype=self.dtype, device=device), dt)
+        """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``
+        for a tensor of intervals ``dt [...]`` (``[B, T]``: one per track and scan)."""
+        F = self.model_set.F(dt, dtype=self.dtype, device=device)
+        Q = self.model_set.Q(self.sigma_q, dt, dtype=self.dtype, device=device)
         return F, Q, self.Pi.to(self.dtype).to(device), self.mu0.to(self.dtype).to(device)
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
-        F, Q, Pi, mu0 = self.matrices(batch_dt(batch, self.dtype, z.device), z.device)
+        F, Q, Pi, mu0 = self.matrices(_interval_or_intervals(batch, self.dtype, z.device), z.device)
         x0, P0 = initial_state(z, self.r)
         R = torch.tensor(self.r**2, dtype=self.dtype, device=z.device)
         states, probs, experts = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts, compile=self.compile)
