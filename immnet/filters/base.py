@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.data.times import nominal_dt, regular
+from immnet.data.times import regular
 from immnet.motion import MODE_NAMES
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
@@ -52,11 +52,6 @@ def as_dtype(dtype) -> torch.dtype:
     if dtype not in _DTYPES:
         raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {dtype!r}")
     return _DTYPES[dtype]
-
-
-def batch_dt(batch: TensorDict, dtype, device) -> torch.Tensor:
-    """The nominal interval per track ``[B]`` (``immnet.data.times.nominal_dt``)."""
-    return nominal_dt(batch, dtype, device)
 
 
 def fixed_interval(intervals: torch.Tensor) -> float | None:

@@ -40,8 +40,8 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.data.times import regular, scan_intervals
-from immnet.filters.base import Method, as_dtype, data_mode_probs, output
+from immnet.data.times import scan_intervals
+from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
 from immnet.filters.trackers import _positive
 from immnet.motion import DEG, ModelSet
 from immnet.stages.network import IMMNet
@@ -94,8 +94,9 @@ class IMMEKF(Method):
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         intervals = scan_intervals(batch, self.dtype, z.device)
-        if regular(intervals):  # one interval for every track and scan: the network at that interval
-            out, _ = self.network(float(intervals[0, -1])).to(z.device).rollout(z)
+        one = fixed_interval(intervals)
+        if one is not None:  # one interval for every track and scan: the network at that interval
+            out, _ = self.network(one).to(z.device).rollout(z)
         else:  # each scan's interval per track (docs/baselines.md, "Any scan interval")
             out, _ = self.network(1.0).to(z.device).rollout(z, intervals=intervals)
         probs = data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], self.model_set.modes)
