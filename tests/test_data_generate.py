@@ -288,3 +288,20 @@ def test_dt_jitter_must_be_below_dt():
         with pytest.raises(ValueError, match="dt_jitter"):
             DataSpec(dt=1.0, dt_jitter=bad)
     assert DataSpec.from_dict({"dt": 5, "dt_jitter": 0.5}).dt_jitter == 0.5
+
+
+@pytest.mark.parametrize("dt", [1.0, 0.1, 4.8, 5.0])
+def test_scans_at_k_dt_read_as_the_same_data_without_t(dt, tmp_path):
+    """t = k dt rounds (0.1 s: differences 0.1 +- 6e-15; a directory stores dt float32): scan_intervals
+    reads it exactly as the data without t, the nominal dt at every scan, in memory and from disk."""
+    from immnet.data.storage import as_batch, load_dataset, write_dataset
+    from immnet.data.times import regular, scan_intervals
+
+    spec = DataSpec(T=400, dt=dt, min_segment=40)
+    td = generate(4, 0, spec)
+    assert torch.equal(scan_intervals(td), scan_intervals(td.exclude("t")))
+    disk = as_batch(load_dataset(write_dataset(tmp_path / "d", 4, 0, spec))[0])
+    assert torch.equal(scan_intervals(disk), scan_intervals(disk.exclude("t"))) and regular(scan_intervals(disk))
+    jit = generate(4, 0, DataSpec(T=400, dt=dt, dt_jitter=dt / 10, min_segment=40))
+    iv = scan_intervals(jit)
+    assert torch.allclose(iv[:, 1:], jit["t"].diff(dim=1), rtol=0, atol=0) and not regular(iv)  # drawn: kept
