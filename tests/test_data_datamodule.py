@@ -45,6 +45,7 @@ def test_batches_are_tensordicts(sets):
     b = batches[0]
     assert b["states"].dtype == torch.float32 and b["mode"].dtype == torch.int64
     assert b["measurements"].shape == (64, 40, 3)
+    assert b["t"].dtype == torch.float64 and torch.equal(b["t"], torch.arange(40.0, dtype=torch.float64).expand(64, 40))
     seen = set().union(*(_ids(x) for x in batches))
     assert seen == _ids(dm.split("train"))  # an epoch covers the train split once
     v = next(iter(dm.val_dataloader()))

@@ -227,3 +227,81 @@ def test_bad_arguments():
         generate(0, 0)
     with pytest.raises(ValueError, match="unknown DataSpec field"):
         DataSpec.from_dict({"T": 10, "bogus": 1})
+
+
+# --- any scan interval (issue 22) -----------------------------------------------------------------
+def _digest(td) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for k in ("states", "measurements", "mode", "turn_rate", "r", "dt"):
+        h.update(td[k].contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def test_fixed_interval_bytes_are_those_before_scan_times():
+    """dt_jitter = 0 draws nothing new: the digests were computed with the generator of commit 616cff5
+    (before dt_jitter existed) on these very calls; a changed draw order or arithmetic changes them."""
+    assert _digest(generate(64, 7)) == "fc776a8ab8a33ec1204b14319bdacbadbc068d2822503b35a9abb38c4605a795"
+    assert _digest(generate(64, 7, DataSpec(T=120, min_segment=30, p_miss=0.1))) == (
+        "f437aee80a5dfb594d24d63911560c708754b1d2d0e306277c90a3c1e756f557")
+    assert _digest(generate(16, 3, single_mode="ct+")) == (
+        "3471716a6223152c2291952210b24d355daf030dc0f87712af6bd3c3db3661a3")
+
+
+def test_fixed_interval_scan_times_are_k_dt():
+    td = generate(8, 1, DataSpec(T=60, dt=5.0, min_segment=10))
+    assert td["t"].dtype == torch.float64 and td["t"].shape == (8, 60)
+    assert torch.equal(td["t"], (torch.arange(60, dtype=torch.float64) * 5.0).expand(8, 60))
+    assert torch.equal(td["dt"], torch.full((8,), 5.0, dtype=torch.float64))
+
+
+def test_jittered_intervals_reproducible_and_inside_their_range():
+    spec = DataSpec(T=80, dt=5.0, dt_jitter=0.5, min_segment=10)
+    a, b = generate(50, 3, spec), generate(50, 3, spec)
+    assert _digest(a) == _digest(b) and torch.equal(a["t"], b["t"])
+    iv = a["t"].diff(dim=1)
+    assert torch.equal(a["t"][:, 0], torch.zeros(50, dtype=torch.float64))
+    assert iv.min() >= 4.5 and iv.max() <= 5.5
+    assert iv.std() > 0.2  # U[4.5, 5.5] has std 0.29: the intervals are drawn, not fixed
+    assert abs(iv.mean().item() - 5.0) < 0.02  # 3950 draws: std of the mean 0.005
+    assert torch.equal(a["dt"], torch.full((50,), 5.0, dtype=torch.float64))  # the nominal (mean) interval
+    assert _digest(generate(50, 4, spec)) != _digest(a)
+
+
+def test_cv_truth_advances_by_velocity_times_each_interval():
+    """Physical check: with no process noise a CV trajectory moves by v * dt_k at every step k."""
+    spec = DataSpec(T=60, dt=5.0, dt_jitter=0.5, min_segment=10, sigma_q=0.0)
+    td = generate(40, 5, spec, single_mode="cv")
+    x, iv = td["states"], td["t"].diff(dim=1)
+    cv = (td["mode"][:, 1:] == 0)  # soft bounds may turn a trajectory; score the CV steps
+    assert cv.float().mean() > 0.8
+    for pos, vel in ((0, 1), (3, 4), (6, 7)):
+        step = x[:, 1:, pos] - x[:, :-1, pos]
+        want = x[:, :-1, vel] * iv
+        assert torch.allclose(step[cv], want[cv], rtol=0, atol=1e-9)
+        assert torch.equal(x[:, 1:, vel][cv], x[:, :-1, vel][cv])  # velocity constant in CV
+
+
+def test_dt_jitter_must_be_below_dt():
+    for bad in (-0.1, 1.0, 2.0):
+        with pytest.raises(ValueError, match="dt_jitter"):
+            DataSpec(dt=1.0, dt_jitter=bad)
+    assert DataSpec.from_dict({"dt": 5, "dt_jitter": 0.5}).dt_jitter == 0.5
+
+
+@pytest.mark.parametrize("dt", [1.0, 0.1, 4.8, 5.0])
+def test_scans_at_k_dt_read_as_the_same_data_without_t(dt, tmp_path):
+    """t = k dt rounds (0.1 s: differences 0.1 +- 6e-15; a directory stores dt float32): scan_intervals
+    reads it exactly as the data without t, the nominal dt at every scan, in memory and from disk."""
+    from immnet.data.storage import as_batch, load_dataset, write_dataset
+    from immnet.data.times import regular, scan_intervals
+
+    spec = DataSpec(T=400, dt=dt, min_segment=40)
+    td = generate(4, 0, spec)
+    assert torch.equal(scan_intervals(td), scan_intervals(td.exclude("t")))
+    disk = as_batch(load_dataset(write_dataset(tmp_path / "d", 4, 0, spec))[0])
+    assert torch.equal(scan_intervals(disk), scan_intervals(disk.exclude("t"))) and regular(scan_intervals(disk))
+    jit = generate(4, 0, DataSpec(T=400, dt=dt, dt_jitter=dt / 10, min_segment=40))
+    iv = scan_intervals(jit)
+    assert torch.allclose(iv[:, 1:], jit["t"].diff(dim=1), rtol=0, atol=0) and not regular(iv)  # drawn: kept

@@ -134,3 +134,26 @@ def test_generate_shard_errors(main, tmp_path, capsys, shard, msg):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(SystemExit):
         main(["data", "generate", "--n", "5", "--seed", "1", "--shard", "1of3", "--out", str(tmp_path / "x")])
+
+
+def test_shards_written_before_scan_times_merge_with_scans_at_k_dt(made, tmp_path):
+    """Shards without a t memmap (written before scan times were stored) merge into the bytes of the
+    whole set: their t is k dt, the generator's t at a fixed interval."""
+    from immnet.data.storage import TENSORS, as_batch
+
+    _, shard_dirs, whole = made
+    old = []
+    for i, s in enumerate(shard_dirs):
+        dst = tmp_path / f"old{i}"
+        shutil.copytree(s, dst)
+        td, _ = load_dataset(dst)
+        plain = as_batch(td.exclude("t")).clone()
+        del td
+        shutil.rmtree(dst / TENSORS)
+        plain.memmap_(dst / TENSORS)
+        assert "t" not in load_dataset(dst)[0].keys()
+        old.append(dst)
+    merged, _ = load_dataset(merge_shards(tmp_path / "merged", old))
+    ref, _ = load_dataset(whole)
+    for k in ref.keys():
+        assert (merged[k].contiguous() == ref[k].contiguous()).all(), k

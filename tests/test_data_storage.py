@@ -9,7 +9,7 @@ import torch
 from immnet.data import storage
 from immnet.data.generate import BLOCK, generate
 from immnet.data.spec import DataSpec
-from immnet.data.storage import export_npz, load_dataset, write_dataset
+from immnet.data.storage import STORE_DTYPES, export_npz, load_dataset, write_dataset
 
 SPEC = DataSpec(T=50, min_segment=10)
 
@@ -24,7 +24,7 @@ def test_write_load_matches_generate_float32(tmp_path):
     ref = generate(300, 4, SPEC)
     assert td.batch_size == torch.Size([300])
     for k in ref.keys():
-        want = ref[k].to(torch.float32) if ref[k].is_floating_point() else ref[k]
+        want = ref[k].to(STORE_DTYPES[k]) if ref[k].is_floating_point() else ref[k]  # t float64, floats float32
         assert td[k].dtype == want.dtype
         assert torch.equal(td[k].contiguous(), want), k
     assert meta["spec_version"] == 1 and meta["seed"] == 4 and meta["n"] == 300
@@ -270,3 +270,103 @@ def test_a_non_finite_spec_is_refused_before_anything_is_written(tmp_path, field
             DataSpec.from_dict({field: bad})
     out = write_dataset(tmp_path / "ds", 10, 0, SPEC)
     json.loads((out / "meta.json").read_text(), parse_constant=lambda c: pytest.fail(f"meta.json holds {c}"))
+
+
+# --- scan times t [N, T] (issue 22) -----------------------------------------------------------------
+JITTER = DataSpec(T=50, dt=5.0, dt_jitter=0.5, min_segment=10)
+
+
+def test_scan_times_round_trip_through_directory_and_npz(tmp_path):
+    out = write_dataset(tmp_path / "ds", 30, seed=2, spec=JITTER)
+    td, meta = load_dataset(out)
+    ref = generate(30, 2, JITTER)
+    assert td["t"].dtype == torch.float64 and torch.equal(td["t"].contiguous(), ref["t"])  # float64 on disk
+    assert meta["spec"]["dt_jitter"] == 0.5 and meta["dtype"]["t"] == "float64"
+    batch = storage.as_batch(td[:4])
+    assert batch["t"].dtype == torch.float64 and batch["measurements"].dtype == torch.float32
+    npz = export_npz(out, tmp_path / "x.npz")
+    assert np.load(npz)["t"].dtype == np.float64
+    back, _ = load_dataset(npz)
+    for k in td.keys():
+        assert torch.equal(back[k], td[k].contiguous()), k
+
+
+def test_npz_scan_times_without_dt_get_the_median_spacing(tmp_path):
+    """Epoch times to 0.01 s, no dt: the nominal dt is each track's median spacing, t stays float64."""
+    rng = np.random.default_rng(1)
+    t = 1.7e9 + np.cumsum(np.round(rng.uniform(4.5, 5.5, size=(4, 21)), 2), axis=1)
+    np.savez(tmp_path / "e.npz", measurements=rng.normal(size=(4, 21, 3)), t=t)
+    td, meta = load_dataset(tmp_path / "e.npz")
+    assert td["t"].dtype == torch.float64 and np.array_equal(td["t"].numpy(), t)
+    want = np.median(np.diff(t, axis=1), axis=1)  # 20 spacings: numpy's median averages the middle two
+    torch_median = torch.from_numpy(np.diff(t, axis=1)).median(1).values.numpy()  # the lower of the two
+    assert np.allclose(td["dt"].numpy(), torch_median.astype(np.float32)) and np.all(np.abs(torch_median - want) < 1)
+    np.savez(tmp_path / "d.npz", measurements=rng.normal(size=(4, 21, 3)), t=t, dt=np.float64(5.0))
+    assert (load_dataset(tmp_path / "d.npz")[0]["dt"] == 5.0).all()  # a given dt is kept
+    export_npz(tmp_path / "e.npz", tmp_path / "e2.npz")  # per-track nominal dt: written as t alone
+    z = np.load(tmp_path / "e2.npz")
+    assert "dt" not in z.files and np.array_equal(z["t"], t)
+
+
+def _good_t(n=3, T=8):
+    a = _good(n, T)
+    a["t"] = np.tile(np.arange(T, dtype=np.float64), (n, 1))
+    return a
+
+
+def _t_with(fn):
+    def make():
+        a = _good_t()
+        a["t"] = fn(a["t"])
+        return a
+    return make
+
+
+BAD_T = {
+    "t-decreasing": (_t_with(_at(2.5, (1, 4))), r"'t' is not strictly increasing at \[1, 4\]: scan time 2\.5 s follows 3\.0 s"),
+    "t-repeated": (_t_with(_at(3.0, (2, 2))), r"'t' is not strictly increasing at \[2, 3\]"),
+    "t-nan": (_t_with(_at(np.nan, (0, 6))), r"'t' at \[0, 6\] is nan; scan times must be finite"),
+    "t-inf": (_t_with(_at(np.inf, (2, 7))), r"'t' at \[2, 7\] is inf"),
+    "t-shape": (_t_with(lambda a: a[:, :5]), r"'t' has shape \(3, 5\), expected \(3, 8\)"),
+    "t-1d": (_t_with(lambda a: a[0]), r"'t' has shape \(8,\), expected \(3, 8\)"),
+    "t-float16": (_t_with(lambda a: a.astype(np.float16)), r"'t' is float16"),
+}
+
+
+@pytest.mark.parametrize("make, msg", list(BAD_T.values()), ids=list(BAD_T))
+def test_malformed_scan_times_are_refused_by_name(tmp_path, make, msg):
+    np.savez(tmp_path / "bad.npz", **make())
+    with pytest.raises(ValueError, match=msg) as err:
+        load_dataset(tmp_path / "bad.npz")
+    assert "\n" not in str(err.value)
+
+
+def test_directory_scan_times_are_checked(tmp_path):
+    out = write_dataset(tmp_path / "ds", 20, 0, SPEC)
+    td, _ = load_dataset(out)
+    a = np.memmap(td["t"].filename, dtype=np.float64, mode="r+", shape=tuple(td["t"].shape))
+    a[6, 9] = a[6, 8]
+    a.flush()
+    del a, td
+    with pytest.raises(ValueError, match=r"'t' is not strictly increasing at \[6, 9\]"):
+        load_dataset(out)
+
+
+def test_a_directory_without_scan_times_still_loads(tmp_path):
+    """A data set written before t was stored (no t memmap): loads, and its scans are at k dt."""
+    import shutil
+
+    from immnet.data.times import scan_intervals
+
+    out = write_dataset(tmp_path / "ds", 20, 0, DataSpec(T=50, dt=5.0, min_segment=10))
+    td, _ = load_dataset(out)
+    old = storage.as_batch(td.exclude("t")).clone()  # float32 as on disk, mode int64
+    del td
+    shutil.rmtree(out / "tensors")
+    old.memmap_(out / "tensors")
+    td, _ = load_dataset(out)
+    assert "t" not in td.keys()
+    iv = scan_intervals(storage.as_batch(td))
+    assert torch.equal(iv, torch.full((20, 50), 5.0, dtype=torch.float64))
+    back, _ = load_dataset(export_npz(out, tmp_path / "old.npz"))
+    assert "t" not in back.keys() and (back["dt"] == 5.0).all()

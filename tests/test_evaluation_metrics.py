@@ -215,3 +215,37 @@ def test_nothing_to_score_is_an_error():
     acc.update(torch.zeros(2, 5, 9), truth)
     with pytest.raises(ValueError, match="no trajectory has a scan"):
         acc.compute()
+
+
+# --- the post-switch window in seconds (issue 22) -------------------------------------------------------
+def test_post_switch_window_in_seconds_at_1s_is_the_20_scans(case):
+    """At 1 s scans a 20 s window is exactly the 20-scan window: same mask, same numbers bit for bit."""
+    est, truth, mode, probs = case
+    ones = torch.ones(mode.shape, dtype=torch.float64)
+    assert torch.equal(M.post_switch_mask(mode, intervals=ones), M.post_switch_mask(mode))
+    err = M.position_error(est, truth)
+    assert M.rmse_post_switch(err, mode, intervals=ones) == M.rmse_post_switch(err, mode)
+    a, b = M.MetricAccumulator(), M.MetricAccumulator()
+    a.update(est, truth, mode, probs)
+    b.update(est, truth, mode, probs, intervals=ones)
+    assert a.compute()["rmse_post_switch"] == b.compute()["rmse_post_switch"]
+
+
+def test_post_switch_window_in_seconds_by_hand(case):
+    """Irregular scans: a scan is in a window when it is at or after a switch and less than 20 s after it."""
+    _, _, mode, _ = case
+    rng = np.random.default_rng(3)
+    iv = rng.uniform(0.5, 9.0, size=mode.shape)
+    tau = np.cumsum(iv, axis=1)
+    m = mode.numpy()
+    want = np.zeros(m.shape, dtype=bool)
+    for n in range(m.shape[0]):
+        for s in range(1, m.shape[1]):
+            if m[n, s] != m[n, s - 1]:
+                want[n, s:] |= (tau[n, s:] - tau[n, s]) < 20.0
+    got = M.post_switch_mask(mode, intervals=torch.from_numpy(iv)).numpy()
+    np.testing.assert_array_equal(got, want)
+    five = M.post_switch_mask(mode, intervals=torch.full(mode.shape, 5.0, dtype=torch.float64)).numpy()
+    assert five[0].sum() == 4 and five[0, 10:14].all()  # 20 s at 5 s per scan: the switch scan and 3 more
+    with pytest.raises(ValueError, match="intervals have shape"):
+        M.post_switch_mask(mode, intervals=torch.ones(2, 3))

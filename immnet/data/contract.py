@@ -12,6 +12,9 @@ what is wrong and, for a value, where (``[n, t]``). ``N`` trajectories of ``T`` 
 - ``mode [N, T]`` integer: 0 CV, 1 CA, 2 CT+, 3 CT-, or :data:`NO_LABEL` (-1, no label at that scan).
 - ``turn_rate [N, T]`` float32/float64 (rad/s): finite, or NaN where unknown.
 - ``r [N]`` (m) and ``dt`` (s): finite and > 0; integers accepted for these two.
+- ``t [N, T]`` (s, optional): scan times, finite and strictly increasing along ``T`` (any origin, epoch
+  times included; float64 keeps their hundredths of a second); integers accepted. Absent: scan ``k``
+  is at ``k dt``.
 
 float16 is refused: its 11-bit significand would round positions of tens of km to 16-32 m, more
 than the measurement noise. Values are checked ``ROWS`` trajectories at a time, so that a
@@ -30,9 +33,9 @@ NO_LABEL = -1
 ROWS = 1024
 FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 TRAIL = {keys.MEASUREMENTS: ("T", 3), keys.STATES: ("T", 9), keys.MODE: ("T",), keys.TURN_RATE: ("T",),
-         keys.R: ()}
+         keys.R: (), keys.TIME: ("T",)}
 """Trailing shapes after ``[N]`` (``T`` filled in): the contract of a data set's arrays."""
-_INT_OK = (keys.R, keys.DT, keys.MODE)
+_INT_OK = (keys.R, keys.DT, keys.MODE, keys.TIME)
 
 
 def check_dtype(key: str, dtype, where: str) -> None:
@@ -94,6 +97,17 @@ def check_values(key: str, a: np.ndarray, where: str, row0: int = 0) -> None:
         bad = np.isinf(a)
         if bad.any():
             raise ValueError(f"{where}: array 'turn_rate' at {_first(bad, row0)} is {a[bad][0]} (finite or NaN only)")
+    elif key == keys.TIME:
+        bad = ~np.isfinite(a)
+        if bad.any():
+            raise ValueError(f"{where}: array 't' at {_first(bad, row0)} is {a[bad][0]}; scan times must be finite (s)")
+        if a.shape[-1] > 1:
+            step = np.diff(a.astype(np.float64), axis=-1)
+            bad = np.concatenate([np.zeros_like(step[..., :1], dtype=bool), step <= 0], -1)
+            if bad.any():
+                n, k = np.argwhere(bad)[0]
+                raise ValueError(f"{where}: array 't' is not strictly increasing at {_first(bad, row0)}: scan time "
+                                 f"{float(a[n, k])!r} s follows {float(a[n, k - 1])!r} s (scan times must increase along T)")
     elif key in (keys.R, keys.DT):
         bad = ~(np.isfinite(a) & (a > 0))
         if bad.any():

@@ -1,8 +1,14 @@
 """The 3D-LAST generator (docs/spec.md section 2), vectorized over trajectories, float64.
 
-Truth: ``x_t = F_{m_t}(w_t) x_{t-1} + G n_t``, ``n_t ~ N(0, sigma_q^2 I3)``, ``G`` per axis
-``[dt^2/2, dt, 0]`` for every mode; measurements ``z_t = H x_t + v_t``, ``v_t ~ N(0, r^2 I3)``;
+Truth: ``x_t = F_{m_t}(w_t, dt_t) x_{t-1} + G(dt_t) n_t``, ``n_t ~ N(0, sigma_q^2 I3)``, ``G`` per axis
+``[dt_t^2/2, dt_t, 0]`` for every mode; measurements ``z_t = H x_t + v_t``, ``v_t ~ N(0, r^2 I3)``;
 with ``p_miss > 0`` each scan from the third on is missed (NaN) with that probability.
+
+Scan intervals: ``dt_t = dt`` at every step, or with ``dt_jitter > 0`` one draw per trajectory and step
+``t >= 1``, ``dt_t ~ U[dt - dt_jitter, dt + dt_jitter]`` (drawn after the measurement noise and before
+the missed detections; with ``dt_jitter = 0`` nothing is drawn, so that the bytes are those of a fixed
+interval). The scan times ``t [m, T]`` (float64, ``t[:, 0] = 0``, ``t[:, k] = sum_{j<=k} dt_j``; ``k dt``
+for a fixed interval) go under ``keys.TIME``; ``dt [m]`` is the nominal (mean) interval.
 
 Label semantics (other packages rely on them):
 
@@ -123,6 +129,11 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
         bound_sign = torch.cat([bound_sign, torch.randint(0, 2, (m, extra), generator=g).to(_DT) * 2 - 1], 1)
     q = spec.sigma_q * torch.randn(T, 3, m, generator=g, dtype=_DT)  # time-major
     v = r[:, None, None] * torch.randn(m, T, 3, generator=g, dtype=_DT)
+    # scan intervals (time-major [T, m]; row 0 unused): drawn only with jitter, so that a fixed dt draws as before
+    steps_dt = None
+    if spec.dt_jitter > 0:
+        steps_dt = _uniform(g, m, dt - spec.dt_jitter, dt + spec.dt_jitter, T).T.contiguous()
+        steps_dt[0] = 0.0
 
     seg_w = seg_w[:, :S] * torch.where(seg_mode == CTM, -1.0, 1.0).to(_DT)
     seg_ax = (acc_mag * torch.cos(acc_dir))[:, :S]
@@ -154,9 +165,10 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     ovr_w = zero.clone()
     prev_mode = m0
     bad = torch.zeros(m, dtype=torch.bool)
-    half_dt2 = 0.5 * dt * dt
     clear_share = math.sin(spec.bound_clear_heading_deg * DEG)  # radial share beyond sin(30 deg) = 1/2
     for t in range(1, T):
+        dt = spec.dt if steps_dt is None else steps_dt[t]  # this step's interval: a float, or [m]
+        half_dt2 = 0.5 * dt * dt
         if switches.shape[1]:
             seg = (switches <= t).sum(1)
             new_seg = (switches == t).any(1)
@@ -231,9 +243,13 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     rho, hs = torch.hypot(lx, ly), torch.hypot(vx, vy)  # the last state
     bad |= (rho < spec.hard_range_min) | (rho > spec.hard_range_max) | (hs > spec.hard_speed_max)
     bad |= (lz < spec.hard_alt_min) | (lz > spec.hard_alt_max) | ~torch.isfinite(lx + ly + lz + vx + vy + vz)
+    if steps_dt is None:
+        times = (torch.arange(T, dtype=_DT) * spec.dt).expand(m, T).contiguous()
+    else:
+        times = steps_dt.T.cumsum(1)  # row 0 is 0: t[:, 0] = 0
     td = TensorDict(
         {keys.STATES: states, keys.MEASUREMENTS: meas, keys.MODE: mode, keys.TURN_RATE: turn,
-         keys.R: r, keys.DT: torch.full((m,), float(dt), dtype=_DT)},
+         keys.R: r, keys.DT: torch.full((m,), float(spec.dt), dtype=_DT), keys.TIME: times},
         batch_size=[m],
     )
     return (td, bad) if return_bad else td

@@ -15,9 +15,11 @@ what ``immnet data generate --n N --seed S`` writes in one go, ``meta.json`` inc
 from __future__ import annotations
 
 from pathlib import Path
+import numpy as np
 
 from tensordict import TensorDict
 
+from immnet import keys
 from immnet.data.generate import BLOCK
 from immnet.data.scratch import publishing
 from immnet.data.storage import (
@@ -123,10 +125,13 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
                 row0, n = meta["shard"]["rows"][0], meta["n"]
                 for key, dtype in STORE_DTYPES.items():
                     dtype = str(dtype).removeprefix("torch.")
-                    trail = tuple(src_td[key].shape[1:])
+                    trail = tuple(dst_td[key].shape[1:])
                     for a in range(0, n, block):
                         m = min(block, n - a)
-                        src = _rows(src_td[key].filename, dtype, trail, a, m, "r")
+                        if key not in src_td.keys():  # a shard written before scan times were stored: k dt
+                            src = np.arange(T, dtype=np.float64) * src_td[keys.DT][a : a + m].double().numpy()[:, None]
+                        else:
+                            src = _rows(src_td[key].filename, dtype, trail, a, m, "r")
                         dst = _rows(dst_td[key].filename, dtype, trail, row0 + a, m, "r+")
                         dst[:] = src
                         dst.flush()

@@ -15,7 +15,8 @@ from pathlib import Path
 import yaml
 
 SPEC_VERSION = 1
-"""Bumped whenever the generator's output for a given (seed, n, spec) changes."""
+"""Bumped whenever the generator's output for a given (seed, n, spec) changes. ``dt_jitter`` (0 by default)
+draws nothing at 0, so that every spec of version 1 still gives the same bytes: it did not bump the version."""
 
 NM = 1852.0
 """One nautical mile in metres."""
@@ -27,7 +28,8 @@ class DataSpec:
 
     # time and noise
     T: int = 400
-    dt: float = 1.0
+    dt: float = 1.0  # the scan interval (s): fixed, or the mean of U[dt - dt_jitter, dt + dt_jitter]
+    dt_jitter: float = 0.0  # half-width (s) of each scan interval's uniform draw; 0: every interval is dt
     r_min: float = 1.0  # measurement noise std r ~ U[r_min, r_max] m, once per trajectory
     r_max: float = 7.0
     sigma_q: float = 0.2  # truth process noise (m/s^2), G per axis [dt^2/2, dt, 0]
@@ -72,6 +74,9 @@ class DataSpec:
             raise ValueError(f"T must be >= 1, got {self.T}")
         if self.dt <= 0:
             raise ValueError(f"dt must be > 0, got {self.dt}")
+        if not 0.0 <= self.dt_jitter < self.dt:
+            raise ValueError(f"dt_jitter must be in [0, dt) = [0, {self.dt:g}) so that every scan interval "
+                             f"U[dt - dt_jitter, dt + dt_jitter] is > 0, got {self.dt_jitter}")
         if not 0.0 <= self.p_miss < 1.0:
             raise ValueError(f"p_miss must be in [0, 1), got {self.p_miss}")
         if self.n_segments < 1:

@@ -6,7 +6,9 @@ A data set directory::
     DIR/tensors/       TensorDict.memmap_ layout (tensordict's own meta.json + one .memmap file per key)
 
 Floats are stored as float32 (positions of tens of km keep ~2 mm resolution, far below the
-1-7 m measurement noise); ``mode`` as int64, so that a loaded set stays lazily memory-mapped
+1-7 m measurement noise), except the scan times ``t [N, T]`` in float64 (epoch times of 1.7e9 s keep
+their hundredths of a second; a directory written before ``t`` existed has none, and its scans are at
+``k dt``); ``mode`` as int64, so that a loaded set stays lazily memory-mapped
 with int64 labels (int8 would save 280 MB per 100k x 400 but need a cast of every read). Generation writes block by
 block straight into a preallocated memmap (peak memory bounded by one block, whatever ``n``),
 in a temporary sibling directory renamed into place only once complete; an exception, SIGTERM or
@@ -15,7 +17,8 @@ SIGINT removes it, and the next writer of the same output removes one left by a 
 
 The ``.npz`` interchange format (docs/data.md): ``measurements [N,T,3]`` (NaN = missed
 detection), optional ``states [N,T,9]`` (a NaN row: no truth at that scan), ``mode [N,T]``
-(-1: no label), ``turn_rate [N,T]`` (rad/s), ``r [N]``, and ``dt`` (scalar, default 1). Both
+(-1: no label), ``turn_rate [N,T]`` (rad/s), ``r [N]``, ``t [N,T]`` (scan times, s; absent: scans at
+``k dt``) and ``dt`` (scalar; absent: the median spacing of ``t`` per track where ``t`` is given, else 1). Both
 formats are checked on loading by :func:`immnet.data.contract.check_arrays`; an ``.npz`` is read
 with ``allow_pickle=False`` (nothing in it is executed).
 """
@@ -37,6 +40,7 @@ from immnet.data.contract import TRAIL, check_arrays
 from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
 from immnet.data.scratch import publishing
 from immnet.data.spec import SPEC_VERSION, DataSpec
+from immnet.data.times import nominal_dt
 from immnet.motion import MODE_NAMES
 
 META = "meta.json"
@@ -44,7 +48,7 @@ TENSORS = "tensors"
 FORMAT = "3d-last"
 STORE_DTYPES = {
     keys.STATES: torch.float32, keys.MEASUREMENTS: torch.float32, keys.MODE: torch.int64,
-    keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32,
+    keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32, keys.TIME: torch.float64,
 }
 _NPZ_SHAPES = TRAIL  # trailing shapes after [N]: the arrays of a data set besides dt
 
@@ -61,7 +65,7 @@ def _allocate(tensors_dir: Path, n: int, T: int) -> None:
     td = TensorDict({}, batch_size=[n])
     td.memmap_(tensors_dir)
     for key, trail in ((keys.STATES, (T, 9)), (keys.MEASUREMENTS, (T, 3)), (keys.MODE, (T,)),
-                       (keys.TURN_RATE, (T,)), (keys.R, ()), (keys.DT, ())):
+                       (keys.TURN_RATE, (T,)), (keys.R, ()), (keys.DT, ()), (keys.TIME, (T,))):
         td.make_memmap(key, shape=[n, *trail], dtype=STORE_DTYPES[key])
 
 
@@ -275,7 +279,8 @@ def _load_npz(path: Path) -> tuple[TensorDict, dict]:
         raise ValueError(f"{path}: the required array 'measurements' [N,T,3] is missing (has {names})")
     if keys.DT in arrays and arrays[keys.DT].size != 1:
         raise ValueError(f"{path}: array 'dt' has shape {arrays[keys.DT].shape}, expected a scalar")
-    if keys.DT not in arrays:
+    given_dt = keys.DT in arrays
+    if not given_dt:
         arrays[keys.DT] = np.asarray(1.0)
     n, T = check_arrays(arrays, str(path))
     dt = float(arrays.pop(keys.DT).reshape(()))
@@ -283,9 +288,15 @@ def _load_npz(path: Path) -> tuple[TensorDict, dict]:
     for key, a in arrays.items():
         if key == keys.MODE:
             data[key] = torch.from_numpy(a.astype(np.int64))
+        elif key == keys.TIME:  # float64: epoch times keep their hundredths of a second
+            data[key] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
         else:
             data[key] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
-    data[keys.DT] = torch.full((n,), dt, dtype=torch.float32)
+    if given_dt or keys.TIME not in data:
+        data[keys.DT] = torch.full((n,), dt, dtype=torch.float32)
+    else:  # scan times without a nominal interval: the median spacing per track
+        data[keys.DT] = nominal_dt(TensorDict({keys.TIME: data[keys.TIME]}, batch_size=[n])).to(torch.float32)
+        dt = float(data[keys.DT].median())
     td = TensorDict(data, batch_size=[n])
     counts = dict(zip(MODE_NAMES, _mode_counts(data[keys.MODE]))) if keys.MODE in data else None
     meta = {"format": "npz", "source": str(path), "n": int(n), "T": int(T), "dt": dt,
@@ -311,13 +322,16 @@ def load_dataset(path) -> tuple[TensorDict, dict]:
 
 
 def as_batch(td: TensorDict, float_dtype=torch.float32) -> TensorDict:
-    """A loaded (memmapped) slice as plain tensors: floats in ``float_dtype``, ``mode`` int64."""
+    """A loaded (memmapped) slice as plain tensors: floats in ``float_dtype`` except the scan times ``t``
+    (float64 whatever ``float_dtype``), ``mode`` int64."""
     out = {}
     for key, v in td.items():
         if isinstance(v, MemoryMappedTensor):
             v = v.as_subclass(torch.Tensor)
         if key == keys.MODE:
             out[key] = v.to(torch.int64)
+        elif key == keys.TIME:  # scan times stay float64 (epoch times); trackers take their differences
+            out[key] = v.to(torch.float64)
         elif v.is_floating_point():
             out[key] = v.to(float_dtype)
         else:
@@ -336,7 +350,11 @@ def export_npz(path_in, out_npz) -> Path:
         if key in td.keys():
             v = td[key]
             arrays[key] = v.to(torch.int64).numpy() if key == keys.MODE else np.asarray(v.numpy())
-    arrays[keys.DT] = np.asarray(float(td[keys.DT][0]) if keys.DT in td.keys() else 1.0)
+    dts = td[keys.DT] if keys.DT in td.keys() else torch.ones(1)
+    if keys.TIME not in td.keys() or bool((dts == dts[0]).all()):
+        arrays[keys.DT] = np.asarray(float(dts[0]))
+    # else: nominal intervals that differ per track are not a scalar; the reader takes each track's median
+    # spacing of ``t``, which is what a loaded .npz without ``dt`` holds
     out_npz.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out_npz, suffix=".npz") as tmp:
         np.savez(tmp, **arrays)

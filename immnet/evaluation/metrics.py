@@ -12,8 +12,11 @@ trajectories with ``M_n > 0``. "avg" is always the mean of the three axis values
 - RMSE over time:      ``RMSE_a(t) = sqrt(sum_n m e[n,t,a]^2 / sum_n m[n,t])`` (NaN where no pair is
   scored at ``t``); its "avg" curve is ``sqrt(1/3 sum_a RMSE_a(t)^2)``, on the table's scale.
 - post-switch RMSE:    a switch of trajectory ``n`` is a step ``s >= 1`` with ``mode[n,s] !=
-  mode[n,s-1]``, both labelled (``mode >= 0``; -1 is no label); its window is ``s, ..., s+19``
-  clipped to ``T-1``. With ``S`` the scored pairs inside at least one window (each once),
+  mode[n,s-1]``, both labelled (``mode >= 0``; -1 is no label); its window is the scans ``t >= s``
+  with ``tau[n,t] - tau[n,s] < 20 s`` (``POST_SWITCH_S``), ``tau`` the scan times (the cumulative sum
+  of :func:`immnet.data.times.scan_intervals`; at 1 s scans the steps ``s, ..., s+19``, clipped to
+  ``T-1``; without scan times the window is ``POST_SWITCH_STEPS`` scans). With ``S`` the scored pairs
+  inside at least one window (each once),
   ``RMSE_a = sqrt(1/|S| sum_{(n,t) in S} e[n,t,a]^2)``. No such pair: ``None``.
 - mode accuracy:       fraction of scored, labelled pairs with ``argmax_k mu[n,t,k] == mode[n,t]``;
   confusion ``C[i, j]`` counts those pairs with true mode ``i`` and predicted mode ``j``.
@@ -31,6 +34,8 @@ from immnet.motion import POS
 
 AXES = ("x", "y", "z")
 POST_SWITCH_STEPS = 20
+POST_SWITCH_S = 20.0
+"""The post-switch window in seconds: ``POST_SWITCH_STEPS`` scans at 3D-LAST's 1 s."""
 N_MODES = 4
 
 
@@ -110,8 +115,19 @@ def switch_steps(mode: torch.Tensor) -> torch.Tensor:
     return sw
 
 
-def post_switch_mask(mode: torch.Tensor, steps: int = POST_SWITCH_STEPS) -> torch.Tensor:
-    """Boolean ``[N, T]``: inside ``[s, s + steps)`` for at least one switch ``s`` (clipped to T)."""
+def post_switch_mask(mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, intervals: torch.Tensor | None = None,
+                     seconds: float = POST_SWITCH_S) -> torch.Tensor:
+    """Boolean ``[N, T]``: inside ``[s, s + steps)`` for at least one switch ``s`` (clipped to T); with
+    ``intervals [N, T]`` (s, :func:`immnet.data.times.scan_intervals`) the scans ``t >= s`` less than
+    ``seconds`` after a switch ``s`` instead (``steps`` then unused)."""
+    if intervals is not None:
+        if intervals.shape != mode.shape:
+            raise ValueError(f"intervals have shape {tuple(intervals.shape)}, expected the mode's {tuple(mode.shape)}")
+        sw = switch_steps(mode)
+        tau = intervals.to(torch.float64).cumsum(-1)  # any origin: only differences count
+        # the latest switch at or before t is the nearest one: covered by some window iff by its window
+        last = torch.where(sw, tau, torch.full_like(tau, -torch.inf)).cummax(dim=-1).values
+        return (tau - last) < seconds
     sw = switch_steps(mode).to(torch.int64)
     # a step t is covered when a switch lies in (t - steps, t]: a running sum over the last `steps`.
     c = torch.cumsum(sw, dim=-1)
@@ -120,15 +136,18 @@ def post_switch_mask(mode: torch.Tensor, steps: int = POST_SWITCH_STEPS) -> torc
     return (c - lagged) > 0
 
 
-def post_switch_sums(err: torch.Tensor, mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, mask=None):
+def post_switch_sums(err: torch.Tensor, mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, mask=None,
+                     intervals: torch.Tensor | None = None, seconds: float = POST_SWITCH_S):
     """``(sum of e^2 over the scored pairs of the windows [3], number of them)``, for accumulation."""
-    window = post_switch_mask(mode, steps).to(err.device) & _mask(err, mask)
+    window = post_switch_mask(mode, steps, intervals, seconds).to(err.device) & _mask(err, mask)
     return _sq(err, window).sum(dim=(0, 1)), int(window.sum())
 
 
-def rmse_post_switch(err: torch.Tensor, mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, mask=None):
-    """RMSE pooled over the ``steps`` steps after every switch; ``None`` without any switch."""
-    sq, count = post_switch_sums(err, mode, steps, mask)
+def rmse_post_switch(err: torch.Tensor, mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, mask=None,
+                     intervals: torch.Tensor | None = None, seconds: float = POST_SWITCH_S):
+    """RMSE pooled over the ``steps`` steps (with ``intervals``: the ``seconds``) after every switch;
+    ``None`` without any switch."""
+    sq, count = post_switch_sums(err, mode, steps, mask, intervals, seconds)
     return _axes((sq / count).sqrt()) if count else None
 
 
@@ -160,8 +179,8 @@ class MetricAccumulator:
     instead of its numbers: a failure is never averaged away.
     """
 
-    def __init__(self, steps: int = POST_SWITCH_STEPS, n_modes: int = N_MODES):
-        self.steps, self.n_modes = steps, n_modes
+    def __init__(self, steps: int = POST_SWITCH_STEPS, n_modes: int = N_MODES, post_switch_s: float = POST_SWITCH_S):
+        self.steps, self.n_modes, self.post_switch_s = steps, n_modes, post_switch_s
         self.traj_rmse: list[torch.Tensor] = []
         self.traj_scored: list[torch.Tensor] = []
         self.sq_time = None  # sum_n m e^2, [T, 3]
@@ -171,9 +190,11 @@ class MetricAccumulator:
         self.conf = None
         self.counts = dict.fromkeys(("scans", "without_truth", "before_first_detection", "nan_scans", "diverged"), 0)
 
-    def update(self, state, truth, mode=None, mode_probs=None, measurements=None) -> None:
+    def update(self, state, truth, mode=None, mode_probs=None, measurements=None, intervals=None) -> None:
         """One batch: estimates ``state [B,T,9]`` against ``truth``; ``measurements`` (as the
-        method saw them) mark the scans before each track's first detection, not scored."""
+        method saw them) mark the scans before each track's first detection, not scored; ``intervals
+        [B,T]`` (s, :func:`immnet.data.times.scan_intervals`) make the post-switch window
+        ``post_switch_s`` seconds (without them: ``steps`` scans)."""
         err = position_error(state, truth).cpu()
         truth_ok = has_truth(truth).cpu()
         mask = truth_ok & started(measurements).cpu() if measurements is not None else truth_ok
@@ -191,7 +212,8 @@ class MetricAccumulator:
         self.n_time = cnt if self.n_time is None else self.n_time + cnt
         if mode is not None:
             mode = mode.cpu()
-            s, k = post_switch_sums(err, mode, self.steps, mask)
+            iv = None if intervals is None else intervals.cpu()
+            s, k = post_switch_sums(err, mode, self.steps, mask, iv, self.post_switch_s)
             self.post_sq += s
             self.post_count += k
             if mode_probs is not None:

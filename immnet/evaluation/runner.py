@@ -17,6 +17,7 @@ from tensordict import TensorDict
 from tqdm import tqdm
 
 from immnet import keys
+from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.evaluation.metrics import MetricAccumulator
 from immnet.evaluation.methods import missing_keys
@@ -82,7 +83,8 @@ def evaluate(
             state = out[keys.STATE]
             probs = out.get(keys.MODE_PROBS, None)
             mode = batch[keys.MODE] if has_mode else None
-            acc.update(state, batch[keys.STATES], mode, probs, measurements=z)
+            acc.update(state, batch[keys.STATES], mode, probs, measurements=z,
+                       intervals=scan_intervals(batch) if has_mode else None)  # the post-switch window in s
             local = [i - start for i in keep if start <= i < start + batch.batch_size[0]]
             if local:
                 kept.setdefault(keys.STATE, []).append(state[local].detach().cpu())
