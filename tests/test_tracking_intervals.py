@@ -104,3 +104,20 @@ def test_check_dt_names_the_interval_and_the_range():
         any_interval = True
 
     check_dt(_Net(), torch.tensor([3.3]), method=AnyInterval())
+
+
+def test_step_at_the_nominal_interval_equals_step_without_one():
+    """``Tracker.step(z, dt=net.dt)`` is ``step(z)``; another interval with a fixed-interval network: an error
+    naming it."""
+    from immnet.data.generate import generate
+    from immnet.data.spec import DataSpec
+    from immnet.tracking import Tracker
+
+    z = generate(2, seed=3, spec=DataSpec(T=12, min_segment=4))[keys.MEASUREMENTS].float()
+    a, b = Tracker.pretrained(guard=None), Tracker.pretrained(guard=None)
+    a.reset(2), b.reset(2)
+    for k in range(12):
+        torch.testing.assert_close(a.step(z[:, k])[keys.FUSED], b.step(z[:, k], dt=torch.full((2,), a.net.dt))[keys.FUSED])
+    if getattr(a.net, "interval_range", None) is None:
+        with pytest.raises(ValueError, match="this data has dt = 5 s"):
+            a.step(z[:, 0], dt=5.0)

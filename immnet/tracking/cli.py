@@ -138,10 +138,14 @@ def run(args) -> int:
 
     data, _ = load_dataset(args.input)
     tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)
-    check_dt(tracker.net, data["dt"], "the checkpoint")
+    from immnet.data.times import scan_intervals
+
+    check_dt(tracker.net, scan_intervals(data) if "t" in data.keys() else data["dt"], "the checkpoint")
     out = tracker.track(data["measurements"])
     with publishing(args.output, suffix=".npz") as tmp:
-        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt))
+        times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
+        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt),
+                 **times)
     _report_gated(tracker.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
     return 0
