@@ -29,6 +29,9 @@ def register(subparsers) -> None:
     p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
     p.add_argument("--checkpoint", default=None, help="Lightning checkpoint (default: the shipped weights)")
+    p.add_argument("--method", default=None,
+                   help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "
+                        "interval (e.g. imm-tuned) tracks each row as a scan at its own time (any spacing)")
     p.add_argument("--max-position", type=float, default=MAX_ABS_POSITION,
                    help="largest |x|, |y|, |z| (m) a detection may have; beyond it, or non-finite, a measurement "
                         "is a missed detection (counted on stderr); 'inf' keeps every finite one")
@@ -87,6 +90,24 @@ def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
               f"{where}: tracked as missed detections", file=sys.stderr)
 
 
+def _track_rows_with_method(args, rows, limit: float) -> int:
+    """CSV rows tracked by ``--method``: each row one scan at its own time (``segments.split_rows``)."""
+    from immnet.data.validate import gate_measurements
+    from immnet.evaluation.methods import build_method
+    from immnet.tracking.io import write_tracks_csv
+    from immnet.tracking.segments import split_rows, track_rows
+
+    method = build_method(args.method)
+    z, n_gated = gate_measurements(rows.z, limit)
+    segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
+    state, probs = track_rows(method, segs, offset)
+    write_tracks_csv(args.output, rows, state, probs)
+    _report_gated(n_gated, limit)
+    print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows with {args.method} "
+          f"-> {args.output}", file=sys.stderr)
+    return 0
+
+
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
     from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker
@@ -98,6 +119,8 @@ def run(args) -> int:
         from immnet.tracking.segments import split_segments, track_segments
 
         rows = read_tracks_csv(args.input)
+        if args.method is not None:
+            return _track_rows_with_method(args, rows, limit)
         tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)
         z, n_gated = gate_measurements(rows.z, limit)
         gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
@@ -115,10 +138,14 @@ def run(args) -> int:
 
     data, _ = load_dataset(args.input)
     tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)
-    check_dt(tracker.net, data["dt"], "the checkpoint")
+    from immnet.data.times import scan_intervals
+
+    check_dt(tracker.net, scan_intervals(data) if "t" in data.keys() else data["dt"], "the checkpoint")
     out = tracker.track(data["measurements"])
     with publishing(args.output, suffix=".npz") as tmp:
-        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt))
+        times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
+        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt),
+                 **times)
     _report_gated(tracker.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
     return 0

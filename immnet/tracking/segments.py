@@ -51,9 +51,40 @@ def check_coast(max_coast: float, dt: float) -> float:
     return max_coast
 
 
+def split_rows(ids, t, z: np.ndarray, max_coast: float = MAX_COAST) -> tuple[Segments, np.ndarray]:
+    """Segments for a method that takes any interval: each row is one scan at its own time, a segment a
+    run of one track's rows whose gaps after a detection are at most ``max_coast`` s (the coasting rules
+    of the module doc). Returns the segments and ``offset [R]``: each row's time minus its segment's
+    first, in float64 from the exact decimals (epoch times keep their hundredths)."""
+    max_coast = float(max_coast)
+    if not max_coast > 0:
+        raise ValueError(f"--max-coast must be positive, got {max_coast:g}")
+    coast = Decimal(max_coast) if math.isfinite(max_coast) else None
+    R = len(ids)
+    segment = np.full(R, -1, dtype=np.int64)
+    step = np.zeros(R, dtype=np.int64)
+    offset = np.full(R, np.nan)
+    detected = ~np.isnan(z).any(-1)
+    spans: list[int] = []
+    current: dict[str, tuple[int, Decimal, Decimal]] = {}
+    for r in range(R):
+        tid, tr = ids[r], Decimal(t[r])
+        seg = current.get(tid)
+        if not (seg is not None and (coast is None or tr - seg[2] <= coast)):
+            if not detected[r]:
+                continue
+            seg = (len(spans), tr, tr)
+            spans.append(0)
+        segment[r], step[r], offset[r] = seg[0], spans[seg[0]], float(tr - seg[1])
+        spans[seg[0]] += 1
+        current[tid] = (seg[0], seg[1], tr if detected[r] else seg[2])
+    return Segments(segment, step, np.asarray(spans, dtype=np.int64), z), offset
+
+
 def split_segments(ids, t, z: np.ndarray, dt: float, max_coast: float = MAX_COAST, lines=None, texts=None) -> Segments:
     """Segments of rows ``ids [R]`` (track), ``t [R]`` (Decimal or float times, increasing per track)
-    and ``z [R, 3]`` (module doc). ``lines``/``texts`` name a row in the error for an off-grid time."""
+    and ``z [R, 3]`` on a fixed scan grid ``dt`` (a tracker trained at one interval; module doc).
+    ``lines``/``texts`` name a row in the error for an off-grid time."""
     max_coast = check_coast(max_coast, dt)
     coast = Decimal(max_coast) if math.isfinite(max_coast) else None
     step_dt = Decimal(dt)
@@ -77,7 +108,9 @@ def split_segments(ids, t, z: np.ndarray, dt: float, max_coast: float = MAX_COAS
         if abs(k_exact - k) > Decimal("1e-6"):
             where = f"line {lines[r]}: " if lines is not None else ""
             raise ValueError(f"{where}time {texts[r] if texts is not None else tr} of track {tid!r} is not a whole "
-                             f"number of scans (dt = {dt:g}) after its start {seg[1]}")
+                             f"number of scans (dt = {dt:g}) after its start {seg[1]}: this tracker was trained at "
+                             f"one interval, dt = {dt:g} s; for any scan interval use a method that takes any "
+                             f"interval (e.g. --method imm-tuned)")
         segment[r], step[r] = seg[0], k
         spans[seg[0]] = k + 1
         current[tid] = (seg[0], seg[1], tr if detected[r] else seg[2])
@@ -97,6 +130,46 @@ def batches(span: np.ndarray, batch_size: int = 512) -> list[np.ndarray]:
         groups.append(order[start:end])
         start = end
     return groups
+
+
+def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512):
+    """``state [R, 9]``, ``mode_probs [R, 4]`` per row of :func:`split_rows`' segments, each tracked as a
+    fresh track by ``method.track(batch)`` with ``t [B, T]`` (its rows' times since its first); padding
+    after a segment's end is missed detections, its times continuing at the segment's median spacing
+    (strictly increasing). ``mode_probs`` NaN where the method has none."""
+    from tensordict import TensorDict
+
+    import torch
+
+    R = len(segs.segment)
+    state = np.full((R, 9), np.nan)
+    probs = np.full((R, 4), np.nan)
+    rows_of = np.argsort(segs.segment, kind="stable")
+    first = np.searchsorted(segs.segment[rows_of], np.arange(len(segs.span) + 1))
+    for group in batches(segs.span, batch_size):
+        T = int(segs.span[group].max())
+        z = np.full((len(group), T, 3), np.nan)
+        t = np.zeros((len(group), T))
+        dt = np.ones(len(group))
+        rows = [rows_of[first[s] : first[s + 1]] for s in group]
+        for i, r in enumerate(rows):
+            z[i, : len(r)] = segs.z[r]
+            t[i, : len(r)] = offset[r]
+            gaps = np.diff(offset[r])
+            dt[i] = float(np.median(gaps)) if len(gaps) else 1.0
+            t[i, len(r):] = offset[r][-1] + dt[i] * np.arange(1, T - len(r) + 1)
+        batch = TensorDict({keys.MEASUREMENTS: torch.from_numpy(z), keys.TIME: torch.from_numpy(t),
+                            keys.DT: torch.from_numpy(dt)}, batch_size=[len(group)])
+        if hasattr(method, "check"):
+            method.check(batch)
+        out = method.track(batch)
+        st = out[keys.STATE].double().numpy()
+        pr = out[keys.MODE_PROBS].double().numpy() if keys.MODE_PROBS in out.keys() else None
+        for i, r in enumerate(rows):
+            state[r] = st[i, : len(r)]
+            if pr is not None:
+                probs[r] = pr[i, : len(r)]
+    return state, probs
 
 
 def track_segments(tracker, segs: Segments, batch_size: int = 512):

@@ -116,8 +116,11 @@ class Tracker:
         self.n_gated = 0
 
     @torch.no_grad()
-    def step(self, z: torch.Tensor, reset: torch.Tensor | None = None) -> TensorDict:
-        """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks.
+    def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
+        """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks;
+        ``dt`` the time since each track's previous scan (a number or ``[B]``, seconds; None: the
+        network's ``net.dt``), checked against the intervals the network was trained at
+        (``immnet.tracking.methods.check_dt``) and passed to ``IMMNet.scan`` as its ``interval``.
 
         The outputs of a track that has had no detection yet are NaN; a gated measurement (module doc)
         is a missed detection and adds one to ``n_gated``.
@@ -133,7 +136,17 @@ class Tracker:
             fresh = self.net.initial_carry(z.shape[0])
             mask = torch.as_tensor(reset, dtype=torch.bool)
             self.carry = _select(mask, fresh, self.carry)
-        self.carry = self.net.scan(self.carry, z)
+        if dt is None:
+            self.carry = self.net.scan(self.carry, z)
+        else:
+            from immnet.tracking.methods import check_dt
+
+            interval = torch.as_tensor(dt, dtype=torch.float32).reshape(-1).expand(z.shape[0])
+            check_dt(self.net, interval, "this tracker")
+            if bool((interval == self.net.dt).all()):  # the nominal interval: the network's own step
+                self.carry = self.net.scan(self.carry, z)
+            else:
+                self.carry = self.net.scan(self.carry, z, interval=interval)
         out = self.carry.select(keys.FUSED, keys.EXPERT_PROBS, keys.EXPERT_POST, strict=False).clone()
         out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))
         waiting = (self.carry.get(keys.AGE) == 0)[:, None]  # no detection yet: no estimate

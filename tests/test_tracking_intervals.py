@@ -1,0 +1,123 @@
+"""Issue 22, item 4: ``immnet track`` and the Python API at any scan interval (CSV times to 0.01 s, epoch
+times): an estimate for every row, below the raw measurements' error."""
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+from immnet import keys
+from immnet.cli import main
+from immnet.evaluation.methods import build_method
+from immnet.tracking.methods import check_dt
+from immnet.tracking.segments import split_rows, track_rows
+
+EPOCH = 1_733_070_000.0
+
+
+def _truth(t):
+    """A closed-form track: 60 s at 150 m/s along x, then a 3 deg/s turn (constant speed), level at 3 km."""
+    v, w, t1 = 150.0, np.deg2rad(3.0), 60.0
+    x = np.where(t < t1, 10_000 + v * t, 10_000 + v * t1 + v / w * np.sin(w * (t - t1)))
+    y = np.where(t < t1, 5_000.0, 5_000 + v / w * (1 - np.cos(w * (t - t1))))
+    return np.stack([x, y, np.full_like(t, 3_000.0)], -1)
+
+
+@pytest.fixture(scope="module")
+def irregular(tmp_path_factory):
+    rng = np.random.default_rng(22)
+    rows, truth = [], []
+    for tid in ("a", "b"):
+        dt = np.round(rng.uniform(4.5, 5.5, 40), 2)
+        t = np.round(np.cumsum(dt) - dt[0] + (0 if tid == "a" else 7.31), 2)
+        p = _truth(t)
+        z = p + rng.normal(0, 5.0, p.shape)
+        rows += [[tid, f"{EPOCH + tk:.2f}", *(repr(float(v)) for v in zk)] for tk, zk in zip(t, z)]
+        truth.append(p)
+    path = tmp_path_factory.mktemp("irr") / "in.csv"
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["track_id", "t", "x", "y", "z"])
+        w.writerows(rows)
+    return path, rows, np.concatenate(truth)
+
+
+def test_track_at_irregular_epoch_times_estimates_every_row_below_the_raw_error(irregular, tmp_path):
+    """Needs the filters branch (model-based IMMs reading ``t``): without it the IMM runs as if scans were
+    1 s apart and its error is far above the raw measurements'."""
+    path, rows, truth = irregular
+    out = tmp_path / "out.csv"
+    assert main(["track", "--input", str(path), "--output", str(out), "--method", "imm-tuned"]) == 0
+    with open(out, newline="") as f:
+        got = list(csv.DictReader(f))
+    assert [r["t"] for r in got] == [r[1] for r in rows]
+    est = np.array([[float(r[c]) for c in ("x", "y", "z")] for r in got])
+    assert np.isfinite(est).all()
+    raw = np.array([[float(v) for v in r[2:]] for r in rows])
+    rmse = lambda e: float(np.sqrt(((e - truth) ** 2).sum(-1).mean()))  # noqa: E731
+    assert rmse(est) < rmse(raw), (rmse(est), rmse(raw))
+    # the Python API: the same segments through Method.track with t gives the same numbers
+    from immnet.tracking.io import read_tracks_csv
+
+    tracks = read_tracks_csv(path)
+    segs, offset = split_rows(tracks.ids, tracks.t, tracks.z)
+    state, _ = track_rows(build_method("imm-tuned"), segs, offset)
+    np.testing.assert_allclose(est, state[:, [0, 3, 6]], rtol=0, atol=1e-6)
+
+
+def test_rows_keep_hundredths_at_epoch_times(irregular):
+    """Offsets from each segment's first time are exact to 0.01 s at 1.7e9 s (taken from the decimals)."""
+    from immnet.tracking.io import read_tracks_csv
+
+    tracks = read_tracks_csv(irregular[0])
+    segs, offset = split_rows(tracks.ids, tracks.t, tracks.z)
+    assert len(segs.span) == 2 and (segs.segment >= 0).all()
+    want = np.array([float(t - EPOCH) for t in map(float, tracks.times)])
+    starts = {s: want[segs.segment == s][0] for s in range(2)}
+    np.testing.assert_allclose(offset, want - np.array([starts[s] for s in segs.segment]), atol=1e-6)
+    assert not np.allclose(np.diff(offset[segs.segment == 0]) % 1.0, 0.0)
+
+
+def test_a_fixed_interval_checkpoint_refuses_off_grid_times_and_names_the_way_out(irregular, tmp_path, capsys):
+    assert main(["track", "--input", str(irregular[0]), "--output", str(tmp_path / "o.csv"), "--guard", "none"]) == 2
+    err = capsys.readouterr().err
+    assert "is not a whole number of scans (dt = 1)" in err and "--method imm-tuned" in err
+    assert not (tmp_path / "o.csv").exists()
+
+
+class _Net:
+    dt = 1.0
+
+
+def test_check_dt_names_the_interval_and_the_range():
+    net = _Net()
+    check_dt(net, torch.tensor([1.0, 1.0]))
+    with pytest.raises(ValueError, match=r"trained on data sampled at dt = 1 s but this data has dt = 5 s"):
+        check_dt(net, torch.tensor([1.0, 5.0]))
+    net.interval_range = (0.5, 12.0)
+    check_dt(net, torch.tensor([0.5, 4.87, 12.0]))
+    with pytest.raises(ValueError, match=r"trained on intervals 0.5-12 s but this data has an interval of 20 s"):
+        check_dt(net, torch.tensor([5.0, 20.0]))
+
+    class AnyInterval:
+        any_interval = True
+
+    check_dt(_Net(), torch.tensor([3.3]), method=AnyInterval())
+
+
+def test_step_at_the_nominal_interval_equals_step_without_one():
+    """``Tracker.step(z, dt=net.dt)`` is ``step(z)``; another interval with a fixed-interval network: an error
+    naming it."""
+    from immnet.data.generate import generate
+    from immnet.data.spec import DataSpec
+    from immnet.tracking import Tracker
+
+    z = generate(2, seed=3, spec=DataSpec(T=12, min_segment=4))[keys.MEASUREMENTS].float()
+    a, b = Tracker.pretrained(guard=None), Tracker.pretrained(guard=None)
+    a.reset(2), b.reset(2)
+    for k in range(12):
+        torch.testing.assert_close(a.step(z[:, k])[keys.FUSED], b.step(z[:, k], dt=torch.full((2,), a.net.dt))[keys.FUSED])
+    if getattr(a.net, "interval_range", None) is None:
+        with pytest.raises(ValueError, match="this data has dt = 5 s"):
+            a.step(z[:, 0], dt=5.0)
