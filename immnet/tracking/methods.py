@@ -78,8 +78,8 @@ class IMMNetMethod(_LearnedMethod):
         self.batch_size = batch_size
 
     def track(self, batch: TensorDict) -> TensorDict:
-        self.check(batch)
-        out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size)
+        self.check(batch)  # every interval the one it was trained at, or inside its interval_range
+        out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size, self.net.intervals_for(batch))
         return TensorDict(
             {keys.STATE: out[keys.STATE].double(), keys.MODE_PROBS: out[keys.MODE_PROBS].double()},
             batch_size=batch.batch_size,

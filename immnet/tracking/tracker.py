@@ -153,17 +153,19 @@ class Tracker:
         return out.apply(lambda v: blank_before_first_detection(v.unsqueeze(1), waiting).squeeze(1))
 
     @torch.no_grad()
-    def track(self, measurements: torch.Tensor, batch_size: int = 512) -> TensorDict:
+    def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None) -> TensorDict:
         """Whole sequences ``[B, T, 3]`` -> ``state [B, T, 9]``, ``mode_probs [B, T, 4]``, ``expert_probs``,
         ``expert_post`` and ``mode_logits``, NaN before each track's first detection; ``n_gated``
-        counts the measurements gated in this call (module doc)."""
+        counts the measurements gated in this call (module doc). ``intervals [B, T]``: the interval before
+        each scan (``immnet.data.times.scan_intervals``; None: the network's ``dt``)."""
         z = torch.as_tensor(measurements, dtype=torch.float32)
         if z.dim() != 3 or z.shape[-1] != 3:
             raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
         z, self.n_gated = gate_measurements(z, self.max_position)
         outs = []
         for i in range(0, z.shape[0], batch_size):
-            out, _ = self.net.rollout(z[i : i + batch_size])
+            gaps = None if intervals is None else torch.as_tensor(intervals[i : i + batch_size], dtype=z.dtype)
+            out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps)
             out.set(keys.MODE_PROBS, self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
             waiting = before_first_detection(z[i : i + batch_size])
             outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))
