@@ -132,6 +132,17 @@ def batches(span: np.ndarray, batch_size: int = 512) -> list[np.ndarray]:
     return groups
 
 
+def _groups(segs: Segments, batch_size: int):
+    """The batches of segments to track together: ``(T, rows)`` with ``T`` their longest span and ``rows``
+    each segment's row indices in order; and the blank per-row outputs ``state [R, 9]``, ``mode_probs [R, 4]``."""
+    R = len(segs.segment)
+    blank = (np.full((R, 9), np.nan), np.full((R, 4), np.nan))
+    rows_of = np.argsort(segs.segment, kind="stable")
+    first = np.searchsorted(segs.segment[rows_of], np.arange(len(segs.span) + 1))
+    groups = [(int(segs.span[g].max()), [rows_of[first[s] : first[s + 1]] for s in g]) for g in batches(segs.span, batch_size)]
+    return groups, blank
+
+
 def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512):
     """``state [R, 9]``, ``mode_probs [R, 4]`` per row of :func:`split_rows`' segments, each tracked as a
     fresh track by ``method.track(batch)`` with ``t [B, T]`` (its rows' times since its first); padding
@@ -141,17 +152,11 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
 
     import torch
 
-    R = len(segs.segment)
-    state = np.full((R, 9), np.nan)
-    probs = np.full((R, 4), np.nan)
-    rows_of = np.argsort(segs.segment, kind="stable")
-    first = np.searchsorted(segs.segment[rows_of], np.arange(len(segs.span) + 1))
-    for group in batches(segs.span, batch_size):
-        T = int(segs.span[group].max())
-        z = np.full((len(group), T, 3), np.nan)
-        t = np.zeros((len(group), T))
-        dt = np.ones(len(group))
-        rows = [rows_of[first[s] : first[s + 1]] for s in group]
+    groups, (state, probs) = _groups(segs, batch_size)
+    for T, rows in groups:
+        z = np.full((len(rows), T, 3), np.nan)
+        t = np.zeros((len(rows), T))
+        dt = np.ones(len(rows))
         for i, r in enumerate(rows):
             z[i, : len(r)] = segs.z[r]
             t[i, : len(r)] = offset[r]
@@ -159,7 +164,7 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
             dt[i] = float(np.median(gaps)) if len(gaps) else 1.0
             t[i, len(r):] = offset[r][-1] + dt[i] * np.arange(1, T - len(r) + 1)
         batch = TensorDict({keys.MEASUREMENTS: torch.from_numpy(z), keys.TIME: torch.from_numpy(t),
-                            keys.DT: torch.from_numpy(dt)}, batch_size=[len(group)])
+                            keys.DT: torch.from_numpy(dt)}, batch_size=[len(rows)])
         if hasattr(method, "check"):
             method.check(batch)
         out = method.track(batch)
@@ -175,18 +180,12 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
 def track_segments(tracker, segs: Segments, batch_size: int = 512):
     """``state [R, 9]``, ``mode_probs [R, 4]`` (float64) per row: each row's estimate at its scan of its
     segment, each segment tracked as a fresh track by ``tracker.track``; NaN where a row has none."""
-    R = len(segs.segment)
-    state = np.full((R, 9), np.nan)
-    probs = np.full((R, 4), np.nan)
-    rows_of = np.argsort(segs.segment, kind="stable")
-    first = np.searchsorted(segs.segment[rows_of], np.arange(len(segs.span) + 1))
-    for group in batches(segs.span, batch_size):
-        T = int(segs.span[group].max())
-        z = np.full((len(group), T, 3), np.nan, dtype=np.float32)
-        rows = [rows_of[first[s] : first[s + 1]] for s in group]
+    groups, (state, probs) = _groups(segs, batch_size)
+    for T, rows in groups:
+        z = np.full((len(rows), T, 3), np.nan, dtype=np.float32)
         for i, r in enumerate(rows):
             z[i, segs.step[r]] = segs.z[r]
-        out = tracker.track(z, batch_size=len(group))
+        out = tracker.track(z, batch_size=len(rows))
         st, pr = out[keys.STATE].numpy(), out[keys.MODE_PROBS].numpy()
         for i, r in enumerate(rows):
             state[r] = st[i, segs.step[r]]
