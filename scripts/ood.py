@@ -27,7 +27,7 @@ from immnet.config import REPO_ROOT
 from immnet.evaluation.cli import load_split, select_methods
 from immnet.evaluation.metrics import per_trajectory_rmse, position_error
 from immnet.evaluation.runner import evaluate
-from immnet.tracking.cli import parse_guard
+from immnet.imm.guard import parse_guard
 
 SETS = {  # name: (what differs from 3D-LAST, the --guard it is scored with)
     "turns": ("turns at 10-15 deg/s", "checkpoint"),

@@ -198,7 +198,7 @@ def run_evaluate(args) -> int:
     from immnet.data.validate import MAX_ABS_POSITION, check_limit
     from immnet.evaluation.runner import evaluate, finite_or_none, to_json
     from immnet.evaluation.table import format_markdown, format_table
-    from immnet.tracking.cli import parse_guard
+    from immnet.imm.guard import parse_guard
 
     limit = check_limit(MAX_ABS_POSITION if args.max_position is None else args.max_position)
     guard = parse_guard(args.guard)

@@ -29,6 +29,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.config import REPO_ROOT, import_class, load_yaml, packaged_configs
 from immnet.filters.base import before_first_detection, blank_before_first_detection
+from immnet.imm.guard import AS_CONFIGURED
 from immnet.motion import POS
 
 METHODS_DIR = packaged_configs() / "methods"
@@ -139,7 +140,7 @@ def takes_checkpoint(name: str, methods_dir: Path | None = None) -> bool:
     return "checkpoint" in init_args or "checkpoint" in inspect.signature(cls).parameters
 
 
-KEEP_GUARD = "checkpoint"
+KEEP_GUARD = AS_CONFIGURED
 """``build_method``'s ``guard`` that leaves every method's range guard as configured."""
 
 
@@ -151,7 +152,7 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
     checkout, or ``site-packages``: ``immnet/pretrained/...`` works in both). The object's
     ``name`` is set to ``name`` so that rows carry the registry name.
 
-    ``guard`` (``immnet.tracking.cli.parse_guard``'s: ``"checkpoint"``, ``None`` or ``{"outer", "inner"}``)
+    ``guard`` (``immnet.imm.guard.parse_guard``'s: ``"checkpoint"``, ``None`` or ``{"outer", "inner"}``)
     replaces the range guard (``immnet.imm.guard``) of every method that has one: a constructor taking
     ``guard`` whose configured value is not off (IMMNet's ``"checkpoint"``, imm-ekf-guard's ``true``). A
     method configured without a guard (imm-ekf) keeps none: ``--guard none`` makes imm-ekf-guard its

@@ -204,3 +204,23 @@ def fresh_share(w: torch.Tensor, speed_share: torch.Tensor) -> torch.Tensor:
     """The share of each filter's mixed prior that entered at a speed bound, ``[B, M]``, from the mixing
     weights ``mu_{i|j}`` ``w [B, i, j]`` and ``guarded_transition``'s speed share of each entry."""
     return (w * speed_share).sum(-2)
+
+
+AS_CONFIGURED = "checkpoint"
+"""A tracker's guard setting that keeps the range guard as its checkpoint or method configures it."""
+
+
+def parse_guard(text: str):
+    """A ``--guard`` option: ``checkpoint`` (``AS_CONFIGURED``), ``none`` or ``OUTER,INNER`` (metres) -> the guard
+    setting of ``immnet.tracking.load_network`` and ``immnet.evaluation.build_method``: ``AS_CONFIGURED``, None
+    (no guard: data from another region) or ``{"outer", "inner"}`` (``RangeGuard``'s range thresholds)."""
+    text = text.strip().lower()
+    if text == AS_CONFIGURED:
+        return AS_CONFIGURED
+    if text == "none":
+        return None
+    try:
+        outer, inner = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--guard must be 'checkpoint', 'none' or 'OUTER,INNER' in metres, got {text!r}") from None
+    return {"outer": outer, "inner": inner}

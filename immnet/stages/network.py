@@ -128,7 +128,7 @@ class IMMNet(TensorDictModuleBase):
         say). With the IMM interaction the mode update predicts with the transition the
         experts were mixed with (``("mode", "transition")``), so the chain is the interaction's.
         ``interval_range``: the scan intervals ``(lo, hi)`` (s) the network was trained over; None: trained at
-        ``dt`` alone (a tracker refuses data at other intervals, ``immnet.tracking.methods.check_dt``)."""
+        ``dt`` alone (a tracker refuses data at other intervals, ``immnet.tracking.tracker.check_dt``)."""
         super().__init__()
         self.model_set = ModelSet.from_config(model_set)
         self.model_set_config = self.model_set.to_config()

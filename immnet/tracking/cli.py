@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from immnet.data.validate import MAX_ABS_POSITION
+from immnet.imm.guard import parse_guard
 from immnet.tracking.segments import MAX_COAST
 
 
@@ -50,22 +51,6 @@ def register(subparsers) -> None:
              "that fly rougher than the training data (docs/immnet.md, 'Adaptive process noise')",
     )
     p.set_defaults(func=run)
-
-
-def parse_guard(text: str):
-    """``--guard``: ``checkpoint``, ``none`` or ``OUTER,INNER`` (metres) -> ``load_network``'s guard."""
-    from immnet.tracking.tracker import KEEP
-
-    text = text.strip().lower()
-    if text == KEEP:
-        return KEEP
-    if text == "none":
-        return None
-    try:
-        outer, inner = (float(v) for v in text.split(","))
-    except ValueError:
-        raise ValueError(f"--guard must be 'checkpoint', 'none' or 'OUTER,INNER' in metres, got {text!r}") from None
-    return {"outer": outer, "inner": inner}
 
 
 def check_paths(source: Path, target: Path) -> None:
@@ -134,7 +119,7 @@ def run(args) -> int:
         return 0
     from immnet.data.scratch import publishing
     from immnet.data.storage import load_dataset
-    from immnet.tracking.methods import check_dt
+    from immnet.tracking.tracker import check_dt
 
     data, _ = load_dataset(args.input)
     tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)

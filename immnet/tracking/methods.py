@@ -9,45 +9,7 @@ from immnet import keys
 from immnet.data.times import nominal_dt, scan_intervals
 from immnet.data.validate import gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
-from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker, load_network
-
-
-def check_dt(net, dt, name: str = "immnet", method=None) -> None:
-    """A ValueError unless every sampling interval in ``dt`` is one the network was trained at.
-
-    A method that takes any interval (``any_interval``: the model-based filters, which build ``F(dt)``
-    and ``Q(dt)`` per scan) is never refused. A learned tracker is tied to its training intervals: a
-    network trained over a range (``net.interval_range = (lo, hi)``) takes any interval in it; one
-    trained at one interval (``interval_range`` absent or None) only ``net.dt``: on other data it
-    would run as if each step lasted ``net.dt`` (a velocity of ``(z_1 - z_0) / net.dt``, turn rates and
-    accelerations per step), off by ``dt / net.dt`` without any sign of it.
-    """
-    if getattr(method, "any_interval", False) or getattr(net, "any_interval", False):
-        return
-    values = torch.unique(torch.as_tensor(dt, dtype=torch.float64).reshape(-1))
-    values = values[~torch.isnan(values)]
-    span = getattr(net, "interval_range", None)
-    others = "the model-based methods take any interval (e.g. --method imm-tuned)"
-    if span is not None:
-        lo, hi = float(span[0]), float(span[1])
-        tol = 1e-6 * max(1.0, hi)
-        bad = [float(v) for v in values if not lo - tol <= float(v) <= hi + tol]
-        if bad:
-            raise ValueError(
-                f"{name} was trained on intervals {lo:g}-{hi:g} s but this data has an interval of "
-                f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s, outside that range; "
-                f"resample the data, train a model over this range (DataSpec dt), or use a method that "
-                f"takes any interval ({others})")
-        return
-    bad = [float(v) for v in values if abs(float(v) - net.dt) > 1e-6 * max(1.0, net.dt)]
-    if bad:
-        raise ValueError(
-            f"{name} was trained on data sampled at dt = {net.dt:g} s but this data has dt = "
-            f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s; it was trained at that one "
-            f"interval only, and a learned tracker only knows its training interval (its velocities would be off "
-            f"by the ratio): resample the data to dt = {net.dt:g} s, train a model at this dt (DataSpec dt), or use a "
-            f"method that takes any "
-            f"interval ({others})")
+from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker, check_dt, load_network
 
 
 class _LearnedMethod:
