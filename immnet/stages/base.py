@@ -68,6 +68,14 @@ def _renaming(body):
     return forward
 
 
+def scan_interval(td, nominal: float):
+    """This scan's interval: ``("interval")`` ``[B]`` where the step carries it (the optional input of a step,
+    docs/stages.md), else the ``nominal`` float. Returns ``(dt, per_track)``: ``dt`` a float or ``[B, 1]``
+    (broadcasting against ``[B, M]``)."""
+    d = td.get(keys.INTERVAL, None)
+    return (nominal, False) if d is None else (d.unsqueeze(-1), True)
+
+
 class Stage(TensorDictModuleBase):
     """A stage built for a model set of ``M`` experts."""
 

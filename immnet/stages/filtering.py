@@ -49,7 +49,7 @@ from immnet.imm.kalman import inv3, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries, ct_propagate, noise_gain,
 )
-from immnet.stages.base import Stage, measured, per_expert
+from immnet.stages.base import Stage, measured, per_expert, scan_interval
 from immnet.stages.features import slog
 from immnet.stages.gain import KalmanNetGain
 from immnet.stages.layers import StackedLinear
@@ -121,13 +121,13 @@ def _noise_components(own_acc, own_rate, dt, nominal: float | None = None) -> to
     return out
 
 
-def _jacobian_base(model_set: ModelSet, own_rate, dt, dtype=torch.float64) -> torch.Tensor:
+def _jacobian_base(model_set: ModelSet, own_rate, dt, dtype=torch.float64, F: torch.Tensor | None = None) -> torch.Tensor:
     """The Jacobian's constant part ``[M, 10, 10]`` (``[B, M, 10, 10]`` for intervals ``dt [B]``): ``F`` for the
     constant models, for a turn expert ``F_CT``'s entries that do not depend on ``w`` (position and the
     vertical CV block, ``w``'s own 1); the rest of a turn expert's Jacobian is written at ``TURN_ENTRIES``
-    each scan."""
+    each scan. ``F``: the model set's ``F(dt)``, where the caller has it."""
     d = torch.as_tensor(dt, dtype=dtype)
-    F = model_set.F(d, dtype=dtype, device=d.device)  # [..., M, 9, 9]
+    F = model_set.F(d, dtype=dtype, device=d.device) if F is None else F  # [..., M, 9, 9]
     J = F.new_zeros(*F.shape[:-2], N_AUG, N_AUG)
     J[..., :9, :9] = F
     for i, rate in enumerate(own_rate):
@@ -137,13 +137,6 @@ def _jacobian_base(model_set: ModelSet, own_rate, dt, dtype=torch.float64) -> to
                 J[..., i, r, c] = 1.0
             J[..., i, 6, 7] = d
     return J
-
-
-def scan_interval(td, nominal: float):
-    """This scan's interval: ``("interval")`` ``[B]`` where the step carries it, else the ``nominal`` float.
-    Returns ``(dt, per_track)``: ``dt`` a float or ``[B, 1]`` (broadcasting against ``[B, M]``)."""
-    d = td.get(keys.INTERVAL, None)
-    return (nominal, False) if d is None else (d.unsqueeze(-1), True)
 
 
 def _noise(scale: torch.Tensor, Q_parts: torch.Tensor) -> torch.Tensor:
@@ -272,8 +265,9 @@ class FilterPredict(Predict):
         dt, per_track = scan_interval(td, self.dt)
         if per_track:  # this scan's interval per track: F and the Jacobian's constant part of it
             d = dt[:, 0].to(x.dtype)
-            prior = torch.einsum("bmij,bmj->bmi", self.model_set.F(d, dtype=x.dtype, device=x.device), x)
-            J = _jacobian_base(self.model_set, self._own_rate, d, x.dtype)
+            F = self.model_set.F(d, dtype=x.dtype, device=x.device)  # [B, M, 9, 9]
+            prior = torch.einsum("bmij,bmj->bmi", F, x)
+            J = _jacobian_base(self.model_set, self._own_rate, d, x.dtype, F)
             dt = dt.to(x.dtype)
         else:
             prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)

@@ -117,9 +117,8 @@ class KalmanNetGain(Stage):
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The GRUs' hidden states, started at their learned ``h0``, and the previous scan's interval."""
-        shape = (batch, self.n_experts) if experts_alone else (batch,)
         return {keys.EXPERT_HIDDEN: {k: v.to(dtype) for k, v in self.initial_hidden(batch).items()},
-                keys.PREV_INTERVAL: torch.full(shape[:1], float(self.dt), dtype=dtype, device=device)}
+                keys.PREV_INTERVAL: torch.full((batch,), float(self.dt), dtype=dtype, device=device)}
 
     def interval_features(self, td, like: torch.Tensor):
         """``(rate_now, rate_before, extra)``: the factors ``dt / interval`` that scale F1 and F3 (1.0 at the

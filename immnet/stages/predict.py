@@ -14,7 +14,7 @@ import torch
 
 from immnet import keys
 from immnet.motion import ModelSet, adaptive_ct_propagate
-from immnet.stages.base import Stage, per_expert
+from immnet.stages.base import Stage, per_expert, scan_interval
 
 
 class Predict(Stage):
@@ -35,13 +35,12 @@ class Predict(Stage):
 
     def forward(self, td):
         x = per_expert(td.get(keys.FUSED), self.n_experts)
-        interval = td.get(keys.INTERVAL, None)  # this scan's interval per track, where the step carries it
-        if interval is None:
-            prior, dt = torch.einsum("mij,bmj->bmi", self.F, x), self.dt
+        dt, per_track = scan_interval(td, self.dt)
+        if per_track:
+            dt = dt.to(x.dtype)
+            prior = torch.einsum("bmij,bmj->bmi", self.model_set.F(dt[:, 0], dtype=x.dtype, device=x.device), x)
         else:
-            d = interval.to(x.dtype)
-            prior = torch.einsum("bmij,bmj->bmi", self.model_set.F(d, dtype=x.dtype, device=x.device), x)
-            dt = d[:, None]
+            prior = torch.einsum("mij,bmj->bmi", self.F, x)
         if self.adaptive:
             turned = adaptive_ct_propagate(x, self.w_lo.to(x.dtype), self.w_hi.to(x.dtype), dt)
             prior = torch.where(self.is_adaptive, turned, prior)

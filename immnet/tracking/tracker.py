@@ -100,7 +100,7 @@ def check_dt(net, dt, name: str = "immnet", method=None) -> None:
     values = torch.unique(torch.as_tensor(dt, dtype=torch.float64).reshape(-1))
     values = values[~torch.isnan(values)]
     span = getattr(net, "interval_range", None)
-    others = "the model-based methods take any interval (e.g. --method imm-tuned)"
+    others = "a method that takes any interval: the model-based ones, e.g. --method imm-tuned"
     if span is not None:
         lo, hi = float(span[0]), float(span[1])
         tol = 1e-6 * max(1.0, hi)
@@ -109,8 +109,7 @@ def check_dt(net, dt, name: str = "immnet", method=None) -> None:
             raise ValueError(
                 f"{name} was trained on intervals {lo:g}-{hi:g} s but this data has an interval of "
                 f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s, outside that range; "
-                f"resample the data, train a model over this range (DataSpec dt), or use a method that "
-                f"takes any interval ({others})")
+                f"resample the data, train a model over this range (DataSpec dt), or use {others}")
         return
     bad = [float(v) for v in values if abs(float(v) - net.dt) > 1e-6 * max(1.0, net.dt)]
     if bad:
@@ -118,9 +117,8 @@ def check_dt(net, dt, name: str = "immnet", method=None) -> None:
             f"{name} was trained on data sampled at dt = {net.dt:g} s but this data has dt = "
             f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s; it was trained at that one "
             f"interval only, and a learned tracker only knows its training interval (its velocities would be off "
-            f"by the ratio): resample the data to dt = {net.dt:g} s, train a model at this dt (DataSpec dt), or use a "
-            f"method that takes any "
-            f"interval ({others})")
+            f"by the ratio): resample the data to dt = {net.dt:g} s, train a model at this dt (DataSpec dt), or use "
+            f"{others}")
 
 
 class Tracker:
