@@ -51,6 +51,31 @@ def check_coast(max_coast: float, dt: float) -> float:
     return max_coast
 
 
+def _join(ids, t, z: np.ndarray, max_coast: float):
+    """The coasting rules of the module doc, row by row: ``segment [R]`` (the segment each row joins; -1: no
+    estimate), each row's time and its segment's start (Decimals; None for a row without a segment), and the
+    number of segments."""
+    coast = Decimal(max_coast) if math.isfinite(max_coast) else None
+    R = len(ids)
+    segment = np.full(R, -1, dtype=np.int64)
+    times, starts = [Decimal(v) for v in t], [None] * R
+    detected = ~np.isnan(z).any(-1)
+    n = 0
+    current: dict[str, tuple[int, Decimal, Decimal]] = {}  # track -> (segment, its start, last detection)
+    for r in range(R):
+        tid, tr = ids[r], times[r]
+        seg = current.get(tid)
+        alive = seg is not None and (coast is None or tr - seg[2] <= coast)
+        if not alive:
+            if not detected[r]:
+                continue  # no track to coast: no estimate
+            seg = (n, tr, tr)
+            n += 1
+        segment[r], starts[r] = seg[0], seg[1]
+        current[tid] = (seg[0], seg[1], tr if detected[r] else seg[2])
+    return segment, times, starts, n
+
+
 def split_rows(ids, t, z: np.ndarray, max_coast: float = MAX_COAST) -> tuple[Segments, np.ndarray]:
     """Segments for a method that takes any interval: each row is one scan at its own time, a segment a
     run of one track's rows whose gaps after a detection are at most ``max_coast`` s (the coasting rules
@@ -59,62 +84,35 @@ def split_rows(ids, t, z: np.ndarray, max_coast: float = MAX_COAST) -> tuple[Seg
     max_coast = float(max_coast)
     if not max_coast > 0:
         raise ValueError(f"--max-coast must be positive, got {max_coast:g}")
-    coast = Decimal(max_coast) if math.isfinite(max_coast) else None
-    R = len(ids)
-    segment = np.full(R, -1, dtype=np.int64)
-    step = np.zeros(R, dtype=np.int64)
-    offset = np.full(R, np.nan)
-    detected = ~np.isnan(z).any(-1)
-    spans: list[int] = []
-    current: dict[str, tuple[int, Decimal, Decimal]] = {}
-    for r in range(R):
-        tid, tr = ids[r], Decimal(t[r])
-        seg = current.get(tid)
-        if not (seg is not None and (coast is None or tr - seg[2] <= coast)):
-            if not detected[r]:
-                continue
-            seg = (len(spans), tr, tr)
-            spans.append(0)
-        segment[r], step[r], offset[r] = seg[0], spans[seg[0]], float(tr - seg[1])
-        spans[seg[0]] += 1
-        current[tid] = (seg[0], seg[1], tr if detected[r] else seg[2])
-    return Segments(segment, step, np.asarray(spans, dtype=np.int64), z), offset
+    segment, times, starts, n = _join(ids, t, z, max_coast)
+    step = np.zeros(len(ids), dtype=np.int64)
+    offset = np.full(len(ids), np.nan)
+    spans = np.zeros(n, dtype=np.int64)
+    for r in np.flatnonzero(segment >= 0):
+        step[r], offset[r] = spans[segment[r]], float(times[r] - starts[r])
+        spans[segment[r]] += 1
+    return Segments(segment, step, spans, z), offset
 
 
 def split_segments(ids, t, z: np.ndarray, dt: float, max_coast: float = MAX_COAST, lines=None, texts=None) -> Segments:
     """Segments of rows ``ids [R]`` (track), ``t [R]`` (Decimal or float times, increasing per track)
     and ``z [R, 3]`` on a fixed scan grid ``dt`` (a tracker trained at one interval; module doc).
     ``lines``/``texts`` name a row in the error for an off-grid time."""
-    max_coast = check_coast(max_coast, dt)
-    coast = Decimal(max_coast) if math.isfinite(max_coast) else None
+    segment, times, starts, n = _join(ids, t, z, check_coast(max_coast, dt))
     step_dt = Decimal(dt)
-    R = len(ids)
-    segment = np.full(R, -1, dtype=np.int64)
-    step = np.zeros(R, dtype=np.int64)
-    detected = ~np.isnan(z).any(-1)
-    spans: list[int] = []
-    current: dict[str, tuple[int, Decimal, Decimal]] = {}  # track -> (segment, its start, last detection)
-    for r in range(R):
-        tid, tr = ids[r], Decimal(t[r])
-        seg = current.get(tid)
-        alive = seg is not None and (coast is None or tr - seg[2] <= coast)
-        if not alive:
-            if not detected[r]:
-                continue  # no track to coast: no estimate
-            seg = (len(spans), tr, tr)
-            spans.append(0)
-        k_exact = (tr - seg[1]) / step_dt
+    step = np.zeros(len(ids), dtype=np.int64)
+    spans = np.zeros(n, dtype=np.int64)
+    for r in np.flatnonzero(segment >= 0):
+        k_exact = (times[r] - starts[r]) / step_dt
         k = int(k_exact.to_integral_value())
         if abs(k_exact - k) > Decimal("1e-6"):
             where = f"line {lines[r]}: " if lines is not None else ""
-            raise ValueError(f"{where}time {texts[r] if texts is not None else tr} of track {tid!r} is not a whole "
-                             f"number of scans (dt = {dt:g}) after its start {seg[1]}: this tracker was trained at "
-                             f"one interval, dt = {dt:g} s; for any scan interval use a method that takes any "
+            raise ValueError(f"{where}time {texts[r] if texts is not None else times[r]} of track {ids[r]!r} is not a "
+                             f"whole number of scans (dt = {dt:g}) after its start {starts[r]}: this tracker was trained "
+                             f"at one interval, dt = {dt:g} s; for any scan interval use a method that takes any "
                              f"interval (e.g. --method imm-tuned)")
-        segment[r], step[r] = seg[0], k
-        spans[seg[0]] = k + 1
-        current[tid] = (seg[0], seg[1], tr if detected[r] else seg[2])
-    return Segments(segment, step, np.asarray(spans, dtype=np.int64), z)
+        step[r], spans[segment[r]] = k, k + 1
+    return Segments(segment, step, spans, z)
 
 
 def batches(span: np.ndarray, batch_size: int = 512) -> list[np.ndarray]:
