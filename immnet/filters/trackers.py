@@ -36,6 +36,35 @@ def _positive(name: str, value, allow_zero: bool = True) -> None:
             raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
 
 
+TOLD = "data"
+"""``r: data``: the filter is told each track's measurement std, the data set's ``r [B]`` (a radar that knows
+its own accuracy), instead of assuming one value for every track."""
+
+
+def check_r(r) -> float | str:
+    """``r`` as a filter's assumed measurement std: a positive number or ``"data"`` (``TOLD``)."""
+    if isinstance(r, str):
+        if r != TOLD:
+            raise ValueError(f"r must be a positive number or {TOLD!r} (each track's own r), got {r!r}")
+        return r
+    _positive("r", r, allow_zero=False)
+    return float(r)
+
+
+def assumed_r(r: float | str, batch: TensorDict, dtype, device) -> float | torch.Tensor:
+    """The assumed measurement std of every track: ``r`` itself, or the data's ``r [B]`` where ``r`` is ``"data"``."""
+    if r == TOLD:
+        return batch[keys.R].to(dtype=dtype, device=device).reshape(-1)
+    return r
+
+
+def variance(r: float | torch.Tensor, dtype, device) -> torch.Tensor:
+    """``r^2`` as a tensor (a number squared in float64 first, as the fixed-``r`` filters always have)."""
+    if isinstance(r, torch.Tensor):
+        return r * r
+    return torch.tensor(r**2, dtype=dtype, device=device)
+
+
 def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Tensor:
     """The one interval of every scan of ``batch`` as a float (the fast paths' shared ``F``, ``Q``), else the
     intervals before each scan ``[B, T]`` (``scan_intervals``) for ``F``, ``Q`` per track and scan."""
@@ -49,12 +78,13 @@ class KalmanFilterTracker(Method):
 
     any_interval = True
 
-    def __init__(self, model: MotionModel | dict, r: float, sigma_q: float, dtype="float64", name: str | None = None):
+    def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None):
         self.model = model if isinstance(model, MotionModel) else instantiate(model)
-        _positive("r", r, allow_zero=False)
+        self.r = check_r(r)
         _positive("sigma_q", sigma_q)
-        self.r, self.sigma_q, self.dtype = float(r), float(sigma_q), as_dtype(dtype)
+        self.sigma_q, self.dtype = float(sigma_q), as_dtype(dtype)
         self.name = name or f"kf-{self.model.name}"
+        self.needs = (keys.R,) if self.r == TOLD else ()
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
@@ -63,8 +93,9 @@ class KalmanFilterTracker(Method):
         dt = _interval_or_intervals(batch, self.dtype, dev)
         F = self.model.F(dt, dtype=self.dtype, device=dev)
         Q = self.model.Q(self.sigma_q, dt, dtype=self.dtype, device=dev)
-        x, P = initial_state(z, self.r)
-        R = torch.tensor(self.r**2, dtype=self.dtype, device=dev)
+        r = assumed_r(self.r, batch, self.dtype, dev)
+        x, P = initial_state(z, r)
+        R = variance(r, self.dtype, dev)
         one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
         states, _, _ = run(z, x[:, None], P[:, None], one, one[:1], linear_transition(F.unsqueeze(-3), Q.unsqueeze(-3)), R)
         return output(states, measurements=z)
@@ -88,7 +119,7 @@ class IMMTracker(Method):
     def __init__(
         self,
         model_set,
-        r: float,
+        r: float | str,
         sigma_q: float | Sequence[float],
         p_stay: float | Sequence[Sequence[float]] = 0.8,
         mu0: Sequence[float] | None = None,
@@ -105,7 +136,8 @@ class IMMTracker(Method):
         moving = [m.name for m in self.model_set if m.state_dependent]
         if moving:
             raise ValueError(f"the IMM needs a constant F per model; {moving} are state-dependent (IMMNet experts only)")
-        _positive("r", r, allow_zero=False)
+        self.r = check_r(r)
+        self.needs = (keys.R,) if self.r == TOLD else ()
         _positive("sigma_q", sigma_q)
         if isinstance(sigma_q, (list, tuple)) and len(sigma_q) != M:
             raise ValueError(f"sigma_q has {len(sigma_q)} values for {M} models")
@@ -118,7 +150,6 @@ class IMMTracker(Method):
                 raise ValueError(f"mu0 must have one probability per model ({M}), got shape {tuple(self.mu0.shape)}")
             if (self.mu0 < 0).any() or abs(float(self.mu0.sum()) - 1.0) > 1e-6:
                 raise ValueError(f"mu0 must be non-negative and sum to 1, got {self.mu0.tolist()}")
-        self.r = float(r)
         self.sigma_q = [float(s) for s in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
         self.dtype = as_dtype(dtype)
         self.name = name
@@ -136,8 +167,9 @@ class IMMTracker(Method):
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         F, Q, Pi, mu0 = self.matrices(_interval_or_intervals(batch, self.dtype, z.device), z.device)
-        x0, P0 = initial_state(z, self.r)
-        R = torch.tensor(self.r**2, dtype=self.dtype, device=z.device)
+        r = assumed_r(self.r, batch, self.dtype, z.device)
+        x0, P0 = initial_state(z, r)
+        R = variance(r, self.dtype, z.device)
         states, probs, experts = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts, compile=self.compile)
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes)}
         if self.return_experts:

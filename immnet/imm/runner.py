@@ -57,10 +57,12 @@ def run(
     onset: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
     oracle: torch.Tensor | None = None,
     return_experts: bool = False,
+    H: torch.Tensor | None = None,
 ):
-    """Filter ``z [B, T, 3]`` from the filters' states at scan 0, ``x [B, M, n]``, ``P [B, M, n, n]``, and
+    """Filter ``z [B, T, m]`` from the filters' states at scan 0, ``x [B, M, n]``, ``P [B, M, n, n]``, and
     ``mu [B, M]``; ``Pi [M, M]``; ``R`` the measurement variance (a scalar, ``[B]``, or a covariance
-    ``[B, 1, 3, 3]``) or a callable ``R(t)`` of the scan; ``onset`` ``onset_priors``' ``(keep, mean, cov)``.
+    ``[B, 1, 3, 3]``) or a callable ``R(t)`` of the scan; ``onset`` ``onset_priors``' ``(keep, mean, cov)``;
+    ``H [m, n]`` the measurement matrix (None: the positions of the 9-D state, ``m = 3``).
 
     Returns ``state [B, T, n]`` (at scan 0 the combination of the given states), ``probs [B, T, M]`` and,
     with ``return_experts``, the filters' posteriors ``[B, T, M, n]`` (else None).
@@ -79,7 +81,7 @@ def run(
         w = mixing_weights(mu, Pi)
         x0, P0 = mix(w, x, P, onset)
         xp, Pp = transition(t, x0, P0)
-        x, P, ll = update(xp, Pp, z[:, t, None], None, _per_filter(R(t) if callable(R) else R, z))
+        x, P, ll = update(xp, Pp, z[:, t, None], H, _per_filter(R(t) if callable(R) else R, z))
         if onehot is not None:
             mu = onehot[:, t]
         else:

@@ -23,9 +23,13 @@ from immnet.motion import models as m
 
 
 class MotionModel:
-    """One motion hypothesis. Subclasses give ``F``; ``Q`` uses the noise form ``noise`` (white / wiener)."""
+    """One motion hypothesis. Subclasses give ``F``; ``Q`` uses the noise form ``noise`` (white / wiener /
+    continuous, ``immnet.motion.models``) on the model's highest derivative (``order``: 1 acceleration, 2 jerk),
+    with the z axis's ``sigma_q`` scaled by ``vertical``."""
 
     noise: str = "white"
+    order: int = 1
+    vertical: float = 1.0
     mode: int = 0
     state_dependent: bool = False
     """True where the transition depends on the state (``propagate(x, dt)``), not ``F`` alone."""
@@ -38,8 +42,10 @@ class MotionModel:
         raise NotImplementedError
 
     def Q(self, sigma_q: float, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:
-        """``Q = sigma_q^2 G G^T`` with this model's ``G`` (docs/spec.md section 3)."""
-        return m.process_noise(sigma_q, dt, self.noise, dtype=dtype, device=device)
+        """``Q = sigma_q^2 G G^T`` with this model's ``G`` (docs/spec.md section 3), or ``sigma_q^2 Q_c(dt)`` of
+        continuous white noise (docs/baselines.md)."""
+        return m.process_noise(sigma_q, dt, self.noise, dtype=dtype, device=device, order=self.order,
+                               vertical=self.vertical)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name})"

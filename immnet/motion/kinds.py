@@ -1,4 +1,8 @@
-"""The motion-model family: constant velocity, constant acceleration, coordinated turn."""
+"""The motion-model family: constant velocity, constant acceleration, coordinated turn.
+
+Each takes ``noise`` (``white``, ``wiener`` or ``continuous``: ``immnet.motion.models``) and ``vertical``, the
+z axis's share of ``sigma_q`` (1: isotropic, as 3D-LAST's generator; real aircraft climb and descend more
+gently than they turn)."""
 
 from __future__ import annotations
 
@@ -8,39 +12,55 @@ from immnet.motion import models as m
 from immnet.motion.base import MotionModel
 
 
+def _vertical(value) -> float:
+    value = float(value)
+    if not (value >= 0 and value != float("inf")):
+        raise ValueError(f"vertical must be finite and >= 0, got {value}")
+    return value
+
+
+def _args(model: MotionModel, **args) -> dict:
+    """``init_args`` with ``vertical`` only where it is not the default 1 (configs written before it stay)."""
+    return {**args, "noise": model.noise, **({"vertical": model.vertical} if model.vertical != 1.0 else {})}
+
+
 class ConstantVelocity(MotionModel):
     """CV: ``F`` per axis ``[[1, dt, 0], [0, 1, 0], [0, 0, 0]]``; white-noise acceleration ``Q``."""
 
     mode = 0
 
-    def __init__(self, noise: str = "white"):
+    def __init__(self, noise: str = "white", vertical: float = 1.0):
         self.noise = noise
+        self.vertical = _vertical(vertical)
 
     @property
     def name(self) -> str:
         return "cv"
 
     def init_args(self) -> dict:
-        return {"noise": self.noise}
+        return _args(self)
 
     def F(self, dt=1.0, dtype=torch.float64, device=None):
         return m.cv_matrix(dt, dtype=dtype, device=device)
 
 
 class ConstantAcceleration(MotionModel):
-    """CA: ``F`` per axis ``[[1, dt, dt^2/2], [0, 1, dt], [0, 0, 1]]``; Wiener-process acceleration ``Q``."""
+    """CA: ``F`` per axis ``[[1, dt, dt^2/2], [0, 1, dt], [0, 0, 1]]``; Wiener-process acceleration ``Q``
+    (``noise: continuous``: white jerk)."""
 
     mode = 1
+    order = 2
 
-    def __init__(self, noise: str = "wiener"):
+    def __init__(self, noise: str = "wiener", vertical: float = 1.0):
         self.noise = noise
+        self.vertical = _vertical(vertical)
 
     @property
     def name(self) -> str:
         return "ca"
 
     def init_args(self) -> dict:
-        return {"noise": self.noise}
+        return _args(self)
 
     def F(self, dt=1.0, dtype=torch.float64, device=None):
         return m.ca_matrix(dt, dtype=dtype, device=device)
@@ -49,11 +69,12 @@ class ConstantAcceleration(MotionModel):
 class CoordinatedTurn(MotionModel):
     """CT(w) with a fixed turn rate ``turn_rate_deg`` (deg/s); mode CT+ for ``w > 0``, CT- for ``w < 0``."""
 
-    def __init__(self, turn_rate_deg: float = 5.0, noise: str = "white"):
+    def __init__(self, turn_rate_deg: float = 5.0, noise: str = "white", vertical: float = 1.0):
         if turn_rate_deg == 0:
             raise ValueError("a coordinated turn needs a non-zero turn_rate_deg (use ConstantVelocity)")
         self.turn_rate_deg = float(turn_rate_deg)
         self.noise = noise
+        self.vertical = _vertical(vertical)
         self.mode = 2 if turn_rate_deg > 0 else 3
 
     @property
@@ -66,7 +87,7 @@ class CoordinatedTurn(MotionModel):
         return f"ct{self.turn_rate_deg:+g}"
 
     def init_args(self) -> dict:
-        return {"turn_rate_deg": self.turn_rate_deg, "noise": self.noise}
+        return _args(self, turn_rate_deg=self.turn_rate_deg)
 
     def F(self, dt=1.0, dtype=torch.float64, device=None):
         return m.ct_matrix(self.turn_rate, dt, dtype=dtype, device=device)

@@ -13,7 +13,14 @@ State ``x = [lx, vx, ax, ly, vy, ay, lz, vz, az]``; every function is batched in
   with the z axis as CV.
 
 Process noise ``Q = sigma_q^2 G G^T`` with ``G`` per axis ``[dt^2/2, dt, 0]`` (white-noise
-acceleration) or ``[dt^2/2, dt, 1]`` (Wiener-process acceleration, the textbook CA filter).
+acceleration) or ``[dt^2/2, dt, 1]`` (Wiener-process acceleration, the textbook CA filter); or
+``continuous``: the highest derivative a continuous white noise of spectral density ``q = sigma_q^2``,
+integrated exactly over the interval (Bar-Shalom, Li & Kirubarajan, sections 6.2.2 and 6.2.3)::
+
+    CV, white acceleration   q [[dt^3/3, dt^2/2, 0], [dt^2/2, dt, 0], [0, 0, 0]]
+    CA, white jerk           q [[dt^5/20, dt^4/8, dt^3/6], [dt^4/8, dt^3/3, dt^2/2], [dt^3/6, dt^2/2, dt]]
+
+whose variance grows linearly with time, so that one ``q`` fits any scan interval (docs/baselines.md).
 """
 
 from __future__ import annotations
@@ -42,6 +49,8 @@ ACC = (2, 5, 8)
 
 _WHITE = "white"
 _WIENER = "wiener"
+_CONTINUOUS = "continuous"
+NOISE_KINDS = (_WHITE, _WIENER, _CONTINUOUS)
 
 
 def _per_axis(block: torch.Tensor) -> torch.Tensor:
@@ -207,13 +216,40 @@ def noise_gain(dt, kind: str = _WHITE, dtype=torch.float64, device=None) -> torc
     return G
 
 
-def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
-    """``Q = sigma_q^2 G G^T``; a batch of ``sigma_q`` or of intervals ``dt`` ``[...]`` gives ``[..., 9, 9]``."""
-    G = noise_gain(dt, kind, dtype=dtype, device=device)
+def continuous_noise(dt, order: int, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Per-axis ``Q / q`` ``[..., 3, 3]`` of continuous white noise on derivative ``order`` (1: acceleration,
+    the CV model's; 2: jerk, the CA model's), integrated exactly over ``dt`` (a float or a tensor ``[...]``)."""
+    d = _dt(dt, dtype, device)
+    if order == 1:
+        rows = [[d**3 / 3, d**2 / 2, 0.0], [d**2 / 2, d, 0.0], [0.0, 0.0, 0.0]]
+    elif order == 2:
+        rows = [[d**5 / 20, d**4 / 8, d**3 / 6], [d**4 / 8, d**3 / 3, d**2 / 2], [d**3 / 6, d**2 / 2, d]]
+    else:
+        raise ValueError(f"continuous noise is on acceleration (order 1) or jerk (order 2), got order {order}")
+    return _block(rows, d)
+
+
+def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=None, order: int = 1,
+                  vertical: float = 1.0) -> torch.Tensor:
+    """``Q = sigma_q^2 G G^T`` (white, wiener) or ``sigma_q^2 Q_c(dt)`` (continuous, on derivative ``order``); a
+    batch of ``sigma_q`` or of intervals ``dt`` ``[...]`` gives ``[..., 9, 9]``. ``vertical`` scales the z axis's
+    ``sigma_q`` (aircraft climb and descend more gently than they turn and speed up)."""
+    if kind not in NOISE_KINDS:
+        raise ValueError(f"noise kind must be one of {', '.join(NOISE_KINDS)}, got {kind!r}")
     sq = torch.as_tensor(sigma_q, dtype=dtype, device=device)
     if (sq < 0).any():
         raise ValueError(f"sigma_q must be non-negative, got {sigma_q}")
-    return sq[..., None, None] ** 2 * (G @ G.transpose(-1, -2))
+    if not (math.isfinite(vertical) and vertical >= 0):
+        raise ValueError(f"vertical must be finite and >= 0, got {vertical}")
+    if kind == _CONTINUOUS:
+        Q = _per_axis(continuous_noise(dt, order, dtype=dtype, device=device))
+    else:
+        G = noise_gain(dt, kind, dtype=dtype, device=device)
+        Q = G @ G.transpose(-1, -2)
+    if vertical != 1.0:
+        Q = Q.clone()
+        Q[..., 6:9, 6:9] = Q[..., 6:9, 6:9] * vertical**2
+    return sq[..., None, None] ** 2 * Q
 
 
 def measurement_matrix(dtype=torch.float64, device=None) -> torch.Tensor:

@@ -1,0 +1,127 @@
+"""Filters for real motion (docs/baselines.md, "Filters for real flights"): continuous white-noise process
+noise (white acceleration, white jerk) against its closed form, a vertical share of it, filters told each
+track's r, and the decoupled IMM (one IMM per axis, ``immnet.filters.per_axis``) against FilterPy's
+``IMMEstimator`` run per axis at irregular intervals with missed detections."""
+
+import numpy as np
+import pytest
+import torch
+from filterpy.common import Q_continuous_white_noise
+from filterpy.kalman import IMMEstimator, KalmanFilter
+from tensordict import TensorDict
+from test_irregular_intervals import SCANS, _irregular, _waiting
+
+from immnet import keys
+from immnet.data.times import scan_intervals
+from immnet.filters import KalmanFilterTracker, initial_state
+from immnet.filters.per_axis import PerAxisIMMTracker, axis_blocks
+from immnet.motion import ConstantAcceleration, ConstantVelocity, CoordinatedTurn, ModelSet, measurement_matrix
+
+
+@pytest.mark.parametrize("order,model", [(2, ConstantVelocity), (3, ConstantAcceleration)], ids=["cv", "ca"])
+@pytest.mark.parametrize("dt", [0.5, 1.0, 4.8])
+def test_continuous_noise_is_filterpys_closed_form(order, model, dt):
+    """White acceleration (CV) and white jerk (CA): each axis block is FilterPy's ``Q_continuous_white_noise``
+    with spectral density ``sigma_q^2``; ``vertical`` scales the z axis's sigma_q."""
+    sq, vertical = 0.7, 0.4
+    Q = model(noise="continuous", vertical=vertical).Q(sq, dt)
+    ref = Q_continuous_white_noise(dim=order, dt=dt, spectral_density=sq**2)
+    blocks = axis_blocks(Q)
+    for a, scale in enumerate((1.0, 1.0, vertical**2)):
+        np.testing.assert_allclose(blocks[a, :order, :order].numpy(), scale * ref, rtol=1e-12, atol=0)
+    off = Q.clone()
+    for a in range(3):
+        off[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = 0
+    assert not off.any()
+
+
+def test_the_vertical_share_leaves_the_default_noise_bitwise_unchanged():
+    for model in (ConstantVelocity(), ConstantAcceleration(), CoordinatedTurn(5.0)):
+        assert "vertical" not in model.init_args()
+        assert torch.equal(model.Q(0.3, 2.5), type(model)(**model.init_args()).Q(0.3, 2.5))
+    with pytest.raises(ValueError, match="vertical"):
+        ConstantVelocity(vertical=-1.0)
+    with pytest.raises(ValueError, match="noise kind"):
+        ConstantVelocity(noise="pink").Q(1.0, 1.0)
+
+
+def test_a_filter_told_r_uses_each_tracks_own_r():
+    """``r: data``: the Kalman filter of each track equals the same filter built with that track's r."""
+    data = _irregular(*SCANS["4.5-5.5 s"], seed=3)
+    model = ConstantAcceleration(noise="continuous")
+    told = KalmanFilterTracker(model, "data", 0.5).track(data)[keys.STATE]
+    for b in range(data.batch_size[0]):
+        own = KalmanFilterTracker(model, float(data[keys.R][b]), 0.5).track(data[b : b + 1])[keys.STATE][0]
+        torch.testing.assert_close(told[b], own, rtol=1e-12, atol=1e-9, equal_nan=True)
+    with pytest.raises(ValueError, match="needs 'r'"):
+        KalmanFilterTracker(model, "data", 0.5).track(data.exclude(keys.R))
+    with pytest.raises(ValueError, match="'data'"):
+        KalmanFilterTracker(model, "told", 0.5)
+
+
+def _filterpy_per_axis(ms: ModelSet, sigma_q, p_stay, batch: TensorDict, b: int) -> np.ndarray:
+    """One FilterPy ``IMMEstimator`` per axis over 3-state Kalman filters fed each scan's per-axis F and Q; a
+    missed scan keeps the priors and the predicted mode probabilities (mu = cbar)."""
+    z, r = batch[keys.MEASUREMENTS][b].numpy(), float(batch[keys.R][b])
+    dt = scan_intervals(batch)[b]
+    x0, P0 = initial_state(batch[keys.MEASUREMENTS][b : b + 1], r)
+    M = len(ms)
+    Pi = np.full((M, M), (1 - p_stay) / (M - 1))
+    np.fill_diagonal(Pi, p_stay)
+    out = np.zeros((len(z), 9))
+    for a in range(3):
+        sl = slice(3 * a, 3 * a + 3)
+        kfs = []
+        for _ in range(M):
+            kf = KalmanFilter(3, 1)
+            kf.x, kf.P = x0[0, sl].numpy().copy(), P0[0, sl, sl].numpy().copy()
+            kf.H, kf.R = np.array([[1.0, 0.0, 0.0]]), np.array([[r * r]])
+            kfs.append(kf)
+        imm = IMMEstimator(kfs, np.full(M, 1.0 / M), Pi)
+        out[0, sl] = x0[0, sl].numpy()
+        for t in range(1, len(z)):
+            d = float(dt[t])
+            for j, kf in enumerate(kfs):
+                kf.F = ms[j].F(d).numpy()[sl, sl]
+                kf.Q = ms[j].Q(sigma_q[j], d).numpy()[sl, sl]
+            imm.predict()
+            if np.isnan(z[t, a]):
+                for kf in kfs:
+                    kf.x, kf.P = kf.x_prior.copy(), kf.P_prior.copy()
+                imm.mu = imm.cbar.copy()
+                imm._compute_mixing_probabilities()
+                imm._compute_state_estimate()
+            else:
+                imm.update(np.array([z[t, a]]))
+            out[t, sl] = imm.x.ravel()
+    return out
+
+
+@pytest.mark.parametrize("scans", list(SCANS), ids=list(SCANS))
+def test_per_axis_imm_equals_filterpy_per_axis(scans):
+    """The decoupled IMM (CV white acceleration + CA white jerk, a vertical share, told r) at irregular scans
+    with missed detections and a gap equals three FilterPy IMMs, one per axis (1e-9)."""
+    data = _irregular(*SCANS[scans], seed=4, B=2, T=80)
+    ms = ModelSet([ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous", vertical=0.3)])
+    sigma_q, p_stay = [0.2, 1.1], 0.97
+    out = PerAxisIMMTracker(ms, "data", sigma_q, p_stay).track(data)
+    assert out[keys.EXPERT_PROBS].shape == (2, 80, 3, 2)
+    for b in range(2):
+        ref = _filterpy_per_axis(ms, sigma_q, p_stay, data, b)
+        keep = ~_waiting(data[keys.MEASUREMENTS][b].numpy())
+        np.testing.assert_allclose(out[keys.STATE][b][keep].numpy(), ref[keep], rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+
+
+def test_per_axis_imm_of_one_model_is_the_kalman_filter():
+    """With one model the decoupled IMM is the 9-D Kalman filter of a block-diagonal model (r isotropic)."""
+    data = _irregular(*SCANS["0.5-6 s"], seed=5)
+    model = ConstantAcceleration(noise="continuous", vertical=0.2)
+    one = PerAxisIMMTracker(ModelSet([model]), 3.0, 0.8).track(data)[keys.STATE]
+    kf = KalmanFilterTracker(model, 3.0, 0.8).track(data)[keys.STATE]
+    torch.testing.assert_close(one, kf, rtol=1e-9, atol=1e-7, equal_nan=True)
+    assert measurement_matrix().shape == (3, 9)
+
+
+def test_per_axis_imm_refuses_a_turn():
+    with pytest.raises(ValueError, match="couple the axes"):
+        PerAxisIMMTracker(ModelSet([ConstantVelocity(), CoordinatedTurn(3.0)]), 4.0, 1.0)
