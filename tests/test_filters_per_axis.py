@@ -101,11 +101,11 @@ def _filterpy_per_axis(ms: ModelSet, sigma_q, p_stay, batch: TensorDict, b: int)
 def test_per_axis_imm_equals_filterpy_per_axis(scans):
     """The decoupled IMM (CV white acceleration + CA white jerk, a vertical share, told r) at irregular scans
     with missed detections and a gap equals three FilterPy IMMs, one per axis (1e-9)."""
-    data = _irregular(*SCANS[scans], seed=4, B=2, T=80)
+    data = _irregular(*SCANS[scans], seed=4, B=2, T=120)
     ms = ModelSet([ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous", vertical=0.3)])
     sigma_q, p_stay = [0.2, 1.1], 0.97
     out = PerAxisIMMTracker(ms, "data", sigma_q, p_stay).track(data)
-    assert out[keys.EXPERT_PROBS].shape == (2, 80, 3, 2)
+    assert out[keys.EXPERT_PROBS].shape == (2, 120, 3, 2)
     for b in range(2):
         ref = _filterpy_per_axis(ms, sigma_q, p_stay, data, b)
         keep = ~_waiting(data[keys.MEASUREMENTS][b].numpy())
