@@ -14,6 +14,7 @@ import sys
 _COMMAND_MODULES = (
     "immnet.data.cli",
     "immnet.evaluation.cli",
+    "immnet.evaluation.tune_cli",
     "immnet.tracking.cli",
 )
 _LIGHTNING_COMMANDS = ("fit", "validate", "test")

@@ -12,23 +12,21 @@ the validation trajectories given, never on test data:
 * ``r``, the filter's assumed measurement std (m): 3, 4, 5.
 
 From ``START`` it sweeps each knob in turn with the others held at the best so far, and repeats
-the sweep until a full pass changes nothing (at most ``max_passes``); settings already scored are
-not run again. Each run is one batched IMM over all trajectories (float64).
+the sweep until a full pass changes nothing (at most ``max_passes``; ``immnet.evaluation.search``'s
+``coordinate_search``); settings already scored are not run again. Each run is one batched IMM over all
+trajectories (float64).
 """
 
 from __future__ import annotations
 
 import datetime
-import sys
-import time
 from pathlib import Path
 
-import torch
 import yaml
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.evaluation.metrics import position_error, rmse, scored_mask
+from immnet.evaluation.search import average_rmse, coordinate_search
 from immnet.filters.trackers import IMMTracker
 from immnet.motion import ModelSet
 
@@ -57,10 +55,7 @@ def make_tracker(setting: dict, name: str = "imm-tuned") -> IMMTracker:
 def score(setting: dict, batch: TensorDict) -> float:
     """Average RMSE (m) of the setting's IMM on ``batch``, over the scans ``immnet evaluate`` scores
     (truth there and the track started: ``scored_mask``)."""
-    with torch.no_grad():
-        state = make_tracker(setting).track(batch)[keys.STATE]
-    mask = scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS])
-    return rmse(position_error(state, batch[keys.STATES]), mask)["avg"]
+    return average_rmse(make_tracker(setting), batch)
 
 
 def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: str | None = None,
@@ -73,32 +68,10 @@ def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: 
     start = {**START, **(start or {})}
     if keys.STATES not in val_batch.keys():
         raise ValueError("tune_imm needs 'states' (ground truth) in the validation data to score settings")
-    cache: dict[tuple, float] = {}
-    table: list[dict] = []
-
-    def run(setting):
-        key = tuple(setting[k] for k in grid)
-        if key not in cache:
-            t0 = time.perf_counter()
-            cache[key] = score(setting, val_batch)
-            table.append({**setting, "score": cache[key], "seconds": round(time.perf_counter() - t0, 2)})
-            if progress:
-                print(f"[tune-imm] {len(table):3d} {setting} -> {cache[key]:.4f} m", file=sys.stderr, flush=True)
-        return cache[key]
-
-    best, best_score = dict(start), run(start)
-    for _ in range(max_passes):
-        changed = False
-        for knob, values in grid.items():
-            for v in values:
-                trial = {**best, knob: v}
-                s = run(trial)
-                if s < best_score - 1e-9:
-                    best, best_score, changed = trial, s, True
-        if not changed:
-            break
+    best, best_score, table = coordinate_search(lambda setting: score(setting, val_batch), grid, start,
+                                                max_passes, progress, tag="tune-imm")
     write_config(best, best_score, out_path, val_batch.batch_size[0], len(table), data_desc, grid)
-    return {"best": best, "score": best_score, "table": sorted(table, key=lambda row: row["score"])}
+    return {"best": best, "score": best_score, "table": table}
 
 
 def write_config(setting: dict, avg_rmse: float, out_path, n: int, evaluated: int, data_desc: str | None,

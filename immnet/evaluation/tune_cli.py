@@ -1,0 +1,57 @@
+"""``immnet tune``: tune a model-based method's configuration on training data (``immnet.evaluation.search``).
+
+    immnet tune --search configs/tuning/real-imm-axis.yaml --data data/real/quickstart/train \\
+        --out configs/methods/real-imm-axis.yaml
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    t = subparsers.add_parser("tune", help="tune a model-based method (a search file) on training data",
+                              description="Coordinate search over the knobs of a search file (configs/tuning/) on "
+                                          "a training or validation data set; writes the winner's method config.")
+    t.add_argument("--search", required=True, help="a search file (configs/tuning/*.yaml)")
+    t.add_argument("--data", required=True, nargs="+",
+                   help="data set directories or .npz files to tune on, taken whole (never a test split)")
+    t.add_argument("--out", type=Path, required=True, help="the method config to write (configs/methods/NAME.yaml)")
+    t.add_argument("--limit", type=int, help="only the first N tracks of each data set")
+    t.add_argument("--quiet", action="store_true", help="no line per scored setting")
+    t.set_defaults(func=run_tune)
+
+
+def tuning_data(paths, limit: int | None = None):
+    """The tracks of ``paths`` (whole data sets) as one float64 batch; a set whose ``meta.json`` says it is a
+    test split is refused (tuning there would make its table a fit)."""
+    import torch
+
+    from immnet.data.storage import as_batch, load_dataset
+
+    parts = []
+    for path in paths:
+        td, meta = load_dataset(path)
+        if str((meta or {}).get("split", "")).lower() == "test":
+            raise ValueError(f"{path} is a test split (meta.json 'split': 'test'): tune on training or validation data")
+        td = td[: limit] if limit else td
+        parts.append(as_batch(td, torch.float64))
+    if len({p["measurements"].shape[1] for p in parts}) > 1:
+        raise ValueError("the data sets to tune on need the same number of scans per track")
+    return torch.cat(parts) if len(parts) > 1 else parts[0]
+
+
+def run_tune(args) -> int:
+    from immnet.evaluation.runner import finite_or_none
+    from immnet.evaluation.search import Search
+
+    search = Search.from_yaml(args.search)
+    batch = tuning_data(args.data, args.limit)
+    print(f"tuning {args.search} on {batch.batch_size[0]} tracks of {', '.join(map(str, args.data))}", file=sys.stderr)
+    result = search.run(batch, progress=not args.quiet)
+    out = search.write(result, args.out, args.search, ", ".join(map(str, args.data)), batch.batch_size[0])
+    print(json.dumps(finite_or_none({k: result[k] for k in ("best", "score")}), indent=2, default=str, allow_nan=False))
+    print(f"wrote {out}", file=sys.stderr)
+    return 0
