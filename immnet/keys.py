@@ -10,7 +10,8 @@ strictly increasing along T). Without ``t`` scan ``k`` is at ``k dt``. What ever
 ``immnet.data.times.scan_intervals(batch)``: the interval before each scan ``[B, T]``.
 
 A method's output (``TensorDict [B]``): ``state [B, T, 9]`` and, where it has them, ``mode_probs
-[B, T, 4]`` over the data modes (0 CV, 1 CA, 2 CT+, 3 CT-).
+[B, T, 4]`` over the data modes (0 CV, 1 CA, 2 CT+, 3 CT-) and ``state_cov [B, T, 9, 9]``, the covariance the
+filter holds for its state (asked for with ``return_cov``).
 
 One tracker step (``immnet.stages``) reads and writes nested keys that say where a value came from.
 """
@@ -28,6 +29,7 @@ DATA_KEYS = (STATES, MEASUREMENTS, MODE, TURN_RATE, R, DT, TIME)
 # --- a method's output ------------------------------------------------------------------------
 STATE = "state"
 MODE_PROBS = "mode_probs"
+STATE_COV = "state_cov"  # the fused state's covariance P_{t|t} [B, T, 9, 9], from the methods that keep one
 
 # --- an IMMNet rollout's outputs over time (TensorDict [B, T]), besides ``state`` ------------------
 ROLLOUT_EXPERT_PROBS = "expert_probs"  # mu_t over the experts [B, T, M]

@@ -54,7 +54,8 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     return x0, torch.diag_embed(diag)
 
 
-def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False, general: bool = False):
+def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False, general: bool = False,
+               return_cov: bool = False):
     """Run the IMM over ``z [B, T, 3]`` from ``x0 [B, 9]``, ``P0 [B, 9, 9]`` and ``mu0 [M]``.
 
     At ``t = 0`` the output is the initial state (every expert at ``x0, P0``); steps ``t >= 1``
@@ -66,11 +67,12 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     track shares ``F`` and ``Q`` the same equations run rearranged for speed (``_imm_filter_lean``;
     ``general=True`` runs the core's loop anyway). ``compile=True`` runs the step of
     ``immnet.filters.imm_fused`` through ``torch.compile`` there (the first call per dtype, device and model
-    count compiles, seconds); if compiling fails it logs a warning and runs the eager path.
+    count compiles, seconds); if compiling fails it logs a warning and runs the eager path. ``return_cov`` runs the
+    core's loop and returns a fourth output, the combined covariance ``[B, T, 9, 9]``.
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
-    if not general and _lean_ok(F, Q, R, M, x0.shape[-1]):
+    if not (general or return_cov) and _lean_ok(F, Q, R, M, x0.shape[-1]):
         if compile:
             from immnet.filters.imm_fused import imm_filter_fused
 
@@ -84,7 +86,7 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
     if R.dim() == 3:
         R = R[:, None]  # one covariance per track [B, 3, 3], for every filter
-    return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts)
+    return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts, return_cov=return_cov)
 
 
 _SMALL = 1024

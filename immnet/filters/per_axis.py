@@ -61,7 +61,7 @@ class PerAxisIMMTracker(Method):
     any_interval = True
 
     def __init__(self, model_set, r: float | str, sigma_q: float | Sequence[float], p_stay=0.98,
-                 dtype="float64", name: str = "imm-axis"):
+                 dtype="float64", name: str = "imm-axis", return_cov: bool = False):
         self.model_set = ModelSet.from_config(model_set)
         M = len(self.model_set)
         moving = [m.name for m in self.model_set if m.state_dependent or _coupled(m.F(1.0))]
@@ -76,6 +76,7 @@ class PerAxisIMMTracker(Method):
         self.Pi = transition_matrix(p_stay, M)
         self.dtype = as_dtype(dtype)
         self.name = name
+        self.return_cov = return_cov
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
@@ -103,8 +104,15 @@ class PerAxisIMMTracker(Method):
         R = R.repeat(AXES) if R.dim() == 1 else R
         za = z.permute(2, 0, 1).reshape(AXES * B, T, 1)
         H = torch.tensor([[1.0, 0.0, 0.0]], dtype=self.dtype, device=dev)
-        states, probs, _ = run(za, x, P, mu, self.Pi.to(dtype=self.dtype, device=dev),
-                               linear_transition(per_track(F, F.dim() == 3), per_track(Q, Q.dim() == 3)), R, H=H)
+        states, probs, _, *cov = run(za, x, P, mu, self.Pi.to(dtype=self.dtype, device=dev),
+                                     linear_transition(per_track(F, F.dim() == 3), per_track(Q, Q.dim() == 3)), R, H=H,
+                                     return_cov=self.return_cov)
         state = states.reshape(AXES, B, T, 3).permute(1, 2, 0, 3).reshape(B, T, 9)
         probs = probs.reshape(AXES, B, T, M).permute(1, 2, 0, 3)
-        return output(state, {keys.EXPERT_PROBS: probs}, measurements=z)
+        extra = {keys.EXPERT_PROBS: probs}
+        if cov:  # the axes' 3x3 blocks on the diagonal of the 9-D covariance (the axes are independent)
+            blocks = cov[0].reshape(AXES, B, T, 3, 3)
+            extra[keys.STATE_COV] = torch.zeros(B, T, 9, 9, dtype=self.dtype, device=dev)
+            for a in range(AXES):
+                extra[keys.STATE_COV][..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = blocks[a]
+        return output(state, extra, measurements=z)

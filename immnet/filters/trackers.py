@@ -78,13 +78,15 @@ class KalmanFilterTracker(Method):
 
     any_interval = True
 
-    def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None):
+    def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None,
+                 return_cov: bool = False):
         self.model = model if isinstance(model, MotionModel) else instantiate(model)
         self.r = check_r(r)
         _positive("sigma_q", sigma_q)
         self.sigma_q, self.dtype = float(sigma_q), as_dtype(dtype)
         self.name = name or f"kf-{self.model.name}"
         self.needs = (keys.R,) if self.r == TOLD else ()
+        self.return_cov = return_cov
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
@@ -97,8 +99,9 @@ class KalmanFilterTracker(Method):
         x, P = initial_state(z, r)
         R = variance(r, self.dtype, dev)
         one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
-        states, _, _ = run(z, x[:, None], P[:, None], one, one[:1], linear_transition(F.unsqueeze(-3), Q.unsqueeze(-3)), R)
-        return output(states, measurements=z)
+        states, _, _, *cov = run(z, x[:, None], P[:, None], one, one[:1], linear_transition(F.unsqueeze(-3), Q.unsqueeze(-3)),
+                                 R, return_cov=self.return_cov)
+        return output(states, {keys.STATE_COV: cov[0] if cov else None}, measurements=z)
 
 
 class IMMTracker(Method):
@@ -127,6 +130,7 @@ class IMMTracker(Method):
         name: str = "imm",
         return_experts: bool = False,
         compile: bool = False,
+        return_cov: bool = False,
     ):
         self.model_set = ModelSet.from_config(model_set)
         M = len(self.model_set)
@@ -155,6 +159,7 @@ class IMMTracker(Method):
         self.name = name
         self.return_experts = return_experts
         self.compile = compile
+        self.return_cov = return_cov
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``
@@ -170,8 +175,9 @@ class IMMTracker(Method):
         r = assumed_r(self.r, batch, self.dtype, z.device)
         x0, P0 = initial_state(z, r)
         R = variance(r, self.dtype, z.device)
-        states, probs, experts = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts, compile=self.compile)
-        extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes)}
+        states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts, compile=self.compile,
+                                                  return_cov=self.return_cov)
+        extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None}
         if self.return_experts:
             extra[keys.EXPERT_POST] = experts
             extra[keys.EXPERT_PROBS] = probs

@@ -58,6 +58,7 @@ def run(
     oracle: torch.Tensor | None = None,
     return_experts: bool = False,
     H: torch.Tensor | None = None,
+    return_cov: bool = False,
 ):
     """Filter ``z [B, T, m]`` from the filters' states at scan 0, ``x [B, M, n]``, ``P [B, M, n, n]``, and
     ``mu [B, M]``; ``Pi [M, M]``; ``R`` the measurement variance (a scalar, ``[B]``, or a covariance
@@ -65,7 +66,8 @@ def run(
     ``H [m, n]`` the measurement matrix (None: the positions of the 9-D state, ``m = 3``).
 
     Returns ``state [B, T, n]`` (at scan 0 the combination of the given states), ``probs [B, T, M]`` and,
-    with ``return_experts``, the filters' posteriors ``[B, T, M, n]`` (else None).
+    with ``return_experts``, the filters' posteriors ``[B, T, M, n]`` (else None); with ``return_cov`` a fourth,
+    the combined covariance ``[B, T, n, n]`` (``combine``'s moment match).
     """
     B, T, _ = z.shape
     M = x.shape[1]
@@ -74,7 +76,10 @@ def run(
         mu = onehot[:, 0]
     states, probs = z.new_empty(B, T, x.shape[-1]), z.new_empty(B, T, M)
     experts = z.new_empty(B, T, M, x.shape[-1]) if return_experts else None
+    covs = z.new_empty(B, T, x.shape[-1], x.shape[-1]) if return_cov else None
     states[:, 0], probs[:, 0] = combine(x, None, mu)[0], mu
+    if return_cov:
+        covs[:, 0] = combine(x, P, mu)[1]
     if return_experts:
         experts[:, 0] = x
     for t in range(1, T):
@@ -86,7 +91,11 @@ def run(
             mu = onehot[:, t]
         else:
             mu = mode_update(torch.log(mu @ Pi), ll)
-        states[:, t], probs[:, t] = combine(x, None, mu)[0], mu
+        if return_cov:
+            states[:, t], covs[:, t] = combine(x, P, mu)
+        else:
+            states[:, t] = combine(x, None, mu)[0]
+        probs[:, t] = mu
         if return_experts:
             experts[:, t] = x
-    return states, probs, experts
+    return (states, probs, experts, covs) if return_cov else (states, probs, experts)
