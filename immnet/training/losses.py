@@ -3,7 +3,8 @@
 State loss: a weighted MSE, position 1, velocity 0.1, acceleration 0.02 (per component), each
 trajectory weighted by ``1 / r`` (normalized to mean 1 over the batch) so low-noise trajectories
 are not drowned by high-noise ones. Mode loss: the true cross-entropy ``-log mu_t[c_t]`` of the
-expert probabilities summed per data mode (the paper's formula lacks the log). Own-mode loss (stage 2,
+expert probabilities summed per data mode (the paper's formula lacks the log), over the scans that have a label
+(real flights have none, ``mode = -1``: they train on the state loss alone). Own-mode loss (stage 2,
 optional): the state loss of each expert's own posterior on the scans of its own mode.
 """
 
@@ -47,6 +48,11 @@ def own_mode_loss(posts: torch.Tensor, truth: torch.Tensor, mode: torch.Tensor, 
 
 
 def mode_loss(mode_probs: torch.Tensor, mode: torch.Tensor) -> torch.Tensor:
-    """Cross-entropy ``-mean log mu[c]`` of data-mode probabilities ``[B, T, 4]`` against labels ``[B, T]``."""
-    p = mode_probs.gather(-1, mode.unsqueeze(-1)).squeeze(-1)
-    return -torch.log(p.clamp_min(1e-6)).mean()
+    """Cross-entropy ``-mean log mu[c]`` of data-mode probabilities ``[B, T, 4]`` against labels ``[B, T]``, over
+    the labelled scans (``c >= 0``; real flights have none: ``-1``, and then the loss is 0)."""
+    labelled = mode >= 0
+    p = mode_probs.gather(-1, mode.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+    nll = -torch.log(p.clamp_min(1e-6))
+    if bool(labelled.all()):
+        return nll.mean()
+    return (nll * labelled).sum() / labelled.sum().clamp_min(1)

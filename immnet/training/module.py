@@ -320,5 +320,8 @@ class Stage2Module(_TrackerModule):
             self.log(f"{prefix}/own_mode_mse", own, batch_size=B, sync_dist=True)
         self._log_rmse(prefix, out[keys.STATE], batch[keys.STATES], B)
         probs = self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS])
-        self.log(f"{prefix}/mode_accuracy", (probs.argmax(-1) == batch[keys.MODE]).float().mean(), batch_size=B, sync_dist=True)
+        labelled = batch[keys.MODE] >= 0
+        if labelled.any():  # real flights carry no mode labels
+            hit = (probs.argmax(-1) == batch[keys.MODE])[labelled]
+            self.log(f"{prefix}/mode_accuracy", hit.float().mean(), batch_size=B, sync_dist=True)
         return probs
