@@ -244,7 +244,7 @@ class MetricAccumulator:
             "confusion": None,
             "counts": counts,
         }
-        if self.conf is not None and ok:
+        if self.conf is not None and ok and int(self.conf.sum()) > 0:  # real flights have no mode labels
             out["confusion"] = self.conf
             out["mode_accuracy"] = float(self.conf.diagonal().sum()) / max(int(self.conf.sum()), 1)
         return out
