@@ -131,9 +131,28 @@ def test_training_refuses_padded_tracks(tmp_path, pad):
     dm = LASTDataModule(str(tmp_path / "p.npz"), batch_size=4)
     what = "no truth" if pad == "states" else "no label"
     for loader in (dm.train_dataloader, dm.val_dataloader):
-        with pytest.raises(ValueError, match=rf"the scan at \[7, 30\] has {what} .*; training needs truth and a label"):
+        with pytest.raises(ValueError, match=rf"the scan at \[7, 30\] has {what} .*; training needs truth at every "
+                                             rf"scan and a label at every scan or at none"):
             loader()
     assert len(dm.split("test")) > 0  # the evaluation side still takes the data
+
+
+def test_an_unlabelled_set_trains_with_its_own_validation_set(tmp_path):
+    """Real flights have no mode labels (-1 at every scan) and come split by flight: a set labelled nowhere
+    trains (on the state loss alone), ``val_data`` is the whole validation split and ``data`` all training."""
+    import numpy as np
+
+    from immnet.data.generate import generate
+
+    for name, seed, n in (("train", 2, 20), ("val", 3, 6)):
+        td = generate(n, seed=seed, spec=DataSpec(T=50, min_segment=10))
+        a = {k: td[k].numpy() for k in ("states", "measurements", "mode", "turn_rate", "r")}
+        a["mode"][:] = -1
+        np.savez(tmp_path / f"{name}.npz", dt=1.0, **a)
+    dm = LASTDataModule(str(tmp_path / "train.npz"), val_data=str(tmp_path / "val.npz"), test_fraction=0.0, batch_size=4)
+    assert len(dm.dataset("train")) == 20 and len(dm.dataset("val")) == 6
+    assert sum(b.batch_size[0] for b in dm.train_dataloader()) == 20
+    assert sum(b.batch_size[0] for b in dm.val_dataloader()) == 6
 
 
 def test_a_training_pass_is_a_function_of_its_epoch(sets):

@@ -135,12 +135,20 @@ def check_arrays(arrays: dict, where: str) -> tuple[int, int]:
     return n, T
 
 
+def _unlabelled(mode) -> bool:
+    """Whether no scan of ``mode`` has a label (read in chunks: a memmap stays on disk)."""
+    return all(bool((np.asarray(mode[i : i + ROWS]) == NO_LABEL).all()) for i in range(0, mode.shape[0], ROWS))
+
+
 def check_complete(arrays: dict, where: str) -> None:
-    """A ValueError if a scan has no truth (a NaN row of ``states``) or no label (``mode`` -1):
-    training needs both at every scan (padded tracks are for evaluation). Assumes
-    :func:`check_arrays` passed, so that a row's first component tells whether it is NaN."""
+    """A ValueError if a scan has no truth (a NaN row of ``states``) or no label (``mode`` -1): training
+    needs truth at every scan (padded tracks are for evaluation), and a label at every scan or at none (real
+    flights have no mode labels and train on the state loss alone). Assumes :func:`check_arrays` passed, so
+    that a row's first component tells whether it is NaN."""
     for key, a in arrays.items():
         if key not in (keys.STATES, keys.MODE):
+            continue
+        if key == keys.MODE and _unlabelled(a):
             continue
         for start in range(0, a.shape[0], ROWS):
             chunk = np.asarray(a[start : start + ROWS])
@@ -148,4 +156,5 @@ def check_complete(arrays: dict, where: str) -> None:
             if bad.any():
                 what = "no truth (a NaN row of 'states')" if key == keys.STATES else f"no label (mode {NO_LABEL})"
                 raise ValueError(f"{where}: the scan at {_first(bad, start)} has {what}; training needs truth "
-                                 f"and a label at every scan (padded tracks are for evaluation, docs/data.md)")
+                                 f"at every scan and a label at every scan or at none (padded tracks are for "
+                                 f"evaluation, docs/data.md)")

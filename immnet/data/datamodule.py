@@ -7,7 +7,8 @@ the whole index list to ``__getitems__``; indices are sorted inside a batch for 
 Splits: with ``test_data`` absent, a permutation seeded by ``split_seed`` puts
 ``round(test_fraction N)`` trajectories in test, ``round(val_fraction N)`` in validation, the rest
 in train; with ``test_data`` given, the whole of it is the test split and ``data`` is split into
-train and validation only.
+train and validation only; with ``val_data`` given too, the whole of it is the validation split and ``data`` is
+all training data (real flights come split by flight: ``immnet data adsb``'s OUT/train, OUT/val, OUT/test).
 
 Stage 1 (``single_mode`` given, a mapping mode name -> data set of that mode): each training batch
 is a ``TensorDict [M, B]``; row ``m`` is for expert ``m`` (``expert_modes[m]`` names its mode) and
@@ -182,7 +183,7 @@ class _Stage1Dataset(Dataset):
 class LASTDataModule(L.LightningDataModule):
     """3D-LAST train / val / test loaders (see the module doc for the splits and stage-1 batches)."""
 
-    def __init__(self, data, test_data=None, val_fraction: float = 0.1, test_fraction: float = 0.1,
+    def __init__(self, data, test_data=None, val_fraction: float = 0.1, test_fraction: float = 0.1, val_data=None,
                  batch_size: int = 100, num_workers: int = 0, split_seed: int = 0,
                  single_mode: dict | None = None, own_fraction: float = 0.6,
                  expert_modes: list[str] | None = None):
@@ -195,7 +196,7 @@ class LASTDataModule(L.LightningDataModule):
                 raise ValueError(f"{name} must be in [0, 1], got {f}")
         if test_data is None and val_fraction + test_fraction >= 1.0:
             raise ValueError("val_fraction + test_fraction must leave some training data")
-        self.data, self.test_data = data, test_data
+        self.data, self.test_data, self.val_data = data, test_data, val_data
         self.val_fraction, self.test_fraction = val_fraction, test_fraction
         self.batch_size, self.num_workers, self.split_seed = batch_size, num_workers, split_seed
         self.single_mode = dict(single_mode) if single_mode else None
@@ -220,7 +221,7 @@ class LASTDataModule(L.LightningDataModule):
         g = torch.Generator().manual_seed(int(self.split_seed))
         perm = torch.randperm(n, generator=g)
         n_test = 0 if self.test_data is not None else round(self.test_fraction * n)
-        n_val = round(self.val_fraction * n)
+        n_val = 0 if self.val_data is not None else round(self.val_fraction * n)
         if n - n_test - n_val < 1:
             raise ValueError(f"{n} trajectories leave no training data after the val/test split")
         self._td = {"train": td, "val": td}
@@ -229,6 +230,10 @@ class LASTDataModule(L.LightningDataModule):
             "val": perm[n_test : n_test + n_val].sort().values,
             "train": perm[n_test + n_val :].sort().values,
         }
+        if self.val_data is not None:
+            val_td, _ = load_dataset(self.val_data)
+            self._td["val"] = val_td
+            self._idx["val"] = torch.arange(val_td.batch_size[0])
         if self.test_data is not None:
             test_td, _ = load_dataset(self.test_data)
             self._td["test"] = test_td
@@ -297,8 +302,8 @@ class LASTDataModule(L.LightningDataModule):
         if getattr(self, "_trainable", False):
             return
         self.setup()
-        for name, td in [("data", self._td["train"]), *((f"single-mode set {k!r}", o.td) for k, o in
-                                                        zip(self.expert_modes or (), self._own or ()))]:
+        for name, td in [("data", self._td["train"]), *([("val_data", self._td["val"])] if self.val_data is not None else []),
+                         *((f"single-mode set {k!r}", o.td) for k, o in zip(self.expert_modes or (), self._own or ()))]:
             check_complete({k: td[k].numpy() for k in (keys.STATES, keys.MODE) if k in td.keys()}, name)
         self._trainable = True
 
