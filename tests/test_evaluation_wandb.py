@@ -14,6 +14,7 @@ import pytest
 import immnet.cli
 from immnet import keys
 from immnet.cli import main
+from immnet.config import REPO_ROOT
 
 pytest.importorskip("wandb")
 generate = pytest.importorskip("immnet.data.generate").generate
@@ -116,3 +117,20 @@ def test_disabled_writes_the_same_results_and_no_run(npz, offline, tmp_path, mon
     strip = lambda d: {**d, "methods": {n: {k: v for k, v in r.items() if k != "seconds"} for n, r in d["methods"].items()}}  # noqa: E731
     assert strip(doc) == strip(offline[0])
     assert not (tmp_path / "w").exists() and not (tmp_path / "wandb").exists()
+
+
+def test_the_report_definition_names_what_the_evaluation_logs(offline):
+    """configs/wandb/report.yaml (built by scripts/wandb_report.py, online) shows keys the runs hold."""
+    sys.path.insert(0, str(REPO_ROOT / "scripts"))
+    try:
+        import wandb_report
+    finally:
+        sys.path.remove(str(REPO_ROOT / "scripts"))
+    spec = wandb_report.load()
+    history = merged(offline[2], "history")
+    evaluated = [s for s in spec["sections"] if "JobType = 'evaluate'" in s["runs"] or "ablations-table" in s["runs"]]
+    assert len(evaluated) == 2
+    for sec in evaluated:
+        for p in sec["panels"]:
+            keys = [p["table"]] if "table" in p else [f"{p['chart']}_table"] if "chart" in p else p.get("media", [])
+            assert all(f"{k}._type" in history for k in keys), (p, sorted(history))
