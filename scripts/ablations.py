@@ -47,16 +47,20 @@ def ablations() -> dict:
 
 def swapped_parts(spec: dict) -> dict[str, str]:
     """What an ablation changes, from its file: every setting of its stages' inline configs under
-    ``model`` and ``data`` (``init_args`` levels dropped: ``model.net.guard``), except the checkpoints a
-    stage starts from; ``{"model.net.guard": "False", "model.net.p_stay": "0.995"}``."""
+    ``model`` and ``data`` (``init_args`` levels dropped: ``model.net.guard``; a class by its
+    ``class_path``, then its arguments), except the checkpoints a stage starts from:
+    ``{"model.net.guard": "False", "model.net.p_stay": "0.995"}``."""
     from immnet.training.cli import stage_entry
 
     out: dict[str, str] = {}
 
     def walk(prefix: str, value) -> None:
-        if isinstance(value, dict) and value and "class_path" not in value:
+        if isinstance(value, dict) and value:
+            if "class_path" in value:  # a swapped class: its name, then its arguments
+                out[prefix] = value["class_path"]
             for k, v in value.items():
-                walk(prefix if k == "init_args" else f"{prefix}.{k}", v)
+                if k != "class_path":
+                    walk(prefix if k == "init_args" else f"{prefix}.{k}", v)
         elif not prefix.endswith(("stage1_checkpoint", "init_checkpoint")):
             out[prefix] = str(value)
 
