@@ -134,3 +134,24 @@ def test_the_report_definition_names_what_the_evaluation_logs(offline):
         for p in sec["panels"]:
             keys = [p["table"]] if "table" in p else [f"{p['chart']}_table"] if "chart" in p else p.get("media", [])
             assert all(f"{k}._type" in history for k in keys), (p, sorted(history))
+
+
+def test_the_training_logger_writes_nothing_when_disabled(tmp_path, monkeypatch):
+    """``immnet fit``'s default logger under ``WANDB_MODE=disabled`` writes no run (Lightning's
+    ``offline=True`` would set WANDB_MODE to offline itself). wandb reads its environment once per
+    process (as each ``immnet fit`` is): torn down before and after, so that it reads it here."""
+    import wandb
+    from lightning.pytorch.loggers import WandbLogger
+
+    from immnet.training.cli import _default_logger
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    wandb.teardown()
+    try:
+        logger = WandbLogger(**_default_logger()["init_args"])
+        logger.log_metrics({"val/loss": 1.0}, step=0)
+        logger.experiment.finish()
+    finally:
+        wandb.teardown()
+    assert not (tmp_path / "runs" / "wandb").exists() and not (tmp_path / "wandb").exists()

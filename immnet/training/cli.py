@@ -40,12 +40,15 @@ _RESULT_ENV = "IMMNET_FIT_RESULT_FD"
 
 
 def _default_logger() -> dict:
+    """W&B through Lightning's WandbLogger, offline unless ``WANDB_MODE`` is ``online``. Under
+    ``WANDB_MODE=disabled`` the logger is not told ``offline`` (which would set ``WANDB_MODE`` to offline
+    itself), so that wandb sees ``disabled`` and writes nothing."""
     return {
         "class_path": "lightning.pytorch.loggers.WandbLogger",
         "init_args": {
             "project": "immnet",
             "save_dir": "runs",
-            "offline": os.environ.get("WANDB_MODE", "offline") != "online",
+            "offline": os.environ.get("WANDB_MODE", "offline") not in ("online", "disabled"),
         },
     }
 
