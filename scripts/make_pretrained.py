@@ -48,7 +48,7 @@ def last_checkpoint(chain: Path) -> Path:
 
 
 WANDB_DIR = ROOT / "runs/wandb"  # where the training's logger (immnet fit's default) writes its runs
-WANDB_GROUP = "pretrained"
+WANDB_GROUP = "pretrained"  # unless WANDB_RUN_GROUP names another
 
 
 def wandb_runs() -> set[str]:
@@ -64,6 +64,7 @@ def main() -> int:
     p.add_argument("--note", default="", help="how this training run departed from the recipe, if it did (kept in the provenance)")
     a = p.parse_args()
     # the commit the weights were trained at (read before training: later commits may land meanwhile)
+    group = os.environ.get("WANDB_RUN_GROUP") or WANDB_GROUP  # the W&B group of the training's runs
     rev = a.commit if a.skip_training and a.commit else "HEAD"
     commit = subprocess.run(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     if not commit:
@@ -75,7 +76,7 @@ def main() -> int:
         if not (train_dir / "meta.json").exists():
             write_dataset(train_dir, n=TRAIN_N, seed=TRAIN_SEED, overwrite=True, workers=2, progress=True)
         before = wandb_runs()
-        env = {**os.environ, "WANDB_RUN_GROUP": WANDB_GROUP, "WANDB_JOB_TYPE": "train", "WANDB_NAME": "pretrained"}
+        env = {**os.environ, "WANDB_RUN_GROUP": group, "WANDB_JOB_TYPE": "train"}  # runs "pretrained 1/4" ... (run_stages)
         subprocess.run([sys.executable, "-m", "immnet.cli", "fit", "--config", "recipes/pretrained.yaml"], cwd=ROOT,
                        check=True, env=env)
         run_ids = sorted(wandb_runs() - before)
@@ -114,7 +115,7 @@ def main() -> int:
                  "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)",
                  "stage3": "the same as stage 2", "stage4": "the same as stage 2"},
         "note": a.note,
-        "wandb": {"project": "immnet", "group": WANDB_GROUP if not a.skip_training else None, "runs": run_ids} if run_ids else None,
+        "wandb": {"project": "immnet", "group": group if not a.skip_training else None, "runs": run_ids} if run_ids else None,
         "test": {"n": TEST_N, "seed": TEST_SEED, "note": "fresh 3D-LAST, never seen in training or tuning"},
         "metrics": {n: r["rmse"] for n, r in rows.items()},
         "mode_accuracy": rows["immnet"].get("mode_accuracy"),
@@ -145,7 +146,7 @@ def main() -> int:
         )
         + (f"Departure from the recipe: {a.note}\n\n" if a.note else "")
         + (f"W&B: the training's runs {', '.join(f'`{r}`' for r in run_ids)} (project `immnet`"
-           + (f", group `{WANDB_GROUP}`" if not a.skip_training else "") + "; docs/wandb.md).\n\n"
+           + (f", group `{group}`" if not a.skip_training else "") + "; docs/wandb.md).\n\n"
            if run_ids else "W&B: no run id recorded for this training (`wandb: null` in provenance.json).\n\n")
         + f"Training data: stage 1 {prov['data']['stage1']}, with the single-mode data {prov['data']['stage1_single_mode']}; "
         f"stages 2 to 4 {prov['data']['stage2']}.\n\n"
