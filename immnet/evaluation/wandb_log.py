@@ -62,17 +62,18 @@ def wanted(flag: bool) -> bool:
 
 
 def start(config: dict, project: str | None = None, group: str | None = None, name: str | None = None,
-          directory: str | Path | None = None, job_type: str | None = "evaluate"):
+          directory: str | Path | None = None, job_type: str | None = None):
     """A new W&B run (``wandb.init``; offline unless ``WANDB_MODE`` says otherwise) holding ``config``.
 
     ``None`` leaves a setting to wandb's own environment variables (``WANDB_PROJECT``,
-    ``WANDB_RUN_GROUP``, ``WANDB_NAME``, ``WANDB_JOB_TYPE``, ``WANDB_DIR``)."""
+    ``WANDB_RUN_GROUP``, ``WANDB_NAME``, ``WANDB_JOB_TYPE``, ``WANDB_DIR``), else to its default here:
+    project ``immnet``, job type ``evaluate``."""
     import wandb
 
     if directory is not None:
         Path(directory).mkdir(parents=True, exist_ok=True)
     kw = {"project": project or os.environ.get("WANDB_PROJECT") or PROJECT, "group": group, "name": name,
-          "dir": None if directory is None else str(directory), "job_type": os.environ.get("WANDB_JOB_TYPE") or job_type}
+          "dir": None if directory is None else str(directory), "job_type": job_type or os.environ.get("WANDB_JOB_TYPE") or "evaluate"}
     return wandb.init(config=config, mode=mode(), reinit="create_new",
                       **{k: v for k, v in kw.items() if v is not None})
 
