@@ -70,7 +70,7 @@ say "done. Artifacts:
   results table  $RUN/results.md   (JSON: $RUN/results.json)
   figures        $RUN/figures/  (dataset overview, RMSE over time, case-study tracks, mode probabilities, confusion)
   checkpoints    $RUN/stage1/checkpoints/best.ckpt, $CKPT, $KNET (plain KalmanNet)"
-OFFLINE=$(find runs/wandb -maxdepth 1 -name 'offline-run-*' -newer "$SINCE" 2>/dev/null | sort)
+OFFLINE=$(find runs/wandb -maxdepth 1 -name 'offline-run-*' -newer "$SINCE" 2>/dev/null | sort || true)
 if [ -n "$OFFLINE" ]; then
   printf '\nW&B: the offline runs of this job (group %s):\n%s\nupload them (needs network and `wandb login`):\n  %s/bin/wandb sync %s\n' \
     "$WANDB_RUN_GROUP" "$(sed 's/^/  /' <<< "$OFFLINE")" "$VENV" "$(tr '\n' ' ' <<< "$OFFLINE")" >&2
