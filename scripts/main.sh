@@ -10,6 +10,10 @@ bash scripts/setup.sh
 VENV=${IMMNET_VENV:-.venv}
 IMMNET="$VENV/bin/immnet"
 export WANDB_MODE=${WANDB_MODE:-offline} WANDB_SILENT=true
+# every W&B run of this job (training stages, plain KalmanNet, evaluation) in one group (docs/wandb.md)
+export WANDB_RUN_GROUP=${WANDB_RUN_GROUP:-main}
+SINCE=$(mktemp)  # the W&B runs written after this file are this job's
+trap 'rm -f "$SINCE"' EXIT
 RUN=runs/quick
 DATA=$RUN/data
 say() { local e=$(( $(date +%s) - T0 )); printf '\n[main %dm%02ds] %s\n' $((e / 60)) $((e % 60)) "$*" >&2; }
@@ -36,7 +40,7 @@ if [ -f "$RUN/stage2/checkpoints/finished.json" ]; then
   say "2/4 training: reusing the finished quick run $CKPT (IMMNET_RETRAIN=1 to train again)"
 else
   say "2/4 training: recipes/quick.yaml (stage 1 about 3.5 min, stage 2 about 5 min; an interrupted run resumes)"
-  "$IMMNET" fit --config recipes/quick.yaml
+  WANDB_JOB_TYPE=train "$IMMNET" fit --config recipes/quick.yaml  # runs "quick 1/2", "quick 2/2"
 fi
 # the table's plain KalmanNet: one KalmanNet (architecture 2, CA) alone on maneuvering data, at the
 # quick stage-1 budget (the single-expert ablation; scripts/ablations.py reuses it)
@@ -46,17 +50,18 @@ if [ -f "$KDIR/finished.json" ]; then
   say "2/4 training: reusing the plain KalmanNet $KNET"
 elif [ -f "$KDIR/last.ckpt" ]; then
   say "2/4 training: plain KalmanNet, resuming $KDIR/last.ckpt"
-  "$IMMNET" fit --config configs/ablations/single-expert.yaml --ckpt_path last
+  WANDB_JOB_TYPE=train WANDB_NAME=kalmannet "$IMMNET" fit --config configs/ablations/single-expert.yaml --ckpt_path last
 else
   say "2/4 training: plain KalmanNet (configs/ablations/single-expert.yaml, about 1 min)"
-  "$IMMNET" fit --config configs/ablations/single-expert.yaml --overwrite_checkpoints true
+  WANDB_JOB_TYPE=train WANDB_NAME=kalmannet "$IMMNET" fit --config configs/ablations/single-expert.yaml --overwrite_checkpoints true
 fi
 
 say "3/4 evaluation: every method on the test set, one run"
 "$IMMNET" evaluate --data "$DATA/test" --split all \
   --methods measurements,imm-accurate,imm-min,imm-max,imm-tuned,imm-ekf,imm-ekf-guard,imm-ekf-guard-sticky,kalmannet,immnet,clairvoyant-switch,clairvoyant \
   --checkpoint "immnet=$CKPT" --checkpoint "kalmannet=$KNET" \
-  --json "$RUN/results.json" --markdown "$RUN/results.md" --figures "$RUN/figures"
+  --json "$RUN/results.json" --markdown "$RUN/results.md" --figures "$RUN/figures" \
+  --wandb --wandb-name evaluate --wandb-dir runs
 
 say "4/4 figures: dataset overview"
 "$IMMNET" data plot --data "$DATA/train" --out "$RUN/figures/dataset.png" --n 400
@@ -64,5 +69,11 @@ say "4/4 figures: dataset overview"
 say "done. Artifacts:
   results table  $RUN/results.md   (JSON: $RUN/results.json)
   figures        $RUN/figures/  (dataset overview, RMSE over time, case-study tracks, mode probabilities, confusion)
-  checkpoints    $RUN/stage1/checkpoints/best.ckpt, $CKPT, $KNET (plain KalmanNet)
-  W&B (offline)  runs/wandb/   (wandb sync runs/wandb/offline-run-* to upload)"
+  checkpoints    $RUN/stage1/checkpoints/best.ckpt, $CKPT, $KNET (plain KalmanNet)"
+OFFLINE=$(find runs/wandb -maxdepth 1 -name 'offline-run-*' -newer "$SINCE" 2>/dev/null | sort || true)
+if [ -n "$OFFLINE" ]; then
+  printf '\nW&B: the offline runs of this job (group %s):\n%s\nupload them (needs network and `wandb login`):\n  %s/bin/wandb sync %s\n' \
+    "$WANDB_RUN_GROUP" "$(sed 's/^/  /' <<< "$OFFLINE")" "$VENV" "$(tr '\n' ' ' <<< "$OFFLINE")" >&2
+else
+  echo "W&B: no offline run written (WANDB_MODE=$WANDB_MODE)" >&2
+fi

@@ -3,7 +3,11 @@ the last stage's checkpoint into immnet/pretrained/immnet.ckpt, score it on a fr
 baselines, and write immnet/pretrained/provenance.json and PROVENANCE.md.
 
 Run (needs the quick data: `bash scripts/main.sh` makes it):
-    .venv/bin/python scripts/make_pretrained.py [--skip-training [--commit C] [--note TEXT]]
+    .venv/bin/python scripts/make_pretrained.py [--skip-training [--commit C] [--wandb-runs ID,...] [--note TEXT]]
+
+The training's W&B runs (group "pretrained", one per stage; docs/wandb.md) are recorded by id in the
+provenance (`wandb`), found as the run directories the training added under runs/wandb; with
+--skip-training, --wandb-runs names them (none named: none recorded).
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ import argparse
 import datetime
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -42,13 +47,24 @@ def last_checkpoint(chain: Path) -> Path:
     raise ValueError(f"{chain}: its last stage has no ModelCheckpoint callback to export from")
 
 
+WANDB_DIR = ROOT / "runs/wandb"  # where the training's logger (immnet fit's default) writes its runs
+WANDB_GROUP = "pretrained"  # unless WANDB_RUN_GROUP names another
+
+
+def wandb_runs() -> set[str]:
+    """The ids of the W&B runs under runs/wandb (directories ``[offline-]run-<time>-<id>``)."""
+    return {p.name.rsplit("-", 1)[-1] for p in WANDB_DIR.glob("*run-*") if p.is_dir()}
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--skip-training", action="store_true")
     p.add_argument("--commit", default="", help="with --skip-training: the commit the weights were trained at (default: HEAD)")
+    p.add_argument("--wandb-runs", default="", help="with --skip-training: the W&B run ids of the training, comma-separated")
     p.add_argument("--note", default="", help="how this training run departed from the recipe, if it did (kept in the provenance)")
     a = p.parse_args()
     # the commit the weights were trained at (read before training: later commits may land meanwhile)
+    group = os.environ.get("WANDB_RUN_GROUP") or WANDB_GROUP  # the W&B group of the training's runs
     rev = a.commit if a.skip_training and a.commit else "HEAD"
     commit = subprocess.run(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     if not commit:
@@ -59,7 +75,13 @@ def main() -> int:
     if not a.skip_training:
         if not (train_dir / "meta.json").exists():
             write_dataset(train_dir, n=TRAIN_N, seed=TRAIN_SEED, overwrite=True, workers=2, progress=True)
-        subprocess.run([sys.executable, "-m", "immnet.cli", "fit", "--config", "recipes/pretrained.yaml"], cwd=ROOT, check=True)
+        before = wandb_runs()
+        env = {**os.environ, "WANDB_RUN_GROUP": group, "WANDB_JOB_TYPE": "train"}  # runs "pretrained 1/4" ... (run_stages)
+        subprocess.run([sys.executable, "-m", "immnet.cli", "fit", "--config", "recipes/pretrained.yaml"], cwd=ROOT,
+                       check=True, env=env)
+        run_ids = sorted(wandb_runs() - before)
+    else:
+        run_ids = [r.strip() for r in a.wandb_runs.split(",") if r.strip()]
     from immnet.evaluation.methods import ORDER, build_method
     from immnet.evaluation.runner import evaluate, to_json
     from immnet.evaluation.table import format_markdown, format_table
@@ -93,6 +115,7 @@ def main() -> int:
                  "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)",
                  "stage3": "the same as stage 2", "stage4": "the same as stage 2"},
         "note": a.note,
+        "wandb": {"project": "immnet", "group": group if not a.skip_training else None, "runs": run_ids} if run_ids else None,
         "test": {"n": TEST_N, "seed": TEST_SEED, "note": "fresh 3D-LAST, never seen in training or tuning"},
         "metrics": {n: r["rmse"] for n, r in rows.items()},
         "mode_accuracy": rows["immnet"].get("mode_accuracy"),
@@ -122,6 +145,9 @@ def main() -> int:
             if prov["guard"] else ""
         )
         + (f"Departure from the recipe: {a.note}\n\n" if a.note else "")
+        + (f"W&B: the training's runs {', '.join(f'`{r}`' for r in run_ids)} (project `immnet`"
+           + (f", group `{group}`" if not a.skip_training else "") + "; docs/wandb.md).\n\n"
+           if run_ids else "W&B: no run id recorded for this training (`wandb: null` in provenance.json).\n\n")
         + f"Training data: stage 1 {prov['data']['stage1']}, with the single-mode data {prov['data']['stage1_single_mode']}; "
         f"stages 2 to 4 {prov['data']['stage2']}.\n\n"
         f"Test set: {TEST_N} fresh trajectories (seed {TEST_SEED}). RMSE of position in metres:\n\n"

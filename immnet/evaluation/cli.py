@@ -10,6 +10,7 @@ import json
 import sys
 from pathlib import Path
 
+from immnet.evaluation import wandb_log
 from immnet.evaluation.methods import KEEP_GUARD, available_methods, build_method, missing_keys, takes_checkpoint
 
 
@@ -42,6 +43,7 @@ def register(subparsers) -> None:
     p.add_argument("--figures", type=Path, metavar="DIR", help="write the PNG figures into DIR")
     p.add_argument("--seed", type=int, default=0, help="picks the case-study trajectories of --figures (default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    wandb_log.add_arguments(p)
     p.set_defaults(func=run_evaluate)
 
     t = subparsers.add_parser("tune-imm", help="search the IMM-Tuned configuration on validation data",
@@ -207,7 +209,13 @@ def run_evaluate(args) -> int:
     methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data, meta, guard, args.sigma_q)
     if args.batch_size < 1:
         raise ValueError("--batch-size must be positive")
-    cases = pick_cases(data, 2, args.seed) if args.figures else []
+    log = wandb_log.wanted(args.wandb)
+    figures = args.figures
+    if log and figures is None:  # the run holds the figures: written beside it
+        import tempfile
+
+        figures = Path(tempfile.mkdtemp(prefix="immnet-figures-"))
+    cases = pick_cases(data, 2, args.seed) if figures else []
     split = "all" if Path(args.data).is_file() else args.split
     note(f"evaluating {', '.join(methods)} on {data.batch_size[0]} trajectories ({args.data}, split {split})")
     results = evaluate(methods, data, batch_size=args.batch_size, progress=not args.quiet, keep=cases,
@@ -227,12 +235,39 @@ def run_evaluate(args) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
         note(f"wrote {args.json}")
-    if args.figures:
+    paths = []
+    if figures:
         from immnet.evaluation.figures import write_figures
 
-        paths = write_figures(results, data, cases, args.figures)
-        note(f"wrote {len(paths)} figures to {args.figures} (case studies: trajectories {cases})")
+        paths = write_figures(results, data, cases, figures)
+        if args.figures:
+            note(f"wrote {len(paths)} figures to {args.figures} (case studies: trajectories {cases})")
+    if log:
+        log_run(args, results, rows, paths, data, meta, split, note)
+        if not args.figures:
+            import shutil
+
+            shutil.rmtree(figures, ignore_errors=True)
     return 0
+
+
+def log_run(args, results, rows, figures, data, meta, split, note) -> None:
+    """The evaluation as a W&B run (``immnet.evaluation.wandb_log``): config, table, scalars, curves, figures."""
+    from immnet.data.times import nominal_dt
+    from immnet.evaluation.metrics import avg_curve
+
+    ckpt = _checkpoints(args.checkpoint, list(results))
+    config = {"command": "evaluate",
+              "data": {"path": str(args.data), "split": split, "n_trajectories": data.batch_size[0], "limit": args.limit,
+                       "meta": meta},
+              "methods": {n: wandb_log.method_info(n, ckpt.get(n)) for n in results},
+              "guard": args.guard, "sigma_q": args.sigma_q, "max_position": args.max_position, "seed": args.seed}
+    run = wandb_log.start(config, args.wandb_project, args.wandb_group, args.wandb_name, args.wandb_dir)
+    curves = {n: avg_curve(r["rmse_over_time"]) for n, r in results.items()}
+    wandb_log.log_results(run, rows, curves, figures, dt=float(nominal_dt(data[:1])[0]))  # x: scan k at k dt
+    where = wandb_log.finish(run)
+    if where:
+        note(f"W&B run {run.id} (offline): {where}; upload with `wandb sync {where}`")
 
 
 def run_tune(args) -> int:

@@ -40,12 +40,15 @@ _RESULT_ENV = "IMMNET_FIT_RESULT_FD"
 
 
 def _default_logger() -> dict:
+    """W&B through Lightning's WandbLogger, offline unless ``WANDB_MODE`` is ``online``. Under
+    ``WANDB_MODE=disabled`` the logger is not told ``offline`` (which would set ``WANDB_MODE`` to offline
+    itself), so that wandb sees ``disabled`` and writes nothing."""
     return {
         "class_path": "lightning.pytorch.loggers.WandbLogger",
         "init_args": {
             "project": "immnet",
             "save_dir": "runs",
-            "offline": os.environ.get("WANDB_MODE", "offline") != "online",
+            "offline": os.environ.get("WANDB_MODE", "offline") not in ("online", "disabled"),
         },
     }
 
@@ -219,11 +222,14 @@ def _run_stage(cmd: list[str], env: dict) -> tuple[int, str, int | None]:
     return code, best, (got[0] if got else None)
 
 
-def run_stages(recipe: dict, extra: list[str]) -> str:
+def run_stages(recipe: dict, extra: list[str], label: str | None = None) -> str:
     """Run a chained recipe, each stage in its own process; returns the last run's best checkpoint.
 
     A rerun skips the stages that have finished (each says so) and resumes the unfinished one from
-    its last checkpoint (:func:`immnet.training.resume.plan`)."""
+    its last checkpoint (:func:`immnet.training.resume.plan`). Each stage's W&B run is named
+    ``"<label> <i>/<n>"`` (``"<label>"`` for a chain of one) through wandb's ``WANDB_NAME`` (``label``:
+    ``WANDB_NAME`` if set, else the recipe's file name), unless the stage's logger names it; the group
+    and job type come from wandb's own ``WANDB_RUN_GROUP`` and ``WANDB_JOB_TYPE``."""
     from immnet.training.resume import CHAIN_ENV
 
     ckpt = None
@@ -235,7 +241,9 @@ def run_stages(recipe: dict, extra: list[str]) -> str:
         if ckpt is not None:
             cmd += [f"--model.init_args.{arg}", ckpt]
         print(f"[immnet fit] stage {i + 1}/{n}: {name}", file=sys.stderr, flush=True)
-        code, ckpt, signum = _run_stage(cmd, {**os.environ, CHAIN_ENV: f"{i + 1}/{n}"})
+        base = os.environ.get("WANDB_NAME") or label
+        run_name = {"WANDB_NAME": f"{base} {i + 1}/{n}" if n > 1 else base} if base else {}
+        code, ckpt, signum = _run_stage(cmd, {**os.environ, CHAIN_ENV: f"{i + 1}/{n}", **run_name})
         if signum is not None:
             print(f"[immnet fit] stopped by signal {signum} in stage {i + 1}/{n} ({name}); the same command "
                   "resumes it", file=sys.stderr, flush=True)
@@ -270,7 +278,7 @@ def lightning_main(argv: list[str]) -> int:
         if isinstance(recipe, dict) and "stages" in recipe:
             i = argv.index("--config") if "--config" in argv else argv.index(f"--config={config}")
             width = 2 if argv[i] == "--config" else 1
-            run_stages(recipe, argv[1:i] + argv[i + width :])
+            run_stages(recipe, argv[1:i] + argv[i + width :], label=Path(config).stem)
             return 0
     _run(argv)
     return 0

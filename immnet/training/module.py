@@ -297,18 +297,27 @@ class Stage2Module(_TrackerModule):
 
     def on_validation_epoch_end(self):
         """Log the validation confusion matrix as a figure (W&B), beside the scalar metrics."""
+        self._log_confusion("val", f"validation, step {self.global_step}")
+
+    def test_step(self, batch, batch_idx):
+        probs = self._evaluate(batch, "test")
+        conf = confusion(probs.detach().cpu(), batch[keys.MODE].cpu())
+        self._confusion = conf if batch_idx == 0 else self._confusion + conf
+
+    def on_test_epoch_end(self):
+        """``immnet test``: the test set's confusion matrix as a figure (W&B), beside the scalar metrics."""
+        self._log_confusion("test", "test set")
+
+    def _log_confusion(self, prefix: str, title: str) -> None:
         from lightning.pytorch.loggers import WandbLogger
 
         if self.trainer.sanity_checking or not isinstance(self.logger, WandbLogger) or not hasattr(self, "_confusion"):
             return
         from immnet.evaluation.figures import plot_confusion
 
-        path = plot_confusion(self._confusion, Path(self.logger.save_dir or ".") / "figures" / f"confusion-{self.global_step}.png",
-                              title=f"validation, step {self.global_step}")
-        self.logger.log_image(key="val/confusion", images=[str(path)], step=self.global_step)
-
-    def test_step(self, batch, batch_idx):
-        self._evaluate(batch, "test")
+        path = plot_confusion(self._confusion, Path(self.logger.save_dir or ".") / "figures" / f"confusion-{prefix}-{self.global_step}.png",
+                              title=title)
+        self.logger.log_image(key=f"{prefix}/confusion", images=[str(path)], step=self.global_step)
 
     def _evaluate(self, batch, prefix):
         out, _ = self.net.rollout(batch[keys.MEASUREMENTS], intervals=self.net.intervals_for(batch))
