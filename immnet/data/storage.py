@@ -1,5 +1,8 @@
 """3D-LAST data sets on disk: a memory-mapped TensorDict directory, or an ``.npz`` interchange file.
 
+Sets of real flights (:mod:`immnet.data.real`, format ``adsb``) share the directory layout; they are
+written whole by :func:`write_arrays`.
+
 A data set directory::
 
     DIR/meta.json      spec version, seed, n, single_mode, every DataSpec parameter, counts per mode, dtypes
