@@ -197,6 +197,25 @@ def test_jitter_misses_range_and_all_test(tmp_path):
         real.make_adsb(tmp_path / "far", [sample], spec, site=(10.0, 2.0, 0.0))
 
 
+def test_several_samples_and_a_failed_write_leaves_nothing(tmp_path, monkeypatch):
+    a = _write(tmp_path / "a.json.gz", _records(n_aircraft=2, n=200, seed=0))
+    b = _write(tmp_path / "b.json.gz", _records(n_aircraft=2, n=200, seed=1))
+    spec = real.RealSpec(T=40, splits=(0, 0, 1), max_range=60_000)
+    meta = real.make_adsb(tmp_path / "ab", [a, b], spec)
+    assert [s["file"] for s in meta["samples"]] == ["a.json.gz", "b.json.gz"] and meta["counts"]["flights"] == 4
+    assert meta["counts"]["rows"] == sum(c["rows"] for c in meta["counts_per_sample"].values()) == 800
+    with pytest.raises(ValueError, match="the same file as sample"):
+        real.make_adsb(tmp_path / "aa", [a, a], spec)
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr("immnet.data.storage.write_arrays", fail)
+    with pytest.raises(RuntimeError, match="disk full"):
+        real.make_adsb(tmp_path / "x", [a], spec)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json.gz", "ab", "b.json.gz"]
+
+
 @pytest.mark.skipif(adsb.samples_dir() is None, reason="traffic's sample files are not installed")
 def test_quickstart_flights_split_by_flight(tmp_path):
     spec = real.RealSpec(max_flights=12, splits=(0.5, 0.25, 0.25))

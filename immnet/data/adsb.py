@@ -187,7 +187,7 @@ def _floats(col: list, name: str, path: Path) -> np.ndarray:
 
 def _times(col: list, name: str, path: Path) -> np.ndarray:
     """Epoch seconds from numbers (ms above ``MS_EPOCH``, else s) or ISO 8601 strings (UTC if naive)."""
-    if not any(isinstance(v, str) for v in col):
+    if str not in set(map(type, col)):
         a = _floats(col, name, path)
         return np.where(np.abs(a) > MS_EPOCH, a / 1000.0, a)
     out = np.empty(len(col))
@@ -239,11 +239,17 @@ def read_records(path) -> Records:
     lp = _times(cols["last_position"], "last_position", path)
     t = np.where(np.isfinite(lp), lp, ts)
     icao = cols["icao24"]
-    bad = next((i for i, v in enumerate(icao) if v is not None and not isinstance(v, (str, int))), None)
-    if bad is not None:
+    if not set(map(type, icao)) <= {str, int, type(None)}:
+        bad = next(i for i, v in enumerate(icao) if v is not None and not isinstance(v, (str, int)))
         raise ValueError(f"{path}: record {bad} has icao24 = {icao[bad]!r}, not an address")
-    icao = np.array(["" if v is None else str(v).lower() for v in icao])
-    onground = np.array([bool(v) if isinstance(v, (bool, int, float)) else False for v in cols["onground"]])
+    names = {v: "" if v is None else str(v).lower() for v in set(icao)}  # a few hundred aircraft
+    icao = np.array([names[v] for v in icao])
+    ground = cols["onground"]
+    if set(map(type, ground)) <= {bool, type(None)}:  # the common case, without a Python loop
+        onground = np.array(ground, dtype=object) == True  # noqa: E712 (None and False are not on the ground)
+    else:
+        onground = np.array([bool(v) if isinstance(v, (bool, int, float)) else False for v in ground])
+    onground = onground.astype(bool)
     return Records(path=path, timestamp=ts, t=t, icao24=icao,
                    lat=_floats(cols["latitude"], "latitude", path), lon=_floats(cols["longitude"], "longitude", path),
                    h=_floats(cols["altitude"], "altitude", path) * FEET, onground=onground, exact=np.isfinite(lp))

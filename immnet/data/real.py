@@ -222,12 +222,16 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     flights, sources, counts = [], [], {}
     for name in samples:
         path = adsb.resolve_sample(name)
+        digest = adsb.file_digest(path)
+        twice = next((s["name"] for s in sources if s["sha256"] == digest), None)
+        if twice is not None:  # its flights would be counted twice, and could land in two splits
+            raise ValueError(f"{path}: the same file as sample {twice!r}; give each sample once")
         rec = adsb.read_records(path)
         got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points)
         flights += got.flights
         for k, v in got.counts.items():
             counts[k] = counts.get(k, 0) + v
-        sources.append({"name": str(name), "file": path.name, "sha256": adsb.file_digest(path), "counts": got.counts})
+        sources.append({"name": str(name), "file": path.name, "sha256": digest, "counts": got.counts})
         _log(progress, f"read {name}: {got.counts['rows']} rows, {got.counts['flights']} flights, "
                        f"{got.counts['fresh_points']} fresh points ({time.perf_counter() - start:.1f} s)")
     if not flights:
