@@ -243,3 +243,18 @@ def test_cli_on_a_synthetic_file(tmp_path, monkeypatch, capsys):
     assert ((td["r"] >= 2) & (td["r"] <= 3)).all()
     assert immnet.cli.main(["data", "adsb", "--samples", "nowhere/none", "--out", str(tmp_path / "x"), "--quiet"]) == 2
     assert "no ADS-B sample 'nowhere/none'" in capsys.readouterr().err
+
+
+def test_evaluate_a_real_set(tmp_path, monkeypatch, capsys):
+    """The sets have no mode labels: trackers are scored without a mode accuracy, the clairvoyant bounds
+    are refused by name (explicitly) or skipped with a note (by default)."""
+    sample = _write(tmp_path / "s.json.gz", _records(n_aircraft=2, n=200))
+    real.make_adsb(tmp_path / "o", [sample], real.RealSpec(T=50, splits=(0, 0, 1), max_range=60_000))
+    out = tmp_path / "r.json"
+    args = ["evaluate", "--data", str(tmp_path / "o" / "test"), "--split", "all", "--guard", "none", "--quiet"]
+    assert immnet.cli.main([*args, "--methods", "imm-ekf", "--json", str(out)]) == 0
+    row = json.loads(out.read_text())["methods"]["imm-ekf"]
+    assert "mode_accuracy" not in row and row["rmse"]["avg"] > 0
+    assert "mode acc" not in capsys.readouterr().out
+    assert immnet.cli.main([*args, "--methods", "imm-ekf,clairvoyant"]) == 2
+    assert "clairvoyant needs the true mode at every scan" in capsys.readouterr().err
