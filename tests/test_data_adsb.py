@@ -173,6 +173,14 @@ def test_written_sets_load_split_by_flight_same_bytes(tmp_path):
         e = arrays["measurements"] - arrays["states"][..., [0, 3, 6]]
         assert np.all((arrays["r"] >= 1) & (arrays["r"] <= 7)) and 1 < np.sqrt(np.mean(e ** 2)) < 7
         assert load_dataset(tmp_path / "a" / f"{split}.npz")[0].batch_size == td.batch_size
+    # the splits train as they are: a set labelled at no scan, validation and test kept by flight
+    from immnet.data.datamodule import LASTDataModule
+
+    dm = LASTDataModule(str(tmp_path / "a" / "train"), val_data=str(tmp_path / "a" / "val"),
+                        test_data=str(tmp_path / "a" / "test"), batch_size=4)
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["states"].shape == (4, 50, 9) and (batch["mode"] == -1).all()
+    assert len(dm.split("val")) == meta["counts"]["windows"]["val"]
     real.make_adsb(tmp_path / "b", [sample], SMALL, seed=3, npz=True)
     assert _digest(tmp_path / "a") == _digest(tmp_path / "b")
     real.make_adsb(tmp_path / "c", [sample], SMALL, seed=4)
