@@ -212,8 +212,17 @@ def test_several_samples_and_a_failed_write_leaves_nothing(tmp_path, monkeypatch
     meta = real.make_adsb(tmp_path / "ab", [a, b], spec)
     assert [s["file"] for s in meta["samples"]] == ["a.json.gz", "b.json.gz"] and meta["counts"]["flights"] == 4
     assert meta["counts"]["rows"] == sum(c["rows"] for c in meta["counts_per_sample"].values()) == 800
+    assert set(meta["sites"]) == {a, b} and meta["site_from"] == "median of each sample" and meta["skipped"] == []
     with pytest.raises(ValueError, match="the same file as sample"):
         real.make_adsb(tmp_path / "aa", [a, a], spec)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"name": "an airspace", "shapes": []}')
+    with pytest.raises(ValueError, match="expected a JSON list of records"):
+        real.make_adsb(tmp_path / "ab2", [a, str(bad), b], spec)
+    meta2 = real.make_adsb(tmp_path / "ab2", [a, str(bad), b], spec, skip_unreadable=True)
+    assert meta2["skipped"] == [{"name": str(bad), "error": meta2["skipped"][0]["error"]}]
+    assert meta2["skipped"][0]["error"].startswith("bad.json: expected a JSON list")  # the file's name, not its path
+    assert meta2["flights"] == meta["flights"]
 
     def fail(*args, **kwargs):
         raise RuntimeError("disk full")
@@ -221,7 +230,7 @@ def test_several_samples_and_a_failed_write_leaves_nothing(tmp_path, monkeypatch
     monkeypatch.setattr("immnet.data.storage.write_arrays", fail)
     with pytest.raises(RuntimeError, match="disk full"):
         real.make_adsb(tmp_path / "x", [a], spec)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json.gz", "ab", "b.json.gz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json.gz", "ab", "ab2", "b.json.gz", "bad.json"]
 
 
 @pytest.mark.skipif(adsb.samples_dir() is None, reason="traffic's sample files are not installed")
@@ -247,7 +256,7 @@ def test_cli_on_a_synthetic_file(tmp_path, monkeypatch, capsys):
     assert immnet.cli.main(args) == 0
     assert "flights with windows" in capsys.readouterr().out
     td, meta = load_dataset(out / "train")
-    assert td["states"].shape[1:] == (60, 9) and meta["site"]["from"] == "given" and meta["seed"] == 1
+    assert td["states"].shape[1:] == (60, 9) and meta["site_from"] == "given" and meta["seed"] == 1
     assert ((td["r"] >= 2) & (td["r"] <= 3)).all()
     assert immnet.cli.main(["data", "adsb", "--samples", "nowhere/none", "--out", str(tmp_path / "x"), "--quiet"]) == 2
     assert "no ADS-B sample 'nowhere/none'" in capsys.readouterr().err

@@ -268,6 +268,7 @@ class Flight:
     lon: np.ndarray
     h: np.ndarray
     exact_time: np.ndarray
+    sample: str = ""  # the sample it comes from (set by its reader's caller)
 
 
 @dataclass

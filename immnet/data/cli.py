@@ -102,13 +102,15 @@ def _adsb(args) -> int:
 
     spec = RealSpec(T=args.T, dt=args.dt, dt_jitter=args.dt_jitter, p_miss=args.p_miss, r_min=args.r[0],
                     r_max=args.r[1], max_range=args.max_range, splits=args.splits, max_gap=args.max_gap,
-                    max_flights=args.max_flights)
+                    max_flights=args.max_flights, truth_gap=args.truth_gap)
     meta = make_adsb(args.out, args.samples, spec, seed=args.seed, site=args.site, npz=args.npz,
-                     overwrite=args.overwrite, progress=not args.quiet)
+                     overwrite=args.overwrite, progress=not args.quiet, skip_unreadable=args.skip_unreadable)
     c = meta["counts"]
     wins = ", ".join(f"{k} {v}" for k, v in c["windows"].items() if v)
     print(f"wrote {args.out}: {c['flights_with_windows']} flights with windows ({wins}); {c['fresh_points']} fresh "
           f"points, {c['stale']} stale and {c['glitch']} glitch rows removed ({meta['seconds']:.1f} s)")
+    if meta["skipped"]:
+        print(f"skipped {len(meta['skipped'])} unreadable sample(s): {', '.join(s['name'] for s in meta['skipped'])}")
     return 0
 
 
@@ -164,11 +166,17 @@ def register(subparsers) -> None:
     a.add_argument("--splits", type=_splits, default=(0.7, 0.15, 0.15), metavar="TRAIN,VAL,TEST",
                    help="fractions of flights (default 0.7,0.15,0.15), or all-test")
     a.add_argument("--site", type=_floats(3, "LAT,LON,H such as 48.9,2.5,0"), default=None, metavar="LAT,LON,H",
-                   help="radar site (degrees, degrees, m; default the samples' median position at height 0)")
+                   help="radar site for every sample (degrees, degrees, m; default: each sample's own radar at the "
+                        "median position of its flights, height 0)")
     a.add_argument("--max-range", type=float, default=200_000.0, help="radar coverage, slant range (m, default 200000)")
     a.add_argument("--max-gap", type=float, default=600.0, help="a longer gap starts a new flight (s, default 600)")
+    a.add_argument("--truth-gap", type=float, default=5.0,
+                   help="a scan has truth only between fresh positions at most this far apart (s, default 5; "
+                        "samples of state vectors every 10 s need more)")
     a.add_argument("--max-flights", type=int, default=0, help="only the first N flights by id (default 0: all)")
     a.add_argument("--npz", action="store_true", help="also write OUT/<split>.npz")
+    a.add_argument("--skip-unreadable", action="store_true",
+                   help="skip a sample that is not readable state vectors (listed in meta.json) instead of stopping")
     a.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     a.add_argument("--quiet", action="store_true", help="no progress lines")
     a.set_defaults(func=_adsb)

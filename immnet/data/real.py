@@ -127,11 +127,12 @@ def _measurement_var(f: adsb.Flight, enu: np.ndarray, spec: RealSpec) -> np.ndar
     return np.stack([h, h, np.full_like(h, spec.sigma_v ** 2)], -1)
 
 
-def truth(flights: list[adsb.Flight], site, spec: RealSpec, seed: int, progress: bool = False) -> list[dict]:
+def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, progress: bool = False) -> list[dict]:
     """Per flight: scan times ``t [S]``, truth ``states [S, 9]`` (NaN rows without truth) and ``valid [S]``
-    (truth and radar coverage), from the smoother over fresh positions and scans (module docstring)."""
+    (truth and radar coverage), from the smoother over fresh positions and scans (module docstring).
+    ``sites``: the radar site ``(lat, lon, h)`` of each flight."""
     prepared = []
-    for f in flights:
+    for f, site in zip(flights, sites):
         rng = _rng(seed, f.id)
         scans = radar.scan_times(f.t[0], f.t[-1], spec.dt, spec.dt_jitter, rng)
         enu = geodetic_to_enu(f.lat, f.lon, f.h, site)
@@ -206,11 +207,15 @@ def split_counts(n: int, fractions) -> list[int]:
 
 
 def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 0, site=None,
-              npz: bool = False, overwrite: bool = False, progress: bool = False) -> dict:
+              npz: bool = False, overwrite: bool = False, progress: bool = False,
+              skip_unreadable: bool = False) -> dict:
     """Build the data sets ``out/{train,val,test}`` from ADS-B samples (names or files); return the meta.
 
-    ``site``: ``(lat, lon, h)`` of the radar, default the median position of the samples at height 0. A
-    split with fraction 0 is not written. ``npz``: also ``out/<split>.npz``.
+    ``site``: ``(lat, lon, h)`` of the radar for every sample; default one radar per sample, at the median
+    position of its flights at height 0 (samples from several regions each get their own). A split with
+    fraction 0 is not written. ``npz``: also ``out/<split>.npz``. ``skip_unreadable``: a sample refused
+    by :func:`immnet.data.adsb.read_records` (not state vectors, malformed) is skipped and listed in
+    ``meta.json``'s ``skipped`` instead of stopping the run.
     """
     from immnet.data.storage import REAL_FORMAT, _check_out, export_npz, write_arrays
 
@@ -219,15 +224,29 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     if not samples:
         raise ValueError("no ADS-B samples given")
     _check_out(out, overwrite)
-    flights, sources, counts = [], [], {}
+    flights, sources, counts, skipped, sites = [], [], {}, [], {}
     for name in samples:
         path = adsb.resolve_sample(name)
         digest = adsb.file_digest(path)
         twice = next((s["name"] for s in sources if s["sha256"] == digest), None)
         if twice is not None:  # its flights would be counted twice, and could land in two splits
             raise ValueError(f"{path}: the same file as sample {twice!r}; give each sample once")
-        rec = adsb.read_records(path)
+        try:
+            rec = adsb.read_records(path)
+        except ValueError as err:
+            if not skip_unreadable:
+                raise
+            why = str(err).replace(str(path), path.name)  # no machine's paths in meta.json
+            skipped.append({"name": str(name), "error": why})
+            _log(progress, f"skipped {name}: {why}")
+            continue
         got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points)
+        for f in got.flights:
+            f.sample = str(name)
+        if got.flights:
+            sites[str(name)] = (tuple(float(v) for v in site) if site is not None else
+                                radar.median_site(np.concatenate([f.lat for f in got.flights]),
+                                                  np.concatenate([f.lon for f in got.flights])))
         flights += got.flights
         for k, v in got.counts.items():
             counts[k] = counts.get(k, 0) + v
@@ -243,13 +262,7 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
             f.id = f"{f.id}#{seen[f.id]}"
     if spec.max_flights:
         flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
-    if site is None:
-        lat = np.concatenate([f.lat for f in flights])
-        lon = np.concatenate([f.lon for f in flights])
-        site, site_from = radar.median_site(lat, lon), "median"
-    else:
-        site, site_from = tuple(float(v) for v in site), "given"
-    prepared = truth(flights, site, spec, seed, progress)
+    prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
     rows = {}
     for p in sorted(prepared, key=lambda p: p["flight"].id):
         wins = []
@@ -260,9 +273,16 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
             wins.append((st, z, r, p["scans"][s : s + spec.T] - p["scans"][s]))
         if wins:
             rows[p["flight"].id] = wins
+        c = next(src["counts"] for src in sources if src["name"] == p["flight"].sample)
+        c["windows"] = c.get("windows", 0) + len(wins)
+        c["flights_with_windows"] = c.get("flights_with_windows", 0) + bool(wins)
+    for src in sources:
+        src["counts"].setdefault("windows", 0)
+        src["counts"].setdefault("flights_with_windows", 0)
     ids = sorted(rows)
     if not ids:
-        raise ValueError(f"no window of T={spec.T} scans with truth within {spec.max_range:g} m of the site {site}")
+        raise ValueError(f"no window of T={spec.T} scans with truth within {spec.max_range:g} m of the radar "
+                         f"({', '.join(f'{k}: {v}' for k, v in sites.items())})")
     perm = np.random.default_rng([int(seed), 1]).permutation(len(ids))
     n_train, n_val, _ = split_counts(len(ids), spec.splits)
     member = {"train": perm[:n_train], "val": perm[n_train : n_train + n_val], "test": perm[n_train + n_val :]}
@@ -272,7 +292,8 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     meta = {
         "format": REAL_FORMAT, "format_version": FORMAT_VERSION, "seed": int(seed),
         "samples": [{k: v for k, v in s.items() if k != "counts"} for s in sources],
-        "site": {"lat": site[0], "lon": site[1], "h": site[2], "from": site_from},
+        "site_from": "given" if site is not None else "median of each sample",
+        "sites": {k: {"lat": v[0], "lon": v[1], "h": v[2]} for k, v in sites.items()}, "skipped": skipped,
         "params": spec.to_dict(), "counts": counts, "counts_per_sample": {s["name"]: s["counts"] for s in sources},
         "flights": members,
     }
