@@ -118,6 +118,12 @@ def _has_truth(fresh_t: np.ndarray, scans: np.ndarray, gap: float) -> np.ndarray
     return at | (inside & (span <= gap))
 
 
+def _longest_run(mask: np.ndarray) -> int:
+    """The length of the longest run of True in ``mask``."""
+    edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(np.int8), 0]))
+    return int((edges[1::2] - edges[::2]).max()) if len(edges) else 0
+
+
 def _measurement_var(f: adsb.Flight, enu: np.ndarray, spec: RealSpec) -> np.ndarray:
     """Variance ``[n, 3]`` of each fresh position: ``sigma_h^2 + (v time_sigma)^2`` horizontally (``v`` the
     speed between neighbouring points) where the point is timed by its row, ``sigma_v^2`` vertically."""
@@ -136,16 +142,23 @@ def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, pr
         rng = _rng(seed, f.id)
         scans = radar.scan_times(f.t[0], f.t[-1], spec.dt, spec.dt_jitter, rng)
         enu = geodetic_to_enu(f.lat, f.lon, f.h, site)
-        prepared.append(dict(flight=f, rng=rng, scans=scans, enu=enu, var=_measurement_var(f, enu, spec)))
+        ok = _has_truth(f.t, scans, spec.truth_gap)
+        prepared.append(dict(flight=f, rng=rng, scans=scans, enu=enu, var=_measurement_var(f, enu, spec), ok=ok))
     steps = [len(p["scans"]) + len(p["flight"].t) for p in prepared]
-    order = sorted(range(len(prepared)), key=lambda i: steps[i])
+    # a flight without T scans of truth in a row can have no window: it is not smoothed (nothing else changes)
+    short = [i for i, p in enumerate(prepared) if _longest_run(p["ok"]) < spec.T]
+    for i in short:
+        p = prepared[i]
+        p["states"], p["valid"] = np.full((len(p["scans"]), 9), np.nan), np.zeros(len(p["scans"]), bool)
+    order = sorted(set(range(len(prepared))) - set(short), key=lambda i: (steps[i], i))
     chunks, c = [], []
     for i in order:  # flights of similar lengths together, at most `chunk` x 3 tracks of steps per chunk
         if c and steps[i] * 3 * (len(c) + 1) > spec.chunk:
             chunks.append(c)
             c = []
         c.append(i)
-    chunks.append(c)
+    if c:
+        chunks.append(c)
     q = np.array([spec.q_h, spec.q_h, spec.q_v])
     done = 0
     for members in chunks:
@@ -166,8 +179,7 @@ def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, pr
         xs = rts_smooth(t, z, var, np.tile(q, len(chunk)))
         for j, p in enumerate(chunk):
             s = xs[p["where"], 3 * j : 3 * j + 3].reshape(-1, 9)  # [S, axis, (p, v, a)] -> the 9-state layout
-            f = p["flight"]
-            ok = _has_truth(f.t, p["scans"], spec.truth_gap)
+            ok = p["ok"]
             s[~ok] = np.nan
             p["states"] = s
             p["valid"] = ok & radar.covered(np.nan_to_num(s[:, [0, 3, 6]], nan=np.inf), spec.max_range, spec.min_elevation)
