@@ -2,7 +2,8 @@
 
 ``generate`` makes trajectories in memory, ``write_dataset`` / ``load_dataset`` / ``export_npz``
 handle data sets on disk (memmapped directory or ``.npz``), ``LASTDataModule`` batches them for
-training and ``LASTEnv`` streams them to a tracker policy. See ``docs/data.md``.
+training and ``LASTEnv`` streams them to a tracker policy. ``immnet.data.real.make_adsb`` makes data sets of
+real ADS-B flights seen by a simulated radar. See ``docs/data.md``.
 """
 
 from immnet.data.generate import BLOCK, generate

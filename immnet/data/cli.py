@@ -1,10 +1,11 @@
-"""``immnet data generate|merge|export|plot``: make, convert and look at 3D-LAST data sets.
+"""``immnet data generate|merge|export|plot|adsb``: make, convert and look at 3D-LAST data sets; real flights.
 
     immnet data generate --out data/train --n 100000 --seed 0 [--single-mode ct+] [--config configs/data/tiny.yaml] [--workers 2]
     immnet data generate --out data/train-1 --n 1000000 --seed 0 --shard 1/4      # shard 1 of 4 (one machine's part)
     immnet data merge --out data/train data/train-0 data/train-1 data/train-2 data/train-3
     immnet data export --data data/train --out train.npz
     immnet data plot --data data/train --out trajectories.png [--n 400] [--seed 0]
+    immnet data adsb --samples collections/quickstart --out data/real/quickstart [--T 200] [--dt 1] [--seed 0]
 """
 
 from __future__ import annotations
@@ -75,8 +76,46 @@ def _plot(args) -> int:
     return 0
 
 
+def _floats(n: int, what: str):
+    """An argparse type: ``n`` comma-separated numbers."""
+
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            vals = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            vals = ()
+        if len(vals) != n:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return vals
+
+    return parse
+
+
+def _splits(text: str) -> tuple[float, float, float]:
+    if text == "all-test":
+        return 0.0, 0.0, 1.0
+    return _floats(3, "TRAIN,VAL,TEST fractions such as 0.7,0.15,0.15 (or all-test)")(text)
+
+
+def _adsb(args) -> int:
+    from immnet.data.real import RealSpec, make_adsb
+
+    spec = RealSpec(T=args.T, dt=args.dt, dt_jitter=args.dt_jitter, p_miss=args.p_miss, r_min=args.r[0],
+                    r_max=args.r[1], max_range=args.max_range, splits=args.splits, max_gap=args.max_gap,
+                    max_flights=args.max_flights, truth_gap=args.truth_gap)
+    meta = make_adsb(args.out, args.samples, spec, seed=args.seed, site=args.site, npz=args.npz,
+                     overwrite=args.overwrite, progress=not args.quiet, skip_unreadable=args.skip_unreadable)
+    c = meta["counts"]
+    wins = ", ".join(f"{k} {v}" for k, v in c["windows"].items() if v)
+    print(f"wrote {args.out}: {c['flights_with_windows']} flights with windows ({wins}); {c['fresh_points']} fresh "
+          f"points, {c['stale']} stale and {c['glitch']} glitch rows removed ({meta['seconds']:.1f} s)")
+    if meta["skipped"]:
+        print(f"skipped {len(meta['skipped'])} unreadable sample(s): {', '.join(s['name'] for s in meta['skipped'])}")
+    return 0
+
+
 def register(subparsers) -> None:
-    data = subparsers.add_parser("data", help="generate, merge, export and plot 3D-LAST data sets",
+    data = subparsers.add_parser("data", help="generate, merge, export and plot 3D-LAST data sets; real ADS-B flights",
                                  description=__doc__.splitlines()[0])
     sub = data.add_subparsers(dest="data_command", required=True, metavar="ACTION")
 
@@ -112,3 +151,32 @@ def register(subparsers) -> None:
     p.add_argument("--n", type=int, default=400, help="trajectories to draw (default 400)")
     p.add_argument("--seed", type=int, default=0, help="seed of the random sample")
     p.set_defaults(func=_plot)
+
+    a = sub.add_parser("adsb", help="real ADS-B flights seen by a simulated radar, split by flight (docs/data.md)")
+    a.add_argument("--samples", required=True, nargs="+", metavar="SAMPLE",
+                   help="sample names of traffic's data/samples (e.g. collections/quickstart) or JSON files")
+    a.add_argument("--out", required=True, type=Path, help="output directory: OUT/train, OUT/val, OUT/test")
+    a.add_argument("--T", type=int, default=200, help="scans per window (default 200)")
+    a.add_argument("--dt", type=float, default=1.0, help="scan interval, or its mean with --dt-jitter (s, default 1)")
+    a.add_argument("--dt-jitter", type=float, default=0.0, help="intervals U[dt - j, dt + j] (s, default 0)")
+    a.add_argument("--p-miss", type=float, default=0.0, help="missed-detection probability (default 0)")
+    a.add_argument("--r", type=_floats(2, "RMIN,RMAX such as 1,7"), default=(1.0, 7.0), metavar="RMIN,RMAX",
+                   help="measurement noise std per window, U[RMIN, RMAX] (m, default 1,7)")
+    a.add_argument("--seed", type=int, default=0)
+    a.add_argument("--splits", type=_splits, default=(0.7, 0.15, 0.15), metavar="TRAIN,VAL,TEST",
+                   help="fractions of flights (default 0.7,0.15,0.15), or all-test")
+    a.add_argument("--site", type=_floats(3, "LAT,LON,H such as 48.9,2.5,0"), default=None, metavar="LAT,LON,H",
+                   help="radar site for every sample (degrees, degrees, m; default: each sample's own radar at the "
+                        "median position of its flights, height 0)")
+    a.add_argument("--max-range", type=float, default=200_000.0, help="radar coverage, slant range (m, default 200000)")
+    a.add_argument("--max-gap", type=float, default=600.0, help="a longer gap starts a new flight (s, default 600)")
+    a.add_argument("--truth-gap", type=float, default=5.0,
+                   help="a scan has truth only between fresh positions at most this far apart (s, default 5; "
+                        "samples of state vectors every 10 s need more)")
+    a.add_argument("--max-flights", type=int, default=0, help="only the first N flights by id (default 0: all)")
+    a.add_argument("--npz", action="store_true", help="also write OUT/<split>.npz")
+    a.add_argument("--skip-unreadable", action="store_true",
+                   help="skip a sample that is not readable state vectors (listed in meta.json) instead of stopping")
+    a.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
+    a.add_argument("--quiet", action="store_true", help="no progress lines")
+    a.set_defaults(func=_adsb)

@@ -1,5 +1,8 @@
 """3D-LAST data sets on disk: a memory-mapped TensorDict directory, or an ``.npz`` interchange file.
 
+Sets of real flights (:mod:`immnet.data.real`, format ``adsb``) share the directory layout; they are
+written whole by :func:`write_arrays`.
+
 A data set directory::
 
     DIR/meta.json      spec version, seed, n, single_mode, every DataSpec parameter, counts per mode, dtypes
@@ -46,6 +49,9 @@ from immnet.motion import MODE_NAMES
 META = "meta.json"
 TENSORS = "tensors"
 FORMAT = "3d-last"
+REAL_FORMAT = "adsb"
+"""The format tag of a set of real flights seen by a simulated radar (:mod:`immnet.data.real`)."""
+FORMATS = (FORMAT, REAL_FORMAT)
 STORE_DTYPES = {
     keys.STATES: torch.float32, keys.MEASUREMENTS: torch.float32, keys.MODE: torch.int64,
     keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32, keys.TIME: torch.float64,
@@ -152,6 +158,26 @@ def _write_meta(directory: Path, meta: dict) -> None:
     (directory / META).write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n")  # strict JSON
 
 
+def write_arrays(directory, arrays: dict, meta: dict) -> Path:
+    """Write whole arrays (numpy ``[N, ...]``, the keys of ``STORE_DTYPES``) as the data set directory
+    ``directory`` (created; it must not exist: the caller writes it inside a :func:`publishing` sibling).
+
+    The arrays are checked (:func:`immnet.data.contract.check_arrays`) and stored in ``STORE_DTYPES``;
+    ``meta`` (which names its ``format``) gets ``n``, ``T``, ``counts_per_mode`` and ``dtype`` added.
+    """
+    directory = Path(directory)
+    n, T = check_arrays(arrays, str(directory))
+    data = {k: torch.from_numpy(np.ascontiguousarray(np.asarray(arrays[k]))).to(STORE_DTYPES[k])
+            for k in STORE_DTYPES if k in arrays}
+    directory.mkdir()
+    TensorDict(data, batch_size=[n]).memmap_(directory / TENSORS)
+    counts = _mode_counts(data[keys.MODE]) if keys.MODE in data else [0] * len(MODE_NAMES)
+    meta = {**meta, "n": int(n), "T": int(T), "counts_per_mode": dict(zip(MODE_NAMES, counts)),
+            "dtype": {k: str(v).removeprefix("torch.") for k, v in STORE_DTYPES.items() if k in data}}
+    _write_meta(directory, meta)
+    return directory
+
+
 def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | None = None,
                   overwrite: bool = False, workers: int = 1, progress: bool = False,
                   shard: tuple[int, int] | None = None) -> Path:
@@ -225,9 +251,9 @@ def _load_dir(path: Path) -> tuple[TensorDict, dict]:
         meta = json.loads(meta_path.read_text())
     except json.JSONDecodeError as err:
         raise ValueError(f"{meta_path}: not valid JSON ({err})") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+    if not isinstance(meta, dict) or meta.get("format") not in FORMATS:
         got = meta.get("format") if isinstance(meta, dict) else meta
-        raise ValueError(f"{meta_path}: format is {got!r}, expected {FORMAT!r}")
+        raise ValueError(f"{meta_path}: format is {got!r}, expected one of {', '.join(map(repr, FORMATS))}")
     if int(meta.get("spec_version", -1)) > SPEC_VERSION:
         raise ValueError(f"{meta_path}: spec version {meta.get('spec_version')} is newer than {SPEC_VERSION}")
     for k in ("n", "T", "counts_per_mode"):

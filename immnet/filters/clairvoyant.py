@@ -89,6 +89,14 @@ class ClairvoyantKF(Method):
                     f"(sigma_q {self.sigma_q:g}); give --sigma-q for data generated with another")
         return None
 
+    def check(self, batch: TensorDict) -> None:
+        """As every method's, and a ValueError where a scan has no mode label (``mode`` -1: real flights,
+        padding): the bound needs the true mode at every scan."""
+        super().check(batch)
+        if bool((torch.as_tensor(batch[keys.MODE]) < 0).any()):
+            raise ValueError(f"{self.name} needs the true mode at every scan (ground truth); this data has scans "
+                             f"without a label (mode -1: real flights, or padding)")
+
     def _inputs(self, batch: TensorDict):
         """``z [B, T, 3]``, ``mode [B, T]``, ``turn_rate [B, T]``, ``r [B]`` in this method's dtype, and the
         interval of scan ``t`` as a function ``interval(t)``: a float where every scan's is one value, else

@@ -1,0 +1,353 @@
+"""Real ADS-B flights: read a sample file, clean it and cut it into flights (docs/data.md, "Real flights").
+
+A sample is a JSON file of ADS-B state vectors, one record per aircraft and time: ``timestamp``
+(epoch, ms or s, or an ISO 8601 string), ``icao24`` (the transponder's address), ``latitude``,
+``longitude`` (degrees), ``altitude`` (barometric, feet) and optionally ``onground`` and
+``last_position`` (the time of the position message). The ``traffic`` package ships such samples in
+its wheel; they are read as data (``json``), the package itself is never imported.
+
+Cleaning, per aircraft in time order (each step counted in :class:`Flights`' ``counts``):
+
+1. on-ground rows are dropped (``onground``), so are airborne rows with a null required field (``incomplete``);
+2. **fresh positions only**: ADS-B state vectors repeat the last decoded position until the next
+   position message, so a row is kept only where ``(latitude, longitude)`` differs from the previous
+   row's (``stale``). A position is timed by ``last_position`` where the record has it, else by
+   ``timestamp``; a position not later than the previous kept one is dropped (``duplicate_time``);
+3. **glitches**: a point is dropped (``glitch``) when, from the previous kept point ``dt`` seconds
+   before, it implies a horizontal distance beyond ``max_speed (dt + time_slack)`` or an altitude change
+   beyond ``max_climb (dt + time_slack)`` (``time_slack`` covers positions timed to whole seconds). After
+   ``MAX_STREAK`` glitches in a row the previous point is the doubtful one: the track restarts there;
+4. **flights**: a gap of more than ``max_gap`` seconds between kept points (or a restart) starts a new
+   flight; flights of fewer than ``min_points`` points are dropped (``short``).
+
+Altitudes are barometric (pressure altitude, ISA), converted from feet to metres and used as the height
+above the ellipsoid: the difference is a slowly varying offset that a simulated radar's truth does not
+need to know.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import importlib.util
+import json
+import math
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from immnet.data.geodesy import geodetic_to_ecef, local_step
+
+FEET = 0.3048
+"""Metres per foot."""
+REQUIRED = ("timestamp", "icao24", "latitude", "longitude", "altitude")
+SUFFIXES = (".json.gz", ".json", ".jsonl.gz", ".jsonl")
+MAX_STREAK = 5
+"""Glitches in a row after which a track restarts at the next point."""
+MS_EPOCH = 1e11
+"""A numeric timestamp above this is in milliseconds (1e11 s is the year 5138; 1e11 ms is 1973)."""
+
+
+# --- finding a sample --------------------------------------------------------------------------
+def samples_dir() -> Path | None:
+    """``<traffic>/data/samples`` of an installed ``traffic`` package (found, not imported), or None."""
+    try:
+        spec = importlib.util.find_spec("traffic")
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    for loc in spec.submodule_search_locations:
+        d = Path(loc) / "data" / "samples"
+        if d.is_dir():
+            return d
+    return None
+
+
+def available_samples(root: Path | None = None) -> list[str]:
+    """The sample names under ``root`` (default :func:`samples_dir`): paths without their suffix."""
+    root = samples_dir() if root is None else Path(root)
+    if root is None:
+        return []
+    names = []
+    for p in root.rglob("*"):
+        for suf in SUFFIXES:
+            if p.is_file() and p.name.endswith(suf):
+                names.append(p.relative_to(root).as_posix()[: -len(suf)])
+    return sorted(names)
+
+
+def resolve_sample(name) -> Path:
+    """A file path as given, or a sample name such as ``collections/quickstart`` -> its file."""
+    p = Path(name)
+    if p.is_file():
+        return p
+    root = samples_dir()
+    if root is not None and ".." not in p.parts and not p.is_absolute():
+        for suf in SUFFIXES:
+            candidate = root / f"{p.as_posix()}{suf}"
+            if candidate.is_file():
+                return candidate
+    if root is None:
+        hint = ("no sample directory: traffic's sample files are not installed "
+                "(pip install --no-deps 'traffic==2.13', or pip install 'immnet[real]')")
+    else:
+        names = available_samples(root)
+        hint = f"available samples in {root}: {', '.join(names)}"
+    raise FileNotFoundError(f"no ADS-B sample {str(name)!r}: neither a file nor a sample name; {hint}")
+
+
+def file_digest(path) -> str:
+    """The SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# --- reading ------------------------------------------------------------------------------------
+def _load_json(path: Path):
+    """The JSON value of a file (gzip decompressed, whatever its name; ``.jsonl``: a list of its lines' values)."""
+    try:
+        with open(path, "rb") as f:
+            zipped = f.read(2) == b"\x1f\x8b"
+        opener = gzip.open if zipped else open
+        with opener(path, "rt", encoding="utf-8") as f:
+            if ".jsonl" in path.name:
+                out = []
+                for i, line in enumerate(f, 1):
+                    if line.strip():
+                        try:
+                            out.append(json.loads(line))
+                        except json.JSONDecodeError as err:
+                            raise ValueError(f"{path}: line {i} is not valid JSON ({err})") from None
+                return out
+            return json.load(f)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    except (OSError, EOFError, UnicodeDecodeError, gzip.BadGzipFile) as err:
+        raise ValueError(f"{path}: cannot be read ({type(err).__name__}: {err})") from None
+
+
+def _columns(value, path: Path, fields) -> dict[str, list]:
+    """Columns of the records: a list of objects, or pandas' ``columns`` orientation ``{field: {row: v}}``."""
+    if isinstance(value, list):
+        for i, r in enumerate(value):
+            if not isinstance(r, dict):
+                raise ValueError(f"{path}: record {i} is a {type(r).__name__}, not an object of fields")
+        cols = {}
+        for k in fields:
+            try:
+                cols[k] = [r[k] for r in value]
+            except KeyError:
+                if k in REQUIRED:
+                    i = next(i for i, r in enumerate(value) if k not in r)
+                    raise ValueError(f"{path}: record {i} lacks the required field {k!r} (has {sorted(value[i])}; "
+                                     f"required: {', '.join(REQUIRED)})") from None
+                cols[k] = [r.get(k) for r in value]
+        return cols
+    if isinstance(value, dict) and value and all(isinstance(v, (dict, list)) for v in value.values()):
+        missing = [k for k in REQUIRED if k not in value]
+        if missing:
+            raise ValueError(f"{path}: the columns lack the required field(s) {', '.join(map(repr, missing))} "
+                             f"(has {sorted(value)})")
+        first = value[REQUIRED[0]]
+        index = list(first) if isinstance(first, dict) else None
+        n = len(first)
+        cols = {}
+        for k in fields:
+            if k not in value:
+                cols[k] = [None] * n
+                continue
+            c = value[k]
+            try:
+                cols[k] = [c[i] for i in index] if index is not None else list(c)
+            except (KeyError, TypeError):
+                raise ValueError(f"{path}: column {k!r} does not have the rows of column {REQUIRED[0]!r}") from None
+            if len(cols[k]) != n:
+                raise ValueError(f"{path}: column {k!r} has {len(cols[k])} rows, {REQUIRED[0]!r} has {n}")
+        return cols
+    raise ValueError(f"{path}: expected a JSON list of records (or an object of columns), got a "
+                     f"{type(value).__name__}{' with fields ' + str(sorted(value)[:8]) if isinstance(value, dict) else ''}")
+
+
+def _floats(col: list, name: str, path: Path) -> np.ndarray:
+    try:
+        a = np.array(col, dtype=np.float64)  # None -> NaN (a null value: the row is incomplete)
+    except (TypeError, ValueError):
+        i = next(i for i, v in enumerate(col) if v is not None and not isinstance(v, (int, float)))
+        raise ValueError(f"{path}: record {i} has {name} = {col[i]!r}, not a number") from None
+    if a.ndim != 1:
+        raise ValueError(f"{path}: field {name!r} holds lists, not numbers")
+    return a
+
+
+def _times(col: list, name: str, path: Path) -> np.ndarray:
+    """Epoch seconds from numbers (ms above ``MS_EPOCH``, else s) or ISO 8601 strings (UTC if naive)."""
+    if str not in set(map(type, col)):
+        a = _floats(col, name, path)
+        return np.where(np.abs(a) > MS_EPOCH, a / 1000.0, a)
+    out = np.empty(len(col))
+    for i, v in enumerate(col):
+        if v is None:
+            out[i] = np.nan
+        elif isinstance(v, str):
+            try:
+                d = datetime.fromisoformat(v.strip().replace("Z", "+00:00"))
+            except ValueError:
+                raise ValueError(f"{path}: record {i} has {name} = {v!r}, neither epoch seconds/ms nor ISO 8601") from None
+            out[i] = (d if d.tzinfo else d.replace(tzinfo=timezone.utc)).timestamp()
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[i] = v / 1000.0 if abs(v) > MS_EPOCH else v
+        else:
+            raise ValueError(f"{path}: record {i} has {name} = {v!r}, not a time")
+    return out
+
+
+@dataclass
+class Records:
+    """One sample's rows as columns: ``t`` (position time, epoch s), ``icao24``, ``lat``, ``lon`` (degrees),
+    ``h`` (barometric altitude, m), ``onground``; ``timestamp`` (the row's own time, epoch s); ``exact``:
+    the position is timed by its ``last_position``, not by the row."""
+
+    path: Path
+    timestamp: np.ndarray
+    t: np.ndarray
+    icao24: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    h: np.ndarray
+    onground: np.ndarray
+    exact: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def read_records(path) -> Records:
+    """Read one sample file (``.json[.gz]``: a list of records or an object of columns; ``.jsonl[.gz]``: a
+    record per line). Nothing in the file is executed. A ValueError names the file and what is wrong."""
+    path = Path(path)
+    value = _load_json(path)
+    cols = _columns(value, path, (*REQUIRED, "onground", "last_position"))
+    if not cols["timestamp"]:
+        raise ValueError(f"{path}: holds no records")
+    ts = _times(cols["timestamp"], "timestamp", path)
+    lp = _times(cols["last_position"], "last_position", path)
+    t = np.where(np.isfinite(lp), lp, ts)
+    icao = cols["icao24"]
+    if not set(map(type, icao)) <= {str, int, type(None)}:
+        bad = next(i for i, v in enumerate(icao) if v is not None and not isinstance(v, (str, int)))
+        raise ValueError(f"{path}: record {bad} has icao24 = {icao[bad]!r}, not an address")
+    names = {v: "" if v is None else str(v).lower() for v in set(icao)}  # a few hundred aircraft
+    icao = np.array([names[v] for v in icao])
+    ground = cols["onground"]
+    if set(map(type, ground)) <= {bool, type(None)}:  # the common case, without a Python loop
+        onground = np.array(ground, dtype=object) == True  # noqa: E712 (None and False are not on the ground)
+    else:
+        onground = np.array([bool(v) if isinstance(v, (bool, int, float)) else False for v in ground])
+    onground = onground.astype(bool)
+    return Records(path=path, timestamp=ts, t=t, icao24=icao,
+                   lat=_floats(cols["latitude"], "latitude", path), lon=_floats(cols["longitude"], "longitude", path),
+                   h=_floats(cols["altitude"], "altitude", path) * FEET, onground=onground, exact=np.isfinite(lp))
+
+
+# --- flights ------------------------------------------------------------------------------------
+@dataclass
+class Flight:
+    """One flight's fresh, clean positions: ``t`` (epoch s, increasing), ``lat``, ``lon`` (degrees), ``h`` (m);
+    ``exact_time``: each position timed by its ``last_position`` (else by its row, to whole seconds)."""
+
+    id: str
+    icao24: str
+    t: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    h: np.ndarray
+    exact_time: np.ndarray
+    sample: str = ""  # the sample it comes from (set by its reader's caller)
+
+
+@dataclass
+class Flights:
+    flights: list[Flight]
+    counts: dict = field(default_factory=dict)
+
+
+def _glitches(t, lat, lon, h, max_speed, max_climb, time_slack, max_gap) -> tuple[np.ndarray, np.ndarray]:
+    """``(keep, restart)`` masks over one aircraft's fresh points (see the module docstring, step 3)."""
+    n = len(t)
+    keep = np.ones(n, bool)
+    restart = np.zeros(n, bool)
+    if n < 2:
+        return keep, restart
+    dt = np.diff(t)
+    step = local_step(lat, lon)
+    climb = np.abs(np.diff(h))
+    ok = (step <= max_speed * (dt + time_slack)) & (climb <= max_climb * (dt + time_slack))
+    if ok.all():  # the common case: no glitch in the whole sequence
+        return keep, restart
+    ref, streak = 0, 0
+    xyz = geodetic_to_ecef(lat, lon, np.zeros(n)).tolist()  # plain floats: one distance per step below
+    t, h = t.tolist(), h.tolist()
+    for i in range(1, n):
+        gap = t[i] - t[ref]
+        if gap > max_gap:
+            ref, streak = i, 0
+            continue
+        d = math.dist(xyz[ref], xyz[i])
+        if d <= max_speed * (gap + time_slack) and abs(h[i] - h[ref]) <= max_climb * (gap + time_slack):
+            ref, streak = i, 0
+            continue
+        streak += 1
+        keep[i] = False
+        if streak > MAX_STREAK:  # the reference was the doubtful one: restart here
+            keep[i], restart[i] = True, True
+            ref, streak = i, 0
+    return keep, restart
+
+
+def flights(records: Records, max_gap: float = 600.0, max_speed: float = 350.0, max_climb: float = 100.0,
+            time_slack: float = 0.5, min_points: int = 10) -> Flights:
+    """Clean one sample's rows and cut them into flights (the module docstring's steps 1-4)."""
+    r = records
+    counts = {"rows": len(r)}
+    counts["onground"] = int(r.onground.sum())
+    good = np.isfinite(r.t) & np.isfinite(r.lat) & np.isfinite(r.lon) & np.isfinite(r.h) & (r.icao24 != "")
+    air = good & ~r.onground
+    counts["incomplete"] = int((~good & ~r.onground).sum())
+    idx = np.flatnonzero(air)
+    order = idx[np.lexsort((r.timestamp[idx], r.icao24[idx]))]  # by aircraft, then row time (stable)
+    icao, lat, lon, h, t, ex = r.icao24[order], r.lat[order], r.lon[order], r.h[order], r.t[order], r.exact[order]
+    first = np.r_[True, icao[1:] != icao[:-1]]
+    fresh = first | np.r_[True, (lat[1:] != lat[:-1]) | (lon[1:] != lon[:-1])]
+    counts["stale"] = int((~fresh).sum())
+    sel = np.flatnonzero(fresh)
+    icao, lat, lon, h, t, ex = icao[sel], lat[sel], lon[sel], h[sel], t[sel], ex[sel]
+    out: list[Flight] = []
+    counts.update(duplicate_time=0, glitch=0, short=0)
+    starts = np.flatnonzero(np.r_[True, icao[1:] != icao[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], len(icao)]):
+        ta, la, lo, ha, xa = t[a:b], lat[a:b], lon[a:b], h[a:b], ex[a:b]
+        later = np.r_[True, ta[1:] > np.maximum.accumulate(ta)[:-1]]  # strictly after every earlier point
+        counts["duplicate_time"] += int((~later).sum())
+        ta, la, lo, ha, xa = ta[later], la[later], lo[later], ha[later], xa[later]
+        keep, restart = _glitches(ta, la, lo, ha, max_speed, max_climb, time_slack, max_gap)
+        counts["glitch"] += int((~keep).sum())
+        cut = restart[keep]
+        ta, la, lo, ha, xa = ta[keep], la[keep], lo[keep], ha[keep], xa[keep]
+        cut |= np.r_[True, np.diff(ta) > max_gap]
+        bounds = np.r_[np.flatnonzero(cut), len(ta)]
+        for s, e in zip(bounds[:-1], bounds[1:]):
+            if e - s < min_points:
+                counts["short"] += int(e - s)
+                continue
+            fid = f"{icao[a]}-{int(math.floor(ta[s]))}"
+            out.append(Flight(fid, str(icao[a]), ta[s:e].copy(), la[s:e].copy(), lo[s:e].copy(), ha[s:e].copy(),
+                              xa[s:e].copy()))
+    counts["flights"] = len(out)
+    counts["fresh_points"] = int(sum(len(f.t) for f in out))
+    return Flights(out, counts)

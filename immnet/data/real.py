@@ -1,0 +1,330 @@
+"""Data sets of real flights seen by a simulated radar: ``immnet data adsb`` (docs/data.md, "Real flights").
+
+Pipeline: read and clean ADS-B samples into flights (:mod:`immnet.data.adsb`); convert their fresh
+positions to the radar site's east-north-up frame (:mod:`immnet.data.geodesy`); lay each flight's scan
+times (:func:`immnet.data.radar.scan_times`); smooth the fresh positions with the white-jerk RTS smoother
+over the union of their times and the scan times (:mod:`immnet.data.smoother`), evaluated at the scans:
+the truth ``[p, v, a]`` per axis; cut windows of ``T`` scans that are wholly covered by the radar and have
+truth; measure them (:func:`immnet.data.radar.measure`); split by flight into train/val/test data set
+directories that :func:`immnet.data.storage.load_dataset` loads.
+
+A scan has truth only where it lies between two fresh positions at most ``truth_gap`` seconds apart: the
+smoother does not invent a trajectory over a gap in the data.
+
+Every random draw comes from a generator seeded by ``(seed, crc32(flight id))`` (per flight: the scan
+grid's offset and intervals, the windows' offsets, each window's ``r``, noise and misses, in that order)
+or ``(seed, 1)`` (the permutation of flights into splits), so the same samples, parameters and seed give
+the same bytes, and one flight's data do not depend on the other flights.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from immnet import keys
+from immnet.data import adsb, radar
+from immnet.data.contract import NO_LABEL
+from immnet.data.geodesy import geodetic_to_enu
+from immnet.data.scratch import publishing
+from immnet.data.smoother import rts_smooth
+
+SPLITS = ("train", "val", "test")
+FORMAT_VERSION = 1
+KNOT = 1852.0 / 3600.0
+
+
+@dataclass(frozen=True)
+class RealSpec:
+    """Every parameter of ``immnet data adsb`` (stored in ``meta.json`` as ``params``)."""
+
+    T: int = 200  # scans per window
+    dt: float = 1.0  # scan interval (s), or its mean with dt_jitter
+    dt_jitter: float = 0.0  # intervals U[dt - dt_jitter, dt + dt_jitter]
+    p_miss: float = 0.0  # probability of a missed detection (scans after the second)
+    r_min: float = 1.0  # measurement noise std per window, U[r_min, r_max] (m)
+    r_max: float = 7.0
+    max_range: float = 200_000.0  # slant range of the radar's coverage (m)
+    min_elevation: float = 0.0  # lowest elevation the radar sees (degrees): its horizon
+    splits: tuple = (0.7, 0.15, 0.15)  # fractions of flights: train, val, test
+    max_gap: float = 600.0  # a longer gap between fresh positions starts a new flight (s)
+    max_speed: float = 350.0  # glitch: horizontal speed beyond this (m/s) ...
+    max_climb: float = 100.0  # ... or vertical speed beyond this (m/s) from the previous kept point
+    time_slack: float = 0.5  # allowed timing error of a position in the glitch test (s)
+    min_points: int = 10  # shorter flights are dropped
+    sigma_h: float = 5.0  # ADS-B horizontal position noise (m), per axis
+    sigma_v: float = 3.0  # ADS-B altitude noise (m): its 25 ft quantization
+    time_sigma: float = 0.3  # timing error (s) of a position timed by its row (no last_position): 1 s rounding
+    q_h: float = 1.0  # white-jerk spectral density of the truth, horizontal (m^2/s^5)
+    q_v: float = 0.1  # and vertical
+    truth_gap: float = 5.0  # a scan has truth only between fresh positions at most this far apart (s)
+    max_flights: int = 0  # only the first max_flights flights by id (0: all): a quick look at a large sample
+    chunk: int = 1_000_000  # steps x tracks smoothed at once (memory: about 100 bytes each; a longer flight alone)
+
+    def __post_init__(self):
+        bad = [f.name for f in dataclasses.fields(self) if f.name != "splits"
+               and not np.isfinite(float(getattr(self, f.name)))]
+        if bad:
+            raise ValueError(f"parameter(s) {', '.join(bad)} must be finite numbers")
+        if self.T < 1 or self.min_points < 2 or self.chunk < 1 or self.max_flights < 0:
+            raise ValueError(f"T >= 1, min_points >= 2, chunk >= 1 and max_flights >= 0 needed, got {self.T}, "
+                             f"{self.min_points}, {self.chunk}, {self.max_flights}")
+        if not (self.dt > 0 and 0 <= self.dt_jitter < self.dt):
+            raise ValueError(f"the scan interval needs dt > 0 and 0 <= dt_jitter < dt, got {self.dt}, {self.dt_jitter}")
+        if not (0 < self.r_min <= self.r_max):
+            raise ValueError(f"the noise levels need 0 < r_min <= r_max, got {self.r_min}, {self.r_max}")
+        if not 0 <= self.p_miss < 1:
+            raise ValueError(f"p_miss must be in [0, 1), got {self.p_miss}")
+        s = tuple(float(f) for f in self.splits)
+        if len(s) != 3 or min(s) < 0 or abs(sum(s) - 1) > 1e-9:
+            raise ValueError(f"splits must be three fractions >= 0 (train, val, test) summing to 1, got {self.splits}")
+        for name in ("max_range", "max_gap", "max_speed", "max_climb", "sigma_h", "sigma_v", "q_h", "q_v", "truth_gap"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["splits"] = [float(f) for f in self.splits]
+        return d
+
+
+def _log(progress: bool, msg: str) -> None:
+    if progress:
+        print(f"[adsb] {msg}", file=sys.stderr, flush=True)
+
+
+def _rng(seed: int, fid: str) -> np.random.Generator:
+    return np.random.default_rng([int(seed), 0, zlib.crc32(fid.encode())])
+
+
+def turn_rate(states: np.ndarray) -> np.ndarray:
+    """The horizontal turn rate ``(vx ay - vy ax) / (vx^2 + vy^2)`` (rad/s) of states ``[..., 9]``."""
+    vx, ax, vy, ay = states[..., 1], states[..., 2], states[..., 4], states[..., 5]
+    return (vx * ay - vy * ax) / np.maximum(vx * vx + vy * vy, 1e-9)
+
+
+def _has_truth(fresh_t: np.ndarray, scans: np.ndarray, gap: float) -> np.ndarray:
+    """Scans between two fresh positions at most ``gap`` apart (or at one)."""
+    i = np.searchsorted(fresh_t, scans, side="right")  # fresh_t[i - 1] <= scan < fresh_t[i]
+    at = (i > 0) & (fresh_t[np.maximum(i - 1, 0)] == scans)
+    inside = (i > 0) & (i < len(fresh_t))
+    span = fresh_t[np.minimum(i, len(fresh_t) - 1)] - fresh_t[np.maximum(i - 1, 0)]
+    return at | (inside & (span <= gap))
+
+
+def _longest_run(mask: np.ndarray) -> int:
+    """The length of the longest run of True in ``mask``."""
+    edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(np.int8), 0]))
+    return int((edges[1::2] - edges[::2]).max()) if len(edges) else 0
+
+
+def _measurement_var(f: adsb.Flight, enu: np.ndarray, spec: RealSpec) -> np.ndarray:
+    """Variance ``[n, 3]`` of each fresh position: ``sigma_h^2 + (v time_sigma)^2`` horizontally (``v`` the
+    speed between neighbouring points) where the point is timed by its row, ``sigma_v^2`` vertically."""
+    step = np.linalg.norm(np.diff(enu[:, :2], axis=0), axis=1) / np.maximum(np.diff(f.t), 1e-3)
+    speed = np.r_[step[:1], (step[:-1] + step[1:]) / 2, step[-1:]] if len(step) else np.zeros(1)
+    h = spec.sigma_h ** 2 + np.where(f.exact_time, 0.0, (speed * spec.time_sigma) ** 2)
+    return np.stack([h, h, np.full_like(h, spec.sigma_v ** 2)], -1)
+
+
+def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, progress: bool = False) -> list[dict]:
+    """Per flight: scan times ``t [S]``, truth ``states [S, 9]`` (NaN rows without truth) and ``valid [S]``
+    (truth and radar coverage), from the smoother over fresh positions and scans (module docstring).
+    ``sites``: the radar site ``(lat, lon, h)`` of each flight."""
+    prepared = []
+    for f, site in zip(flights, sites):
+        rng = _rng(seed, f.id)
+        scans = radar.scan_times(f.t[0], f.t[-1], spec.dt, spec.dt_jitter, rng)
+        enu = geodetic_to_enu(f.lat, f.lon, f.h, site)
+        ok = _has_truth(f.t, scans, spec.truth_gap)
+        prepared.append(dict(flight=f, rng=rng, scans=scans, enu=enu, var=_measurement_var(f, enu, spec), ok=ok))
+    steps = [len(p["scans"]) + len(p["flight"].t) for p in prepared]
+    # a flight without T scans of truth in a row can have no window: it is not smoothed (nothing else changes)
+    short = [i for i, p in enumerate(prepared) if _longest_run(p["ok"]) < spec.T]
+    for i in short:
+        p = prepared[i]
+        p["states"], p["valid"] = np.full((len(p["scans"]), 9), np.nan), np.zeros(len(p["scans"]), bool)
+    order = sorted(set(range(len(prepared))) - set(short), key=lambda i: (steps[i], i))
+    chunks, c = [], []
+    for i in order:  # flights of similar lengths together, at most `chunk` x 3 tracks of steps per chunk
+        if c and steps[i] * 3 * (len(c) + 1) > spec.chunk:
+            chunks.append(c)
+            c = []
+        c.append(i)
+    if c:
+        chunks.append(c)
+    q = np.array([spec.q_h, spec.q_h, spec.q_v])
+    done = 0
+    for members in chunks:
+        chunk = [prepared[i] for i in members]
+        K, B = max(steps[i] for i in members), 3 * len(chunk)
+        t, z, var = np.empty((K, B)), np.full((K, B), np.nan), np.ones((K, B))
+        for j, p in enumerate(chunk):
+            f = p["flight"]
+            times = np.r_[f.t - f.t[0], p["scans"] - f.t[0]]
+            srt = np.argsort(times, kind="stable")
+            p["where"] = np.flatnonzero(srt >= len(f.t))  # the steps of the scans, in scan order
+            n = len(times)
+            zz = np.r_[p["enu"], np.full((len(p["scans"]), 3), np.nan)][srt]
+            vv = np.r_[p["var"], np.ones((len(p["scans"]), 3))][srt]
+            t[:n, 3 * j : 3 * j + 3] = times[srt][:, None]
+            t[n:, 3 * j : 3 * j + 3] = times[srt][-1]
+            z[:n, 3 * j : 3 * j + 3], var[:n, 3 * j : 3 * j + 3] = zz, vv
+        xs = rts_smooth(t, z, var, np.tile(q, len(chunk)))
+        for j, p in enumerate(chunk):
+            s = xs[p["where"], 3 * j : 3 * j + 3].reshape(-1, 9)  # [S, axis, (p, v, a)] -> the 9-state layout
+            ok = p["ok"]
+            s[~ok] = np.nan
+            p["states"] = s
+            p["valid"] = ok & radar.covered(np.nan_to_num(s[:, [0, 3, 6]], nan=np.inf), spec.max_range, spec.min_elevation)
+        done += len(chunk)
+        _log(progress, f"truth: {done}/{len(order)} flights smoothed")
+    return prepared
+
+
+def windows(p: dict, spec: RealSpec) -> list[int]:
+    """Start indices of non-overlapping windows of ``T`` valid scans: in each run of valid scans of length
+    ``L``, from a random offset in ``0..L mod T`` on."""
+    v = p["valid"]
+    edges = np.flatnonzero(np.diff(np.r_[0, v.astype(np.int8), 0]))
+    starts = []
+    for a, b in zip(edges[::2], edges[1::2]):
+        L = b - a
+        if L < spec.T:
+            continue
+        s0 = a + int(p["rng"].integers(0, L % spec.T + 1))
+        starts += list(range(s0, b - spec.T + 1, spec.T))
+    return starts
+
+
+def split_counts(n: int, fractions) -> list[int]:
+    """Flights per split: ``round(f n)`` for validation and test (at least 1 where ``f > 0``), the rest to
+    train; a ValueError if a split with ``f > 0`` would be empty."""
+    f_train, f_val, f_test = (float(f) for f in fractions)
+    val = max(int(round(f_val * n)), 1 if f_val > 0 else 0)
+    test = max(int(round(f_test * n)), 1 if f_test > 0 else 0)
+    train = n - val - test
+    if f_train == 0:
+        val, train = val + train, 0
+    if train < 0 or (f_train > 0 and train < 1):
+        raise ValueError(f"{n} flight(s) with windows cannot fill the splits {list(fractions)} (each split with a "
+                         f"positive fraction needs a flight); use fewer splits or more data")
+    return [train, val, test]
+
+
+def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 0, site=None,
+              npz: bool = False, overwrite: bool = False, progress: bool = False,
+              skip_unreadable: bool = False) -> dict:
+    """Build the data sets ``out/{train,val,test}`` from ADS-B samples (names or files); return the meta.
+
+    ``site``: ``(lat, lon, h)`` of the radar for every sample; default one radar per sample, at the median
+    position of its flights at height 0 (samples from several regions each get their own). A split with
+    fraction 0 is not written. ``npz``: also ``out/<split>.npz``. ``skip_unreadable``: a sample refused
+    by :func:`immnet.data.adsb.read_records` (not state vectors, malformed) is skipped and listed in
+    ``meta.json``'s ``skipped`` instead of stopping the run.
+    """
+    from immnet.data.storage import REAL_FORMAT, _check_out, export_npz, write_arrays
+
+    start = time.perf_counter()
+    out = Path(out)
+    if not samples:
+        raise ValueError("no ADS-B samples given")
+    _check_out(out, overwrite)
+    flights, sources, counts, skipped, sites = [], [], {}, [], {}
+    for name in samples:
+        path = adsb.resolve_sample(name)
+        digest = adsb.file_digest(path)
+        twice = next((s["name"] for s in sources if s["sha256"] == digest), None)
+        if twice is not None:  # its flights would be counted twice, and could land in two splits
+            raise ValueError(f"{path}: the same file as sample {twice!r}; give each sample once")
+        try:
+            rec = adsb.read_records(path)
+        except ValueError as err:
+            if not skip_unreadable:
+                raise
+            why = str(err).replace(str(path), path.name)  # no machine's paths in meta.json
+            skipped.append({"name": str(name), "error": why})
+            _log(progress, f"skipped {name}: {why}")
+            continue
+        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points)
+        for f in got.flights:
+            f.sample = str(name)
+        if got.flights:
+            sites[str(name)] = (tuple(float(v) for v in site) if site is not None else
+                                radar.median_site(np.concatenate([f.lat for f in got.flights]),
+                                                  np.concatenate([f.lon for f in got.flights])))
+        flights += got.flights
+        for k, v in got.counts.items():
+            counts[k] = counts.get(k, 0) + v
+        sources.append({"name": str(name), "file": path.name, "sha256": digest, "counts": got.counts})
+        _log(progress, f"read {name}: {got.counts['rows']} rows, {got.counts['flights']} flights, "
+                       f"{got.counts['fresh_points']} fresh points ({time.perf_counter() - start:.1f} s)")
+    if not flights:
+        raise ValueError(f"no flight of at least {spec.min_points} airborne fresh positions in {', '.join(map(str, samples))}")
+    seen: dict[str, int] = {}
+    for f in flights:  # unique ids across samples: a repeated one gets #2, #3, ...
+        seen[f.id] = seen.get(f.id, 0) + 1
+        if seen[f.id] > 1:
+            f.id = f"{f.id}#{seen[f.id]}"
+    if spec.max_flights:
+        flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
+    prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
+    rows = {}
+    for p in sorted(prepared, key=lambda p: p["flight"].id):
+        wins = []
+        for s in windows(p, spec):
+            st = p["states"][s : s + spec.T]
+            r = float(p["rng"].uniform(spec.r_min, spec.r_max))
+            z = radar.measure(st[:, [0, 3, 6]], r, spec.p_miss, p["rng"])
+            wins.append((st, z, r, p["scans"][s : s + spec.T] - p["scans"][s]))
+        if wins:
+            rows[p["flight"].id] = wins
+        c = next(src["counts"] for src in sources if src["name"] == p["flight"].sample)
+        c["windows"] = c.get("windows", 0) + len(wins)
+        c["flights_with_windows"] = c.get("flights_with_windows", 0) + bool(wins)
+    for src in sources:
+        src["counts"].setdefault("windows", 0)
+        src["counts"].setdefault("flights_with_windows", 0)
+    ids = sorted(rows)
+    if not ids:
+        raise ValueError(f"no window of T={spec.T} scans with truth within {spec.max_range:g} m of the radar "
+                         f"({', '.join(f'{k}: {v}' for k, v in sites.items())})")
+    perm = np.random.default_rng([int(seed), 1]).permutation(len(ids))
+    n_train, n_val, _ = split_counts(len(ids), spec.splits)
+    member = {"train": perm[:n_train], "val": perm[n_train : n_train + n_val], "test": perm[n_train + n_val :]}
+    members = {k: sorted(ids[i] for i in v) for k, v in member.items()}
+    counts["windows"] = {k: sum(len(rows[i]) for i in members[k]) for k in SPLITS}
+    counts["flights_with_windows"] = len(ids)
+    meta = {
+        "format": REAL_FORMAT, "format_version": FORMAT_VERSION, "seed": int(seed),
+        "samples": [{k: v for k, v in s.items() if k != "counts"} for s in sources],
+        "site_from": "given" if site is not None else "median of each sample",
+        "sites": {k: {"lat": v[0], "lon": v[1], "h": v[2]} for k, v in sites.items()}, "skipped": skipped,
+        "params": spec.to_dict(), "counts": counts, "counts_per_sample": {s["name"]: s["counts"] for s in sources},
+        "flights": members,
+    }
+    with publishing(out) as tmp:
+        tmp.mkdir()
+        for split in SPLITS:
+            wins = [w for i in members[split] for w in rows[i]]
+            if not wins:
+                continue
+            states = np.stack([w[0] for w in wins])
+            arrays = {
+                keys.STATES: states, keys.MEASUREMENTS: np.stack([w[1] for w in wins]),
+                keys.MODE: np.full(states.shape[:2], NO_LABEL, np.int64), keys.TURN_RATE: turn_rate(states),
+                keys.R: np.array([w[2] for w in wins]), keys.DT: np.full(len(wins), spec.dt),
+                keys.TIME: np.stack([w[3] for w in wins]),
+            }
+            write_arrays(tmp / split, arrays, {**meta, "split": split})
+            if npz:
+                export_npz(tmp / split, tmp / f"{split}.npz")
+            _log(progress, f"wrote {split}: {len(wins)} windows of {len(members[split])} flights")
+    meta["seconds"] = round(time.perf_counter() - start, 2)
+    return meta

@@ -1,0 +1,277 @@
+"""Real flights (``immnet data adsb``): reading, cleaning, the smoother, windows, splits, bytes, the CLI.
+
+Most tests use small synthetic samples written to tmp_path; one runs on traffic's ``quickstart`` sample
+where its files are installed (scripts/setup.sh installs them)."""
+
+import gzip
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+import immnet.cli
+from immnet.data import adsb, real
+from immnet.data.contract import check_arrays
+from immnet.data.geodesy import enu_to_geodetic
+from immnet.data.smoother import rts_smooth
+from immnet.data.storage import load_dataset
+
+SITE = (48.9, 2.45, 0.0)
+T0 = 1_633_608_000_000  # ms epoch
+
+
+def _track(k: int, n: int, rng) -> np.ndarray:
+    """ENU positions [n, 3] at 1 s of aircraft k: straight, then a 1.5 deg/s turn, climbing."""
+    speed, heading = 140.0 + 10 * k, rng.uniform(0, 2 * np.pi)
+    w = np.where(np.arange(n) > n // 2, np.radians(1.5) * (-1) ** k, 0.0)
+    psi = heading + np.cumsum(w)
+    v = speed * np.stack([np.sin(psi), np.cos(psi)], -1)
+    xy = rng.uniform(-30e3, 30e3, 2) + np.cumsum(v, 0)
+    z = 3000.0 + 5.0 * np.arange(n)
+    return np.c_[xy, z]
+
+
+def _records(n_aircraft=6, n=400, seed=0, stale=False) -> list[dict]:
+    rng = np.random.default_rng(seed)
+    recs = []
+    for k in range(n_aircraft):
+        lat, lon, h = enu_to_geodetic(_track(k, n, rng), SITE)
+        icao = f"abc{k:03d}"
+        for i in range(n):
+            alt_ft = 25.0 * round(h[i] / 0.3048 / 25.0)
+            rec = {"timestamp": T0 + 1000 * (2 * i if stale else i), "icao24": icao, "latitude": float(lat[i]),
+                   "longitude": float(lon[i]), "altitude": alt_ft, "onground": False, "callsign": f"T{k}"}
+            recs.append(rec)
+            if stale:  # the state vector one second later repeats the position
+                recs.append({**rec, "timestamp": rec["timestamp"] + 1000})
+    return recs
+
+
+def _write(path, recs) -> str:
+    with gzip.open(path, "wt") as f:
+        json.dump(recs, f)
+    return str(path)
+
+
+def _digest(d) -> str:
+    h = hashlib.sha256()
+    for p in sorted(d.rglob("*")):
+        if p.is_file():
+            h.update(p.relative_to(d).as_posix().encode())
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+SMALL = real.RealSpec(T=50, splits=(0.5, 0.25, 0.25), max_range=60_000)
+
+
+def test_stale_positions_removed(tmp_path):
+    recs = _records(n_aircraft=2, n=100, stale=True)
+    got = adsb.flights(adsb.read_records(_write(tmp_path / "s.json.gz", recs)))
+    assert got.counts["rows"] == 400 and got.counts["stale"] == 200
+    assert got.counts["flights"] == 2 and got.counts["fresh_points"] == 200
+    f = got.flights[0]
+    assert np.all(np.diff(f.t) == 2.0) and f.t[0] == T0 / 1000  # the fresh rows, at their own times
+
+
+def test_glitch_dropped_and_counted_ground_and_gaps(tmp_path):
+    recs = _records(n_aircraft=1, n=300)
+    recs[100] = {**recs[100], "latitude": recs[100]["latitude"] + 0.2}  # 22 km off: a decoding glitch
+    recs[150] = {**recs[150], "altitude": recs[150]["altitude"] + 2000}  # a 600 m jump in one second
+    recs[10] = {**recs[10], "onground": True}
+    recs[20] = {**recs[20], "altitude": None}  # a null value: the row is incomplete
+    for r in recs[200:]:  # a gap of 11 minutes starts a new flight
+        r["timestamp"] += 660_000
+    got = adsb.flights(adsb.read_records(_write(tmp_path / "g.json.gz", recs)))
+    c = got.counts
+    assert (c["glitch"], c["onground"], c["incomplete"]) == (2, 1, 1)
+    assert c["flights"] == 2 and [len(f.t) for f in got.flights] == [196, 100]
+    assert all(np.all(np.diff(f.t) > 0) for f in got.flights)
+    assert np.isclose(got.flights[0].h[0], recs[0]["altitude"] * 0.3048)  # feet -> metres
+
+
+def test_timestamps_in_seconds_or_iso_read_as_ms(tmp_path):
+    recs = _records(n_aircraft=1, n=20)
+    ms = adsb.read_records(_write(tmp_path / "a.json.gz", recs))
+    s = [{**r, "timestamp": r["timestamp"] / 1000} for r in recs]
+    (tmp_path / "b.jsonl").write_text("".join(json.dumps(r) + "\n" for r in s))
+    iso = [{**recs[0], "timestamp": "2021-10-07T12:00:00Z"}]
+    assert np.array_equal(adsb.read_records(tmp_path / "b.jsonl").t, ms.t)
+    one = adsb.read_records(_write(tmp_path / "c.json", iso))  # gzipped under a .json name: read all the same
+    assert one.t[0] == 1633608000.0
+    cols = {k: {str(i): r[k] for i, r in enumerate(recs)} for k in recs[0]}  # pandas' "columns" orientation
+    assert np.array_equal(adsb.read_records(_write(tmp_path / "d.json.gz", cols)).lat, ms.lat)
+
+
+def test_clear_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no ADS-B sample 'collections/nowhere'"):
+        adsb.resolve_sample("collections/nowhere")
+    bad = tmp_path / "bad.json"
+    bad.write_text('[{"timestamp": 1, "icao24": "a", ')
+    with pytest.raises(ValueError, match=r"bad\.json: not valid JSON"):
+        adsb.read_records(bad)
+    trunc = tmp_path / "t.json.gz"
+    whole = gzip.compress(json.dumps(_records(n_aircraft=1, n=50)).encode())
+    trunc.write_bytes(whole[: len(whole) // 2])  # an interrupted download
+    with pytest.raises(ValueError, match=r"t\.json\.gz: cannot be read"):
+        adsb.read_records(trunc)
+    recs = _records(n_aircraft=1, n=5)
+    del recs[3]["altitude"]
+    with pytest.raises(ValueError, match="record 3 lacks the required field 'altitude'"):
+        adsb.read_records(_write(tmp_path / "m.json.gz", recs))
+    with pytest.raises(ValueError, match="expected a JSON list of records"):
+        adsb.read_records(_write(tmp_path / "o.json.gz", {"a": 1}))
+    recs = _records(n_aircraft=1, n=5)
+    recs[2]["latitude"] = "north"
+    with pytest.raises(ValueError, match="record 2 has latitude = 'north', not a number"):
+        adsb.read_records(_write(tmp_path / "n.json.gz", recs))
+
+
+def test_smoother_recovers_constant_acceleration():
+    rng = np.random.default_rng(0)
+    tm = np.sort(rng.uniform(0, 200, 200))  # irregular measurement times
+    ts = np.arange(0.5, 199, 1.0)  # where the truth is wanted
+    t = np.r_[tm, ts]
+    o = np.argsort(t, kind="stable")
+    p0, v0, a = np.array([1e3, -2e3, 3e3]), np.array([150.0, -80.0, 5.0]), np.array([0.8, -0.5, 0.05])
+
+    def true(s):
+        return p0 + v0 * s[:, None] + 0.5 * a * s[:, None] ** 2
+
+    z = np.r_[true(tm) + 5.0 * rng.standard_normal((200, 3)), np.full((len(ts), 3), np.nan)][o]
+    xs = rts_smooth(np.repeat(t[o][:, None], 3, 1), z, np.full_like(z, 25.0), np.full(3, 0.01))[o >= 200]
+    err = xs[..., 0] - true(ts)
+    assert np.sqrt((err ** 2).mean()) < 1.5  # points: 5 m
+    verr = xs[..., 1] - (v0 + a * ts[:, None])
+    assert np.sqrt((verr ** 2).mean()) < 0.3 and np.abs(verr).max() < 1.0  # worst at the ends
+    # consistent states: the velocity is the derivative of the position
+    fd = np.diff(xs[..., 0], axis=0)
+    assert np.abs(fd - (xs[1:, :, 1] + xs[:-1, :, 1]) / 2).max() < 0.01
+
+
+def test_written_sets_load_split_by_flight_same_bytes(tmp_path):
+    sample = _write(tmp_path / "six.json.gz", _records(n_aircraft=8, n=400, stale=False))
+    meta = real.make_adsb(tmp_path / "a", [sample], SMALL, seed=3, npz=True)
+    flights = meta["flights"]
+    assert sum(len(v) for v in flights.values()) == meta["counts"]["flights_with_windows"] == 8
+    assert len(set().union(*flights.values())) == 8  # no flight in two splits
+    assert [len(flights[k]) for k in real.SPLITS] == [4, 2, 2]
+    for split in real.SPLITS:
+        td, m = load_dataset(tmp_path / "a" / split)
+        assert m["format"] == "adsb" and m["split"] == split and m["flights"] == flights
+        assert td.batch_size[0] == meta["counts"]["windows"][split] > 0
+        arrays = {k: td[k].numpy() for k in td.keys()}
+        check_arrays(arrays, split)
+        assert arrays["states"].shape[1:] == (50, 9) and (arrays["mode"] == -1).all()
+        assert np.isfinite(arrays["states"]).all() and (arrays["t"][:, 0] == 0).all()
+        assert np.allclose(np.diff(arrays["t"], axis=1), 1.0)
+        s = arrays["states"].astype(np.float64)
+        w = (s[..., 1] * s[..., 5] - s[..., 4] * s[..., 2]) / (s[..., 1] ** 2 + s[..., 4] ** 2)
+        assert np.allclose(arrays["turn_rate"], w, atol=1e-6)
+        assert np.abs(np.degrees(w)).max() < 2.5  # flown at 1.5 deg/s at most
+        e = arrays["measurements"] - arrays["states"][..., [0, 3, 6]]
+        assert np.all((arrays["r"] >= 1) & (arrays["r"] <= 7)) and 1 < np.sqrt(np.mean(e ** 2)) < 7
+        assert load_dataset(tmp_path / "a" / f"{split}.npz")[0].batch_size == td.batch_size
+    # the splits train as they are: a set labelled at no scan, validation and test kept by flight
+    from immnet.data.datamodule import LASTDataModule
+
+    dm = LASTDataModule(str(tmp_path / "a" / "train"), val_data=str(tmp_path / "a" / "val"),
+                        test_data=str(tmp_path / "a" / "test"), batch_size=4)
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["states"].shape == (4, 50, 9) and (batch["mode"] == -1).all()
+    assert len(dm.split("val")) == meta["counts"]["windows"]["val"]
+    real.make_adsb(tmp_path / "b", [sample], SMALL, seed=3, npz=True)
+    assert _digest(tmp_path / "a") == _digest(tmp_path / "b")
+    real.make_adsb(tmp_path / "c", [sample], SMALL, seed=4)
+    assert load_dataset(tmp_path / "c" / "train")[0]["r"].sum() != load_dataset(tmp_path / "a" / "train")[0]["r"].sum()
+    with pytest.raises(FileExistsError, match="not empty"):
+        real.make_adsb(tmp_path / "a", [sample], SMALL, seed=3)
+
+
+def test_jitter_misses_range_and_all_test(tmp_path):
+    sample = _write(tmp_path / "s.json.gz", _records(n_aircraft=3, n=300))
+    spec = real.RealSpec(T=40, dt=2.0, dt_jitter=0.5, p_miss=0.2, splits=(0, 0, 1), max_range=60_000)
+    meta = real.make_adsb(tmp_path / "o", [sample], spec, seed=0)
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["test"]
+    td, _ = load_dataset(tmp_path / "o" / "test")
+    steps = np.diff(td["t"].numpy(), axis=1)
+    assert steps.min() >= 1.5 and steps.max() <= 2.5 and steps.std() > 0.1
+    miss = np.isnan(td["measurements"].numpy()[..., 0])
+    assert not miss[:, :2].any() and 0.1 < miss[:, 2:].mean() < 0.3
+    assert len(meta["flights"]["test"]) == 3
+    # a site far away: nothing in range, a clear error
+    with pytest.raises(ValueError, match="no window of T=40 scans"):
+        real.make_adsb(tmp_path / "far", [sample], spec, site=(10.0, 2.0, 0.0))
+
+
+def test_several_samples_and_a_failed_write_leaves_nothing(tmp_path, monkeypatch):
+    a = _write(tmp_path / "a.json.gz", _records(n_aircraft=2, n=200, seed=0))
+    b = _write(tmp_path / "b.json.gz", _records(n_aircraft=2, n=200, seed=1))
+    spec = real.RealSpec(T=40, splits=(0, 0, 1), max_range=60_000)
+    meta = real.make_adsb(tmp_path / "ab", [a, b], spec)
+    assert [s["file"] for s in meta["samples"]] == ["a.json.gz", "b.json.gz"] and meta["counts"]["flights"] == 4
+    assert meta["counts"]["rows"] == sum(c["rows"] for c in meta["counts_per_sample"].values()) == 800
+    assert set(meta["sites"]) == {a, b} and meta["site_from"] == "median of each sample" and meta["skipped"] == []
+    with pytest.raises(ValueError, match="the same file as sample"):
+        real.make_adsb(tmp_path / "aa", [a, a], spec)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"name": "an airspace", "shapes": []}')
+    with pytest.raises(ValueError, match="expected a JSON list of records"):
+        real.make_adsb(tmp_path / "ab2", [a, str(bad), b], spec)
+    meta2 = real.make_adsb(tmp_path / "ab2", [a, str(bad), b], spec, skip_unreadable=True)
+    assert meta2["skipped"] == [{"name": str(bad), "error": meta2["skipped"][0]["error"]}]
+    assert meta2["skipped"][0]["error"].startswith("bad.json: expected a JSON list")  # the file's name, not its path
+    assert meta2["flights"] == meta["flights"]
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr("immnet.data.storage.write_arrays", fail)
+    with pytest.raises(RuntimeError, match="disk full"):
+        real.make_adsb(tmp_path / "x", [a], spec)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json.gz", "ab", "ab2", "b.json.gz", "bad.json"]
+
+
+@pytest.mark.skipif(adsb.samples_dir() is None, reason="traffic's sample files are not installed")
+def test_quickstart_flights_split_by_flight(tmp_path):
+    spec = real.RealSpec(max_flights=12, splits=(0.5, 0.25, 0.25))
+    meta = real.make_adsb(tmp_path / "q", ["collections/quickstart"], spec, seed=0)
+    c = meta["counts"]
+    assert c["rows"] == 284505 and c["flights"] == 238 and c["stale"] > 10_000 and c["glitch"] > 0
+    ids = [i for v in meta["flights"].values() for i in v]
+    assert len(ids) == len(set(ids)) == c["flights_with_windows"] > 0
+    for split in real.SPLITS:
+        td, m = load_dataset(tmp_path / "q" / split)
+        assert set(m["flights"][split]) == set(meta["flights"][split])
+        assert np.isfinite(td["states"].numpy()).all()
+
+
+def test_cli_on_a_synthetic_file(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(immnet.cli, "_COMMAND_MODULES", ("immnet.data.cli",))
+    sample = _write(tmp_path / "s.json.gz", _records(n_aircraft=4, n=300))
+    out = tmp_path / "real"
+    args = ["data", "adsb", "--samples", sample, "--out", str(out), "--T", "60", "--splits", "0.5,0.25,0.25",
+            "--r", "2,3", "--site", "48.9,2.45,0", "--max-range", "60000", "--seed", "1", "--quiet"]
+    assert immnet.cli.main(args) == 0
+    assert "flights with windows" in capsys.readouterr().out
+    td, meta = load_dataset(out / "train")
+    assert td["states"].shape[1:] == (60, 9) and meta["site_from"] == "given" and meta["seed"] == 1
+    assert ((td["r"] >= 2) & (td["r"] <= 3)).all()
+    assert immnet.cli.main(["data", "adsb", "--samples", "nowhere/none", "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    assert "no ADS-B sample 'nowhere/none'" in capsys.readouterr().err
+
+
+def test_evaluate_a_real_set(tmp_path, monkeypatch, capsys):
+    """The sets have no mode labels: trackers are scored without a mode accuracy, the clairvoyant bounds
+    are refused by name (explicitly) or skipped with a note (by default)."""
+    sample = _write(tmp_path / "s.json.gz", _records(n_aircraft=2, n=200))
+    real.make_adsb(tmp_path / "o", [sample], real.RealSpec(T=50, splits=(0, 0, 1), max_range=60_000))
+    out = tmp_path / "r.json"
+    args = ["evaluate", "--data", str(tmp_path / "o" / "test"), "--split", "all", "--guard", "none", "--quiet"]
+    assert immnet.cli.main([*args, "--methods", "imm-ekf", "--json", str(out)]) == 0
+    row = json.loads(out.read_text())["methods"]["imm-ekf"]
+    assert "mode_accuracy" not in row and row["rmse"]["avg"] > 0
+    assert "mode acc" not in capsys.readouterr().out
+    assert immnet.cli.main([*args, "--methods", "imm-ekf,clairvoyant"]) == 2
+    assert "clairvoyant needs the true mode at every scan" in capsys.readouterr().err
