@@ -32,6 +32,7 @@ or its fields as a dict) the Markov matrix becomes state-dependent per track and
 (``configs/methods/imm-ekf-guard.yaml``). With ``adapt`` (``immnet.imm.adaptive.AdaptiveNoise``) each
 track's white-acceleration noise is scaled by covariance matching (``configs/methods/imm-ekf-adaptive.yaml``).
 ``p_stay`` 0.995 was chosen on the dev set (seed 21), among 0.98, 0.99, 0.995, 0.998 and 0.999.
+``return_cov``: also ``state_cov [B, T, 9, 9]``, the filters' covariances moment-matched (``IMMNet.rollout``'s).
 """
 
 from __future__ import annotations
