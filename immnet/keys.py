@@ -29,7 +29,7 @@ DATA_KEYS = (STATES, MEASUREMENTS, MODE, TURN_RATE, R, DT, TIME)
 # --- a method's output ------------------------------------------------------------------------
 STATE = "state"
 MODE_PROBS = "mode_probs"
-STATE_COV = "state_cov"  # the fused state's covariance P_{t|t} [B, T, 9, 9], from the methods that keep one
+STATE_COV = "state_cov"  # the fused state's covariance P_{t|t} [B, T, 9, 9], from the methods that keep one (return_cov)
 
 # --- an IMMNet rollout's outputs over time (TensorDict [B, T]), besides ``state`` ------------------
 ROLLOUT_EXPERT_PROBS = "expert_probs"  # mu_t over the experts [B, T, M]
@@ -45,7 +45,7 @@ MEASUREMENT = "measurement"  # z_t [B, 3]
 INTERVAL = "interval"  # the time since the previous scan [B] (s); absent: the network's nominal dt
 PREV_MEASUREMENT = ("memory", "measurement")  # z_{t-1} [B, 3]
 FUSED = ("fused", "state")  # x_{t|t} [B, 9]; read as x_{t-1|t-1} at the start of a step
-FUSED_COV = ("fused", "cov")  # P_{t|t} [B, 9, 9], only with the analytic gain
+FUSED_COV = ("fused", "cov")  # P_{t|t} [B, 9, 9], where the experts carry a covariance (filter experts, the analytic gain)
 PREV_FUSED = ("memory", "fused")  # x_{t-2|t-2} [B, 9]
 EXPERT_PRIOR = ("expert", "prior")  # x_{t|t-1}^(i) [B, M, 9]
 PREV_EXPERT_PRIOR = ("memory", "prior")  # x_{t-1|t-2}^(i) [B, M, 9]

@@ -1,13 +1,17 @@
 """Covariance out and its calibration (``immnet.evaluation.calibration``): a Kalman filter told the true
 linear-Gaussian model is consistent, so its 95 % ellipsoids hold the truth at 95 % of the scans (NEES is
-chi-square with 3 degrees of freedom); a filter told a 4x too small process noise is overconfident."""
+chi-square with 3 degrees of freedom); a filter told a 4x too small process noise is overconfident. On
+3D-LAST the shipped IMMNet's and imm-ekf's fused covariances hold the truth at about the levels they claim."""
 
 import pytest
 import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.evaluation.calibration import chi2_3_cdf, coverage, position_nees
+from immnet.data.generate import generate
+from immnet.data.spec import DataSpec
+from immnet.evaluation.calibration import chi2_3_cdf, coverage, position_nees, track_coverage
+from immnet.evaluation.methods import build_method
 from immnet.filters import IMMTracker, KalmanFilterTracker
 from immnet.filters.per_axis import PerAxisIMMTracker
 from immnet.motion import ConstantAcceleration, ConstantVelocity, ModelSet
@@ -66,3 +70,48 @@ def test_the_imms_covariances_match_the_kalman_filter_with_one_model():
     torch.testing.assert_close(joint, kf, rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(axis, kf, rtol=1e-7, atol=1e-7)
     assert keys.STATE_COV not in KalmanFilterTracker(model, "data", 0.5).track(data).keys()
+
+
+@pytest.fixture(scope="module")
+def last():
+    """3D-LAST, 48 trajectories of 200 scans, a seed no training, tuning or test set uses."""
+    return generate(48, seed=20261202, spec=DataSpec(T=200))
+
+
+@pytest.mark.parametrize("name", ["immnet", "imm-ekf"])
+def test_on_3dlast_the_95_ellipsoid_holds_the_truth_at_about_95_percent(name, last):
+    """Scans 20 on. Measured at 95 % (99 %): on these 48, immnet 0.947 (0.982), imm-ekf 0.937 (0.979); on 300
+    trajectories of seed 99, 0.940 and 0.931 (docs/evaluation.md, "Calibration"), a little less in the 20 s
+    after a switch of mode (0.92, 0.91), where the mode probabilities have not yet moved."""
+    scores = track_coverage(build_method(name, return_cov=True), last, from_scan=20)
+    cov = scores["coverage"]
+    assert 0.90 <= cov[0.95] <= 0.98 and 0.44 <= cov[0.5] <= 0.58 and 0.96 <= cov[0.99], scores
+
+
+def test_the_calibration_script_writes_its_json_and_figure(tmp_path):
+    """``scripts/calibration.py`` (docs/evaluation.md, "Calibration"): the coverages as JSON, the figure as PNG;
+    a method without a covariance is refused by name."""
+    import json
+    import runpy
+    import sys
+
+    from immnet.config import REPO_ROOT
+
+    script = str(REPO_ROOT / "scripts" / "calibration.py")
+    argv = ["calibration.py", "--generate", "6", "--T", "120", "--seed", "3", "--methods", "imm-tuned",
+            "--json", str(tmp_path / "c.json"), "--figure", str(tmp_path / "c.png")]
+    old, sys.argv = sys.argv, argv
+    try:
+        with pytest.raises(SystemExit) as done:
+            runpy.run_path(script, run_name="__main__")
+        assert done.value.code == 0
+        report = json.loads((tmp_path / "c.json").read_text())
+        curve = report["methods"]["imm-tuned"]["coverage"]
+        assert report["trajectories"] == 6 and 0 <= curve["0.95"] <= 1 and len(curve) >= 20
+        assert (tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
+        sys.argv = argv[:7] + ["--methods", "measurements"]
+        with pytest.raises(SystemExit) as refused:
+            runpy.run_path(script, run_name="__main__")
+        assert refused.value.code == 2
+    finally:
+        sys.argv = old

@@ -45,3 +45,32 @@ def coverage(nees: torch.Tensor, mask: torch.Tensor, levels=LEVELS) -> dict[floa
     if u.numel() == 0:
         raise ValueError("no scan with a finite NEES to score")
     return {float(p): float((u <= p).to(torch.float64).mean()) for p in levels}
+
+
+CURVE_LEVELS = tuple(round(0.05 * k, 2) for k in range(1, 20)) + (0.99,)
+"""The confidence levels of a calibration curve (``plot_calibration``): 0.05 to 0.95 by 0.05, and 0.99."""
+
+
+def track_coverage(method, data, from_scan: int = 20, levels=LEVELS) -> dict:
+    """Run ``method`` (its output must hold ``state_cov``) on ``data`` (a 3D-LAST ``TensorDict [N]`` with
+    ``states``) and score its position ellipsoids from scan ``from_scan`` on, where the truth is and the track
+    has started: ``{"coverage": {p: fraction}, "nees_mean": mean NEES (3 when calibrated), "scans": count}``;
+    where the data has its modes, also ``"post_switch"`` and ``"steady"``: the coverage in the scans after a
+    switch of mode (``immnet.evaluation.metrics.post_switch_mask``) and in the others."""
+    from immnet import keys
+    from immnet.evaluation.metrics import post_switch_mask, scored_mask
+
+    out = method.track(data)
+    if keys.STATE_COV not in out.keys():
+        raise ValueError(f"{getattr(method, 'name', method)} gives no state_cov (build it with return_cov=True)")
+    truth = data[keys.STATES]
+    nees = position_nees(out[keys.STATE], out[keys.STATE_COV], truth)
+    mask = scored_mask(truth, data[keys.MEASUREMENTS]).to(nees.device)
+    mask[:, :from_scan] = False
+    ok = mask & torch.isfinite(nees)
+    out = {"coverage": coverage(nees, mask, levels), "nees_mean": float(nees[ok].mean()), "scans": int(ok.sum())}
+    if keys.MODE in data.keys():
+        switch = post_switch_mask(data[keys.MODE]).to(mask.device)
+        out["post_switch"] = coverage(nees, mask & switch, levels)
+        out["steady"] = coverage(nees, mask & ~switch, levels)
+    return out

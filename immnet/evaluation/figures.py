@@ -5,6 +5,8 @@
     horizontal-plane panel at each switch; (c) :func:`plot_mode_probs`: mode probabilities of one
     trajectory against its true modes; (d) :func:`plot_confusion`: a row-normalized confusion
     matrix. :func:`write_figures` writes the set that ``immnet evaluate --figures DIR`` makes.
+(e) :func:`plot_calibration`: coverage of the position ellipsoids against their confidence level
+    (``scripts/calibration.py``).
 """
 
 from __future__ import annotations
@@ -211,3 +213,26 @@ def write_figures(results: Mapping[str, dict], data, cases: Sequence[int], out_d
         if probs and mode is not None:
             written.append(plot_mode_probs(probs, mode, out / f"case{i}_modes.png"))
     return written
+
+
+def plot_calibration(curves: Mapping[str, Mapping[float, float]], path, title="Position ellipsoid coverage"):
+    """Coverage against confidence level, one line per method (``{level: fraction}``, e.g.
+    ``immnet.evaluation.calibration.track_coverage``'s); the diagonal is a calibrated filter, below it an
+    overconfident one (ellipsoids too small), above it a cautious one."""
+    colors = method_colors(list(curves))
+    fig, ax = plt.subplots(figsize=(5.2, 5.0))
+    ax.plot([0, 1], [0, 1], color="k", ls=":", lw=1, label="calibrated")
+    for name, curve in curves.items():
+        points = sorted((float(p), float(c)) for p, c in curve.items())  # levels as floats or JSON's strings
+        ax.plot(*zip(*points), marker=".", color=colors[name], label=name)
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("confidence level p of the position ellipsoid")
+    ax.set_ylabel("fraction of scans whose ellipsoid holds the truth")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -144,7 +144,14 @@ KEEP_GUARD = AS_CONFIGURED
 """``build_method``'s ``guard`` that leaves every method's range guard as configured."""
 
 
-def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None, guard=KEEP_GUARD):
+def gives_cov(name: str, methods_dir: Path | None = None) -> bool:
+    """Whether a method can give its state's covariance ``state_cov`` (its constructor takes ``return_cov``)."""
+    cls, _ = _method_class(name, methods_dir)
+    return "return_cov" in inspect.signature(cls).parameters
+
+
+def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None, guard=KEEP_GUARD,
+                 return_cov: bool = False):
     """The method configured as ``configs/methods/<name>.yaml`` (or a built-in), ready to ``track``.
 
     ``checkpoint`` overrides the YAML's ``init_args.checkpoint``; a relative checkpoint path in
@@ -157,8 +164,13 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
     ``guard`` whose configured value is not off (IMMNet's ``"checkpoint"``, imm-ekf-guard's ``true``). A
     method configured without a guard (imm-ekf) keeps none: ``--guard none`` makes imm-ekf-guard its
     unguarded twin, never the reverse.
+
+    ``return_cov``: a method that can give its state's covariance (:func:`gives_cov`) is built to give it,
+    ``state_cov [B, T, 9, 9]`` in its output; the others are built as configured and give none.
     """
     cls, init_args = _method_class(name, methods_dir)
+    if return_cov and "return_cov" in inspect.signature(cls).parameters:
+        init_args["return_cov"] = True
     if not (isinstance(guard, str) and guard == KEEP_GUARD):
         param = inspect.signature(cls).parameters.get("guard")
         if param is not None and init_args.get("guard", param.default) not in (None, False):

@@ -32,6 +32,7 @@ or its fields as a dict) the Markov matrix becomes state-dependent per track and
 (``configs/methods/imm-ekf-guard.yaml``). With ``adapt`` (``immnet.imm.adaptive.AdaptiveNoise``) each
 track's white-acceleration noise is scaled by covariance matching (``configs/methods/imm-ekf-adaptive.yaml``).
 ``p_stay`` 0.995 was chosen on the dev set (seed 21), among 0.98, 0.99, 0.995, 0.998 and 0.999.
+``return_cov``: also ``state_cov [B, T, 9, 9]``, the filters' covariances moment-matched (``IMMNet.rollout``'s).
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ class IMMEKF(Method):
         spec: dict | None = None,
         dtype="float64",
         name: str = "imm-ekf",
+        return_cov: bool = False,
     ):
         _positive("sigma_q", sigma_q)
         _positive("rate_noise_deg", rate_noise_deg)  # p_stay, r, r0 and k0 are checked by the network's stages
@@ -78,6 +80,7 @@ class IMMEKF(Method):
         self.classifier = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
         self.p_stay, self.guard = float(p_stay), guard  # set once, on the network (IMMNet's SET_ONCE)
         self.dtype, self.name = as_dtype(dtype), name
+        self.return_cov = return_cov  # state_cov: the filters' covariances fused by moment matching (IMMNet.rollout)
         self._nets: dict = {}
         self.network(1.0)  # every argument checked now, not at the first batch
 
@@ -96,8 +99,9 @@ class IMMEKF(Method):
         intervals = scan_intervals(batch, self.dtype, z.device)
         one = fixed_interval(intervals)
         if one is not None:  # one interval for every track and scan: the network at that interval
-            out, _ = self.network(one).to(z.device).rollout(z)
+            out, _ = self.network(one).to(z.device).rollout(z, return_cov=self.return_cov)
         else:  # each scan's interval per track (docs/baselines.md, "Any scan interval")
-            out, _ = self.network(1.0).to(z.device).rollout(z, intervals=intervals)
+            out, _ = self.network(1.0).to(z.device).rollout(z, intervals=intervals, return_cov=self.return_cov)
         probs = data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], self.model_set.modes)
-        return output(out[keys.STATE], {keys.MODE_PROBS: probs}, measurements=z)
+        cov = out[keys.STATE_COV] if self.return_cov else None
+        return output(out[keys.STATE], {keys.MODE_PROBS: probs, keys.STATE_COV: cov}, measurements=z)

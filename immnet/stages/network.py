@@ -178,6 +178,20 @@ class IMMNet(TensorDictModuleBase):
     def n_experts(self) -> int:
         return len(self.model_set)
 
+    @property
+    def has_cov(self) -> bool:
+        """Whether the step writes a fused covariance ``("fused", "cov")``: its experts carry a covariance (filter
+        experts, the analytic gain; ``immnet.stages.fuse``). The paper's KalmanNet experts give a gain only."""
+        return keys.FUSED_COV in {unravel_key(k) for k in self.step.out_keys}
+
+    def no_cov_reason(self) -> str:
+        """Why this network gives no covariance (for an error message), or '' where it gives one."""
+        if self.has_cov:
+            return ""
+        return (f"this IMMNet's experts carry no covariance: its gain {type(self.gain).__name__} gives each expert a "
+                "Kalman gain and nothing else (the paper's KalmanNet experts); filter experts "
+                "(immnet.stages.filtering, the recipes') and the analytic gain carry one")
+
     def to_mode_probs(self, expert_probs: torch.Tensor) -> torch.Tensor:
         """Expert probabilities ``[..., M]`` summed per data mode ``[..., 4]``."""
         return expert_probs @ self.mode_onehot.to(expert_probs.dtype)
@@ -277,6 +291,11 @@ class IMMNet(TensorDictModuleBase):
         start = new.get(keys.FUSED)
         start = start if start.dim() == 3 else start.unsqueeze(1).expand(-1, self.n_experts, -1)
         new.set(keys.EXPERT_POST, torch.where((age < 2)[:, None, None], start, new.get(keys.EXPERT_POST)))
+        if keys.FUSED_COV in out.keys(True, True) and keys.FUSED_COV not in carry_keys:
+            # fused from the experts' covariances, not carried: a starting track's is its start covariance's
+            fresh = step.module[-1].covariance(new, new.get(keys.FUSED))
+            lead = (age < 2).view(-1, *([1] * (fresh.dim() - 1)))
+            new.set(keys.FUSED_COV, torch.where(lead, fresh, new.get(keys.FUSED_COV)))
         return new
 
     # --- a policy -------------------------------------------------------------------------
@@ -319,23 +338,31 @@ class IMMNet(TensorDictModuleBase):
 
     # --- a whole sequence -----------------------------------------------------------------
     def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False,
-                intervals: torch.Tensor | None = None):
+                intervals: torch.Tensor | None = None, return_cov: bool = False):
         """Run over ``measurements [B, T, 3]`` (``[B, M, T, 3]`` experts alone), with the interval before each
         scan ``intervals [B, T]`` (``immnet.data.times.scan_intervals``; None: the nominal ``dt`` at every scan).
 
         Returns ``(outputs, carry)``: ``outputs`` a TensorDict ``[B, T]`` with ``state``
         (``[B, T, 9]``, or ``[B, T, M, 9]`` experts alone), ``expert_probs`` and ``mode_logits``
-        ``[B, T, M]`` and ``expert_post [B, T, M, 9]`` (not experts alone); ``carry`` continues the
-        rollout (truncated BPTT detaches it between chunks).
+        ``[B, T, M]`` and ``expert_post [B, T, M, 9]`` (not experts alone), and with ``return_cov`` the fused
+        covariance ``state_cov [B, T, 9, 9]`` (``[B, T, M, 9, 9]`` experts alone; a ValueError saying why where
+        the experts carry none, ``has_cov``); ``carry`` continues the rollout (truncated BPTT detaches it
+        between chunks).
         """
         B, T = measurements.shape[0], measurements.shape[-2]
+        if return_cov:
+            fuse = self._steps(experts_alone)[-1]
+            if fuse.cov is None:
+                raise ValueError(self.no_cov_reason() or "these experts carry no covariance")
         if carry is None:
             carry = self.initial_carry(B, experts_alone, measurements.dtype, measurements.device)
-        states, probs, logits, posts = [], [], [], []
+        states, probs, logits, posts, covs = [], [], [], [], []
         for t in range(T):
             carry = self.scan(carry, measurements[..., t, :], experts_alone,
                               None if intervals is None else intervals[:, t])
             states.append(carry.get(keys.FUSED))
+            if return_cov:
+                covs.append(carry.get(keys.FUSED_COV))
             if not experts_alone:
                 probs.append(carry.get(keys.EXPERT_PROBS))
                 logits.append(carry.get(keys.MODE_LOGITS))
@@ -345,4 +372,6 @@ class IMMNet(TensorDictModuleBase):
             out[keys.ROLLOUT_EXPERT_PROBS] = torch.stack(probs, 1)
             out[keys.ROLLOUT_MODE_LOGITS] = torch.stack(logits, 1)
             out[keys.ROLLOUT_EXPERT_POST] = torch.stack(posts, 1)
+        if return_cov:
+            out[keys.STATE_COV] = torch.stack(covs, 1)
         return TensorDict(out, batch_size=[B, T]), carry

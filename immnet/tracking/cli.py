@@ -4,7 +4,9 @@ The input is checked before anything is written, and never written: an ``--outpu
 input file (by any path, symlink or hard link) is refused. A measurement a sensor cannot report
 (non-finite, or ``|z_a| > --max-position``) is a missed detection, counted on stderr. CSV rows are
 tracked in segments (``immnet.tracking.segments``: a track with no detection for more than
-``--max-coast`` seconds is dropped and restarts at its next detection). See ``docs/tracking.md``.
+``--max-coast`` seconds is dropped and restarts at its next detection). Beside the state and the mode
+probabilities the output holds the state's covariance where the tracker keeps one (CSV: the position and
+velocity entries ``immnet.tracking.io.COV_COLUMNS``; .npz: ``state_cov [N, T, 9, 9]``). See ``docs/tracking.md``.
 """
 
 from __future__ import annotations
@@ -75,6 +77,10 @@ def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
               f"{where}: tracked as missed detections", file=sys.stderr)
 
 
+def _report_no_cov(why: str) -> None:
+    print(f"no covariance: {why}; the cov_* columns are empty (an .npz output has no state_cov)", file=sys.stderr)
+
+
 def _track_rows_with_method(args, rows, limit: float) -> int:
     """CSV rows tracked by ``--method``: each row one scan at its own time (``segments.split_rows``)."""
     from immnet.data.validate import gate_measurements
@@ -82,11 +88,16 @@ def _track_rows_with_method(args, rows, limit: float) -> int:
     from immnet.tracking.io import write_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 
-    method = build_method(args.method)
+    from immnet.evaluation.methods import gives_cov
+
+    has_cov = gives_cov(args.method)
+    method = build_method(args.method, return_cov=has_cov)
     z, n_gated = gate_measurements(rows.z, limit)
     segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
-    state, probs = track_rows(method, segs, offset)
-    write_tracks_csv(args.output, rows, state, probs)
+    state, probs, cov = track_rows(method, segs, offset, return_cov=True)
+    write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
+    if not has_cov:
+        _report_no_cov(f"{args.method} keeps no covariance of its state")
     _report_gated(n_gated, limit)
     print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows with {args.method} "
           f"-> {args.output}", file=sys.stderr)
@@ -111,8 +122,11 @@ def run(args) -> int:
         gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
         lines = ", ".join(str(rows.lines[r]) for r in gated[:5]) + (", ..." if len(gated) > 5 else "")
         segs = split_segments(rows.ids, rows.t, z, tracker.net.dt, args.max_coast, rows.lines, rows.times)
-        state, probs = track_segments(tracker, segs)
-        write_tracks_csv(args.output, rows, state, probs)
+        has_cov = tracker.net.has_cov
+        state, probs, *cov = track_segments(tracker, segs, return_cov=has_cov)
+        write_tracks_csv(args.output, rows, state, probs, cov[0] if cov else None)
+        if not has_cov:
+            _report_no_cov(tracker.net.no_cov_reason())
         _report_gated(n_gated, limit, f" on line(s) {lines}" if n_gated else "")
         print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows -> {args.output}",
               file=sys.stderr)
@@ -126,11 +140,15 @@ def run(args) -> int:
     from immnet.data.times import scan_intervals
 
     check_dt(tracker.net, scan_intervals(data) if "t" in data.keys() else data["dt"], "the checkpoint")
-    out = tracker.track(data["measurements"])
+    has_cov = tracker.net.has_cov
+    out = tracker.track(data["measurements"], return_cov=has_cov)
     with publishing(args.output, suffix=".npz") as tmp:
         times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
+        cov = {"state_cov": out["state_cov"].numpy()} if has_cov else {}
         np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt),
-                 **times)
+                 **times, **cov)
+    if not has_cov:
+        _report_no_cov(tracker.net.no_cov_reason())
     _report_gated(tracker.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
     return 0

@@ -5,7 +5,9 @@ Rows of many tracks may interleave. Within a track, ``t`` must increase and be f
 Every problem is reported with its line number. How rows become tracked segments (scans ``dt``
 apart, the coasting limit) is ``immnet.tracking.segments``; the output has one line per input line,
 in input order, its ``t`` written exactly as the input gave it, and empty fields where there is no
-estimate (before a track's first detection, or after it was dropped for coasting too long).
+estimate (before a track's first detection, or after it was dropped for coasting too long). After the state
+and the mode probabilities come the 21 entries of the position-velocity covariance (``COV_COLUMNS``), empty
+throughout for a tracker that keeps no covariance.
 """
 
 from __future__ import annotations
@@ -21,9 +23,26 @@ import numpy as np
 from immnet.data.scratch import publishing
 
 IN_COLUMNS = ("track_id", "t", "x", "y", "z")
-OUT_COLUMNS = (
+STATE_COLUMNS = (
     "track_id", "t", "x", "vx", "ax", "y", "vy", "ay", "z", "vz", "az", "p_cv", "p_ca", "p_ctp", "p_ctm",
 )
+_NAMES = {"x": 0, "y": 3, "z": 6, "vx": 1, "vy": 4, "vz": 7}  # a name's index in the state [x, vx, ax, y, vy, ay, z, vz, az]
+
+
+def _pairs(rows: str, cols: str, upper: bool) -> tuple:
+    names_r, names_c = rows.split(), cols.split()
+    return tuple((a, b) for i, a in enumerate(names_r) for j, b in enumerate(names_c) if not upper or j >= i)
+
+
+COV_PAIRS = (
+    _pairs("x y z", "x y z", True) + _pairs("vx vy vz", "vx vy vz", True) + _pairs("x y z", "vx vy vz", False)
+)
+"""The covariance entries written: the position block's upper triangle (m^2), the velocity block's (m^2/s^2),
+then the whole position-velocity block (m^2/s), row-major: 21 entries, the 6x6 position-velocity covariance."""
+COV_COLUMNS = tuple(f"cov_{a}{b}" for a, b in COV_PAIRS)  # cov_xx, cov_xy, ..., cov_vzvz, cov_xvx, ..., cov_zvz
+COV_INDEX = tuple((_NAMES[a], _NAMES[b]) for a, b in COV_PAIRS)
+"""Each covariance column's entry ``(i, j)`` of the state covariance ``[9, 9]``."""
+OUT_COLUMNS = STATE_COLUMNS + COV_COLUMNS
 
 
 @dataclass
@@ -110,11 +129,25 @@ def _field(v: float) -> str:
     return "" if math.isnan(v) else f"{v:.6f}"
 
 
-def write_tracks_csv(path: str | Path, tracks: CsvTracks, state: np.ndarray, mode_probs: np.ndarray) -> None:
-    """One output line per input row (``state [R, 9]``, ``mode_probs [R, 4]``; NaN -> an empty field),
-    written to a temporary sibling of ``path`` and moved onto it only when complete (``immnet.data.scratch``)."""
+def _cov_field(v: float) -> str:
+    return "" if math.isnan(v) else f"{v:.9g}"  # 9 significant digits: a float32 exactly
+
+
+def cov_columns(state_cov: np.ndarray) -> np.ndarray:
+    """The ``COV_COLUMNS`` entries ``[..., 21]`` of state covariances ``[..., 9, 9]``."""
+    rows, cols = zip(*COV_INDEX)
+    return state_cov[..., list(rows), list(cols)]
+
+
+def write_tracks_csv(path: str | Path, tracks: CsvTracks, state: np.ndarray, mode_probs: np.ndarray,
+                     state_cov: np.ndarray | None = None) -> None:
+    """One output line per input row (``state [R, 9]``, ``mode_probs [R, 4]``, the covariance columns of
+    ``state_cov [R, 9, 9]``, empty throughout where None; NaN -> an empty field), written to a temporary sibling
+    of ``path`` and moved onto it only when complete (``immnet.data.scratch``)."""
+    cov = np.full((len(tracks), len(COV_COLUMNS)), np.nan) if state_cov is None else cov_columns(state_cov)
     with publishing(path) as tmp, tmp.open("x", newline="") as f:  # "x": never onto an existing file
         w = csv.writer(f)
         w.writerow(OUT_COLUMNS)
         for r in range(len(tracks)):
-            w.writerow([tracks.ids[r], tracks.times[r], *map(_field, state[r]), *map(_field, mode_probs[r])])
+            w.writerow([tracks.ids[r], tracks.times[r], *map(_field, state[r]), *map(_field, mode_probs[r]),
+                        *map(_cov_field, cov[r])])

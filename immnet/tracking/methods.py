@@ -30,22 +30,26 @@ class IMMNetMethod(_LearnedMethod):
     its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``), ``adapt``
     its filter experts' adaptive process noise as ``load_network``'s.
 
-    Its estimates are ``Tracker.track``'s: NaN before a track's first detection."""
+    Its estimates are ``Tracker.track``'s: NaN before a track's first detection. ``return_cov``: also the fused
+    covariance ``state_cov [B, T, 9, 9]`` (``IMMNet.rollout``'s); a ValueError now, naming why, for a checkpoint
+    whose experts carry none (the paper's KalmanNet experts)."""
 
     def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP,
-                 adapt=KEEP):
+                 adapt=KEEP, return_cov: bool = False):
         self.name = name
         self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt))
         self.net = self.tracker.net
         self.batch_size = batch_size
+        if return_cov and not self.net.has_cov:
+            raise ValueError(f"{name}: {self.net.no_cov_reason()}")
+        self.return_cov = return_cov
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)  # every interval the one it was trained at, or inside its interval_range
-        out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size, self.net.intervals_for(batch))
-        return TensorDict(
-            {keys.STATE: out[keys.STATE].double(), keys.MODE_PROBS: out[keys.MODE_PROBS].double()},
-            batch_size=batch.batch_size,
-        )
+        out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size, self.net.intervals_for(batch),
+                                 return_cov=self.return_cov)
+        names = (keys.STATE, keys.MODE_PROBS, keys.STATE_COV) if self.return_cov else (keys.STATE, keys.MODE_PROBS)
+        return TensorDict({k: out[k].double() for k in names}, batch_size=batch.batch_size)
 
 
 class KalmanNetMethod(_LearnedMethod):
@@ -54,11 +58,17 @@ class KalmanNetMethod(_LearnedMethod):
     ``expert`` names the expert of the checkpoint's model set (e.g. ``"ca"``); a checkpoint of the
     single-expert ablation has one. Measurements a sensor cannot report are missed detections
     (``immnet.data.validate.gate_measurements``); the estimate is NaN before a track's first detection.
+    ``return_cov``: also the expert's own covariance ``state_cov [B, T, 9, 9]`` (a filter expert's; a ValueError
+    naming why for the paper's KalmanNet experts, which carry none).
     """
 
-    def __init__(self, checkpoint: str | None = None, expert: str | None = None, name: str = "kalmannet", batch_size: int = 500):
+    def __init__(self, checkpoint: str | None = None, expert: str | None = None, name: str = "kalmannet", batch_size: int = 500,
+                 return_cov: bool = False):
         self.name = name
         self.net = load_network(checkpoint or PRETRAINED)
+        if return_cov and not self.net.has_cov:
+            raise ValueError(f"{name}: {self.net.no_cov_reason()}")
+        self.return_cov = return_cov
         names = self.net.model_set.names
         if expert is None and len(names) > 1:
             raise ValueError(f"kalmannet needs `expert` naming one of {names} for a checkpoint with several experts")
@@ -71,10 +81,15 @@ class KalmanNetMethod(_LearnedMethod):
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
         z, _ = gate_measurements(batch[keys.MEASUREMENTS].float())
-        M, states = self.net.n_experts, []
+        M, states, covs = self.net.n_experts, [], []
         for i in range(0, z.shape[0], self.batch_size):
             zi = z[i : i + self.batch_size].unsqueeze(1).expand(-1, M, -1, -1)
-            out, _ = self.net.rollout(zi, experts_alone=True)
+            out, _ = self.net.rollout(zi, experts_alone=True, return_cov=self.return_cov)
             states.append(out[keys.STATE][:, :, self.index])
-        state = blank_before_first_detection(torch.cat(states).double(), before_first_detection(z))
-        return TensorDict({keys.STATE: state}, batch_size=batch.batch_size)
+            if self.return_cov:
+                covs.append(out[keys.STATE_COV][:, :, self.index])
+        waiting = before_first_detection(z)
+        out = {keys.STATE: blank_before_first_detection(torch.cat(states).double(), waiting)}
+        if self.return_cov:
+            out[keys.STATE_COV] = blank_before_first_detection(torch.cat(covs).double(), waiting)
+        return TensorDict(out, batch_size=batch.batch_size)

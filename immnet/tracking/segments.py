@@ -132,25 +132,27 @@ def batches(span: np.ndarray, batch_size: int = 512) -> list[np.ndarray]:
 
 def _groups(segs: Segments, batch_size: int):
     """The batches of segments to track together: ``(T, rows)`` with ``T`` their longest span and ``rows``
-    each segment's row indices in order; and the blank per-row outputs ``state [R, 9]``, ``mode_probs [R, 4]``."""
+    each segment's row indices in order; and the blank per-row outputs ``state [R, 9]``, ``mode_probs [R, 4]``,
+    ``state_cov [R, 9, 9]``."""
     R = len(segs.segment)
-    blank = (np.full((R, 9), np.nan), np.full((R, 4), np.nan))
+    blank = (np.full((R, 9), np.nan), np.full((R, 4), np.nan), np.full((R, 9, 9), np.nan))
     rows_of = np.argsort(segs.segment, kind="stable")
     first = np.searchsorted(segs.segment[rows_of], np.arange(len(segs.span) + 1))
     groups = [(int(segs.span[g].max()), [rows_of[first[s] : first[s + 1]] for s in g]) for g in batches(segs.span, batch_size)]
     return groups, blank
 
 
-def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512):
+def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512, return_cov: bool = False):
     """``state [R, 9]``, ``mode_probs [R, 4]`` per row of :func:`split_rows`' segments, each tracked as a
     fresh track by ``method.track(batch)`` with ``t [B, T]`` (its rows' times since its first); padding
     after a segment's end is missed detections, its times continuing at the segment's median spacing
-    (strictly increasing). ``mode_probs`` NaN where the method has none."""
+    (strictly increasing). ``mode_probs`` NaN where the method has none. With ``return_cov`` a third,
+    ``state_cov [R, 9, 9]`` from the method's output, NaN where it gives none."""
     from tensordict import TensorDict
 
     import torch
 
-    groups, (state, probs) = _groups(segs, batch_size)
+    groups, (state, probs, cov) = _groups(segs, batch_size)
     for T, rows in groups:
         z = np.full((len(rows), T, 3), np.nan)
         t = np.zeros((len(rows), T))
@@ -168,24 +170,31 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
         out = method.track(batch)
         st = out[keys.STATE].double().numpy()
         pr = out[keys.MODE_PROBS].double().numpy() if keys.MODE_PROBS in out.keys() else None
+        cv = out[keys.STATE_COV].double().numpy() if return_cov and keys.STATE_COV in out.keys() else None
         for i, r in enumerate(rows):
             state[r] = st[i, : len(r)]
             if pr is not None:
                 probs[r] = pr[i, : len(r)]
-    return state, probs
+            if cv is not None:
+                cov[r] = cv[i, : len(r)]
+    return (state, probs, cov) if return_cov else (state, probs)
 
 
-def track_segments(tracker, segs: Segments, batch_size: int = 512):
+def track_segments(tracker, segs: Segments, batch_size: int = 512, return_cov: bool = False):
     """``state [R, 9]``, ``mode_probs [R, 4]`` (float64) per row: each row's estimate at its scan of its
-    segment, each segment tracked as a fresh track by ``tracker.track``; NaN where a row has none."""
-    groups, (state, probs) = _groups(segs, batch_size)
+    segment, each segment tracked as a fresh track by ``tracker.track``; NaN where a row has none. With
+    ``return_cov`` a third, ``state_cov [R, 9, 9]`` (``Tracker.track``'s, which refuses experts without one)."""
+    groups, (state, probs, cov) = _groups(segs, batch_size)
     for T, rows in groups:
         z = np.full((len(rows), T, 3), np.nan, dtype=np.float32)
         for i, r in enumerate(rows):
             z[i, segs.step[r]] = segs.z[r]
-        out = tracker.track(z, batch_size=len(rows))
+        out = tracker.track(z, batch_size=len(rows), return_cov=return_cov)
         st, pr = out[keys.STATE].numpy(), out[keys.MODE_PROBS].numpy()
+        cv = out[keys.STATE_COV].numpy() if return_cov else None
         for i, r in enumerate(rows):
             state[r] = st[i, segs.step[r]]
             probs[r] = pr[i, segs.step[r]]
-    return state, probs
+            if cv is not None:
+                cov[r] = cv[i, segs.step[r]]
+    return (state, probs, cov) if return_cov else (state, probs)

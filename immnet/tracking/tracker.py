@@ -160,7 +160,9 @@ class Tracker:
         (:func:`check_dt`) and passed to ``IMMNet.scan`` as its ``interval``.
 
         The outputs of a track that has had no detection yet are NaN; a gated measurement (module doc)
-        is a missed detection and adds one to ``n_gated``.
+        is a missed detection and adds one to ``n_gated``. Where the experts carry a covariance
+        (``net.has_cov``) the output holds the fused state's, ``("fused", "cov")`` ``[B, 9, 9]``; the paper's
+        KalmanNet experts give none (no such key).
         """
         z = torch.as_tensor(z, dtype=torch.float32)
         if z.dim() != 2 or z.shape[-1] != 3:
@@ -182,25 +184,30 @@ class Tracker:
                 self.carry = self.net.scan(self.carry, z)
             else:
                 self.carry = self.net.scan(self.carry, z, interval=interval)
-        out = self.carry.select(keys.FUSED, keys.EXPERT_PROBS, keys.EXPERT_POST, strict=False).clone()
+        out = self.carry.select(keys.FUSED, keys.FUSED_COV, keys.EXPERT_PROBS, keys.EXPERT_POST, strict=False).clone()
         out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))
         waiting = (self.carry.get(keys.AGE) == 0)[:, None]  # no detection yet: no estimate
         return out.apply(lambda v: blank_before_first_detection(v.unsqueeze(1), waiting).squeeze(1))
 
     @torch.no_grad()
-    def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None) -> TensorDict:
+    def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
+              return_cov: bool = False) -> TensorDict:
         """Whole sequences ``[B, T, 3]`` -> ``state [B, T, 9]``, ``mode_probs [B, T, 4]``, ``expert_probs``,
-        ``expert_post`` and ``mode_logits``, NaN before each track's first detection; ``n_gated``
-        counts the measurements gated in this call (module doc). ``intervals [B, T]``: the interval before
-        each scan (``immnet.data.times.scan_intervals``; None: the network's ``dt``)."""
+        ``expert_post``, ``mode_logits`` and, with ``return_cov``, ``state_cov [B, T, 9, 9]`` (the fused
+        covariance; a ValueError saying why where the experts carry none, ``net.has_cov``), NaN before each
+        track's first detection; ``n_gated`` counts the measurements gated in this call (module doc).
+        ``intervals [B, T]``: the interval before each scan (``immnet.data.times.scan_intervals``; None: the
+        network's ``dt``)."""
         z = torch.as_tensor(measurements, dtype=torch.float32)
         if z.dim() != 3 or z.shape[-1] != 3:
             raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
+        if return_cov and not self.net.has_cov:
+            raise ValueError(self.net.no_cov_reason())
         z, self.n_gated = gate_measurements(z, self.max_position)
         outs = []
         for i in range(0, z.shape[0], batch_size):
             gaps = None if intervals is None else torch.as_tensor(intervals[i : i + batch_size], dtype=z.dtype)
-            out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps)
+            out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov)
             out.set(keys.MODE_PROBS, self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
             waiting = before_first_detection(z[i : i + batch_size])
             outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))
