@@ -69,7 +69,7 @@ def track_coverage(method, data, from_scan: int = 20, levels=LEVELS) -> dict:
     mask[:, :from_scan] = False
     ok = mask & torch.isfinite(nees)
     out = {"coverage": coverage(nees, mask, levels), "nees_mean": float(nees[ok].mean()), "scans": int(ok.sum())}
-    if keys.MODE in data.keys():
+    if keys.MODE in data.keys() and bool((data[keys.MODE] >= 0).any()):  # real flights have no mode labels
         switch = post_switch_mask(data[keys.MODE]).to(mask.device)
         out["post_switch"] = coverage(nees, mask & switch, levels)
         out["steady"] = coverage(nees, mask & ~switch, levels)
