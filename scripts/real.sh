@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# Real flights, from nothing to the tables (docs/results.md, "Real flights"), on a CPU in about 20 minutes:
+#   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s and at U[4.5, 5.5] s
+#   scans, every other sample held out (never trained or tuned on) -> the model-based filters for real motion as
+#   tuned on the training flights (configs/methods/real-*.yaml; IMMNET_RETUNE=1 tunes them again) -> IMMNet
+#   fine-tuned on the training flights (recipes/real-finetune.yaml) -> one table per data set, every method in
+#   one run -> the real-flight figure.
+# A finished run is reused; IMMNET_RETRAIN=1 trains again.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+T0=$(date +%s)
+bash scripts/setup.sh
+VENV=${IMMNET_VENV:-.venv}
+PY="$VENV/bin/python"
+IMMNET="$VENV/bin/immnet"
+export WANDB_MODE=${WANDB_MODE:-offline} WANDB_SILENT=true
+RUN=runs/real
+DATA=$RUN/data
+say() { local e=$(( $(date +%s) - T0 )); printf '\n[real %dm%02ds] %s\n' $((e / 60)) $((e % 60)) "$*" >&2; }
+
+say "1/5 data: quickstart (train/val/test by flight) and every other sample (held out), at 1 s and 4.5-5.5 s"
+HELDOUT=$("$PY" -c "from immnet.data.adsb import available_samples as a; print(' '.join(n for n in a() if n != 'collections/quickstart'))")
+adsb() {  # name splits samples... -- options
+  local name=$1 splits=$2; shift 2
+  [ -f "$DATA/$name/meta.json" ] || [ -f "$DATA/$name/test/meta.json" ] && { echo "  $DATA/$name exists" >&2; return; }
+  "$IMMNET" data adsb --out "$DATA/$name" --splits "$splits" --seed 0 --overwrite --quiet "$@"
+}
+SCAN5=(--dt 5 --dt-jitter 0.5 --T 60 --r 5,35)  # a surveillance radar: 4.5-5.5 s scans, 5-35 m noise, 300 s windows
+adsb quickstart-1s 0.7,0.15,0.15 --samples collections/quickstart
+adsb quickstart-5s 0.7,0.15,0.15 --samples collections/quickstart "${SCAN5[@]}"
+# shellcheck disable=SC2086
+adsb heldout-1s all-test --skip-unreadable --samples $HELDOUT
+# shellcheck disable=SC2086
+adsb heldout-5s all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}"
+
+if [ -n "${IMMNET_RETUNE:-}" ]; then
+  say "2/5 tuning the model-based filters on the training flights (1 s)"
+  for m in real-ca real-imm-axis real-imm; do
+    "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-1s/train" --out "configs/methods/$m.yaml" --quiet
+    "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-5s/train" --out "configs/methods/$m-5s.yaml" --quiet
+  done
+else
+  say "2/5 the model-based filters as tuned on the training flights: configs/methods/real-*.yaml (IMMNET_RETUNE=1 to tune again)"
+fi
+
+CKPT=$RUN/finetune/checkpoints/best.ckpt
+[ -n "${IMMNET_RETRAIN:-}" ] && rm -rf "$RUN/finetune"
+if [ -f "$CKPT" ] && [ -f "$RUN/finetune/checkpoints/finished.json" ]; then
+  say "3/5 IMMNet: reusing the finished fine-tune $CKPT (IMMNET_RETRAIN=1 to train again)"
+else
+  say "3/5 IMMNet fine-tuned on the training flights: recipes/real-finetune.yaml"
+  "$IMMNET" fit --config recipes/real-finetune.yaml
+fi
+
+say "4/5 evaluation: one table per data set, every method in one run"
+BASE=measurements,imm-tuned,imm-ekf,real-ca,real-imm,real-imm-axis
+for set in quickstart-1s/test heldout-1s/test; do
+  out=$RUN/results-${set%%/*}
+  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,immnet,immnet-real" \
+    --checkpoint "immnet-real=$CKPT" --json "$out.json" --markdown "$out.md" --quiet
+done
+for set in quickstart-5s/test heldout-5s/test; do  # IMMNet's networks are trained at 1 s: they refuse 5 s scans
+  out=$RUN/results-${set%%/*}
+  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s" \
+    --json "$out.json" --markdown "$out.md" --quiet
+done
+
+say "5/5 figure: a real flight, its estimates and their error over time"
+"$PY" scripts/real_figure.py --data "$DATA/quickstart-1s/test" --methods real-imm-axis,immnet-real,immnet \
+  --checkpoint "immnet-real=$CKPT" --out "$RUN/figures/real_flight.png"
+
+say "done. Tables: $RUN/results-quickstart-1s.md, $RUN/results-heldout-1s.md, $RUN/results-quickstart-5s.md, $RUN/results-heldout-5s.md"
