@@ -27,6 +27,16 @@ from pathlib import Path
 import torch
 
 CHECKSUM_KEY = "weights_sha256"
+PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
+"""The shipped 3D-LAST weights (``immnet/pretrained/PROVENANCE.md``); ``immnet-real.ckpt`` beside them."""
+
+
+def provenance_file(ckpt) -> Path:
+    """Where shipped weights keep their provenance: ``immnet.ckpt`` -> ``provenance.json``, ``immnet-NAME.ckpt`` ->
+    ``provenance-NAME.json`` beside it (the file need not exist: a checkpoint of one's own has none)."""
+    ckpt = Path(ckpt)
+    tail = ckpt.stem[len("immnet"):] if ckpt.stem.startswith("immnet") else f"-{ckpt.stem}"
+    return ckpt.with_name(f"provenance{tail}.json")
 
 ALLOWED_GLOBALS: tuple = ()
 """Globals a checkpoint of ours may hold beyond torch's weights-only set (tensors, storages, dtypes,

@@ -153,8 +153,9 @@ def finish(run) -> str | None:
 # --- what the config says about checkpoints ---------------------------------------------------
 def checkpoint_info(path) -> dict:
     """A checkpoint in the run's config: its path, the checksum of its weights (docs/checkpoints.md) and,
-    for weights with a ``provenance.json`` beside them (the shipped ones), that provenance."""
-    from immnet.checkpoints import CHECKSUM_KEY, load_checkpoint
+    for weights with a provenance file beside them (the shipped ones: ``immnet.checkpoints.provenance_file``),
+    that provenance."""
+    from immnet.checkpoints import CHECKSUM_KEY, load_checkpoint, provenance_file
 
     path = Path(path)
     info: dict = {"path": str(path)}
@@ -162,7 +163,7 @@ def checkpoint_info(path) -> dict:
         info["weights_sha256"] = load_checkpoint(path).get(CHECKSUM_KEY)
     except Exception as err:  # noqa: BLE001 - the method that reads it reports a bad file; here it is a note
         info["error"] = str(err)
-    prov = path.parent / "provenance.json"
+    prov = provenance_file(path)
     if prov.is_file():
         info["provenance"] = json.loads(prov.read_text())
     return info
@@ -180,7 +181,7 @@ def method_info(name: str, checkpoint=None) -> dict:
     if checkpoint is None and takes_checkpoint(name):
         checkpoint = init_args.get("checkpoint")
         if checkpoint is None:
-            from immnet.tracking.tracker import PRETRAINED
+            from immnet.checkpoints import PRETRAINED
 
             checkpoint = PRETRAINED
     if checkpoint is not None:

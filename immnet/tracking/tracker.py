@@ -32,16 +32,13 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import load_checkpoint
+from immnet.checkpoints import PRETRAINED, load_checkpoint  # PRETRAINED: re-exported here too
 from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
 from immnet.stages import IMMNet
 from immnet.stages.network import DEFAULT_GAIN, net_arguments
-
-PRETRAINED = Path(__file__).resolve().parents[1] / "pretrained" / "immnet.ckpt"
-
 
 KEEP = AS_CONFIGURED  # load_network's guard: as the checkpoint was trained
 
