@@ -22,7 +22,7 @@ fi
 # (immnet reads its JSON files and never imports it; docs/data.md, "Real flights")
 if ! "$PY" -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('traffic') is None)"; then
   echo "[setup] installing the ADS-B sample files (traffic==2.13, --no-deps)"
-  "$PY" -m pip install -q --no-deps "traffic==2.13" \
+  "$PY" -m pip install -q --no-deps "traffic==2.13" 2> >(grep -v "is ignored: it is neither" >&2) \
     || echo "[setup] traffic's sample files could not be installed: the quickstart test is skipped" >&2
 fi
 echo "[setup] ready: $("$PY" -c 'import torch, immnet; print("torch", torch.__version__)')"
