@@ -14,7 +14,7 @@ if ! "$PY" -c "import torch" 2>/dev/null; then
   echo "[setup] installing ${IMMNET_TORCH:-torch==2.13.0}"
   "$PY" -m pip install -q "${IMMNET_TORCH:-torch==2.13.0}" 2> >(grep -v "is ignored: it is neither" >&2)
 fi
-if ! "$PY" -c "import immnet, filterpy, pytest" 2>/dev/null; then
+if ! "$PY" -c "import immnet, filterpy, pytest, xdist" 2>/dev/null; then
   echo "[setup] installing immnet with its dev extra"
   "$PY" -m pip install -q -e ".[dev]" 2> >(grep -v "is ignored: it is neither" >&2)
 fi

@@ -74,6 +74,7 @@ def test_immnet_tune_writes_the_best_config_with_its_score_and_refuses_a_test_sp
     start = average_rmse(instantiate(Search.from_yaml(search_file).config({"sigma_q": 2.0})), batch)
     assert tuned <= start
     assert "never a test split" in out.read_text().splitlines()[0]
+    assert yaml.safe_load(out.read_text())["init_args"]["name"] == "ca-tuned"  # the registry's name: its file's
 
     test = tmp_path / "test"
     test.mkdir()

@@ -146,12 +146,14 @@ class Search:
         return {"best": best, "score": score, "config": self.config(best), "table": table}
 
     def write(self, result: dict, out, search_path, data_desc: str, n: int) -> Path:
+        """Write the best setting's method config to ``out``, named after its file (the registry's name)."""
+        out = Path(out)
+        config = {**result["config"], "init_args": {**result["config"]["init_args"], "name": out.stem}}
         header = [
             f"# Tuned by `immnet tune --search {search_path}` on {data_desc} ({n} tracks, never a test split):",
             f"# coordinate search over {self.grid} ({len(result['table'])} settings scored);",
             f"# Average RMSE {result['score']:.4f} m there; {datetime.date.today().isoformat()}. Do not edit by hand.",
         ]
-        out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text("\n".join(header) + "\n" + yaml.safe_dump(result["config"], sort_keys=False))
+        out.write_text("\n".join(header) + "\n" + yaml.safe_dump(config, sort_keys=False))
         return out
