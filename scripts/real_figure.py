@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     est = {}
     for name in names:
         method = build_method(name, ckpts.get(name), guard=parse_guard("none"))
-        est[name] = method.track(one.to(torch.float32) if "immnet" in name else one)[keys.STATE][0].to(torch.float64).numpy()
+        est[name] = method.track(one.to(torch.float32))[keys.STATE][0].to(torch.float64).numpy()  # as evaluate hands it
     truth, z = one[keys.STATES][0].numpy(), one[keys.MEASUREMENTS][0].numpy()
     t = torch.cumsum(scan_intervals(one)[0], 0).numpy()
     t = t - t[0]

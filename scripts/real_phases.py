@@ -32,10 +32,9 @@ def main(argv=None) -> int:
     td, _ = load_dataset(args.data)
     ckpts = dict(c.split("=", 1) for c in args.checkpoint)
     rows = {}
+    batch = as_batch(td)  # as immnet evaluate hands it to every method (each computes in its own dtype)
     for name in args.methods.split(","):
         method = build_method(name, ckpts.get(name), guard=parse_guard("none"))
-        dtype = torch.float32 if "immnet" in name else torch.float64
-        batch = as_batch(td, dtype)
         with torch.no_grad():
             state = method.track(batch)[keys.STATE].to(torch.float64)
         truth = batch[keys.STATES].to(torch.float64)
