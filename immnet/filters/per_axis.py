@@ -23,7 +23,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, output
 from immnet.filters.imm import initial_state
-from immnet.filters.trackers import TOLD, _interval_or_intervals, _positive, assumed_r, check_r, variance
+from immnet.filters.trackers import _interval_or_intervals, assumed_r, filter_settings, variance
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet
@@ -67,12 +67,7 @@ class PerAxisIMMTracker(Method):
         moving = [m.name for m in self.model_set if m.state_dependent or _coupled(m.F(1.0))]
         if moving:
             raise ValueError(f"a per-axis IMM needs models whose F is block diagonal per axis; {moving} couple the axes")
-        self.r = check_r(r)
-        self.needs = (keys.R,) if self.r == TOLD else ()
-        _positive("sigma_q", sigma_q)
-        if isinstance(sigma_q, (list, tuple)) and len(sigma_q) != M:
-            raise ValueError(f"sigma_q has {len(sigma_q)} values for {M} models")
-        self.sigma_q = [float(s) for s in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
+        self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)
         self.Pi = transition_matrix(p_stay, M)
         self.dtype = as_dtype(dtype)
         self.name = name

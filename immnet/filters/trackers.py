@@ -51,6 +51,17 @@ def check_r(r) -> float | str:
     return float(r)
 
 
+def filter_settings(r, sigma_q, n_models: int) -> tuple[float | str, tuple[str, ...], float | list[float]]:
+    """A model set's filter settings, checked: ``r`` (``check_r``), the data keys it needs (``r`` itself where it
+    is ``"data"``) and ``sigma_q``, one for every model or one per model."""
+    r = check_r(r)
+    _positive("sigma_q", sigma_q)
+    if isinstance(sigma_q, (list, tuple)) and len(sigma_q) != n_models:
+        raise ValueError(f"sigma_q has {len(sigma_q)} values for {n_models} models")
+    sq = [float(v) for v in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
+    return r, ((keys.R,) if r == TOLD else ()), sq
+
+
 def assumed_r(r: float | str, batch: TensorDict, dtype, device) -> float | torch.Tensor:
     """The assumed measurement std of every track: ``r`` itself, or the data's ``r [B]`` where ``r`` is ``"data"``."""
     if r == TOLD:
@@ -140,11 +151,7 @@ class IMMTracker(Method):
         moving = [m.name for m in self.model_set if m.state_dependent]
         if moving:
             raise ValueError(f"the IMM needs a constant F per model; {moving} are state-dependent (IMMNet experts only)")
-        self.r = check_r(r)
-        self.needs = (keys.R,) if self.r == TOLD else ()
-        _positive("sigma_q", sigma_q)
-        if isinstance(sigma_q, (list, tuple)) and len(sigma_q) != M:
-            raise ValueError(f"sigma_q has {len(sigma_q)} values for {M} models")
+        self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)
         self.Pi = transition_matrix(p_stay, M)
         if mu0 is None:
             self.mu0 = torch.full((M,), 1.0 / M, dtype=torch.float64)
@@ -154,7 +161,6 @@ class IMMTracker(Method):
                 raise ValueError(f"mu0 must have one probability per model ({M}), got shape {tuple(self.mu0.shape)}")
             if (self.mu0 < 0).any() or abs(float(self.mu0.sum()) - 1.0) > 1e-6:
                 raise ValueError(f"mu0 must be non-negative and sum to 1, got {self.mu0.tolist()}")
-        self.sigma_q = [float(s) for s in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
         self.dtype = as_dtype(dtype)
         self.name = name
         self.return_experts = return_experts
