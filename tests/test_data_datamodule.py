@@ -200,3 +200,47 @@ def test_the_training_loader_resumes_part_way_through_a_pass(sets):
     assert len(list(other.batch_sampler)) == len(whole)
     got = [b["states"] for b in fresh]
     assert len(got) == len(whole) and torch.equal(got[0], dm.dataset("train").__getitems__(whole[0])["states"])
+
+
+def test_a_mixture_draws_each_batch_from_one_set(sets, tmp_path):
+    """``data`` as a list (3D-LAST beside real flights, each of its own length and interval): each set is split on
+    its own (``val_data`` one entry per set, null: ``val_fraction`` of it), a batch holds one set's trajectories,
+    a pass covers every training trajectory once, and pass ``e`` is a function of ``(split_seed, e)`` alone."""
+    from lightning.fabric.utilities.data import _set_sampler_epoch
+
+    short = write_dataset(tmp_path / "short", 90, 5, DataSpec(T=25, min_segment=8))
+    val = write_dataset(tmp_path / "short-val", 13, 6, DataSpec(T=25, min_segment=8))
+    dm = LASTDataModule([sets["main"], short], val_data=[None, val], val_fraction=0.1, test_fraction=0.0,
+                        batch_size=32, split_seed=2)
+    assert dm.mixture and len(dm.dataset("train")) == 900 + 90 and len(dm.dataset("val")) == 100 + 13
+    main_train = _ids(LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.0, split_seed=2).split("train"))
+    seen, lengths = set(), []
+    loader = dm.train_dataloader()
+    assert len(loader) == 29 + 3
+    for batch in loader:
+        T = batch["measurements"].shape[1]
+        lengths.append(T)
+        ids = _ids(batch)
+        assert not (ids & seen)
+        seen |= ids
+        if T == 40:  # the first set's training split as alone
+            assert ids <= main_train
+    assert len(seen) == 990 and sorted(set(lengths)) == [25, 40]
+    assert lengths != sorted(lengths) and lengths != sorted(lengths, reverse=True)  # the sets' batches shuffled together
+    again = dm.train_dataloader()
+    _set_sampler_epoch(again, 0)
+    first = list(again.batch_sampler)
+    _set_sampler_epoch(again, 1)
+    assert list(again.batch_sampler) != first
+    _set_sampler_epoch(again, 0)
+    assert list(again.batch_sampler) == first
+    val_T = [b["measurements"].shape[1] for b in dm.val_dataloader()]
+    assert val_T == [40] * 4 + [25] and sum(b.batch_size[0] for b in dm.val_dataloader()) == 113
+    with pytest.raises(ValueError, match="one entry per data set"):
+        LASTDataModule([sets["main"], short], val_data=val).setup()
+    with pytest.raises(ValueError, match="2 data sets"):
+        LASTDataModule([sets["main"], short], val_data=[val]).setup()
+    with pytest.raises(ValueError, match="read each set on its own"):
+        dm.split("train")
+    with pytest.raises(ValueError, match="one data set, not a mixture"):
+        LASTDataModule([sets["main"], short], single_mode={"cv": sets["cv"]}).setup()

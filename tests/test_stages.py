@@ -292,3 +292,40 @@ def test_stage_2_fine_tunes_from_a_whole_immnet(tmp_path):
         Stage2Module(net={"model_set": "configs/model_sets/imm4.yaml"}, init_checkpoint=str(path))
     with pytest.raises(ValueError, match="not both"):
         Stage2Module(net=raw["hyper_parameters"]["net"], init_checkpoint=str(path), stage1_checkpoint=str(path))
+
+
+def test_a_checkpoint_without_the_interval_input_starts_a_network_that_reads_it(tmp_path):
+    """Widening (``widen_for_interval``): the shipped 1 s network loaded into one that reads each scan's interval
+    (gain and classifier) gets a zero column for it and computes what the shipped one does, at irregular intervals
+    too, until training moves that column; after a step the interval changes the estimates."""
+    path = REPO_ROOT / "immnet/pretrained/immnet.ckpt"
+    raw = load_checkpoint(path)
+    net = copy.deepcopy(raw["hyper_parameters"]["net"])
+    base = Stage2Module(net=net, init_checkpoint=str(path)).net
+    net["gain"]["init_args"] = {**net["gain"].get("init_args", {}), "interval_input": True}
+    net["classifier"]["init_args"] = {**net["classifier"].get("init_args", {}), "interval_input": True}
+    wide = Stage2Module(net=net | {"interval_range": [0.5, 12.0]}, init_checkpoint=str(path)).net
+    cols = wide.interval_columns()
+    assert {k.split(".")[-2:][0] for k in cols} == {"fc7", "embed"} and set(cols.values()) == {6, 18}
+    for name, col in cols.items():
+        w = wide.state_dict()[name]
+        assert torch.equal(w[..., col], torch.zeros_like(w[..., col]))
+        assert torch.equal(torch.cat([w[..., :col], w[..., col + 1:]], -1), base.state_dict()[name])
+    batch = generate(3, seed=4, spec=DataSpec(T=30, min_segment=10, dt=4.0, dt_jitter=3.5))
+    z, intervals = batch[keys.MEASUREMENTS].float(), wide.intervals_for(batch)
+    assert intervals is not None and float(intervals[:, 1:].std()) > 0.5
+    base, wide, z, intervals = base.double(), wide.double(), z.double(), intervals.double()  # no float32 rounding
+    with torch.no_grad():
+        a, _ = base.rollout(z, intervals=intervals)
+        b, _ = wide.rollout(z, intervals=intervals)
+    torch.testing.assert_close(b[keys.STATE], a[keys.STATE], rtol=0, atol=1e-8)
+    torch.testing.assert_close(b[keys.ROLLOUT_EXPERT_PROBS], a[keys.ROLLOUT_EXPERT_PROBS], rtol=0, atol=1e-10)
+    with torch.no_grad():
+        for name, col in cols.items():
+            wide.get_parameter(name)[..., col] = 0.5
+        c, _ = wide.rollout(z, intervals=intervals)
+    assert float((c[keys.STATE] - a[keys.STATE]).abs().max()) > 0.1
+    with pytest.raises(ValueError, match="does not match this IMMNet"):  # any other mismatch is still refused
+        other = copy.deepcopy(net)
+        other["classifier"]["init_args"]["d_model"] = 16
+        Stage2Module(net=other, init_checkpoint=str(path))

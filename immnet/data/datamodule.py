@@ -10,6 +10,12 @@ in train; with ``test_data`` given, the whole of it is the test split and ``data
 train and validation only; with ``val_data`` given too, the whole of it is the validation split and ``data`` is
 all training data (real flights come split by flight: ``immnet data adsb``'s OUT/train, OUT/val, OUT/test).
 
+A mixture (``data`` a list of data sets, e.g. 3D-LAST over a range of intervals and real flights at 1 s and
+5 s): each set is split as above on its own (``val_data`` then a list as long as ``data``, an entry of null
+taking ``val_fraction`` of its set; ``test_data`` one set for the whole mixture), and every batch holds the
+trajectories of one set (sets differ in length ``T`` and interval), the sets' batches shuffled together each
+pass (``_MixedBatches``). One device only: the distributed shards are per set.
+
 Stage 1 (``single_mode`` given, a mapping mode name -> data set of that mode): each training batch
 is a ``TensorDict [M, B]``; row ``m`` is for expert ``m`` (``expert_modes[m]`` names its mode) and
 holds ``round(own_fraction B)`` trajectories of its own mode followed by ``B - round(own_fraction B)``
@@ -67,6 +73,61 @@ class TrajectoryDataset(Dataset):
 
     def __getitem__(self, i) -> TensorDict:
         return self.__getitems__([i])[0]
+
+
+class MixtureDataset(Dataset):
+    """Several data sets' rows end to end: index ``offsets[k] + i`` is row ``i`` of part ``k``. A batch is read
+    from one part (``_MixedBatches`` and the evaluation batches never mix parts)."""
+
+    def __init__(self, parts: list[TrajectoryDataset]):
+        self.parts = parts
+        self.offsets = [0]
+        for part in parts:
+            self.offsets.append(self.offsets[-1] + len(part))
+
+    def __len__(self) -> int:
+        return self.offsets[-1]
+
+    def part_of(self, i: int) -> int:
+        for k in range(len(self.parts)):
+            if i < self.offsets[k + 1]:
+                return k
+        raise IndexError(f"index {i} out of range for a mixture of {len(self)} trajectories")
+
+    def __getitems__(self, idx) -> TensorDict:
+        idx = torch.as_tensor(idx, dtype=torch.long)
+        k = self.part_of(int(idx.min()))
+        if int(idx.max()) >= self.offsets[k + 1]:
+            raise ValueError("a batch of a mixture must come from one of its data sets")
+        return self.parts[k].__getitems__(idx - self.offsets[k])
+
+    def __getitem__(self, i) -> TensorDict:
+        return self.__getitems__([i])[0]
+
+
+class _MixedBatches(torch.utils.data.Sampler):
+    """Training batches of a mixture: pass ``e`` (``set_epoch``) shuffles each part's rows, cuts them into batches
+    of ``batch_size`` (a part's last batch may be short) and shuffles the batches of all parts together, seeded
+    by ``(seed, e)`` alone (resumable as ``_EpochRandomSampler``)."""
+
+    def __init__(self, sizes: list[int], batch_size: int, seed: int):
+        self.sizes, self.batch_size, self.seed, self.epoch = list(sizes), int(batch_size), int(seed), 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return sum(math.ceil(n / self.batch_size) for n in self.sizes)
+
+    def __iter__(self):
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+        batches, offset = [], 0
+        for n in self.sizes:
+            rows = (torch.randperm(n, generator=g) + offset).tolist()
+            batches += [rows[i : i + self.batch_size] for i in range(0, n, self.batch_size)]
+            offset += n
+        for j in torch.randperm(len(batches), generator=g).tolist():
+            yield batches[j]
 
 
 class _EpochRandomSampler(torch.utils.data.Sampler):
@@ -213,35 +274,57 @@ class LASTDataModule(L.LightningDataModule):
         self._ready = False
 
     # --- data ---------------------------------------------------------------------------------
+    def _paths(self) -> tuple[list, list]:
+        """The data sets and their validation sets (None: ``val_fraction`` of the set), one of each per part."""
+        data = list(self.data) if isinstance(self.data, (list, tuple)) else [self.data]
+        if not data:
+            raise ValueError("data is an empty list: give a data set or a list of them")
+        if isinstance(self.val_data, (list, tuple)):
+            vals = list(self.val_data)
+            if len(vals) != len(data):
+                raise ValueError(f"val_data lists {len(vals)} sets for {len(data)} data sets: give one per data set "
+                                 "(null: val_fraction of that set) or a single set")
+        elif self.val_data is not None and len(data) > 1:
+            raise ValueError("with a mixture of data sets, val_data is a list with one entry per data set "
+                             "(null: val_fraction of that set)")
+        else:
+            vals = [self.val_data] * len(data)
+        return data, vals
+
+    def _split(self, path, val_path, g: torch.Generator) -> dict:
+        """One data set's splits: ``{split: (TensorDict, row indices)}``."""
+        td, meta = load_dataset(path)
+        n = td.batch_size[0]
+        perm = torch.randperm(n, generator=g)
+        n_test = 0 if self.test_data is not None else round(self.test_fraction * n)
+        n_val = 0 if val_path is not None else round(self.val_fraction * n)
+        if n - n_test - n_val < 1:
+            raise ValueError(f"{n} trajectories of {path} leave no training data after the val/test split")
+        parts = {"train": (td, perm[n_test + n_val :].sort().values),
+                 "val": (td, perm[n_test : n_test + n_val].sort().values),
+                 "test": (td, perm[:n_test].sort().values)}
+        if val_path is not None:
+            val_td, _ = load_dataset(val_path)
+            parts["val"] = (val_td, torch.arange(val_td.batch_size[0]))
+        return {"meta": meta, **parts}
+
     def setup(self, stage: str | None = None) -> None:
         if self._ready:
             return
-        td, self.meta = load_dataset(self.data)
-        n = td.batch_size[0]
+        data, vals = self._paths()
+        if self.single_mode and len(data) > 1:
+            raise ValueError("stage 1 (single_mode) takes one data set, not a mixture")
         g = torch.Generator().manual_seed(int(self.split_seed))
-        perm = torch.randperm(n, generator=g)
-        n_test = 0 if self.test_data is not None else round(self.test_fraction * n)
-        n_val = 0 if self.val_data is not None else round(self.val_fraction * n)
-        if n - n_test - n_val < 1:
-            raise ValueError(f"{n} trajectories leave no training data after the val/test split")
-        self._td = {"train": td, "val": td}
-        self._idx = {
-            "test": perm[:n_test].sort().values,
-            "val": perm[n_test : n_test + n_val].sort().values,
-            "train": perm[n_test + n_val :].sort().values,
-        }
-        if self.val_data is not None:
-            val_td, _ = load_dataset(self.val_data)
-            self._td["val"] = val_td
-            self._idx["val"] = torch.arange(val_td.batch_size[0])
+        self._parts = [self._split(p, v, g) for p, v in zip(data, vals)]
+        self.meta = self._parts[0]["meta"]
         if self.test_data is not None:
             test_td, _ = load_dataset(self.test_data)
-            self._td["test"] = test_td
-            self._idx["test"] = torch.arange(test_td.batch_size[0])
+            self._test = (test_td, torch.arange(test_td.batch_size[0]))
         else:
-            self._td["test"] = td
+            self._test = None
         self._own = None
         if self.single_mode:
+            td = self._parts[0]["train"][0]
             loaded = {name: load_dataset(path)[0] for name, path in self.single_mode.items()}
             T = td["measurements"].shape[1]
             for name, sm in loaded.items():
@@ -255,15 +338,26 @@ class LASTDataModule(L.LightningDataModule):
             self._common_keys = sorted(common)
         self._ready = True
 
-    def dataset(self, name: str) -> TrajectoryDataset:
+    @property
+    def mixture(self) -> bool:
+        """Whether ``data`` is several data sets (batches then come from one set each)."""
+        return isinstance(self.data, (list, tuple)) and len(self.data) > 1
+
+    def dataset(self, name: str) -> TrajectoryDataset | MixtureDataset:
         if name not in SPLITS:
             raise ValueError(f"unknown split {name!r}; valid: {', '.join(SPLITS)}")
         self.setup()
-        return TrajectoryDataset(self._td[name], self._idx[name])
+        if name == "test" and self._test is not None:
+            return TrajectoryDataset(*self._test)
+        parts = [TrajectoryDataset(*part[name]) for part in self._parts]
+        return parts[0] if len(parts) == 1 else MixtureDataset(parts)
 
     def split(self, name: str) -> TensorDict:
         """The whole split ``name`` (train / val / test) as an in-memory TensorDict [N_split]."""
         ds = self.dataset(name)
+        if isinstance(ds, MixtureDataset):
+            raise ValueError(f"split({name!r}) of a mixture: its data sets differ in length and interval, read each "
+                             "set on its own (LASTDataModule(path).split(...))")
         return ds.__getitems__(torch.arange(len(ds)))
 
     @property
@@ -302,8 +396,11 @@ class LASTDataModule(L.LightningDataModule):
         if getattr(self, "_trainable", False):
             return
         self.setup()
-        for name, td in [("data", self._td["train"]), *([("val_data", self._td["val"])] if self.val_data is not None else []),
-                         *((f"single-mode set {k!r}", o.td) for k, o in zip(self.expert_modes or (), self._own or ()))]:
+        data, vals = self._paths()
+        sets = [(f"data {p}", part["train"][0]) for p, part in zip(data, self._parts)]
+        sets += [(f"val_data {v}", part["val"][0]) for v, part in zip(vals, self._parts) if v is not None]
+        sets += [(f"single-mode set {k!r}", o.td) for k, o in zip(self.expert_modes or (), self._own or ())]
+        for name, td in sets:
             check_complete({k: td[k].numpy() for k in (keys.STATES, keys.MODE) if k in td.keys()}, name)
         self._trainable = True
 
@@ -311,6 +408,12 @@ class LASTDataModule(L.LightningDataModule):
         self._check_trainable()
         ds = self.dataset("train")
         world, rank = self._ranks()
+        if isinstance(ds, MixtureDataset):
+            if world > 1:
+                raise ValueError("a mixture of data sets trains on one device (world size 1), not on "
+                                 f"{world}: its batches are drawn per set")
+            sizes = [len(p) for p in ds.parts]
+            return self._train_loader(ds, _MixedBatches(sizes, self.batch_size, int(self.split_seed) + 1))
         if not self.single_mode:
             if world > 1:
                 sampler = DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=True, seed=int(self.split_seed) + 1)
@@ -325,6 +428,12 @@ class LASTDataModule(L.LightningDataModule):
     def _eval_loader(self, name) -> DataLoader:
         ds = self.dataset(name)
         world, rank = self._ranks()
+        if isinstance(ds, MixtureDataset):  # each set's batches in order, one set after another
+            if world > 1:
+                raise ValueError(f"a mixture of data sets is evaluated on one device (world size 1), not on {world}")
+            batches = [list(range(a + i, min(a + i + self.batch_size, b)))
+                       for a, b in zip(ds.offsets[:-1], ds.offsets[1:]) for i in range(0, b - a, self.batch_size)]
+            return self._loader(ds, batches)
         sampler = (DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=False) if world > 1
                    else SequentialSampler(ds))
         return self._loader(ds, BatchSampler(sampler, self.batch_size, drop_last=False))

@@ -102,6 +102,10 @@ class TransformerClassifier(Stage):
         M = self.n_experts
         self.head = nn.Sequential(nn.Linear(d_model + 3 * M, 64), nn.GELU(), nn.Linear(64, M))
 
+
+    def interval_columns(self) -> dict[str, int]:
+        """The weights that read the interval input and its column (each token's last feature)."""
+        return {"embed.weight": 6 + 12} if self.interval_input else {}
     def initial_history(self, batch: int, dtype=torch.float32, device=None):
         return torch.zeros(batch, self.window, 12, dtype=dtype, device=device)
 

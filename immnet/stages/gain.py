@@ -108,6 +108,10 @@ class KalmanNetGain(Stage):
         self.register_buffer("f3_scale", state_scale(*F3_SCALE))
         self.register_buffer("f4_scale", state_scale(*F4_SCALE))
 
+    def interval_columns(self) -> dict[str, int]:
+        """The weights that read the interval input and its column (``log(interval / dt)`` rides after F2 into FC7)."""
+        return {"fc7.weight": 2 * 3} if self.interval_input else {}
+
     def initial_hidden(self, batch: int) -> dict:
         return {
             "q": self.h0_q.expand(batch, -1, -1),

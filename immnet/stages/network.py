@@ -174,6 +174,14 @@ class IMMNet(TensorDictModuleBase):
             return None
         return intervals.to(z.dtype)
 
+    def interval_columns(self) -> dict[str, int]:
+        """The weights that read the interval input (``log(interval / dt)``) and the input column it takes: a
+        checkpoint without that input loads into the other columns (``Stage2Module.load_net``)."""
+        reads = {}  # the parameters themselves: the state dict names each under every path that reaches it
+        for stage in (self.gain, self.classify):
+            reads.update({id(stage.get_parameter(k)): c for k, c in getattr(stage, "interval_columns", dict)().items()})
+        return {name: reads[id(p)] for name, p in self.named_parameters(remove_duplicate=False) if id(p) in reads}
+
     @property
     def n_experts(self) -> int:
         return len(self.model_set)

@@ -194,6 +194,23 @@ class Stage1Module(_TrackerModule):
             self.log(f"val/rmse_avg_{name}", rmse.mean(), batch_size=z.shape[0], sync_dist=True)
 
 
+def widen_for_interval(weights: dict, own: dict, columns: dict[str, int]) -> dict:
+    """``weights`` of a network without the interval input, for one that reads it: each weight in ``columns``
+    (name -> the interval's input column) that lacks exactly that column gets it as zeros. The widened
+    network computes what the checkpoint's does at any interval until training moves the new column
+    (function-preserving); the other weights are returned as they are."""
+    out = dict(weights)
+    for name, col in columns.items():
+        w, target = out.get(name), own.get(name)
+        if w is None or target is None or w.shape == target.shape:
+            continue
+        if w.shape[:-1] != target.shape[:-1] or w.shape[-1] + 1 != target.shape[-1]:
+            continue  # not the interval's column: load_state_dict names the mismatch
+        zero = w.new_zeros(*w.shape[:-1], 1)
+        out[name] = torch.cat([w[..., :col], zero, w[..., col:]], -1)
+    return out
+
+
 class Stage2Module(_TrackerModule):
     """Stage 2: IMMNet end to end, ``gamma * MSE + (1 - gamma) * CE [+ expert_weight * own-mode MSE]``.
 
@@ -231,7 +248,9 @@ class Stage2Module(_TrackerModule):
             self.load_net(init_checkpoint)
 
     def load_net(self, path: str):
-        """Start from every weight of a trained IMMNet (same model set and architecture)."""
+        """Start from every weight of a trained IMMNet (same model set and architecture). A checkpoint trained
+        without the interval input starts a network that reads it: its weights fill the other columns and the
+        interval's column starts at zero (``widen_for_interval``)."""
         _, net = read_checkpoint(path)
         if not net:
             raise ValueError(f"{path} holds no IMMNet weights (net.*)")
@@ -239,6 +258,7 @@ class Stage2Module(_TrackerModule):
         # that stores other values was trained with other settings, which loading would bring back silently
         kept = self.net.state_dict()  # the persistent buffers: what a checkpoint stores
         own = {k: b.clone() for k, b in self.net.named_buffers() if k in kept}
+        net = widen_for_interval(net, kept, self.net.interval_columns())
         try:
             self.net.load_state_dict(net)
         except RuntimeError as err:
