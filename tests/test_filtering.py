@@ -447,6 +447,41 @@ def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
     torch.testing.assert_close(ours[keys.MODE_PROBS], out[keys.ROLLOUT_EXPERT_PROBS], rtol=0, atol=0)
 
 
+def test_a_trained_network_with_its_learned_parts_knocked_out_is_the_model_based_imm():
+    """``IMMNet.knock_out`` (the real-flight ablations, docs/real.md): the shipped network with KalmanNet's and the
+    Transformer's corrections set to zero is IMMNet with nothing learned, the filter experts at the gain's base noise
+    and the IMM's mode update, with the network's own p_stay and guard; one part alone changes the estimates."""
+    from immnet.checkpoints import PRETRAINED
+    from immnet.tracking.methods import IMMNetMethod
+    from immnet.tracking.tracker import load_network
+
+    data = generate(6, seed=8, spec=DataSpec(T=120, min_segment=30))
+    z = data[keys.MEASUREMENTS].double()
+    shipped = load_network(PRETRAINED).double()
+    c = shipped.classify  # the shipped gain's noise_std is KalmanNetFilterGain's default
+    gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
+        "noise_std": [0.2, 0.2, 0.01, 0.002, 1e-5], "interaction": "imm", "p_stay": shipped.predict.p_stay,
+        "guard": shipped.predict.guard.to_config()}}
+    bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"p_stay": c.p_stay, "from_experts": True}}
+    reference = IMMNet(model_set=ADAPTIVE, gain=gain, classifier=bayes).double()
+    with torch.no_grad():
+        ref, _ = reference.rollout(z)
+        full, _ = shipped.rollout(z)
+        out, _ = load_network(PRETRAINED).double().knock_out("gain", "classifier").rollout(z)
+        gain_off, _ = load_network(PRETRAINED).double().knock_out("gain").rollout(z)
+    # the same equations, summed in another order (P + 1 * Q, a zero gain correction added): float64 rounding
+    torch.testing.assert_close(out[keys.STATE], ref[keys.STATE], rtol=1e-7, atol=1e-6)
+    torch.testing.assert_close(out[keys.ROLLOUT_EXPERT_PROBS], ref[keys.ROLLOUT_EXPERT_PROBS], rtol=1e-6, atol=1e-7)
+    for other in (full, gain_off):
+        assert float((other[keys.STATE] - ref[keys.STATE]).abs().max()) > 1e-3
+    assert float((gain_off[keys.STATE] - full[keys.STATE]).abs().max()) > 1e-3
+    method = IMMNetMethod(knock_out=["gain", "classifier"])
+    pos = [0, 3, 6]  # the method runs in float32: positions to a few centimetres
+    torch.testing.assert_close(method.track(data)[keys.STATE][..., pos], ref[keys.STATE][..., pos], rtol=0, atol=0.05)
+    with pytest.raises(ValueError, match="no learned part 'noise'"):
+        load_network(PRETRAINED).knock_out("noise")
+
+
 def test_experts_alone_start_from_their_own_posterior_with_either_interaction(data):
     z = data[keys.MEASUREMENTS][:, :40]
     outs = []

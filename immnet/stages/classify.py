@@ -320,6 +320,11 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
             raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
         self.p_stay = float(p_stay)
         self.register_buffer("log_pi", torch.log(transition_matrix(p_stay, self.n_experts).clamp_min(1e-300)), persistent=False)
+        self.knock_out()
+
+    def knock_out(self) -> None:
+        """Set the Transformer's correction to zero (its head's last layer): the IMM's mode update exactly. An
+        untrained classifier starts so; on a trained one it measures what the correction is worth (docs/real.md)."""
         with torch.no_grad():
             self.head[-1].weight.zero_()
             self.head[-1].bias.zero_()

@@ -108,6 +108,14 @@ class KalmanNetGain(Stage):
         self.register_buffer("f3_scale", state_scale(*F3_SCALE))
         self.register_buffer("f4_scale", state_scale(*F4_SCALE))
 
+    def knock_out(self) -> None:
+        """Set FC2's last layer to zero: no learned correction, each expert its model-based base (here the
+        steady-state Kalman gain; filter experts: the filter at its base process noise with its own Kalman gain,
+        ``FilterGain``). For measuring what the learned part of a trained network is worth (docs/real.md)."""
+        with torch.no_grad():
+            self.fc2b.weight.zero_()
+            self.fc2b.bias.zero_()
+
     def interval_columns(self) -> dict[str, int]:
         """The weights that read the interval input and its column (``log(interval / dt)`` rides after F2 into FC7)."""
         return {"fc7.weight": 2 * 3} if self.interval_input else {}

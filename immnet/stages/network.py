@@ -174,6 +174,23 @@ class IMMNet(TensorDictModuleBase):
             return None
         return intervals.to(z.dtype)
 
+    LEARNED_PARTS = ("gain", "classifier")
+
+    def knock_out(self, *parts: str) -> "IMMNet":
+        """Set the learned correction of ``parts`` (``gain``: KalmanNet's noise and gain corrections;
+        ``classifier``: the Transformer's correction of the IMM's mode update) to zero, in place: each part its
+        model-based base, the rest of the trained network as it is; both: IMMNet with nothing learned (the
+        model-based IMM of ``tests/test_filtering.py``). What a trained part is worth, without training again.
+        A part with no model-based base (the paper's Transformer alone) is refused."""
+        for part in parts:
+            if part not in self.LEARNED_PARTS:
+                raise ValueError(f"no learned part {part!r}; parts: {', '.join(self.LEARNED_PARTS)}")
+            stage = self.gain if part == "gain" else self.classify
+            if not hasattr(stage, "knock_out"):
+                raise ValueError(f"the {part} {type(stage).__name__} has no model-based base to knock out to")
+            stage.knock_out()
+        return self
+
     def interval_columns(self) -> dict[str, int]:
         """The weights that read the interval input (``log(interval / dt)``) and the input column it takes: a
         checkpoint without that input loads into the other columns (``Stage2Module.load_net``)."""

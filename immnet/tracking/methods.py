@@ -28,16 +28,17 @@ class _LearnedMethod:
 class IMMNetMethod(_LearnedMethod):
     """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights); ``guard``
     its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``), ``adapt``
-    its filter experts' adaptive process noise as ``load_network``'s.
+    its filter experts' adaptive process noise as ``load_network``'s; ``knock_out`` learned parts set to their
+    model-based base (``IMMNet.knock_out``: ``gain``, ``classifier``), the ablations of a trained network.
 
     Its estimates are ``Tracker.track``'s: NaN before a track's first detection. ``return_cov``: also the fused
     covariance ``state_cov [B, T, 9, 9]`` (``IMMNet.rollout``'s); a ValueError now, naming why, for a checkpoint
     whose experts carry none (the paper's KalmanNet experts)."""
 
     def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP,
-                 adapt=KEEP, return_cov: bool = False):
+                 adapt=KEEP, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = ()):
         self.name = name
-        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt))
+        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt).knock_out(*knock_out))
         self.net = self.tracker.net
         self.batch_size = batch_size
         if return_cov and not self.net.has_cov:
