@@ -28,7 +28,20 @@ import torch
 
 CHECKSUM_KEY = "weights_sha256"
 PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
-"""The shipped 3D-LAST weights (``immnet/pretrained/PROVENANCE.md``); ``immnet-real.ckpt`` beside them."""
+"""The shipped 3D-LAST weights (``immnet/pretrained/PROVENANCE.md``), the benchmark model; the others beside them."""
+SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "immnet-real.ckpt"}
+"""The shipped networks by name (docs/checkpoints.md "Shipped weights"): ``general`` (any interval 0.5-12 s, 3D-LAST
+and real flights, no range guard) is what ``Tracker.pretrained()`` and ``immnet track`` load unless told;
+``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the 3D-LAST one fine-tuned on real flights
+(1 s)."""
+DEFAULT_WEIGHTS = "general"
+
+
+def shipped(name: str = DEFAULT_WEIGHTS) -> Path:
+    """The file of the shipped network ``name`` (``SHIPPED``); a ValueError naming the choices otherwise."""
+    if name not in SHIPPED:
+        raise ValueError(f"no shipped weights named {name!r}; shipped: {', '.join(SHIPPED)}")
+    return PRETRAINED.with_name(SHIPPED[name])
 
 
 def provenance_file(ckpt) -> Path:

@@ -167,7 +167,7 @@ def test_the_shipped_weights_carry_their_checksum_and_load_as_plain_data(tmp_pat
     stored = ckpt[CHECKSUM_KEY]
     assert stored == _sha256_by_hand(ckpt["state_dict"])
     assert stored == json.loads(PRETRAINED.with_name("provenance.json").read_text())["weights_sha256"]
-    net = Tracker.pretrained().net
+    net = Tracker.pretrained("3dlast").net
     del ckpt[CHECKSUM_KEY]
     torch.save(ckpt, tmp_path / "old.ckpt")
     old = Tracker.from_checkpoint(tmp_path / "old.ckpt").net

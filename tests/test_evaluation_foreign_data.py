@@ -122,5 +122,5 @@ def test_learned_trackers_refuse_another_dt(tmp_path, capsys):
     methods = json.loads((tmp_path / "r.json").read_text())["methods"]
     assert "immnet" not in methods and "kalmannet" not in methods and "imm-tuned" in methods
     # the online tracker's .npz path says the same
-    rc = immnet.cli.main(["track", "--input", str(path), "--output", str(tmp_path / "o.npz")])
+    rc = immnet.cli.main(["track", "--input", str(path), "--output", str(tmp_path / "o.npz"), "--weights", "3dlast"])
     assert rc == 2 and "dt = 0.5 s" in capsys.readouterr().err and not (tmp_path / "o.npz").exists()

@@ -1,10 +1,14 @@
-"""The shipped weights still meet the accuracy their provenance file claims, on freshly generated data."""
+"""The shipped weights still meet the accuracy their provenance files claim, on freshly generated data: the 3D-LAST
+benchmark network at 1 s, the general network (the default) on 3D-LAST at 1 s and at 4.5-5.5 s scans. Their claims
+on real flights: tests/test_real_flights.py."""
 
 import json
 
 import pytest
 
+from immnet.checkpoints import shipped
 from immnet.data.generate import generate
+from immnet.data.spec import DataSpec
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.runner import evaluate
 from immnet.tracking.tracker import PRETRAINED, Tracker
@@ -17,7 +21,7 @@ def test_provenance_describes_the_shipped_file():
     for key in ("recipe", "data", "commit", "test", "metrics", "claims"):
         assert key in prov, key
     assert PRETRAINED.stat().st_size < 5 * 2**20
-    net = Tracker.pretrained().net
+    net = Tracker.pretrained("3dlast").net
     assert net.model_set.names == prov["model_set"]
     # the range guard it was measured with is the one it loads with (it has no weights to tell)
     guard = getattr(net.predict, "guard", None)
@@ -34,3 +38,27 @@ def test_shipped_weights_meet_their_claims_on_fresh_data():
     slack = 1.03
     assert avg["immnet"] / avg["clairvoyant"] <= prov["claims"]["ratio_to_clairvoyant"] * slack, avg
     assert avg["immnet"] / avg["imm-tuned"] <= prov["claims"]["ratio_to_imm_tuned"] * slack, avg
+
+
+def test_the_default_weights_are_the_general_network():
+    """``Tracker.pretrained()`` and ``immnet track`` with no options load the general network: any interval from
+    0.5 to 12 s, no range guard; the others by name; an unknown name is refused naming the shipped ones."""
+    net = Tracker.pretrained().net
+    assert tuple(net.interval_range) == (0.5, 12.0) and getattr(net.predict, "guard", None) is None
+    prov = json.loads(shipped("general").with_name("provenance-general.json").read_text())
+    assert prov["interval_range"] == [0.5, 12.0] and prov["guard"] is None
+    assert Tracker.pretrained("3dlast").net.interval_range is None
+    with pytest.raises(ValueError, match="shipped: general, 3dlast, real"):
+        Tracker.pretrained("radar")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("set_name,spec", [("3dlast-1s", DataSpec()),
+                                           ("3dlast-4.5-5.5s", DataSpec(T=120, dt=5.0, dt_jitter=0.5, min_segment=12))])
+def test_the_general_weights_meet_their_claims_on_fresh_3dlast_data(set_name, spec):
+    prov = json.loads(shipped("general").with_name("provenance-general.json").read_text())
+    data = generate(200, seed=20261202, spec=spec)  # a seed no training, tuning or test set of the project uses
+    methods = {name: build_method(name) for name in ("immnet-general", "clairvoyant")}
+    avg = {name: r["rmse"]["avg"] for name, r in evaluate(methods, data, progress=False).items()}
+    claim = prov["tests"][set_name]["claims"]["ratio_to_clairvoyant"]
+    assert avg["immnet-general"] / avg["clairvoyant"] <= claim * 1.03, avg  # 200 trajectories: about +-2 %

@@ -1,9 +1,10 @@
-"""Real flights (docs/real.md): the shipped real-flight weights meet the claim of their provenance on the test
-flights of collections/quickstart, and the covariances of the best model-based filter and of IMMNet are
-calibrated there (the 95 % position ellipsoid holds the truth at about 95 % of the scans).
+"""Real flights (docs/real.md): each shipped network trained on real flights (``immnet-real``, 1 s; ``immnet-general``,
+the default, at 1 s and at 4.5-5.5 s scans) meets the claim of its provenance on the test flights of
+collections/quickstart, and the covariances of the best model-based filter and of the networks are calibrated there
+(the 95 % position ellipsoid holds the truth at about 95 % of the scans).
 
-The data are written by ``immnet data adsb``'s code with the defaults the weights and the filters were tuned
-with (seed 0): the same bytes, so the test flights are the ones no training or tuning saw.
+The data are written by ``immnet data adsb``'s code with the settings the weights and the filters were tuned with
+(seed 0): the same bytes, so the test flights are the ones no training or tuning saw.
 """
 
 import json
@@ -12,52 +13,80 @@ import pytest
 import torch
 
 from immnet import keys
+from immnet.checkpoints import shipped
 from immnet.data import adsb, real
 from immnet.data.storage import as_batch, load_dataset
 from immnet.evaluation.calibration import coverage, position_nees
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.metrics import position_error, rmse, scored_mask
-from immnet.tracking.tracker import PRETRAINED
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(adsb.samples_dir() is None, reason="traffic's sample files are not installed")]
-PROVENANCE = PRETRAINED.with_name("provenance-real.json")
+SETS = {"quickstart-1s": real.RealSpec(),  # as scripts/real.sh writes them
+        "quickstart-5s": real.RealSpec(dt=5.0, dt_jitter=0.5, T=60, r_min=5.0, r_max=35.0)}
+CASES = [("real", "quickstart-1s"), ("general", "quickstart-1s"), ("general", "quickstart-5s")]
+
+
+def _provenance(name: str) -> dict:
+    return json.loads(shipped(name).with_name(f"provenance-{name}.json").read_text())
 
 
 @pytest.fixture(scope="module")
-def outputs(tmp_path_factory):
-    """The quickstart test flights and the outputs of immnet-real and of the best model-based filter on them."""
-    out = tmp_path_factory.mktemp("real") / "quickstart"
-    real.make_adsb(out, ["collections/quickstart"], real.RealSpec(), seed=0)
-    td, meta = load_dataset(out / "test")
-    prov = json.loads(PROVENANCE.read_text())
-    best = prov["claims"]["best_model_based"]
+def test_flights(tmp_path_factory):
+    """Each set's test flights, written once."""
+    out = {}
+    for set_name, spec in SETS.items():
+        path = tmp_path_factory.mktemp("real") / set_name
+        real.make_adsb(path, ["collections/quickstart"], spec, seed=0)
+        out[set_name] = load_dataset(path / "test")[0]
+    return out
+
+
+@pytest.fixture(scope="module")
+def outputs(test_flights):
+    """Per case: the provenance's test entry, the best model-based filter's name, and the outputs of the network and
+    of that filter (with covariances)."""
     runs = {}
-    for name, dtype in (("immnet-real", torch.float32), (best, torch.float64)):
-        batch = as_batch(td, dtype)
-        method = build_method(name, return_cov=True)
-        with torch.no_grad():
-            runs[name] = (method, batch, method.track(batch))
-    return prov, best, runs
+    for name, set_name in CASES:
+        entry = _provenance(name)["tests"][set_name]
+        best = entry["claims"]["best_model_based"]
+        out = {}
+        for method, dtype in ((f"immnet-{name}", torch.float32), (best, torch.float64)):
+            batch = as_batch(test_flights[set_name], dtype)
+            m = build_method(method, return_cov=True)
+            with torch.no_grad():
+                out[method] = (batch, m.track(batch))
+        runs[(name, set_name)] = (entry, best, out)
+    return runs
 
 
-def test_the_real_flight_weights_meet_their_claim_on_the_test_flights(outputs):
-    prov, best, runs = outputs
-    assert prov["weights_sha256"] and prov["guard"] is None and prov["scan_interval"] == 1.0
-    avg = {name: rmse(position_error(out[keys.STATE], batch[keys.STATES]), scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS]))["avg"]
-           for name, (_, batch, out) in runs.items()}  # as immnet evaluate scores
-    n = runs[best][1].batch_size[0]
-    assert n == prov["test"]["n"]
-    assert avg["immnet-real"] / avg[best] <= prov["claims"]["ratio_to_best_model_based"], avg
-    assert avg["immnet-real"] == pytest.approx(prov["metrics"]["immnet-real"]["avg"], rel=1e-4)
+@pytest.mark.parametrize("case", CASES, ids=["-".join(c) for c in CASES])
+def test_the_real_flight_weights_meet_their_claims_on_the_test_flights(outputs, case):
+    name, set_name = case
+    entry, best, out = outputs[case]
+    prov = _provenance(name)
+    assert prov["weights_sha256"] and prov["guard"] is None
+    avg = {m: rmse(position_error(o[keys.STATE], b[keys.STATES]), scored_mask(b[keys.STATES], b[keys.MEASUREMENTS]))["avg"]
+           for m, (b, o) in out.items()}  # as immnet evaluate scores
+    assert out[best][0].batch_size[0] == entry["n"]
+    net = f"immnet-{name}"
+    assert avg[net] / avg[best] <= entry["claims"]["ratio_to_best_model_based"], avg
+    assert avg[net] == pytest.approx(entry["metrics"][net]["avg"], rel=1e-4)
 
 
-@pytest.mark.parametrize("name", ["best", "immnet-real"])
-def test_covariances_are_calibrated_on_the_test_flights(outputs, name):
-    prov, best, runs = outputs
-    _, batch, out = runs[best if name == "best" else name]
-    truth = batch[keys.STATES]
-    nees = position_nees(out[keys.STATE], out[keys.STATE_COV], truth)
+OVERCONFIDENT = pytest.mark.xfail(strict=True, reason=(
+    "the general network's covariance is overconfident on real flights: 95 % ellipsoid 0.908 and 50 % 0.447 at 1 s, "
+    "0.880 and 0.429 at 4.5-5.5 s (docs/real.md, 'Calibration'); its covariance is not calibrated yet"))
+
+
+@pytest.mark.parametrize("case", CASES, ids=["-".join(c) for c in CASES])
+@pytest.mark.parametrize("who", ["best", pytest.param("network", id="network")])
+def test_covariances_are_calibrated_on_the_test_flights(outputs, case, who, request):
+    if who == "network" and case[0] == "general":
+        request.applymarker(OVERCONFIDENT)
+    entry, best, out = outputs[case]
+    batch, o = out[best if who == "best" else f"immnet-{case[0]}"]
+    nees = position_nees(o[keys.STATE], o[keys.STATE_COV], batch[keys.STATES])
     mask = torch.zeros_like(nees, dtype=torch.bool)
     mask[:, 20:] = True  # past the track start
     cov = coverage(nees, mask)

@@ -110,7 +110,7 @@ def test_checkpoint_errors(tmp_path):
 
 
 def test_track_guard_option_matches_the_python_api(tmp_path, capsys):
-    """``--guard none`` / ``OUTER,INNER`` load the shipped weights with no range guard / another region,
+    """``--guard none`` / ``OUTER,INNER`` load the shipped 3D-LAST weights with no range guard / another region,
     as ``Tracker.pretrained(guard=...)`` does; the region changes the tracks that fly beyond it."""
     from immnet.tracking.tracker import PRETRAINED
 
@@ -118,7 +118,8 @@ def test_track_guard_option_matches_the_python_api(tmp_path, capsys):
     np.savez(tmp_path / "in.npz", measurements=z, dt=1.0)
     outs = {}
     for text, guard in (("none", None), ("15000,4000", {"outer": 15_000.0, "inner": 4_000.0})):
-        assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz"), "--guard", text]) == 0
+        assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz"), "--weights", "3dlast",
+                     "--guard", text]) == 0
         outs[text] = np.load(tmp_path / "out.npz")["state"]
         api = Tracker.from_checkpoint(PRETRAINED, guard=guard).track(torch.from_numpy(z))
         np.testing.assert_allclose(outs[text], api["state"].numpy(), rtol=1e-5, atol=1e-4)

@@ -66,6 +66,46 @@ def test_track_at_irregular_epoch_times_estimates_every_row_below_the_raw_error(
     np.testing.assert_allclose(est, state[:, [0, 3, 6]], rtol=0, atol=1e-6)
 
 
+def test_the_default_weights_track_irregular_epoch_times_below_the_raw_error(irregular, tmp_path):
+    """The shipped default (the general network, 0.5-12 s) takes the CSV's own times: an estimate for every row,
+    below the raw measurements' error; the streaming API fed each row's interval gives the same numbers."""
+    from immnet.tracking import Tracker
+
+    path, rows, truth = irregular
+    out = tmp_path / "out.csv"
+    assert main(["track", "--input", str(path), "--output", str(out)]) == 0
+    with open(out, newline="") as f:
+        got = list(csv.DictReader(f))
+    assert [r["t"] for r in got] == [r[1] for r in rows]
+    est = np.array([[float(r[c]) for c in ("x", "y", "z")] for r in got])
+    assert np.isfinite(est).all()
+    raw = np.array([[float(v) for v in r[2:]] for r in rows])
+    rmse = lambda e: float(np.sqrt(((e - truth) ** 2).sum(-1).mean()))  # noqa: E731
+    assert rmse(est) < rmse(raw), (rmse(est), rmse(raw))  # 40 scans from the start, a 3 deg/s turn at 5 s scans
+    tracker = Tracker.pretrained()
+    for tid in ("a", "b"):
+        mine = [i for i, r in enumerate(rows) if r[0] == tid]
+        t = np.array([float(rows[i][1]) - EPOCH for i in mine])
+        z = torch.tensor([[float(v) for v in rows[i][2:]] for i in mine], dtype=torch.float32)
+        tracker.reset(1)
+        gaps = np.diff(t)
+        dts = np.r_[np.median(gaps), gaps]  # the CLI's first interval: the track's median spacing
+        api = torch.stack([tracker.step(z[k][None], dt=float(dts[k]))[keys.FUSED][0] for k in range(len(mine))])
+        np.testing.assert_allclose(est[mine], api[:, [0, 3, 6]].double().numpy(), rtol=0, atol=2e-3)
+
+
+def test_a_gap_beyond_the_networks_range_is_coasted_at_intervals_inside_it():
+    """``track_rows(max_interval=...)``: rows 20 s apart for a network trained up to 12 s are two 10 s scans, the
+    one between them a missed detection; rows inside the range keep their own times."""
+    from immnet.tracking.segments import _scan_times
+
+    full, pos = _scan_times(np.array([0.0, 5.0, 25.0, 30.0, 42.0]), 12.0)
+    np.testing.assert_allclose(full, [0.0, 5.0, 15.0, 25.0, 30.0, 42.0])
+    assert pos.tolist() == [0, 1, 3, 4, 5]
+    full, pos = _scan_times(np.array([0.0, 5.0, 25.0]), None)
+    assert full.tolist() == [0.0, 5.0, 25.0] and pos.tolist() == [0, 1, 2]
+
+
 def test_rows_keep_hundredths_at_epoch_times(irregular):
     """Offsets from each segment's first time are exact to 0.01 s at 1.7e9 s (taken from the decimals)."""
     from immnet.tracking.io import read_tracks_csv
@@ -80,7 +120,8 @@ def test_rows_keep_hundredths_at_epoch_times(irregular):
 
 
 def test_a_fixed_interval_checkpoint_refuses_off_grid_times_and_names_the_way_out(irregular, tmp_path, capsys):
-    assert main(["track", "--input", str(irregular[0]), "--output", str(tmp_path / "o.csv"), "--guard", "none"]) == 2
+    assert main(["track", "--input", str(irregular[0]), "--output", str(tmp_path / "o.csv"), "--weights", "3dlast",
+                 "--guard", "none"]) == 2
     err = capsys.readouterr().err
     assert "is not a whole number of scans (dt = 1)" in err and "--method imm-tuned" in err
     assert not (tmp_path / "o.csv").exists()

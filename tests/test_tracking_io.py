@@ -25,7 +25,9 @@ COLUMNS = ("x", "vx", "ax", "y", "vy", "ay", "z", "vz", "az", "p_cv", "p_ca", "p
 
 @pytest.fixture(scope="module")
 def tracker():
-    return Tracker.pretrained(guard=None)
+    """The fixed-grid path (a network trained at one interval: the 3D-LAST weights); the general network takes each
+    row at its own time (tests/test_tracking_intervals.py)."""
+    return Tracker.pretrained("3dlast", guard=None)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +53,8 @@ def _rows(z, tid="a", t0=0.0, dt=1.0):
 def _track(tmp_path, rows, *extra, name="in.csv", bom=False):
     _write(tmp_path / name, rows, bom)
     out = tmp_path / ("out-" + name)
-    code = main(["track", "--input", str(tmp_path / name), "--output", str(out), "--guard", "none", *extra])
+    code = main(["track", "--input", str(tmp_path / name), "--output", str(out), "--weights", "3dlast", "--guard", "none",
+                 *extra])
     assert code == 0
     with open(out, newline="") as f:
         return list(csv.DictReader(f))
@@ -219,7 +222,7 @@ def test_a_huge_gap_costs_memory_by_rows_and_both_segments_are_tracked(tmp_path,
              for j, t in enumerate((t0, t0 + 29 + 1e9))]
     rows = [row for tid, t, z in parts for row in _rows(z, tid, t)]
     _write(tmp_path / "in.csv", rows)
-    args = ["track", "--input", str(tmp_path / "in.csv"), "--guard", "none", "--output"]
+    args = ["track", "--input", str(tmp_path / "in.csv"), "--weights", "3dlast", "--guard", "none", "--output"]
     main(args + [str(tmp_path / "warm.csv")])  # imports and caches outside the measurement
     tracemalloc.start()
     try:

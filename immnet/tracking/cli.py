@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from immnet.checkpoints import DEFAULT_WEIGHTS, SHIPPED, shipped
 from immnet.data.validate import MAX_ABS_POSITION
 from immnet.imm.guard import parse_guard
 from immnet.tracking.segments import MAX_COAST
@@ -31,7 +32,11 @@ def register(subparsers) -> None:
     )
     p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
-    p.add_argument("--checkpoint", default=None, help="Lightning checkpoint (default: the shipped weights)")
+    p.add_argument("--weights", default=None, choices=sorted(SHIPPED),
+                   help=f"shipped weights by name (default {DEFAULT_WEIGHTS}: any scan interval 0.5-12 s, real flights and "
+                        "3D-LAST, no range guard; 3dlast: the 3D-LAST benchmark network, 1 s, its range guard; real: 1 s "
+                        "real flights; immnet/pretrained/PROVENANCE-*.md)")
+    p.add_argument("--checkpoint", default=None, help="a Lightning checkpoint or exported weights of your own instead")
     p.add_argument("--method", default=None,
                    help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "
                         "interval (e.g. imm-tuned) tracks each row as a scan at its own time (any spacing)")
@@ -43,8 +48,9 @@ def register(subparsers) -> None:
                         "detection starts it again ('inf': never dropped)")
     p.add_argument(
         "--guard", default="checkpoint",
-        help="range guard: 'checkpoint' (as trained; the shipped weights: 3D-LAST's region, turns back beyond 33 km "
-             "and within 4 km, and its speed envelope, 40-330 m/s), 'none' (data from another region), or "
+        help="range guard: 'checkpoint' (as trained: none in the general weights; the 3dlast weights: 3D-LAST's region, "
+             "turns back beyond 33 km and within 4 km, and its speed envelope, 40-330 m/s), 'none' (data from another "
+             "region), or "
              "'OUTER,INNER' in metres (another region, 3D-LAST's speed envelope)",
     )
     p.add_argument(
@@ -53,6 +59,13 @@ def register(subparsers) -> None:
              "that fly rougher than the training data (docs/immnet.md, 'Adaptive process noise')",
     )
     p.set_defaults(func=run)
+
+
+def _weights(args) -> Path:
+    """The checkpoint ``immnet track`` loads: ``--checkpoint``, else the shipped ``--weights`` (default general)."""
+    if args.checkpoint is not None and args.weights is not None:
+        raise ValueError("give --weights (shipped weights by name) or --checkpoint (a file of your own), not both")
+    return Path(args.checkpoint) if args.checkpoint is not None else shipped(args.weights or DEFAULT_WEIGHTS)
 
 
 def check_paths(source: Path, target: Path) -> None:
@@ -81,32 +94,37 @@ def _report_no_cov(why: str) -> None:
     print(f"no covariance: {why}; the cov_* columns are empty (an .npz output has no state_cov)", file=sys.stderr)
 
 
-def _track_rows_with_method(args, rows, limit: float) -> int:
-    """CSV rows tracked by ``--method``: each row one scan at its own time (``segments.split_rows``)."""
+def _track_rows_with_method(args, rows, limit: float, method=None, label: str | None = None) -> int:
+    """CSV rows tracked by ``--method`` (or ``method``, built): each row one scan at its own time
+    (``segments.split_rows``); for a network trained over a range of intervals, a gap longer than the range is cut
+    into missed scans inside it (``track_rows(max_interval=...)``)."""
     from immnet.data.validate import gate_measurements
-    from immnet.evaluation.methods import build_method
+    from immnet.evaluation.methods import build_method, gives_cov
     from immnet.tracking.io import write_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 
-    from immnet.evaluation.methods import gives_cov
-
-    has_cov = gives_cov(args.method)
-    method = build_method(args.method, return_cov=has_cov)
+    if method is None:
+        has_cov = gives_cov(args.method)
+        method, label = build_method(args.method, return_cov=has_cov), args.method
+        why = f"{args.method} keeps no covariance of its state"
+    else:
+        has_cov, why = method.net.has_cov, method.net.no_cov_reason()
+    span = getattr(getattr(method, "net", None), "interval_range", None)
     z, n_gated = gate_measurements(rows.z, limit)
     segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
-    state, probs, cov = track_rows(method, segs, offset, return_cov=True)
+    state, probs, cov = track_rows(method, segs, offset, return_cov=True, max_interval=None if span is None else span[1])
     write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
     if not has_cov:
-        _report_no_cov(f"{args.method} keeps no covariance of its state")
+        _report_no_cov(why)
     _report_gated(n_gated, limit)
-    print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows with {args.method} "
+    print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows with {label} "
           f"-> {args.output}", file=sys.stderr)
     return 0
 
 
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
-    from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker
+    from immnet.tracking.tracker import KEEP, Tracker
 
     check_paths(args.input, args.output)
     limit = check_limit(args.max_position)
@@ -117,7 +135,12 @@ def run(args) -> int:
         rows = read_tracks_csv(args.input)
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
-        tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)
+        tracker = Tracker.from_checkpoint(_weights(args), parse_guard(args.guard), True if args.adapt else KEEP, limit)
+        if tracker.net.interval_range is not None:  # any interval in its range: each row a scan at its own time
+            from immnet.tracking.methods import IMMNetMethod
+
+            method = IMMNetMethod.from_tracker(tracker, name="the checkpoint", return_cov=tracker.net.has_cov)
+            return _track_rows_with_method(args, rows, limit, method, str(_weights(args)))
         z, n_gated = gate_measurements(rows.z, limit)
         gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
         lines = ", ".join(str(rows.lines[r]) for r in gated[:5]) + (", ..." if len(gated) > 5 else "")
@@ -136,7 +159,7 @@ def run(args) -> int:
     from immnet.tracking.tracker import check_dt
 
     data, _ = load_dataset(args.input)
-    tracker = Tracker.from_checkpoint(args.checkpoint or PRETRAINED, parse_guard(args.guard), True if args.adapt else KEEP, limit)
+    tracker = Tracker.from_checkpoint(_weights(args), parse_guard(args.guard), True if args.adapt else KEEP, limit)
     from immnet.data.times import scan_intervals
 
     check_dt(tracker.net, scan_intervals(data) if "t" in data.keys() else data["dt"], "the checkpoint")

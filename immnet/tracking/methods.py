@@ -45,6 +45,16 @@ class IMMNetMethod(_LearnedMethod):
             raise ValueError(f"{name}: {self.net.no_cov_reason()}")
         self.return_cov = return_cov
 
+    @classmethod
+    def from_tracker(cls, tracker: Tracker, name: str = "immnet", batch_size: int = 500, return_cov: bool = False):
+        """The method of a loaded ``Tracker`` (its network as loaded: guard, adaptation, gate)."""
+        self = cls.__new__(cls)
+        self.name, self.tracker, self.net, self.batch_size = name, tracker, tracker.net, batch_size
+        if return_cov and not self.net.has_cov:
+            raise ValueError(f"{name}: {self.net.no_cov_reason()}")
+        self.return_cov = return_cov
+        return self
+
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)  # every interval the one it was trained at, or inside its interval_range
         out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size, self.net.intervals_for(batch),

@@ -142,27 +142,56 @@ def _groups(segs: Segments, batch_size: int):
     return groups, blank
 
 
-def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512, return_cov: bool = False):
+def _scan_times(times: np.ndarray, max_interval: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """A segment's scan times and where its rows are among them: the rows' own times, and where two rows are more
+    than ``max_interval`` apart (a network trained over intervals up to it), the gap cut into equal intervals by
+    missed scans (a gap is a gap: the tracker coasts through it, at intervals it knows)."""
+    if max_interval is None or len(times) < 2:
+        return times, np.arange(len(times))
+    gaps = np.diff(times)
+    cuts = np.maximum(1, np.ceil(gaps / max_interval * (1 - 1e-12))).astype(np.int64)
+    pos = np.concatenate([[0], np.cumsum(cuts)])
+    full = np.empty(pos[-1] + 1)
+    for i, (g, k) in enumerate(zip(gaps, cuts)):
+        full[pos[i] : pos[i + 1]] = times[i] + g * np.arange(k) / k
+    full[-1] = times[-1]
+    return full, pos
+
+
+def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512, return_cov: bool = False,
+               max_interval: float | None = None):
     """``state [R, 9]``, ``mode_probs [R, 4]`` per row of :func:`split_rows`' segments, each tracked as a
     fresh track by ``method.track(batch)`` with ``t [B, T]`` (its rows' times since its first); padding
     after a segment's end is missed detections, its times continuing at the segment's median spacing
-    (strictly increasing). ``mode_probs`` NaN where the method has none. With ``return_cov`` a third,
-    ``state_cov [R, 9, 9]`` from the method's output, NaN where it gives none."""
+    (strictly increasing). ``max_interval``: a gap between rows longer than it is cut into equal intervals by
+    missed scans (:func:`_scan_times`; a network trained over a range of intervals). ``mode_probs`` NaN where the
+    method has none. With ``return_cov`` a third, ``state_cov [R, 9, 9]`` from the method's output, NaN where it
+    gives none."""
     from tensordict import TensorDict
 
     import torch
 
     groups, (state, probs, cov) = _groups(segs, batch_size)
+    scans = {}  # per segment (its first row): its scan times and its rows' scans among them
+    for _, rows in groups:
+        for r in rows:
+            scans[int(r[0])] = _scan_times(offset[r], max_interval)
+    if max_interval is not None:  # regroup by the spans with the missed scans
+        segs = Segments(segs.segment, segs.step, segs.span.copy(), segs.z)
+        for r0, (full, _) in scans.items():
+            segs.span[segs.segment[r0]] = len(full)
+        groups, _ = _groups(segs, batch_size)
     for T, rows in groups:
         z = np.full((len(rows), T, 3), np.nan)
         t = np.zeros((len(rows), T))
         dt = np.ones(len(rows))
         for i, r in enumerate(rows):
-            z[i, : len(r)] = segs.z[r]
-            t[i, : len(r)] = offset[r]
-            gaps = np.diff(offset[r])
+            full, pos = scans[int(r[0])]
+            z[i, pos] = segs.z[r]
+            t[i, : len(full)] = full
+            gaps = np.diff(full)
             dt[i] = float(np.median(gaps)) if len(gaps) else 1.0
-            t[i, len(r):] = offset[r][-1] + dt[i] * np.arange(1, T - len(r) + 1)
+            t[i, len(full):] = full[-1] + dt[i] * np.arange(1, T - len(full) + 1)
         batch = TensorDict({keys.MEASUREMENTS: torch.from_numpy(z), keys.TIME: torch.from_numpy(t),
                             keys.DT: torch.from_numpy(dt)}, batch_size=[len(rows)])
         if hasattr(method, "check"):
@@ -172,11 +201,12 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
         pr = out[keys.MODE_PROBS].double().numpy() if keys.MODE_PROBS in out.keys() else None
         cv = out[keys.STATE_COV].double().numpy() if return_cov and keys.STATE_COV in out.keys() else None
         for i, r in enumerate(rows):
-            state[r] = st[i, : len(r)]
+            pos = scans[int(r[0])][1]
+            state[r] = st[i, pos]
             if pr is not None:
-                probs[r] = pr[i, : len(r)]
+                probs[r] = pr[i, pos]
             if cv is not None:
-                cov[r] = cv[i, : len(r)]
+                cov[r] = cv[i, pos]
     return (state, probs, cov) if return_cov else (state, probs)
 
 

@@ -32,7 +32,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import PRETRAINED, load_checkpoint  # PRETRAINED: re-exported here too
+from immnet.checkpoints import DEFAULT_WEIGHTS, PRETRAINED, load_checkpoint, shipped  # PRETRAINED: re-exported here too
 from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
@@ -138,11 +138,13 @@ class Tracker:
         return cls(load_network(path, guard, adapt), max_position)
 
     @classmethod
-    def pretrained(cls, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
-        """The weights shipped inside the package (see ``immnet/pretrained/PROVENANCE.md``); they carry
-        3D-LAST's range guard: ``guard=None`` for data from another surveillance region; ``adapt=True``
-        adds adaptive process noise (targets noisier than 3D-LAST's; docs/immnet.md)."""
-        return cls.from_checkpoint(PRETRAINED, guard, adapt, max_position)
+    def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
+        """Weights shipped inside the package by name (``immnet.checkpoints.SHIPPED``, provenance in
+        ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (the default: any scan interval from 0.5 to 12 s, real
+        flights and 3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range
+        guard: ``guard=None`` for data from another surveillance region), ``real`` (1 s real flights).
+        ``adapt=True`` adds adaptive process noise (targets noisier than the training data's; docs/immnet.md)."""
+        return cls.from_checkpoint(shipped(name), guard, adapt, max_position)
 
     def reset(self, n_tracks: int) -> None:
         """``n_tracks`` tracks that have not started; ``n_gated`` back to 0."""
