@@ -43,12 +43,12 @@ def irregular(tmp_path_factory):
     return path, rows, np.concatenate(truth)
 
 
-def test_track_at_irregular_epoch_times_estimates_every_row_below_the_raw_error(irregular, tmp_path):
-    """Needs the filters branch (model-based IMMs reading ``t``): without it the IMM runs as if scans were
-    1 s apart and its error is far above the raw measurements'."""
+def _tracked_below_the_raw_error(irregular, tmp_path, *options):
+    """``immnet track`` of the irregular CSV: every row's time kept and estimated, the position RMSE below the raw
+    measurements'; returns the estimates ``[R, 3]``."""
     path, rows, truth = irregular
     out = tmp_path / "out.csv"
-    assert main(["track", "--input", str(path), "--output", str(out), "--method", "imm-tuned"]) == 0
+    assert main(["track", "--input", str(path), "--output", str(out), *options]) == 0
     with open(out, newline="") as f:
         got = list(csv.DictReader(f))
     assert [r["t"] for r in got] == [r[1] for r in rows]
@@ -57,6 +57,14 @@ def test_track_at_irregular_epoch_times_estimates_every_row_below_the_raw_error(
     raw = np.array([[float(v) for v in r[2:]] for r in rows])
     rmse = lambda e: float(np.sqrt(((e - truth) ** 2).sum(-1).mean()))  # noqa: E731
     assert rmse(est) < rmse(raw), (rmse(est), rmse(raw))
+    return est
+
+
+def test_track_at_irregular_epoch_times_estimates_every_row_below_the_raw_error(irregular, tmp_path):
+    """Needs the filters branch (model-based IMMs reading ``t``): without it the IMM runs as if scans were
+    1 s apart and its error is far above the raw measurements'."""
+    path, rows, truth = irregular
+    est = _tracked_below_the_raw_error(irregular, tmp_path, "--method", "imm-tuned")
     # the Python API: the same segments through Method.track with t gives the same numbers
     from immnet.tracking.io import read_tracks_csv
 
@@ -72,16 +80,7 @@ def test_the_default_weights_track_irregular_epoch_times_below_the_raw_error(irr
     from immnet.tracking import Tracker
 
     path, rows, truth = irregular
-    out = tmp_path / "out.csv"
-    assert main(["track", "--input", str(path), "--output", str(out)]) == 0
-    with open(out, newline="") as f:
-        got = list(csv.DictReader(f))
-    assert [r["t"] for r in got] == [r[1] for r in rows]
-    est = np.array([[float(r[c]) for c in ("x", "y", "z")] for r in got])
-    assert np.isfinite(est).all()
-    raw = np.array([[float(v) for v in r[2:]] for r in rows])
-    rmse = lambda e: float(np.sqrt(((e - truth) ** 2).sum(-1).mean()))  # noqa: E731
-    assert rmse(est) < rmse(raw), (rmse(est), rmse(raw))  # 40 scans from the start, a 3 deg/s turn at 5 s scans
+    est = _tracked_below_the_raw_error(irregular, tmp_path)  # 40 scans from the start, a 3 deg/s turn at 5 s scans
     tracker = Tracker.pretrained()
     for tid in ("a", "b"):
         mine = [i for i, r in enumerate(rows) if r[0] == tid]
