@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # 3D-LAST at other scan intervals, one table per interval (docs/results.md, "Any scan interval"):
 #   set up -> data (the interval-range training set, fresh test sets at 1 s, 5 s and U[4.5, 5.5] s, seed 99)
-#   -> IMMNet over 0.5-5.5 s (recipes/interval-range.yaml: the shipped weights fine-tuned, about 8 minutes on 2 cores)
+#   -> IMMNet over 0.5-5.5 s (recipes/interval-range.yaml: the shipped weights fine-tuned, about 13 minutes on 2 cores;
+#   the whole script about 22)
 #   -> every method that takes the data's interval, in one run per interval, beside the clairvoyant bound.
 # A finished run is reused; IMMNET_RETRAIN=1 trains again.
 set -euo pipefail
