@@ -135,12 +135,13 @@ def run(args) -> int:
         rows = read_tracks_csv(args.input)
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
-        tracker = Tracker.from_checkpoint(_weights(args), parse_guard(args.guard), True if args.adapt else KEEP, limit)
+        weights = _weights(args)
+        tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit)
         if tracker.net.interval_range is not None:  # any interval in its range: each row a scan at its own time
             from immnet.tracking.methods import IMMNetMethod
 
             method = IMMNetMethod.from_tracker(tracker, name="the checkpoint", return_cov=tracker.net.has_cov)
-            return _track_rows_with_method(args, rows, limit, method, str(_weights(args)))
+            return _track_rows_with_method(args, rows, limit, method, str(weights))
         z, n_gated = gate_measurements(rows.z, limit)
         gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
         lines = ", ".join(str(rows.lines[r]) for r in gated[:5]) + (", ..." if len(gated) > 5 else "")
