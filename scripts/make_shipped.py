@@ -50,6 +50,9 @@ SHIPS = {
                  "val": [f"{REAL}/quickstart-1s/val", f"{REAL}/quickstart-5s/val"]},
         "interval_range": [0.5, 12.0],
         "guard": "none",
+        # what it reports: its covariance scaled by a running mean of its NIS / 3, the weight chosen on the validation
+        # flights and fresh 3D-LAST (docs/immnet.md, "Covariance consistency"); its estimates are the trained network's
+        "settings": {"cov_consistency": 0.05},
         "tests": {
             "quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real", "immnet-general"]),
             "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["immnet-general"]),
@@ -91,7 +94,7 @@ def main() -> int:
     from immnet.imm.guard import parse_guard
     from immnet.training.export import export_weights
 
-    out = export_weights(ROOT / (a.checkpoint or ship["ckpt"]), OUT / f"{registry}.ckpt")
+    out = export_weights(ROOT / (a.checkpoint or ship["ckpt"]), OUT / f"{registry}.ckpt", ship.get("settings"))
     tests, tables = {}, []
     for set_name, (path, names) in ship["tests"].items():
         data, _ = load_dataset(ROOT / path)
@@ -116,6 +119,7 @@ def main() -> int:
         "guard": None,
         "scan_interval": ship.get("scan_interval"),
         "interval_range": ship.get("interval_range"),
+        "settings": ship.get("settings"),
         "wandb": {"project": "immnet", "runs": runs} if runs else None,
         "note": a.note,
         "tests": tests,
@@ -131,6 +135,9 @@ def main() -> int:
                                            else [ship["data"]["train"]]) + ".\n",
              (f"W&B runs (offline; `wandb sync`, docs/wandb.md): {', '.join(runs)}.\n" if runs else
               "W&B: no run id recorded for this training (`wandb: null`).\n"),
+             *([f"Set at export (what it reports, not what it estimates): "
+                f"{', '.join(f'{k} {v}' for k, v in ship['settings'].items())} (docs/immnet.md).\n"]
+               if ship.get("settings") else []),
              *([f"Note: {a.note}.\n"] if a.note else []),
              "Test sets (never trained or tuned on), position RMSE in metres, each set one run (real flights without a "
              "range guard):\n", *tables,

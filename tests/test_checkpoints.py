@@ -264,3 +264,27 @@ def test_resuming_from_a_bad_last_checkpoint_is_refused_by_name(trained, tmp_pat
     assert why in _one_error_line(capsys.readouterr().err, "fit")
     assert sorted(p.name for p in ckpts.iterdir()) == ["last.ckpt"]  # no new checkpoint: nothing trained
     assert sentinel is None or not sentinel.exists()
+
+
+def test_export_sets_what_a_network_reports_and_nothing_it_learned(tmp_path):
+    """``export_weights(..., settings)``: an output setting (the covariance consistency, docs/immnet.md) goes into the
+    exported network's arguments with the weights and their checksum unchanged, so its estimates are the source's;
+    a setting that would change what it estimates is refused by name."""
+    from immnet import keys
+    from immnet.checkpoints import shipped
+    from immnet.training.export import export_weights
+
+    src = load_checkpoint(shipped("real"))
+    out = load_checkpoint(export_weights(shipped("real"), tmp_path / "c.ckpt", {"cov_consistency": 0.1}))
+    assert out[CHECKSUM_KEY] == src[CHECKSUM_KEY]
+    assert out["hyper_parameters"]["net"]["cov_consistency"] == 0.1
+    assert "cov_consistency" not in src["hyper_parameters"]["net"]
+    z = generate(4, seed=5, spec=DataSpec(T=30, min_segment=8))[keys.MEASUREMENTS]
+    before, after = Tracker.from_checkpoint(shipped("real")), Tracker.from_checkpoint(tmp_path / "c.ckpt")
+    assert after.net.fuse.consistency == 0.1 and before.net.fuse.consistency is None
+    a, b = before.track(z, return_cov=True), after.track(z, return_cov=True)
+    assert torch.equal(a[keys.STATE], b[keys.STATE])
+    assert torch.isfinite(a[keys.STATE_COV]).all() and not torch.allclose(a[keys.STATE_COV][:, 10:], b[keys.STATE_COV][:, 10:])
+    with pytest.raises(ValueError, match="export sets only cov_consistency, not p_stay"):
+        export_weights(shipped("real"), tmp_path / "d.ckpt", {"p_stay": 0.9})
+    assert not (tmp_path / "d.ckpt").exists()

@@ -46,6 +46,11 @@ CONFIGS = {
     "kalmannet-filter-imm+transformer": {
         "model_set": "configs/model_sets/imm4-adaptive.yaml",
         "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {"interaction": "imm"}}},
+    "kalmannet-filter-imm-interval+bayes-transformer-consistency": {  # the general network's shape
+        "model_set": "configs/model_sets/imm4-adaptive.yaml", "guard": False, "interval_range": [0.5, 12.0],
+        "cov_consistency": 0.05,
+        "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {"interaction": "imm", "interval_input": True}},
+        "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier", "init_args": {"interval_input": True}}},
     "kalmannet-filter-fused-adapt+uniform": {
         "model_set": "configs/model_sets/imm4-adaptive.yaml",
         "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {"adapt": True}},

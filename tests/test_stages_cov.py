@@ -1,9 +1,12 @@
 """Issue 23, item 5: IMMNet's fused covariance. Where the experts carry a covariance (the recipes' filter
 experts, the analytic gain) the fuse stage writes ``P_t = sum_i mu_i (P_i + (x_i - x)(x_i - x)^T)``; the
-rollout, ``Tracker.track`` and ``Tracker.step`` give it; the paper's KalmanNet experts give none and say why."""
+rollout, ``Tracker.track`` and ``Tracker.step`` give it; the paper's KalmanNet experts give none and say why.
+With ``cov_consistency`` (the default network's) the reported covariance is that one times a running mean of the
+experts' normalized innovation squared over 3, the estimate unchanged (docs/immnet.md, "Covariance consistency")."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -60,7 +63,7 @@ def test_the_fused_covariance_is_the_moment_matched_mixture_of_the_experts(track
         for t in range(z.shape[1]):
             carry = net.scan(carry, z[:, t])
             states.append(carry.get(keys.FUSED))
-            covs.append(carry.get(keys.FUSED_COV))
+            covs.append(net.reported_cov(carry))
             if t in SCANS:
                 want = _moment_matched(carry)
                 got = carry.get(keys.FUSED_COV).double()
@@ -121,3 +124,52 @@ def test_the_analytic_gain_fuses_its_experts_covariance(z):
     with torch.no_grad():
         out, carry = net.rollout(z[:, :12], return_cov=True)
     assert torch.equal(out[keys.STATE_COV][:, -1], carry.get(keys.FUSED_COV))
+
+
+def _with_consistency(net: IMMNet, weight) -> IMMNet:
+    """``net``'s weights in a network with ``cov_consistency=weight``, float64."""
+    other = IMMNet(**(dict(net.config) | {"cov_consistency": weight}))
+    other.load_state_dict(net.state_dict())
+    return other.double().eval()
+
+
+def test_the_reported_covariance_is_scaled_by_a_running_mean_of_the_nis(tracker):
+    """Float64, every scan: the scale is ``(1 - a) lambda + a min(sum_i mu_i nu_i^T S_i^-1 nu_i / 3, 10)`` with
+    ``nu_i``, ``S_i = H P_i H^T + r^2 I`` recomputed here with numpy from the step's own prior, covariance and
+    ``r^2``; unchanged at a missed detection; the state and the fused covariance are the network's without it."""
+    a = 0.05
+    net, plain = _with_consistency(tracker.net, a), _with_consistency(tracker.net, None)
+    data = generate(5, seed=12, spec=DataSpec(T=25, min_segment=8))
+    z = data[keys.MEASUREMENTS].double().clone()
+    z[torch.rand(z.shape[:2], generator=torch.Generator().manual_seed(3)) < 0.2] = math.nan
+    z[:, :2] = data[keys.MEASUREMENTS][:, :2].double()  # every track starts at scans 0 and 1: a full step after
+    carry, bare = net.initial_carry(5, dtype=torch.float64), plain.initial_carry(5, dtype=torch.float64)
+    lam = np.ones(5)
+    pos = [0, 3, 6]
+    with torch.no_grad():
+        for t in range(z.shape[1]):
+            carry, bare = net.scan(carry, z[:, t]), plain.scan(bare, z[:, t])
+            if t >= 2:
+                P = carry.get(keys.EXPERT_AUG_PRIOR_COV).numpy()[..., pos, :][..., pos]  # [B, M, 3, 3]
+                nu = z[:, t, None, :].numpy() - carry.get(keys.EXPERT_PRIOR).numpy()[..., pos]
+                S = P + carry.get(keys.NOISE_VAR).numpy()[:, None, None, None] * np.eye(3)
+                nis = np.einsum("bmi,bmi->bm", nu, np.linalg.solve(S, nu[..., None])[..., 0])
+                mu = carry.get(keys.EXPERT_PROBS).numpy()
+                seen = np.isfinite(z[:, t].numpy()).all(-1)
+                lam = np.where(seen, (1 - a) * lam + a * np.minimum(np.nansum(mu * nis, -1) / 3, 10.0), lam)
+            np.testing.assert_allclose(carry.get(keys.COV_SCALE).numpy(), lam, rtol=1e-9)
+            assert torch.equal(carry.get(keys.FUSED), bare.get(keys.FUSED))
+            assert torch.equal(carry.get(keys.FUSED_COV), bare.get(keys.FUSED_COV))
+            torch.testing.assert_close(net.reported_cov(carry), torch.from_numpy(lam)[:, None, None] * bare.get(keys.FUSED_COV),
+                                       rtol=1e-12, atol=0)
+    assert lam.min() != lam.max() and not np.allclose(lam, 1.0)  # the scale moved, differently per track
+    out, _ = net.rollout(z, return_cov=True)
+    assert out[keys.STATE_COV].shape == (5, 25, 9, 9)
+    assert "cov_consistency" not in plain.config and net.config["cov_consistency"] == a  # a checkpoint keeps it
+
+
+def test_covariance_consistency_needs_filter_experts_and_a_weight(tracker):
+    with pytest.raises(ValueError, match="covariance consistency needs experts"):
+        IMMNet(cov_consistency=0.05)  # the paper's KalmanNet experts: no covariance, no NIS
+    with pytest.raises(ValueError, match=r"weight in \(0, 1\]"):
+        _with_consistency(tracker.net, 1.5)

@@ -526,6 +526,7 @@ class _FilterExperts:
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
         td.set(keys.EXPERT_AUG_PRIOR_COV, P)
         td.set(keys.EXPERT_LOGLIK, torch.where(has_z[..., 0], loglik, 0.0))
+        td.set(keys.EXPERT_NIS, torch.where(has_z[..., 0], maha, 0.0).detach())
         if self.adapt is not None:
             self._adapt(td, maha, has_z)
         return td
@@ -534,7 +535,7 @@ class _FilterExperts:
 _FILTER_IN = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_AUG_PRIOR_COV, keys.NOISE_SUM, keys.NOISE_COUNT,
               keys.Z_HISTORY, keys.INTERVAL_HISTORY]
 _FILTER_OUT = [
-    keys.EXPERT_GAIN, keys.EXPERT_RATE_GAIN, keys.EXPERT_AUG_PRIOR_COV, keys.EXPERT_LOGLIK,
+    keys.EXPERT_GAIN, keys.EXPERT_RATE_GAIN, keys.EXPERT_AUG_PRIOR_COV, keys.EXPERT_LOGLIK, keys.EXPERT_NIS,
     keys.NOISE_VAR, keys.NOISE_SUM, keys.NOISE_COUNT, keys.Z_HISTORY, keys.INTERVAL_HISTORY,
 ]
 

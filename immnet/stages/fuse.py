@@ -11,6 +11,15 @@ the IMM's combination),
 expert's posterior covariance of ``[x, w]``, ``("expert", "aug_cov")`` ``[B, M, 10, 10]``. The paper's
 KalmanNet experts (a gain only) carry none: then there is no fused covariance.
 
+``consistency`` (a weight ``a`` in (0, 1]; off by default) scales the covariance the tracker *reports* by a running
+mean of the normalized innovation squared: ``lambda_t = (1 - a) lambda_{t-1} + a min(sum_i mu^(i) NIS^(i) / 3, 10)``
+at each scan with a detection (``NIS^(i) = nu^T S^-1 nu`` of expert ``i``, ``("expert", "nis")``, 3 in expectation
+where its covariance is right; ``lambda`` starts at 1 with each track and is carried, ``("memory", "cov_scale")``).
+It is covariance matching on the output alone: the state, the experts' covariances and everything the next scan
+reads are unchanged; ``IMMNet.reported_cov`` multiplies ``P_t`` by ``lambda_t`` (docs/immnet.md, "Covariance
+consistency"). A network whose learned noise makes its covariance too small on data unlike its training data
+(real flights for a network trained mostly on 3D-LAST) then reports a wider one, where its innovations say so.
+
 ``per_expert=True`` is stage-1 training: each expert runs alone, its own posterior is its fused
 estimate (``[B, M, 9]``, its covariance its own) and no mode probabilities are needed. ``cov`` (the key of
 the experts' covariances; ``wire``d on where a stage before it writes one) fuses them too.
@@ -40,23 +49,40 @@ class Fuse(Stage):
     in_keys = [keys.EXPERT_POST, keys.EXPERT_PROBS, keys.FUSED, keys.EXPERT_PRIOR, keys.MEASUREMENT]
     out_keys = [keys.FUSED, keys.PREV_FUSED, keys.PREV_EXPERT_PRIOR, keys.PREV_MEASUREMENT]
 
-    def __init__(self, model_set=None, per_expert: bool = False, cov=None):
-        """``cov``: the key of the experts' covariances to fuse (one of ``COV_KEYS``), or None (as ``wire`` finds)."""
+    def __init__(self, model_set=None, per_expert: bool = False, cov=None, consistency: float | None = None):
+        """``cov``: the key of the experts' covariances to fuse (one of ``COV_KEYS``), or None (as ``wire`` finds).
+        ``consistency``: the weight of each scan in the reported covariance's scale (module doc), or None (off);
+        not with ``per_expert`` (stage 1 reports no covariance)."""
         super().__init__(model_set)
+        if consistency is not None:
+            consistency = float(consistency)
+            if not 0.0 < consistency <= 1.0:
+                raise ValueError(f"consistency is a weight in (0, 1] (or None: off), got {consistency}")
+            if per_expert:
+                raise ValueError("consistency scales the fused covariance: not with per_expert (experts alone)")
         self.per_expert = per_expert
+        self.consistency = consistency
         self.cov = None
         if per_expert:
             self.in_keys = [k for k in self.in_keys if k != keys.EXPERT_PROBS]
+        if consistency is not None:
+            self.in_keys = [*self.in_keys, keys.EXPERT_NIS, keys.COV_SCALE]
+            self.out_keys = [*self.out_keys, keys.COV_SCALE]
         if cov is not None:
             self.wire({cov})
 
     def wire(self, upstream: set) -> None:
-        """Fuse the covariances where a stage before it writes the experts' (``COV_KEYS``)."""
+        """Fuse the covariances where a stage before it writes the experts' (``COV_KEYS``); with ``consistency``,
+        the stages before it must write the experts' covariance and their NIS (filter experts)."""
         key = next((k for k in COV_KEYS if k in upstream), None)
         if key is not None and self.cov is None:
             self.cov = key
             self.in_keys = [*self.in_keys, key]
             self.out_keys = [*self.out_keys, keys.FUSED_COV]
+        if self.consistency is not None and (self.cov is None or keys.EXPERT_NIS not in upstream):
+            raise ValueError("covariance consistency needs experts that carry a covariance and write their NIS "
+                             f"{keys.EXPERT_NIS} (filter experts, immnet.stages.filtering); the stages before "
+                             "this Fuse write neither or one")
 
     def for_experts_alone(self) -> "Fuse":
         return self if self.per_expert else Fuse(self.model_set, per_expert=True, cov=self.cov)
@@ -64,7 +90,8 @@ class Fuse(Stage):
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The step's memory, zero before a track starts: ``x``, ``x_{t-2}``, the experts' priors, ``z_{t-1}``."""
         lead = (batch, self.n_experts) if experts_alone else (batch,)
-        return {
+        scale = {} if self.consistency is None else {keys.COV_SCALE: torch.ones(batch, dtype=dtype, device=device)}
+        return scale | {
             keys.FUSED: torch.zeros(*lead, 9, dtype=dtype, device=device),
             keys.PREV_FUSED: torch.zeros(*lead, 9, dtype=dtype, device=device),
             keys.PREV_EXPERT_PRIOR: torch.zeros(batch, self.n_experts, 9, dtype=dtype, device=device),
@@ -73,8 +100,10 @@ class Fuse(Stage):
 
     def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
         """A starting track's memory: its start estimate ``x`` as the fused state and every expert's
-        prior, ``z`` as the previous measurement, and as ``x_{t-2}`` the first scan's estimate."""
-        return {
+        prior, ``z`` as the previous measurement, and as ``x_{t-2}`` the first scan's estimate; the reported
+        covariance's scale back at 1 (``consistency``)."""
+        scale = {} if self.consistency is None else {keys.COV_SCALE: torch.ones_like(z[..., 0])}
+        return scale | {
             keys.PREV_FUSED: carry.get(keys.FUSED) if second else x,
             keys.FUSED: x,
             keys.PREV_EXPERT_PRIOR: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, self.n_experts, -1)).clone(),
@@ -93,6 +122,14 @@ class Fuse(Stage):
             return cov
         return moment_match(td.get(keys.EXPERT_PROBS), td.get(keys.EXPERT_POST), fused, cov)
 
+    def consistency_scale(self, scale: torch.Tensor, mu: torch.Tensor, nis: torch.Tensor, has_z: torch.Tensor):
+        """The next scale of the reported covariance ``[B]`` (module doc) from the previous one ``[B]``, the mode
+        probabilities ``mu [B, M]``, the experts' NIS ``[B, M]`` and whether this scan has a detection ``[B, 1]``.
+        An estimator of the output, not a learned part: no gradient flows through it."""
+        seen = ((mu * nis).sum(-1) / 3.0).clamp(max=10.0).detach()
+        a = self.consistency
+        return torch.where(has_z.reshape(-1), (1.0 - a) * scale + a * seen, scale)
+
     def forward(self, td):
         post = td.get(keys.EXPERT_POST)
         if self.per_expert:
@@ -102,6 +139,8 @@ class Fuse(Stage):
             fused = (mu.unsqueeze(-1) * post).sum(1)
         fused_cov = self.covariance(td, fused)
         z = td.get(keys.MEASUREMENT)
+        if self.consistency is not None:
+            td.set(keys.COV_SCALE, self.consistency_scale(td.get(keys.COV_SCALE), mu, td.get(keys.EXPERT_NIS), measured(z)))
         z_next = torch.where(measured(z), z, fused[..., list(POS)])
         td.set(keys.PREV_FUSED, td.get(keys.FUSED))
         td.set(keys.PREV_EXPERT_PRIOR, td.get(keys.EXPERT_PRIOR))

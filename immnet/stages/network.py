@@ -121,6 +121,7 @@ class IMMNet(TensorDictModuleBase):
         p_stay: float | None = None,
         guard: bool | dict | None = None,
         interval_range: tuple[float, float] | None = None,
+        cov_consistency: float | None = None,
     ):
         """``gain``, ``classifier``: the components (``Component``: a ``class_path`` / ``init_args`` mapping);
         ``p_stay``, ``guard``: the Markov chain's staying probability and the range guard, set here once for
@@ -128,7 +129,10 @@ class IMMNet(TensorDictModuleBase):
         say). With the IMM interaction the mode update predicts with the transition the
         experts were mixed with (``("mode", "transition")``), so the chain is the interaction's.
         ``interval_range``: the scan intervals ``(lo, hi)`` (s) the network was trained over; None: trained at
-        ``dt`` alone (a tracker refuses data at other intervals, ``immnet.tracking.tracker.check_dt``)."""
+        ``dt`` alone (a tracker refuses data at other intervals, ``immnet.tracking.tracker.check_dt``).
+        ``cov_consistency``: the weight per scan of the reported covariance's scale, a running mean of the experts'
+        normalized innovation squared over 3 (``immnet.stages.fuse``, docs/immnet.md "Covariance consistency");
+        None: the fused covariance as it is. It changes what the network reports, not what it estimates."""
         super().__init__()
         self.model_set = ModelSet.from_config(model_set)
         self.model_set_config = self.model_set.to_config()
@@ -146,6 +150,8 @@ class IMMNet(TensorDictModuleBase):
             "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt, **settings}
         if interval_range is not None:
             self.config["interval_range"] = list(interval_range)
+        if cov_consistency is not None:
+            self.config["cov_consistency"] = float(cov_consistency)
         self.gain = build_component(gain, ms, dt, settings)
         self.classify = build_component(classifier, ms, dt, settings)
         # a gain may bring the predict and update stages its experts need (filter experts keep their
@@ -153,7 +159,7 @@ class IMMNet(TensorDictModuleBase):
         self.predict = getattr(self.gain, "predict_stage", Predict)(ms, dt)
         update = getattr(self.gain, "update_stage", None)
         self.update = update(ms, dt) if update is not None else Update(ms)
-        self.fuse = Fuse(ms)
+        self.fuse = Fuse(ms, consistency=cov_consistency)
         self.step = TensorDictSequential(*_wired(self.predict, self.gain, self.update, self.classify, self.fuse))
         alone = (self.predict, self.gain, self.update, self.fuse)
         self.expert_step = TensorDictSequential(*_wired(*(stage.for_experts_alone() for stage in alone)))
@@ -216,6 +222,13 @@ class IMMNet(TensorDictModuleBase):
         return (f"this IMMNet's experts carry no covariance: its gain {type(self.gain).__name__} gives each expert a "
                 "Kalman gain and nothing else (the paper's KalmanNet experts); filter experts "
                 "(immnet.stages.filtering, the recipes') and the analytic gain carry one")
+
+    def reported_cov(self, carry: TensorDict) -> torch.Tensor:
+        """The covariance this network reports for a scan's fused state ``[B, 9, 9]``: the carry's fused covariance,
+        times its consistency scale where the network keeps one (``cov_consistency``)."""
+        cov = carry.get(keys.FUSED_COV)
+        scale = carry.get(keys.COV_SCALE, None)
+        return cov if scale is None else cov * scale.to(cov.dtype)[..., None, None]
 
     def to_mode_probs(self, expert_probs: torch.Tensor) -> torch.Tensor:
         """Expert probabilities ``[..., M]`` summed per data mode ``[..., 4]``."""
@@ -387,7 +400,7 @@ class IMMNet(TensorDictModuleBase):
                               None if intervals is None else intervals[:, t])
             states.append(carry.get(keys.FUSED))
             if return_cov:
-                covs.append(carry.get(keys.FUSED_COV))
+                covs.append(self.reported_cov(carry))
             if not experts_alone:
                 probs.append(carry.get(keys.EXPERT_PROBS))
                 logits.append(carry.get(keys.MODE_LOGITS))
