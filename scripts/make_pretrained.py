@@ -109,7 +109,7 @@ def main() -> int:
         "date": datetime.date.today().isoformat(),
         "commit": commit,
         "model_set": Tracker.pretrained().net.model_set.names,
-        "guard": (lambda g: g.to_config() if g is not None else None)(Tracker.pretrained().net.predict.guard),
+        "guard": (lambda g: g.to_config() if g is not None else None)(Tracker.pretrained("3dlast").net.interact.guard),
         "data": {"stage1": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
                  "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)",
                  "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)",

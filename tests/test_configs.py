@@ -88,9 +88,9 @@ def test_every_ablation_is_a_self_contained_chain(ablation, capsys):
     gain, interaction, guard, classifier, M = EXPECT[ablation.stem]
     assert type(net.gain).__name__ == gain and type(net.classify).__name__ == classifier and net.n_experts == M
     assert getattr(net.gain, "interaction", None) == interaction
-    assert (getattr(net.predict, "guard", None) is not None) == guard
+    assert (getattr(net.interact, "guard", None) is not None) == guard
     if ablation.stem == "no-guard":  # the recipe's dev-set choice without the guard, set once
-        assert net.predict.Pi[0, 0].item() == pytest.approx(0.995) and net.classify.p_stay == pytest.approx(0.995)
+        assert net.interact.Pi[0, 0].item() == pytest.approx(0.995) and net.classify.p_stay == pytest.approx(0.995)
     if ablation.stem == "fixed-turn-rate":
         assert [type(m).__name__ for m in net.model_set] == ["ConstantVelocity", "ConstantAcceleration", "CoordinatedTurn", "CoordinatedTurn"]
 
@@ -132,5 +132,5 @@ def test_the_full_scale_recipe_is_one_config_away_from_the_shipped_network(stage
                          str(REPO_ROOT / "configs/nets/filter-experts.yaml")], capsys)
     assert cfg["trainer"]["max_epochs"] == base["trainer"]["max_epochs"]
     net = IMMNet(**net_arguments(cfg["model"]["init_args"]["net"]))
-    assert type(net.gain).__name__ == "KalmanNetFilterGain" and net.predict.guard is not None
-    assert net.predict.Pi[0, 0].item() == pytest.approx(0.999) and net.classify.p_stay == pytest.approx(0.999)
+    assert type(net.gain).__name__ == "KalmanNetFilterGain" and net.interact.guard is not None
+    assert net.interact.Pi[0, 0].item() == pytest.approx(0.999) and net.classify.p_stay == pytest.approx(0.999)

@@ -56,7 +56,7 @@ def test_predict_jacobian_is_autograds():
     td.set(keys.EXPERT_POST, x)
     td.set(keys.EXPERT_RATE, w)
     td.set(keys.EXPERT_AUG_COV, torch.eye(10, dtype=torch.float64).expand(B, M, 10, 10))
-    out = net.predict(td.clone())
+    out = net.predict(net.interact(td.clone()))
     JJt = out.get(keys.EXPERT_AUG_PRIOR_COV)
 
     def prior(y):  # y [B, M, 10] -> the prior [B, M, 10] (w carried)
@@ -64,7 +64,7 @@ def test_predict_jacobian_is_autograds():
         t.set(keys.FUSED, y[..., :9])
         t.set(keys.EXPERT_POST, y[..., :9])
         t.set(keys.EXPERT_RATE, y[..., 9])
-        o = net.predict(t)
+        o = net.predict(net.interact(t))
         return torch.cat([o.get(keys.EXPERT_PRIOR), o.get(keys.EXPERT_RATE).unsqueeze(-1)], -1)
 
     y = torch.cat([x, w.unsqueeze(-1)], -1)
@@ -320,10 +320,10 @@ def _mix_reference(y, P, mu, Pi, own_acc, turn_sign, bound=None, bound_rate=0.0,
 def test_imm_interaction_is_the_imm_mixing_with_onset_priors():
     from tensordict import TensorDict
 
-    from immnet.stages.filtering import FilterPredict
+    from immnet.stages.filtering import FilterInteraction
 
     ms = ModelSet.from_config(ADAPTIVE)  # CV, CA, CT+ (own rate), CT- (own rate)
-    stage = FilterPredict(ms, 1.0, interaction="imm", p_stay=0.97).double()
+    stage = FilterInteraction(ms, 1.0, interaction="imm", p_stay=0.97).double()
     g = torch.Generator().manual_seed(3)
     B, M = 5, 4
     A = torch.randn(B, M, 10, 10, generator=g, dtype=torch.float64)
@@ -339,18 +339,18 @@ def test_imm_interaction_is_the_imm_mixing_with_onset_priors():
     np.testing.assert_allclose(y0.numpy(), ry0, rtol=1e-10, atol=1e-9)
     np.testing.assert_allclose(P0.numpy(), rP0, rtol=1e-10, atol=1e-8)
     with pytest.raises(ValueError, match="interaction"):
-        FilterPredict(ms, 1.0, interaction="mixed")
+        FilterInteraction(ms, 1.0, interaction="mixed")
 
 
 def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_and_a_bound_turn_component():
     from tensordict import TensorDict
 
     from immnet.imm.guard import G_MAX, RangeGuard
-    from immnet.stages.filtering import FilterPredict
+    from immnet.stages.filtering import FilterInteraction
 
     ms = ModelSet.from_config(ADAPTIVE)
     guard = RangeGuard()
-    stage = FilterPredict(ms, 1.0, interaction="imm", p_stay=0.97, guard=True).double()
+    stage = FilterInteraction(ms, 1.0, interaction="imm", p_stay=0.97, guard=True).double()
     g = torch.Generator().manual_seed(4)
     B, M = 8, 4
     A = torch.randn(B, M, 10, 10, generator=g, dtype=torch.float64)
@@ -418,7 +418,7 @@ def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_
     np.testing.assert_allclose(y0.numpy(), ry0, rtol=1e-9, atol=1e-8)
     np.testing.assert_allclose(P0.numpy(), rP0, rtol=1e-9, atol=1e-7)
     with pytest.raises(ValueError, match="interaction='imm'"):
-        FilterPredict(ms, 1.0, interaction="fused", guard=True)
+        FilterInteraction(ms, 1.0, interaction="fused", guard=True)
 
 
 @pytest.mark.parametrize("method", ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive"])
@@ -460,8 +460,8 @@ def test_a_trained_network_with_its_learned_parts_knocked_out_is_the_model_based
     shipped = load_network(PRETRAINED).double()
     c = shipped.classify  # the shipped gain's noise_std is KalmanNetFilterGain's default
     gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
-        "noise_std": [0.2, 0.2, 0.01, 0.002, 1e-5], "interaction": "imm", "p_stay": shipped.predict.p_stay,
-        "guard": shipped.predict.guard.to_config()}}
+        "noise_std": [0.2, 0.2, 0.01, 0.002, 1e-5], "interaction": "imm", "p_stay": shipped.interact.p_stay,
+        "guard": shipped.interact.guard.to_config()}}
     bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"p_stay": c.p_stay, "from_experts": True}}
     reference = IMMNet(model_set=ADAPTIVE, gain=gain, classifier=bayes).double()
     with torch.no_grad():

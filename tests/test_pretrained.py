@@ -24,7 +24,7 @@ def test_provenance_describes_the_shipped_file():
     net = Tracker.pretrained("3dlast").net
     assert net.model_set.names == prov["model_set"]
     # the range guard it was measured with is the one it loads with (it has no weights to tell)
-    guard = getattr(net.predict, "guard", None)
+    guard = getattr(net.interact, "guard", None)
     assert (guard.to_config() if guard is not None else None) == prov.get("guard")
 
 
@@ -44,7 +44,7 @@ def test_the_default_weights_are_the_general_network():
     """``Tracker.pretrained()`` and ``immnet track`` with no options load the general network: any interval from
     0.5 to 12 s, no range guard; the others by name; an unknown name is refused naming the shipped ones."""
     net = Tracker.pretrained().net
-    assert tuple(net.interval_range) == (0.5, 12.0) and getattr(net.predict, "guard", None) is None
+    assert tuple(net.interval_range) == (0.5, 12.0) and getattr(net.interact, "guard", None) is None
     prov = json.loads(shipped("general").with_name("provenance-general.json").read_text())
     assert prov["interval_range"] == [0.5, 12.0] and prov["guard"] is None
     assert Tracker.pretrained("3dlast").net.interval_range is None

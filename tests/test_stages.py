@@ -273,20 +273,21 @@ def test_stage_2_fine_tunes_from_a_whole_immnet(tmp_path):
     raw = load_checkpoint(path)
     net = copy.deepcopy(raw["hyper_parameters"]["net"]) | {"p_stay": 0.9}
     module = Stage2Module(net=net, init_checkpoint=str(path))
-    shipped = {k[len("net."):]: v for k, v in raw["state_dict"].items() if k.startswith("net.") and not k.endswith("log_pi")}
+    shipped = {k[len("net."):]: v for k, v in raw["state_dict"].items()  # the steps' copies are dropped on load
+               if k.startswith("net.") and not k.endswith("log_pi") and not k.startswith(("net.step.", "net.expert_step."))}
     mine = module.net.state_dict()
     assert mine.keys() == shipped.keys()
     for k, v in shipped.items():
         assert torch.equal(mine[k], v), k
     # the interaction runs with the new p_stay: Pi's diagonal is 0.9, off-diagonal shares the rest
-    Pi = module.net.predict.Pi.double()
+    Pi = module.net.interact.Pi.double()
     torch.testing.assert_close(Pi.diagonal(), torch.full((4,), 0.9, dtype=torch.float64), rtol=0, atol=1e-7)
     torch.testing.assert_close(Pi.sum(-1), torch.ones(4, dtype=torch.float64), rtol=0, atol=1e-6)
     assert module.net.classify.p_stay == 0.9
     # the mode update predicts with the transition the experts were mixed with, guarded per track
     td = module.net.initial_carry(3)
     td.set(keys.MEASUREMENT, torch.tensor([[5e3, 2e3, 3e3]] * 3))
-    td = module.net.predict(td)
+    td = module.net.interact(td)
     assert td.get(keys.MODE_TRANSITION).shape == (3, 4, 4) and module.net.classify.reads_transition
     with pytest.raises(ValueError, match="does not match this IMMNet"):
         Stage2Module(net={"model_set": "configs/model_sets/imm4.yaml"}, init_checkpoint=str(path))
@@ -329,3 +330,27 @@ def test_a_checkpoint_without_the_interval_input_starts_a_network_that_reads_it(
         other = copy.deepcopy(net)
         other["classifier"]["init_args"]["d_model"] = 16
         Stage2Module(net=other, init_checkpoint=str(path))
+
+
+def test_the_interaction_is_a_stage_slot_and_a_state_dict_names_each_weight_once():
+    """Filter experts mix in a stage of their own, first in the step (``FilterInteraction``, with the gain's
+    interaction, p_stay and guard); the steps are not submodules, so the state dict holds each weight once, under
+    its stage's role, and a checkpoint that also holds the steps' indexed copies (the shipped files) loads."""
+    from immnet.checkpoints import shipped
+    from immnet.stages.filtering import FilterInteraction
+
+    net = Tracker.pretrained("3dlast").net
+    assert isinstance(net.step.module[0], FilterInteraction) and net.step.module[0] is net.interact
+    assert net.interact.interaction == "imm" and net.interact.guard is not None and net.interact.p_stay == 0.999
+    assert [type(m).__name__ for m in net.expert_step.module][0] == "FilterInteraction"
+    assert net.expert_step.module[0].interaction == "fused"  # experts alone start from their own posterior
+    sd = net.state_dict()
+    assert not any(k.startswith(("step.", "expert_step.")) for k in sd)
+    named = [n for n, _ in net.named_parameters(remove_duplicate=False)]
+    assert len(named) == len({id(p) for p in net.parameters()})  # no parameter under two names
+    legacy = load_checkpoint(shipped("3dlast"))["state_dict"]
+    assert any(k.startswith("net.step.module.") for k in legacy)  # written with the copies; loaded above
+    assert {k[len("net."):] for k in legacy  # log_pi: a buffer older files hold, rebuilt from p_stay
+            if not k.startswith(("net.step.", "net.expert_step.")) and not k.endswith("log_pi")} == set(sd)
+    paper = IMMNet()  # the paper's gain experts have no interaction slot: predict takes the fused estimate
+    assert paper.interact is None and type(paper.step.module[0]).__name__ == "Predict"

@@ -15,7 +15,8 @@ The augmented state of expert ``i`` is ``y = [x (9), w]``. One scan, per expert:
 * input point ``x~``: the previous fused estimate (docs/spec.md section 4), except the expert's own mode
   parameter: a model that carries acceleration (``F[acc, acc] != 0``, CA) keeps its own posterior
   acceleration; an ``AdaptiveTurn`` expert turns at its own rate ``w^(i)`` (bounded by ``_rate_limits``).
-  With ``interaction="imm"`` (the recipes'), the IMM's mixed estimate instead (``FilterPredict``);
+  With ``interaction="imm"`` (the recipes'), the IMM's mixed estimate instead (``FilterInteraction``, the step's
+  interaction slot);
 * prior ``x^(i)_{t|t-1} = f_i(x~, w~)``; covariance ``P- = J (P^(i) + d d^T) J^T + Q^(i)_t``, ``J``
   the Jacobian of ``f_i`` and ``d = x~ - x^(i)_{t-1|t-1}`` the IMM's spread-of-means term for
   having started from the fused estimate rather than the expert's own;
@@ -158,16 +159,18 @@ def _check_interaction(interaction: str, p_stay: float, guard=None) -> RangeGuar
     return guard
 
 
-class FilterPredict(Predict):
-    """Predict for filter experts: the prior mean from the fused estimate and the expert's own mode
-    parameter, and the prior covariance before process noise, ``J (P + d d^T) J^T``.
+class FilterInteraction(Stage):
+    """The interaction of filter experts, a stage of its own: where each expert's prediction starts, its input point
+    ``[x~, w~]`` (``("expert", "mixed")`` ``[B, M, 10]``) and covariance (``("expert", "mixed_cov")``).
 
-    ``interaction="imm"`` starts each expert from the IMM's mixed estimate instead: the experts' own
-    posteriors ``[x, w]`` and covariances mixed with ``mu_{i|j} = Pi_ij mu_i / sum_k Pi_kj mu_k``
-    (``mu`` the previous scan's mode probabilities, ``Pi`` with ``p_stay`` on the diagonal), where
-    what enters expert ``j`` from an expert ``i != j`` (a switch into ``j``) carries the generator's
-    onset prior for what ``j`` keeps of its own: a CA expert's acceleration (mean 0, the draw's
-    variance), a turn expert's rate (``+/- 5.5`` deg/s, standard deviation 2.6 deg/s;
+    ``interaction="fused"`` (the paper's): the previous fused estimate, except the expert's own mode parameter (a CA
+    expert's acceleration; a turn expert's rate), with the spread-of-means term ``d d^T`` of having started from
+    the fused estimate rather than the expert's own posterior. ``interaction="imm"`` (the recipes'): the IMM's
+    mixed estimate, the experts' own posteriors ``[x, w]`` and covariances mixed with
+    ``mu_{i|j} = Pi_ij mu_i / sum_k Pi_kj mu_k`` (``mu`` the previous scan's mode probabilities, ``Pi`` with
+    ``p_stay`` on the diagonal), where what enters expert ``j`` from an expert ``i != j`` (a switch into ``j``)
+    carries the generator's onset prior for what ``j`` keeps of its own: a CA expert's acceleration (mean 0, the
+    draw's variance), a turn expert's rate (``+/- 5.5`` deg/s, standard deviation 2.6 deg/s;
     ``immnet.imm.interaction.onset_priors``). Experts alone (stage 1) start from their own posterior either way.
 
     ``guard`` (``immnet.imm.guard.RangeGuard``, or its fields as a dict; ``True`` for 3D-LAST's)
@@ -175,15 +178,17 @@ class FilterPredict(Predict):
     gives a turn entered at a bound the bound's rate, and writes the transition matrix
     (``("mode", "transition")``) for a Bayesian classifier to predict the modes with, and the share of
     each expert's mixed prior that entered at a speed bound (``("expert", "speed_fresh")``, carried to
-    the next scan, where that one-scan turn clears).
+    the next scan, where that one-scan turn clears). It holds no weights (its tensors are the model set's and the
+    chain's), so a checkpoint is the same with the interaction in this slot or another.
     """
 
     in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
-    out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV]
+    out_keys = [keys.EXPERT_MIXED, keys.EXPERT_MIXED_COV]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995,
                  guard=None, spec: DataSpec | dict | None = None):
-        super().__init__(model_set, dt)
+        super().__init__(model_set)
+        self.dt = dt
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction, self.p_stay = interaction, float(p_stay)
@@ -193,7 +198,7 @@ class FilterPredict(Predict):
         if self.guard is not None:  # and the speed-bound shares it carries
             self.in_keys = [*self.in_keys, keys.GUARD_FRESH]
             self.out_keys = [*self.out_keys, keys.GUARD_FRESH]
-        own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
+        own_acc, own_rate, _, _, nominal = _kinds(model_set, dt)
         M = len(model_set)
         f64 = torch.float64  # float64, so that a .double() model is exact
         self.register_buffer("Pi", transition_matrix(p_stay, M), persistent=False)
@@ -201,26 +206,19 @@ class FilterPredict(Predict):
         self.register_buffer("mix_keep", keep, persistent=False)
         self.register_buffer("mix_mean", mean, persistent=False)
         self.register_buffer("mix_cov", cov, persistent=False)
-        self.register_buffer("own_acc", torch.tensor(own_acc))
-        acc_mask = torch.zeros(len(model_set), 9, dtype=torch.bool)
+        acc_mask = torch.zeros(M, 9, dtype=torch.bool)
         acc_mask[:, list(ACC)] = torch.tensor(own_acc)[:, None]
         self.register_buffer("own_acc_mask", acc_mask, persistent=False)
-        self.register_buffer("own_rate", torch.tensor(own_rate))
-        self.has_turn = any(own_rate)  # a python bool: no data-dependent branch in a compiled step
-        _register_rate_bounds(self, lo, hi)
         modes = model_set.modes
         self.register_buffer("data_modes", modes, persistent=False)
         bound_sign = torch.where(modes == 2, 1.0, torch.where(modes == 3, -1.0, 0.0)) * torch.tensor(own_rate, dtype=f64)
         self.register_buffer("bound_sign", bound_sign, persistent=False)  # a bound turn's rate sign per expert (0: none)
-        self._own_rate = own_rate
-        self.register_buffer("J_base", _jacobian_base(model_set, own_rate, dt), persistent=False)
-        self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in TURN_ENTRIES]), persistent=False)
 
-    def for_experts_alone(self) -> "FilterPredict":
+    def for_experts_alone(self) -> "FilterInteraction":
         """Experts alone start from their own posterior with either interaction: no mix, no guard."""
         if self.interaction == "fused":
             return self
-        return FilterPredict(self.model_set, self.dt, "fused", self.p_stay)
+        return FilterInteraction(self.model_set, self.dt, "fused", self.p_stay)
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The guard's speed-bound shares (none entered yet)."""
@@ -251,15 +249,46 @@ class FilterPredict(Predict):
         return mix(w, y, P, (self.mix_keep, self.mix_mean, self.mix_cov), bound)
 
     def forward(self, td):
-        M = self.n_experts
         own = td.get(keys.EXPERT_POST)
-        mixed = self.interaction == "imm" and td.get(keys.FUSED).dim() == 2  # not experts alone
-        if mixed:
+        if self.interaction == "imm" and td.get(keys.FUSED).dim() == 2:  # not experts alone
             y0, P0 = self._mix(td)
-            x, w = y0[..., :9], y0[..., RATE]
         else:
-            x = torch.where(self.own_acc_mask, own, per_expert(td.get(keys.FUSED), M))
-            w = td.get(keys.EXPERT_RATE)
+            x = torch.where(self.own_acc_mask, own, per_expert(td.get(keys.FUSED), self.n_experts))
+            y0 = torch.cat([x, td.get(keys.EXPERT_RATE).unsqueeze(-1)], -1)
+            d = torch.cat([x - own, torch.zeros_like(x[..., :1])], -1)
+            P0 = td.get(keys.EXPERT_AUG_COV) + d.unsqueeze(-1) * d.unsqueeze(-2)
+        td.set(keys.EXPERT_MIXED, y0)
+        td.set(keys.EXPERT_MIXED_COV, P0)
+        return td
+
+
+class FilterPredict(Predict):
+    """Predict for filter experts, from the interaction's input point ``[x~, w~]`` and covariance
+    (``FilterInteraction``): the prior mean ``f_i(x~, w~)`` (the turn rate bounded to the expert's range, zero for
+    an expert without one) and the prior covariance before process noise, ``J P~ J^T``, ``J`` the Jacobian of
+    ``f_i`` (the gain adds the process noise)."""
+
+    in_keys = [keys.EXPERT_MIXED, keys.EXPERT_MIXED_COV]
+    out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV]
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0):
+        super().__init__(model_set, dt)
+        own_acc, own_rate, lo, hi, _ = _kinds(model_set, dt)
+        self.register_buffer("own_acc", torch.tensor(own_acc))  # the model set's, kept with the weights
+        self.register_buffer("own_rate", torch.tensor(own_rate))
+        self.has_turn = any(own_rate)  # a python bool: no data-dependent branch in a compiled step
+        _register_rate_bounds(self, lo, hi)
+        self._own_rate = own_rate
+        self.register_buffer("J_base", _jacobian_base(model_set, own_rate, dt), persistent=False)
+        self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in TURN_ENTRIES]), persistent=False)
+
+    def for_experts_alone(self) -> "FilterPredict":
+        return self
+
+    def forward(self, td):
+        M = self.n_experts
+        y0, P0 = td.get(keys.EXPERT_MIXED), td.get(keys.EXPERT_MIXED_COV)
+        x, w = y0[..., :9], y0[..., RATE]
         w = torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype))
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         dt, per_track = scan_interval(td, self.dt)
@@ -278,9 +307,6 @@ class FilterPredict(Predict):
             entries = ct_jacobian_entries(x, w, dt) * self.own_rate.to(x.dtype)[:, None]  # [B, M, 18]
             scattered = entries.new_zeros(*entries.shape[:2], N_AUG * N_AUG).index_copy(-1, self.turn_index, entries)
             J = J + scattered.view(*entries.shape[:2], N_AUG, N_AUG)
-        if not mixed:
-            d = torch.cat([x - own, torch.zeros_like(x[..., :1])], -1)
-            P0 = td.get(keys.EXPERT_AUG_COV) + d.unsqueeze(-1) * d.unsqueeze(-2)
         td.set(keys.EXPERT_PRIOR, prior)
         td.set(keys.EXPERT_RATE, w)
         td.set(keys.EXPERT_AUG_PRIOR_COV, J @ P0 @ J.transpose(-1, -2))
@@ -330,9 +356,13 @@ class _FilterExperts:
 
     update_stage = FilterUpdate
 
+    def interaction_stage(self, model_set: ModelSet, dt: float) -> FilterInteraction:
+        """The interaction these experts need, with this gain's ``interaction``, ``p_stay`` and ``guard``."""
+        return FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec)
+
     def predict_stage(self, model_set: ModelSet, dt: float) -> FilterPredict:
-        """The predict stage these experts need, with this gain's interaction (``FilterPredict``)."""
-        return FilterPredict(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec)
+        """The predict stage these experts need (``FilterPredict``)."""
+        return FilterPredict(model_set, dt)
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None):

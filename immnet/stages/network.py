@@ -99,6 +99,13 @@ def _wired(*stages):
     return stages
 
 
+def _without_step_copies(module, state_dict, prefix, *args) -> None:
+    """Drop a state dict's copies of the weights under the steps' indices (``step.module.1.fc1.weight``, as
+    checkpoints written before the steps stopped being submodules hold them beside ``gain.fc1.weight``)."""
+    for key in [k for k in state_dict if k.startswith((f"{prefix}step.", f"{prefix}expert_step."))]:
+        del state_dict[key]
+
+
 class IMMNet(TensorDictModuleBase):
     """The hybrid tracker. ``model_set``: a YAML path or a list of ``class_path`` entries.
 
@@ -154,15 +161,24 @@ class IMMNet(TensorDictModuleBase):
             self.config["cov_consistency"] = float(cov_consistency)
         self.gain = build_component(gain, ms, dt, settings)
         self.classify = build_component(classifier, ms, dt, settings)
-        # a gain may bring the predict and update stages its experts need (filter experts keep their
-        # own covariance and mode parameter: immnet.stages.filtering)
+        # a gain may bring the interaction, predict and update stages its experts need (filter experts keep their
+        # own covariance and mode parameter, and mix as an IMM: immnet.stages.filtering)
+        interaction = getattr(self.gain, "interaction_stage", None)
+        self.interact = interaction(ms, dt) if interaction is not None else None
         self.predict = getattr(self.gain, "predict_stage", Predict)(ms, dt)
         update = getattr(self.gain, "update_stage", None)
         self.update = update(ms, dt) if update is not None else Update(ms)
         self.fuse = Fuse(ms, consistency=cov_consistency)
-        self.step = TensorDictSequential(*_wired(self.predict, self.gain, self.update, self.classify, self.fuse))
-        alone = (self.predict, self.gain, self.update, self.fuse)
-        self.expert_step = TensorDictSequential(*_wired(*(stage.for_experts_alone() for stage in alone)))
+        first = () if self.interact is None else (self.interact,)
+        # the step and the experts-alone step run the stages above; they are not submodules of their own, so a
+        # state dict names each weight once, by the stage's role (``gain.fc1.weight``), whatever the slots
+        alone = (*first, self.predict, self.gain, self.update, self.fuse)
+        object.__setattr__(self, "step", TensorDictSequential(
+            *_wired(*first, self.predict, self.gain, self.update, self.classify, self.fuse)))
+        object.__setattr__(self, "expert_step", TensorDictSequential(*_wired(*(stage.for_experts_alone() for stage in alone))))
+        # the stages built for experts alone (no weights of their own) move with the network (_apply, train)
+        object.__setattr__(self, "_alone_only", [m for m in self.expert_step.module if not any(m is s for s in alone)])
+        self.register_load_state_dict_pre_hook(_without_step_copies)
         carry = [unravel_key(k) for k in self.initial_carry(1).keys(True, True)]
         self.carry_keys = carry
         self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry]
@@ -170,6 +186,18 @@ class IMMNet(TensorDictModuleBase):
         onehot = torch.zeros(len(ms), 4)
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
         self.register_buffer("mode_onehot", onehot)
+
+    def _apply(self, fn, *args, **kwargs):
+        super()._apply(fn, *args, **kwargs)
+        for stage in self._alone_only:
+            stage._apply(fn, *args, **kwargs)
+        return self
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for stage in self._alone_only:
+            stage.train(mode)
+        return self
 
     def intervals_for(self, batch: TensorDict) -> torch.Tensor | None:
         """The interval before each scan of ``batch`` ``[B, T]`` (``immnet.data.times.scan_intervals``) in its
