@@ -160,7 +160,8 @@ class Tracker:
 
         The outputs of a track that has had no detection yet are NaN; a gated measurement (module doc)
         is a missed detection and adds one to ``n_gated``. Where the experts carry a covariance
-        (``net.has_cov``) the output holds the fused state's, ``("fused", "cov")`` ``[B, 9, 9]``; the paper's
+        (``net.has_cov``) the output holds the fused state's, ``("fused", "cov")`` ``[B, 9, 9]``, as the network
+        reports it (``IMMNet.reported_cov``: times its consistency scale where it keeps one); the paper's
         KalmanNet experts give none (no such key).
         """
         z = torch.as_tensor(z, dtype=torch.float32)
