@@ -36,7 +36,12 @@ from immnet.tracking.tracker import load_network  # noqa: E402
 from immnet.training import Stage1Module, Stage2Module  # noqa: E402
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "immnet" / "pretrained" / "immnet.ckpt"
-STAGES = ("predict", "gain", "update", "classify", "fuse")
+ROLES = ("interact", "predict", "gain", "update", "classify", "fuse")
+
+
+def stage_names(net) -> list[str]:
+    """The role of each stage of ``net.step`` (filter experts' steps start with their interaction)."""
+    return [next(r for r in ROLES if getattr(net, r, None) is stage) for stage in net.step.module]
 
 
 def scans(B: int, T: int) -> torch.Tensor:
@@ -209,6 +214,7 @@ def main(argv=None) -> int:
     net = INFERENCE["the shipped weights (immnet/pretrained/immnet.ckpt)"](args.model_set).eval()
     print(f"stages of one scan at batch {args.stage_batch} (ms)", flush=True)
     eager_ms = stage_times(net, args.stage_batch, False)
+    STAGES = stage_names(net)
     compiled_ms = stage_times(net, args.stage_batch, True) if not args.no_compile else [None] * len(STAGES)
     print("  eager " + ", ".join(f"{n} {v:.1f}" for n, v in zip(STAGES, eager_ms)), flush=True)
     names = net.model_set.names
