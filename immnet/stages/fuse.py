@@ -139,9 +139,10 @@ class Fuse(Stage):
             fused = (mu.unsqueeze(-1) * post).sum(1)
         fused_cov = self.covariance(td, fused)
         z = td.get(keys.MEASUREMENT)
+        has_z = measured(z)
         if self.consistency is not None:
-            td.set(keys.COV_SCALE, self.consistency_scale(td.get(keys.COV_SCALE), mu, td.get(keys.EXPERT_NIS), measured(z)))
-        z_next = torch.where(measured(z), z, fused[..., list(POS)])
+            td.set(keys.COV_SCALE, self.consistency_scale(td.get(keys.COV_SCALE), mu, td.get(keys.EXPERT_NIS), has_z))
+        z_next = torch.where(has_z, z, fused[..., list(POS)])
         td.set(keys.PREV_FUSED, td.get(keys.FUSED))
         td.set(keys.PREV_EXPERT_PRIOR, td.get(keys.EXPERT_PRIOR))
         td.set(keys.PREV_MEASUREMENT, z_next)

@@ -184,9 +184,9 @@ class Tracker:
                 self.carry = self.net.scan(self.carry, z)
             else:
                 self.carry = self.net.scan(self.carry, z, interval=interval)
-        out = self.carry.select(keys.FUSED, keys.FUSED_COV, keys.EXPERT_PROBS, keys.EXPERT_POST, strict=False).clone()
+        out = self.carry.select(keys.FUSED, keys.EXPERT_PROBS, keys.EXPERT_POST).clone()
         if self.net.has_cov:
-            out.set(keys.FUSED_COV, self.net.reported_cov(self.carry))
+            out.set(keys.FUSED_COV, self.net.reported_cov(self.carry).clone())
         out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))
         waiting = (self.carry.get(keys.AGE) == 0)[:, None]  # no detection yet: no estimate
         return out.apply(lambda v: blank_before_first_detection(v.unsqueeze(1), waiting).squeeze(1))
