@@ -101,6 +101,7 @@ def main() -> int:
     from immnet.checkpoints import CHECKSUM_KEY, load_checkpoint
     from immnet.tracking import Tracker
 
+    net = Tracker.pretrained("3dlast").net  # the file just written (the default weights are the general network)
     prov = {
         "file": "immnet/pretrained/immnet.ckpt",
         "weights_sha256": load_checkpoint(OUT / "immnet.ckpt")[CHECKSUM_KEY],
@@ -108,8 +109,8 @@ def main() -> int:
         "made_by": ".venv/bin/python scripts/make_pretrained.py",
         "date": datetime.date.today().isoformat(),
         "commit": commit,
-        "model_set": Tracker.pretrained().net.model_set.names,
-        "guard": (lambda g: g.to_config() if g is not None else None)(Tracker.pretrained("3dlast").net.interact.guard),
+        "model_set": net.model_set.names,
+        "guard": None if net.interact.guard is None else net.interact.guard.to_config(),
         "data": {"stage1": "runs/quick/data/train: 3000 trajectories, seed 11 (val: 5 % of it)",
                  "stage1_single_mode": "4 x 600 trajectories, seeds 12 (cv), 13 (ca), 14 (ct+), 15 (ct-)",
                  "stage2": f"{STAGE2_DATA}: {TRAIN_N} trajectories, seed {TRAIN_SEED} (val: 5 % of it)",
@@ -140,8 +141,8 @@ def main() -> int:
             + (f", and its speed bounds, {prov['guard']['speed_min']:.0f}-{prov['guard']['speed_max']:.0f} m/s, where a "
                "CA maneuver turns for one scan" if prov["guard"].get("speeds") else "")
             + "). For radar "
-            "data from another region load it with `Tracker.pretrained(guard=None)` or a region of your own, or run "
-            "`immnet track --guard none` (or `--guard OUTER,INNER`).\n\n"
+            "data from another region load it with `Tracker.pretrained(\"3dlast\", guard=None)` or a region of your own, or run "
+            "`immnet track --weights 3dlast --guard none` (or `--guard OUTER,INNER`).\n\n"
             if prov["guard"] else ""
         )
         + (f"Departure from the recipe: {a.note}\n\n" if a.note else "")
