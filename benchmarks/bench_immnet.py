@@ -36,11 +36,12 @@ from immnet.tracking.tracker import load_network  # noqa: E402
 from immnet.training import Stage1Module, Stage2Module  # noqa: E402
 
 PRETRAINED = Path(__file__).resolve().parents[1] / "immnet" / "pretrained" / "immnet.ckpt"
-ROLES = ("interact", "predict", "gain", "update", "classify", "fuse")
+ROLES = ("start", "interact", "predict", "gain", "update", "classify", "fuse", "join")
 
 
 def stage_names(net) -> list[str]:
-    """The role of each stage of ``net.step`` (filter experts' steps start with their interaction)."""
+    """The role of each stage of ``net.step`` (a track's start opens and closes it; filter experts' steps mix in
+    their interaction before the predict)."""
     return [next(r for r in ROLES if getattr(net, r, None) is stage) for stage in net.step.module]
 
 

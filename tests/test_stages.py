@@ -340,10 +340,10 @@ def test_the_interaction_is_a_stage_slot_and_a_state_dict_names_each_weight_once
     from immnet.stages.filtering import FilterInteraction
 
     net = Tracker.pretrained("3dlast").net
-    assert isinstance(net.step.module[0], FilterInteraction) and net.step.module[0] is net.interact
+    assert isinstance(net.step.module[1], FilterInteraction) and net.step.module[1] is net.interact  # after TrackStart
     assert net.interact.interaction == "imm" and net.interact.guard is not None and net.interact.p_stay == 0.999
-    assert [type(m).__name__ for m in net.expert_step.module][0] == "FilterInteraction"
-    assert net.expert_step.module[0].interaction == "fused"  # experts alone start from their own posterior
+    assert [type(m).__name__ for m in net.expert_step.module][1] == "FilterInteraction"
+    assert net.expert_step.module[1].interaction == "fused"  # experts alone start from their own posterior
     sd = net.state_dict()
     assert not any(k.startswith(("step.", "expert_step.")) for k in sd)
     named = [n for n, _ in net.named_parameters(remove_duplicate=False)]
@@ -353,4 +353,61 @@ def test_the_interaction_is_a_stage_slot_and_a_state_dict_names_each_weight_once
     assert {k[len("net."):] for k in legacy  # log_pi: a buffer older files hold, rebuilt from p_stay
             if not k.startswith(("net.step.", "net.expert_step.")) and not k.endswith("log_pi")} == set(sd)
     paper = IMMNet()  # the paper's gain experts have no interaction slot: predict takes the fused estimate
-    assert paper.interact is None and type(paper.step.module[0]).__name__ == "Predict"
+    assert paper.interact is None and type(paper.step.module[1]).__name__ == "Predict"
+
+
+@pytest.mark.parametrize("irregular", [False, True], ids=["nominal", "intervals"])
+def test_track_starts_run_through_the_step(irregular):
+    """A track starts inside the step (``immnet.stages.start``): ``TrackStart`` first, ``JoinStarts`` last. Run as
+    the bare ``TensorDictSequential`` scan by scan, the start estimates are the closed forms (first detection
+    ``[z, 0, 0]``, second ``[z, (z - z_first) / elapsed, 0]`` with ``elapsed`` the time since the first detection,
+    missed scans counted), a track with no detection keeps its carry, the carry holds only the stages' keys, and
+    the rollout is the same loop."""
+    from immnet.stages.start import JoinStarts, TrackStart
+
+    net = IMMNet(model_set="configs/model_sets/imm4-adaptive.yaml",
+                 gain={"class_path": "immnet.stages.filtering.FilterGain", "init_args": {"interaction": "imm"}},
+                 classifier={"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}},
+                 dt=1.0).double().eval()
+    assert isinstance(net.step.module[0], TrackStart) and isinstance(net.step.module[-1], JoinStarts)
+    assert isinstance(net.expert_step.module[0], TrackStart) and isinstance(net.expert_step.module[-1], JoinStarts)
+    g = torch.Generator().manual_seed(4)
+    z = 1000.0 * torch.randn(4, 5, 3, generator=g, dtype=torch.float64)
+    z[1, 1] = z[1, 2] = z[2, 0] = float("nan")  # track 1 misses twice before its second detection, 2 its first
+    z[3] = float("nan")  # track 3: none
+    gaps = (torch.tensor([[1.0, 2.0, 3.0, 0.5, 4.0]], dtype=torch.float64).expand(4, 5) if irregular
+            else torch.ones(4, 5, dtype=torch.float64))
+    carry = net.initial_carry(4, dtype=torch.float64)
+    states = []
+    with torch.no_grad():
+        for t in range(5):
+            td = carry.copy()
+            td.set(keys.MEASUREMENT, z[:, t])
+            if irregular:
+                td.set(keys.INTERVAL, gaps[:, t])
+            carry = net.step(td)
+            if irregular:
+                carry.del_(keys.INTERVAL)
+            states.append(carry.get(keys.FUSED))
+            assert "start" not in carry.keys()
+            assert set(carry.exclude(keys.MEASUREMENT).keys(True, True)) >= set(net.carry_keys)
+        ref, _ = net.rollout(z, intervals=gaps if irregular else None)
+    x = torch.stack(states, 1)
+    torch.testing.assert_close(x, ref[keys.STATE], rtol=0, atol=0)
+
+    def start(zi, v=None):
+        out = torch.zeros(9, dtype=torch.float64)
+        out[0::3] = zi
+        if v is not None:
+            out[1::3] = v
+        return out
+
+    torch.testing.assert_close(x[0, 0], start(z[0, 0]))
+    torch.testing.assert_close(x[0, 1], start(z[0, 1], (z[0, 1] - z[0, 0]) / gaps[0, 1]))
+    for t in (0, 1, 2):  # track 1: its first detection held while it waits for the second
+        torch.testing.assert_close(x[1, t], start(z[1, 0]))
+    torch.testing.assert_close(x[1, 3], start(z[1, 3], (z[1, 3] - z[1, 0]) / gaps[1, 1:4].sum()))
+    torch.testing.assert_close(x[2, 1], start(z[2, 1]))
+    torch.testing.assert_close(x[2, 2], start(z[2, 2], (z[2, 2] - z[2, 1]) / gaps[2, 2]))
+    assert (x[3] == 0).all() and (carry.get(keys.AGE) == torch.tensor([2, 2, 2, 0])).all()
+    assert not torch.equal(x[0, 2], start(z[0, 2]))  # from the third detection on, the filters' estimate

@@ -1,12 +1,15 @@
-"""IMMNet: one tracker step as a ``TensorDictSequential`` of five stages, and its rollout over time.
+"""IMMNet: one tracker step as a ``TensorDictSequential`` of its stages, and its rollout over time.
 
-    predict -> gain -> update -> classify -> fuse          (docs/spec.md section 4)
+    [track start] -> predict -> gain -> update -> classify -> fuse -> [join starts]      (docs/spec.md section 4)
+
+(filter experts: their interaction before the predict, a stage of its own).
 
 Every component is chosen by configuration (``class_path`` / ``init_args``); the model set is a
 YAML list of motion models. A track starts from two measurements: at its first scan the estimate
 is ``[z_0, 0, 0]``, at its second ``[z_1, (z_1 - z_0)/dt, 0]`` (position and differenced
 velocity), and from its third scan on the learned step runs. Tracks start independently: the carry
-holds each track's age, so one code path serves batched rollouts and the streaming ``Tracker``.
+holds each track's age, and the start is part of the step (``TrackStart`` first, ``JoinStarts`` last:
+``immnet.stages.start``), so one code path, the step, serves batched rollouts and the streaming ``Tracker``.
 The carry is what the stages declare they carry (``Stage.carry_spec``, ``Stage.start_carry``;
 docs/stages.md), and each stage is told what the stages before it write (``Stage.wire``).
 """
@@ -26,10 +29,11 @@ from tensordict.utils import unravel_key
 from immnet import keys
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
-from immnet.motion import POS, VEL, ModelSet
-from immnet.stages.base import Stage, measured
+from immnet.motion import ModelSet
+from immnet.stages.base import Stage
 from immnet.stages.fuse import Fuse
 from immnet.stages.predict import Predict
+from immnet.stages.start import JoinStarts, TrackStart
 from immnet.stages.update import Update
 
 DEFAULT_GAIN = {"class_path": "immnet.stages.KalmanNetGain"}
@@ -170,22 +174,34 @@ class IMMNet(TensorDictModuleBase):
         self.update = update(ms, dt) if update is not None else Update(ms)
         self.fuse = Fuse(ms, consistency=cov_consistency)
         first = () if self.interact is None else (self.interact,)
-        # the step and the experts-alone step run the stages above; they are not submodules of their own, so a
-        # state dict names each weight once, by the stage's role (``gain.fc1.weight``), whatever the slots
+        # the step and the experts-alone step run the stages above between a track start's two stages; they are
+        # not submodules of their own, so a state dict names each weight once, by the stage's role
+        # (``gain.fc1.weight``), whatever the slots
+        stages = _wired(*first, self.predict, self.gain, self.update, self.classify, self.fuse)
         alone = (*first, self.predict, self.gain, self.update, self.fuse)
-        object.__setattr__(self, "step", TensorDictSequential(
-            *_wired(*first, self.predict, self.gain, self.update, self.classify, self.fuse)))
-        object.__setattr__(self, "expert_step", TensorDictSequential(*_wired(*(stage.for_experts_alone() for stage in alone))))
+        alone_stages = _wired(*(stage.for_experts_alone() for stage in alone))
+        self.start, self.join = self._starts(stages, experts_alone=False)
+        start_alone, join_alone = self._starts(alone_stages, experts_alone=True)
+        object.__setattr__(self, "step", TensorDictSequential(self.start, *stages, self.join))
+        object.__setattr__(self, "expert_step", TensorDictSequential(start_alone, *alone_stages, join_alone))
         # the stages built for experts alone (no weights of their own) move with the network (_apply, train)
         object.__setattr__(self, "_alone_only", [m for m in self.expert_step.module if not any(m is s for s in alone)])
         self.register_load_state_dict_pre_hook(_without_step_copies)
-        carry = [unravel_key(k) for k in self.initial_carry(1).keys(True, True)]
+        carry = list(self.start.carry_keys)
         self.carry_keys = carry
         self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry]
         self.out_keys = [keys.ACTION, *(("next", *k) for k in carry)]
         onehot = torch.zeros(len(ms), 4)
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
         self.register_buffer("mode_onehot", onehot)
+
+    def _starts(self, stages, experts_alone: bool) -> tuple[TrackStart, JoinStarts]:
+        """The stages a step begins and ends with: a track's start (``immnet.stages.start``) around ``stages``."""
+        fuse = stages[-1]
+        fused = {unravel_key(k) for s in stages for k in s.out_keys}
+        start = TrackStart(self.model_set, self.dt, stages, experts_alone=experts_alone)
+        fused_cov = keys.FUSED_COV in fused and keys.FUSED_COV not in start.carry_keys
+        return start, JoinStarts(self.model_set, start, fuse, fused_cov)
 
     def _apply(self, fn, *args, **kwargs):
         super()._apply(fn, *args, **kwargs)
@@ -267,52 +283,9 @@ class IMMNet(TensorDictModuleBase):
         return (self.expert_step if experts_alone else self.step).module
 
     def initial_carry(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> TensorDict:
-        """A carry of ``batch`` tracks that have not started (age 0): the track-start counts and what each
-        stage of the step declares it carries (``Stage.carry_spec``, docs/stages.md)."""
-        td = TensorDict(
-            {
-                keys.AGE: torch.zeros(batch, dtype=torch.long, device=device),
-                keys.START_SCANS: torch.zeros(batch, dtype=torch.long, device=device),
-                keys.START_TIME: torch.zeros(batch, dtype=dtype, device=device),
-            },
-            batch_size=[batch],
-            device=device,
-        )
-        owner = {}
-        for stage in self._steps(experts_alone):
-            for key, value in stage.carry_spec(batch, experts_alone, dtype, device).items():
-                key = unravel_key(key)
-                if key in owner or key in (keys.AGE, keys.START_SCANS, keys.START_TIME):
-                    raise ValueError(f"{type(stage).__name__} and {owner.get(key, 'IMMNet')} both carry {key}")
-                owner[key] = type(stage).__name__
-                td.set(key, value)
-        return td
-
-    def _start(self, carry: TensorDict, z: torch.Tensor, second: bool, interval=None) -> TensorDict:
-        """The carry after a track's first (``second=False``) or second measurement: the start estimate
-        ``[z, 0, 0]`` (first) or ``[z, differenced velocity, 0]`` (second), and what each stage sets at a
-        track start (``Stage.start_carry``, which reads the time since the first detection as the carry's
-        ``START_TIME``); the rest as ``initial_carry``."""
-        alone = z.dim() == 3
-        fresh = self.initial_carry(carry.batch_size[0], alone, z.dtype, z.device)
-        x = torch.zeros(z.shape[:-1] + (9,), dtype=z.dtype, device=z.device)
-        x[..., list(POS)] = z
-        if second:
-            # differenced velocity over the time since the first detection (missed scans between count)
-            if interval is None:
-                elapsed = (carry.get(keys.START_SCANS).clamp_min(1) * self.dt).to(z.dtype)
-            else:
-                elapsed = (carry.get(keys.START_TIME) + interval).to(z.dtype)
-            x[..., list(VEL)] = (z - carry.get(keys.PREV_MEASUREMENT)) / elapsed.view(-1, *([1] * (z.dim() - 1)))
-            carry = carry.clone(False)
-            carry.set(keys.START_TIME, elapsed)
-        else:
-            fresh.set(keys.START_SCANS, torch.ones_like(carry.get(keys.AGE)))
-        for stage in self._steps(alone):
-            for key, value in stage.start_carry(carry, z, x, second).items():
-                fresh.set(key, value)
-        fresh.set(keys.AGE, carry.get(keys.AGE) + 1)
-        return fresh
+        """A carry of ``batch`` tracks that have not started (age 0): what each stage of the step declares it
+        carries (``Stage.carry_spec``, docs/stages.md), the track-start counts ``TrackStart``'s."""
+        return self._steps(experts_alone)[0].fresh_carry(batch, dtype, device)
 
     # --- one scan -------------------------------------------------------------------------
     def scan(self, carry: TensorDict, z: torch.Tensor, experts_alone: bool = False, interval=None) -> TensorDict:
@@ -320,7 +293,8 @@ class IMMNet(TensorDictModuleBase):
 
         ``interval [B]``: the time since the previous scan per track (s); None: the nominal ``dt``. Returns
         the new carry, which also holds this scan's outputs (``("fused", "state")``, ``("expert", "post")``,
-        ``("mode", "probs")``, ...). NaN in ``z`` is a missed detection.
+        ``("mode", "probs")``, ...). NaN in ``z`` is a missed detection. It is one call of the step (track
+        starts included), with the measurement and the interval set.
         """
         step = self.expert_step if experts_alone else self.step
         td = carry.copy()
@@ -328,41 +302,10 @@ class IMMNet(TensorDictModuleBase):
         if interval is not None:
             interval = torch.as_tensor(interval, dtype=z.dtype, device=z.device).reshape(-1).expand(z.shape[0])
             td.set(keys.INTERVAL, interval)
-        age = carry.get(keys.AGE)
         out = step(td)
         if interval is not None:
             out.del_(keys.INTERVAL)
-        if bool((age >= 2).all()):  # every track running: the step is the whole scan
-            return out
-        has = measured(z).reshape(z.shape[0], -1).all(-1)
-        first = self._start(carry, z, second=False, interval=interval)
-        second = self._start(carry, z, second=True, interval=interval)
-        carry_keys = list(first.keys(True, True))
-        stepped = out.select(*carry_keys)
-        new = _where(has & (age == 1), second, stepped)
-        new = _where(has & (age == 0), first, new)
-        new = _where((age < 2) & ~has, carry.select(*carry_keys), new)
-        waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
-        new.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, new.get(keys.START_SCANS)))
-        step_time = self.dt if interval is None else interval
-        new.set(keys.START_TIME, torch.where(waiting, carry.get(keys.START_TIME) + step_time, new.get(keys.START_TIME)))
-        if keys.EXPERT_PROBS in carry_keys:  # a starting track's modes are uniform (experts alone have none)
-            uniform = torch.full_like(new.get(keys.EXPERT_PROBS), 1.0 / self.n_experts)
-            new.set(keys.EXPERT_PROBS, torch.where((age < 2)[:, None], uniform, new.get(keys.EXPERT_PROBS)))
-        for key in out.keys(True, True):
-            if key not in carry_keys:
-                new.set(key, out.get(key))
-        # a starting track has no expert estimates of its own yet: each expert's is the start estimate
-        # (the step above ran on an empty carry, so its posteriors there mean nothing)
-        start = new.get(keys.FUSED)
-        start = start if start.dim() == 3 else start.unsqueeze(1).expand(-1, self.n_experts, -1)
-        new.set(keys.EXPERT_POST, torch.where((age < 2)[:, None, None], start, new.get(keys.EXPERT_POST)))
-        if keys.FUSED_COV in out.keys(True, True) and keys.FUSED_COV not in carry_keys:
-            # fused from the experts' covariances, not carried: a starting track's is its start covariance's
-            fresh = step.module[-1].covariance(new, new.get(keys.FUSED))
-            lead = (age < 2).view(-1, *([1] * (fresh.dim() - 1)))
-            new.set(keys.FUSED_COV, torch.where(lead, fresh, new.get(keys.FUSED_COV)))
-        return new
+        return out
 
     # --- a policy -------------------------------------------------------------------------
     def make_tensordict_primer(self, dtype=torch.float32):
@@ -417,7 +360,7 @@ class IMMNet(TensorDictModuleBase):
         """
         B, T = measurements.shape[0], measurements.shape[-2]
         if return_cov:
-            fuse = self._steps(experts_alone)[-1]
+            fuse = self._steps(experts_alone)[-2]  # the Fuse before JoinStarts
             if fuse.cov is None:
                 raise ValueError(self.no_cov_reason() or "these experts carry no covariance")
         if carry is None:

@@ -1,0 +1,178 @@
+"""Track starts as stages of the step: ``TrackStart`` first, ``JoinStarts`` last.
+
+A track starts from two detections (docs/immnet.md, "Track start"): at its first the estimate is
+``[z_0, 0, 0]``, at its second ``[z_1, (z_1 - z_0) / elapsed, 0]`` (position and differenced velocity,
+``elapsed`` the time since the first detection, missed scans between counting), and from its third scan on
+the step's estimate is the track's. Tracks start independently (the carry holds each one's ``age``), so
+one step serves a batch of tracks at any point of their lives and the streaming ``Tracker``:
+
+* ``TrackStart`` (first in the step) reads the carry as the previous scan left it and the measurement,
+  and writes ``("start", "tracks")`` (the tracks with ``age < 2``) and ``("start", "carry")``: what each
+  of them carries after this scan. A first detection gives the carry a track that has not started holds
+  (each stage's ``carry_spec``) with what each stage sets at a start (``Stage.start_carry``), a second the
+  same from the differenced velocity; a track that misses before its second detection keeps its carry,
+  one more scan (and its interval) elapsed since its first. It carries the track-start counts itself
+  (``("memory", "age")``, ``("memory", "start_scans")``, ``("memory", "start_time")``).
+* the stages of the step run for every track (a starting track's results are not used);
+* ``JoinStarts`` (last) takes the start carry where a track starts and the step's elsewhere: a starting
+  track's modes uniform, each expert's estimate the start estimate, its fused covariance the one of its
+  start covariances (where the step fuses one and does not carry it). It consumes the ``("start", ...)``
+  keys (removes them), so the carry holds only what the stages declare they carry.
+
+Where no track starts (every one has run two scans) ``TrackStart`` writes ``("start", "tracks")`` alone, all
+False, and ``JoinStarts`` leaves the step's results as they are: one check a scan, in eager mode; compiled
+(``torch.compile``), the two stages compute the starts at every scan, so the step traces as one graph.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from tensordict.utils import unravel_key
+
+from immnet import keys
+from immnet.motion import POS, VEL, ModelSet
+from immnet.stages.base import Stage, measured
+
+COUNTS = (keys.AGE, keys.START_SCANS, keys.START_TIME)
+"""The track-start counts ``TrackStart`` carries."""
+
+
+def _where(cond: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``where(cond, a, b)`` with a track mask ``cond [B]`` broadcast over ``b``'s other dimensions, in ``b``'s dtype."""
+    return torch.where(cond.view(-1, *([1] * (b.dim() - 1))), a.to(b.dtype), b)
+
+
+def _compiling() -> bool:
+    return torch.compiler.is_compiling()
+
+
+class TrackStart(Stage):
+    """The first stage of a step: what each starting track carries after this scan (module doc)."""
+
+    out_keys = [keys.STARTING, keys.START_CARRY]
+
+    def __init__(self, model_set: ModelSet, dt: float, stages, experts_alone: bool = False):
+        """``stages``: the stages of the step after this one, whose ``carry_spec`` and ``start_carry`` make the
+        carry (held, not registered: their weights are the network's); ``experts_alone``: the step of stage 1."""
+        super().__init__(model_set)
+        self.dt = dt
+        self.experts_alone = experts_alone
+        object.__setattr__(self, "_stages", tuple(stages))
+        self.carry_keys = [unravel_key(k) for k in self.fresh_carry(1).keys(True, True)]  # the carry's leaves
+        self.carried = [unravel_key(k) for stage in (self, *stages) for k in stage.carry_spec(1, experts_alone)]
+        self.in_keys = [keys.MEASUREMENT, *self.carried]  # the keys as the stages declare them (a nested one whole)
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The track-start counts, zero before a track's first detection."""
+        return {
+            keys.AGE: torch.zeros(batch, dtype=torch.long, device=device),
+            keys.START_SCANS: torch.zeros(batch, dtype=torch.long, device=device),
+            keys.START_TIME: torch.zeros(batch, dtype=dtype, device=device),
+        }
+
+    def fresh_carry(self, batch: int, dtype=torch.float32, device=None) -> TensorDict:
+        """The carry of ``batch`` tracks that have not started: what this stage and each stage after it declare
+        they carry (``Stage.carry_spec``); a key declared by two stages is a ValueError."""
+        td = TensorDict({}, batch_size=[batch], device=device)
+        owner = {}
+        for stage in (self, *self._stages):
+            for key, value in stage.carry_spec(batch, self.experts_alone, dtype, device).items():
+                key = unravel_key(key)
+                if key in owner:
+                    raise ValueError(f"{type(stage).__name__} and {owner[key]} both carry {key}")
+                owner[key] = type(stage).__name__
+                td.set(key, value)
+        return td
+
+    def _started(self, carry: TensorDict, z: torch.Tensor, second: bool, interval) -> TensorDict:
+        """The carry after a track's first (``second=False``) or second detection ``z``, from the ``carry`` before
+        it: the start estimate and what each stage sets at a start (``Stage.start_carry``, which reads the time
+        since the first detection as the carry's ``START_TIME``); the rest as before a start."""
+        fresh = self.fresh_carry(z.shape[0], z.dtype, z.device)
+        x = torch.zeros(z.shape[:-1] + (9,), dtype=z.dtype, device=z.device)
+        x[..., list(POS)] = z
+        if second:
+            # differenced velocity over the time since the first detection (missed scans between count)
+            if interval is None:
+                elapsed = (carry.get(keys.START_SCANS).clamp_min(1) * self.dt).to(z.dtype)
+            else:
+                elapsed = (carry.get(keys.START_TIME) + interval).to(z.dtype)
+            x[..., list(VEL)] = (z - carry.get(keys.PREV_MEASUREMENT)) / elapsed.view(-1, *([1] * (z.dim() - 1)))
+            carry = carry.clone(False)
+            carry.set(keys.START_TIME, elapsed)
+        else:
+            fresh.set(keys.START_SCANS, torch.ones_like(carry.get(keys.AGE)))
+        for stage in self._stages:
+            for key, value in stage.start_carry(carry, z, x, second).items():
+                fresh.set(key, value)
+        fresh.set(keys.AGE, carry.get(keys.AGE) + 1)
+        return fresh
+
+    def forward(self, td):
+        age = td.get(keys.AGE)
+        starting = age < 2
+        td.set(keys.STARTING, starting)
+        if not _compiling() and not bool(starting.any()):  # every track running: nothing starts
+            return td
+        z = td.get(keys.MEASUREMENT)
+        interval = td.get(keys.INTERVAL, None)
+        carry = td.select(*self.carry_keys)
+        has = measured(z).reshape(z.shape[0], -1).all(-1)
+        first = self._started(carry, z, second=False, interval=interval)
+        second = self._started(carry, z, second=True, interval=interval)
+        start = carry.empty()
+        for key in self.carry_keys:
+            # a detection: the first or the second; none: the carry as it was
+            value = _where(has & (age == 1), second.get(key), carry.get(key))
+            start.set(key, _where(has & (age == 0), first.get(key), value))
+        waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
+        start.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, start.get(keys.START_SCANS)))
+        step_time = self.dt if interval is None else interval
+        start.set(keys.START_TIME, torch.where(waiting, carry.get(keys.START_TIME) + step_time, start.get(keys.START_TIME)))
+        td.set(keys.START_CARRY, start)
+        return td
+
+
+class JoinStarts(Stage):
+    """The last stage of a step: the start carry where a track starts, the step's results elsewhere (module doc)."""
+
+    def __init__(self, model_set: ModelSet, start: TrackStart, fuse, fused_cov: bool):
+        """``start``: the step's ``TrackStart`` (its carry's keys); ``fuse``: the step's ``Fuse`` (held, not
+        registered), whose covariance a starting track's fused covariance is, where ``fused_cov`` (the step fuses
+        a covariance and does not carry it)."""
+        super().__init__(model_set)
+        self.carry_keys = list(start.carry_keys)  # the leaves
+        object.__setattr__(self, "_fuse", fuse)
+        self.fused_cov = fused_cov
+        self.probs = keys.EXPERT_PROBS in self.carry_keys  # experts alone have no modes
+        reads = [keys.STARTING, keys.START_CARRY, *start.carried, keys.FUSED, keys.EXPERT_POST]
+        writes = [*start.carried, keys.EXPERT_POST]
+        if fused_cov:
+            reads += [fuse.cov, keys.FUSED_COV]
+            writes += [keys.FUSED_COV]
+        self.in_keys = list(dict.fromkeys(unravel_key(k) for k in reads))
+        self.out_keys = list(dict.fromkeys(unravel_key(k) for k in writes))
+
+    def forward(self, td):
+        starting = td.pop(keys.STARTING)
+        start = td.pop(keys.START_CARRY, None)
+        for key in (keys.STARTING, keys.START_CARRY):  # an emptied parent ("start") goes too
+            parent = unravel_key(key[:-1])
+            if parent in td.keys(True) and not list(td.get(parent).keys()):
+                td.del_(parent)
+        if start is None:  # nothing starts (TrackStart wrote no start carry)
+            return td
+        for key in self.carry_keys:
+            td.set(key, _where(starting, start.get(key), td.get(key)))
+        if self.probs:  # a starting track's modes are uniform
+            probs = td.get(keys.EXPERT_PROBS)
+            td.set(keys.EXPERT_PROBS, _where(starting, torch.full_like(probs, 1.0 / self.n_experts), probs))
+        # a starting track has no expert estimates of its own yet: each expert's is the start estimate
+        # (the step ran on its carry before the start, so its posteriors there mean nothing)
+        fused = td.get(keys.FUSED)
+        post = td.get(keys.EXPERT_POST)
+        td.set(keys.EXPERT_POST, _where(starting, fused if fused.dim() == 3 else fused.unsqueeze(1).expand_as(post), post))
+        if self.fused_cov:  # fused from the experts' start covariances, not carried
+            td.set(keys.FUSED_COV, _where(starting, self._fuse.covariance(td, fused), td.get(keys.FUSED_COV)))
+        return td
