@@ -3,8 +3,8 @@
 Run:  .venv/bin/python benchmarks/bench_immnet.py [--steps 40] [--no-compile]
 It prints tables and rewrites the ``## IMMNet`` section of BENCHMARKS.md (other sections are kept).
 Inference runs the streaming step (``IMMNet.scan``) over already-started tracks, the per-scan cost
-of tracking, eager and compiled (``torch.compile`` of the step, a ``TensorDictSequential``, as one
-graph; where that fails, with graph breaks, and where that fails, eager), for the shipped weights
+of tracking, eager and compiled (``torch.compile`` of ``IMMNet.running_step``, the step without the track start's
+two stages, a ``TensorDictSequential``, as one graph; where that fails, with graph breaks, and where that fails, eager), for the shipped weights
 (``immnet/pretrained/immnet.ckpt``) and IMM-EKF (IMMNet with nothing learned, ``immnet.filters.IMMEKF``);
 then where the time of one scan of the shipped weights goes at batch 1024, stage by stage. Training
 runs forward + backward + Adam over TBPTT chunks of 20 scans at batch 64, for the quick and pretrained
@@ -109,11 +109,12 @@ INFERENCE = {  # label: a function of the model set that builds the network
 
 
 def compiled_step(net: IMMNet, carry, z):
-    """``(scan, how)``: a scan through ``torch.compile`` of ``net.step`` as one graph (``how`` "fullgraph"),
-    else with graph breaks ("graph breaks"), else eager ("eager"), whichever first runs on ``carry, z``."""
+    """``(scan, how)``: a scan of started tracks through ``torch.compile`` of ``net.running_step`` (the step without
+    the track start's two stages, what ``IMMNet.scan`` runs for them) as one graph (``how`` "fullgraph"), else with
+    graph breaks ("graph breaks"), else eager ("eager"), whichever first runs on ``carry, z``."""
     for fullgraph in (True, False):
         torch._dynamo.reset()
-        step = torch.compile(net.step, fullgraph=fullgraph, dynamic=False)
+        step = torch.compile(net.running_step, fullgraph=fullgraph, dynamic=False)
 
         def scan(carry, z, step=step):
             td = carry.copy()

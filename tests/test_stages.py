@@ -411,3 +411,12 @@ def test_track_starts_run_through_the_step(irregular):
     torch.testing.assert_close(x[2, 2], start(z[2, 2], (z[2, 2] - z[2, 1]) / gaps[2, 2]))
     assert (x[3] == 0).all() and (carry.get(keys.AGE) == torch.tensor([2, 2, 2, 0])).all()
     assert not torch.equal(x[0, 2], start(z[0, 2]))  # from the third detection on, the filters' estimate
+    # tracks that have all started: the step without the start's two stages (what scan runs for them) is the step
+    running = carry[:3].exclude(keys.MEASUREMENT)
+    td = running.copy()
+    td.set(keys.MEASUREMENT, z[:3, -1] + 10.0)
+    with torch.no_grad():
+        whole, short = net.step(td.copy()), net.running_step(td.copy())
+    assert set(whole.keys(True, True)) == set(short.keys(True, True))
+    for key in whole.keys(True, True):
+        assert torch.equal(whole.get(key), short.get(key)), key

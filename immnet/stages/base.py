@@ -1,6 +1,7 @@
 """What a stage is: a ``TensorDictModuleBase`` over the key vocabulary of ``immnet.keys``.
 
-A tracker step is a ``TensorDictSequential`` of five stages (predict, gain, update, classify, fuse).
+A tracker step is a ``TensorDictSequential`` of five stages (predict, gain, update, classify, fuse; filter
+experts' interaction before the predict), between a track start's two (``immnet.stages.start``).
 Tensors are ``[B, ...]`` for a fused quantity and ``[B, M, ...]`` for one per expert. In stage-1
 training each expert runs alone on its own trajectories, so the "fused" state is itself
 ``[B, M, 9]``; ``per_expert`` lets every stage accept both.

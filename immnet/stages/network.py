@@ -183,6 +183,9 @@ class IMMNet(TensorDictModuleBase):
         self.start, self.join = self._starts(stages, experts_alone=False)
         start_alone, join_alone = self._starts(alone_stages, experts_alone=True)
         object.__setattr__(self, "step", TensorDictSequential(self.start, *stages, self.join))
+        # the step of tracks that have all started (no start to make): what IMMNet.scan runs then, and what to compile
+        # for them (compiled, the whole step computes the starts at every scan: immnet.stages.start)
+        object.__setattr__(self, "running_step", TensorDictSequential(*stages))
         object.__setattr__(self, "expert_step", TensorDictSequential(start_alone, *alone_stages, join_alone))
         # the stages built for experts alone (no weights of their own) move with the network (_apply, train)
         object.__setattr__(self, "_alone_only", [m for m in self.expert_step.module if not any(m is s for s in alone)])
@@ -294,9 +297,12 @@ class IMMNet(TensorDictModuleBase):
         ``interval [B]``: the time since the previous scan per track (s); None: the nominal ``dt``. Returns
         the new carry, which also holds this scan's outputs (``("fused", "state")``, ``("expert", "post")``,
         ``("mode", "probs")``, ...). NaN in ``z`` is a missed detection. It is one call of the step (track
-        starts included), with the measurement and the interval set.
+        starts included), with the measurement and the interval set; where every track has started, of
+        ``running_step`` (the step without the start's two stages, which would change nothing).
         """
         step = self.expert_step if experts_alone else self.step
+        if not experts_alone and bool((carry.get(keys.AGE) >= 2).all()):
+            step = self.running_step  # nothing starts: the same result without the start's two stages
         td = carry.copy()
         td.set(keys.MEASUREMENT, z)
         if interval is not None:

@@ -21,7 +21,10 @@ one step serves a batch of tracks at any point of their lives and the streaming 
 
 Where no track starts (every one has run two scans) ``TrackStart`` writes ``("start", "tracks")`` alone, all
 False, and ``JoinStarts`` leaves the step's results as they are: one check a scan, in eager mode; compiled
-(``torch.compile``), the two stages compute the starts at every scan, so the step traces as one graph.
+(``torch.compile``), the two stages compute the starts at every scan, so the step traces as one graph. That
+costs a compiled step of tracks that have all started about as much again as the filters' own work
+(BENCHMARKS.md): ``IMMNet.running_step``, the step without the two, is what to compile for them, and
+``IMMNet.scan`` runs it wherever no track starts.
 """
 
 from __future__ import annotations
