@@ -447,6 +447,46 @@ def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
     torch.testing.assert_close(ours[keys.MODE_PROBS], out[keys.ROLLOUT_EXPERT_PROBS], rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("method", ["imm-min", "imm-max", "imm-accurate", "imm-tuned"])
+def test_each_linear_imm_is_immnet_with_nothing_learned(method):
+    """Issue 21, item 1, for the paper's linear IMMs and IMM-Tuned: the registry's method equals its ``network()``,
+    IMMNet's step with filter experts of the method's own motion models and process noise, its ``r``, the mix
+    without onset priors, a start from the first detection and the Bayesian mode update; both against the
+    core's scan loop (``imm_filter(general=True)``), to FilterPy's criterion (1e-9 of the state's scale; the mode
+    update's exponential makes float64 rounding of the two covariance forms, Joseph's and the standard one,
+    reach 1e-7 m where r is 1 m, as between the core's two formulations). Missed detections inside the tracks."""
+    import yaml
+
+    from immnet.config import resolve_path
+    from immnet.evaluation.methods import build_method
+    from immnet.filters.base import data_mode_probs
+    from immnet.filters.imm import imm_filter, initial_state
+
+    args = yaml.safe_load(resolve_path(f"configs/methods/{method}.yaml").read_text())["init_args"]
+    data = generate(12, seed=8, spec=DataSpec(T=150, min_segment=40))
+    data[keys.MEASUREMENTS][3, 40:45] = float("nan")
+    data[keys.MEASUREMENTS][5, 1] = float("nan")  # a missed detection right after the start
+    z = data[keys.MEASUREMENTS].double()
+    tracker = build_method(method)
+    net = tracker.network()
+    assert net.start_detections == 1 and not net.interact.onset and net.gain.model_noise is not None
+    with torch.no_grad():
+        out, _ = net.rollout(z)
+    F, Q, Pi, mu0 = tracker.matrices(1.0)
+    r = float(args["r"])
+    x0, P0 = initial_state(z, r)
+    core, probs, _ = imm_filter(z, x0, P0, F, Q, torch.tensor(r * r, dtype=torch.float64), Pi, mu0, general=True)
+    ours = tracker.track(data)
+    scale = core.abs().amax((1, 2), keepdim=True)  # each track's
+    for states in (out[keys.STATE], ours[keys.STATE]):
+        assert ((states - core).abs() <= 1e-9 * scale).all()
+    torch.testing.assert_close(data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], net.model_set.modes),
+                               data_mode_probs(probs, net.model_set.modes), rtol=0, atol=1e-6)
+    other = build_method("real-imm")  # r: data, told per track: not a setting of the filter experts
+    with pytest.raises(ValueError, match="r 'data'"):
+        other.network()
+
+
 def test_a_trained_network_with_its_learned_parts_knocked_out_is_the_model_based_imm():
     """``IMMNet.knock_out`` (the real-flight ablations, docs/real.md): the shipped network with KalmanNet's and the
     Transformer's corrections set to zero is IMMNet with nothing learned, the filter experts at the gain's base noise

@@ -56,6 +56,11 @@ CONFIGS = {
         "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {"adapt": True}},
         "classifier": {"class_path": "immnet.stages.UniformMix"}},
     "single-ca": {"model_set": [{"class_path": "immnet.motion.ConstantAcceleration"}]},
+    "filter-linear-imm+bayes-experts": {  # a linear IMM as IMMNet with nothing learned (IMMTracker.network)
+        "model_set": "configs/model_sets/imm6.yaml", "p_stay": 0.8, "start_detections": 1,
+        "gain": {"class_path": FILTERING + "FilterGain", "init_args": {
+            "interaction": "imm", "onset": False, "model_noise": 0.5, "r": 5.0, "start_acc_std": 10.0}},
+        "classifier": {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}},
 }
 # (configuration, experts alone): stage 1 runs each expert alone (``IMMNet.expert_step``)
 CASES = [(name, False) for name in CONFIGS if name != "single-ca"] + [

@@ -153,6 +153,7 @@ class IMMTracker(Method):
             raise ValueError(f"the IMM needs a constant F per model; {moving} are state-dependent (IMMNet experts only)")
         self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)
         self.Pi = transition_matrix(p_stay, M)
+        self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
         if mu0 is None:
             self.mu0 = torch.full((M,), 1.0 / M, dtype=torch.float64)
         else:
@@ -166,6 +167,31 @@ class IMMTracker(Method):
         self.return_experts = return_experts
         self.compile = compile
         self.return_cov = return_cov
+
+    def network(self, dt: float = 1.0):
+        """This IMM as IMMNet with nothing learned (docs/core.md, "Every tracker as a configuration"): filter
+        experts of the model set with each model's own process noise (``FilterGain(model_noise=sigma_q)``), the
+        assumed ``r``, the IMM's mix without onset priors, a start from the first detection with the spec's start
+        covariance (``start_detections=1``, ``start_acc_std`` 10 m/s^2, velocity 300 m/s) and the IMM's Bayesian
+        mode update, ``p_stay`` set once; an ``IMMNet`` in this method's dtype, ``eval``. It filters what
+        ``track`` filters, to float64 rounding, where every track is detected at its first scan (``track`` starts a
+        track whose first scans are missed at scan 0 from its first detection; the network at that detection).
+        A ValueError where this IMM is not such a configuration: ``r: data``, a full transition matrix, a
+        non-uniform ``mu0``."""
+        from immnet.filters.imm import ACC_STD
+        from immnet.stages.network import IMMNet
+
+        if self.r == TOLD:
+            raise ValueError(f"{self.name}: r 'data' (each track's own r) is not a setting of IMMNet's filter experts")
+        if self._p_stay is None:
+            raise ValueError(f"{self.name}: a full transition matrix is not IMMNet's p_stay (one staying probability)")
+        if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
+            raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
+        gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
+            "model_noise": self.sigma_q, "r": self.r, "interaction": "imm", "onset": False, "start_acc_std": ACC_STD}}
+        bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
+        net = IMMNet(model_set=self.model_set, gain=gain, classifier=bayes, dt=dt, p_stay=self._p_stay, start_detections=1)
+        return net.to(self.dtype).eval()
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``

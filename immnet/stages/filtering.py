@@ -186,9 +186,12 @@ class FilterInteraction(Stage):
     out_keys = [keys.EXPERT_MIXED, keys.EXPERT_MIXED_COV]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995,
-                 guard=None, spec: DataSpec | dict | None = None):
+                 guard=None, spec: DataSpec | dict | None = None, onset: bool = True):
+        """``onset``: the IMM's mix carries the onset priors into each expert (above); False: what enters from
+        another expert is that expert's posterior as it is (the textbook IMM's mix, the linear IMMs')."""
         super().__init__(model_set)
         self.dt = dt
+        self.onset = bool(onset)
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction, self.p_stay = interaction, float(p_stay)
@@ -246,7 +249,7 @@ class FilterInteraction(Stage):
             td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
             rate = self.bound_sign.to(y.dtype) * (self.guard.rate_deg * math.pi / 180.0)
             bound = (share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
-        return mix(w, y, P, (self.mix_keep, self.mix_mean, self.mix_cov), bound)
+        return mix(w, y, P, (self.mix_keep, self.mix_mean, self.mix_cov) if self.onset else None, bound)
 
     def forward(self, td):
         own = td.get(keys.EXPERT_POST)
@@ -298,9 +301,9 @@ class FilterPredict(Predict):
             prior = torch.einsum("bmij,bmj->bmi", F, x)
             J = _jacobian_base(self.model_set, self._own_rate, d, x.dtype, F)
             dt = dt.to(x.dtype)
-        else:
-            prior = torch.einsum("mij,bmj->bmi", self.F.to(x.dtype), x)
+        else:  # F from the Jacobian's constant part, built in float64 (a linear turn's sin and cos exact in a .double())
             J = self.J_base.to(x.dtype).expand(x.shape[0], M, N_AUG, N_AUG)
+            prior = torch.einsum("mij,bmj->bmi", self.J_base[:, :9, :9].to(x.dtype), x)
         if self.has_turn:
             turned = ct_propagate(x, w, dt)
             prior = torch.where(self.own_rate[:, None], turned, prior)
@@ -358,15 +361,27 @@ class _FilterExperts:
 
     def interaction_stage(self, model_set: ModelSet, dt: float) -> FilterInteraction:
         """The interaction these experts need, with this gain's ``interaction``, ``p_stay`` and ``guard``."""
-        return FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec)
+        return FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset)
 
     def predict_stage(self, model_set: ModelSet, dt: float) -> FilterPredict:
         """The predict stage these experts need (``FilterPredict``)."""
         return FilterPredict(model_set, dt)
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
-                     interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None):
+                     interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
+                     onset: bool = True, model_noise=None, start_acc_std: float | None = None):
         self.guard = _check_interaction(interaction, p_stay, guard)
+        self.onset = bool(onset)
+        if model_noise is not None:  # each motion model's own Q(sigma_q_i, dt), as the linear IMMs'
+            sq = model_noise if isinstance(model_noise, (list, tuple)) else [model_noise] * len(model_set)
+            if len(sq) != len(model_set) or not all(math.isfinite(float(v)) and float(v) >= 0 for v in sq):
+                raise ValueError(f"model_noise needs one sigma_q >= 0 per model ({len(model_set)}) or one for all, "
+                                 f"got {model_noise!r}")
+            model_noise = [float(v) for v in sq]
+        self.model_noise = model_noise
+        if start_acc_std is not None and not (math.isfinite(start_acc_std) and start_acc_std >= 0):
+            raise ValueError(f"start_acc_std must be finite and >= 0 (or None: the CA draw's), got {start_acc_std}")
+        self.start_acc_std = None if start_acc_std is None else float(start_acc_std)
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
         if r is not None and not (math.isfinite(r) and r > 0):
             raise ValueError(f"r must be finite and > 0 (or None: estimated per track), got {r}")
@@ -385,7 +400,11 @@ class _FilterExperts:
             raise ValueError(f"noise_std needs {N_NOISE} standard deviations >= 0, got {noise_std}")
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         std = torch.tensor(noise_std, dtype=torch.float64)
-        self.register_buffer("Q_parts", _noise_components(own_acc, own_rate, dt) * std.square()[None, :, None, None])
+        if self.model_noise is None:
+            parts = _noise_components(own_acc, own_rate, dt) * std.square()[None, :, None, None]
+        else:
+            parts = self._model_noise_parts(dt)
+        self.register_buffer("Q_parts", parts)
         self.register_buffer("noise_var_std", std.square(), persistent=False)
         self._own_acc, self._own_rate = own_acc, own_rate
         self.register_buffer("rate_nominal", torch.tensor(nominal))
@@ -394,12 +413,23 @@ class _FilterExperts:
         self.r0, self.k0, self.dt = float(r0), float(k0), dt
         self.rate_var0 = float((rate_std0_deg * math.pi / 180.0) ** 2)
 
+    def _model_noise_parts(self, dt) -> torch.Tensor:
+        """With ``model_noise``: the motion models' own ``Q(sigma_q_i, dt)`` as the first noise component (the
+        state block of ``[x, w]``), the others zero: ``[M, 5, 10, 10]``, ``[B, M, 5, 10, 10]`` for ``dt [B]``."""
+        dtype = dt.dtype if isinstance(dt, torch.Tensor) else torch.float64
+        Q = self.model_set.Q(self.model_noise, dt, dtype=dtype, device=dt.device if isinstance(dt, torch.Tensor) else None)
+        out = Q.new_zeros(*Q.shape[:-2], N_NOISE, N_AUG, N_AUG)
+        out[..., 0, :9, :9] = Q
+        return out
+
     def q_parts(self, td, like: torch.Tensor) -> torch.Tensor:
         """The base noise components of this scan: ``Q_parts [M, 5, 10, 10]`` at the nominal interval, or
-        ``[B, M, 5, 10, 10]`` for the step's interval per track (``_noise_components``)."""
+        ``[B, M, 5, 10, 10]`` for the step's interval per track (``_noise_components``, or the models' ``Q``)."""
         dt, per_track = scan_interval(td, self.dt)
         if not per_track:
             return self.Q_parts.to(like.dtype)
+        if self.model_noise is not None:
+            return self._model_noise_parts(dt[:, 0].to(like.dtype))
         parts = _noise_components(self._own_acc, self._own_rate, dt[:, 0].to(like.dtype), self.dt)
         return parts * self.noise_var_std.to(like.dtype)[:, None, None]
 
@@ -473,7 +503,8 @@ class _FilterExperts:
         """Covariance of a starting track ``[B, M, 10, 10]``: after one scan position ``r^2``,
         velocity ``300^2``; after two (differenced velocity over ``elapsed``, the time between the
         detections ``[B]``; the nominal ``dt`` where None) velocity ``2 r^2 / elapsed^2`` with the
-        position-velocity covariance ``r^2 / elapsed``; acceleration the CA draw's, turn rate ``rate_std0``."""
+        position-velocity covariance ``r^2 / elapsed``; acceleration the CA draw's (``start_acc_std^2`` on every
+        axis where set), turn rate ``rate_std0``."""
         P = r2.new_zeros(B, self.n_experts, N_AUG, N_AUG)
         e = self.dt if elapsed is None else elapsed.to(r2.dtype).view(B, *([1] * (r2.dim() - 1)))
         for a in range(3):
@@ -482,7 +513,7 @@ class _FilterExperts:
             P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
             if second:
                 P[..., p, v] = P[..., v, p] = r2 / e
-            P[..., c, c] = float(self.acc_var0[a])
+            P[..., c, c] = float(self.acc_var0[a]) if self.start_acc_std is None else self.start_acc_std**2
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
 
@@ -592,9 +623,17 @@ class FilterGain(_FilterExperts, Stage):
         adapt: bool | dict | None = None,
         r: float | None = None,
         spec: DataSpec | dict | None = None,
+        onset: bool = True,
+        model_noise: float | list[float] | None = None,
+        start_acc_std: float | None = None,
     ):
+        """``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
+        model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
+        the ``noise_std`` components; ``start_acc_std``: the start covariance's acceleration standard deviation on
+        every axis (None: the CA draw's). The three make the linear IMMs' filters (docs/core.md)."""
         super().__init__(model_set)
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
+                          onset, model_noise, start_acc_std)
 
     def forward(self, td):
         r2 = self._r2(td)

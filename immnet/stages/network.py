@@ -133,6 +133,7 @@ class IMMNet(TensorDictModuleBase):
         guard: bool | dict | None = None,
         interval_range: tuple[float, float] | None = None,
         cov_consistency: float | None = None,
+        start_detections: int = 2,
     ):
         """``gain``, ``classifier``: the components (``Component``: a ``class_path`` / ``init_args`` mapping);
         ``p_stay``, ``guard``: the Markov chain's staying probability and the range guard, set here once for
@@ -143,7 +144,10 @@ class IMMNet(TensorDictModuleBase):
         ``dt`` alone (a tracker refuses data at other intervals, ``immnet.tracking.tracker.check_dt``).
         ``cov_consistency``: the weight per scan of the reported covariance's scale, a running mean of the experts'
         normalized innovation squared over 3 (``immnet.stages.fuse``, docs/immnet.md "Covariance consistency");
-        None: the fused covariance as it is. It changes what the network reports, not what it estimates."""
+        None: the fused covariance as it is. It changes what the network reports, not what it estimates.
+        ``start_detections``: a track starts from two detections (position, then the differenced velocity: IMMNet's)
+        or from one (its position with the gain's start covariance, the step running from the next scan: the linear
+        IMMs' start, docs/spec.md section 3; ``immnet.stages.start``)."""
         super().__init__()
         self.model_set = ModelSet.from_config(model_set)
         self.model_set_config = self.model_set.to_config()
@@ -163,6 +167,9 @@ class IMMNet(TensorDictModuleBase):
             self.config["interval_range"] = list(interval_range)
         if cov_consistency is not None:
             self.config["cov_consistency"] = float(cov_consistency)
+        if start_detections != 2:
+            self.config["start_detections"] = int(start_detections)
+        self.start_detections = int(start_detections)
         self.gain = build_component(gain, ms, dt, settings)
         self.classify = build_component(classifier, ms, dt, settings)
         # a gain may bring the interaction, predict and update stages its experts need (filter experts keep their
@@ -202,7 +209,7 @@ class IMMNet(TensorDictModuleBase):
         """The stages a step begins and ends with: a track's start (``immnet.stages.start``) around ``stages``."""
         fuse = stages[-1]
         fused = {unravel_key(k) for s in stages for k in s.out_keys}
-        start = TrackStart(self.model_set, self.dt, stages, experts_alone=experts_alone)
+        start = TrackStart(self.model_set, self.dt, stages, experts_alone=experts_alone, detections=self.start_detections)
         fused_cov = keys.FUSED_COV in fused and keys.FUSED_COV not in start.carry_keys
         return start, JoinStarts(self.model_set, start, fuse, fused_cov)
 
@@ -301,7 +308,7 @@ class IMMNet(TensorDictModuleBase):
         ``running_step`` (the step without the start's two stages, which would change nothing).
         """
         step = self.expert_step if experts_alone else self.step
-        if not experts_alone and bool((carry.get(keys.AGE) >= 2).all()):
+        if not experts_alone and bool((carry.get(keys.AGE) >= self.start_detections).all()):
             step = self.running_step  # nothing starts: the same result without the start's two stages
         td = carry.copy()
         td.set(keys.MEASUREMENT, z)

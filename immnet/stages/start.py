@@ -55,12 +55,17 @@ class TrackStart(Stage):
 
     out_keys = [keys.STARTING, keys.START_CARRY]
 
-    def __init__(self, model_set: ModelSet, dt: float, stages, experts_alone: bool = False):
+    def __init__(self, model_set: ModelSet, dt: float, stages, experts_alone: bool = False, detections: int = 2):
         """``stages``: the stages of the step after this one, whose ``carry_spec`` and ``start_carry`` make the
-        carry (held, not registered: their weights are the network's); ``experts_alone``: the step of stage 1."""
+        carry (held, not registered: their weights are the network's); ``experts_alone``: the step of stage 1;
+        ``detections``: how many detections a start takes, 2 (the module doc's) or 1 (the first detection alone,
+        the step running from the next scan: the linear IMMs' start, docs/spec.md section 3)."""
         super().__init__(model_set)
+        if detections not in (1, 2):
+            raise ValueError(f"a track starts from 1 or 2 detections, got {detections!r}")
         self.dt = dt
         self.experts_alone = experts_alone
+        self.detections = int(detections)
         object.__setattr__(self, "_stages", tuple(stages))
         self.carry_keys = [unravel_key(k) for k in self.fresh_carry(1).keys(True, True)]  # the carry's leaves
         self.carried = [unravel_key(k) for stage in (self, *stages) for k in stage.carry_spec(1, experts_alone)]
@@ -114,7 +119,7 @@ class TrackStart(Stage):
 
     def forward(self, td):
         age = td.get(keys.AGE)
-        starting = age < 2
+        starting = age < self.detections
         td.set(keys.STARTING, starting)
         if not _compiling() and not bool(starting.any()):  # every track running: nothing starts
             return td
@@ -123,12 +128,15 @@ class TrackStart(Stage):
         carry = td.select(*self.carry_keys)
         has = measured(z).reshape(z.shape[0], -1).all(-1)
         first = self._started(carry, z, second=False, interval=interval)
-        second = self._started(carry, z, second=True, interval=interval)
+        second = self._started(carry, z, second=True, interval=interval) if self.detections == 2 else None
         start = carry.empty()
         for key in self.carry_keys:
             # a detection: the first or the second; none: the carry as it was
-            value = _where(has & (age == 1), second.get(key), carry.get(key))
+            value = carry.get(key) if second is None else _where(has & (age == 1), second.get(key), carry.get(key))
             start.set(key, _where(has & (age == 0), first.get(key), value))
+        if self.detections == 1:
+            td.set(keys.START_CARRY, start)
+            return td
         waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
         start.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, start.get(keys.START_SCANS)))
         step_time = self.dt if interval is None else interval
