@@ -447,14 +447,16 @@ def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
     torch.testing.assert_close(ours[keys.MODE_PROBS], out[keys.ROLLOUT_EXPERT_PROBS], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("method", ["imm-min", "imm-max", "imm-accurate", "imm-tuned"])
+@pytest.mark.parametrize("method", ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-imm-5s", "real-ca"])
 def test_each_linear_imm_is_immnet_with_nothing_learned(method):
-    """Issue 21, item 1, for the paper's linear IMMs and IMM-Tuned: the registry's method equals its ``network()``,
+    """Issue 21, item 1, for the paper's linear IMMs, IMM-Tuned, the real-flight IMMs and the real-flight CA Kalman
+    filter (an IMM of one model): the registry's method equals its ``network()``,
     IMMNet's step with filter experts of the method's own motion models and process noise, its ``r``, the mix
     without onset priors, a start from the first detection and the Bayesian mode update; both against the
     core's scan loop (``imm_filter(general=True)``), to FilterPy's criterion (1e-9 of the state's scale; the mode
     update's exponential makes float64 rounding of the two covariance forms, Joseph's and the standard one,
-    reach 1e-7 m where r is 1 m, as between the core's two formulations). Missed detections inside the tracks."""
+    reach 1e-7 m where r is 1 m, as between the core's two formulations). Missed detections inside the tracks;
+    the real-flight IMMs (continuous white noise, a vertical factor per model) are told each track's r."""
     import yaml
 
     from immnet.config import resolve_path
@@ -470,21 +472,27 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
     tracker = build_method(method)
     net = tracker.network()
     assert net.start_detections == 1 and not net.interact.onset and net.gain.model_noise is not None
+    told = args["r"] == "data"
+    r = data[keys.R].double() if told else float(args["r"])
     with torch.no_grad():
-        out, _ = net.rollout(z)
-    F, Q, Pi, mu0 = tracker.matrices(1.0)
-    r = float(args["r"])
+        out, _ = net.rollout(z, r=r if told else None)
+    if hasattr(tracker, "matrices"):
+        F, Q, Pi, mu0 = tracker.matrices(1.0)
+    else:  # a Kalman filter: the IMM of one model
+        F, Q = tracker.model.F(1.0)[None], tracker.model.Q(tracker.sigma_q, 1.0)[None]
+        Pi, mu0 = torch.ones(1, 1, dtype=torch.float64), torch.ones(1, dtype=torch.float64)
     x0, P0 = initial_state(z, r)
-    core, probs, _ = imm_filter(z, x0, P0, F, Q, torch.tensor(r * r, dtype=torch.float64), Pi, mu0, general=True)
+    R = r * r if told else torch.tensor(r * r, dtype=torch.float64)
+    core, probs, _ = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, general=True)
     ours = tracker.track(data)
     scale = core.abs().amax((1, 2), keepdim=True)  # each track's
     for states in (out[keys.STATE], ours[keys.STATE]):
         assert ((states - core).abs() <= 1e-9 * scale).all()
     torch.testing.assert_close(data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], net.model_set.modes),
                                data_mode_probs(probs, net.model_set.modes), rtol=0, atol=1e-6)
-    other = build_method("real-imm")  # r: data, told per track: not a setting of the filter experts
-    with pytest.raises(ValueError, match="r 'data'"):
-        other.network()
+    if told:  # without the step's input r the told filter gain says what it needs
+        with pytest.raises(ValueError, match="r='data'"):
+            net.rollout(z[:, :3])
 
 
 def test_a_trained_network_with_its_learned_parts_knocked_out_is_the_model_based_imm():

@@ -61,6 +61,11 @@ CONFIGS = {
         "gain": {"class_path": FILTERING + "FilterGain", "init_args": {
             "interaction": "imm", "onset": False, "model_noise": 0.5, "r": 5.0, "start_acc_std": 10.0}},
         "classifier": {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}},
+    "filter-linear-imm-told-r+bayes-experts": {  # the same told each track's r (the real-flight IMMs' r: data)
+        "model_set": "configs/model_sets/imm3.yaml", "p_stay": 0.9, "start_detections": 1,
+        "gain": {"class_path": FILTERING + "FilterGain", "init_args": {
+            "interaction": "imm", "onset": False, "model_noise": [0.7, 0.35, 0.7], "r": "data", "start_acc_std": 10.0}},
+        "classifier": {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}},
 }
 # (configuration, experts alone): stage 1 runs each expert alone (``IMMNet.expert_step``)
 CASES = [(name, False) for name in CONFIGS if name != "single-ca"] + [
@@ -93,10 +98,13 @@ def _scan_inputs(net: IMMNet, z: torch.Tensor, alone: bool, interval: float | No
     if alone:
         z = z.unsqueeze(1).expand(-1, net.n_experts, -1, -1)
     gaps = None if interval is None else torch.full((z.shape[0], SCANS), interval)
+    r = _told_r(net, z.shape[0])
     with torch.no_grad():
-        _, carry = net.rollout(z[..., :SCANS, :], experts_alone=alone, intervals=gaps)
+        _, carry = net.rollout(z[..., :SCANS, :], experts_alone=alone, intervals=gaps, r=r)
     td = carry.copy()
     td.set(keys.MEASUREMENT, z[..., SCANS, :])
+    if r is not None:
+        td.set(keys.R, r)
     if interval is not None:
         td.set(keys.INTERVAL, torch.full((z.shape[0],), interval))
     step = net.expert_step if alone else net.step
@@ -104,6 +112,11 @@ def _scan_inputs(net: IMMNet, z: torch.Tensor, alone: bool, interval: float | No
         yield stage, td.copy()
         with torch.no_grad():
             td = stage(td)
+
+
+def _told_r(net: IMMNet, B: int):
+    """Each track's measurement std, the step's input where a filter gain is told it (``r="data"``), else None."""
+    return torch.linspace(2.0, 6.0, B) if net.start.told_r else None
 
 
 def _leaves(td: TensorDict) -> dict:
@@ -176,9 +189,10 @@ def test_with_the_scan_interval_every_stage_writes_exactly_its_declared_keys(nam
         assert not extra, f"{what} writes {extra} with the interval, not in its out_keys {declared}"
     z = data.unsqueeze(1).expand(-1, net.n_experts, -1, -1) if alone else data
     with torch.no_grad():
-        plain = net.rollout(z, experts_alone=alone)[0][keys.STATE]
-        same = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 1.0))[0][keys.STATE]
-        other = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 2.0))[0][keys.STATE]
+        r = _told_r(net, z.shape[0])
+        plain = net.rollout(z, experts_alone=alone, r=r)[0][keys.STATE]
+        same = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 1.0), r=r)[0][keys.STATE]
+        other = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 2.0), r=r)[0][keys.STATE]
     torch.testing.assert_close(same, plain, rtol=1e-5, atol=1e-2)
     assert (other - plain).abs().max() > 1.0
 
@@ -264,14 +278,15 @@ def test_the_carry_is_what_the_stages_declare(name, alone, data):
         assert not twice, f"{type(stage).__name__} carries {twice}, declared before it"
         declared.update(spec)
     assert set(carry) == set(declared)
-    step_in = {unravel_key(k) for k in step.in_keys} - {keys.MEASUREMENT}
+    step_in = {unravel_key(k) for k in step.in_keys} - {keys.MEASUREMENT, keys.R}  # r: an input, where told
     unprimed = [k for k in step_in if not any(_owner(leaf, [k]) for leaf in carry)]
     assert not unprimed, f"the step reads {unprimed}, which no stage carries"
     step_out = [unravel_key(k) for k in step.out_keys]
     assert all(_owner(k, step_out) is not None for k in carry)
     with torch.no_grad():
-        _, after_one = net.rollout(z[..., :1, :], experts_alone=alone)
-        _, after = net.rollout(z[..., :SCANS, :], experts_alone=alone)
+        r = _told_r(net, B)
+        _, after_one = net.rollout(z[..., :1, :], experts_alone=alone, r=r)
+        _, after = net.rollout(z[..., :SCANS, :], experts_alone=alone, r=r)
     rolled = _leaves(after)
     for key, value in carry.items():
         assert rolled[key].shape == value.shape and rolled[key].dtype == value.dtype, key
@@ -279,5 +294,7 @@ def test_the_carry_is_what_the_stages_declare(name, alone, data):
     for stage in step.module:
         own = set(_leaves(TensorDict(stage.carry_spec(B, alone), batch_size=[B])))
         for second, before in ((False, net.initial_carry(B, alone)), (True, after_one)):
+            if r is not None:  # what a start reads beside the carry
+                before = before.clone(False).set(keys.R, r)
             started = _leaves(TensorDict(stage.start_carry(before, z[..., 1, :], x, second), batch_size=[B]))
             assert set(started) <= own, (type(stage).__name__, set(started) - own)

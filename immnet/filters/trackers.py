@@ -84,6 +84,18 @@ def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Te
     return intervals if fixed is None else fixed
 
 
+def _linear_network(model_set: ModelSet, sigma_q, r, p_stay: float, dt: float, dtype):
+    """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``)."""
+    from immnet.filters.imm import ACC_STD
+    from immnet.stages.network import IMMNet
+
+    gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
+        "model_noise": sigma_q, "r": r, "interaction": "imm", "onset": False, "start_acc_std": ACC_STD}}
+    bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
+    net = IMMNet(model_set=model_set, gain=gain, classifier=bayes, dt=dt, p_stay=p_stay, start_detections=1)
+    return net.to(dtype).eval()
+
+
 class KalmanFilterTracker(Method):
     """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r``."""
 
@@ -98,6 +110,10 @@ class KalmanFilterTracker(Method):
         self.name = name or f"kf-{self.model.name}"
         self.needs = (keys.R,) if self.r == TOLD else ()
         self.return_cov = return_cov
+
+    def network(self, dt: float = 1.0):
+        """This filter as IMMNet with nothing learned: the one-model case of ``IMMTracker.network`` (its docstring)."""
+        return _linear_network(ModelSet([self.model]), self.sigma_q, self.r, 0.5, dt, self.dtype)
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
@@ -176,22 +192,14 @@ class IMMTracker(Method):
         mode update, ``p_stay`` set once; an ``IMMNet`` in this method's dtype, ``eval``. It filters what
         ``track`` filters, to float64 rounding, where every track is detected at its first scan (``track`` starts a
         track whose first scans are missed at scan 0 from its first detection; the network at that detection).
-        A ValueError where this IMM is not such a configuration: ``r: data``, a full transition matrix, a
-        non-uniform ``mu0``."""
-        from immnet.filters.imm import ACC_STD
-        from immnet.stages.network import IMMNet
-
-        if self.r == TOLD:
-            raise ValueError(f"{self.name}: r 'data' (each track's own r) is not a setting of IMMNet's filter experts")
+        With ``r: data`` the filter experts are told each track's ``r`` (``FilterGain(r="data")``): give it to
+        ``rollout(..., r=batch["r"])``. A ValueError where this IMM is not such a configuration: a full transition
+        matrix, a non-uniform ``mu0``."""
         if self._p_stay is None:
             raise ValueError(f"{self.name}: a full transition matrix is not IMMNet's p_stay (one staying probability)")
         if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
-        gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
-            "model_noise": self.sigma_q, "r": self.r, "interaction": "imm", "onset": False, "start_acc_std": ACC_STD}}
-        bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
-        net = IMMNet(model_set=self.model_set, gain=gain, classifier=bayes, dt=dt, p_stay=self._p_stay, start_detections=1)
-        return net.to(self.dtype).eval()
+        return _linear_network(self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype)
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``

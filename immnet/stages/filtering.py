@@ -58,6 +58,9 @@ from immnet.stages.predict import Predict
 from immnet.stages.update import Update, innovation
 
 N_NOISE = 5  # velocity h / v, acceleration h / v, turn rate
+TOLD_R = "data"
+"""``r="data"``: the filter experts are told each track's measurement std, the step's input ``"r"`` ``[B]`` (a radar
+that knows its accuracy; the linear IMMs' ``r: data``), in place of a fixed or estimated one."""
 WHITE = (0, 1)  # the white-acceleration components, which AdaptiveNoise's scale multiplies
 
 
@@ -383,9 +386,14 @@ class _FilterExperts:
             raise ValueError(f"start_acc_std must be finite and >= 0 (or None: the CA draw's), got {start_acc_std}")
         self.start_acc_std = None if start_acc_std is None else float(start_acc_std)
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
-        if r is not None and not (math.isfinite(r) and r > 0):
-            raise ValueError(f"r must be finite and > 0 (or None: estimated per track), got {r}")
-        self.r = None if r is None else float(r)
+        if isinstance(r, str):
+            if r != TOLD_R:
+                raise ValueError(f"r must be a number > 0, {TOLD_R!r} (told per track) or None (estimated), got {r!r}")
+            self.in_keys = [*self.in_keys, keys.R]  # the step's input r [B], each track's measurement std
+        elif r is not None and not (math.isfinite(r) and r > 0):
+            raise ValueError(f"r must be finite and > 0, {TOLD_R!r} (told per track) or None (estimated per track), "
+                             f"got {r}")
+        self.r = r if r is None or isinstance(r, str) else float(r)
         self.adapt = AdaptiveNoise.from_config(adapt)
         if self.adapt is not None:  # the track's log lambda is carried
             self.in_keys = [*self.in_keys, keys.Q_SCALE]
@@ -434,9 +442,17 @@ class _FilterExperts:
         return parts * self.noise_var_std.to(like.dtype)[:, None, None]
 
     # --- the measurement noise --------------------------------------------------------------
-    def noise_var(self, total: torch.Tensor, count: torch.Tensor) -> torch.Tensor:
+    def noise_var(self, total: torch.Tensor, count: torch.Tensor, td=None) -> torch.Tensor:
         """``r^2`` per track: the running mean ``(k0 r0^2 + total) / (k0 + count)`` of the third-difference
-        samples, or the fixed ``r^2`` where ``r`` was given."""
+        samples, the fixed ``r^2`` where ``r`` was given, or the square of the step's input ``r`` (``td``'s ``"r"``
+        ``[B]``) where ``r`` is told per track (``"data"``)."""
+        if self.r == TOLD_R:
+            told = td.get(keys.R, None) if td is not None else None
+            if told is None:
+                raise ValueError("this filter gain is told each track's measurement std (r='data'): give the step its "
+                                 "input 'r' [B] (IMMNet.rollout(..., r=...), IMMNet.scan(..., r=...))")
+            told = told.to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
+            return (told * told).expand_as(total)
         if self.r is not None:
             return torch.full_like(total, self.r**2)
         return (self.k0 * self.r0**2 + total) / (self.k0 + count)
@@ -469,7 +485,7 @@ class _FilterExperts:
         td.set(keys.NOISE_SUM, total)
         td.set(keys.NOISE_COUNT, count)
         td.set(keys.Z_HISTORY, torch.cat([z.unsqueeze(-2), hist[..., :2, :]], -2))
-        r2 = self.noise_var(total, count)
+        r2 = self.noise_var(total, count, td)
         td.set(keys.NOISE_VAR, r2)
         return r2
 
@@ -487,7 +503,7 @@ class _FilterExperts:
         M = self.n_experts
         B = shape[0]
         adapt = {} if self.adapt is None else {keys.Q_SCALE: torch.zeros(shape, dtype=dtype, device=device)}
-        r2 = (self.r if self.r is not None else self.r0) ** 2
+        r2 = (self.r if isinstance(self.r, float) else self.r0) ** 2
         return adapt | {
             keys.EXPERT_POST: torch.zeros(B, M, 9, dtype=dtype, device=device),
             keys.EXPERT_RATE: self.rate_nominal.to(dtype).expand(B, M).clone(),
@@ -532,7 +548,7 @@ class _FilterExperts:
         gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
         gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
         gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
-        r2_track = self.noise_var(carry.get(keys.NOISE_SUM), carry.get(keys.NOISE_COUNT))
+        r2_track = self.noise_var(carry.get(keys.NOISE_SUM), carry.get(keys.NOISE_COUNT), carry)
         r2 = per_expert(r2_track, M, event_dims=0)
         adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
         return adapt | {
@@ -621,7 +637,7 @@ class FilterGain(_FilterExperts, Stage):
         p_stay: float = 0.995,
         guard: bool | dict | None = None,
         adapt: bool | dict | None = None,
-        r: float | None = None,
+        r: float | str | None = None,
         spec: DataSpec | dict | None = None,
         onset: bool = True,
         model_noise: float | list[float] | None = None,

@@ -69,7 +69,9 @@ class TrackStart(Stage):
         object.__setattr__(self, "_stages", tuple(stages))
         self.carry_keys = [unravel_key(k) for k in self.fresh_carry(1).keys(True, True)]  # the carry's leaves
         self.carried = [unravel_key(k) for stage in (self, *stages) for k in stage.carry_spec(1, experts_alone)]
-        self.in_keys = [keys.MEASUREMENT, *self.carried]  # the keys as the stages declare them (a nested one whole)
+        # each track's measurement std, where a stage is told it (a filter gain's r 'data'): its start reads it too
+        self.told_r = any(unravel_key(k) == keys.R for stage in stages for k in stage.in_keys)
+        self.in_keys = [keys.MEASUREMENT, *self.carried, *([keys.R] if self.told_r else [])]  # a nested key whole
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The track-start counts, zero before a track's first detection."""
@@ -127,6 +129,12 @@ class TrackStart(Stage):
         interval = td.get(keys.INTERVAL, None)
         carry = td.select(*self.carry_keys)
         has = measured(z).reshape(z.shape[0], -1).all(-1)
+        if self.told_r:  # what a start reads beside the carry: the told measurement std
+            told = td.get(keys.R, None)
+            if told is None:
+                raise ValueError("this step's filter gain is told each track's measurement std (r='data'): give the "
+                                 "step its input 'r' [B] (IMMNet.rollout(..., r=...), IMMNet.scan(..., r=...))")
+            carry.set(keys.R, told)
         first = self._started(carry, z, second=False, interval=interval)
         second = self._started(carry, z, second=True, interval=interval) if self.detections == 2 else None
         start = carry.empty()
