@@ -250,7 +250,7 @@ def test_quickstart_flights_split_by_flight(tmp_path):
 def test_cli_on_a_synthetic_file(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(immnet.cli, "_COMMAND_MODULES", ("immnet.data.cli",))
     sample = _write(tmp_path / "s.json.gz", _records(n_aircraft=4, n=300))
-    out = tmp_path / "real"
+    out = tmp_path / "runs" / "real" / "data"  # parents that do not exist yet are made
     args = ["data", "adsb", "--samples", sample, "--out", str(out), "--T", "60", "--splits", "0.5,0.25,0.25",
             "--r", "2,3", "--site", "48.9,2.45,0", "--max-range", "60000", "--seed", "1", "--quiet"]
     assert immnet.cli.main(args) == 0

@@ -309,6 +309,7 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
         "params": spec.to_dict(), "counts": counts, "counts_per_sample": {s["name"]: s["counts"] for s in sources},
         "flights": members,
     }
+    out.parent.mkdir(parents=True, exist_ok=True)  # a new directory's parents, as every other writer makes them
     with publishing(out) as tmp:
         tmp.mkdir()
         for split in SPLITS:
