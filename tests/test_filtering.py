@@ -493,6 +493,16 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
     if told:  # without the step's input r the told filter gain says what it needs
         with pytest.raises(ValueError, match="r='data'"):
             net.rollout(z[:, :3])
+        # as a method of immnet evaluate (Tracker.track), told the data's r as the filter is
+        from immnet.tracking.methods import IMMNetMethod
+        from immnet.tracking.tracker import Tracker
+
+        method = IMMNetMethod.from_tracker(Tracker(net.float()))
+        assert keys.R in method.needs
+        got = method.track(data)[keys.STATE]
+        with torch.no_grad():
+            ref, _ = net.rollout(z.float(), r=r.float())
+        torch.testing.assert_close(got, ref[keys.STATE].double(), rtol=0, atol=0)
 
 
 def test_a_trained_network_with_its_learned_parts_knocked_out_is_the_model_based_imm():
@@ -605,3 +615,58 @@ def test_the_filter_experts_step_traces_as_one_graph_and_gives_the_eager_outputs
         eager = net.step(td.copy())
     for key in eager.keys(True, True):
         torch.testing.assert_close(traced.get(key), eager.get(key), rtol=1e-6, atol=1e-6, msg=str(key))
+
+
+def test_a_network_told_each_tracks_r_trains_and_validates_with_the_datas_r():
+    """``FilterGain(r="data")`` / ``KalmanNetFilterGain(r="data")``: stage 2 trains and validates with the batch's
+    ``r`` as the step's input (``IMMNet.told_r``); another ``r`` in the data gives another loss."""
+    cfg = {"model_set": "configs/model_sets/imm3.yaml", "p_stay": 0.9,
+           "gain": {"class_path": "immnet.stages.filtering.KalmanNetFilterGain", "init_args": {
+               "interaction": "imm", "onset": False, "model_noise": 0.5, "r": "data"}},
+           "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier"}}
+    torch.manual_seed(0)
+    module = Stage2Module(net=cfg, tbptt=10)
+    module.log = lambda *a, **k: None
+    td = generate(4, seed=2, spec=DataSpec(T=20, min_segment=6))
+    td = td.apply(lambda v: v.float() if v.is_floating_point() else v)
+    with torch.no_grad():
+        loss = module.losses(module.net.rollout(td[keys.MEASUREMENTS], r=module.net.told_r(td))[0], td)[0]
+        other = td.clone()
+        other[keys.R] = other[keys.R] * 3.0
+        moved = module.losses(module.net.rollout(td[keys.MEASUREMENTS], r=module.net.told_r(other))[0], td)[0]
+    assert torch.isfinite(loss) and not torch.isclose(loss, moved)
+    opt = torch.optim.Adam(module.trainable_parameters(), 1e-4)
+    module.optimizers = lambda: opt
+    module.manual_backward = lambda value: value.backward()
+    module.training_step(td, 0)  # the step's input r from the batch, through every TBPTT chunk
+    module._evaluate(td, "val")
+    with pytest.raises(ValueError, match="holds no 'r'"):
+        module.net.told_r(td.exclude(keys.R))
+
+
+def test_init_parameters_takes_another_networks_weights_and_keeps_the_configured_base():
+    """``Stage2Module(init_parameters=...)`` (``recipes/real-imm-base.yaml``): the learned parameters of the shipped
+    real-flight network, the buffers (the models' noise, the chain) as ``net`` builds them; a network whose
+    parameters the file does not hold (three experts against four) is refused by name."""
+    import copy
+
+    import yaml
+
+    from immnet.checkpoints import shipped
+    from immnet.config import resolve_path
+    from immnet.tracking.tracker import read_checkpoint
+
+    net = yaml.safe_load(resolve_path("recipes/real-imm-base.yaml").read_text())["model"]["init_args"]["net"]
+    module = Stage2Module(net=net, init_parameters=str(shipped("real")))
+    _, weights = read_checkpoint(shipped("real"))
+    for name, p in module.net.named_parameters():
+        assert torch.equal(p, weights[name].to(p.dtype)), name
+    fresh = IMMNet(**net["init_args"])
+    for name, b in fresh.state_dict().items():
+        if name not in dict(fresh.named_parameters()):
+            assert torch.equal(module.net.state_dict()[name], b), name  # the configured base, not the file's
+    assert not torch.equal(module.net.gain.Q_parts, weights["gain.Q_parts"].to(module.net.gain.Q_parts.dtype))
+    three = copy.deepcopy(net["init_args"])
+    three["model_set"], three["gain"]["init_args"]["model_noise"] = "configs/model_sets/imm3.yaml", 0.5
+    with pytest.raises(ValueError, match="does not hold this IMMNet's parameters"):
+        Stage2Module(net={"class_path": "immnet.stages.IMMNet", "init_args": three}, init_parameters=str(shipped("real")))

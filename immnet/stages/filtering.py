@@ -670,7 +670,8 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     slope lets the network reach without large weights); ``gain_scale`` bounds the learned
     correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
     measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by
-    default). Beside F1..F4, GRU_S reads the innovation whitened by the base noise's ``S`` (times the
+    default). ``onset``, ``model_noise``, ``start_acc_std``: as ``FilterGain``'s (with ``model_noise`` the network
+    scales the motion models' own ``Q``, the first component, and the others are zero). Beside F1..F4, GRU_S reads the innovation whitened by the base noise's ``S`` (times the
     adaptive scale, where on) (``nu / sqrt(diag S)``, a maneuver detector's statistic).
     """
 
@@ -700,9 +701,12 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         p_stay: float = 0.995,
         guard: bool | dict | None = None,
         adapt: bool | dict | None = None,
-        r: float | None = None,
+        r: float | str | None = None,
         spec: DataSpec | dict | None = None,
         interval_input: bool = False,
+        onset: bool = True,
+        model_noise: float | list[float] | None = None,
+        start_acc_std: float | None = None,
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
@@ -718,7 +722,8 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
         del self.K_ss  # the base gain is the filter's own
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec)
+        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
+                          onset, model_noise, start_acc_std)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def forward(self, td):

@@ -234,6 +234,16 @@ class IMMNet(TensorDictModuleBase):
             return None
         return intervals.to(z.dtype)
 
+    def told_r(self, batch: TensorDict) -> torch.Tensor | None:
+        """Each track's measurement std ``r [B]`` of ``batch`` where this network's filter experts are told it
+        (``FilterGain(r="data")``: the step's input ``"r"``), else None; a ValueError where the batch has none."""
+        if not self.start.told_r:
+            return None
+        if keys.R not in batch.keys():
+            raise ValueError("this IMMNet's filter experts are told each track's measurement std (r='data'); the data "
+                             "holds no 'r'")
+        return batch[keys.R].to(batch[keys.MEASUREMENTS].dtype).reshape(-1)
+
     LEARNED_PARTS = ("gain", "classifier")
 
     def knock_out(self, *parts: str) -> "IMMNet":

@@ -40,6 +40,7 @@ class IMMNetMethod(_LearnedMethod):
         self.name = name
         self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt).knock_out(*knock_out))
         self.net = self.tracker.net
+        self.needs = (keys.R,) if self.net.start.told_r else ()  # a network told each track's r reads the data's
         self.batch_size = batch_size
         if return_cov and not self.net.has_cov:
             raise ValueError(f"{name}: {self.net.no_cov_reason()}")
@@ -50,6 +51,7 @@ class IMMNetMethod(_LearnedMethod):
         """The method of a loaded ``Tracker`` (its network as loaded: guard, adaptation, gate)."""
         self = cls.__new__(cls)
         self.name, self.tracker, self.net, self.batch_size = name, tracker, tracker.net, batch_size
+        self.needs = (keys.R,) if self.net.start.told_r else ()
         if return_cov and not self.net.has_cov:
             raise ValueError(f"{name}: {self.net.no_cov_reason()}")
         self.return_cov = return_cov
@@ -58,7 +60,7 @@ class IMMNetMethod(_LearnedMethod):
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)  # every interval the one it was trained at, or inside its interval_range
         out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size, self.net.intervals_for(batch),
-                                 return_cov=self.return_cov)
+                                 return_cov=self.return_cov, r=self.net.told_r(batch))
         names = (keys.STATE, keys.MODE_PROBS, keys.STATE_COV) if self.return_cov else (keys.STATE, keys.MODE_PROBS)
         return TensorDict({k: out[k].double() for k in names}, batch_size=batch.batch_size)
 

@@ -193,13 +193,14 @@ class Tracker:
 
     @torch.no_grad()
     def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
-              return_cov: bool = False) -> TensorDict:
+              return_cov: bool = False, r: torch.Tensor | None = None) -> TensorDict:
         """Whole sequences ``[B, T, 3]`` -> ``state [B, T, 9]``, ``mode_probs [B, T, 4]``, ``expert_probs``,
         ``expert_post``, ``mode_logits`` and, with ``return_cov``, ``state_cov [B, T, 9, 9]`` (the fused
         covariance; a ValueError saying why where the experts carry none, ``net.has_cov``), NaN before each
         track's first detection; ``n_gated`` counts the measurements gated in this call (module doc).
         ``intervals [B, T]``: the interval before each scan (``immnet.data.times.scan_intervals``; None: the
-        network's ``dt``)."""
+        network's ``dt``). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
+        (``FilterGain(r="data")``)."""
         z = torch.as_tensor(measurements, dtype=torch.float32)
         if z.dim() != 3 or z.shape[-1] != 3:
             raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
@@ -209,7 +210,8 @@ class Tracker:
         outs = []
         for i in range(0, z.shape[0], batch_size):
             gaps = None if intervals is None else torch.as_tensor(intervals[i : i + batch_size], dtype=z.dtype)
-            out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov)
+            told = None if r is None else torch.as_tensor(r, dtype=z.dtype).reshape(-1)[i : i + batch_size]
+            out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov, r=told)
             out.set(keys.MODE_PROBS, self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
             waiting = before_first_detection(z[i : i + batch_size])
             outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))

@@ -223,6 +223,10 @@ class Stage2Module(_TrackerModule):
     such as the shipped ones): fine-tuning. Settings that only shape the computation (the interaction's
     ``p_stay``, the guard) come from ``net``, so a fine-tune can change them; one the checkpoint stores
     as a buffer (the classifier's ``p_stay``) must match it.
+
+    ``init_parameters`` starts from the learned parameters alone of a trained IMMNet (each of the same name and
+    shape), every buffer as ``net`` builds it: a network with other models, noise or chain (the filter experts'
+    base) that keeps another network's KalmanNet and Transformer weights, e.g. ``recipes/real-imm-base.yaml``.
     """
 
     def __init__(
@@ -230,6 +234,7 @@ class Stage2Module(_TrackerModule):
         net: IMMNet | None = None,
         stage1_checkpoint: str | None = None,
         init_checkpoint: str | None = None,
+        init_parameters: str | None = None,
         lr: float = 1e-3,
         gamma: float = 0.7,
         expert_weight: float = 0.0,
@@ -240,12 +245,32 @@ class Stage2Module(_TrackerModule):
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         if not (math.isfinite(expert_weight) and expert_weight >= 0.0):
             raise ValueError(f"expert_weight must be finite and >= 0, got {expert_weight}")
-        if stage1_checkpoint and init_checkpoint:
-            raise ValueError("give stage1_checkpoint (the experts) or init_checkpoint (the whole IMMNet), not both")
+        given = [n for n, v in (("stage1_checkpoint", stage1_checkpoint), ("init_checkpoint", init_checkpoint),
+                                ("init_parameters", init_parameters)) if v]
+        if len(given) > 1:
+            raise ValueError(f"give one of stage1_checkpoint (the experts), init_checkpoint (the whole IMMNet) or "
+                             f"init_parameters (its learned parameters), not {' and '.join(given)}")
         if stage1_checkpoint:
             self.load_experts(stage1_checkpoint)
         if init_checkpoint:
             self.load_net(init_checkpoint)
+        if init_parameters:
+            self.load_parameters(init_parameters)
+
+    def load_parameters(self, path: str):
+        """Start from the learned parameters of a trained IMMNet: every parameter of this network from the
+        checkpoint's of the same name and shape (a ValueError naming those it lacks or shapes otherwise); the
+        buffers stay as ``net`` builds them (the models, the noise, the chain)."""
+        _, net = read_checkpoint(path)
+        own = dict(self.net.named_parameters())
+        missing = sorted(n for n in own if n not in net)
+        shaped = sorted(n for n in own if n in net and tuple(net[n].shape) != tuple(own[n].shape))
+        if missing or shaped:
+            raise ValueError(f"{path} does not hold this IMMNet's parameters: missing {missing[:3]}, other shapes "
+                             f"{shaped[:3]}")
+        with torch.no_grad():
+            for name, p in own.items():
+                p.copy_(net[name].to(p.dtype))
 
     def load_net(self, path: str):
         """Start from every weight of a trained IMMNet (same model set and architecture). A checkpoint trained
@@ -295,8 +320,10 @@ class Stage2Module(_TrackerModule):
         z = batch[keys.MEASUREMENTS]
         intervals = self.net.intervals_for(batch)  # None at the network's own dt
         carry, tot = None, torch.zeros(4)
+        told = self.net.told_r(batch)  # each track's r, where the filter experts are told it
         for s, e in self.chunks(z.shape[1]):
-            out, carry = self.net.rollout(z[:, s:e], carry, intervals=None if intervals is None else intervals[:, s:e])
+            out, carry = self.net.rollout(z[:, s:e], carry, intervals=None if intervals is None else intervals[:, s:e],
+                                          r=told)
             parts = self.losses(out, batch, s, e)
             self._optimize(parts[0])
             carry = carry.detach()
@@ -340,7 +367,8 @@ class Stage2Module(_TrackerModule):
         self.logger.log_image(key=f"{prefix}/confusion", images=[str(path)], step=self.global_step)
 
     def _evaluate(self, batch, prefix):
-        out, _ = self.net.rollout(batch[keys.MEASUREMENTS], intervals=self.net.intervals_for(batch))
+        out, _ = self.net.rollout(batch[keys.MEASUREMENTS], intervals=self.net.intervals_for(batch),
+                                  r=self.net.told_r(batch))
         loss, mse, ce, own = self.losses(out, batch)
         B = batch.batch_size[0]
         self.log(f"{prefix}/loss", loss, prog_bar=True, batch_size=B, sync_dist=True)
