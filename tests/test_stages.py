@@ -291,7 +291,7 @@ def test_stage_2_fine_tunes_from_a_whole_immnet(tmp_path):
     assert td.get(keys.MODE_TRANSITION).shape == (3, 4, 4) and module.net.classify.reads_transition
     with pytest.raises(ValueError, match="does not match this IMMNet"):
         Stage2Module(net={"model_set": "configs/model_sets/imm4.yaml"}, init_checkpoint=str(path))
-    with pytest.raises(ValueError, match="not both"):
+    with pytest.raises(ValueError, match="give one of .*not stage1_checkpoint and init_checkpoint"):
         Stage2Module(net=raw["hyper_parameters"]["net"], init_checkpoint=str(path), stage1_checkpoint=str(path))
 
 
