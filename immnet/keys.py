@@ -79,5 +79,5 @@ PREV_INTERVAL = ("memory", "interval")  # the previous scan's interval [B] (s)
 AGE = ("memory", "age")  # scans since the track started, capped at 2 [B]
 START_SCANS = ("memory", "start_scans")  # scans since a starting track's first detection [B]
 START_TIME = ("memory", "start_time")  # the time since a starting track's first detection [B] (s)
-STARTING = ("start", "tracks")  # the tracks that start at this scan (age < 2) [B] bool (immnet.stages.start)
+STARTING = ("start", "tracks")  # the tracks that start at this scan (age below the start's detections) [B] bool (immnet.stages.start)
 START_CARRY = ("start", "carry")  # what each starting track carries after this scan, a TensorDict [B] like the carry

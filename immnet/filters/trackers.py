@@ -113,6 +113,7 @@ class KalmanFilterTracker(Method):
 
     def network(self, dt: float = 1.0):
         """This filter as IMMNet with nothing learned: the one-model case of ``IMMTracker.network`` (its docstring)."""
+        # one model: Pi = [[1]] whatever p_stay (which the interaction holds to (0, 1))
         return _linear_network(ModelSet([self.model]), self.sigma_q, self.r, 0.5, dt, self.dtype)
 
     def track(self, batch: TensorDict) -> TensorDict:

@@ -146,6 +146,21 @@ def per_expert(x: torch.Tensor, n_experts: int, event_dims: int = 1) -> torch.Te
     return x
 
 
+def track_where(cond: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``where(cond, a, b)`` with a track mask ``cond [B]`` broadcast over ``b``'s other dimensions, in ``b``'s dtype."""
+    return torch.where(cond.view(-1, *([1] * (b.dim() - 1))), a.to(b.dtype), b)
+
+
+def told_r(td) -> torch.Tensor:
+    """The step's input ``"r"`` ``[B]``, each track's measurement std, for stages told it (a filter gain's
+    ``r="data"``); a ValueError saying what to give where the step has none."""
+    r = None if td is None else td.get(keys.R, None)
+    if r is None:
+        raise ValueError("this step's filter gain is told each track's measurement std (r='data'): give the step its "
+                         "input 'r' [B] (IMMNet.rollout(..., r=...), IMMNet.scan(..., r=...))")
+    return r
+
+
 def measured(z: torch.Tensor) -> torch.Tensor:
     """Mask of rows holding a measurement (no NaN component), shape ``z.shape[:-1] + (1,)``."""
     return ~torch.isnan(z).any(dim=-1, keepdim=True)

@@ -50,7 +50,7 @@ from immnet.imm.kalman import inv3, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries, ct_propagate, noise_gain,
 )
-from immnet.stages.base import Stage, measured, per_expert, scan_interval
+from immnet.stages.base import Stage, measured, per_expert, scan_interval, told_r
 from immnet.stages.features import slog
 from immnet.stages.gain import KalmanNetGain
 from immnet.stages.layers import StackedLinear
@@ -447,11 +447,7 @@ class _FilterExperts:
         samples, the fixed ``r^2`` where ``r`` was given, or the square of the step's input ``r`` (``td``'s ``"r"``
         ``[B]``) where ``r`` is told per track (``"data"``)."""
         if self.r == TOLD_R:
-            told = td.get(keys.R, None) if td is not None else None
-            if told is None:
-                raise ValueError("this filter gain is told each track's measurement std (r='data'): give the step its "
-                                 "input 'r' [B] (IMMNet.rollout(..., r=...), IMMNet.scan(..., r=...))")
-            told = told.to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
+            told = told_r(td).to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
             return (told * told).expand_as(total)
         if self.r is not None:
             return torch.full_like(total, self.r**2)

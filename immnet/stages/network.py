@@ -30,7 +30,7 @@ from immnet import keys
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
 from immnet.motion import ModelSet
-from immnet.stages.base import Stage
+from immnet.stages.base import Stage, track_where
 from immnet.stages.fuse import Fuse
 from immnet.stages.predict import Predict
 from immnet.stages.start import JoinStarts, TrackStart
@@ -85,12 +85,10 @@ def build_component(component, model_set: ModelSet, dt: float, settings: dict) -
 
 
 def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:
-    """Leafwise ``where(cond, a, b)`` with a batch mask ``cond [B]`` broadcast over each leaf."""
+    """Leafwise ``where(cond, a, b)`` with a batch mask ``cond [B]`` broadcast over each leaf (``track_where``)."""
     out = b.empty()
     for key in b.keys(True, True):
-        x, y = a.get(key), b.get(key)
-        c = cond.view(-1, *([1] * (y.dim() - 1)))
-        out.set(key, torch.where(c, x.to(y.dtype), y))
+        out.set(key, track_where(cond, a.get(key), b.get(key)))
     return out
 
 
@@ -208,9 +206,9 @@ class IMMNet(TensorDictModuleBase):
     def _starts(self, stages, experts_alone: bool) -> tuple[TrackStart, JoinStarts]:
         """The stages a step begins and ends with: a track's start (``immnet.stages.start``) around ``stages``."""
         fuse = stages[-1]
-        fused = {unravel_key(k) for s in stages for k in s.out_keys}
+        written = {unravel_key(k) for s in stages for k in s.out_keys}
         start = TrackStart(self.model_set, self.dt, stages, experts_alone=experts_alone, detections=self.start_detections)
-        fused_cov = keys.FUSED_COV in fused and keys.FUSED_COV not in start.carry_keys
+        fused_cov = keys.FUSED_COV in written and keys.FUSED_COV not in start.carry_keys
         return start, JoinStarts(self.model_set, start, fuse, fused_cov)
 
     def _apply(self, fn, *args, **kwargs):

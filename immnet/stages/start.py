@@ -35,15 +35,10 @@ from tensordict.utils import unravel_key
 
 from immnet import keys
 from immnet.motion import POS, VEL, ModelSet
-from immnet.stages.base import Stage, measured
+from immnet.stages.base import Stage, measured, told_r, track_where
 
 COUNTS = (keys.AGE, keys.START_SCANS, keys.START_TIME)
 """The track-start counts ``TrackStart`` carries."""
-
-
-def _where(cond: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``where(cond, a, b)`` with a track mask ``cond [B]`` broadcast over ``b``'s other dimensions, in ``b``'s dtype."""
-    return torch.where(cond.view(-1, *([1] * (b.dim() - 1))), a.to(b.dtype), b)
 
 
 def _compiling() -> bool:
@@ -130,18 +125,14 @@ class TrackStart(Stage):
         carry = td.select(*self.carry_keys)
         has = measured(z).reshape(z.shape[0], -1).all(-1)
         if self.told_r:  # what a start reads beside the carry: the told measurement std
-            told = td.get(keys.R, None)
-            if told is None:
-                raise ValueError("this step's filter gain is told each track's measurement std (r='data'): give the "
-                                 "step its input 'r' [B] (IMMNet.rollout(..., r=...), IMMNet.scan(..., r=...))")
-            carry.set(keys.R, told)
+            carry.set(keys.R, told_r(td))
         first = self._started(carry, z, second=False, interval=interval)
         second = self._started(carry, z, second=True, interval=interval) if self.detections == 2 else None
         start = carry.empty()
         for key in self.carry_keys:
             # a detection: the first or the second; none: the carry as it was
-            value = carry.get(key) if second is None else _where(has & (age == 1), second.get(key), carry.get(key))
-            start.set(key, _where(has & (age == 0), first.get(key), value))
+            value = carry.get(key) if second is None else track_where(has & (age == 1), second.get(key), carry.get(key))
+            start.set(key, track_where(has & (age == 0), first.get(key), value))
         if self.detections == 1:
             td.set(keys.START_CARRY, start)
             return td
@@ -176,22 +167,21 @@ class JoinStarts(Stage):
     def forward(self, td):
         starting = td.pop(keys.STARTING)
         start = td.pop(keys.START_CARRY, None)
-        for key in (keys.STARTING, keys.START_CARRY):  # an emptied parent ("start") goes too
-            parent = unravel_key(key[:-1])
-            if parent in td.keys(True) and not list(td.get(parent).keys()):
-                td.del_(parent)
+        parent = unravel_key(keys.STARTING[:-1])  # ("start", ...): emptied, it goes too
+        if parent in td.keys() and not list(td.get(parent).keys()):
+            td.del_(parent)
         if start is None:  # nothing starts (TrackStart wrote no start carry)
             return td
         for key in self.carry_keys:
-            td.set(key, _where(starting, start.get(key), td.get(key)))
+            td.set(key, track_where(starting, start.get(key), td.get(key)))
         if self.probs:  # a starting track's modes are uniform
             probs = td.get(keys.EXPERT_PROBS)
-            td.set(keys.EXPERT_PROBS, _where(starting, torch.full_like(probs, 1.0 / self.n_experts), probs))
+            td.set(keys.EXPERT_PROBS, track_where(starting, torch.full_like(probs, 1.0 / self.n_experts), probs))
         # a starting track has no expert estimates of its own yet: each expert's is the start estimate
         # (the step ran on its carry before the start, so its posteriors there mean nothing)
         fused = td.get(keys.FUSED)
         post = td.get(keys.EXPERT_POST)
-        td.set(keys.EXPERT_POST, _where(starting, fused if fused.dim() == 3 else fused.unsqueeze(1).expand_as(post), post))
+        td.set(keys.EXPERT_POST, track_where(starting, fused if fused.dim() == 3 else fused.unsqueeze(1).expand_as(post), post))
         if self.fused_cov:  # fused from the experts' start covariances, not carried
-            td.set(keys.FUSED_COV, _where(starting, self._fuse.covariance(td, fused), td.get(keys.FUSED_COV)))
+            td.set(keys.FUSED_COV, track_where(starting, self._fuse.covariance(td, fused), td.get(keys.FUSED_COV)))
         return td
