@@ -505,6 +505,60 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
         torch.testing.assert_close(got, ref[keys.STATE].double(), rtol=0, atol=0)
 
 
+def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
+    """Issue 21, item 1, for the decoupled IMM (``real-imm-axis``: one IMM per axis over CV and CA, each track's r
+    told): its ``network()``, IMMNet's step with modes per axis (``per_axis``: mode probabilities ``[B, 3, M]``, each
+    axis's mix, likelihood and mode update, the fusion per axis) over 9-D filter experts, filters what the method
+    filters (the core's ``run`` over ``3 B`` one-coordinate tracks) to FilterPy's criterion (1e-9 of the state's
+    scale), its modes per axis and its covariance (the axes' blocks, 0 across) too, at 1 s and at irregular 4.5-5.5 s
+    scans. A model set with a turn, a range guard or a classifier without modes per axis is refused."""
+    from immnet.evaluation.methods import build_method
+    from immnet.stages.network import IMMNet
+
+    data = generate(12, seed=8, spec=DataSpec(T=150, min_segment=40))
+    data[keys.MEASUREMENTS][3, 40:45] = float("nan")
+    data[keys.MEASUREMENTS][5, 1] = float("nan")  # a missed detection right after the start
+    gen = torch.Generator().manual_seed(3)
+    t = torch.cat([torch.zeros(12, 1), (4.5 + torch.rand(12, 149, generator=gen)).cumsum(1)], 1).double()
+    slow = data.clone()
+    slow[keys.TIME] = t
+    tracker = build_method("real-imm-axis")
+    tracker.return_cov = True
+    net = tracker.network()
+    assert net.per_axis and net.start_detections == 1 and not net.interact.onset
+    r = data[keys.R].double()
+    outs = []
+    for batch in (data, slow):
+        z = batch[keys.MEASUREMENTS].double()
+        intervals = net.intervals_for(batch)
+        assert (intervals is None) == (batch is data)
+        with torch.no_grad():
+            out, _ = net.rollout(z, r=r, intervals=None if intervals is None else intervals.double(), return_cov=True)
+        ref = tracker.track(batch)
+        scale = ref[keys.STATE].abs().amax((1, 2), keepdim=True)
+        assert ((out[keys.STATE] - ref[keys.STATE]).abs() <= 1e-9 * scale).all()
+        assert out[keys.ROLLOUT_EXPERT_PROBS].shape == ref[keys.EXPERT_PROBS].shape == (12, 150, 3, 2)
+        torch.testing.assert_close(out[keys.ROLLOUT_EXPERT_PROBS], ref[keys.EXPERT_PROBS], rtol=0, atol=1e-6)
+        cov = out[keys.STATE_COV]
+        torch.testing.assert_close(cov, ref[keys.STATE_COV], rtol=1e-6, atol=1e-9)
+        assert (cov[..., 0:3, 3:9] == 0).all() and (cov[..., 3:6, 6:9] == 0).all()
+        outs.append(out)
+    # one mode for the whole state is another tracker: the axes' modes are what the configuration changes
+    joint = IMMNet(model_set=net.model_set_config["models"], gain=net.config["gain"], classifier=net.config["classifier"],
+                   p_stay=0.98, start_detections=1).double()
+    with torch.no_grad():
+        other, _ = joint.rollout(data[keys.MEASUREMENTS].double(), r=r)
+    assert (other[keys.STATE] - outs[0][keys.STATE]).abs().amax() > 1e-3
+    gain, bayes = net.config["gain"], net.config["classifier"]
+    with pytest.raises(ValueError, match="couple"):
+        IMMNet(model_set="configs/model_sets/imm4.yaml", gain=gain, classifier=bayes, per_axis=True)
+    with pytest.raises(ValueError, match="guard"):
+        IMMNet(model_set=net.model_set_config["models"], gain=gain, classifier=bayes, per_axis=True, guard=True)
+    with pytest.raises(ValueError, match="the gain immnet.stages.KalmanNetGain has none"):  # the paper's: no likelihood
+        IMMNet(model_set=net.model_set_config["models"], gain={"class_path": "immnet.stages.KalmanNetGain"},
+               classifier=bayes, per_axis=True)
+
+
 def test_a_trained_network_with_its_learned_parts_knocked_out_is_the_model_based_imm():
     """``IMMNet.knock_out`` (the real-flight ablations, docs/real.md): the shipped network with KalmanNet's and the
     Transformer's corrections set to zero is IMMNet with nothing learned, the filter experts at the gain's base noise

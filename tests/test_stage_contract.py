@@ -66,6 +66,12 @@ CONFIGS = {
         "gain": {"class_path": FILTERING + "FilterGain", "init_args": {
             "interaction": "imm", "onset": False, "model_noise": [0.7, 0.35, 0.7], "r": "data", "start_acc_std": 10.0}},
         "classifier": {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}},
+    "kalmannet-filter-per-axis-told-r+bayes-transformer": {  # modes per axis over CV and CA (the decoupled IMM's)
+        "model_set": [{"class_path": "immnet.motion.ConstantVelocity"}, {"class_path": "immnet.motion.ConstantAcceleration"}],
+        "p_stay": 0.98, "per_axis": True,
+        "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {
+            "interaction": "imm", "onset": False, "model_noise": [0.4, 0.35], "r": "data", "start_acc_std": 10.0}},
+        "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier"}},
 }
 # (configuration, experts alone): stage 1 runs each expert alone (``IMMNet.expert_step``)
 CASES = [(name, False) for name in CONFIGS if name != "single-ca"] + [

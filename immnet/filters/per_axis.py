@@ -23,10 +23,10 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, output
 from immnet.filters.imm import initial_state
-from immnet.filters.trackers import _interval_or_intervals, assumed_r, filter_settings, variance
+from immnet.filters.trackers import _interval_or_intervals, _linear_network, assumed_r, filter_settings, variance
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
-from immnet.motion import ModelSet
+from immnet.motion import ModelSet, axis_separable
 
 AXES = 3
 
@@ -39,14 +39,6 @@ def axis_blocks(A: torch.Tensor) -> torch.Tensor:
     if A.dim() >= 2 and A.shape[-2] == 9:
         return torch.stack([A[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] for a in range(AXES)])
     return torch.stack([A[..., 3 * a : 3 * a + 3] for a in range(AXES)])
-
-
-def _coupled(F: torch.Tensor) -> bool:
-    """Whether ``F [..., 9, 9]`` has an entry outside its per-axis blocks."""
-    mask = torch.ones(9, 9, dtype=torch.bool)
-    for a in range(AXES):
-        mask[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = False
-    return bool((F[..., mask] != 0).any())
 
 
 class PerAxisIMMTracker(Method):
@@ -64,14 +56,24 @@ class PerAxisIMMTracker(Method):
                  dtype="float64", name: str = "imm-axis", return_cov: bool = False):
         self.model_set = ModelSet.from_config(model_set)
         M = len(self.model_set)
-        moving = [m.name for m in self.model_set if m.state_dependent or _coupled(m.F(1.0))]
+        moving = [m.name for m in self.model_set if m.state_dependent or not axis_separable(m.F(1.0))]
         if moving:
             raise ValueError(f"a per-axis IMM needs models whose F is block diagonal per axis; {moving} couple the axes")
         self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)
         self.Pi = transition_matrix(p_stay, M)
+        self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
         self.dtype = as_dtype(dtype)
         self.name = name
         self.return_cov = return_cov
+
+    def network(self, dt: float = 1.0):
+        """This IMM as IMMNet with nothing learned and modes per axis (``IMMNet(per_axis=True)``; otherwise as
+        ``IMMTracker.network``): each axis's mix, mode update and fusion over the model set's filter experts, whose
+        9-D filters are the three axes' filters side by side. It filters what ``track`` filters, to float64
+        rounding, where every track is detected at its first scan. A ValueError for a full transition matrix."""
+        if self._p_stay is None:
+            raise ValueError(f"{self.name}: a full transition matrix is not IMMNet's p_stay (one staying probability)")
+        return _linear_network(self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype, per_axis=True)
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)

@@ -84,15 +84,17 @@ def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Te
     return intervals if fixed is None else fixed
 
 
-def _linear_network(model_set: ModelSet, sigma_q, r, p_stay: float, dt: float, dtype):
-    """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``)."""
+def _linear_network(model_set: ModelSet, sigma_q, r, p_stay: float, dt: float, dtype, per_axis: bool = False):
+    """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``per_axis``: modes per
+    axis (``PerAxisIMMTracker.network``)."""
     from immnet.filters.imm import ACC_STD
     from immnet.stages.network import IMMNet
 
     gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
         "model_noise": sigma_q, "r": r, "interaction": "imm", "onset": False, "start_acc_std": ACC_STD}}
     bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
-    net = IMMNet(model_set=model_set, gain=gain, classifier=bayes, dt=dt, p_stay=p_stay, start_detections=1)
+    net = IMMNet(model_set=model_set, gain=gain, classifier=bayes, dt=dt, p_stay=p_stay, start_detections=1,
+                 per_axis=per_axis)
     return net.to(dtype).eval()
 
 

@@ -18,6 +18,7 @@ from immnet.motion.models import (
     TURN_RATE_LIMIT_DEG,
     VEL,
     adaptive_ct_propagate,
+    axis_separable,
     ca_matrix,
     ct_jacobian,
     ct_jacobian_entries,
@@ -35,6 +36,6 @@ __all__ = [
     "ACC", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODE_NAMES", "N_AUG", "POS", "RATE",
     "TURN_ENTRIES", "TURN_RATE_LIMIT_DEG", "VEL", "ct_jacobian", "ct_jacobian_entries", "ct_rate_derivative",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
-    "adaptive_ct_propagate", "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate",
+    "adaptive_ct_propagate", "axis_separable", "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate",
     "measurement_matrix", "noise_gain", "process_noise", "turn_rate_of",
 ]

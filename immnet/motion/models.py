@@ -61,6 +61,15 @@ def _per_axis(block: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def axis_separable(F: torch.Tensor) -> bool:
+    """Whether ``F [..., 9, 9]`` keeps the Cartesian axes apart (no entry outside its per-axis ``[l, v, a]`` blocks:
+    CV, CA; a coordinated turn couples x and y), so that an IMM per axis filters it exactly."""
+    mask = torch.ones(9, 9, dtype=torch.bool)
+    for a in range(3):
+        mask[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = False
+    return not bool((F[..., mask] != 0).any())
+
+
 def _dt(dt, dtype, device) -> torch.Tensor:
     """``dt`` as a tensor: a float gives a scalar, a tensor ``[...]`` (one interval per track) stays as it is."""
     return torch.as_tensor(dt, dtype=dtype, device=device)

@@ -161,6 +161,31 @@ def told_r(td) -> torch.Tensor:
     return r
 
 
+AXES = 3
+AXIS_OF = (0, 0, 0, 1, 1, 1, 2, 2, 2, 0)
+"""The axis of each coordinate of an expert's ``[x, w]`` (``[l, v, a]`` per axis; the turn rate ``w`` with the first,
+horizontal, axis): modes per axis (``IMMNet(per_axis=True)``) weigh each coordinate with its axis's probabilities."""
+
+
+def coordinate_weights(mu: torch.Tensor, n: int) -> torch.Tensor:
+    """The weight of each expert on each of ``n`` state coordinates: mode probabilities ``mu [B, M]`` as
+    ``[B, M, 1]``, or modes per axis ``mu [B, 3, M]`` as ``[B, M, n]`` (each coordinate its axis's, ``AXIS_OF``)."""
+    if mu.dim() == 2:
+        return mu.unsqueeze(-1)
+    return mu[:, list(AXIS_OF[:n]), :].transpose(1, 2)
+
+
+def block_weights(mu: torch.Tensor, n: int) -> torch.Tensor:
+    """The weight of each expert on each entry of an ``n x n`` covariance: ``[B, M, 1, 1]`` for ``mu [B, M]``; for
+    modes per axis ``mu [B, 3, M]``, ``[B, M, n, n]`` with each axis's block its axis's probability and 0 across
+    axes (the axes' IMMs are independent: their cross-covariances are not kept)."""
+    if mu.dim() == 2:
+        return mu[..., None, None]
+    axis = torch.tensor(AXIS_OF[:n], device=mu.device)
+    same = (axis[:, None] == axis[None, :]).to(mu.dtype)
+    return coordinate_weights(mu, n).unsqueeze(-1) * same
+
+
 def measured(z: torch.Tensor) -> torch.Tensor:
     """Mask of rows holding a measurement (no NaN component), shape ``z.shape[:-1] + (1,)``."""
     return ~torch.isnan(z).any(dim=-1, keepdim=True)

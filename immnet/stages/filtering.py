@@ -50,7 +50,7 @@ from immnet.imm.kalman import inv3, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries, ct_propagate, noise_gain,
 )
-from immnet.stages.base import Stage, measured, per_expert, scan_interval, told_r
+from immnet.stages.base import AXES, AXIS_OF, Stage, measured, per_expert, scan_interval, told_r
 from immnet.stages.features import slog
 from immnet.stages.gain import KalmanNetGain
 from immnet.stages.layers import StackedLinear
@@ -246,13 +246,28 @@ class FilterInteraction(Stage):
             share = share * (self.bound_sign != 0).to(share.dtype)
         # the transition the experts are mixed with is the one the mode update predicts with
         td.set(keys.MODE_TRANSITION, Pi if Pi.dim() == 3 else Pi.expand(mu.shape[0], *Pi.shape))
-        w = mixing_weights(mu, Pi)  # mu_{i|j} [B, i, j]
+        w = mixing_weights(mu, Pi if mu.dim() == 2 else Pi.unsqueeze(-3))  # mu_{i|j} [B, i, j] (per axis [B, 3, i, j])
+        if mu.dim() == 3:  # modes per axis (the guard is refused with them): each axis's IMM mixes its own block
+            return self._mix_per_axis(w, y, P)
         bound = None
         if self.guard is not None:  # a turn entered (or re-entered) at a range bound has the bound's rate
             td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
             rate = self.bound_sign.to(y.dtype) * (self.guard.rate_deg * math.pi / 180.0)
             bound = (share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
         return mix(w, y, P, (self.mix_keep, self.mix_mean, self.mix_cov) if self.onset else None, bound)
+
+    def _mix_per_axis(self, w: torch.Tensor, y: torch.Tensor, P: torch.Tensor):
+        """The mix with modes per axis, weights ``w [B, 3, i, j]``: each axis's coordinates of ``[x, w]`` and its
+        block of the covariance from the mix with that axis's weights (``mix``), the blocks across axes 0."""
+        priors = (self.mix_keep, self.mix_mean, self.mix_cov) if self.onset else None
+        axis = torch.tensor(AXIS_OF, device=y.device)
+        x0, P0 = 0.0, 0.0
+        for a in range(AXES):
+            xa, Pa = mix(w[:, a], y, P, priors)
+            on = (axis == a).to(y.dtype)
+            x0 = x0 + on * xa
+            P0 = P0 + (on[:, None] * on[None, :]) * Pa
+        return x0, P0
 
     def forward(self, td):
         own = td.get(keys.EXPERT_POST)
@@ -372,8 +387,12 @@ class _FilterExperts:
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
-                     onset: bool = True, model_noise=None, start_acc_std: float | None = None):
+                     onset: bool = True, model_noise=None, start_acc_std: float | None = None, per_axis: bool = False):
         self.guard = _check_interaction(interaction, p_stay, guard)
+        self.per_axis = bool(per_axis)
+        if self.per_axis and self.guard is not None:
+            raise ValueError("modes per axis (per_axis) and the range guard do not go together: the guard's transition "
+                             "is one per track and expert, from the whole state")
         self.onset = bool(onset)
         if model_noise is not None:  # each motion model's own Q(sigma_q_i, dt), as the linear IMMs'
             sq = model_noise if isinstance(model_noise, (list, tuple)) else [model_noise] * len(model_set)
@@ -594,11 +613,17 @@ class _FilterExperts:
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
-        loglik = -0.5 * (maha + torch.log(det) + 3.0 * math.log(2.0 * math.pi))
+        if self.per_axis:  # each axis's own likelihood N(nu_a; 0, S_aa), the marginal of its coordinate: [B, 3, M]
+            s = torch.diagonal(S, dim1=-2, dim2=-1)
+            loglik = -0.5 * (nu * nu / s + torch.log(s) + math.log(2.0 * math.pi))
+            loglik = torch.where(has_z, loglik, 0.0).transpose(1, 2)
+        else:
+            loglik = -0.5 * (maha + torch.log(det) + 3.0 * math.log(2.0 * math.pi))
+            loglik = torch.where(has_z[..., 0], loglik, 0.0)
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
         td.set(keys.EXPERT_AUG_PRIOR_COV, P)
-        td.set(keys.EXPERT_LOGLIK, torch.where(has_z[..., 0], loglik, 0.0))
+        td.set(keys.EXPERT_LOGLIK, loglik)
         td.set(keys.EXPERT_NIS, torch.where(has_z[..., 0], maha, 0.0).detach())
         if self.adapt is not None:
             self._adapt(td, maha, has_z)
@@ -638,14 +663,17 @@ class FilterGain(_FilterExperts, Stage):
         onset: bool = True,
         model_noise: float | list[float] | None = None,
         start_acc_std: float | None = None,
+        per_axis: bool = False,
     ):
         """``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
         model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
         the ``noise_std`` components; ``start_acc_std``: the start covariance's acceleration standard deviation on
-        every axis (None: the CA draw's). The three make the linear IMMs' filters (docs/core.md)."""
+        every axis (None: the CA draw's). The three make the linear IMMs' filters (docs/core.md). ``per_axis``:
+        modes per axis (``IMMNet``'s, set there once): the experts' likelihood per axis, ``("expert", "loglik")``
+        ``[B, 3, M]``."""
         super().__init__(model_set)
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std)
+                          onset, model_noise, start_acc_std, per_axis)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -666,7 +694,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     slope lets the network reach without large weights); ``gain_scale`` bounds the learned
     correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
     measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by
-    default). ``onset``, ``model_noise``, ``start_acc_std``: as ``FilterGain``'s (with ``model_noise`` the network
+    default). ``onset``, ``model_noise``, ``start_acc_std``, ``per_axis``: as ``FilterGain``'s (with ``model_noise`` the network
     scales the motion models' own ``Q``, the first component, and the others are zero). Beside F1..F4, GRU_S reads the innovation whitened by the base noise's ``S`` (times the
     adaptive scale, where on) (``nu / sqrt(diag S)``, a maneuver detector's statistic).
     """
@@ -703,6 +731,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         onset: bool = True,
         model_noise: float | list[float] | None = None,
         start_acc_std: float | None = None,
+        per_axis: bool = False,
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
@@ -719,7 +748,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.bias.zero_()
         del self.K_ss  # the base gain is the filter's own
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std)
+                          onset, model_noise, start_acc_std, per_axis)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def forward(self, td):

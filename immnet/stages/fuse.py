@@ -9,7 +9,9 @@ the IMM's combination),
 
 ``P^(i)`` the analytic gain's ``("expert", "cov")`` ``[B, M, 9, 9]``, or the 9x9 state block of a filter
 expert's posterior covariance of ``[x, w]``, ``("expert", "aug_cov")`` ``[B, M, 10, 10]``. The paper's
-KalmanNet experts (a gain only) carry none: then there is no fused covariance.
+KalmanNet experts (a gain only) carry none: then there is no fused covariance. With modes per axis
+(``mu [B, 3, M]``, ``IMMNet(per_axis=True)``) each coordinate is fused with its axis's probabilities and each axis's
+covariance block with them, the blocks across axes 0 (three independent IMMs).
 
 ``consistency`` (a weight ``a`` in (0, 1]; off by default) scales the covariance the tracker *reports* by a running
 mean of the normalized innovation squared: ``lambda_t = (1 - a) lambda_{t-1} + a min(sum_i mu^(i) NIS^(i) / 3, 10)``
@@ -31,18 +33,19 @@ import torch
 
 from immnet import keys
 from immnet.motion import POS
-from immnet.stages.base import Stage, measured
+from immnet.stages.base import Stage, block_weights, coordinate_weights, measured
 
 COV_KEYS = (keys.EXPERT_COV, keys.EXPERT_AUG_COV)
 """The experts' covariances ``Fuse`` fuses, first found first: the analytic gain's, the filter experts'."""
 
 
 def moment_match(mu: torch.Tensor, post: torch.Tensor, fused: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """``sum_i mu_i (P_i + d_i d_i^T)``, ``d_i = x_i - x``: weights ``mu [B, M]``, posteriors ``post [B, M, 9]``,
-    their mean ``fused [B, 9]``, covariances ``cov [B, M, 9, 9]``; in ``cov``'s dtype."""
+    """``sum_i mu_i (P_i + d_i d_i^T)``, ``d_i = x_i - x``: weights ``mu [B, M]`` (or per axis ``[B, 3, M]``: each
+    axis's block with its axis's weights, 0 across axes, ``block_weights``), posteriors ``post [B, M, 9]``, their mean
+    ``fused [B, 9]``, covariances ``cov [B, M, 9, 9]``; in ``cov``'s dtype."""
     d = (post - fused.unsqueeze(1)).to(cov.dtype)
     spread = cov + d.unsqueeze(-1) * d.unsqueeze(-2)
-    return (mu.to(cov.dtype)[..., None, None] * spread).sum(1)
+    return (block_weights(mu.to(cov.dtype), cov.shape[-1]) * spread).sum(1)
 
 
 class Fuse(Stage):
@@ -126,6 +129,7 @@ class Fuse(Stage):
         """The next scale of the reported covariance ``[B]`` (module doc) from the previous one ``[B]``, the mode
         probabilities ``mu [B, M]``, the experts' NIS ``[B, M]`` and whether this scan has a detection ``[B, 1]``.
         An estimator of the output, not a learned part: no gradient flows through it."""
+        mu = mu if mu.dim() == 2 else mu.mean(-2)  # modes per axis: the experts' mean weight over the axes
         seen = ((mu * nis).sum(-1) / 3.0).clamp(max=10.0).detach()
         a = self.consistency
         return torch.where(has_z.reshape(-1), (1.0 - a) * scale + a * seen, scale)
@@ -136,7 +140,7 @@ class Fuse(Stage):
             fused = post
         else:
             mu = td.get(keys.EXPERT_PROBS)
-            fused = (mu.unsqueeze(-1) * post).sum(1)
+            fused = (coordinate_weights(mu, post.shape[-1]) * post).sum(1)
         fused_cov = self.covariance(td, fused)
         z = td.get(keys.MEASUREMENT)
         has_z = measured(z)

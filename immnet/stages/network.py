@@ -29,7 +29,7 @@ from tensordict.utils import unravel_key
 from immnet import keys
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
-from immnet.motion import ModelSet
+from immnet.motion import ModelSet, axis_separable
 from immnet.stages.base import Stage, track_where
 from immnet.stages.fuse import Fuse
 from immnet.stages.predict import Predict
@@ -38,7 +38,7 @@ from immnet.stages.update import Update
 
 DEFAULT_GAIN = {"class_path": "immnet.stages.KalmanNetGain"}
 DEFAULT_CLASSIFIER = {"class_path": "immnet.stages.TransformerClassifier"}
-SET_ONCE = ("p_stay", "guard")
+SET_ONCE = ("p_stay", "guard", "per_axis")
 """Settings the interaction and the mode update must agree on: ``IMMNet``'s own arguments, handed to each
 component that takes them (docs/configs.md, "IMMNet's configuration")."""
 
@@ -82,6 +82,22 @@ def build_component(component, model_set: ModelSet, dt: float, settings: dict) -
     params = inspect.signature(cls).parameters
     args = dict(config["init_args"]) | {name: value for name, value in settings.items() if name in params}
     return cls(model_set=model_set, dt=dt, **args)
+
+
+def _check_per_axis(model_set: ModelSet, guard, gain, classifier) -> None:
+    """A ValueError where modes per axis cannot be: models that couple the axes (a turn), a range guard, or a gain
+    or classifier that has no ``per_axis``."""
+    coupled = [m.name for m in model_set if m.state_dependent or not axis_separable(m.F(1.0))]
+    if coupled:
+        raise ValueError(f"modes per axis (per_axis) need motion models that keep the axes apart (F block diagonal "
+                         f"per axis: CV, CA); {coupled} couple them")
+    if guard:
+        raise ValueError("modes per axis (per_axis) and the range guard do not go together (guard: false)")
+    for role, component in (("gain", gain), ("classifier", classifier)):
+        config = component_config(component)
+        if "per_axis" not in inspect.signature(import_class(config["class_path"])).parameters:
+            raise ValueError(f"modes per axis (per_axis): the {role} {config['class_path']} has none (filter experts, "
+                             "immnet.stages.filtering, and the Bayesian or Transformer mode updates have)")
 
 
 def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:
@@ -132,6 +148,7 @@ class IMMNet(TensorDictModuleBase):
         interval_range: tuple[float, float] | None = None,
         cov_consistency: float | None = None,
         start_detections: int = 2,
+        per_axis: bool = False,
     ):
         """``gain``, ``classifier``: the components (``Component``: a ``class_path`` / ``init_args`` mapping);
         ``p_stay``, ``guard``: the Markov chain's staying probability and the range guard, set here once for
@@ -145,7 +162,11 @@ class IMMNet(TensorDictModuleBase):
         None: the fused covariance as it is. It changes what the network reports, not what it estimates.
         ``start_detections``: a track starts from two detections (position, then the differenced velocity: IMMNet's)
         or from one (its position with the gain's start covariance, the step running from the next scan: the linear
-        IMMs' start, docs/spec.md section 3; ``immnet.stages.start``)."""
+        IMMs' start, docs/spec.md section 3; ``immnet.stages.start``).
+        ``per_axis``: modes per axis (the decoupled IMM's structure, docs/core.md "Modes per axis"): each Cartesian
+        axis has its own mode probabilities ``("mode", "probs")`` ``[B, 3, M]``, its own mix, mode update and
+        fusion, over experts whose motion models keep the axes apart (CV, CA: ``F`` block diagonal per axis); the
+        gain and the classifier are told it (filter experts' likelihoods per axis, a classifier's logits per axis)."""
         super().__init__()
         self.model_set = ModelSet.from_config(model_set)
         self.model_set_config = self.model_set.to_config()
@@ -157,10 +178,14 @@ class IMMNet(TensorDictModuleBase):
             interval_range = (lo, hi)
         self.interval_range = interval_range
         ms = self.model_set
-        settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None}
+        settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None} | {"per_axis": bool(per_axis)}
+        if per_axis:
+            _check_per_axis(ms, guard, gain or DEFAULT_GAIN, classifier or DEFAULT_CLASSIFIER)
         gain, classifier = component_config(gain or DEFAULT_GAIN), component_config(classifier or DEFAULT_CLASSIFIER)
         self.config = {  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
-            "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt, **settings}
+            "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt,
+            **{k: v for k, v in settings.items() if k != "per_axis" or v}}
+        self.per_axis = bool(per_axis)
         if interval_range is not None:
             self.config["interval_range"] = list(interval_range)
         if cov_consistency is not None:
@@ -293,8 +318,10 @@ class IMMNet(TensorDictModuleBase):
         return cov if scale is None else cov * scale.to(cov.dtype)[..., None, None]
 
     def to_mode_probs(self, expert_probs: torch.Tensor) -> torch.Tensor:
-        """Expert probabilities ``[..., M]`` summed per data mode ``[..., 4]``."""
-        return expert_probs @ self.mode_onehot.to(expert_probs.dtype)
+        """Expert probabilities ``[..., M]`` summed per data mode ``[..., 4]``; with modes per axis
+        (``[..., 3, M]``) the mean over the axes of each axis's (a data mode is the whole target's)."""
+        probs = expert_probs @ self.mode_onehot.to(expert_probs.dtype)
+        return probs.mean(-2) if self.per_axis else probs
 
     # --- the carry ------------------------------------------------------------------------
     def _steps(self, experts_alone: bool):
