@@ -32,8 +32,8 @@ PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
 SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "immnet-real.ckpt"}
 """The shipped networks by name (docs/checkpoints.md "Shipped weights"): ``general`` (any interval 0.5-12 s, 3D-LAST
 and real flights, no range guard) is what ``Tracker.pretrained()`` and ``immnet track`` load unless told;
-``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the 3D-LAST one fine-tuned on real flights
-(1 s)."""
+``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, modes per axis
+on the decoupled IMM, trained on real flights)."""
 DEFAULT_WEIGHTS = "general"
 
 

@@ -1,7 +1,7 @@
 """Ship a fine-tuned IMMNet: export its run's best checkpoint into immnet/pretrained/immnet-NAME.ckpt, score it on
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (recipes/
-real-finetune.yaml, 1 s) or `general` (recipes/general.yaml, 0.5-12 s, the default weights).
+real.yaml, 1 s) or `general` (recipes/general.yaml, 0.5-12 s, the default weights).
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
@@ -27,10 +27,12 @@ QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --see
               "trained or tuned on")
 SHIPS = {
     "real": {
-        "ckpt": "runs/real/finetune/checkpoints/best.ckpt",
-        "recipe": "recipes/real-finetune.yaml",
-        "init": "immnet/pretrained/immnet.ckpt (3D-LAST)",
-        "what": "the 3D-LAST weights fine-tuned on real flights at 1 s scans, without a range guard",
+        "ckpt": "runs/real/axis/checkpoints/best.ckpt",
+        "recipe": "recipes/real.yaml",
+        "init": ("its untrained start (KalmanNet's outputs near zero, the Transformer's correction zero: the decoupled "
+                 "IMM real-imm-axis with r estimated)"),
+        "what": ("IMMNet with modes per axis on the decoupled IMM tuned on real flights (real-imm-axis's CV and CA), "
+                 "each track's r estimated, trained on real flights at 1 s scans, without a range guard"),
         "data": {"train": f"{REAL}/quickstart-1s/train: {QUICKSTART}, 1 s scans, r ~ U[1, 7] m",
                  "val": f"{REAL}/quickstart-1s/val"},
         "scan_interval": 1.0,

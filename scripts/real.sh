@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 40 minutes (the sum of its steps:
-# data 2, fine-tune 18, the held-out evaluation 11, the rest 5):
+# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 25 minutes (the sum of its steps:
+# data 2, training 6, the held-out evaluation 11, the rest 5):
 #   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s and at U[4.5, 5.5] s
 #   scans, every other sample held out (never trained or tuned on) -> the model-based filters for real motion as
 #   tuned on the training flights (configs/methods/real-*.yaml; IMMNET_RETUNE=1 tunes them again) -> IMMNet
-#   fine-tuned on the training flights (recipes/real-finetune.yaml) -> one table per data set, every method in
-#   one run -> the real-flight figure.
+#   trained on the training flights (recipes/real.yaml: modes per axis on the decoupled IMM, the shipped
+#   immnet-real) -> one table per data set, every method in one run -> the real-flight figure.
 # A finished run is reused; IMMNET_RETRAIN=1 trains again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -44,13 +44,13 @@ else
   say "2/5 the model-based filters as tuned on the training flights: configs/methods/real-*.yaml (IMMNET_RETUNE=1 to tune again)"
 fi
 
-CKPT=$RUN/finetune/checkpoints/best.ckpt
-[ -n "${IMMNET_RETRAIN:-}" ] && rm -rf "$RUN/finetune"
-if [ -f "$CKPT" ] && [ -f "$RUN/finetune/checkpoints/finished.json" ]; then
-  say "3/5 IMMNet: reusing the finished fine-tune $CKPT (IMMNET_RETRAIN=1 to train again)"
+CKPT=$RUN/axis/checkpoints/best.ckpt
+[ -n "${IMMNET_RETRAIN:-}" ] && rm -rf "$RUN/axis"
+if [ -f "$CKPT" ] && [ -f "$RUN/axis/checkpoints/finished.json" ]; then
+  say "3/5 IMMNet: reusing the finished training $CKPT (IMMNET_RETRAIN=1 to train again)"
 else
-  say "3/5 IMMNet fine-tuned on the training flights: recipes/real-finetune.yaml"
-  "$IMMNET" fit --config recipes/real-finetune.yaml
+  say "3/5 IMMNet trained on the training flights: recipes/real.yaml"
+  "$IMMNET" fit --config recipes/real.yaml
 fi
 
 say "4/5 evaluation: one table per data set, every method in one run"

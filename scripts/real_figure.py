@@ -2,7 +2,7 @@
 method's estimates, and each method's position error over time (the README's real-flight figure).
 
     python scripts/real_figure.py --data runs/real/data/quickstart-1s/test --methods real-imm-axis,immnet-real \\
-        --checkpoint immnet-real=runs/real/finetune/checkpoints/best.ckpt --out runs/real/figures/real_flight.png
+        --checkpoint immnet-real=runs/real/axis/checkpoints/best.ckpt --out runs/real/figures/real_flight.png
 
 The window shown is the test window whose truth climbs or descends the most while it turns (``--index`` picks
 another); the methods run on the whole test set's window alone, as they would on a user's data.

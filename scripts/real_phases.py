@@ -2,7 +2,7 @@
 change, on a real-flight data set.
 
     python scripts/real_phases.py --data runs/real/data/quickstart-1s/test --methods real-imm-axis,immnet-real \\
-        --checkpoint immnet-real=runs/real/finetune/checkpoints/best.ckpt [--json phases.json] [--markdown phases.md]
+        --checkpoint immnet-real=runs/real/axis/checkpoints/best.ckpt [--json phases.json] [--markdown phases.md]
 """
 
 from __future__ import annotations

@@ -699,9 +699,10 @@ def test_a_network_told_each_tracks_r_trains_and_validates_with_the_datas_r():
 
 
 def test_init_parameters_takes_another_networks_weights_and_keeps_the_configured_base():
-    """``Stage2Module(init_parameters=...)`` (``recipes/real-imm-base.yaml``): the learned parameters of the shipped
-    real-flight network, the buffers (the models' noise, the chain) as ``net`` builds them; a network whose
-    parameters the file does not hold (three experts against four) is refused by name."""
+    """``Stage2Module(init_parameters=...)`` (``recipes/real-imm-base.yaml``'s network): the learned parameters of
+    another network of four filter experts (the shipped 3D-LAST weights here; the recipe's, their real-flight
+    fine-tune), the buffers (the models' noise, the chain) as ``net`` builds them; a network whose parameters the
+    file does not hold (three experts against four) is refused by name."""
     import copy
 
     import yaml
@@ -711,8 +712,8 @@ def test_init_parameters_takes_another_networks_weights_and_keeps_the_configured
     from immnet.tracking.tracker import read_checkpoint
 
     net = yaml.safe_load(resolve_path("recipes/real-imm-base.yaml").read_text())["model"]["init_args"]["net"]
-    module = Stage2Module(net=net, init_parameters=str(shipped("real")))
-    _, weights = read_checkpoint(shipped("real"))
+    module = Stage2Module(net=net, init_parameters=str(shipped("3dlast")))
+    _, weights = read_checkpoint(shipped("3dlast"))
     for name, p in module.net.named_parameters():
         assert torch.equal(p, weights[name].to(p.dtype)), name
     fresh = IMMNet(**net["init_args"])
@@ -723,4 +724,4 @@ def test_init_parameters_takes_another_networks_weights_and_keeps_the_configured
     three = copy.deepcopy(net["init_args"])
     three["model_set"], three["gain"]["init_args"]["model_noise"] = "configs/model_sets/imm3.yaml", 0.5
     with pytest.raises(ValueError, match="does not hold this IMMNet's parameters"):
-        Stage2Module(net={"class_path": "immnet.stages.IMMNet", "init_args": three}, init_parameters=str(shipped("real")))
+        Stage2Module(net={"class_path": "immnet.stages.IMMNet", "init_args": three}, init_parameters=str(shipped("3dlast")))
