@@ -694,9 +694,10 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     slope lets the network reach without large weights); ``gain_scale`` bounds the learned
     correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
     measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by
-    default). ``onset``, ``model_noise``, ``start_acc_std``, ``per_axis``: as ``FilterGain``'s (with ``model_noise`` the network
-    scales the motion models' own ``Q``, the first component, and the others are zero). Beside F1..F4, GRU_S reads the innovation whitened by the base noise's ``S`` (times the
-    adaptive scale, where on) (``nu / sqrt(diag S)``, a maneuver detector's statistic).
+    default). ``onset``, ``model_noise``, ``start_acc_std``, ``per_axis``: as ``FilterGain``'s (with ``model_noise``
+    the network scales the motion models' own ``Q``, the first component, and the others are zero). Beside F1..F4,
+    GRU_S reads the innovation whitened by the base noise's ``S`` (times the adaptive scale, where on)
+    (``nu / sqrt(diag S)``, a maneuver detector's statistic).
     """
 
     # written out, not KalmanNetGain.in_keys + [...]: tensordict turns a module's key lists into
