@@ -26,9 +26,7 @@ from immnet.filters.imm import initial_state
 from immnet.filters.trackers import _interval_or_intervals, _linear_network, assumed_r, filter_settings, variance
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
-from immnet.motion import ModelSet, axis_separable
-
-AXES = 3
+from immnet.motion import AXES, ModelSet, axis_separable
 
 
 def axis_blocks(A: torch.Tensor) -> torch.Tensor:
@@ -71,9 +69,8 @@ class PerAxisIMMTracker(Method):
         ``IMMTracker.network``): each axis's mix, mode update and fusion over the model set's filter experts, whose
         9-D filters are the three axes' filters side by side. It filters what ``track`` filters, to float64
         rounding, where every track is detected at its first scan. A ValueError for a full transition matrix."""
-        if self._p_stay is None:
-            raise ValueError(f"{self.name}: a full transition matrix is not IMMNet's p_stay (one staying probability)")
-        return _linear_network(self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype, per_axis=True)
+        return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
+                               per_axis=True)
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)

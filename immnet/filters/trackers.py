@@ -84,11 +84,16 @@ def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Te
     return intervals if fixed is None else fixed
 
 
-def _linear_network(model_set: ModelSet, sigma_q, r, p_stay: float, dt: float, dtype, per_axis: bool = False):
+def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | None, dt: float, dtype,
+                    per_axis: bool = False):
     """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``per_axis``: modes per
-    axis (``PerAxisIMMTracker.network``)."""
+    axis (``PerAxisIMMTracker.network``). ``p_stay`` None (a method given a full transition matrix): a ValueError
+    naming the method ``name``."""
     from immnet.filters.imm import ACC_STD
     from immnet.stages.network import IMMNet
+
+    if p_stay is None:
+        raise ValueError(f"{name}: a full transition matrix is not IMMNet's p_stay (one staying probability)")
 
     gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
         "model_noise": sigma_q, "r": r, "interaction": "imm", "onset": False, "start_acc_std": ACC_STD}}
@@ -116,7 +121,7 @@ class KalmanFilterTracker(Method):
     def network(self, dt: float = 1.0):
         """This filter as IMMNet with nothing learned: the one-model case of ``IMMTracker.network`` (its docstring)."""
         # one model: Pi = [[1]] whatever p_stay (which the interaction holds to (0, 1))
-        return _linear_network(ModelSet([self.model]), self.sigma_q, self.r, 0.5, dt, self.dtype)
+        return _linear_network(self.name, ModelSet([self.model]), self.sigma_q, self.r, 0.5, dt, self.dtype)
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
@@ -198,11 +203,9 @@ class IMMTracker(Method):
         With ``r: data`` the filter experts are told each track's ``r`` (``FilterGain(r="data")``): give it to
         ``rollout(..., r=batch["r"])``. A ValueError where this IMM is not such a configuration: a full transition
         matrix, a non-uniform ``mu0``."""
-        if self._p_stay is None:
-            raise ValueError(f"{self.name}: a full transition matrix is not IMMNet's p_stay (one staying probability)")
         if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
-        return _linear_network(self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype)
+        return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype)
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``

@@ -5,6 +5,8 @@ from immnet.motion.base import ModelSet, MotionModel, instantiate
 from immnet.motion.kinds import AdaptiveTurn, ConstantAcceleration, ConstantVelocity, CoordinatedTurn
 from immnet.motion.models import (
     ACC,
+    AXES,
+    AXIS_OF,
     CA,
     CT_NEG,
     CT_POS,
@@ -33,7 +35,7 @@ from immnet.motion.models import (
 )
 
 __all__ = [
-    "ACC", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODE_NAMES", "N_AUG", "POS", "RATE",
+    "ACC", "AXES", "AXIS_OF", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODE_NAMES", "N_AUG", "POS", "RATE",
     "TURN_ENTRIES", "TURN_RATE_LIMIT_DEG", "VEL", "ct_jacobian", "ct_jacobian_entries", "ct_rate_derivative",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
     "adaptive_ct_propagate", "axis_separable", "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate",

@@ -46,6 +46,10 @@ N_AUG = 10
 POS = (0, 3, 6)
 VEL = (1, 4, 7)
 ACC = (2, 5, 8)
+AXES = 3  # Cartesian axes, each a block [l, v, a] of the state
+AXIS_OF = (0, 0, 0, 1, 1, 1, 2, 2, 2, 0)
+"""The axis of each coordinate of ``[x, w]`` (the turn rate ``w`` with the first, horizontal, axis): modes per axis
+(``IMMNet(per_axis=True)``) weigh each coordinate with its axis's probabilities."""
 
 _WHITE = "white"
 _WIENER = "wiener"
@@ -64,10 +68,8 @@ def _per_axis(block: torch.Tensor) -> torch.Tensor:
 def axis_separable(F: torch.Tensor) -> bool:
     """Whether ``F [..., 9, 9]`` keeps the Cartesian axes apart (no entry outside its per-axis ``[l, v, a]`` blocks:
     CV, CA; a coordinated turn couples x and y), so that an IMM per axis filters it exactly."""
-    mask = torch.ones(9, 9, dtype=torch.bool)
-    for a in range(3):
-        mask[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = False
-    return not bool((F[..., mask] != 0).any())
+    axis = torch.tensor(AXIS_OF[:9])
+    return not bool((F[..., axis[:, None] != axis[None, :]] != 0).any())
 
 
 def _dt(dt, dtype, device) -> torch.Tensor:

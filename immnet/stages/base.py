@@ -29,7 +29,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import unravel_key
 
 from immnet import keys
-from immnet.motion import ModelSet
+from immnet.motion import AXIS_OF, ModelSet
 
 KEY_NAMES = {
     name.lower(): unravel_key(value)
@@ -159,12 +159,6 @@ def told_r(td) -> torch.Tensor:
         raise ValueError("this step's filter gain is told each track's measurement std (r='data'): give the step its "
                          "input 'r' [B] (IMMNet.rollout(..., r=...), IMMNet.scan(..., r=...))")
     return r
-
-
-AXES = 3
-AXIS_OF = (0, 0, 0, 1, 1, 1, 2, 2, 2, 0)
-"""The axis of each coordinate of an expert's ``[x, w]`` (``[l, v, a]`` per axis; the turn rate ``w`` with the first,
-horizontal, axis): modes per axis (``IMMNet(per_axis=True)``) weigh each coordinate with its axis's probabilities."""
 
 
 def coordinate_weights(mu: torch.Tensor, n: int) -> torch.Tensor:

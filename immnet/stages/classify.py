@@ -23,8 +23,8 @@ from torch import nn
 
 from immnet import keys
 from immnet.imm.interaction import transition_matrix
-from immnet.motion import ModelSet
-from immnet.stages.base import AXES, Stage, measured, per_expert
+from immnet.motion import AXES, ModelSet
+from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.update import innovation
 

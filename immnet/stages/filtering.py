@@ -48,9 +48,10 @@ from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import inv3, small_matmul
 from immnet.motion import (
-    ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries, ct_propagate, noise_gain,
+    ACC, AXES, AXIS_OF, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
+    ct_propagate, noise_gain,
 )
-from immnet.stages.base import AXES, AXIS_OF, Stage, measured, per_expert, scan_interval, told_r
+from immnet.stages.base import Stage, measured, per_expert, scan_interval, told_r
 from immnet.stages.features import slog
 from immnet.stages.gain import KalmanNetGain
 from immnet.stages.layers import StackedLinear

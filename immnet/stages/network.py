@@ -84,15 +84,13 @@ def build_component(component, model_set: ModelSet, dt: float, settings: dict) -
     return cls(model_set=model_set, dt=dt, **args)
 
 
-def _check_per_axis(model_set: ModelSet, guard, gain, classifier) -> None:
-    """A ValueError where modes per axis cannot be: models that couple the axes (a turn), a range guard, or a gain
-    or classifier that has no ``per_axis``."""
+def _check_per_axis(model_set: ModelSet, gain, classifier) -> None:
+    """A ValueError where modes per axis cannot be: models that couple the axes (a turn), or a gain or classifier
+    that has no ``per_axis`` (the filter gains refuse the range guard with it themselves)."""
     coupled = [m.name for m in model_set if m.state_dependent or not axis_separable(m.F(1.0))]
     if coupled:
         raise ValueError(f"modes per axis (per_axis) need motion models that keep the axes apart (F block diagonal "
                          f"per axis: CV, CA); {coupled} couple them")
-    if guard:
-        raise ValueError("modes per axis (per_axis) and the range guard do not go together (guard: false)")
     for role, component in (("gain", gain), ("classifier", classifier)):
         config = component_config(component)
         if "per_axis" not in inspect.signature(import_class(config["class_path"])).parameters:
@@ -180,7 +178,7 @@ class IMMNet(TensorDictModuleBase):
         ms = self.model_set
         settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None} | {"per_axis": bool(per_axis)}
         if per_axis:
-            _check_per_axis(ms, guard, gain or DEFAULT_GAIN, classifier or DEFAULT_CLASSIFIER)
+            _check_per_axis(ms, gain or DEFAULT_GAIN, classifier or DEFAULT_CLASSIFIER)
         gain, classifier = component_config(gain or DEFAULT_GAIN), component_config(classifier or DEFAULT_CLASSIFIER)
         self.config = {  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
             "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt,
