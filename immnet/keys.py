@@ -71,7 +71,7 @@ INTERVAL_HISTORY = ("memory", "interval_history")  # the intervals z_{t-2} -> z_
 MODE_LOGITS = ("mode", "logits")  # [B, M] (modes per axis: [B, 3, M])
 MODE_TRANSITION = ("mode", "transition")  # a guarded interaction's transition matrix Pi[b, from, to] [B, M, M]
 GUARD_FRESH = ("expert", "speed_fresh")  # a guarded interaction: prior share of each expert entered at a speed bound [B, M]
-EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M] (modes per axis: [B, 3, M], IMMNet(per_axis=True))
+EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M] (modes per group: [B, G, M], IMMNet(modes=...))
 HISTORY = ("memory", "history")  # classifier window [B, W, 12]: z_tau and x_{tau-1|tau-1}
 HISTORY_LEN = ("memory", "history_len")  # valid entries of the window [B]
 HISTORY_INTERVAL = ("memory", "history_interval")  # the interval before each entry's scan [B, W] (s)

@@ -507,7 +507,7 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
 
 def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
     """Issue 21, item 1, for the decoupled IMM (``real-imm-axis``: one IMM per axis over CV and CA, each track's r
-    told): its ``network()``, IMMNet's step with modes per axis (``per_axis``: mode probabilities ``[B, 3, M]``, each
+    told): its ``network()``, IMMNet's step with modes per axis (``modes="axis"``: mode probabilities ``[B, 3, M]``, each
     axis's mix, likelihood and mode update, the fusion per axis) over 9-D filter experts, filters what the method
     filters (the core's ``run`` over ``3 B`` one-coordinate tracks) to FilterPy's criterion (1e-9 of the state's
     scale), its modes per axis and its covariance (the axes' blocks, 0 across) too, at 1 s and at irregular 4.5-5.5 s
@@ -525,7 +525,7 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
     tracker = build_method("real-imm-axis")
     tracker.return_cov = True
     net = tracker.network()
-    assert net.per_axis and net.start_detections == 1 and not net.interact.onset
+    assert net.modes == "axis" and net.start_detections == 1 and not net.interact.onset
     r = data[keys.R].double()
     outs = []
     for batch in (data, slow):
@@ -551,12 +551,29 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
     assert (other[keys.STATE] - outs[0][keys.STATE]).abs().amax() > 1e-3
     gain, bayes = net.config["gain"], net.config["classifier"]
     with pytest.raises(ValueError, match="couple"):
-        IMMNet(model_set="configs/model_sets/imm4.yaml", gain=gain, classifier=bayes, per_axis=True)
+        IMMNet(model_set="configs/model_sets/imm4.yaml", gain=gain, classifier=bayes, modes="axis")
     with pytest.raises(ValueError, match="guard"):
-        IMMNet(model_set=net.model_set_config["models"], gain=gain, classifier=bayes, per_axis=True, guard=True)
+        IMMNet(model_set=net.model_set_config["models"], gain=gain, classifier=bayes, modes="axis", guard=True)
     with pytest.raises(ValueError, match="the gain immnet.stages.KalmanNetGain has none"):  # the paper's: no likelihood
         IMMNet(model_set=net.model_set_config["models"], gain={"class_path": "immnet.stages.KalmanNetGain"},
-               classifier=bayes, per_axis=True)
+               classifier=bayes, modes="axis")
+
+
+def test_a_network_written_with_per_axis_loads_with_modes_per_axis():
+    """Configurations written when modes per axis were ``per_axis: true`` (the shipped real-flight weights among them)
+    read as ``modes: axis``, the components' own ``per_axis`` dropped; a disagreement is refused by name."""
+    from immnet.checkpoints import shipped
+    from immnet.stages.network import net_arguments
+    from immnet.tracking.tracker import load_network, read_checkpoint
+
+    gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {"r": 3.0, "per_axis": False}}
+    args = net_arguments({"class_path": "immnet.stages.IMMNet", "init_args": {"per_axis": True, "gain": gain}})
+    assert args["modes"] == "axis" and "per_axis" not in args and args["gain"]["init_args"] == {"r": 3.0}
+    assert net_arguments({"gain": gain})["gain"]["init_args"] == {"r": 3.0} and "modes" not in net_arguments({"gain": gain})
+    with pytest.raises(ValueError, match="disagree"):
+        net_arguments({"per_axis": True, "modes": "channel"})
+    assert read_checkpoint(shipped("real"))[0]["modes"] == "axis"
+    assert load_network(shipped("real")).modes == "axis"
 
 
 def test_a_trained_network_with_its_learned_parts_knocked_out_is_the_model_based_imm():

@@ -125,3 +125,78 @@ def test_per_axis_imm_of_one_model_is_the_kalman_filter():
 def test_per_axis_imm_refuses_a_turn():
     with pytest.raises(ValueError, match="couple the axes"):
         PerAxisIMMTracker(ModelSet([ConstantVelocity(), CoordinatedTurn(3.0)]), 4.0, 1.0)
+
+
+H_PLANE = [0, 1, 2, 3, 4, 5]  # the horizontal channel's coordinates of the 9-D state (x, y); the vertical's: z
+V_LINE = [6, 7, 8]
+
+
+def _filterpy_per_channel(ms: ModelSet, sigma_q, p_stay, batch: TensorDict, b: int):
+    """Two FilterPy ``IMMEstimator``s per track, the horizontal plane (6 states, x and y measured) and the vertical
+    (3 states), each over the models' blocks of F and Q fed per scan; a missed scan keeps the priors and the
+    predicted mode probabilities. Returns the states ``[T, 9]`` and each channel's mode probabilities ``[T, 2, M]``."""
+    z, r = batch[keys.MEASUREMENTS][b].numpy(), float(batch[keys.R][b])
+    dt = scan_intervals(batch)[b]
+    x0, P0 = initial_state(batch[keys.MEASUREMENTS][b : b + 1], r)
+    M = len(ms)
+    Pi = np.full((M, M), (1 - p_stay) / (M - 1))
+    np.fill_diagonal(Pi, p_stay)
+    out, mu = np.zeros((len(z), 9)), np.zeros((len(z), 2, M))
+    for c, (idx, cols) in enumerate(((H_PLANE, [0, 1]), (V_LINE, [2]))):
+        n, m = len(idx), len(cols)
+        kfs = []
+        for _ in range(M):
+            kf = KalmanFilter(n, m)
+            kf.x, kf.P = x0[0, idx].numpy().copy(), P0[0][np.ix_(idx, idx)].numpy().copy()
+            kf.H = np.zeros((m, n))
+            for row, col in enumerate(cols):
+                kf.H[row, 3 * col - 3 * cols[0]] = 1.0
+            kf.R = r * r * np.eye(m)
+            kfs.append(kf)
+        imm = IMMEstimator(kfs, np.full(M, 1.0 / M), Pi)
+        out[0, idx], mu[0, c] = x0[0, idx].numpy(), 1.0 / M
+        for t in range(1, len(z)):
+            d = float(dt[t])
+            for j, kf in enumerate(kfs):
+                kf.F = ms[j].F(d).numpy()[np.ix_(idx, idx)]
+                kf.Q = ms[j].Q(sigma_q[j], d).numpy()[np.ix_(idx, idx)]
+            imm.predict()
+            if np.isnan(z[t]).any():
+                for kf in kfs:
+                    kf.x, kf.P = kf.x_prior.copy(), kf.P_prior.copy()
+                imm.mu = imm.cbar.copy()
+                imm._compute_mixing_probabilities()
+                imm._compute_state_estimate()
+            else:
+                imm.update(z[t, cols])
+            out[t, idx], mu[t, c] = imm.x.ravel(), imm.mu
+    return out, mu
+
+
+@pytest.mark.parametrize("scans", list(SCANS), ids=list(SCANS))
+def test_channel_imm_equals_two_filterpy_imms(scans):
+    """Modes per channel (``IMMTracker(modes="channel")``, IMMNet's step with nothing learned): CV, CA and two
+    coordinated turns (which couple x and y, not z), the horizontal plane and the vertical each with mode
+    probabilities of its own, at irregular scans with missed detections and a gap, equal two FilterPy IMMs per track
+    (horizontal 6-D, vertical 3-D): states to 1e-9 of their scale, each channel's mode probabilities to 1e-7."""
+    from immnet.filters import IMMTracker
+
+    data = _irregular(*SCANS[scans], seed=4, B=2, T=120)
+    assert not torch.isnan(data[keys.MEASUREMENTS][:, 0]).any()  # detected at the first scan (module doc of _linear_network)
+    ms = ModelSet([ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous", vertical=0.3),
+                   CoordinatedTurn(3.0, noise="continuous"), CoordinatedTurn(-3.0, noise="continuous")])
+    sigma_q, p_stay = [0.2, 1.1, 0.5, 0.5], 0.95
+    tracker = IMMTracker(ms, "data", sigma_q, p_stay, modes="channel", return_experts=True)
+    out = tracker.track(data)
+    assert out[keys.EXPERT_PROBS].shape == (2, 120, 2, 4) and out[keys.MODE_PROBS].shape == (2, 120, 4)
+    for b in range(2):
+        ref, mu = _filterpy_per_channel(ms, sigma_q, p_stay, data, b)
+        np.testing.assert_allclose(out[keys.STATE][b].numpy(), ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+        np.testing.assert_allclose(out[keys.EXPERT_PROBS][b].numpy(), mu, rtol=0, atol=1e-7)
+    # the joint IMM of the same models is another tracker; per axis refuses the turns, per channel takes them
+    joint = IMMTracker(ms, "data", sigma_q, p_stay).track(data)[keys.STATE]
+    assert (joint - out[keys.STATE]).abs().amax() > 1e-2
+    with pytest.raises(ValueError, match="couple the groups"):
+        IMMTracker(ms, "data", sigma_q, p_stay, modes="axis")
+    with pytest.raises(ValueError, match="modes must be one of"):
+        IMMTracker(ms, "data", sigma_q, p_stay, modes="plane")

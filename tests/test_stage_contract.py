@@ -68,10 +68,15 @@ CONFIGS = {
         "classifier": {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}},
     "kalmannet-filter-per-axis-told-r+bayes-transformer": {  # modes per axis over CV and CA (the decoupled IMM's)
         "model_set": [{"class_path": "immnet.motion.ConstantVelocity"}, {"class_path": "immnet.motion.ConstantAcceleration"}],
-        "p_stay": 0.98, "per_axis": True,
+        "p_stay": 0.98, "modes": "axis",
         "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {
             "interaction": "imm", "onset": False, "model_noise": [0.4, 0.35], "r": "data", "start_acc_std": 10.0}},
         "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier"}},
+    "kalmannet-filter-per-channel+bayes-transformer": {  # modes per channel over CV, CA and turns estimating their rate
+        "model_set": "configs/model_sets/imm4-adaptive.yaml", "guard": False, "modes": "channel",
+        "interval_range": [0.5, 12.0],
+        "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {"interaction": "imm", "interval_input": True}},
+        "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier", "init_args": {"interval_input": True}}},
 }
 # (configuration, experts alone): stage 1 runs each expert alone (``IMMNet.expert_step``)
 CASES = [(name, False) for name in CONFIGS if name != "single-ca"] + [

@@ -65,12 +65,12 @@ class PerAxisIMMTracker(Method):
         self.return_cov = return_cov
 
     def network(self, dt: float = 1.0):
-        """This IMM as IMMNet with nothing learned and modes per axis (``IMMNet(per_axis=True)``; otherwise as
+        """This IMM as IMMNet with nothing learned and modes per axis (``IMMNet(modes="axis")``; otherwise as
         ``IMMTracker.network``): each axis's mix, mode update and fusion over the model set's filter experts, whose
         9-D filters are the three axes' filters side by side. It filters what ``track`` filters, to float64
         rounding, where every track is detected at its first scan. A ValueError for a full transition matrix."""
         return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
-                               per_axis=True)
+                               modes="axis")
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)

@@ -25,7 +25,7 @@ from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interva
 from immnet.filters.imm import imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
-from immnet.motion import ModelSet, MotionModel, instantiate
+from immnet.motion import ModelSet, MotionModel, fits_groups, instantiate, mode_groups
 
 
 def _positive(name: str, value, allow_zero: bool = True) -> None:
@@ -85,10 +85,10 @@ def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Te
 
 
 def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | None, dt: float, dtype,
-                    per_axis: bool = False):
-    """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``per_axis``: modes per
-    axis (``PerAxisIMMTracker.network``). ``p_stay`` None (a method given a full transition matrix): a ValueError
-    naming the method ``name``."""
+                    modes: str = "joint"):
+    """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``modes``: ``IMMNet``'s
+    (per axis: ``PerAxisIMMTracker.network``). ``p_stay`` None (a method given a full transition matrix): a
+    ValueError naming the method ``name``."""
     from immnet.filters.imm import ACC_STD
     from immnet.stages.network import IMMNet
 
@@ -99,7 +99,7 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
         "model_noise": sigma_q, "r": r, "interaction": "imm", "onset": False, "start_acc_std": ACC_STD}}
     bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
     net = IMMNet(model_set=model_set, gain=gain, classifier=bayes, dt=dt, p_stay=p_stay, start_detections=1,
-                 per_axis=per_axis)
+                 modes=modes)
     return net.to(dtype).eval()
 
 
@@ -148,6 +148,11 @@ class IMMTracker(Method):
     a full row-stochastic matrix ``[M, M]``; ``mu0``: initial mode probabilities (uniform if None).
     ``track`` gives ``state``, ``mode_probs`` over data modes and, with ``return_experts``, the
     experts' posteriors ``("expert", "post") [B, T, M, 9]`` and probabilities ``("mode", "probs")``.
+    ``modes``: one set of mode probabilities for the whole state (``"joint"``, the IMM) or one per group of
+    coordinates, ``"axis"`` or ``"channel"`` (the horizontal plane and the vertical, each an IMM of its own over the
+    same models: ``immnet.motion.MODE_GROUPS``, docs/core.md "Modes per group"); a grouped IMM tracks with its
+    ``network()`` (IMMNet's step with nothing learned) and gives each group's probabilities, ``("mode", "probs")
+    [B, T, G, M]``, and the data modes of the axes' mean.
     ``compile``: run the step through ``torch.compile`` (``imm_filter(compile=True)``; seconds to compile
     on first use, then several times faster on CPU for one track or thousands; fixed intervals only).
     """
@@ -166,8 +171,13 @@ class IMMTracker(Method):
         return_experts: bool = False,
         compile: bool = False,
         return_cov: bool = False,
+        modes: str = "joint",
     ):
         self.model_set = ModelSet.from_config(model_set)
+        self.modes, groups = modes, mode_groups(modes)
+        if groups is not None and (coupled := [m.name for m in self.model_set if not fits_groups(m, groups)]):
+            raise ValueError(f"{name}: modes per {modes} need models whose F is block diagonal per group; "
+                             f"{coupled} couple the groups")
         M = len(self.model_set)
         shapes = {tuple(m.F(1.0).shape) for m in self.model_set}
         if len(shapes) != 1 or any(len(s) != 2 or s[0] != s[1] for s in shapes):
@@ -205,7 +215,8 @@ class IMMTracker(Method):
         matrix, a non-uniform ``mu0``."""
         if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
-        return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype)
+        return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
+                               self.modes)
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``
@@ -216,6 +227,8 @@ class IMMTracker(Method):
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
+        if self.modes != "joint":
+            return self._track_by_step(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         F, Q, Pi, mu0 = self.matrices(_interval_or_intervals(batch, self.dtype, z.device), z.device)
         r = assumed_r(self.r, batch, self.dtype, z.device)
@@ -228,3 +241,19 @@ class IMMTracker(Method):
             extra[keys.EXPERT_POST] = experts
             extra[keys.EXPERT_PROBS] = probs
         return output(states, extra, measurements=z)
+
+    @torch.no_grad()
+    def _track_by_step(self, batch: TensorDict) -> TensorDict:
+        """``track`` of an IMM with modes per group: its ``network()`` over the batch, each track's ``r`` told where
+        ``r: data``, each scan's interval where they are not all 1 s."""
+        z = batch[keys.MEASUREMENTS].to(self.dtype)
+        net = self.network().to(z.device)
+        intervals = net.intervals_for(batch)
+        r = assumed_r(self.r, batch, self.dtype, z.device) if self.r == TOLD else None
+        out, _ = net.rollout(z, intervals=None if intervals is None else intervals.to(self.dtype), r=r,
+                             return_cov=self.return_cov)
+        probs = out[keys.ROLLOUT_EXPERT_PROBS]
+        extra = {keys.MODE_PROBS: net.to_mode_probs(probs), keys.STATE_COV: out[keys.STATE_COV] if self.return_cov else None}
+        if self.return_experts:
+            extra[keys.EXPERT_PROBS] = probs
+        return output(out[keys.STATE], extra, measurements=z)

@@ -46,6 +46,27 @@ def inv3(S: torch.Tensor):
     return inv, det
 
 
+def group_loglik(nu: torch.Tensor, S: torch.Tensor, groups: list[list[int]]) -> torch.Tensor:
+    """``log N(nu_g; 0, S_gg)`` of each group ``g`` of the innovation's coordinates (``groups``, at most two
+    coordinates each: ``[[0], [1], [2]]`` per axis, ``[[0, 1], [2]]`` per channel), the marginal of those coordinates:
+    innovations ``nu [..., 3]``, covariances ``S [..., 3, 3]`` -> ``[..., G]``."""
+    out = []
+    for g in groups:
+        if len(g) == 1:
+            i = g[0]
+            s, n = S[..., i, i], nu[..., i]
+            out.append(-0.5 * (n * n / s + torch.log(s) + LOG_2PI))
+        elif len(g) == 2:
+            i, j = g
+            a, b, d = S[..., i, i], S[..., i, j], S[..., j, j]
+            n, m = nu[..., i], nu[..., j]
+            det = a * d - b * b
+            out.append(-0.5 * ((d * n * n - 2.0 * b * n * m + a * m * m) / det + torch.log(det) + 2.0 * LOG_2PI))
+        else:
+            raise ValueError(f"group_loglik takes groups of one or two coordinates, got {g}")
+    return torch.stack(out, -1)
+
+
 def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``a @ b`` for a small inner dimension ``k`` (a measurement's 3), as ``sum_k a[..., :, k] b[..., k, :]``:
     on CPU a batched GEMM of millions of 10x3 matrices is several times slower than three broadcast

@@ -12,7 +12,9 @@ from immnet.motion.models import (
     CT_POS,
     CV,
     DEG,
+    MODE_GROUPS,
     MODE_NAMES,
+    MODES,
     N_AUG,
     POS,
     RATE,
@@ -28,16 +30,20 @@ from immnet.motion.models import (
     ct_propagate,
     ct_rate_derivative,
     cv_matrix,
+    fits_groups,
+    groups_separate,
+    measured_groups,
     measurement_matrix,
+    mode_groups,
     noise_gain,
     process_noise,
     turn_rate_of,
 )
 
 __all__ = [
-    "ACC", "AXES", "AXIS_OF", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODE_NAMES", "N_AUG", "POS", "RATE",
+    "ACC", "AXES", "AXIS_OF", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODES", "MODE_GROUPS", "MODE_NAMES", "N_AUG", "POS", "RATE",
     "TURN_ENTRIES", "TURN_RATE_LIMIT_DEG", "VEL", "ct_jacobian", "ct_jacobian_entries", "ct_rate_derivative",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
-    "adaptive_ct_propagate", "axis_separable", "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "instantiate",
-    "measurement_matrix", "noise_gain", "process_noise", "turn_rate_of",
+    "adaptive_ct_propagate", "axis_separable", "ca_matrix", "ct_matrix", "ct_propagate", "cv_matrix", "fits_groups", "groups_separate",
+    "instantiate", "measured_groups", "measurement_matrix", "mode_groups", "noise_gain", "process_noise", "turn_rate_of",
 ]

@@ -48,8 +48,35 @@ VEL = (1, 4, 7)
 ACC = (2, 5, 8)
 AXES = 3  # Cartesian axes, each a block [l, v, a] of the state
 AXIS_OF = (0, 0, 0, 1, 1, 1, 2, 2, 2, 0)
-"""The axis of each coordinate of ``[x, w]`` (the turn rate ``w`` with the first, horizontal, axis): modes per axis
-(``IMMNet(per_axis=True)``) weigh each coordinate with its axis's probabilities."""
+"""The axis of each coordinate of ``[x, w]`` (the turn rate ``w`` with the first, horizontal, axis)."""
+MODE_GROUPS = {"axis": AXIS_OF, "channel": (0, 0, 0, 0, 0, 0, 1, 1, 1, 0)}
+"""How an IMM may keep its modes (``IMMNet(modes=...)``, docs/core.md "Modes per group"): the group of each
+coordinate of ``[x, w]``, each group with mode probabilities of its own. ``"axis"``: one group per Cartesian axis
+(the decoupled IMM); ``"channel"``: the horizontal plane (x, y and the turn rate) and the vertical (z). ``"joint"``
+(not in the table): one set of probabilities for the whole state, the IMM's."""
+MODES = ("joint", *MODE_GROUPS)
+
+
+def mode_groups(modes: str) -> tuple[int, ...] | None:
+    """The group of each coordinate of ``[x, w]`` for ``modes`` (``MODE_GROUPS``), None for ``"joint"``; a
+    ValueError naming the choices otherwise."""
+    if modes not in MODES:
+        raise ValueError(f"modes must be one of {MODES}, got {modes!r}")
+    return MODE_GROUPS.get(modes)
+
+
+def measured_groups(groups: tuple[int, ...]) -> list[list[int]]:
+    """The measured coordinates (x, y, z: the positions, ``POS``) of each group, by group: ``[[0], [1], [2]]``
+    per axis, ``[[0, 1], [2]]`` per channel."""
+    return [[i for i, p in enumerate(POS) if groups[p] == g] for g in range(max(groups) + 1)]
+
+
+def groups_separate(F: torch.Tensor, groups: tuple[int, ...]) -> bool:
+    """Whether ``F [..., n, n]`` (n 9 or 10) has no entry across ``groups`` (block diagonal per group), so that
+    an IMM per group filters it exactly: per axis, CV and CA; per channel, a turn in the plane too."""
+    n = F.shape[-1]
+    g = torch.tensor(groups[:n])
+    return not bool((F[..., g[:, None] != g[None, :]] != 0).any())
 
 _WHITE = "white"
 _WIENER = "wiener"
@@ -65,11 +92,19 @@ def _per_axis(block: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def fits_groups(model, groups: tuple[int, ...]) -> bool:
+    """Whether an IMM with modes per ``groups`` filters the motion model ``model`` (a ``MotionModel``) exactly: its
+    ``F`` block diagonal per group and, for a state-dependent model (a turn estimating its rate), the turn rate in
+    the group of the plane it turns in (x and y)."""
+    if not groups_separate(model.F(1.0), groups):
+        return False
+    return not model.state_dependent or groups[POS[0]] == groups[POS[1]] == groups[RATE]
+
+
 def axis_separable(F: torch.Tensor) -> bool:
     """Whether ``F [..., 9, 9]`` keeps the Cartesian axes apart (no entry outside its per-axis ``[l, v, a]`` blocks:
     CV, CA; a coordinated turn couples x and y), so that an IMM per axis filters it exactly."""
-    axis = torch.tensor(AXIS_OF[:9])
-    return not bool((F[..., axis[:, None] != axis[None, :]] != 0).any())
+    return groups_separate(F, AXIS_OF)
 
 
 def _dt(dt, dtype, device) -> torch.Tensor:

@@ -29,7 +29,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import unravel_key
 
 from immnet import keys
-from immnet.motion import AXIS_OF, ModelSet
+from immnet.motion import POS, ModelSet
 
 KEY_NAMES = {
     name.lower(): unravel_key(value)
@@ -161,23 +161,30 @@ def told_r(td) -> torch.Tensor:
     return r
 
 
-def coordinate_weights(mu: torch.Tensor, n: int) -> torch.Tensor:
+def coordinate_weights(mu: torch.Tensor, n: int, groups: tuple[int, ...] | None = None) -> torch.Tensor:
     """The weight of each expert on each of ``n`` state coordinates: mode probabilities ``mu [B, M]`` as
-    ``[B, M, 1]``, or modes per axis ``mu [B, 3, M]`` as ``[B, M, n]`` (each coordinate its axis's, ``AXIS_OF``)."""
+    ``[B, M, 1]``, or modes per group ``mu [B, G, M]`` as ``[B, M, n]`` (each coordinate its group's, ``groups``:
+    ``immnet.motion.MODE_GROUPS``)."""
     if mu.dim() == 2:
         return mu.unsqueeze(-1)
-    return mu[:, list(AXIS_OF[:n]), :].transpose(1, 2)
+    return mu[:, list(groups[:n]), :].transpose(1, 2)
 
 
-def block_weights(mu: torch.Tensor, n: int) -> torch.Tensor:
+def block_weights(mu: torch.Tensor, n: int, groups: tuple[int, ...] | None = None) -> torch.Tensor:
     """The weight of each expert on each entry of an ``n x n`` covariance: ``[B, M, 1, 1]`` for ``mu [B, M]``; for
-    modes per axis ``mu [B, 3, M]``, ``[B, M, n, n]`` with each axis's block its axis's probability and 0 across
-    axes (the axes' IMMs are independent: their cross-covariances are not kept)."""
+    modes per group ``mu [B, G, M]``, ``[B, M, n, n]`` with each group's block its group's probability and 0 across
+    groups (the groups' IMMs are independent: their cross-covariances are not kept)."""
     if mu.dim() == 2:
         return mu[..., None, None]
-    axis = torch.tensor(AXIS_OF[:n], device=mu.device)
-    same = (axis[:, None] == axis[None, :]).to(mu.dtype)
-    return coordinate_weights(mu, n).unsqueeze(-1) * same
+    g = torch.tensor(groups[:n], device=mu.device)
+    same = (g[:, None] == g[None, :]).to(mu.dtype)
+    return coordinate_weights(mu, n, groups).unsqueeze(-1) * same
+
+
+def axis_probs(mu: torch.Tensor, groups: tuple[int, ...]) -> torch.Tensor:
+    """Modes per group ``mu [..., G, M]`` as each Cartesian axis's, ``[..., 3, M]`` (an axis's are its position's
+    group's): what the data modes and the reported covariance's scale average over, so that an axis counts once."""
+    return mu[..., [groups[p] for p in POS], :]
 
 
 def measured(z: torch.Tensor) -> torch.Tensor:

@@ -23,7 +23,7 @@ from torch import nn
 
 from immnet import keys
 from immnet.imm.interaction import transition_matrix
-from immnet.motion import AXES, ModelSet
+from immnet.motion import ModelSet, mode_groups
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.update import innovation
@@ -32,10 +32,17 @@ _MODE_KEYS_IN = [keys.MEASUREMENT, keys.FUSED, keys.EXPERT_PRIOR]
 _MODE_KEYS_OUT = [keys.MODE_LOGITS, keys.EXPERT_PROBS]
 
 
-def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None, per_axis: bool = False) -> dict:
-    """A classifier's carry before a track starts: the mode probabilities ``mu = 1/M`` ``[B, M]`` (per axis
-    ``[B, 3, M]``)."""
-    shape = (batch, AXES, n_experts) if per_axis else (batch, n_experts)
+def n_groups(modes: str) -> int | None:
+    """How many groups of mode probabilities ``modes`` keeps (``immnet.motion.MODE_GROUPS``), None for one joint set."""
+    groups = mode_groups(modes)
+    return None if groups is None else max(groups) + 1
+
+
+def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None, modes: str = "joint") -> dict:
+    """A classifier's carry before a track starts: the mode probabilities ``mu = 1/M`` ``[B, M]`` (per group,
+    ``modes``, ``[B, G, M]``)."""
+    G = n_groups(modes)
+    shape = (batch, n_experts) if G is None else (batch, G, n_experts)
     return {keys.EXPERT_PROBS: torch.full(shape, 1.0 / n_experts, dtype=dtype, device=device)}
 
 
@@ -92,20 +99,20 @@ class TransformerClassifier(Stage):
         layers: int = 2,
         ff: int = 64,
         interval_input: bool = False,
-        per_axis: bool = False,
+        modes: str = "joint",
     ):
         """``interval_input``: each token also reads its scan's interval, ``log(interval / dt)`` (a network
-        trained over a range of intervals, docs/immnet.md "Any scan interval"). ``per_axis``: modes per axis
-        (``IMMNet``'s, set there once): the head gives logits per axis and mode, ``[B, 3, M]``."""
+        trained over a range of intervals, docs/immnet.md "Any scan interval"). ``modes``: modes per group
+        (``IMMNet``'s, set there once): the head gives logits per group and mode, ``[B, G, M]``."""
         super().__init__(model_set)
         self.window, self.dt, self.interval_input = window, dt, bool(interval_input)
-        self.per_axis = bool(per_axis)
+        self.modes, self.groups = modes, n_groups(modes)
         self.embed = nn.Linear(6 + 12 + int(self.interval_input), d_model)
         self.pos = nn.Parameter(torch.randn(window, d_model) * 0.02)
         self.blocks = nn.ModuleList(_Block(d_model, heads, ff) for _ in range(layers))
         self.norm = nn.LayerNorm(d_model)
         M = self.n_experts
-        self.head = nn.Sequential(nn.Linear(d_model + 3 * M, 64), nn.GELU(), nn.Linear(64, AXES * M if per_axis else M))
+        self.head = nn.Sequential(nn.Linear(d_model + 3 * M, 64), nn.GELU(), nn.Linear(64, M * (self.groups or 1)))
 
 
     def interval_columns(self) -> dict[str, int]:
@@ -116,7 +123,7 @@ class TransformerClassifier(Stage):
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The mode probabilities (uniform) and an empty window."""
-        return uniform_probs(batch, self.n_experts, dtype, device, self.per_axis) | {
+        return uniform_probs(batch, self.n_experts, dtype, device, self.modes) | {
             keys.HISTORY: self.initial_history(batch, dtype=dtype, device=device),
             keys.HISTORY_LEN: torch.zeros(batch, dtype=torch.long, device=device),
             keys.HISTORY_INTERVAL: torch.full((batch, self.window), float(self.dt), dtype=dtype, device=device),
@@ -188,8 +195,8 @@ class TransformerClassifier(Stage):
         pooled = (h * w).sum(1) / w.sum(1).clamp_min(1.0)
         nu = rotate(innovation(z, td.get(keys.EXPERT_PRIOR).detach()), c, s)
         logits = self.head(torch.cat([pooled, slog(nu, 10.0).flatten(1)], -1))
-        if self.per_axis:
-            logits = logits.unflatten(-1, (AXES, self.n_experts))
+        if self.groups is not None:
+            logits = logits.unflatten(-1, (self.groups, self.n_experts))
         td.set(keys.MODE_LOGITS, logits)
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
         td.set(keys.HISTORY, hist)
@@ -231,7 +238,7 @@ class _MarkovPrior:
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The mode probabilities ``mu_{t-1}`` the prior predicts from (uniform), and what else the stage carries."""
-        probs = uniform_probs(batch, self.n_experts, dtype, device, self.per_axis)
+        probs = uniform_probs(batch, self.n_experts, dtype, device, self.modes)
         return super().carry_spec(batch, experts_alone, dtype, device) | probs
 
     def markov_prior(self, td, prev: torch.Tensor) -> torch.Tensor:
@@ -245,16 +252,16 @@ class UniformMix(Stage):
     in_keys = [keys.FUSED]
     out_keys = _MODE_KEYS_OUT
 
-    def __init__(self, model_set: ModelSet, dt: float = 1.0, per_axis: bool = False):
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, modes: str = "joint"):
         super().__init__(model_set)
-        self.per_axis = bool(per_axis)
+        self.modes, self.groups = modes, n_groups(modes)
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        return uniform_probs(batch, self.n_experts, dtype, device, self.per_axis)
+        return uniform_probs(batch, self.n_experts, dtype, device, self.modes)
 
     def forward(self, td):
         x = td.get(keys.FUSED)
-        logits = x.new_zeros(x.shape[0], *((AXES,) if self.per_axis else ()), self.n_experts)
+        logits = x.new_zeros(x.shape[0], *(() if self.groups is None else (self.groups,)), self.n_experts)
         td.set(keys.MODE_LOGITS, logits)
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
         return td
@@ -266,19 +273,20 @@ class BayesianModeUpdate(_MarkovPrior, Stage):
     ``mu_t^(i) ∝ N(nu_t^(i); 0, S^(i)) sum_j Pi_ji mu_{t-1}^(j)``, in log space; ``S^(i)`` is the
     expert's steady-state innovation covariance for ``sigma_q`` and ``r``, or, with
     ``from_experts``, the filter experts' own likelihoods (``("expert", "loglik")``, each with its
-    own ``S``: the IMM's mode update exactly). ``per_axis`` (``IMMNet``'s, set there once; with ``from_experts``):
-    modes per axis, each axis's update from the experts' likelihoods of its coordinate, ``[B, 3, M]``.
+    own ``S``: the IMM's mode update exactly). ``modes`` (``IMMNet``'s, set there once; with ``from_experts``):
+    modes per group, each group's update from the experts' likelihoods of its coordinates, ``[B, G, M]``.
     """
 
     in_keys = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_PROBS]
     out_keys = _MODE_KEYS_OUT
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0,
-                 from_experts: bool = False, per_axis: bool = False):
+                 from_experts: bool = False, modes: str = "joint"):
         super().__init__(model_set)
-        self.per_axis = bool(per_axis)
-        if self.per_axis and not from_experts:
-            raise ValueError("modes per axis (per_axis) need the filter experts' likelihoods per axis: from_experts=True")
+        self.modes = modes
+        if n_groups(modes) is not None and not from_experts:
+            raise ValueError(f"modes per group (modes={modes!r}) need the filter experts' likelihoods per group: "
+                             "from_experts=True")
         from immnet.stages.gain import steady_state
 
         M = self.n_experts
@@ -330,8 +338,8 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.995, window: int = 20,
                  d_model: int = 32, heads: int = 4, layers: int = 2, ff: int = 64, interval_input: bool = False,
-                 per_axis: bool = False):
-        super().__init__(model_set, dt, window, d_model, heads, layers, ff, interval_input, per_axis)
+                 modes: str = "joint"):
+        super().__init__(model_set, dt, window, d_model, heads, layers, ff, interval_input, modes)
         if not 0.0 < p_stay <= 1.0:
             raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
         self.p_stay = float(p_stay)

@@ -46,10 +46,10 @@ from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import mix, mixing_weights, onset_priors, transition_matrix
-from immnet.imm.kalman import inv3, small_matmul
+from immnet.imm.kalman import group_loglik, inv3, small_matmul
 from immnet.motion import (
-    ACC, AXES, AXIS_OF, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
-    ct_propagate, noise_gain,
+    ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
+    ct_propagate, measured_groups, mode_groups, noise_gain,
 )
 from immnet.stages.base import Stage, measured, per_expert, scan_interval, told_r
 from immnet.stages.features import slog
@@ -190,12 +190,14 @@ class FilterInteraction(Stage):
     out_keys = [keys.EXPERT_MIXED, keys.EXPERT_MIXED_COV]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995,
-                 guard=None, spec: DataSpec | dict | None = None, onset: bool = True):
+                 guard=None, spec: DataSpec | dict | None = None, onset: bool = True, modes: str = "joint"):
         """``onset``: the IMM's mix carries the onset priors into each expert (above); False: what enters from
-        another expert is that expert's posterior as it is (the textbook IMM's mix, the linear IMMs')."""
+        another expert is that expert's posterior as it is (the textbook IMM's mix, the linear IMMs'). ``modes``:
+        modes per group (``IMMNet``'s): each group's coordinates mixed with its own weights (``_mix_groups``)."""
         super().__init__(model_set)
         self.dt = dt
         self.onset = bool(onset)
+        self.groups = mode_groups(modes)
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction, self.p_stay = interaction, float(p_stay)
@@ -247,9 +249,9 @@ class FilterInteraction(Stage):
             share = share * (self.bound_sign != 0).to(share.dtype)
         # the transition the experts are mixed with is the one the mode update predicts with
         td.set(keys.MODE_TRANSITION, Pi if Pi.dim() == 3 else Pi.expand(mu.shape[0], *Pi.shape))
-        w = mixing_weights(mu, Pi if mu.dim() == 2 else Pi.unsqueeze(-3))  # mu_{i|j} [B, i, j] (per axis [B, 3, i, j])
-        if mu.dim() == 3:  # modes per axis (the guard is refused with them): each axis's IMM mixes its own block
-            return self._mix_per_axis(w, y, P)
+        w = mixing_weights(mu, Pi if mu.dim() == 2 else Pi.unsqueeze(-3))  # mu_{i|j} [B, i, j] (per group [B, G, i, j])
+        if mu.dim() == 3:  # modes per group (the guard is refused with them): each group's IMM mixes its own block
+            return self._mix_groups(w, y, P)
         bound = None
         if self.guard is not None:  # a turn entered (or re-entered) at a range bound has the bound's rate
             td.set(keys.GUARD_FRESH, fresh_share(w.detach(), speed_share))
@@ -257,15 +259,15 @@ class FilterInteraction(Stage):
             bound = (share, rate, (self.guard.rate_std_deg * math.pi / 180.0) ** 2, RATE)
         return mix(w, y, P, (self.mix_keep, self.mix_mean, self.mix_cov) if self.onset else None, bound)
 
-    def _mix_per_axis(self, w: torch.Tensor, y: torch.Tensor, P: torch.Tensor):
-        """The mix with modes per axis, weights ``w [B, 3, i, j]``: each axis's coordinates of ``[x, w]`` and its
-        block of the covariance from the mix with that axis's weights (``mix``), the blocks across axes 0."""
+    def _mix_groups(self, w: torch.Tensor, y: torch.Tensor, P: torch.Tensor):
+        """The mix with modes per group, weights ``w [B, G, i, j]``: each group's coordinates of ``[x, w]`` and its
+        block of the covariance from the mix with that group's weights (``mix``), the blocks across groups 0."""
         priors = (self.mix_keep, self.mix_mean, self.mix_cov) if self.onset else None
-        axis = torch.tensor(AXIS_OF, device=y.device)
+        group = torch.tensor(self.groups, device=y.device)
         x0, P0 = 0.0, 0.0
-        for a in range(AXES):
+        for a in range(w.shape[1]):
             xa, Pa = mix(w[:, a], y, P, priors)
-            on = (axis == a).to(y.dtype)
+            on = (group == a).to(y.dtype)
             x0 = x0 + on * xa
             P0 = P0 + (on[:, None] * on[None, :]) * Pa
         return x0, P0
@@ -380,7 +382,8 @@ class _FilterExperts:
 
     def interaction_stage(self, model_set: ModelSet, dt: float) -> FilterInteraction:
         """The interaction these experts need, with this gain's ``interaction``, ``p_stay`` and ``guard``."""
-        return FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset)
+        return FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset,
+                                 self.modes)
 
     def predict_stage(self, model_set: ModelSet, dt: float) -> FilterPredict:
         """The predict stage these experts need (``FilterPredict``)."""
@@ -388,12 +391,13 @@ class _FilterExperts:
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
-                     onset: bool = True, model_noise=None, start_acc_std: float | None = None, per_axis: bool = False):
+                     onset: bool = True, model_noise=None, start_acc_std: float | None = None, modes: str = "joint"):
         self.guard = _check_interaction(interaction, p_stay, guard)
-        self.per_axis = bool(per_axis)
-        if self.per_axis and self.guard is not None:
-            raise ValueError("modes per axis (per_axis) and the range guard do not go together: the guard's transition "
-                             "is one per track and expert, from the whole state")
+        self.modes, groups = modes, mode_groups(modes)
+        self.z_groups = None if groups is None else measured_groups(groups)  # each group's measured coordinates
+        if groups is not None and self.guard is not None:
+            raise ValueError(f"modes per group (modes={modes!r}) and the range guard do not go together: the guard's "
+                             "transition is one per track and expert, from the whole state")
         self.onset = bool(onset)
         if model_noise is not None:  # each motion model's own Q(sigma_q_i, dt), as the linear IMMs'
             sq = model_noise if isinstance(model_noise, (list, tuple)) else [model_noise] * len(model_set)
@@ -614,10 +618,8 @@ class _FilterExperts:
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
-        if self.per_axis:  # each axis's own likelihood N(nu_a; 0, S_aa), the marginal of its coordinate: [B, 3, M]
-            s = torch.diagonal(S, dim1=-2, dim2=-1)
-            loglik = -0.5 * (nu * nu / s + torch.log(s) + math.log(2.0 * math.pi))
-            loglik = torch.where(has_z, loglik, 0.0).transpose(1, 2)
+        if self.z_groups is not None:  # each group's own likelihood, the marginal of its coordinates: [B, G, M]
+            loglik = torch.where(has_z, group_loglik(nu, S, self.z_groups), 0.0).transpose(1, 2)
         else:
             loglik = -0.5 * (maha + torch.log(det) + 3.0 * math.log(2.0 * math.pi))
             loglik = torch.where(has_z[..., 0], loglik, 0.0)
@@ -664,17 +666,17 @@ class FilterGain(_FilterExperts, Stage):
         onset: bool = True,
         model_noise: float | list[float] | None = None,
         start_acc_std: float | None = None,
-        per_axis: bool = False,
+        modes: str = "joint",
     ):
         """``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
         model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
         the ``noise_std`` components; ``start_acc_std``: the start covariance's acceleration standard deviation on
-        every axis (None: the CA draw's). The three make the linear IMMs' filters (docs/core.md). ``per_axis``:
-        modes per axis (``IMMNet``'s, set there once): the experts' likelihood per axis, ``("expert", "loglik")``
-        ``[B, 3, M]``."""
+        every axis (None: the CA draw's). The three make the linear IMMs' filters (docs/core.md). ``modes``:
+        modes per group (``IMMNet``'s, set there once): the experts' likelihood per group (``group_loglik``),
+        ``("expert", "loglik")`` ``[B, G, M]``."""
         super().__init__(model_set)
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, per_axis)
+                          onset, model_noise, start_acc_std, modes)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -695,7 +697,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     slope lets the network reach without large weights); ``gain_scale`` bounds the learned
     correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
     measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by
-    default). ``onset``, ``model_noise``, ``start_acc_std``, ``per_axis``: as ``FilterGain``'s (with ``model_noise``
+    default). ``onset``, ``model_noise``, ``start_acc_std``, ``modes``: as ``FilterGain``'s (with ``model_noise``
     the network scales the motion models' own ``Q``, the first component, and the others are zero). Beside F1..F4,
     GRU_S reads the innovation whitened by the base noise's ``S`` (times the adaptive scale, where on)
     (``nu / sqrt(diag S)``, a maneuver detector's statistic).
@@ -733,7 +735,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         onset: bool = True,
         model_noise: float | list[float] | None = None,
         start_acc_std: float | None = None,
-        per_axis: bool = False,
+        modes: str = "joint",
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
@@ -750,7 +752,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.bias.zero_()
         del self.K_ss  # the base gain is the filter's own
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, per_axis)
+                          onset, model_noise, start_acc_std, modes)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def forward(self, td):

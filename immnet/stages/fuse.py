@@ -9,9 +9,9 @@ the IMM's combination),
 
 ``P^(i)`` the analytic gain's ``("expert", "cov")`` ``[B, M, 9, 9]``, or the 9x9 state block of a filter
 expert's posterior covariance of ``[x, w]``, ``("expert", "aug_cov")`` ``[B, M, 10, 10]``. The paper's
-KalmanNet experts (a gain only) carry none: then there is no fused covariance. With modes per axis
-(``mu [B, 3, M]``, ``IMMNet(per_axis=True)``) each coordinate is fused with its axis's probabilities and each axis's
-covariance block with them, the blocks across axes 0 (three independent IMMs).
+KalmanNet experts (a gain only) carry none: then there is no fused covariance. With modes per group
+(``mu [B, G, M]``, ``IMMNet(modes="axis" | "channel")``) each coordinate is fused with its group's probabilities and
+each group's covariance block with them, the blocks across groups 0 (independent IMMs, one per group).
 
 ``consistency`` (a weight ``a`` in (0, 1]; off by default) scales the covariance the tracker *reports* by a running
 mean of the normalized innovation squared: ``lambda_t = (1 - a) lambda_{t-1} + a min(sum_i mu^(i) NIS^(i) / 3, 10)``
@@ -32,31 +32,35 @@ from __future__ import annotations
 import torch
 
 from immnet import keys
-from immnet.motion import POS
-from immnet.stages.base import Stage, block_weights, coordinate_weights, measured
+from immnet.motion import POS, mode_groups
+from immnet.stages.base import Stage, axis_probs, block_weights, coordinate_weights, measured
 
 COV_KEYS = (keys.EXPERT_COV, keys.EXPERT_AUG_COV)
 """The experts' covariances ``Fuse`` fuses, first found first: the analytic gain's, the filter experts'."""
 
 
-def moment_match(mu: torch.Tensor, post: torch.Tensor, fused: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """``sum_i mu_i (P_i + d_i d_i^T)``, ``d_i = x_i - x``: weights ``mu [B, M]`` (or per axis ``[B, 3, M]``: each
-    axis's block with its axis's weights, 0 across axes, ``block_weights``), posteriors ``post [B, M, 9]``, their mean
-    ``fused [B, 9]``, covariances ``cov [B, M, 9, 9]``; in ``cov``'s dtype."""
+def moment_match(mu: torch.Tensor, post: torch.Tensor, fused: torch.Tensor, cov: torch.Tensor,
+                 groups: tuple[int, ...] | None = None) -> torch.Tensor:
+    """``sum_i mu_i (P_i + d_i d_i^T)``, ``d_i = x_i - x``: weights ``mu [B, M]`` (or per group ``[B, G, M]``,
+    ``groups`` the group of each coordinate: each group's block with its group's weights, 0 across groups,
+    ``block_weights``), posteriors ``post [B, M, 9]``, their mean ``fused [B, 9]``, covariances ``cov [B, M, 9, 9]``;
+    in ``cov``'s dtype."""
     d = (post - fused.unsqueeze(1)).to(cov.dtype)
     spread = cov + d.unsqueeze(-1) * d.unsqueeze(-2)
-    return (block_weights(mu.to(cov.dtype), cov.shape[-1]) * spread).sum(1)
+    return (block_weights(mu.to(cov.dtype), cov.shape[-1], groups) * spread).sum(1)
 
 
 class Fuse(Stage):
     in_keys = [keys.EXPERT_POST, keys.EXPERT_PROBS, keys.FUSED, keys.EXPERT_PRIOR, keys.MEASUREMENT]
     out_keys = [keys.FUSED, keys.PREV_FUSED, keys.PREV_EXPERT_PRIOR, keys.PREV_MEASUREMENT]
 
-    def __init__(self, model_set=None, per_expert: bool = False, cov=None, consistency: float | None = None):
+    def __init__(self, model_set=None, per_expert: bool = False, cov=None, consistency: float | None = None,
+                 modes: str = "joint"):
         """``cov``: the key of the experts' covariances to fuse (one of ``COV_KEYS``), or None (as ``wire`` finds).
         ``consistency``: the weight of each scan in the reported covariance's scale (module doc), or None (off);
-        not with ``per_expert`` (stage 1 reports no covariance)."""
+        not with ``per_expert`` (stage 1 reports no covariance). ``modes``: ``IMMNet``'s (module doc)."""
         super().__init__(model_set)
+        self.groups = mode_groups(modes)
         if consistency is not None:
             consistency = float(consistency)
             if not 0.0 < consistency <= 1.0:
@@ -123,13 +127,13 @@ class Fuse(Stage):
             cov = cov[..., :9, :9]
         if self.per_expert:
             return cov
-        return moment_match(td.get(keys.EXPERT_PROBS), td.get(keys.EXPERT_POST), fused, cov)
+        return moment_match(td.get(keys.EXPERT_PROBS), td.get(keys.EXPERT_POST), fused, cov, self.groups)
 
     def consistency_scale(self, scale: torch.Tensor, mu: torch.Tensor, nis: torch.Tensor, has_z: torch.Tensor):
         """The next scale of the reported covariance ``[B]`` (module doc) from the previous one ``[B]``, the mode
         probabilities ``mu [B, M]``, the experts' NIS ``[B, M]`` and whether this scan has a detection ``[B, 1]``.
         An estimator of the output, not a learned part: no gradient flows through it."""
-        mu = mu if mu.dim() == 2 else mu.mean(-2)  # modes per axis: the experts' mean weight over the axes
+        mu = mu if mu.dim() == 2 else axis_probs(mu, self.groups).mean(-2)  # per group: the mean over the axes
         seen = ((mu * nis).sum(-1) / 3.0).clamp(max=10.0).detach()
         a = self.consistency
         return torch.where(has_z.reshape(-1), (1.0 - a) * scale + a * seen, scale)
@@ -140,7 +144,7 @@ class Fuse(Stage):
             fused = post
         else:
             mu = td.get(keys.EXPERT_PROBS)
-            fused = (coordinate_weights(mu, post.shape[-1]) * post).sum(1)
+            fused = (coordinate_weights(mu, post.shape[-1], self.groups) * post).sum(1)
         fused_cov = self.covariance(td, fused)
         z = td.get(keys.MEASUREMENT)
         has_z = measured(z)

@@ -29,8 +29,8 @@ from tensordict.utils import unravel_key
 from immnet import keys
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
-from immnet.motion import ModelSet, axis_separable
-from immnet.stages.base import Stage, track_where
+from immnet.motion import MODE_GROUPS, ModelSet, fits_groups, mode_groups
+from immnet.stages.base import Stage, axis_probs, track_where
 from immnet.stages.fuse import Fuse
 from immnet.stages.predict import Predict
 from immnet.stages.start import JoinStarts, TrackStart
@@ -38,7 +38,7 @@ from immnet.stages.update import Update
 
 DEFAULT_GAIN = {"class_path": "immnet.stages.KalmanNetGain"}
 DEFAULT_CLASSIFIER = {"class_path": "immnet.stages.TransformerClassifier"}
-SET_ONCE = ("p_stay", "guard", "per_axis")
+SET_ONCE = ("p_stay", "guard", "modes")
 """Settings the interaction and the mode update must agree on: ``IMMNet``'s own arguments, handed to each
 component that takes them (docs/configs.md, "IMMNet's configuration")."""
 
@@ -71,6 +71,22 @@ def net_arguments(config: dict | None) -> dict:
         if not (inspect.isclass(cls) and issubclass(cls, IMMNet)):
             raise ValueError(f"net must be an immnet.stages.IMMNet, got class_path {config['class_path']!r}")
         config = dict(config.get("init_args") or {})
+    return _migrate(config)
+
+
+def _migrate(config: dict) -> dict:
+    """A configuration written before modes per group were one setting, in today's words: the network's ``per_axis:
+    true`` is ``modes: axis``, and its components' own ``per_axis`` (which the network set) is dropped; anything else
+    as it is. Checkpoints written then load as they were trained."""
+    config = dict(config)
+    if config.pop("per_axis", False):
+        if config.get("modes", "axis") != "axis":
+            raise ValueError(f"per_axis: true and modes: {config['modes']!r} disagree (per_axis is modes: axis)")
+        config["modes"] = "axis"
+    for role in ("gain", "classifier"):
+        part = config.get(role)
+        if isinstance(part, dict) and isinstance(part.get("init_args"), dict) and "per_axis" in part["init_args"]:
+            config[role] = {**part, "init_args": {k: v for k, v in part["init_args"].items() if k != "per_axis"}}
     return config
 
 
@@ -84,17 +100,18 @@ def build_component(component, model_set: ModelSet, dt: float, settings: dict) -
     return cls(model_set=model_set, dt=dt, **args)
 
 
-def _check_per_axis(model_set: ModelSet, gain, classifier) -> None:
-    """A ValueError where modes per axis cannot be: models that couple the axes (a turn), or a gain or classifier
-    that has no ``per_axis`` (the filter gains refuse the range guard with it themselves)."""
-    coupled = [m.name for m in model_set if m.state_dependent or not axis_separable(m.F(1.0))]
+def _check_modes(modes: str, model_set: ModelSet, gain, classifier) -> None:
+    """A ValueError where modes per group cannot be: models that couple the groups (per axis, a turn; per channel,
+    none of ours), or a gain or classifier that has no ``modes`` (the filter gains refuse the range guard with it
+    themselves)."""
+    coupled = [m.name for m in model_set if not fits_groups(m, MODE_GROUPS[modes])]
     if coupled:
-        raise ValueError(f"modes per axis (per_axis) need motion models that keep the axes apart (F block diagonal "
-                         f"per axis: CV, CA); {coupled} couple them")
+        raise ValueError(f"modes per {modes} need motion models that keep the groups apart (F block diagonal per "
+                         f"group, a turn's rate with the plane it turns in); {coupled} couple them")
     for role, component in (("gain", gain), ("classifier", classifier)):
         config = component_config(component)
-        if "per_axis" not in inspect.signature(import_class(config["class_path"])).parameters:
-            raise ValueError(f"modes per axis (per_axis): the {role} {config['class_path']} has none (filter experts, "
+        if "modes" not in inspect.signature(import_class(config["class_path"])).parameters:
+            raise ValueError(f"modes per {modes}: the {role} {config['class_path']} has none (filter experts, "
                              "immnet.stages.filtering, and the Bayesian or Transformer mode updates have)")
 
 
@@ -146,7 +163,7 @@ class IMMNet(TensorDictModuleBase):
         interval_range: tuple[float, float] | None = None,
         cov_consistency: float | None = None,
         start_detections: int = 2,
-        per_axis: bool = False,
+        modes: str = "joint",
     ):
         """``gain``, ``classifier``: the components (``Component``: a ``class_path`` / ``init_args`` mapping);
         ``p_stay``, ``guard``: the Markov chain's staying probability and the range guard, set here once for
@@ -161,10 +178,12 @@ class IMMNet(TensorDictModuleBase):
         ``start_detections``: a track starts from two detections (position, then the differenced velocity: IMMNet's)
         or from one (its position with the gain's start covariance, the step running from the next scan: the linear
         IMMs' start, docs/spec.md section 3; ``immnet.stages.start``).
-        ``per_axis``: modes per axis (the decoupled IMM's structure, docs/core.md "Modes per axis"): each Cartesian
-        axis has its own mode probabilities ``("mode", "probs")`` ``[B, 3, M]``, its own mix, mode update and
-        fusion, over experts whose motion models keep the axes apart (CV, CA: ``F`` block diagonal per axis); the
-        gain and the classifier are told it (filter experts' likelihoods per axis, a classifier's logits per axis)."""
+        ``modes``: one set of mode probabilities for the whole state (``"joint"``, the IMM's) or one per group of
+        coordinates (docs/core.md "Modes per group", ``immnet.motion.MODE_GROUPS``): ``"axis"``, each Cartesian axis
+        (the decoupled IMM's structure), ``"channel"``, the horizontal plane and the vertical. Each group has its own
+        mode probabilities ``("mode", "probs")`` ``[B, G, M]``, its own mix, mode update and fusion, over experts
+        whose motion models keep the groups apart (per axis CV and CA; per channel turns too); the gain and the
+        classifier are told it (filter experts' likelihoods per group, a classifier's logits per group)."""
         super().__init__()
         self.model_set = ModelSet.from_config(model_set)
         self.model_set_config = self.model_set.to_config()
@@ -176,14 +195,14 @@ class IMMNet(TensorDictModuleBase):
             interval_range = (lo, hi)
         self.interval_range = interval_range
         ms = self.model_set
-        settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None} | {"per_axis": bool(per_axis)}
-        if per_axis:
-            _check_per_axis(ms, gain or DEFAULT_GAIN, classifier or DEFAULT_CLASSIFIER)
+        settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None} | {"modes": modes}
+        if mode_groups(modes) is not None:
+            _check_modes(modes, ms, gain or DEFAULT_GAIN, classifier or DEFAULT_CLASSIFIER)
         gain, classifier = component_config(gain or DEFAULT_GAIN), component_config(classifier or DEFAULT_CLASSIFIER)
         self.config = {  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
             "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt,
-            **{k: v for k, v in settings.items() if k != "per_axis" or v}}
-        self.per_axis = bool(per_axis)
+            **{k: v for k, v in settings.items() if k != "modes" or v != "joint"}}
+        self.modes, self.groups = modes, mode_groups(modes)
         if interval_range is not None:
             self.config["interval_range"] = list(interval_range)
         if cov_consistency is not None:
@@ -200,7 +219,7 @@ class IMMNet(TensorDictModuleBase):
         self.predict = getattr(self.gain, "predict_stage", Predict)(ms, dt)
         update = getattr(self.gain, "update_stage", None)
         self.update = update(ms, dt) if update is not None else Update(ms)
-        self.fuse = Fuse(ms, consistency=cov_consistency)
+        self.fuse = Fuse(ms, consistency=cov_consistency, modes=modes)
         first = () if self.interact is None else (self.interact,)
         # the step and the experts-alone step run the stages above between a track start's two stages; they are
         # not submodules of their own, so a state dict names each weight once, by the stage's role
@@ -316,10 +335,10 @@ class IMMNet(TensorDictModuleBase):
         return cov if scale is None else cov * scale.to(cov.dtype)[..., None, None]
 
     def to_mode_probs(self, expert_probs: torch.Tensor) -> torch.Tensor:
-        """Expert probabilities ``[..., M]`` summed per data mode ``[..., 4]``; with modes per axis
-        (``[..., 3, M]``) the mean over the axes of each axis's (a data mode is the whole target's)."""
+        """Expert probabilities ``[..., M]`` summed per data mode ``[..., 4]``; with modes per group
+        (``[..., G, M]``) the mean over the Cartesian axes of each axis's group's (a data mode is the whole target's)."""
         probs = expert_probs @ self.mode_onehot.to(expert_probs.dtype)
-        return probs.mean(-2) if self.per_axis else probs
+        return probs if self.groups is None else axis_probs(probs, self.groups).mean(-2)
 
     # --- the carry ------------------------------------------------------------------------
     def _steps(self, experts_alone: bool):
