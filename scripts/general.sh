@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The general IMMNet, from nothing to its tables (docs/general.md), on a 2-core CPU in about 90 minutes (training
+# The general IMMNet, from nothing to its tables (docs/immnet.md "The general model"), on a 2-core CPU in about 90 minutes (training
 # about 40 of them):
 #   set up -> data: 3D-LAST over U[0.5, 12] s scans (training) and test sets at 1 s, 5 s, U[4.5, 5.5] s and
 #   U[0.5, 12] s (seed 99); real flights of collections/quickstart split by flight at 1 s and U[4.5, 5.5] s, every

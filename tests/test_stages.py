@@ -332,6 +332,36 @@ def test_a_checkpoint_without_the_interval_input_starts_a_network_that_reads_it(
         Stage2Module(net=other, init_checkpoint=str(path))
 
 
+def test_a_checkpoint_with_joint_modes_starts_a_network_with_modes_per_channel():
+    """Widening (``widen_for_groups``): the shipped general network (one set of modes; trained in float32, its
+    float64 buffers stored so rounded, which fine-tuning accepts) loaded into the same network with modes per channel
+    gets its Transformer head's last layer once per channel, so that each channel starts with
+    the joint correction of the mode update; every other weight loads as it is."""
+    path = REPO_ROOT / "immnet/pretrained/immnet-general.ckpt"
+    net = copy.deepcopy(load_checkpoint(path)["hyper_parameters"]["net"])
+    base = Stage2Module(net=net, init_checkpoint=str(path)).net
+    wide = Stage2Module(net=net | {"modes": "channel"}, init_checkpoint=str(path)).net
+    rows = wide.group_rows()
+    assert set(rows.values()) == {2} and {k.split(".", 1)[1] for k in rows} == {"head.2.weight", "head.2.bias"}
+    own, joint = wide.state_dict(), base.state_dict()
+    for name in own:
+        if name in rows:
+            assert torch.equal(own[name], torch.cat([joint[name]] * 2))
+        else:
+            assert torch.equal(own[name], joint[name]), name
+    x = torch.randn(5, base.classify.head[0].in_features)
+    with torch.no_grad():
+        logits = wide.classify.head(x).unflatten(-1, (2, base.n_experts))
+        torch.testing.assert_close(logits, base.classify.head(x).unsqueeze(1).expand(-1, 2, -1), rtol=0, atol=0)
+        z = generate(2, seed=1, spec=DataSpec(T=25, min_segment=5))[keys.MEASUREMENTS].float()
+        out, _ = wide.rollout(z)
+    assert out[keys.ROLLOUT_EXPERT_PROBS].shape == (2, 25, 2, 4) and torch.isfinite(out[keys.STATE][:, 1:]).all()
+    other = copy.deepcopy(net)  # a setting that builds another stored buffer (the filters' noise) is still refused
+    other["gain"]["init_args"]["noise_std"] = [0.3, 0.2, 0.01, 0.002, 1e-05]
+    with pytest.raises(ValueError, match=r"other settings than `net` gives: its buffers \['gain.Q_parts'\]"):
+        Stage2Module(net=other, init_checkpoint=str(path))
+
+
 def test_the_interaction_is_a_stage_slot_and_a_state_dict_names_each_weight_once():
     """Filter experts mix in a stage of their own, first in the step (``FilterInteraction``, with the gain's
     interaction, p_stay and guard); the steps are not submodules, so the state dict holds each weight once, under

@@ -118,6 +118,11 @@ class TransformerClassifier(Stage):
     def interval_columns(self) -> dict[str, int]:
         """The weights that read the interval input and its column (each token's last feature)."""
         return {"embed.weight": 6 + 12} if self.interval_input else {}
+
+    def group_rows(self) -> dict[str, int]:
+        """The weights whose rows are one block per group of modes (the head's last layer: ``G M`` logits) and the
+        number of groups; none with one joint set of modes."""
+        return {} if self.groups is None else {"head.2.weight": self.groups, "head.2.bias": self.groups}
     def initial_history(self, batch: int, dtype=torch.float32, device=None):
         return torch.zeros(batch, self.window, 12, dtype=dtype, device=device)
 

@@ -309,6 +309,13 @@ class IMMNet(TensorDictModuleBase):
             reads.update({id(stage.get_parameter(k)): c for k, c in getattr(stage, "interval_columns", dict)().items()})
         return {name: reads[id(p)] for name, p in self.named_parameters(remove_duplicate=False) if id(p) in reads}
 
+    def group_rows(self) -> dict[str, int]:
+        """The weights whose rows are one block per group of modes (``modes``: a classifier's logits per group) and
+        the number of groups: a checkpoint with one joint set of modes loads into each block
+        (``Stage2Module.load_net``)."""
+        reads = {id(self.classify.get_parameter(k)): g for k, g in getattr(self.classify, "group_rows", dict)().items()}
+        return {name: reads[id(p)] for name, p in self.named_parameters(remove_duplicate=False) if id(p) in reads}
+
     @property
     def n_experts(self) -> int:
         return len(self.model_set)

@@ -211,6 +211,29 @@ def widen_for_interval(weights: dict, own: dict, columns: dict[str, int]) -> dic
     return out
 
 
+def _same_setting(own: torch.Tensor, stored: torch.Tensor) -> bool:
+    """Whether a buffer built from ``net``'s settings is the one a checkpoint stores: equal in the file's precision,
+    and for floating-point buffers in float32 (a network trained in float32 stores its float64 buffers rounded so)."""
+    if torch.equal(own.to(stored.dtype), stored):
+        return True
+    return own.is_floating_point() and stored.is_floating_point() and torch.equal(own.float(), stored.float())
+
+
+def widen_for_groups(weights: dict, own: dict, rows: dict[str, int]) -> dict:
+    """``weights`` of a network with one joint set of modes, for one with modes per group: each weight in ``rows``
+    (name -> the number of groups ``G``) that has ``1 / G`` of the rows gets them once per group. Each group then
+    starts with the joint network's correction of the mode update; the other weights are returned as they are."""
+    out = dict(weights)
+    for name, groups in rows.items():
+        w, target = out.get(name), own.get(name)
+        if w is None or target is None or w.shape == target.shape:
+            continue
+        if w.shape[1:] != target.shape[1:] or w.shape[0] * groups != target.shape[0]:
+            continue  # not one block per group: load_state_dict names the mismatch
+        out[name] = w.repeat(groups, *([1] * (w.dim() - 1)))
+    return out
+
+
 class Stage2Module(_TrackerModule):
     """Stage 2: IMMNet end to end, ``gamma * MSE + (1 - gamma) * CE [+ expert_weight * own-mode MSE]``.
 
@@ -275,7 +298,8 @@ class Stage2Module(_TrackerModule):
     def load_net(self, path: str):
         """Start from every weight of a trained IMMNet (same model set and architecture). A checkpoint trained
         without the interval input starts a network that reads it: its weights fill the other columns and the
-        interval's column starts at zero (``widen_for_interval``)."""
+        interval's column starts at zero (``widen_for_interval``); one with one joint set of modes starts a network
+        with modes per group, each group's logits from the joint ones (``widen_for_groups``)."""
         _, net = read_checkpoint(path)
         if not net:
             raise ValueError(f"{path} holds no IMMNet weights (net.*)")
@@ -284,11 +308,12 @@ class Stage2Module(_TrackerModule):
         kept = self.net.state_dict()  # the persistent buffers: what a checkpoint stores
         own = {k: b.clone() for k, b in self.net.named_buffers() if k in kept}
         net = widen_for_interval(net, kept, self.net.interval_columns())
+        net = widen_for_groups(net, kept, self.net.group_rows())
         try:
             self.net.load_state_dict(net)
         except RuntimeError as err:
             raise ValueError(f"checkpoint {path} does not match this IMMNet: {err}") from None
-        differ = [k for k in sorted(own.keys() & net.keys()) if not torch.equal(own[k].to(net[k].dtype), net[k])]  # in the file's precision
+        differ = [k for k in sorted(own.keys() & net.keys()) if not _same_setting(own[k], net[k])]
         if differ:
             raise ValueError(f"checkpoint {path} was trained with other settings than `net` gives: its buffers {differ} differ "
                              "(set net's settings to the checkpoint's)")
