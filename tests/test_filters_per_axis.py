@@ -189,6 +189,7 @@ def test_channel_imm_equals_two_filterpy_imms(scans):
     tracker = IMMTracker(ms, "data", sigma_q, p_stay, modes="channel", return_experts=True)
     out = tracker.track(data)
     assert out[keys.EXPERT_PROBS].shape == (2, 120, 2, 4) and out[keys.MODE_PROBS].shape == (2, 120, 4)
+    assert out[keys.EXPERT_POST].shape == (2, 120, 4, 9)
     for b in range(2):
         ref, mu = _filterpy_per_channel(ms, sigma_q, p_stay, data, b)
         np.testing.assert_allclose(out[keys.STATE][b].numpy(), ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())

@@ -255,5 +255,5 @@ class IMMTracker(Method):
         probs = out[keys.ROLLOUT_EXPERT_PROBS]
         extra = {keys.MODE_PROBS: net.to_mode_probs(probs), keys.STATE_COV: out[keys.STATE_COV] if self.return_cov else None}
         if self.return_experts:
-            extra[keys.EXPERT_PROBS] = probs
+            extra[keys.EXPERT_POST], extra[keys.EXPERT_PROBS] = out[keys.ROLLOUT_EXPERT_POST], probs
         return output(out[keys.STATE], extra, measurements=z)

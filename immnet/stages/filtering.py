@@ -197,7 +197,10 @@ class FilterInteraction(Stage):
         super().__init__(model_set)
         self.dt = dt
         self.onset = bool(onset)
-        self.groups = mode_groups(modes)
+        groups = mode_groups(modes)
+        if groups is not None:  # each group's coordinates of [x, w], one row per group [G, 10]
+            on = torch.tensor(groups)[None, :] == torch.arange(max(groups) + 1)[:, None]
+            self.register_buffer("group_masks", on.to(torch.float64), persistent=False)
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction, self.p_stay = interaction, float(p_stay)
@@ -263,11 +266,10 @@ class FilterInteraction(Stage):
         """The mix with modes per group, weights ``w [B, G, i, j]``: each group's coordinates of ``[x, w]`` and its
         block of the covariance from the mix with that group's weights (``mix``), the blocks across groups 0."""
         priors = (self.mix_keep, self.mix_mean, self.mix_cov) if self.onset else None
-        group = torch.tensor(self.groups, device=y.device)
         x0, P0 = 0.0, 0.0
         for a in range(w.shape[1]):
             xa, Pa = mix(w[:, a], y, P, priors)
-            on = (group == a).to(y.dtype)
+            on = self.group_masks[a].to(y.dtype)
             x0 = x0 + on * xa
             P0 = P0 + (on[:, None] * on[None, :]) * Pa
         return x0, P0
