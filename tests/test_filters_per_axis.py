@@ -1,7 +1,8 @@
 """Filters for real motion (docs/baselines.md, "Filters for real flights"): continuous white-noise process
 noise (white acceleration, white jerk) against its closed form, a vertical share of it, filters told each
-track's r, and the decoupled IMM (one IMM per axis, ``immnet.filters.per_axis``) against FilterPy's
-``IMMEstimator`` run per axis at irregular intervals with missed detections."""
+track's r, the decoupled IMM (one IMM per axis, ``immnet.filters.per_axis``) and the IMM per channel
+(``IMMTracker(modes="channel")``) against FilterPy's ``IMMEstimator`` run per group at irregular intervals with
+missed detections."""
 
 import numpy as np
 import pytest
@@ -59,90 +60,23 @@ def test_a_filter_told_r_uses_each_tracks_own_r():
         KalmanFilterTracker(model, "told", 0.5)
 
 
-def _filterpy_per_axis(ms: ModelSet, sigma_q, p_stay, batch: TensorDict, b: int) -> np.ndarray:
-    """One FilterPy ``IMMEstimator`` per axis over 3-state Kalman filters fed each scan's per-axis F and Q; a
-    missed scan keeps the priors and the predicted mode probabilities (mu = cbar)."""
+PER_AXIS = [([0, 1, 2], [0]), ([3, 4, 5], [1]), ([6, 7, 8], [2])]  # (its states, its measured coordinates) per group
+PER_CHANNEL = [([0, 1, 2, 3, 4, 5], [0, 1]), ([6, 7, 8], [2])]  # the horizontal plane (x, y), the vertical (z)
+
+
+def _filterpy_per_group(ms: ModelSet, sigma_q, p_stay, batch: TensorDict, b: int, groups):
+    """One FilterPy ``IMMEstimator`` per group of ``groups`` (its states of the 9-D state and the coordinates it
+    measures) for track ``b``, each over Kalman filters fed each scan's blocks of the models' F and Q; a missed scan
+    keeps the priors and the predicted mode probabilities (mu = cbar). Returns the states ``[T, 9]`` and each group's
+    mode probabilities ``[T, G, M]``."""
     z, r = batch[keys.MEASUREMENTS][b].numpy(), float(batch[keys.R][b])
     dt = scan_intervals(batch)[b]
     x0, P0 = initial_state(batch[keys.MEASUREMENTS][b : b + 1], r)
     M = len(ms)
     Pi = np.full((M, M), (1 - p_stay) / (M - 1))
     np.fill_diagonal(Pi, p_stay)
-    out = np.zeros((len(z), 9))
-    for a in range(3):
-        sl = slice(3 * a, 3 * a + 3)
-        kfs = []
-        for _ in range(M):
-            kf = KalmanFilter(3, 1)
-            kf.x, kf.P = x0[0, sl].numpy().copy(), P0[0, sl, sl].numpy().copy()
-            kf.H, kf.R = np.array([[1.0, 0.0, 0.0]]), np.array([[r * r]])
-            kfs.append(kf)
-        imm = IMMEstimator(kfs, np.full(M, 1.0 / M), Pi)
-        out[0, sl] = x0[0, sl].numpy()
-        for t in range(1, len(z)):
-            d = float(dt[t])
-            for j, kf in enumerate(kfs):
-                kf.F = ms[j].F(d).numpy()[sl, sl]
-                kf.Q = ms[j].Q(sigma_q[j], d).numpy()[sl, sl]
-            imm.predict()
-            if np.isnan(z[t, a]):
-                for kf in kfs:
-                    kf.x, kf.P = kf.x_prior.copy(), kf.P_prior.copy()
-                imm.mu = imm.cbar.copy()
-                imm._compute_mixing_probabilities()
-                imm._compute_state_estimate()
-            else:
-                imm.update(np.array([z[t, a]]))
-            out[t, sl] = imm.x.ravel()
-    return out
-
-
-@pytest.mark.parametrize("scans", list(SCANS), ids=list(SCANS))
-def test_per_axis_imm_equals_filterpy_per_axis(scans):
-    """The decoupled IMM (CV white acceleration + CA white jerk, a vertical share, told r) at irregular scans
-    with missed detections and a gap equals three FilterPy IMMs, one per axis (1e-9)."""
-    data = _irregular(*SCANS[scans], seed=4, B=2, T=120)
-    ms = ModelSet([ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous", vertical=0.3)])
-    sigma_q, p_stay = [0.2, 1.1], 0.97
-    out = PerAxisIMMTracker(ms, "data", sigma_q, p_stay).track(data)
-    assert out[keys.EXPERT_PROBS].shape == (2, 120, 3, 2)
-    for b in range(2):
-        ref = _filterpy_per_axis(ms, sigma_q, p_stay, data, b)
-        keep = ~_waiting(data[keys.MEASUREMENTS][b].numpy())
-        np.testing.assert_allclose(out[keys.STATE][b][keep].numpy(), ref[keep], rtol=1e-9, atol=1e-9 * np.abs(ref).max())
-
-
-def test_per_axis_imm_of_one_model_is_the_kalman_filter():
-    """With one model the decoupled IMM is the 9-D Kalman filter of a block-diagonal model (r isotropic)."""
-    data = _irregular(*SCANS["0.5-6 s"], seed=5)
-    model = ConstantAcceleration(noise="continuous", vertical=0.2)
-    one = PerAxisIMMTracker(ModelSet([model]), 3.0, 0.8).track(data)[keys.STATE]
-    kf = KalmanFilterTracker(model, 3.0, 0.8).track(data)[keys.STATE]
-    torch.testing.assert_close(one, kf, rtol=1e-9, atol=1e-7, equal_nan=True)
-    assert measurement_matrix().shape == (3, 9)
-
-
-def test_per_axis_imm_refuses_a_turn():
-    with pytest.raises(ValueError, match="couple the axes"):
-        PerAxisIMMTracker(ModelSet([ConstantVelocity(), CoordinatedTurn(3.0)]), 4.0, 1.0)
-
-
-H_PLANE = [0, 1, 2, 3, 4, 5]  # the horizontal channel's coordinates of the 9-D state (x, y); the vertical's: z
-V_LINE = [6, 7, 8]
-
-
-def _filterpy_per_channel(ms: ModelSet, sigma_q, p_stay, batch: TensorDict, b: int):
-    """Two FilterPy ``IMMEstimator``s per track, the horizontal plane (6 states, x and y measured) and the vertical
-    (3 states), each over the models' blocks of F and Q fed per scan; a missed scan keeps the priors and the
-    predicted mode probabilities. Returns the states ``[T, 9]`` and each channel's mode probabilities ``[T, 2, M]``."""
-    z, r = batch[keys.MEASUREMENTS][b].numpy(), float(batch[keys.R][b])
-    dt = scan_intervals(batch)[b]
-    x0, P0 = initial_state(batch[keys.MEASUREMENTS][b : b + 1], r)
-    M = len(ms)
-    Pi = np.full((M, M), (1 - p_stay) / (M - 1))
-    np.fill_diagonal(Pi, p_stay)
-    out, mu = np.zeros((len(z), 9)), np.zeros((len(z), 2, M))
-    for c, (idx, cols) in enumerate(((H_PLANE, [0, 1]), (V_LINE, [2]))):
+    out, mu = np.zeros((len(z), 9)), np.zeros((len(z), len(groups), M))
+    for c, (idx, cols) in enumerate(groups):
         n, m = len(idx), len(cols)
         kfs = []
         for _ in range(M):
@@ -174,6 +108,37 @@ def _filterpy_per_channel(ms: ModelSet, sigma_q, p_stay, batch: TensorDict, b: i
 
 
 @pytest.mark.parametrize("scans", list(SCANS), ids=list(SCANS))
+def test_per_axis_imm_equals_filterpy_per_axis(scans):
+    """The decoupled IMM (CV white acceleration + CA white jerk, a vertical share, told r) at irregular scans
+    with missed detections and a gap equals three FilterPy IMMs, one per axis (1e-9)."""
+    data = _irregular(*SCANS[scans], seed=4, B=2, T=120)
+    ms = ModelSet([ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous", vertical=0.3)])
+    sigma_q, p_stay = [0.2, 1.1], 0.97
+    out = PerAxisIMMTracker(ms, "data", sigma_q, p_stay).track(data)
+    assert out[keys.EXPERT_PROBS].shape == (2, 120, 3, 2)
+    for b in range(2):
+        ref, mu = _filterpy_per_group(ms, sigma_q, p_stay, data, b, PER_AXIS)
+        keep = ~_waiting(data[keys.MEASUREMENTS][b].numpy())
+        np.testing.assert_allclose(out[keys.STATE][b][keep].numpy(), ref[keep], rtol=1e-9, atol=1e-9 * np.abs(ref).max())
+        np.testing.assert_allclose(out[keys.EXPERT_PROBS][b][keep].numpy(), mu[keep], rtol=0, atol=1e-7)
+
+
+def test_per_axis_imm_of_one_model_is_the_kalman_filter():
+    """With one model the decoupled IMM is the 9-D Kalman filter of a block-diagonal model (r isotropic)."""
+    data = _irregular(*SCANS["0.5-6 s"], seed=5)
+    model = ConstantAcceleration(noise="continuous", vertical=0.2)
+    one = PerAxisIMMTracker(ModelSet([model]), 3.0, 0.8).track(data)[keys.STATE]
+    kf = KalmanFilterTracker(model, 3.0, 0.8).track(data)[keys.STATE]
+    torch.testing.assert_close(one, kf, rtol=1e-9, atol=1e-7, equal_nan=True)
+    assert measurement_matrix().shape == (3, 9)
+
+
+def test_per_axis_imm_refuses_a_turn():
+    with pytest.raises(ValueError, match="couple the axes"):
+        PerAxisIMMTracker(ModelSet([ConstantVelocity(), CoordinatedTurn(3.0)]), 4.0, 1.0)
+
+
+@pytest.mark.parametrize("scans", list(SCANS), ids=list(SCANS))
 def test_channel_imm_equals_two_filterpy_imms(scans):
     """Modes per channel (``IMMTracker(modes="channel")``, IMMNet's step with nothing learned): CV, CA and two
     coordinated turns (which couple x and y, not z), the horizontal plane and the vertical each with mode
@@ -191,7 +156,7 @@ def test_channel_imm_equals_two_filterpy_imms(scans):
     assert out[keys.EXPERT_PROBS].shape == (2, 120, 2, 4) and out[keys.MODE_PROBS].shape == (2, 120, 4)
     assert out[keys.EXPERT_POST].shape == (2, 120, 4, 9)
     for b in range(2):
-        ref, mu = _filterpy_per_channel(ms, sigma_q, p_stay, data, b)
+        ref, mu = _filterpy_per_group(ms, sigma_q, p_stay, data, b, PER_CHANNEL)
         np.testing.assert_allclose(out[keys.STATE][b].numpy(), ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
         np.testing.assert_allclose(out[keys.EXPERT_PROBS][b].numpy(), mu, rtol=0, atol=1e-7)
     # the joint IMM of the same models is another tracker; per axis refuses the turns, per channel takes them
