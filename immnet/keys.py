@@ -55,7 +55,7 @@ EXPERT_POST = ("expert", "post")  # x_{t|t}^(i) [B, M, 9]
 EXPERT_HIDDEN = ("expert", "hidden")  # recurrent states of the gain networks
 EXPERT_COV = ("expert", "cov")  # P^(i) for the analytic gain [B, M, 9, 9]
 EXPERT_RATE = ("expert", "rate")  # a filter expert's own turn rate w^(i) [B, M] (rad/s)
-EXPERT_LOGLIK = ("expert", "loglik")  # a filter expert's log N(nu; 0, S) [B, M] (modes per axis: [B, 3, M])
+EXPERT_LOGLIK = ("expert", "loglik")  # a filter expert's log N(nu; 0, S) [B, M] (modes per group: [B, G, M])
 EXPERT_NIS = ("expert", "nis")  # and its normalized innovation squared nu^T S^-1 nu [B, M] (0 where no detection)
 EXPERT_RATE_GAIN = ("expert", "rate_gain")  # its gain row for w [B, M, 3]
 EXPERT_MIXED = ("expert", "mixed")  # a filter expert's input point [x~, w~] from the interaction [B, M, 10]
@@ -68,7 +68,7 @@ NOISE_COUNT = ("memory", "r2_count")  # and the number of terms [B]
 Q_SCALE = ("memory", "q_log_scale")  # adaptive process noise: log lambda per track [B] (immnet.imm.adaptive)
 Z_HISTORY = ("memory", "z_history")  # z_{t-1}, z_{t-2}, z_{t-3} [B, 3, 3] (NaN = none)
 INTERVAL_HISTORY = ("memory", "interval_history")  # the intervals z_{t-2} -> z_{t-1}, z_{t-3} -> z_{t-2} [B, 2] (s)
-MODE_LOGITS = ("mode", "logits")  # [B, M] (modes per axis: [B, 3, M])
+MODE_LOGITS = ("mode", "logits")  # [B, M] (modes per group: [B, G, M])
 MODE_TRANSITION = ("mode", "transition")  # a guarded interaction's transition matrix Pi[b, from, to] [B, M, M]
 GUARD_FRESH = ("expert", "speed_fresh")  # a guarded interaction: prior share of each expert entered at a speed bound [B, M]
 EXPERT_PROBS = ("mode", "probs")  # mu_t [B, M] (modes per group: [B, G, M], IMMNet(modes=...))

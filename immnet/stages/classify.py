@@ -212,7 +212,7 @@ class TransformerClassifier(Stage):
 
 def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, transition: torch.Tensor | None = None) -> torch.Tensor:
     """The IMM's predicted mode log-probabilities ``log (Pi^T mu_{t-1})`` ``[B, M]`` from ``mu_{t-1} [B, M]`` (modes
-    per axis: ``[B, 3, M]`` from ``[B, 3, M]``, each axis's chain the same).
+    per group: ``[B, G, M]`` from ``[B, G, M]``, each group's chain the same).
 
     The transition the step's IMM interaction mixed with, ``transition [B, M, M]`` (``("mode", "transition")``;
     per track where a range guard, ``immnet.imm.guard``, makes it state-dependent), is used instead of
