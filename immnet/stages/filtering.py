@@ -198,9 +198,10 @@ class FilterInteraction(Stage):
         self.dt = dt
         self.onset = bool(onset)
         groups = mode_groups(modes)
-        if groups is not None:  # each group's coordinates of [x, w], one row per group [G, 10]
-            on = torch.tensor(groups)[None, :] == torch.arange(max(groups) + 1)[:, None]
-            self.register_buffer("group_masks", on.to(torch.float64), persistent=False)
+        self.n_groups = 0 if groups is None else max(groups) + 1
+        for a in range(self.n_groups):  # each group's coordinates of [x, w]
+            self.register_buffer(f"group_{a}", torch.tensor([i for i, g in enumerate(groups) if g == a]),
+                                 persistent=False)
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction, self.p_stay = interaction, float(p_stay)
@@ -264,14 +265,17 @@ class FilterInteraction(Stage):
 
     def _mix_groups(self, w: torch.Tensor, y: torch.Tensor, P: torch.Tensor):
         """The mix with modes per group, weights ``w [B, G, i, j]``: each group's coordinates of ``[x, w]`` and its
-        block of the covariance from the mix with that group's weights (``mix``), the blocks across groups 0."""
-        priors = (self.mix_keep, self.mix_mean, self.mix_cov) if self.onset else None
-        x0, P0 = 0.0, 0.0
-        for a in range(w.shape[1]):
-            xa, Pa = mix(w[:, a], y, P, priors)
-            on = self.group_masks[a].to(y.dtype)
-            x0 = x0 + on * xa
-            P0 = P0 + (on[:, None] * on[None, :]) * Pa
+        block of the covariance from the mix of those coordinates with that group's weights (``mix``, which treats
+        each coordinate and each entry apart: the block of the whole mix), the blocks across groups 0."""
+        x0, P0 = torch.zeros_like(y), torch.zeros_like(P)
+        for a in range(self.n_groups):
+            idx = self.get_buffer(f"group_{a}")
+            priors = None
+            if self.onset:
+                priors = (self.mix_keep[:, idx], self.mix_mean[:, idx], self.mix_cov[:, idx[:, None], idx])
+            xa, Pa = mix(w[:, a], y[..., idx], P[..., idx[:, None], idx], priors)
+            x0[..., idx] = xa
+            P0[..., idx[:, None], idx] = Pa
         return x0, P0
 
     def forward(self, td):

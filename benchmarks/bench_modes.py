@@ -1,0 +1,73 @@
+"""What modes per group cost: IMMNet's streaming step with one set of modes, per axis and per channel.
+
+Run:  OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_modes.py [--steps 40] [--batches 1,64,1024]
+It prints a table and rewrites the ``## Modes per group`` section of BENCHMARKS.md (other sections are kept).
+Each row is one model-based IMM of the registry as IMMNet with nothing learned (``IMMTracker.network()``,
+float32, eager; docs/core.md "Modes per group"), the same network with ``modes`` changed and nothing else:
+``real-imm``'s four models (CV, CA, two turns) joint and per channel, ``real-imm-axis``'s two (CV, CA) joint, per
+channel and per axis. Per group the interaction runs the IMM's mix once per group (``FilterInteraction._mix_groups``)
+and the fusion weighs each coordinate with its group's probabilities; the rest of the step is the same.
+Inference as ``benchmarks/bench_immnet.py`` times it: ``IMMNet.scan`` over tracks that have started, the median of
+three passes of ``--steps`` scans; the rows take turns over ``--rounds`` rounds and each reports its median round, so
+that a shared machine's load falls on every row alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import statistics
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_immnet import inference  # noqa: E402
+from common import machine, write_section  # noqa: E402
+
+from immnet.evaluation.methods import build_method  # noqa: E402
+from immnet.filters.trackers import _linear_network  # noqa: E402
+
+ROWS = [("real-imm", "joint"), ("real-imm", "channel"), ("real-imm-axis", "joint"), ("real-imm-axis", "channel"),
+        ("real-imm-axis", "axis")]
+
+
+def network(name: str, modes: str):
+    """The registry method ``name``'s IMMNet with nothing learned, with ``modes``, in float32 (r fixed at 4 m: the
+    step's cost does not depend on it)."""
+    m = build_method(name)
+    return _linear_network(name, m.model_set, m.sigma_q, 4.0, m._p_stay, 1.0, torch.float32, modes)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--steps", type=int, default=40, help="scans timed per run")
+    p.add_argument("--batches", type=lambda v: tuple(int(b) for b in v.split(",")), default=(1, 64, 1024))
+    p.add_argument("--rounds", type=int, default=3, help="rounds the rows take turns over (each row its median)")
+    p.add_argument("--out", type=Path, default=None, help="BENCHMARKS.md to rewrite (default: the repository's)")
+    a = p.parse_args()
+    nets = [network(name, modes) for name, modes in ROWS]
+    rates = {(i, B): [] for i in range(len(ROWS)) for B in a.batches}
+    for r in range(a.rounds):
+        for i, net in enumerate(nets):
+            for B in a.batches:
+                rates[i, B].append(inference(net, B, a.steps, net.scan))
+        print(f"round {r + 1} of {a.rounds} done", file=sys.stderr, flush=True)
+    head = "| IMM (nothing learned) | models | modes | " + " | ".join(f"batch {b}" for b in a.batches) + " |"
+    lines = [head, "|" + "---|" * (3 + len(a.batches))]
+    for i, ((name, modes), net) in enumerate(zip(ROWS, nets)):
+        cells = [f"{statistics.median(rates[i, B]):,.0f}" for B in a.batches]
+        lines.append(f"| `{name}` | {net.n_experts} | {modes} | " + " | ".join(cells) + " |")
+        print(lines[-1], flush=True)
+    cmd = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_modes.py" + "".join(
+        f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
+    text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). Track-steps/s of IMMNet's streaming step, "
+            "eager, float32, each network the registry IMM's with nothing learned and only `modes` changed "
+            f"(docs/core.md \"Modes per group\"); the median of {a.rounds} rounds taken in turns:\n\n" + "\n".join(lines))
+    write_section("Modes per group", text, *([a.out] if a.out else []))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
