@@ -26,7 +26,7 @@ from immnet.filters.imm import initial_state
 from immnet.filters.trackers import _interval_or_intervals, _linear_network, assumed_r, filter_settings, variance
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
-from immnet.motion import AXES, ModelSet, axis_separable
+from immnet.motion import AXES, AXIS_OF, ModelSet, coupling
 
 
 def axis_blocks(A: torch.Tensor) -> torch.Tensor:
@@ -54,7 +54,7 @@ class PerAxisIMMTracker(Method):
                  dtype="float64", name: str = "imm-axis", return_cov: bool = False):
         self.model_set = ModelSet.from_config(model_set)
         M = len(self.model_set)
-        moving = [m.name for m in self.model_set if m.state_dependent or not axis_separable(m.F(1.0))]
+        moving = coupling(self.model_set, AXIS_OF)
         if moving:
             raise ValueError(f"a per-axis IMM needs models whose F is block diagonal per axis; {moving} couple the axes")
         self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)

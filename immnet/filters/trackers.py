@@ -25,7 +25,7 @@ from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interva
 from immnet.filters.imm import imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
-from immnet.motion import ModelSet, MotionModel, fits_groups, instantiate, mode_groups
+from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
 
 
 def _positive(name: str, value, allow_zero: bool = True) -> None:
@@ -175,7 +175,8 @@ class IMMTracker(Method):
     ):
         self.model_set = ModelSet.from_config(model_set)
         self.modes, groups = modes, mode_groups(modes)
-        if groups is not None and (coupled := [m.name for m in self.model_set if not fits_groups(m, groups)]):
+        self._step_net = None  # the network a grouped IMM tracks with (_track_by_step)
+        if groups is not None and (coupled := coupling(self.model_set, groups)):
             raise ValueError(f"{name}: modes per {modes} need models whose F is block diagonal per group; "
                              f"{coupled} couple the groups")
         M = len(self.model_set)
@@ -247,7 +248,9 @@ class IMMTracker(Method):
         """``track`` of an IMM with modes per group: its ``network()`` over the batch, each track's ``r`` told where
         ``r: data``, each scan's interval where they are not all 1 s."""
         z = batch[keys.MEASUREMENTS].to(self.dtype)
-        net = self.network().to(z.device)
+        if self._step_net is None:  # built once: each batch of an evaluation runs the same network
+            self._step_net = self.network()
+        net = self._step_net.to(z.device)
         intervals = net.intervals_for(batch)
         r = assumed_r(self.r, batch, self.dtype, z.device) if self.r == TOLD else None
         out, _ = net.rollout(z, intervals=None if intervals is None else intervals.to(self.dtype), r=r,

@@ -65,6 +65,17 @@ def mode_groups(modes: str) -> tuple[int, ...] | None:
     return MODE_GROUPS.get(modes)
 
 
+def n_groups(modes: str) -> int | None:
+    """How many groups of mode probabilities ``modes`` keeps, None for one joint set."""
+    groups = mode_groups(modes)
+    return None if groups is None else max(groups) + 1
+
+
+def group_members(groups: tuple[int, ...]) -> list[list[int]]:
+    """The coordinates of ``[x, w]`` in each group, by group: per channel ``[[0, 1, 2, 3, 4, 5, 9], [6, 7, 8]]``."""
+    return [[i for i, g in enumerate(groups) if g == a] for a in range(max(groups) + 1)]
+
+
 def measured_groups(groups: tuple[int, ...]) -> list[list[int]]:
     """The measured coordinates (x, y, z: the positions, ``POS``) of each group, by group: ``[[0], [1], [2]]``
     per axis, ``[[0, 1], [2]]`` per channel."""
@@ -101,10 +112,10 @@ def fits_groups(model, groups: tuple[int, ...]) -> bool:
     return not model.state_dependent or groups[POS[0]] == groups[POS[1]] == groups[RATE]
 
 
-def axis_separable(F: torch.Tensor) -> bool:
-    """Whether ``F [..., 9, 9]`` keeps the Cartesian axes apart (no entry outside its per-axis ``[l, v, a]`` blocks:
-    CV, CA; a coordinated turn couples x and y), so that an IMM per axis filters it exactly."""
-    return groups_separate(F, AXIS_OF)
+def coupling(models, groups: tuple[int, ...]) -> list[str]:
+    """The names of the motion models (a ``ModelSet``, or any iterable of ``MotionModel``) that an IMM with modes per
+    ``groups`` cannot filter exactly (``fits_groups``): per axis a turn; per channel none of ours."""
+    return [m.name for m in models if not fits_groups(m, groups)]
 
 
 def _dt(dt, dtype, device) -> torch.Tensor:

@@ -29,7 +29,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import unravel_key
 
 from immnet import keys
-from immnet.motion import POS, ModelSet
+from immnet.motion import ModelSet
 
 KEY_NAMES = {
     name.lower(): unravel_key(value)
@@ -161,30 +161,37 @@ def told_r(td) -> torch.Tensor:
     return r
 
 
-def coordinate_weights(mu: torch.Tensor, n: int, groups: tuple[int, ...] | None = None) -> torch.Tensor:
+def group_ids(groups, like: torch.Tensor) -> torch.Tensor:
+    """The group of each coordinate (``immnet.motion.MODE_GROUPS``) as a tensor on ``like``'s device: a stage's buffer
+    as it is (no copy on the step's hot path), a tuple made one."""
+    return torch.as_tensor(groups, device=like.device)
+
+
+def coordinate_weights(mu: torch.Tensor, n: int, groups=None) -> torch.Tensor:
     """The weight of each expert on each of ``n`` state coordinates: mode probabilities ``mu [B, M]`` as
     ``[B, M, 1]``, or modes per group ``mu [B, G, M]`` as ``[B, M, n]`` (each coordinate its group's, ``groups``:
-    ``immnet.motion.MODE_GROUPS``)."""
+    ``immnet.motion.MODE_GROUPS``, a tuple or a tensor)."""
     if mu.dim() == 2:
         return mu.unsqueeze(-1)
-    return mu[:, list(groups[:n]), :].transpose(1, 2)
+    return mu.index_select(1, group_ids(groups, mu)[:n]).transpose(1, 2)
 
 
-def block_weights(mu: torch.Tensor, n: int, groups: tuple[int, ...] | None = None) -> torch.Tensor:
+def block_weights(mu: torch.Tensor, n: int, groups=None) -> torch.Tensor:
     """The weight of each expert on each entry of an ``n x n`` covariance: ``[B, M, 1, 1]`` for ``mu [B, M]``; for
     modes per group ``mu [B, G, M]``, ``[B, M, n, n]`` with each group's block its group's probability and 0 across
     groups (the groups' IMMs are independent: their cross-covariances are not kept)."""
     if mu.dim() == 2:
         return mu[..., None, None]
-    g = torch.tensor(groups[:n], device=mu.device)
+    g = group_ids(groups, mu)[:n]
     same = (g[:, None] == g[None, :]).to(mu.dtype)
     return coordinate_weights(mu, n, groups).unsqueeze(-1) * same
 
 
-def axis_probs(mu: torch.Tensor, groups: tuple[int, ...]) -> torch.Tensor:
+def axis_probs(mu: torch.Tensor, groups) -> torch.Tensor:
     """Modes per group ``mu [..., G, M]`` as each Cartesian axis's, ``[..., 3, M]`` (an axis's are its position's
-    group's): what the data modes and the reported covariance's scale average over, so that an axis counts once."""
-    return mu[..., [groups[p] for p in POS], :]
+    group's; ``groups`` a tuple or a tensor): what the data modes and the reported covariance's scale average over,
+    so that an axis counts once."""
+    return mu.index_select(-2, group_ids(groups, mu)[0:7:3])  # the positions' (POS)
 
 
 def measured(z: torch.Tensor) -> torch.Tensor:

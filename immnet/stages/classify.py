@@ -23,19 +23,13 @@ from torch import nn
 
 from immnet import keys
 from immnet.imm.interaction import transition_matrix
-from immnet.motion import ModelSet, mode_groups
+from immnet.motion import ModelSet, n_groups
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.update import innovation
 
 _MODE_KEYS_IN = [keys.MEASUREMENT, keys.FUSED, keys.EXPERT_PRIOR]
 _MODE_KEYS_OUT = [keys.MODE_LOGITS, keys.EXPERT_PROBS]
-
-
-def n_groups(modes: str) -> int | None:
-    """How many groups of mode probabilities ``modes`` keeps (``immnet.motion.MODE_GROUPS``), None for one joint set."""
-    groups = mode_groups(modes)
-    return None if groups is None else max(groups) + 1
 
 
 def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None, modes: str = "joint") -> dict:

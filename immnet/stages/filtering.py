@@ -49,7 +49,7 @@ from immnet.imm.interaction import mix, mixing_weights, onset_priors, transition
 from immnet.imm.kalman import group_loglik, inv3, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
-    ct_propagate, measured_groups, mode_groups, noise_gain,
+    ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
 )
 from immnet.stages.base import Stage, measured, per_expert, scan_interval, told_r
 from immnet.stages.features import slog
@@ -198,10 +198,10 @@ class FilterInteraction(Stage):
         self.dt = dt
         self.onset = bool(onset)
         groups = mode_groups(modes)
-        self.n_groups = 0 if groups is None else max(groups) + 1
-        for a in range(self.n_groups):  # each group's coordinates of [x, w]
-            self.register_buffer(f"group_{a}", torch.tensor([i for i, g in enumerate(groups) if g == a]),
-                                 persistent=False)
+        members = [] if groups is None else group_members(groups)
+        self.n_groups = len(members)
+        for a, coords in enumerate(members):  # each group's coordinates of [x, w]
+            self.register_buffer(f"group_{a}", torch.tensor(coords), persistent=False)
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.interaction, self.p_stay = interaction, float(p_stay)

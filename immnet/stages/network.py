@@ -29,7 +29,7 @@ from tensordict.utils import unravel_key
 from immnet import keys
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
-from immnet.motion import MODE_GROUPS, ModelSet, fits_groups, mode_groups
+from immnet.motion import MODE_GROUPS, ModelSet, coupling, mode_groups
 from immnet.stages.base import Stage, axis_probs, track_where
 from immnet.stages.fuse import Fuse
 from immnet.stages.predict import Predict
@@ -104,7 +104,7 @@ def _check_modes(modes: str, model_set: ModelSet, gain, classifier) -> None:
     """A ValueError where modes per group cannot be: models that couple the groups (per axis, a turn; per channel,
     none of ours), or a gain or classifier that has no ``modes`` (the filter gains refuse the range guard with it
     themselves)."""
-    coupled = [m.name for m in model_set if not fits_groups(m, MODE_GROUPS[modes])]
+    coupled = coupling(model_set, MODE_GROUPS[modes])
     if coupled:
         raise ValueError(f"modes per {modes} need motion models that keep the groups apart (F block diagonal per "
                          f"group, a turn's rate with the plane it turns in); {coupled} couple them")
@@ -304,16 +304,20 @@ class IMMNet(TensorDictModuleBase):
     def interval_columns(self) -> dict[str, int]:
         """The weights that read the interval input (``log(interval / dt)``) and the input column it takes: a
         checkpoint without that input loads into the other columns (``Stage2Module.load_net``)."""
-        reads = {}  # the parameters themselves: the state dict names each under every path that reaches it
-        for stage in (self.gain, self.classify):
-            reads.update({id(stage.get_parameter(k)): c for k, c in getattr(stage, "interval_columns", dict)().items()})
-        return {name: reads[id(p)] for name, p in self.named_parameters(remove_duplicate=False) if id(p) in reads}
+        return self._weights_named("interval_columns")
 
     def group_rows(self) -> dict[str, int]:
         """The weights whose rows are one block per group of modes (``modes``: a classifier's logits per group) and
         the number of groups: a checkpoint with one joint set of modes loads into each block
         (``Stage2Module.load_net``)."""
-        reads = {id(self.classify.get_parameter(k)): g for k, g in getattr(self.classify, "group_rows", dict)().items()}
+        return self._weights_named("group_rows")
+
+    def _weights_named(self, method: str) -> dict:
+        """What the gain's and the classifier's ``method()`` say of their weights (stage-level name -> value), under
+        every name this network's state dict gives those weights (each under every path that reaches it)."""
+        reads = {}  # the parameters themselves
+        for stage in (self.gain, self.classify):
+            reads.update({id(stage.get_parameter(k)): v for k, v in getattr(stage, method, dict)().items()})
         return {name: reads[id(p)] for name, p in self.named_parameters(remove_duplicate=False) if id(p) in reads}
 
     @property
