@@ -455,19 +455,20 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
     without onset priors, a start from the first detection and the Bayesian mode update; both against the
     core's scan loop (``imm_filter(general=True)``), to FilterPy's criterion (1e-9 of the state's scale; the mode
     update's exponential makes float64 rounding of the two covariance forms, Joseph's and the standard one,
-    reach 1e-7 m where r is 1 m, as between the core's two formulations). Missed detections inside the tracks;
-    the real-flight IMMs (continuous white noise, a vertical factor per model) are told each track's r."""
+    reach 1e-7 m where r is 1 m, as between the core's two formulations). Missed detections inside the tracks and a
+    track first detected at scan 3 (each starts there, nothing reported before); the real-flight IMMs (continuous white noise, a vertical factor per model) are told each track's r."""
     import yaml
 
     from immnet.config import resolve_path
     from immnet.evaluation.methods import build_method
     from immnet.filters.base import data_mode_probs
-    from immnet.filters.imm import imm_filter, initial_state
+    from immnet.filters.imm import first_detection, imm_filter, initial_state
 
     args = yaml.safe_load(resolve_path(f"configs/methods/{method}.yaml").read_text())["init_args"]
     data = generate(12, seed=8, spec=DataSpec(T=150, min_segment=40))
     data[keys.MEASUREMENTS][3, 40:45] = float("nan")
     data[keys.MEASUREMENTS][5, 1] = float("nan")  # a missed detection right after the start
+    data[keys.MEASUREMENTS][7, :3] = float("nan")  # a track first detected at scan 3
     z = data[keys.MEASUREMENTS].double()
     tracker = build_method(method)
     net = tracker.network()
@@ -483,13 +484,17 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
         Pi, mu0 = torch.ones(1, 1, dtype=torch.float64), torch.ones(1, dtype=torch.float64)
     x0, P0 = initial_state(z, r)
     R = r * r if told else torch.tensor(r * r, dtype=torch.float64)
-    core, probs, _ = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, general=True)
+    core, probs, _ = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, general=True, start=first_detection(z))
     ours = tracker.track(data)
     scale = core.abs().amax((1, 2), keepdim=True)  # each track's
+    seen = ~torch.isnan(z[..., :1])  # from each track's first detection on
+    seen = seen.cumsum(1) > 0
+    assert torch.equal(torch.isnan(ours[keys.STATE]), ~seen.expand_as(core))  # nothing before the first detection
     for states in (out[keys.STATE], ours[keys.STATE]):
-        assert ((states - core).abs() <= 1e-9 * scale).all()
-    torch.testing.assert_close(data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], net.model_set.modes),
-                               data_mode_probs(probs, net.model_set.modes), rtol=0, atol=1e-6)
+        assert ((states - core).abs() <= 1e-9 * scale)[seen.expand_as(states)].all()
+    seen_probs = seen[..., 0]
+    torch.testing.assert_close(data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], net.model_set.modes)[seen_probs],
+                               data_mode_probs(probs, net.model_set.modes)[seen_probs], rtol=0, atol=1e-6)
     if told:  # without the step's input r the told filter gain says what it needs
         with pytest.raises(ValueError, match="r='data'"):
             net.rollout(z[:, :3])
@@ -502,7 +507,8 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
         got = method.track(data)[keys.STATE]
         with torch.no_grad():
             ref, _ = net.rollout(z.float(), r=r.float())
-        torch.testing.assert_close(got, ref[keys.STATE].double(), rtol=0, atol=0)
+        torch.testing.assert_close(got[seen_probs], ref[keys.STATE].double()[seen_probs], rtol=0, atol=0)
+        assert torch.isnan(got[~seen_probs]).all()
 
 
 def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
@@ -518,6 +524,9 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
     data = generate(12, seed=8, spec=DataSpec(T=150, min_segment=40))
     data[keys.MEASUREMENTS][3, 40:45] = float("nan")
     data[keys.MEASUREMENTS][5, 1] = float("nan")  # a missed detection right after the start
+    data[keys.MEASUREMENTS][7, :3] = float("nan")  # a track first detected at scan 3
+    seen = torch.ones(12, 150, dtype=torch.bool)
+    seen[7, :3] = False
     gen = torch.Generator().manual_seed(3)
     t = torch.cat([torch.zeros(12, 1), (4.5 + torch.rand(12, 149, generator=gen)).cumsum(1)], 1).double()
     slow = data.clone()
@@ -535,12 +544,13 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
         with torch.no_grad():
             out, _ = net.rollout(z, r=r, intervals=None if intervals is None else intervals.double(), return_cov=True)
         ref = tracker.track(batch)
-        scale = ref[keys.STATE].abs().amax((1, 2), keepdim=True)
-        assert ((out[keys.STATE] - ref[keys.STATE]).abs() <= 1e-9 * scale).all()
+        scale = ref[keys.STATE].nan_to_num().abs().amax((1, 2), keepdim=True)
+        assert torch.equal(torch.isnan(ref[keys.STATE][..., 0]), ~seen)  # nothing before the first detection
+        assert ((out[keys.STATE] - ref[keys.STATE]).abs() <= 1e-9 * scale)[seen].all()
         assert out[keys.ROLLOUT_EXPERT_PROBS].shape == ref[keys.EXPERT_PROBS].shape == (12, 150, 3, 2)
-        torch.testing.assert_close(out[keys.ROLLOUT_EXPERT_PROBS], ref[keys.EXPERT_PROBS], rtol=0, atol=1e-6)
+        torch.testing.assert_close(out[keys.ROLLOUT_EXPERT_PROBS][seen], ref[keys.EXPERT_PROBS][seen], rtol=0, atol=1e-6)
         cov = out[keys.STATE_COV]
-        torch.testing.assert_close(cov, ref[keys.STATE_COV], rtol=1e-6, atol=1e-9)
+        torch.testing.assert_close(cov[seen], ref[keys.STATE_COV][seen], rtol=1e-6, atol=1e-9)
         assert (cov[..., 0:3, 3:9] == 0).all() and (cov[..., 3:6, 6:9] == 0).all()
         outs.append(out)
     # one mode for the whole state is another tracker: the axes' modes are what the configuration changes

@@ -22,9 +22,9 @@ sets its variance to that of the draw (``DataSpec.ca_acc_var``): horizontal magn
 ``a ~ U[lo, hi]`` m/s^2 at a uniform direction gives ``E[a_x^2] = E[a^2] / 2 = (hi^3 - lo^3) / (3 (hi - lo)) / 2``
 per horizontal axis (3D-LAST's ``U[0.5, 3]``: 1.7917); vertical ``U[-v, v]`` gives ``v^2 / 3`` (0.03).
 
-It starts like every other method: from the first measurement (``initial_state`` with the true r),
-except that where the first segment is CA it gives the acceleration the draw's variance above; no
-estimate (NaN) before a track's first detection.
+It starts like every other method: from the first detection, at its scan (``initial_state`` with the true r,
+``first_detection``), except that where the track is in a CA segment there it gives the acceleration the draw's
+variance above; no estimate (NaN) before a track's first detection.
 
 ``SwitchClairvoyantKF`` is told less: the true mode sequence (so when a switch happens) and r, not
 the turn rates. It runs an extended Kalman filter of ``[x, w]``: at every turn onset, and wherever
@@ -32,6 +32,10 @@ the turn rate changes within a turn (a soft-bound turn), ``w`` restarts from the
 ``|w| ~ U[turn_rate_min_deg, turn_rate_max_deg]`` in the mode's sign (``DataSpec.turn_rate_prior_deg``; 3D-LAST's
 ``U[1, 10]`` deg/s: mean 5.5, standard deviation 2.6), and is estimated from the measurements. It is a
 tighter reference than the bound for what a tracker that detected every switch at once could reach.
+
+Both are configurations of the core's scan loop (``immnet.imm.runner.run``) with the truth's modes as its oracle:
+the bound over CV, CA and CT at the true rate, ``SwitchClairvoyantKF`` over extended Kalman filters of CV, CA, CT+
+and CT- with the interaction's onset priors and a ``restart`` where a turn's rate changes within it.
 """
 
 from __future__ import annotations
@@ -43,11 +47,11 @@ from immnet import keys
 from immnet.data.spec import DataSpec
 from immnet.data.times import scan_intervals
 from immnet.filters.base import Method, as_dtype, fixed_interval, output
-from immnet.filters.imm import initial_state
+from immnet.filters.imm import first_detection, initial_state
 from immnet.imm.interaction import enter, onset_priors
-from immnet.imm.kalman import predict, update
+from immnet.imm.kalman import predict
 from immnet.imm.runner import run
-from immnet.motion import CA, CT_POS, CV, ca_matrix, ct_jacobian, ct_matrix, ct_propagate, cv_matrix, process_noise
+from immnet.motion import CA, CT_POS, ca_matrix, ct_jacobian, ct_matrix, ct_propagate, cv_matrix, process_noise
 
 
 class ClairvoyantKF(Method):
@@ -123,7 +127,9 @@ class ClairvoyantKF(Method):
         dtype, dev = z.dtype, z.device
         B, T, _ = z.shape
         x, P = initial_state(z, r)
-        P[mode[:, 0] == CA, 2::3, 2::3] = self._acc_cov(z)  # the generator writes the first CA segment's draw into x_0
+        start = first_detection(z)
+        at_start = mode.gather(1, start.to(mode.device)[:, None])[:, 0]
+        P[at_start == CA, 2::3, 2::3] = self._acc_cov(z)  # the CA segment's draw (the generator writes the first into x_0)
         onset = onset_priors([False, True, False], [False] * 3, [0.0] * 3, n=9, acc_var=self.acc_var)
 
         def matrices(d):
@@ -141,7 +147,7 @@ class ClairvoyantKF(Method):
 
         one = torch.full((3, 3), 1.0 / 3.0, dtype=dtype, device=dev)
         states, _, _ = run(z, x[:, None].expand(B, 3, 9), P[:, None].expand(B, 3, 9, 9), one[0].expand(B, 3), one,
-                           transition, r**2, onset=onset, oracle=mode.clamp(max=CT_POS))
+                           transition, r**2, onset=onset, oracle=mode.clamp(max=CT_POS), start=start)
         return output(states, measurements=z)
 
 
@@ -163,52 +169,51 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         self.turn_prior_deg = self.spec.turn_rate_prior_deg() if self.fixed_turn_prior is None else self.fixed_turn_prior
 
     def track(self, batch: TensorDict) -> TensorDict:
+        """The core's scan loop (``immnet.imm.runner.run``) over extended Kalman filters of ``[x, w]`` for CV, CA,
+        CT+ and CT- whose modes are the truth's (``oracle``): each scan predicts with the true mode's filter from
+        the previous true mode's posterior, entering it with its onset prior where the mode switched (a CA
+        segment's new acceleration, a turn's rate from the prior in its sign); where the rate changes within a
+        turn, the turn filter enters from itself with that prior (``restart``)."""
         z, mode, rate, r, interval = self._inputs(batch)
         dtype, dev = z.dtype, z.device
-        B, T, _ = z.shape
+        B = z.shape[0]
         H = torch.eye(10, dtype=dtype, device=dev)[0:9:3]  # the positions of [x, w]
 
         def matrices(d):
-            """``F_CV``, ``F_CA`` and ``Q`` of ``[x, w]`` over an interval ``d`` (``[10, 10]``; ``[B, 10, 10]`` for ``d [B]``)."""
+            """``F_CV``, ``F_CA`` and ``Q`` of ``[x, w]`` over an interval ``d`` (``[10, 10]``; ``[B, 10, 10]`` for ``d [B]``),
+            ``w`` dropped (a turn filter's own rate enters with its onset prior)."""
             lead = () if isinstance(d, float) else (B,)
             Fcv, Fca, Q = (torch.zeros(*lead, 10, 10, dtype=dtype, device=dev) for _ in range(3))
             Fcv[..., :9, :9], Fca[..., :9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
             Q[..., :9, :9] = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
-            return Fcv, Fca, Q
+            return Fcv.expand(B, 10, 10), Fca.expand(B, 10, 10), Q if Q.dim() == 2 else Q[:, None]
 
         fixed = matrices(interval(0)) if isinstance(interval(0), float) else None  # one interval: built once
-        # what a track's filter becomes where the truth switches into CA (a new acceleration) or into a turn, or
-        # changes its rate within one (a new rate, in the mode's sign): the onset priors of the filters CV, CA, CT+, CT-
-        prior = onset_priors([False, True, False, False], [False, False, True, True], [0.0, 0.0, 1.0, -1.0], n=10,
-                             acc_var=self.acc_var, rate_prior_deg=self.turn_prior_deg)
-        keep, mean, cov = (v.to(device=dev) for v in prior)
-        x9, P9 = initial_state(z, r)
-        x = torch.cat([x9, torch.zeros(B, 1, dtype=dtype, device=dev)], -1)
-        P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
-        P[:, :9, :9] = P9
-        P[mode[:, 0] == CA, 2::3, 2::3] = self._acc_cov(z)
-        R = r**2
-        states = z.new_empty(B, T, 9)
-        states[:, 0] = x[:, :9]
-        for t in range(T):
-            m = mode[:, t]
-            turn = m >= CT_POS
-            switch = turn & ((m != mode[:, t - 1]) | (rate[:, t] != rate[:, t - 1])) if t else turn
-            if t:
-                switch = switch | ((m == CA) & (mode[:, t - 1] != CA))
-            if switch.any():
-                xe, Pe = enter(x, P, keep[m], mean[m], cov[m])
-                x, P = torch.where(switch[:, None], xe, x), torch.where(switch[:, None, None], Pe, P)
-            if t == 0:
-                continue
+
+        def transition(t, x0, P0):
+            """The filters' predictions ``[B, 4, 10]``: CV and CA linear, each turn at its own rate (its Jacobian)."""
             d = interval(t)
             Fcv, Fca, Q = fixed if fixed is not None else matrices(d)
-            w = x[:, 9]
-            J = torch.where((m == CV)[:, None, None], Fcv, Fca).expand(B, 10, 10)
-            J = torch.where(turn[:, None, None], ct_jacobian(x[:, :9], w, d), J)
-            prior = (J @ x.unsqueeze(-1)).squeeze(-1)
-            x = torch.where(turn[:, None], torch.cat([ct_propagate(x[:, :9], w, d), w[:, None]], -1), prior)
-            P = J @ P @ J.transpose(-1, -2) + Q
-            x, P, _ = update(x, P, z[:, t], H, R)  # a missed detection: the prior stands
-            states[:, t] = x[:, :9]
-        return output(states, measurements=z)
+            dd = d if isinstance(d, float) else d[:, None]
+            turns, w = x0[:, 2:, :9], x0[:, 2:, 9]
+            J = torch.cat([torch.stack([Fcv, Fca], 1), ct_jacobian(turns, w, dd)], 1)
+            xp, Pp = predict(x0, P0, J, Q)
+            return torch.cat([xp[:, :2], torch.cat([ct_propagate(turns, w, dd), w[..., None]], -1)], 1), Pp
+
+        # what a filter becomes where the truth switches into it (a new acceleration into CA, a rate into a turn,
+        # in the mode's sign), and where a turn's rate changes within it: the onset priors of CV, CA, CT+, CT-
+        onset = onset_priors([False, True, False, False], [False, False, True, True], [0.0, 0.0, 1.0, -1.0], n=10,
+                             acc_var=self.acc_var, rate_prior_deg=self.turn_prior_deg)
+        keep, mean, cov = (v.to(dtype=dtype, device=dev) for v in onset)
+        x9, P9 = initial_state(z, r)
+        x = torch.cat([x9, x9.new_zeros(B, 1)], -1)
+        P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
+        P[:, :9, :9] = P9
+        x, P = enter(x[:, None], P[:, None], keep, mean, cov)  # each filter as the track starts in its mode
+        m = mode
+        restart = torch.zeros_like(m, dtype=torch.bool)
+        restart[:, 1:] = (m[:, 1:] >= CT_POS) & (m[:, 1:] == m[:, :-1]) & (rate[:, 1:] != rate[:, :-1])
+        one = torch.full((4, 4), 0.25, dtype=dtype, device=dev)
+        states, _, _ = run(z, x, P, one[0].expand(B, 4), one, transition, r**2, onset=onset, oracle=m, H=H,
+                           restart=restart, start=first_detection(z))
+        return output(states[..., :9], measurements=z)

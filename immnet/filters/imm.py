@@ -22,12 +22,18 @@ from __future__ import annotations
 import torch
 
 from immnet.imm.kalman import _as_cov
-from immnet.imm.runner import linear_transition, run
+from immnet.imm.runner import late_starts, linear_transition, run
 
 VEL_STD = 300.0
 """Initial velocity standard deviation (m/s), every axis: covers the 340 m/s speed bound."""
 ACC_STD = 10.0
 """Initial acceleration standard deviation (m/s^2), every axis."""
+
+
+def first_detection(z: torch.Tensor) -> torch.Tensor:
+    """The scan of each track's first detection ``[B]`` (long; 0 for a track with none) of ``z [B, T, 3]``."""
+    finite = ~torch.isnan(z).any(-1)  # [B, T]
+    return torch.where(finite.any(-1), finite.long().argmax(-1), torch.zeros_like(finite[:, 0], dtype=torch.long))
 
 
 def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float = ACC_STD):
@@ -36,11 +42,11 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     ``z [B, T, 3]``; ``r`` the filter's assumed measurement standard deviation (scalar or ``[B]``).
     ``x0 = [z0x, 0, 0, z0y, 0, 0, z0z, 0, 0]`` and ``P0 = diag(r^2, vel_std^2, acc_std^2)`` per axis.
     A track whose first measurement is missing starts at its first detected position (zeros if it
-    has none); the methods output NaN until that detection (``immnet.filters.base.output``), so the
-    state carried over the scans before it stays finite but is never reported.
+    has none), at the scan of that detection (``first_detection``; give it to ``imm_filter``/``runner.run`` as
+    ``start``, so that the filters hold this state until then and never filter that detection a second time); the
+    methods output NaN until that detection (``immnet.filters.base.output``).
     """
-    finite = ~torch.isnan(z).any(-1)  # [B, T]
-    first = torch.where(finite.any(-1), finite.long().argmax(-1), torch.zeros_like(finite[:, 0], dtype=torch.long))
+    first = first_detection(z)
     z0 = z.gather(1, first[:, None, None].expand(-1, 1, 3))[:, 0]
     z0 = torch.nan_to_num(z0, nan=0.0)
     B = z.shape[0]
@@ -55,7 +61,7 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
 
 
 def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False, general: bool = False,
-               return_cov: bool = False):
+               return_cov: bool = False, start: torch.Tensor | None = None):
     """Run the IMM over ``z [B, T, 3]`` from ``x0 [B, 9]``, ``P0 [B, 9, 9]`` and ``mu0 [M]``.
 
     At ``t = 0`` the output is the initial state (every expert at ``x0, P0``); steps ``t >= 1``
@@ -68,7 +74,8 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     ``general=True`` runs the core's loop anyway). ``compile=True`` runs the step of
     ``immnet.filters.imm_fused`` through ``torch.compile`` there (the first call per dtype, device and model
     count compiles, seconds); if compiling fails it logs a warning and runs the eager path. ``return_cov`` runs the
-    core's loop and returns a fourth output, the combined covariance ``[B, T, 9, 9]``.
+    core's loop and returns a fourth output, the combined covariance ``[B, T, 9, 9]``. ``start [B]``: the scan at
+    which each track starts from ``x0``, ``P0`` (``first_detection``; ``runner.run``'s), None: scan 0.
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
@@ -76,17 +83,18 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
         if compile:
             from immnet.filters.imm_fused import imm_filter_fused
 
-            out = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts)
+            out = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=start)
             if out is not None:
                 return out
-        return _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts)
+        return _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start)
     x = x0.unsqueeze(1).expand(B, M, 9).contiguous()
     P = P0.unsqueeze(1).expand(B, M, 9, 9).contiguous()
     mu = mu0.to(z).expand(B, M).contiguous()
     R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
     if R.dim() == 3:
         R = R[:, None]  # one covariance per track [B, 3, 3], for every filter
-    return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts, return_cov=return_cov)
+    return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts, return_cov=return_cov,
+               start=start)
 
 
 _SMALL = 1024
@@ -109,7 +117,7 @@ def _kron_t(F):
     return K.transpose(1, 2).contiguous()
 
 
-def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
+def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=None):
     """``imm_filter`` for shared ``F``, ``Q`` ``[M, 9, 9]``: the same steps, fewer and larger ops.
 
     Experts lie first (``x [M, B, 9]``, ``P [M, B, 81]``) so that the prediction of every track is one
@@ -133,6 +141,7 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
     missed = torch.isnan(z).any(-1)  # [B, T]
     miss_t = missed.any(0).tolist()
     states, probs, experts = [x0], [mu], [x.transpose(0, 1)]
+    late, mu_start, P_start = late_starts(start), mu.clone(), P0.reshape(B, 81)
     rows = torch.tensor([1, 2, 0, 2, 0, 1], device=z.device)
     small = B * M * M <= _SMALL
     for t in range(1, T):
@@ -192,6 +201,9 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts):
         if miss_t[t]:
             ll = ll.masked_fill(missed[:, t], 0.0)
         mu = torch.softmax(cbar.log() + ll.T, -1)
+        if t <= late:  # tracks that start at t or later hold their start (runner.run's start)
+            h = (t <= start)[:, None]
+            x, P, mu = torch.where(h, x0, x), torch.where(h, P_start, P), torch.where(h, mu_start, mu)
         xs = x.transpose(0, 1)
         states.append((mu[:, None, :] @ xs).squeeze(1) if small else (mu.T[..., None] * x).sum(0))
         probs.append(mu)

@@ -87,14 +87,16 @@ def compiled_step():
     return _compiled
 
 
-def imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool, step=None):
+def imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool, step=None, start=None):
     """``imm_filter`` for shared ``F``, ``Q`` ``[M, 9, 9]`` with the compiled ``fused_step``.
 
     Returns None (and logs why) if compiling fails, e.g. without a C++ compiler; the caller then
-    runs the eager path. ``step`` replaces the compiled step (tests run ``fused_step`` eagerly).
+    runs the eager path. ``step`` replaces the compiled step (tests run ``fused_step`` eagerly). ``start [B]``: the
+    scan at which each track starts from ``x0``, ``P0`` (``runner.run``'s).
     """
     global _broken
     from immnet.imm.kalman import _as_cov
+    from immnet.imm.runner import late_starts
 
     if step is None:
         if _broken:
@@ -112,6 +114,7 @@ def imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool, step=Non
         Pi.T.unsqueeze(-1).contiguous(), _as_cov(R, 3, z).unsqueeze(-1).contiguous(),
     )
     states, probs, experts = [x0.T], [mu], [x]
+    late, x_start, P_start, mu_start = late_starts(start), x[0], P[0], mu[:, :1]
     for t in range(1, T):
         try:
             x, P, mu, xf = step(x, P, mu, zz[t], miss[t], *consts)
@@ -121,6 +124,10 @@ def imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool, step=Non
             _broken = True
             log.warning("torch.compile of the IMM step failed (%s: %s); using the eager path", type(err).__name__, err)
             return None
+        if t <= late:  # tracks that start at t or later hold their start (runner.run's start); batch last
+            h = t <= start
+            x, P, mu = torch.where(h, x_start, x), torch.where(h, P_start, P), torch.where(h, mu_start, mu)
+            xf = _dot(mu[:, None], x, -3)
         states.append(xf), probs.append(mu)
         if return_experts:
             experts.append(x)

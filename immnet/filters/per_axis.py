@@ -22,7 +22,7 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, output
-from immnet.filters.imm import initial_state
+from immnet.filters.imm import first_detection, initial_state
 from immnet.filters.trackers import _interval_or_intervals, _linear_network, assumed_r, filter_settings, variance
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
@@ -68,7 +68,7 @@ class PerAxisIMMTracker(Method):
         """This IMM as IMMNet with nothing learned and modes per axis (``IMMNet(modes="axis")``; otherwise as
         ``IMMTracker.network``): each axis's mix, mode update and fusion over the model set's filter experts, whose
         9-D filters are the three axes' filters side by side. It filters what ``track`` filters, to float64
-        rounding, where every track is detected at its first scan. A ValueError for a full transition matrix."""
+        rounding, each track from its first detection on. A ValueError for a full transition matrix."""
         return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
                                modes="axis")
 
@@ -100,7 +100,7 @@ class PerAxisIMMTracker(Method):
         H = torch.tensor([[1.0, 0.0, 0.0]], dtype=self.dtype, device=dev)
         states, probs, _, *cov = run(za, x, P, mu, self.Pi.to(dtype=self.dtype, device=dev),
                                      linear_transition(per_track(F, F.dim() == 3), per_track(Q, Q.dim() == 3)), R, H=H,
-                                     return_cov=self.return_cov)
+                                     return_cov=self.return_cov, start=first_detection(z).repeat(AXES))
         state = states.reshape(AXES, B, T, 3).permute(1, 2, 0, 3).reshape(B, T, 9)
         probs = probs.reshape(AXES, B, T, M).permute(1, 2, 0, 3)
         extra = {keys.EXPERT_PROBS: probs}

@@ -22,7 +22,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.data.times import scan_intervals
 from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
-from immnet.filters.imm import imm_filter, initial_state
+from immnet.filters.imm import first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
@@ -135,7 +135,7 @@ class KalmanFilterTracker(Method):
         R = variance(r, self.dtype, dev)
         one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
         states, _, _, *cov = run(z, x[:, None], P[:, None], one, one[:1], linear_transition(F.unsqueeze(-3), Q.unsqueeze(-3)),
-                                 R, return_cov=self.return_cov)
+                                 R, return_cov=self.return_cov, start=first_detection(z))
         return output(states, {keys.STATE_COV: cov[0] if cov else None}, measurements=z)
 
 
@@ -209,8 +209,7 @@ class IMMTracker(Method):
         assumed ``r``, the IMM's mix without onset priors, a start from the first detection with the spec's start
         covariance (``start_detections=1``, ``start_acc_std`` 10 m/s^2, velocity 300 m/s) and the IMM's Bayesian
         mode update, ``p_stay`` set once; an ``IMMNet`` in this method's dtype, ``eval``. It filters what
-        ``track`` filters, to float64 rounding, where every track is detected at its first scan (``track`` starts a
-        track whose first scans are missed at scan 0 from its first detection; the network at that detection).
+        ``track`` filters, to float64 rounding, each track from its first detection on (both start it there).
         With ``r: data`` the filter experts are told each track's ``r`` (``FilterGain(r="data")``): give it to
         ``rollout(..., r=batch["r"])``. A ValueError where this IMM is not such a configuration: a full transition
         matrix, a non-uniform ``mu0``."""
@@ -236,7 +235,7 @@ class IMMTracker(Method):
         x0, P0 = initial_state(z, r)
         R = variance(r, self.dtype, z.device)
         states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts, compile=self.compile,
-                                                  return_cov=self.return_cov)
+                                                  return_cov=self.return_cov, start=first_detection(z))
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None}
         if self.return_experts:
             extra[keys.EXPERT_POST] = experts

@@ -24,7 +24,7 @@ from typing import Callable
 
 import torch
 
-from immnet.imm.interaction import combine, mix, mixing_weights, mode_update
+from immnet.imm.interaction import combine, enter, mix, mixing_weights, mode_update
 from immnet.imm.kalman import predict, update
 
 
@@ -46,6 +46,26 @@ def _per_filter(R, like: torch.Tensor) -> torch.Tensor:
     return R[:, None] if R.dim() == 1 else R
 
 
+def late_starts(start: torch.Tensor | None) -> int:
+    """The last scan at which a track starts (``start [B]``, one host read per sequence), 0 where none is given."""
+    return 0 if start is None or start.numel() == 0 else int(start.max())
+
+
+def _holding(start, x, P, mu):
+    """``(last, start, x, P, mu)``: what ``_hold`` restores, and the last scan a track is held at; None where no
+    track starts after scan 0."""
+    last = late_starts(start)
+    return None if last == 0 else (last, start.to(x.device), x, P, mu)
+
+
+def _hold(held, t: int, *now):
+    """The filters' ``now`` (each ``[B, ...]``) with the tracks that start at scan ``t`` or later back at their
+    starting values (``_holding``)."""
+    _, start, *initial = held
+    h = t <= start
+    return tuple(torch.where(h.view(-1, *[1] * (v.dim() - 1)), v0, v) for v, v0 in zip(now, initial))
+
+
 def run(
     z: torch.Tensor,
     x: torch.Tensor,
@@ -59,6 +79,8 @@ def run(
     return_experts: bool = False,
     H: torch.Tensor | None = None,
     return_cov: bool = False,
+    start: torch.Tensor | None = None,
+    restart: torch.Tensor | None = None,
 ):
     """Filter ``z [B, T, m]`` from the filters' states at scan 0, ``x [B, M, n]``, ``P [B, M, n, n]``, and
     ``mu [B, M]``; ``Pi [M, M]``; ``R`` the measurement variance (a scalar, ``[B]``, or a covariance
@@ -68,6 +90,13 @@ def run(
     Returns ``state [B, T, n]`` (at scan 0 the combination of the given states), ``probs [B, T, M]`` and,
     with ``return_experts``, the filters' posteriors ``[B, T, M, n]`` (else None); with ``return_cov`` a fourth,
     the combined covariance ``[B, T, n, n]`` (``combine``'s moment match).
+
+    ``start [B]`` (long): the scan at which each track starts, where the given states are its estimate (the
+    first detection's, ``immnet.filters.imm.first_detection``); until then the filters hold those states and
+    ``mu`` (an oracle's modes stand), so that a track whose first scans are missed starts at its first detection
+    and filters it once. None: every track starts at scan 0. ``restart [B, T]`` (bool, with ``onset``): where the
+    truth draws anew what its mode draws without a mode switch (a turn's new rate within a turn), the filters enter
+    from themselves with their onset priors too, after the mix.
     """
     B, T, _ = z.shape
     M = x.shape[1]
@@ -82,15 +111,24 @@ def run(
         covs[:, 0] = combine(x, P, mu)[1]
     if return_experts:
         experts[:, 0] = x
+    held = _holding(start, x, P, mu)
+    restarts = None if restart is None else restart.any(0).tolist()  # one host read per sequence
     for t in range(1, T):
         w = mixing_weights(mu, Pi)
         x0, P0 = mix(w, x, P, onset)
+        if restarts is not None and restarts[t]:
+            again = restart[:, t, None, None]
+            xe, Pe = enter(x0, P0, *onset)  # idempotent for what entered from another filter
+            x0, P0 = torch.where(again, xe, x0), torch.where(again[..., None], Pe, P0)
         xp, Pp = transition(t, x0, P0)
         x, P, ll = update(xp, Pp, z[:, t, None], H, _per_filter(R(t) if callable(R) else R, z))
         if onehot is not None:
             mu = onehot[:, t]
         else:
             mu = mode_update(torch.log(mu @ Pi), ll)
+        if held is not None and t <= held[0]:
+            x, P, held_mu = _hold(held, t, x, P, mu)
+            mu = held_mu if onehot is None else mu  # an oracle's modes stand
         if return_cov:
             states[:, t], covs[:, t] = combine(x, P, mu)
         else:
