@@ -3,6 +3,9 @@ change, on a real-flight data set.
 
     python scripts/real_phases.py --data runs/real/data/quickstart-1s/test --methods real-imm-axis,immnet-real \\
         --checkpoint immnet-real=runs/real/axis/checkpoints/best.ckpt [--json phases.json] [--markdown phases.md]
+
+``--config LABEL=PATH`` adds a row for a method config that is not in the registry (a YAML with ``class_path`` and
+``init_args``, as in ``configs/methods/``), e.g. the variants of ``configs/studies/``.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from pathlib import Path
 import torch
 
 from immnet import keys
+from immnet.config import instantiate, load_yaml
 from immnet.data.storage import as_batch, load_dataset
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.metrics import scored_mask
@@ -24,17 +28,31 @@ from immnet.imm.guard import parse_guard
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
-    p.add_argument("--methods", required=True, help="comma-separated registry names")
+    p.add_argument("--methods", default="", help="comma-separated registry names")
+    p.add_argument("--config", action="append", default=[], metavar="LABEL=PATH",
+                   help="a row for the method config at PATH (class_path, init_args), labelled LABEL")
     p.add_argument("--checkpoint", action="append", default=[], metavar="NAME=CKPT")
     p.add_argument("--json", type=Path)
     p.add_argument("--markdown", type=Path)
     args = p.parse_args(argv)
+    configs = {}
+    for c in args.config:
+        label, sep, path = c.partition("=")
+        if not sep or not label or not Path(path).is_file():
+            p.error(f"--config {c!r}: expected LABEL=PATH of a method config file")
+        configs[label] = path
+    names = [n for n in args.methods.split(",") if n]
+    if not names and not configs:
+        p.error("nothing to score: give --methods and/or --config")
     td, _ = load_dataset(args.data)
     ckpts = dict(c.split("=", 1) for c in args.checkpoint)
     rows = {}
     batch = as_batch(td)  # as immnet evaluate hands it to every method (each computes in its own dtype)
-    for name in args.methods.split(","):
-        method = build_method(name, ckpts.get(name), guard=parse_guard("none"))
+    for name in names + list(configs):
+        if name in configs:
+            method = instantiate(load_yaml(configs[name]))
+        else:
+            method = build_method(name, ckpts.get(name), guard=parse_guard("none"))
         with torch.no_grad():
             state = method.track(batch)[keys.STATE].to(torch.float64)
         truth = batch[keys.STATES].to(torch.float64)

@@ -3,6 +3,7 @@ RMSE per phase against its float64 definition."""
 
 import math
 
+import pytest
 import torch
 
 from immnet.evaluation.phases import PHASES, phases, rmse_by_phase
@@ -39,3 +40,25 @@ def test_rmse_by_phase_pools_the_scored_scans_of_each_phase():
     assert math.isclose(out["climb/descent"]["rmse"], float(e2[climb & scored].mean().sqrt()), rel_tol=1e-12)
     assert math.isclose(out["level"]["rmse"], float(e2[~climb & scored].mean().sqrt()), rel_tol=1e-12)
     assert out["turn"]["rmse"] is None and out["climb/descent"]["share"] == 0.5
+
+
+def test_the_phases_script_scores_a_config_file_as_its_registry_method(tmp_path):
+    """``scripts/real_phases.py --config LABEL=PATH`` (a method that is not in the registry, configs/studies/): a
+    copy of a registry method's YAML gives that method's row to every digit; a missing file is refused by name."""
+    import json
+    import runpy
+
+    from immnet.config import REPO_ROOT
+    from immnet.data.storage import write_dataset
+    from tests.tiny_runs import TINY
+
+    write_dataset(tmp_path / "data", 6, seed=4, spec=TINY)
+    main = runpy.run_path(str(REPO_ROOT / "scripts" / "real_phases.py"))["main"]
+    cfg = REPO_ROOT / "configs" / "methods" / "real-ca.yaml"
+    out = tmp_path / "phases.json"
+    assert main(["--data", str(tmp_path / "data"), "--methods", "real-ca", "--config", f"copy={cfg}",
+                 "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert rows["copy"] == rows["real-ca"] and set(rows["copy"]) == set(PHASES)
+    with pytest.raises(SystemExit):
+        main(["--data", str(tmp_path / "data"), "--config", f"x={tmp_path / 'none.yaml'}"])
