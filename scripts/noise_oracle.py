@@ -33,7 +33,7 @@ from immnet.config import instantiate, load_yaml
 from immnet.data.storage import as_batch, load_dataset
 from immnet.evaluation.methods import method_config
 from immnet.evaluation.metrics import per_trajectory_rmse, position_error, scored_mask
-from immnet.evaluation.search import get_path, set_path
+from immnet.evaluation.search import Search
 
 
 def parse_knob(text: str) -> tuple[str, list[float]]:
@@ -81,14 +81,9 @@ def main(argv=None) -> int:
     try:
         knobs = dict(parse_knob(k) for k in args.knob)
         config = load_yaml(method_config(args.method))
-        init = config.get("init_args") or {}
-        for path in knobs:
-            try:
-                get_path(init, path)
-            except (KeyError, IndexError, ValueError, TypeError):
-                raise ValueError(f"--knob {path!r} is not a path into {args.method}'s init_args") from None
+        grid = Search(config, knobs)  # immnet tune's search file: checks each knob is a path into init_args
     except ValueError as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"error: {args.method}: {e}", file=sys.stderr)
         return 2
     td, _ = load_dataset(args.data)
     batch = as_batch(td)
@@ -96,10 +91,7 @@ def main(argv=None) -> int:
     settings = [dict(zip(knobs, values)) for values in itertools.product(*knobs.values())]
     errors = []
     for i, setting in enumerate(settings):
-        args_i = init
-        for path, value in setting.items():
-            args_i = set_path(args_i, path, value)
-        errors.append(per_window(instantiate({**config, "init_args": args_i}), batch))
+        errors.append(per_window(instantiate(grid.config(setting)), batch))
         print(f"[oracle] {i + 1}/{len(settings)} {setting}: {float(errors[-1].mean(-1).nanmean()):.4f} m",
               file=sys.stderr, flush=True)
     result = oracle(torch.stack(errors))

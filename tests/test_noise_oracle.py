@@ -8,10 +8,9 @@ import pytest
 import torch
 
 from immnet.config import REPO_ROOT
-from immnet.data.storage import as_batch, load_dataset
+from immnet.data.storage import as_batch, load_dataset, write_dataset
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.search import average_rmse
-from immnet.data.storage import write_dataset
 from immnet.filters import KalmanFilterTracker
 from immnet.motion import ConstantAcceleration
 from tests.tiny_runs import TINY
@@ -63,6 +62,6 @@ def test_the_script_scores_each_setting_as_evaluate_does(tmp_path, oracle_module
 def test_a_knob_that_is_not_a_path_is_refused_by_name(tmp_path, oracle_module, capsys):
     write_dataset(tmp_path / "data", 2, seed=5, spec=TINY)
     rc = oracle_module["main"](["--data", str(tmp_path / "data"), "--method", "real-ca", "--knob", "sigma_r=1,2"])
-    assert rc == 2 and "'sigma_r' is not a path into real-ca's init_args" in capsys.readouterr().err
+    assert rc == 2 and "real-ca: grid knob 'sigma_r' is not a path into the method's init_args" in capsys.readouterr().err
     rc = oracle_module["main"](["--data", str(tmp_path / "data"), "--method", "real-ca", "--knob", "sigma_q=a,b"])
     assert rc == 2 and "must be numbers" in capsys.readouterr().err
