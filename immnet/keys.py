@@ -52,6 +52,7 @@ EXPERT_PRIOR = ("expert", "prior")  # x_{t|t-1}^(i) [B, M, 9]
 PREV_EXPERT_PRIOR = ("memory", "prior")  # x_{t-1|t-2}^(i) [B, M, 9]
 EXPERT_GAIN = ("expert", "gain")  # K^(i) [B, M, 9, 3]
 EXPERT_POST = ("expert", "post")  # x_{t|t}^(i) [B, M, 9]
+EXPERT_CORRECTION = ("expert", "correction")  # a learned additive correction of x_{t|t}^(i) [B, M, 9] (state_correction)
 EXPERT_HIDDEN = ("expert", "hidden")  # recurrent states of the gain networks
 EXPERT_COV = ("expert", "cov")  # P^(i) for the analytic gain [B, M, 9, 9]
 EXPERT_RATE = ("expert", "rate")  # a filter expert's own turn rate w^(i) [B, M] (rad/s)

@@ -72,6 +72,13 @@ CONFIGS = {
         "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {
             "interaction": "imm", "onset": False, "model_noise": [0.4, 0.35], "r": "data", "start_acc_std": 10.0}},
         "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier"}},
+    "kalmannet-filter-per-axis-correction+bayes-transformer": {  # with a learned state correction (its own key)
+        "model_set": [{"class_path": "immnet.motion.ConstantVelocity"}, {"class_path": "immnet.motion.ConstantAcceleration"}],
+        "p_stay": 0.98, "modes": "axis",
+        "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {
+            "interaction": "imm", "onset": False, "model_noise": [0.4, 0.35], "start_acc_std": 10.0,
+            "state_correction": [2.0, 1.0, 0.5]}},
+        "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier"}},
     "kalmannet-filter-per-channel+bayes-transformer": {  # modes per channel over CV, CA and turns estimating their rate
         "model_set": "configs/model_sets/imm4-adaptive.yaml", "guard": False, "modes": "channel",
         "interval_range": [0.5, 12.0],
@@ -82,7 +89,8 @@ CONFIGS = {
 CASES = [(name, False) for name in CONFIGS if name != "single-ca"] + [
     (name, True) for name in ("kalmannet+transformer", "filter-fused+bayes-transformer",
                               "kalmannet-filter-imm-guard+bayes-transformer",
-                              "kalmannet-filter-imm-guard-adapt+bayes-guarded", "single-ca")
+                              "kalmannet-filter-imm-guard-adapt+bayes-guarded", "single-ca",
+                              "kalmannet-filter-per-axis-correction+bayes-transformer")
 ]
 SCANS = 6  # the scan the stages are checked on: every track has started and run a few learned steps
 

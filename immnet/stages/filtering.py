@@ -52,7 +52,7 @@ from immnet.motion import (
     ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
 )
 from immnet.stages.base import Stage, measured, per_expert, scan_interval, told_r
-from immnet.stages.features import slog
+from immnet.stages.features import slog, state_scale
 from immnet.stages.gain import KalmanNetGain
 from immnet.stages.layers import StackedLinear
 from immnet.stages.predict import Predict
@@ -353,14 +353,22 @@ class FilterUpdate(Update):
     ]
     out_keys = [keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
 
-    def __init__(self, model_set: ModelSet, dt: float = 1.0):
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, correction: bool = False):
+        """``correction``: add the gain's learned state correction (``("expert", "correction")``,
+        ``KalmanNetFilterGain(state_correction=...)``) to each expert's posterior mean; the covariance is the
+        filter's (the correction enters as a known input)."""
         super().__init__(model_set)
         _, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_rate", torch.tensor(own_rate))
         _register_rate_bounds(self, lo, hi)
+        self.correction = bool(correction)
+        if self.correction:
+            self.in_keys = [*self.in_keys, keys.EXPERT_CORRECTION]
 
     def forward(self, td):
         td = super().forward(td)  # the state
+        if self.correction:
+            td.set(keys.EXPERT_POST, td.get(keys.EXPERT_POST) + td.get(keys.EXPERT_CORRECTION))
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         w = td.get(keys.EXPERT_RATE) + (td.get(keys.EXPERT_RATE_GAIN) * nu).sum(-1)
         w = torch.where(self.own_rate, torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype)), w)
@@ -742,17 +750,27 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         model_noise: float | list[float] | None = None,
         start_acc_std: float | None = None,
         modes: str = "joint",
+        state_correction: tuple[float, float, float] | None = None,
     ):
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
+        if state_correction is not None and (len(state_correction) != 3 or not all(
+                math.isfinite(float(v)) and float(v) > 0 for v in state_correction)):
+            raise ValueError("state_correction needs three bounds > 0 (position m, velocity m/s, acceleration "
+                             f"m/s^2) or None, got {state_correction!r}")
         super().__init__(model_set, dt, in_mult, out_mult, gain_scale=gain_scale, init_out_scale=init_out_scale,
                          interval_input=interval_input)
         M, n = self.n_experts, 3
         # F1, F2 (with the interval, where an input) and the whitened innovation into GRU_S; FC2 gives the 27
-        # gain corrections and 5 noise scales
+        # gain corrections and 5 noise scales (and, with state_correction, 9 state corrections)
         self.fc7 = StackedLinear(M, 3 * n + int(self.interval_input), 2 * n * in_mult)
         d2 = self.d_s + self.d_sigma
-        self.fc2b = StackedLinear(M, d2 * out_mult, 9 * n + N_NOISE)
+        self.n_correction = 0 if state_correction is None else 9
+        self.fc2b = StackedLinear(M, d2 * out_mult, 9 * n + N_NOISE + self.n_correction)
+        self.state_correction = None if state_correction is None else tuple(float(v) for v in state_correction)
+        if self.state_correction is not None:
+            self.register_buffer("correction_scale", state_scale(*self.state_correction), persistent=False)
+            self.out_keys = [*self.out_keys, keys.EXPERT_CORRECTION]
         with torch.no_grad():
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
@@ -760,6 +778,18 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
                           onset, model_noise, start_acc_std, modes)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
+
+    def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
+        """The update these experts need: with ``state_correction``, one that adds it."""
+        return FilterUpdate(model_set, dt, correction=self.state_correction is not None)
+
+    def knock_out_correction(self) -> None:
+        """Set the state correction's rows of FC2 to zero (the rest of the network as trained)."""
+        if self.state_correction is None:
+            raise ValueError("this KalmanNetFilterGain has no state correction (state_correction=None)")
+        with torch.no_grad():
+            self.fc2b.weight[:, -self.n_correction:].zero_()
+            self.fc2b.bias[:, -self.n_correction:].zero_()
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -782,7 +812,11 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         out_fc2 = out[..., : 9 * 3]
         out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
         h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
-        u = self.u_max * torch.tanh(out[..., 9 * 3 :].transpose(0, 1) * (self.u_slope / self.u_max))  # [B, M, 5]
+        u = out[..., 9 * 3 : 9 * 3 + N_NOISE].transpose(0, 1)
+        u = self.u_max * torch.tanh(u * (self.u_slope / self.u_max))  # [B, M, 5]
+        if self.state_correction is not None:  # a bounded additive correction of each expert's posterior
+            c = torch.tanh(out[..., 9 * 3 + N_NOISE :].transpose(0, 1))
+            td.set(keys.EXPERT_CORRECTION, self.correction_scale.to(c.dtype) * c)
         P = base + _noise(torch.exp(u) if scale is None else torch.exp(u) * scale, Q_parts)
         delta = self.K_scale * torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
         td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})

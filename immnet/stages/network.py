@@ -284,21 +284,23 @@ class IMMNet(TensorDictModuleBase):
                              "holds no 'r'")
         return batch[keys.R].to(batch[keys.MEASUREMENTS].dtype).reshape(-1)
 
-    LEARNED_PARTS = ("gain", "classifier")
+    LEARNED_PARTS = ("gain", "classifier", "correction")
 
     def knock_out(self, *parts: str) -> "IMMNet":
-        """Set the learned correction of ``parts`` (``gain``: KalmanNet's noise and gain corrections;
-        ``classifier``: the Transformer's correction of the IMM's mode update) to zero, in place: each part its
-        model-based base, the rest of the trained network as it is; both: IMMNet with nothing learned (the
-        model-based IMM of ``tests/test_filtering.py``). What a trained part is worth, without training again.
-        A part with no model-based base (the paper's Transformer alone) is refused."""
+        """Set the learned correction of ``parts`` (``gain``: KalmanNet's noise and gain corrections, and its state
+        correction where it has one; ``classifier``: the Transformer's correction of the IMM's mode update;
+        ``correction``: KalmanNet's state correction alone, ``KalmanNetFilterGain(state_correction=...)``) to zero, in
+        place: each part its model-based base, the rest of the trained network as it is; ``gain`` and ``classifier``:
+        IMMNet with nothing learned (the model-based IMM of ``tests/test_filtering.py``). What a trained part is
+        worth, without training again. A part with no model-based base (the paper's Transformer alone) is refused."""
         for part in parts:
             if part not in self.LEARNED_PARTS:
                 raise ValueError(f"no learned part {part!r}; parts: {', '.join(self.LEARNED_PARTS)}")
-            stage = self.gain if part == "gain" else self.classify
-            if not hasattr(stage, "knock_out"):
+            stage = self.classify if part == "classifier" else self.gain
+            method = "knock_out_correction" if part == "correction" else "knock_out"
+            if not hasattr(stage, method):
                 raise ValueError(f"the {part} {type(stage).__name__} has no model-based base to knock out to")
-            stage.knock_out()
+            getattr(stage, method)()
         return self
 
     def interval_columns(self) -> dict[str, int]:
