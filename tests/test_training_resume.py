@@ -23,8 +23,9 @@ from immnet.training import resume
 TINY = DataSpec(T=20, min_segment=5)  # one TBPTT chunk of 20 scans: one optimizer step per batch
 # 46 training trajectories in batches of 8: 6 batches a pass; validation (and last.ckpt) every 3 batches;
 # 7 steps cross a pass boundary, and end on a step that is no validation's
+# each training batch a fresh view (immnet.data.augment, seeded by the step): a resumed run must see the same views
 ARGS = ["--trainer.max_steps", "7", "--trainer.val_check_interval", "3", "--trainer.limit_val_batches", "1",
-        "--data.batch_size", "8", "--trainer.logger", "false"]
+        "--data.batch_size", "8", "--trainer.logger", "false", "--data.augment", "immnet.data.augment.FlightAugment"]
 STAGE1 = str(REPO_ROOT / "recipes/quick-stage1.yaml")
 CKPTS = Path("runs/quick/stage1/checkpoints")
 

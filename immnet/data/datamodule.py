@@ -16,6 +16,9 @@ taking ``val_fraction`` of its set; ``test_data`` one set for the whole mixture)
 trajectories of one set (sets differ in length ``T`` and interval), the sets' batches shuffled together each
 pass (``_MixedBatches``). One device only: the distributed shards are per set.
 
+Training batches may be augmented (``augment``, ``immnet.data.augment.FlightAugment``): each a fresh view of
+its flights, turned about the radar site and measured again, seeded by the training step.
+
 Stage 1 (``single_mode`` given, a mapping mode name -> data set of that mode): each training batch
 is a ``TensorDict [M, B]``; row ``m`` is for expert ``m`` (``expert_modes[m]`` names its mode) and
 holds ``round(own_fraction B)`` trajectories of its own mode followed by ``B - round(own_fraction B)``
@@ -47,6 +50,7 @@ from tensordict import TensorDict
 from torch.utils.data import BatchSampler, DataLoader, Dataset, DistributedSampler, SequentialSampler
 
 from immnet import keys
+from immnet.data.augment import FlightAugment
 from immnet.data.contract import check_complete
 from immnet.data.storage import as_batch, load_dataset
 from immnet.motion import MODE_NAMES
@@ -247,8 +251,11 @@ class LASTDataModule(L.LightningDataModule):
     def __init__(self, data, test_data=None, val_fraction: float = 0.1, test_fraction: float = 0.1, val_data=None,
                  batch_size: int = 100, num_workers: int = 0, split_seed: int = 0,
                  single_mode: dict | None = None, own_fraction: float = 0.6,
-                 expert_modes: list[str] | None = None):
+                 expert_modes: list[str] | None = None, augment: FlightAugment | None = None):
+        """``augment``: a fresh view of each training batch (``FlightAugment``: turned about the radar site, new
+        measurement noise), seeded by the training step; validation and test batches as stored."""
         super().__init__()
+        self.augment = augment
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         for name, f in (("val_fraction", val_fraction), ("test_fraction", test_fraction),
@@ -371,6 +378,14 @@ class LASTDataModule(L.LightningDataModule):
     @property
     def test_dataset(self):
         return self.dataset("test")
+
+    def on_after_batch_transfer(self, batch, dataloader_idx: int):
+        """Lightning's hook on every batch on its device: a training batch becomes ``augment``'s view of it for the
+        trainer's global step (a resumed run sees the same views)."""
+        trainer = getattr(self, "trainer", None)
+        if self.augment is not None and trainer is not None and trainer.training:
+            return self.augment(batch, trainer.global_step)
+        return batch
 
     # --- loaders ------------------------------------------------------------------------------
     def _loader(self, ds, sampler) -> DataLoader:
