@@ -77,7 +77,10 @@ def test_one_view_per_step(batch):
     assert torch.equal(batch[keys.STATES], generate(64, seed=5, spec=DataSpec(T=50, min_segment=10, p_miss=0.1))[keys.STATES].float())
 
 
-def test_bad_settings_are_refused_by_name():
+def test_bad_settings_are_refused_by_name(batch):
+    with pytest.raises(ValueError, match="holds no 'r': give r_range"):
+        FlightAugment()(batch.exclude(keys.R), 0)
+    assert FlightAugment(r_range=(1.0, 2.0))(batch.exclude(keys.R), 0)[keys.R].shape == batch[keys.R].shape
     with pytest.raises(ValueError, match="r_range must be"):
         FlightAugment(r_range=(5.0, 1.0))
     with pytest.raises(ValueError, match="r_range must be"):

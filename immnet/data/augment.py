@@ -70,11 +70,14 @@ class FlightAugment:
                 z = torch.stack([(c * x - s * y).to(z.dtype), (s * x + c * y).to(z.dtype), z[..., 2]], -1)
         if self.renoise:
             if self.r_range is None:
+                if keys.R not in out.keys():
+                    raise ValueError("FlightAugment(renoise=True, r_range=None) measures each track again with its own "
+                                     "r, and this batch holds no 'r': give r_range")
                 r = out[keys.R].to(torch.float64)
             else:
                 lo, hi = self.r_range
                 r = lo + (hi - lo) * torch.rand(lead, generator=g, dtype=torch.float64)
-                out[keys.R] = r.to(out[keys.R].dtype)
+                out[keys.R] = r.to(out[keys.R].dtype if keys.R in out.keys() else states.dtype)
             e = torch.randn(*states.shape[:-1], 3, generator=g, dtype=torch.float64)
             fresh = (turned if self.rotate else states.to(torch.float64))[..., list(POS)] + r[..., None, None] * e
             z = torch.where(torch.isnan(z), z, fresh.to(z.dtype))
