@@ -52,22 +52,25 @@ class FlightAugment:
         if not (self.rotate or self.renoise):
             return batch
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + int(step))
-        out = batch.clone()
+        out = batch.copy()  # shallow: the tensors it changes are replaced, never written in place
         states = out[keys.STATES]
         z = out[keys.MEASUREMENTS]
         lead = states.shape[:-2]
         if self.rotate:
             theta = torch.rand(lead, generator=g, dtype=torch.float64) * (2 * math.pi)
             c, s = theta.cos()[..., None], theta.sin()[..., None]
-            turned = states.to(torch.float64)  # in float64: positions are ~1e5 m from the site
+
+            def turn(x, y):
+                return c * x - s * y, s * x + c * y
+
+            turned = states.to(torch.float64, copy=True)  # in float64: positions are ~1e5 m from the site
             for ix, iy in zip((POS[0], VEL[0], ACC[0]), (POS[1], VEL[1], ACC[1])):
-                x, y = turned[..., ix].clone(), turned[..., iy].clone()
-                turned[..., ix], turned[..., iy] = c * x - s * y, s * x + c * y
+                turned[..., ix], turned[..., iy] = turn(turned[..., ix].clone(), turned[..., iy].clone())
             states = turned.to(states.dtype)
             out[keys.STATES] = states
             if not self.renoise:
-                x, y = z[..., 0].to(torch.float64), z[..., 1].to(torch.float64)
-                z = torch.stack([(c * x - s * y).to(z.dtype), (s * x + c * y).to(z.dtype), z[..., 2]], -1)
+                x, y = turn(z[..., 0].to(torch.float64), z[..., 1].to(torch.float64))
+                z = torch.stack([x.to(z.dtype), y.to(z.dtype), z[..., 2]], -1)
         if self.renoise:
             if self.r_range is None:
                 if keys.R not in out.keys():
