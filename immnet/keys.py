@@ -43,6 +43,9 @@ IS_INIT = "is_init"  # [B, 1] bool, True where a track (re)starts (TorchRL's Ini
 # --- one tracker step (immnet.stages) ---------------------------------------------------------
 MEASUREMENT = "measurement"  # z_t [B, 3]
 INTERVAL = "interval"  # the time since the previous scan [B] (s); absent: the network's nominal dt
+TRUE_MODE = ("truth", "mode")  # an oracle's input: the truth's data mode at this scan [B] int64 (the clairvoyant filters)
+TRUE_TURN_RATE = ("truth", "turn_rate")  # an oracle's input: the truth's turn rate at this scan [B] (rad/s)
+TRUE_RESTART = ("truth", "restart")  # an oracle's input: the truth draws its mode's parameter anew at this scan [B] bool
 PREV_MEASUREMENT = ("memory", "measurement")  # z_{t-1} [B, 3]
 FUSED = ("fused", "state")  # x_{t|t} [B, 9]; read as x_{t-1|t-1} at the start of a step
 FUSED_COV = ("fused", "cov")  # P_{t|t} [B, 9, 9], where the experts carry a covariance (filter experts, the analytic gain)

@@ -59,3 +59,91 @@ def test_switch_clairvoyant_lies_between_the_bound_and_raw_measurements(data, bo
     switch = rmse(position_error(SwitchClairvoyantKF().track(data)[keys.STATE], data[keys.STATES]))["avg"]
     raw = rmse(position_error(data[keys.MEASUREMENTS].repeat_interleave(3, dim=-1), data[keys.STATES]))["avg"]
     assert bound < switch < 0.7 * raw
+
+
+SCAN_SPECS = {
+    "1s": dict(T=150, min_segment=40, p_miss=0.05),
+    "4.5-5.5s": dict(T=60, min_segment=4, dt=5.0, dt_jitter=0.5, p_miss=0.05),
+}
+
+
+def _oracle_data(scans: str):
+    """Generated tracks with missed detections, a track first detected at scan 3, and (for the switch reference)
+    turns whose labelled rate changes within the turn: the truth's restarts, which the generator draws rarely."""
+    from immnet.data.generate import generate
+    from immnet.data.spec import DataSpec
+    from immnet.filters import SwitchClairvoyantKF
+    from immnet.motion import CT_POS
+
+    spec = DataSpec(**SCAN_SPECS[scans])
+    data = generate(12, seed=8, spec=spec)
+    data[keys.MEASUREMENTS][3, 20:25] = float("nan")
+    data[keys.MEASUREMENTS][5, 1] = float("nan")  # a missed detection right after the start
+    data[keys.MEASUREMENTS][7, :3] = float("nan")  # a track first detected at scan 3
+    mode, rate = data[keys.MODE], data[keys.TURN_RATE]
+    for b in range(mode.shape[0]):  # a new rate in the middle of each track's first turn of 6 scans or more
+        turning = (mode[b] >= CT_POS).nonzero().flatten().tolist()
+        runs = [t for t in turning if t + 5 in turning and all(mode[b, t + k] == mode[b, t] for k in range(6))]
+        if runs:
+            t = runs[0] + 3
+            rate[b, t:] = torch.where(mode[b, t:] == mode[b, t], rate[b, t:] * 1.3, rate[b, t:])
+    assert SwitchClairvoyantKF.restarts(mode, rate).any(1).sum() >= 3
+    return spec, data
+
+
+@pytest.mark.parametrize("scans", list(SCAN_SPECS))
+@pytest.mark.parametrize("kind", ["clairvoyant", "clairvoyant-switch"])
+def test_the_clairvoyant_filters_are_configurations_of_the_step(kind, scans):
+    """Issue 21, item 1, for the bound and the switch reference: each equals its ``network()``, IMMNet's step with
+    nothing learned and an oracle (the truth's modes in the classifier's slot, ``TrueModeUpdate``; the bound's turn
+    told the truth's rate, ``FilterGain(turn_rate="data")``; the switch reference's turns estimating their rate
+    unbounded and re-entered where the truth's rate changes within a turn, ``restart="data"``), to 1e-9 of each
+    track's scale (Joseph's covariance update and the standard one), at 1 s and at irregular 4.5-5.5 s scans, from
+    each track's first detection; its modes are the truth's there, one-hot."""
+    from immnet.filters import SwitchClairvoyantKF
+
+    spec, data = _oracle_data(scans)
+    method = (ClairvoyantKF if kind == "clairvoyant" else SwitchClairvoyantKF)(spec=spec)
+    net = method.network()
+    intervals = net.intervals_for(data)
+    assert (intervals is None) == (scans == "1s")
+    with torch.no_grad():
+        out, _ = net.rollout(data[keys.MEASUREMENTS].double(), r=data[keys.R].double(), intervals=intervals,
+                             truth=method.truth(data))
+    ours = method.track(data)[keys.STATE]
+    seen = ~torch.isnan(ours[..., :1])
+    assert not seen[7, :3].any() and seen[7, 3:].all()
+    scale = torch.nan_to_num(ours).abs().amax((1, 2), keepdim=True)
+    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen.expand_as(ours)].all()
+    probs = out[keys.ROLLOUT_EXPERT_PROBS]
+    truth = net.classify.expert_of[data[keys.MODE]]
+    onehot = torch.nn.functional.one_hot(truth, net.n_experts).double()
+    assert torch.equal(probs[seen[..., 0]], onehot[seen[..., 0]])  # from the first detection on (uniform before)
+
+
+def test_an_oracle_step_without_its_truth_or_with_a_mode_it_lacks_is_refused():
+    """A step that reads the truth is refused without it (the input named), and the oracle refuses a model set
+    that has no expert for a data mode, a mapping of the wrong length and modes per group."""
+    from immnet.motion import ModelSet
+    from immnet.stages import TrueModeUpdate
+    from immnet.stages.filtering import FilterGain
+
+    spec, data = _oracle_data("1s")
+    net = ClairvoyantKF(spec=spec).network()
+    z = data[keys.MEASUREMENTS].double()
+    with pytest.raises(ValueError, match=r"truth's 'mode'.*truth="):
+        net.rollout(z, r=data[keys.R].double())
+    with pytest.raises(ValueError, match=r"truth's 'turn_rate'"):
+        net.rollout(z, r=data[keys.R].double(), truth={keys.TRUE_MODE: data[keys.MODE]})
+    cv_ca = ModelSet.from_config([{"class_path": "immnet.motion.ConstantVelocity"},
+                                  {"class_path": "immnet.motion.ConstantAcceleration"}])
+    with pytest.raises(ValueError, match="data mode 'ct\\+' has no expert"):
+        TrueModeUpdate(cv_ca)
+    with pytest.raises(ValueError, match="one expert index"):
+        TrueModeUpdate(cv_ca, experts=[0, 1, 2, 0])
+    with pytest.raises(ValueError, match="modes='joint'"):
+        TrueModeUpdate(cv_ca, experts=[0, 1, 0, 0], modes="axis")
+    with pytest.raises(ValueError, match="turn_rate must be"):
+        FilterGain(cv_ca, turn_rate="truth")
+    with pytest.raises(ValueError, match="needs interaction='imm'"):
+        FilterGain(cv_ca, restart="data")

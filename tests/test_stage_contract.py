@@ -84,6 +84,18 @@ CONFIGS = {
         "interval_range": [0.5, 12.0],
         "gain": {"class_path": FILTERING + "KalmanNetFilterGain", "init_args": {"interaction": "imm", "interval_input": True}},
         "classifier": {"class_path": "immnet.stages.BayesTransformerClassifier", "init_args": {"interval_input": True}}},
+    "filter-told-turn-rate+true-modes": {  # the clairvoyant bound's configuration (ClairvoyantKF.network)
+        "model_set": [{"class_path": "immnet.motion.ConstantVelocity"}, {"class_path": "immnet.motion.ConstantAcceleration"},
+                      {"class_path": "immnet.motion.AdaptiveTurn"}], "p_stay": 0.5, "start_detections": 1,
+        "gain": {"class_path": FILTERING + "FilterGain", "init_args": {
+            "interaction": "imm", "model_noise": 0.2, "r": "data", "start_acc_std": [10.0, None, 10.0],
+            "turn_rate": "data"}},
+        "classifier": {"class_path": "immnet.stages.TrueModeUpdate"}},
+    "filter-free-turn-rate-restart+true-modes": {  # the switch reference's (SwitchClairvoyantKF.network)
+        "model_set": "configs/model_sets/imm4-adaptive.yaml", "p_stay": 0.5, "start_detections": 1,
+        "gain": {"class_path": FILTERING + "FilterGain", "init_args": {
+            "interaction": "imm", "model_noise": 0.2, "r": "data", "turn_rate": "free", "restart": "data"}},
+        "classifier": {"class_path": "immnet.stages.TrueModeUpdate"}},
 }
 # (configuration, experts alone): stage 1 runs each expert alone (``IMMNet.expert_step``)
 CASES = [(name, False) for name in CONFIGS if name != "single-ca"] + [
@@ -117,13 +129,12 @@ def _scan_inputs(net: IMMNet, z: torch.Tensor, alone: bool, interval: float | No
     if alone:
         z = z.unsqueeze(1).expand(-1, net.n_experts, -1, -1)
     gaps = None if interval is None else torch.full((z.shape[0], SCANS), interval)
-    r = _told_r(net, z.shape[0])
     with torch.no_grad():
-        _, carry = net.rollout(z[..., :SCANS, :], experts_alone=alone, intervals=gaps, r=r)
+        _, carry = net.rollout(z[..., :SCANS, :], experts_alone=alone, intervals=gaps, **_inputs(net, z.shape[0], SCANS))
     td = carry.copy()
     td.set(keys.MEASUREMENT, z[..., SCANS, :])
-    if r is not None:
-        td.set(keys.R, r)
+    for key, value in _scan_inputs_at(net, z.shape[0], SCANS).items():
+        td.set(key, value)
     if interval is not None:
         td.set(keys.INTERVAL, torch.full((z.shape[0],), interval))
     step = net.expert_step if alone else net.step
@@ -133,9 +144,22 @@ def _scan_inputs(net: IMMNet, z: torch.Tensor, alone: bool, interval: float | No
             td = stage(td)
 
 
-def _told_r(net: IMMNet, B: int):
-    """Each track's measurement std, the step's input where a filter gain is told it (``r="data"``), else None."""
-    return torch.linspace(2.0, 6.0, B) if net.start.told_r else None
+def _scan_inputs_at(net: IMMNet, B: int, t: int) -> dict:
+    """The step's inputs beside the measurement at scan ``t`` (``immnet.stages.start.STEP_INPUTS``), where a stage
+    reads them: each track's measurement std (a filter gain told it, ``r="data"``), an oracle's truth (a data mode,
+    turn rate and restart that change from scan to scan)."""
+    b = torch.arange(B)
+    values = {keys.R: torch.linspace(2.0, 6.0, B), keys.TRUE_MODE: (b + t) % 4,
+              keys.TRUE_TURN_RATE: 0.05 * (-1.0) ** (b + t), keys.TRUE_RESTART: (b + t) % 3 == 0}
+    return {key: values[key] for key in net.start.inputs}
+
+
+def _inputs(net: IMMNet, B: int, T: int) -> dict:
+    """``rollout``'s keyword arguments for the step's inputs over scans ``0..T-1`` (``_scan_inputs_at``)."""
+    scans = [_scan_inputs_at(net, B, t) for t in range(T)]
+    out = {"r": scans[0][keys.R]} if keys.R in scans[0] else {}
+    truth = {k: torch.stack([s[k] for s in scans], 1) for k in scans[0] if k != keys.R}
+    return out | ({"truth": truth} if truth else {})
 
 
 def _leaves(td: TensorDict) -> dict:
@@ -208,10 +232,10 @@ def test_with_the_scan_interval_every_stage_writes_exactly_its_declared_keys(nam
         assert not extra, f"{what} writes {extra} with the interval, not in its out_keys {declared}"
     z = data.unsqueeze(1).expand(-1, net.n_experts, -1, -1) if alone else data
     with torch.no_grad():
-        r = _told_r(net, z.shape[0])
-        plain = net.rollout(z, experts_alone=alone, r=r)[0][keys.STATE]
-        same = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 1.0), r=r)[0][keys.STATE]
-        other = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 2.0), r=r)[0][keys.STATE]
+        inputs = _inputs(net, z.shape[0], z.shape[-2])
+        plain = net.rollout(z, experts_alone=alone, **inputs)[0][keys.STATE]
+        same = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 1.0), **inputs)[0][keys.STATE]
+        other = net.rollout(z, experts_alone=alone, intervals=torch.full(z.shape[:1] + z.shape[-2:-1], 2.0), **inputs)[0][keys.STATE]
     torch.testing.assert_close(same, plain, rtol=1e-5, atol=1e-2)
     assert (other - plain).abs().max() > 1.0
 
@@ -297,15 +321,14 @@ def test_the_carry_is_what_the_stages_declare(name, alone, data):
         assert not twice, f"{type(stage).__name__} carries {twice}, declared before it"
         declared.update(spec)
     assert set(carry) == set(declared)
-    step_in = {unravel_key(k) for k in step.in_keys} - {keys.MEASUREMENT, keys.R}  # r: an input, where told
+    step_in = {unravel_key(k) for k in step.in_keys} - {keys.MEASUREMENT, *net.start.inputs}  # r, the truth: inputs
     unprimed = [k for k in step_in if not any(_owner(leaf, [k]) for leaf in carry)]
     assert not unprimed, f"the step reads {unprimed}, which no stage carries"
     step_out = [unravel_key(k) for k in step.out_keys]
     assert all(_owner(k, step_out) is not None for k in carry)
     with torch.no_grad():
-        r = _told_r(net, B)
-        _, after_one = net.rollout(z[..., :1, :], experts_alone=alone, r=r)
-        _, after = net.rollout(z[..., :SCANS, :], experts_alone=alone, r=r)
+        _, after_one = net.rollout(z[..., :1, :], experts_alone=alone, **_inputs(net, B, 1))
+        _, after = net.rollout(z[..., :SCANS, :], experts_alone=alone, **_inputs(net, B, SCANS))
     rolled = _leaves(after)
     for key, value in carry.items():
         assert rolled[key].shape == value.shape and rolled[key].dtype == value.dtype, key
@@ -313,7 +336,8 @@ def test_the_carry_is_what_the_stages_declare(name, alone, data):
     for stage in step.module:
         own = set(_leaves(TensorDict(stage.carry_spec(B, alone), batch_size=[B])))
         for second, before in ((False, net.initial_carry(B, alone)), (True, after_one)):
-            if r is not None:  # what a start reads beside the carry
-                before = before.clone(False).set(keys.R, r)
+            before = before.clone(False)
+            for key, value in _scan_inputs_at(net, B, 1).items():  # what a start reads beside the carry
+                before.set(key, value)
             started = _leaves(TensorDict(stage.start_carry(before, z[..., 1, :], x, second), batch_size=[B]))
             assert set(started) <= own, (type(stage).__name__, set(started) - own)

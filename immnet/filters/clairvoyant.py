@@ -35,7 +35,9 @@ tighter reference than the bound for what a tracker that detected every switch a
 
 Both are configurations of the core's scan loop (``immnet.imm.runner.run``) with the truth's modes as its oracle:
 the bound over CV, CA and CT at the true rate, ``SwitchClairvoyantKF`` over extended Kalman filters of CV, CA, CT+
-and CT- with the interaction's onset priors and a ``restart`` where a turn's rate changes within it.
+and CT- with the interaction's onset priors and a ``restart`` where a turn's rate changes within it. Each is also a
+configuration of IMMNet's step with nothing learned and an oracle (``network()``: the truth's modes in the classifier's
+slot, ``immnet.stages.TrueModeUpdate``), held equal to ``track`` (docs/core.md).
 """
 
 from __future__ import annotations
@@ -114,6 +116,41 @@ class ClairvoyantKF(Method):
         interval = (lambda t: fixed) if fixed is not None else (lambda t: intervals[:, t])
         return z, batch[keys.MODE].to(dev), batch[keys.TURN_RATE].to(self.dtype), r, interval
 
+    def network(self, dt: float = 1.0):
+        """This bound as IMMNet's step with nothing learned and an oracle (docs/core.md, "Every tracker as a
+        configuration"): filter experts of CV, CA and a turn (each the truth's white acceleration noise
+        ``Q(sigma_q, dt)``, ``FilterGain(model_noise=sigma_q)``; the turn told the truth's rate of each scan,
+        ``turn_rate="data"``), told each track's ``r`` (``r="data"``), the IMM's mix with the onset priors of the
+        data's spec (a CA segment's new acceleration), the truth's modes in the classifier's slot
+        (``TrueModeUpdate``: the mix takes each expert's prior from the true mode's expert and the fusion is that
+        expert's), and a start from the first detection with the spec's start covariance, the acceleration the CA
+        draw's for the CA expert (``start_acc_std``; only the true mode's expert at the start carries on). An
+        ``IMMNet`` in this method's dtype, ``eval``; give ``rollout`` the truth's ``mode`` and ``turn_rate`` over
+        the sequence as ``truth=ClairvoyantKF.truth(batch)`` and each track's ``r``. It filters what ``track``
+        filters, to float64 rounding (``tests/test_filters_clairvoyant.py``). A ValueError where this bound's CA draw's
+        variance is fixed apart from its spec (the step's onset prior is the spec's)."""
+        from immnet.filters.imm import ACC_STD
+        from immnet.stages.network import IMMNet
+
+        if tuple(self.acc_var) != tuple(self.spec.ca_acc_var()):
+            raise ValueError(f"{self.name}: acc_var {self.acc_var} is not its spec's CA draw ({self.spec.ca_acc_var()}); "
+                             "the step's onset prior is the spec's")
+        models = [{"class_path": "immnet.motion.ConstantVelocity", "init_args": {"noise": "white"}},
+                  {"class_path": "immnet.motion.ConstantAcceleration", "init_args": {"noise": "white"}},
+                  {"class_path": "immnet.motion.AdaptiveTurn"}]
+        gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
+            "model_noise": self.sigma_q, "r": "data", "interaction": "imm", "onset": True, "spec": self.spec.to_dict(),
+            "start_acc_std": [ACC_STD, None, ACC_STD], "turn_rate": "data"}}
+        oracle = {"class_path": "immnet.stages.TrueModeUpdate"}
+        net = IMMNet(model_set=models, gain=gain, classifier=oracle, dt=dt, p_stay=0.5, start_detections=1)
+        return net.to(self.dtype).eval()
+
+    @staticmethod
+    def truth(batch: TensorDict) -> dict:
+        """The oracle's inputs over a batch's scans, for ``network().rollout(..., truth=)``: the data's mode and turn
+        rate ``[B, T]``."""
+        return {keys.TRUE_MODE: batch[keys.MODE], keys.TRUE_TURN_RATE: batch[keys.TURN_RATE]}
+
     def _acc_cov(self, like: torch.Tensor) -> torch.Tensor:
         return torch.diag(torch.tensor(self.acc_var, dtype=like.dtype, device=like.device))
 
@@ -168,6 +205,47 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         super().set_spec(spec)
         self.turn_prior_deg = self.spec.turn_rate_prior_deg() if self.fixed_turn_prior is None else self.fixed_turn_prior
 
+    def network(self, dt: float = 1.0):
+        """This reference as IMMNet's step with nothing learned and an oracle: ``ClairvoyantKF.network``'s, over
+        CV, CA and turns CT+ and CT- that estimate their rate unbounded (``FilterGain(turn_rate="free")``, each
+        entering a turn with the spec's rate prior in its sign: the models' nominal rate and ``rate_std0_deg``), the
+        experts re-entered with their onset priors where a turn's rate changes within it (``restart="data"``, the
+        truth's ``("truth", "restart")``). Give ``rollout`` ``truth=SwitchClairvoyantKF.truth(batch)``. A ValueError
+        where the CA draw's variance or the turn prior is fixed apart from the spec."""
+        from immnet.filters.imm import ACC_STD
+        from immnet.stages.network import IMMNet
+
+        if tuple(self.acc_var) != tuple(self.spec.ca_acc_var()) or tuple(self.turn_prior_deg) != tuple(
+                self.spec.turn_rate_prior_deg()):
+            raise ValueError(f"{self.name}: acc_var and turn_prior_deg must be its spec's (the step's onset priors are)")
+        mean, std = self.turn_prior_deg
+        turn = {"min_deg": min(1.0, mean), "max_deg": max(10.0, mean)}
+        models = [{"class_path": "immnet.motion.ConstantVelocity", "init_args": {"noise": "white"}},
+                  {"class_path": "immnet.motion.ConstantAcceleration", "init_args": {"noise": "white"}},
+                  {"class_path": "immnet.motion.AdaptiveTurn", "init_args": {"turn_rate_deg": mean, **turn}},
+                  {"class_path": "immnet.motion.AdaptiveTurn", "init_args": {"turn_rate_deg": -mean, **turn}}]
+        gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
+            "model_noise": self.sigma_q, "r": "data", "interaction": "imm", "onset": True, "spec": self.spec.to_dict(),
+            "start_acc_std": [ACC_STD, None, ACC_STD, ACC_STD], "rate_std0_deg": std, "turn_rate": "free",
+            "restart": "data"}}
+        oracle = {"class_path": "immnet.stages.TrueModeUpdate"}
+        net = IMMNet(model_set=models, gain=gain, classifier=oracle, dt=dt, p_stay=0.5, start_detections=1)
+        return net.to(self.dtype).eval()
+
+    @staticmethod
+    def restarts(mode: torch.Tensor, rate: torch.Tensor) -> torch.Tensor:
+        """Where a turn's rate changes within the turn ``[B, T]`` (bool): the truth draws a rate anew without a mode
+        switch (a soft-bound turn), from its ``mode`` and ``turn_rate`` ``[B, T]``."""
+        restart = torch.zeros_like(mode, dtype=torch.bool)
+        restart[:, 1:] = (mode[:, 1:] >= CT_POS) & (mode[:, 1:] == mode[:, :-1]) & (rate[:, 1:] != rate[:, :-1])
+        return restart
+
+    @staticmethod
+    def truth(batch: TensorDict) -> dict:
+        """The oracle's inputs over a batch's scans: the data's mode and where a turn's rate changes within it."""
+        return {keys.TRUE_MODE: batch[keys.MODE],
+                keys.TRUE_RESTART: SwitchClairvoyantKF.restarts(batch[keys.MODE], batch[keys.TURN_RATE])}
+
     def track(self, batch: TensorDict) -> TensorDict:
         """The core's scan loop (``immnet.imm.runner.run``) over extended Kalman filters of ``[x, w]`` for CV, CA,
         CT+ and CT- whose modes are the truth's (``oracle``): each scan predicts with the true mode's filter from
@@ -210,10 +288,7 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
         P[:, :9, :9] = P9
         x, P = enter(x[:, None], P[:, None], keep, mean, cov)  # each filter as the track starts in its mode
-        m = mode
-        restart = torch.zeros_like(m, dtype=torch.bool)
-        restart[:, 1:] = (m[:, 1:] >= CT_POS) & (m[:, 1:] == m[:, :-1]) & (rate[:, 1:] != rate[:, :-1])
         one = torch.full((4, 4), 0.25, dtype=dtype, device=dev)
-        states, _, _ = run(z, x, P, one[0].expand(B, 4), one, transition, r**2, onset=onset, oracle=m, H=H,
-                           restart=restart, start=first_detection(z))
+        states, _, _ = run(z, x, P, one[0].expand(B, 4), one, transition, r**2, onset=onset, oracle=mode, H=H,
+                           restart=self.restarts(mode, rate), start=first_detection(z))
         return output(states[..., :9], measurements=z)

@@ -1,6 +1,8 @@
 """The IMMNet stages as TensorDict modules, and the tracker that chains them."""
 
-from immnet.stages.classify import BayesianModeUpdate, BayesTransformerClassifier, TransformerClassifier, UniformMix
+from immnet.stages.classify import (
+    BayesianModeUpdate, BayesTransformerClassifier, TransformerClassifier, TrueModeUpdate, UniformMix,
+)
 from immnet.stages.fuse import Fuse
 from immnet.stages.gain import AnalyticGain, KalmanNetGain, steady_state
 from immnet.stages.network import IMMNet
@@ -9,5 +11,5 @@ from immnet.stages.update import Update
 
 __all__ = [
     "AnalyticGain", "BayesTransformerClassifier", "BayesianModeUpdate", "Fuse", "IMMNet", "KalmanNetGain", "Predict",
-    "TransformerClassifier", "UniformMix", "Update", "steady_state",
+    "TransformerClassifier", "TrueModeUpdate", "UniformMix", "Update", "steady_state",
 ]

@@ -161,6 +161,19 @@ def told_r(td) -> torch.Tensor:
     return r
 
 
+def step_input(td, key) -> torch.Tensor:
+    """The step's input ``key`` ``[B]`` (``immnet.stages.start.STEP_INPUTS``): ``told_r``'s for ``"r"``; for an
+    oracle's truth (``("truth", ...)``) a ValueError saying what to give where the step has none."""
+    if key == keys.R:
+        return told_r(td)
+    value = None if td is None else td.get(key, None)
+    if value is None:
+        raise ValueError(f"this step reads the truth's {key[-1]!r} at each scan (an oracle: the clairvoyant filters' "
+                         f"configuration): give the step its input {key} [B] (IMMNet.rollout(..., truth=...), "
+                         "IMMNet.scan(..., truth=...))")
+    return value
+
+
 def group_ids(groups, like: torch.Tensor) -> torch.Tensor:
     """The group of each coordinate (``immnet.motion.MODE_GROUPS``) as a tensor on ``like``'s device: a stage's buffer
     as it is (no copy on the step's hot path), a tuple made one."""

@@ -23,7 +23,7 @@ from torch import nn
 
 from immnet import keys
 from immnet.imm.interaction import transition_matrix
-from immnet.motion import ModelSet, n_groups
+from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, ModelSet, n_groups
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.update import innovation
@@ -263,6 +263,60 @@ class UniformMix(Stage):
         logits = x.new_zeros(x.shape[0], *(() if self.groups is None else (self.groups,)), self.n_experts)
         td.set(keys.MODE_LOGITS, logits)
         td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        return td
+
+
+class TrueModeUpdate(Stage):
+    """An oracle in the classifier's slot: the mode probabilities are the truth's, one-hot on the expert of the
+    data's mode at each scan (the step's input ``("truth", "mode")`` ``[B]``), also at a track's start. A bound, not a
+    tracker: with it the IMM's interaction takes each expert's prior from the true mode's expert (a mix with one-hot
+    weights), with the onset priors where the mode switched, and the fusion is the true mode's expert alone: the
+    clairvoyant filters' configuration (``immnet.filters.clairvoyant``, docs/core.md).
+
+    ``experts``: the expert of each data mode (CV, CA, CT+, CT-), four indices; None: each data mode's own expert
+    (``ModelSet.modes``), a turn of one sign standing for both where the set has only that one (a turn filter told the
+    truth's rate turns either way). A data mode without an expert is a ValueError naming it."""
+
+    in_keys = [keys.TRUE_MODE]
+    out_keys = _MODE_KEYS_OUT
+
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, experts: list[int] | None = None, modes: str = "joint"):
+        super().__init__(model_set)
+        if n_groups(modes) is not None:
+            raise ValueError(f"the truth's modes are the whole target's: TrueModeUpdate takes modes='joint', got {modes!r}")
+        self.modes = modes
+        M = self.n_experts
+        if experts is None:
+            own = model_set.modes.tolist()
+            experts = []
+            for mode, name in enumerate(MODE_NAMES):
+                other = {CT_POS: CT_NEG, CT_NEG: CT_POS}.get(mode)
+                found = [i for i, m in enumerate(own) if m == mode] or [i for i, m in enumerate(own) if m == other]
+                if not found:
+                    raise ValueError(f"TrueModeUpdate: the data mode {name!r} has no expert in the model set "
+                                     f"{model_set.names}; give experts=[...] (one index per data mode)")
+                experts.append(found[0])
+        if len(experts) != len(MODE_NAMES) or not all(isinstance(i, int) and 0 <= i < M for i in experts):
+            raise ValueError(f"experts needs one expert index in [0, {M}) per data mode {MODE_NAMES}, got {experts!r}")
+        self.experts = list(experts)
+        self.register_buffer("expert_of", torch.tensor(self.experts), persistent=False)
+        self.register_buffer("onehot", torch.eye(M), persistent=False)  # each expert's row, in the network's dtype
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        return uniform_probs(batch, self.n_experts, dtype, device, self.modes)
+
+    def _onehot(self, mode: torch.Tensor) -> torch.Tensor:
+        """``[B, M]``: 1 on the expert of each track's data mode ``mode [B]``."""
+        return self.onehot[self.expert_of[mode.long()]]
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        """At a track's start its modes are the truth's there."""
+        return {keys.EXPERT_PROBS: self._onehot(carry.get(keys.TRUE_MODE)).to(z.dtype)}
+
+    def forward(self, td):
+        probs = self._onehot(td.get(keys.TRUE_MODE))
+        td.set(keys.MODE_LOGITS, torch.log(probs))
+        td.set(keys.EXPERT_PROBS, probs)
         return td
 
 

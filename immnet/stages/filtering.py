@@ -45,13 +45,13 @@ from immnet import keys
 from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
-from immnet.imm.interaction import mix, mixing_weights, onset_priors, transition_matrix
+from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import group_loglik, inv3, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
 )
-from immnet.stages.base import Stage, measured, per_expert, scan_interval, told_r
+from immnet.stages.base import Stage, measured, per_expert, scan_interval, step_input, told_r, track_where
 from immnet.stages.features import slog, state_scale
 from immnet.stages.gain import KalmanNetGain
 from immnet.stages.layers import StackedLinear
@@ -151,6 +151,26 @@ def _noise(scale: torch.Tensor, Q_parts: torch.Tensor) -> torch.Tensor:
     return torch.einsum(spec, scale, Q_parts.flatten(-2)).unflatten(-1, Q_parts.shape[-2:])
 
 
+FREE = "free"
+"""``turn_rate="free"``: a turn filter's own rate, not bounded to its model's range (``FilterPredict``)."""
+
+
+def _check_turn_rate(turn_rate: str | None) -> str | None:
+    if turn_rate not in (None, FREE, TOLD_R):
+        raise ValueError(f"turn_rate must be None (each turn filter's own, bounded), {FREE!r} (its own, unbounded) or "
+                         f"{TOLD_R!r} (the truth's, an oracle), got {turn_rate!r}")
+    return turn_rate
+
+
+def _check_restart(restart: str | None, interaction: str, onset: bool) -> str | None:
+    if restart not in (None, TOLD_R):
+        raise ValueError(f"restart must be None or {TOLD_R!r} (the truth's, an oracle), got {restart!r}")
+    if restart is not None and not (interaction == "imm" and onset):
+        raise ValueError("restart='data' re-enters the experts with their onset priors: it needs interaction='imm' "
+                         "and onset=True")
+    return restart
+
+
 def _check_interaction(interaction: str, p_stay: float, guard=None) -> RangeGuard | None:
     """Checks the interaction's arguments; returns the guard (``RangeGuard.from_config``)."""
     if interaction not in ("fused", "imm"):
@@ -190,11 +210,19 @@ class FilterInteraction(Stage):
     out_keys = [keys.EXPERT_MIXED, keys.EXPERT_MIXED_COV]
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995,
-                 guard=None, spec: DataSpec | dict | None = None, onset: bool = True, modes: str = "joint"):
+                 guard=None, spec: DataSpec | dict | None = None, onset: bool = True, modes: str = "joint",
+                 restart: str | None = None):
         """``onset``: the IMM's mix carries the onset priors into each expert (above); False: what enters from
         another expert is that expert's posterior as it is (the textbook IMM's mix, the linear IMMs'). ``modes``:
-        modes per group (``IMMNet``'s): each group's coordinates mixed with its own weights (``_mix_groups``)."""
+        modes per group (``IMMNet``'s): each group's coordinates mixed with its own weights (``_mix_groups``).
+        ``restart="data"`` (an oracle, with the IMM's mix and its onset priors): where the truth draws its mode's
+        parameter anew without a mode switch (a turn's new rate within a turn; the step's input ``("truth",
+        "restart")`` ``[B]``), every expert enters from its mix with its onset prior too (``immnet.imm.runner.run``'s
+        ``restart``: the switch-clairvoyant reference)."""
         super().__init__(model_set)
+        self.restart = _check_restart(restart, interaction, onset)
+        if restart is not None:
+            self.in_keys = [*self.in_keys, keys.TRUE_RESTART]
         self.dt = dt
         self.onset = bool(onset)
         groups = mode_groups(modes)
@@ -282,6 +310,10 @@ class FilterInteraction(Stage):
         own = td.get(keys.EXPERT_POST)
         if self.interaction == "imm" and td.get(keys.FUSED).dim() == 2:  # not experts alone
             y0, P0 = self._mix(td)
+            if self.restart is not None:  # the truth's new draw within a mode: every expert enters with its prior
+                again = step_input(td, keys.TRUE_RESTART).to(torch.bool)
+                ye, Pe = enter(y0, P0, self.mix_keep, self.mix_mean, self.mix_cov)
+                y0, P0 = track_where(again, ye, y0), track_where(again, Pe, P0)
         else:
             x = torch.where(self.own_acc_mask, own, per_expert(td.get(keys.FUSED), self.n_experts))
             y0 = torch.cat([x, td.get(keys.EXPERT_RATE).unsqueeze(-1)], -1)
@@ -296,13 +328,22 @@ class FilterPredict(Predict):
     """Predict for filter experts, from the interaction's input point ``[x~, w~]`` and covariance
     (``FilterInteraction``): the prior mean ``f_i(x~, w~)`` (the turn rate bounded to the expert's range, zero for
     an expert without one) and the prior covariance before process noise, ``J P~ J^T``, ``J`` the Jacobian of
-    ``f_i`` (the gain adds the process noise)."""
+    ``f_i`` (the gain adds the process noise).
+
+    ``turn_rate`` (the gain's, ``FilterGain(turn_rate=...)``): None, the turn filters' own rate, bounded to their
+    model's range (``_rate_limits``); ``"free"``, their own rate unbounded (an extended Kalman filter of ``[x, w]`` as
+    it is: the switch-clairvoyant reference); ``"data"``, the truth's rate of each scan (the step's input
+    ``("truth", "turn_rate")`` ``[B]``, rad/s, either sign) in place of their own, held as known (its variance and
+    covariances 0): the clairvoyant bound's turn at the true rate (an oracle)."""
 
     in_keys = [keys.EXPERT_MIXED, keys.EXPERT_MIXED_COV]
     out_keys = [keys.EXPERT_PRIOR, keys.EXPERT_RATE, keys.EXPERT_AUG_PRIOR_COV]
 
-    def __init__(self, model_set: ModelSet, dt: float = 1.0):
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, turn_rate: str | None = None):
         super().__init__(model_set, dt)
+        self.turn_rate = _check_turn_rate(turn_rate)
+        if self.turn_rate == TOLD_R:
+            self.in_keys = [*self.in_keys, keys.TRUE_TURN_RATE]
         own_acc, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_acc", torch.tensor(own_acc))  # the model set's, kept with the weights
         self.register_buffer("own_rate", torch.tensor(own_rate))
@@ -319,7 +360,12 @@ class FilterPredict(Predict):
         M = self.n_experts
         y0, P0 = td.get(keys.EXPERT_MIXED), td.get(keys.EXPERT_MIXED_COV)
         x, w = y0[..., :9], y0[..., RATE]
-        w = torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype))
+        if self.turn_rate == TOLD_R:  # the truth's rate, known: no variance, no covariance with the state
+            w = step_input(td, keys.TRUE_TURN_RATE).to(w.dtype).unsqueeze(-1).expand_as(w)
+            known = self.own_rate[:, None] & (torch.arange(N_AUG, device=w.device) == RATE)
+            P0 = P0.masked_fill(known.unsqueeze(-1) | known.unsqueeze(-2), 0.0)
+        elif self.turn_rate is None:
+            w = torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype))
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
         dt, per_track = scan_interval(td, self.dt)
         if per_track:  # this scan's interval per track: F and the Jacobian's constant part of it
@@ -353,11 +399,13 @@ class FilterUpdate(Update):
     ]
     out_keys = [keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
 
-    def __init__(self, model_set: ModelSet, dt: float = 1.0, correction: bool = False):
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, correction: bool = False, turn_rate: str | None = None):
         """``correction``: add the gain's learned state correction (``("expert", "correction")``,
         ``KalmanNetFilterGain(state_correction=...)``) to each expert's posterior mean; the covariance is the
-        filter's (the correction enters as a known input)."""
+        filter's (the correction enters as a known input). ``turn_rate``: ``FilterPredict``'s; bounded to the
+        model's range where None, else kept as it is."""
         super().__init__(model_set)
+        self.turn_rate = _check_turn_rate(turn_rate)
         _, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_rate", torch.tensor(own_rate))
         _register_rate_bounds(self, lo, hi)
@@ -371,7 +419,8 @@ class FilterUpdate(Update):
             td.set(keys.EXPERT_POST, td.get(keys.EXPERT_POST) + td.get(keys.EXPERT_CORRECTION))
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         w = td.get(keys.EXPERT_RATE) + (td.get(keys.EXPERT_RATE_GAIN) * nu).sum(-1)
-        w = torch.where(self.own_rate, torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype)), w)
+        if self.turn_rate is None:
+            w = torch.where(self.own_rate, torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype)), w)
         K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = td.get(keys.NOISE_VAR)
@@ -392,21 +441,26 @@ class _FilterExperts:
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
     Mixed into a ``Stage`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
-    update_stage = FilterUpdate
+    def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
+        """The update these experts need (``FilterUpdate``, with this gain's ``turn_rate``)."""
+        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate)
 
     def interaction_stage(self, model_set: ModelSet, dt: float) -> FilterInteraction:
         """The interaction these experts need, with this gain's ``interaction``, ``p_stay`` and ``guard``."""
         return FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset,
-                                 self.modes)
+                                 self.modes, self.restart)
 
     def predict_stage(self, model_set: ModelSet, dt: float) -> FilterPredict:
-        """The predict stage these experts need (``FilterPredict``)."""
-        return FilterPredict(model_set, dt)
+        """The predict stage these experts need (``FilterPredict``, with this gain's ``turn_rate``)."""
+        return FilterPredict(model_set, dt, turn_rate=self.turn_rate)
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
-                     onset: bool = True, model_noise=None, start_acc_std: float | None = None, modes: str = "joint"):
+                     onset: bool = True, model_noise=None, start_acc_std=None, modes: str = "joint",
+                     turn_rate: str | None = None, restart: str | None = None):
         self.guard = _check_interaction(interaction, p_stay, guard)
+        self.turn_rate = _check_turn_rate(turn_rate)
+        self.restart = _check_restart(restart, interaction, onset)  # the interaction's
         self.modes, groups = modes, mode_groups(modes)
         self.z_groups = None if groups is None else measured_groups(groups)  # each group's measured coordinates
         if groups is not None and self.guard is not None:
@@ -420,9 +474,12 @@ class _FilterExperts:
                                  f"got {model_noise!r}")
             model_noise = [float(v) for v in sq]
         self.model_noise = model_noise
-        if start_acc_std is not None and not (math.isfinite(start_acc_std) and start_acc_std >= 0):
-            raise ValueError(f"start_acc_std must be finite and >= 0 (or None: the CA draw's), got {start_acc_std}")
-        self.start_acc_std = None if start_acc_std is None else float(start_acc_std)
+        stds = start_acc_std if isinstance(start_acc_std, (list, tuple)) else [start_acc_std] * len(model_set)
+        if len(stds) != len(model_set) or not all(v is None or (math.isfinite(v) and v >= 0) for v in stds):
+            raise ValueError(f"start_acc_std must be finite and >= 0 or None (the CA draw's), one for every model or one "
+                             f"per model ({len(model_set)}), got {start_acc_std!r}")
+        self.start_acc_std = start_acc_std if not isinstance(start_acc_std, (list, tuple)) else list(start_acc_std)
+        self._start_acc_std = [None if v is None else float(v) for v in stds]  # per expert
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
         if isinstance(r, str):
             if r != TOLD_R:
@@ -554,7 +611,7 @@ class _FilterExperts:
         velocity ``300^2``; after two (differenced velocity over ``elapsed``, the time between the
         detections ``[B]``; the nominal ``dt`` where None) velocity ``2 r^2 / elapsed^2`` with the
         position-velocity covariance ``r^2 / elapsed``; acceleration the CA draw's (``start_acc_std^2`` on every
-        axis where set), turn rate ``rate_std0``."""
+        axis where set, for every expert or each its own), turn rate ``rate_std0``."""
         P = r2.new_zeros(B, self.n_experts, N_AUG, N_AUG)
         e = self.dt if elapsed is None else elapsed.to(r2.dtype).view(B, *([1] * (r2.dim() - 1)))
         for a in range(3):
@@ -563,7 +620,8 @@ class _FilterExperts:
             P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
             if second:
                 P[..., p, v] = P[..., v, p] = r2 / e
-            P[..., c, c] = float(self.acc_var0[a]) if self.start_acc_std is None else self.start_acc_std**2
+            for i, std in enumerate(self._start_acc_std):
+                P[..., i, c, c] = float(self.acc_var0[a]) if std is None else std**2
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
 
@@ -679,18 +737,23 @@ class FilterGain(_FilterExperts, Stage):
         spec: DataSpec | dict | None = None,
         onset: bool = True,
         model_noise: float | list[float] | None = None,
-        start_acc_std: float | None = None,
+        start_acc_std: float | list[float | None] | None = None,
         modes: str = "joint",
+        turn_rate: str | None = None,
+        restart: str | None = None,
     ):
         """``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
         model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
         the ``noise_std`` components; ``start_acc_std``: the start covariance's acceleration standard deviation on
-        every axis (None: the CA draw's). The three make the linear IMMs' filters (docs/core.md). ``modes``:
-        modes per group (``IMMNet``'s, set there once): the experts' likelihood per group (``group_loglik``),
-        ``("expert", "loglik")`` ``[B, G, M]``."""
+        every axis (None: the CA draw's), one for every expert or one per expert. The three make the linear IMMs'
+        filters (docs/core.md). ``modes``: modes per group (``IMMNet``'s, set there once): the experts' likelihood per
+        group (``group_loglik``), ``("expert", "loglik")`` ``[B, G, M]``. ``turn_rate``: the turn filters' rate,
+        their own bounded to the model's range (None), their own unbounded (``"free"``) or the truth's of each scan,
+        the step's input ``("truth", "turn_rate")`` (``"data"``, an oracle: the clairvoyant bound's configuration;
+        ``FilterPredict``). ``restart="data"``: the interaction's oracle restart (``FilterInteraction``)."""
         super().__init__(model_set)
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, modes)
+                          onset, model_noise, start_acc_std, modes, turn_rate, restart)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -748,7 +811,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         interval_input: bool = False,
         onset: bool = True,
         model_noise: float | list[float] | None = None,
-        start_acc_std: float | None = None,
+        start_acc_std: float | list[float | None] | None = None,
         modes: str = "joint",
         state_correction: tuple[float, float, float] | None = None,
     ):

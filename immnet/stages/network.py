@@ -239,7 +239,7 @@ class IMMNet(TensorDictModuleBase):
         self.register_load_state_dict_pre_hook(_without_step_copies)
         carry = list(self.start.carry_keys)
         self.carry_keys = carry
-        self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry, *([keys.R] if self.start.told_r else [])]
+        self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry, *self.start.inputs]
         self.out_keys = [keys.ACTION, *(("next", *k) for k in carry)]
         onehot = torch.zeros(len(ms), 4)
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
@@ -363,11 +363,14 @@ class IMMNet(TensorDictModuleBase):
         return self._steps(experts_alone)[0].fresh_carry(batch, dtype, device)
 
     # --- one scan -------------------------------------------------------------------------
-    def scan(self, carry: TensorDict, z: torch.Tensor, experts_alone: bool = False, interval=None, r=None) -> TensorDict:
+    def scan(self, carry: TensorDict, z: torch.Tensor, experts_alone: bool = False, interval=None, r=None,
+             truth: dict | None = None) -> TensorDict:
         """Advance every track by one scan of measurements ``z [B, 3]`` (``[B, M, 3]`` experts alone).
 
         ``interval [B]``: the time since the previous scan per track (s); None: the nominal ``dt``. ``r [B]``: each
-        track's measurement std (m), for filter experts told it (``FilterGain(r="data")``); None: none. Returns
+        track's measurement std (m), for filter experts told it (``FilterGain(r="data")``); None: none. ``truth``: an
+        oracle's inputs of this scan, ``{("truth", name): [B]}`` (``keys.TRUE_MODE``, ``TRUE_TURN_RATE``), for the
+        stages that read them (the clairvoyant filters' configuration, ``ClairvoyantKF.network()``). Returns
         the new carry, which also holds this scan's outputs (``("fused", "state")``, ``("expert", "post")``,
         ``("mode", "probs")``, ...). NaN in ``z`` is a missed detection. It is one call of the step (track
         starts included), with the measurement and the interval set; where every track has started, of
@@ -383,11 +386,15 @@ class IMMNet(TensorDictModuleBase):
             td.set(keys.INTERVAL, interval)
         if r is not None:
             td.set(keys.R, torch.as_tensor(r, dtype=z.dtype, device=z.device).reshape(-1).expand(z.shape[0]))
+        for key, value in (truth or {}).items():
+            td.set(key, value)
         out = step(td)
         if interval is not None:
             out.del_(keys.INTERVAL)
         if r is not None:
             out.del_(keys.R)
+        if truth:
+            out.del_(unravel_key(next(iter(truth)))[0])  # the ("truth", ...) inputs
         return out
 
     # --- a policy -------------------------------------------------------------------------
@@ -422,7 +429,8 @@ class IMMNet(TensorDictModuleBase):
             raise ValueError(f"IMMNet: the TensorDict holds no carry {missing[:3]}{'...' if len(missing) > 3 else ''} for "
                              "tracks that are not starting (is_init False); in an environment, append "
                              "net.make_tensordict_primer()")
-        new = self.scan(carry, z, interval=td.get(keys.INTERVAL, None), r=td.get(keys.R, None))
+        truth = {k: td.get(k) for k in self.start.inputs if k != keys.R and k in td.keys(True)}  # an oracle's inputs
+        new = self.scan(carry, z, interval=td.get(keys.INTERVAL, None), r=td.get(keys.R, None), truth=truth or None)
         td.set(keys.ACTION, new.get(keys.FUSED))
         for key in self.carry_keys:
             td.set(("next", *key), new.get(key))
@@ -430,10 +438,12 @@ class IMMNet(TensorDictModuleBase):
 
     # --- a whole sequence -----------------------------------------------------------------
     def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False,
-                intervals: torch.Tensor | None = None, return_cov: bool = False, r: torch.Tensor | None = None):
+                intervals: torch.Tensor | None = None, return_cov: bool = False, r: torch.Tensor | None = None,
+                truth: dict | None = None):
         """Run over ``measurements [B, T, 3]`` (``[B, M, T, 3]`` experts alone), with the interval before each
         scan ``intervals [B, T]`` (``immnet.data.times.scan_intervals``; None: the nominal ``dt`` at every scan)
-        and, for filter experts told it (``r="data"``), each track's measurement std ``r [B]``.
+        and, for filter experts told it (``r="data"``), each track's measurement std ``r [B]``; ``truth``: an
+        oracle's inputs over the sequence, ``{("truth", name): [B, T]}`` (``scan``'s, each scan's column).
 
         Returns ``(outputs, carry)``: ``outputs`` a TensorDict ``[B, T]`` with ``state``
         (``[B, T, 9]``, or ``[B, T, M, 9]`` experts alone), ``expert_probs`` and ``mode_logits``
@@ -452,7 +462,8 @@ class IMMNet(TensorDictModuleBase):
         states, probs, logits, posts, covs = [], [], [], [], []
         for t in range(T):
             carry = self.scan(carry, measurements[..., t, :], experts_alone,
-                              None if intervals is None else intervals[:, t], r)
+                              None if intervals is None else intervals[:, t], r,
+                              None if truth is None else {k: v[:, t] for k, v in truth.items()})
             states.append(carry.get(keys.FUSED))
             if return_cov:
                 covs.append(self.reported_cov(carry))

@@ -15,7 +15,7 @@ one step serves a batch of tracks at any point of their lives and the streaming 
   (``("memory", "age")``, ``("memory", "start_scans")``, ``("memory", "start_time")``).
 * the stages of the step run for every track (a starting track's results are not used);
 * ``JoinStarts`` (last) takes the start carry where a track starts and the step's elsewhere: a starting
-  track's modes uniform, each expert's estimate the start estimate, its fused covariance the one of its
+  track's modes the classifier's at a start (uniform; an oracle's the truth's), each expert's estimate the start estimate, its fused covariance the one of its
   start covariances (where the step fuses one and does not carry it). It consumes the ``("start", ...)``
   keys (removes them), so the carry holds only what the stages declare they carry.
 
@@ -35,10 +35,13 @@ from tensordict.utils import unravel_key
 
 from immnet import keys
 from immnet.motion import POS, VEL, ModelSet
-from immnet.stages.base import Stage, measured, told_r, track_where
+from immnet.stages.base import Stage, measured, step_input, track_where
 
 COUNTS = (keys.AGE, keys.START_SCANS, keys.START_TIME)
 """The track-start counts ``TrackStart`` carries."""
+STEP_INPUTS = (keys.R, keys.TRUE_MODE, keys.TRUE_TURN_RATE, keys.TRUE_RESTART)
+"""The step's inputs per track that are neither carried nor measured: each track's measurement std (a filter gain told
+it) and an oracle's truth (the clairvoyant filters, docs/stages.md); ``IMMNet.scan`` sets them."""
 
 
 def _compiling() -> bool:
@@ -64,9 +67,12 @@ class TrackStart(Stage):
         object.__setattr__(self, "_stages", tuple(stages))
         self.carry_keys = [unravel_key(k) for k in self.fresh_carry(1).keys(True, True)]  # the carry's leaves
         self.carried = [unravel_key(k) for stage in (self, *stages) for k in stage.carry_spec(1, experts_alone)]
-        # each track's measurement std, where a stage is told it (a filter gain's r 'data'): its start reads it too
-        self.told_r = any(unravel_key(k) == keys.R for stage in stages for k in stage.in_keys)
-        self.in_keys = [keys.MEASUREMENT, *self.carried, *([keys.R] if self.told_r else [])]  # a nested key whole
+        # the step's inputs beside the measurement and the interval that a stage reads (each track's measurement std
+        # where a filter gain is told it, r 'data'; an oracle's truth): a start reads them too
+        read = {unravel_key(k) for stage in stages for k in stage.in_keys}
+        self.inputs = [k for k in STEP_INPUTS if k in read]
+        self.told_r = keys.R in self.inputs
+        self.in_keys = [keys.MEASUREMENT, *self.carried, *self.inputs]  # a nested key whole
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The track-start counts, zero before a track's first detection."""
@@ -124,8 +130,8 @@ class TrackStart(Stage):
         interval = td.get(keys.INTERVAL, None)
         carry = td.select(*self.carry_keys)
         has = measured(z).reshape(z.shape[0], -1).all(-1)
-        if self.told_r:  # what a start reads beside the carry: the told measurement std
-            carry.set(keys.R, told_r(td))
+        for key in self.inputs:  # what a start reads beside the carry: the told measurement std, the truth
+            carry.set(key, step_input(td, key))
         first = self._started(carry, z, second=False, interval=interval)
         second = self._started(carry, z, second=True, interval=interval) if self.detections == 2 else None
         start = carry.empty()
@@ -155,7 +161,6 @@ class JoinStarts(Stage):
         self.carry_keys = list(start.carry_keys)  # the leaves
         object.__setattr__(self, "_fuse", fuse)
         self.fused_cov = fused_cov
-        self.probs = keys.EXPERT_PROBS in self.carry_keys  # experts alone have no modes
         reads = [keys.STARTING, keys.START_CARRY, *start.carried, keys.FUSED, keys.EXPERT_POST]
         writes = [*start.carried, keys.EXPERT_POST]
         if fused_cov:
@@ -174,9 +179,6 @@ class JoinStarts(Stage):
             return td
         for key in self.carry_keys:
             td.set(key, track_where(starting, start.get(key), td.get(key)))
-        if self.probs:  # a starting track's modes are uniform
-            probs = td.get(keys.EXPERT_PROBS)
-            td.set(keys.EXPERT_PROBS, track_where(starting, torch.full_like(probs, 1.0 / self.n_experts), probs))
         # a starting track has no expert estimates of its own yet: each expert's is the start estimate
         # (the step ran on its carry before the start, so its posteriors there mean nothing)
         fused = td.get(keys.FUSED)
