@@ -421,7 +421,37 @@ def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_
         FilterInteraction(ms, 1.0, interaction="fused", guard=True)
 
 
-@pytest.mark.parametrize("method", ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive"])
+IMM_EKF = ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive", "imm-ekf-guard-sticky-adaptive"]
+LINEAR = ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-imm-5s", "real-ca", "real-ca-5s"]
+PER_AXIS = ["real-imm-axis", "real-imm-axis-5s"]
+ORACLES = ["clairvoyant", "clairvoyant-switch"]  # tests/test_filters_clairvoyant.py
+PER_CHANNEL = ["real-imm-channel", "real-imm-channel-5s"]  # track runs network(); tests/test_filters_per_axis.py
+
+
+def test_every_model_based_method_of_the_registry_is_held_to_its_step_configuration():
+    """Issue 21, item 1: every model-based method the registry holds (configs/methods, every class but the learned
+    networks') is one of the methods the equality tests of its kind run (above and below, and the files named), and
+    has a ``network()``: no method joins the registry without its IMMNet-with-nothing-learned configuration."""
+    import yaml
+
+    from immnet.config import resolve_path
+    from immnet.evaluation.methods import BUILTIN, available_methods, build_method
+
+    held = set(IMM_EKF + LINEAR + PER_AXIS + ORACLES + PER_CHANNEL)
+    model_based = []
+    for name in available_methods():
+        if name in BUILTIN:  # the raw measurements: no filter
+            continue
+        config = yaml.safe_load(resolve_path(f"configs/methods/{name}.yaml").read_text())
+        if config["class_path"].startswith("immnet.tracking."):  # a learned network (IMMNet's, KalmanNet's)
+            continue
+        model_based.append(name)
+        assert name in held, f"{name}: a model-based method no equality test holds to its network()"
+        assert isinstance(build_method(name).network(), IMMNet), name
+    assert len(model_based) == len(held)
+
+
+@pytest.mark.parametrize("method", IMM_EKF)
 def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
     """Issue 21, item 1: the model-based IMM that IMMNet is compared with is IMMNet with nothing learned: the
     registry's method, built from its YAML, equals an ``IMMNet`` of filter experts with their base noise
@@ -447,7 +477,7 @@ def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
     torch.testing.assert_close(ours[keys.MODE_PROBS], out[keys.ROLLOUT_EXPERT_PROBS], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("method", ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-imm-5s", "real-ca"])
+@pytest.mark.parametrize("method", LINEAR)
 def test_each_linear_imm_is_immnet_with_nothing_learned(method):
     """Issue 21, item 1, for the paper's linear IMMs, IMM-Tuned, the real-flight IMMs and the real-flight CA Kalman
     filter (an IMM of one model): the registry's method equals its ``network()``,
@@ -511,7 +541,8 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
         assert torch.isnan(got[~seen_probs]).all()
 
 
-def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
+@pytest.mark.parametrize("method", PER_AXIS)
+def test_the_decoupled_imm_is_immnet_with_modes_per_axis(method):
     """Issue 21, item 1, for the decoupled IMM (``real-imm-axis``: one IMM per axis over CV and CA, each track's r
     told): its ``network()``, IMMNet's step with modes per axis (``modes="axis"``: mode probabilities ``[B, 3, M]``, each
     axis's mix, likelihood and mode update, the fusion per axis) over 9-D filter experts, filters what the method
@@ -531,7 +562,7 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis():
     t = torch.cat([torch.zeros(12, 1), (4.5 + torch.rand(12, 149, generator=gen)).cumsum(1)], 1).double()
     slow = data.clone()
     slow[keys.TIME] = t
-    tracker = build_method("real-imm-axis")
+    tracker = build_method(method)
     tracker.return_cov = True
     net = tracker.network()
     assert net.modes == "axis" and net.start_detections == 1 and not net.interact.onset

@@ -102,8 +102,12 @@ def test_the_clairvoyant_filters_are_configurations_of_the_step(kind, scans):
     each track's first detection; its modes are the truth's there, one-hot."""
     from immnet.filters import SwitchClairvoyantKF
 
+    from immnet.evaluation.methods import build_method
+
     spec, data = _oracle_data(scans)
-    method = (ClairvoyantKF if kind == "clairvoyant" else SwitchClairvoyantKF)(spec=spec)
+    method = build_method(kind)  # the registry's, told the data's statistics as `immnet evaluate` tells it
+    assert isinstance(method, ClairvoyantKF if kind == "clairvoyant" else SwitchClairvoyantKF)
+    method.configure({"spec": spec.to_dict()})
     net = method.network()
     intervals = net.intervals_for(data)
     assert (intervals is None) == (scans == "1s")
