@@ -478,8 +478,8 @@ class _FilterExperts:
         if len(stds) != len(model_set) or not all(v is None or (math.isfinite(v) and v >= 0) for v in stds):
             raise ValueError(f"start_acc_std must be finite and >= 0 or None (the CA draw's), one for every model or one "
                              f"per model ({len(model_set)}), got {start_acc_std!r}")
-        self.start_acc_std = start_acc_std if not isinstance(start_acc_std, (list, tuple)) else list(start_acc_std)
         self._start_acc_std = [None if v is None else float(v) for v in stds]  # per expert
+        self.start_acc_std = self._start_acc_std if isinstance(start_acc_std, (list, tuple)) else self._start_acc_std[0]
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
         if isinstance(r, str):
             if r != TOLD_R:
@@ -620,8 +620,11 @@ class _FilterExperts:
             P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
             if second:
                 P[..., p, v] = P[..., v, p] = r2 / e
-            for i, std in enumerate(self._start_acc_std):
-                P[..., i, c, c] = float(self.acc_var0[a]) if std is None else std**2
+            if isinstance(self.start_acc_std, list):  # each expert its own
+                for i, std in enumerate(self._start_acc_std):
+                    P[..., i, c, c] = float(self.acc_var0[a]) if std is None else std**2
+            else:
+                P[..., c, c] = float(self.acc_var0[a]) if self.start_acc_std is None else self.start_acc_std**2
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
 
