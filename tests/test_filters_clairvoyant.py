@@ -126,8 +126,9 @@ def test_the_clairvoyant_filters_are_configurations_of_the_step(kind, scans):
 
 
 def test_an_oracle_step_without_its_truth_or_with_a_mode_it_lacks_is_refused():
-    """A step that reads the truth is refused without it (the input named), and the oracle refuses a model set
-    that has no expert for a data mode, a mapping of the wrong length and modes per group."""
+    """A step that reads the truth is refused without it (the input named) or with a scan without a label, and the
+    oracle refuses a model set that has no expert for a data mode, a mapping of the wrong length and modes per
+    group."""
     from immnet.motion import ModelSet
     from immnet.stages import TrueModeUpdate
     from immnet.stages.filtering import FilterGain
@@ -139,6 +140,10 @@ def test_an_oracle_step_without_its_truth_or_with_a_mode_it_lacks_is_refused():
         net.rollout(z, r=data[keys.R].double())
     with pytest.raises(ValueError, match=r"truth's 'turn_rate'"):
         net.rollout(z, r=data[keys.R].double(), truth={keys.TRUE_MODE: data[keys.MODE]})
+    unlabelled = data[keys.MODE].clone()
+    unlabelled[2, 30:] = -1  # a scan without a label (real flights)
+    with pytest.raises(ValueError, match="truth's mode at every scan"):
+        net.rollout(z, r=data[keys.R].double(), truth={keys.TRUE_MODE: unlabelled, keys.TRUE_TURN_RATE: data[keys.TURN_RATE]})
     cv_ca = ModelSet.from_config([{"class_path": "immnet.motion.ConstantVelocity"},
                                   {"class_path": "immnet.motion.ConstantAcceleration"}])
     with pytest.raises(ValueError, match="data mode 'ct\\+' has no expert"):

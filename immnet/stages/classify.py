@@ -306,8 +306,13 @@ class TrueModeUpdate(Stage):
         return uniform_probs(batch, self.n_experts, dtype, device, self.modes)
 
     def _onehot(self, mode: torch.Tensor) -> torch.Tensor:
-        """``[B, M]``: 1 on the expert of each track's data mode ``mode [B]``."""
-        return self.onehot[self.expert_of[mode.long()]]
+        """``[B, M]``: 1 on the expert of each track's data mode ``mode [B]``; a ValueError (eager) where a mode is
+        not one of the four (``-1``: a scan without a label, as real flights have)."""
+        mode = mode.long()
+        if not torch.compiler.is_compiling() and bool(((mode < 0) | (mode >= len(MODE_NAMES))).any()):
+            raise ValueError(f"TrueModeUpdate needs the truth's mode at every scan, one of {MODE_NAMES} (0-3); this scan "
+                             "has a track without one (-1: real flights, padding)")
+        return self.onehot[self.expert_of[mode]]
 
     def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
         """At a track's start its modes are the truth's there."""
