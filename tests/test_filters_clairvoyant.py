@@ -156,3 +156,33 @@ def test_an_oracle_step_without_its_truth_or_with_a_mode_it_lacks_is_refused():
         FilterGain(cv_ca, turn_rate="truth")
     with pytest.raises(ValueError, match="needs interaction='imm'"):
         FilterGain(cv_ca, restart="data")
+
+
+@pytest.mark.parametrize("kind", ["clairvoyant", "clairvoyant-switch"])
+def test_an_oracle_step_traces_as_one_graph_and_gives_the_eager_outputs(kind):
+    """Issue 21, item 1: an oracle's step, as every step, has no data-dependent branch under ``torch.compile``
+    (``fullgraph=True``; the ``eager`` backend runs the traced graph, no C++ compiler needed; the check of the
+    truth's labels is eager only) and the graph's outputs are the eager step's."""
+    from immnet.evaluation.methods import build_method
+
+    spec, data = _oracle_data("4.5-5.5s")
+    method = build_method(kind)
+    method.configure({"spec": spec.to_dict()})
+    net = method.network()
+    z, r, truth = data[keys.MEASUREMENTS].double(), data[keys.R].double(), method.truth(data)
+    intervals = net.intervals_for(data)
+    with torch.no_grad():
+        carry = net.initial_carry(z.shape[0], dtype=torch.float64)
+        for t in range(6):
+            carry = net.scan(carry, z[:, t], interval=intervals[:, t], r=r, truth={k: v[:, t] for k, v in truth.items()})
+        td = carry.copy()
+        td.set(keys.MEASUREMENT, z[:, 6])
+        td.set(keys.INTERVAL, intervals[:, 6])
+        td.set(keys.R, r)
+        for key, value in truth.items():
+            td.set(key, value[:, 6])
+        torch._dynamo.reset()
+        traced = torch.compile(net.step, fullgraph=True, backend="eager")(td.copy())
+        eager = net.step(td.copy())
+    for key in eager.keys(True, True):
+        torch.testing.assert_close(traced.get(key), eager.get(key), rtol=1e-9, atol=1e-9, equal_nan=True, msg=str(key))

@@ -101,7 +101,12 @@ class ModelSet:
     def Q(self, sigma_q, dt=1.0, dtype=torch.float64, device=None) -> torch.Tensor:
         """Stacked process noise ``[M, 9, 9]`` (``[..., M, 9, 9]`` for a tensor ``dt [...]``); ``sigma_q`` a
         scalar or one per model."""
-        sq = torch.as_tensor(sigma_q, dtype=dtype).expand(len(self)).tolist()
+        if isinstance(sigma_q, (int, float)):  # python numbers as they are: no tensor to read back (torch.compile)
+            sq = [float(sigma_q)] * len(self)
+        elif isinstance(sigma_q, (list, tuple)) and len(sigma_q) == len(self):
+            sq = [float(v) for v in sigma_q]
+        else:
+            sq = torch.as_tensor(sigma_q, dtype=dtype).expand(len(self)).tolist()
         return torch.stack(
             [model.Q(s, dt, dtype=dtype, device=device) for model, s in zip(self.models, sq)], -3
         )
