@@ -129,6 +129,12 @@ class ClairvoyantKF(Method):
         the sequence as ``truth=ClairvoyantKF.truth(batch)`` and each track's ``r``. It filters what ``track``
         filters, to float64 rounding (``tests/test_filters_clairvoyant.py``). A ValueError where this bound's CA draw's
         variance is fixed apart from its spec (the step's onset prior is the spec's)."""
+        return self._oracle_network([{"class_path": "immnet.motion.AdaptiveTurn"}], dt, turn_rate="data")
+
+    def _oracle_network(self, turns: list, dt: float, **gain):
+        """IMMNet with nothing learned and the truth's modes (``network()``): filter experts of CV, CA (white
+        acceleration noise, the CA expert starting with the draw's acceleration variance) and ``turns``, told each
+        track's ``r``, the IMM's mix with the spec's onset priors; ``gain``: the filter gain's other arguments."""
         from immnet.filters.imm import ACC_STD
         from immnet.stages.network import IMMNet
 
@@ -136,11 +142,10 @@ class ClairvoyantKF(Method):
             raise ValueError(f"{self.name}: acc_var {self.acc_var} is not its spec's CA draw ({self.spec.ca_acc_var()}); "
                              "the step's onset prior is the spec's")
         models = [{"class_path": "immnet.motion.ConstantVelocity", "init_args": {"noise": "white"}},
-                  {"class_path": "immnet.motion.ConstantAcceleration", "init_args": {"noise": "white"}},
-                  {"class_path": "immnet.motion.AdaptiveTurn"}]
+                  {"class_path": "immnet.motion.ConstantAcceleration", "init_args": {"noise": "white"}}, *turns]
         gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
             "model_noise": self.sigma_q, "r": "data", "interaction": "imm", "onset": True, "spec": self.spec.to_dict(),
-            "start_acc_std": [ACC_STD, None, ACC_STD], "turn_rate": "data"}}
+            "start_acc_std": [ACC_STD, None] + [ACC_STD] * len(turns), **gain}}
         oracle = {"class_path": "immnet.stages.TrueModeUpdate"}
         net = IMMNet(model_set=models, gain=gain, classifier=oracle, dt=dt, p_stay=0.5, start_detections=1)
         return net.to(self.dtype).eval()
@@ -212,25 +217,14 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         experts re-entered with their onset priors where a turn's rate changes within it (``restart="data"``, the
         truth's ``("truth", "restart")``). Give ``rollout`` ``truth=SwitchClairvoyantKF.truth(batch)``. A ValueError
         where the CA draw's variance or the turn prior is fixed apart from the spec."""
-        from immnet.filters.imm import ACC_STD
-        from immnet.stages.network import IMMNet
-
-        if tuple(self.acc_var) != tuple(self.spec.ca_acc_var()) or tuple(self.turn_prior_deg) != tuple(
-                self.spec.turn_rate_prior_deg()):
-            raise ValueError(f"{self.name}: acc_var and turn_prior_deg must be its spec's (the step's onset priors are)")
+        if tuple(self.turn_prior_deg) != tuple(self.spec.turn_rate_prior_deg()):
+            raise ValueError(f"{self.name}: turn_prior_deg {self.turn_prior_deg} is not its spec's "
+                             f"({self.spec.turn_rate_prior_deg()}); the step's onset prior is the spec's")
         mean, std = self.turn_prior_deg
-        turn = {"min_deg": min(1.0, mean), "max_deg": max(10.0, mean)}
-        models = [{"class_path": "immnet.motion.ConstantVelocity", "init_args": {"noise": "white"}},
-                  {"class_path": "immnet.motion.ConstantAcceleration", "init_args": {"noise": "white"}},
-                  {"class_path": "immnet.motion.AdaptiveTurn", "init_args": {"turn_rate_deg": mean, **turn}},
-                  {"class_path": "immnet.motion.AdaptiveTurn", "init_args": {"turn_rate_deg": -mean, **turn}}]
-        gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
-            "model_noise": self.sigma_q, "r": "data", "interaction": "imm", "onset": True, "spec": self.spec.to_dict(),
-            "start_acc_std": [ACC_STD, None, ACC_STD, ACC_STD], "rate_std0_deg": std, "turn_rate": "free",
-            "restart": "data"}}
-        oracle = {"class_path": "immnet.stages.TrueModeUpdate"}
-        net = IMMNet(model_set=models, gain=gain, classifier=oracle, dt=dt, p_stay=0.5, start_detections=1)
-        return net.to(self.dtype).eval()
+        bounds = {"min_deg": min(1.0, mean), "max_deg": max(10.0, mean)}
+        turns = [{"class_path": "immnet.motion.AdaptiveTurn", "init_args": {"turn_rate_deg": sign * mean, **bounds}}
+                 for sign in (1.0, -1.0)]
+        return self._oracle_network(turns, dt, rate_std0_deg=std, turn_rate="free", restart="data")
 
     @staticmethod
     def restarts(mode: torch.Tensor, rate: torch.Tensor) -> torch.Tensor:

@@ -293,10 +293,9 @@ def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=N
     ``sigma_q`` (aircraft climb and descend more gently than they turn and speed up)."""
     if kind not in NOISE_KINDS:
         raise ValueError(f"noise kind must be one of {', '.join(NOISE_KINDS)}, got {kind!r}")
-    if isinstance(sigma_q, (int, float)):  # a python number checked as one: no tensor to read back (torch.compile)
-        if not sigma_q >= 0:
-            raise ValueError(f"sigma_q must be non-negative, got {sigma_q}")
-    elif bool((torch.as_tensor(sigma_q) < 0).any()):
+    # a python number checked as one: no tensor to read back (torch.compile traces a step that builds Q)
+    negative = sigma_q < 0 if isinstance(sigma_q, (int, float)) else bool((torch.as_tensor(sigma_q) < 0).any())
+    if negative:
         raise ValueError(f"sigma_q must be non-negative, got {sigma_q}")
     sq = torch.as_tensor(sigma_q, dtype=dtype, device=device)
     if not (math.isfinite(vertical) and vertical >= 0):

@@ -429,7 +429,7 @@ class IMMNet(TensorDictModuleBase):
             raise ValueError(f"IMMNet: the TensorDict holds no carry {missing[:3]}{'...' if len(missing) > 3 else ''} for "
                              "tracks that are not starting (is_init False); in an environment, append "
                              "net.make_tensordict_primer()")
-        truth = {k: td.get(k) for k in self.start.inputs if k != keys.R and k in td.keys(True)}  # an oracle's inputs
+        truth = {k: td.get(k) for k in self.start.inputs if k != keys.R and k in present}  # an oracle's inputs
         new = self.scan(carry, z, interval=td.get(keys.INTERVAL, None), r=td.get(keys.R, None), truth=truth or None)
         td.set(keys.ACTION, new.get(keys.FUSED))
         for key in self.carry_keys:
