@@ -85,3 +85,29 @@ def test_immnet_tune_writes_the_best_config_with_its_score_and_refuses_a_test_sp
     (test / "meta.json").write_text(json.dumps({**meta, "split": "test"}))
     assert main(["tune", "--search", str(search_file), "--data", str(test), "--out", str(tmp_path / "x.yaml")]) == 2
     assert "test split" in capsys.readouterr().err
+
+
+def test_immnet_tune_on_several_sets_scores_the_geometric_mean_of_each_sets_rmse(tmp_path, capsys):
+    """Two sets of different lengths and scales (1 s and 5 s scans): the search's score of the written config is
+    the geometric mean of its Average RMSE on each set, computed apart; the header says so."""
+    one = write_dataset(tmp_path / "one", 16, 5, DataSpec(T=120), progress=False)
+    five = write_dataset(tmp_path / "five", 12, 6, DataSpec(T=90, dt=5.0, r_min=5.0, r_max=35.0, n_segments=2), progress=False)
+    search_file = tmp_path / "cv.yaml"
+    search_file.write_text(yaml.safe_dump({
+        "method": {"class_path": "immnet.filters.KalmanFilterTracker",
+                   "init_args": {"name": "cv", "r": "data", "sigma_q": 2.0,
+                                 "model": {"class_path": "immnet.motion.ConstantVelocity",
+                                           "init_args": {"noise": "continuous"}}}},
+        "grid": {"sigma_q": [0.5, 2.0, 8.0]},
+    }))
+    out = tmp_path / "cv-mix.yaml"
+    assert main(["tune", "--search", str(search_file), "--data", str(one), str(five), "--out", str(out),
+                 "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    sets = tuning_data([one, five])
+    assert isinstance(sets, list) and [b.batch_size[0] for b in sets] == [16, 12]
+    per_set = [average_rmse(build(out), batch) for batch in sets]
+    assert per_set[1] > 3 * per_set[0]  # the 5 s set's error is of another scale
+    assert result["score"] == pytest.approx((per_set[0] * per_set[1]) ** 0.5, rel=1e-9)
+    assert "geometric mean of the 2 sets' Average RMSE" in out.read_text()
+    assert "28 tracks" in out.read_text().splitlines()[0]

@@ -17,7 +17,8 @@ def register(subparsers) -> None:
                                           "a training or validation data set; writes the winner's method config.")
     t.add_argument("--search", required=True, help="a search file (configs/tuning/*.yaml)")
     t.add_argument("--data", required=True, nargs="+",
-                   help="data set directories or .npz files to tune on, taken whole (never a test split)")
+                   help="data set directories or .npz files to tune on, taken whole (never a test split); several: "
+                        "the geometric mean of each set's Average RMSE is the score")
     t.add_argument("--out", type=Path, required=True, help="the method config to write (configs/methods/NAME.yaml)")
     t.add_argument("--limit", type=int, help="only the first N tracks of each data set")
     t.add_argument("--quiet", action="store_true", help="no line per scored setting")
@@ -25,7 +26,8 @@ def register(subparsers) -> None:
 
 
 def tuning_data(paths, limit: int | None = None):
-    """The tracks of ``paths`` (whole data sets) as one float64 batch; a set whose ``meta.json`` says it is a
+    """The tracks of ``paths`` (whole data sets) as float64 batches: one batch for one set, a list of them for
+    several (scored each apart, ``immnet.evaluation.search.mixture_rmse``); a set whose ``meta.json`` says it is a
     test split is refused (tuning there would make its table a fit)."""
     import torch
 
@@ -38,9 +40,7 @@ def tuning_data(paths, limit: int | None = None):
             raise ValueError(f"{path} is a test split (meta.json 'split': 'test'): tune on training or validation data")
         td = td[: limit] if limit else td
         parts.append(as_batch(td, torch.float64))
-    if len({p["measurements"].shape[1] for p in parts}) > 1:
-        raise ValueError("the data sets to tune on need the same number of scans per track")
-    return torch.cat(parts) if len(parts) > 1 else parts[0]
+    return parts if len(parts) > 1 else parts[0]
 
 
 def run_tune(args) -> int:
@@ -48,10 +48,13 @@ def run_tune(args) -> int:
     from immnet.evaluation.search import Search
 
     search = Search.from_yaml(args.search)
-    batch = tuning_data(args.data, args.limit)
-    print(f"tuning {args.search} on {batch.batch_size[0]} tracks of {', '.join(map(str, args.data))}", file=sys.stderr)
-    result = search.run(batch, progress=not args.quiet)
-    out = search.write(result, args.out, args.search, ", ".join(map(str, args.data)), batch.batch_size[0])
+    data = tuning_data(args.data, args.limit)
+    sets = data if isinstance(data, list) else [data]
+    n = sum(batch.batch_size[0] for batch in sets)
+    score = "Average RMSE" if len(sets) == 1 else f"the geometric mean of the {len(sets)} sets' Average RMSE"
+    print(f"tuning {args.search} on {n} tracks of {', '.join(map(str, args.data))} ({score})", file=sys.stderr)
+    result = search.run(data, progress=not args.quiet)
+    out = search.write(result, args.out, args.search, ", ".join(map(str, args.data)), n, len(sets))
     print(json.dumps(finite_or_none({k: result[k] for k in ("best", "score")}), indent=2, default=str, allow_nan=False))
     print(f"wrote {out}", file=sys.stderr)
     return 0
