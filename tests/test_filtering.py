@@ -421,7 +421,8 @@ def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_
         FilterInteraction(ms, 1.0, interaction="fused", guard=True)
 
 
-IMM_EKF = ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive", "imm-ekf-guard-sticky-adaptive"]
+IMM_EKF = ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive", "imm-ekf-guard-sticky-adaptive",
+           "imm-ekf-general"]
 LINEAR = ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-imm-5s", "real-ca", "real-ca-5s"]
 PER_AXIS = ["real-imm-axis", "real-imm-axis-5s"]
 ORACLES = ["clairvoyant", "clairvoyant-switch"]  # tests/test_filters_clairvoyant.py
@@ -455,7 +456,7 @@ def test_every_model_based_method_of_the_registry_is_held_to_its_step_configurat
 def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
     """Issue 21, item 1: the model-based IMM that IMMNet is compared with is IMMNet with nothing learned: the
     registry's method, built from its YAML, equals an ``IMMNet`` of filter experts with their base noise
-    (the method's sigma_q on the white acceleration, nothing on the rest) and the IMM's Bayesian mode update,
+    (the method's sigma_q on the white acceleration, its rate_noise_deg on the turn rate) and the IMM's Bayesian mode update,
     p_stay, guard and adaptation as the YAML says, exactly: the same start, interaction, filters and mode update."""
     import yaml
 
@@ -466,7 +467,8 @@ def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
     data = generate(12, seed=8, spec=DataSpec(T=150, min_segment=40))
     data[keys.MEASUREMENTS][3, 40:45] = float("nan")
     gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
-        "noise_std": [args["sigma_q"], args["sigma_q"], 0.0, 0.0, 0.0], "interaction": "imm", "p_stay": args["p_stay"],
+        "noise_std": [args["sigma_q"], args["sigma_q"], 0.0, 0.0, args.get("rate_noise_deg", 0.0) * math.pi / 180],
+        "interaction": "imm", "p_stay": args["p_stay"],
         "guard": args.get("guard"), "adapt": args.get("adapt")}}
     bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"p_stay": args["p_stay"], "from_experts": True}}
     net = IMMNet(model_set=ADAPTIVE, gain=gain, classifier=bayes).double()
