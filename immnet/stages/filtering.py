@@ -347,6 +347,8 @@ class FilterPredict(Predict):
         own_acc, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_acc", torch.tensor(own_acc))  # the model set's, kept with the weights
         self.register_buffer("own_rate", torch.tensor(own_rate))
+        # a told rate is known: the turn filters' rate row and column of the covariance [M, N_AUG], built once
+        self.register_buffer("rate_known", self.own_rate[:, None] & (torch.arange(N_AUG) == RATE), persistent=False)
         self.has_turn = any(own_rate)  # a python bool: no data-dependent branch in a compiled step
         _register_rate_bounds(self, lo, hi)
         self._own_rate = own_rate
@@ -362,8 +364,7 @@ class FilterPredict(Predict):
         x, w = y0[..., :9], y0[..., RATE]
         if self.turn_rate == TOLD_R:  # the truth's rate, known: no variance, no covariance with the state
             w = step_input(td, keys.TRUE_TURN_RATE).to(w.dtype).unsqueeze(-1).expand_as(w)
-            known = self.own_rate[:, None] & (torch.arange(N_AUG, device=w.device) == RATE)
-            P0 = P0.masked_fill(known.unsqueeze(-1) | known.unsqueeze(-2), 0.0)
+            P0 = P0.masked_fill(self.rate_known.unsqueeze(-1) | self.rate_known.unsqueeze(-2), 0.0)
         elif self.turn_rate is None:
             w = torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype))
         w = torch.where(self.own_rate, w, torch.zeros_like(w))
