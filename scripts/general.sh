@@ -5,8 +5,10 @@
 #   U[0.5, 12] s (seed 99); real flights of collections/quickstart split by flight at 1 s and U[4.5, 5.5] s, every
 #   other sample held out (bash scripts/real.sh's data) -> the general network (recipes/general.yaml: the 3D-LAST
 #   weights widened to read the interval, fine-tuned on the mixture) -> one table per data set, every method that
-#   takes the set's intervals in one run, beside the clairvoyant bound on 3D-LAST and the model-based filters
-#   tuned on the training flights on real flights.
+#   takes the set's intervals in one run, beside the clairvoyant bound on 3D-LAST, the model-based filters
+#   tuned on the training flights on real flights, and on every set imm-ekf-general, IMMNet with nothing learned
+#   tuned on the network's own training mixture (configs/methods/imm-ekf-general.yaml; IMMNET_RETUNE=1 tunes it
+#   again, about 7 minutes).
 # A finished run is reused; IMMNET_RETRAIN=1 trains again. IMMNET_SKIP_HELDOUT=1 leaves out the held-out samples
 # (2,600 + 1,700 windows: about 30 of the 90 minutes).
 set -euo pipefail
@@ -47,6 +49,12 @@ if [ -z "${IMMNET_SKIP_HELDOUT:-}" ]; then
   adsb heldout-5s all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}"
 fi
 
+if [ -n "${IMMNET_RETUNE:-}" ]; then
+  say "tuning imm-ekf-general on the network's training mixture"
+  "$IMMNET" tune --search configs/tuning/imm-ekf-general.yaml --data "$DATA/3dlast" "$REAL/quickstart-1s/train" \
+    "$REAL/quickstart-5s/train" --out configs/methods/imm-ekf-general.yaml --quiet
+fi
+
 CKPT=$RUN/fit/checkpoints/best.ckpt
 [ -n "${IMMNET_RETRAIN:-}" ] && rm -rf "$RUN/fit"
 if [ -f "$RUN/fit/checkpoints/finished.json" ]; then
@@ -61,13 +69,13 @@ table() {  # data name methods
   "$IMMNET" evaluate --data "$1" --split all --methods "$3" --checkpoint "immnet-general=$CKPT" \
     --json "$RUN/results-$2.json" --markdown "$RUN/results-$2.md" --quiet
 }
-LAST=measurements,imm-tuned,imm-ekf,imm-ekf-guard-sticky,clairvoyant-switch,clairvoyant
+LAST=measurements,imm-tuned,imm-ekf,imm-ekf-guard-sticky,imm-ekf-general,clairvoyant-switch,clairvoyant
 table "$DATA/test-1s" 3dlast-1s "$LAST,immnet,immnet-general"  # immnet: the 3D-LAST network (1 s only)
 for set in 5s 4.5-5.5s 0.5-12s; do
   table "$DATA/test-$set" "3dlast-$set" "$LAST,immnet-general"
 done
-REAL1=measurements,imm-ekf,real-ca,real-imm,real-imm-axis
-REAL5=measurements,imm-ekf,real-ca-5s,real-imm-5s,real-imm-axis-5s
+REAL1=measurements,imm-ekf,imm-ekf-general,real-ca,real-imm,real-imm-axis,real-imm-channel
+REAL5=measurements,imm-ekf,imm-ekf-general,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s
 sets=(quickstart)
 [ -z "${IMMNET_SKIP_HELDOUT:-}" ] && sets+=(heldout)
 for s in "${sets[@]}"; do
