@@ -1,7 +1,11 @@
 """Each method's Average RMSE by the scan's interval (the time since the scan before), on a data set with
 per-scan intervals: where in 0.5-12 s a tracker gains or loses.
 
-    python scripts/interval_bins.py --data runs/general/data/test-0.5-12s --methods imm-ekf-general,immnet-general
+    python scripts/interval_bins.py --data runs/general/data/test-0.5-12s --methods imm-ekf-general,immnet-general \
+        [--knock-out immnet-general]
+
+``--knock-out NAME`` adds the rows of that registry network with its learned parts knocked out
+(``scripts/learned_parts.py``'s variants: ``IMMNet.knock_out``, no training again).
 
 The scans ``immnet evaluate`` scores (``scored_mask``), binned by their interval (``--edges``, seconds); in each bin
 the mean over x, y, z of each axis's RMSE (``immnet evaluate``'s Average).
@@ -14,16 +18,19 @@ import argparse
 import torch
 
 from immnet import keys
+from immnet.config import load_yaml, resolve_path
 from immnet.data.storage import as_batch, load_dataset
 from immnet.data.times import scan_intervals
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.metrics import position_error, scored_mask
+from immnet.tracking.methods import IMMNetMethod
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--methods", required=True, help="comma-separated registry names")
+    p.add_argument("--knock-out", default="", help="a registry network whose knocked-out variants get rows too")
     p.add_argument("--edges", default="0.5,2,4,6,8,10,12", help="bin edges in seconds (the last bin holds its edge)")
     args = p.parse_args(argv)
     edges = [float(v) for v in args.edges.split(",")]
@@ -36,10 +43,22 @@ def main(argv=None) -> int:
     bins = list(zip(edges[:-1], edges[1:]))
     print("| method | " + " | ".join(f"{lo:g}-{hi:g} s [m]" for lo, hi in bins) + " |")
     print("|:---|" + "---:|" * len(bins))
+    methods = {name: build_method(name) for name in args.methods.split(",") if name}
+    if args.knock_out:
+        from learned_parts import VARIANTS
+
+        config = load_yaml(resolve_path(f"configs/methods/{args.knock_out}.yaml"))
+        if not config["class_path"].endswith("IMMNetMethod"):
+            raise SystemExit(f"--knock-out {args.knock_out}: not a registry IMMNet")
+        for suffix, parts in VARIANTS.items():
+            if parts:
+                init = {**config["init_args"], "name": args.knock_out + suffix, "knock_out": parts,
+                        "checkpoint": str(resolve_path(config["init_args"]["checkpoint"]))}
+                methods[init["name"]] = IMMNetMethod(**init)
     counts = []
-    for name in args.methods.split(","):
+    for name, method in methods.items():
         with torch.no_grad():
-            e2 = position_error(build_method(name).track(batch)[keys.STATE], batch[keys.STATES]) ** 2
+            e2 = position_error(method.track(batch)[keys.STATE], batch[keys.STATES]) ** 2
         cells = []
         for i, (lo, hi) in enumerate(bins):
             sel = mask & (dt >= lo) & ((dt <= hi) if i == len(bins) - 1 else (dt < hi))
