@@ -30,6 +30,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True)
     p.add_argument("--methods", required=True, help="comma-separated registry names")
+    p.add_argument("--checkpoint", action="append", default=[], metavar="NAME=CKPT",
+                   help="another run of registry network NAME, as immnet evaluate's --checkpoint")
     p.add_argument("--knock-out", default="", help="a registry network whose knocked-out variants get rows too")
     p.add_argument("--edges", default="0.5,2,4,6,8,10,12", help="bin edges in seconds (the last bin holds its edge)")
     args = p.parse_args(argv)
@@ -43,7 +45,8 @@ def main(argv=None) -> int:
     bins = list(zip(edges[:-1], edges[1:]))
     print("| method | " + " | ".join(f"{lo:g}-{hi:g} s [m]" for lo, hi in bins) + " |")
     print("|:---|" + "---:|" * len(bins))
-    methods = {name: build_method(name) for name in args.methods.split(",") if name}
+    ckpts = dict(c.split("=", 1) for c in args.checkpoint)
+    methods = {name: build_method(name, checkpoint=ckpts.get(name)) for name in args.methods.split(",") if name}
     if args.knock_out:
         from learned_parts import VARIANTS
 
@@ -53,7 +56,7 @@ def main(argv=None) -> int:
         for suffix, parts in VARIANTS.items():
             if parts:
                 init = {**config["init_args"], "name": args.knock_out + suffix, "knock_out": parts,
-                        "checkpoint": str(resolve_path(config["init_args"]["checkpoint"]))}
+                        "checkpoint": ckpts.get(args.knock_out) or str(resolve_path(config["init_args"]["checkpoint"]))}
                 methods[init["name"]] = IMMNetMethod(**init)
     counts = []
     for name, method in methods.items():
