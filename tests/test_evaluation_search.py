@@ -49,7 +49,20 @@ def test_every_search_file_builds_its_method_at_every_grid_value(path):
     for knob, values in search.grid.items():
         for v in values:
             method = instantiate(search.config({**search.start, knob: v}))
-            assert method.any_interval and method.needs == (keys.R,)
+            told = (search.method["init_args"].get("r") == "data")  # told each track's r, or estimating it
+            assert method.any_interval and method.needs == ((keys.R,) if told else ())
+
+
+def _kalman_search(path, model: str, sigmas: list[float]):
+    """A search file at ``path``: one Kalman filter of ``model`` (continuous noise, told r) from sigma_q 2, over
+    ``sigmas``; named after the file."""
+    path.write_text(yaml.safe_dump({
+        "method": {"class_path": "immnet.filters.KalmanFilterTracker",
+                   "init_args": {"name": path.stem, "r": "data", "sigma_q": 2.0,
+                                 "model": {"class_path": f"immnet.motion.{model}", "init_args": {"noise": "continuous"}}}},
+        "grid": {"sigma_q": sigmas},
+    }))
+    return path
 
 
 def test_immnet_tune_writes_the_best_config_with_its_score_and_refuses_a_test_split(tmp_path, capsys):
@@ -57,14 +70,7 @@ def test_immnet_tune_writes_the_best_config_with_its_score_and_refuses_a_test_sp
     is at least as good as the search's start."""
     spec = DataSpec(T=120)
     train = write_dataset(tmp_path / "train", 24, 5, spec, progress=False)
-    search_file = tmp_path / "ca.yaml"
-    search_file.write_text(yaml.safe_dump({
-        "method": {"class_path": "immnet.filters.KalmanFilterTracker",
-                   "init_args": {"name": "ca", "r": "data", "sigma_q": 2.0,
-                                 "model": {"class_path": "immnet.motion.ConstantAcceleration",
-                                           "init_args": {"noise": "continuous"}}}},
-        "grid": {"sigma_q": [0.3, 1.0, 2.0]},
-    }))
+    search_file = _kalman_search(tmp_path / "ca.yaml", "ConstantAcceleration", [0.3, 1.0, 2.0])
     out = tmp_path / "ca-tuned.yaml"
     assert main(["tune", "--search", str(search_file), "--data", str(train), "--out", str(out), "--quiet"]) == 0
     result = json.loads(capsys.readouterr().out)
@@ -91,15 +97,9 @@ def test_immnet_tune_on_several_sets_scores_the_geometric_mean_of_each_sets_rmse
     """Two sets of different lengths and scales (1 s and 5 s scans): the search's score of the written config is
     the geometric mean of its Average RMSE on each set, computed apart; the header says so."""
     one = write_dataset(tmp_path / "one", 16, 5, DataSpec(T=120), progress=False)
-    five = write_dataset(tmp_path / "five", 12, 6, DataSpec(T=90, dt=5.0, r_min=5.0, r_max=35.0, n_segments=2), progress=False)
-    search_file = tmp_path / "cv.yaml"
-    search_file.write_text(yaml.safe_dump({
-        "method": {"class_path": "immnet.filters.KalmanFilterTracker",
-                   "init_args": {"name": "cv", "r": "data", "sigma_q": 2.0,
-                                 "model": {"class_path": "immnet.motion.ConstantVelocity",
-                                           "init_args": {"noise": "continuous"}}}},
-        "grid": {"sigma_q": [0.5, 2.0, 8.0]},
-    }))
+    five = write_dataset(tmp_path / "five", 12, 6, DataSpec(T=90, dt=5.0, r_min=5.0, r_max=35.0, n_segments=2),
+                         progress=False)
+    search_file = _kalman_search(tmp_path / "cv.yaml", "ConstantVelocity", [0.5, 2.0, 8.0])
     out = tmp_path / "cv-mix.yaml"
     assert main(["tune", "--search", str(search_file), "--data", str(one), str(five), "--out", str(out),
                  "--quiet"]) == 0
