@@ -48,8 +48,10 @@ def main(argv=None) -> int:
     ckpts = dict(c.split("=", 1) for c in args.checkpoint)
     methods = {name: build_method(name, checkpoint=ckpts.get(name)) for name in args.methods.split(",") if name}
     if args.knock_out:
-        from learned_parts import VARIANTS
+        import runpy
+        from pathlib import Path
 
+        VARIANTS = runpy.run_path(str(Path(__file__).with_name("learned_parts.py")))["VARIANTS"]
         config = load_yaml(resolve_path(f"configs/methods/{args.knock_out}.yaml"))
         if not config["class_path"].endswith("IMMNetMethod"):
             raise SystemExit(f"--knock-out {args.knock_out}: not a registry IMMNet")
