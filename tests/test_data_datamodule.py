@@ -244,3 +244,32 @@ def test_a_mixture_draws_each_batch_from_one_set(sets, tmp_path):
         dm.split("train")
     with pytest.raises(ValueError, match="one data set, not a mixture"):
         LASTDataModule([sets["main"], short], single_mode={"cv": sets["cv"]}).setup()
+
+
+def test_a_mixtures_weights_scale_each_sets_batches_a_pass(sets, tmp_path):
+    """``weights`` (one per set): a set's batches a pass are round(weight x its batches), each of its trajectories
+    seen as often as the weight says (whole shuffles, then part of one); weights of 1 draw exactly the unweighted
+    batches; a weight per set that is missing, zero or not finite is refused by name."""
+    from immnet.data.datamodule import _MixedBatches
+
+    plain = _MixedBatches([900, 90], 32, 3)
+    assert list(_MixedBatches([900, 90], 32, 3, [1.0, 1.0])) == list(plain)  # the unweighted draw, to the row
+    weighted = _MixedBatches([900, 90], 32, 3, [0.5, 3.0])
+    assert weighted.counts == [14, 9] and len(list(weighted)) == 14 + 9  # round(0.5 x 29 batches), 3 x 3
+    rows = [r for b in weighted for r in b]
+    small = [r for r in rows if r >= 900]
+    assert len(small) == 3 * 90 and {small.count(r) for r in set(small)} == {3}  # three whole shuffles
+    big = [r for r in rows if r < 900]
+    assert len(set(big)) == len(big) == 14 * 32  # 14 full batches of one shuffle, none repeated
+    for b in weighted:
+        assert all(r < 900 for r in b) or all(r >= 900 for r in b)  # a batch holds one set's rows
+
+    short = write_dataset(tmp_path / "short", 90, 5, DataSpec(T=25, min_segment=8))
+    dm = LASTDataModule([sets["main"], short], val_fraction=0.1, test_fraction=0.0, batch_size=32, split_seed=2,
+                        weights=[1, 2])
+    assert len(dm.train_dataloader()) == 29 + 2 * 3
+    for bad in ([1.0], [1.0, 0.0], [1.0, float("nan")]):
+        with pytest.raises(ValueError, match="weights must be one number > 0 per data set"):
+            LASTDataModule([sets["main"], short], weights=bad)
+    with pytest.raises(ValueError, match="weights must be one number > 0 per data set"):
+        LASTDataModule(sets["main"], weights=[1.0])

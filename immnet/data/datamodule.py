@@ -14,7 +14,8 @@ A mixture (``data`` a list of data sets, e.g. 3D-LAST over a range of intervals 
 5 s): each set is split as above on its own (``val_data`` then a list as long as ``data``, an entry of null
 taking ``val_fraction`` of its set; ``test_data`` one set for the whole mixture), and every batch holds the
 trajectories of one set (sets differ in length ``T`` and interval), the sets' batches shuffled together each
-pass (``_MixedBatches``). One device only: the distributed shards are per set.
+pass (``_MixedBatches``; ``weights``, one per set, scale each set's batches a pass). One device only: the
+distributed shards are per set.
 
 Training batches may be augmented (``augment``, ``immnet.data.augment.FlightAugment``): each a fresh view of
 its flights, turned about the radar site and measured again, seeded by the training step.
@@ -112,23 +113,34 @@ class MixtureDataset(Dataset):
 class _MixedBatches(torch.utils.data.Sampler):
     """Training batches of a mixture: pass ``e`` (``set_epoch``) shuffles each part's rows, cuts them into batches
     of ``batch_size`` (a part's last batch may be short) and shuffles the batches of all parts together, seeded
-    by ``(seed, e)`` alone (resumable as ``_EpochRandomSampler``)."""
+    by ``(seed, e)`` alone (resumable as ``_EpochRandomSampler``).
 
-    def __init__(self, sizes: list[int], batch_size: int, seed: int):
+    ``weights`` (one per part, > 0; default 1): a part's batches per pass are ``round(weight x its batches)``, at
+    least one, taken from as many fresh shuffles of its rows as they need (each cut as above), so a weight of 2 is
+    the part listed twice and 0.5 half of its batches a pass; weights of 1 draw exactly the unweighted batches."""
+
+    def __init__(self, sizes: list[int], batch_size: int, seed: int, weights: list[float] | None = None):
         self.sizes, self.batch_size, self.seed, self.epoch = list(sizes), int(batch_size), int(seed), 0
+        weights = [1.0] * len(self.sizes) if weights is None else [float(w) for w in weights]
+        if len(weights) != len(self.sizes) or not all(math.isfinite(w) and w > 0 for w in weights):
+            raise ValueError(f"weights must be one number > 0 per data set ({len(self.sizes)}), got {weights}")
+        self.counts = [max(1, round(w * math.ceil(n / self.batch_size))) for w, n in zip(weights, self.sizes)]
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
     def __len__(self) -> int:
-        return sum(math.ceil(n / self.batch_size) for n in self.sizes)
+        return sum(self.counts)
 
     def __iter__(self):
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
         batches, offset = [], 0
-        for n in self.sizes:
-            rows = (torch.randperm(n, generator=g) + offset).tolist()
-            batches += [rows[i : i + self.batch_size] for i in range(0, n, self.batch_size)]
+        for n, count in zip(self.sizes, self.counts):
+            part: list[list[int]] = []
+            while len(part) < count:  # one shuffle of the part's rows, cut into batches, per round
+                rows = (torch.randperm(n, generator=g) + offset).tolist()
+                part += [rows[i : i + self.batch_size] for i in range(0, n, self.batch_size)]
+            batches += part[:count]
             offset += n
         for j in torch.randperm(len(batches), generator=g).tolist():
             yield batches[j]
@@ -251,11 +263,17 @@ class LASTDataModule(L.LightningDataModule):
     def __init__(self, data, test_data=None, val_fraction: float = 0.1, test_fraction: float = 0.1, val_data=None,
                  batch_size: int = 100, num_workers: int = 0, split_seed: int = 0,
                  single_mode: dict | None = None, own_fraction: float = 0.6,
-                 expert_modes: list[str] | None = None, augment: FlightAugment | None = None):
+                 expert_modes: list[str] | None = None, augment: FlightAugment | None = None,
+                 weights: list[float] | None = None):
         """``augment``: a fresh view of each training batch (``FlightAugment``: turned about the radar site, new
-        measurement noise), seeded by the training step; validation and test batches as stored."""
+        measurement noise), seeded by the training step; validation and test batches as stored. ``weights``: with a
+        mixture, one per data set, its training batches a pass relative to its size (``_MixedBatches``)."""
         super().__init__()
         self.augment = augment
+        if weights is not None and not (isinstance(data, (list, tuple)) and len(weights) == len(data)
+                                        and all(math.isfinite(float(w)) and float(w) > 0 for w in weights)):
+            raise ValueError(f"weights must be one number > 0 per data set of the mixture `data`, got {weights!r}")
+        self.weights = None if weights is None else [float(w) for w in weights]
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         for name, f in (("val_fraction", val_fraction), ("test_fraction", test_fraction),
@@ -428,7 +446,7 @@ class LASTDataModule(L.LightningDataModule):
                 raise ValueError("a mixture of data sets trains on one device (world size 1), not on "
                                  f"{world}: its batches are drawn per set")
             sizes = [len(p) for p in ds.parts]
-            return self._train_loader(ds, _MixedBatches(sizes, self.batch_size, int(self.split_seed) + 1))
+            return self._train_loader(ds, _MixedBatches(sizes, self.batch_size, int(self.split_seed) + 1, self.weights))
         if not self.single_mode:
             if world > 1:
                 sampler = DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=True, seed=int(self.split_seed) + 1)
