@@ -1,5 +1,5 @@
-"""Each method's Average RMSE by the scan's interval (the time since the scan before), on a data set with
-per-scan intervals: where in 0.5-12 s a tracker gains or loses.
+"""Each method's RMSE by the scan's interval (the time since the scan before), on a data set with per-scan
+intervals: where in 0.5-12 s a tracker gains or loses.
 
     python scripts/interval_bins.py --data runs/general/data/test-0.5-12s --methods imm-ekf-general,immnet-general \
         [--knock-out immnet-general]
@@ -8,7 +8,8 @@ per-scan intervals: where in 0.5-12 s a tracker gains or loses.
 (``scripts/learned_parts.py``'s variants: ``IMMNet.knock_out``, no training again).
 
 The scans ``immnet evaluate`` scores (``scored_mask``), binned by their interval (``--edges``, seconds); in each bin
-the mean over x, y, z of each axis's RMSE (``immnet evaluate``'s Average).
+each axis's RMSE pooled over the bin's scans of every track (``rmse_pooled``: a bin holds a part of each track's
+scans, so the per-track RMSE ``immnet evaluate`` averages is not taken), then the mean over x, y, z.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from immnet.config import load_yaml, resolve_path
 from immnet.data.storage import as_batch, load_dataset
 from immnet.data.times import scan_intervals
 from immnet.evaluation.methods import build_method
-from immnet.evaluation.metrics import position_error, scored_mask
+from immnet.evaluation.metrics import position_error, rmse_pooled, scored_mask
 from immnet.tracking.methods import IMMNetMethod
 
 
@@ -63,12 +64,12 @@ def main(argv=None) -> int:
     counts = []
     for name, method in methods.items():
         with torch.no_grad():
-            e2 = position_error(method.track(batch)[keys.STATE], batch[keys.STATES]) ** 2
+            err = position_error(method.track(batch)[keys.STATE], batch[keys.STATES])
         cells = []
         for i, (lo, hi) in enumerate(bins):
             sel = mask & (dt >= lo) & ((dt <= hi) if i == len(bins) - 1 else (dt < hi))
             counts.append(int(sel.sum()))
-            cells.append(f"{e2[sel].mean(0).sqrt().mean():.3f}" if sel.any() else "-")
+            cells.append(f"{rmse_pooled(err, sel)['avg']:.3f}" if sel.any() else "-")
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
     print(f"\nscans per bin: {counts[:len(bins)]}")
     return 0

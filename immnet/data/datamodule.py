@@ -110,6 +110,16 @@ class MixtureDataset(Dataset):
         return self.__getitems__([i])[0]
 
 
+def _set_weights(weights, n: int) -> list[float]:
+    """``weights`` of a mixture's ``n`` sets as floats (None: 1 each); a ValueError unless one number > 0 per set."""
+    if weights is None:
+        return [1.0] * n
+    if not (isinstance(weights, (list, tuple)) and len(weights) == n
+            and all(math.isfinite(float(w)) and float(w) > 0 for w in weights)):
+        raise ValueError(f"weights must be one number > 0 per data set of the mixture ({n}), got {weights!r}")
+    return [float(w) for w in weights]
+
+
 class _MixedBatches(torch.utils.data.Sampler):
     """Training batches of a mixture: pass ``e`` (``set_epoch``) shuffles each part's rows, cuts them into batches
     of ``batch_size`` (a part's last batch may be short) and shuffles the batches of all parts together, seeded
@@ -121,10 +131,8 @@ class _MixedBatches(torch.utils.data.Sampler):
 
     def __init__(self, sizes: list[int], batch_size: int, seed: int, weights: list[float] | None = None):
         self.sizes, self.batch_size, self.seed, self.epoch = list(sizes), int(batch_size), int(seed), 0
-        weights = [1.0] * len(self.sizes) if weights is None else [float(w) for w in weights]
-        if len(weights) != len(self.sizes) or not all(math.isfinite(w) and w > 0 for w in weights):
-            raise ValueError(f"weights must be one number > 0 per data set ({len(self.sizes)}), got {weights}")
-        self.counts = [max(1, round(w * math.ceil(n / self.batch_size))) for w, n in zip(weights, self.sizes)]
+        self.counts = [max(1, round(w * math.ceil(n / self.batch_size)))
+                       for w, n in zip(_set_weights(weights, len(self.sizes)), self.sizes)]
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -270,10 +278,8 @@ class LASTDataModule(L.LightningDataModule):
         mixture, one per data set, its training batches a pass relative to its size (``_MixedBatches``)."""
         super().__init__()
         self.augment = augment
-        if weights is not None and not (isinstance(data, (list, tuple)) and len(weights) == len(data)
-                                        and all(math.isfinite(float(w)) and float(w) > 0 for w in weights)):
-            raise ValueError(f"weights must be one number > 0 per data set of the mixture `data`, got {weights!r}")
-        self.weights = None if weights is None else [float(w) for w in weights]
+        sets = len(data) if isinstance(data, (list, tuple)) else 0  # weights are a mixture's (checked now, not at fit)
+        self.weights = None if weights is None else _set_weights(weights, sets)
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         for name, f in (("val_fraction", val_fraction), ("test_fraction", test_fraction),

@@ -85,6 +85,11 @@ def mixture_rmse(method, sets) -> float:
     return math.exp(sum(math.log(s) for s in scores) / len(scores))
 
 
+def score_name(sets: int) -> str:
+    """What ``mixture_rmse`` is on ``sets`` data sets, as the tune command and a tuned config's header say it."""
+    return "Average RMSE" if sets == 1 else f"geometric mean of the {sets} sets' Average RMSE"
+
+
 def _walk(config, path: str):
     """The container holding the last part of dotted ``path`` in ``config`` and that part (index or key)."""
     *head, last = path.split(".")
@@ -162,11 +167,10 @@ class Search:
         """Write the best setting's method config to ``out``, named after its file (the registry's name)."""
         out = Path(out)
         config = {**result["config"], "init_args": {**result["config"]["init_args"], "name": out.stem}}
-        score = "Average RMSE" if sets == 1 else f"geometric mean of the {sets} sets' Average RMSE"
         header = [
             f"# Tuned by `immnet tune --search {search_path}` on {data_desc} ({n} tracks, never a test split):",
             f"# coordinate search over {self.grid} ({len(result['table'])} settings scored);",
-            f"# {score} {result['score']:.4f} m there; {datetime.date.today().isoformat()}. Do not edit by hand.",
+            f"# {score_name(sets)} {result['score']:.4f} m there; {datetime.date.today().isoformat()}. Do not edit by hand.",
         ]
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text("\n".join(header) + "\n" + yaml.safe_dump(config, sort_keys=False))

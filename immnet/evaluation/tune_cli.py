@@ -45,14 +45,14 @@ def tuning_data(paths, limit: int | None = None):
 
 def run_tune(args) -> int:
     from immnet.evaluation.runner import finite_or_none
-    from immnet.evaluation.search import Search
+    from immnet.evaluation.search import Search, score_name
 
     search = Search.from_yaml(args.search)
     data = tuning_data(args.data, args.limit)
     sets = data if isinstance(data, list) else [data]
     n = sum(batch.batch_size[0] for batch in sets)
-    score = "Average RMSE" if len(sets) == 1 else f"the geometric mean of the {len(sets)} sets' Average RMSE"
-    print(f"tuning {args.search} on {n} tracks of {', '.join(map(str, args.data))} ({score})", file=sys.stderr)
+    print(f"tuning {args.search} on {n} tracks of {', '.join(map(str, args.data))} ({score_name(len(sets))})",
+          file=sys.stderr)
     result = search.run(data, progress=not args.quiet)
     out = search.write(result, args.out, args.search, ", ".join(map(str, args.data)), n, len(sets))
     print(json.dumps(finite_or_none({k: result[k] for k in ("best", "score")}), indent=2, default=str, allow_nan=False))
