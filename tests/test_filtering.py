@@ -785,3 +785,29 @@ def test_init_parameters_takes_another_networks_weights_and_keeps_the_configured
     three["model_set"], three["gain"]["init_args"]["model_noise"] = "configs/model_sets/imm3.yaml", 0.5
     with pytest.raises(ValueError, match="does not hold this IMMNet's parameters"):
         Stage2Module(net={"class_path": "immnet.stages.IMMNet", "init_args": three}, init_parameters=str(shipped("3dlast")))
+
+
+
+def test_the_float32_covariance_update_keeps_a_prior_of_nine_orders_positive():
+    """``FilterUpdate``'s Joseph update on a float32 prior whose variances span nine orders (a filter expert of the
+    general network on a base of higher process noise, after scans of up to 12 s: eigenvalues -0.15 to 2.5e9, positive
+    semi-definite to float32's rounding; ``tests/data/float32_update_case.json``). Expanded in float32 its terms'
+    rounding gave a variance of -64 m^2 (a NaN track a scan later, whole training batches skipped); the update
+    follows the float64 one of the same inputs, every variance positive."""
+    import json
+    from pathlib import Path
+
+    from immnet.stages.filtering import joseph
+
+    case = json.loads((Path(__file__).parent / "data" / "float32_update_case.json").read_text())
+    P = torch.tensor(case["P"], dtype=torch.float32)[None, None]
+    K = torch.tensor(case["K"], dtype=torch.float32)[None, None]
+    r2 = torch.full((1, 1, 1, 1), case["r2"], dtype=torch.float32)
+    post = joseph(P, K, r2)
+    ref = joseph(P.double(), K.double(), r2.double())
+    assert post.dtype == torch.float32
+    var, var64 = torch.diagonal(post[0, 0])[:9].double(), torch.diagonal(ref[0, 0])[:9]
+    assert bool((var > 0).all()), var
+    torch.testing.assert_close(var, var64, rtol=1e-4, atol=1e-3)
+    assert torch.equal(post, post.transpose(-1, -2))
+

@@ -66,9 +66,23 @@ def test_general_H_matches_position_fast_path():
 def test_inv3_closed_form():
     A = torch.randn(100, 3, 3, dtype=torch.float64)
     S = A @ A.transpose(-1, -2) + 0.1 * torch.eye(3, dtype=torch.float64)
-    inv, det = inv3(S)
+    inv, logdet = inv3(S)
     torch.testing.assert_close(inv, torch.linalg.inv(S))
-    torch.testing.assert_close(det, torch.linalg.det(S))
+    torch.testing.assert_close(logdet, torch.logdet(S))
+
+
+def test_inv3_of_an_ill_conditioned_float32_covariance_follows_float64():
+    """A turn expert's innovation covariance after a 10 s gap (the general network, float32): eigenvalues 2e3 to 1.2e8.
+    The adjugate's determinant of these float32 numbers was 1.6e15 (the true one 8.7e14; in a batch it came out
+    negative, a NaN likelihood); the L D L^T pivots give the log-determinant and the inverse of float64."""
+    S = torch.tensor([[59602448.0, -56290604.0, -17484580.0], [-56290604.0, 53169048.0, 16514832.0],
+                      [-17484582.0, 16514832.0, 5132000.5]])
+    inv, logdet = inv3(S)
+    S64 = S.double()
+    assert abs(float(logdet) - float(torch.logdet(S64))) < 1e-3
+    exact = torch.linalg.inv(S64)
+    assert float((inv.double() - exact).abs().max() / exact.abs().max()) < 1e-2
+    assert torch.equal(inv, inv.transpose(-1, -2))
 
 
 def test_missed_measurement_is_predict_only():

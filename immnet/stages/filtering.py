@@ -426,15 +426,28 @@ class FilterUpdate(Update):
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = td.get(keys.NOISE_VAR)
         r2 = per_expert(r2, P.shape[1], event_dims=0)[..., None, None]
-        # Joseph's (I - K H) P (I - K H)^T + K R K^T, expanded: P - K H P - (K H P)^T + K S K^T with
-        # H P the position rows and S = H P H^T + R (exact for any gain; fewer and smaller products)
-        HP = P[..., 0:7:3, :]  # the position rows (POS)
-        S = HP[..., 0:7:3] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
-        KHP = small_matmul(K, HP)
-        post = P - KHP - KHP.transpose(-1, -2) + small_matmul(small_matmul(K, S), K.transpose(-1, -2))
         td.set(keys.EXPERT_RATE, w)
-        td.set(keys.EXPERT_AUG_COV, 0.5 * (post + post.transpose(-1, -2)))
+        td.set(keys.EXPERT_AUG_COV, joseph(P, K, r2))
         return td
+
+
+def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
+    """The posterior covariance ``(I - K H) P (I - K H)^T + K R K^T`` of any gain ``K [..., 10, 3]`` (Joseph's
+    form: positive semi-definite for every ``K``, the learned gains' too), ``H`` the position rows, ``R = r2 I``.
+
+    Expanded as ``P - K H P - (K H P)^T + K S K^T`` (``S = H P H^T + R``; fewer and smaller products), whose terms
+    are of the prior's size while the result can be ten orders smaller: after a 10 s gap under a large learned
+    process noise the prior's position variance reaches 1e10 m^2 and the posterior's is ``r^2``. In float32 the
+    rounding of those terms is larger than the result, a negative variance and a NaN track a scan later, so a
+    float32 covariance is updated in float64 (the 10 x 10 blocks of one scan; where float64 is unavailable, MPS,
+    in its own dtype) and rounded back."""
+    wide = P.dtype if P.dtype == torch.float64 or P.device.type == "mps" else torch.float64
+    Pw, Kw = P.to(wide), K.to(wide)
+    HP = Pw[..., 0:7:3, :]  # the position rows (POS)
+    S = HP[..., 0:7:3] + r2.to(wide) * torch.eye(3, dtype=wide, device=P.device)
+    KHP = small_matmul(Kw, HP)
+    post = Pw - KHP - KHP.transpose(-1, -2) + small_matmul(small_matmul(Kw, S), Kw.transpose(-1, -2))
+    return (0.5 * (post + post.transpose(-1, -2))).to(P.dtype)
 
 
 class _FilterExperts:
@@ -687,7 +700,7 @@ class _FilterExperts:
         zero where the measurement is missing; the innovation log-likelihood ``log N(nu; 0, S)``
         (``nu`` the innovation, if the caller has it)."""
         S = P[..., 0:7:3, 0:7:3] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)  # the positions (POS)
-        S_inv, det = inv3(S)
+        S_inv, logdet = inv3(S)
         K = small_matmul(P[..., :, 0:7:3], S_inv)  # [B, M, 10, 3]
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))  # [B, M, 1]
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
@@ -697,7 +710,7 @@ class _FilterExperts:
         if self.z_groups is not None:  # each group's own likelihood, the marginal of its coordinates: [B, G, M]
             loglik = torch.where(has_z, group_loglik(nu, S, self.z_groups), 0.0).transpose(1, 2)
         else:
-            loglik = -0.5 * (maha + torch.log(det) + 3.0 * math.log(2.0 * math.pi))
+            loglik = -0.5 * (maha + logdet + 3.0 * math.log(2.0 * math.pi))
             loglik = torch.where(has_z[..., 0], loglik, 0.0)
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
