@@ -811,3 +811,30 @@ def test_the_float32_covariance_update_keeps_a_prior_of_nine_orders_positive():
     torch.testing.assert_close(var, var64, rtol=1e-4, atol=1e-3)
     assert torch.equal(post, post.transpose(-1, -2))
 
+
+def test_init_parameters_widens_a_network_without_the_interval_input():
+    """``init_parameters`` from the 3D-LAST network (1 s, no interval input) into the general recipe's network on
+    another base: each weight that reads the interval gets its column as zeros (as ``init_checkpoint`` widens), every
+    other parameter is the file's, and the buffers are the configured base's."""
+    import yaml
+
+    from immnet.checkpoints import shipped
+    from immnet.config import resolve_path
+    from immnet.tracking.tracker import read_checkpoint
+
+    net = yaml.safe_load(resolve_path("recipes/general.yaml").read_text())["model"]["init_args"]["net"]
+    net["init_args"]["p_stay"] = 0.98
+    net["init_args"]["gain"]["init_args"]["noise_std"] = [0.5, 0.5, 0.01, 0.002, 0.001745]
+    module = Stage2Module(net=net, init_parameters=str(shipped("3dlast")))
+    _, weights = read_checkpoint(shipped("3dlast"))
+    columns = module.net.interval_columns()
+    assert columns
+    for name, p in module.net.named_parameters():
+        w = weights[name].to(p.dtype)
+        if name in columns and w.shape != p.shape:
+            col = columns[name]
+            assert torch.equal(p[..., col], torch.zeros_like(p[..., col])), name
+            assert torch.equal(torch.cat([p[..., :col], p[..., col + 1:]], -1), w), name
+        else:
+            assert torch.equal(p, w), name
+    assert module.net.gain.noise_var_std[0].item() == pytest.approx(0.25)

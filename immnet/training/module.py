@@ -282,10 +282,13 @@ class Stage2Module(_TrackerModule):
 
     def load_parameters(self, path: str):
         """Start from the learned parameters of a trained IMMNet: every parameter of this network from the
-        checkpoint's of the same name and shape (a ValueError naming those it lacks or shapes otherwise); the
-        buffers stay as ``net`` builds them (the models, the noise, the chain)."""
+        checkpoint's of the same name and shape (a ValueError naming those it lacks or shapes otherwise), widened
+        as ``load_net`` widens them (the interval's input column, modes per group); the buffers stay as ``net``
+        builds them (the models, the noise, the chain)."""
         _, net = read_checkpoint(path)
         own = dict(self.net.named_parameters())
+        net = widen_for_interval(net, own, self.net.interval_columns())
+        net = widen_for_groups(net, own, self.net.group_rows())
         missing = sorted(n for n in own if n not in net)
         shaped = sorted(n for n in own if n in net and tuple(net[n].shape) != tuple(own[n].shape))
         if missing or shaped:
