@@ -492,8 +492,8 @@ class _FilterExperts:
         if len(stds) != len(model_set) or not all(v is None or (math.isfinite(v) and v >= 0) for v in stds):
             raise ValueError(f"start_acc_std must be finite and >= 0 or None (the CA draw's), one for every model or one "
                              f"per model ({len(model_set)}), got {start_acc_std!r}")
-        self._start_acc_std = [None if v is None else float(v) for v in stds]  # per expert
-        self.start_acc_std = self._start_acc_std if isinstance(start_acc_std, (list, tuple)) else self._start_acc_std[0]
+        stds = [None if v is None else float(v) for v in stds]  # per expert
+        self.start_acc_std = stds if isinstance(start_acc_std, (list, tuple)) else stds[0]
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
         if isinstance(r, str):
             if r != TOLD_R:
@@ -527,6 +527,11 @@ class _FilterExperts:
         self.register_buffer("rate_nominal", torch.tensor(nominal))
         self.register_buffer("own_rate", torch.tensor(own_rate))
         self.register_buffer("acc_var0", torch.tensor(self.spec.ca_acc_var(), dtype=torch.float64))
+        # a starting track's acceleration variance per expert and axis [M, 3]: start_acc_std^2 where set, else the
+        # CA draw's
+        self.register_buffer("start_acc_var", torch.stack(
+            [self.acc_var0 if v is None else torch.full((3,), v * v, dtype=torch.float64) for v in stds]),
+            persistent=False)
         self.r0, self.k0, self.dt = float(r0), float(k0), dt
         self.rate_var0 = float((rate_std0_deg * math.pi / 180.0) ** 2)
 
@@ -634,11 +639,7 @@ class _FilterExperts:
             P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
             if second:
                 P[..., p, v] = P[..., v, p] = r2 / e
-            if isinstance(self.start_acc_std, list):  # each expert its own
-                for i, std in enumerate(self._start_acc_std):
-                    P[..., i, c, c] = float(self.acc_var0[a]) if std is None else std**2
-            else:
-                P[..., c, c] = float(self.acc_var0[a]) if self.start_acc_std is None else self.start_acc_std**2
+            P[..., c, c] = self.start_acc_var[:, a].to(P.dtype)
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
 
