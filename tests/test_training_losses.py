@@ -26,35 +26,3 @@ def test_an_unlabelled_batch_has_no_mode_loss_and_no_gradient_from_it():
     assert float(loss) == 0.0
     loss.backward()
     assert logits.grad is not None and not logits.grad.any()
-
-
-def test_r2_ref_scales_each_batchs_state_loss_by_its_measurement_noise():
-    """``Stage2Module(r2_ref=...)``: the total loss is ``gamma * mse * r2_ref / mean(r^2) + (1 - gamma) * ce
-    (+ expert_weight * own * r2_ref / mean(r^2))``, computed here from the parts the module reports; the reported
-    mse is the paper's (unscaled); None leaves the paper's loss; data without r is refused by name."""
-    import pytest
-    from tensordict import TensorDict
-
-    from immnet import keys
-    from immnet.training import Stage2Module
-
-    g = torch.Generator().manual_seed(1)
-    B, T = 3, 6
-    batch = TensorDict({keys.STATES: torch.randn(B, T, 9, generator=g), keys.MODE: torch.randint(0, 4, (B, T), generator=g),
-                        keys.R: torch.tensor([5.0, 20.0, 35.0])}, batch_size=[B])
-    out = TensorDict({keys.STATE: torch.randn(B, T, 9, generator=g),
-                      keys.ROLLOUT_EXPERT_PROBS: torch.softmax(torch.randn(B, T, 4, generator=g), -1),
-                      keys.ROLLOUT_EXPERT_POST: torch.randn(B, T, 4, 9, generator=g)}, batch_size=[B, T])
-    net = {"model_set": "configs/model_sets/imm4-adaptive.yaml"}
-    plain = Stage2Module(net=net, gamma=0.7, expert_weight=0.3)
-    scaled = Stage2Module(net=net, gamma=0.7, expert_weight=0.3, r2_ref=19.0)
-    loss0, mse0, ce0, own0 = plain.losses(out, batch)
-    loss, mse, ce, own = scaled.losses(out, batch)
-    assert torch.equal(mse, mse0) and torch.equal(ce, ce0) and torch.equal(own, own0)
-    factor = 19.0 / ((25.0 + 400.0 + 1225.0) / 3)
-    torch.testing.assert_close(loss0, 0.7 * mse0 + 0.3 * ce0 + 0.3 * own0)
-    torch.testing.assert_close(loss, 0.7 * mse * factor + 0.3 * ce + 0.3 * own * factor)
-    with pytest.raises(ValueError, match="r2_ref"):
-        Stage2Module(net=net, r2_ref=0.0)
-    with pytest.raises(ValueError, match="has no r"):
-        scaled.losses(out, batch.exclude(keys.R))

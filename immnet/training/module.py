@@ -261,14 +261,11 @@ class Stage2Module(_TrackerModule):
         lr: float = 1e-3,
         gamma: float = 0.7,
         expert_weight: float = 0.0,
-        r2_ref: float | None = None,
         **kwargs,
     ):
         super().__init__(net=net, lr=lr, **kwargs)
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
-        if r2_ref is not None and not (math.isfinite(r2_ref) and r2_ref > 0.0):
-            raise ValueError(f"r2_ref must be finite and > 0 (m^2) or None, got {r2_ref}")
         if not (math.isfinite(expert_weight) and expert_weight >= 0.0):
             raise ValueError(f"expert_weight must be finite and >= 0, got {expert_weight}")
         given = [n for n, v in (("stage1_checkpoint", stage1_checkpoint), ("init_checkpoint", init_checkpoint),
@@ -340,26 +337,12 @@ class Stage2Module(_TrackerModule):
         mse = state_loss(out[keys.STATE], truth, r, self.w_state)
         ce = mode_loss(self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]), mode)
         g, w = self.hparams.gamma, self.hparams.expert_weight
-        scale = self._noise_scale(r, mse)
-        loss = g * mse * scale + (1 - g) * ce
+        loss = g * mse + (1 - g) * ce
         own = torch.zeros_like(mse)
         if w > 0:
             own = own_mode_loss(out[keys.ROLLOUT_EXPERT_POST], truth, mode, self.net.model_set.modes, r, self.w_state)
-            loss = loss + w * own * scale
+            loss = loss + w * own
         return loss, mse, ce, own
-
-    def _noise_scale(self, r, like: torch.Tensor):
-        """``r2_ref / mean(r^2)`` of the batch's tracks (1 where ``r2_ref`` is None, the paper's loss): each batch's
-        state losses in units of its own measurement noise, so that the sets of a mixture with other noise (real
-        flights at 4.5-5.5 s, r 5-35 m, a squared error 20 times 3D-LAST's) weigh in the optimizer as 3D-LAST's
-        (``r2_ref`` 19 m^2: E[r^2] of r ~ U[1, 7] m). Within a batch the tracks keep the paper's 1/r weights; the
-        logged ``mse`` is unscaled."""
-        ref = self.hparams.get("r2_ref")
-        if ref is None:
-            return 1.0
-        if r is None:
-            raise ValueError("r2_ref scales each batch by its tracks' measurement noise: this data has no r")
-        return ref / r.to(like.dtype).square().mean()
 
     def training_step(self, batch, batch_idx):
         z = batch[keys.MEASUREMENTS]
