@@ -41,8 +41,8 @@ def inv3(S: torch.Tensor):
 
     Unlike the adjugate over the determinant, whose triple products cancel, the pivots lose only what the
     matrix's conditioning costs: a float32 innovation covariance of a turn expert after a 10 s gap (position
-    variances ~6e7 m^2, eigenvalues 2e3 to 1e8) has an adjugate determinant of the wrong sign and a NaN
-    likelihood, its pivots are right to three digits. ``S`` is read as symmetric (its two triangles averaged); a
+    variances ~6e7 m^2, eigenvalues 2e3 to 1e8) had an adjugate determinant off by 2x, in a batch of the wrong
+    sign (a NaN likelihood); its pivots give the log-determinant to 1e-4 and the inverse to 3e-4 of float64's. ``S`` is read as symmetric (its two triangles averaged); a
     pivot below ``eps`` times its diagonal element (a matrix singular to the dtype's precision) is held there, so
     the result stays finite."""
     a00, a11, a22 = S[..., 0, 0], S[..., 1, 1], S[..., 2, 2]
