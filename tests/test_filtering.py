@@ -797,7 +797,7 @@ def test_the_float32_covariance_update_keeps_a_prior_of_nine_orders_positive():
     import json
     from pathlib import Path
 
-    from immnet.stages.filtering import joseph
+    from immnet.imm.kalman import joseph
 
     case = json.loads((Path(__file__).parent / "data" / "float32_update_case.json").read_text())
     P = torch.tensor(case["P"], dtype=torch.float32)[None, None]

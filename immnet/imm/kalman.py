@@ -42,19 +42,23 @@ def inv3(S: torch.Tensor):
     Unlike the adjugate over the determinant, whose triple products cancel, the pivots lose only what the
     matrix's conditioning costs: a float32 innovation covariance of a turn expert after a 10 s gap (position
     variances ~6e7 m^2, eigenvalues 2e3 to 1e8) had an adjugate determinant off by 2x, in a batch of the wrong
-    sign (a NaN likelihood); its pivots give the log-determinant to 1e-4 and the inverse to 3e-4 of float64's. ``S`` is read as symmetric (its two triangles averaged); a
-    pivot below ``eps`` times its diagonal element (a matrix singular to the dtype's precision) is held there, so
-    the result stays finite."""
+    sign (a NaN likelihood); its pivots give the log-determinant to 1e-4 and the inverse to 3e-4 of float64's.
+    ``S`` is read as symmetric (its two triangles averaged); a pivot below ``eps`` times its diagonal element (a
+    matrix singular to the dtype's precision) is held there, so the result stays finite."""
     a00, a11, a22 = S[..., 0, 0], S[..., 1, 1], S[..., 2, 2]
     a01 = 0.5 * (S[..., 0, 1] + S[..., 1, 0])
     a02 = 0.5 * (S[..., 0, 2] + S[..., 2, 0])
     a12 = 0.5 * (S[..., 1, 2] + S[..., 2, 1])
-    eps = torch.finfo(S.dtype).eps
-    d0 = torch.maximum(a00, eps * a00.abs()).clamp_min(torch.finfo(S.dtype).tiny)
+    eps, tiny = torch.finfo(S.dtype).eps, torch.finfo(S.dtype).tiny
+
+    def pivot(value, diagonal):
+        return torch.maximum(value, eps * diagonal.abs()).clamp_min(tiny)
+
+    d0 = pivot(a00, a00)
     l10, l20 = a01 / d0, a02 / d0
-    d1 = torch.maximum(a11 - l10 * a01, eps * a11.abs()).clamp_min(torch.finfo(S.dtype).tiny)
+    d1 = pivot(a11 - l10 * a01, a11)
     l21 = (a12 - l20 * a01) / d1
-    d2 = torch.maximum(a22 - l20 * a02 - l21 * l21 * d1, eps * a22.abs()).clamp_min(torch.finfo(S.dtype).tiny)
+    d2 = pivot(a22 - l20 * a02 - l21 * l21 * d1, a22)
     # S^-1 = M^T D^-1 M with M = L^-1 = [[1, 0, 0], [m10, 1, 0], [m20, m21, 1]]
     m10, m21 = -l10, -l21
     m20 = l10 * l21 - l20
@@ -98,6 +102,26 @@ def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     for k in range(1, a.shape[-1]):
         out = out + a[..., :, k : k + 1] * b[..., k : k + 1, :]
     return out
+
+
+def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
+    """The posterior covariance ``(I - K H) P (I - K H)^T + K R K^T`` of any gain ``K [..., n, 3]`` (Joseph's
+    form: positive semi-definite for every ``K``, the learned gains' too), ``P [..., n, n]``, ``H`` the position
+    rows (0, 3, 6 of the state layout), ``R = r2 I`` (``r2`` broadcastable to ``[..., 1, 1]``).
+
+    Expanded as ``P - K H P - (K H P)^T + K S K^T`` (``S = H P H^T + R``; fewer and smaller products), whose terms
+    are of the prior's size while the result can be ten orders smaller: after a 10 s gap under a large learned
+    process noise the prior's position variance reaches 1e10 m^2 and the posterior's is ``r^2``. In float32 the
+    rounding of those terms is larger than the result, a negative variance and a NaN track a scan later, so a
+    float32 covariance is updated in float64 (the n x n blocks of one scan; where float64 is unavailable, MPS,
+    in its own dtype) and rounded back."""
+    wide = P.dtype if P.dtype == torch.float64 or P.device.type == "mps" else torch.float64
+    Pw, Kw = P.to(wide), K.to(wide)
+    HP = Pw[..., 0:7:3, :]  # the position rows (POS)
+    S = HP[..., 0:7:3] + r2.to(wide) * torch.eye(3, dtype=wide, device=P.device)
+    KHP = small_matmul(Kw, HP)
+    post = Pw - KHP - KHP.transpose(-1, -2) + small_matmul(small_matmul(Kw, S), Kw.transpose(-1, -2))
+    return (0.5 * (post + post.transpose(-1, -2))).to(P.dtype)
 
 
 def _as_cov(R: torch.Tensor | float, m: int, like: torch.Tensor) -> torch.Tensor:

@@ -46,7 +46,7 @@ from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
-from immnet.imm.kalman import group_loglik, inv3, small_matmul
+from immnet.imm.kalman import group_loglik, inv3, joseph, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
@@ -431,25 +431,6 @@ class FilterUpdate(Update):
         return td
 
 
-def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
-    """The posterior covariance ``(I - K H) P (I - K H)^T + K R K^T`` of any gain ``K [..., 10, 3]`` (Joseph's
-    form: positive semi-definite for every ``K``, the learned gains' too), ``H`` the position rows, ``R = r2 I``.
-
-    Expanded as ``P - K H P - (K H P)^T + K S K^T`` (``S = H P H^T + R``; fewer and smaller products), whose terms
-    are of the prior's size while the result can be ten orders smaller: after a 10 s gap under a large learned
-    process noise the prior's position variance reaches 1e10 m^2 and the posterior's is ``r^2``. In float32 the
-    rounding of those terms is larger than the result, a negative variance and a NaN track a scan later, so a
-    float32 covariance is updated in float64 (the 10 x 10 blocks of one scan; where float64 is unavailable, MPS,
-    in its own dtype) and rounded back."""
-    wide = P.dtype if P.dtype == torch.float64 or P.device.type == "mps" else torch.float64
-    Pw, Kw = P.to(wide), K.to(wide)
-    HP = Pw[..., 0:7:3, :]  # the position rows (POS)
-    S = HP[..., 0:7:3] + r2.to(wide) * torch.eye(3, dtype=wide, device=P.device)
-    KHP = small_matmul(Kw, HP)
-    post = Pw - KHP - KHP.transpose(-1, -2) + small_matmul(small_matmul(Kw, S), Kw.transpose(-1, -2))
-    return (0.5 * (post + post.transpose(-1, -2))).to(P.dtype)
-
-
 class _FilterExperts:
     """What every filter-expert gain shares: the measurement-noise estimate, the carry of a starting
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
@@ -633,13 +614,14 @@ class _FilterExperts:
         axis where set, for every expert or each its own), turn rate ``rate_std0``."""
         P = r2.new_zeros(B, self.n_experts, N_AUG, N_AUG)
         e = self.dt if elapsed is None else elapsed.to(r2.dtype).view(B, *([1] * (r2.dim() - 1)))
+        acc = self.start_acc_var.to(P.dtype)  # [M, 3]
         for a in range(3):
             p, v, c = POS[a], VEL[a], ACC[a]
             P[..., p, p] = r2
             P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
             if second:
                 P[..., p, v] = P[..., v, p] = r2 / e
-            P[..., c, c] = self.start_acc_var[:, a].to(P.dtype)
+            P[..., c, c] = acc[:, a]
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
 

@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from immnet import keys
+from immnet.imm.kalman import joseph
 from immnet.motion import POS, ModelSet
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import F1_SCALE, F2_SCALE, F3_SCALE, F4_SCALE, slog, state_scale
@@ -245,9 +246,7 @@ class AnalyticGain(Stage):
         K = torch.linalg.solve(S, P[..., _P, :]).transpose(-1, -2)
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts)).unsqueeze(-1)
         K = torch.where(has_z, K, 0.0)
-        IKH = torch.eye(9, dtype=P.dtype, device=P.device).expand_as(P).clone()
-        IKH[..., _P] -= K
-        post = IKH @ P @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
+        post = joseph(P, K, P.new_tensor(self.r**2))
         td.set(keys.EXPERT_GAIN, K.to(td.get(keys.FUSED).dtype))
         td.set(keys.EXPERT_COV, post)
         return td
