@@ -56,10 +56,13 @@ SHIPS = {
         # flights and fresh 3D-LAST (docs/immnet.md, "Covariance consistency"); its estimates are the trained network's
         "settings": {"cov_consistency": 0.05},
         "tests": {
-            "quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real", "immnet-general"]),
-            "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["immnet-general"]),
-            "3dlast-1s": ("runs/general/data/test-1s", LAST + ["immnet", "immnet-general"]),
-            "3dlast-4.5-5.5s": ("runs/general/data/test-4.5-5.5s", LAST + ["immnet-general"]),
+            # beside each set's filters, imm-ekf-general: IMMNet with nothing learned tuned on the same mixture
+            "quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["imm-ekf-general", "immnet", "immnet-real",
+                                                                     "immnet-general"]),
+            "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general"]),
+            "3dlast-1s": ("runs/general/data/test-1s", LAST + ["imm-ekf-general", "immnet", "immnet-general"]),
+            "3dlast-4.5-5.5s": ("runs/general/data/test-4.5-5.5s", LAST + ["imm-ekf-general", "immnet-general"]),
+            "3dlast-0.5-12s": ("runs/general/data/test-0.5-12s", LAST + ["imm-ekf-general", "immnet-general"]),
         },
     },
 }
