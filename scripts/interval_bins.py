@@ -8,8 +8,8 @@ intervals: where in 0.5-12 s a tracker gains or loses.
 (``scripts/learned_parts.py``'s variants: ``IMMNet.knock_out``, no training again).
 
 The scans ``immnet evaluate`` scores (``scored_mask``), binned by their interval (``--edges``, seconds); in each bin
-each axis's RMSE pooled over the bin's scans of every track (``rmse_pooled``: a bin holds a part of each track's
-scans, so the per-track RMSE ``immnet evaluate`` averages is not taken), then the mean over x, y, z.
+each axis's RMSE pooled over the bin's scans of every track (``metrics.rmse_by_interval``: a bin holds a part of
+each track's scans, so the per-track RMSE ``immnet evaluate`` averages is not taken), then the mean over x, y, z.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from immnet.config import load_yaml, resolve_path
 from immnet.data.storage import as_batch, load_dataset
 from immnet.data.times import scan_intervals
 from immnet.evaluation.methods import build_method
-from immnet.evaluation.metrics import position_error, rmse_pooled, scored_mask
+from immnet.evaluation.metrics import position_error, rmse_by_interval, scored_mask
 from immnet.tracking.methods import IMMNetMethod
 
 
@@ -61,17 +61,14 @@ def main(argv=None) -> int:
                 init = {**config["init_args"], "name": args.knock_out + suffix, "knock_out": parts,
                         "checkpoint": ckpts.get(args.knock_out) or str(resolve_path(config["init_args"]["checkpoint"]))}
                 methods[init["name"]] = IMMNetMethod(**init)
-    counts = []
     for name, method in methods.items():
         with torch.no_grad():
             err = position_error(method.track(batch)[keys.STATE], batch[keys.STATES])
-        cells = []
-        for i, (lo, hi) in enumerate(bins):
-            sel = mask & (dt >= lo) & ((dt <= hi) if i == len(bins) - 1 else (dt < hi))
-            counts.append(int(sel.sum()))
-            cells.append(f"{rmse_pooled(err, sel)['avg']:.3f}" if sel.any() else "-")
+        cells = ["-" if v is None else f"{v:.3f}" for v in rmse_by_interval(err, dt, edges, mask)]
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
-    print(f"\nscans per bin: {counts[:len(bins)]}")
+    counts = [int((mask & (dt >= lo) & ((dt <= hi) if i == len(bins) - 1 else (dt < hi))).sum())
+              for i, (lo, hi) in enumerate(bins)]
+    print(f"\nscans per bin: {counts}")
     return 0
 
 

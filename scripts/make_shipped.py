@@ -45,7 +45,7 @@ SHIPS = {
         "init": "immnet/pretrained/immnet.ckpt (3D-LAST), widened to read each scan's interval (a zero column)",
         "what": ("one network for any scan interval from 0.5 to 12 s, on real flights and 3D-LAST, without a range "
                  "guard: the 3D-LAST weights fine-tuned on a mixture"),
-        "data": {"train": [f"runs/general/data/3dlast: 3D-LAST at U[0.5, 12] s scans, 1,500 trajectories of 200 scans, "
+        "data": {"train": ["runs/general/data/3dlast: 3D-LAST at U[0.5, 12] s scans, 1,500 trajectories of 200 scans, "
                            "seed 61 (95 % of it; 5 % validation)",
                            f"{REAL}/quickstart-1s/train: {QUICKSTART}, 1 s scans, r ~ U[1, 7] m",
                            f"{REAL}/quickstart-5s/train: the same flights at U[4.5, 5.5] s scans, r ~ U[5, 35] m"],
@@ -64,6 +64,10 @@ SHIPS = {
             "3dlast-4.5-5.5s": ("runs/general/data/test-4.5-5.5s", LAST + ["imm-ekf-general", "immnet-general"]),
             "3dlast-0.5-12s": ("runs/general/data/test-0.5-12s", LAST + ["imm-ekf-general", "immnet-general"]),
         },
+        # by scan interval beside its filter: what `immnet track` reads to advise on a user's scans
+        # (immnet.tracking.advice)
+        "interval_bins": {"data": "runs/general/data/test-0.5-12s", "filter": "imm-ekf-general",
+                          "edges": [0.5, 2, 4, 6, 8, 10, 12]},
     },
 }
 
@@ -76,6 +80,30 @@ def claims(rows: dict, name: str) -> dict:
         return {"ratio_to_clairvoyant": math.ceil(100 * avg[name] / avg["clairvoyant"]) / 100}
     best = min((n for n in avg if n.startswith(("real-", "imm-"))), key=avg.get)
     return {"ratio_to_best_model_based": math.ceil(100 * avg[name] / avg[best]) / 100, "best_model_based": best}
+
+
+def interval_bins(spec: dict, registry: str) -> dict:
+    """The network and its filter scored by scan interval on ``spec["data"]`` (``metrics.rmse_by_interval``, the
+    scans ``immnet evaluate`` scores): the provenance's ``interval_bins`` (``immnet.tracking.advice``)."""
+    import torch
+
+    from immnet import keys
+    from immnet.data.storage import as_batch, load_dataset
+    from immnet.data.times import scan_intervals
+    from immnet.evaluation.methods import build_method
+    from immnet.evaluation.metrics import position_error, rmse_by_interval, scored_mask
+
+    td, _ = load_dataset(ROOT / spec["data"])
+    batch = as_batch(td, torch.float64)
+    dt = scan_intervals(batch, torch.float64, None)
+    mask = scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS])
+    rmse = {}
+    for name in (registry, spec["filter"]):
+        print(f"{spec['data']} by interval: {name}", file=sys.stderr)
+        with torch.no_grad():
+            err = position_error(build_method(name).track(batch)[keys.STATE], batch[keys.STATES])
+        rmse[name] = [None if v is None else round(v, 4) for v in rmse_by_interval(err, dt, spec["edges"], mask)]
+    return {"data": spec["data"], "edges": spec["edges"], "network": registry, "filter": spec["filter"], "rmse": rmse}
 
 
 def main() -> int:
@@ -111,6 +139,14 @@ def main() -> int:
         tests[set_name] = {"data": path, "n": data.batch_size[0], "metrics": {n: r["rmse"] for n, r in rows.items()},
                            "claims": claims(rows, registry)}
         tables.append(f"**{set_name}** (`{path}`, {data.batch_size[0]} windows):\n\n{format_markdown(rows)}\n")
+    bins = interval_bins(ship["interval_bins"], registry) if "interval_bins" in ship else None
+    if bins:
+        head = " | ".join(f"{lo:g}-{hi:g} s" for lo, hi in zip(bins["edges"][:-1], bins["edges"][1:]))
+        body = "\n".join(f"| {n} | " + " | ".join("-" if v is None else f"{v:.3f}" for v in row) + " |"
+                         for n, row in bins["rmse"].items())
+        tables.append(f"**By scan interval** (`{bins['data']}`, each bin's pooled RMSE, the mean over x, y, z; "
+                      f"`immnet track` notes where the network is behind `{bins['filter']}` at the data's median "
+                      f"interval):\n\n| method | {head} |\n|:---|{'---:|' * (len(bins['edges']) - 1)}\n{body}\n")
     runs = [r.strip() for r in a.wandb_runs.split(",") if r.strip()]
     prov = {
         "file": f"immnet/pretrained/{registry}.ckpt",
@@ -128,6 +164,7 @@ def main() -> int:
         "wandb": {"project": "immnet", "runs": runs} if runs else None,
         "note": a.note,
         "tests": tests,
+        **({"interval_bins": bins} if bins else {}),
     }
     (OUT / f"provenance-{a.name}.json").write_text(json.dumps(prov, indent=2, allow_nan=False) + "\n")
     span = (f"scan intervals {ship['interval_range'][0]:g}-{ship['interval_range'][1]:g} s" if ship.get("interval_range")

@@ -9,6 +9,8 @@ trajectories with ``M_n > 0``. "avg" is always the mean of the three axis values
 
 - RMSE (the table):    ``RMSE_a = 1/N' sum_{n: M_n > 0} sqrt(1/M_n sum_t m e[n,t,a]^2)``
 - pooled RMSE:         ``RMSE_a = sqrt(sum_{n,t} m e[n,t,a]^2 / sum_{n,t} m)``
+- RMSE by interval:    the pooled RMSE of the scored pairs whose scan interval lies in each bin
+  (:func:`rmse_by_interval`).
 - RMSE over time:      ``RMSE_a(t) = sqrt(sum_n m e[n,t,a]^2 / sum_n m[n,t])`` (NaN where no pair is
   scored at ``t``); its "avg" curve is ``sqrt(1/3 sum_a RMSE_a(t)^2)``, on the table's scale.
 - post-switch RMSE:    a switch of trajectory ``n`` is a step ``s >= 1`` with ``mode[n,s] !=
@@ -95,6 +97,22 @@ def rmse_pooled(err: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
     """``sqrt`` of the mean of ``e^2`` over all scored pairs, per axis."""
     m = _mask(err, mask)
     return _axes((_sq(err, m).sum(dim=(0, 1)) / m.sum()).sqrt())
+
+
+def rmse_by_interval(err: torch.Tensor, dt: torch.Tensor, edges, mask: torch.Tensor | None = None) -> list:
+    """The pooled RMSE's "avg" (:func:`rmse_pooled`) of the scored pairs whose scan interval ``dt [N, T]`` (the time
+    since the scan before) lies in each bin ``[edges[i], edges[i+1])``, the last bin closed; ``None`` for a bin without
+    a scored pair. A bin holds a part of each track's scans, so the pairs are pooled, not averaged per track."""
+    edges = [float(e) for e in edges]
+    if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
+        raise ValueError(f"interval bin edges must be at least two increasing numbers, got {edges}")
+    m = _mask(err, mask)
+    dt = dt.to(err.device)
+    out = []
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        sel = m & (dt >= lo) & ((dt <= hi) if i == len(edges) - 2 else (dt < hi))
+        out.append(rmse_pooled(err, sel)["avg"] if bool(sel.any()) else None)
+    return out
 
 
 def rmse_over_time(err: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:

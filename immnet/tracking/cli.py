@@ -90,6 +90,16 @@ def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
               f"{where}: tracked as missed detections", file=sys.stderr)
 
 
+def _advise(weights: Path, intervals) -> None:
+    """The provenance's note for the data's scan intervals, if the weights were measured behind a filter there
+    (``immnet.tracking.advice``)."""
+    from immnet.tracking.advice import interval_note, load_provenance
+
+    note = interval_note(load_provenance(weights), intervals)
+    if note:
+        print(note, file=sys.stderr)
+
+
 def _report_no_cov(why: str) -> None:
     print(f"no covariance: {why}; the cov_* columns are empty (an .npz output has no state_cov)", file=sys.stderr)
 
@@ -140,8 +150,12 @@ def run(args) -> int:
         if tracker.net.interval_range is not None:  # any interval in its range: each row a scan at its own time
             from immnet.tracking.methods import IMMNetMethod
 
+            from immnet.tracking.advice import track_intervals
+
             method = IMMNetMethod.from_tracker(tracker, name="the checkpoint", return_cov=tracker.net.has_cov)
-            return _track_rows_with_method(args, rows, limit, method, str(weights))
+            code = _track_rows_with_method(args, rows, limit, method, str(weights))
+            _advise(weights, track_intervals(rows.ids, rows.t))
+            return code
         z, n_gated = gate_measurements(rows.z, limit)
         gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
         lines = ", ".join(str(rows.lines[r]) for r in gated[:5]) + (", ..." if len(gated) > 5 else "")
@@ -160,10 +174,12 @@ def run(args) -> int:
     from immnet.tracking.tracker import check_dt
 
     data, _ = load_dataset(args.input)
-    tracker = Tracker.from_checkpoint(_weights(args), parse_guard(args.guard), True if args.adapt else KEEP, limit)
+    weights = _weights(args)
+    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit)
     from immnet.data.times import scan_intervals
 
-    check_dt(tracker.net, scan_intervals(data) if "t" in data.keys() else data["dt"], "the checkpoint")
+    intervals = scan_intervals(data) if "t" in data.keys() else data["dt"]
+    check_dt(tracker.net, intervals, "the checkpoint")
     has_cov = tracker.net.has_cov
     out = tracker.track(data["measurements"], return_cov=has_cov)
     with publishing(args.output, suffix=".npz") as tmp:
@@ -175,4 +191,6 @@ def run(args) -> int:
         _report_no_cov(tracker.net.no_cov_reason())
     _report_gated(tracker.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
+    if tracker.net.interval_range is not None:
+        _advise(weights, np.asarray(intervals, dtype=np.float64).ravel())
     return 0

@@ -1,0 +1,65 @@
+"""What shipped weights' provenance says about a user's data: a note where, at the data's scan interval, the weights
+were measured behind a model-based filter (docs/tracking.md, "Which tracker for which scans").
+
+``scripts/make_shipped.py`` scores the general weights by scan interval beside ``imm-ekf-general``, IMMNet with nothing
+learned tuned on the same training data, on 3D-LAST over U[0.5, 12] s, and writes the pooled RMSE of each interval
+bin into the provenance (``interval_bins``: ``data``, ``edges``, ``network``, ``filter``, ``rmse`` per method and
+bin). ``immnet track`` reads it for the weights it loads and, where the network's RMSE in the bin of the data's
+median scan interval is above the filter's, says so on stderr, naming the filter to try. The tracking itself is
+unchanged: the note is advice from measurements, not a switch.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def load_provenance(ckpt) -> dict | None:
+    """The provenance JSON beside shipped weights (``immnet.checkpoints.provenance_file``), or None where there is
+    none (a checkpoint of one's own) or it cannot be read as JSON."""
+    from immnet.checkpoints import provenance_file
+
+    path = provenance_file(Path(ckpt))
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def track_intervals(ids, t) -> np.ndarray:
+    """The scan intervals of CSV rows: the differences of each track's times (rows of a track in time order, as
+    ``immnet.tracking.io.read_tracks_csv`` checks them), all tracks together, in seconds."""
+    t = np.asarray([float(v) for v in t], dtype=np.float64)
+    ids = np.asarray(ids)
+    out = []
+    for tid in dict.fromkeys(ids.tolist()):
+        out.append(np.diff(t[ids == tid]))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def interval_note(provenance: dict | None, intervals) -> str | None:
+    """A note (one line) where the provenance's ``interval_bins`` put the network behind its filter in the bin of the
+    median of ``intervals`` (seconds; non-finite values ignored); None where it does not, where the median lies
+    outside the bins, or where the provenance has no bins."""
+    bins = (provenance or {}).get("interval_bins")
+    dt = np.asarray(intervals, dtype=np.float64)
+    dt = dt[np.isfinite(dt)]
+    if not bins or dt.size == 0:
+        return None
+    median = float(np.median(dt))
+    edges = [float(e) for e in bins["edges"]]
+    last = len(edges) - 2
+    i = next((k for k in range(last + 1)
+              if edges[k] <= median and (median < edges[k + 1] or (k == last and median <= edges[k + 1]))), None)
+    if i is None:
+        return None
+    net, ref = bins["network"], bins["filter"]
+    a, b = bins["rmse"][net][i], bins["rmse"][ref][i]
+    if a is None or b is None or a <= b:
+        return None
+    return (f"note: this data's median scan interval is {median:.3g} s; at scans of {edges[i]:g}-{edges[i + 1]:g} s "
+            f"these weights were {a / b:.2f}x {ref} ({a:.3f} m against {b:.3f} on {bins['data']}, their provenance): "
+            f"--method {ref} may track these scans better")
