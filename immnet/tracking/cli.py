@@ -148,9 +148,8 @@ def run(args) -> int:
         weights = _weights(args)
         tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit)
         if tracker.net.interval_range is not None:  # any interval in its range: each row a scan at its own time
-            from immnet.tracking.methods import IMMNetMethod
-
             from immnet.tracking.advice import track_intervals
+            from immnet.tracking.methods import IMMNetMethod
 
             method = IMMNetMethod.from_tracker(tracker, name="the checkpoint", return_cov=tracker.net.has_cov)
             code = _track_rows_with_method(args, rows, limit, method, str(weights))
