@@ -474,7 +474,6 @@ class _FilterExperts:
             raise ValueError(f"start_acc_std must be finite and >= 0 or None (the CA draw's), one for every model or one "
                              f"per model ({len(model_set)}), got {start_acc_std!r}")
         stds = [None if v is None else float(v) for v in stds]  # per expert
-        self.start_acc_std = stds if isinstance(start_acc_std, (list, tuple)) else stds[0]
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
         if isinstance(r, str):
             if r != TOLD_R:
