@@ -23,7 +23,7 @@ from immnet.config import load_yaml, resolve_path
 from immnet.data.storage import as_batch, load_dataset
 from immnet.data.times import scan_intervals
 from immnet.evaluation.methods import build_method
-from immnet.evaluation.metrics import position_error, rmse_by_interval, scored_mask
+from immnet.evaluation.metrics import interval_bin, position_error, rmse_by_interval, scored_mask
 from immnet.tracking.methods import IMMNetMethod
 
 
@@ -66,8 +66,8 @@ def main(argv=None) -> int:
             err = position_error(method.track(batch)[keys.STATE], batch[keys.STATES])
         cells = ["-" if v is None else f"{v:.3f}" for v in rmse_by_interval(err, dt, edges, mask)]
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
-    counts = [int((mask & (dt >= lo) & ((dt <= hi) if i == len(bins) - 1 else (dt < hi))).sum())
-              for i, (lo, hi) in enumerate(bins)]
+    which = interval_bin(dt, edges)
+    counts = [int((mask & (which == i)).sum()) for i in range(len(bins))]
     print(f"\nscans per bin: {counts}")
     return 0
 

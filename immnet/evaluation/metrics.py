@@ -99,18 +99,29 @@ def rmse_pooled(err: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
     return _axes((_sq(err, m).sum(dim=(0, 1)) / m.sum()).sqrt())
 
 
-def rmse_by_interval(err: torch.Tensor, dt: torch.Tensor, edges, mask: torch.Tensor | None = None) -> list:
-    """The pooled RMSE's "avg" (:func:`rmse_pooled`) of the scored pairs whose scan interval ``dt [N, T]`` (the time
-    since the scan before) lies in each bin ``[edges[i], edges[i+1])``, the last bin closed; ``None`` for a bin without
-    a scored pair. A bin holds a part of each track's scans, so the pairs are pooled, not averaged per track."""
+def interval_bin(dt, edges) -> torch.Tensor:
+    """The bin of each scan interval ``dt`` (s): ``i`` where ``edges[i] <= dt < edges[i+1]``, the last bin closed,
+    and -1 outside the bins (NaN too); int64, ``dt``'s shape. A ValueError unless ``edges`` increase."""
     edges = [float(e) for e in edges]
     if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
         raise ValueError(f"interval bin edges must be at least two increasing numbers, got {edges}")
+    dt = torch.as_tensor(dt, dtype=torch.float64)
+    e = torch.tensor(edges, dtype=torch.float64, device=dt.device)
+    last = len(edges) - 2
+    b = torch.bucketize(dt, e, right=True) - 1  # edges[b] <= dt < edges[b + 1]
+    b = torch.where(dt == e[-1], last, b)
+    return torch.where((b >= 0) & (b <= last), b, -1)
+
+
+def rmse_by_interval(err: torch.Tensor, dt: torch.Tensor, edges, mask: torch.Tensor | None = None) -> list:
+    """The pooled RMSE's "avg" (:func:`rmse_pooled`) of the scored pairs whose scan interval ``dt [N, T]`` (the time
+    since the scan before) lies in each bin of :func:`interval_bin`; ``None`` for a bin without a scored pair. A bin
+    holds a part of each track's scans, so the pairs are pooled, not averaged per track."""
+    b = interval_bin(dt, edges).to(err.device)
     m = _mask(err, mask)
-    dt = dt.to(err.device)
     out = []
-    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        sel = m & (dt >= lo) & ((dt <= hi) if i == len(edges) - 2 else (dt < hi))
+    for i in range(len(edges) - 1):
+        sel = m & (b == i)
         out.append(rmse_pooled(err, sel)["avg"] if bool(sel.any()) else None)
     return out
 

@@ -34,16 +34,16 @@ def track_intervals(ids, t) -> np.ndarray:
     ``immnet.tracking.io.read_tracks_csv`` checks them), all tracks together, in seconds."""
     t = np.asarray([float(v) for v in t], dtype=np.float64)
     ids = np.asarray(ids)
-    out = []
-    for tid in dict.fromkeys(ids.tolist()):
-        out.append(np.diff(t[ids == tid]))
-    return np.concatenate(out) if out else np.zeros(0)
+    order = np.argsort(ids, kind="stable")  # each track's rows together, in their time order
+    return np.diff(t[order])[ids[order][1:] == ids[order][:-1]]
 
 
 def interval_note(provenance: dict | None, intervals) -> str | None:
     """A note (one line) where the provenance's ``interval_bins`` put the network behind its filter in the bin of the
     median of ``intervals`` (seconds; non-finite values ignored); None where it does not, where the median lies
     outside the bins, or where the provenance has no bins."""
+    from immnet.evaluation.metrics import interval_bin
+
     bins = (provenance or {}).get("interval_bins")
     dt = np.asarray(intervals, dtype=np.float64)
     dt = dt[np.isfinite(dt)]
@@ -51,10 +51,8 @@ def interval_note(provenance: dict | None, intervals) -> str | None:
         return None
     median = float(np.median(dt))
     edges = [float(e) for e in bins["edges"]]
-    last = len(edges) - 2
-    i = next((k for k in range(last + 1)
-              if edges[k] <= median and (median < edges[k + 1] or (k == last and median <= edges[k + 1]))), None)
-    if i is None:
+    i = int(interval_bin(median, edges))
+    if i < 0:
         return None
     net, ref = bins["network"], bins["filter"]
     a, b = bins["rmse"][net][i], bins["rmse"][ref][i]
