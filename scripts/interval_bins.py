@@ -16,14 +16,10 @@ from __future__ import annotations
 
 import argparse
 
-import torch
-
-from immnet import keys
 from immnet.config import load_yaml, resolve_path
-from immnet.data.storage import as_batch, load_dataset
-from immnet.data.times import scan_intervals
+from immnet.data.storage import load_dataset
 from immnet.evaluation.methods import build_method
-from immnet.evaluation.metrics import interval_bin, position_error, rmse_by_interval, scored_mask
+from immnet.evaluation.runner import evaluate_by_interval
 from immnet.tracking.methods import IMMNetMethod
 
 
@@ -40,9 +36,6 @@ def main(argv=None) -> int:
     if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
         raise SystemExit(f"--edges must be at least two increasing numbers, got {args.edges!r}")
     td, _ = load_dataset(args.data)
-    batch = as_batch(td, torch.float64)
-    dt = scan_intervals(batch, torch.float64, None)
-    mask = scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS])
     bins = list(zip(edges[:-1], edges[1:]))
     print("| method | " + " | ".join(f"{lo:g}-{hi:g} s [m]" for lo, hi in bins) + " |")
     print("|:---|" + "---:|" * len(bins))
@@ -61,14 +54,11 @@ def main(argv=None) -> int:
                 init = {**config["init_args"], "name": args.knock_out + suffix, "knock_out": parts,
                         "checkpoint": ckpts.get(args.knock_out) or str(resolve_path(config["init_args"]["checkpoint"]))}
                 methods[init["name"]] = IMMNetMethod(**init)
-    for name, method in methods.items():
-        with torch.no_grad():
-            err = position_error(method.track(batch)[keys.STATE], batch[keys.STATES])
-        cells = ["-" if v is None else f"{v:.3f}" for v in rmse_by_interval(err, dt, edges, mask)]
-        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
-    which = interval_bin(dt, edges)
-    counts = [int((mask & (which == i)).sum()) for i in range(len(bins))]
-    print(f"\nscans per bin: {counts}")
+    for name, row in evaluate_by_interval(methods, td, edges):
+        if name == "scans":
+            print(f"\nscans per bin: {row}")
+        else:
+            print(f"| {name} | " + " | ".join("-" if v is None else f"{v:.3f}" for v in row) + " |", flush=True)
     return 0
 
 

@@ -83,26 +83,17 @@ def claims(rows: dict, name: str) -> dict:
 
 
 def interval_bins(spec: dict, registry: str) -> dict:
-    """The network and its filter scored by scan interval on ``spec["data"]`` (``metrics.rmse_by_interval``, the
-    scans ``immnet evaluate`` scores): the provenance's ``interval_bins`` (``immnet.tracking.advice``)."""
-    import torch
-
-    from immnet import keys
-    from immnet.data.storage import as_batch, load_dataset
-    from immnet.data.times import scan_intervals
+    """The network and its filter scored by scan interval on ``spec["data"]`` (``runner.evaluate_by_interval``):
+    the provenance's ``interval_bins`` (``immnet.tracking.advice``)."""
+    from immnet.data.storage import load_dataset
     from immnet.evaluation.methods import build_method
-    from immnet.evaluation.metrics import position_error, rmse_by_interval, scored_mask
+    from immnet.evaluation.runner import evaluate_by_interval
 
     td, _ = load_dataset(ROOT / spec["data"])
-    batch = as_batch(td, torch.float64)
-    dt = scan_intervals(batch, torch.float64, None)
-    mask = scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS])
-    rmse = {}
-    for name in (registry, spec["filter"]):
-        print(f"{spec['data']} by interval: {name}", file=sys.stderr)
-        with torch.no_grad():
-            err = position_error(build_method(name).track(batch)[keys.STATE], batch[keys.STATES])
-        rmse[name] = [None if v is None else round(v, 4) for v in rmse_by_interval(err, dt, spec["edges"], mask)]
+    print(f"{spec['data']} by interval: {registry}, {spec['filter']}", file=sys.stderr)
+    methods = {name: build_method(name) for name in (registry, spec["filter"])}
+    rmse = {name: [None if v is None else round(v, 4) for v in row]
+            for name, row in evaluate_by_interval(methods, td, spec["edges"]) if name in methods}
     return {"data": spec["data"], "edges": spec["edges"], "network": registry, "filter": spec["filter"], "rmse": rmse}
 
 

@@ -99,6 +99,24 @@ def evaluate(
     return results
 
 
+def evaluate_by_interval(methods, data: TensorDict, edges):
+    """Each method's RMSE by scan interval on ``data`` (``metrics.rmse_by_interval`` over the scans :func:`evaluate`
+    scores, the bins of ``metrics.interval_bin``), one method at a time as it is tracked (float64): yields
+    ``(name, [pooled "avg" RMSE or None per bin])``, then ``("scans", [scored scans per bin])``."""
+    from immnet.data.storage import as_batch
+    from immnet.evaluation.metrics import interval_bin, position_error, rmse_by_interval, scored_mask
+
+    batch = as_batch(data, torch.float64)
+    dt = scan_intervals(batch, torch.float64, None)
+    mask = scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS])
+    which = interval_bin(dt, edges)  # checks the edges before any method runs
+    for name, method in _as_mapping(methods).items():
+        with torch.no_grad():
+            err = position_error(method.track(batch)[keys.STATE], batch[keys.STATES])
+        yield name, rmse_by_interval(err, dt, edges, mask)
+    yield "scans", [int((mask & (which == i)).sum()) for i in range(len(edges) - 1)]
+
+
 def finite_or_none(x):
     """``x`` with every float that is not finite replaced by ``None`` (JSON's ``null``), through
     dicts, lists and tuples: what ``json.dumps(..., allow_nan=False)`` accepts."""
