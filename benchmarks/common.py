@@ -27,10 +27,12 @@ def machine() -> str:
 
 
 def write_section(title: str, text: str, path: Path = BENCHMARKS) -> None:
-    """Replace (or append) the section ``## title`` of ``path``, keeping every other section."""
+    """Replace (or append) the measured text of the section ``## title`` of ``path``: from its heading to the next
+    ``## `` or ``### `` heading. Every other section is kept, and so are the section's own ``### `` notes, written
+    by hand under its measured text (a rerun replaces the numbers, not what was written about them)."""
     old = path.read_text() if path.exists() else "# Benchmarks\n"
     section = f"## {title}\n\n" + text.strip() + "\n"
-    pattern = re.compile(rf"^## {re.escape(title)}\n.*?(?=^## |\Z)", re.S | re.M)
+    pattern = re.compile(rf"^## {re.escape(title)}\n.*?(?=^##{{1,2}} |\Z)", re.S | re.M)
     new = pattern.sub(lambda _: section + "\n", old) if pattern.search(old) else old.rstrip() + "\n\n" + section
     tmp = path.with_name(path.name + ".partial")
     tmp.write_text(new.rstrip() + "\n")
