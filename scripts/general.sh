@@ -29,6 +29,7 @@ gen() {  # name n seed [config]
   "$IMMNET" data generate --out "$DATA/$1" --n "$2" --seed "$3" ${4:+--config $4} --overwrite
 }
 gen 3dlast 1500 61 configs/data/intervals-0.5-12.yaml
+gen 3dlast-1s 500 63
 gen test-1s 1000 99
 gen test-5s 1000 99 configs/data/scan5.yaml
 gen test-4.5-5.5s 1000 99 configs/data/scan4.5-5.5.yaml

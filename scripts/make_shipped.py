@@ -48,7 +48,9 @@ SHIPS = {
         "data": {"train": ["runs/general/data/3dlast: 3D-LAST at U[0.5, 12] s scans, 1,500 trajectories of 200 scans, "
                            "seed 61 (95 % of it; 5 % validation)",
                            f"{REAL}/quickstart-1s/train: {QUICKSTART}, 1 s scans, r ~ U[1, 7] m",
-                           f"{REAL}/quickstart-5s/train: the same flights at U[4.5, 5.5] s scans, r ~ U[5, 35] m"],
+                           f"{REAL}/quickstart-5s/train: the same flights at U[4.5, 5.5] s scans, r ~ U[5, 35] m",
+                           "runs/general/data/3dlast-1s: 3D-LAST at 1 s scans, 500 trajectories of 400 scans, seed 63 "
+                           "(95 % of it)"],
                  "val": [f"{REAL}/quickstart-1s/val", f"{REAL}/quickstart-5s/val"]},
         "interval_range": [0.5, 12.0],
         "guard": "none",
