@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import torch
 
 import immnet.cli
 from immnet.data.storage import load_dataset

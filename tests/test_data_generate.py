@@ -125,7 +125,7 @@ def test_measurement_noise_has_std_r(data):
 def test_schedule_three_segments_min_length_modes_differ():
     spec = DataSpec(**NO_BOUNDS)
     lab = generate(800, seed=3, spec=spec)["mode"].numpy()
-    firsts, seconds = [], []
+    firsts = []
     for row in lab:
         runs = _runs(row)
         assert len(runs) == 3
