@@ -422,7 +422,7 @@ def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_
 
 
 IMM_EKF = ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive", "imm-ekf-guard-sticky-adaptive",
-           "imm-ekf-general"]
+           "imm-ekf-general", "imm-ekf-general-4sets"]
 LINEAR = ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-imm-5s", "real-ca", "real-ca-5s"]
 PER_AXIS = ["real-imm-axis", "real-imm-axis-5s"]
 ORACLES = ["clairvoyant", "clairvoyant-switch"]  # tests/test_filters_clairvoyant.py
