@@ -4,7 +4,7 @@ Run:  .venv/bin/python benchmarks/bench_immnet.py [--steps 40] [--no-compile] [-
 It prints tables and rewrites the ``## IMMNet`` section of BENCHMARKS.md (``## IMMNet on cuda`` with ``--device
 cuda``; other sections are kept). ``--device``: where the networks, carries and batches live; on a GPU every timing
 waits for the device's queued work (``torch.cuda.synchronize``) before the clock is read. ``--parts``: which tables
-(inference, stages, training), e.g. only inference on a GPU session's short lease.
+(inference, stages, training), e.g. only inference where device time is short.
 Inference runs the streaming step (``IMMNet.scan``) over already-started tracks, the per-scan cost
 of tracking, eager and compiled (``torch.compile`` of ``IMMNet.running_step``, the step without the track start's
 two stages, a ``TensorDictSequential``, as one graph; where that fails, with graph breaks, and where that fails, eager), for the shipped weights

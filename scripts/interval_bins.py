@@ -19,6 +19,7 @@ import argparse
 from immnet.config import load_yaml, resolve_path
 from immnet.data.storage import load_dataset
 from immnet.evaluation.methods import build_method
+from immnet.evaluation.metrics import interval_bin
 from immnet.evaluation.runner import evaluate_by_interval
 from immnet.tracking.methods import IMMNetMethod
 
@@ -33,8 +34,10 @@ def main(argv=None) -> int:
     p.add_argument("--edges", default="0.5,2,4,6,8,10,12", help="bin edges in seconds (the last bin holds its edge)")
     args = p.parse_args(argv)
     edges = [float(v) for v in args.edges.split(",")]
-    if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
-        raise SystemExit(f"--edges must be at least two increasing numbers, got {args.edges!r}")
+    try:
+        interval_bin([], edges)  # the edges' one check (metrics.interval_bin), before any data is read
+    except ValueError as err:
+        raise SystemExit(f"--edges {args.edges!r}: {err}") from None
     td, _ = load_dataset(args.data)
     bins = list(zip(edges[:-1], edges[1:]))
     print("| method | " + " | ".join(f"{lo:g}-{hi:g} s [m]" for lo, hi in bins) + " |")

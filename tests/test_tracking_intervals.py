@@ -222,4 +222,4 @@ def test_immnet_track_says_what_the_default_weights_provenance_says_at_the_datas
     assert main(["track", "--input", str(path), "--output", str(tmp_path / "o.csv")]) == 0
     err = capsys.readouterr().err
     assert (f"--method {bins['filter']}" in err) == behind, err
-    assert behind == (spacing == 10.0)  # as measured (docs/results.md "The general model"): behind from 6 s on
+    assert behind == (spacing == 10.0)  # as measured (docs/results.md "The general model"): behind at 10-12 s only
