@@ -275,3 +275,60 @@ def test_evaluate_a_real_set(tmp_path, monkeypatch, capsys):
     assert "mode acc" not in capsys.readouterr().out
     assert immnet.cli.main([*args, "--methods", "imm-ekf,clairvoyant"]) == 2
     assert "clairvoyant needs the true mode at every scan" in capsys.readouterr().err
+
+
+def test_window_flights_and_subsets_of_flights(tmp_path, monkeypatch, capsys):
+    """Each split names the flight of every window; ``immnet data subset`` keeps some flights' windows, byte
+    for byte, nested for one seed (a data-scaling curve adds flights), refusing what it cannot do by name."""
+    sample = _write(tmp_path / "s.json.gz", _records(n_aircraft=8, n=400))
+    spec = real.RealSpec(T=50, splits=(0.75, 0.125, 0.125), max_range=60_000)
+    meta = real.make_adsb(tmp_path / "o", [sample], spec, seed=0)
+    train = tmp_path / "o" / "train"
+    td, m = load_dataset(train)
+    owners = m["window_flights"]
+    assert m["format_version"] == 2 and len(owners) == td.batch_size[0] and set(owners) == set(meta["flights"]["train"])
+    # the flight named is the one flown: aircraft k flies at 140 + 10 k m/s (_track)
+    speed = np.hypot(td["states"][..., 1].numpy(), td["states"][..., 4].numpy()).mean(1)
+    assert np.allclose(speed, [140 + 10 * int(f.split("-")[0][3:]) for f in owners], atol=2)
+
+    three = real.subset_flights(train, tmp_path / "three", 0.5, seed=1)
+    two = real.subset_flights(train, tmp_path / "two", 2, seed=1)
+    assert three["subset"] == {"flights": 3, "of_flights": 6, "windows": three["n"], "of_windows": len(owners),
+                               "seed": 1}
+    assert set(two["flights"]["train"]) < set(three["flights"]["train"])  # nested for one seed
+    assert three["flights"]["val"] == meta["flights"]["val"] and three["split"] == "train"
+    sub, sm = load_dataset(tmp_path / "three")
+    rows = [i for i, f in enumerate(owners) if f in set(sm["flights"]["train"])]
+    assert sm["window_flights"] == [owners[i] for i in rows] and sub.batch_size[0] == len(rows) == three["n"]
+    for key in td.keys():
+        assert np.array_equal(sub[key].numpy(), td[key].numpy()[rows], equal_nan=True)
+    real.subset_flights(train, tmp_path / "again", 0.5, seed=1)
+    assert _digest(tmp_path / "again") == _digest(tmp_path / "three")
+    chosen = {tuple(real.subset_flights(train, tmp_path / f"s{s}", 3, seed=s)["flights"]["train"]) for s in range(4)}
+    assert len(chosen) > 1  # the seed chooses
+
+    for flights, message in ((0, "a count >= 1 or a fraction"), (1.5, "whole number"), (7, "has 6 flights")):
+        with pytest.raises(ValueError, match=message):
+            real.subset_flights(train, tmp_path / "bad", flights)
+    with pytest.raises(ValueError, match="replace its own source"):
+        real.subset_flights(train, train, 0.5, overwrite=True)
+    with pytest.raises(FileExistsError, match="not empty"):
+        real.subset_flights(train, tmp_path / "two", 2)
+    old = tmp_path / "v1"  # a set written before the flights of its windows were named
+    import shutil
+
+    shutil.copytree(train, old)
+    m1 = {k: v for k, v in m.items() if k != "window_flights"}
+    (old / "meta.json").write_text(json.dumps({**m1, "format_version": 1}))
+    with pytest.raises(ValueError, match="does not name the flight of each window"):
+        real.subset_flights(old, tmp_path / "bad", 0.5)
+    assert not (tmp_path / "bad").exists()  # nothing written by a refusal
+
+    monkeypatch.setattr(immnet.cli, "_COMMAND_MODULES", ("immnet.data.cli",))
+    out = tmp_path / "cli"
+    assert immnet.cli.main(["data", "subset", "--data", str(train), "--out", str(out), "--flights", "0.5",
+                            "--seed", "1"]) == 0
+    assert "3 of 6 flights" in capsys.readouterr().out and _digest(out) == _digest(tmp_path / "three")
+    assert immnet.cli.main(["data", "subset", "--data", str(tmp_path / "o" / "val.npz"), "--out",
+                            str(tmp_path / "npz"), "--flights", "1"]) == 2
+    assert "needs a real-flight data set directory" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""``immnet data generate|merge|export|plot|adsb``: make, convert and look at 3D-LAST data sets; real flights.
+"""``immnet data generate|merge|export|plot|adsb|subset``: make, convert and look at 3D-LAST data sets; real flights.
 
     immnet data generate --out data/train --n 100000 --seed 0 [--single-mode ct+] [--config configs/data/tiny.yaml] [--workers 2]
     immnet data generate --out data/train-1 --n 1000000 --seed 0 --shard 1/4      # shard 1 of 4 (one machine's part)
@@ -6,6 +6,7 @@
     immnet data export --data data/train --out train.npz
     immnet data plot --data data/train --out trajectories.png [--n 400] [--seed 0]
     immnet data adsb --samples collections/quickstart --out data/real/quickstart [--T 200] [--dt 1] [--seed 0]
+    immnet data subset --data data/real/quickstart/train --out data/real/train-half --flights 0.5 [--seed 0]
 """
 
 from __future__ import annotations
@@ -114,6 +115,23 @@ def _adsb(args) -> int:
     return 0
 
 
+def _subset(args) -> int:
+    from immnet.data.real import subset_flights
+
+    meta = subset_flights(args.data, args.out, args.flights, seed=args.seed, overwrite=args.overwrite)
+    s = meta["subset"]
+    print(f"wrote {args.out}: {s['flights']} of {s['of_flights']} flights, {s['windows']} of {s['of_windows']} "
+          f"windows (seed {s['seed']})")
+    return 0
+
+
+def _flights(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a count such as 40 or a fraction such as 0.25, got {text!r}") from None
+
+
 def register(subparsers) -> None:
     data = subparsers.add_parser("data", help="generate, merge, export and plot 3D-LAST data sets; real ADS-B flights",
                                  description=__doc__.splitlines()[0])
@@ -180,3 +198,13 @@ def register(subparsers) -> None:
     a.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     a.add_argument("--quiet", action="store_true", help="no progress lines")
     a.set_defaults(func=_adsb)
+
+    s = sub.add_parser("subset", help="the windows of some of a real-flight set's flights (a data-scaling curve)")
+    s.add_argument("--data", required=True, type=Path, help="a split of `immnet data adsb` (e.g. OUT/train)")
+    s.add_argument("--out", required=True, type=Path, help="output directory (must be absent or empty)")
+    s.add_argument("--flights", required=True, type=_flights, metavar="N|FRACTION",
+                   help="flights to keep: a count (40) or a fraction below 1 (0.25); with one seed a smaller subset "
+                        "is part of every larger one")
+    s.add_argument("--seed", type=int, default=0, help="seed of the flights' permutation (default 0)")
+    s.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
+    s.set_defaults(func=_subset)

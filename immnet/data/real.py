@@ -36,7 +36,7 @@ from immnet.data.scratch import publishing
 from immnet.data.smoother import rts_smooth
 
 SPLITS = ("train", "val", "test")
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: each split's meta.json names the flight of every window (window_flights)
 KNOT = 1852.0 / 3600.0
 
 
@@ -323,9 +323,69 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
                 keys.R: np.array([w[2] for w in wins]), keys.DT: np.full(len(wins), spec.dt),
                 keys.TIME: np.stack([w[3] for w in wins]),
             }
-            write_arrays(tmp / split, arrays, {**meta, "split": split})
+            write_arrays(tmp / split, arrays,
+                         {**meta, "split": split, "window_flights": [i for i in members[split] for _ in rows[i]]})
             if npz:
                 export_npz(tmp / split, tmp / f"{split}.npz")
             _log(progress, f"wrote {split}: {len(wins)} windows of {len(members[split])} flights")
     meta["seconds"] = round(time.perf_counter() - start, 2)
     return meta
+
+
+def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = False) -> dict:
+    """Write the windows of some of a real-flight set's flights as the data set ``out``; return its meta.
+
+    ``data``: one split of ``immnet data adsb`` (a directory whose ``meta.json`` names each window's flight,
+    format version 2). ``flights``: how many of its flights to keep, a count (a whole number >= 1) or a
+    fraction in (0, 1) of them (rounded, at least one). The flights are taken in a seeded permutation of
+    their ids, so that with one seed a smaller subset is part of every larger one (a data-scaling curve
+    adds flights, it does not swap them). Each kept window is the source's row, byte for byte, in the
+    source's order; ``meta.json`` is the source's with this split's ``flights`` and ``window_flights``
+    narrowed and ``subset`` added (``flights``, ``of_flights``, ``windows``, ``of_windows``, ``seed``).
+    """
+    from immnet.data.storage import REAL_FORMAT, _check_out, load_dataset, write_arrays
+
+    data, out = Path(data), Path(out)
+    if not data.is_dir():
+        raise ValueError(f"{data}: a subset of flights needs a real-flight data set directory (immnet data adsb's "
+                         f"OUT/train, OUT/val or OUT/test), not {'a file' if data.exists() else 'a missing path'}")
+    if out.resolve() == data.resolve():
+        raise ValueError(f"{out}: the subset would replace its own source; give another --out")
+    _check_out(out, overwrite)
+    td, meta = load_dataset(data)
+    if meta.get("format") != REAL_FORMAT:
+        raise ValueError(f"{data}: format {meta.get('format')!r} has no flights to choose; a subset of flights "
+                         f"needs a set written by `immnet data adsb`")
+    owners = meta.get("window_flights")
+    if not isinstance(owners, list) or len(owners) != td.batch_size[0]:
+        raise ValueError(f"{data}: meta.json does not name the flight of each window (format_version "
+                         f"{meta.get('format_version')}; 2 does): write the set again with `immnet data adsb`")
+    ids = sorted(set(owners))
+    k = _flight_count(flights, len(ids), data)
+    chosen = {ids[i] for i in np.random.default_rng([int(seed), 2]).permutation(len(ids))[:k]}
+    rows = np.array([i for i, f in enumerate(owners) if f in chosen])
+    arrays = {key: td[key].numpy()[rows] for key in td.keys()}
+    split = meta.get("split")
+    kept = {k_: v for k_, v in meta.items() if k_ not in ("n", "T", "counts_per_mode", "dtype")}
+    kept["flights"] = {**meta.get("flights", {}), split: sorted(chosen)}
+    kept["window_flights"] = [owners[i] for i in rows]
+    kept["subset"] = {"flights": k, "of_flights": len(ids), "windows": len(rows), "of_windows": len(owners),
+                      "seed": int(seed)}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with publishing(out) as tmp:
+        write_arrays(tmp, arrays, kept)
+    return load_dataset(out)[1]
+
+
+def _flight_count(flights: float, n: int, data) -> int:
+    """``flights`` (a count, or a fraction in (0, 1)) of ``n`` flights, checked."""
+    f = float(flights)
+    if not np.isfinite(f) or f <= 0:
+        raise ValueError(f"--flights must be a count >= 1 or a fraction in (0, 1), got {flights!r}")
+    if f < 1:
+        return max(1, int(round(f * n)))
+    if f != int(f):
+        raise ValueError(f"--flights {flights!r}: a count must be a whole number (a fraction is below 1)")
+    if int(f) > n:
+        raise ValueError(f"{data}: --flights {int(f)} but the set has {n} flights")
+    return int(f)
