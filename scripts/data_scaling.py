@@ -78,7 +78,7 @@ def train(r: dict, recipe_path: Path, recipe: dict, data: Path) -> None:
     subprocess.run(cmd, check=True)
 
 
-def figure(rows: list[dict], sets: list[str], path: Path) -> None:
+def figure(rows: list[dict], sets: list[str], path: Path, what: str = "quickstart-1s") -> None:
     """Each network's ratio to the best filter against its training flights, one panel line per set."""
     import matplotlib
 
@@ -98,7 +98,7 @@ def figure(rows: list[dict], sets: list[str], path: Path) -> None:
     ax.set_xscale("log", base=2)
     ax.set_xticks(sorted({r["flights"] for r in rows}), [str(v) for v in sorted({r["flights"] for r in rows})])
     ax.minorticks_off()
-    ax.set_xlabel("training flights (quickstart, 1 s)")
+    ax.set_xlabel(f"training flights ({what})")
     ax.set_ylabel("RMSE / best model-based filter")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
@@ -129,6 +129,9 @@ def main(argv=None) -> int:
         if not args.skip_training:
             train(r, args.recipe, recipe, args.data)
         meta = load_dataset(r["train"])[1]
+        if "window_flights" not in meta:
+            raise SystemExit(f"{r['train']}: meta.json does not name the flight of each window (format_version "
+                             f"{meta.get('format_version')}): write the set again with `immnet data adsb`")
         r["flights"], r["windows"] = len(set(meta["window_flights"])), meta["n"]
     guard = parse_guard("none")
     sets = {"validation": args.data / "val", "test": args.data / "test"}
@@ -163,7 +166,7 @@ def main(argv=None) -> int:
         out = {"best_baseline": best, "runs": [{k: r[k] for k in keep} for r in rows]}
         args.json.write_text(json.dumps(out, indent=2, allow_nan=False) + "\n")
     if args.figure:
-        figure(rows, list(sets), args.figure)
+        figure(rows, list(sets), args.figure, args.data.name)
     return 0
 
 

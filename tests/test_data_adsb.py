@@ -332,3 +332,9 @@ def test_window_flights_and_subsets_of_flights(tmp_path, monkeypatch, capsys):
     assert immnet.cli.main(["data", "subset", "--data", str(tmp_path / "o" / "val.npz"), "--out",
                             str(tmp_path / "npz"), "--flights", "1"]) == 2
     assert "needs a real-flight data set directory" in capsys.readouterr().err
+    from immnet.data.spec import DataSpec
+    from immnet.data.storage import write_dataset
+
+    last = write_dataset(tmp_path / "3dlast", 4, 0, DataSpec(T=120), progress=False)
+    with pytest.raises(ValueError, match="format '3d-last' has no flights to choose"):
+        real.subset_flights(last, tmp_path / "bad", 0.5)
