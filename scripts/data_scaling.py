@@ -26,7 +26,7 @@ from pathlib import Path
 
 import yaml
 
-from immnet.data.real import subset_flights
+from immnet.data.real import subset_flights, window_flights
 from immnet.data.storage import load_dataset
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.runner import evaluate, to_json
@@ -96,7 +96,8 @@ def figure(rows: list[dict], sets: list[str], path: Path, what: str = "quickstar
     ax.axhline(1.0, color="0.4", lw=0.8, ls="--")
     ax.axhline(0.9, color="C3", lw=0.8, ls=":", label="target 0.90x")
     ax.set_xscale("log", base=2)
-    ax.set_xticks(sorted({r["flights"] for r in rows}), [str(v) for v in sorted({r["flights"] for r in rows})])
+    ticks = sorted({r["flights"] for r in rows})
+    ax.set_xticks(ticks, [str(v) for v in ticks])
     ax.minorticks_off()
     ax.set_xlabel(f"training flights ({what})")
     ax.set_ylabel("RMSE / best model-based filter")
@@ -129,10 +130,10 @@ def main(argv=None) -> int:
         if not args.skip_training:
             train(r, args.recipe, recipe, args.data)
         meta = load_dataset(r["train"])[1]
-        if "window_flights" not in meta:
-            raise SystemExit(f"{r['train']}: meta.json does not name the flight of each window (format_version "
-                             f"{meta.get('format_version')}): write the set again with `immnet data adsb`")
-        r["flights"], r["windows"] = len(set(meta["window_flights"])), meta["n"]
+        try:
+            r["flights"], r["windows"] = len(set(window_flights(meta, meta["n"], r["train"]))), meta["n"]
+        except ValueError as err:
+            raise SystemExit(str(err)) from None
     guard = parse_guard("none")
     sets = {"validation": args.data / "val", "test": args.data / "test"}
     if args.heldout:

@@ -356,10 +356,7 @@ def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = F
     if meta.get("format") != REAL_FORMAT:
         raise ValueError(f"{data}: format {meta.get('format')!r} has no flights to choose; a subset of flights "
                          f"needs a set written by `immnet data adsb`")
-    owners = meta.get("window_flights")
-    if not isinstance(owners, list) or len(owners) != td.batch_size[0]:
-        raise ValueError(f"{data}: meta.json does not name the flight of each window (format_version "
-                         f"{meta.get('format_version')}; 2 does): write the set again with `immnet data adsb`")
+    owners = window_flights(meta, td.batch_size[0], data)
     ids = sorted(set(owners))
     k = _flight_count(flights, len(ids), data)
     chosen = {ids[i] for i in np.random.default_rng([int(seed), 2]).permutation(len(ids))[:k]}
@@ -375,6 +372,16 @@ def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = F
     with publishing(out) as tmp:
         write_arrays(tmp, arrays, kept)
     return load_dataset(out)[1]
+
+
+def window_flights(meta: dict, n: int, where) -> list[str]:
+    """The flight of each of a real-flight set's ``n`` windows, from its ``meta.json`` (format version 2); a
+    ValueError naming ``where`` if the file does not say them."""
+    owners = meta.get("window_flights")
+    if not isinstance(owners, list) or len(owners) != n:
+        raise ValueError(f"{where}: meta.json does not name the flight of each window (format_version "
+                         f"{meta.get('format_version')}; 2 does): write the set again with `immnet data adsb`")
+    return owners
 
 
 def _flight_count(flights: float, n: int, data) -> int:
