@@ -13,6 +13,7 @@ from immnet.motion import (
     ConstantVelocity,
     CoordinatedTurn,
     ModelSet,
+    Singer,
     ct_matrix,
     ct_propagate,
     noise_gain,
@@ -157,3 +158,78 @@ def test_adaptive_turn_follows_the_state_within_its_bounds(w_deg):
     assert own.mode == (2 if w_deg > 0 else 3) and own.state_dependent
     with pytest.raises(ValueError, match="min_deg"):
         AdaptiveTurn(5.0, min_deg=6.0)
+
+
+def _singer_closed_form(tau, dt):
+    """Singer's F block and Q / q in closed form (Singer, IEEE TAES 1970; Bar-Shalom, Li & Kirubarajan 8.2.3
+    with q = 2 sigma_m^2 / tau), float64: an independent computation of what the matrix exponentials give."""
+    b = 1.0 / tau
+    e, e2 = math.exp(-b * dt), math.exp(-2 * b * dt)
+    F = [[1, dt, (b * dt - 1 + e) / b**2], [0, 1, (1 - e) / b], [0, 0, e]]
+    q11 = (1 - e2 + 2 * b * dt + 2 * b**3 * dt**3 / 3 - 2 * b**2 * dt**2 - 4 * b * dt * e) / (2 * b**5)
+    q12 = (e2 + 1 - 2 * e + 2 * b * dt * e - 2 * b * dt + b**2 * dt**2) / (2 * b**4)
+    q13 = (1 - e2 - 2 * b * dt * e) / (2 * b**3)
+    q22 = (4 * e - 3 - e2 + 2 * b * dt) / (2 * b**3)
+    q23 = (e2 + 1 - 2 * e) / (2 * b**2)
+    q33 = (1 - e2) / (2 * b)
+    Q = [[q11, q12, q13], [q12, q22, q23], [q13, q23, q33]]
+    return torch.tensor(F, dtype=torch.float64), torch.tensor(Q, dtype=torch.float64)
+
+
+def _singer_noise_quadrature(tau, dt, n=20000):
+    """``Q / q = int_0^dt exp(A s) L L^T exp(A^T s) ds`` by Simpson's rule on the closed-form ``exp(A s)``."""
+    s = torch.linspace(0, dt, n + 1, dtype=torch.float64)
+    b = 1.0 / tau
+    g = torch.stack([(b * s - 1 + torch.exp(-b * s)) / b**2, (1 - torch.exp(-b * s)) / b, torch.exp(-b * s)], -1)
+    f = g[:, :, None] * g[:, None, :]  # exp(A s) L = the last column
+    w = torch.ones(n + 1, dtype=torch.float64)
+    w[1:-1:2], w[2:-1:2] = 4.0, 2.0
+    return (w[:, None, None] * f).sum(0) * dt / (3 * n)
+
+
+@pytest.mark.parametrize("tau,dt", [(5.0, 1.0), (20.0, 5.2), (2.0, 0.5), (2.0, 5.5), (0.5, 12.0)])
+def test_singer_matches_its_closed_form(tau, dt):
+    F, Q = _singer_closed_form(tau, dt)
+    torch.testing.assert_close(Q, _singer_noise_quadrature(tau, dt), rtol=1e-8, atol=1e-12)
+    model = Singer(tau=tau, vertical=0.5)
+    for a, scale in ((0, 1.0), (1, 1.0), (2, 0.25)):  # the z axis's q scaled by vertical^2
+        block = slice(3 * a, 3 * a + 3)
+        torch.testing.assert_close(model.F(dt)[block, block], F, rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(model.Q(0.7, dt)[block, block], 0.49 * scale * Q, rtol=1e-9, atol=1e-14)
+    assert model.F(dt)[0, 3] == 0 and model.Q(0.7, dt)[2, 5] == 0  # the axes apart, as CV and CA
+
+
+def test_singer_tends_to_the_ca_model_and_takes_one_interval_per_track():
+    # tau -> inf: the acceleration no longer reverts; F and Q are the CA model's with continuous white jerk
+    ca = ConstantAcceleration(noise="continuous")
+    torch.testing.assert_close(Singer(tau=1e9).F(3.0), ca.F(3.0), rtol=0, atol=1e-8)
+    torch.testing.assert_close(Singer(tau=1e9).Q(0.5, 3.0), ca.Q(0.5, 3.0), rtol=1e-6, atol=1e-12)
+    # no cancellation where dt << tau (the closed form loses every digit of q11 there)
+    tiny = Singer(tau=1e4).Q(1.0, 1e-3)[0, 0].item()
+    assert tiny == pytest.approx(1e-15 / 20, rel=1e-6)
+    # a batch of intervals is a batch of the single-interval matrices
+    dts = torch.tensor([[1.0, 4.6], [5.5, 0.25]], dtype=torch.float64)
+    model = Singer(tau=8.0)
+    F, Q = model.F(dts), model.Q(0.3, dts)
+    assert F.shape == Q.shape == (2, 2, 9, 9)
+    for i in range(2):
+        for j in range(2):
+            torch.testing.assert_close(F[i, j], model.F(dts[i, j].item()), rtol=1e-12, atol=1e-14)
+            torch.testing.assert_close(Q[i, j], model.Q(0.3, dts[i, j].item()), rtol=1e-12, atol=1e-16)
+    # the stationary variance of the acceleration is q tau / 2 (the Gauss-Markov process's)
+    assert model.Q(1.0, 1e4)[2, 2].item() == pytest.approx(8.0 / 2, rel=1e-9)
+    # either side of dt = tau (Van Loan below, the closed form above) the same continuous function
+    torch.testing.assert_close(model.Q(1.0, 8.0 - 1e-9), model.Q(1.0, 8.0 + 1e-9), rtol=1e-7, atol=0)
+
+
+def test_singer_config_round_trip_and_refusals():
+    models = ModelSet.from_config([{"class_path": "immnet.motion.Singer", "init_args": {"tau": 15, "vertical": 0.3}},
+                                   {"class_path": "immnet.motion.ConstantVelocity"}])
+    assert models.names == ["singer15", "cv"] and models[0] == Singer(15.0, 0.3)
+    assert ModelSet.from_config(models.to_config()).names == models.names
+    assert models.modes.tolist() == [1, 0]  # stands for CA, the data mode of a maneuver along a line
+    for tau in (0, -1, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="correlation time tau"):
+            Singer(tau=tau)
+    with pytest.raises(ValueError, match="continuous"):
+        process_noise(1.0, 1.0, "wiener", order=2, tau=5.0)

@@ -2,7 +2,7 @@
 the mode each stands for."""
 
 from immnet.motion.base import ModelSet, MotionModel, instantiate
-from immnet.motion.kinds import AdaptiveTurn, ConstantAcceleration, ConstantVelocity, CoordinatedTurn
+from immnet.motion.kinds import AdaptiveTurn, ConstantAcceleration, ConstantVelocity, CoordinatedTurn, Singer
 from immnet.motion.models import (
     ACC,
     AXES,
@@ -39,6 +39,9 @@ from immnet.motion.models import (
     n_groups,
     noise_gain,
     process_noise,
+    singer_block,
+    singer_matrix,
+    singer_noise,
     turn_rate_of,
 )
 
@@ -47,5 +50,5 @@ __all__ = [
     "TURN_ENTRIES", "TURN_RATE_LIMIT_DEG", "VEL", "ct_jacobian", "ct_jacobian_entries", "ct_rate_derivative",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
     "adaptive_ct_propagate", "ca_matrix", "coupling", "ct_matrix", "ct_propagate", "cv_matrix", "fits_groups",
-    "group_members", "groups_separate", "instantiate", "measured_groups", "measurement_matrix", "mode_groups", "n_groups", "noise_gain", "process_noise", "turn_rate_of",
+    "group_members", "groups_separate", "instantiate", "measured_groups", "measurement_matrix", "mode_groups", "n_groups", "noise_gain", "process_noise", "Singer", "singer_block", "singer_matrix", "singer_noise", "turn_rate_of",
 ]

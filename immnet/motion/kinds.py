@@ -1,4 +1,4 @@
-"""The motion-model family: constant velocity, constant acceleration, coordinated turn.
+"""The motion-model family: constant velocity, constant acceleration, Singer, coordinated turn.
 
 Each takes ``noise`` (``white``, ``wiener`` or ``continuous``: ``immnet.motion.models``) and ``vertical``, the
 z axis's share of ``sigma_q`` (1: isotropic, as 3D-LAST's generator; real aircraft climb and descend more
@@ -64,6 +64,37 @@ class ConstantAcceleration(MotionModel):
 
     def F(self, dt=1.0, dtype=torch.float64, device=None):
         return m.ca_matrix(dt, dtype=dtype, device=device)
+
+
+class Singer(MotionModel):
+    """Singer's model (IEEE TAES 1970): the acceleration a first-order Gauss-Markov process, ``a' = -a / tau + w``,
+    ``w`` continuous white noise of spectral density ``sigma_q^2`` (the CA model's white jerk, with the acceleration
+    pulled back to zero over ``tau`` seconds). ``F`` and ``Q`` exact for any interval (``immnet.motion.models.
+    singer_block``, ``singer_noise``); ``tau -> inf`` is the CA model with ``noise: continuous``. An aircraft's
+    accelerations are transient (a speed change, a turn's entry, a level-off): a maneuver model whose acceleration
+    decays does not carry one past its end. Stands for the data mode CA."""
+
+    mode = 1
+    order = 2
+    noise = "continuous"
+
+    def __init__(self, tau: float = 20.0, vertical: float = 1.0):
+        self.tau = m._check_tau(tau)
+        self.vertical = _vertical(vertical)
+
+    @property
+    def name(self) -> str:
+        return f"singer{self.tau:g}"
+
+    def init_args(self) -> dict:
+        return {"tau": self.tau, **({"vertical": self.vertical} if self.vertical != 1.0 else {})}
+
+    def F(self, dt=1.0, dtype=torch.float64, device=None):
+        return m.singer_matrix(self.tau, dt, dtype=dtype, device=device)
+
+    def Q(self, sigma_q: float, dt: float = 1.0, dtype=torch.float64, device=None) -> torch.Tensor:
+        return m.process_noise(sigma_q, dt, self.noise, dtype=dtype, device=device, order=self.order,
+                               vertical=self.vertical, tau=self.tau)
 
 
 class CoordinatedTurn(MotionModel):

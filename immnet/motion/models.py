@@ -4,6 +4,7 @@ State ``x = [lx, vx, ax, ly, vy, ay, lz, vz, az]``; every function is batched in
 
 * CV, per axis ``[[1, dt, 0], [0, 1, 0], [0, 0, 0]]`` (acceleration is zero);
 * CA, per axis ``[[1, dt, dt^2/2], [0, 1, dt], [0, 0, 1]]``;
+* Singer (acceleration reverting to zero with time constant ``tau``), per axis ``exp(A dt)`` (``singer_block``);
 * CT(w), coordinated turn in the horizontal plane::
 
       lx' = lx + sin(w dt)/w vx - (1 - cos(w dt))/w vy     vx' = cos(w dt) vx - sin(w dt) vy
@@ -273,9 +274,85 @@ def noise_gain(dt, kind: str = _WHITE, dtype=torch.float64, device=None) -> torc
     return G
 
 
-def continuous_noise(dt, order: int, dtype=torch.float64, device=None) -> torch.Tensor:
+def _singer_system(tau: float, dtype, device) -> torch.Tensor:
+    """The per-axis system matrix ``A`` of the Singer model, ``d/dt [l, v, a] = A [l, v, a] + [0, 0, 1] w``:
+    ``l' = v, v' = a, a' = -a / tau + w``."""
+    A = torch.zeros(3, 3, dtype=dtype, device=device)
+    A[0, 1] = A[1, 2] = 1.0
+    A[2, 2] = -1.0 / tau
+    return A
+
+
+def _check_tau(tau) -> float:
+    tau = float(tau)
+    if not (tau > 0 and math.isfinite(tau)):
+        raise ValueError(f"the Singer model's correlation time tau must be finite and > 0 (s), got {tau}")
+    return tau
+
+
+def singer_block(tau: float, dt, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Per-axis Singer transition ``exp(A dt)`` ``[..., 3, 3]``, ``b = 1 / tau``, ``e = exp(-b dt)``::
+
+        [[1, dt, (b dt - 1 + e) / b^2], [0, 1, (1 - e) / b], [0, 0, e]]
+
+    computed as the matrix exponential in float64 (no cancellation for ``dt << tau``), then cast to ``dtype``."""
+    d = _dt(dt, torch.float64, device)
+    A = _singer_system(_check_tau(tau), torch.float64, device)
+    return torch.linalg.matrix_exp(d[..., None, None] * A).to(dtype)
+
+
+def singer_matrix(tau: float, dt, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Singer transition ``F(dt)``, ``[9, 9]`` (``[..., 9, 9]`` for a tensor ``dt [...]``): ``singer_block`` per axis."""
+    return _per_axis(singer_block(tau, dt, dtype=dtype, device=device))
+
+
+def _singer_noise_closed_form(b: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Singer's ``Q / q`` in closed form (Singer 1970; Bar-Shalom, Li & Kirubarajan 8.2.3), ``b = 1 / tau``; used
+    where ``b dt >= 1``, where its terms no longer cancel."""
+    x = b * d
+    e, e2 = torch.exp(-x), torch.exp(-2 * x)
+    q11 = (1 - e2 + 2 * x + 2 * x**3 / 3 - 2 * x**2 - 4 * x * e) / (2 * b**5)
+    q12 = (e2 + 1 - 2 * e + 2 * x * e - 2 * x + x**2) / (2 * b**4)
+    q13 = (1 - e2 - 2 * x * e) / (2 * b**3)
+    q22 = (4 * e - 3 - e2 + 2 * x) / (2 * b**3)
+    q23 = (1 - e) ** 2 / (2 * b**2)
+    q33 = (1 - e2) / (2 * b)
+    return _block([[q11, q12, q13], [q12, q22, q23], [q13, q23, q33]], d)
+
+
+def singer_noise(tau: float, dt, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Per-axis ``Q / q`` ``[..., 3, 3]`` of the Singer model: continuous white noise of spectral density ``q`` on
+    the acceleration's rate, the acceleration reverting to zero with time constant ``tau``, integrated exactly over
+    ``dt``, in float64: for ``dt <= tau`` by Van Loan's method (``exp([[-A, L L^T], [0, A^T]] dt) = [[., G], [0,
+    F^T]]``, ``Q = F G``; IEEE TAC 1978), where the closed form's terms cancel (its ``q11`` is a difference of O(1)
+    terms of size ``(dt / tau)^5``); beyond, by the closed form (``exp(dt / tau)`` in Van Loan's blocks would cost
+    digits). ``tau -> inf`` is the CA model's white jerk; the acceleration's stationary variance is ``q tau / 2``
+    (Singer, IEEE TAES 1970, with ``q = 2 sigma_m^2 / tau``)."""
+    tau = _check_tau(tau)
+    d = _dt(dt, torch.float64, device)
+    near = d <= tau
+    A = _singer_system(tau, torch.float64, device)
+    C = torch.zeros(6, 6, dtype=torch.float64, device=device)
+    C[:3, :3] = -A
+    C[2, 5] = 1.0  # L L^T, L = [0, 0, 1]: the noise drives the acceleration
+    C[3:, 3:] = A.T
+    E = torch.linalg.matrix_exp(torch.where(near, d, 0.0)[..., None, None] * C)
+    F = E[..., 3:, 3:].transpose(-1, -2)
+    Q = F @ E[..., :3, 3:]
+    Q = 0.5 * (Q + Q.transpose(-1, -2))
+    far = _singer_noise_closed_form(torch.tensor(1.0 / tau, dtype=torch.float64, device=device),
+                                    torch.where(near, tau, d))
+    return torch.where(near[..., None, None], Q, far).to(dtype)
+
+
+def continuous_noise(dt, order: int, dtype=torch.float64, device=None, tau: float | None = None) -> torch.Tensor:
     """Per-axis ``Q / q`` ``[..., 3, 3]`` of continuous white noise on derivative ``order`` (1: acceleration,
-    the CV model's; 2: jerk, the CA model's), integrated exactly over ``dt`` (a float or a tensor ``[...]``)."""
+    the CV model's; 2: jerk, the CA model's), integrated exactly over ``dt`` (a float or a tensor ``[...]``);
+    with ``tau`` (order 2 only), the Singer model's (``singer_noise``)."""
+    if tau is not None:
+        if order != 2:
+            raise ValueError(f"a correlation time tau is the Singer model's, on the acceleration (order 2), got order {order}")
+        return singer_noise(tau, dt, dtype=dtype, device=device)
     d = _dt(dt, dtype, device)
     if order == 1:
         rows = [[d**3 / 3, d**2 / 2, 0.0], [d**2 / 2, d, 0.0], [0.0, 0.0, 0.0]]
@@ -287,12 +364,15 @@ def continuous_noise(dt, order: int, dtype=torch.float64, device=None) -> torch.
 
 
 def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=None, order: int = 1,
-                  vertical: float = 1.0) -> torch.Tensor:
-    """``Q = sigma_q^2 G G^T`` (white, wiener) or ``sigma_q^2 Q_c(dt)`` (continuous, on derivative ``order``); a
-    batch of ``sigma_q`` or of intervals ``dt`` ``[...]`` gives ``[..., 9, 9]``. ``vertical`` scales the z axis's
-    ``sigma_q`` (aircraft climb and descend more gently than they turn and speed up)."""
+                  vertical: float = 1.0, tau: float | None = None) -> torch.Tensor:
+    """``Q = sigma_q^2 G G^T`` (white, wiener) or ``sigma_q^2 Q_c(dt)`` (continuous, on derivative ``order``; with
+    ``tau``, the Singer model's); a batch of ``sigma_q`` or of intervals ``dt`` ``[...]`` gives ``[..., 9, 9]``.
+    ``vertical`` scales the z axis's ``sigma_q`` (aircraft climb and descend more gently than they turn and speed
+    up)."""
     if kind not in NOISE_KINDS:
         raise ValueError(f"noise kind must be one of {', '.join(NOISE_KINDS)}, got {kind!r}")
+    if tau is not None and kind != _CONTINUOUS:
+        raise ValueError(f"the Singer model's noise is continuous, got noise kind {kind!r}")
     # a python number checked as one: no tensor to read back (torch.compile traces a step that builds Q)
     negative = sigma_q < 0 if isinstance(sigma_q, (int, float)) else bool((torch.as_tensor(sigma_q) < 0).any())
     if negative:
@@ -301,7 +381,7 @@ def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=N
     if not (math.isfinite(vertical) and vertical >= 0):
         raise ValueError(f"vertical must be finite and >= 0, got {vertical}")
     if kind == _CONTINUOUS:
-        Q = _per_axis(continuous_noise(dt, order, dtype=dtype, device=device))
+        Q = _per_axis(continuous_noise(dt, order, dtype=dtype, device=device, tau=tau))
     else:
         G = noise_gain(dt, kind, dtype=dtype, device=device)
         Q = G @ G.transpose(-1, -2)
