@@ -424,7 +424,7 @@ def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_
 IMM_EKF = ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive", "imm-ekf-guard-sticky-adaptive",
            "imm-ekf-general", "imm-ekf-general-4sets"]
 LINEAR = ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-imm-5s", "real-ca", "real-ca-5s"]
-PER_AXIS = ["real-imm-axis", "real-imm-axis-5s"]
+PER_AXIS = ["real-imm-axis", "real-imm-axis-5s", "real-imm-singer", "real-imm-singer-5s"]
 ORACLES = ["clairvoyant", "clairvoyant-switch"]  # tests/test_filters_clairvoyant.py
 PER_CHANNEL = ["real-imm-channel", "real-imm-channel-5s"]  # track runs network(); tests/test_filters_per_axis.py
 
@@ -580,7 +580,7 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis(method):
         scale = ref[keys.STATE].nan_to_num().abs().amax((1, 2), keepdim=True)
         assert torch.equal(torch.isnan(ref[keys.STATE][..., 0]), ~seen)  # nothing before the first detection
         assert ((out[keys.STATE] - ref[keys.STATE]).abs() <= 1e-9 * scale)[seen].all()
-        assert out[keys.ROLLOUT_EXPERT_PROBS].shape == ref[keys.EXPERT_PROBS].shape == (12, 150, 3, 2)
+        assert out[keys.ROLLOUT_EXPERT_PROBS].shape == ref[keys.EXPERT_PROBS].shape == (12, 150, 3, len(tracker.model_set))
         torch.testing.assert_close(out[keys.ROLLOUT_EXPERT_PROBS][seen], ref[keys.EXPERT_PROBS][seen], rtol=0, atol=1e-6)
         cov = out[keys.STATE_COV]
         torch.testing.assert_close(cov[seen], ref[keys.STATE_COV][seen], rtol=1e-6, atol=1e-9)

@@ -16,7 +16,7 @@ from immnet import keys
 from immnet.data.times import scan_intervals
 from immnet.filters import KalmanFilterTracker, initial_state
 from immnet.filters.per_axis import PerAxisIMMTracker, axis_blocks
-from immnet.motion import ConstantAcceleration, ConstantVelocity, CoordinatedTurn, ModelSet, measurement_matrix
+from immnet.motion import ConstantAcceleration, ConstantVelocity, CoordinatedTurn, ModelSet, Singer, measurement_matrix
 
 
 @pytest.mark.parametrize("order,model", [(2, ConstantVelocity), (3, ConstantAcceleration)], ids=["cv", "ca"])
@@ -107,15 +107,20 @@ def _filterpy_per_group(ms: ModelSet, sigma_q, p_stay, batch: TensorDict, b: int
     return out, mu
 
 
+@pytest.mark.parametrize("singer", [False, True], ids=["cv-ca", "cv-ca-singer"])
 @pytest.mark.parametrize("scans", list(SCANS), ids=list(SCANS))
-def test_per_axis_imm_equals_filterpy_per_axis(scans):
-    """The decoupled IMM (CV white acceleration + CA white jerk, a vertical share, told r) at irregular scans
-    with missed detections and a gap equals three FilterPy IMMs, one per axis (1e-9)."""
+def test_per_axis_imm_equals_filterpy_per_axis(scans, singer):
+    """The decoupled IMM (CV white acceleration + CA white jerk, a vertical share, told r; and with a third,
+    Singer filter, as ``real-imm-singer``) at irregular scans with missed detections and a gap equals three
+    FilterPy IMMs, one per axis (1e-9)."""
     data = _irregular(*SCANS[scans], seed=4, B=2, T=120)
-    ms = ModelSet([ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous", vertical=0.3)])
+    models = [ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous", vertical=0.3)]
     sigma_q, p_stay = [0.2, 1.1], 0.97
+    if singer:
+        models, sigma_q = models + [Singer(tau=2.0, vertical=0.7)], sigma_q + [0.6]
+    ms = ModelSet(models)
     out = PerAxisIMMTracker(ms, "data", sigma_q, p_stay).track(data)
-    assert out[keys.EXPERT_PROBS].shape == (2, 120, 3, 2)
+    assert out[keys.EXPERT_PROBS].shape == (2, 120, 3, len(ms))
     for b in range(2):
         ref, mu = _filterpy_per_group(ms, sigma_q, p_stay, data, b, PER_AXIS)
         keep = ~_waiting(data[keys.MEASUREMENTS][b].numpy())

@@ -43,7 +43,7 @@ def _same_from_start(late_state: torch.Tensor, cut_state: torch.Tensor):
 
 
 @pytest.mark.parametrize("jitter", [0.0, 0.5])
-@pytest.mark.parametrize("method", ["imm-tuned", "real-imm", "real-imm-axis", "real-imm-channel", "real-ca", "imm-ekf",
+@pytest.mark.parametrize("method", ["imm-tuned", "real-imm", "real-imm-axis", "real-imm-singer", "real-imm-channel", "real-ca", "imm-ekf",
                                     "clairvoyant", "clairvoyant-switch"])
 def test_a_method_starts_a_late_track_at_its_first_detection(method, jitter):
     """Issue 21 (one core, one start): each method's estimates of a track whose first scans are missed are those of
