@@ -75,8 +75,8 @@ table "$DATA/test-1s" 3dlast-1s "$LAST,immnet,immnet-general"  # immnet: the 3D-
 for set in 5s 4.5-5.5s 0.5-12s; do
   table "$DATA/test-$set" "3dlast-$set" "$LAST,immnet-general"
 done
-REAL1=measurements,imm-ekf,imm-ekf-general,real-ca,real-imm,real-imm-axis,real-imm-channel
-REAL5=measurements,imm-ekf,imm-ekf-general,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s
+REAL1=measurements,imm-ekf,imm-ekf-general,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
+REAL5=measurements,imm-ekf,imm-ekf-general,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s
 sets=(quickstart)
 [ -z "${IMMNET_SKIP_HELDOUT:-}" ] && sets+=(heldout)
 for s in "${sets[@]}"; do

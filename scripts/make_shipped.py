@@ -20,8 +20,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "immnet/pretrained"
 REAL = "runs/real/data"
-REAL1 = ["measurements", "imm-ekf", "real-ca", "real-imm", "real-imm-axis", "real-imm-channel"]
-REAL5 = ["measurements", "imm-ekf", "real-ca-5s", "real-imm-5s", "real-imm-axis-5s", "real-imm-channel-5s"]
+REAL1 = ["measurements", "imm-ekf", "real-ca", "real-imm", "real-imm-axis", "real-imm-channel", "real-imm-singer"]
+REAL5 = ["measurements", "imm-ekf", "real-ca-5s", "real-imm-5s", "real-imm-axis-5s", "real-imm-channel-5s", "real-imm-singer-5s"]
 LAST = ["measurements", "imm-tuned", "imm-ekf", "imm-ekf-guard-sticky", "clairvoyant"]
 QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --seed 0), split by flight; no test flight "
               "trained or tuned on")

@@ -36,7 +36,7 @@ adsb heldout-5s all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}"
 
 if [ -n "${IMMNET_RETUNE:-}" ]; then
   say "2/5 tuning the model-based filters on the training flights (1 s)"
-  for m in real-ca real-imm-axis real-imm real-imm-channel; do
+  for m in real-ca real-imm-axis real-imm real-imm-channel real-imm-singer; do
     "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-1s/train" --out "configs/methods/$m.yaml" --quiet
     "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-5s/train" --out "configs/methods/$m-5s.yaml" --quiet
   done
@@ -54,7 +54,7 @@ else
 fi
 
 say "4/5 evaluation: one table per data set, every method in one run"
-BASE=measurements,imm-tuned,imm-ekf,real-ca,real-imm,real-imm-axis,real-imm-channel
+BASE=measurements,imm-tuned,imm-ekf,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
 for set in quickstart-1s/test heldout-1s/test; do
   out=$RUN/results-${set%%/*}
   "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,immnet,immnet-real" \
@@ -62,7 +62,7 @@ for set in quickstart-1s/test heldout-1s/test; do
 done
 for set in quickstart-5s/test heldout-5s/test; do  # IMMNet's networks are trained at 1 s: they refuse 5 s scans
   out=$RUN/results-${set%%/*}
-  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s" \
+  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s" \
     --json "$out.json" --markdown "$out.md" --quiet
 done
 
