@@ -29,11 +29,13 @@ import torch
 CHECKSUM_KEY = "weights_sha256"
 PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
 """The shipped 3D-LAST weights (``immnet/pretrained/PROVENANCE.md``), the benchmark model; the others beside them."""
-SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "immnet-real.ckpt"}
+SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "immnet-real.ckpt",
+           "real-5s": "immnet-real-5s.ckpt"}
 """The shipped networks by name (docs/checkpoints.md "Shipped weights"): ``general`` (any interval 0.5-12 s, 3D-LAST
 and real flights, no range guard) is what ``Tracker.pretrained()`` and ``immnet track`` load unless told;
 ``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, modes per axis
-on the decoupled IMM, trained on real flights)."""
+on the decoupled IMM, trained on real flights); ``real-5s`` the real-flight network for a surveillance radar's
+4.5-5.5 s scans (modes per axis on the three-filter decoupled IMM)."""
 DEFAULT_WEIGHTS = "general"
 
 

@@ -1,7 +1,8 @@
 """Ship a fine-tuned IMMNet: export its run's best checkpoint into immnet/pretrained/immnet-NAME.ckpt, score it on
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (recipes/
-real.yaml, 1 s) or `general` (recipes/general.yaml, 0.5-12 s, the default weights).
+real.yaml, 1 s), `real-5s` (recipes/real-singer-5s.yaml, 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s, the
+default weights).
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
@@ -38,6 +39,21 @@ SHIPS = {
         "scan_interval": 1.0,
         "guard": "none",
         "tests": {"quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real"])},
+    },
+    "real-5s": {
+        "ckpt": "runs/real/singer-5s/checkpoints/best.ckpt",
+        "recipe": "recipes/real-singer-5s.yaml",
+        "init": ("its untrained start (KalmanNet's outputs near zero, the Transformer's correction zero: the three-filter "
+                 "decoupled IMM real-imm-singer-5s with r estimated)"),
+        "what": ("IMMNet with modes per axis on the three-filter decoupled IMM tuned on real flights at 4.5-5.5 s "
+                 "(real-imm-singer-5s's CV, CA and Singer filters), each track's r estimated, trained on real flights at "
+                 "those scans (a fresh view of its flights each batch), without a range guard"),
+        "data": {"train": f"{REAL}/quickstart-5s/train: {QUICKSTART}, U[4.5, 5.5] s scans, r ~ U[5, 35] m",
+                 "val": f"{REAL}/quickstart-5s/val"},
+        "interval_range": [4.5, 5.5],
+        "guard": "none",
+        "tests": {"quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general",
+                                                                          "immnet-real-5s"])},
     },
     "general": {
         "ckpt": "runs/general/fit/checkpoints/best.ckpt",

@@ -35,7 +35,8 @@ def register(subparsers) -> None:
     p.add_argument("--weights", default=None, choices=sorted(SHIPPED),
                    help=f"shipped weights by name (default {DEFAULT_WEIGHTS}: any scan interval 0.5-12 s, real flights and "
                         "3D-LAST, no range guard; 3dlast: the 3D-LAST benchmark network, 1 s, its range guard; real: 1 s "
-                        "real flights; immnet/pretrained/PROVENANCE-*.md)")
+                        "real flights; real-5s: real flights at a surveillance radar's 4.5-5.5 s scans; "
+                        "immnet/pretrained/PROVENANCE-*.md)")
     p.add_argument("--checkpoint", default=None, help="a Lightning checkpoint or exported weights of your own instead")
     p.add_argument("--method", default=None,
                    help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "

@@ -142,7 +142,8 @@ class Tracker:
         """Weights shipped inside the package by name (``immnet.checkpoints.SHIPPED``, provenance in
         ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (the default: any scan interval from 0.5 to 12 s, real
         flights and 3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range
-        guard: ``guard=None`` for data from another surveillance region), ``real`` (1 s real flights).
+        guard: ``guard=None`` for data from another surveillance region), ``real`` (1 s real flights), ``real-5s``
+        (real flights at a surveillance radar's 4.5-5.5 s scans).
         ``adapt=True`` adds adaptive process noise (targets noisier than the training data's; docs/immnet.md)."""
         return cls.from_checkpoint(shipped(name), guard, adapt, max_position)
 
