@@ -162,9 +162,11 @@ def test_unreportable_measurements_are_gated_missed_detections(arrays, name):
     z[4, 50, 2] = 1e30
     clean = z.copy()
     clean[0, 30] = clean[4, 50] = np.nan
+    from tiny_runs import at_an_interval_it_takes
+
     method = build_method(name)
-    got = evaluate({name: method}, _td(arrays, measurements=z), progress=False)[name]
-    want = evaluate({name: method}, _td(arrays, measurements=clean), progress=False)[name]
+    got = evaluate({name: method}, at_an_interval_it_takes(method, _td(arrays, measurements=z)), progress=False)[name]
+    want = evaluate({name: method}, at_an_interval_it_takes(method, _td(arrays, measurements=clean)), progress=False)[name]
     for k in ("rmse", "rmse_pooled", "rmse_post_switch"):
         assert got[k] is not None and np.isfinite(list(got[k].values())).all()
         assert got[k] == want[k]

@@ -10,6 +10,7 @@ from immnet import keys
 from immnet.config import REPO_ROOT, build
 from immnet.filters import ClairvoyantKF, IMMTracker, KalmanFilterTracker, data_mode_probs
 from immnet.motion import ConstantVelocity, ModelSet, MotionModel
+from tiny_runs import at_an_interval_it_takes
 
 METHOD_CONFIGS = sorted((REPO_ROOT / "configs" / "methods").glob("*.yaml"))
 
@@ -33,7 +34,7 @@ def _batch(B=4, T=30, seed=0):
 def test_method_config_builds_and_tracks(path: Path):
     method = build(path)
     assert method.name == path.stem and isinstance(method.needs, tuple)
-    out = method.track(_batch())
+    out = method.track(at_an_interval_it_takes(method, _batch()))
     assert out.batch_size == torch.Size([4]) and out["state"].shape == (4, 30, 9)
     assert torch.isfinite(out["state"]).all()
     torch.testing.assert_close(out["state"][:, 0, 0::3], _batch()["measurements"][:, 0])  # t = 0: first measurement

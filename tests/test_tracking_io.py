@@ -187,13 +187,15 @@ def test_no_method_makes_up_an_estimate_before_the_first_detection(name):
     measurements) outputs NaN before a track's first detection, all NaN for a track without one, and
     finite numbers everywhere else (nothing it carries turned NaN)."""
     from immnet.evaluation.methods import build_method
+    from tiny_runs import at_an_interval_it_takes
 
     data = generate(3, seed=5, spec=DataSpec(T=30, min_segment=10))
     z = data[keys.MEASUREMENTS].clone()
     z[0, :5] = math.nan
     z[1] = math.nan
     data = TensorDict({**data.to_dict(), keys.MEASUREMENTS: z}, batch_size=data.batch_size)
-    out = build_method(name).track(data)
+    method = build_method(name)
+    out = method.track(at_an_interval_it_takes(method, data))
     for key in (keys.STATE, keys.MODE_PROBS):
         if key not in out.keys():
             continue

@@ -1,5 +1,8 @@
 """Tiny real runs shared by the test modules (a module of helpers, not a test file)."""
 
+import torch
+
+from immnet import keys
 from immnet.data.spec import DataSpec
 from immnet.data.storage import write_dataset
 
@@ -17,3 +20,21 @@ def write_quick_data(root, spec: DataSpec = TINY, test: bool = False):
     if test:
         write_dataset(data / "test", 6, seed=99, spec=spec)
     return root
+
+
+def at_an_interval_it_takes(method, batch):
+    """``batch`` as ``method`` can take it: for a learned tracker trained over a range of scan intervals that leaves
+    out the batch's (the shipped ``real-5s``: 4.5-5.5 s), every scan at the middle of that range (``dt``, no times);
+    any other method gets ``batch`` as it is. For the tests that run every registry method on 1 s data."""
+    span = getattr(getattr(method, "net", None), "interval_range", None)
+    if span is None:
+        return batch
+    lo, hi = float(span[0]), float(span[1])
+    dt = batch["dt"] if "dt" in batch.keys() else None
+    if dt is not None and keys.TIME not in batch.keys() and bool(((dt >= lo) & (dt <= hi)).all()):
+        return batch
+    out = batch.clone()
+    if keys.TIME in out.keys():
+        del out[keys.TIME]
+    out["dt"] = torch.full(out.batch_size, (lo + hi) / 2, dtype=torch.float64)
+    return out
