@@ -223,3 +223,39 @@ def test_immnet_track_says_what_the_default_weights_provenance_says_at_the_datas
     err = capsys.readouterr().err
     assert (f"--method {bins['filter']}" in err) == behind, err
     assert behind == (spacing == 10.0)  # as measured (docs/results.md "The general model"): behind at 10-12 s only
+
+
+def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans():
+    """With the default weights, the note names another shipped network where it was trained for the data's median scan
+    interval and a provenance measured it ahead of the default: real-5s at 4.5-5.5 s, real at 1 s, with the numbers of
+    those provenance files; nothing at other intervals, with other weights loaded, or without intervals."""
+    import json
+
+    from immnet.checkpoints import provenance_file, shipped
+    from immnet.tracking.advice import weights_note
+
+    general = shipped()
+    five = json.loads(provenance_file(shipped("real-5s")).read_text())["tests"]["quickstart-5s"]["metrics"]
+    note = weights_note(general, [4.6, 5.0, 5.2, np.nan])
+    assert "--weights real-5s" in note and "4.5-5.5 s" in note and "real flights (quickstart-5s)" in note
+    assert f"{five['immnet-real-5s']['avg']:.3f} m against the default's {five['immnet-general']['avg']:.3f}" in note
+    one = json.loads(provenance_file(general).read_text())["tests"]["quickstart-1s"]["metrics"]
+    note = weights_note(general, [1.0] * 5)
+    assert "--weights real " in note and f"{one['immnet-real']['avg']:.3f} m" in note
+    assert weights_note(general, [8.0, 8.0]) is None and weights_note(general, [1.0, 2.0, 2.0]) is None
+    assert weights_note(shipped("real-5s"), [5.0]) is None and weights_note(shipped("3dlast"), [1.0]) is None
+    assert weights_note(general, []) is None
+
+
+@pytest.mark.parametrize("weights", [None, "real-5s"])
+def test_immnet_track_names_the_5s_weights_for_5s_scans_with_the_default_only(tmp_path, capsys, weights):
+    t = np.arange(12) * 5.0
+    p = _truth(t) + np.random.default_rng(4).normal(0, 10.0, (12, 3))
+    path = tmp_path / "in.csv"
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["track_id", "t", "x", "y", "z"])
+        w.writerows([["a", f"{tk:g}", *(f"{v:.3f}" for v in zk)] for tk, zk in zip(t, p)])
+    args = ["track", "--input", str(path), "--output", str(tmp_path / "o.csv")] + (["--weights", weights] if weights else [])
+    assert main(args) == 0
+    assert ("--weights real-5s" in capsys.readouterr().err) == (weights is None)

@@ -92,13 +92,13 @@ def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
 
 
 def _advise(weights: Path, intervals) -> None:
-    """The provenance's note for the data's scan intervals, if the weights were measured behind a filter there
-    (``immnet.tracking.advice``)."""
-    from immnet.tracking.advice import interval_note, load_provenance
+    """The provenance's notes for the data's scan intervals: where the weights were measured behind a filter there,
+    and where other shipped weights, trained for those scans, were measured ahead of them (``immnet.tracking.advice``)."""
+    from immnet.tracking.advice import interval_note, load_provenance, weights_note
 
-    note = interval_note(load_provenance(weights), intervals)
-    if note:
-        print(note, file=sys.stderr)
+    for note in (interval_note(load_provenance(weights), intervals), weights_note(weights, intervals)):
+        if note:
+            print(note, file=sys.stderr)
 
 
 def _report_no_cov(why: str) -> None:
