@@ -201,6 +201,16 @@ def test_the_interval_note_names_the_filter_only_where_the_provenance_has_the_ne
                                [10.0, 20.0, 1.5])
 
 
+def _one_track_csv(path, t, seed: int, r: float):
+    """A CSV of one track ``a`` measured at times ``t`` with noise ``r`` (m)."""
+    p = _truth(t) + np.random.default_rng(seed).normal(0, r, (len(t), 3))
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["track_id", "t", "x", "y", "z"])
+        w.writerows([["a", f"{tk:g}", *(f"{v:.3f}" for v in zk)] for tk, zk in zip(t, p)])
+    return path
+
+
 @pytest.mark.parametrize("spacing", [1.0, 10.0])
 def test_immnet_track_says_what_the_default_weights_provenance_says_at_the_datas_interval(tmp_path, capsys, spacing):
     """At 10 s scans the shipped default was measured behind its filter (the provenance's ``interval_bins``), at
@@ -212,13 +222,7 @@ def test_immnet_track_says_what_the_default_weights_provenance_says_at_the_datas
     bins = json.loads(provenance_file(shipped()).read_text())["interval_bins"]
     k = next(i for i, (lo, hi) in enumerate(zip(bins["edges"][:-1], bins["edges"][1:])) if lo <= spacing < hi)
     behind = bins["rmse"][bins["network"]][k] > bins["rmse"][bins["filter"]][k]
-    t = np.arange(12) * spacing
-    p = _truth(t) + np.random.default_rng(3).normal(0, 5.0, (12, 3))
-    path = tmp_path / "in.csv"
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["track_id", "t", "x", "y", "z"])
-        w.writerows([["a", f"{tk:g}", *(f"{v:.3f}" for v in zk)] for tk, zk in zip(t, p)])
+    path = _one_track_csv(tmp_path / "in.csv", np.arange(12) * spacing, seed=3, r=5.0)
     assert main(["track", "--input", str(path), "--output", str(tmp_path / "o.csv")]) == 0
     err = capsys.readouterr().err
     assert (f"--method {bins['filter']}" in err) == behind, err
@@ -249,13 +253,7 @@ def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans(
 
 @pytest.mark.parametrize("weights", [None, "real-5s"])
 def test_immnet_track_names_the_5s_weights_for_5s_scans_with_the_default_only(tmp_path, capsys, weights):
-    t = np.arange(12) * 5.0
-    p = _truth(t) + np.random.default_rng(4).normal(0, 10.0, (12, 3))
-    path = tmp_path / "in.csv"
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["track_id", "t", "x", "y", "z"])
-        w.writerows([["a", f"{tk:g}", *(f"{v:.3f}" for v in zk)] for tk, zk in zip(t, p)])
+    path = _one_track_csv(tmp_path / "in.csv", np.arange(12) * 5.0, seed=4, r=10.0)
     args = ["track", "--input", str(path), "--output", str(tmp_path / "o.csv")] + (["--weights", weights] if weights else [])
     assert main(args) == 0
     assert ("--weights real-5s" in capsys.readouterr().err) == (weights is None)
