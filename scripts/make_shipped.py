@@ -124,7 +124,9 @@ def main() -> int:
     p.add_argument("--wandb-runs", default="", help="the W&B run ids of the training, comma-separated")
     p.add_argument("--note", default="", help="how the training departed from the recipe, if it did")
     a = p.parse_args()
-    ship, registry = SHIPS[a.name], f"immnet-{a.name}"
+    from immnet.tracking.advice import registry_name
+
+    ship, registry = SHIPS[a.name], registry_name(a.name)
     commit = subprocess.run(["git", "rev-parse", "--verify", f"{a.commit}^{{commit}}"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
     if not commit:

@@ -156,14 +156,13 @@ def test_unreportable_measurements_are_gated_missed_detections(arrays, name):
     any method sees them: no crash (imm-ekf raised LinAlgError), no NaN, and the very numbers of the
     method run on data whose two scans were missed detections from the start."""
     from immnet.evaluation import build_method, evaluate
+    from tiny_runs import at_an_interval_it_takes
 
     z = arrays["measurements"].copy()
     z[0, 30] = [np.inf, 0.0, 0.0]
     z[4, 50, 2] = 1e30
     clean = z.copy()
     clean[0, 30] = clean[4, 50] = np.nan
-    from tiny_runs import at_an_interval_it_takes
-
     method = build_method(name)
     got = evaluate({name: method}, at_an_interval_it_takes(method, _td(arrays, measurements=z)), progress=False)[name]
     want = evaluate({name: method}, at_an_interval_it_takes(method, _td(arrays, measurements=clean)), progress=False)[name]

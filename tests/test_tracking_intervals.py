@@ -236,19 +236,21 @@ def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans(
     import json
 
     from immnet.checkpoints import provenance_file, shipped
-    from immnet.tracking.advice import weights_note
+    from immnet.tracking.advice import load_provenance, weights_note
 
     general = shipped()
+    own = load_provenance(general)
     five = json.loads(provenance_file(shipped("real-5s")).read_text())["tests"]["quickstart-5s"]["metrics"]
-    note = weights_note(general, [4.6, 5.0, 5.2, np.nan])
+    note = weights_note(general, own, [4.6, 5.0, 5.2, np.nan])
     assert "--weights real-5s" in note and "4.5-5.5 s" in note and "real flights (quickstart-5s)" in note
     assert f"{five['immnet-real-5s']['avg']:.3f} m against the default's {five['immnet-general']['avg']:.3f}" in note
     one = json.loads(provenance_file(general).read_text())["tests"]["quickstart-1s"]["metrics"]
-    note = weights_note(general, [1.0] * 5)
+    note = weights_note(general, own, [1.0] * 5)
     assert "--weights real " in note and f"{one['immnet-real']['avg']:.3f} m" in note
-    assert weights_note(general, [8.0, 8.0]) is None and weights_note(general, [1.0, 2.0, 2.0]) is None
-    assert weights_note(shipped("real-5s"), [5.0]) is None and weights_note(shipped("3dlast"), [1.0]) is None
-    assert weights_note(general, []) is None
+    assert weights_note(general, own, [8.0, 8.0]) is None and weights_note(general, own, [1.0, 2.0, 2.0]) is None
+    for other, dt in (("real-5s", 5.0), ("3dlast", 1.0)):
+        assert weights_note(shipped(other), load_provenance(shipped(other)), [dt]) is None
+    assert weights_note(general, own, []) is None
 
 
 @pytest.mark.parametrize("weights", [None, "real-5s"])

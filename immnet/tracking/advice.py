@@ -78,18 +78,19 @@ def what(set_name: str) -> str:
     return f"real flights ({set_name})" if set_name.startswith("quickstart") else set_name
 
 
-def weights_note(loaded, intervals) -> str | None:
-    """With the default weights loaded (the file ``loaded``), a note (one line) where another shipped network was
-    trained for the median of ``intervals`` (seconds; its provenance's ``interval_range``, or its one
-    ``scan_interval``) and a provenance, its own or the default's, measured it ahead of the default on one test set,
-    both in one run there; None otherwise (other weights loaded, no such network, no intervals)."""
+def weights_note(loaded, provenance: dict | None, intervals) -> str | None:
+    """With the default weights loaded (the file ``loaded``, its ``provenance`` as ``load_provenance`` read it), a note
+    (one line) where another shipped network was trained for the median of ``intervals`` (seconds; its provenance's
+    ``interval_range``, or its one ``scan_interval``) and a provenance, its own or the default's, measured it ahead of
+    the default on one test set, both in one run there; None otherwise (other weights loaded, no such network, no
+    intervals)."""
     from immnet.checkpoints import DEFAULT_WEIGHTS, SHIPPED, shipped
 
     dt = np.asarray(intervals, dtype=np.float64)
     dt = dt[np.isfinite(dt)]
     if Path(loaded).resolve() != shipped(DEFAULT_WEIGHTS).resolve() or dt.size == 0:
         return None
-    median, mine = float(np.median(dt)), load_provenance(shipped(DEFAULT_WEIGHTS)) or {}
+    median, mine = float(np.median(dt)), provenance or {}
     for name in (n for n in SHIPPED if n != DEFAULT_WEIGHTS):
         prov = load_provenance(shipped(name)) or {}
         span = prov.get("interval_range") or [prov.get("scan_interval")] * 2

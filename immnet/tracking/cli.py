@@ -96,7 +96,8 @@ def _advise(weights: Path, intervals) -> None:
     and where other shipped weights, trained for those scans, were measured ahead of them (``immnet.tracking.advice``)."""
     from immnet.tracking.advice import interval_note, load_provenance, weights_note
 
-    for note in (interval_note(load_provenance(weights), intervals), weights_note(weights, intervals)):
+    provenance = load_provenance(weights)
+    for note in (interval_note(provenance, intervals), weights_note(weights, provenance, intervals)):
         if note:
             print(note, file=sys.stderr)
 
