@@ -95,6 +95,37 @@ def test_the_default_weights_track_irregular_epoch_times_below_the_raw_error(irr
         np.testing.assert_allclose(est[mine], api[:, [0, 3, 6]].double().numpy(), rtol=5e-7, atol=0)
 
 
+@pytest.mark.parametrize("times", ["dt", "t"])
+def test_an_npz_at_5s_scans_is_tracked_at_its_own_intervals(irregular, tmp_path, times):
+    """``immnet track`` of an .npz with the default weights (trained at 0.5-12 s, nominal 1 s): a uniform ``dt = 5``
+    or per-scan times ``t`` (4.5-5.5 s) are the intervals each scan is tracked at, as ``Tracker.track`` fed them; the
+    position error below the raw measurements' (run at 1 s a step, the velocity is five times the truth's and the
+    estimates lag by kilometres), the output's ``dt`` the input's."""
+    from immnet.tracking import Tracker
+
+    path, rows, truth = irregular
+    mine = [i for i, r in enumerate(rows) if r[0] == "a"]
+    t = np.array([float(rows[i][1]) - EPOCH for i in mine])
+    if times == "dt":
+        t = 5.0 * np.arange(len(mine))
+    p = _truth(t)
+    z = (p + np.random.default_rng(5).normal(0, 5.0, p.shape))[None].astype(np.float32)
+    extra = {"dt": 5.0} if times == "dt" else {"t": t[None]}
+    np.savez(tmp_path / "in.npz", measurements=z, **extra)
+    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz")]) == 0
+    out = np.load(tmp_path / "out.npz")
+    est = out["state"][0][:, [0, 3, 6]]
+    rmse = lambda e: float(np.sqrt(((e - p)[5:] ** 2).sum(-1).mean()))  # noqa: E731
+    assert rmse(est) < rmse(z[0]), (rmse(est), rmse(z[0]))
+    gaps = np.diff(t)
+    speed = np.linalg.norm(out["state"][0][10:, [1, 4, 7]], axis=-1)
+    np.testing.assert_allclose(speed, 150.0, rtol=0.1)  # the truth's speed, 150 m/s, in and after the turn
+    intervals = torch.tensor(np.r_[np.median(gaps), gaps][None], dtype=torch.float32)
+    api = Tracker.pretrained().track(torch.from_numpy(z), intervals=intervals)
+    np.testing.assert_allclose(out["state"], api["state"].numpy(), rtol=1e-5, atol=1e-3)
+    assert float(out["dt"]) == (5.0 if times == "dt" else float(np.median(gaps)))
+
+
 def test_a_gap_beyond_the_networks_range_is_coasted_at_intervals_inside_it():
     """``track_rows(max_interval=...)``: rows 20 s apart for a network trained up to 12 s are two 10 s scans, the
     one between them a missed detection; rows inside the range keep their own times."""

@@ -174,7 +174,7 @@ def run(args) -> int:
     from immnet.data.storage import load_dataset
     from immnet.tracking.tracker import check_dt
 
-    data, _ = load_dataset(args.input)
+    data, meta = load_dataset(args.input)
     weights = _weights(args)
     tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit)
     from immnet.data.times import scan_intervals
@@ -182,12 +182,15 @@ def run(args) -> int:
     intervals = scan_intervals(data) if "t" in data.keys() else data["dt"]
     check_dt(tracker.net, intervals, "the checkpoint")
     has_cov = tracker.net.has_cov
-    out = tracker.track(data["measurements"], return_cov=has_cov)
+    # each scan at its own interval (a network trained over a range runs F(dt), Q(dt) per scan), each track's r where
+    # the network's filter experts are told it
+    out = tracker.track(data["measurements"], intervals=tracker.net.intervals_for(data), return_cov=has_cov,
+                        r=tracker.net.told_r(data))
     with publishing(args.output, suffix=".npz") as tmp:
         times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
         cov = {"state_cov": out["state_cov"].numpy()} if has_cov else {}
-        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(), dt=np.float64(tracker.net.dt),
-                 **times, **cov)
+        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(),
+                 dt=np.float64(meta["dt"]), **times, **cov)
     if not has_cov:
         _report_no_cov(tracker.net.no_cov_reason())
     _report_gated(tracker.n_gated, limit)
