@@ -29,6 +29,9 @@ def register(subparsers) -> None:
                         "'checkpoint' (as configured: 3D-LAST's region, turns back beyond 33 km and within 4 km), "
                         "'none' (data from another region; imm-ekf-guard becomes imm-ekf's twin), or 'OUTER,INNER' "
                         "in metres (another region, 3D-LAST's speed envelope); as `immnet track --guard`")
+    p.add_argument("--told-r", action="store_true",
+                   help="every IMMNet is told each track's measurement std from the data (its 'r'), as the model-based "
+                        "filters for real flights are, instead of estimating it from the measurements")
     p.add_argument("--sigma-q", type=float, default=None, metavar="SIGMA_Q",
                    help="the truth's process noise (m/s^2) for the clairvoyant references (default: the data's "
                         "meta.json spec; 3D-LAST's 0.2 for an .npz)")
@@ -117,10 +120,10 @@ def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
 
 
 def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print, data=None,
-                   meta: dict | None = None, guard=KEEP_GUARD, sigma_q: float | None = None) -> dict:
+                   meta: dict | None = None, guard=KEEP_GUARD, sigma_q: float | None = None, told_r: bool = False) -> dict:
     """``{name: method}``: the requested names (errors are errors) or, by default, every available
     method that builds, whose ``needs`` the data meet and whose ``check(data)`` (where it has one
-    and ``data`` is given) passes; the others skipped with a note. ``guard`` goes to ``build_method``;
+    and ``data`` is given) passes; the others skipped with a note. ``guard`` and ``told_r`` go to ``build_method``;
     a method with ``configure`` is told the data's ``meta`` and ``sigma_q`` (``--sigma-q``)."""
     explicit = requested is not None
     names = [n.strip() for n in requested.split(",") if n.strip()] if explicit else available_methods()
@@ -130,7 +133,7 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     methods = {}
     for name in names:
         try:
-            method = build_method(name, checkpoint=ckpt.get(name), guard=guard)
+            method = build_method(name, checkpoint=ckpt.get(name), guard=guard, told_r=told_r)
         except (ValueError, FileNotFoundError, TypeError) as err:
             if explicit:
                 raise
@@ -206,7 +209,8 @@ def run_evaluate(args) -> int:
     guard = parse_guard(args.guard)
     data, meta = load_split(args.data, args.split, args.limit)
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
-    methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data, meta, guard, args.sigma_q)
+    methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data, meta, guard, args.sigma_q,
+                             args.told_r)
     if args.batch_size < 1:
         raise ValueError("--batch-size must be positive")
     log = wandb_log.wanted(args.wandb)
@@ -231,7 +235,7 @@ def run_evaluate(args) -> int:
         note(f"wrote {args.markdown}")
     if args.json:
         doc = {"n_trajectories": data.batch_size[0], "data": str(args.data), "split": split, "seed": args.seed,
-               "guard": args.guard, "max_position": limit, "scans": scans, "methods": rows}
+               "guard": args.guard, "told_r": args.told_r, "max_position": limit, "scans": scans, "methods": rows}
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
         note(f"wrote {args.json}")

@@ -151,7 +151,7 @@ def gives_cov(name: str, methods_dir: Path | None = None) -> bool:
 
 
 def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None, guard=KEEP_GUARD,
-                 return_cov: bool = False):
+                 return_cov: bool = False, told_r: bool = False):
     """The method configured as ``configs/methods/<name>.yaml`` (or a built-in), ready to ``track``.
 
     ``checkpoint`` overrides the YAML's ``init_args.checkpoint``; a relative checkpoint path in
@@ -167,8 +167,16 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
 
     ``return_cov``: a method that can give its state's covariance (:func:`gives_cov`) is built to give it,
     ``state_cov [B, T, 9, 9]`` in its output; the others are built as configured and give none.
+
+    ``told_r``: an IMMNet (``IMMNetMethod``) is told each track's measurement std from the data (``r="data"``), as
+    the model-based filters for real flights are, in place of estimating it; the other methods are as configured.
     """
     cls, init_args = _method_class(name, methods_dir)
+    if told_r:
+        from immnet.tracking.methods import IMMNetMethod
+
+        if isinstance(cls, type) and issubclass(cls, IMMNetMethod):
+            init_args["r"] = "data"
     if return_cov and "return_cov" in inspect.signature(cls).parameters:
         init_args["return_cov"] = True
     if not (isinstance(guard, str) and guard == KEEP_GUARD):

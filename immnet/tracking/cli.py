@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from immnet import keys
 from immnet.checkpoints import DEFAULT_WEIGHTS, SHIPPED, shipped
 from immnet.data.validate import MAX_ABS_POSITION
 from immnet.imm.guard import parse_guard
@@ -55,11 +56,28 @@ def register(subparsers) -> None:
              "'OUTER,INNER' in metres (another region, 3D-LAST's speed envelope)",
     )
     p.add_argument(
+        "--r", type=float, default=None, metavar="METRES",
+        help="the radar's measurement std (m, each axis), where it is known: the network's filter experts use it in "
+             "place of each track's estimate from its measurements, and a --method told each track's r (the "
+             "real-flight filters) reads it (docs/tracking.md, 'A radar that knows its accuracy')",
+    )
+    p.add_argument(
         "--adapt", action="store_true",
         help="adaptive process noise in the filter experts (immnet.imm.adaptive.AdaptiveNoise): for targets "
              "that fly rougher than the training data (docs/immnet.md, 'Adaptive process noise')",
     )
     p.set_defaults(func=run)
+
+
+def _told_r(args):
+    """``--r`` as ``load_network``'s ``r`` (``KEEP`` where not given); a clear error unless a finite number > 0."""
+    from immnet.tracking.tracker import KEEP
+
+    if args.r is None:
+        return KEEP
+    if not (np.isfinite(args.r) and args.r > 0):
+        raise ValueError(f"--r is the radar's measurement std in metres, a finite number > 0; got {args.r:g}")
+    return float(args.r)
 
 
 def _weights(args) -> Path:
@@ -119,12 +137,16 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
         has_cov = gives_cov(args.method)
         method, label = build_method(args.method, return_cov=has_cov), args.method
         why = f"{args.method} keeps no covariance of its state"
+        if keys.R in getattr(method, "needs", ()) and args.r is None:
+            raise ValueError(f"--method {args.method} is told each track's measurement std, which a CSV does not hold: "
+                             f"give the radar's with --r METRES")
     else:
         has_cov, why = method.net.has_cov, method.net.no_cov_reason()
     span = getattr(getattr(method, "net", None), "interval_range", None)
     z, n_gated = gate_measurements(rows.z, limit)
     segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
-    state, probs, cov = track_rows(method, segs, offset, return_cov=True, max_interval=None if span is None else span[1])
+    state, probs, cov = track_rows(method, segs, offset, return_cov=True, max_interval=None if span is None else span[1],
+                                   r=args.r)
     write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
     if not has_cov:
         _report_no_cov(why)
@@ -140,6 +162,7 @@ def run(args) -> int:
 
     check_paths(args.input, args.output)
     limit = check_limit(args.max_position)
+    r = _told_r(args)
     if args.input.suffix.lower() == ".csv":
         from immnet.tracking.io import read_tracks_csv, write_tracks_csv
         from immnet.tracking.segments import split_segments, track_segments
@@ -148,7 +171,7 @@ def run(args) -> int:
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
         weights = _weights(args)
-        tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit)
+        tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
         if tracker.net.interval_range is not None:  # any interval in its range: each row a scan at its own time
             from immnet.tracking.advice import track_intervals
             from immnet.tracking.methods import IMMNetMethod
@@ -176,7 +199,7 @@ def run(args) -> int:
 
     data, meta = load_dataset(args.input)
     weights = _weights(args)
-    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit)
+    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
     from immnet.data.times import scan_intervals
 
     intervals = scan_intervals(data) if "t" in data.keys() else data["dt"]

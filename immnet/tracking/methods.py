@@ -28,7 +28,8 @@ class _LearnedMethod:
 class IMMNetMethod(_LearnedMethod):
     """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights); ``guard``
     its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``), ``adapt``
-    its filter experts' adaptive process noise as ``load_network``'s; ``knock_out`` learned parts set to their
+    its filter experts' adaptive process noise as ``load_network``'s, ``r`` their measurement std as ``load_network``'s
+    (``"data"``: each track's from the data, as the model-based filters are told it); ``knock_out`` learned parts set to their
     model-based base (``IMMNet.knock_out``: ``gain``, ``classifier``), the ablations of a trained network.
 
     Its estimates are ``Tracker.track``'s: NaN before a track's first detection. ``return_cov``: also the fused
@@ -36,9 +37,9 @@ class IMMNetMethod(_LearnedMethod):
     whose experts carry none (the paper's KalmanNet experts)."""
 
     def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP,
-                 adapt=KEEP, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = ()):
+                 adapt=KEEP, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = (), r=KEEP):
         self.name = name
-        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt).knock_out(*knock_out))
+        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r).knock_out(*knock_out))
         self.net = self.tracker.net
         self.needs = (keys.R,) if self.net.start.told_r else ()  # a network told each track's r reads the data's
         self.batch_size = batch_size

@@ -159,18 +159,20 @@ def _scan_times(times: np.ndarray, max_interval: float | None) -> tuple[np.ndarr
 
 
 def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512, return_cov: bool = False,
-               max_interval: float | None = None):
+               max_interval: float | None = None, r: float | None = None):
     """``state [R, 9]``, ``mode_probs [R, 4]`` per row of :func:`split_rows`' segments, each tracked as a
     fresh track by ``method.track(batch)`` with ``t [B, T]`` (its rows' times since its first); padding
     after a segment's end is missed detections, its times continuing at the segment's median spacing
     (strictly increasing). ``max_interval``: a gap between rows longer than it is cut into equal intervals by
     missed scans (:func:`_scan_times`; a network trained over a range of intervals). ``mode_probs`` NaN where the
     method has none. With ``return_cov`` a third, ``state_cov [R, 9, 9]`` from the method's output, NaN where it
-    gives none."""
+    gives none. ``r``: every track's measurement std (m), the batch's ``r`` for a method told it (the real-flight
+    filters' ``r: data``)."""
     from tensordict import TensorDict
 
     import torch
 
+    told = None if r is None else float(r)  # ``r`` names rows below
     groups, (state, probs, cov) = _groups(segs, batch_size)
     scans = {}  # per segment (its first row): its scan times and its rows' scans among them
     for _, rows in groups:
@@ -194,6 +196,8 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
             t[i, len(full):] = full[-1] + dt[i] * np.arange(1, T - len(full) + 1)
         batch = TensorDict({keys.MEASUREMENTS: torch.from_numpy(z), keys.TIME: torch.from_numpy(t),
                             keys.DT: torch.from_numpy(dt)}, batch_size=[len(rows)])
+        if told is not None:
+            batch.set(keys.R, torch.full((len(rows),), told, dtype=torch.float64))
         if hasattr(method, "check"):
             method.check(batch)
         out = method.track(batch)

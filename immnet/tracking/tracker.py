@@ -58,7 +58,10 @@ def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
     return net_arguments(copy.deepcopy(config)), state
 
 
-def load_network(path: str | Path, guard=KEEP, adapt=KEEP) -> IMMNet:
+_NEEDS_FILTERS = {"guard": "a range guard", "adapt": "adaptive process noise", "r": "a measurement std"}
+
+
+def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
     """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
 
     ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
@@ -66,14 +69,18 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP) -> IMMNet:
     ``adapt``: the filter experts' adaptive process noise (``immnet.imm.adaptive.AdaptiveNoise``), as
     the checkpoint has it (``"checkpoint"``), off (``None``/``False``), on (``True``) or a dict of its
     fields; no weights either.
+    ``r``: the filter experts' measurement std (m), as the checkpoint has it (``"checkpoint"``), estimated from each
+    track's measurements (``None``), one number for every track (a radar that knows its accuracy), or told per
+    track (``"data"``: the step's input ``"r"``, ``Tracker.track(r=...)``); no weights either
+    (``FilterGain``'s ``r``; docs/tracking.md "A radar that knows its accuracy").
     """
     config, state = read_checkpoint(path)
-    for name, value in (("guard", guard), ("adapt", adapt)):
+    for name, value in (("guard", guard), ("adapt", adapt), ("r", r)):
         if isinstance(value, str) and value == KEEP:
             continue
         gain = config.get("gain") or DEFAULT_GAIN
         if name not in inspect.signature(import_class(gain.get("class_path", ""))).parameters:
-            what = "a range guard" if name == "guard" else "adaptive process noise"
+            what = _NEEDS_FILTERS[name]
             raise ValueError(f"{path}: {what} needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
         config.pop(name, None)  # set once: on the gain, for this load
         config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}
@@ -132,20 +139,24 @@ class Tracker:
         self.n_gated = 0
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
-        """The IMMNet of a checkpoint; ``guard`` and ``adapt`` as in ``load_network``; ``max_position`` the
+    def from_checkpoint(cls, path: str | Path, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
+                        r=KEEP) -> "Tracker":
+        """The IMMNet of a checkpoint; ``guard``, ``adapt`` and ``r`` as in ``load_network``; ``max_position`` the
         gate on measurements (``immnet.data.validate``)."""
-        return cls(load_network(path, guard, adapt), max_position)
+        return cls(load_network(path, guard, adapt, r), max_position)
 
     @classmethod
-    def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION) -> "Tracker":
+    def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
+                   r=KEEP) -> "Tracker":
         """Weights shipped inside the package by name (``immnet.checkpoints.SHIPPED``, provenance in
         ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (the default: any scan interval from 0.5 to 12 s, real
         flights and 3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range
         guard: ``guard=None`` for data from another surveillance region), ``real`` (1 s real flights), ``real-5s``
         (real flights at a surveillance radar's 4.5-5.5 s scans).
-        ``adapt=True`` adds adaptive process noise (targets noisier than the training data's; docs/immnet.md)."""
-        return cls.from_checkpoint(shipped(name), guard, adapt, max_position)
+        ``adapt=True`` adds adaptive process noise (targets noisier than the training data's; docs/immnet.md).
+        ``r``: the radar's measurement std in metres where it is known (each shipped network estimates each track's
+        from its measurements; ``load_network``)."""
+        return cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
 
     def reset(self, n_tracks: int) -> None:
         """``n_tracks`` tracks that have not started; ``n_gated`` back to 0."""
