@@ -9,6 +9,10 @@ a JSON of its coverages (``immnet.evaluation.calibration.track_coverage``) and t
     python scripts/calibration.py --data DATA --split test --methods immnet,imm-ekf --figure calib.png
 
 Scans from ``--from-scan`` on are scored (past the track start), where the truth is and the track has started.
+
+``--consistency CKPT=W1,W2,...`` adds the IMMNet of ``CKPT`` (a checkpoint or shipped weights) as it is and with each
+covariance-consistency weight (``IMMNet(cov_consistency=W)``: what it reports, not what it estimates; docs/immnet.md),
+the rows a weight is chosen from on validation data (docs/real.md, "Calibration").
 """
 
 from __future__ import annotations
@@ -30,6 +34,22 @@ def _rounded(value, digits: int = 4):
     return round(value, digits) if isinstance(value, float) else value
 
 
+def _with_consistency(ckpt: str, weight: float | None, name: str):
+    """The IMMNet of ``ckpt`` as a method that gives its covariance, with ``cov_consistency`` ``weight`` (None: as
+    the file has it)."""
+    from immnet.stages import IMMNet
+    from immnet.tracking import Tracker
+    from immnet.tracking.methods import IMMNetMethod
+    from immnet.tracking.tracker import read_checkpoint
+
+    config, state = read_checkpoint(ckpt)
+    if weight is not None:
+        config["cov_consistency"] = weight
+    net = IMMNet(**config)
+    net.load_state_dict(state)
+    return IMMNetMethod.from_tracker(Tracker(net), name, return_cov=True)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = p.add_mutually_exclusive_group(required=True)
@@ -41,6 +61,8 @@ def main(argv=None) -> int:
     p.add_argument("--limit", type=int, help="only the first N trajectories of the split")
     p.add_argument("--methods", default="immnet,imm-ekf,imm-tuned", help="comma-separated method names")
     p.add_argument("--from-scan", type=int, default=20, help="the first scan scored (default 20)")
+    p.add_argument("--consistency", metavar="CKPT=W1,W2,...",
+                   help="also the IMMNet of CKPT as it is and with each covariance-consistency weight W")
     p.add_argument("--figure", type=Path, help="write the calibration figure (PNG) here")
     p.add_argument("--json", type=Path, help="write the coverages as JSON here")
     args = p.parse_args(argv)
@@ -65,11 +87,21 @@ def main(argv=None) -> int:
     without = [n for n in names if not gives_cov(n)]
     if without:
         p.error(f"no covariance from {', '.join(without)} (their constructors take no return_cov)")
+    methods = {name: (lambda name=name: build_method(name, return_cov=True)) for name in names}
+    if args.consistency:
+        ckpt, _, weights = args.consistency.partition("=")
+        try:
+            weights = [float(w) for w in weights.split(",") if w.strip()]
+        except ValueError:
+            p.error(f"--consistency wants CKPT=W1,W2,... (weights in (0, 1]), got {args.consistency!r}")
+        for w in (None, *weights):
+            label = Path(ckpt).stem + ("" if w is None else f", consistency {w:g}")
+            methods[label] = lambda ckpt=ckpt, w=w, label=label: _with_consistency(ckpt, w, label)
     levels = tuple(sorted(set(CURVE_LEVELS) | set(LEVELS)))
     results = {}
-    for name in names:
+    for name, build in methods.items():
         start = time.perf_counter()
-        scores = track_coverage(build_method(name, return_cov=True), data, args.from_scan, levels)
+        scores = track_coverage(build(), data, args.from_scan, levels)
         results[name] = scores
         split = (f"; {scores['post_switch'][0.95]:.3f} after a switch, {scores['steady'][0.95]:.3f} elsewhere"
                  if "post_switch" in scores else "")
