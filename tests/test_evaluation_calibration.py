@@ -128,3 +128,38 @@ def test_the_calibration_script_writes_its_json_and_figure(tmp_path):
         assert refused.value.code == 2
     finally:
         sys.argv = old
+
+
+def test_the_calibration_scripts_consistency_rows_are_the_exported_networks(tmp_path):
+    """``--consistency CKPT=W``: the row of weight W is the network exported with ``cov_consistency`` W
+    (``export_weights(settings=...)``) scored as a method, and differs from the network as it is."""
+    import json
+    import runpy
+    import sys
+
+    from immnet.checkpoints import shipped
+    from immnet.config import REPO_ROOT
+    from immnet.data.generate import generate
+    from immnet.data.spec import DataSpec
+    from immnet.evaluation.calibration import track_coverage
+    from immnet.training.export import export_weights
+    from immnet.tracking.methods import IMMNetMethod
+
+    script = str(REPO_ROOT / "scripts" / "calibration.py")
+    ckpt = shipped("real")  # 1 s, as generated here
+    argv = ["calibration.py", "--generate", "4", "--T", "120", "--seed", "5", "--methods", "imm-tuned",
+            "--consistency", f"{ckpt}=0.5", "--json", str(tmp_path / "c.json")]
+    old, sys.argv = sys.argv, argv
+    try:
+        with pytest.raises(SystemExit) as done:
+            runpy.run_path(script, run_name="__main__")
+        assert done.value.code == 0
+    finally:
+        sys.argv = old
+    rows = json.loads((tmp_path / "c.json").read_text())["methods"]
+    exported = export_weights(ckpt, tmp_path / "w.ckpt", {"cov_consistency": 0.5})
+    data = generate(4, seed=5, spec=DataSpec(T=120))
+    direct = track_coverage(IMMNetMethod(str(exported), return_cov=True), data, 20)
+    row = rows[f"{ckpt.stem}, consistency 0.5"]
+    assert row["nees_mean"] == pytest.approx(direct["nees_mean"], abs=1e-4)
+    assert row["nees_mean"] != pytest.approx(rows[ckpt.stem]["nees_mean"], abs=1e-3)
