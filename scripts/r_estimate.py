@@ -1,5 +1,5 @@
-"""What estimating each track's measurement std r costs a trained IMMNet on a data set with truth: the network as it
-runs (r estimated scan by scan from the altitude's third differences, docs/immnet.md), told each track's true r, and
+"""What estimating each track's measurement std r costs a trained IMMNet on a data set with truth: the network with r
+estimated scan by scan from the altitude's third differences (docs/immnet.md), told each track's true r, and
 told two look-ahead estimates from the whole window (not trackers: references for how much a better estimate from
 the same measurements could give): the altitude's, and a trimmed one from all three axes (each difference's square
 capped at 9 times the window's median-based estimate). Then where the cost of the estimate lies: the windows by how
@@ -62,7 +62,8 @@ class _ToldThese:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="a data set with truth and each track's r")
-    p.add_argument("--checkpoint", required=True, help="a trained IMMNet that estimates r (a checkpoint or shipped weights)")
+    p.add_argument("--checkpoint", required=True,
+                   help="a trained IMMNet (a checkpoint or shipped weights; trained with r estimated or told)")
     args = p.parse_args(argv)
     data, _ = load_dataset(args.data)
     z = data[keys.MEASUREMENTS].double().numpy()
@@ -77,7 +78,7 @@ def main(argv=None) -> int:
     print(f"whole-window estimate over the truth (10th / 50th / 90th percentile): altitude {q(whole)}, "
           f"three axes trimmed {q(trimmed)}")
 
-    estimated = IMMNetMethod(args.checkpoint, "r estimated (as it runs)")
+    estimated = IMMNetMethod(args.checkpoint, "r estimated", r=None)  # as the shipped networks run, however trained
     told = IMMNetMethod(args.checkpoint, "told r", r="data")
     methods = {m.name: m for m in (estimated, told)}
     methods |= {name: _ToldThese(IMMNetMethod(args.checkpoint, name, r="data"), v.astype(np.float32), name)
