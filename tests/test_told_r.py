@@ -40,6 +40,22 @@ def test_one_r_for_every_track_is_the_told_r_of_each():
     assert (fixed - estimated).abs().max() > 1e-3
 
 
+def test_step_takes_each_tracks_r_and_a_network_that_estimates_it_refuses_one():
+    """``Tracker.step(z, r=...)`` is ``Tracker.track(r=...)`` scan by scan; an r handed to a network that estimates
+    its own is refused by name, not ignored."""
+    _, z = _tracks(n=2, T=10)
+    r = torch.tensor([8.0, 20.0])
+    told = Tracker.pretrained("real-5s", r="data")
+    whole = told.track(torch.from_numpy(z), r=r)["state"]
+    told.reset(2)
+    steps = torch.stack([told.step(torch.from_numpy(z[:, k]), dt=5.0, r=r)[keys.FUSED] for k in range(10)], 1)
+    torch.testing.assert_close(steps, whole, rtol=1e-5, atol=1e-3)
+    estimating = Tracker.pretrained("real-5s")
+    for call in (lambda: estimating.track(torch.from_numpy(z), r=r), lambda: estimating.step(torch.from_numpy(z[:, 0]), r=r)):
+        with pytest.raises(ValueError, match="estimates each track's measurement std itself"):
+            call()
+
+
 def test_the_filters_use_the_given_r_at_every_scan():
     """After each scan the carry's ``r^2`` is the given ``r``'s square (estimated, it is the third-difference running
     mean that tests/test_r_estimate.py holds to a float64 computation)."""

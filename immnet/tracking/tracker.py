@@ -164,11 +164,12 @@ class Tracker:
         self.n_gated = 0
 
     @torch.no_grad()
-    def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
+    def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None, r=None) -> TensorDict:
         """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks;
         ``dt`` the time since each track's previous scan (a number or ``[B]``, seconds; None: the
         network's ``net.dt``), checked against the intervals the network was trained at
-        (:func:`check_dt`) and passed to ``IMMNet.scan`` as its ``interval``.
+        (:func:`check_dt`) and passed to ``IMMNet.scan`` as its ``interval``; ``r`` each track's measurement std (a
+        number or ``[B]``, metres), for a network whose filter experts are told it (``r="data"``).
 
         The outputs of a track that has had no detection yet are NaN; a gated measurement (module doc)
         is a missed detection and adds one to ``n_gated``. Where the experts carry a covariance
@@ -187,21 +188,30 @@ class Tracker:
             fresh = self.net.initial_carry(z.shape[0])
             mask = torch.as_tensor(reset, dtype=torch.bool)
             self.carry = _select(mask, fresh, self.carry)
+        self._check_told(r)
+        told = None if r is None else torch.as_tensor(r, dtype=torch.float32).reshape(-1).expand(z.shape[0])
         if dt is None:
-            self.carry = self.net.scan(self.carry, z)
+            self.carry = self.net.scan(self.carry, z, r=told)
         else:
             interval = torch.as_tensor(dt, dtype=torch.float32).reshape(-1).expand(z.shape[0])
             check_dt(self.net, interval, "this tracker")
             if bool((interval == self.net.dt).all()):  # the nominal interval: the network's own step
-                self.carry = self.net.scan(self.carry, z)
+                self.carry = self.net.scan(self.carry, z, r=told)
             else:
-                self.carry = self.net.scan(self.carry, z, interval=interval)
+                self.carry = self.net.scan(self.carry, z, interval=interval, r=told)
         out = self.carry.select(keys.FUSED, keys.EXPERT_PROBS, keys.EXPERT_POST).clone()
         if self.net.has_cov:
             out.set(keys.FUSED_COV, self.net.reported_cov(self.carry).clone())
         out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))
         waiting = (self.carry.get(keys.AGE) == 0)[:, None]  # no detection yet: no estimate
         return out.apply(lambda v: blank_before_first_detection(v.unsqueeze(1), waiting).squeeze(1))
+
+    def _check_told(self, r) -> None:
+        """An ``r`` given to a network that estimates it is refused, not ignored."""
+        if r is not None and not self.net.start.told_r:
+            raise ValueError("this network estimates each track's measurement std itself; to tell it, load it with "
+                             "r='data' (each track's, given here) or one number: Tracker.pretrained(name, r=...), "
+                             "load_network(path, r=...)")
 
     @torch.no_grad()
     def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
@@ -216,6 +226,7 @@ class Tracker:
         z = torch.as_tensor(measurements, dtype=torch.float32)
         if z.dim() != 3 or z.shape[-1] != 3:
             raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
+        self._check_told(r)
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
         z, self.n_gated = gate_measurements(z, self.max_position)
