@@ -168,15 +168,13 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
     ``return_cov``: a method that can give its state's covariance (:func:`gives_cov`) is built to give it,
     ``state_cov [B, T, 9, 9]`` in its output; the others are built as configured and give none.
 
-    ``told_r``: an IMMNet (``IMMNetMethod``) is told each track's measurement std from the data (``r="data"``), as
-    the model-based filters for real flights are, in place of estimating it; the other methods are as configured.
+    ``told_r``: a trained network whose filter experts' r can be set (a constructor taking a ``checkpoint`` and an
+    ``r``: ``IMMNetMethod``) is told each track's measurement std from the data (``r="data"``), as the model-based
+    filters for real flights are, in place of estimating it; the other methods are as configured.
     """
     cls, init_args = _method_class(name, methods_dir)
-    if told_r:
-        from immnet.tracking.methods import IMMNetMethod
-
-        if isinstance(cls, type) and issubclass(cls, IMMNetMethod):
-            init_args["r"] = "data"
+    if told_r and {"checkpoint", "r"} <= set(inspect.signature(cls).parameters):
+        init_args["r"] = "data"
     if return_cov and "return_cov" in inspect.signature(cls).parameters:
         init_args["return_cov"] = True
     if not (isinstance(guard, str) and guard == KEEP_GUARD):
