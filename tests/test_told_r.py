@@ -105,6 +105,29 @@ def test_immnet_track_r_gives_the_network_and_a_told_filter_the_radars_accuracy(
     assert err(_read_xyz(out)) < 0.8 * err(z)
 
 
+def test_a_network_told_r_refuses_a_csv_without_r_and_takes_one_with_it(tmp_path, capsys):
+    """A checkpoint whose filter experts are told r (``r: data``) tracks a CSV only with ``--r``, as loaded with it."""
+    from immnet.checkpoints import add_checksum
+    from immnet.tracking.tracker import read_checkpoint
+
+    config, state = read_checkpoint(shipped("real-5s"))  # the same weights, its filter experts told r
+    assert config["gain"]["init_args"]["r"] is None
+    config["gain"]["init_args"]["r"] = "data"
+    told = tmp_path / "told.ckpt"
+    torch.save(add_checksum({"state_dict": {f"net.{k}": v for k, v in state.items()},
+                             "hyper_parameters": {"net": config}}), told)
+    _, z = _tracks()
+    _write_csv(tmp_path / "in.csv", z)
+    out = tmp_path / "out.csv"
+    assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(out), "--checkpoint", str(told)]) == 2
+    assert "give the radar's with --r METRES" in capsys.readouterr().err and not out.exists()
+    assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(out), "--checkpoint", str(told),
+                 "--r", str(R)]) == 0
+    assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(tmp_path / "ref.csv"), "--weights",
+                 "real-5s", "--r", str(R)]) == 0
+    np.testing.assert_allclose(_read_xyz(out), _read_xyz(tmp_path / "ref.csv"), rtol=0, atol=1e-6)
+
+
 @pytest.mark.parametrize("value", ["0", "-3", "nan", "inf"])
 def test_immnet_track_refuses_an_r_that_is_not_a_positive_number(tmp_path, capsys, value):
     _, z = _tracks(n=1, T=5)

@@ -172,6 +172,9 @@ def run(args) -> int:
             return _track_rows_with_method(args, rows, limit)
         weights = _weights(args)
         tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
+        if tracker.net.start.told_r:
+            raise ValueError(f"{weights}: this network's filter experts are told each track's measurement std, which a "
+                             f"CSV does not hold: give the radar's with --r METRES")
         if tracker.net.interval_range is not None:  # any interval in its range: each row a scan at its own time
             from immnet.tracking.advice import track_intervals
             from immnet.tracking.methods import IMMNetMethod
