@@ -1,6 +1,7 @@
 """Where each method's error is, by kind of flight: a real-flight data set's windows grouped by the folder of the
 traffic sample their flight comes from (ambulances, calibration, collections, gliders, ...), each group scored as
-``immnet evaluate`` scores a set (position RMSE per window, averaged), one run.
+``immnet evaluate`` scores a set (position RMSE per window, averaged), one run; beside each kind, the share of its
+scans in the turn phase (``immnet.evaluation.phases``: the truth's turn rate above 0.5 deg/s).
 
     python scripts/real_kinds.py --data runs/real/data/heldout-5s/test \\
         --methods real-imm-singer-5s,immnet-real-5s,immnet-general [--checkpoint NAME=CKPT] [--told-r]
@@ -18,10 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from immnet import keys
 from immnet.data import adsb
 from immnet.data.real import RealSpec, window_flights
 from immnet.data.storage import load_dataset
 from immnet.evaluation.methods import build_method
+from immnet.evaluation.phases import phases
 from immnet.evaluation.runner import evaluate, to_json
 from immnet.imm.guard import parse_guard
 
@@ -66,13 +69,15 @@ def main(argv=None) -> int:
     ckpts = dict(c.split("=", 1) for c in args.checkpoint)
     names = [n for n in args.methods.split(",") if n]
     methods = {n: build_method(n, ckpts.get(n), guard=parse_guard("none"), told_r=args.told_r) for n in names}
-    print("| kind (windows, flights) | " + " | ".join(names) + " |")
-    print("|:---|" + "---:|" * len(names))
+    turning = phases(data[keys.STATES].double())["turn"].numpy()  # the turn phase's scans (docs/real.md)
+    print("| kind (windows, flights) | turning | " + " | ".join(names) + " |")
+    print("|:---|---:|" + "---:|" * len(names))
     for group, rows in sorted(kinds.items(), key=lambda kv: -len(kv[1])) + [("all", list(range(len(owners))))]:
         scores = to_json(evaluate(methods, data[np.asarray(rows)], progress=False))
         avg = {n: scores[n]["rmse"]["avg"] for n in names}
         cells = [f"{avg[n]:.3f}" + ("" if n == names[0] else f" ({avg[n] / avg[names[0]]:.3f}x)") for n in names]
-        print(f"| {group} ({len(rows)}, {len({owners[i] for i in rows})}) | " + " | ".join(cells) + " |")
+        share = f"{100 * turning[np.asarray(rows)].mean():.0f} %"
+        print(f"| {group} ({len(rows)}, {len({owners[i] for i in rows})}) | {share} | " + " | ".join(cells) + " |")
     return 0
 
 
