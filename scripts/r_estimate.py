@@ -5,7 +5,8 @@ the same measurements could give): the altitude's, and a trimmed one from all th
 capped at 9 times the window's median-based estimate). Then where the cost of the estimate lies: the windows by how
 far their whole-window estimate is from the truth.
 
-    python scripts/r_estimate.py --data runs/real/data/heldout-5s/test --checkpoint immnet/pretrained/immnet-real-5s.ckpt
+    python scripts/r_estimate.py --data runs/real/data/heldout-5s/test \\
+        --checkpoint immnet/pretrained/immnet-real-5s.ckpt
 """
 
 from __future__ import annotations

@@ -51,7 +51,8 @@ def test_step_takes_each_tracks_r_and_a_network_that_estimates_it_refuses_one():
     steps = torch.stack([told.step(torch.from_numpy(z[:, k]), dt=5.0, r=r)[keys.FUSED] for k in range(10)], 1)
     torch.testing.assert_close(steps, whole, rtol=1e-5, atol=1e-3)
     estimating = Tracker.pretrained("real-5s")
-    for call in (lambda: estimating.track(torch.from_numpy(z), r=r), lambda: estimating.step(torch.from_numpy(z[:, 0]), r=r)):
+    for call in (lambda: estimating.track(torch.from_numpy(z), r=r),
+                 lambda: estimating.step(torch.from_numpy(z[:, 0]), r=r)):
         with pytest.raises(ValueError, match="estimates each track's measurement std itself"):
             call()
 

@@ -120,7 +120,8 @@ def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
 
 
 def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print, data=None,
-                   meta: dict | None = None, guard=KEEP_GUARD, sigma_q: float | None = None, told_r: bool = False) -> dict:
+                   meta: dict | None = None, guard=KEEP_GUARD, sigma_q: float | None = None,
+                   told_r: bool = False) -> dict:
     """``{name: method}``: the requested names (errors are errors) or, by default, every available
     method that builds, whose ``needs`` the data meet and whose ``check(data)`` (where it has one
     and ``data`` is given) passes; the others skipped with a note. ``guard`` and ``told_r`` go to ``build_method``;
@@ -265,7 +266,8 @@ def log_run(args, results, rows, figures, data, meta, split, note) -> None:
               "data": {"path": str(args.data), "split": split, "n_trajectories": data.batch_size[0], "limit": args.limit,
                        "meta": meta},
               "methods": {n: wandb_log.method_info(n, ckpt.get(n)) for n in results},
-              "guard": args.guard, "sigma_q": args.sigma_q, "max_position": args.max_position, "seed": args.seed}
+              "guard": args.guard, "told_r": args.told_r, "sigma_q": args.sigma_q, "max_position": args.max_position,
+              "seed": args.seed}
     run = wandb_log.start(config, args.wandb_project, args.wandb_group, args.wandb_name, args.wandb_dir)
     curves = {n: avg_curve(r["rmse_over_time"]) for n, r in results.items()}
     wandb_log.log_results(run, rows, curves, figures, dt=float(nominal_dt(data[:1])[0]))  # x: scan k at k dt

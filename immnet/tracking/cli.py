@@ -145,8 +145,8 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     span = getattr(getattr(method, "net", None), "interval_range", None)
     z, n_gated = gate_measurements(rows.z, limit)
     segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
-    state, probs, cov = track_rows(method, segs, offset, return_cov=True, max_interval=None if span is None else span[1],
-                                   r=args.r)
+    state, probs, cov = track_rows(method, segs, offset, return_cov=True,
+                                   max_interval=None if span is None else span[1], r=args.r)
     write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
     if not has_cov:
         _report_no_cov(why)

@@ -28,9 +28,9 @@ class _LearnedMethod:
 class IMMNetMethod(_LearnedMethod):
     """A trained IMMNet (``checkpoint``: a Lightning checkpoint; default: the shipped weights); ``guard``
     its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``), ``adapt``
-    its filter experts' adaptive process noise as ``load_network``'s, ``r`` their measurement std as ``load_network``'s
-    (``"data"``: each track's from the data, as the model-based filters are told it); ``knock_out`` learned parts set to their
-    model-based base (``IMMNet.knock_out``: ``gain``, ``classifier``), the ablations of a trained network.
+    its filter experts' adaptive process noise as ``load_network``'s, ``r`` their measurement std as
+    ``load_network``'s (``"data"``: each track's from the data, as the model-based filters are told it); ``knock_out``
+    learned parts set to their model-based base (``IMMNet.knock_out``: ``gain``, ``classifier``), the ablations of a trained network.
 
     Its estimates are ``Tracker.track``'s: NaN before a track's first detection. ``return_cov``: also the fused
     covariance ``state_cov [B, T, 9, 9]`` (``IMMNet.rollout``'s); a ValueError now, naming why, for a checkpoint
