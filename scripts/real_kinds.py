@@ -21,7 +21,7 @@ import numpy as np
 
 from immnet import keys
 from immnet.data import adsb
-from immnet.data.real import RealSpec, window_flights
+from immnet.data.real import RealSpec, unique_ids, window_flights
 from immnet.data.storage import load_dataset
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.phases import phases
@@ -32,16 +32,16 @@ from immnet.imm.guard import parse_guard
 def flight_samples(meta: dict) -> dict[str, str]:
     """``{flight id: sample name}`` for the samples ``meta`` names, read with its cleaning parameters
     (``immnet.data.real.make_adsb``'s reading and naming)."""
-    params = {k: v for k, v in meta["params"].items() if k in RealSpec.__dataclass_fields__}
-    spec = RealSpec(**{**params, "splits": tuple(params["splits"])})
-    owner, seen = {}, {}
+    spec = RealSpec(**{**meta["params"], "splits": tuple(meta["params"]["splits"])})
+    flights = []
     for sample in meta["samples"]:
         got = adsb.flights(adsb.read_records(adsb.resolve_sample(sample["name"])), spec.max_gap, spec.max_speed,
                            spec.max_climb, spec.time_slack, spec.min_points)
-        for f in got.flights:  # a repeated id gets #2, #3, ... in the samples' order, as make_adsb names it
-            seen[f.id] = seen.get(f.id, 0) + 1
-            owner[f.id if seen[f.id] == 1 else f"{f.id}#{seen[f.id]}"] = sample["name"]
-    return owner
+        for f in got.flights:
+            f.sample = sample["name"]
+        flights += got.flights
+    unique_ids(flights)
+    return {f.id: f.sample for f in flights}
 
 
 def kind(sample: str) -> str:

@@ -218,6 +218,16 @@ def split_counts(n: int, fractions) -> list[int]:
     return [train, val, test]
 
 
+def unique_ids(flights: list[adsb.Flight]) -> None:
+    """Flight ids unique across samples, in place: a repeated one gets #2, #3, ... in the order of ``flights`` (the
+    samples' order), as the data sets' ``flights`` and ``window_flights`` name them."""
+    seen: dict[str, int] = {}
+    for f in flights:
+        seen[f.id] = seen.get(f.id, 0) + 1
+        if seen[f.id] > 1:
+            f.id = f"{f.id}#{seen[f.id]}"
+
+
 def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 0, site=None,
               npz: bool = False, overwrite: bool = False, progress: bool = False,
               skip_unreadable: bool = False) -> dict:
@@ -267,11 +277,7 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
                        f"{got.counts['fresh_points']} fresh points ({time.perf_counter() - start:.1f} s)")
     if not flights:
         raise ValueError(f"no flight of at least {spec.min_points} airborne fresh positions in {', '.join(map(str, samples))}")
-    seen: dict[str, int] = {}
-    for f in flights:  # unique ids across samples: a repeated one gets #2, #3, ...
-        seen[f.id] = seen.get(f.id, 0) + 1
-        if seen[f.id] > 1:
-            f.id = f"{f.id}#{seen[f.id]}"
+    unique_ids(flights)
     if spec.max_flights:
         flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
     prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
