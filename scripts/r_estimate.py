@@ -45,21 +45,6 @@ def third_difference_samples(values: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out
 
 
-class _ToldThese:
-    """The network told ``r`` per window (in place of the data's), as ``--told-r`` tells it the data's."""
-
-    def __init__(self, told: IMMNetMethod, r: np.ndarray, name: str):
-        self.told, self.r, self.name, self.needs = told, r, name, told.needs
-        self.offset = 0
-
-    def track(self, batch):
-        b = batch.clone()
-        n = b.batch_size[0]
-        b.set(keys.R, torch.as_tensor(self.r[self.offset : self.offset + n], dtype=b[keys.R].dtype))
-        self.offset += n
-        return self.told.track(b)
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, help="a data set with truth and each track's r")
@@ -81,16 +66,19 @@ def main(argv=None) -> int:
 
     estimated = IMMNetMethod(args.checkpoint, "r estimated", r=None)  # as the shipped networks run, however trained
     told = IMMNetMethod(args.checkpoint, "told r", r="data")
-    methods = {m.name: m for m in (estimated, told)}
-    methods |= {name: _ToldThese(IMMNetMethod(args.checkpoint, name, r="data"), v.astype(np.float32), name)
-                for name, v in (("told the window's altitude estimate (look-ahead)", whole),
-                                ("told the window's trimmed 3-axis estimate (look-ahead)", trimmed))}
-    print(format_table(to_json(evaluate(methods, data, batch_size=len(r), progress=False))))
+    everyone = range(len(r))  # each window's estimates kept, for the cost per window below
+    results = evaluate({m.name: m for m in (estimated, told)}, data, progress=False, keep=everyone)
+    for name, v in (("told the window's altitude estimate (look-ahead)", whole),
+                    ("told the window's trimmed 3-axis estimate (look-ahead)", trimmed)):
+        looked = data.clone()  # the same windows, each told the look-ahead estimate as its r
+        looked.set(keys.R, torch.as_tensor(v, dtype=data[keys.R].dtype))
+        results |= evaluate({name: told}, looked, progress=False)
+    print(format_table(to_json(results)))
 
     mask = scored_mask(data[keys.STATES], data[keys.MEASUREMENTS])
     truth = data[keys.STATES][..., [0, 3, 6]].double()
-    per = {m.name: per_trajectory_rmse(m.track(data)[keys.STATE][..., [0, 3, 6]] - truth, mask).numpy()
-           for m in (estimated, told)}
+    per = {m.name: per_trajectory_rmse(results[m.name]["kept"][keys.STATE][..., [0, 3, 6]].double() - truth,
+                                       mask).numpy() for m in (estimated, told)}
     cost = per[estimated.name] - per[told.name]  # [N, 3] per window and axis, metres
     ratio = whole / r
     print("\nwhere the estimate's cost lies (windows by their whole-window altitude estimate over the truth; the mean "
