@@ -173,16 +173,17 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
     filters for real flights are, in place of estimating it; the other methods are as configured.
     """
     cls, init_args = _method_class(name, methods_dir)
-    if told_r and {"checkpoint", "r"} <= set(inspect.signature(cls).parameters):
+    params = inspect.signature(cls).parameters
+    if told_r and {"checkpoint", "r"} <= set(params):
         init_args["r"] = "data"
-    if return_cov and "return_cov" in inspect.signature(cls).parameters:
+    if return_cov and "return_cov" in params:
         init_args["return_cov"] = True
     if not (isinstance(guard, str) and guard == KEEP_GUARD):
-        param = inspect.signature(cls).parameters.get("guard")
+        param = params.get("guard")
         if param is not None and init_args.get("guard", param.default) not in (None, False):
             init_args["guard"] = guard
     if checkpoint is not None:
-        if "checkpoint" not in init_args and "checkpoint" not in inspect.signature(cls).parameters:
+        if "checkpoint" not in init_args and "checkpoint" not in params:
             raise ValueError(f"method {name!r} ({cls.__name__}) does not take a checkpoint")
         init_args["checkpoint"] = str(checkpoint)
     ckpt = init_args.get("checkpoint")
