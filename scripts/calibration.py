@@ -36,18 +36,17 @@ def _rounded(value, digits: int = 4):
 
 def _with_consistency(ckpt: str, weight: float | None, name: str):
     """The IMMNet of ``ckpt`` as a method that gives its covariance, with ``cov_consistency`` ``weight`` (None: as
-    the file has it)."""
-    from immnet.stages import IMMNet
-    from immnet.tracking import Tracker
-    from immnet.tracking.methods import IMMNetMethod
-    from immnet.tracking.tracker import read_checkpoint
+    the file has it): the weights exported with that setting, as ``scripts/make_shipped.py`` ships them."""
+    import tempfile
 
-    config, state = read_checkpoint(ckpt)
-    if weight is not None:
-        config["cov_consistency"] = weight
-    net = IMMNet(**config)
-    net.load_state_dict(state)
-    return IMMNetMethod.from_tracker(Tracker(net), name, return_cov=True)
+    from immnet.tracking.methods import IMMNetMethod
+    from immnet.training.export import export_weights
+
+    if weight is None:
+        return IMMNetMethod(ckpt, name, return_cov=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        return IMMNetMethod(str(export_weights(ckpt, Path(tmp) / "net.ckpt", {"cov_consistency": weight})), name,
+                            return_cov=True)
 
 
 def main(argv=None) -> int:
