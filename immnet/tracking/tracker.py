@@ -180,6 +180,7 @@ class Tracker:
         z = torch.as_tensor(z, dtype=torch.float32)
         if z.dim() != 2 or z.shape[-1] != 3:
             raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
+        self._check_told(r)  # before anything of the tracker's state changes
         if self.carry is None or self.carry.batch_size[0] != z.shape[0]:
             self.reset(z.shape[0])
         z, n_gated = gate_measurements(z, self.max_position)
@@ -188,7 +189,6 @@ class Tracker:
             fresh = self.net.initial_carry(z.shape[0])
             mask = torch.as_tensor(reset, dtype=torch.bool)
             self.carry = _select(mask, fresh, self.carry)
-        self._check_told(r)
         told = None if r is None else torch.as_tensor(r, dtype=torch.float32).reshape(-1).expand(z.shape[0])
         if dt is None:
             self.carry = self.net.scan(self.carry, z, r=told)
