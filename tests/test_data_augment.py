@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from immnet import keys
-from immnet.data.augment import FlightAugment
+from immnet.data.augment import ROLL_S, FlightAugment, _turn_phase, add_turns, horizontal_turn_rate
+from immnet.data.contract import NO_LABEL
 from immnet.data.datamodule import LASTDataModule
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
@@ -100,3 +101,108 @@ def test_the_datamodule_augments_training_batches_only(tmp_path):
     dm.trainer = types.SimpleNamespace(training=False, global_step=2)  # validation, test: as stored
     assert dm.on_after_batch_transfer(b, 0) is b
     assert LASTDataModule(str(tmp_path / "d")).on_after_batch_transfer(b, 0) is b
+
+
+# --- added turns (FlightAugment(turns=...), add_turns) ---------------------------------------------------------------
+
+def _straight(t: torch.Tensor, speed: float = 150.0) -> torch.Tensor:
+    """Level flight due east at ``speed`` through (1000, 0, 3000) at ``t = 0``: states ``[1, T, 9]`` (float64)."""
+    x = torch.zeros(1, t.numel(), 9, dtype=torch.float64)
+    x[..., 0], x[..., 1], x[..., 6] = 1000.0 + speed * t, speed, 3000.0
+    return x
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+def test_an_added_turn_flies_a_straight_flight_round_a_circle(jitter):
+    g = torch.Generator().manual_seed(0)
+    wobble = torch.rand(40, generator=g, dtype=torch.float64) - 0.5
+    steps = 5.0 + (wobble if jitter else torch.zeros_like(wobble))
+    t = torch.cat([torch.zeros(1, dtype=torch.float64), steps.cumsum(0)])
+    intervals = torch.cat([torch.full((1,), 5.0, dtype=torch.float64), steps])[None]
+    w = math.radians(2.0)
+    y = add_turns(_straight(t), intervals, torch.tensor([[1e6]], dtype=torch.float64),
+                  torch.tensor([[w, w]], dtype=torch.float64))[0]
+    radius = 150.0 / w  # 4.3 km: the closed form of a constant-rate turn from heading east
+    torch.testing.assert_close(y[:, 0], 1000.0 + radius * torch.sin(w * t), rtol=0, atol=0.05)
+    torch.testing.assert_close(y[:, 3], radius * (1 - torch.cos(w * t)), rtol=0, atol=0.05)
+    torch.testing.assert_close(y[:, 1], 150.0 * torch.cos(w * t), rtol=0, atol=1e-9)
+    torch.testing.assert_close(y[:, 4], 150.0 * torch.sin(w * t), rtol=0, atol=1e-9)
+    torch.testing.assert_close(y[:, [2, 5]].norm(dim=-1), torch.full_like(t, 150.0 * w), rtol=0, atol=1e-9)  # v w
+    torch.testing.assert_close(horizontal_turn_rate(y), torch.full_like(t, w), rtol=0, atol=1e-12)
+    assert torch.equal(y[:, 6:], _straight(t)[0, :, 6:])
+
+
+def test_the_rate_rolls_between_segments_and_the_heading_is_its_integral():
+    tau = torch.linspace(0.0, 120.0, 4801, dtype=torch.float64)[None]  # 0.025 s
+    boundaries = torch.tensor([[30.0, 70.0]], dtype=torch.float64)
+    rates = torch.tensor([[0.0, 0.04, -0.02]], dtype=torch.float64)
+    w, phi = _turn_phase(tau, boundaries, rates)
+    expected = torch.where(tau < 30, 0.0, torch.where(tau < 30 + ROLL_S, 0.04 * (tau - 30) / ROLL_S, 0.04))
+    expected = torch.where(tau < 70, expected, torch.where(tau < 70 + ROLL_S, 0.04 - 0.06 * (tau - 70) / ROLL_S, -0.02))
+    torch.testing.assert_close(w, expected, rtol=0, atol=1e-12)
+    trapezoid = torch.cat([torch.zeros(1, 1, dtype=torch.float64),
+                           (0.5 * (w[:, 1:] + w[:, :-1]) * tau.diff(dim=-1)).cumsum(-1)], -1)
+    torch.testing.assert_close(phi, trapezoid, rtol=0, atol=1e-9)
+    # the acceleration is the derivative of the velocity, through the roll-ins too (0.1 s scans, central
+    # differences: off by at most a quarter step times the jump of the jerk at a roll's ends, 150 * 0.012 / 40)
+    t = torch.arange(1201, dtype=torch.float64) / 10
+    step = torch.full((1, 1201), 0.1, dtype=torch.float64)
+    y = add_turns(_straight(t), step, boundaries, rates)[0]
+    for v, a in ((1, 2), (4, 5)):
+        central = (y[2:, v] - y[:-2, v]) / 0.2
+        torch.testing.assert_close(central, y[1:-1, a], rtol=0, atol=0.05)
+        # and the positions move with it: each step the cubic through its ends' velocity and acceleration
+        cubic = 0.05 * (y[1:, v] + y[:-1, v]) + 0.01 / 12 * (y[:-1, a] - y[1:, a])
+        torch.testing.assert_close(y[1:, v - 1] - y[:-1, v - 1], cubic, rtol=0, atol=1e-6)
+    # no added rate: the flight as recorded
+    assert torch.equal(add_turns(_straight(t), step, boundaries, torch.zeros_like(rates)), _straight(t))
+
+
+@pytest.fixture(scope="module")
+def unlabelled(batch):
+    out = batch.clone()
+    out[keys.MODE] = torch.full_like(out[keys.MODE], NO_LABEL)
+    return out
+
+
+def test_turns_keep_each_flights_speeds_and_vertical_and_bank_at_most_as_asked(unlabelled):
+    aug = FlightAugment(rotate=False, renoise=True, turns=0.5, turn_bank=(10.0, 30.0), seed=2)
+    out = aug(unlabelled, step=9)
+    x, y = unlabelled[keys.STATES].double(), out[keys.STATES].double()
+    torch.testing.assert_close(y[..., [1, 4]].norm(dim=-1), x[..., [1, 4]].norm(dim=-1), rtol=1e-6, atol=1e-3)
+    assert torch.equal(y[..., 6:], x[..., 6:])
+    assert torch.equal(y[:, 0, [0, 3]], x[:, 0, [0, 3]])  # scan 0 stays put
+    turned = (y - x).abs().amax((1, 2)) > 1.0
+    assert 16 <= int(turned.sum()) <= 48  # half of 64, give or take four standard deviations
+    # the added rate is a coordinated turn banked at most 30 deg at the track's mean speed
+    mean_speed = x[..., [1, 4]].norm(dim=-1).mean(-1, keepdim=True)
+    added = horizontal_turn_rate(y) - horizontal_turn_rate(x)
+    assert bool((added.abs() <= 9.80665 * math.tan(math.radians(30)) / mean_speed + 1e-6).all())
+    assert float(added[turned].abs().max()) > 9.80665 * math.tan(math.radians(10)) / float(mean_speed.max())
+    torch.testing.assert_close(out[keys.TURN_RATE].double(), horizontal_turn_rate(y), rtol=1e-5, atol=1e-6)
+    # the measurements are new draws about the new truth, with each track's own r
+    e = (out[keys.MEASUREMENTS].double() - y[..., [0, 3, 6]]) / out[keys.R].double()[:, None, None]
+    e = e[~torch.isnan(e)]
+    assert abs(float(e.square().sum()) - e.numel()) < 5 * math.sqrt(2 * e.numel())
+    # the views are those drawn without turns: tracks left straight are exactly the turns=0 view
+    plain = FlightAugment(rotate=True, renoise=True, seed=2)(unlabelled, step=9)
+    both = FlightAugment(rotate=True, renoise=True, turns=0.5, seed=2)(unlabelled, step=9)
+    keep = ~turned
+    assert torch.equal(both[keys.STATES][keep], plain[keys.STATES][keep])
+    assert torch.equal(both[keys.MEASUREMENTS][keep].nan_to_num(), plain[keys.MEASUREMENTS][keep].nan_to_num())
+    assert torch.equal(both[keys.R], plain[keys.R])
+
+
+def test_turn_settings_and_labelled_batches_are_refused_by_name(batch):
+    with pytest.raises(ValueError, match="without mode labels"):
+        FlightAugment(turns=0.5)(batch, 0)
+    with pytest.raises(ValueError, match="turns is the share"):
+        FlightAugment(turns=1.5)
+    with pytest.raises(ValueError, match="needs renoise=True"):
+        FlightAugment(renoise=False, turns=0.5)
+    with pytest.raises(ValueError, match="turn_bank must be"):
+        FlightAugment(turns=0.5, turn_bank=(30.0, 10.0))
+    with pytest.raises(ValueError, match="below 90"):
+        FlightAugment(turns=0.5, turn_bank=(10.0, 90.0))
+    with pytest.raises(ValueError, match="turn_segment must be"):
+        FlightAugment(turns=0.5, turn_segment=(0.0, 10.0))
