@@ -338,3 +338,53 @@ def test_window_flights_and_subsets_of_flights(tmp_path, monkeypatch, capsys):
     last = write_dataset(tmp_path / "3dlast", 4, 0, DataSpec(T=120), progress=False)
     with pytest.raises(ValueError, match="format '3d-last' has no flights to choose"):
         real.subset_flights(last, tmp_path / "bad", 0.5)
+
+
+def test_turns_added_to_a_real_set(tmp_path, monkeypatch, capsys):
+    """``immnet data turns``: the windows of a real set, some flown through added coordinated turns and measured
+    again with their own r; the others' truth as stored; same seed, same bytes; refusals by name."""
+    sample = _write(tmp_path / "s.json.gz", _records(n_aircraft=8, n=400))
+    real.make_adsb(tmp_path / "o", [sample], real.RealSpec(T=50, splits=(0.75, 0.125, 0.125), max_range=60_000),
+                   seed=0)
+    train = tmp_path / "o" / "train"
+    meta = real.turned_flights(train, tmp_path / "t", 0.5, seed=3, bank=(20.0, 30.0))
+    td, m = load_dataset(train)
+    tt, _ = load_dataset(tmp_path / "t")
+    assert meta["turns"] == {"turns": 0.5, "bank": [20.0, 30.0], "segment": [20.0, 120.0], "seed": 3}
+    assert meta["window_flights"] == m["window_flights"] and meta["n"] == m["n"]
+    x, y = td["states"].double().numpy(), tt["states"].double().numpy()
+    moved = np.abs(y - x).max((1, 2)) > 1.0
+    assert 0 < moved.sum() < len(moved)
+    np.testing.assert_allclose(np.hypot(y[..., 1], y[..., 4]), np.hypot(x[..., 1], x[..., 4]), rtol=1e-5)
+    np.testing.assert_array_equal(y[..., 6:], x[..., 6:])
+    for key in ("t", "r", "dt", "mode"):
+        assert np.array_equal(tt[key].numpy(), td[key].numpy())
+    np.testing.assert_array_equal(np.isnan(tt["measurements"].numpy()), np.isnan(td["measurements"].numpy()))
+    np.testing.assert_allclose(tt["turn_rate"].numpy(), real.turn_rate(y), atol=1e-6)
+    # an added turn banked at most 30 deg, at each window's mean speed
+    speed = np.hypot(x[..., 1], x[..., 4]).mean(1, keepdims=True)
+    added = real.turn_rate(y) - real.turn_rate(x)
+    assert np.all(np.abs(added) <= 9.80665 * np.tan(np.radians(30)) / speed + 1e-6)
+    assert np.abs(added[moved]).max() > 9.80665 * np.tan(np.radians(20)) / speed.max() - 1e-6
+    real.turned_flights(train, tmp_path / "again", 0.5, seed=3, bank=(20.0, 30.0))
+    assert _digest(tmp_path / "again") == _digest(tmp_path / "t")
+    with pytest.raises(ValueError, match="replace its own source"):
+        real.turned_flights(train, train, 0.5, overwrite=True)
+    with pytest.raises(ValueError, match="turns is the share"):
+        real.turned_flights(train, tmp_path / "bad", 2.0)
+    from immnet.data.spec import DataSpec
+    from immnet.data.storage import write_dataset
+
+    last = write_dataset(tmp_path / "3dlast", 4, 0, DataSpec(T=120), progress=False)
+    with pytest.raises(ValueError, match="is not real flights"):
+        real.turned_flights(last, tmp_path / "bad", 0.5)
+    assert not (tmp_path / "bad").exists()
+    monkeypatch.setattr(immnet.cli, "_COMMAND_MODULES", ("immnet.data.cli",))
+    assert immnet.cli.main(["data", "turns", "--data", str(train), "--out", str(tmp_path / "cli"), "--turns", "0.5",
+                            "--bank", "20,30", "--seed", "3"]) == 0
+    assert "turns added to a share 0.5" in capsys.readouterr().out
+    assert _digest(tmp_path / "cli") == _digest(tmp_path / "t")
+    with pytest.raises(SystemExit):
+        immnet.cli.main(["data", "turns", "--data", str(train), "--out", str(tmp_path / "x"), "--turns", "0.5",
+                         "--bank", "20"])
+    assert "expected LOW,HIGH" in capsys.readouterr().err

@@ -1,4 +1,5 @@
-"""``immnet data generate|merge|export|plot|adsb|subset``: make, convert and look at 3D-LAST data sets; real flights.
+"""``immnet data generate|merge|export|plot|adsb|subset|turns``: make, convert and look at 3D-LAST data sets; real
+flights.
 
     immnet data generate --out data/train --n 100000 --seed 0 [--single-mode ct+] [--config configs/data/tiny.yaml] [--workers 2]
     immnet data generate --out data/train-1 --n 1000000 --seed 0 --shard 1/4      # shard 1 of 4 (one machine's part)
@@ -7,6 +8,7 @@
     immnet data plot --data data/train --out trajectories.png [--n 400] [--seed 0]
     immnet data adsb --samples collections/quickstart --out data/real/quickstart [--T 200] [--dt 1] [--seed 0]
     immnet data subset --data data/real/quickstart/train --out data/real/train-half --flights 0.5 [--seed 0]
+    immnet data turns --data data/real/quickstart/val --out data/real/val-turns --turns 0.5 [--bank 10,30] [--seed 0]
 """
 
 from __future__ import annotations
@@ -125,6 +127,28 @@ def _subset(args) -> int:
     return 0
 
 
+def _turns(args) -> int:
+    from immnet.data.real import turned_flights
+
+    meta = turned_flights(args.data, args.out, args.turns, seed=args.seed, bank=args.bank, segment=args.segment,
+                          overwrite=args.overwrite)
+    t = meta["turns"]
+    print(f"wrote {args.out}: {meta['n']} windows, turns added to a share {t['turns']:g} of them (bank "
+          f"{t['bank'][0]:g}-{t['bank'][1]:g} deg, segments {t['segment'][0]:g}-{t['segment'][1]:g} s, "
+          f"seed {t['seed']})")
+    return 0
+
+
+def _pair(text: str) -> tuple[float, float]:
+    parts = text.split(",")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW,HIGH (two numbers), got {text!r}") from None
+
+
 def _flights(text: str) -> float:
     try:
         return float(text)
@@ -208,3 +232,15 @@ def register(subparsers) -> None:
     s.add_argument("--seed", type=int, default=0, help="seed of the flights' permutation (default 0)")
     s.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     s.set_defaults(func=_subset)
+
+    t = sub.add_parser("turns", help="a real-flight set's windows with turns added to some (patterns, orbits)")
+    t.add_argument("--data", required=True, type=Path, help="a split of `immnet data adsb` (e.g. OUT/val)")
+    t.add_argument("--out", required=True, type=Path, help="output directory (must be absent or empty)")
+    t.add_argument("--turns", required=True, type=float, help="share of the windows given added turns, in [0, 1]")
+    t.add_argument("--bank", type=_pair, default=(10.0, 30.0), metavar="LOW,HIGH",
+                   help="bank angle of an added coordinated turn, degrees (default 10,30)")
+    t.add_argument("--segment", type=_pair, default=(20.0, 120.0), metavar="LOW,HIGH",
+                   help="seconds of each straight or turning segment (default 20,120)")
+    t.add_argument("--seed", type=int, default=0, help="seed of the turns and the new noise (default 0)")
+    t.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
+    t.set_defaults(func=_turns)

@@ -380,6 +380,48 @@ def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = F
     return load_dataset(out)[1]
 
 
+def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), segment=(20.0, 120.0),
+                   overwrite: bool = False) -> dict:
+    """Write a real-flight set's windows with turns added to a share ``turns`` of them as the data set ``out``;
+    return its meta.
+
+    ``data``: one split of ``immnet data adsb``. Each window is flown through ``FlightAugment``'s added turns
+    (``immnet.data.augment``: segments of ``segment`` seconds, half of them turning at a coordinated turn's rate
+    for a bank drawn from ``bank`` degrees) and measured again with its own ``r`` (its missed scans stay missed);
+    no rotation, so each window stays where its radar saw it. A validation set of the training region's own
+    flights that turns as much as patterns and orbits do (docs/real.md, "Turns added to the training flights").
+    ``meta.json`` is the source's with ``turns`` added (``turns``, ``bank``, ``segment``, ``seed``)."""
+    import torch
+    from tensordict import TensorDict
+
+    from immnet.data.augment import FlightAugment
+    from immnet.data.storage import REAL_FORMAT, _check_out, load_dataset, write_arrays
+
+    data, out = Path(data), Path(out)
+    if not data.is_dir():
+        raise ValueError(f"{data}: added turns need a real-flight data set directory (immnet data adsb's OUT/train, "
+                         f"OUT/val or OUT/test), not {'a file' if data.exists() else 'a missing path'}")
+    if out.resolve() == data.resolve():
+        raise ValueError(f"{out}: the turned set would replace its own source; give another --out")
+    _check_out(out, overwrite)
+    td, meta = load_dataset(data)
+    if meta.get("format") != REAL_FORMAT:
+        raise ValueError(f"{data}: format {meta.get('format')!r} is not real flights; added turns are for a set "
+                         f"written by `immnet data adsb` (3D-LAST's turns are its modes)")
+    aug = FlightAugment(rotate=False, renoise=True, r_range=None, seed=seed, turns=turns, turn_bank=bank,
+                        turn_segment=segment)
+    batch = TensorDict({k: v.to(torch.float64) if v.is_floating_point() else v for k, v in td.items()},
+                       batch_size=td.batch_size)
+    arrays = {k: v.numpy() for k, v in aug(batch, 0).items()}
+    kept = {k: v for k, v in meta.items() if k not in ("n", "T", "counts_per_mode", "dtype")}
+    kept["turns"] = {"turns": aug.turns, "bank": list(aug.turn_bank), "segment": list(aug.turn_segment),
+                     "seed": int(seed)}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with publishing(out) as tmp:
+        write_arrays(tmp, arrays, kept)
+    return load_dataset(out)[1]
+
+
 def window_flights(meta: dict, n: int, where) -> list[str]:
     """The flight of each of a real-flight set's ``n`` windows, from its ``meta.json`` (format version 2); a
     ValueError naming ``where`` if the file does not say them."""
