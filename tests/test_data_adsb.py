@@ -336,7 +336,7 @@ def test_window_flights_and_subsets_of_flights(tmp_path, monkeypatch, capsys):
     from immnet.data.storage import write_dataset
 
     last = write_dataset(tmp_path / "3dlast", 4, 0, DataSpec(T=120), progress=False)
-    with pytest.raises(ValueError, match="format '3d-last' has no flights to choose"):
+    with pytest.raises(ValueError, match="format '3d-last' is not real flights"):
         real.subset_flights(last, tmp_path / "bad", 0.5)
 
 

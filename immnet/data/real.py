@@ -338,6 +338,25 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     return meta
 
 
+def _real_split(data: Path, out: Path, overwrite: bool, what: str):
+    """``(td, meta)`` of ``data``, one split of ``immnet data adsb``, for a writer of a set derived from it (``what``
+    it does, for the messages); refuses, by name, a file or missing path, an ``out`` that is ``data`` or not empty,
+    and a set of another format (3D-LAST's has no flights)."""
+    from immnet.data.storage import REAL_FORMAT, _check_out, load_dataset
+
+    if not data.is_dir():
+        raise ValueError(f"{data}: {what} needs a real-flight data set directory (immnet data adsb's OUT/train, "
+                         f"OUT/val or OUT/test), not {'a file' if data.exists() else 'a missing path'}")
+    if out.resolve() == data.resolve():
+        raise ValueError(f"{out}: {what} would replace its own source; give another --out")
+    _check_out(out, overwrite)
+    td, meta = load_dataset(data)
+    if meta.get("format") != REAL_FORMAT:
+        raise ValueError(f"{data}: format {meta.get('format')!r} is not real flights; {what} needs a set written "
+                         f"by `immnet data adsb`")
+    return td, meta
+
+
 def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = False) -> dict:
     """Write the windows of some of a real-flight set's flights as the data set ``out``; return its meta.
 
@@ -349,19 +368,10 @@ def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = F
     source's order; ``meta.json`` is the source's with this split's ``flights`` and ``window_flights``
     narrowed and ``subset`` added (``flights``, ``of_flights``, ``windows``, ``of_windows``, ``seed``).
     """
-    from immnet.data.storage import REAL_FORMAT, _check_out, load_dataset, write_arrays
+    from immnet.data.storage import load_dataset, write_arrays
 
     data, out = Path(data), Path(out)
-    if not data.is_dir():
-        raise ValueError(f"{data}: a subset of flights needs a real-flight data set directory (immnet data adsb's "
-                         f"OUT/train, OUT/val or OUT/test), not {'a file' if data.exists() else 'a missing path'}")
-    if out.resolve() == data.resolve():
-        raise ValueError(f"{out}: the subset would replace its own source; give another --out")
-    _check_out(out, overwrite)
-    td, meta = load_dataset(data)
-    if meta.get("format") != REAL_FORMAT:
-        raise ValueError(f"{data}: format {meta.get('format')!r} has no flights to choose; a subset of flights "
-                         f"needs a set written by `immnet data adsb`")
+    td, meta = _real_split(data, out, overwrite, "a subset of flights")
     owners = window_flights(meta, td.batch_size[0], data)
     ids = sorted(set(owners))
     k = _flight_count(flights, len(ids), data)
@@ -395,19 +405,10 @@ def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), se
     from tensordict import TensorDict
 
     from immnet.data.augment import FlightAugment
-    from immnet.data.storage import REAL_FORMAT, _check_out, load_dataset, write_arrays
+    from immnet.data.storage import load_dataset, write_arrays
 
     data, out = Path(data), Path(out)
-    if not data.is_dir():
-        raise ValueError(f"{data}: added turns need a real-flight data set directory (immnet data adsb's OUT/train, "
-                         f"OUT/val or OUT/test), not {'a file' if data.exists() else 'a missing path'}")
-    if out.resolve() == data.resolve():
-        raise ValueError(f"{out}: the turned set would replace its own source; give another --out")
-    _check_out(out, overwrite)
-    td, meta = load_dataset(data)
-    if meta.get("format") != REAL_FORMAT:
-        raise ValueError(f"{data}: format {meta.get('format')!r} is not real flights; added turns are for a set "
-                         f"written by `immnet data adsb` (3D-LAST's turns are its modes)")
+    td, meta = _real_split(data, out, overwrite, "adding turns")
     aug = FlightAugment(rotate=False, renoise=True, r_range=None, seed=seed, turns=turns, turn_bank=bank,
                         turn_segment=segment)
     batch = TensorDict({k: v.to(torch.float64) if v.is_floating_point() else v for k, v in td.items()},
