@@ -126,6 +126,52 @@ def test_an_npz_at_5s_scans_is_tracked_at_its_own_intervals(irregular, tmp_path,
     assert float(out["dt"]) == (5.0 if times == "dt" else float(np.median(gaps)))
 
 
+@pytest.mark.parametrize("times", ["t", "dt"])
+def test_an_npz_gap_beyond_the_networks_range_is_coasted_as_a_csvs_is(tmp_path, times):
+    """``immnet track`` of an .npz whose scans are further apart than the default weights' 12 s: each long gap cut
+    into missed scans inside the range, as the CSV path cuts it (``track_rows(max_interval=...)``), the input's
+    scans written back. Per-scan times with a 20 s and a 26 s gap give the CSV path's estimates of the same rows;
+    uniform 20 s scans give ``Tracker.track`` of the 10 s grid with every other scan missed."""
+    from immnet.tracking import Tracker
+
+    if times == "t":
+        t = np.r_[np.arange(0.0, 50.0, 5.0), 70.0 + np.arange(0.0, 30.0, 5.0), 121.0 + np.arange(0.0, 40.0, 5.0)]
+    else:
+        t = 20.0 * np.arange(30)
+    p = np.stack([10_000 + 150.0 * t, np.full_like(t, 5_000.0), np.full_like(t, 3_000.0)], -1)  # straight and level
+    z = (p + np.random.default_rng(8).normal(0, 5.0, (len(t), 3))).astype(np.float32)
+    z[3] = np.nan  # a missed scan of the input's own
+    extra = {"t": t[None]} if times == "t" else {"dt": 20.0}
+    np.savez(tmp_path / "in.npz", measurements=z[None], **extra)
+    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz")]) == 0
+    out = np.load(tmp_path / "out.npz")
+    assert out["state"].shape == (1, len(t), 9) and out["state_cov"].shape == (1, len(t), 9, 9)
+    assert float(out["dt"]) == (5.0 if times == "t" else 20.0)
+    if times == "t":
+        with open(tmp_path / "in.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["track_id", "t", "x", "y", "z"])
+            for tk, zk in zip(t, z):
+                w.writerow(["a", f"{tk:.2f}", *("" if np.isnan(v) else repr(float(v)) for v in zk)])
+        assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(tmp_path / "out.csv")]) == 0
+        with open(tmp_path / "out.csv") as f:
+            csv_rows = list(csv.DictReader(f))
+        csv_pos = np.array([[float(r[c]) for c in ("x", "y", "z")] for r in csv_rows])
+        np.testing.assert_allclose(out["state"][0][:, [0, 3, 6]], csv_pos, rtol=0, atol=1e-3)
+    else:
+        grid = np.full((1, 2 * len(t) - 1, 3), np.nan, dtype=np.float32)
+        grid[0, ::2] = z
+        api = Tracker.pretrained().track(torch.from_numpy(grid), intervals=torch.full((1, grid.shape[1]), 10.0))
+        np.testing.assert_allclose(out["state"][0], api["state"][0, ::2].numpy(), rtol=1e-5, atol=1e-3)
+    # tracked through the gaps, not lost in them: positions about as good as the raw measurements' (at 20 s a
+    # maneuver-ready network leans on them), the velocity, which no scan measures, the truth's 150 m/s east
+    ok = ~np.isnan(z[:, 0])
+    err = np.sqrt(((out["state"][0][:, [0, 3, 6]] - p)[ok][3:] ** 2).sum(-1).mean())
+    assert err < 1.1 * np.sqrt(((z - p)[ok][3:] ** 2).sum(-1).mean())
+    np.testing.assert_allclose(out["state"][0][4:, 1], 150.0, rtol=0.1)
+    np.testing.assert_allclose(out["state"][0][4:, [4, 7]], 0.0, atol=15.0)
+
+
 def test_a_gap_beyond_the_networks_range_is_coasted_at_intervals_inside_it():
     """``track_rows(max_interval=...)``: rows 20 s apart for a network trained up to 12 s are two 10 s scans, the
     one between them a missed detection; rows inside the range keep their own times."""
