@@ -168,7 +168,7 @@ def _cut_gaps(data, net):
     from immnet.tracking.segments import cut_gaps
 
     span = getattr(net, "interval_range", None)
-    if span is None or not bool((scan_intervals(data)[:, 1:] > float(span[1]) * (1 + 1e-6)).any()):
+    if span is None or not bool((scan_intervals(data) > float(span[1]) * (1 + 1e-6)).any()):  # scan 0's: nominal dt
         return data, None
     z = data[keys.MEASUREMENTS]
     N, T = z.shape[:2]
