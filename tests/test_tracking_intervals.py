@@ -172,6 +172,39 @@ def test_an_npz_gap_beyond_the_networks_range_is_coasted_as_a_csvs_is(tmp_path, 
     np.testing.assert_allclose(out["state"][0][4:, [4, 7]], 0.0, atol=15.0)
 
 
+def test_tracker_track_coasts_a_long_gap_and_refuses_intervals_it_was_not_trained_at():
+    """``Tracker.track(z, intervals=...)``: for the default weights (0.5-12 s) a 20 s interval is two 10 s scans, the
+    first missed, and the output holds the scans given (equal to the 10 s grid tracked outright); an interval below
+    the range, or for the 1 s benchmark network any interval but 1 s, is refused by name, as ``Tracker.step`` refuses
+    it (it ran, extrapolated, before)."""
+    from immnet.tracking import Tracker
+
+    t = np.r_[0.0, 5.0, 10.0, 30.0, 35.0, 40.0, 60.0, 65.0]
+    p = np.stack([10_000 + 150.0 * t, np.full_like(t, 5_000.0), np.full_like(t, 3_000.0)], -1)
+    z = torch.from_numpy((p + np.random.default_rng(3).normal(0, 5.0, p.shape)).astype(np.float32))[None]
+    intervals = torch.from_numpy(np.r_[5.0, np.diff(t)])[None]
+    tracker = Tracker.pretrained()
+    out = tracker.track(z, intervals=intervals, return_cov=True)
+    assert tuple(out["state"].shape) == (1, 8, 9) and tuple(out["state_cov"].shape) == (1, 8, 9, 9)
+    grid = torch.full((1, 10, 3), float("nan"))
+    keep = [0, 1, 2, 4, 5, 6, 8, 9]  # 10 -> 30 s and 40 -> 60 s each two scans of 10 s
+    grid[0, keep] = z[0]
+    steps = torch.tensor([[5.0, 5.0, 5.0, 10.0, 10.0, 5.0, 5.0, 10.0, 10.0, 5.0]])
+    ref = Tracker.pretrained().track(grid, intervals=steps, return_cov=True)
+    for key in ("state", "mode_probs", "state_cov"):
+        torch.testing.assert_close(out[key], ref[key][:, keep], rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match="trained on intervals 0.5-12 s but this data has an interval of 0.2 s"):
+        tracker.track(z, intervals=torch.full((1, 8), 0.2))
+    with pytest.raises(ValueError, match=r"intervals are \[n_tracks, T\]"):
+        tracker.track(z, intervals=torch.full((1, 7), 5.0))
+    with pytest.raises(ValueError, match="sampled at dt = 1 s but this data has dt = 2 s"):
+        Tracker.pretrained("3dlast").track(z, intervals=torch.full((1, 8), 2.0))
+    one = Tracker.pretrained("3dlast")
+    # its own interval is taken (the step's interval path: float32 roundoff of the fixed-interval one)
+    torch.testing.assert_close(one.track(z, intervals=torch.ones(1, 8))["state"], one.track(z)["state"], rtol=1e-4,
+                               atol=1e-2)
+
+
 def test_a_gap_beyond_the_networks_range_is_coasted_at_intervals_inside_it():
     """``track_rows(max_interval=...)``: rows 20 s apart for a network trained up to 12 s are two 10 s scans, the
     one between them a missed detection; rows inside the range keep their own times."""

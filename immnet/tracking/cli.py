@@ -156,38 +156,6 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     return 0
 
 
-def _cut_gaps(data, net):
-    """``(scans, where)``: an .npz's tracks as the network tracks them, and where the input's scans are among them.
-    For a network trained over a range of intervals, a gap longer than the range is cut into equal intervals inside
-    it by missed scans, as a CSV's is (``segments.cut_gaps``; ``where [N, T]``); otherwise the data as it is and
-    None."""
-    import torch
-    from tensordict import TensorDict
-
-    from immnet.data.times import nominal_dt, scan_intervals
-    from immnet.tracking.segments import cut_gaps
-
-    span = getattr(net, "interval_range", None)
-    if span is None or not bool((scan_intervals(data) > float(span[1]) * (1 + 1e-6)).any()):  # scan 0's: nominal dt
-        return data, None
-    z = data[keys.MEASUREMENTS]
-    N, T = z.shape[:2]
-    dt = nominal_dt(data, torch.float64)  # [N]
-    if keys.TIME in data.keys():
-        t = data[keys.TIME].to(torch.float64).numpy()
-    else:
-        t = np.arange(T, dtype=np.float64)[None] * dt[:, None].numpy()
-    times, where = cut_gaps(t, float(span[1]))
-    full = torch.full((N, times.shape[1], 3), float("nan"), dtype=z.dtype)
-    full[torch.arange(N)[:, None], torch.from_numpy(where)] = z
-    scans = TensorDict({keys.MEASUREMENTS: full, keys.TIME: torch.from_numpy(times)}, batch_size=[N])
-    # the nominal interval (scan 0's, a track's start) inside the range too: uniform scans beyond it are cut as well
-    scans[keys.DT] = dt.clamp(max=float(span[1]))
-    if keys.R in data.keys():
-        scans[keys.R] = data[keys.R]
-    return scans, where
-
-
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
     from immnet.tracking.tracker import KEEP, Tracker
@@ -238,16 +206,13 @@ def run(args) -> int:
     from immnet.data.times import scan_intervals
 
     intervals = scan_intervals(data) if "t" in data.keys() else data["dt"]
-    scans, where = _cut_gaps(data, tracker.net)
-    check_dt(tracker.net, scan_intervals(scans), "the checkpoint")
+    if tracker.net.interval_range is None:  # one interval; a range's, gaps cut, Tracker.track checks
+        check_dt(tracker.net, intervals, "the checkpoint")
     has_cov = tracker.net.has_cov
-    # each scan at its own interval (a network trained over a range runs F(dt), Q(dt) per scan), each track's r where
-    # the network's filter experts are told it
-    out = tracker.track(scans["measurements"], intervals=tracker.net.intervals_for(scans), return_cov=has_cov,
-                        r=tracker.net.told_r(scans))
-    if where is not None:  # the input's scans, without the missed ones cut into its long gaps
-        rows, cols = np.arange(where.shape[0])[:, None], where
-        out = {k: out[k][rows, cols] for k in out.keys()}
+    # each scan at its own interval (a network trained over a range runs F(dt), Q(dt) per scan; a gap longer than
+    # the range coasted at intervals inside it), each track's r where the network's filter experts are told it
+    out = tracker.track(data["measurements"], intervals=tracker.net.intervals_for(data), return_cov=has_cov,
+                        r=tracker.net.told_r(data))
     with publishing(args.output, suffix=".npz") as tmp:
         times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
         cov = {"state_cov": out["state_cov"].numpy()} if has_cov else {}
@@ -256,7 +221,7 @@ def run(args) -> int:
     if not has_cov:
         _report_no_cov(tracker.net.no_cov_reason())
     _report_gated(tracker.n_gated, limit)
-    print(f"tracked {data.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
+    print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
     if tracker.net.interval_range is not None:
         _advise(weights, np.asarray(intervals, dtype=np.float64).ravel())
     return 0

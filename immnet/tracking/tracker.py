@@ -125,6 +125,28 @@ def check_dt(net, dt, name: str = "immnet", method=None) -> None:
             f"{others}")
 
 
+def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
+    """``(z, intervals, where)`` for a network trained over a range of intervals (``net.interval_range``): every
+    interval longer than the range cut into equal intervals inside it by missed scans (``segments.cut_gaps``, as the
+    CSV path cuts a gap: a gap is a gap, the track coasts through it), ``where [B, T]`` (numpy) the input's scans
+    among the new ones; scan 0's interval (a track's start) at most the range's end. Otherwise the input and None."""
+    import numpy as np
+
+    from immnet.tracking.segments import cut_gaps
+
+    span = getattr(net, "interval_range", None)
+    if span is None or not bool((intervals > float(span[1]) * (1 + 1e-6)).any()):
+        return z, intervals, None
+    hi = float(span[1])
+    times = torch.cat([torch.zeros_like(intervals[:, :1]), intervals[:, 1:].cumsum(-1)], -1).numpy()
+    full_times, where = cut_gaps(times, hi)
+    B = z.shape[0]
+    full = torch.full((B, full_times.shape[1], 3), float("nan"), dtype=z.dtype)
+    full[torch.arange(B)[:, None], torch.from_numpy(where)] = z
+    steps = torch.from_numpy(np.diff(full_times, axis=-1))
+    return full, torch.cat([intervals[:, :1].clamp(max=hi), steps], -1), where
+
+
 class Tracker:
     """A stateful wrapper around ``IMMNet.scan`` for streaming use (inference only).
 
@@ -221,7 +243,9 @@ class Tracker:
         covariance; a ValueError saying why where the experts carry none, ``net.has_cov``), NaN before each
         track's first detection; ``n_gated`` counts the measurements gated in this call (module doc).
         ``intervals [B, T]``: the interval before each scan (``immnet.data.times.scan_intervals``; None: the
-        network's ``dt``). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
+        network's ``dt``), each one the network was trained at (:func:`check_dt`), except that for a network trained
+        over a range an interval longer than it is a gap the track coasts through at intervals inside it
+        (:func:`coast_long_gaps`; the output holds the scans given). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
         (``FilterGain(r="data")``)."""
         z = torch.as_tensor(measurements, dtype=torch.float32)
         if z.dim() != 3 or z.shape[-1] != 3:
@@ -230,15 +254,25 @@ class Tracker:
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
         z, self.n_gated = gate_measurements(z, self.max_position)
+        where = None
+        if intervals is not None:
+            intervals = torch.as_tensor(intervals, dtype=torch.float64)
+            if tuple(intervals.shape) != tuple(z.shape[:2]):
+                raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
+            z, intervals, where = coast_long_gaps(self.net, z, intervals)
+            check_dt(self.net, intervals, "this tracker")
         outs = []
         for i in range(0, z.shape[0], batch_size):
-            gaps = None if intervals is None else torch.as_tensor(intervals[i : i + batch_size], dtype=z.dtype)
+            gaps = None if intervals is None else intervals[i : i + batch_size].to(z.dtype)
             told = None if r is None else torch.as_tensor(r, dtype=z.dtype).reshape(-1)[i : i + batch_size]
             out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov, r=told)
             out.set(keys.MODE_PROBS, self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
             waiting = before_first_detection(z[i : i + batch_size])
             outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))
-        return torch.cat(outs, 0)
+        out = torch.cat(outs, 0)
+        if where is not None:  # the scans asked for, without the missed ones cut into the long gaps
+            out = out[torch.arange(out.batch_size[0])[:, None], torch.from_numpy(where)]
+        return out
 
 
 def _select(mask, a: TensorDict, b: TensorDict) -> TensorDict:
