@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from immnet import keys
-from immnet.data.augment import ROLL_S, FlightAugment, _turn_phase, add_turns, horizontal_turn_rate
+from immnet.data.augment import ROLL_S, FlightAugment, _turn_phase, add_turns
 from immnet.data.contract import NO_LABEL
 from immnet.data.datamodule import LASTDataModule
 from immnet.data.generate import generate
@@ -128,7 +128,7 @@ def test_an_added_turn_flies_a_straight_flight_round_a_circle(jitter):
     torch.testing.assert_close(y[:, 1], 150.0 * torch.cos(w * t), rtol=0, atol=1e-9)
     torch.testing.assert_close(y[:, 4], 150.0 * torch.sin(w * t), rtol=0, atol=1e-9)
     torch.testing.assert_close(y[:, [2, 5]].norm(dim=-1), torch.full_like(t, 150.0 * w), rtol=0, atol=1e-9)  # v w
-    torch.testing.assert_close(horizontal_turn_rate(y), torch.full_like(t, w), rtol=0, atol=1e-12)
+    torch.testing.assert_close(_turn_rate(y), torch.full_like(t, w), rtol=0, atol=1e-12)
     assert torch.equal(y[:, 6:], _straight(t)[0, :, 6:])
 
 
@@ -176,10 +176,10 @@ def test_turns_keep_each_flights_speeds_and_vertical_and_bank_at_most_as_asked(u
     assert 16 <= int(turned.sum()) <= 48  # half of 64, give or take four standard deviations
     # the added rate is a coordinated turn banked at most 30 deg at the track's mean speed
     mean_speed = x[..., [1, 4]].norm(dim=-1).mean(-1, keepdim=True)
-    added = horizontal_turn_rate(y) - horizontal_turn_rate(x)
+    added = _turn_rate(y) - _turn_rate(x)
     assert bool((added.abs() <= 9.80665 * math.tan(math.radians(30)) / mean_speed + 1e-6).all())
     assert float(added[turned].abs().max()) > 9.80665 * math.tan(math.radians(10)) / float(mean_speed.max())
-    torch.testing.assert_close(out[keys.TURN_RATE].double(), horizontal_turn_rate(y), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(out[keys.TURN_RATE].double(), _turn_rate(y), rtol=1e-5, atol=1e-6)
     # the measurements are new draws about the new truth, with each track's own r
     e = (out[keys.MEASUREMENTS].double() - y[..., [0, 3, 6]]) / out[keys.R].double()[:, None, None]
     e = e[~torch.isnan(e)]

@@ -35,7 +35,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.data.contract import NO_LABEL
 from immnet.data.times import scan_intervals
-from immnet.motion.models import ACC, POS, VEL
+from immnet.motion.models import ACC, POS, VEL, turn_rate_of
 
 
 class FlightAugment:
@@ -112,7 +112,8 @@ class FlightAugment:
             z = torch.where(torch.isnan(z), z, fresh.to(z.dtype))
         out[keys.MEASUREMENTS] = z
         if self.turns > 0 and keys.TURN_RATE in out.keys():
-            rate = horizontal_turn_rate(out[keys.STATES].to(torch.float64))
+            # the data writer's turn_rate (immnet.data.real.turn_rate: a floor of 1e-9 m^2/s^2 on the speed squared)
+            rate = turn_rate_of(out[keys.STATES].to(torch.float64), min_speed=_WRITER_MIN_SPEED)
             out[keys.TURN_RATE] = rate.to(out[keys.TURN_RATE].dtype)
         return out
 
@@ -148,6 +149,9 @@ G = 9.80665
 
 _TURN_SEED = 0x5EED_0000_0000
 """Offsets the added turns' generator from the views' (``seed * 1_000_003 + step``)."""
+
+_WRITER_MIN_SPEED = 1e-9 ** 0.5
+"""``turn_rate_of``'s speed floor that gives ``immnet.data.real.turn_rate``'s (the speed squared at least 1e-9)."""
 
 ROLL_S = 5.0
 """Seconds in which an added turn's rate goes from one segment's to the next (linearly): an airliner rolls into a
@@ -205,9 +209,3 @@ def add_turns(states: torch.Tensor, intervals: torch.Tensor, boundaries: torch.T
     for i, d in zip((0, 1), (dx, dy)):
         out[:, 1:, POS[i]] = states[:, :1, POS[i]] + (new[i] + d).cumsum(-1)
     return out
-
-
-def horizontal_turn_rate(states: torch.Tensor) -> torch.Tensor:
-    """``(vx ay - vy ax) / (vx^2 + vy^2)`` (rad/s) of states ``[..., 9]``: the data's ``turn_rate`` of a real flight."""
-    vx, ax, vy, ay = states[..., VEL[0]], states[..., ACC[0]], states[..., VEL[1]], states[..., ACC[1]]
-    return (vx * ay - vy * ax) / (vx * vx + vy * vy).clamp(min=1e-9)
