@@ -357,6 +357,18 @@ def _real_split(data: Path, out: Path, overwrite: bool, what: str):
     return td, meta
 
 
+def _write_split(out: Path, arrays: dict, meta: dict) -> dict:
+    """Write ``arrays`` as the data set ``out`` (through a temporary sibling) with ``meta``, less the fields
+    ``write_arrays`` counts again (``n``, ``T``, ``counts_per_mode``, ``dtype``); return the meta written."""
+    from immnet.data.storage import load_dataset, write_arrays
+
+    kept = {k: v for k, v in meta.items() if k not in ("n", "T", "counts_per_mode", "dtype")}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with publishing(out) as tmp:
+        write_arrays(tmp, arrays, kept)
+    return load_dataset(out)[1]
+
+
 def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = False) -> dict:
     """Write the windows of some of a real-flight set's flights as the data set ``out``; return its meta.
 
@@ -368,8 +380,6 @@ def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = F
     source's order; ``meta.json`` is the source's with this split's ``flights`` and ``window_flights``
     narrowed and ``subset`` added (``flights``, ``of_flights``, ``windows``, ``of_windows``, ``seed``).
     """
-    from immnet.data.storage import load_dataset, write_arrays
-
     data, out = Path(data), Path(out)
     td, meta = _real_split(data, out, overwrite, "a subset of flights")
     owners = window_flights(meta, td.batch_size[0], data)
@@ -378,16 +388,9 @@ def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = F
     chosen = {ids[i] for i in np.random.default_rng([int(seed), 2]).permutation(len(ids))[:k]}
     rows = np.array([i for i, f in enumerate(owners) if f in chosen])
     arrays = {key: td[key].numpy()[rows] for key in td.keys()}
-    split = meta.get("split")
-    kept = {k_: v for k_, v in meta.items() if k_ not in ("n", "T", "counts_per_mode", "dtype")}
-    kept["flights"] = {**meta.get("flights", {}), split: sorted(chosen)}
-    kept["window_flights"] = [owners[i] for i in rows]
-    kept["subset"] = {"flights": k, "of_flights": len(ids), "windows": len(rows), "of_windows": len(owners),
-                      "seed": int(seed)}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with publishing(out) as tmp:
-        write_arrays(tmp, arrays, kept)
-    return load_dataset(out)[1]
+    subset = {"flights": k, "of_flights": len(ids), "windows": len(rows), "of_windows": len(owners), "seed": int(seed)}
+    return _write_split(out, arrays, {**meta, "flights": {**meta.get("flights", {}), meta.get("split"): sorted(chosen)},
+                                      "window_flights": [owners[i] for i in rows], "subset": subset})
 
 
 def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), segment=(20.0, 120.0),
@@ -405,7 +408,6 @@ def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), se
     from tensordict import TensorDict
 
     from immnet.data.augment import FlightAugment
-    from immnet.data.storage import load_dataset, write_arrays
 
     data, out = Path(data), Path(out)
     td, meta = _real_split(data, out, overwrite, "adding turns")
@@ -414,13 +416,8 @@ def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), se
     batch = TensorDict({k: v.to(torch.float64) if v.is_floating_point() else v for k, v in td.items()},
                        batch_size=td.batch_size)
     arrays = {k: v.numpy() for k, v in aug(batch, 0).items()}
-    kept = {k: v for k, v in meta.items() if k not in ("n", "T", "counts_per_mode", "dtype")}
-    kept["turns"] = {"turns": aug.turns, "bank": list(aug.turn_bank), "segment": list(aug.turn_segment),
-                     "seed": int(seed)}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with publishing(out) as tmp:
-        write_arrays(tmp, arrays, kept)
-    return load_dataset(out)[1]
+    turns = {"turns": aug.turns, "bank": list(aug.turn_bank), "segment": list(aug.turn_segment), "seed": int(seed)}
+    return _write_split(out, arrays, {**meta, "turns": turns})
 
 
 def window_flights(meta: dict, n: int, where) -> list[str]:
