@@ -123,9 +123,10 @@ def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:
     return out
 
 
-def _wired(*stages):
-    """The stages of a step, each told the keys the stages before it write (``Stage.wire``)."""
-    upstream = set()
+def _wired(*stages, upstream=()):
+    """The stages of a step, each told the keys the stages before it write (``Stage.wire``); ``upstream``: stages
+    that run before them."""
+    upstream = {unravel_key(k) for s in upstream for k in s.out_keys}
     for stage in stages:
         stage.wire(set(upstream))
         upstream |= {unravel_key(k) for k in stage.out_keys}
@@ -164,6 +165,7 @@ class IMMNet(TensorDictModuleBase):
         cov_consistency: float | None = None,
         start_detections: int = 2,
         modes: str = "joint",
+        correction: Component | None = None,
     ):
         """``gain``, ``classifier``: the components (``Component``: a ``class_path`` / ``init_args`` mapping);
         ``p_stay``, ``guard``: the Markov chain's staying probability and the range guard, set here once for
@@ -183,7 +185,9 @@ class IMMNet(TensorDictModuleBase):
         (the decoupled IMM's structure), ``"channel"``, the horizontal plane and the vertical. Each group has its own
         mode probabilities ``("mode", "probs")`` ``[B, G, M]``, its own mix, mode update and fusion, over experts
         whose motion models keep the groups apart (per axis CV and CA; per channel turns too); the gain and the
-        classifier are told it (filter experts' likelihoods per group, a classifier's logits per group)."""
+        classifier are told it (filter experts' likelihoods per group, a classifier's logits per group).
+        ``correction``: a learned output correction after the fusion (``immnet.stages.correct.OutputCorrection``, a
+        component as ``gain`` is), which the step reports in place of the fused estimate (``estimate``); None: none."""
         super().__init__()
         self.model_set = ModelSet.from_config(model_set)
         self.model_set_config = self.model_set.to_config()
@@ -220,19 +224,27 @@ class IMMNet(TensorDictModuleBase):
         update = getattr(self.gain, "update_stage", None)
         self.update = update(ms, dt) if update is not None else Update(ms)
         self.fuse = Fuse(ms, consistency=cov_consistency, modes=modes)
+        self.correct = None
+        if correction is not None:
+            correction = component_config(correction)
+            self.config["correction"] = correction
+            self.correct = build_component(correction, ms, dt, settings)
         first = () if self.interact is None else (self.interact,)
         # the step and the experts-alone step run the stages above between a track start's two stages; they are
         # not submodules of their own, so a state dict names each weight once, by the stage's role
         # (``gain.fc1.weight``), whatever the slots
         stages = _wired(*first, self.predict, self.gain, self.update, self.classify, self.fuse)
+        # the output correction follows the join: it reads each track's estimate as the step reports it, starts
+        # included, and carries its own state (immnet.stages.correct); experts alone have none
+        after = () if self.correct is None else _wired(self.correct, upstream=stages)
         alone = (*first, self.predict, self.gain, self.update, self.fuse)
         alone_stages = _wired(*(stage.for_experts_alone() for stage in alone))
-        self.start, self.join = self._starts(stages, experts_alone=False)
+        self.start, self.join = self._starts(stages, experts_alone=False, after=after)
         start_alone, join_alone = self._starts(alone_stages, experts_alone=True)
-        object.__setattr__(self, "step", TensorDictSequential(self.start, *stages, self.join))
+        object.__setattr__(self, "step", TensorDictSequential(self.start, *stages, self.join, *after))
         # the step of tracks that have all started (no start to make): what IMMNet.scan runs then, and what to compile
         # for them (compiled, the whole step computes the starts at every scan: immnet.stages.start)
-        object.__setattr__(self, "running_step", TensorDictSequential(*stages))
+        object.__setattr__(self, "running_step", TensorDictSequential(*stages, *after))
         object.__setattr__(self, "expert_step", TensorDictSequential(start_alone, *alone_stages, join_alone))
         # the stages built for experts alone (no weights of their own) move with the network (_apply, train)
         object.__setattr__(self, "_alone_only", [m for m in self.expert_step.module if not any(m is s for s in alone)])
@@ -245,11 +257,13 @@ class IMMNet(TensorDictModuleBase):
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
         self.register_buffer("mode_onehot", onehot)
 
-    def _starts(self, stages, experts_alone: bool) -> tuple[TrackStart, JoinStarts]:
-        """The stages a step begins and ends with: a track's start (``immnet.stages.start``) around ``stages``."""
+    def _starts(self, stages, experts_alone: bool, after=()) -> tuple[TrackStart, JoinStarts]:
+        """The stages a step begins and ends with: a track's start (``immnet.stages.start``) around ``stages``;
+        ``after``: the stages that follow the join, whose carry the start makes too."""
         fuse = stages[-1]
         written = {unravel_key(k) for s in stages for k in s.out_keys}
-        start = TrackStart(self.model_set, self.dt, stages, experts_alone=experts_alone, detections=self.start_detections)
+        start = TrackStart(self.model_set, self.dt, (*stages, *after), experts_alone=experts_alone,
+                           detections=self.start_detections)
         fused_cov = keys.FUSED_COV in written and keys.FUSED_COV not in start.carry_keys
         return start, JoinStarts(self.model_set, start, fuse, fused_cov)
 
@@ -284,20 +298,22 @@ class IMMNet(TensorDictModuleBase):
                              "holds no 'r'")
         return batch[keys.R].to(batch[keys.MEASUREMENTS].dtype).reshape(-1)
 
-    LEARNED_PARTS = ("gain", "classifier", "correction")
+    LEARNED_PARTS = ("gain", "classifier", "correction", "output")
 
     def knock_out(self, *parts: str) -> "IMMNet":
         """Set the learned correction of ``parts`` (``gain``: KalmanNet's noise and gain corrections, and its state
         correction where it has one; ``classifier``: the Transformer's correction of the IMM's mode update;
-        ``correction``: KalmanNet's state correction alone, ``KalmanNetFilterGain(state_correction=...)``) to zero, in
-        place: each part its model-based base, the rest of the trained network as it is; ``gain`` and ``classifier``:
+        ``correction``: KalmanNet's state correction alone, ``KalmanNetFilterGain(state_correction=...)``; ``output``:
+        the output correction after the fusion, ``IMMNet(correction=...)``) to zero, in place: each part its model-based base, the rest of the trained network as it is; ``gain`` and ``classifier``:
         IMMNet with nothing learned (the model-based IMM of ``tests/test_filtering.py``). What a trained part is
         worth, without training again. A part with no model-based base (the paper's Transformer alone) is refused."""
         for part in parts:
             if part not in self.LEARNED_PARTS:
                 raise ValueError(f"no learned part {part!r}; parts: {', '.join(self.LEARNED_PARTS)}")
-            stage = self.classify if part == "classifier" else self.gain
+            stage = {"classifier": self.classify, "output": self.correct}.get(part, self.gain)
             method = "knock_out_correction" if part == "correction" else "knock_out"
+            if stage is None:
+                raise ValueError("this IMMNet has no output correction to knock out (IMMNet(correction=...))")
             if not hasattr(stage, method):
                 raise ValueError(f"the {part} {type(stage).__name__} has no model-based base to knock out to")
             getattr(stage, method)()
@@ -339,6 +355,11 @@ class IMMNet(TensorDictModuleBase):
         return (f"this IMMNet's experts carry no covariance: its gain {type(self.gain).__name__} gives each expert a "
                 "Kalman gain and nothing else (the paper's KalmanNet experts); filter experts "
                 "(immnet.stages.filtering, the recipes') and the analytic gain carry one")
+
+    def estimate(self, carry: TensorDict) -> torch.Tensor:
+        """The estimate a scan reports ``[B, 9]``: the output correction's where the network has one
+        (``("output", "state")``), else the fused state."""
+        return carry.get(keys.FUSED if self.correct is None else keys.OUTPUT)
 
     def reported_cov(self, carry: TensorDict) -> torch.Tensor:
         """The covariance this network reports for a scan's fused state ``[B, 9, 9]``: the carry's fused covariance,
@@ -431,7 +452,7 @@ class IMMNet(TensorDictModuleBase):
                              "net.make_tensordict_primer()")
         truth = {k: td.get(k) for k in self.start.inputs if k != keys.R and k in present}  # an oracle's inputs
         new = self.scan(carry, z, interval=td.get(keys.INTERVAL, None), r=td.get(keys.R, None), truth=truth or None)
-        td.set(keys.ACTION, new.get(keys.FUSED))
+        td.set(keys.ACTION, self.estimate(new))
         for key in self.carry_keys:
             td.set(("next", *key), new.get(key))
         return td
@@ -464,7 +485,7 @@ class IMMNet(TensorDictModuleBase):
             carry = self.scan(carry, measurements[..., t, :], experts_alone,
                               None if intervals is None else intervals[:, t], r,
                               None if truth is None else {k: v[:, t] for k, v in truth.items()})
-            states.append(carry.get(keys.FUSED))
+            states.append(carry.get(keys.FUSED) if experts_alone else self.estimate(carry))
             if return_cov:
                 covs.append(self.reported_cov(carry))
             if not experts_alone:

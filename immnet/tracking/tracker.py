@@ -221,7 +221,8 @@ class Tracker:
                 self.carry = self.net.scan(self.carry, z, r=told)
             else:
                 self.carry = self.net.scan(self.carry, z, interval=interval, r=told)
-        out = self.carry.select(keys.FUSED, keys.EXPERT_PROBS, keys.EXPERT_POST).clone()
+        out = self.carry.select(keys.EXPERT_PROBS, keys.EXPERT_POST).clone()
+        out.set(keys.FUSED, self.net.estimate(self.carry).clone())  # the output correction's, where it has one
         if self.net.has_cov:
             out.set(keys.FUSED_COV, self.net.reported_cov(self.carry).clone())
         out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))

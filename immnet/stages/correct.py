@@ -1,0 +1,112 @@
+"""The output correction: a learned, causal correction of the fused estimate from the track's whole history.
+
+After the IMM's fusion (and the track start's join) a GRU reads, scan by scan, what the filter knows after that
+scan and adds a correction to the position it reports::
+
+    o_t = x_t + r [delta_t, 0, 0 per axis],    delta_t = W h_t,    h_t = GRU(h_{t-1}, f_t)
+
+with ``f_t`` (nothing absolute: nothing of where the track is, only what the filter says of it)
+
+    (z_t - p_t) / r (0 where missed), a detection flag, v_t / 100, a_t, sqrt(diag P_t) of the position / r,
+    of the velocity and of the acceleration, the mode probabilities (every group's), r / 5, log(interval)
+
+``x_t = [p, v, a]`` the fused estimate, ``P_t`` its covariance, ``r`` each track's measurement std (the step's
+input ``"r"``: the filter experts are told it). The correction is an output: the filters, the fused state and
+everything the next scan's stages read are unchanged, so it cannot destabilize the IMM; ``IMMNet`` reports
+``("output", "state")`` in place of the fused estimate (``IMMNet.estimate``). Its recurrent state
+``("memory", "output_hidden")`` starts at zero with each track and moves from the scan the track has an estimate
+(its start's first detection) on. The reported covariance stays the filter's (docs/immnet.md "The output
+correction").
+
+Its weights are laid out as ``scripts/learned_residual.py``'s network (``inp``, ``gru``, ``out``), which runs the
+same GRU over whole sequences (``torch.nn.GRU``) on the outputs of a model-based filter's own fast path: the two are
+held equal in ``tests/test_output_correction.py``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from immnet import keys
+from immnet.motion import ACC, POS, VEL, mode_groups
+from immnet.stages.base import Stage, measured, scan_interval, told_r
+
+VEL_SCALE, ACC_SCALE, R_SCALE = 100.0, 1.0, 5.0
+
+
+def correction_features(z, x, P, mu, r, dt) -> torch.Tensor:
+    """``f_t`` of the module doc ``[B, 21 + G M]``: measurements ``z [B, 3]`` (NaN: missed), fused estimate ``x [B, 9]``,
+    its covariance ``P [B, 9, 9]``, mode probabilities ``mu [B, M]`` or ``[B, G, M]``, ``r [B, 1]``, ``dt`` a float
+    or ``[B, 1]``; a non-finite entry is 0."""
+    seen = measured(z)
+    d = torch.where(seen, (z - x[..., list(POS)]) / r, torch.zeros_like(z))
+    var = P.diagonal(dim1=-2, dim2=-1).clamp_min(0)
+    log_dt = torch.log(torch.as_tensor(dt, dtype=x.dtype, device=x.device)).expand(x.shape[0], 1)
+    f = torch.cat([
+        d, seen.to(x.dtype), x[..., list(VEL)] / VEL_SCALE, x[..., list(ACC)] / ACC_SCALE,
+        var[..., list(POS)].sqrt() / r, var[..., list(VEL)].sqrt(), var[..., list(ACC)].sqrt(),
+        mu.reshape(mu.shape[0], -1).to(x.dtype), r / R_SCALE, log_dt,
+    ], -1)
+    return torch.where(torch.isfinite(f), f, torch.zeros_like(f))
+
+
+class OutputCorrection(Stage):
+    """The output correction (module doc): ``hidden`` units in ``layers`` GRU layers; ``r="data"``, each track's
+    measurement std as the filter experts are told it. Built by ``IMMNet(correction=...)`` after the step's fusion,
+    for its model set and ``modes`` (the number of mode probabilities it reads)."""
+
+    in_keys = [keys.MEASUREMENT, keys.FUSED, keys.FUSED_COV, keys.EXPERT_PROBS, keys.OUTPUT_HIDDEN, keys.AGE, keys.R]
+    out_keys = [keys.OUTPUT, keys.OUTPUT_HIDDEN]
+
+    def __init__(self, model_set=None, dt: float = 1.0, hidden: int = 128, layers: int = 2, r: str = "data",
+                 modes: str = "joint"):
+        super().__init__(model_set)
+        if r != "data":
+            raise ValueError(f"OutputCorrection reads each track's measurement std as its filter experts are told it "
+                             f"(r='data'), got r={r!r}")
+        if int(hidden) < 1 or int(layers) < 1:
+            raise ValueError(f"hidden and layers must be at least 1, got hidden={hidden!r}, layers={layers!r}")
+        self.dt = float(dt)
+        self.hidden, self.layers = int(hidden), int(layers)
+        groups = mode_groups(modes)
+        self.n_groups = 1 if groups is None else max(groups) + 1
+        self.n_features = 21 + self.n_groups * self.n_experts
+        self.inp = nn.Linear(self.n_features, self.hidden)
+        self.gru = nn.GRU(self.hidden, self.hidden, num_layers=self.layers, batch_first=True)
+        self.out = nn.Linear(self.hidden, 3)
+        nn.init.zeros_(self.out.weight)  # untrained, it corrects nothing: the step is its filter's
+        nn.init.zeros_(self.out.bias)
+
+    def wire(self, upstream: set) -> None:
+        """It reads the fused covariance: the stages before it must fuse one (filter experts)."""
+        if keys.FUSED_COV not in upstream:
+            raise ValueError("the output correction reads the fused covariance ('fused', 'cov'): its step needs "
+                             "experts that carry a covariance (filter experts, immnet.stages.filtering)")
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The GRU's state, zero before a track starts."""
+        return {keys.OUTPUT_HIDDEN: torch.zeros(batch, self.layers, self.hidden, dtype=dtype, device=device)}
+
+    def knock_out(self) -> None:
+        """No correction: the step reports its filter's estimate (``IMMNet.knock_out("output")``)."""
+        with torch.no_grad():
+            self.out.weight.zero_()
+            self.out.bias.zero_()
+
+    def forward(self, td):
+        z, x = td.get(keys.MEASUREMENT), td.get(keys.FUSED)
+        r = told_r(td).to(x.dtype).reshape(-1, 1)
+        dt, _ = scan_interval(td, self.dt)
+        f = correction_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), r, dt)
+        h = td.get(keys.OUTPUT_HIDDEN)
+        w = self.inp.weight
+        y, h_new = self.gru(torch.relu(self.inp(f.to(w.dtype))).unsqueeze(1), h.to(w.dtype).transpose(0, 1).contiguous())
+        delta = self.out(y[:, 0]).to(x.dtype)
+        running = (td.get(keys.AGE) >= 1).reshape(-1, 1)  # the track has an estimate: from its first detection on
+        out = x.clone()
+        out[..., list(POS)] = x[..., list(POS)] + torch.where(running, r * delta, torch.zeros_like(delta))
+        td.set(keys.OUTPUT, out)
+        td.set(keys.OUTPUT_HIDDEN, torch.where(running[..., None], h_new.transpose(0, 1).to(h.dtype), h))
+        return td
+

@@ -1,0 +1,172 @@
+"""The output correction (``immnet.stages.correct``, docs/immnet.md "The output correction"): a GRU after the step's
+fusion that corrects the position it reports. Held to an independent computation, ``scripts/learned_residual.py``'s
+``torch.nn.GRU`` over whole sequences of the model-based filter's own fast path; untrained it is its filter; it
+reads nothing after a scan; it starts with each track; it trains through ``immnet fit`` and loads and evaluates
+from its checkpoint."""
+
+import json
+import runpy
+
+import pytest
+import torch
+
+from immnet import keys
+from immnet.cli import main
+from immnet.config import REPO_ROOT, instantiate, load_yaml
+from immnet.data.generate import generate
+from immnet.data.spec import DataSpec
+from immnet.data.storage import as_batch, write_dataset
+from immnet.evaluation.methods import method_config
+from immnet.stages import IMMNet
+from immnet.tracking.tracker import Tracker, load_network
+
+SCRIPT = REPO_ROOT / "scripts" / "learned_residual.py"
+CORRECTION = {"class_path": "immnet.stages.correct.OutputCorrection", "init_args": {"hidden": 16}}
+
+
+@pytest.fixture(scope="module")
+def residual():
+    return runpy.run_path(str(SCRIPT))
+
+
+def _filter(name="real-imm-singer"):
+    config = load_yaml(method_config(name))
+    config.setdefault("init_args", {})["return_cov"] = True
+    return instantiate(config)
+
+
+def _batch(jitter: bool = False, n: int = 6, T: int = 40):
+    """3D-LAST tracks (r 1-7 m) at 1 s scans, or at irregular U[4.5, 5.5] s scans (``t``); missed detections."""
+    spec = DataSpec(T=T, min_segment=8, dt=5.0, dt_jitter=0.5) if jitter else DataSpec(T=T, min_segment=8)
+    batch = as_batch(generate(n, seed=4, spec=spec))
+    z = batch[keys.MEASUREMENTS].double()  # float64, and so the intervals the step is given (intervals_for)
+    z[1, 10:13] = float("nan")
+    z[3, 25] = float("nan")
+    batch[keys.MEASUREMENTS] = z
+    return batch
+
+
+def _corrected_net(method, model, dtype=torch.float64):
+    """``method``'s own configuration of the step (``network()``) with the output correction of ``model``'s weights."""
+    net = IMMNet(**method.network().config, correction=CORRECTION)
+    net.correct.load_state_dict(model.state_dict())
+    return net.to(dtype).eval()
+
+
+def _rollout(net, batch, dtype=torch.float64):
+    with torch.no_grad():
+        out, _ = net.rollout(batch[keys.MEASUREMENTS].to(dtype), intervals=net.intervals_for(batch),
+                             r=batch[keys.R].to(dtype))
+    return out
+
+
+@pytest.mark.parametrize("jitter", [False, True], ids=["1s", "4.5-5.5s"])
+def test_the_step_is_the_gru_over_the_filters_fast_path(residual, jitter):
+    """The step (IMMNet's stages, scan by scan, the GRU a scan at a time) equals ``torch.nn.GRU`` over the whole
+    sequence of features from the filter's own fast path (``PerAxisIMMTracker.track``), in float64: the estimates to
+    1e-9 of the state's scale, the corrections to 1e-6 m."""
+    batch = _batch(jitter)
+    method = _filter("real-imm-singer-5s" if jitter else "real-imm-singer")
+    torch.manual_seed(0)
+    model = residual["Residual"](30, hidden=16).double()
+    torch.nn.init.normal_(model.out.weight, std=0.3)  # a correction of a few metres
+    part = residual["prepared"](method, batch)
+    expected = residual["predict"](model, part)
+    assert (expected - part["state"]).abs().max() > 0.5
+    net = _corrected_net(method, model)
+    out = _rollout(net, batch)[keys.STATE]
+    scale = float(expected.abs().max())  # the filter's two paths agree to 1e-9 of the state's scale (docs/core.md)
+    torch.testing.assert_close(out, expected, rtol=0, atol=1e-9 * scale)
+    # and the corrections themselves (about a metre) to 1e-6 m: what the filter's paths differ by, carried through
+    net.knock_out("output")
+    torch.testing.assert_close(out - _rollout(net, batch)[keys.STATE], expected - part["state"], rtol=0, atol=1e-6)
+
+
+def test_untrained_it_is_its_filter_and_knocked_out_too():
+    method = _filter()
+    batch = _batch()
+    base = _rollout(method.network(), batch)
+    net = IMMNet(**method.network().config, correction=CORRECTION).double().eval()
+    torch.testing.assert_close(_rollout(net, batch)[keys.STATE], base[keys.STATE], rtol=0, atol=0)
+    torch.nn.init.normal_(net.correct.out.weight)
+    assert (_rollout(net, batch)[keys.STATE] - base[keys.STATE]).abs().max() > 0.5
+    net.knock_out("output")
+    torch.testing.assert_close(_rollout(net, batch)[keys.STATE], base[keys.STATE], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="no output correction"):
+        method.network().knock_out("output")
+
+
+def test_it_reads_nothing_after_a_scan_and_starts_with_each_track():
+    method = _filter()
+    batch = _batch()
+    torch.manual_seed(1)
+    net = IMMNet(**method.network().config, correction=CORRECTION).double().eval()
+    torch.nn.init.normal_(net.correct.out.weight)
+    out = _rollout(net, batch)[keys.STATE]
+    t = 17
+    later = batch.clone()
+    z = later[keys.MEASUREMENTS].clone()
+    z[:, t + 1 :] += 30.0 * torch.randn_like(z[:, t + 1 :])
+    later[keys.MEASUREMENTS] = z
+    moved = _rollout(net, later)[keys.STATE]
+    torch.testing.assert_close(moved[:, : t + 1], out[:, : t + 1], rtol=0, atol=0)
+    assert (moved[:, t + 1 :] - out[:, t + 1 :]).abs().max() > 1.0
+    # a track whose first scans are missed is the same track cut to begin at its first detection
+    late = batch.clone()
+    z = late[keys.MEASUREMENTS].clone()
+    z[0, :5] = float("nan")
+    late[keys.MEASUREMENTS] = z
+    cut = batch[:1].clone()
+    cut[keys.MEASUREMENTS] = batch[keys.MEASUREMENTS][:1, 5:]
+    cut[keys.STATES] = batch[keys.STATES][:1, 5:]
+    torch.testing.assert_close(_rollout(net, late)[keys.STATE][0, 5:], _rollout(net, cut)[keys.STATE][0],
+                               rtol=0, atol=1e-9)
+
+
+def test_the_streaming_tracker_reports_the_corrected_estimate():
+    method = _filter()
+    batch = _batch()
+    torch.manual_seed(2)
+    net = IMMNet(**method.network().config, correction=CORRECTION).eval()
+    torch.nn.init.normal_(net.correct.out.weight)
+    expected = _rollout(net, batch, torch.float32)[keys.STATE]
+    tracker = Tracker(net)
+    z, r = batch[keys.MEASUREMENTS].float(), batch[keys.R].float()
+    states = torch.stack([tracker.step(z[:, t], r=r)[keys.FUSED] for t in range(z.shape[1])], 1)
+    torch.testing.assert_close(states, expected, rtol=0, atol=1e-4)
+
+
+def test_it_is_refused_where_it_cannot_be():
+    with pytest.raises(ValueError, match="fused covariance"):
+        IMMNet(correction=CORRECTION)  # the paper's KalmanNet experts carry no covariance
+    method = _filter()
+    bad = {"class_path": CORRECTION["class_path"], "init_args": {"r": "estimate"}}
+    with pytest.raises(ValueError, match="r='data'"):
+        IMMNet(**method.network().config, correction=bad)
+
+
+@pytest.mark.slow
+def test_the_recipe_trains_loads_and_evaluates(tmp_path, monkeypatch):
+    """``recipes/real-singer-output.yaml`` at tiny size through ``immnet fit``: only the correction learns (the filters
+    are the tuned filter's buffers), its checkpoint rebuilds the network with the correction, and ``immnet evaluate``
+    scores it told each track's r."""
+    from tests.tiny_runs import TINY
+
+    monkeypatch.chdir(tmp_path)
+    data = tmp_path / "runs/real/data/quickstart-1s"
+    write_dataset(data / "train", 12, seed=3, spec=TINY)
+    write_dataset(data / "val", 6, seed=4, spec=TINY)
+    main(["fit", "--config", str(REPO_ROOT / "recipes/real-singer-output.yaml"), "--trainer.max_steps", "3",
+          "--trainer.val_check_interval", "3", "--data.batch_size", "4", "--trainer.logger", "false"])
+    ckpt = tmp_path / "runs/real/singer-output/checkpoints/best.ckpt"
+    net = load_network(ckpt)
+    assert net.correct is not None and float(net.correct.out.weight.abs().max()) > 0
+    assert all(name.startswith("correct.") for name, _ in net.named_parameters())  # the filters learn nothing
+    base = _filter().network()
+    for name, value in base.state_dict().items():  # and are the tuned filter's
+        torch.testing.assert_close(net.state_dict()[name].double(), value.double(), rtol=1e-6, atol=0)
+    out = tmp_path / "res.json"
+    assert main(["evaluate", "--data", str(data / "val"), "--split", "all", "--methods", "real-imm-singer,immnet",
+                 "--checkpoint", f"immnet={ckpt}", "--json", str(out), "--quiet"]) == 0
+    res = json.loads(out.read_text())["methods"]
+    assert res["immnet"]["rmse"]["avg"] == pytest.approx(res["real-imm-singer"]["rmse"]["avg"], rel=0.05)
