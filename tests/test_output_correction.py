@@ -139,10 +139,26 @@ def test_the_streaming_tracker_reports_the_corrected_estimate():
 def test_it_is_refused_where_it_cannot_be():
     with pytest.raises(ValueError, match="fused covariance"):
         IMMNet(correction=CORRECTION)  # the paper's KalmanNet experts carry no covariance
-    method = _filter()
-    bad = {"class_path": CORRECTION["class_path"], "init_args": {"r": "estimate"}}
-    with pytest.raises(ValueError, match="r='data'"):
-        IMMNet(**method.network().config, correction=bad)
+
+
+def test_on_filters_that_estimate_r_it_reads_their_estimate():
+    """With the filters' r estimated from each track's measurements (``FilterGain(r=None)``, as IMMNet's real-flight
+    networks), the correction scales by that estimate and the step needs no ``r``: the same tracks measured with
+    twice the noise are corrected by about twice as much where its input is the same."""
+    config = dict(_filter().network().config)
+    config["gain"] = {**config["gain"], "init_args": {**config["gain"]["init_args"], "r": None}}
+    net = IMMNet(**config, correction=CORRECTION).double().eval()
+    assert keys.NOISE_VAR in net.correct.in_keys and keys.R not in net.step.in_keys
+    with torch.no_grad():
+        net.correct.out.bias.copy_(torch.tensor([1.0, 0.0, 0.0]))  # delta = (1, 0, 0) in units of r, whatever it reads
+    batch = _batch()
+    z = batch[keys.MEASUREMENTS]
+    with torch.no_grad():
+        out, _ = net.rollout(z)
+        base, carry = net.knock_out("output").rollout(z)
+    r_est = carry.get(keys.NOISE_VAR).sqrt()
+    torch.testing.assert_close(out[keys.STATE][:, -1, 0] - base[keys.STATE][:, -1, 0], r_est, rtol=1e-9, atol=0)
+    assert ((r_est - batch[keys.R].double()).abs() / batch[keys.R].double()).max() < 0.5  # an estimate of r
 
 
 @pytest.mark.slow

@@ -10,8 +10,9 @@ with ``f_t`` (nothing absolute: nothing of where the track is, only what the fil
     (z_t - p_t) / r (0 where missed), a detection flag, v_t / 100, a_t, sqrt(diag P_t) of the position / r,
     of the velocity and of the acceleration, the mode probabilities (every group's), r / 5, log(interval)
 
-``x_t = [p, v, a]`` the fused estimate, ``P_t`` its covariance, ``r`` each track's measurement std (the step's
-input ``"r"``: the filter experts are told it). The correction is an output: the filters, the fused state and
+``x_t = [p, v, a]`` the fused estimate, ``P_t`` its covariance, ``r`` the measurement std the filter experts use,
+``sqrt(("memory", "r2"))`` (each track's as told, a fixed one, or the gain's running estimate from the track's own
+measurements: ``FilterGain(r=...)``). The correction is an output: the filters, the fused state and
 everything the next scan's stages read are unchanged, so it cannot destabilize the IMM; ``IMMNet`` reports
 ``("output", "state")`` in place of the fused estimate (``IMMNet.estimate``). Its recurrent state
 ``("memory", "output_hidden")`` starts at zero with each track and moves from the scan the track has an estimate
@@ -30,7 +31,7 @@ from torch import nn
 
 from immnet import keys
 from immnet.motion import ACC, POS, VEL, mode_groups
-from immnet.stages.base import Stage, measured, scan_interval, told_r
+from immnet.stages.base import Stage, measured, scan_interval
 
 VEL_SCALE, ACC_SCALE, R_SCALE = 100.0, 1.0, 5.0
 
@@ -52,19 +53,16 @@ def correction_features(z, x, P, mu, r, dt) -> torch.Tensor:
 
 
 class OutputCorrection(Stage):
-    """The output correction (module doc): ``hidden`` units in ``layers`` GRU layers; ``r="data"``, each track's
-    measurement std as the filter experts are told it. Built by ``IMMNet(correction=...)`` after the step's fusion,
-    for its model set and ``modes`` (the number of mode probabilities it reads)."""
+    """The output correction (module doc): ``hidden`` units in ``layers`` GRU layers. Built by
+    ``IMMNet(correction=...)`` after the step's fusion, for its model set and ``modes`` (the number of mode
+    probabilities it reads)."""
 
-    in_keys = [keys.MEASUREMENT, keys.FUSED, keys.FUSED_COV, keys.EXPERT_PROBS, keys.OUTPUT_HIDDEN, keys.AGE, keys.R]
+    in_keys = [keys.MEASUREMENT, keys.FUSED, keys.FUSED_COV, keys.EXPERT_PROBS, keys.OUTPUT_HIDDEN, keys.AGE,
+               keys.NOISE_VAR]
     out_keys = [keys.OUTPUT, keys.OUTPUT_HIDDEN]
 
-    def __init__(self, model_set=None, dt: float = 1.0, hidden: int = 128, layers: int = 2, r: str = "data",
-                 modes: str = "joint"):
+    def __init__(self, model_set=None, dt: float = 1.0, hidden: int = 128, layers: int = 2, modes: str = "joint"):
         super().__init__(model_set)
-        if r != "data":
-            raise ValueError(f"OutputCorrection reads each track's measurement std as its filter experts are told it "
-                             f"(r='data'), got r={r!r}")
         if int(hidden) < 1 or int(layers) < 1:
             raise ValueError(f"hidden and layers must be at least 1, got hidden={hidden!r}, layers={layers!r}")
         self.dt = float(dt)
@@ -79,10 +77,12 @@ class OutputCorrection(Stage):
         nn.init.zeros_(self.out.bias)
 
     def wire(self, upstream: set) -> None:
-        """It reads the fused covariance: the stages before it must fuse one (filter experts)."""
-        if keys.FUSED_COV not in upstream:
-            raise ValueError("the output correction reads the fused covariance ('fused', 'cov'): its step needs "
-                             "experts that carry a covariance (filter experts, immnet.stages.filtering)")
+        """It reads the fused covariance and the filters' measurement variance: the stages before it must write them
+        (filter experts, whose gain keeps ``("memory", "r2")``)."""
+        if keys.FUSED_COV not in upstream or keys.NOISE_VAR not in upstream:
+            raise ValueError("the output correction reads the fused covariance ('fused', 'cov') and the filters' "
+                             "measurement variance ('memory', 'r2'): its step needs filter experts "
+                             "(immnet.stages.filtering)")
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The GRU's state, zero before a track starts."""
@@ -96,7 +96,7 @@ class OutputCorrection(Stage):
 
     def forward(self, td):
         z, x = td.get(keys.MEASUREMENT), td.get(keys.FUSED)
-        r = told_r(td).to(x.dtype).reshape(-1, 1)
+        r = td.get(keys.NOISE_VAR).to(x.dtype).clamp_min(1e-12).sqrt().reshape(-1, 1)
         dt, _ = scan_interval(td, self.dt)
         f = correction_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), r, dt)
         h = td.get(keys.OUTPUT_HIDDEN)
