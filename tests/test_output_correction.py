@@ -83,11 +83,17 @@ def test_the_step_is_the_gru_over_the_filters_fast_path(residual, jitter):
 
 
 def test_untrained_it_is_its_filter_and_knocked_out_too():
+    """... and its reported covariance is the filter's whatever it corrects (``rollout(return_cov=True)``)."""
     method = _filter()
     batch = _batch()
     base = _rollout(method.network(), batch)
     net = IMMNet(**method.network().config, correction=CORRECTION).double().eval()
     torch.testing.assert_close(_rollout(net, batch)[keys.STATE], base[keys.STATE], rtol=0, atol=0)
+    z, r = batch[keys.MEASUREMENTS], batch[keys.R].double()
+    with torch.no_grad():
+        cov = method.network().rollout(z, r=r, return_cov=True)[0][keys.STATE_COV]
+        torch.nn.init.normal_(net.correct.out.weight)
+        torch.testing.assert_close(net.rollout(z, r=r, return_cov=True)[0][keys.STATE_COV], cov, rtol=0, atol=0)
     torch.nn.init.normal_(net.correct.out.weight)
     assert (_rollout(net, batch)[keys.STATE] - base[keys.STATE]).abs().max() > 0.5
     net.knock_out("output")

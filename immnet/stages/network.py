@@ -475,7 +475,7 @@ class IMMNet(TensorDictModuleBase):
         """
         B, T = measurements.shape[0], measurements.shape[-2]
         if return_cov:
-            fuse = self._steps(experts_alone)[-2]  # the Fuse before JoinStarts
+            fuse = next(m for m in self._steps(experts_alone) if isinstance(m, Fuse))
             if fuse.cov is None:
                 raise ValueError(self.no_cov_reason() or "these experts carry no covariance")
         if carry is None:
