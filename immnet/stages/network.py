@@ -304,8 +304,9 @@ class IMMNet(TensorDictModuleBase):
         """Set the learned correction of ``parts`` (``gain``: KalmanNet's noise and gain corrections, and its state
         correction where it has one; ``classifier``: the Transformer's correction of the IMM's mode update;
         ``correction``: KalmanNet's state correction alone, ``KalmanNetFilterGain(state_correction=...)``; ``output``:
-        the output correction after the fusion, ``IMMNet(correction=...)``) to zero, in place: each part its model-based base, the rest of the trained network as it is; ``gain`` and ``classifier``:
-        IMMNet with nothing learned (the model-based IMM of ``tests/test_filtering.py``). What a trained part is
+        the output correction after the fusion, ``IMMNet(correction=...)``) to zero, in place: each part its
+        model-based base, the rest of the trained network as it is; ``gain`` and ``classifier``: IMMNet with nothing
+        learned (the model-based IMM of ``tests/test_filtering.py``). What a trained part is
         worth, without training again. A part with no model-based base (the paper's Transformer alone) is refused."""
         for part in parts:
             if part not in self.LEARNED_PARTS:
