@@ -1,0 +1,76 @@
+"""What the output correction costs: IMMNet's streaming step of the three-filter decoupled IMM with and without it.
+
+Run:  OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_correction.py [--steps 40] [--batches 1,64,1024]
+It prints a table and rewrites the ``## The output correction`` section of BENCHMARKS.md (other sections are kept).
+The rows are ``real-imm-singer`` as IMMNet with nothing learned (``PerAxisIMMTracker.network()``, float32, eager,
+r fixed at 4 m: the step's cost does not depend on it) and the same network with an output correction of 2 GRU
+layers of 64 and of 128 units (``immnet.stages.correct.OutputCorrection``, untrained: its cost does not depend on
+its weights; docs/immnet.md "The output correction"). Inference as ``benchmarks/bench_immnet.py`` times it:
+``IMMNet.scan`` over tracks that have started, the median of three passes of ``--steps`` scans; the rows take turns
+over ``--rounds`` rounds and each reports its median round.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import statistics
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_immnet import inference  # noqa: E402
+from common import machine, write_section  # noqa: E402
+
+from immnet.evaluation.methods import build_method  # noqa: E402
+from immnet.filters.trackers import _linear_network  # noqa: E402
+from immnet.stages import IMMNet  # noqa: E402
+
+HIDDEN = (None, 64, 128)
+
+
+def network(hidden: int | None) -> IMMNet:
+    """``real-imm-singer``'s step (r fixed at 4 m, float32) with an output correction of ``hidden`` units, or none."""
+    m = build_method("real-imm-singer")
+    base = _linear_network(m.name, m.model_set, m.sigma_q, 4.0, m._p_stay, 1.0, torch.float32, "axis")
+    if hidden is None:
+        return base
+    correction = {"class_path": "immnet.stages.correct.OutputCorrection", "init_args": {"hidden": hidden}}
+    return IMMNet(**base.config, correction=correction).eval()
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--steps", type=int, default=40, help="scans timed per run")
+    p.add_argument("--batches", type=lambda v: tuple(int(b) for b in v.split(",")), default=(1, 64, 1024))
+    p.add_argument("--rounds", type=int, default=3, help="rounds the rows take turns over (each row its median)")
+    p.add_argument("--out", type=Path, default=None, help="BENCHMARKS.md to rewrite (default: the repository's)")
+    a = p.parse_args()
+    nets = [network(h) for h in HIDDEN]
+    rates = {(i, B): [] for i in range(len(nets)) for B in a.batches}
+    with torch.no_grad():
+        for r in range(a.rounds):
+            for i, net in enumerate(nets):
+                for B in a.batches:
+                    rates[i, B].append(inference(net, B, a.steps, net.scan))
+            print(f"round {r + 1} of {a.rounds} done", file=sys.stderr, flush=True)
+    head = "| step | " + " | ".join(f"batch {b}" for b in a.batches) + " |"
+    lines = [head, "|" + "---|" * (1 + len(a.batches))]
+    for i, h in enumerate(HIDDEN):
+        label = "`real-imm-singer` (nothing learned)" if h is None else f"with an output correction, 2 x {h} GRU units"
+        lines.append(f"| {label} | " + " | ".join(f"{statistics.median(rates[i, B]):,.0f}" for B in a.batches) + " |")
+        print(lines[-1], flush=True)
+    cmd = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_correction.py" + "".join(
+        f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
+    text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). Track-steps/s of IMMNet's streaming step, "
+            "eager, float32: the three-filter decoupled IMM with nothing learned, and with the output correction after "
+            f"its fusion (docs/immnet.md \"The output correction\"); the median of {a.rounds} rounds taken in turns:\n\n"
+            + "\n".join(lines))
+    write_section("The output correction", text, *([a.out] if a.out else []))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
