@@ -12,9 +12,7 @@ over ``--rounds`` rounds and each reports its median round.
 
 from __future__ import annotations
 
-import argparse
 import datetime
-import statistics
 import sys
 from pathlib import Path
 
@@ -22,7 +20,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_immnet import inference  # noqa: E402
-from common import machine, write_section  # noqa: E402
+from common import machine, rates_in_turns, rows_arguments, write_section  # noqa: E402
 
 from immnet.evaluation.methods import build_method  # noqa: E402
 from immnet.filters.trackers import _linear_network  # noqa: E402
@@ -42,25 +40,15 @@ def network(hidden: int | None) -> IMMNet:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--steps", type=int, default=40, help="scans timed per run")
-    p.add_argument("--batches", type=lambda v: tuple(int(b) for b in v.split(",")), default=(1, 64, 1024))
-    p.add_argument("--rounds", type=int, default=3, help="rounds the rows take turns over (each row its median)")
-    p.add_argument("--out", type=Path, default=None, help="BENCHMARKS.md to rewrite (default: the repository's)")
-    a = p.parse_args()
+    a = rows_arguments(__doc__)
     nets = [network(h) for h in HIDDEN]
-    rates = {(i, B): [] for i in range(len(nets)) for B in a.batches}
     with torch.no_grad():
-        for r in range(a.rounds):
-            for i, net in enumerate(nets):
-                for B in a.batches:
-                    rates[i, B].append(inference(net, B, a.steps, net.scan))
-            print(f"round {r + 1} of {a.rounds} done", file=sys.stderr, flush=True)
+        rates = rates_in_turns(nets, a, lambda net, B: inference(net, B, a.steps, net.scan))
     head = "| step | " + " | ".join(f"batch {b}" for b in a.batches) + " |"
     lines = [head, "|" + "---|" * (1 + len(a.batches))]
     for i, h in enumerate(HIDDEN):
         label = "`real-imm-singer` (nothing learned)" if h is None else f"with an output correction, 2 x {h} GRU units"
-        lines.append(f"| {label} | " + " | ".join(f"{statistics.median(rates[i, B]):,.0f}" for B in a.batches) + " |")
+        lines.append(f"| {label} | " + " | ".join(f"{rates[i, B]:,.0f}" for B in a.batches) + " |")
         print(lines[-1], flush=True)
     cmd = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_correction.py" + "".join(
         f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import re
+import statistics
+import sys
 from pathlib import Path
 
 import torch
@@ -37,3 +40,26 @@ def write_section(title: str, text: str, path: Path = BENCHMARKS) -> None:
     tmp = path.with_name(path.name + ".partial")
     tmp.write_text(new.rstrip() + "\n")
     tmp.replace(path)
+
+
+def rows_arguments(doc: str, argv=None) -> argparse.Namespace:
+    """The arguments of a benchmark whose rows take turns (``bench_modes``, ``bench_correction``): ``--steps``,
+    ``--batches``, ``--rounds`` and ``--out``, with ``doc``'s first line as the description."""
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--steps", type=int, default=40, help="scans timed per run")
+    p.add_argument("--batches", type=lambda v: tuple(int(b) for b in v.split(",")), default=(1, 64, 1024))
+    p.add_argument("--rounds", type=int, default=3, help="rounds the rows take turns over (each row its median)")
+    p.add_argument("--out", type=Path, default=None, help="BENCHMARKS.md to rewrite (default: the repository's)")
+    return p.parse_args(argv)
+
+
+def rates_in_turns(nets, a: argparse.Namespace, rate) -> dict:
+    """``{(row, batch): median rate}``: ``rate(net, batch)`` of every network at every batch, the rows taking turns
+    over ``a.rounds`` rounds (a shared machine's load falls on every row alike), each its median round."""
+    rates = {(i, B): [] for i in range(len(nets)) for B in a.batches}
+    for r in range(a.rounds):
+        for i, net in enumerate(nets):
+            for B in a.batches:
+                rates[i, B].append(rate(net, B))
+        print(f"round {r + 1} of {a.rounds} done", file=sys.stderr, flush=True)
+    return {key: statistics.median(values) for key, values in rates.items()}
