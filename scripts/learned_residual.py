@@ -33,7 +33,7 @@ from immnet.data.augment import FlightAugment
 from immnet.data.storage import as_batch, load_dataset
 from immnet.data.times import scan_intervals
 from immnet.evaluation.methods import method_config
-from immnet.evaluation.metrics import per_trajectory_rmse, position_error, scored_mask
+from immnet.evaluation.metrics import AXES, position_error, rmse, scored_mask
 from immnet.motion import ACC, POS, VEL
 
 VEL_SCALE, ACC_SCALE = 100.0, 1.0
@@ -88,11 +88,10 @@ def corrected(state: torch.Tensor, delta: torch.Tensor, r: torch.Tensor) -> torc
 
 
 def average(state: torch.Tensor, batch) -> tuple[float, list[float]]:
+    """``immnet evaluate``'s Average RMSE of ``state`` on ``batch`` and its x, y, z (``metrics.rmse``)."""
     truth = batch[keys.STATES]
-    per = per_trajectory_rmse(position_error(state, truth), scored_mask(truth, batch[keys.MEASUREMENTS]))
-    per = per[torch.isfinite(per).all(-1)]
-    axes = per.mean(0)
-    return float(axes.mean()), [float(a) for a in axes]
+    score = rmse(position_error(state, truth), scored_mask(truth, batch[keys.MEASUREMENTS]))
+    return score["avg"], [score[a] for a in AXES]
 
 
 def prepared(method, batch):
