@@ -250,7 +250,12 @@ def main(argv=None) -> int:
         print("  eager " + ", ".join(f"{n} {v:.1f}" for n, v in zip(STAGES, eager_ms)), flush=True)
     names = net.model_set.names
     env = "".join(f"{k}={os.environ[k]} " for k in ("OMP_NUM_THREADS",) if k in os.environ)
-    cmd = f"`{env}.venv/bin/python benchmarks/bench_immnet.py" + "".join(f" {a}" for a in (argv if argv is not None else sys.argv[1:])) + "`"
+    # the interpreter that ran (the checkout's venv, or e.g. a GPU image's python3), without --out
+    exe = ".venv/bin/python" if ".venv" in sys.executable else Path(sys.executable).name
+    given = list(argv if argv is not None else sys.argv[1:])
+    if "--out" in given:
+        del given[given.index("--out"):given.index("--out") + 2]
+    cmd = f"`{env}{exe} benchmarks/bench_immnet.py" + "".join(f" {a}" for a in given) + "`"
     where = machine() + (f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else "")
     labels, tlabels = list(infer), list(train)
     fmt = lambda v: "-" if v is None else f"{v:,.0f}"  # noqa: E731
