@@ -192,3 +192,56 @@ def test_the_recipe_trains_loads_and_evaluates(tmp_path, monkeypatch):
                  "--checkpoint", f"immnet={ckpt}", "--json", str(out), "--quiet"]) == 0
     res = json.loads(out.read_text())["methods"]
     assert res["immnet"]["rmse"]["avg"] == pytest.approx(res["real-imm-singer"]["rmse"]["avg"], rel=0.05)
+
+
+def _general_with_correction(**module_args):
+    """The shipped general network (the default weights) with an output correction added, as
+    ``recipes/general-output.yaml`` builds it."""
+    from immnet.checkpoints import shipped
+    from immnet.training import Stage2Module
+
+    path = shipped("general")
+    net = dict(load_network(path).config, correction=CORRECTION)
+    return path, Stage2Module(net=net, init_checkpoint=str(path), **module_args)
+
+
+def test_a_correction_added_to_a_trained_network_starts_as_that_network():
+    path, module = _general_with_correction()
+    batch = as_batch(generate(4, seed=5, spec=DataSpec(T=40, min_segment=10)))
+    z = batch[keys.MEASUREMENTS].float()
+    with torch.no_grad():
+        shipped_out, _ = load_network(path).eval().rollout(z)
+        out, _ = module.net.eval().rollout(z)
+    assert module.net.correct is not None
+    torch.testing.assert_close(out[keys.STATE], shipped_out[keys.STATE], rtol=0, atol=0)
+
+
+def test_learn_trains_the_named_components_alone():
+    """``Stage2Module(learn=["correction"])``: one optimizer step moves the correction's weights and leaves every
+    other weight of the trained network bit for bit."""
+    _, module = _general_with_correction(learn=["correction"], gamma=1.0, tbptt=0)
+    learn = {n for n, p in module.named_parameters() if p.requires_grad}
+    assert learn and all(n.startswith("net.correct.") for n in learn)
+    assert {id(p) for p in module.trainable_parameters()} == {id(p) for p in module.net.correct.parameters()}
+    opt = torch.optim.Adam(module.trainable_parameters(), 1e-3)
+    module.optimizers = lambda: opt  # the module's own loop without a Trainer (as benchmarks/bench_immnet.py)
+    module.manual_backward = lambda loss: loss.backward()
+    module.log = lambda *a, **k: None
+    module.net.correct.out.weight.data.normal_(0, 0.01)  # a correction that has started to learn: gradients flow
+    before = {n: v.clone() for n, v in module.state_dict().items()}
+    batch = as_batch(generate(4, seed=6, spec=DataSpec(T=30, min_segment=8)), torch.float32)
+    module.train()
+    module.training_step(batch, 0)
+    after = module.state_dict()
+    moved = {n for n in before if not torch.equal(before[n], after[n])}
+    assert moved and all(n.startswith("net.correct.") for n in moved), sorted(moved)[:5]
+
+
+@pytest.mark.parametrize("learn, message", [(["mixer"], "unknown component"), ([], "unknown component"),
+                                            (["correction"], "has no parameters")])
+def test_learn_refuses_what_the_network_cannot_learn(learn, message):
+    from immnet.training import Stage2Module
+
+    net = _filter().network().config  # real-imm-singer: filters alone, no correction
+    with pytest.raises(ValueError, match=message):
+        Stage2Module(net=net, learn=learn)

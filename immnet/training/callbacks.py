@@ -23,7 +23,10 @@ class PrintProgress(L.Callback):
         if not trainer.is_global_zero:
             return
         self.start = time.time()
-        print(f"[train] {type(pl_module).__name__}: {sum(p.numel() for p in pl_module.parameters()):,} parameters", file=sys.stderr, flush=True)
+        n = sum(p.numel() for p in pl_module.parameters())
+        learn = sum(p.numel() for p in pl_module.parameters() if p.requires_grad)
+        frozen = "" if learn == n else f" ({learn:,} learn, the rest frozen)"
+        print(f"[train] {type(pl_module).__name__}: {n:,} parameters{frozen}", file=sys.stderr, flush=True)
 
     def _line(self, trainer, prefix):
         m = trainer.callback_metrics

@@ -250,7 +250,14 @@ class Stage2Module(_TrackerModule):
     ``init_parameters`` starts from the learned parameters alone of a trained IMMNet (each of the same name and
     shape), every buffer as ``net`` builds it: a network with other models, noise or chain (the filter experts'
     base) that keeps another network's KalmanNet and Transformer weights, e.g. ``recipes/real-imm-base.yaml``.
+
+    ``learn`` names the components that learn (``gain``, ``classifier``, ``correction``: ``IMMNet``'s arguments;
+    default all); every other parameter is frozen (``requires_grad`` off, out of the optimizer and the gradient
+    clip), so a trained network keeps its weights while a stage added to it learns, e.g. an output correction on
+    the shipped general network (``recipes/general-output.yaml``: ``init_checkpoint`` and ``learn: [correction]``).
     """
+
+    PARTS = {"gain": "gain", "classifier": "classify", "correction": "correct"}  # component: IMMNet attribute
 
     def __init__(
         self,
@@ -261,9 +268,12 @@ class Stage2Module(_TrackerModule):
         lr: float = 1e-3,
         gamma: float = 0.7,
         expert_weight: float = 0.0,
+        learn: list[str] | None = None,
         **kwargs,
     ):
         super().__init__(net=net, lr=lr, **kwargs)
+        if learn is not None:
+            self._freeze_all_but(list(learn))
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
         if not (math.isfinite(expert_weight) and expert_weight >= 0.0):
@@ -279,6 +289,23 @@ class Stage2Module(_TrackerModule):
             self.load_net(init_checkpoint)
         if init_parameters:
             self.load_parameters(init_parameters)
+
+    def _freeze_all_but(self, learn: list[str]) -> None:
+        """``learn``: freeze every parameter outside the named components (a ValueError naming an unknown one, or
+        one this network lacks or that has no parameters)."""
+        unknown = [c for c in learn if c not in self.PARTS]
+        if unknown or not learn:
+            raise ValueError(f"learn: unknown component(s) {unknown or learn!r}; choose from {', '.join(self.PARTS)}")
+        stages = {c: getattr(self.net, self.PARTS[c], None) for c in learn}
+        empty = [c for c, stage in stages.items() if stage is None or not any(True for _ in stage.parameters())]
+        if empty:
+            raise ValueError(f"learn: this IMMNet's {', '.join(empty)} has no parameters to learn")
+        keep = {id(p) for stage in stages.values() for p in stage.parameters()}
+        for p in self.net.parameters():
+            p.requires_grad_(id(p) in keep)
+
+    def trainable_parameters(self):
+        return (p for p in self.parameters() if p.requires_grad)
 
     def load_parameters(self, path: str):
         """Start from the learned parameters of a trained IMMNet: every parameter of this network from the
@@ -302,10 +329,15 @@ class Stage2Module(_TrackerModule):
         """Start from every weight of a trained IMMNet (same model set and architecture). A checkpoint trained
         without the interval input starts a network that reads it: its weights fill the other columns and the
         interval's column starts at zero (``widen_for_interval``); one with one joint set of modes starts a network
-        with modes per group, each group's logits from the joint ones (``widen_for_groups``)."""
+        with modes per group, each group's logits from the joint ones (``widen_for_groups``); one without an output
+        correction starts a network with one, the correction as built (the checkpoint's network until it learns)."""
         _, net = read_checkpoint(path)
         if not net:
             raise ValueError(f"{path} holds no IMMNet weights (net.*)")
+        if self.net.correct is not None and not any(k.startswith("correct.") for k in net):
+            # a network without an output correction starts one with it: the correction as built (its last layer
+            # zero: the network is the checkpoint's until it learns)
+            net = {**net, **{f"correct.{k}": v for k, v in self.net.correct.state_dict().items()}}
         # buffers are built from settings (the classifier's Markov prior from its p_stay, ...): a checkpoint
         # that stores other values was trained with other settings, which loading would bring back silently
         kept = self.net.state_dict()  # the persistent buffers: what a checkpoint stores
