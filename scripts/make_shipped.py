@@ -1,8 +1,8 @@
 """Ship a fine-tuned IMMNet: export its run's best checkpoint into immnet/pretrained/immnet-NAME.ckpt, score it on
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (recipes/
-real.yaml, 1 s), `real-5s` (recipes/real-singer-5s.yaml, 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s, the
-default weights).
+real-singer-output.yaml, 1 s), `real-5s` (recipes/real-singer-5s-output.yaml, 4.5-5.5 s) or `general`
+(recipes/general.yaml, 0.5-12 s, the default weights).
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
@@ -28,12 +28,14 @@ QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --see
               "trained or tuned on")
 SHIPS = {
     "real": {
-        "ckpt": "runs/real/axis/checkpoints/best.ckpt",
-        "recipe": "recipes/real.yaml",
-        "init": ("its untrained start (KalmanNet's outputs near zero, the Transformer's correction zero: the decoupled "
-                 "IMM real-imm-axis with r estimated)"),
-        "what": ("IMMNet with modes per axis on the decoupled IMM tuned on real flights (real-imm-axis's CV and CA), "
-                 "each track's r estimated, trained on real flights at 1 s scans, without a range guard"),
+        "ckpt": "runs/real/output/checkpoints/best.ckpt",
+        "recipe": "recipes/real-singer-output.yaml",
+        "init": ("its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
+                 "real-imm-singer with r estimated, exactly)"),
+        "what": ("the output correction (a GRU after the fusion that corrects the reported position from the track's "
+                 "history) on the three-filter decoupled IMM tuned on real flights (real-imm-singer's CV, CA and Singer "
+                 "filters per axis), each track's r estimated, trained on real flights at 1 s scans (a fresh view of "
+                 "its flights each batch), without a range guard; only the correction learned"),
         "data": {"train": f"{REAL}/quickstart-1s/train: {QUICKSTART}, 1 s scans, r ~ U[1, 7] m",
                  "val": f"{REAL}/quickstart-1s/val"},
         "scan_interval": 1.0,
@@ -41,21 +43,23 @@ SHIPS = {
         "tests": {"quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real"])},
     },
     "real-5s": {
-        "ckpt": "runs/real/singer-5s/checkpoints/best.ckpt",
-        "recipe": "recipes/real-singer-5s.yaml",
-        "init": ("its untrained start (KalmanNet's outputs near zero, the Transformer's correction zero: the three-filter "
-                 "decoupled IMM real-imm-singer-5s with r estimated)"),
-        "what": ("IMMNet with modes per axis on the three-filter decoupled IMM tuned on real flights at 4.5-5.5 s "
-                 "(real-imm-singer-5s's CV, CA and Singer filters), each track's r estimated, trained on real flights at "
-                 "those scans (a fresh view of its flights each batch), without a range guard"),
+        "ckpt": "runs/real/output-5s/checkpoints/best.ckpt",
+        "recipe": "recipes/real-singer-5s-output.yaml",
+        "init": ("its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
+                 "real-imm-singer-5s with r estimated, exactly)"),
+        "what": ("the output correction (a GRU after the fusion that corrects the reported position from the track's "
+                 "history, reading each scan's interval) on the three-filter decoupled IMM tuned on real flights at "
+                 "4.5-5.5 s (real-imm-singer-5s's CV, CA and Singer filters per axis), each track's r estimated, trained "
+                 "on real flights at those scans (a fresh view of its flights each batch), without a range guard; only "
+                 "the correction learned"),
         "data": {"train": f"{REAL}/quickstart-5s/train: {QUICKSTART}, U[4.5, 5.5] s scans, r ~ U[5, 35] m",
                  "val": f"{REAL}/quickstart-5s/val"},
         "interval_range": [4.5, 5.5],
         "guard": "none",
         # its covariance scaled by a running mean of its NIS / 3 (docs/immnet.md, "Covariance consistency"), the weight
-        # chosen on the validation flights: of 0.005, 0.01, 0.02 and 0.05 the one whose mean position NEES is nearest 3,
-        # the consistency test's (docs/real.md, "Calibration"); its estimates are the trained network's
-        "settings": {"cov_consistency": 0.01},
+        # chosen on the validation flights: of none, 0.005, 0.01, 0.02 and 0.05 the one whose mean position NEES is
+        # nearest 3, the consistency test's (docs/real.md, "Calibration"); its estimates are the trained network's
+        "settings": {"cov_consistency": 0.005},
         "tests": {"quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general",
                                                                           "immnet-real-5s"])},
     },

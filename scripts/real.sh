@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
-# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 25 minutes (the sum of its steps:
-# data 2, training 6, the held-out evaluation 11, the rest 5):
+# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about an hour (the sum of its steps:
+# data 2, training 45 on one core, the held-out evaluation 11, the rest 5):
 #   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s and at U[4.5, 5.5] s
 #   scans, every other sample held out (never trained or tuned on) -> the model-based filters for real motion as
 #   tuned on the training flights (configs/methods/real-*.yaml; IMMNET_RETUNE=1 tunes them again) -> IMMNet
-#   trained on the training flights (recipes/real.yaml: modes per axis on the decoupled IMM, the shipped
-#   immnet-real) -> one table per data set, every method in one run -> the real-flight figure.
+#   trained on the training flights (recipes/real-singer-output.yaml: an output correction on the three-filter
+#   decoupled IMM, r estimated, the shipped immnet-real) -> one table per data set, every method in one run -> the
+#   real-flight figure.
 # A finished run is reused; IMMNET_RETRAIN=1 trains again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -44,20 +45,20 @@ else
   say "2/5 the model-based filters as tuned on the training flights: configs/methods/real-*.yaml (IMMNET_RETUNE=1 to tune again)"
 fi
 
-CKPT=$RUN/axis/checkpoints/best.ckpt
-[ -n "${IMMNET_RETRAIN:-}" ] && rm -rf "$RUN/axis"
-if [ -f "$CKPT" ] && [ -f "$RUN/axis/checkpoints/finished.json" ]; then
+CKPT=$RUN/output/checkpoints/best.ckpt
+[ -n "${IMMNET_RETRAIN:-}" ] && rm -rf "$RUN/output"
+if [ -f "$CKPT" ] && [ -f "$RUN/output/checkpoints/finished.json" ]; then
   say "3/5 IMMNet: reusing the finished training $CKPT (IMMNET_RETRAIN=1 to train again)"
 else
-  say "3/5 IMMNet trained on the training flights: recipes/real.yaml"
-  "$IMMNET" fit --config recipes/real.yaml
+  say "3/5 IMMNet trained on the training flights: recipes/real-singer-output.yaml (about 45 min)"
+  "$IMMNET" fit --config recipes/real-singer-output.yaml
 fi
 
 say "4/5 evaluation: one table per data set, every method in one run"
 BASE=measurements,imm-tuned,imm-ekf,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
 for set in quickstart-1s/test heldout-1s/test; do
   out=$RUN/results-${set%%/*}
-  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,immnet,immnet-real" \
+  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,immnet,immnet-real,immnet-general" \
     --checkpoint "immnet-real=$CKPT" --json "$out.json" --markdown "$out.md" --quiet
 done
 for set in quickstart-5s/test heldout-5s/test; do  # the 1 s networks refuse 5 s scans; the shipped real-5s and general take them
@@ -67,7 +68,7 @@ for set in quickstart-5s/test heldout-5s/test; do  # the 1 s networks refuse 5 s
 done
 
 say "5/5 figure: a real flight, its estimates and their error over time"
-"$PY" scripts/real_figure.py --data "$DATA/quickstart-1s/test" --methods real-imm-axis,immnet-real,immnet \
+"$PY" scripts/real_figure.py --data "$DATA/quickstart-1s/test" --methods real-imm-singer,immnet-real \
   --checkpoint "immnet-real=$CKPT" --out "$RUN/figures/real_flight.png"
 
 say "done. Tables: $RUN/results-quickstart-1s.md, $RUN/results-heldout-1s.md, $RUN/results-quickstart-5s.md, $RUN/results-heldout-5s.md"

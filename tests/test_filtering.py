@@ -603,8 +603,9 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis(method):
 
 
 def test_a_network_written_with_per_axis_loads_with_modes_per_axis():
-    """Configurations written when modes per axis were ``per_axis: true`` (the shipped real-flight weights among them)
-    read as ``modes: axis``, the components' own ``per_axis`` dropped; a disagreement is refused by name."""
+    """Configurations written when modes per axis were ``per_axis: true`` (the modes-per-axis network of
+    ``recipes/real.yaml`` was saved so) read as ``modes: axis``, the components' own ``per_axis`` dropped; a
+    disagreement is refused by name. The shipped real-flight network is modes per axis."""
     from immnet.checkpoints import shipped
     from immnet.stages.network import net_arguments
     from immnet.tracking.tracker import load_network, read_checkpoint
