@@ -40,7 +40,7 @@ SHIPS = {
                  "val": f"{REAL}/quickstart-1s/val"},
         "scan_interval": 1.0,
         "guard": "none",
-        "tests": {"quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real"])},
+        "tests": {"quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-general", "immnet-real"])},
     },
     "real-5s": {
         "ckpt": "runs/real/output-5s/checkpoints/best.ckpt",

@@ -354,9 +354,10 @@ def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans(
     note = weights_note(general, own, [4.6, 5.0, 5.2, np.nan])
     assert "--weights real-5s" in note and "4.5-5.5 s" in note and "real flights (quickstart-5s)" in note
     assert f"{five['immnet-real-5s']['avg']:.3f} m against the default's {five['immnet-general']['avg']:.3f}" in note
-    one = json.loads(provenance_file(general).read_text())["tests"]["quickstart-1s"]["metrics"]
-    note = weights_note(general, own, [1.0] * 5)
-    assert "--weights real " in note and f"{one['immnet-real']['avg']:.3f} m" in note
+    one = json.loads(provenance_file(shipped("real")).read_text())["tests"]["quickstart-1s"]["metrics"]
+    note = weights_note(general, own, [1.0] * 5)  # real's own provenance, both networks in one run
+    assert "--weights real " in note
+    assert f"{one['immnet-real']['avg']:.3f} m against the default's {one['immnet-general']['avg']:.3f}" in note
     assert weights_note(general, own, [8.0, 8.0]) is None and weights_note(general, own, [1.0, 2.0, 2.0]) is None
     for other, dt in (("real-5s", 5.0), ("3dlast", 1.0)):
         assert weights_note(shipped(other), load_provenance(shipped(other)), [dt]) is None
