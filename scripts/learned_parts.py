@@ -1,10 +1,11 @@
-"""What each learned part of a trained IMMNet is worth on a data set: the network as trained, with KalmanNet's
-noise and gain corrections knocked out (the filter experts at their base noise, the Transformer's correction
-kept), with the Transformer's correction knocked out (the IMM's mode update alone), and with both (IMMNet with
-nothing learned: a model-based IMM), in one run beside the model-based filters given (``IMMNet.knock_out``: no
-training again, so each row is the trained network minus that part). Real flights carry no range guard.
+"""What each learned part of a trained IMMNet is worth on a data set: the network as trained and with each of its
+learned parts knocked out (KalmanNet's noise and gain corrections: the filter experts at their base noise; the
+Transformer's correction: the IMM's mode update alone; the output correction: the filters' own estimate), and with
+all of them (IMMNet with nothing learned: a model-based IMM), in one run beside the model-based filters given
+(``IMMNet.knock_out``: no training again, so each row is the trained network minus that part). Only the parts the
+network has are rows (a correction on model-based filters has one). Real flights carry no range guard.
 
-    python scripts/learned_parts.py --data runs/real/data/quickstart-1s/test --checkpoint runs/general/fit/checkpoints/best.ckpt \\
+    python scripts/learned_parts.py --data runs/real/data/quickstart-1s/test --checkpoint runs/general/fit/checkpoints/best.ckpt \
         --label immnet-general --baselines real-imm-axis,real-imm [--json parts.json] [--markdown parts.md]
 """
 
@@ -21,12 +22,25 @@ from immnet.evaluation.table import format_markdown, format_table
 from immnet.imm.guard import parse_guard
 from immnet.tracking.methods import IMMNetMethod
 
-VARIANTS = {  # row suffix -> the learned parts knocked out
-    "": (),
-    " - KalmanNet (filters at base noise)": ("gain",),
-    " - Transformer (IMM mode update alone)": ("classifier",),
-    " - both (nothing learned)": ("gain", "classifier"),
+PARTS = {  # IMMNet.knock_out's part -> its row's suffix
+    "gain": " - KalmanNet (filters at base noise)",
+    "classifier": " - Transformer (IMM mode update alone)",
+    "output": " - output correction (the filters' estimate)",
 }
+
+
+def learned(net) -> list[str]:
+    """The parts of ``net`` that learned something: a gain or mode update with parameters, an output correction."""
+    has = {"gain": net.gain, "classifier": net.classify, "output": net.correct}
+    return [part for part, stage in has.items() if stage is not None and any(True for _ in stage.parameters())]
+
+
+def variants(parts: list[str]) -> dict[str, tuple[str, ...]]:
+    """Row suffix -> the learned parts knocked out: none, each alone, and all of them where there are several."""
+    rows = {"": ()} | {PARTS[part]: (part,) for part in parts}
+    if len(parts) > 1:
+        rows[" - both (nothing learned)" if len(parts) == 2 else " - all (nothing learned)"] = tuple(parts)
+    return rows
 
 
 def main(argv=None) -> int:
@@ -42,7 +56,9 @@ def main(argv=None) -> int:
     data, _ = load_dataset(args.data)
     guard = parse_guard(args.guard)
     methods = {name: build_method(name, guard=guard) for name in args.baselines.split(",") if name}
-    for suffix, parts in VARIANTS.items():
+    from immnet.tracking.tracker import load_network
+
+    for suffix, parts in variants(learned(load_network(args.checkpoint))).items():
         methods[args.label + suffix] = IMMNetMethod(args.checkpoint, args.label + suffix, guard=guard, knock_out=parts)
     rows = to_json(evaluate(methods, data, progress=True))
     print(format_table(rows))

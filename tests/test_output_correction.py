@@ -245,3 +245,17 @@ def test_learn_refuses_what_the_network_cannot_learn(learn, message):
     net = _filter().network().config  # real-imm-singer: filters alone, no correction
     with pytest.raises(ValueError, match=message):
         Stage2Module(net=net, learn=learn)
+
+
+def test_learned_parts_rows_are_the_parts_the_network_has():
+    """``scripts/learned_parts.py`` knocks out only what a network learned: the shipped real network's output
+    correction alone, the 3D-LAST network's KalmanNet and Transformer and both, nothing of a model-based filter."""
+    from immnet.checkpoints import shipped
+
+    script = runpy.run_path(str(REPO_ROOT / "scripts" / "learned_parts.py"))
+    learned, variants = script["learned"], script["variants"]
+    assert learned(load_network(shipped("real"))) == ["output"]
+    assert list(variants(["output"]).values()) == [(), ("output",)]
+    assert learned(load_network(shipped("3dlast"))) == ["gain", "classifier"]
+    assert list(variants(["gain", "classifier"]).values()) == [(), ("gain",), ("classifier",), ("gain", "classifier")]
+    assert learned(_filter().network()) == [] and list(variants([]).values()) == [()]
