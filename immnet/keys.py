@@ -51,6 +51,7 @@ FUSED = ("fused", "state")  # x_{t|t} [B, 9]; read as x_{t-1|t-1} at the start o
 FUSED_COV = ("fused", "cov")  # P_{t|t} [B, 9, 9], where the experts carry a covariance (filter experts, the analytic gain)
 OUTPUT = ("output", "state")  # the estimate a step reports where a learned output correction follows the fusion [B, 9]
 OUTPUT_HIDDEN = ("memory", "output_hidden")  # the output correction's recurrent state [B, L, H] (immnet.stages.correct)
+OUTPUT_SEEN = ("memory", "output_seen")  # 1 once the output correction has seen a track's first detection [B]
 COV_SCALE = ("memory", "cov_scale")  # covariance consistency: the reported covariance's scale per track [B] (docs/immnet.md)
 PREV_FUSED = ("memory", "fused")  # x_{t-2|t-2} [B, 9]
 EXPERT_PRIOR = ("expert", "prior")  # x_{t|t-1}^(i) [B, M, 9]

@@ -98,13 +98,21 @@ def prepared(method, batch):
     state, feats = filter_features(method, batch)
     truth = batch[keys.STATES].double()
     mask = scored_mask(truth, batch[keys.MEASUREMENTS])
+    seen = torch.isfinite(batch[keys.MEASUREMENTS]).all(-1)
     return {"state": state, "feats": feats, "truth": torch.nan_to_num(truth[..., list(POS)]), "mask": mask,
-            "r": batch[keys.R].double()}
+            "r": batch[keys.R].double(), "first": seen & (seen.cumsum(1) == 1)}
+
+
+def deltas_of(model, feats: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
+    """The network's corrections ``[B, T, 3]``, none at a track's first detection (reported as the filter reports
+    it, as the stage does)."""
+    delta = model(feats).double()
+    return delta.masked_fill(first.unsqueeze(-1), 0.0)
 
 
 def loss_of(model, part, idx) -> torch.Tensor:
     """Each window's mean squared error over its scored scans, in units of its r squared, averaged."""
-    delta = model(part["feats"][idx]).double()
+    delta = deltas_of(model, part["feats"][idx], part["first"][idx])
     r = part["r"][idx].reshape(-1, 1, 1)
     pos = part["state"][idx][..., list(POS)] + delta * r
     m = part["mask"][idx].double()
@@ -114,7 +122,8 @@ def loss_of(model, part, idx) -> torch.Tensor:
 
 def predict(model, part, chunk: int = 256) -> torch.Tensor:
     with torch.no_grad():
-        deltas = [model(part["feats"][i : i + chunk]) for i in range(0, len(part["feats"]), chunk)]
+        deltas = [deltas_of(model, part["feats"][i : i + chunk], part["first"][i : i + chunk])
+                  for i in range(0, len(part["feats"]), chunk)]
     return corrected(part["state"], torch.cat(deltas), part["r"])
 
 

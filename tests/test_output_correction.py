@@ -169,9 +169,10 @@ def test_on_filters_that_estimate_r_it_reads_their_estimate():
 
 @pytest.mark.slow
 def test_the_recipe_trains_loads_and_evaluates(tmp_path, monkeypatch):
-    """``recipes/real-singer-output.yaml`` at tiny size through ``immnet fit``: only the correction learns (the filters
-    are the tuned filter's buffers), its checkpoint rebuilds the network with the correction, and ``immnet evaluate``
-    scores it told each track's r."""
+    """``recipes/real-singer-output.yaml`` (the shipped ``real``'s) at tiny size through ``immnet fit``: only the
+    correction learns (the filters are the tuned filter's buffers, each track's r estimated), its checkpoint rebuilds
+    the network with the correction, and ``immnet evaluate`` scores it told r as the filter is (barely trained, it
+    is about that filter)."""
     from tests.tiny_runs import TINY
 
     monkeypatch.chdir(tmp_path)
@@ -180,16 +181,19 @@ def test_the_recipe_trains_loads_and_evaluates(tmp_path, monkeypatch):
     write_dataset(data / "val", 6, seed=4, spec=TINY)
     main(["fit", "--config", str(REPO_ROOT / "recipes/real-singer-output.yaml"), "--trainer.max_steps", "3",
           "--trainer.val_check_interval", "3", "--data.batch_size", "4", "--trainer.logger", "false"])
-    ckpt = tmp_path / "runs/real/singer-output/checkpoints/best.ckpt"
+    ckpt = tmp_path / "runs/real/output/checkpoints/best.ckpt"
     net = load_network(ckpt)
     assert net.correct is not None and float(net.correct.out.weight.abs().max()) > 0
     assert all(name.startswith("correct.") for name, _ in net.named_parameters())  # the filters learn nothing
-    base = _filter().network()
+    assert net.gain.r is None  # each track's r estimated
+    config = _filter().network().config
+    config["gain"] = {**config["gain"], "init_args": {**config["gain"]["init_args"], "r": None}}
+    base = IMMNet(**config)
     for name, value in base.state_dict().items():  # and are the tuned filter's
         torch.testing.assert_close(net.state_dict()[name].double(), value.double(), rtol=1e-6, atol=0)
     out = tmp_path / "res.json"
     assert main(["evaluate", "--data", str(data / "val"), "--split", "all", "--methods", "real-imm-singer,immnet",
-                 "--checkpoint", f"immnet={ckpt}", "--json", str(out), "--quiet"]) == 0
+                 "--checkpoint", f"immnet={ckpt}", "--told-r", "--json", str(out), "--quiet"]) == 0
     res = json.loads(out.read_text())["methods"]
     assert res["immnet"]["rmse"]["avg"] == pytest.approx(res["real-imm-singer"]["rmse"]["avg"], rel=0.05)
 

@@ -57,9 +57,9 @@ class OutputCorrection(Stage):
     ``IMMNet(correction=...)`` after the step's fusion, for its model set and ``modes`` (the number of mode
     probabilities it reads)."""
 
-    in_keys = [keys.MEASUREMENT, keys.FUSED, keys.FUSED_COV, keys.EXPERT_PROBS, keys.OUTPUT_HIDDEN, keys.AGE,
-               keys.NOISE_VAR]
-    out_keys = [keys.OUTPUT, keys.OUTPUT_HIDDEN]
+    in_keys = [keys.MEASUREMENT, keys.FUSED, keys.FUSED_COV, keys.EXPERT_PROBS, keys.OUTPUT_HIDDEN, keys.OUTPUT_SEEN,
+               keys.AGE, keys.NOISE_VAR]
+    out_keys = [keys.OUTPUT, keys.OUTPUT_HIDDEN, keys.OUTPUT_SEEN]
 
     def __init__(self, model_set=None, dt: float = 1.0, hidden: int = 128, layers: int = 2, modes: str = "joint"):
         super().__init__(model_set)
@@ -85,8 +85,9 @@ class OutputCorrection(Stage):
                              "(immnet.stages.filtering)")
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        """The GRU's state, zero before a track starts."""
-        return {keys.OUTPUT_HIDDEN: torch.zeros(batch, self.layers, self.hidden, dtype=dtype, device=device)}
+        """The GRU's state, zero before a track starts, and whether it has seen the track's first detection."""
+        return {keys.OUTPUT_HIDDEN: torch.zeros(batch, self.layers, self.hidden, dtype=dtype, device=device),
+                keys.OUTPUT_SEEN: torch.zeros(batch, dtype=torch.long, device=device)}
 
     def knock_out(self) -> None:
         """No correction: the step reports its filter's estimate (``IMMNet.knock_out("output")``)."""
@@ -104,9 +105,14 @@ class OutputCorrection(Stage):
         y, h_new = self.gru(torch.relu(self.inp(f.to(w.dtype))).unsqueeze(1), h.to(w.dtype).transpose(0, 1).contiguous())
         delta = self.out(y[:, 0]).to(x.dtype)
         running = (td.get(keys.AGE) >= 1).reshape(-1, 1)  # the track has an estimate: from its first detection on
+        # a track's first detection is reported as its filter reports it (the measurement, as every tracker's); the
+        # correction starts at the scan after, when its state has seen the track
+        seen = td.get(keys.OUTPUT_SEEN)
+        corrects = running & (seen >= 1).reshape(-1, 1)
         out = x.clone()
-        out[..., list(POS)] = x[..., list(POS)] + torch.where(running, r * delta, torch.zeros_like(delta))
+        out[..., list(POS)] = x[..., list(POS)] + torch.where(corrects, r * delta, torch.zeros_like(delta))
         td.set(keys.OUTPUT, out)
         td.set(keys.OUTPUT_HIDDEN, torch.where(running[..., None], h_new.transpose(0, 1).to(h.dtype), h))
+        td.set(keys.OUTPUT_SEEN, torch.where(running.reshape(seen.shape), torch.ones_like(seen), seen))
         return td
 
