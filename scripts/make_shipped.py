@@ -46,7 +46,7 @@ SHIPS = {
         "ckpt": "runs/real/output-5s/checkpoints/best.ckpt",
         "recipe": "recipes/real-singer-5s-output.yaml",
         "init": ("its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
-                 "real-imm-singer-5s with r estimated, exactly)"),
+                 "real-imm-singer-5s with r estimated from a prior of 20 m, exactly)"),
         "what": ("the output correction (a GRU after the fusion that corrects the reported position from the track's "
                  "history, reading each scan's interval) on the three-filter decoupled IMM tuned on real flights at "
                  "4.5-5.5 s (real-imm-singer-5s's CV, CA and Singer filters per axis), each track's r estimated, trained "
@@ -56,10 +56,8 @@ SHIPS = {
                  "val": f"{REAL}/quickstart-5s/val"},
         "interval_range": [4.5, 5.5],
         "guard": "none",
-        # its covariance scaled by a running mean of its NIS / 3 (docs/immnet.md, "Covariance consistency"), the weight
-        # chosen on the validation flights: of none, 0.005, 0.01, 0.02 and 0.05 the one whose mean position NEES is
-        # nearest 3, the consistency test's (docs/real.md, "Calibration"); its estimates are the trained network's
-        "settings": {"cov_consistency": 0.005},
+        # no covariance consistency (docs/immnet.md): of none, 0.005, 0.01, 0.02 and 0.05 its weight, none gives the
+        # mean position NEES nearest 3 on the validation flights (docs/real.md, "Calibration")
         "tests": {"quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general",
                                                                           "immnet-real-5s"])},
     },
