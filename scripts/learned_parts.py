@@ -5,7 +5,7 @@ all of them (IMMNet with nothing learned: a model-based IMM), in one run beside 
 (``IMMNet.knock_out``: no training again, so each row is the trained network minus that part). Only the parts the
 network has are rows (a correction on model-based filters has one). Real flights carry no range guard.
 
-    python scripts/learned_parts.py --data runs/real/data/quickstart-1s/test --checkpoint runs/general/fit/checkpoints/best.ckpt \
+    python scripts/learned_parts.py --data runs/real/data/quickstart-1s/test --checkpoint runs/general/fit/checkpoints/best.ckpt \\
         --label immnet-general --baselines real-imm-axis,real-imm [--json parts.json] [--markdown parts.md]
 """
 

@@ -64,7 +64,9 @@ class _TrackerModule(L.LightningModule):
             raise ValueError(f"lr_floor must be in [0, 1], got {lr_floor}")
 
     def trainable_parameters(self):
-        return self.parameters()
+        """The parameters the optimizer and the gradient clip see: those that require a gradient (a stage may freeze
+        some: stage 1 all but the gain's, ``Stage2Module(learn=...)`` all but the named components')."""
+        return (p for p in self.parameters() if p.requires_grad)
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """Every checkpoint carries the SHA-256 of its weights (``immnet.checkpoints``, docs/checkpoints.md)."""
@@ -158,9 +160,6 @@ class Stage1Module(_TrackerModule):
         gain = {id(p) for p in self.net.gain.parameters()}
         for p in self.parameters():
             p.requires_grad_(id(p) in gain)
-
-    def trainable_parameters(self):
-        return self.net.gain.parameters()
 
     def training_step(self, batch, batch_idx):
         M = self.net.n_experts
@@ -303,9 +302,6 @@ class Stage2Module(_TrackerModule):
         keep = {id(p) for stage in stages.values() for p in stage.parameters()}
         for p in self.net.parameters():
             p.requires_grad_(id(p) in keep)
-
-    def trainable_parameters(self):
-        return (p for p in self.parameters() if p.requires_grad)
 
     def load_parameters(self, path: str):
         """Start from the learned parameters of a trained IMMNet: every parameter of this network from the
