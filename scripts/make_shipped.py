@@ -6,6 +6,9 @@ real-singer-output.yaml, 1 s), `real-5s` (recipes/real-singer-5s-output.yaml, 4.
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
+`--rescore` exports nothing: it scores the shipped file again on its test sets with today's methods (another
+shipped network replaced, a filter added) and rewrites its provenance, keeping what it says of the training (commit,
+date, data, W&B runs, note) and recording when and at which commit it was scored.
 """
 
 from __future__ import annotations
@@ -83,7 +86,8 @@ SHIPS = {
             # beside each set's filters, imm-ekf-general: IMMNet with nothing learned tuned on the same mixture
             "quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["imm-ekf-general", "immnet", "immnet-real",
                                                                      "immnet-general"]),
-            "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general"]),
+            "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general",
+                                                                     "immnet-real-5s"]),
             "3dlast-1s": ("runs/general/data/test-1s", LAST + ["imm-ekf-general", "immnet", "immnet-general"]),
             "3dlast-4.5-5.5s": ("runs/general/data/test-4.5-5.5s", LAST + ["imm-ekf-general", "immnet-general"]),
             "3dlast-0.5-12s": ("runs/general/data/test-0.5-12s", LAST + ["imm-ekf-general", "immnet-general"]),
@@ -129,7 +133,13 @@ def main() -> int:
     p.add_argument("--commit", default="HEAD", help="the commit the weights were trained at (default: HEAD)")
     p.add_argument("--wandb-runs", default="", help="the W&B run ids of the training, comma-separated")
     p.add_argument("--note", default="", help="how the training departed from the recipe, if it did")
+    p.add_argument("--rescore", action="store_true",
+                   help="export nothing: score the shipped file again and rewrite its provenance, its training's "
+                        "commit, date, W&B runs and note kept (--commit, --wandb-runs, --note and --checkpoint refused)")
     a = p.parse_args()
+    if a.rescore and (a.checkpoint or a.commit != "HEAD" or a.wandb_runs or a.note):
+        p.error("--rescore keeps the shipped provenance's training record: give no --checkpoint, --commit, "
+                "--wandb-runs or --note")
     from immnet.tracking.advice import registry_name
 
     ship, registry = SHIPS[a.name], registry_name(a.name)
@@ -137,6 +147,9 @@ def main() -> int:
                             text=True).stdout.strip()
     if not commit:
         p.error(f"--commit {a.commit!r} is not a commit of this repository")
+    old = OUT / f"provenance-{a.name}.json"
+    if a.rescore and not old.is_file():
+        p.error(f"--rescore: {old} does not exist (nothing shipped as {a.name!r} to score again)")
     from immnet.checkpoints import CHECKSUM_KEY, load_checkpoint
     from immnet.data.storage import load_dataset
     from immnet.evaluation.methods import build_method
@@ -145,7 +158,12 @@ def main() -> int:
     from immnet.imm.guard import parse_guard
     from immnet.training.export import export_weights
 
-    out = export_weights(ROOT / (a.checkpoint or ship["ckpt"]), OUT / f"{registry}.ckpt", ship.get("settings"))
+    if a.rescore:
+        out, kept = OUT / f"{registry}.ckpt", json.loads(old.read_text())
+        if load_checkpoint(out)[CHECKSUM_KEY] != kept["weights_sha256"]:
+            p.error(f"--rescore: {out}'s weights are not the ones {old.name} describes (weights_sha256 differs)")
+    else:
+        out = export_weights(ROOT / (a.checkpoint or ship["ckpt"]), OUT / f"{registry}.ckpt", ship.get("settings"))
     tests, tables = {}, []
     for set_name, (path, names) in ship["tests"].items():
         data, _ = load_dataset(ROOT / path)
@@ -166,13 +184,17 @@ def main() -> int:
                       f"`immnet track` notes where the network is behind `{bins['filter']}` at the data's median "
                       f"interval):\n\n| method | {head} |\n|:---|{'---:|' * (len(bins['edges']) - 1)}\n{body}\n")
     runs = [r.strip() for r in a.wandb_runs.split(",") if r.strip()]
+    today = datetime.date.today().isoformat()
+    if a.rescore:  # the training's record as exported; the scores as of today
+        commit, today, a.note = kept["commit"], kept["date"], kept.get("note", "")
+        runs = (kept.get("wandb") or {}).get("runs", [])
     prov = {
         "file": f"immnet/pretrained/{registry}.ckpt",
         "weights_sha256": load_checkpoint(out)[CHECKSUM_KEY],
         "recipe": ship["recipe"],
         "init": ship["init"],
         "made_by": f".venv/bin/python scripts/make_shipped.py --name {a.name}",
-        "date": datetime.date.today().isoformat(),
+        "date": today,
         "commit": commit,
         "data": ship["data"],
         "guard": None,
@@ -184,6 +206,10 @@ def main() -> int:
         "tests": tests,
         **({"interval_bins": bins} if bins else {}),
     }
+    if a.rescore:
+        at = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        prov["scored"] = {"date": datetime.date.today().isoformat(), "commit": at,
+                          "by": f".venv/bin/python scripts/make_shipped.py --name {a.name} --rescore"}
     (OUT / f"provenance-{a.name}.json").write_text(json.dumps(prov, indent=2, allow_nan=False) + "\n")
     span = (f"scan intervals {ship['interval_range'][0]:g}-{ship['interval_range'][1]:g} s" if ship.get("interval_range")
             else f"{ship['scan_interval']:g} s scans only (a fixed-interval network)")
@@ -200,7 +226,9 @@ def main() -> int:
                if ship.get("settings") else []),
              *([f"Note: {a.note}.\n"] if a.note else []),
              "Test sets (never trained or tuned on), position RMSE in metres, each set one run (real flights without a "
-             "range guard):\n", *tables,
+             "range guard)"
+             + (f", scored again at commit `{prov['scored']['commit'][:10]}` ({prov['scored']['date']}) by "
+                f"`{prov['scored']['by']}`" if a.rescore else "") + ":\n", *tables,
              "Claims checked by the tests (`tests/test_real_flights.py`, `tests/test_pretrained.py`): "
              + "; ".join(f"{s}: " + ", ".join(f"{k} {v}" for k, v in t["claims"].items()) for s, t in tests.items()) + ".\n"]
     (OUT / f"PROVENANCE-{a.name}.md").write_text("\n".join(lines))
