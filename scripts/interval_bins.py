@@ -48,14 +48,17 @@ def main(argv=None) -> int:
         import runpy
         from pathlib import Path
 
-        VARIANTS = runpy.run_path(str(Path(__file__).with_name("learned_parts.py")))["VARIANTS"]
+        variants = runpy.run_path(str(Path(__file__).with_name("learned_parts.py")))["variants"]
         config = load_yaml(resolve_path(f"configs/methods/{args.knock_out}.yaml"))
         if not config["class_path"].endswith("IMMNetMethod"):
             raise SystemExit(f"--knock-out {args.knock_out}: not a registry IMMNet")
-        for suffix, parts in VARIANTS.items():
+        checkpoint = ckpts.get(args.knock_out) or str(resolve_path(config["init_args"]["checkpoint"]))
+        from immnet.tracking.tracker import load_network
+
+        for suffix, parts in variants(load_network(checkpoint).learned_parts()).items():
             if parts:
                 init = {**config["init_args"], "name": args.knock_out + suffix, "knock_out": parts,
-                        "checkpoint": ckpts.get(args.knock_out) or str(resolve_path(config["init_args"]["checkpoint"]))}
+                        "checkpoint": checkpoint}
                 methods[init["name"]] = IMMNetMethod(**init)
     for name, row in evaluate_by_interval(methods, td, edges):
         if name == "scans":

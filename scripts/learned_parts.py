@@ -3,7 +3,7 @@ learned parts knocked out (KalmanNet's noise and gain corrections: the filter ex
 Transformer's correction: the IMM's mode update alone; the output correction: the filters' own estimate), and with
 all of them (IMMNet with nothing learned: a model-based IMM), in one run beside the model-based filters given
 (``IMMNet.knock_out``: no training again, so each row is the trained network minus that part). Only the parts the
-network has are rows (a correction on model-based filters has one). Real flights carry no range guard.
+network has with parameters are rows (``IMMNet.learned_parts``) (a correction on model-based filters has one). Real flights carry no range guard.
 
     python scripts/learned_parts.py --data runs/real/data/quickstart-1s/test --checkpoint runs/general/fit/checkpoints/best.ckpt \\
         --label immnet-general --baselines real-imm-axis,real-imm [--json parts.json] [--markdown parts.md]
@@ -22,17 +22,11 @@ from immnet.evaluation.table import format_markdown, format_table
 from immnet.imm.guard import parse_guard
 from immnet.tracking.methods import IMMNetMethod
 
-PARTS = {  # IMMNet.knock_out's part -> its row's suffix
+PARTS = {  # IMMNet.knock_out's part (IMMNet.PARTS) -> its row's suffix
     "gain": " - KalmanNet (filters at base noise)",
     "classifier": " - Transformer (IMM mode update alone)",
-    "output": " - output correction (the filters' estimate)",
+    "correction": " - output correction (the filters' estimate)",
 }
-
-
-def learned(net) -> list[str]:
-    """The parts of ``net`` that learned something: a gain or mode update with parameters, an output correction."""
-    has = {"gain": net.gain, "classifier": net.classify, "output": net.correct}
-    return [part for part, stage in has.items() if stage is not None and any(True for _ in stage.parameters())]
 
 
 def variants(parts: list[str]) -> dict[str, tuple[str, ...]]:
@@ -58,7 +52,7 @@ def main(argv=None) -> int:
     methods = {name: build_method(name, guard=guard) for name in args.baselines.split(",") if name}
     from immnet.tracking.tracker import load_network
 
-    for suffix, parts in variants(learned(load_network(args.checkpoint))).items():
+    for suffix, parts in variants(load_network(args.checkpoint).learned_parts()).items():
         methods[args.label + suffix] = IMMNetMethod(args.checkpoint, args.label + suffix, guard=guard, knock_out=parts)
     rows = to_json(evaluate(methods, data, progress=True))
     print(format_table(rows))

@@ -42,3 +42,20 @@ def test_the_raw_measurements_by_interval_equal_numpy(tmp_path, capsys):
         e = err[sel]
         expect.append(np.sqrt((e ** 2).mean(0)).mean())
     assert ours == pytest.approx(expect, abs=6e-4)  # the table's three decimals
+
+
+def test_knock_out_adds_a_row_for_each_learned_part_of_the_network(tmp_path, capsys):
+    """``--knock-out immnet-general``: the default network and, beside it, the same weights with each learned part
+    (KalmanNet, the Transformer) and both knocked out (``IMMNet.learned_parts``, ``scripts/learned_parts.py``'s
+    variants); with both out it is IMMNet with nothing learned, which tracks differently from the trained network."""
+    data = write_dataset(tmp_path / "irregular", 4, 5, DataSpec(T=40, dt=2.0, dt_jitter=1.5, min_segment=12), progress=False)
+    main = runpy.run_path(str(SCRIPT))["main"]
+    assert main(["--data", str(data), "--methods", "immnet-general", "--knock-out", "immnet-general",
+                 "--edges", "0.5,2,3.5"]) == 0
+    rows = {line.split("|")[1].strip(): [float(v) for v in line.strip("| ").split("|")[1:]]
+            for line in capsys.readouterr().out.splitlines() if line.startswith("| immnet-general")}
+    assert list(rows) == ["immnet-general", "immnet-general - KalmanNet (filters at base noise)",
+                          "immnet-general - Transformer (IMM mode update alone)",
+                          "immnet-general - both (nothing learned)"]
+    assert all(len(v) == 2 and np.isfinite(v).all() for v in rows.values())
+    assert rows["immnet-general - both (nothing learned)"] != rows["immnet-general"]

@@ -78,7 +78,7 @@ def test_the_step_is_the_gru_over_the_filters_fast_path(residual, jitter):
     scale = float(expected.abs().max())  # the filter's two paths agree to 1e-9 of the state's scale (docs/core.md)
     torch.testing.assert_close(out, expected, rtol=0, atol=1e-9 * scale)
     # and the corrections themselves (about a metre) to 1e-6 m: what the filter's paths differ by, carried through
-    net.knock_out("output")
+    net.knock_out("correction")
     torch.testing.assert_close(out - _rollout(net, batch)[keys.STATE], expected - part["state"], rtol=0, atol=1e-6)
 
 
@@ -96,10 +96,10 @@ def test_untrained_it_is_its_filter_and_knocked_out_too():
         torch.testing.assert_close(net.rollout(z, r=r, return_cov=True)[0][keys.STATE_COV], cov, rtol=0, atol=0)
     torch.nn.init.normal_(net.correct.out.weight)
     assert (_rollout(net, batch)[keys.STATE] - base[keys.STATE]).abs().max() > 0.5
-    net.knock_out("output")
+    net.knock_out("correction")
     torch.testing.assert_close(_rollout(net, batch)[keys.STATE], base[keys.STATE], rtol=0, atol=0)
     with pytest.raises(ValueError, match="no output correction"):
-        method.network().knock_out("output")
+        method.network().knock_out("correction")
 
 
 def test_it_reads_nothing_after_a_scan_and_starts_with_each_track():
@@ -161,7 +161,7 @@ def test_on_filters_that_estimate_r_it_reads_their_estimate():
     z = batch[keys.MEASUREMENTS]
     with torch.no_grad():
         out, _ = net.rollout(z)
-        base, carry = net.knock_out("output").rollout(z)
+        base, carry = net.knock_out("correction").rollout(z)
     r_est = carry.get(keys.NOISE_VAR).sqrt()
     torch.testing.assert_close(out[keys.STATE][:, -1, 0] - base[keys.STATE][:, -1, 0], r_est, rtol=1e-9, atol=0)
     assert ((r_est - batch[keys.R].double()).abs() / batch[keys.R].double()).max() < 0.5  # an estimate of r
@@ -252,14 +252,16 @@ def test_learn_refuses_what_the_network_cannot_learn(learn, message):
 
 
 def test_learned_parts_rows_are_the_parts_the_network_has():
-    """``scripts/learned_parts.py`` knocks out only what a network learned: the shipped real network's output
-    correction alone, the 3D-LAST network's KalmanNet and Transformer and both, nothing of a model-based filter."""
+    """``IMMNet.learned_parts`` and ``scripts/learned_parts.py`` knock out only what a network learned: the shipped
+    real network's output correction alone, the 3D-LAST network's KalmanNet and Transformer and both, nothing of a
+    model-based filter; the names are those ``Stage2Module(learn=...)`` and ``IMMNet.knock_out`` take."""
     from immnet.checkpoints import shipped
 
-    script = runpy.run_path(str(REPO_ROOT / "scripts" / "learned_parts.py"))
-    learned, variants = script["learned"], script["variants"]
-    assert learned(load_network(shipped("real"))) == ["output"]
-    assert list(variants(["output"]).values()) == [(), ("output",)]
-    assert learned(load_network(shipped("3dlast"))) == ["gain", "classifier"]
+    variants = runpy.run_path(str(REPO_ROOT / "scripts" / "learned_parts.py"))["variants"]
+    assert load_network(shipped("real")).learned_parts() == ["correction"]
+    assert list(variants(["correction"]).values()) == [(), ("correction",)]
+    assert load_network(shipped("3dlast")).learned_parts() == ["gain", "classifier"]
     assert list(variants(["gain", "classifier"]).values()) == [(), ("gain",), ("classifier",), ("gain", "classifier")]
-    assert learned(_filter().network()) == [] and list(variants([]).values()) == [()]
+    assert _filter().network().learned_parts() == [] and list(variants([]).values()) == [()]
+    with pytest.raises(ValueError, match="no learned part 'output'; parts: gain, classifier, correction"):
+        _filter().network().part("output")

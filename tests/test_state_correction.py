@@ -83,7 +83,7 @@ def test_knocked_out_the_network_is_the_one_without_it(z):
         c = td.get(keys.EXPERT_CORRECTION)
         assert c.shape == (z.shape[0], 2, 9) and c.abs().max() > 0
         assert torch.all(c.abs() <= net.gain.correction_scale.to(c.dtype))
-        net.knock_out("correction")
+        net.knock_out("state_correction")
         out, _ = net.rollout(z)
     torch.testing.assert_close(out[keys.STATE], base[keys.STATE], rtol=0, atol=1e-9)
     torch.testing.assert_close(out[keys.ROLLOUT_EXPERT_PROBS], base[keys.ROLLOUT_EXPERT_PROBS], rtol=0, atol=1e-12)
@@ -95,6 +95,6 @@ def test_bad_settings_are_refused_by_name():
     with pytest.raises(ValueError, match="state_correction needs three bounds > 0"):
         IMMNet(**_config([2.0, 1.0]))
     with pytest.raises(ValueError, match="has no state correction"):
-        IMMNet(**_config(None)).knock_out("correction")
+        IMMNet(**_config(None)).knock_out("state_correction")
     with pytest.raises(ValueError, match="no learned part 'noise'"):
         IMMNet(**_config(None)).knock_out("noise")

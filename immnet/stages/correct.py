@@ -90,7 +90,7 @@ class OutputCorrection(Stage):
                 keys.OUTPUT_SEEN: torch.zeros(batch, dtype=torch.long, device=device)}
 
     def knock_out(self) -> None:
-        """No correction: the step reports its filter's estimate (``IMMNet.knock_out("output")``)."""
+        """No correction: the step reports its filter's estimate (``IMMNet.knock_out("correction")``)."""
         with torch.no_grad():
             self.out.weight.zero_()
             self.out.bias.zero_()

@@ -298,25 +298,44 @@ class IMMNet(TensorDictModuleBase):
                              "holds no 'r'")
         return batch[keys.R].to(batch[keys.MEASUREMENTS].dtype).reshape(-1)
 
-    LEARNED_PARTS = ("gain", "classifier", "correction", "output")
+    # the parts a network can learn -> the stage that holds each: the names ``Stage2Module(learn=...)``, ``knock_out``
+    # and ``learned_parts`` share (``correction``: the output correction, as ``IMMNet(correction=...)`` names it)
+    PARTS = {"gain": "gain", "classifier": "classify", "correction": "correct"}
+
+    def part(self, name: str) -> torch.nn.Module | None:
+        """The stage that holds the learned part ``name`` (one of ``PARTS``), None where this network has none (an
+        output correction is optional); a ValueError naming the parts for any other name."""
+        if name not in self.PARTS:
+            raise ValueError(f"no learned part {name!r}; parts: {', '.join(self.PARTS)}")
+        return getattr(self, self.PARTS[name], None)
+
+    def learned_parts(self) -> list[str]:
+        """The parts of ``PARTS`` this network has with parameters: what it learned or can learn (a model-based
+        gain or mode update has none)."""
+        return [name for name in self.PARTS
+                if (stage := self.part(name)) is not None and any(True for _ in stage.parameters())]
 
     def knock_out(self, *parts: str) -> "IMMNet":
-        """Set the learned correction of ``parts`` (``gain``: KalmanNet's noise and gain corrections, and its state
-        correction where it has one; ``classifier``: the Transformer's correction of the IMM's mode update;
-        ``correction``: KalmanNet's state correction alone, ``KalmanNetFilterGain(state_correction=...)``; ``output``:
-        the output correction after the fusion, ``IMMNet(correction=...)``) to zero, in place: each part its
-        model-based base, the rest of the trained network as it is; ``gain`` and ``classifier``: IMMNet with nothing
-        learned (the model-based IMM of ``tests/test_filtering.py``). What a trained part is
-        worth, without training again. A part with no model-based base (the paper's Transformer alone) is refused."""
-        for part in parts:
-            if part not in self.LEARNED_PARTS:
-                raise ValueError(f"no learned part {part!r}; parts: {', '.join(self.LEARNED_PARTS)}")
-            stage = {"classifier": self.classify, "output": self.correct}.get(part, self.gain)
-            method = "knock_out_correction" if part == "correction" else "knock_out"
-            if stage is None:
-                raise ValueError("this IMMNet has no output correction to knock out (IMMNet(correction=...))")
+        """Set the learned correction of ``parts`` to zero, in place, each part its model-based base and the rest of
+        the trained network as it is: ``gain``, KalmanNet's noise and gain corrections (and its state correction
+        where it has one); ``classifier``, the Transformer's correction of the IMM's mode update; ``correction``, the
+        output correction after the fusion (``IMMNet(correction=...)``: the step reports its filters' estimate);
+        ``state_correction``, KalmanNet's state correction alone (``KalmanNetFilterGain(state_correction=...)``).
+        ``gain`` and ``classifier`` together: IMMNet with nothing learned (the model-based IMM of
+        ``tests/test_filtering.py``). What a trained part is worth, without training again. A part with no
+        model-based base (the paper's Transformer alone) is refused."""
+        for name in parts:
+            if name == "state_correction":
+                stage, method = self.gain, "knock_out_correction"
+            elif name in self.PARTS:
+                stage, method = self.part(name), "knock_out"
+                if stage is None:
+                    what = "output correction" if name == "correction" else name
+                    raise ValueError(f"this IMMNet has no {what} to knock out (IMMNet({name}=...))")
+            else:
+                raise ValueError(f"no learned part {name!r}; parts: {', '.join([*self.PARTS, 'state_correction'])}")
             if not hasattr(stage, method):
-                raise ValueError(f"the {part} {type(stage).__name__} has no model-based base to knock out to")
+                raise ValueError(f"the {name} {type(stage).__name__} has no model-based base to knock out to")
             getattr(stage, method)()
         return self
 

@@ -256,8 +256,6 @@ class Stage2Module(_TrackerModule):
     the shipped general network (``recipes/general-output.yaml``: ``init_checkpoint`` and ``learn: [correction]``).
     """
 
-    PARTS = {"gain": "gain", "classifier": "classify", "correction": "correct"}  # component: IMMNet attribute
-
     def __init__(
         self,
         net: IMMNet | None = None,
@@ -292,13 +290,14 @@ class Stage2Module(_TrackerModule):
     def _freeze_all_but(self, learn: list[str]) -> None:
         """``learn``: freeze every parameter outside the named components (a ValueError naming an unknown one, or
         one this network lacks or that has no parameters)."""
-        unknown = [c for c in learn if c not in self.PARTS]
+        parts = IMMNet.PARTS
+        unknown = [c for c in learn if c not in parts]
         if unknown or not learn:
-            raise ValueError(f"learn: unknown component(s) {unknown or learn!r}; choose from {', '.join(self.PARTS)}")
-        stages = {c: getattr(self.net, self.PARTS[c], None) for c in learn}
-        empty = [c for c, stage in stages.items() if stage is None or not any(True for _ in stage.parameters())]
+            raise ValueError(f"learn: unknown component(s) {unknown or learn!r}; choose from {', '.join(parts)}")
+        empty = [c for c in learn if c not in self.net.learned_parts()]
         if empty:
             raise ValueError(f"learn: this IMMNet's {', '.join(empty)} has no parameters to learn")
+        stages = {c: self.net.part(c) for c in learn}
         keep = {id(p) for stage in stages.values() for p in stage.parameters()}
         for p in self.net.parameters():
             p.requires_grad_(id(p) in keep)
