@@ -5,7 +5,8 @@ It prints a table and rewrites the ``## The output correction`` section of BENCH
 The rows are ``real-imm-singer`` as IMMNet with nothing learned (``PerAxisIMMTracker.network()``, float32, eager,
 r fixed at 4 m: the step's cost does not depend on it) and the same network with an output correction of 2 GRU
 layers of 64 and of 128 units (``immnet.stages.correct.OutputCorrection``, untrained: its cost does not depend on
-its weights; docs/immnet.md "The output correction"). Inference as ``benchmarks/bench_immnet.py`` times it:
+its weights; docs/immnet.md "The output correction"), and the shipped ``real`` network as a user runs it (that
+filter and a 2 x 128 correction, each track's r estimated from its measurements). Inference as ``benchmarks/bench_immnet.py`` times it:
 ``IMMNet.scan`` over tracks that have started, the median of three passes of ``--steps`` scans; the rows take turns
 over ``--rounds`` rounds and each reports its median round.
 """
@@ -26,11 +27,17 @@ from immnet.evaluation.methods import build_method  # noqa: E402
 from immnet.filters.trackers import _linear_network  # noqa: E402
 from immnet.stages import IMMNet  # noqa: E402
 
-HIDDEN = (None, 64, 128)
+HIDDEN = (None, 64, 128, "real")
 
 
-def network(hidden: int | None) -> IMMNet:
-    """``real-imm-singer``'s step (r fixed at 4 m, float32) with an output correction of ``hidden`` units, or none."""
+def network(hidden: int | str | None) -> IMMNet:
+    """``real-imm-singer``'s step (r fixed at 4 m, float32) with an output correction of ``hidden`` units, or none;
+    ``"real"``: the shipped network of that name."""
+    if hidden == "real":
+        from immnet.checkpoints import shipped
+        from immnet.tracking.tracker import load_network
+
+        return load_network(shipped("real")).float().eval()
     m = build_method("real-imm-singer")
     base = _linear_network(m.name, m.model_set, m.sigma_q, 4.0, m._p_stay, 1.0, torch.float32, "axis")
     if hidden is None:
@@ -47,14 +54,17 @@ def main() -> int:
     head = "| step | " + " | ".join(f"batch {b}" for b in a.batches) + " |"
     lines = [head, "|" + "---|" * (1 + len(a.batches))]
     for i, h in enumerate(HIDDEN):
-        label = "`real-imm-singer` (nothing learned)" if h is None else f"with an output correction, 2 x {h} GRU units"
+        label = ("`real-imm-singer` (nothing learned)" if h is None else
+                 "the shipped `real` (2 x 128, r estimated)" if h == "real" else
+                 f"with an output correction, 2 x {h} GRU units")
         lines.append(f"| {label} | " + " | ".join(f"{rates[i, B]:,.0f}" for B in a.batches) + " |")
         print(lines[-1], flush=True)
     cmd = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_correction.py" + "".join(
         f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
     text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). Track-steps/s of IMMNet's streaming step, "
             "eager, float32: the three-filter decoupled IMM with nothing learned, and with the output correction after "
-            f"its fusion (docs/immnet.md \"The output correction\"); the median of {a.rounds} rounds taken in turns:\n\n"
+            f"its fusion (docs/immnet.md \"The output correction\"), and the shipped `real` network; the median of "
+            f"{a.rounds} rounds taken in turns:\n\n"
             + "\n".join(lines))
     write_section("The output correction", text, *([a.out] if a.out else []))
     return 0
