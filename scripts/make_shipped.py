@@ -184,17 +184,13 @@ def main() -> int:
                       f"`immnet track` notes where the network is behind `{bins['filter']}` at the data's median "
                       f"interval):\n\n| method | {head} |\n|:---|{'---:|' * (len(bins['edges']) - 1)}\n{body}\n")
     runs = [r.strip() for r in a.wandb_runs.split(",") if r.strip()]
-    today = datetime.date.today().isoformat()
-    if a.rescore:  # the training's record as exported; the scores as of today
-        commit, today, a.note = kept["commit"], kept["date"], kept.get("note", "")
-        runs = (kept.get("wandb") or {}).get("runs", [])
     prov = {
         "file": f"immnet/pretrained/{registry}.ckpt",
         "weights_sha256": load_checkpoint(out)[CHECKSUM_KEY],
         "recipe": ship["recipe"],
         "init": ship["init"],
         "made_by": f".venv/bin/python scripts/make_shipped.py --name {a.name}",
-        "date": today,
+        "date": datetime.date.today().isoformat(),
         "commit": commit,
         "data": ship["data"],
         "guard": None,
@@ -203,27 +199,31 @@ def main() -> int:
         "settings": ship.get("settings"),
         "wandb": {"project": "immnet", "runs": runs} if runs else None,
         "note": a.note,
-        "tests": tests,
-        **({"interval_bins": bins} if bins else {}),
     }
+    if a.rescore:  # the training's record as exported (SHIPS may describe a newer training by now); today's scores
+        prov = {k: v for k, v in kept.items() if k not in ("tests", "interval_bins", "scored")}
+        runs, a.note = (prov.get("wandb") or {}).get("runs", []), prov.get("note", "")
+    prov["tests"] = tests
+    if bins:
+        prov["interval_bins"] = bins
     if a.rescore:
         at = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
         prov["scored"] = {"date": datetime.date.today().isoformat(), "commit": at,
                           "by": f".venv/bin/python scripts/make_shipped.py --name {a.name} --rescore"}
     (OUT / f"provenance-{a.name}.json").write_text(json.dumps(prov, indent=2, allow_nan=False) + "\n")
-    span = (f"scan intervals {ship['interval_range'][0]:g}-{ship['interval_range'][1]:g} s" if ship.get("interval_range")
-            else f"{ship['scan_interval']:g} s scans only (a fixed-interval network)")
+    span = (f"scan intervals {prov['interval_range'][0]:g}-{prov['interval_range'][1]:g} s" if prov.get("interval_range")
+            else f"{prov['scan_interval']:g} s scans only (a fixed-interval network)")
     lines = [f"# Shipped IMMNet weights: {a.name}\n",
              f"`{registry}.ckpt` ({out.stat().st_size / 2**20:.1f} MB, `weights_sha256` {prov['weights_sha256']}): "
-             f"{ship['what']}. Trained by `{prov['recipe']}` from {ship['init']} at commit `{commit[:10]}` ({prov['date']}), "
+             f"{ship['what']}. Trained by `{prov['recipe']}` from {prov['init']} at commit `{prov['commit'][:10]}` ({prov['date']}), "
              f"exported and scored by `{prov['made_by']}`. Registry name `{registry}`; it takes {span}.\n",
-             "Training data: " + "; ".join(ship["data"]["train"] if isinstance(ship["data"]["train"], list)
-                                           else [ship["data"]["train"]]) + ".\n",
+             "Training data: " + "; ".join(prov["data"]["train"] if isinstance(prov["data"]["train"], list)
+                                           else [prov["data"]["train"]]) + ".\n",
              (f"W&B runs (offline; `wandb sync`, docs/wandb.md): {', '.join(runs)}.\n" if runs else
               "W&B: no run id recorded for this training (`wandb: null`).\n"),
              *([f"Set at export (what it reports, not what it estimates): "
-                f"{', '.join(f'{k} {v}' for k, v in ship['settings'].items())} (docs/immnet.md).\n"]
-               if ship.get("settings") else []),
+                f"{', '.join(f'{k} {v}' for k, v in prov['settings'].items())} (docs/immnet.md).\n"]
+               if prov.get("settings") else []),
              *([f"Note: {a.note}.\n"] if a.note else []),
              "Test sets (never trained or tuned on), position RMSE in metres, each set one run (real flights without a "
              "range guard)"
