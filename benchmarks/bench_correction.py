@@ -6,8 +6,8 @@ The rows are ``real-imm-singer`` as IMMNet with nothing learned (``PerAxisIMMTra
 r fixed at 4 m: the step's cost does not depend on it) and the same network with an output correction of 2 GRU
 layers of 64 and of 128 units (``immnet.stages.correct.OutputCorrection``, untrained: its cost does not depend on
 its weights; docs/immnet.md "The output correction"), and the shipped ``real`` network as a user runs it (that
-filter and a 2 x 128 correction, each track's r estimated from its measurements). Inference as ``benchmarks/bench_immnet.py`` times it:
-``IMMNet.scan`` over tracks that have started, the median of three passes of ``--steps`` scans; the rows take turns
+filter and a 2 x 128 correction, each track's r estimated from its measurements). Inference as
+``benchmarks/bench_immnet.py`` times it: ``IMMNet.scan`` over tracks that have started, the median of three passes of ``--steps`` scans; the rows take turns
 over ``--rounds`` rounds and each reports its median round.
 """
 

@@ -3,7 +3,8 @@ learned parts knocked out (KalmanNet's noise and gain corrections: the filter ex
 Transformer's correction: the IMM's mode update alone; the output correction: the filters' own estimate), and with
 all of them (IMMNet with nothing learned: a model-based IMM), in one run beside the model-based filters given
 (``IMMNet.knock_out``: no training again, so each row is the trained network minus that part). Only the parts the
-network has with parameters are rows (``IMMNet.learned_parts``) (a correction on model-based filters has one). Real flights carry no range guard.
+network has with parameters are rows (``IMMNet.learned_parts``: a correction on model-based filters has one). Real
+flights carry no range guard.
 
     python scripts/learned_parts.py --data runs/real/data/quickstart-1s/test --checkpoint runs/general/fit/checkpoints/best.ckpt \\
         --label immnet-general --baselines real-imm-axis,real-imm [--json parts.json] [--markdown parts.md]

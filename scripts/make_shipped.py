@@ -135,7 +135,8 @@ def main() -> int:
     p.add_argument("--note", default="", help="how the training departed from the recipe, if it did")
     p.add_argument("--rescore", action="store_true",
                    help="export nothing: score the shipped file again and rewrite its provenance, its training's "
-                        "commit, date, W&B runs and note kept (--commit, --wandb-runs, --note and --checkpoint refused)")
+                        "commit, date, W&B runs and note kept (--commit, --wandb-runs, --note and --checkpoint "
+                        "refused)")
     a = p.parse_args()
     if a.rescore and (a.checkpoint or a.commit != "HEAD" or a.wandb_runs or a.note):
         p.error("--rescore keeps the shipped provenance's training record: give no --checkpoint, --commit, "
@@ -202,7 +203,7 @@ def main() -> int:
     }
     if a.rescore:  # the training's record as exported (SHIPS may describe a newer training by now); today's scores
         prov = {k: v for k, v in kept.items() if k not in ("tests", "interval_bins", "scored")}
-        runs, a.note = (prov.get("wandb") or {}).get("runs", []), prov.get("note", "")
+    runs, note = (prov.get("wandb") or {}).get("runs", []), prov.get("note", "")
     prov["tests"] = tests
     if bins:
         prov["interval_bins"] = bins
@@ -215,7 +216,8 @@ def main() -> int:
             else f"{prov['scan_interval']:g} s scans only (a fixed-interval network)")
     lines = [f"# Shipped IMMNet weights: {a.name}\n",
              f"`{registry}.ckpt` ({out.stat().st_size / 2**20:.1f} MB, `weights_sha256` {prov['weights_sha256']}): "
-             f"{ship['what']}. Trained by `{prov['recipe']}` from {prov['init']} at commit `{prov['commit'][:10]}` ({prov['date']}), "
+             f"{ship['what']}. Trained by `{prov['recipe']}` from {prov['init']} at commit `{prov['commit'][:10]}` "
+             f"({prov['date']}), "
              f"exported and scored by `{prov['made_by']}`. Registry name `{registry}`; it takes {span}.\n",
              "Training data: " + "; ".join(prov["data"]["train"] if isinstance(prov["data"]["train"], list)
                                            else [prov["data"]["train"]]) + ".\n",
@@ -224,7 +226,7 @@ def main() -> int:
              *([f"Set at export (what it reports, not what it estimates): "
                 f"{', '.join(f'{k} {v}' for k, v in prov['settings'].items())} (docs/immnet.md).\n"]
                if prov.get("settings") else []),
-             *([f"Note: {a.note}.\n"] if a.note else []),
+             *([f"Note: {note}.\n"] if note else []),
              "Test sets (never trained or tuned on), position RMSE in metres, each set one run (real flights without a "
              "range guard)"
              + (f", scored again at commit `{prov['scored']['commit'][:10]}` ({prov['scored']['date']}) by "

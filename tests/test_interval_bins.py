@@ -48,7 +48,8 @@ def test_knock_out_adds_a_row_for_each_learned_part_of_the_network(tmp_path, cap
     """``--knock-out immnet-general``: the default network and, beside it, the same weights with each learned part
     (KalmanNet, the Transformer) and both knocked out (``IMMNet.learned_parts``, ``scripts/learned_parts.py``'s
     variants); with both out it is IMMNet with nothing learned, which tracks differently from the trained network."""
-    data = write_dataset(tmp_path / "irregular", 4, 5, DataSpec(T=40, dt=2.0, dt_jitter=1.5, min_segment=12), progress=False)
+    data = write_dataset(tmp_path / "irregular", 4, 5, DataSpec(T=40, dt=2.0, dt_jitter=1.5, min_segment=12),
+                         progress=False)
     main = runpy.run_path(str(SCRIPT))["main"]
     assert main(["--data", str(data), "--methods", "immnet-general", "--knock-out", "immnet-general",
                  "--edges", "0.5,2,3.5"]) == 0

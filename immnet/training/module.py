@@ -294,7 +294,8 @@ class Stage2Module(_TrackerModule):
         unknown = [c for c in learn if c not in parts]
         if unknown or not learn:
             raise ValueError(f"learn: unknown component(s) {unknown or learn!r}; choose from {', '.join(parts)}")
-        empty = [c for c in learn if c not in self.net.learned_parts()]
+        has = self.net.learned_parts()
+        empty = [c for c in learn if c not in has]
         if empty:
             raise ValueError(f"learn: this IMMNet's {', '.join(empty)} has no parameters to learn")
         stages = {c: self.net.part(c) for c in learn}
