@@ -126,7 +126,7 @@ def interval_bins(spec: dict, registry: str) -> dict:
     return {"data": spec["data"], "edges": spec["edges"], "network": registry, "filter": spec["filter"], "rmse": rmse}
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--name", required=True, choices=sorted(SHIPS))
     p.add_argument("--checkpoint", default=None, help="the run's checkpoint (default: where its recipe writes it)")
@@ -137,7 +137,7 @@ def main() -> int:
                    help="export nothing: score the shipped file again and rewrite its provenance, its training's "
                         "commit, date, W&B runs and note kept (--commit, --wandb-runs, --note and --checkpoint "
                         "refused)")
-    a = p.parse_args()
+    a = p.parse_args(argv)
     if a.rescore and (a.checkpoint or a.commit != "HEAD" or a.wandb_runs or a.note):
         p.error("--rescore keeps the shipped provenance's training record: give no --checkpoint, --commit, "
                 "--wandb-runs or --note")
