@@ -33,9 +33,9 @@ SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "i
            "real-5s": "immnet-real-5s.ckpt"}
 """The shipped networks by name (docs/checkpoints.md "Shipped weights"): ``general`` (any interval 0.5-12 s, 3D-LAST
 and real flights, no range guard) is what ``Tracker.pretrained()`` and ``immnet track`` load unless told;
-``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, modes per axis
-on the decoupled IMM, trained on real flights); ``real-5s`` the real-flight network for a surveillance radar's
-4.5-5.5 s scans (modes per axis on the three-filter decoupled IMM)."""
+``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, a learned
+output correction on the three-filter decoupled IMM, trained on real flights); ``real-5s`` the same for a
+surveillance radar's 4.5-5.5 s scans, on that IMM tuned at those scans."""
 DEFAULT_WEIGHTS = "general"
 
 
@@ -58,6 +58,16 @@ ALLOWED_GLOBALS: tuple = ()
 ``OrderedDict``, ``torch.Size``, plain Python containers and scalars). Our Lightning checkpoints of
 ``Stage1Module`` / ``Stage2Module`` (state_dict, hyper_parameters from LightningCLI's YAML, loops,
 ModelCheckpoint's and Timer's state, Adam's and LambdaLR's state) and the exported weights need none."""
+
+
+ALLOWED_PACKAGES: tuple = ("immnet",)
+"""The packages whose classes a checkpoint's config may name (every ``class_path`` in its ``hyper_parameters``):
+a network is rebuilt from the classes its checkpoint names, and naming a class imports its module, so a file
+naming another package's is refused before anything is imported. A network built of classes of one's own package
+loads once that package is added (``immnet.checkpoints.ALLOWED_PACKAGES += ("mylab",)``; docs/checkpoints.md)."""
+
+_HPARAMS = ("hyper_parameters", "datamodule_hyper_parameters")
+"""Where a checkpoint keeps the configs it is rebuilt from (Lightning, and LightningCLI's ``--ckpt_path``)."""
 
 
 class CheckpointError(ValueError):
@@ -123,8 +133,30 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
         raise CheckpointError(f"{path} is not a readable checkpoint: {_reason(err)}") from None
     if not isinstance(ckpt, dict):
         raise CheckpointError(f"{path} is not a checkpoint: it holds a {type(ckpt).__name__}, not a dict")
+    foreign = foreign_classes([ckpt.get(k) for k in _HPARAMS])
+    if foreign:
+        raise CheckpointError(f"{path} is refused: its config names the class {foreign[0]!r}, outside the packages "
+                              f"a checkpoint may build from ({', '.join(ALLOWED_PACKAGES)}; docs/checkpoints.md); "
+                              "nothing in it was imported")
     verify_checksum(ckpt, path)
     return ckpt
+
+
+def foreign_classes(config) -> list:
+    """The ``class_path`` (and LightningCLI's ``_class_path``) values anywhere in ``config`` (nested dicts and lists)
+    that are not a dotted name inside one of ``ALLOWED_PACKAGES``, in the order found; nothing is imported."""
+    found, stack = [], [config]
+    while stack:
+        node = stack.pop(0)
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if key in ("class_path", "_class_path") and not (
+                        isinstance(value, str) and "." in value and value.split(".", 1)[0] in ALLOWED_PACKAGES):
+                    found.append(value)
+                stack.append(value)
+        elif isinstance(node, (list, tuple)):
+            stack.extend(node)
+    return found
 
 
 _BOILERPLATE = ("Weights only load failed", "Please file an issue", "Check the documentation")

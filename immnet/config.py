@@ -15,6 +15,7 @@ A config path is looked for, in this order:
 from __future__ import annotations
 
 import importlib
+import inspect
 from importlib import resources
 from pathlib import Path
 
@@ -86,20 +87,27 @@ def build(spec):
     return instantiate(spec)
 
 
-def import_class(class_path: str):
-    """The class named by a dotted ``class_path``; ``ValueError`` naming it if it cannot be imported."""
+def import_class(class_path: str, kind: type | None = None):
+    """The class named by a dotted ``class_path``; ``ValueError`` naming it if it cannot be imported, or, given
+    ``kind``, if it is not a class derived from ``kind`` (a function, or a class of another role, is never called)."""
+    if not isinstance(class_path, str):
+        raise ValueError(f"a class_path is a dotted name, got {class_path!r}")
     module_name, _, cls_name = class_path.rpartition(".")
     try:
-        return getattr(importlib.import_module(module_name), cls_name)
+        cls = getattr(importlib.import_module(module_name), cls_name)
     except (ImportError, AttributeError, ValueError) as err:
         raise ValueError(f"unknown class_path {class_path!r}: {err}") from None
+    if kind is not None and not (inspect.isclass(cls) and issubclass(cls, kind)):
+        raise ValueError(f"class_path {class_path!r} is not a {kind.__module__}.{kind.__qualname__}")
+    return cls
 
 
-def instantiate(entry: dict, **extra):
-    """Build ``class_path(**init_args, **extra)``; the YAML convention of Lightning's CLI.
+def instantiate(entry: dict, kind: type | None = None, **extra):
+    """Build ``class_path(**init_args, **extra)``; the YAML convention of Lightning's CLI. ``kind``: the class
+    ``class_path`` must derive from (``import_class``).
 
     ``extra`` carries what the caller knows and the YAML should not repeat (a stage's model set).
     """
     if not isinstance(entry, dict) or "class_path" not in entry:
         raise ValueError(f"expected a mapping with 'class_path', got {entry!r}")
-    return import_class(entry["class_path"])(**(entry.get("init_args") or {}), **extra)
+    return import_class(entry["class_path"], kind)(**(entry.get("init_args") or {}), **extra)

@@ -104,6 +104,78 @@ def test_a_checkpoint_that_would_run_code_is_refused_by_the_tracker(tmp_path, ho
     assert not sentinel.exists()
 
 
+def _naming(tmp_path, monkeypatch, where: str):
+    """The shipped checkpoint (a plain-data pickle, its checksum intact) whose config names, at ``where``, a class
+    of a module that creates a sentinel file when imported: ``(path, sentinel, module)``."""
+    sentinel, module = tmp_path / f"SENTINEL-{where}", f"lab_stages{where.strip('_')}"
+    (tmp_path / f"{module}.py").write_text(f"open({str(sentinel)!r}, 'w').close()\nclass Gain:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    ckpt = _shipped()
+    net = ckpt["hyper_parameters"]["net"]
+    if where == "gain":
+        net["gain"] = {"class_path": f"{module}.Gain", "init_args": {}}
+    elif where == "model_set":
+        net["model_set"] = [*net["model_set"][:-1], {"class_path": f"{module}.Gain", "init_args": {}}]
+    else:  # LightningCLI's form of the module itself
+        ckpt["hyper_parameters"]["_class_path"] = f"{module}.Gain"
+    path = tmp_path / f"foreign-{where}.ckpt"
+    torch.save(ckpt, path)
+    return path, sentinel, module
+
+
+@pytest.mark.parametrize("where", ["gain", "model_set", "_class_path"])
+def test_a_checkpoint_naming_a_class_outside_immnet_is_refused_before_anything_is_imported(tmp_path, monkeypatch,
+                                                                                          capsys, where):
+    """A checkpoint is rebuilt from the classes its config names, and naming one imports its module: a file naming
+    a class outside the allowed packages (``ALLOWED_PACKAGES``: immnet) is refused by every reader (the tracker,
+    Stage2Module's checkpoints, the exporter, ``immnet fit --ckpt_path``'s check, ``immnet track``), and the module
+    is never imported (its sentinel file is not created). Added to the allowed packages, the same name loads as far
+    as the import (the class is then refused as no stage)."""
+    import sys
+
+    from immnet.checkpoints import ALLOWED_PACKAGES
+    from immnet.training.checkpoint_io import check_checkpoints
+    from immnet.training.export import export_weights
+
+    path, sentinel, module = _naming(tmp_path, monkeypatch, where)
+    why = f"{path} is refused: its config names the class '{module}.Gain', outside the packages"
+    with pytest.raises(CheckpointError, match=why):
+        Tracker.from_checkpoint(path)
+    with pytest.raises(CheckpointError, match=why):
+        Stage2Module(net=_shipped()["hyper_parameters"]["net"], init_checkpoint=str(path))
+    with pytest.raises(CheckpointError, match=why):
+        export_weights(path, tmp_path / "out.ckpt")
+    with pytest.raises(CheckpointError, match=why):
+        check_checkpoints({"subcommand": "fit", "fit": {"ckpt_path": str(path), "model": {}}})
+    np.savez(tmp_path / "in.npz", measurements=np.zeros((1, 5, 3), np.float32), dt=1.0)
+    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "o.npz"),
+                 "--checkpoint", str(path)]) == 2
+    assert why in _one_error_line(capsys.readouterr().err, "track")
+    assert not sentinel.exists() and module not in sys.modules
+    assert not (tmp_path / "out.ckpt").exists() and not (tmp_path / "o.npz").exists()
+    if where == "gain":  # one's own package, allowed: imported, then refused as no immnet stage, never built
+        monkeypatch.setattr("immnet.checkpoints.ALLOWED_PACKAGES", (*ALLOWED_PACKAGES, module))
+        with pytest.raises(ValueError, match=f"class_path '{module}.Gain' is not a immnet.stages.base.Stage"):
+            Tracker.from_checkpoint(path)
+        assert sentinel.exists()
+        sys.modules.pop(module)
+
+
+def test_a_component_that_is_no_stage_is_never_called(tmp_path):
+    """A component's ``class_path`` must name a stage class (a motion model's, a motion model): a function of the
+    package that would build something else from the config (``immnet.config.instantiate``) is refused by name,
+    not called."""
+    from immnet.motion import ModelSet
+    from immnet.stages import IMMNet
+
+    net = _shipped()["hyper_parameters"]["net"]
+    called = {"class_path": "immnet.config.instantiate", "init_args": {"entry": {"class_path": "builtins.print"}}}
+    with pytest.raises(ValueError, match="'immnet.config.instantiate' is not a immnet.stages.base.Stage"):
+        IMMNet(**{**net, "classifier": called})
+    with pytest.raises(ValueError, match="'immnet.config.instantiate' is not a immnet.motion.base.MotionModel"):
+        ModelSet.from_config([called])
+
+
 def test_the_cli_refuses_every_bad_checkpoint_in_one_line(tmp_path, capsys):
     """Issue 20, item 1: ``immnet track`` and ``immnet evaluate`` refuse a checkpoint that would run code
     (nothing runs), an empty, truncated or non-checkpoint file, and a pickle of something else than a

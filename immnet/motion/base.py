@@ -125,7 +125,7 @@ class ModelSet:
             spec = spec["models"]
         if not isinstance(spec, (list, tuple)):
             raise TypeError(f"a model set is a list of models, got {type(spec).__name__}")
-        return cls([m_ if isinstance(m_, MotionModel) else instantiate(m_) for m_ in spec])
+        return cls([m_ if isinstance(m_, MotionModel) else instantiate(m_, MotionModel) for m_ in spec])
 
     def to_config(self) -> dict:
         return {

@@ -94,7 +94,7 @@ def build_component(component, model_set: ModelSet, dt: float, settings: dict) -
     """The stage ``component`` names, for ``model_set`` and ``dt``, with the ``settings`` (``SET_ONCE``, set on
     ``IMMNet``) in place of the component's own values wherever its class takes them."""
     config = component_config(component)
-    cls = import_class(config["class_path"])
+    cls = import_class(config["class_path"], Stage)
     params = inspect.signature(cls).parameters
     args = dict(config["init_args"]) | {name: value for name, value in settings.items() if name in params}
     return cls(model_set=model_set, dt=dt, **args)
