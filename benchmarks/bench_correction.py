@@ -5,8 +5,9 @@ It prints a table and rewrites the ``## The output correction`` section of BENCH
 The rows are ``real-imm-singer`` as IMMNet with nothing learned (``PerAxisIMMTracker.network()``, float32, eager,
 r fixed at 4 m: the step's cost does not depend on it) and the same network with an output correction of 2 GRU
 layers of 64 and of 128 units (``immnet.stages.correct.OutputCorrection``, untrained: its cost does not depend on
-its weights; docs/immnet.md "The output correction"), and the shipped ``real`` network as a user runs it (that
-filter and a 2 x 128 correction, each track's r estimated from its measurements). Inference as
+its weights; docs/immnet.md "The output correction"), three of 2 x 128 averaged (``CorrectionEnsemble``), and the
+shipped ``real`` and ``real-5s`` networks as a user runs them (``real``: that filter and a 2 x 128 correction, each
+track's r estimated from its measurements; ``real-5s``: the filter tuned at 4.5-5.5 s and three such corrections). Inference as
 ``benchmarks/bench_immnet.py`` times it: ``IMMNet.scan`` over tracks that have started, the median of three passes of ``--steps`` scans; the rows take turns
 over ``--rounds`` rounds and each reports its median round.
 """
@@ -27,22 +28,25 @@ from immnet.evaluation.methods import build_method  # noqa: E402
 from immnet.filters.trackers import _linear_network  # noqa: E402
 from immnet.stages import IMMNet  # noqa: E402
 
-HIDDEN = (None, 64, 128, "real")
+HIDDEN = (None, 64, 128, "3x128", "real", "real-5s")
 
 
 def network(hidden: int | str | None) -> IMMNet:
-    """``real-imm-singer``'s step (r fixed at 4 m, float32) with an output correction of ``hidden`` units, or none;
-    ``"real"``: the shipped network of that name."""
-    if hidden == "real":
+    """``real-imm-singer``'s step (r fixed at 4 m, float32) with an output correction of ``hidden`` units, or none,
+    or (``"3x128"``) three corrections of 128 averaged (``CorrectionEnsemble``); ``"real"``, ``"real-5s"``: the
+    shipped network of that name (``real-5s`` scanned at its nominal interval, 5 s)."""
+    if hidden in ("real", "real-5s"):
         from immnet.checkpoints import shipped
         from immnet.tracking.tracker import load_network
 
-        return load_network(shipped("real")).float().eval()
+        return load_network(shipped(hidden)).float().eval()
     m = build_method("real-imm-singer")
     base = _linear_network(m.name, m.model_set, m.sigma_q, 4.0, m._p_stay, 1.0, torch.float32, "axis")
     if hidden is None:
         return base
-    correction = {"class_path": "immnet.stages.correct.OutputCorrection", "init_args": {"hidden": hidden}}
+    correction = ({"class_path": "immnet.stages.correct.CorrectionEnsemble", "init_args": {"members": 3, "hidden": 128}}
+                  if hidden == "3x128" else
+                  {"class_path": "immnet.stages.correct.OutputCorrection", "init_args": {"hidden": hidden}})
     return IMMNet(**base.config, correction=correction).eval()
 
 
@@ -56,6 +60,9 @@ def main() -> int:
     for i, h in enumerate(HIDDEN):
         label = ("`real-imm-singer` (nothing learned)" if h is None else
                  "the shipped `real` (2 x 128, r estimated)" if h == "real" else
+                 "the shipped `real-5s` (three corrections of 2 x 128 on `real-imm-singer-5s`, r estimated)"
+                 if h == "real-5s" else
+                 "with three output corrections of 2 x 128 GRU units, averaged" if h == "3x128" else
                  f"with an output correction, 2 x {h} GRU units")
         lines.append(f"| {label} | " + " | ".join(f"{rates[i, B]:,.0f}" for B in a.batches) + " |")
         print(lines[-1], flush=True)
@@ -63,7 +70,8 @@ def main() -> int:
         f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
     text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). Track-steps/s of IMMNet's streaming step, "
             "eager, float32: the three-filter decoupled IMM with nothing learned, and with the output correction after "
-            f"its fusion (docs/immnet.md \"The output correction\"), and the shipped `real` network; the median of "
+            f"its fusion (docs/immnet.md \"The output correction\"), one or three of them, and the shipped `real` and `real-5s` "
+            "networks; the median of "
             f"{a.rounds} rounds taken in turns:\n\n"
             + "\n".join(lines))
     write_section("The output correction", text, *([a.out] if a.out else []))

@@ -1,8 +1,9 @@
 """Ship a fine-tuned IMMNet: export its run's best checkpoint into immnet/pretrained/immnet-NAME.ckpt, score it on
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (recipes/
-real-singer-output.yaml, 1 s), `real-5s` (recipes/real-singer-5s-output.yaml, 4.5-5.5 s) or `general`
-(recipes/general.yaml, 0.5-12 s, the default weights).
+real-singer-output.yaml, 1 s), `real-5s` (three runs of recipes/real-singer-5s-output.yaml, two with an overlay of
+configs/members/, their corrections joined: 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s, the default
+weights).
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
@@ -46,15 +47,21 @@ SHIPS = {
         "tests": {"quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-general", "immnet-real"])},
     },
     "real-5s": {
-        "ckpt": "runs/real/output-5s/checkpoints/best.ckpt",
-        "recipe": "recipes/real-singer-5s-output.yaml",
-        "init": ("its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
+        # three runs of the recipe on one filter, their corrections averaged (CorrectionEnsemble): the recipe, a second
+        # seed, and fresh views with turns flown into half of the tracks; chosen on the validation flights over each
+        # run alone and each pair (docs/real.md "Several corrections on one filter")
+        "ckpt": ["runs/real/output-5s/checkpoints/best.ckpt", "runs/real/output-5s-seed1/checkpoints/best.ckpt",
+                 "runs/real/output-5s-turns/checkpoints/best.ckpt"],
+        "recipe": ["recipes/real-singer-5s-output.yaml",
+                   "recipes/real-singer-5s-output.yaml + configs/members/real-5s-seed1.yaml",
+                   "recipes/real-singer-5s-output.yaml + configs/members/real-5s-turns.yaml"],
+        "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
                  "real-imm-singer-5s with r estimated from a prior of 20 m, exactly)"),
-        "what": ("the output correction (a GRU after the fusion that corrects the reported position from the track's "
-                 "history, reading each scan's interval) on the three-filter decoupled IMM tuned on real flights at "
-                 "4.5-5.5 s (real-imm-singer-5s's CV, CA and Singer filters per axis), each track's r estimated, trained "
-                 "on real flights at those scans (a fresh view of its flights each batch), without a range guard; only "
-                 "the correction learned"),
+        "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "
+                 "history, reading each scan's interval), their corrections averaged, on the three-filter decoupled IMM "
+                 "tuned on real flights at 4.5-5.5 s (real-imm-singer-5s's CV, CA and Singer filters per axis), each "
+                 "track's r estimated, each trained on real flights at those scans (a fresh view of its flights each "
+                 "batch) as a run of its own, without a range guard; only the corrections learned"),
         "data": {"train": f"{REAL}/quickstart-5s/train: {QUICKSTART}, U[4.5, 5.5] s scans, r ~ U[5, 35] m",
                  "val": f"{REAL}/quickstart-5s/val"},
         "interval_range": [4.5, 5.5],
@@ -129,7 +136,8 @@ def interval_bins(spec: dict, registry: str) -> dict:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--name", required=True, choices=sorted(SHIPS))
-    p.add_argument("--checkpoint", default=None, help="the run's checkpoint (default: where its recipe writes it)")
+    p.add_argument("--checkpoint", default=None, help="the run's checkpoint (default: where its recipe writes it); "
+                   "runs whose corrections are joined, comma-separated")
     p.add_argument("--commit", default="HEAD", help="the commit the weights were trained at (default: HEAD)")
     p.add_argument("--wandb-runs", default="", help="the W&B run ids of the training, comma-separated")
     p.add_argument("--note", default="", help="how the training departed from the recipe, if it did")
@@ -157,14 +165,21 @@ def main(argv: list[str] | None = None) -> int:
     from immnet.evaluation.runner import evaluate, to_json
     from immnet.evaluation.table import format_markdown, format_table
     from immnet.imm.guard import parse_guard
-    from immnet.training.export import export_weights
+    from immnet.training.export import export_weights, join_corrections
 
     if a.rescore:
         out, kept = OUT / f"{registry}.ckpt", json.loads(old.read_text())
         if load_checkpoint(out)[CHECKSUM_KEY] != kept["weights_sha256"]:
             p.error(f"--rescore: {out}'s weights are not the ones {old.name} describes (weights_sha256 differs)")
     else:
-        out = export_weights(ROOT / (a.checkpoint or ship["ckpt"]), OUT / f"{registry}.ckpt", ship.get("settings"))
+        trained = a.checkpoint.split(",") if a.checkpoint else ship["ckpt"]
+        trained = trained if isinstance(trained, list) else [trained]
+        if len(trained) > 1:  # runs on one filter: their corrections joined
+            if ship.get("settings"):
+                p.error(f"{a.name}: settings at export are not taken by a join of runs")
+            out = join_corrections([ROOT / r for r in trained], OUT / f"{registry}.ckpt")
+        else:
+            out = export_weights(ROOT / trained[0], OUT / f"{registry}.ckpt", ship.get("settings"))
     tests, tables = {}, []
     for set_name, (path, names) in ship["tests"].items():
         data, _ = load_dataset(ROOT / path)
@@ -214,9 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     (OUT / f"provenance-{a.name}.json").write_text(json.dumps(prov, indent=2, allow_nan=False) + "\n")
     span = (f"scan intervals {prov['interval_range'][0]:g}-{prov['interval_range'][1]:g} s" if prov.get("interval_range")
             else f"{prov['scan_interval']:g} s scans only (a fixed-interval network)")
+    recipes = ("; ".join(f"`{r}`" for r in prov["recipe"]) + " (one run each, joined)"
+               if isinstance(prov["recipe"], list) else f"`{prov['recipe']}`")
     lines = [f"# Shipped IMMNet weights: {a.name}\n",
              f"`{registry}.ckpt` ({out.stat().st_size / 2**20:.1f} MB, `weights_sha256` {prov['weights_sha256']}): "
-             f"{ship['what']}. Trained by `{prov['recipe']}` from {prov['init']} at commit `{prov['commit'][:10]}` "
+             f"{ship['what']}. Trained by {recipes} from {prov['init']} at commit `{prov['commit'][:10]}` "
              f"({prov['date']}), "
              f"exported and scored by `{prov['made_by']}`. Registry name `{registry}`; it takes {span}.\n",
              "Training data: " + "; ".join(prov["data"]["train"] if isinstance(prov["data"]["train"], list)

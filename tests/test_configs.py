@@ -134,3 +134,24 @@ def test_the_full_scale_recipe_is_one_config_away_from_the_shipped_network(stage
     net = IMMNet(**net_arguments(cfg["model"]["init_args"]["net"]))
     assert type(net.gain).__name__ == "KalmanNetFilterGain" and net.interact.guard is not None
     assert net.interact.Pi[0, 0].item() == pytest.approx(0.999) and net.classify.p_stay == pytest.approx(0.999)
+
+
+MEMBERS = sorted((REPO_ROOT / "configs" / "members").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("member", MEMBERS, ids=lambda p: p.name)
+def test_a_member_overlay_trains_the_same_network_elsewhere(member, capsys):
+    """Each ``configs/members`` overlay (a further member of a shipped ensemble of corrections, joined by
+    ``immnet.training.export.join_corrections``) names the recipe it overlays in its ``Run:`` line, and changes
+    nothing of that recipe's network or data, only the seed, the fresh views and where the run is written: the
+    members share their filter, as joining them requires."""
+    run = next(line for line in member.read_text().splitlines() if "Run:" in line)
+    recipe = REPO_ROOT / run.split("--config ")[1].split()[0]
+    base = _print_config(["--config", str(recipe)], capsys)
+    over = _print_config(["--config", str(recipe), "--config", str(member)], capsys)
+    assert over["model"] == base["model"]
+    assert {k: v for k, v in over["data"].items() if k != "augment"} == {
+        k: v for k, v in base["data"].items() if k != "augment"}
+    assert over["trainer"]["default_root_dir"] != base["trainer"]["default_root_dir"]
+    dirs = [c["init_args"]["dirpath"] for c in over["trainer"]["callbacks"] if "dirpath" in c.get("init_args", {})]
+    assert dirs == [f"{over['trainer']['default_root_dir']}/checkpoints"]

@@ -86,6 +86,14 @@ CONFIGS = {
             "interaction": "imm", "onset": False, "model_noise": [0.4, 0.35], "r": "data", "start_acc_std": 10.0}},
         "classifier": {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}},
         "correction": {"class_path": "immnet.stages.correct.OutputCorrection", "init_args": {"hidden": 8}}},
+    "filter-per-axis+bayes-experts+correction-ensemble": {  # real-5s's shape: several corrections on one filter
+        "model_set": [{"class_path": "immnet.motion.ConstantVelocity"}, {"class_path": "immnet.motion.ConstantAcceleration"}],
+        "p_stay": 0.98, "modes": "axis", "start_detections": 1, "interval_range": [4.5, 5.5],
+        "gain": {"class_path": FILTERING + "FilterGain", "init_args": {
+            "interaction": "imm", "onset": False, "model_noise": [0.4, 0.35], "r": None, "start_acc_std": 10.0}},
+        "classifier": {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}},
+        "correction": {"class_path": "immnet.stages.correct.CorrectionEnsemble",
+                       "init_args": {"members": 3, "hidden": 8}}},
     "kalmannet-filter-per-channel+bayes-transformer": {  # modes per channel over CV, CA and turns estimating their rate
         "model_set": "configs/model_sets/imm4-adaptive.yaml", "guard": False, "modes": "channel",
         "interval_range": [0.5, 12.0],

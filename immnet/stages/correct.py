@@ -95,24 +95,75 @@ class OutputCorrection(Stage):
             self.out.weight.zero_()
             self.out.bias.zero_()
 
-    def forward(self, td):
+    def shift(self, td, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """This scan's correction of the reported position ``[B, 3]`` (m; zero where the track has no estimate yet
+        or is at its first detection) and the GRU's next state, from its state ``h [B, layers, hidden]``."""
         z, x = td.get(keys.MEASUREMENT), td.get(keys.FUSED)
         r = td.get(keys.NOISE_VAR).to(x.dtype).clamp_min(1e-12).sqrt().reshape(-1, 1)
         dt, _ = scan_interval(td, self.dt)
         f = correction_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), r, dt)
-        h = td.get(keys.OUTPUT_HIDDEN)
         w = self.inp.weight
         y, h_new = self.gru(torch.relu(self.inp(f.to(w.dtype))).unsqueeze(1), h.to(w.dtype).transpose(0, 1).contiguous())
         delta = self.out(y[:, 0]).to(x.dtype)
         running = (td.get(keys.AGE) >= 1).reshape(-1, 1)  # the track has an estimate: from its first detection on
         # a track's first detection is reported as its filter reports it (the measurement, as every tracker's); the
         # correction starts at the scan after, when its state has seen the track
-        seen = td.get(keys.OUTPUT_SEEN)
-        corrects = running & (seen >= 1).reshape(-1, 1)
-        out = x.clone()
-        out[..., list(POS)] = x[..., list(POS)] + torch.where(corrects, r * delta, torch.zeros_like(delta))
-        td.set(keys.OUTPUT, out)
-        td.set(keys.OUTPUT_HIDDEN, torch.where(running[..., None], h_new.transpose(0, 1).to(h.dtype), h))
-        td.set(keys.OUTPUT_SEEN, torch.where(running.reshape(seen.shape), torch.ones_like(seen), seen))
+        corrects = running & (td.get(keys.OUTPUT_SEEN) >= 1).reshape(-1, 1)
+        return (torch.where(corrects, r * delta, torch.zeros_like(delta)),
+                torch.where(running[..., None], h_new.transpose(0, 1).to(h.dtype), h))
+
+    def forward(self, td):
+        shift, h = self.shift(td, td.get(keys.OUTPUT_HIDDEN))
+        _report(td, shift, h)
         return td
 
+
+def _report(td, shift: torch.Tensor, h: torch.Tensor) -> None:
+    """Write the step's output (the fused estimate, its position shifted by ``shift``), the correction's state ``h``
+    and whether it has seen the track (from the scan the track has an estimate on)."""
+    x, seen = td.get(keys.FUSED), td.get(keys.OUTPUT_SEEN)
+    out = x.clone()
+    out[..., list(POS)] = x[..., list(POS)] + shift
+    td.set(keys.OUTPUT, out)
+    td.set(keys.OUTPUT_HIDDEN, h)
+    running = (td.get(keys.AGE) >= 1).reshape(seen.shape)
+    td.set(keys.OUTPUT_SEEN, torch.where(running, torch.ones_like(seen), seen))
+
+
+
+class CorrectionEnsemble(Stage):
+    """``members`` output corrections on one filter, their corrections averaged: each reads what the filter knows
+    (``OutputCorrection``) and keeps its own GRU state (``("memory", "output_hidden")`` ``[B, K, layers, hidden]``),
+    and the step reports ``x_t + mean_k r [delta_t^k, 0, 0]``. The filters run once, whatever ``members``. Each
+    member is trained as a run of its own on the same filter (the same network, one correction), and
+    ``immnet.training.export.join_corrections`` joins their checkpoints (docs/immnet.md "The output correction")."""
+
+    in_keys = OutputCorrection.in_keys
+    out_keys = OutputCorrection.out_keys
+
+    def __init__(self, model_set=None, dt: float = 1.0, members: int = 2, hidden: int = 128, layers: int = 2,
+                 modes: str = "joint"):
+        super().__init__(model_set)
+        if int(members) < 2:
+            raise ValueError(f"an ensemble has at least 2 members, got members={members!r} (one: OutputCorrection)")
+        self.members = nn.ModuleList(OutputCorrection(model_set, dt, hidden, layers, modes) for _ in range(int(members)))
+        self.hidden, self.layers = self.members[0].hidden, self.members[0].layers
+
+    def wire(self, upstream: set) -> None:
+        self.members[0].wire(upstream)
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        one = self.members[0].carry_spec(batch, experts_alone, dtype, device)
+        return {keys.OUTPUT_HIDDEN: torch.stack([one[keys.OUTPUT_HIDDEN]] * len(self.members), 1),
+                keys.OUTPUT_SEEN: one[keys.OUTPUT_SEEN]}
+
+    def knock_out(self) -> None:
+        """No correction from any member (``IMMNet.knock_out("correction")``)."""
+        for member in self.members:
+            member.knock_out()
+
+    def forward(self, td):
+        h = td.get(keys.OUTPUT_HIDDEN)
+        shifts, states = zip(*(member.shift(td, h[:, k]) for k, member in enumerate(self.members)))
+        _report(td, torch.stack(shifts).mean(0), torch.stack(states, 1))
+        return td
