@@ -104,6 +104,24 @@ def test_a_checkpoint_that_would_run_code_is_refused_by_the_tracker(tmp_path, ho
     assert not sentinel.exists()
 
 
+def _refused_by_every_reader(path, why: str, tmp_path, capsys) -> None:
+    """``path`` refused with ``why`` by the tracker, Stage2Module's ``init_checkpoint``, the exporter and ``immnet
+    track`` (one error line, exit code 2), and nothing written."""
+    from immnet.training.export import export_weights
+
+    with pytest.raises(CheckpointError, match=why):
+        Tracker.from_checkpoint(path)
+    with pytest.raises(CheckpointError, match=why):
+        Stage2Module(net=_shipped()["hyper_parameters"]["net"], init_checkpoint=str(path))
+    with pytest.raises(CheckpointError, match=why):
+        export_weights(path, tmp_path / "out.ckpt")
+    np.savez(tmp_path / "in.npz", measurements=np.zeros((1, 5, 3), np.float32), dt=1.0)
+    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "o.npz"),
+                 "--checkpoint", str(path)]) == 2
+    assert why in _one_error_line(capsys.readouterr().err, "track")
+    assert not (tmp_path / "out.ckpt").exists() and not (tmp_path / "o.npz").exists()
+
+
 def _naming(tmp_path, monkeypatch, where: str):
     """The shipped checkpoint (a plain-data pickle, its checksum intact) whose config names, at ``where``, a class
     of a module that creates a sentinel file when imported: ``(path, sentinel, module)``."""
@@ -135,24 +153,13 @@ def test_a_checkpoint_naming_a_class_outside_immnet_is_refused_before_anything_i
 
     from immnet.checkpoints import ALLOWED_PACKAGES
     from immnet.training.checkpoint_io import check_checkpoints
-    from immnet.training.export import export_weights
 
     path, sentinel, module = _naming(tmp_path, monkeypatch, where)
     why = f"{path} is refused: its config names the class '{module}.Gain', outside the packages"
-    with pytest.raises(CheckpointError, match=why):
-        Tracker.from_checkpoint(path)
-    with pytest.raises(CheckpointError, match=why):
-        Stage2Module(net=_shipped()["hyper_parameters"]["net"], init_checkpoint=str(path))
-    with pytest.raises(CheckpointError, match=why):
-        export_weights(path, tmp_path / "out.ckpt")
+    _refused_by_every_reader(path, why, tmp_path, capsys)
     with pytest.raises(CheckpointError, match=why):
         check_checkpoints({"subcommand": "fit", "fit": {"ckpt_path": str(path), "model": {}}})
-    np.savez(tmp_path / "in.npz", measurements=np.zeros((1, 5, 3), np.float32), dt=1.0)
-    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "o.npz"),
-                 "--checkpoint", str(path)]) == 2
-    assert why in _one_error_line(capsys.readouterr().err, "track")
     assert not sentinel.exists() and module not in sys.modules
-    assert not (tmp_path / "out.ckpt").exists() and not (tmp_path / "o.npz").exists()
     if where == "gain":  # one's own package, allowed: imported, then refused as no immnet stage, never built
         monkeypatch.setattr("immnet.checkpoints.ALLOWED_PACKAGES", (*ALLOWED_PACKAGES, module))
         with pytest.raises(ValueError, match=f"class_path '{module}.Gain' is not a immnet.stages.base.Stage"):
@@ -209,18 +216,7 @@ def test_weights_that_disagree_with_their_checksum_are_refused_by_name(tmp_path,
     module's own ``on_load_checkpoint`` (whatever reader Lightning was given) refuse it by name."""
     path, name = _tampered(PRETRAINED, tmp_path / "tampered.ckpt")
     why = f"{path}: its weights do not match the checksum stored in it"
-    with pytest.raises(CheckpointError, match=why):
-        Tracker.from_checkpoint(path)
-    with pytest.raises(CheckpointError, match=why):
-        Stage2Module(net=_shipped()["hyper_parameters"]["net"], init_checkpoint=str(path))
-    from immnet.training.export import export_weights
-
-    with pytest.raises(CheckpointError, match=why):
-        export_weights(path, tmp_path / "out.ckpt")
-    assert not (tmp_path / "out.ckpt").exists()
-    np.savez(tmp_path / "in.npz", measurements=np.zeros((1, 5, 3), np.float32), dt=1.0)
-    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "o.npz"), "--checkpoint", str(path)]) == 2
-    assert why in _one_error_line(capsys.readouterr().err, "track")
+    _refused_by_every_reader(path, why, tmp_path, capsys)
     module = Stage2Module(net=_shipped()["hyper_parameters"]["net"])
     with pytest.raises(CheckpointError, match="the checkpoint: its weights do not match"):
         module.on_load_checkpoint(torch.load(path, weights_only=True))
