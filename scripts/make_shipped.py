@@ -1,9 +1,9 @@
 """Ship a fine-tuned IMMNet: export its run's best checkpoint into immnet/pretrained/immnet-NAME.ckpt, score it on
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
-write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (recipes/
-real-singer-output.yaml, 1 s), `real-5s` (three runs of recipes/real-singer-5s-output.yaml, two with an overlay of
-configs/members/, their corrections joined: 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s, the default
-weights).
+write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (three runs of
+recipes/real-singer-output.yaml, two with an overlay of configs/members/, their corrections joined: 1 s), `real-5s`
+(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s, the
+default weights).
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
@@ -32,14 +32,20 @@ QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --see
               "trained or tuned on")
 SHIPS = {
     "real": {
-        "ckpt": "runs/real/output/checkpoints/best.ckpt",
-        "recipe": "recipes/real-singer-output.yaml",
-        "init": ("its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
+        # three runs of the recipe on one filter, their corrections averaged, as real-5s (docs/real.md "Several
+        # corrections on one filter")
+        "ckpt": ["runs/real/output/checkpoints/best.ckpt", "runs/real/output-seed1/checkpoints/best.ckpt",
+                 "runs/real/output-turns/checkpoints/best.ckpt"],
+        "recipe": ["recipes/real-singer-output.yaml",
+                   "recipes/real-singer-output.yaml + configs/members/real-seed1.yaml",
+                   "recipes/real-singer-output.yaml + configs/members/real-turns.yaml"],
+        "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
                  "real-imm-singer with r estimated, exactly)"),
-        "what": ("the output correction (a GRU after the fusion that corrects the reported position from the track's "
-                 "history) on the three-filter decoupled IMM tuned on real flights (real-imm-singer's CV, CA and Singer "
-                 "filters per axis), each track's r estimated, trained on real flights at 1 s scans (a fresh view of "
-                 "its flights each batch), without a range guard; only the correction learned"),
+        "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "
+                 "history), their corrections averaged, on the three-filter decoupled IMM tuned on real flights "
+                 "(real-imm-singer's CV, CA and Singer filters per axis), each track's r estimated, each trained on "
+                 "real flights at 1 s scans (a fresh view of its flights each batch) as a run of its own, without a "
+                 "range guard; only the corrections learned"),
         "data": {"train": f"{REAL}/quickstart-1s/train: {QUICKSTART}, 1 s scans, r ~ U[1, 7] m",
                  "val": f"{REAL}/quickstart-1s/val"},
         "scan_interval": 1.0,

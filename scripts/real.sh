@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
-# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about an hour (the sum of its steps:
-# data 2, training 45 on one core, the held-out evaluation 11, the rest 5):
+# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about an hour and a half (the sum of its
+# steps: data 2, training 70 (three runs of about 45 min on one core each, side by side), the held-out evaluation 15,
+# the rest 5):
 #   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s and at U[4.5, 5.5] s
 #   scans, every other sample held out (never trained or tuned on) -> the model-based filters for real motion as
 #   tuned on the training flights (configs/methods/real-*.yaml; IMMNET_RETUNE=1 tunes them again) -> IMMNet
-#   trained on the training flights (recipes/real-singer-output.yaml: an output correction on the three-filter
-#   decoupled IMM, r estimated, the shipped immnet-real) -> one table per data set, every method in one run -> the
-#   real-flight figure.
+#   trained on the training flights (recipes/real-singer-output.yaml three times, two with an overlay of
+#   configs/members/: output corrections on the three-filter decoupled IMM, r estimated, joined into one network, the
+#   shipped immnet-real) -> one table per data set, every method in one run -> the real-flight figure.
 # A finished run is reused; IMMNET_RETRAIN=1 trains again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -45,14 +46,27 @@ else
   say "2/5 the model-based filters as tuned on the training flights: configs/methods/real-*.yaml (IMMNET_RETUNE=1 to tune again)"
 fi
 
-CKPT=$RUN/output/checkpoints/best.ckpt
-[ -n "${IMMNET_RETRAIN:-}" ] && rm -rf "$RUN/output"
-if [ -f "$CKPT" ] && [ -f "$RUN/output/checkpoints/finished.json" ]; then
-  say "3/5 IMMNet: reusing the finished training $CKPT (IMMNET_RETRAIN=1 to train again)"
-else
-  say "3/5 IMMNet trained on the training flights: recipes/real-singer-output.yaml (about 45 min)"
-  "$IMMNET" fit --config recipes/real-singer-output.yaml
-fi
+# the shipped real averages three runs' corrections on one filter (docs/real.md "Several corrections on one filter"):
+# the recipe, and the recipe with each overlay of configs/members/ (another seed; turns flown into its views)
+MEMBERS=(output:- output-seed1:configs/members/real-seed1.yaml output-turns:configs/members/real-turns.yaml)
+member() {  # run-directory:overlay (- for none)
+  local dir=${1%%:*} overlay=${1#*:} extra=()
+  [ "$overlay" = - ] || extra=(--config "$overlay")
+  if [ -f "$RUN/$dir/checkpoints/best.ckpt" ] && [ -f "$RUN/$dir/checkpoints/finished.json" ]; then
+    echo "  reusing the finished training $RUN/$dir (IMMNET_RETRAIN=1 to train again)" >&2
+    return
+  fi
+  OMP_NUM_THREADS=1 "$IMMNET" fit --config recipes/real-singer-output.yaml "${extra[@]}" 2>&1 | sed -u "s|^|[$dir] |" >&2
+}
+if [ -n "${IMMNET_RETRAIN:-}" ]; then for m in "${MEMBERS[@]}"; do rm -rf "${RUN:?}/${m%%:*}"; done; fi
+say "3/5 IMMNet trained on the training flights: recipes/real-singer-output.yaml three times, side by side (about 70 min)"
+pids=()
+for m in "${MEMBERS[@]}"; do member "$m" & pids+=($!); done
+for p in "${pids[@]}"; do wait "$p"; done
+CKPT=$RUN/joined/immnet-real.ckpt  # their corrections joined: the network make_shipped.py --name real exports
+ckpts=()
+for m in "${MEMBERS[@]}"; do ckpts+=("$RUN/${m%%:*}/checkpoints/best.ckpt"); done
+"$PY" -m immnet.training.export --join "${ckpts[@]}" "$CKPT" >/dev/null
 
 say "4/5 evaluation: one table per data set, every method in one run"
 BASE=measurements,imm-tuned,imm-ekf,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
