@@ -33,8 +33,8 @@ SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "i
            "real-5s": "immnet-real-5s.ckpt"}
 """The shipped networks by name (docs/checkpoints.md "Shipped weights"): ``general`` (any interval 0.5-12 s, 3D-LAST
 and real flights, no range guard) is what ``Tracker.pretrained()`` and ``immnet track`` load unless told;
-``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, a learned
-output correction on the three-filter decoupled IMM, trained on real flights); ``real-5s`` the same for a
+``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, three learned
+output corrections, averaged, on the three-filter decoupled IMM, trained on real flights); ``real-5s`` the same for a
 surveillance radar's 4.5-5.5 s scans, on that IMM tuned at those scans."""
 DEFAULT_WEIGHTS = "general"
 
