@@ -6,10 +6,10 @@ The rows are ``real-imm-singer`` as IMMNet with nothing learned (``PerAxisIMMTra
 r fixed at 4 m: the step's cost does not depend on it) and the same network with an output correction of 2 GRU
 layers of 64 and of 128 units (``immnet.stages.correct.OutputCorrection``, untrained: its cost does not depend on
 its weights; docs/immnet.md "The output correction"), three of 2 x 128 averaged (``CorrectionEnsemble``), and the
-shipped ``real`` and ``real-5s`` networks as a user runs them (``real``: that filter and a 2 x 128 correction, each
-track's r estimated from its measurements; ``real-5s``: the filter tuned at 4.5-5.5 s and three such corrections). Inference as
-``benchmarks/bench_immnet.py`` times it: ``IMMNet.scan`` over tracks that have started, the median of three passes of ``--steps`` scans; the rows take turns
-over ``--rounds`` rounds and each reports its median round.
+shipped ``real`` and ``real-5s`` networks as a user runs them (``real``: that filter and three 2 x 128 corrections,
+each track's r estimated from its measurements; ``real-5s``: the same on the filter tuned at 4.5-5.5 s). Inference as
+``benchmarks/bench_immnet.py`` times it: ``IMMNet.scan`` over tracks that have started, the median of three passes of
+``--steps`` scans; the rows take turns over ``--rounds`` rounds and each reports its median round.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def main() -> int:
     lines = [head, "|" + "---|" * (1 + len(a.batches))]
     for i, h in enumerate(HIDDEN):
         label = ("`real-imm-singer` (nothing learned)" if h is None else
-                 "the shipped `real` (2 x 128, r estimated)" if h == "real" else
+                 "the shipped `real` (three corrections of 2 x 128, r estimated)" if h == "real" else
                  "the shipped `real-5s` (three corrections of 2 x 128 on `real-imm-singer-5s`, r estimated)"
                  if h == "real-5s" else
                  "with three output corrections of 2 x 128 GRU units, averaged" if h == "3x128" else
