@@ -19,9 +19,12 @@ everything the next scan's stages read are unchanged, so it cannot destabilize t
 (its start's first detection) on. The reported covariance stays the filter's (docs/immnet.md "The output
 correction").
 
-Its weights are laid out as ``scripts/learned_residual.py``'s network (``inp``, ``gru``, ``out``), which runs the
-same GRU over whole sequences (``torch.nn.GRU``) on the outputs of a model-based filter's own fast path: the two are
-held equal in ``tests/test_output_correction.py``.
+``CorrectionEnsemble`` runs several such corrections on one filter and reports the mean of their corrections (each
+trained as a run of its own, joined by ``immnet.training.export.join_corrections``).
+
+An OutputCorrection's weights are laid out as ``scripts/learned_residual.py``'s network (``inp``, ``gru``, ``out``),
+which runs the same GRU over whole sequences (``torch.nn.GRU``) on the outputs of a model-based filter's own fast
+path: the two are held equal in ``tests/test_output_correction.py``.
 """
 
 from __future__ import annotations
@@ -128,7 +131,6 @@ def _report(td, shift: torch.Tensor, h: torch.Tensor) -> None:
     td.set(keys.OUTPUT_HIDDEN, h)
     running = (td.get(keys.AGE) >= 1).reshape(seen.shape)
     td.set(keys.OUTPUT_SEEN, torch.where(running, torch.ones_like(seen), seen))
-
 
 
 class CorrectionEnsemble(Stage):
