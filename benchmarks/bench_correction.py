@@ -70,8 +70,8 @@ def main() -> int:
         f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
     text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). Track-steps/s of IMMNet's streaming step, "
             "eager, float32: the three-filter decoupled IMM with nothing learned, and with the output correction after "
-            f"its fusion (docs/immnet.md \"The output correction\"), one or three of them, and the shipped `real` and `real-5s` "
-            "networks; the median of "
+            f"its fusion (docs/immnet.md \"The output correction\"), one or three of them, and the shipped `real` and "
+            "`real-5s` networks; the median of "
             f"{a.rounds} rounds taken in turns:\n\n"
             + "\n".join(lines))
     write_section("The output correction", text, *([a.out] if a.out else []))

@@ -148,7 +148,8 @@ class CorrectionEnsemble(Stage):
         super().__init__(model_set)
         if int(members) < 2:
             raise ValueError(f"an ensemble has at least 2 members, got members={members!r} (one: OutputCorrection)")
-        self.members = nn.ModuleList(OutputCorrection(model_set, dt, hidden, layers, modes) for _ in range(int(members)))
+        self.members = nn.ModuleList(OutputCorrection(model_set, dt, hidden, layers, modes)
+                                     for _ in range(int(members)))
         self.hidden, self.layers = self.members[0].hidden, self.members[0].layers
 
     def wire(self, upstream: set) -> None:

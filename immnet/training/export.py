@@ -70,7 +70,8 @@ def join_corrections(ckpts, out: str | Path) -> Path:
         if not (isinstance(src.get("state_dict"), dict) and isinstance(src.get("hyper_parameters"), dict)):
             raise ValueError(f"{ckpt} is not a checkpoint of an IMMNet")
         net = net_arguments(src["hyper_parameters"].get("net"))
-        net["model_set"] = ModelSet.from_config(net.get("model_set", "configs/model_sets/imm4.yaml")).to_config()["models"]
+        models = ModelSet.from_config(net.get("model_set", "configs/model_sets/imm4.yaml"))
+        net["model_set"] = models.to_config()["models"]
         correction = net.pop("correction", None) or {}
         if correction.get("class_path") != SINGLE:
             raise ValueError(f"{ckpt}: its network has no single output correction ({SINGLE}) to join")
