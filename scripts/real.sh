@@ -1,7 +1,6 @@
 #!/usr/bin/env bash
-# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about an hour and a half (the sum of its
-# steps: data 2, training 70 (three runs of about 45 min on one core each, side by side), the held-out evaluation 15,
-# the rest 5):
+# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 80 minutes (the sum of its steps:
+# data 2, training 70 (three runs of about 45 min on one core each, side by side), the evaluation 5, the rest 3):
 #   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s and at U[4.5, 5.5] s
 #   scans, every other sample held out (never trained or tuned on) -> the model-based filters for real motion as
 #   tuned on the training flights (configs/methods/real-*.yaml; IMMNET_RETUNE=1 tunes them again) -> IMMNet
