@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 80 minutes (the sum of its steps:
-# data 2, training 70 (three runs of about 45 min on one core each, side by side), the evaluation 5, the rest 3):
+# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 65 minutes (the sum of its steps:
+# data 2, training 55 (three runs side by side on the two cores, each 80 steps in about 107 s), the evaluation 5, the
+# rest 3):
 #   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s and at U[4.5, 5.5] s
 #   scans, every other sample held out (never trained or tuned on) -> the model-based filters for real motion as
 #   tuned on the training flights (configs/methods/real-*.yaml; IMMNET_RETUNE=1 tunes them again) -> IMMNet
@@ -58,7 +59,7 @@ member() {  # run-directory:overlay (- for none)
   OMP_NUM_THREADS=1 "$IMMNET" fit --config recipes/real-singer-output.yaml "${extra[@]}" 2>&1 | sed -u "s|^|[$dir] |" >&2
 }
 if [ -n "${IMMNET_RETRAIN:-}" ]; then for m in "${MEMBERS[@]}"; do rm -rf "${RUN:?}/${m%%:*}"; done; fi
-say "3/5 IMMNet trained on the training flights: recipes/real-singer-output.yaml three times, side by side (about 70 min)"
+say "3/5 IMMNet trained on the training flights: recipes/real-singer-output.yaml three times, side by side (about 55 min)"
 pids=()
 for m in "${MEMBERS[@]}"; do member "$m" & pids+=($!); done
 for p in "${pids[@]}"; do wait "$p"; done
