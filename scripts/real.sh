@@ -60,9 +60,17 @@ member() {  # run-directory:overlay (- for none)
 }
 if [ -n "${IMMNET_RETRAIN:-}" ]; then for m in "${MEMBERS[@]}"; do rm -rf "${RUN:?}/${m%%:*}"; done; fi
 say "3/5 IMMNet trained on the training flights: recipes/real-singer-output.yaml three times, side by side (about 55 min)"
+# each member in a process group of its own, so that a stopped, interrupted or failed script stops every member whole
+set -m
 pids=()
+trap 'for p in "${pids[@]}"; do kill -- "-$p" 2>/dev/null || true; done' EXIT
+trap 'exit 130' INT
+trap 'exit 143' TERM
 for m in "${MEMBERS[@]}"; do member "$m" & pids+=($!); done
 for p in "${pids[@]}"; do wait "$p"; done
+pids=()
+set +m
+trap - INT TERM
 CKPT=$RUN/joined/immnet-real.ckpt  # their corrections joined: the network make_shipped.py --name real exports
 ckpts=()
 for m in "${MEMBERS[@]}"; do ckpts+=("$RUN/${m%%:*}/checkpoints/best.ckpt"); done
