@@ -33,18 +33,25 @@ def export_weights(ckpt: str | Path, out: str | Path, settings: dict | None = No
     bad = sorted(set(settings) - set(OUTPUT_SETTINGS))
     if bad:
         raise ValueError(f"export sets only {', '.join(OUTPUT_SETTINGS)}, not {', '.join(bad)}")
+    src, net, state = _read(ckpt)
+    net.update(settings)
+    return _write({"state_dict": state, "hyper_parameters": {"net": net}, "global_step": src.get("global_step")}, out)
+
+
+def _read(ckpt) -> tuple[dict, dict, dict]:
+    """``ckpt`` read as plain data, its network's arguments (either config form; the model set inline, so that the
+    file works without this repository's configs/) and its network's weights (``net.``-prefixed)."""
     src = load_checkpoint(ckpt)
     if not (isinstance(src.get("state_dict"), dict) and isinstance(src.get("hyper_parameters"), dict)):
         raise ValueError(f"{ckpt} is not a Lightning checkpoint of an IMMNet module")
-    net = net_arguments(src["hyper_parameters"].get("net"))  # the network's arguments, in either config form
-    # the model set inline, so that the file works without this repository's configs/
+    net = net_arguments(src["hyper_parameters"].get("net"))
     net["model_set"] = ModelSet.from_config(net.get("model_set", "configs/model_sets/imm4.yaml")).to_config()["models"]
-    net.update(settings)
-    slim = add_checksum({
-        "state_dict": {k: v for k, v in src["state_dict"].items() if k.startswith("net.")},
-        "hyper_parameters": {"net": net},
-        "global_step": src.get("global_step"),
-    })
+    return src, net, {k: v for k, v in src["state_dict"].items() if k.startswith("net.")}
+
+
+def _write(slim: dict, out) -> Path:
+    """``slim`` with the checksum of its weights, written to ``out`` under a temporary name renamed when complete."""
+    add_checksum(slim)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
@@ -66,18 +73,13 @@ def join_corrections(ckpts, out: str | Path) -> Path:
         raise ValueError(f"joining corrections needs at least 2 checkpoints, got {len(ckpts)}")
     nets, states = [], []
     for ckpt in ckpts:
-        src = load_checkpoint(ckpt)
-        if not (isinstance(src.get("state_dict"), dict) and isinstance(src.get("hyper_parameters"), dict)):
-            raise ValueError(f"{ckpt} is not a checkpoint of an IMMNet")
-        net = net_arguments(src["hyper_parameters"].get("net"))
-        models = ModelSet.from_config(net.get("model_set", "configs/model_sets/imm4.yaml"))
-        net["model_set"] = models.to_config()["models"]
+        _, net, state = _read(ckpt)
         correction = net.pop("correction", None) or {}
         if correction.get("class_path") != SINGLE:
             raise ValueError(f"{ckpt}: its network has no single output correction ({SINGLE}) to join")
         net["correction_args"] = dict(correction.get("init_args") or {})  # hidden, layers: the same in every member
         nets.append(net)
-        states.append({k: v for k, v in src["state_dict"].items() if k.startswith("net.")})
+        states.append(state)
     for ckpt, net, state in zip(ckpts[1:], nets[1:], states[1:]):
         differ = sorted(k for k in set(net) | set(nets[0]) if net.get(k) != nets[0].get(k))
         if differ:
@@ -97,12 +99,7 @@ def join_corrections(ckpts, out: str | Path) -> Path:
     for i, state in enumerate(states):
         joined.update({f"net.correct.members.{i}.{k[len('net.correct.'):]}": v
                        for k, v in state.items() if k.startswith("net.correct.")})
-    slim = add_checksum({"state_dict": joined, "hyper_parameters": {"net": net}, "global_step": None})
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with publishing(out) as tmp:
-        torch.save(slim, tmp)
-    return out
+    return _write({"state_dict": joined, "hyper_parameters": {"net": net}, "global_step": None}, out)
 
 
 if __name__ == "__main__":
