@@ -29,6 +29,11 @@ from immnet.filters.trackers import _linear_network  # noqa: E402
 from immnet.stages import IMMNet  # noqa: E402
 
 HIDDEN = (None, 64, 128, "3x128", "real", "real-5s")
+LABELS = {None: "`real-imm-singer` (nothing learned)",
+          "3x128": "with three output corrections of 2 x 128 GRU units, averaged",
+          "real": "the shipped `real` (three corrections of 2 x 128, r estimated)",
+          "real-5s": "the shipped `real-5s` (three corrections of 2 x 128 on `real-imm-singer-5s`, r estimated)"}
+"""Each row's label in BENCHMARKS.md; a number of units: one correction of that size."""
 
 
 def network(hidden: int | str | None) -> IMMNet:
@@ -58,12 +63,7 @@ def main() -> int:
     head = "| step | " + " | ".join(f"batch {b}" for b in a.batches) + " |"
     lines = [head, "|" + "---|" * (1 + len(a.batches))]
     for i, h in enumerate(HIDDEN):
-        label = ("`real-imm-singer` (nothing learned)" if h is None else
-                 "the shipped `real` (three corrections of 2 x 128, r estimated)" if h == "real" else
-                 "the shipped `real-5s` (three corrections of 2 x 128 on `real-imm-singer-5s`, r estimated)"
-                 if h == "real-5s" else
-                 "with three output corrections of 2 x 128 GRU units, averaged" if h == "3x128" else
-                 f"with an output correction, 2 x {h} GRU units")
+        label = LABELS.get(h, f"with an output correction, 2 x {h} GRU units")
         lines.append(f"| {label} | " + " | ".join(f"{rates[i, B]:,.0f}" for B in a.batches) + " |")
         print(lines[-1], flush=True)
     cmd = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_correction.py" + "".join(
