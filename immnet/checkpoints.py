@@ -37,12 +37,17 @@ and real flights, no range guard) is what ``Tracker.pretrained()`` and ``immnet 
 output corrections, averaged, on the three-filter decoupled IMM, trained on real flights); ``real-5s`` the same for a
 surveillance radar's 4.5-5.5 s scans, on that IMM tuned at those scans."""
 DEFAULT_WEIGHTS = "general"
+BANK = "bank"
+"""The name of the shipped networks together, one tracker (``immnet.tracking.bank``: ``general``, ``real``,
+``real-5s`` and ``3dlast`` without its guard, weighed per track by how well each predicts it; ``Tracker.pretrained(
+"bank")``, ``immnet track --weights bank``); not a file of its own."""
 
 
 def shipped(name: str = DEFAULT_WEIGHTS) -> Path:
     """The file of the shipped network ``name`` (``SHIPPED``); a ValueError naming the choices otherwise."""
     if name not in SHIPPED:
-        raise ValueError(f"no shipped weights named {name!r}; shipped: {', '.join(SHIPPED)}")
+        raise ValueError(f"no shipped weights named {name!r}; shipped: {', '.join(SHIPPED)}"
+                         f"{' (and ' + BANK + ', all of them as one tracker: Tracker.pretrained)' if name == BANK else ''}")
     return PRETRAINED.with_name(SHIPPED[name])
 
 

@@ -30,6 +30,8 @@ DATA_KEYS = (STATES, MEASUREMENTS, MODE, TURN_RATE, R, DT, TIME)
 STATE = "state"
 MODE_PROBS = "mode_probs"
 STATE_COV = "state_cov"  # the fused state's covariance P_{t|t} [B, T, 9, 9], from the methods that keep one (return_cov)
+LOGLIK = "loglik"  # each scan's measurement log-likelihood under the tracker's prediction [B, T] (IMMNet.predictive_loglik)
+MEMBER_PROBS = "member_probs"  # a bank's probability of each member network per scan [B, T, K] (immnet.tracking.bank)
 
 # --- an IMMNet rollout's outputs over time (TensorDict [B, T]), besides ``state`` ------------------
 ROLLOUT_EXPERT_PROBS = "expert_probs"  # mu_t over the experts [B, T, M]

@@ -394,6 +394,29 @@ class IMMNet(TensorDictModuleBase):
         probs = expert_probs @ self.mode_onehot.to(expert_probs.dtype)
         return probs if self.groups is None else axis_probs(probs, self.groups).mean(-2)
 
+    def predictive_loglik(self, before: TensorDict, after: TensorDict) -> torch.Tensor:
+        """The log-likelihood of a scan's measurement under what the network predicted for it, ``[B]``:
+        ``log sum_i c^(i) N(nu^(i); 0, S^(i))``, each filter expert's innovation likelihood (``("expert", "loglik")``)
+        weighted by the predicted mode probabilities ``c`` (the IMM's Markov prediction ``Pi^T mu_{t-1}`` where the mode
+        update has one, else ``mu_{t-1}``); with modes per group, the sum over the groups of each group's. ``before``
+        is the carry the scan started from, ``after`` the scan's. 0 where the scan has no detection (the same factor
+        for any tracker); NaN where the track had no estimate to predict from (not started before this scan). What a
+        bank of networks weighs its members by (``immnet.tracking.bank``); a ValueError for experts that keep no
+        likelihood (the paper's KalmanNet experts)."""
+        if keys.EXPERT_LOGLIK not in after.keys(True, True):
+            raise ValueError(f"these experts keep no innovation likelihood: {self.no_cov_reason() or 'no filter experts'}")
+        loglik = after.get(keys.EXPERT_LOGLIK)
+        prev = before.get(keys.EXPERT_PROBS)
+        prior = getattr(self.classify, "markov_prior", None)
+        log_pred = prior(after, prev) if prior is not None else torch.log(prev.clamp_min(1e-30))
+        mixed = torch.logsumexp(log_pred.to(loglik.dtype) + loglik, -1)
+        if mixed.dim() > 1:  # modes per group: [B, G]
+            mixed = mixed.sum(-1)
+        z = after.get(keys.MEASUREMENT)
+        mixed = torch.where(torch.isfinite(z).all(-1), mixed, torch.zeros_like(mixed))
+        predicted = before.get(keys.AGE) >= self.start_detections
+        return torch.where(predicted, mixed, torch.full_like(mixed, float("nan")))
+
     # --- the carry ------------------------------------------------------------------------
     def _steps(self, experts_alone: bool):
         return (self.expert_step if experts_alone else self.step).module
@@ -480,7 +503,7 @@ class IMMNet(TensorDictModuleBase):
     # --- a whole sequence -----------------------------------------------------------------
     def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False,
                 intervals: torch.Tensor | None = None, return_cov: bool = False, r: torch.Tensor | None = None,
-                truth: dict | None = None):
+                truth: dict | None = None, return_loglik: bool = False):
         """Run over ``measurements [B, T, 3]`` (``[B, M, T, 3]`` experts alone), with the interval before each
         scan ``intervals [B, T]`` (``immnet.data.times.scan_intervals``; None: the nominal ``dt`` at every scan)
         and, for filter experts told it (``r="data"``), each track's measurement std ``r [B]``; ``truth``: an
@@ -490,7 +513,8 @@ class IMMNet(TensorDictModuleBase):
         (``[B, T, 9]``, or ``[B, T, M, 9]`` experts alone), ``expert_probs`` and ``mode_logits``
         ``[B, T, M]`` and ``expert_post [B, T, M, 9]`` (not experts alone), and with ``return_cov`` the fused
         covariance ``state_cov [B, T, 9, 9]`` (``[B, T, M, 9, 9]`` experts alone; a ValueError saying why where
-        the experts carry none, ``has_cov``); ``carry`` continues the rollout (truncated BPTT detaches it
+        the experts carry none, ``has_cov``), and with ``return_loglik`` each scan's ``loglik [B, T]``
+        (``predictive_loglik``); ``carry`` continues the rollout (truncated BPTT detaches it
         between chunks).
         """
         B, T = measurements.shape[0], measurements.shape[-2]
@@ -500,14 +524,17 @@ class IMMNet(TensorDictModuleBase):
                 raise ValueError(self.no_cov_reason() or "these experts carry no covariance")
         if carry is None:
             carry = self.initial_carry(B, experts_alone, measurements.dtype, measurements.device)
-        states, probs, logits, posts, covs = [], [], [], [], []
+        states, probs, logits, posts, covs, logliks = [], [], [], [], [], []
         for t in range(T):
+            before = carry
             carry = self.scan(carry, measurements[..., t, :], experts_alone,
                               None if intervals is None else intervals[:, t], r,
                               None if truth is None else {k: v[:, t] for k, v in truth.items()})
             states.append(carry.get(keys.FUSED) if experts_alone else self.estimate(carry))
             if return_cov:
                 covs.append(self.reported_cov(carry))
+            if return_loglik and not experts_alone:
+                logliks.append(self.predictive_loglik(before, carry))
             if not experts_alone:
                 probs.append(carry.get(keys.EXPERT_PROBS))
                 logits.append(carry.get(keys.MODE_LOGITS))
@@ -519,4 +546,6 @@ class IMMNet(TensorDictModuleBase):
             out[keys.ROLLOUT_EXPERT_POST] = torch.stack(posts, 1)
         if return_cov:
             out[keys.STATE_COV] = torch.stack(covs, 1)
+        if logliks:
+            out[keys.LOGLIK] = torch.stack(logliks, 1)
         return TensorDict(out, batch_size=[B, T]), carry

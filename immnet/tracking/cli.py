@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from immnet import keys
-from immnet.checkpoints import DEFAULT_WEIGHTS, SHIPPED, shipped
+from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, shipped
 from immnet.data.validate import MAX_ABS_POSITION
 from immnet.imm.guard import parse_guard
 from immnet.tracking.segments import MAX_COAST
@@ -33,11 +33,12 @@ def register(subparsers) -> None:
     )
     p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
-    p.add_argument("--weights", default=None, choices=sorted(SHIPPED),
+    p.add_argument("--weights", default=None, choices=sorted([*SHIPPED, BANK]),
                    help=f"shipped weights by name (default {DEFAULT_WEIGHTS}: any scan interval 0.5-12 s, real flights and "
                         "3D-LAST, no range guard; 3dlast: the 3D-LAST benchmark network, 1 s, its range guard; real: 1 s "
                         "real flights; real-5s: real flights at a surveillance radar's 4.5-5.5 s scans; "
-                        "immnet/pretrained/PROVENANCE-*.md)")
+                        "immnet/pretrained/PROVENANCE-*.md; bank: all four as one tracker, each weighed per track by how "
+                        "well it predicts it, no range guard unless --guard asks; docs/tracking.md)")
     p.add_argument("--checkpoint", default=None, help="a Lightning checkpoint or exported weights of your own instead")
     p.add_argument("--method", default=None,
                    help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "
@@ -78,6 +79,16 @@ def _told_r(args):
     if not (np.isfinite(args.r) and args.r > 0):
         raise ValueError(f"--r is the radar's measurement std in metres, a finite number > 0; got {args.r:g}")
     return float(args.r)
+
+
+def _bank(args, limit: float, r):
+    """``--weights bank``: the shipped bank as a method (``immnet.tracking.bank.BankMethod``), no range guard unless
+    ``--guard`` gives one, ``--adapt`` and ``--r`` for every member."""
+    from immnet.tracking.bank import BankMethod
+    from immnet.tracking.tracker import KEEP
+
+    guard = None if args.guard == "checkpoint" else parse_guard(args.guard)
+    return BankMethod(guard=guard, adapt=True if args.adapt else KEEP, r=r, return_cov=True, max_position=limit)
 
 
 def _weights(args) -> Path:
@@ -170,6 +181,8 @@ def run(args) -> int:
         rows = read_tracks_csv(args.input)
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
+        if args.checkpoint is None and args.weights == BANK:  # each row a scan at its own time, as a network's range
+            return _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank")
         weights = _weights(args)
         tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
         if tracker.net.start.told_r:
@@ -201,6 +214,8 @@ def run(args) -> int:
     from immnet.tracking.tracker import check_dt
 
     data, meta = load_dataset(args.input)
+    if args.checkpoint is None and args.weights == BANK:
+        return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
     weights = _weights(args)
     tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
     from immnet.data.times import scan_intervals
@@ -224,4 +239,21 @@ def run(args) -> int:
     print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
     if tracker.net.interval_range is not None:
         _advise(weights, np.asarray(intervals, dtype=np.float64).ravel())
+    return 0
+
+
+def _npz_with_bank(args, data, meta, bank, limit: float) -> int:
+    """An .npz tracked by the bank: each scan at its own interval; ``member_probs [N, T, K]`` beside the state, the
+    mode probabilities and the covariance (``member_names`` their order)."""
+    from immnet.data.scratch import publishing
+    from immnet.data.times import scan_intervals
+
+    out = bank.track(data["measurements"], intervals=scan_intervals(data), return_cov=True)
+    with publishing(args.output, suffix=".npz") as tmp:
+        times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
+        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(),
+                 state_cov=out["state_cov"].numpy(), member_probs=out[keys.MEMBER_PROBS].numpy(),
+                 member_names=np.array(bank.names), dt=np.float64(meta["dt"]), **times)
+    _report_gated(bank.n_gated, limit)
+    print(f"tracked {out.batch_size[0]} tracks with the bank ({', '.join(bank.names)}) -> {args.output}", file=sys.stderr)
     return 0

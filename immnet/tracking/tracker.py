@@ -32,7 +32,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import DEFAULT_WEIGHTS, PRETRAINED, load_checkpoint, shipped  # PRETRAINED: re-exported here too
+from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, PRETRAINED, load_checkpoint, shipped  # PRETRAINED: re-exported here too
 from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
@@ -169,7 +169,7 @@ class Tracker:
 
     @classmethod
     def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
-                   r=KEEP) -> "Tracker":
+                   r=KEEP):
         """Weights shipped inside the package by name (``immnet.checkpoints.SHIPPED``, provenance in
         ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (the default: any scan interval from 0.5 to 12 s, real
         flights and 3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range
@@ -177,7 +177,14 @@ class Tracker:
         (real flights at a surveillance radar's 4.5-5.5 s scans).
         ``adapt=True`` adds adaptive process noise (targets noisier than the training data's; docs/immnet.md).
         ``r``: the radar's measurement std in metres where it is known (each shipped network estimates each track's
-        from its measurements; ``load_network``)."""
+        from its measurements; ``load_network``). ``bank``: all four as one tracker, each weighed per track by how well
+        it predicts the track (``immnet.tracking.bank.NetworkBank``: ``reset``, ``step`` and ``track`` as here; no
+        range guard unless ``guard`` asks)."""
+        if name == BANK:
+            from immnet.tracking.bank import NetworkBank
+
+            return NetworkBank.from_names(guard=None if isinstance(guard, str) and guard == KEEP else guard, adapt=adapt,
+                                          r=r, max_position=max_position)
         return cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
 
     def reset(self, n_tracks: int) -> None:
@@ -238,7 +245,7 @@ class Tracker:
 
     @torch.no_grad()
     def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
-              return_cov: bool = False, r: torch.Tensor | None = None) -> TensorDict:
+              return_cov: bool = False, r: torch.Tensor | None = None, return_loglik: bool = False) -> TensorDict:
         """Whole sequences ``[B, T, 3]`` -> ``state [B, T, 9]``, ``mode_probs [B, T, 4]``, ``expert_probs``,
         ``expert_post``, ``mode_logits`` and, with ``return_cov``, ``state_cov [B, T, 9, 9]`` (the fused
         covariance; a ValueError saying why where the experts carry none, ``net.has_cov``), NaN before each
@@ -247,7 +254,8 @@ class Tracker:
         network's ``dt``), each one the network was trained at (:func:`check_dt`), except that for a network trained
         over a range an interval longer than it is a gap the track coasts through at intervals inside it
         (:func:`coast_long_gaps`; the output holds the scans given). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
-        (``FilterGain(r="data")``)."""
+        (``FilterGain(r="data")``). ``return_loglik``: also each scan's
+        measurement log-likelihood under the network's prediction, ``loglik [B, T]`` (``IMMNet.predictive_loglik``)."""
         z = torch.as_tensor(measurements, dtype=torch.float32)
         if z.dim() != 3 or z.shape[-1] != 3:
             raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
@@ -266,7 +274,8 @@ class Tracker:
         for i in range(0, z.shape[0], batch_size):
             gaps = None if intervals is None else intervals[i : i + batch_size].to(z.dtype)
             told = None if r is None else torch.as_tensor(r, dtype=z.dtype).reshape(-1)[i : i + batch_size]
-            out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov, r=told)
+            out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov, r=told,
+                                      return_loglik=return_loglik)
             out.set(keys.MODE_PROBS, self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
             waiting = before_first_detection(z[i : i + batch_size])
             outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))

@@ -1,0 +1,307 @@
+"""A bank of trained networks as one tracker: a static multiple-model estimator over whole networks.
+
+Each member network tracks every track it can take (``accepts``: a network trained over a range of scan intervals
+takes a track whose every interval is at or above the range's start, a longer one coasted as a gap, as
+``Tracker.track`` does; a network trained at one interval takes a track scanned at that interval throughout), and
+the bank reports, scan by scan, the members' estimates weighted by each member's probability for that track: its
+prior times the likelihood of the track's measurements under the member's own predictions so far,
+
+    p_k(t) = p_k(0) prod_{s <= t} p(z_s | z_<s, k) / normalization
+
+(``IMMNet.predictive_loglik``: the member's IMM mixture of its filter experts' innovation likelihoods). This is the
+static multiple-model estimator (Magill 1965; Bar-Shalom, Li and Kirubarajan, *Estimation with Applications to
+Tracking and Navigation*, 2001, "the static multiple model estimator"): the members are hypotheses about the whole
+track (a real aircraft at 1 s, at 5 s, a 3D-LAST target), not about a scan, so, unlike an IMM's modes, no member's
+estimate is mixed into another's and each runs as it runs alone. The bank's covariance is the mixture's,
+``sum_k p_k (P_k + (x_k - x)(x_k - x)^T)``, its mode probabilities the members' weighted (each reports the same four
+data modes), and ``member_probs [B, T, K]`` says which member carries each track.
+
+Only the scans that every member taking the track predicted are weighed (a member that starts from two detections
+predicts from the third); until then the members keep their prior. A scan without a detection weighs nothing. The
+members estimate each track's measurement std themselves (a member told it, ``r="data"``, is refused: the bank takes
+what a CSV holds). docs/tracking.md "A bank of networks".
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.checkpoints import SHIPPED, shipped
+from immnet.data.times import scan_intervals
+from immnet.data.validate import MAX_ABS_POSITION
+from immnet.filters.base import before_first_detection, blank_before_first_detection
+from immnet.stages import IMMNet
+from immnet.tracking.tracker import KEEP, Tracker, _select, load_network
+
+DEFAULT_MEMBERS = ("general", "real", "real-5s", "3dlast")
+"""The shipped bank (``Tracker.pretrained("bank")``, ``immnet track --weights bank``, the method ``immnet-bank``): the
+general network (any interval 0.5-12 s), the real-flight networks at 1 s and at 4.5-5.5 s, and the 3D-LAST network
+(1 s; in the bank without its range guard, as every member, unless asked), chosen on the validation sets (docs/tracking.md
+"A bank of networks")."""
+
+
+def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
+    """Which tracks ``net`` can take, ``[B]`` bool, from each scan's interval ``intervals [B, T]`` (s; scan 0's the
+    nominal one, ``immnet.data.times.scan_intervals``): every interval at or above its ``interval_range``'s start (a
+    longer one than its end is a gap it coasts through) for a network trained over a range; every interval its
+    ``dt`` for one trained at one interval (``immnet.tracking.tracker.check_dt``'s rule, per track)."""
+    intervals = torch.as_tensor(intervals, dtype=torch.float64)
+    known = ~torch.isnan(intervals)
+    span = getattr(net, "interval_range", None)
+    if span is not None:
+        lo, hi = float(span[0]), float(span[1])
+        ok = intervals >= lo - 1e-6 * max(1.0, hi)
+    else:
+        ok = (intervals - float(net.dt)).abs() <= 1e-6 * max(1.0, float(net.dt))
+    return (ok | ~known).all(-1)
+
+
+def _member_path(member: str | Path) -> Path:
+    """A shipped network's file by name (``immnet.checkpoints.SHIPPED``), else the path as given."""
+    return shipped(member) if isinstance(member, str) and member in SHIPPED else Path(member)
+
+
+def _mix(log_w: torch.Tensor, state: torch.Tensor, probs: torch.Tensor, cov: torch.Tensor | None) -> dict:
+    """The members' outputs ``[..., K, ...]`` weighted by ``softmax(log_w [..., K])``: ``state``, ``mode_probs``,
+    ``member_probs`` and, given ``cov``, the mixture's covariance ``sum_k p_k (P_k + (x_k - x)(x_k - x)^T)``. A member
+    with no weight (-inf: it does not take the track) adds nothing, whatever its output."""
+    w = torch.softmax(log_w, -1)
+    live = (w > 0)[..., None]
+    x = torch.where(live, state, 0.0)
+    fused = (w[..., None] * x).sum(-2)
+    out = {keys.STATE: fused, keys.MODE_PROBS: (w[..., None] * torch.where(live, probs, 0.0)).sum(-2),
+           keys.MEMBER_PROBS: w}
+    if cov is not None:
+        d = x - fused[..., None, :]
+        spread = torch.where(live[..., None], cov + d[..., :, None] * d[..., None, :], 0.0)
+        out[keys.STATE_COV] = (w[..., None, None] * spread).sum(-3)
+    return out
+
+
+def _weighed(loglik: torch.Tensor, takes: torch.Tensor) -> torch.Tensor:
+    """Each member's weight increment ``[..., K]``: its log-likelihood where every member taking the track predicted
+    the scan (all finite among them), else 0."""
+    every = (torch.isfinite(loglik) | ~takes).all(-1, keepdim=True)
+    return torch.where(every & takes, loglik, torch.zeros((), dtype=loglik.dtype))
+
+
+class NetworkBank:
+    """Trained networks run side by side on each track and weighed by how well each predicts it (module doc).
+
+    ``members``: name -> ``IMMNet`` (filter experts, each estimating its tracks' r); ``prior``: each member's prior
+    probability (default: equal), positive, as many as members. ``max_position``: the gate on measurements, as
+    ``Tracker``'s."""
+
+    def __init__(self, members: dict[str, IMMNet], prior=None, **tracker_args):
+        if not members:
+            raise ValueError("a bank of networks needs at least one member")
+        for name, net in members.items():
+            if not isinstance(net, IMMNet):
+                raise ValueError(f"bank member {name!r} is a {type(net).__name__}, not an IMMNet")
+            if net.start.told_r:
+                raise ValueError(f"bank member {name!r} is told each track's measurement std (r='data'); a bank's "
+                                 f"members estimate it from the measurements")
+            if not net.has_cov:
+                raise ValueError(f"bank member {name!r} cannot be weighed: {net.no_cov_reason()}")
+        self.names = list(members)
+        self.trackers = {name: Tracker(net, **tracker_args) for name, net in members.items()}
+        prior = [1.0] * len(members) if prior is None else [float(p) for p in prior]
+        if len(prior) != len(members) or not all(math.isfinite(p) and p > 0 for p in prior):
+            raise ValueError(f"a bank's prior is one positive number per member ({', '.join(self.names)}), got {prior}")
+        total = sum(prior)
+        self.log_prior = torch.tensor([math.log(p / total) for p in prior], dtype=torch.float64)
+        spans = [net.interval_range or (net.dt, net.dt) for net in members.values()]
+        self.interval_range = (min(float(s[0]) for s in spans), max(float(s[1]) for s in spans))
+        self.n_gated = 0
+
+    @classmethod
+    def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
+                   **tracker_args) -> "NetworkBank":
+        """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded by ``load_network``
+        with ``guard`` (default none: no member keeps a range guard unless asked), ``adapt`` and ``r`` (one number for
+        every track: a radar that knows its accuracy)."""
+        members = list(members)
+        if len(set(map(str, members))) != len(members):
+            raise ValueError(f"a bank's members are named once each, got {members}")
+        nets = {str(m): load_network(_member_path(m), guard=guard, adapt=adapt, r=r) for m in members}
+        return cls(nets, prior, **tracker_args)
+
+    @property
+    def members(self) -> dict[str, IMMNet]:
+        return {name: tracker.net for name, tracker in self.trackers.items()}
+
+    has_cov = True  # every member keeps one (checked when built)
+
+    def no_cov_reason(self) -> str:
+        return ""
+
+    def takes(self, intervals: torch.Tensor) -> torch.Tensor:
+        """``[B, K]`` bool: which member can take which track (:func:`accepts`)."""
+        return torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
+
+    def check(self, intervals: torch.Tensor) -> None:
+        """A ValueError naming the tracks no member can take, and each member's intervals."""
+        lost = (~self.takes(intervals).any(-1)).nonzero().flatten()
+        if len(lost):
+            spans = ", ".join(f"{name} {f'{net.interval_range[0]:g}-{net.interval_range[1]:g} s' if net.interval_range else f'{net.dt:g} s'}"
+                              for name, net in self.members.items())
+            raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in lost[:5])}"
+                             f"{', ...' if len(lost) > 5 else ''} (its scan intervals); its members: {spans}")
+
+    @torch.no_grad()
+    def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
+              return_cov: bool = False, r=None) -> TensorDict:
+        """Whole sequences ``[B, T, 3]`` with the interval before each scan ``intervals [B, T]`` (s; None: ``self.dt``
+        at every scan) -> ``state``, ``mode_probs``, ``member_probs [B, T, K]`` (K members, ``names``' order) and, with
+        ``return_cov``, ``state_cov``; NaN before each track's first detection (``Tracker.track``'s arguments). Each
+        member runs on the tracks it takes, as ``Tracker.track`` runs it alone. ``r``: refused (a bank's members are
+        not told each track's r; ``from_names(r=...)`` gives them one)."""
+        if r is not None:
+            raise ValueError("a bank's members estimate each track's measurement std; to give them the radar's, build "
+                             "the bank with r=METRES (NetworkBank.from_names, Tracker.pretrained('bank', r=...))")
+        z = torch.as_tensor(measurements, dtype=torch.float32)
+        if z.dim() != 3 or z.shape[-1] != 3:
+            raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
+        if intervals is None:
+            intervals = torch.full(z.shape[:2], self.dt, dtype=torch.float64)
+        intervals = torch.as_tensor(intervals, dtype=torch.float64)
+        if tuple(intervals.shape) != tuple(z.shape[:2]):
+            raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
+        self.check(intervals)
+        takes = self.takes(intervals)
+        B, T, K = z.shape[0], z.shape[1], len(self.names)
+        state = torch.zeros(B, T, K, 9, dtype=torch.float64)
+        probs = torch.zeros(B, T, K, 4, dtype=torch.float64)
+        cov = torch.zeros(B, T, K, 9, 9, dtype=torch.float64) if return_cov else None
+        loglik = torch.full((B, T, K), float("nan"), dtype=torch.float64)
+        for k, (name, tracker) in enumerate(self.trackers.items()):
+            rows = takes[:, k].nonzero().flatten()
+            if not len(rows):
+                continue
+            net, iv = tracker.net, intervals[rows]
+            own = None if bool((iv[:, 1:] == net.dt).all()) else iv  # the network's own step, as it runs alone
+            out = tracker.track(z[rows], batch_size, own, return_cov=return_cov, return_loglik=True)
+            self.n_gated = tracker.n_gated
+            state[rows, :, k] = out[keys.STATE].double()
+            probs[rows, :, k] = out[keys.MODE_PROBS].double()
+            loglik[rows, :, k] = out[keys.LOGLIK].double()
+            if return_cov:
+                cov[rows, :, k] = out[keys.STATE_COV].double()
+        log_w = self.log_prior + _weighed(loglik, takes[:, None, :]).cumsum(1)
+        out = _mix(log_w.masked_fill(~takes[:, None, :], float("-inf")), state, probs, cov)
+        waiting = before_first_detection(z)
+        return TensorDict({k: blank_before_first_detection(v, waiting) for k, v in out.items()}, batch_size=[B, T])
+
+
+    # --- streaming: one scan at a time, as ``Tracker.step`` -----------------------------------------------------
+    @property
+    def dt(self) -> float:
+        """The interval a scan given without one is taken at: the first member's ``dt``."""
+        return float(next(iter(self.members.values())).dt)
+
+    def reset(self, n_tracks: int) -> None:
+        """``n_tracks`` tracks that have not started, each member at its prior; ``n_gated`` back to 0."""
+        self.carries = {name: net.initial_carry(n_tracks) for name, net in self.members.items()}
+        self.log_w = self.log_prior.expand(n_tracks, -1).clone()
+        self.n_gated = 0
+
+    def _steps_at(self, net: IMMNet, interval: torch.Tensor) -> torch.Tensor:
+        """``[B]`` bool: the tracks ``net`` takes a scan after ``interval [B]`` of (``Tracker.step``'s check, per track:
+        inside its range, or its one interval)."""
+        span = getattr(net, "interval_range", None)
+        lo, hi = (float(span[0]), float(span[1])) if span is not None else (float(net.dt), float(net.dt))
+        tol = 1e-6 * max(1.0, hi)
+        return (interval >= lo - tol) & (interval <= hi + tol)
+
+    @torch.no_grad()
+    def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
+        """One scan ``z [B, 3]`` (NaN: a missed detection) of every track, as ``Tracker.step``: ``reset [B]`` restarts
+        those tracks (each member at its prior again), ``dt`` the time since each track's previous scan (a number or
+        ``[B]``, s; None: ``self.dt``). A member drops out of a track at a scan it cannot take (its weight 0 until the
+        track restarts); a scan no member still in the track can take is refused before anything changes. Returns
+        ``("fused", "state")``, ``("fused", "cov")``, ``mode_probs`` and ``member_probs [B, K]``, NaN before a track's
+        first detection. Over a sequence, ``track``'s numbers."""
+        from immnet.data.validate import gate_measurements
+
+        z = torch.as_tensor(z, dtype=torch.float32)
+        if z.dim() != 2 or z.shape[-1] != 3:
+            raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
+        B = z.shape[0]
+        if getattr(self, "carries", None) is None or self.log_w.shape[0] != B:
+            self.reset(B)
+        interval = torch.as_tensor(self.dt if dt is None else dt, dtype=torch.float64).reshape(-1).expand(B)
+        log_w = self.log_w.clone()
+        if reset is not None:
+            log_w[torch.as_tensor(reset, dtype=torch.bool)] = self.log_prior
+        takes = torch.stack([self._steps_at(net, interval) for net in self.members.values()], -1) & (log_w > -math.inf)
+        lost = (~takes.any(-1)).nonzero().flatten()
+        if len(lost):
+            raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
+                             f"a scan after {float(interval[lost[0]]):g} s")
+        z, n_gated = gate_measurements(z, self.trackers[self.names[0]].max_position)
+        self.n_gated += n_gated
+        K = len(self.names)
+        state = torch.zeros(B, K, 9, dtype=torch.float64)
+        probs = torch.zeros(B, K, 4, dtype=torch.float64)
+        cov = torch.zeros(B, K, 9, 9, dtype=torch.float64)
+        loglik = torch.full((B, K), float("nan"), dtype=torch.float64)
+        age = torch.zeros(B, dtype=torch.long)
+        for k, (name, net) in enumerate(self.members.items()):
+            carry = self.carries[name]
+            if reset is not None:
+                mask = torch.as_tensor(reset, dtype=torch.bool)
+                carry = _select(mask, net.initial_carry(B), carry)
+            rows = takes[:, k].nonzero().flatten()
+            every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
+            if len(rows):
+                before = carry if every else carry[rows]
+                iv = interval[rows].to(torch.float32)
+                after = net.scan(before, z[rows], interval=None if bool((iv == net.dt).all()) else iv)
+                loglik[rows, k] = net.predictive_loglik(before, after).double()
+                state[rows, k] = net.estimate(after).double()
+                cov[rows, k] = net.reported_cov(after).double()
+                probs[rows, k] = net.to_mode_probs(after.get(keys.EXPERT_PROBS)).double()
+                age[rows] = torch.maximum(age[rows], after.get(keys.AGE))
+                if every:
+                    carry = after.select(*net.carry_keys)
+                else:
+                    carry = carry.clone()
+                    carry[rows] = after.select(*net.carry_keys)
+            self.carries[name] = carry
+        self.log_w = (log_w + _weighed(loglik, takes)).masked_fill(~takes, float("-inf"))
+        out = _mix(self.log_w, state, probs, cov)
+        waiting = (age == 0)[:, None]  # no detection yet: no estimate
+        names = {keys.FUSED: keys.STATE, keys.FUSED_COV: keys.STATE_COV, keys.MODE_PROBS: keys.MODE_PROBS,
+                 keys.MEMBER_PROBS: keys.MEMBER_PROBS}
+        return TensorDict({key: blank_before_first_detection(out[name].unsqueeze(1), waiting).squeeze(1)
+                           for key, name in names.items()}, batch_size=[B])
+
+
+class BankMethod:
+    """A bank of networks (``NetworkBank``) as a method of ``immnet evaluate`` and ``immnet track --method``:
+    ``members`` shipped names or checkpoint paths, ``prior`` their prior probabilities, ``guard``, ``adapt`` and ``r``
+    each member's (``load_network``'s; no range guard unless asked). Its output: ``state``, ``mode_probs`` and, with ``return_cov``,
+    ``state_cov``."""
+
+    needs: tuple[str, ...] = ()
+
+    def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
+                 guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION):
+        self.name = name
+        self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position)  # ``immnet track`` reads it
+        self.batch_size = batch_size
+        self.return_cov = return_cov
+
+    def check(self, batch: TensorDict) -> None:
+        """A ValueError for tracks no member can take (``NetworkBank.check``)."""
+        self.net.check(scan_intervals(batch))
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        out = self.net.track(batch[keys.MEASUREMENTS], self.batch_size, scan_intervals(batch), self.return_cov)
+        names = (keys.STATE, keys.MODE_PROBS, keys.STATE_COV) if self.return_cov else (keys.STATE, keys.MODE_PROBS)
+        return TensorDict({k: out[k] for k in names}, batch_size=batch.batch_size)
