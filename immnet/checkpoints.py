@@ -32,18 +32,21 @@ PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
 SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "immnet-real.ckpt",
            "real-5s": "immnet-real-5s.ckpt"}
 """The shipped networks by name (docs/checkpoints.md "Shipped weights"): ``general`` (any interval 0.5-12 s, 3D-LAST
-and real flights, no range guard) is what ``Tracker.pretrained()`` and ``immnet track`` load unless told;
+and real flights, no range guard; with the others, the bank ``Tracker.pretrained()`` and ``immnet track`` run unless
+told, ``BANK``);
 ``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, three learned
 output corrections, averaged, on the three-filter decoupled IMM, trained on real flights); ``real-5s`` the same for a
 surveillance radar's 4.5-5.5 s scans, on that IMM tuned at those scans."""
-DEFAULT_WEIGHTS = "general"
+GENERAL = "general"
+"""The general network: the bank's member for any interval from 0.5 to 12 s."""
 BANK = "bank"
-"""The name of the shipped networks together, one tracker (``immnet.tracking.bank``: ``general``, ``real``,
-``real-5s`` and ``3dlast`` without its guard, weighed per track by how well each predicts it; ``Tracker.pretrained(
-"bank")``, ``immnet track --weights bank``); not a file of its own."""
+"""The shipped networks together as one tracker (``immnet.tracking.bank``: ``general``, ``real``, ``real-5s`` and
+``3dlast`` without its guard, each weighed per track by how well it predicts the track), the default of
+``Tracker.pretrained()`` and ``immnet track``; not a file of its own."""
+DEFAULT_WEIGHTS = BANK
 
 
-def shipped(name: str = DEFAULT_WEIGHTS) -> Path:
+def shipped(name: str) -> Path:
     """The file of the shipped network ``name`` (``SHIPPED``); a ValueError naming the choices otherwise."""
     if name not in SHIPPED:
         raise ValueError(f"no shipped weights named {name!r}; shipped: {', '.join(SHIPPED)}"

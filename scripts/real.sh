@@ -77,15 +77,16 @@ for m in "${MEMBERS[@]}"; do ckpts+=("$RUN/${m%%:*}/checkpoints/best.ckpt"); don
 "$PY" -m immnet.training.export --join "${ckpts[@]}" "$CKPT" >/dev/null
 
 say "4/5 evaluation: one table per data set, every method in one run"
+# immnet-bank is the default as shipped: its members are the shipped files (its real network is not this run's)
 BASE=measurements,imm-tuned,imm-ekf,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
 for set in quickstart-1s/test heldout-1s/test; do
   out=$RUN/results-${set%%/*}
-  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,immnet,immnet-real,immnet-general" \
+  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,immnet,immnet-real,immnet-general,immnet-bank" \
     --checkpoint "immnet-real=$CKPT" --json "$out.json" --markdown "$out.md" --quiet
 done
 for set in quickstart-5s/test heldout-5s/test; do  # the 1 s networks refuse 5 s scans; the shipped real-5s and general take them
   out=$RUN/results-${set%%/*}
-  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s,immnet-general,immnet-real-5s" \
+  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s,immnet-general,immnet-real-5s,immnet-bank" \
     --json "$out.json" --markdown "$out.md" --quiet
 done
 

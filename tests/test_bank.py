@@ -123,8 +123,11 @@ def test_each_member_tracks_the_scans_it_was_trained_for():
     bit. A bank none of whose members takes a track refuses it by name."""
     general, real = load_network(shipped("general")), load_network(shipped("real"))
     assert accepts(real, torch.ones(2, 5)).all() and not accepts(real, torch.full((1, 5), 5.0)).any()
-    assert accepts(general, torch.tensor([[1.0, 0.5, 30.0]])).all()  # a long gap is coasted
+    assert accepts(general, torch.tensor([[1.0, 0.5, 30.0]])).all()  # a long gap is coasted, at 10 s
     assert not accepts(general, torch.tensor([[1.0, 0.2, 1.0]])).any()
+    real5 = load_network(shipped("real-5s"))  # 4.5-5.5 s: a 10 s gap is two 5 s scans, a 6.25 s one would be 3.125 s
+    assert accepts(real5, torch.tensor([[5.0, 4.6, 10.0, 5.4]])).all()
+    assert not accepts(real5, torch.tensor([[5.0, 6.25, 5.0]])).any()
     bank = BankMethod()
     td = generate(4, seed=3, spec=DataSpec(T=45, min_segment=15))
     td5 = generate(2, seed=4, spec=DataSpec(T=45, min_segment=15, dt=5.0))

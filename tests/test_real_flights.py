@@ -86,3 +86,33 @@ def test_covariances_are_calibrated_on_the_test_flights(outputs, case, who):
     cov = coverage(nees, mask)
     assert 0.90 <= cov[0.95] <= 0.98, cov
     assert 0.45 <= cov[0.5] <= 0.58, cov
+
+
+@pytest.fixture(scope="module")
+def bank_outputs(test_flights):
+    """The bank's (the default's) outputs, with covariances, on each set's test flights."""
+    m = build_method("immnet-bank", return_cov=True)
+    out = {}
+    for set_name, flights in test_flights.items():
+        batch = as_batch(flights, torch.float32)
+        with torch.no_grad():
+            out[set_name] = (batch, m.track(batch))
+    return out
+
+
+@pytest.mark.parametrize("set_name,own", [("quickstart-1s", "real"), ("quickstart-5s", "real-5s")])
+def test_the_default_bank_tracks_real_flights_about_as_well_as_its_member_trained_for_them(bank_outputs, set_name, own):
+    """The bank (``Tracker.pretrained()``, docs/tracking.md "A bank of networks") on the test flights: within 1.5 % of
+    the real-flight network trained for those scans, ahead of the general network and of the best model-based filter
+    (each as its provenance measured it on these flights), and its covariance calibrated."""
+    batch, out = bank_outputs[set_name]
+    metrics = _provenance(own)["tests"][set_name]["metrics"]
+    entry = _provenance(own)["tests"][set_name]
+    avg = rmse(position_error(out[keys.STATE], batch[keys.STATES]), scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS]))["avg"]
+    assert avg <= metrics[f"immnet-{own}"]["avg"] * 1.015, (avg, metrics)
+    assert avg < metrics["immnet-general"]["avg"] and avg < metrics[entry["claims"]["best_model_based"]]["avg"], (avg, metrics)
+    nees = position_nees(out[keys.STATE], out[keys.STATE_COV], batch[keys.STATES])
+    mask = torch.zeros_like(nees, dtype=torch.bool)
+    mask[:, 20:] = True
+    cov = coverage(nees, mask)
+    assert 0.90 <= cov[0.95] <= 0.98 and 0.45 <= cov[0.5] <= 0.60, cov

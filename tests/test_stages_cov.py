@@ -21,7 +21,7 @@ SCANS = (2, 9, 29)  # a second detection, early running, the last
 
 @pytest.fixture(scope="module")
 def tracker():
-    return Tracker.pretrained()
+    return Tracker.pretrained("general")
 
 
 @pytest.fixture(scope="module")

@@ -173,7 +173,7 @@ def test_an_npz_gap_beyond_the_networks_range_is_coasted_as_a_csvs_is(tmp_path, 
 
 
 def test_tracker_track_coasts_a_long_gap_and_refuses_intervals_it_was_not_trained_at():
-    """``Tracker.track(z, intervals=...)``: for the default weights (0.5-12 s) a 20 s interval is two 10 s scans, the
+    """``Tracker.track(z, intervals=...)``: for the general weights (0.5-12 s) a 20 s interval is two 10 s scans, the
     first missed, and the output holds the scans given (equal to the 10 s grid tracked outright); an interval below
     the range, or for the 1 s benchmark network any interval but 1 s, is refused by name, as ``Tracker.step`` refuses
     it (it ran, extrapolated, before)."""
@@ -183,14 +183,14 @@ def test_tracker_track_coasts_a_long_gap_and_refuses_intervals_it_was_not_traine
     p = np.stack([10_000 + 150.0 * t, np.full_like(t, 5_000.0), np.full_like(t, 3_000.0)], -1)
     z = torch.from_numpy((p + np.random.default_rng(3).normal(0, 5.0, p.shape)).astype(np.float32))[None]
     intervals = torch.from_numpy(np.r_[5.0, np.diff(t)])[None]
-    tracker = Tracker.pretrained()
+    tracker = Tracker.pretrained("general")
     out = tracker.track(z, intervals=intervals, return_cov=True)
     assert tuple(out["state"].shape) == (1, 8, 9) and tuple(out["state_cov"].shape) == (1, 8, 9, 9)
     grid = torch.full((1, 10, 3), float("nan"))
     keep = [0, 1, 2, 4, 5, 6, 8, 9]  # 10 -> 30 s and 40 -> 60 s each two scans of 10 s
     grid[0, keep] = z[0]
     steps = torch.tensor([[5.0, 5.0, 5.0, 10.0, 10.0, 5.0, 5.0, 10.0, 10.0, 5.0]])
-    ref = Tracker.pretrained().track(grid, intervals=steps, return_cov=True)
+    ref = Tracker.pretrained("general").track(grid, intervals=steps, return_cov=True)
     for key in ("state", "mode_probs", "state_cov"):
         torch.testing.assert_close(out[key], ref[key][:, keep], rtol=1e-5, atol=1e-4)
     with pytest.raises(ValueError, match="trained on intervals 0.5-12 s but this data has an interval of 0.2 s"):
@@ -266,7 +266,7 @@ def test_step_at_the_nominal_interval_equals_step_without_one():
     from immnet.tracking import Tracker
 
     z = generate(2, seed=3, spec=DataSpec(T=12, min_segment=4))[keys.MEASUREMENTS].float()
-    a, b = Tracker.pretrained(guard=None), Tracker.pretrained(guard=None)
+    a, b = Tracker.pretrained("general", guard=None), Tracker.pretrained("general", guard=None)
     a.reset(2), b.reset(2)
     for k in range(12):
         torch.testing.assert_close(a.step(z[:, k])[keys.FUSED], b.step(z[:, k], dt=torch.full((2,), a.net.dt))[keys.FUSED])
@@ -321,52 +321,59 @@ def _one_track_csv(path, t, seed: int, r: float):
     return path
 
 
+@pytest.mark.parametrize("weights", ["general", None])
 @pytest.mark.parametrize("spacing", [1.0, 10.0])
-def test_immnet_track_says_what_the_default_weights_provenance_says_at_the_datas_interval(tmp_path, capsys, spacing):
-    """At 10 s scans the shipped default was measured behind its filter (the provenance's ``interval_bins``), at
-    1 s ahead of it: ``immnet track`` prints the note exactly where the provenance has the network behind."""
+def test_immnet_track_says_what_the_general_weights_provenance_says_at_the_datas_interval(tmp_path, capsys, spacing,
+                                                                                          weights):
+    """At 10 s scans the general network was measured behind its filter (the provenance's ``interval_bins``), at
+    1 s ahead of it: ``immnet track`` with the general weights, and with the bank (the default, whose one member at
+    10 s scans is the general network), prints the note exactly where the provenance has the network behind."""
     import json
 
     from immnet.checkpoints import provenance_file, shipped
 
-    bins = json.loads(provenance_file(shipped()).read_text())["interval_bins"]
+    bins = json.loads(provenance_file(shipped("general")).read_text())["interval_bins"]
     k = next(i for i, (lo, hi) in enumerate(zip(bins["edges"][:-1], bins["edges"][1:])) if lo <= spacing < hi)
     behind = bins["rmse"][bins["network"]][k] > bins["rmse"][bins["filter"]][k]
     path = _one_track_csv(tmp_path / "in.csv", np.arange(12) * spacing, seed=3, r=5.0)
-    assert main(["track", "--input", str(path), "--output", str(tmp_path / "o.csv")]) == 0
+    args = ["track", "--input", str(path), "--output", str(tmp_path / "o.csv")] + (["--weights", weights] if weights else [])
+    assert main(args) == 0
     err = capsys.readouterr().err
     assert (f"--method {bins['filter']}" in err) == behind, err
+    assert ("the bank's general network" in err) == (behind and weights is None), err
     assert behind == (spacing == 10.0)  # as measured (docs/results.md "The general model"): behind at 10-12 s only
 
 
 def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans():
-    """With the default weights, the note names another shipped network where it was trained for the data's median scan
-    interval and a provenance measured it ahead of the default: real-5s at 4.5-5.5 s, real at 1 s, with the numbers of
-    those provenance files; nothing at other intervals, with other weights loaded, or without intervals."""
+    """With the general weights, the note names another shipped network where it was trained for the data's median scan
+    interval and a provenance measured it ahead of the general one: real-5s at 4.5-5.5 s, real at 1 s, with the numbers
+    of those provenance files; nothing at other intervals, with other weights loaded, or without intervals."""
     import json
 
     from immnet.checkpoints import provenance_file, shipped
     from immnet.tracking.advice import load_provenance, weights_note
 
-    general = shipped()
+    general = shipped("general")
     own = load_provenance(general)
     five = json.loads(provenance_file(shipped("real-5s")).read_text())["tests"]["quickstart-5s"]["metrics"]
     note = weights_note(general, own, [4.6, 5.0, 5.2, np.nan])
     assert "--weights real-5s" in note and "4.5-5.5 s" in note and "real flights (quickstart-5s)" in note
-    assert f"{five['immnet-real-5s']['avg']:.3f} m against the default's {five['immnet-general']['avg']:.3f}" in note
+    assert f"{five['immnet-real-5s']['avg']:.3f} m against the general one's {five['immnet-general']['avg']:.3f}" in note
     one = json.loads(provenance_file(shipped("real")).read_text())["tests"]["quickstart-1s"]["metrics"]
     note = weights_note(general, own, [1.0] * 5)  # real's own provenance, both networks in one run
     assert "--weights real " in note
-    assert f"{one['immnet-real']['avg']:.3f} m against the default's {one['immnet-general']['avg']:.3f}" in note
+    assert f"{one['immnet-real']['avg']:.3f} m against the general one's {one['immnet-general']['avg']:.3f}" in note
     assert weights_note(general, own, [8.0, 8.0]) is None and weights_note(general, own, [1.0, 2.0, 2.0]) is None
     for other, dt in (("real-5s", 5.0), ("3dlast", 1.0)):
         assert weights_note(shipped(other), load_provenance(shipped(other)), [dt]) is None
     assert weights_note(general, own, []) is None
 
 
-@pytest.mark.parametrize("weights", [None, "real-5s"])
-def test_immnet_track_names_the_5s_weights_for_5s_scans_with_the_default_only(tmp_path, capsys, weights):
+@pytest.mark.parametrize("weights", ["general", "real-5s", None])
+def test_immnet_track_names_the_5s_weights_for_5s_scans_with_the_general_weights_only(tmp_path, capsys, weights):
+    """The general weights name real-5s for 5 s scans; real-5s itself and the bank (the default, which runs it) do
+    not."""
     path = _one_track_csv(tmp_path / "in.csv", np.arange(12) * 5.0, seed=4, r=10.0)
     args = ["track", "--input", str(path), "--output", str(tmp_path / "o.csv")] + (["--weights", weights] if weights else [])
     assert main(args) == 0
-    assert ("--weights real-5s" in capsys.readouterr().err) == (weights is None)
+    assert ("--weights real-5s" in capsys.readouterr().err) == (weights == "general")

@@ -8,9 +8,11 @@ bin). ``immnet track`` reads it for the weights it loads and, where the network'
 median scan interval is above the filter's, says so on stderr, naming the filter to try. The tracking itself is
 unchanged: the note is advice from measurements, not a switch.
 
-With the default weights, ``immnet track`` also says where another shipped network was trained for the data's median
-scan interval and a provenance measured it ahead of the default (``weights_note``: ``real-5s`` at 4.5-5.5 s, ``real``
-at 1 s, each on real flights), naming ``--weights`` to try.
+With the general weights (``--weights general``), ``immnet track`` also says where another shipped network was
+trained for the data's median scan interval and a provenance measured it ahead of the general one (``weights_note``:
+``real-5s`` at 4.5-5.5 s, ``real`` at 1 s, each on real flights), naming ``--weights`` to try. With the bank (the
+default), which runs those networks itself, only the general network's interval note is said, where the data's median
+interval is one no other member takes (``bank_note``).
 """
 
 from __future__ import annotations
@@ -42,10 +44,10 @@ def track_intervals(ids, t) -> np.ndarray:
     return np.diff(t[order])[ids[order][1:] == ids[order][:-1]]
 
 
-def interval_note(provenance: dict | None, intervals) -> str | None:
-    """A note (one line) where the provenance's ``interval_bins`` put the network behind its filter in the bin of the
-    median of ``intervals`` (seconds; non-finite values ignored); None where it does not, where the median lies
-    outside the bins, or where the provenance has no bins."""
+def interval_note(provenance: dict | None, intervals, whose: str = "these weights were") -> str | None:
+    """A note (one line) where the provenance's ``interval_bins`` put the network (``whose``, with its verb) behind its
+    filter in the bin of the median of ``intervals`` (seconds; non-finite values ignored); None where it does not,
+    where the median lies outside the bins, or where the provenance has no bins."""
     from immnet.evaluation.metrics import interval_bin
 
     bins = (provenance or {}).get("interval_bins")
@@ -63,8 +65,29 @@ def interval_note(provenance: dict | None, intervals) -> str | None:
     if a is None or b is None or a <= b:
         return None
     return (f"note: this data's median scan interval is {median:.3g} s; at scans of {edges[i]:g}-{edges[i + 1]:g} s "
-            f"these weights were {a / b:.2f}x {ref} ({a:.3f} m against {b:.3f} on {bins['data']}, their provenance): "
+            f"{whose} {a / b:.2f}x {ref} ({a:.3f} m against {b:.3f} on {bins['data']}, their provenance): "
             f"--method {ref} may track these scans better")
+
+
+def bank_note(intervals) -> str | None:
+    """The shipped bank's note: ``interval_note`` of the general network's provenance, where the median of
+    ``intervals`` is one only the general network of the bank takes (``immnet.tracking.bank.DEFAULT_MEMBERS``);
+    None elsewhere."""
+    from immnet.checkpoints import GENERAL, shipped
+    from immnet.tracking.bank import DEFAULT_MEMBERS
+
+    dt = np.asarray(intervals, dtype=np.float64)
+    dt = dt[np.isfinite(dt)]
+    if dt.size == 0:
+        return None
+    median = float(np.median(dt))
+    for name in (m for m in DEFAULT_MEMBERS if m != GENERAL):
+        prov = load_provenance(shipped(name)) or {}
+        span = prov.get("interval_range") or [prov.get("scan_interval")] * 2
+        if span[0] is not None and float(span[0]) * (1 - 1e-6) <= median <= float(span[1]) * (1 + 1e-6):
+            return None  # another member takes these scans
+    return interval_note(load_provenance(shipped(GENERAL)), dt, "the bank's general network (its one member at these "
+                         "scans) was")
 
 
 def registry_name(name: str) -> str:
@@ -79,29 +102,29 @@ def what(set_name: str) -> str:
 
 
 def weights_note(loaded, provenance: dict | None, intervals) -> str | None:
-    """With the default weights loaded (the file ``loaded``, its ``provenance`` as ``load_provenance`` read it), a note
+    """With the general weights loaded (the file ``loaded``, its ``provenance`` as ``load_provenance`` read it), a note
     (one line) where another shipped network was trained for the median of ``intervals`` (seconds; its provenance's
-    ``interval_range``, or its one ``scan_interval``) and a provenance, its own or the default's, measured it ahead of
-    the default on one test set, both in one run there; None otherwise (other weights loaded, no such network, no
-    intervals)."""
-    from immnet.checkpoints import DEFAULT_WEIGHTS, SHIPPED, shipped
+    ``interval_range``, or its one ``scan_interval``) and a provenance, its own or the general one's, measured it ahead
+    of the general network on one test set, both in one run there; None otherwise (other weights loaded, no such
+    network, no intervals)."""
+    from immnet.checkpoints import GENERAL, SHIPPED, shipped
 
     dt = np.asarray(intervals, dtype=np.float64)
     dt = dt[np.isfinite(dt)]
-    if Path(loaded).resolve() != shipped(DEFAULT_WEIGHTS).resolve() or dt.size == 0:
+    if Path(loaded).resolve() != shipped(GENERAL).resolve() or dt.size == 0:
         return None
     median, mine = float(np.median(dt)), provenance or {}
-    for name in (n for n in SHIPPED if n != DEFAULT_WEIGHTS):
+    for name in (n for n in SHIPPED if n != GENERAL):
         prov = load_provenance(shipped(name)) or {}
         span = prov.get("interval_range") or [prov.get("scan_interval")] * 2
         if span[0] is None or not float(span[0]) * (1 - 1e-6) <= median <= float(span[1]) * (1 + 1e-6):
             continue
         for set_name, test in [*prov.get("tests", {}).items(), *mine.get("tests", {}).items()]:
             rmse = {m: (v or {}).get("avg") for m, v in test.get("metrics", {}).items()}
-            a, b = rmse.get(registry_name(name)), rmse.get(registry_name(DEFAULT_WEIGHTS))
+            a, b = rmse.get(registry_name(name)), rmse.get(registry_name(GENERAL))
             if a is not None and b is not None and a < b:
                 scans = (f"{float(span[0]):g}-{float(span[1]):g} s" if span[0] != span[1] else f"{float(span[0]):g} s")
                 return (f"note: this data's median scan interval is {median:.3g} s; the shipped weights {name!r} were "
-                        f"trained for scans of {scans} and tracked {what(set_name)} better ({a:.3f} m against the default's "
+                        f"trained for scans of {scans} and tracked {what(set_name)} better ({a:.3f} m against the general one's "
                         f"{b:.3f}, their provenance): --weights {name} may track these scans better")
     return None

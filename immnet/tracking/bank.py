@@ -1,8 +1,9 @@
 """A bank of trained networks as one tracker: a static multiple-model estimator over whole networks.
 
 Each member network tracks every track it can take (``accepts``: a network trained over a range of scan intervals
-takes a track whose every interval is at or above the range's start, a longer one coasted as a gap, as
-``Tracker.track`` does; a network trained at one interval takes a track scanned at that interval throughout), and
+takes a track whose every interval lies in the range once an interval longer than the range is cut into missed scans
+inside it, as ``Tracker.track`` coasts it; a network trained at one interval takes a track scanned at that interval
+throughout), and
 the bank reports, scan by scan, the members' estimates weighted by each member's probability for that track: its
 prior times the likelihood of the track's measurements under the member's own predictions so far,
 
@@ -36,7 +37,7 @@ from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
-from immnet.tracking.tracker import KEEP, Tracker, _select, load_network
+from immnet.tracking.tracker import KEEP, Tracker, _select, load_network, read_checkpoint
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "3dlast")
 """The shipped bank (``Tracker.pretrained("bank")``, ``immnet track --weights bank``, the method ``immnet-bank``): the
@@ -47,15 +48,19 @@ general network (any interval 0.5-12 s), the real-flight networks at 1 s and at 
 
 def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     """Which tracks ``net`` can take, ``[B]`` bool, from each scan's interval ``intervals [B, T]`` (s; scan 0's the
-    nominal one, ``immnet.data.times.scan_intervals``): every interval at or above its ``interval_range``'s start (a
-    longer one than its end is a gap it coasts through) for a network trained over a range; every interval its
-    ``dt`` for one trained at one interval (``immnet.tracking.tracker.check_dt``'s rule, per track)."""
+    nominal one, ``immnet.data.times.scan_intervals``), as ``Tracker.track`` would run it: for a network trained over a
+    range, every interval inside it once an interval longer than the range is cut into equal ones by missed scans (a
+    gap it coasts through, ``immnet.tracking.tracker.coast_long_gaps``; scan 0's taken at most the range's end); for
+    one trained at one interval, every interval its ``dt`` (``check_dt``'s rule, per track)."""
     intervals = torch.as_tensor(intervals, dtype=torch.float64)
     known = ~torch.isnan(intervals)
     span = getattr(net, "interval_range", None)
     if span is not None:
         lo, hi = float(span[0]), float(span[1])
-        ok = intervals >= lo - 1e-6 * max(1.0, hi)
+        tol = 1e-6 * max(1.0, hi)
+        iv = torch.cat([intervals[:, :1].clamp(max=hi), intervals[:, 1:]], -1)
+        piece = iv / torch.ceil(iv / hi * (1 - 1e-12)).clamp(min=1)  # coast_long_gaps' cut (segments.cut_gaps)
+        ok = (piece >= lo - tol) & (piece <= hi + tol)
     else:
         ok = (intervals - float(net.dt)).abs() <= 1e-6 * max(1.0, float(net.dt))
     return (ok | ~known).all(-1)
@@ -115,20 +120,26 @@ class NetworkBank:
             raise ValueError(f"a bank's prior is one positive number per member ({', '.join(self.names)}), got {prior}")
         total = sum(prior)
         self.log_prior = torch.tensor([math.log(p / total) for p in prior], dtype=torch.float64)
-        spans = [net.interval_range or (net.dt, net.dt) for net in members.values()]
-        self.interval_range = (min(float(s[0]) for s in spans), max(float(s[1]) for s in spans))
         self.n_gated = 0
+        self.carries, self.log_w = None, None  # the streaming state (``reset``, ``step``)
+        # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
+        # ``immnet track`` hands the bank each row at its own time, uncut (``track_rows`` without ``max_interval``)
 
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
                    **tracker_args) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded by ``load_network``
-        with ``guard`` (default none: no member keeps a range guard unless asked), ``adapt`` and ``r`` (one number for
-        every track: a radar that knows its accuracy)."""
+        with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
+        whose modes are the whole target's, since a guard's transitions cannot be per axis: ``IMMNet(modes=...)``),
+        ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy)."""
         members = list(members)
         if len(set(map(str, members))) != len(members):
             raise ValueError(f"a bank's members are named once each, got {members}")
-        nets = {str(m): load_network(_member_path(m), guard=guard, adapt=adapt, r=r) for m in members}
+        nets = {}
+        for m in members:
+            path = _member_path(m)
+            joint = read_checkpoint(path)[0].get("modes", "joint") == "joint"
+            nets[str(m)] = load_network(path, guard=guard if joint else None, adapt=adapt, r=r)
         return cls(nets, prior, **tracker_args)
 
     @property
@@ -232,7 +243,7 @@ class NetworkBank:
         if z.dim() != 2 or z.shape[-1] != 3:
             raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
         B = z.shape[0]
-        if getattr(self, "carries", None) is None or self.log_w.shape[0] != B:
+        if self.carries is None or self.log_w.shape[0] != B:
             self.reset(B)
         interval = torch.as_tensor(self.dt if dt is None else dt, dtype=torch.float64).reshape(-1).expand(B)
         log_w = self.log_w.clone()
@@ -293,7 +304,7 @@ class BankMethod:
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
                  guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION):
         self.name = name
-        self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position)  # ``immnet track`` reads it
+        self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position)
         self.batch_size = batch_size
         self.return_cov = return_cov
 

@@ -34,11 +34,12 @@ def register(subparsers) -> None:
     p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
     p.add_argument("--weights", default=None, choices=sorted([*SHIPPED, BANK]),
-                   help=f"shipped weights by name (default {DEFAULT_WEIGHTS}: any scan interval 0.5-12 s, real flights and "
+                   help=f"shipped weights by name (default {DEFAULT_WEIGHTS}: the four below as one tracker, each weighed "
+                        "per track by how well it predicts it, any scan interval 0.5-12 s, no range guard unless --guard "
+                        "asks, docs/tracking.md; general: one network for any scan interval 0.5-12 s, real flights and "
                         "3D-LAST, no range guard; 3dlast: the 3D-LAST benchmark network, 1 s, its range guard; real: 1 s "
                         "real flights; real-5s: real flights at a surveillance radar's 4.5-5.5 s scans; "
-                        "immnet/pretrained/PROVENANCE-*.md; bank: all four as one tracker, each weighed per track by how "
-                        "well it predicts it, no range guard unless --guard asks; docs/tracking.md)")
+                        "immnet/pretrained/PROVENANCE-*.md)")
     p.add_argument("--checkpoint", default=None, help="a Lightning checkpoint or exported weights of your own instead")
     p.add_argument("--method", default=None,
                    help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "
@@ -92,10 +93,18 @@ def _bank(args, limit: float, r):
 
 
 def _weights(args) -> Path:
-    """The checkpoint ``immnet track`` loads: ``--checkpoint``, else the shipped ``--weights`` (default general)."""
+    """The checkpoint ``immnet track`` loads: ``--checkpoint``, else the shipped ``--weights`` (not the bank,
+    ``_uses_bank``)."""
     if args.checkpoint is not None and args.weights is not None:
         raise ValueError("give --weights (shipped weights by name) or --checkpoint (a file of your own), not both")
-    return Path(args.checkpoint) if args.checkpoint is not None else shipped(args.weights or DEFAULT_WEIGHTS)
+    return Path(args.checkpoint) if args.checkpoint is not None else shipped(args.weights)
+
+
+def _uses_bank(args) -> bool:
+    """``immnet track`` runs the bank: ``--weights bank``, or no ``--weights`` and no ``--checkpoint`` (the default)."""
+    if args.checkpoint is not None and args.weights is not None:
+        raise ValueError("give --weights (shipped weights by name) or --checkpoint (a file of your own), not both")
+    return args.checkpoint is None and (args.weights or DEFAULT_WEIGHTS) == BANK
 
 
 def check_paths(source: Path, target: Path) -> None:
@@ -129,6 +138,16 @@ def _advise(weights: Path, intervals) -> None:
     for note in (interval_note(provenance, intervals), weights_note(weights, provenance, intervals)):
         if note:
             print(note, file=sys.stderr)
+
+
+def _advise_bank(intervals) -> None:
+    """The bank's note: where the data's median scan interval is one only its general network takes and the general
+    network's provenance has it behind its filter there (``immnet.tracking.advice.interval_note``)."""
+    from immnet.tracking.advice import bank_note
+
+    note = bank_note(intervals)
+    if note:
+        print(note, file=sys.stderr)
 
 
 def _report_no_cov(why: str) -> None:
@@ -175,21 +194,23 @@ def run(args) -> int:
     limit = check_limit(args.max_position)
     r = _told_r(args)
     if args.input.suffix.lower() == ".csv":
+        from immnet.tracking.advice import track_intervals
         from immnet.tracking.io import read_tracks_csv, write_tracks_csv
         from immnet.tracking.segments import split_segments, track_segments
 
         rows = read_tracks_csv(args.input)
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
-        if args.checkpoint is None and args.weights == BANK:  # each row a scan at its own time, as a network's range
-            return _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank")
+        if _uses_bank(args):  # each row a scan at its own time, as for a network trained over a range
+            code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank")
+            _advise_bank(track_intervals(rows.ids, rows.t))
+            return code
         weights = _weights(args)
         tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
         if tracker.net.start.told_r:
             raise ValueError(f"{weights}: this network's filter experts are told each track's measurement std, which a "
                              f"CSV does not hold: give the radar's with --r METRES")
         if tracker.net.interval_range is not None:  # any interval in its range: each row a scan at its own time
-            from immnet.tracking.advice import track_intervals
             from immnet.tracking.methods import IMMNetMethod
 
             method = IMMNetMethod.from_tracker(tracker, name="the checkpoint", return_cov=tracker.net.has_cov)
@@ -214,7 +235,7 @@ def run(args) -> int:
     from immnet.tracking.tracker import check_dt
 
     data, meta = load_dataset(args.input)
-    if args.checkpoint is None and args.weights == BANK:
+    if _uses_bank(args):
         return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
     weights = _weights(args)
     tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
@@ -248,7 +269,8 @@ def _npz_with_bank(args, data, meta, bank, limit: float) -> int:
     from immnet.data.scratch import publishing
     from immnet.data.times import scan_intervals
 
-    out = bank.track(data["measurements"], intervals=scan_intervals(data), return_cov=True)
+    intervals = scan_intervals(data)
+    out = bank.track(data["measurements"], intervals=intervals, return_cov=True)
     with publishing(args.output, suffix=".npz") as tmp:
         times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
         np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(),
@@ -256,4 +278,5 @@ def _npz_with_bank(args, data, meta, bank, limit: float) -> int:
                  member_names=np.array(bank.names), dt=np.float64(meta["dt"]), **times)
     _report_gated(bank.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks with the bank ({', '.join(bank.names)}) -> {args.output}", file=sys.stderr)
+    _advise_bank(intervals.numpy()[:, 1:].ravel())
     return 0

@@ -1,6 +1,6 @@
 """Run a trained IMMNet online: one scan at a time, many tracks at once.
 
-    tracker = Tracker.pretrained()            # or Tracker.from_checkpoint("runs/.../best.ckpt")
+    tracker = Tracker.pretrained("general")   # or Tracker.from_checkpoint("runs/.../best.ckpt")
     tracker.reset(n_tracks=3)
     out = tracker.step(z)                     # z [3, 3]; NaN row = missed detection
     out["fused", "state"], out["expert", "post"], out["mode", "probs"], out["mode_probs"]
@@ -171,15 +171,16 @@ class Tracker:
     def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
                    r=KEEP):
         """Weights shipped inside the package by name (``immnet.checkpoints.SHIPPED``, provenance in
-        ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (the default: any scan interval from 0.5 to 12 s, real
-        flights and 3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range
-        guard: ``guard=None`` for data from another surveillance region), ``real`` (1 s real flights), ``real-5s``
-        (real flights at a surveillance radar's 4.5-5.5 s scans).
+        ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (any scan interval from 0.5 to 12 s, real flights and
+        3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range guard:
+        ``guard=None`` for data from another surveillance region), ``real`` (1 s real flights), ``real-5s`` (real
+        flights at a surveillance radar's 4.5-5.5 s scans).
         ``adapt=True`` adds adaptive process noise (targets noisier than the training data's; docs/immnet.md).
         ``r``: the radar's measurement std in metres where it is known (each shipped network estimates each track's
-        from its measurements; ``load_network``). ``bank``: all four as one tracker, each weighed per track by how well
-        it predicts the track (``immnet.tracking.bank.NetworkBank``: ``reset``, ``step`` and ``track`` as here; no
-        range guard unless ``guard`` asks)."""
+        from its measurements; ``load_network``). ``bank``, the default: all four as one tracker, each weighed per
+        track by how well it predicts the track (``immnet.tracking.bank.NetworkBank``: ``reset``, ``step`` and
+        ``track`` as here, its ``member_probs`` in place of one network's expert outputs; no range guard unless
+        ``guard`` asks)."""
         if name == BANK:
             from immnet.tracking.bank import NetworkBank
 
