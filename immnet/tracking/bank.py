@@ -34,10 +34,10 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.checkpoints import SHIPPED, shipped
 from immnet.data.times import scan_intervals
-from immnet.data.validate import MAX_ABS_POSITION
+from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
-from immnet.tracking.tracker import KEEP, Tracker, _select, load_network, read_checkpoint
+from immnet.tracking.networks import KEEP, load_network, read_checkpoint, run_network, select_rows
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "3dlast")
 """The shipped bank (``Tracker.pretrained("bank")``, ``immnet track --weights bank``, the method ``immnet-bank``): the
@@ -50,7 +50,7 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     """Which tracks ``net`` can take, ``[B]`` bool, from each scan's interval ``intervals [B, T]`` (s; scan 0's the
     nominal one, ``immnet.data.times.scan_intervals``), as ``Tracker.track`` would run it: for a network trained over a
     range, every interval inside it once an interval longer than the range is cut into equal ones by missed scans (a
-    gap it coasts through, ``immnet.tracking.tracker.coast_long_gaps``; scan 0's taken at most the range's end); for
+    gap it coasts through, ``immnet.tracking.networks.coast_long_gaps``; scan 0's taken at most the range's end); for
     one trained at one interval, every interval its ``dt`` (``check_dt``'s rule, per track)."""
     intervals = torch.as_tensor(intervals, dtype=torch.float64)
     known = ~torch.isnan(intervals)
@@ -64,6 +64,12 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     else:
         ok = (intervals - float(net.dt)).abs() <= 1e-6 * max(1.0, float(net.dt))
     return (ok | ~known).all(-1)
+
+
+def _scans(net: IMMNet) -> str:
+    """The scan intervals a network was trained for, as an error names them: ``0.5-12 s`` or ``1 s``."""
+    span = getattr(net, "interval_range", None)
+    return f"{span[0]:g}-{span[1]:g} s" if span is not None else f"{net.dt:g} s"
 
 
 def _member_path(member: str | Path) -> Path:
@@ -102,7 +108,7 @@ class NetworkBank:
     probability (default: equal), positive, as many as members. ``max_position``: the gate on measurements, as
     ``Tracker``'s."""
 
-    def __init__(self, members: dict[str, IMMNet], prior=None, **tracker_args):
+    def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION):
         if not members:
             raise ValueError("a bank of networks needs at least one member")
         for name, net in members.items():
@@ -114,7 +120,8 @@ class NetworkBank:
             if not net.has_cov:
                 raise ValueError(f"bank member {name!r} cannot be weighed: {net.no_cov_reason()}")
         self.names = list(members)
-        self.trackers = {name: Tracker(net, **tracker_args) for name, net in members.items()}
+        self.members = {name: net.eval() for name, net in members.items()}
+        self.max_position = check_limit(max_position)
         prior = [1.0] * len(members) if prior is None else [float(p) for p in prior]
         if len(prior) != len(members) or not all(math.isfinite(p) and p > 0 for p in prior):
             raise ValueError(f"a bank's prior is one positive number per member ({', '.join(self.names)}), got {prior}")
@@ -127,7 +134,7 @@ class NetworkBank:
 
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
-                   **tracker_args) -> "NetworkBank":
+                   max_position: float = MAX_ABS_POSITION) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded by ``load_network``
         with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
         whose modes are the whole target's, since a guard's transitions cannot be per axis: ``IMMNet(modes=...)``),
@@ -140,11 +147,7 @@ class NetworkBank:
             path = _member_path(m)
             joint = read_checkpoint(path)[0].get("modes", "joint") == "joint"
             nets[str(m)] = load_network(path, guard=guard if joint else None, adapt=adapt, r=r)
-        return cls(nets, prior, **tracker_args)
-
-    @property
-    def members(self) -> dict[str, IMMNet]:
-        return {name: tracker.net for name, tracker in self.trackers.items()}
+        return cls(nets, prior, max_position)
 
     has_cov = True  # every member keeps one (checked when built)
 
@@ -159,8 +162,7 @@ class NetworkBank:
         """A ValueError naming the tracks no member can take, and each member's intervals."""
         lost = (~self.takes(intervals).any(-1)).nonzero().flatten()
         if len(lost):
-            spans = ", ".join(f"{name} {f'{net.interval_range[0]:g}-{net.interval_range[1]:g} s' if net.interval_range else f'{net.dt:g} s'}"
-                              for name, net in self.members.items())
+            spans = ", ".join(f"{name} {_scans(net)}" for name, net in self.members.items())
             raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in lost[:5])}"
                              f"{', ...' if len(lost) > 5 else ''} (its scan intervals); its members: {spans}")
 
@@ -185,19 +187,19 @@ class NetworkBank:
             raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
         self.check(intervals)
         takes = self.takes(intervals)
+        self.n_gated = gate_measurements(z, self.max_position)[1]  # each member gates the same rows as it runs
         B, T, K = z.shape[0], z.shape[1], len(self.names)
         state = torch.zeros(B, T, K, 9, dtype=torch.float64)
         probs = torch.zeros(B, T, K, 4, dtype=torch.float64)
         cov = torch.zeros(B, T, K, 9, 9, dtype=torch.float64) if return_cov else None
         loglik = torch.full((B, T, K), float("nan"), dtype=torch.float64)
-        for k, (name, tracker) in enumerate(self.trackers.items()):
+        for k, (name, net) in enumerate(self.members.items()):
             rows = takes[:, k].nonzero().flatten()
             if not len(rows):
                 continue
-            net, iv = tracker.net, intervals[rows]
+            iv = intervals[rows]
             own = None if bool((iv[:, 1:] == net.dt).all()) else iv  # the network's own step, as it runs alone
-            out = tracker.track(z[rows], batch_size, own, return_cov=return_cov, return_loglik=True)
-            self.n_gated = tracker.n_gated
+            out, _ = run_network(net, z[rows], batch_size, own, return_cov, None, True, self.max_position)
             state[rows, :, k] = out[keys.STATE].double()
             probs[rows, :, k] = out[keys.MODE_PROBS].double()
             loglik[rows, :, k] = out[keys.LOGLIK].double()
@@ -207,7 +209,6 @@ class NetworkBank:
         out = _mix(log_w.masked_fill(~takes[:, None, :], float("-inf")), state, probs, cov)
         waiting = before_first_detection(z)
         return TensorDict({k: blank_before_first_detection(v, waiting) for k, v in out.items()}, batch_size=[B, T])
-
 
     # --- streaming: one scan at a time, as ``Tracker.step`` -----------------------------------------------------
     @property
@@ -237,8 +238,6 @@ class NetworkBank:
         track restarts); a scan no member still in the track can take is refused before anything changes. Returns
         ``("fused", "state")``, ``("fused", "cov")``, ``mode_probs`` and ``member_probs [B, K]``, NaN before a track's
         first detection. Over a sequence, ``track``'s numbers."""
-        from immnet.data.validate import gate_measurements
-
         z = torch.as_tensor(z, dtype=torch.float32)
         if z.dim() != 2 or z.shape[-1] != 3:
             raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
@@ -254,7 +253,7 @@ class NetworkBank:
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
                              f"a scan after {float(interval[lost[0]]):g} s")
-        z, n_gated = gate_measurements(z, self.trackers[self.names[0]].max_position)
+        z, n_gated = gate_measurements(z, self.max_position)
         self.n_gated += n_gated
         K = len(self.names)
         state = torch.zeros(B, K, 9, dtype=torch.float64)
@@ -266,7 +265,7 @@ class NetworkBank:
             carry = self.carries[name]
             if reset is not None:
                 mask = torch.as_tensor(reset, dtype=torch.bool)
-                carry = _select(mask, net.initial_carry(B), carry)
+                carry = select_rows(mask, net.initial_carry(B), carry)
             rows = takes[:, k].nonzero().flatten()
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):

@@ -52,7 +52,8 @@ def register(subparsers) -> None:
                         "detection starts it again ('inf': never dropped)")
     p.add_argument(
         "--guard", default="checkpoint",
-        help="range guard: 'checkpoint' (as trained: none in the general weights; the 3dlast weights: 3D-LAST's region, "
+        help="range guard: 'checkpoint' (as trained: none in the general weights and in the bank's members, the default; "
+             "the 3dlast weights: 3D-LAST's region, "
              "turns back beyond 33 km and within 4 km, and its speed envelope, 40-330 m/s), 'none' (data from another "
              "region), or "
              "'OUTER,INNER' in metres (another region, 3D-LAST's speed envelope)",

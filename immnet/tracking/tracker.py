@@ -24,127 +24,20 @@ CA maneuver leaving 40-330 m/s turns for one scan. For data from another region,
 
 from __future__ import annotations
 
-import copy
-import inspect
 from pathlib import Path
 
 import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, PRETRAINED, load_checkpoint, shipped  # PRETRAINED: re-exported here too
-from immnet.config import import_class
+from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, PRETRAINED, shipped  # PRETRAINED: re-exported here too
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
-from immnet.filters.base import before_first_detection, blank_before_first_detection
-from immnet.imm.guard import AS_CONFIGURED
+from immnet.filters.base import blank_before_first_detection
 from immnet.stages import IMMNet
-from immnet.stages.network import DEFAULT_GAIN, net_arguments
-
-KEEP = AS_CONFIGURED  # load_network's guard: as the checkpoint was trained
-
-
-def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
-    """The ``net`` config and the IMMNet weights (``net.`` prefix removed) of a Lightning checkpoint or
-    exported weights, read by ``immnet.checkpoints.load_checkpoint`` (plain data only, checksum verified);
-    a one-line error naming the file for a missing, unreadable, unsafe, altered or foreign one."""
-    path = Path(path)
-    ckpt = load_checkpoint(path)
-    if not (isinstance(ckpt.get("state_dict"), dict) and isinstance(ckpt.get("hyper_parameters"), dict)):
-        raise ValueError(f"{path} is not an IMMNet checkpoint (no state_dict / hyper_parameters)")
-    config = ckpt["hyper_parameters"].get("net") or {}
-    if not isinstance(config, dict):
-        raise ValueError(f"{path} is not an IMMNet checkpoint (its hyper_parameters' net is a {type(config).__name__})")
-    state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if isinstance(k, str) and k.startswith("net.")}
-    return net_arguments(copy.deepcopy(config)), state
-
-
-_NEEDS_FILTERS = {"guard": "a range guard", "adapt": "adaptive process noise", "r": "a measurement std"}
-
-
-def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
-    """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
-
-    ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
-    (``True`` for 3D-LAST's, or a dict of ``RangeGuard`` fields); it has no weights, so any choice loads.
-    ``adapt``: the filter experts' adaptive process noise (``immnet.imm.adaptive.AdaptiveNoise``), as
-    the checkpoint has it (``"checkpoint"``), off (``None``/``False``), on (``True``) or a dict of its
-    fields; no weights either.
-    ``r``: the filter experts' measurement std (m), as the checkpoint has it (``"checkpoint"``), estimated from each
-    track's measurements (``None``), one number for every track (a radar that knows its accuracy), or told per
-    track (``"data"``: the step's input ``"r"``, ``Tracker.track(r=...)``); no weights either
-    (``FilterGain``'s ``r``; docs/tracking.md "A radar that knows its accuracy").
-    """
-    config, state = read_checkpoint(path)
-    for name, value in (("guard", guard), ("adapt", adapt), ("r", r)):
-        if isinstance(value, str) and value == KEEP:
-            continue
-        gain = config.get("gain") or DEFAULT_GAIN
-        if name not in inspect.signature(import_class(gain.get("class_path", ""))).parameters:
-            what = _NEEDS_FILTERS[name]
-            raise ValueError(f"{path}: {what} needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
-        config.pop(name, None)  # set once: on the gain, for this load
-        config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}
-    net = IMMNet(**config)
-    net.load_state_dict(state)
-    return net.eval()
-
-
-def check_dt(net, dt, name: str = "immnet", method=None) -> None:
-    """A ValueError unless every sampling interval in ``dt`` is one the network was trained at.
-
-    A method that takes any interval (``any_interval``: the model-based filters, which build ``F(dt)``
-    and ``Q(dt)`` per scan) is never refused. A learned tracker is tied to its training intervals: a
-    network trained over a range (``net.interval_range = (lo, hi)``) takes any interval in it; one
-    trained at one interval (``interval_range`` absent or None) only ``net.dt``: on other data it
-    would run as if each step lasted ``net.dt`` (a velocity of ``(z_1 - z_0) / net.dt``, turn rates and
-    accelerations per step), off by ``dt / net.dt`` without any sign of it.
-    """
-    if getattr(method, "any_interval", False) or getattr(net, "any_interval", False):
-        return
-    values = torch.unique(torch.as_tensor(dt, dtype=torch.float64).reshape(-1))
-    values = values[~torch.isnan(values)]
-    span = getattr(net, "interval_range", None)
-    others = "a method that takes any interval: the model-based ones, e.g. --method imm-tuned"
-    if span is not None:
-        lo, hi = float(span[0]), float(span[1])
-        tol = 1e-6 * max(1.0, hi)
-        bad = [float(v) for v in values if not lo - tol <= float(v) <= hi + tol]
-        if bad:
-            raise ValueError(
-                f"{name} was trained on intervals {lo:g}-{hi:g} s but this data has an interval of "
-                f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s, outside that range; "
-                f"resample the data, train a model over this range (DataSpec dt), or use {others}")
-        return
-    bad = [float(v) for v in values if abs(float(v) - net.dt) > 1e-6 * max(1.0, net.dt)]
-    if bad:
-        raise ValueError(
-            f"{name} was trained on data sampled at dt = {net.dt:g} s but this data has dt = "
-            f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s; it was trained at that one "
-            f"interval only, and a learned tracker only knows its training interval (its velocities would be off "
-            f"by the ratio): resample the data to dt = {net.dt:g} s, train a model at this dt (DataSpec dt), or use "
-            f"{others}")
-
-
-def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
-    """``(z, intervals, where)`` for a network trained over a range of intervals (``net.interval_range``): every
-    interval longer than the range cut into equal intervals inside it by missed scans (``segments.cut_gaps``, as the
-    CSV path cuts a gap: a gap is a gap, the track coasts through it), ``where [B, T]`` (numpy) the input's scans
-    among the new ones; scan 0's interval (a track's start) at most the range's end. Otherwise the input and None."""
-    import numpy as np
-
-    from immnet.tracking.segments import cut_gaps
-
-    span = getattr(net, "interval_range", None)
-    if span is None or not bool((intervals > float(span[1]) * (1 + 1e-6)).any()):
-        return z, intervals, None
-    hi = float(span[1])
-    times = torch.cat([torch.zeros_like(intervals[:, :1]), intervals[:, 1:].cumsum(-1)], -1).numpy()
-    full_times, where = cut_gaps(times, hi)
-    B = z.shape[0]
-    full = torch.full((B, full_times.shape[1], 3), float("nan"), dtype=z.dtype)
-    full[torch.arange(B)[:, None], torch.from_numpy(where)] = z
-    steps = torch.from_numpy(np.diff(full_times, axis=-1))
-    return full, torch.cat([intervals[:, :1].clamp(max=hi), steps], -1), where
+from immnet.tracking.bank import NetworkBank
+from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
+    KEEP, check_dt, coast_long_gaps, load_network, read_checkpoint, run_network, select_rows,
+)
 
 
 class Tracker:
@@ -182,8 +75,6 @@ class Tracker:
         ``track`` as here, its ``member_probs`` in place of one network's expert outputs; no range guard unless
         ``guard`` asks)."""
         if name == BANK:
-            from immnet.tracking.bank import NetworkBank
-
             return NetworkBank.from_names(guard=None if isinstance(guard, str) and guard == KEEP else guard, adapt=adapt,
                                           r=r, max_position=max_position)
         return cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
@@ -218,7 +109,7 @@ class Tracker:
         if reset is not None:
             fresh = self.net.initial_carry(z.shape[0])
             mask = torch.as_tensor(reset, dtype=torch.bool)
-            self.carry = _select(mask, fresh, self.carry)
+            self.carry = select_rows(mask, fresh, self.carry)
         told = None if r is None else torch.as_tensor(r, dtype=torch.float32).reshape(-1).expand(z.shape[0])
         if dt is None:
             self.carry = self.net.scan(self.carry, z, r=told)
@@ -263,30 +154,6 @@ class Tracker:
         self._check_told(r)
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
-        z, self.n_gated = gate_measurements(z, self.max_position)
-        where = None
-        if intervals is not None:
-            intervals = torch.as_tensor(intervals, dtype=torch.float64)
-            if tuple(intervals.shape) != tuple(z.shape[:2]):
-                raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
-            z, intervals, where = coast_long_gaps(self.net, z, intervals)
-            check_dt(self.net, intervals, "this tracker")
-        outs = []
-        for i in range(0, z.shape[0], batch_size):
-            gaps = None if intervals is None else intervals[i : i + batch_size].to(z.dtype)
-            told = None if r is None else torch.as_tensor(r, dtype=z.dtype).reshape(-1)[i : i + batch_size]
-            out, _ = self.net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov, r=told,
-                                      return_loglik=return_loglik)
-            out.set(keys.MODE_PROBS, self.net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
-            waiting = before_first_detection(z[i : i + batch_size])
-            outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))
-        out = torch.cat(outs, 0)
-        if where is not None:  # the scans asked for, without the missed ones cut into the long gaps
-            out = out[torch.arange(out.batch_size[0])[:, None], torch.from_numpy(where)]
+        out, self.n_gated = run_network(self.net, z, batch_size, intervals, return_cov, r, return_loglik,
+                                        self.max_position)
         return out
-
-
-def _select(mask, a: TensorDict, b: TensorDict) -> TensorDict:
-    from immnet.stages.network import _where
-
-    return _where(mask, a, b.select(*a.keys(True, True)))
