@@ -101,7 +101,7 @@ def main() -> int:
     from immnet.checkpoints import CHECKSUM_KEY, load_checkpoint
     from immnet.tracking import Tracker
 
-    net = Tracker.pretrained("3dlast").net  # the file just written (the default weights are the general network)
+    net = Tracker.pretrained("3dlast").net  # the file just written (the default is the bank of the shipped networks)
     prov = {
         "file": "immnet/pretrained/immnet.ckpt",
         "weights_sha256": load_checkpoint(OUT / "immnet.ckpt")[CHECKSUM_KEY],

@@ -2,8 +2,8 @@
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (three runs of
 recipes/real-singer-output.yaml, two with an overlay of configs/members/, their corrections joined: 1 s), `real-5s`
-(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s, the
-default weights).
+(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s; with the
+others, the bank that is the default tracker).
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]

@@ -199,7 +199,7 @@ def test_the_recipe_trains_loads_and_evaluates(tmp_path, monkeypatch):
 
 
 def _general_with_correction(**module_args):
-    """The shipped general network (the default weights) with an output correction added, as
+    """The shipped general network with an output correction added, as
     ``recipes/general-output.yaml`` builds it."""
     from immnet.checkpoints import shipped
     from immnet.training import Stage2Module

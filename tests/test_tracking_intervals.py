@@ -97,7 +97,7 @@ def test_the_default_weights_track_irregular_epoch_times_below_the_raw_error(irr
 
 @pytest.mark.parametrize("times", ["dt", "t"])
 def test_an_npz_at_5s_scans_is_tracked_at_its_own_intervals(irregular, tmp_path, times):
-    """``immnet track`` of an .npz with the default weights (trained at 0.5-12 s, nominal 1 s): a uniform ``dt = 5``
+    """``immnet track`` of an .npz with the default (the bank; its general network trained at 0.5-12 s, nominal 1 s): a uniform ``dt = 5``
     or per-scan times ``t`` (4.5-5.5 s) are the intervals each scan is tracked at, as ``Tracker.track`` fed them; the
     position error below the raw measurements' (run at 1 s a step, the velocity is five times the truth's and the
     estimates lag by kilometres), the output's ``dt`` the input's."""
@@ -128,7 +128,7 @@ def test_an_npz_at_5s_scans_is_tracked_at_its_own_intervals(irregular, tmp_path,
 
 @pytest.mark.parametrize("times", ["t", "dt"])
 def test_an_npz_gap_beyond_the_networks_range_is_coasted_as_a_csvs_is(tmp_path, times):
-    """``immnet track`` of an .npz whose scans are further apart than the default weights' 12 s: each long gap cut
+    """``immnet track`` of an .npz whose scans are further apart than the general network's 12 s: each long gap cut
     into missed scans inside the range, as the CSV path cuts it (``track_rows(max_interval=...)``), the input's
     scans written back. Per-scan times with a 20 s and a 26 s gap give the CSV path's estimates of the same rows;
     uniform 20 s scans give ``Tracker.track`` of the 10 s grid with every other scan missed."""
