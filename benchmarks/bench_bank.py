@@ -12,7 +12,6 @@ turns over ``--rounds`` rounds and each reports its median round.
 
 from __future__ import annotations
 
-import datetime
 import sys
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_immnet import inference, median_seconds, scans  # noqa: E402
-from common import machine, rates_in_turns, rows_arguments, write_section  # noqa: E402
+from common import rates_in_turns, rates_table, rows_arguments, write_rates  # noqa: E402
 
 from immnet.tracking.bank import NetworkBank  # noqa: E402
 from immnet.tracking.tracker import Tracker  # noqa: E402
@@ -62,18 +61,10 @@ def main() -> int:
 
     with torch.no_grad():
         rates = rates_in_turns(rows, a, rate)
-    head = "| step | scans | " + " | ".join(f"batch {b}" for b in a.batches) + " |"
-    lines = [head, "|" + "---|" * (2 + len(a.batches))]
-    for i, (name, dt) in enumerate(ROWS):
-        lines.append(f"| {LABELS[name]} | {dt:g} s | " + " | ".join(f"{rates[i, B]:,.0f}" for B in a.batches) + " |")
-        print(lines[-1], flush=True)
-    cmd = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_bank.py" + "".join(
-        f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
-    text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). Track-steps/s of the streaming step, eager, "
-            "float32: the shipped general network alone and the shipped bank of networks, the default tracker "
-            "(docs/tracking.md \"A bank of networks\"), at the scan intervals that decide which members run; the median "
-            f"of {a.rounds} rounds taken in turns:\n\n" + "\n".join(lines))
-    write_section("The bank of networks", text, *([a.out] if a.out else []))
+    lines = rates_table(a, ["step", "scans"], [[LABELS[name], f"{dt:g} s"] for name, dt in ROWS], rates)
+    write_rates("bench_bank.py", "The bank of networks", "Track-steps/s of the streaming step, eager, float32: the shipped "
+                "general network alone and the shipped bank of networks, the default tracker (docs/tracking.md \"A bank "
+                "of networks\"), at the scan intervals that decide which members run", a, lines)
     return 0
 
 

@@ -14,7 +14,6 @@ each track's r estimated from its measurements; ``real-5s``: the same on the fil
 
 from __future__ import annotations
 
-import datetime
 import sys
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_immnet import inference  # noqa: E402
-from common import machine, rates_in_turns, rows_arguments, write_section  # noqa: E402
+from common import rates_in_turns, rates_table, rows_arguments, write_rates  # noqa: E402
 
 from immnet.evaluation.methods import build_method  # noqa: E402
 from immnet.filters.trackers import _linear_network  # noqa: E402
@@ -60,21 +59,12 @@ def main() -> int:
     nets = [network(h) for h in HIDDEN]
     with torch.no_grad():
         rates = rates_in_turns(nets, a, lambda net, B: inference(net, B, a.steps, net.scan))
-    head = "| step | " + " | ".join(f"batch {b}" for b in a.batches) + " |"
-    lines = [head, "|" + "---|" * (1 + len(a.batches))]
-    for i, h in enumerate(HIDDEN):
-        label = LABELS.get(h, f"with an output correction, 2 x {h} GRU units")
-        lines.append(f"| {label} | " + " | ".join(f"{rates[i, B]:,.0f}" for B in a.batches) + " |")
-        print(lines[-1], flush=True)
-    cmd = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_correction.py" + "".join(
-        f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
-    text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). Track-steps/s of IMMNet's streaming step, "
-            "eager, float32: the three-filter decoupled IMM with nothing learned, and with the output correction after "
-            f"its fusion (docs/immnet.md \"The output correction\"), one or three of them, and the shipped `real` and "
-            "`real-5s` networks; the median of "
-            f"{a.rounds} rounds taken in turns:\n\n"
-            + "\n".join(lines))
-    write_section("The output correction", text, *([a.out] if a.out else []))
+    rows = [[LABELS.get(h, f"with an output correction, 2 x {h} GRU units")] for h in HIDDEN]
+    lines = rates_table(a, ["step"], rows, rates)
+    write_rates("bench_correction.py", "The output correction", "Track-steps/s of IMMNet's streaming step, eager, "
+                "float32: the three-filter decoupled IMM with nothing learned, and with the output correction after its "
+                "fusion (docs/immnet.md \"The output correction\"), one or three of them, and the shipped `real` and "
+                "`real-5s` networks", a, lines)
     return 0
 
 

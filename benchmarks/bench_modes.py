@@ -14,7 +14,6 @@ that a shared machine's load falls on every row alike.
 
 from __future__ import annotations
 
-import datetime
 import sys
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_immnet import inference  # noqa: E402
-from common import machine, rates_in_turns, rows_arguments, write_section  # noqa: E402
+from common import rates_in_turns, rates_table, rows_arguments, write_rates  # noqa: E402
 
 from immnet.evaluation.methods import build_method  # noqa: E402
 from immnet.filters.trackers import _linear_network  # noqa: E402
@@ -42,18 +41,11 @@ def main() -> int:
     a = rows_arguments(__doc__)
     nets = [network(name, modes) for name, modes in ROWS]
     rates = rates_in_turns(nets, a, lambda net, B: inference(net, B, a.steps, net.scan))
-    head = "| IMM (nothing learned) | models | modes | " + " | ".join(f"batch {b}" for b in a.batches) + " |"
-    lines = [head, "|" + "---|" * (3 + len(a.batches))]
-    for i, ((name, modes), net) in enumerate(zip(ROWS, nets)):
-        cells = [f"{rates[i, B]:,.0f}" for B in a.batches]
-        lines.append(f"| `{name}` | {net.n_experts} | {modes} | " + " | ".join(cells) + " |")
-        print(lines[-1], flush=True)
-    cmd = "OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_modes.py" + "".join(
-        f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
-    text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). Track-steps/s of IMMNet's streaming step, "
-            "eager, float32, each network the registry IMM's with nothing learned and only `modes` changed "
-            f"(docs/core.md \"Modes per group\"); the median of {a.rounds} rounds taken in turns:\n\n" + "\n".join(lines))
-    write_section("Modes per group", text, *([a.out] if a.out else []))
+    rows = [[f"`{name}`", str(net.n_experts), modes] for (name, modes), net in zip(ROWS, nets)]
+    lines = rates_table(a, ["IMM (nothing learned)", "models", "modes"], rows, rates)
+    write_rates("bench_modes.py", "Modes per group", "Track-steps/s of IMMNet's streaming step, eager, float32, each "
+                "network the registry IMM's with nothing learned and only `modes` changed (docs/core.md \"Modes per "
+                "group\")", a, lines)
     return 0
 
 

@@ -1,4 +1,5 @@
-"""What every benchmark shares: a description of the machine and rewriting one section of BENCHMARKS.md."""
+"""What every benchmark shares: a description of the machine and rewriting one section of BENCHMARKS.md; for the
+benchmarks whose rows take turns, their arguments, rates, table and section."""
 
 from __future__ import annotations
 
@@ -63,3 +64,26 @@ def rates_in_turns(nets, a: argparse.Namespace, rate) -> dict:
                 rates[i, B].append(rate(net, B))
         print(f"round {r + 1} of {a.rounds} done", file=sys.stderr, flush=True)
     return {key: statistics.median(values) for key, values in rates.items()}
+
+
+def rates_table(a: argparse.Namespace, head: list[str], rows: list[list[str]], rates: dict) -> list[str]:
+    """A Markdown table: the ``head`` columns, then one column per batch of ``a.batches``; row ``i`` its leading cells
+    ``rows[i]`` then its rates ``rates[i, batch]`` (track-steps/s), each row printed as it is made."""
+    lines = ["| " + " | ".join([*head, *(f"batch {b}" for b in a.batches)]) + " |",
+             "|" + "---|" * (len(head) + len(a.batches))]
+    for i, lead in enumerate(rows):
+        lines.append("| " + " | ".join([*lead, *(f"{rates[i, B]:,.0f}" for B in a.batches)]) + " |")
+        print(lines[-1], flush=True)
+    return lines
+
+
+def write_rates(script: str, title: str, what: str, a: argparse.Namespace, lines: list[str]) -> None:
+    """Rewrite the section ``## title`` with the command that measured it (``benchmarks/script``, its non-default
+    ``--steps`` and ``--rounds``), the date, the machine, ``what`` was timed and the table ``lines``."""
+    import datetime
+
+    cmd = f"OMP_NUM_THREADS=1 .venv/bin/python benchmarks/{script}" + "".join(
+        f" --{k} {v}" for k, v, d in (("steps", a.steps, 40), ("rounds", a.rounds, 3)) if v != d)
+    text = (f"`{cmd}` ({datetime.date.today().isoformat()}; {machine()}). {what}; the median of {a.rounds} rounds taken "
+            "in turns:\n\n" + "\n".join(lines))
+    write_section(title, text, *([a.out] if a.out else []))
