@@ -143,7 +143,7 @@ def test_each_member_tracks_the_scans_it_was_trained_for():
     only = NetworkBank({"general": general}).track(z[4:], intervals=iv[4:])
     alone = Tracker(general).track(z[4:], intervals=iv[4:])
     torch.testing.assert_close(only[keys.STATE], alone[keys.STATE].double(), equal_nan=True, rtol=0, atol=0)
-    with pytest.raises(ValueError, match=r"no member of this bank takes track\(s\) 4, 5.*real 1 s"):
+    with pytest.raises(ValueError, match=r"no member of this bank takes track\(s\) 4, 5: the first has scan intervals of 5 to 5 s.*real 1 s"):
         NetworkBank({"real": real}).track(z, intervals=iv)
 
 

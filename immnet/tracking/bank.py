@@ -163,8 +163,12 @@ class NetworkBank:
         lost = (~self.takes(intervals).any(-1)).nonzero().flatten()
         if len(lost):
             spans = ", ".join(f"{name} {_scans(net)}" for name, net in self.members.items())
+            iv = torch.as_tensor(intervals, dtype=torch.float64)[lost[0]]
+            iv = iv[~torch.isnan(iv)]
             raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in lost[:5])}"
-                             f"{', ...' if len(lost) > 5 else ''} (its scan intervals); its members: {spans}")
+                             f"{', ...' if len(lost) > 5 else ''}: the first has scan intervals of {float(iv.min()):g} to "
+                             f"{float(iv.max()):g} s, and its members were trained for {spans}; resample the data, or use "
+                             f"a method that takes any interval (the model-based ones, e.g. --method imm-tuned)")
 
     @torch.no_grad()
     def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
