@@ -2,8 +2,8 @@
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (three runs of
 recipes/real-singer-output.yaml, two with an overlay of configs/members/, their corrections joined: 1 s), `real-5s`
-(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s; with the
-others, the bank that is the default tracker).
+(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s); `bank`,
+the default tracker, exports nothing (its members are the shipped files) and writes its provenance from its scores.
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
@@ -110,6 +110,23 @@ SHIPS = {
         "interval_bins": {"data": "runs/general/data/test-0.5-12s", "filter": "imm-ekf-general",
                           "edges": [0.5, 2, 4, 6, 8, 10, 12]},
     },
+    "bank": {
+        # no weights of its own: the shipped networks above (and 3dlast) as they are, scored together as the default
+        "members": ["general", "real", "real-5s", "3dlast"],
+        "what": ("the default tracker: the shipped networks general, real, real-5s and 3dlast (without its range guard) "
+                 "run side by side, each on the tracks whose scan intervals it was trained for and weighed per track by "
+                 "the likelihood of the track's measurements under its own predictions (immnet.tracking.bank, "
+                 "docs/tracking.md \"A bank of networks\"); nothing trained for it"),
+        "interval_range": [0.5, 12.0],
+        "tests": {
+            "quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real", "immnet-general",
+                                                                     "immnet-bank"]),
+            "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["immnet-real-5s", "immnet-general", "immnet-bank"]),
+            "3dlast-1s": ("runs/general/data/test-1s", LAST + ["immnet", "immnet-general", "immnet-bank"]),
+            "3dlast-4.5-5.5s": ("runs/general/data/test-4.5-5.5s", LAST + ["immnet-general", "immnet-bank"]),
+            "3dlast-0.5-12s": ("runs/general/data/test-0.5-12s", LAST + ["immnet-general", "immnet-bank"]),
+        },
+    },
 }
 
 
@@ -121,6 +138,59 @@ def claims(rows: dict, name: str) -> dict:
         return {"ratio_to_clairvoyant": math.ceil(100 * avg[name] / avg["clairvoyant"]) / 100}
     best = min((n for n in avg if n.startswith(("real-", "imm-"))), key=avg.get)
     return {"ratio_to_best_model_based": math.ceil(100 * avg[name] / avg[best]) / 100, "best_model_based": best}
+
+
+def score(ship: dict, registry: str) -> tuple[dict, list[str]]:
+    """Each of ``ship``'s test sets scored in one run of its methods (real flights without a range guard): the
+    provenance's ``tests`` (data, n, metrics, claims) and a Markdown table per set."""
+    from immnet.data.storage import load_dataset
+    from immnet.evaluation.methods import build_method
+    from immnet.evaluation.runner import evaluate, to_json
+    from immnet.evaluation.table import format_markdown, format_table
+    from immnet.imm.guard import parse_guard
+
+    tests, tables = {}, []
+    for set_name, (path, names) in ship["tests"].items():
+        data, _ = load_dataset(ROOT / path)
+        guard = parse_guard(ship.get("guard", "none")) if set_name.startswith("quickstart") else parse_guard("checkpoint")
+        methods = {n: build_method(n, guard=guard) for n in names}  # registry: the file just written
+        print(f"{set_name}: {data.batch_size[0]} windows", file=sys.stderr)
+        rows = to_json(evaluate(methods, data, progress=True))
+        print(format_table(rows))
+        tests[set_name] = {"data": path, "n": data.batch_size[0], "metrics": {n: r["rmse"] for n, r in rows.items()},
+                           "claims": claims(rows, registry)}
+        tables.append(f"**{set_name}** (`{path}`, {data.batch_size[0]} windows):\n\n{format_markdown(rows)}\n")
+    return tests, tables
+
+
+def ship_bank(name: str, ship: dict, commit: str) -> int:
+    """The bank's provenance: its members' files and checksums, its tests and claims; nothing exported (it has no
+    weights of its own)."""
+    from immnet.checkpoints import CHECKSUM_KEY, SHIPPED, load_checkpoint, shipped
+    from immnet.tracking.advice import registry_name
+
+    registry = registry_name(name)
+    members = {m: {"file": f"immnet/pretrained/{SHIPPED[m]}", "weights_sha256": load_checkpoint(shipped(m))[CHECKSUM_KEY]}
+               for m in ship["members"]}
+    tests, tables = score(ship, registry)
+    prov = {"members": members, "made_by": f".venv/bin/python scripts/make_shipped.py --name {name}",
+            "date": datetime.date.today().isoformat(), "commit": commit, "guard": None,
+            "interval_range": ship["interval_range"], "tests": tests}
+    (OUT / f"provenance-{name}.json").write_text(json.dumps(prov, indent=2, allow_nan=False) + "\n")
+    rows = "\n".join(f"| `{m}` | `{v['file']}` | {v['weights_sha256']} |" for m, v in members.items())
+    lines = [f"# Shipped tracker: {name} (the default)\n",
+             f"{ship['what']}. Registry name `{registry}`; it takes scan intervals {ship['interval_range'][0]:g}-"
+             f"{ship['interval_range'][1]:g} s. Scored at commit `{commit[:10]}` ({prov['date']}) by "
+             f"`{prov['made_by']}`.\n",
+             f"Members, as shipped (each with its own provenance):\n\n| member | file | weights_sha256 |\n|:---|:---|:---|\n"
+             f"{rows}\n",
+             "Test sets (never trained or tuned on), position RMSE in metres, each set one run (real flights without a "
+             "range guard):\n", *tables,
+             "Claims checked by the tests (`tests/test_real_flights.py`, `tests/test_pretrained.py`): "
+             + "; ".join(f"{s}: " + ", ".join(f"{k} {v}" for k, v in t["claims"].items()) for s, t in tests.items()) + ".\n"]
+    (OUT / f"PROVENANCE-{name}.md").write_text("\n".join(lines))
+    print(f"wrote provenance-{name}.json and PROVENANCE-{name}.md", file=sys.stderr)
+    return 0
 
 
 def interval_bins(spec: dict, registry: str) -> dict:
@@ -162,15 +232,14 @@ def main(argv: list[str] | None = None) -> int:
                             text=True).stdout.strip()
     if not commit:
         p.error(f"--commit {a.commit!r} is not a commit of this repository")
+    if "members" in ship:  # the bank: nothing trained or exported, so nothing to keep; scoring is all it does
+        if a.checkpoint or a.commit != "HEAD" or a.wandb_runs or a.note:
+            p.error(f"{a.name} trains nothing: give no --checkpoint, --commit, --wandb-runs or --note")
+        return ship_bank(a.name, ship, commit)
     old = OUT / f"provenance-{a.name}.json"
     if a.rescore and not old.is_file():
         p.error(f"--rescore: {old} does not exist (nothing shipped as {a.name!r} to score again)")
     from immnet.checkpoints import CHECKSUM_KEY, load_checkpoint
-    from immnet.data.storage import load_dataset
-    from immnet.evaluation.methods import build_method
-    from immnet.evaluation.runner import evaluate, to_json
-    from immnet.evaluation.table import format_markdown, format_table
-    from immnet.imm.guard import parse_guard
     from immnet.training.export import export_weights, join_corrections
 
     if a.rescore:
@@ -186,17 +255,7 @@ def main(argv: list[str] | None = None) -> int:
             out = join_corrections([ROOT / r for r in trained], OUT / f"{registry}.ckpt")
         else:
             out = export_weights(ROOT / trained[0], OUT / f"{registry}.ckpt", ship.get("settings"))
-    tests, tables = {}, []
-    for set_name, (path, names) in ship["tests"].items():
-        data, _ = load_dataset(ROOT / path)
-        guard = parse_guard(ship["guard"]) if set_name.startswith("quickstart") else parse_guard("checkpoint")
-        methods = {n: build_method(n, guard=guard) for n in names}  # registry: the file just written
-        print(f"{set_name}: {data.batch_size[0]} windows", file=sys.stderr)
-        rows = to_json(evaluate(methods, data, progress=True))
-        print(format_table(rows))
-        tests[set_name] = {"data": path, "n": data.batch_size[0], "metrics": {n: r["rmse"] for n, r in rows.items()},
-                           "claims": claims(rows, registry)}
-        tables.append(f"**{set_name}** (`{path}`, {data.batch_size[0]} windows):\n\n{format_markdown(rows)}\n")
+    tests, tables = score(ship, registry)
     bins = interval_bins(ship["interval_bins"], registry) if "interval_bins" in ship else None
     if bins:
         head = " | ".join(f"{lo:g}-{hi:g} s" for lo, hi in zip(bins["edges"][:-1], bins["edges"][1:]))
