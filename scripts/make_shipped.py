@@ -113,7 +113,7 @@ SHIPS = {
     "bank": {
         # no weights of its own: the shipped networks above (and 3dlast) as they are, scored together as the default
         "members": ["general", "real", "real-5s", "3dlast"],
-        "what": ("the default tracker: the shipped networks general, real, real-5s and 3dlast (without its range guard) "
+        "what": ("The default tracker: the shipped networks general, real, real-5s and 3dlast (without its range guard) "
                  "run side by side, each on the tracks whose scan intervals it was trained for and weighed per track by "
                  "the likelihood of the track's measurements under its own predictions (immnet.tracking.bank, "
                  "docs/tracking.md \"A bank of networks\"); nothing trained for it"),
