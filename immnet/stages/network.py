@@ -283,10 +283,13 @@ class IMMNet(TensorDictModuleBase):
         """The interval before each scan of ``batch`` ``[B, T]`` (``immnet.data.times.scan_intervals``) in its
         measurements' dtype, or None where every one is this network's ``dt`` (the step then uses its own)."""
         z = batch[keys.MEASUREMENTS]
-        intervals = scan_intervals(batch, torch.float64, z.device)
-        if bool((intervals[:, 1:] == self.dt).all()):
-            return None
-        return intervals.to(z.dtype)
+        intervals = self.own_intervals(scan_intervals(batch, torch.float64, z.device))
+        return None if intervals is None else intervals.to(z.dtype)
+
+    def own_intervals(self, intervals: torch.Tensor) -> torch.Tensor | None:
+        """``intervals [B, T]`` (s) as this network's step takes them: None where every one after scan 0's is its
+        ``dt`` (the step then runs at its own), else as given."""
+        return None if bool((intervals[:, 1:] == self.dt).all()) else intervals
 
     def told_r(self, batch: TensorDict) -> torch.Tensor | None:
         """Each track's measurement std ``r [B]`` of ``batch`` where this network's filter experts are told it

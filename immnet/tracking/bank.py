@@ -37,7 +37,7 @@ from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
-from immnet.tracking.networks import KEEP, load_network, read_checkpoint, run_network, select_rows
+from immnet.tracking.networks import KEEP, load_network, read_checkpoint, run_network, select_rows, trained_for
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "3dlast")
 """The shipped bank (``Tracker.pretrained("bank")``, ``immnet track --weights bank``, the method ``immnet-bank``): the
@@ -53,17 +53,13 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     gap it coasts through, ``immnet.tracking.networks.coast_long_gaps``; scan 0's taken at most the range's end); for
     one trained at one interval, every interval its ``dt`` (``check_dt``'s rule, per track)."""
     intervals = torch.as_tensor(intervals, dtype=torch.float64)
-    known = ~torch.isnan(intervals)
     span = getattr(net, "interval_range", None)
-    if span is not None:
-        lo, hi = float(span[0]), float(span[1])
-        tol = 1e-6 * max(1.0, hi)
+    iv = intervals
+    if span is not None:  # each interval as coast_long_gaps cuts it (segments.cut_gaps)
+        hi = float(span[1])
         iv = torch.cat([intervals[:, :1].clamp(max=hi), intervals[:, 1:]], -1)
-        piece = iv / torch.ceil(iv / hi * (1 - 1e-12)).clamp(min=1)  # coast_long_gaps' cut (segments.cut_gaps)
-        ok = (piece >= lo - tol) & (piece <= hi + tol)
-    else:
-        ok = (intervals - float(net.dt)).abs() <= 1e-6 * max(1.0, float(net.dt))
-    return (ok | ~known).all(-1)
+        iv = iv / torch.ceil(iv / hi * (1 - 1e-12)).clamp(min=1)
+    return (trained_for(net, iv) | torch.isnan(intervals)).all(-1)
 
 
 def _scans(net: IMMNet) -> str:
@@ -158,9 +154,11 @@ class NetworkBank:
         """``[B, K]`` bool: which member can take which track (:func:`accepts`)."""
         return torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
 
-    def check(self, intervals: torch.Tensor) -> None:
-        """A ValueError naming the tracks no member can take, and each member's intervals."""
-        lost = (~self.takes(intervals).any(-1)).nonzero().flatten()
+    def check(self, intervals: torch.Tensor, takes: torch.Tensor | None = None) -> None:
+        """A ValueError naming the tracks no member can take, and each member's intervals (``takes``: ``self.takes(
+        intervals)`` where the caller has it)."""
+        takes = self.takes(intervals) if takes is None else takes
+        lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             spans = ", ".join(f"{name} {_scans(net)}" for name, net in self.members.items())
             iv = torch.as_tensor(intervals, dtype=torch.float64)[lost[0]]
@@ -189,8 +187,8 @@ class NetworkBank:
         intervals = torch.as_tensor(intervals, dtype=torch.float64)
         if tuple(intervals.shape) != tuple(z.shape[:2]):
             raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
-        self.check(intervals)
         takes = self.takes(intervals)
+        self.check(intervals, takes)
         self.n_gated = gate_measurements(z, self.max_position)[1]  # each member gates the same rows as it runs
         B, T, K = z.shape[0], z.shape[1], len(self.names)
         state = torch.zeros(B, T, K, 9, dtype=torch.float64)
@@ -201,8 +199,7 @@ class NetworkBank:
             rows = takes[:, k].nonzero().flatten()
             if not len(rows):
                 continue
-            iv = intervals[rows]
-            own = None if bool((iv[:, 1:] == net.dt).all()) else iv  # the network's own step, as it runs alone
+            own = net.own_intervals(intervals[rows])  # as it runs alone (IMMNet.intervals_for)
             out, _ = run_network(net, z[rows], batch_size, own, return_cov, None, True, self.max_position)
             state[rows, :, k] = out[keys.STATE].double()
             probs[rows, :, k] = out[keys.MODE_PROBS].double()
@@ -226,14 +223,6 @@ class NetworkBank:
         self.log_w = self.log_prior.expand(n_tracks, -1).clone()
         self.n_gated = 0
 
-    def _steps_at(self, net: IMMNet, interval: torch.Tensor) -> torch.Tensor:
-        """``[B]`` bool: the tracks ``net`` takes a scan after ``interval [B]`` of (``Tracker.step``'s check, per track:
-        inside its range, or its one interval)."""
-        span = getattr(net, "interval_range", None)
-        lo, hi = (float(span[0]), float(span[1])) if span is not None else (float(net.dt), float(net.dt))
-        tol = 1e-6 * max(1.0, hi)
-        return (interval >= lo - tol) & (interval <= hi + tol)
-
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
         """One scan ``z [B, 3]`` (NaN: a missed detection) of every track, as ``Tracker.step``: ``reset [B]`` restarts
@@ -250,9 +239,11 @@ class NetworkBank:
             self.reset(B)
         interval = torch.as_tensor(self.dt if dt is None else dt, dtype=torch.float64).reshape(-1).expand(B)
         log_w = self.log_w.clone()
+        reset = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
         if reset is not None:
-            log_w[torch.as_tensor(reset, dtype=torch.bool)] = self.log_prior
-        takes = torch.stack([self._steps_at(net, interval) for net in self.members.values()], -1) & (log_w > -math.inf)
+            log_w[reset] = self.log_prior
+        # Tracker.step's check per track: a scan inside each member's range, or its one interval
+        takes = torch.stack([trained_for(net, interval) for net in self.members.values()], -1) & (log_w > -math.inf)
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
@@ -268,8 +259,7 @@ class NetworkBank:
         for k, (name, net) in enumerate(self.members.items()):
             carry = self.carries[name]
             if reset is not None:
-                mask = torch.as_tensor(reset, dtype=torch.bool)
-                carry = select_rows(mask, net.initial_carry(B), carry)
+                carry = select_rows(reset, net.initial_carry(B), carry)
             rows = takes[:, k].nonzero().flatten()
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):

@@ -69,6 +69,16 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
     return net.eval()
 
 
+def trained_for(net, intervals) -> torch.Tensor:
+    """Elementwise, whether each interval (s) is one ``net`` was trained at: inside its ``interval_range`` (to 1e-6 of
+    the range's end), or its one ``dt`` (to 1e-6 of it); NaN is not. The rule of :func:`check_dt`, per interval."""
+    iv = torch.as_tensor(intervals, dtype=torch.float64)
+    span = getattr(net, "interval_range", None)
+    lo, hi = (float(span[0]), float(span[1])) if span is not None else (float(net.dt), float(net.dt))
+    tol = 1e-6 * max(1.0, hi)
+    return (iv >= lo - tol) & (iv <= hi + tol)
+
+
 def check_dt(net, dt, name: str = "immnet", method=None) -> None:
     """A ValueError unless every sampling interval in ``dt`` is one the network was trained at.
 
@@ -83,19 +93,17 @@ def check_dt(net, dt, name: str = "immnet", method=None) -> None:
         return
     values = torch.unique(torch.as_tensor(dt, dtype=torch.float64).reshape(-1))
     values = values[~torch.isnan(values)]
+    bad = values[~trained_for(net, values)].tolist()
     span = getattr(net, "interval_range", None)
     others = "a method that takes any interval: the model-based ones, e.g. --method imm-tuned"
     if span is not None:
         lo, hi = float(span[0]), float(span[1])
-        tol = 1e-6 * max(1.0, hi)
-        bad = [float(v) for v in values if not lo - tol <= float(v) <= hi + tol]
         if bad:
             raise ValueError(
                 f"{name} was trained on intervals {lo:g}-{hi:g} s but this data has an interval of "
                 f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s, outside that range; "
                 f"resample the data, train a model over this range (DataSpec dt), or use {others}")
         return
-    bad = [float(v) for v in values if abs(float(v) - net.dt) > 1e-6 * max(1.0, net.dt)]
     if bad:
         raise ValueError(
             f"{name} was trained on data sampled at dt = {net.dt:g} s but this data has dt = "
