@@ -93,19 +93,15 @@ def _bank(args, limit: float, r):
     return BankMethod(guard=guard, adapt=True if args.adapt else KEEP, r=r, return_cov=True, max_position=limit)
 
 
-def _weights(args) -> Path:
-    """The checkpoint ``immnet track`` loads: ``--checkpoint``, else the shipped ``--weights`` (not the bank,
-    ``_uses_bank``)."""
+def _weights(args) -> Path | None:
+    """The checkpoint ``immnet track`` loads: ``--checkpoint``, else the shipped ``--weights``; None for the bank
+    (``--weights bank``, or neither option: the default)."""
     if args.checkpoint is not None and args.weights is not None:
         raise ValueError("give --weights (shipped weights by name) or --checkpoint (a file of your own), not both")
-    return Path(args.checkpoint) if args.checkpoint is not None else shipped(args.weights)
-
-
-def _uses_bank(args) -> bool:
-    """``immnet track`` runs the bank: ``--weights bank``, or no ``--weights`` and no ``--checkpoint`` (the default)."""
-    if args.checkpoint is not None and args.weights is not None:
-        raise ValueError("give --weights (shipped weights by name) or --checkpoint (a file of your own), not both")
-    return args.checkpoint is None and (args.weights or DEFAULT_WEIGHTS) == BANK
+    if args.checkpoint is not None:
+        return Path(args.checkpoint)
+    name = args.weights or DEFAULT_WEIGHTS
+    return None if name == BANK else shipped(name)
 
 
 def check_paths(source: Path, target: Path) -> None:
@@ -202,11 +198,11 @@ def run(args) -> int:
         rows = read_tracks_csv(args.input)
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
-        if _uses_bank(args):  # each row a scan at its own time, as for a network trained over a range
+        weights = _weights(args)
+        if weights is None:  # the bank: each row a scan at its own time, as for a network trained over a range
             code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank")
             _advise_bank(track_intervals(rows.ids, rows.t))
             return code
-        weights = _weights(args)
         tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
         if tracker.net.start.told_r:
             raise ValueError(f"{weights}: this network's filter experts are told each track's measurement std, which a "
@@ -236,9 +232,9 @@ def run(args) -> int:
     from immnet.tracking.tracker import check_dt
 
     data, meta = load_dataset(args.input)
-    if _uses_bank(args):
-        return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
     weights = _weights(args)
+    if weights is None:
+        return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
     tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
     from immnet.data.times import scan_intervals
 
