@@ -44,18 +44,31 @@ def track_intervals(ids, t) -> np.ndarray:
     return np.diff(t[order])[ids[order][1:] == ids[order][:-1]]
 
 
+def _median(intervals) -> float | None:
+    """The median of the finite ``intervals`` (s), None where there is none."""
+    dt = np.asarray(intervals, dtype=np.float64)
+    dt = dt[np.isfinite(dt)]
+    return float(np.median(dt)) if dt.size else None
+
+
+def _span(provenance: dict, median: float) -> tuple[float, float] | None:
+    """The scan intervals a shipped network was trained for (its provenance's ``interval_range``, or its one
+    ``scan_interval``) where ``median`` lies in them (to 1e-6); None otherwise."""
+    span = provenance.get("interval_range") or [provenance.get("scan_interval")] * 2
+    if span[0] is None or not float(span[0]) * (1 - 1e-6) <= median <= float(span[1]) * (1 + 1e-6):
+        return None
+    return float(span[0]), float(span[1])
+
+
 def interval_note(provenance: dict | None, intervals, whose: str = "these weights were") -> str | None:
     """A note (one line) where the provenance's ``interval_bins`` put the network (``whose``, with its verb) behind its
     filter in the bin of the median of ``intervals`` (seconds; non-finite values ignored); None where it does not,
     where the median lies outside the bins, or where the provenance has no bins."""
     from immnet.evaluation.metrics import interval_bin
 
-    bins = (provenance or {}).get("interval_bins")
-    dt = np.asarray(intervals, dtype=np.float64)
-    dt = dt[np.isfinite(dt)]
-    if not bins or dt.size == 0:
+    bins, median = (provenance or {}).get("interval_bins"), _median(intervals)
+    if not bins or median is None:
         return None
-    median = float(np.median(dt))
     edges = [float(e) for e in bins["edges"]]
     i = int(interval_bin(median, edges))
     if i < 0:
@@ -76,18 +89,11 @@ def bank_note(intervals) -> str | None:
     from immnet.checkpoints import GENERAL, shipped
     from immnet.tracking.bank import DEFAULT_MEMBERS
 
-    dt = np.asarray(intervals, dtype=np.float64)
-    dt = dt[np.isfinite(dt)]
-    if dt.size == 0:
-        return None
-    median = float(np.median(dt))
-    for name in (m for m in DEFAULT_MEMBERS if m != GENERAL):
-        prov = load_provenance(shipped(name)) or {}
-        span = prov.get("interval_range") or [prov.get("scan_interval")] * 2
-        if span[0] is not None and float(span[0]) * (1 - 1e-6) <= median <= float(span[1]) * (1 + 1e-6):
-            return None  # another member takes these scans
-    return interval_note(load_provenance(shipped(GENERAL)), dt, "the bank's general network (its one member at these "
-                         "scans) was")
+    median = _median(intervals)
+    if median is None or any(_span(load_provenance(shipped(m)) or {}, median) for m in DEFAULT_MEMBERS if m != GENERAL):
+        return None  # no intervals, or another member takes these scans
+    return interval_note(load_provenance(shipped(GENERAL)), intervals, "the bank's general network (its one member at "
+                         "these scans) was")
 
 
 def registry_name(name: str) -> str:
@@ -109,21 +115,19 @@ def weights_note(loaded, provenance: dict | None, intervals) -> str | None:
     network, no intervals)."""
     from immnet.checkpoints import GENERAL, SHIPPED, shipped
 
-    dt = np.asarray(intervals, dtype=np.float64)
-    dt = dt[np.isfinite(dt)]
-    if Path(loaded).resolve() != shipped(GENERAL).resolve() or dt.size == 0:
+    median, mine = _median(intervals), provenance or {}
+    if Path(loaded).resolve() != shipped(GENERAL).resolve() or median is None:
         return None
-    median, mine = float(np.median(dt)), provenance or {}
     for name in (n for n in SHIPPED if n != GENERAL):
         prov = load_provenance(shipped(name)) or {}
-        span = prov.get("interval_range") or [prov.get("scan_interval")] * 2
-        if span[0] is None or not float(span[0]) * (1 - 1e-6) <= median <= float(span[1]) * (1 + 1e-6):
+        span = _span(prov, median)
+        if span is None:
             continue
         for set_name, test in [*prov.get("tests", {}).items(), *mine.get("tests", {}).items()]:
             rmse = {m: (v or {}).get("avg") for m, v in test.get("metrics", {}).items()}
             a, b = rmse.get(registry_name(name)), rmse.get(registry_name(GENERAL))
             if a is not None and b is not None and a < b:
-                scans = (f"{float(span[0]):g}-{float(span[1]):g} s" if span[0] != span[1] else f"{float(span[0]):g} s")
+                scans = f"{span[0]:g}-{span[1]:g} s" if span[0] != span[1] else f"{span[0]:g} s"
                 return (f"note: this data's median scan interval is {median:.3g} s; the shipped weights {name!r} were "
                         f"trained for scans of {scans} and tracked {what(set_name)} better ({a:.3f} m against the general one's "
                         f"{b:.3f}, their provenance): --weights {name} may track these scans better")
