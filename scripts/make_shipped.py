@@ -163,6 +163,12 @@ def score(ship: dict, registry: str) -> tuple[dict, list[str]]:
     return tests, tables
 
 
+def claims_line(tests: dict) -> str:
+    """A provenance's last paragraph: each test set's claims, which the tests check."""
+    return ("Claims checked by the tests (`tests/test_real_flights.py`, `tests/test_pretrained.py`): "
+            + "; ".join(f"{s}: " + ", ".join(f"{k} {v}" for k, v in t["claims"].items()) for s, t in tests.items()) + ".\n")
+
+
 def ship_bank(name: str, ship: dict, commit: str) -> int:
     """The bank's provenance: its members' files and checksums, its tests and claims; nothing exported (it has no
     weights of its own)."""
@@ -186,8 +192,7 @@ def ship_bank(name: str, ship: dict, commit: str) -> int:
              f"{rows}\n",
              "Test sets (never trained or tuned on), position RMSE in metres, each set one run (real flights without a "
              "range guard):\n", *tables,
-             "Claims checked by the tests (`tests/test_real_flights.py`, `tests/test_pretrained.py`): "
-             + "; ".join(f"{s}: " + ", ".join(f"{k} {v}" for k, v in t["claims"].items()) for s, t in tests.items()) + ".\n"]
+             claims_line(tests)]
     (OUT / f"PROVENANCE-{name}.md").write_text("\n".join(lines))
     print(f"wrote provenance-{name}.json and PROVENANCE-{name}.md", file=sys.stderr)
     return 0
@@ -313,8 +318,7 @@ def main(argv: list[str] | None = None) -> int:
              "range guard)"
              + (f", scored again at commit `{prov['scored']['commit'][:10]}` ({prov['scored']['date']}) by "
                 f"`{prov['scored']['by']}`" if a.rescore else "") + ":\n", *tables,
-             "Claims checked by the tests (`tests/test_real_flights.py`, `tests/test_pretrained.py`): "
-             + "; ".join(f"{s}: " + ", ".join(f"{k} {v}" for k, v in t["claims"].items()) for s, t in tests.items()) + ".\n"]
+             claims_line(tests)]
     (OUT / f"PROVENANCE-{a.name}.md").write_text("\n".join(lines))
     print(f"wrote {out}, provenance-{a.name}.json and PROVENANCE-{a.name}.md", file=sys.stderr)
     return 0
