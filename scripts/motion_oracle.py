@@ -1,0 +1,210 @@
+"""What a filter would need to know of the motion to be far ahead of the best model-based one: a constant-acceleration
+Kalman filter told, by the truth, how each scan's acceleration changed. References, not trackers.
+
+    python scripts/motion_oracle.py --tune runs/real/data/quickstart-1s/val --data runs/real/data/quickstart-1s/test \\
+        --baseline real-imm-singer [--imm real-imm-singer] [--delays 0,1,2,3,5] [--json oracle.json]
+
+The truth's change of acceleration over the interval before scan ``t`` is its jerk ``j_t = (a_t - a_{t-1}) / dt_t``
+per axis (the truth of real flights is one trajectory of the white-jerk model, docs/data.md). Rows (docs/real.md
+"What a tracker would need to know"), each the table's Average RMSE (``immnet evaluate``'s, from each track's first
+detection), the filter started as every model-based one (``immnet.filters.imm.initial_state``) and told each track's r:
+
+- **the size of the change**: process noise set scan by scan and axis from the truth, white-jerk spectral density
+  ``q_t = c j_t^2 dt_t + floor`` (a jerk held over the interval changes the acceleration by ``j_t dt_t``, the noise's
+  standard deviation over it). What a learned part that sets the filter's noise (KalmanNet's) could know at best;
+- **the change itself, d scans late**: the truth's jerk of ``d`` scans before as a known input over each interval
+  (``p += j dt^3 / 6``, ``v += j dt^2 / 2``, ``a += j dt``, on top of the CA prediction), with a small white-jerk
+  noise ``q``. At ``d = 0`` the filter knows every maneuver as it happens; at ``d >= 1`` it learns of it ``d`` scans
+  after (the acceleration keeps changing for a while, so knowing it late still helps);
+- with ``--imm METHOD`` (a decoupled IMM of ``configs/methods/``, ``PerAxisIMMTracker``), the same input on each of its
+  models' predictions, its process noise scaled by a factor ``s`` (a filter told the change needs less of it).
+
+Each row's setting (``c``; ``q``; ``s``) is chosen on ``--tune`` (the validation flights) and the row is scored on ``--data``
+with it; ``--baseline`` methods (``configs/methods/``) are scored on ``--data`` in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+from pathlib import Path
+from unittest import mock
+
+import torch
+
+from immnet import keys
+from immnet.config import instantiate, load_yaml
+from immnet.data.storage import as_batch, load_dataset
+from immnet.data.times import scan_intervals
+from immnet.evaluation.methods import method_config
+from immnet.evaluation.metrics import position_error, rmse, scored_mask
+from immnet.filters import per_axis
+from immnet.filters.base import output
+from immnet.filters.imm import first_detection, initial_state
+from immnet.imm.runner import linear_transition, predict, run
+from immnet.motion import ConstantAcceleration
+from immnet.motion.models import ACC
+
+FLOOR = 1e-4
+"""The size-of-change row's noise where the truth's acceleration does not change (m^2/s^5)."""
+
+
+def truth_jerk(states: torch.Tensor, intervals: torch.Tensor) -> torch.Tensor:
+    """``[B, T, 3]`` the truth's jerk over the interval before each scan, ``(a_t - a_{t-1}) / dt_t`` per axis, from
+    truth states ``[B, T, 9]`` and the intervals ``[B, T]``; 0 at scan 0 and where either scan has no truth."""
+    a = states[..., list(ACC)].double()
+    j = torch.zeros_like(a)
+    j[:, 1:] = (a[:, 1:] - a[:, :-1]) / intervals[:, 1:, None].double()
+    return torch.nan_to_num(j, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def delayed(u: torch.Tensor, d: int) -> torch.Tensor:
+    """``u [B, T, ...]`` ``d`` scans late: ``u[:, t - d]`` at scan ``t``, 0 before scan ``d``."""
+    out = torch.zeros_like(u)
+    if d < u.shape[1]:
+        out[:, d:] = u[:, :u.shape[1] - d]
+    return out
+
+
+def jerk_input(jerk: torch.Tensor, intervals: torch.Tensor) -> torch.Tensor:
+    """``[B, T, 9]`` the state change a jerk ``[B, T, 3]`` held over each interval ``[B, T]`` adds to the CA prediction:
+    ``(j dt^3 / 6, j dt^2 / 2, j dt)`` per axis."""
+    dt = intervals.double()[..., None]
+    return torch.stack([jerk * dt**3 / 6, jerk * dt**2 / 2, jerk * dt], -1).reshape(*jerk.shape[:2], 9)
+
+
+def ca_filter(z: torch.Tensor, r: torch.Tensor, intervals: torch.Tensor, q: torch.Tensor,
+              inputs: torch.Tensor | None = None) -> torch.Tensor:
+    """A white-jerk CA Kalman filter (float64) of measurements ``z [B, T, 3]`` (NaN: missed) with measurement std ``r
+    [B]``, spectral density ``q [B, T, 3]`` per scan and axis and known ``inputs [B, T, 9]`` added to each prediction;
+    states ``[B, T, 9]``, NaN before a track's first detection."""
+    z = z.double()
+    B = z.shape[0]
+    model = ConstantAcceleration(noise="continuous")
+    F = model.F(intervals.double(), dtype=torch.float64)  # [B, T, 9, 9]
+    s = q.double().sqrt().repeat_interleave(3, -1)  # per axis: the axis's three state entries
+    Q = model.Q(1.0, intervals.double(), dtype=torch.float64) * s[..., :, None] * s[..., None, :]
+    r = r.double().reshape(-1)
+    x0, P0 = initial_state(z, r)
+
+    def transition(t: int, x, P):
+        x, P = predict(x, P, F[:, t, None], Q[:, t, None])
+        return (x if inputs is None else x + inputs[:, t, None].double()), P
+
+    one = torch.ones(B, 1, dtype=torch.float64)
+    states, _, _ = run(z, x0[:, None], P0[:, None], one, one[:1], transition, r * r, start=first_detection(z))
+    return output(states, {}, measurements=z)[keys.STATE]
+
+
+def score(states: torch.Tensor, batch) -> float:
+    """The table's Average RMSE (``immnet evaluate``'s)."""
+    truth = batch[keys.STATES]
+    return rmse(position_error(states, truth), scored_mask(truth, batch[keys.MEASUREMENTS]))["avg"]
+
+
+def size_oracle(batch, c: float) -> torch.Tensor:
+    """The size-of-change row's states: ``q_t = c j_t^2 dt_t + FLOOR``."""
+    iv = scan_intervals(batch, torch.float64)
+    q = c * truth_jerk(batch[keys.STATES], iv) ** 2 * iv[..., None] + FLOOR
+    return ca_filter(batch[keys.MEASUREMENTS], batch[keys.R], iv, q)
+
+
+def input_oracle(batch, d: int, q: float) -> torch.Tensor:
+    """The change-itself row's states, ``d`` scans late, white-jerk noise ``q``."""
+    iv = scan_intervals(batch, torch.float64)
+    u = jerk_input(delayed(truth_jerk(batch[keys.STATES], iv), d), iv)
+    z = batch[keys.MEASUREMENTS]
+    return ca_filter(z, batch[keys.R], iv, torch.full((*z.shape[:2], 3), q, dtype=torch.float64), u)
+
+
+def imm_input_oracle(batch, config: dict, d: int, scale: float) -> torch.Tensor:
+    """The change-itself row of a decoupled IMM (``config``: a ``PerAxisIMMTracker``'s), ``d`` scans late: the input
+    added to every model's prediction (each axis's three entries), ``sigma_q`` times ``scale``."""
+    config = copy.deepcopy(config)
+    sq = config["init_args"]["sigma_q"]
+    config["init_args"]["sigma_q"] = [v * scale for v in sq] if isinstance(sq, list) else sq * scale
+    method = instantiate(config)
+    if not isinstance(method, per_axis.PerAxisIMMTracker):
+        raise ValueError(f"--imm takes a decoupled IMM (PerAxisIMMTracker), got {type(method).__name__}")
+    iv = scan_intervals(batch, torch.float64)
+    u = jerk_input(delayed(truth_jerk(batch[keys.STATES], iv), d), iv)
+    B, T = u.shape[:2]
+    u = u.reshape(B, T, 3, 3).permute(2, 0, 1, 3).reshape(3 * B, T, 3)  # the tracker's axis-major tracks
+
+    def with_input(F, Q):
+        inner = linear_transition(F, Q)
+
+        def transition(t: int, x, P):
+            x, P = inner(t, x, P)
+            return x + u[:, t, None], P
+
+        return transition
+
+    with mock.patch.object(per_axis, "linear_transition", with_input):
+        return method.track(batch)[keys.STATE]
+
+
+def _numbers(text: str, cast=float) -> list:
+    try:
+        return [cast(v) for v in text.split(",") if v]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--tune", required=True, help="the set each row's setting is chosen on (the validation flights)")
+    p.add_argument("--data", required=True, help="the set the table scores (with truth and each track's r)")
+    p.add_argument("--baseline", action="append", default=[], help="a method of configs/methods/ scored beside")
+    p.add_argument("--delays", type=_numbers, default=[0, 1, 2, 3, 5], help="scans late, comma-separated")
+    p.add_argument("--scales", type=_numbers, default=[0.5, 1, 2, 4, 8], help="the size row's c to choose from")
+    p.add_argument("--noises", type=_numbers, default=[1e-5, 1e-4, 1e-3, 1e-2, 0.04, 0.1],
+                   help="the input rows' q (m^2/s^5) to choose from")
+    p.add_argument("--imm", help="a decoupled IMM of configs/methods/ to tell the change too")
+    p.add_argument("--imm-scales", type=_numbers, default=[1, 0.3, 0.1, 0.03, 0.01, 0.003, 0.001],
+                   help="the factors of its process noise to choose from")
+    p.add_argument("--json", type=Path)
+    args = p.parse_args(argv)
+    sets = {}
+    for name in ("tune", "data"):
+        td, _ = load_dataset(getattr(args, name))
+        if keys.R not in td.keys():
+            print(f"error: {getattr(args, name)} has no r per track (the oracle filter is told it)", file=sys.stderr)
+            return 2
+        sets[name] = as_batch(td)
+    try:
+        baselines = {m: instantiate(load_yaml(method_config(m))) for m in args.baseline}
+        imm = load_yaml(method_config(args.imm)) if args.imm else None
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    rows = [(m, "", score(method.track(sets["data"])[keys.STATE], sets["data"])) for m, method in baselines.items()]
+
+    def chosen(label: str, run_with, settings):
+        tuned = {s: score(run_with(sets["tune"], s), sets["tune"]) for s in settings}
+        best = min(tuned, key=tuned.get)
+        print(f"[oracle] {label}: {', '.join(f'{s:g} {v:.4f}' for s, v in tuned.items())} on --tune; {best:g}",
+              file=sys.stderr, flush=True)
+        rows.append((label, f"{best:g}", score(run_with(sets["data"], best), sets["data"])))
+
+    chosen("CA told the size of each scan's change of acceleration (noise per scan and axis), c", size_oracle, args.scales)
+    for d in map(int, args.delays):
+        chosen(f"CA told the change itself, {d} scans late, q", lambda b, q, d=d: input_oracle(b, d, q), args.noises)
+    for d in map(int, args.delays) if imm else ():
+        chosen(f"{args.imm} told the change itself, {d} scans late, noise x", lambda b, s, d=d: imm_input_oracle(
+            b, imm, d, s), args.imm_scales)
+    base = rows[0][2] if baselines else None
+    print(f"| {args.data} | setting (chosen on {args.tune}) | Average [m] |" + (f" / {rows[0][0]} |" if base else ""))
+    print("|:---|---:|---:|" + ("---:|" if base else ""))
+    for label, setting, value in rows:
+        print(f"| {label} | {setting} | {value:.3f} |" + (f" {value / base:.3f}x |" if base else ""))
+    if args.json:
+        args.json.write_text(json.dumps({"tune": args.tune, "data": args.data, "rows": [
+            {"row": label, "setting": setting, "average": value} for label, setting, value in rows]}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
