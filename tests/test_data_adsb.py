@@ -6,6 +6,7 @@ where its files are installed (scripts/setup.sh installs them)."""
 import gzip
 import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -126,6 +127,81 @@ def test_clear_errors(tmp_path):
     recs[2]["latitude"] = "north"
     with pytest.raises(ValueError, match="record 2 has latitude = 'north', not a number"):
         adsb.read_records(_write(tmp_path / "n.json.gz", recs))
+
+
+def _opensky_csv(path, recs, zipped=False) -> str:
+    """``recs`` as OpenSky's historical state vectors CSV: epoch seconds, ``lat``/``lon``, ``baroaltitude`` in
+    metres, ``onground`` true/false, ``lastposupdate``, and fields the reader ignores."""
+    header = "time,icao24,lat,lon,velocity,heading,vertrate,callsign,onground,alert,spi,squawk,baroaltitude," \
+             "geoaltitude,lastposupdate,lastcontact"
+    lines = [header]
+    for r in recs:
+        alt = "" if r["altitude"] is None else repr(r["altitude"] * 0.3048)
+        t = r["timestamp"] / 1000
+        lines.append(f"{t:.3f},{r['icao24']},{r['latitude']!r},{r['longitude']!r},150.0,90.0,0.0,{r['callsign']},"
+                     f"{str(r['onground']).lower()},false,false,1000,{alt},{alt},{t - 0.4:.3f},{t:.3f}")
+    text = "\n".join(lines) + "\n"
+    if zipped:
+        Path(path).write_bytes(gzip.compress(text.encode()))
+    else:
+        Path(path).write_text(text)
+    return str(path)
+
+
+def test_opensky_csv_and_rest_names_read_as_traffics_json(tmp_path):
+    """The same state vectors as traffic's JSON, as OpenSky's CSV (metres, its names, gzipped or not) and under its
+    REST API's names: the same records, the altitude in metres either way, positions timed by their own update."""
+    recs = _records(n_aircraft=2, n=30)
+    recs[4]["onground"] = True
+    recs[7]["altitude"] = None  # a null value: an empty cell
+    want = adsb.read_records(_write(tmp_path / "a.json.gz", [{**r, "last_position": r["timestamp"] / 1000 - 0.4}
+                                                             for r in recs]))
+    for got in (adsb.read_records(_opensky_csv(tmp_path / "a.csv", recs)),
+                adsb.read_records(_opensky_csv(tmp_path / "b.csv.gz", recs, zipped=True)),
+                adsb.read_records(_write(tmp_path / "rest.json.gz", [
+                    {"time": r["timestamp"] / 1000, "icao24": r["icao24"], "latitude": r["latitude"],
+                     "longitude": r["longitude"], "on_ground": r["onground"], "time_position": r["timestamp"] / 1000 - 0.4,
+                     "baro_altitude": None if r["altitude"] is None else r["altitude"] * 0.3048} for r in recs]))):
+        np.testing.assert_allclose(got.t, want.t, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(got.timestamp, want.timestamp, rtol=0, atol=1e-6)
+        assert np.array_equal(got.lat, want.lat) and np.array_equal(got.lon, want.lon)
+        np.testing.assert_allclose(got.h, want.h, rtol=1e-12, equal_nan=True)
+        assert np.isnan(got.h[7]) and got.onground[4] and got.onground.sum() == 1 and got.exact.all()
+        assert list(got.icao24) == list(want.icao24)
+    # an address of digits stays an address
+    (tmp_path / "d.csv").write_text("time,icao24,lat,lon,baroaltitude\n1633608000,400123,48.9,2.4,3000\n")
+    assert adsb.read_records(tmp_path / "d.csv").icao24[0] == "400123"
+    # the flights and data sets made from either are the same
+    four = [{**r, "last_position": r["timestamp"] / 1000 - 0.4} for r in _records(n_aircraft=4, n=200)]
+    a = real.make_adsb(tmp_path / "ja", [_write(tmp_path / "j.json.gz", four)], SMALL, seed=1)
+    b = real.make_adsb(tmp_path / "ca", [_opensky_csv(tmp_path / "c.csv", _records(n_aircraft=4, n=200))], SMALL,
+                       seed=1)
+    assert a["counts"] == b["counts"] and a["flights"] == b["flights"]
+    for split in real.SPLITS:
+        ta, tb = load_dataset(tmp_path / "ja" / split)[0], load_dataset(tmp_path / "ca" / split)[0]
+        np.testing.assert_allclose(ta["states"].numpy(), tb["states"].numpy(), rtol=0, atol=1e-3)
+
+
+def test_csv_errors_name_the_file_row_and_field(tmp_path):
+    def csv(name, text):
+        (tmp_path / name).write_text(text)
+        return tmp_path / name
+
+    with pytest.raises(ValueError, match=r"e\.csv: an empty CSV file"):
+        adsb.read_records(csv("e.csv", ""))
+    with pytest.raises(ValueError, match=r"h\.csv: holds no records"):
+        adsb.read_records(csv("h.csv", "time,icao24,lat,lon,baroaltitude\n"))
+    with pytest.raises(ValueError, match=r"no field 'latitude' or 'lat' \(has \['baroaltitude', 'icao24', 'lon', 'time'\]"):
+        adsb.read_records(csv("m.csv", "time,icao24,lon,baroaltitude\n1,a,2,3\n"))
+    with pytest.raises(ValueError, match="record 1 has lat = 'north', not a number"):
+        adsb.read_records(csv("n.csv", "time,icao24,lat,lon,baroaltitude\n1,a,48,2,3\n2,a,north,2,3\n"))
+    with pytest.raises(ValueError, match="data row 2 has 6 cells, the header 5"):
+        adsb.read_records(csv("w.csv", "time,icao24,lat,lon,baroaltitude\n1,a,48,2,3\n2,a,48,2,3,9\n"))
+    with pytest.raises(ValueError, match="record 0 has time = 'noon', neither epoch"):
+        adsb.read_records(csv("t.csv", "time,icao24,lat,lon,baroaltitude\nnoon,a,48,2,3\n"))
+    (tmp_path / "z.csv.gz").write_bytes(gzip.compress(b"time,icao24,lat,lon,baroaltitude\n" * 50)[:40])
+    with pytest.raises(ValueError, match=r"z\.csv\.gz: cannot be read"):
+        adsb.read_records(tmp_path / "z.csv.gz")
 
 
 def test_smoother_recovers_constant_acceleration():

@@ -1,10 +1,13 @@
 """Real ADS-B flights: read a sample file, clean it and cut it into flights (docs/data.md, "Real flights").
 
-A sample is a JSON file of ADS-B state vectors, one record per aircraft and time: ``timestamp``
+A sample is a file of ADS-B state vectors, one record per aircraft and time: ``timestamp``
 (epoch, ms or s, or an ISO 8601 string), ``icao24`` (the transponder's address), ``latitude``,
 ``longitude`` (degrees), ``altitude`` (barometric, feet) and optionally ``onground`` and
 ``last_position`` (the time of the position message). The ``traffic`` package ships such samples in
-its wheel; they are read as data (``json``), the package itself is never imported.
+its wheel as JSON; they are read as data (``json``), the package itself is never imported. A CSV file
+(``.csv[.gz]``, a header row) holds the same fields; OpenSky's own names are read too (``FIELDS``: its
+historical state vectors' ``time``, ``lat``, ``lon``, ``baroaltitude`` in metres, ``lastposupdate``, and its
+REST API's ``time_position``, ``baro_altitude``, ``on_ground``), so that a recording of one's own reads as it is.
 
 Cleaning, per aircraft in time order (each step counted in :class:`Flights`' ``counts``):
 
@@ -27,6 +30,7 @@ need to know.
 
 from __future__ import annotations
 
+import csv
 import gzip
 import hashlib
 import importlib.util
@@ -43,7 +47,21 @@ from immnet.data.geodesy import geodetic_to_ecef, local_step
 FEET = 0.3048
 """Metres per foot."""
 REQUIRED = ("timestamp", "icao24", "latitude", "longitude", "altitude")
+FIELDS = {
+    "timestamp": ("timestamp", "time"),
+    "icao24": ("icao24",),
+    "latitude": ("latitude", "lat"),
+    "longitude": ("longitude", "lon"),
+    "altitude": ("altitude", "baroaltitude", "baro_altitude"),
+    "onground": ("onground", "on_ground"),
+    "last_position": ("last_position", "lastposupdate", "time_position"),
+}
+"""Each field and the names a file may give it, the first present read: traffic's, then OpenSky's (historical state
+vectors, then the REST API's)."""
+METRES = ("baroaltitude", "baro_altitude")
+"""The altitude names whose values are metres (OpenSky's); ``altitude`` is in feet (traffic's)."""
 SUFFIXES = (".json.gz", ".json", ".jsonl.gz", ".jsonl")
+CSV_SUFFIXES = (".csv", ".csv.gz")
 MAX_STREAK = 5
 """Glitches in a row after which a track restarts at the next point."""
 MS_EPOCH = 1e11
@@ -132,44 +150,92 @@ def _load_json(path: Path):
         raise ValueError(f"{path}: cannot be read ({type(err).__name__}: {err})") from None
 
 
-def _columns(value, path: Path, fields) -> dict[str, list]:
-    """Columns of the records: a list of objects, or pandas' ``columns`` orientation ``{field: {row: v}}``."""
+def _csv_value(text: str):
+    """A CSV cell as JSON would hold it: empty -> None, a number -> float, true/false -> bool, else the text."""
+    text = text.strip()
+    if not text:
+        return None
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def _load_csv(path: Path) -> list[dict]:
+    """The rows of a CSV file with a header (gzip decompressed, whatever its name) as records; ``icao24`` kept as
+    text (an address such as ``400123`` is no number)."""
+    try:
+        with open(path, "rb") as f:
+            zipped = f.read(2) == b"\x1f\x8b"
+        opener = gzip.open if zipped else open
+        with opener(path, "rt", encoding="utf-8", newline="") as f:
+            reader = csv.DictReader(f)
+            if not reader.fieldnames:
+                raise ValueError(f"{path}: an empty CSV file (no header row)")
+            out = []
+            for i, row in enumerate(reader):
+                if None in row:  # more cells than the header names
+                    raise ValueError(f"{path}: data row {i + 1} has {len(reader.fieldnames) + len(row[None])} cells, "
+                                     f"the header {len(reader.fieldnames)}")
+                out.append({k: (v.strip() or None) if k == "icao24" and v is not None else
+                            None if v is None else _csv_value(v) for k, v in row.items()})
+            return out
+    except (OSError, EOFError, UnicodeDecodeError, gzip.BadGzipFile, csv.Error) as err:
+        raise ValueError(f"{path}: cannot be read ({type(err).__name__}: {err})") from None
+
+
+def _names(present, path: Path) -> dict[str, str]:
+    """Each field of ``FIELDS`` -> the name the file gives it (the first of its names among ``present``); a ValueError
+    for a required field under none of its names."""
+    present = set(present)
+    names = {k: next((a for a in aliases if a in present), k) for k, aliases in FIELDS.items()}
+    missing = [k for k in REQUIRED if names[k] not in present]
+    if missing:
+        raise ValueError(f"{path}: no field {' or '.join(map(repr, FIELDS[missing[0]]))} (has {sorted(present)[:20]}; "
+                         f"required: {', '.join(REQUIRED)}, under traffic's or OpenSky's names)")
+    return names
+
+
+def _columns(value, path: Path) -> tuple[dict[str, list], dict[str, str]]:
+    """Columns of the records by ``FIELDS``' names, and the name each had in the file: a list of objects, or pandas'
+    ``columns`` orientation ``{field: {row: v}}``."""
     if isinstance(value, list):
         for i, r in enumerate(value):
             if not isinstance(r, dict):
                 raise ValueError(f"{path}: record {i} is a {type(r).__name__}, not an object of fields")
+        names = _names(value[0] if value else REQUIRED, path)
         cols = {}
-        for k in fields:
+        for k, name in names.items():
             try:
-                cols[k] = [r[k] for r in value]
+                cols[k] = [r[name] for r in value]
             except KeyError:
                 if k in REQUIRED:
-                    i = next(i for i, r in enumerate(value) if k not in r)
-                    raise ValueError(f"{path}: record {i} lacks the required field {k!r} (has {sorted(value[i])}; "
+                    i = next(i for i, r in enumerate(value) if name not in r)
+                    raise ValueError(f"{path}: record {i} lacks the required field {name!r} (has {sorted(value[i])}; "
                                      f"required: {', '.join(REQUIRED)})") from None
-                cols[k] = [r.get(k) for r in value]
-        return cols
+                cols[k] = [r.get(name) for r in value]
+        return cols, names
     if isinstance(value, dict) and value and all(isinstance(v, (dict, list)) for v in value.values()):
-        missing = [k for k in REQUIRED if k not in value]
-        if missing:
-            raise ValueError(f"{path}: the columns lack the required field(s) {', '.join(map(repr, missing))} "
-                             f"(has {sorted(value)})")
-        first = value[REQUIRED[0]]
+        names = _names(value, path)
+        first = value[names[REQUIRED[0]]]
         index = list(first) if isinstance(first, dict) else None
         n = len(first)
         cols = {}
-        for k in fields:
-            if k not in value:
+        for k, name in names.items():
+            if name not in value:
                 cols[k] = [None] * n
                 continue
-            c = value[k]
+            c = value[name]
             try:
                 cols[k] = [c[i] for i in index] if index is not None else list(c)
             except (KeyError, TypeError):
-                raise ValueError(f"{path}: column {k!r} does not have the rows of column {REQUIRED[0]!r}") from None
+                raise ValueError(f"{path}: column {name!r} does not have the rows of column "
+                                 f"{names[REQUIRED[0]]!r}") from None
             if len(cols[k]) != n:
-                raise ValueError(f"{path}: column {k!r} has {len(cols[k])} rows, {REQUIRED[0]!r} has {n}")
-        return cols
+                raise ValueError(f"{path}: column {name!r} has {len(cols[k])} rows, {names[REQUIRED[0]]!r} has {n}")
+        return cols, names
     raise ValueError(f"{path}: expected a JSON list of records (or an object of columns), got a "
                      f"{type(value).__name__}{' with fields ' + str(sorted(value)[:8]) if isinstance(value, dict) else ''}")
 
@@ -229,21 +295,24 @@ class Records:
 
 def read_records(path) -> Records:
     """Read one sample file (``.json[.gz]``: a list of records or an object of columns; ``.jsonl[.gz]``: a
-    record per line). Nothing in the file is executed. A ValueError names the file and what is wrong."""
+    record per line; ``.csv[.gz]``: a header row, then a record per row), its fields under traffic's or OpenSky's
+    names (``FIELDS``). Nothing in the file is executed. A ValueError names the file and what is wrong."""
     path = Path(path)
-    value = _load_json(path)
-    cols = _columns(value, path, (*REQUIRED, "onground", "last_position"))
+    value = _load_csv(path) if path.name.lower().endswith(CSV_SUFFIXES) else _load_json(path)
+    if isinstance(value, list) and not value:
+        raise ValueError(f"{path}: holds no records")
+    cols, names = _columns(value, path)
     if not cols["timestamp"]:
         raise ValueError(f"{path}: holds no records")
-    ts = _times(cols["timestamp"], "timestamp", path)
-    lp = _times(cols["last_position"], "last_position", path)
+    ts = _times(cols["timestamp"], names["timestamp"], path)
+    lp = _times(cols["last_position"], names["last_position"], path)
     t = np.where(np.isfinite(lp), lp, ts)
     icao = cols["icao24"]
     if not set(map(type, icao)) <= {str, int, type(None)}:
         bad = next(i for i, v in enumerate(icao) if v is not None and not isinstance(v, (str, int)))
         raise ValueError(f"{path}: record {bad} has icao24 = {icao[bad]!r}, not an address")
-    names = {v: "" if v is None else str(v).lower() for v in set(icao)}  # a few hundred aircraft
-    icao = np.array([names[v] for v in icao])
+    addresses = {v: "" if v is None else str(v).lower() for v in set(icao)}  # a few hundred aircraft
+    icao = np.array([addresses[v] for v in icao])
     ground = cols["onground"]
     if set(map(type, ground)) <= {bool, type(None)}:  # the common case, without a Python loop
         onground = np.array(ground, dtype=object) == True  # noqa: E712 (None and False are not on the ground)
@@ -251,8 +320,10 @@ def read_records(path) -> Records:
         onground = np.array([bool(v) if isinstance(v, (bool, int, float)) else False for v in ground])
     onground = onground.astype(bool)
     return Records(path=path, timestamp=ts, t=t, icao24=icao,
-                   lat=_floats(cols["latitude"], "latitude", path), lon=_floats(cols["longitude"], "longitude", path),
-                   h=_floats(cols["altitude"], "altitude", path) * FEET, onground=onground, exact=np.isfinite(lp))
+                   lat=_floats(cols["latitude"], names["latitude"], path),
+                   lon=_floats(cols["longitude"], names["longitude"], path),
+                   h=_floats(cols["altitude"], names["altitude"], path) * (1.0 if names["altitude"] in METRES else FEET),
+                   onground=onground, exact=np.isfinite(lp))
 
 
 # --- flights ------------------------------------------------------------------------------------

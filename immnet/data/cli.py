@@ -196,7 +196,9 @@ def register(subparsers) -> None:
 
     a = sub.add_parser("adsb", help="real ADS-B flights seen by a simulated radar, split by flight (docs/data.md)")
     a.add_argument("--samples", required=True, nargs="+", metavar="SAMPLE",
-                   help="sample names of traffic's data/samples (e.g. collections/quickstart) or JSON files")
+                   help="sample names of traffic's data/samples (e.g. collections/quickstart), or files of state "
+                        "vectors: JSON as traffic's samples, or CSV with a header (traffic's field names or "
+                        "OpenSky's: time, icao24, lat, lon, baroaltitude in metres, lastposupdate)")
     a.add_argument("--out", required=True, type=Path, help="output directory: OUT/train, OUT/val, OUT/test")
     a.add_argument("--T", type=int, default=200, help="scans per window (default 200)")
     a.add_argument("--dt", type=float, default=1.0, help="scan interval, or its mean with --dt-jitter (s, default 1)")
