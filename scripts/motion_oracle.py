@@ -177,6 +177,9 @@ def main(argv=None) -> int:
     try:
         baselines = {m: instantiate(load_yaml(method_config(m))) for m in args.baseline}
         imm = load_yaml(method_config(args.imm)) if args.imm else None
+        if imm is not None and not isinstance(instantiate(imm), per_axis.PerAxisIMMTracker):
+            raise ValueError(f"--imm {args.imm}: not a decoupled IMM (PerAxisIMMTracker); the input goes on each "
+                             f"axis's models")
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

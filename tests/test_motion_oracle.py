@@ -134,3 +134,11 @@ def test_a_set_without_r_is_refused_by_name(tmp_path, mo, capsys):
     np.savez(tmp_path / "nor.npz", measurements=td[keys.MEASUREMENTS].numpy(), states=td[keys.STATES].numpy(), dt=1.0)
     rc = mo["main"](["--tune", str(tmp_path / "data"), "--data", str(tmp_path / "nor.npz")])
     assert rc == 2 and "has no r per track" in capsys.readouterr().err
+
+
+def test_an_imm_that_is_not_decoupled_is_refused_by_name(tmp_path, mo, capsys):
+    write_dataset(tmp_path / "data", 2, seed=5, spec=TINY)
+    rc = mo["main"](["--tune", str(tmp_path / "data"), "--data", str(tmp_path / "data"), "--imm", "imm-tuned"])
+    assert rc == 2 and "--imm imm-tuned: not a decoupled IMM" in capsys.readouterr().err
+    rc = mo["main"](["--tune", str(tmp_path / "data"), "--data", str(tmp_path / "data"), "--baseline", "no-such-method"])
+    assert rc == 2 and "no-such-method" in capsys.readouterr().err
