@@ -171,6 +171,8 @@ def test_opensky_csv_and_rest_names_read_as_traffics_json(tmp_path):
     # an address of digits stays an address
     (tmp_path / "d.csv").write_text("time,icao24,lat,lon,baroaltitude\n1633608000,400123,48.9,2.4,3000\n")
     assert adsb.read_records(tmp_path / "d.csv").icao24[0] == "400123"
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + (tmp_path / "d.csv").read_bytes())  # saved by a spreadsheet
+    assert adsb.read_records(tmp_path / "bom.csv").lat[0] == 48.9
     # the flights and data sets made from either are the same
     four = [{**r, "last_position": r["timestamp"] / 1000 - 0.4} for r in _records(n_aircraft=4, n=200)]
     a = real.make_adsb(tmp_path / "ja", [_write(tmp_path / "j.json.gz", four)], SMALL, seed=1)

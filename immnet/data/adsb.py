@@ -170,7 +170,7 @@ def _load_csv(path: Path) -> list[dict]:
         with open(path, "rb") as f:
             zipped = f.read(2) == b"\x1f\x8b"
         opener = gzip.open if zipped else open
-        with opener(path, "rt", encoding="utf-8", newline="") as f:
+        with opener(path, "rt", encoding="utf-8-sig", newline="") as f:  # a spreadsheet's BOM dropped
             reader = csv.DictReader(f)
             if not reader.fieldnames:
                 raise ValueError(f"{path}: an empty CSV file (no header row)")
