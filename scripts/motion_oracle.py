@@ -2,7 +2,9 @@
 Kalman filter told, by the truth, how each scan's acceleration changed. References, not trackers.
 
     python scripts/motion_oracle.py --tune runs/real/data/quickstart-1s/val --data runs/real/data/quickstart-1s/test \\
-        --baseline real-imm-singer [--imm real-imm-singer] [--delays 0,1,2,3,5] [--json oracle.json]
+        --baseline real-imm-singer [--baseline immnet-real] [--imm real-imm-singer] [--delays 0,1,2,3,5] \\
+        [--label "1 s test"] [--json oracle.json]
+    python scripts/motion_oracle.py --plot A.json B.json ... --figure motion_oracle.png
 
 The truth's change of acceleration over the interval before scan ``t`` is its jerk ``j_t = (a_t - a_{t-1}) / dt_t``
 per axis (the truth of real flights is one trajectory of the white-jerk model, docs/data.md). Rows (docs/real.md
@@ -20,7 +22,9 @@ detection), the filter started as every model-based one (``immnet.filters.imm.in
   models' predictions, its process noise scaled by a factor ``s`` (a filter told the change needs less of it).
 
 Each row's setting (``c``; ``q``; ``s``) is chosen on ``--tune`` (the validation flights) and the row is scored on ``--data``
-with it; ``--baseline`` methods (``configs/methods/``) are scored on ``--data`` in the same run.
+with it; ``--baseline`` methods (``configs/methods/``) are scored on ``--data`` in the same run, the first the ratio's
+reference. ``--plot`` draws the reports of several runs (``--json``) as one figure: the ratio against how late, in
+seconds, the change is told, the other baselines (the shipped networks) as levels.
 """
 
 from __future__ import annotations
@@ -153,11 +157,50 @@ def _numbers(text: str, cast=float) -> list:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
 
 
+def figure(reports: list[dict], path: Path) -> None:
+    """The ratio to each report's first baseline against how late the change is told (s: scans times the set's
+    interval): the IMM told it (solid), the CA filter (thin, dashed), every other baseline a dotted level, the 0.90x
+    target a black dashed one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    for i, rep in enumerate(reports):
+        color = f"C{i}"
+        base = next(r for r in rep["rows"] if r["kind"] == "baseline")
+        name = rep.get("label") or rep["data"]
+        for kind, style in (("imm", dict(lw=2, marker="o")), ("ca", dict(lw=1, ls="--", marker=".", alpha=0.6))):
+            pts = sorted((r["delay"] * rep["interval"], r["average"] / base["average"]) for r in rep["rows"]
+                         if r["kind"] == kind)
+            if pts:
+                ax.plot(*zip(*pts), color=color, label=f"{name}: {'the best filter' if kind == 'imm' else 'CA'} told it",
+                        **style)
+        for r in rep["rows"]:
+            if r["kind"] == "baseline" and r is not base:
+                ax.axhline(r["average"] / base["average"], color=color, ls=":", lw=1.5)
+                ax.annotate(r["row"], (0, r["average"] / base["average"]), color=color, fontsize=7, xytext=(2, 2),
+                            textcoords="offset points")
+    ax.axhline(0.90, color="k", ls="--", lw=1, label="the 0.90x target")
+    ax.axhline(1.0, color="0.5", lw=0.8)
+    ax.set_xlabel("how late the filter is told each scan's change of acceleration [s]")
+    ax.set_ylabel("Average RMSE / the best filter's")
+    ax.set_ylim(0.55, 1.2)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("What a tracker would need to know (dotted: the shipped networks)", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--tune", required=True, help="the set each row's setting is chosen on (the validation flights)")
-    p.add_argument("--data", required=True, help="the set the table scores (with truth and each track's r)")
-    p.add_argument("--baseline", action="append", default=[], help="a method of configs/methods/ scored beside")
+    p.add_argument("--tune", help="the set each row's setting is chosen on (the validation flights)")
+    p.add_argument("--data", help="the set the table scores (with truth and each track's r)")
+    p.add_argument("--baseline", action="append", default=[],
+                   help="a method of configs/methods/ scored beside (the first: the ratio's reference)")
     p.add_argument("--delays", type=_numbers, default=[0, 1, 2, 3, 5], help="scans late, comma-separated")
     p.add_argument("--scales", type=_numbers, default=[0.5, 1, 2, 4, 8], help="the size row's c to choose from")
     p.add_argument("--noises", type=_numbers, default=[1e-5, 1e-4, 1e-3, 1e-2, 0.04, 0.1],
@@ -165,8 +208,26 @@ def main(argv=None) -> int:
     p.add_argument("--imm", help="a decoupled IMM of configs/methods/ to tell the change too")
     p.add_argument("--imm-scales", type=_numbers, default=[1, 0.3, 0.1, 0.03, 0.01, 0.003, 0.001],
                    help="the factors of its process noise to choose from")
+    p.add_argument("--label", help="the set's name in the JSON and the figure (default: --data)")
     p.add_argument("--json", type=Path)
+    p.add_argument("--plot", nargs="+", type=Path, metavar="JSON",
+                   help="no run: draw --figure from reports this script wrote with --json")
+    p.add_argument("--figure", type=Path)
     args = p.parse_args(argv)
+    if args.plot:
+        if not args.figure:
+            p.error("--plot draws --figure: give its path")
+        try:
+            reports = [json.loads(f.read_text()) for f in args.plot]
+            figure(reports, args.figure)
+        except (OSError, ValueError, KeyError, StopIteration) as e:
+            print(f"error: --plot needs this script's --json reports with a baseline ({type(e).__name__}: {e})",
+                  file=sys.stderr)
+            return 2
+        print(f"wrote {args.figure}")
+        return 0
+    if not (args.tune and args.data):
+        p.error("--tune and --data are required (or --plot)")
     sets = {}
     for name in ("tune", "data"):
         td, _ = load_dataset(getattr(args, name))
@@ -183,29 +244,35 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    rows = [(m, "", score(method.track(sets["data"])[keys.STATE], sets["data"])) for m, method in baselines.items()]
+    rows = [{"row": m, "kind": "baseline", "setting": "", "average": score(method.track(sets["data"])[keys.STATE],
+                                                                             sets["data"])}
+            for m, method in baselines.items()]
 
-    def chosen(label: str, run_with, settings):
+    def chosen(label: str, kind: str, delay, run_with, settings):
         tuned = {s: score(run_with(sets["tune"], s), sets["tune"]) for s in settings}
         best = min(tuned, key=tuned.get)
         print(f"[oracle] {label}: {', '.join(f'{s:g} {v:.4f}' for s, v in tuned.items())} on --tune; {best:g}",
               file=sys.stderr, flush=True)
-        rows.append((label, f"{best:g}", score(run_with(sets["data"], best), sets["data"])))
+        rows.append({"row": label, "kind": kind, "delay": delay, "setting": f"{best:g}",
+                     "average": score(run_with(sets["data"], best), sets["data"])})
 
-    chosen("CA told the size of each scan's change of acceleration (noise per scan and axis), c", size_oracle, args.scales)
+    chosen("CA told the size of each scan's change of acceleration (noise per scan and axis), c", "size", None,
+           size_oracle, args.scales)
     for d in map(int, args.delays):
-        chosen(f"CA told the change itself, {d} scans late, q", lambda b, q, d=d: input_oracle(b, d, q), args.noises)
+        chosen(f"CA told the change itself, {d} scans late, q", "ca", d, lambda b, q, d=d: input_oracle(b, d, q),
+               args.noises)
     for d in map(int, args.delays) if imm else ():
-        chosen(f"{args.imm} told the change itself, {d} scans late, noise x", lambda b, s, d=d: imm_input_oracle(
-            b, imm, d, s), args.imm_scales)
-    base = rows[0][2] if baselines else None
-    print(f"| {args.data} | setting (chosen on {args.tune}) | Average [m] |" + (f" / {rows[0][0]} |" if base else ""))
+        chosen(f"{args.imm} told the change itself, {d} scans late, noise x", "imm", d,
+               lambda b, s, d=d: imm_input_oracle(b, imm, d, s), args.imm_scales)
+    base = rows[0]["average"] if baselines else None
+    print(f"| {args.data} | setting (chosen on {args.tune}) | Average [m] |" + (f" / {rows[0]['row']} |" if base else ""))
     print("|:---|---:|---:|" + ("---:|" if base else ""))
-    for label, setting, value in rows:
-        print(f"| {label} | {setting} | {value:.3f} |" + (f" {value / base:.3f}x |" if base else ""))
+    for r in rows:
+        print(f"| {r['row']} | {r['setting']} | {r['average']:.3f} |" + (f" {r['average'] / base:.3f}x |" if base else ""))
     if args.json:
-        args.json.write_text(json.dumps({"tune": args.tune, "data": args.data, "rows": [
-            {"row": label, "setting": setting, "average": value} for label, setting, value in rows]}, indent=2) + "\n")
+        interval = float(scan_intervals(sets["data"], torch.float64)[:, 1:].nanmean())
+        args.json.write_text(json.dumps({"tune": args.tune, "data": args.data, "label": args.label or args.data,
+                                         "interval": interval, "rows": rows}, indent=2) + "\n")
     return 0
 
 

@@ -126,6 +126,14 @@ def test_the_rows_are_the_filters_run_here_and_the_baseline_is_evaluates(tmp_pat
         "average"]
     assert math.isfinite(rows["CA told the change itself, 0 scans late, q"]["average"])
     assert "told the size" in capsys.readouterr().err  # each row's choice on --tune is shown
+    report = json.loads(out.read_text())
+    assert report["interval"] == pytest.approx(1.0) and {r["kind"] for r in report["rows"]} == {
+        "baseline", "size", "ca", "imm"}
+    assert mo["main"](["--plot", str(out), str(out), "--figure", str(tmp_path / "f.png")]) == 0
+    assert (tmp_path / "f.png").stat().st_size > 10_000
+    (tmp_path / "bad.json").write_text("{}")
+    assert mo["main"](["--plot", str(tmp_path / "bad.json"), "--figure", str(tmp_path / "g.png")]) == 2
+    assert "--plot needs this script's --json reports" in capsys.readouterr().err
 
 
 def test_a_set_without_r_is_refused_by_name(tmp_path, mo, capsys):
