@@ -115,8 +115,9 @@ SHIPS = {
         "members": ["general", "real", "real-5s", "3dlast"],
         "what": ("The default tracker: the shipped networks general, real, real-5s and 3dlast (without its range guard) "
                  "run side by side, each on the tracks whose scan intervals it was trained for and weighed per track by "
-                 "the likelihood of the track's measurements under its own predictions (immnet.tracking.bank, "
-                 "docs/tracking.md \"A bank of networks\"); nothing trained for it"),
+                 "the likelihood of the track's measurements under its predictions of the track as it reports it, each "
+                 "scan's to the power 0.5 (immnet.tracking.bank, docs/tracking.md \"A bank of networks\"); nothing "
+                 "trained for it"),
         "interval_range": [0.5, 12.0],
         "tests": {
             "quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real", "immnet-general",
@@ -179,7 +180,13 @@ def ship_bank(name: str, ship: dict, commit: str) -> int:
     members = {m: {"file": f"immnet/pretrained/{SHIPPED[m]}", "weights_sha256": load_checkpoint(shipped(m))[CHECKSUM_KEY]}
                for m in ship["members"]}
     tests, tables = score(ship, registry)
-    prov = {"members": members, "made_by": f".venv/bin/python scripts/make_shipped.py --name {name}",
+    from immnet.config import load_yaml
+    from immnet.evaluation.methods import method_config
+
+    config = load_yaml(method_config(registry))["init_args"]
+    weighing = {k: config[k] for k in ("likelihood", "temper")}
+    prov = {"members": members, "weighing": weighing,
+            "made_by": f".venv/bin/python scripts/make_shipped.py --name {name}",
             "date": datetime.date.today().isoformat(), "commit": commit, "guard": None,
             "interval_range": ship["interval_range"], "tests": tests}
     (OUT / f"provenance-{name}.json").write_text(json.dumps(prov, indent=2, allow_nan=False) + "\n")
@@ -188,7 +195,8 @@ def ship_bank(name: str, ship: dict, commit: str) -> int:
              f"{ship['what']}. Registry name `{registry}`; it takes scan intervals {ship['interval_range'][0]:g}-"
              f"{ship['interval_range'][1]:g} s. Scored at commit `{commit[:10]}` ({prov['date']}) by "
              f"`{prov['made_by']}`.\n",
-             f"Members, as shipped (each with its own provenance):\n\n| member | file | weights_sha256 |\n|:---|:---|:---|\n"
+             f"Members, as shipped (each with its own provenance), weighed by the `{weighing['likelihood']}` likelihood "
+             f"to the power {weighing['temper']:g}:\n\n| member | file | weights_sha256 |\n|:---|:---|:---|\n"
              f"{rows}\n",
              "Test sets (never trained or tuned on), position RMSE in metres, each set one run (real flights without a "
              "range guard):\n", *tables,

@@ -77,8 +77,9 @@ def test_a_networks_predictive_likelihood_is_filterpys_imm_likelihood(data, meth
     assert np.isnan(ours[3, :3]).all() and np.isfinite(ours[3, 3:]).all()
 
 
-def test_the_banks_weights_are_the_static_multiple_model_posterior(data):
-    """Two model-based IMMs in a bank: each scan's member probabilities are ``softmax(log prior + cumulative
+@pytest.mark.parametrize("temper", [1.0, 0.5])
+def test_the_banks_weights_are_the_static_multiple_model_posterior(data, temper):
+    """Two model-based IMMs in a bank: each scan's member probabilities are ``softmax(log prior + temper x cumulative
     log-likelihood)`` from FilterPy's likelihoods in float64 (to 1e-3: the members run in float32, whose
     likelihoods at a track's first scans, with a start covariance of 1e4 m^2/s^2, carry 1e-3 of rounding), the estimate is
     the members' own ``Tracker.track`` estimates so weighted, the covariance the mixture's
@@ -88,7 +89,7 @@ def test_the_banks_weights_are_the_static_multiple_model_posterior(data):
     methods = [build_method(n) for n in names]
     nets = {n: m.network().float() for n, m in zip(names, methods)}
     prior = [0.3, 0.7]
-    bank = NetworkBank(nets, prior=prior)
+    bank = NetworkBank(nets, prior=prior, temper=temper)  # no output correction: "reported" is the filters' own
     z = data[keys.MEASUREMENTS].float()
     intervals = torch.ones(z.shape[:2], dtype=torch.float64)
     out = bank.track(z, intervals=intervals, return_cov=True)
@@ -97,7 +98,7 @@ def test_the_banks_weights_are_the_static_multiple_model_posterior(data):
     for b in range(z.shape[0]):
         L = np.stack([_filterpy_logliks(m, z[b].double().numpy()) for m in methods], -1)
         weighed = np.isfinite(L).all(-1, keepdims=True)
-        log_w = np.log(np.array(prior) / sum(prior)) + np.cumsum(np.where(weighed, L, 0.0), 0)
+        log_w = np.log(np.array(prior) / sum(prior)) + temper * np.cumsum(np.where(weighed, L, 0.0), 0)
         ref = np.exp(log_w - log_w.max(-1, keepdims=True))
         ref /= ref.sum(-1, keepdims=True)
         seen = ~np.isnan(w[b, :, 0].numpy())
@@ -115,6 +116,61 @@ def test_the_banks_weights_are_the_static_multiple_model_posterior(data):
     alone = NetworkBank({"imm-tuned": nets["imm-tuned"]}).track(z, intervals=intervals, return_cov=True)
     torch.testing.assert_close(alone[keys.STATE], own[0][keys.STATE].double(), equal_nan=True, rtol=0, atol=0)
     torch.testing.assert_close(alone[keys.STATE_COV], own[0][keys.STATE_COV].double(), equal_nan=True, rtol=0, atol=0)
+
+
+def test_the_reported_tracks_likelihood_is_the_filters_moved_by_the_correction(data):
+    """A network with an output correction (the shipped ``real``): ``shifted_loglik`` is, per axis and filter
+    expert, ``log N(z - H x_prior - shift; 0, P_prior + r^2)`` (scipy, float64), and with no shift the filter's own
+    likelihood; ``predictive_loglik(reported=True)`` moves each prediction by the correction reported at the scan
+    before (``before``'s output less its fused estimate): the same as the filter's likelihood of the measurement moved
+    the other way, and the filter's own where ``before`` holds no report."""
+    from scipy.stats import norm
+
+    net = load_network(shipped("real"))
+    z = data[keys.MEASUREMENTS].float()
+    with torch.no_grad():
+        carry = net.initial_carry(z.shape[0])
+        for t in range(12):
+            before, carry = carry, net.scan(carry, z[:, t])
+        after = carry
+        shift = torch.tensor([[0.7, -1.3, 0.4]]).expand(z.shape[0], 3)
+        ll = net.gain.shifted_loglik(after, shift)  # [B, 3 axes, M]
+        torch.testing.assert_close(net.gain.shifted_loglik(after, torch.zeros_like(shift)), after.get(keys.EXPERT_LOGLIK),
+                                   rtol=0, atol=1e-5)
+        x = after.get(keys.EXPERT_PRIOR).double()
+        P = after.get(keys.EXPERT_AUG_PRIOR_COV).double()
+        r2 = after.get(keys.NOISE_VAR).double()
+        for b in range(z.shape[0]):
+            for a in range(3):
+                for m in range(x.shape[1]):
+                    ref = norm.logpdf(float(z[b, 11, a]) - float(x[b, m, 3 * a]) - float(shift[b, a]), 0.0,
+                                      np.sqrt(float(P[b, m, 3 * a, 3 * a] + r2[b])))
+                    assert float(ll[b, a, m]) == pytest.approx(ref, abs=1e-4)
+        # reported: before's correction moves the prediction, as the measurement moved the other way would
+        moved = before.clone()
+        moved.set(keys.OUTPUT, before.get(keys.FUSED) + torch.tensor([0.5, 0.0, 0.0, -2.0, 0.0, 0.0, 1.0, 0.0, 0.0]))
+        got = net.predictive_loglik(moved, after, reported=True)
+        other = after.clone()
+        other.set(keys.MEASUREMENT, after.get(keys.MEASUREMENT) - torch.tensor([0.5, -2.0, 1.0]))
+        other.set(keys.EXPERT_LOGLIK, net.gain.shifted_loglik(other, torch.zeros_like(shift)))
+        torch.testing.assert_close(got, net.predictive_loglik(moved, other), rtol=0, atol=1e-5)
+        assert not torch.allclose(got, net.predictive_loglik(moved, after))
+        bare = before.select(*net.carry_keys)  # no report kept: the filter's own
+        torch.testing.assert_close(net.predictive_loglik(bare, after, reported=True), net.predictive_loglik(bare, after))
+        # a rollout weighs the reported track scan by scan: its first scan after the start, the filter's
+        out, _ = net.rollout(z, return_loglik="reported")
+        plain, _ = net.rollout(z, return_loglik=True)
+        assert torch.equal(torch.isnan(out[keys.LOGLIK]), torch.isnan(plain[keys.LOGLIK]))
+        assert not torch.allclose(out[keys.LOGLIK].nan_to_num(), plain[keys.LOGLIK].nan_to_num())
+
+
+def test_a_banks_likelihood_and_temper_are_checked_by_name():
+    net = build_method("imm-tuned").network().float()
+    with pytest.raises(ValueError, match="likelihood is one of filter, reported, got 'best'"):
+        NetworkBank({"a": net}, likelihood="best")
+    for bad in (0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="temper is a number in \\(0, 1\\]"):
+            NetworkBank({"a": net}, temper=bad)
 
 
 def test_each_member_tracks_the_scans_it_was_trained_for():

@@ -677,6 +677,28 @@ class _FilterExperts:
             nis, ok = maha, has_z[..., 0]
         td.set(keys.Q_SCALE, self.adapt.update(log_scale, torch.where(ok, nis, 0.0), ok))
 
+    def _loglik(self, nu, S, S_inv, logdet, has_z) -> tuple[torch.Tensor, torch.Tensor]:
+        """The innovation log-likelihood ``log N(nu; 0, S)`` per expert (``[B, M]``; modes per group each group's
+        marginal, ``[B, G, M]``), 0 where the measurement is missing, and the Mahalanobis distance ``[B, M]``."""
+        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
+        if self.z_groups is not None:  # each group's own likelihood, the marginal of its coordinates: [B, G, M]
+            return torch.where(has_z, group_loglik(nu, S, self.z_groups), 0.0).transpose(1, 2), maha
+        loglik = -0.5 * (maha + logdet + 3.0 * math.log(2.0 * math.pi))
+        return torch.where(has_z[..., 0], loglik, 0.0), maha
+
+    def shifted_loglik(self, td, shift: torch.Tensor) -> torch.Tensor:
+        """``("expert", "loglik")`` of a scan's output ``td`` had each expert predicted the measurement ``shift
+        [B, 3]`` further (``log N(nu - shift; 0, S)``, the same ``S``: the prior covariance the scan kept and its
+        ``r^2``). What a bank of networks weighs a network with an output correction by: its prediction moved by the
+        correction it reported at the scan before (``IMMNet.predictive_loglik(reported=True)``)."""
+        P = td.get(keys.EXPERT_AUG_PRIOR_COV)
+        r2 = per_expert(td.get(keys.NOISE_VAR), self.n_experts, event_dims=0)[..., None, None]
+        S = P[..., 0:7:3, 0:7:3] + r2.to(P.dtype) * torch.eye(3, dtype=P.dtype, device=P.device)
+        S_inv, logdet = inv3(S)
+        nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR)) - shift.to(P.dtype).unsqueeze(1)
+        has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))
+        return self._loglik(nu, S, S_inv, logdet, has_z)[0]
+
     def _finish(self, td, r2, P, delta=None, nu=None):
         """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
         zero where the measurement is missing; the innovation log-likelihood ``log N(nu; 0, S)``
@@ -688,12 +710,7 @@ class _FilterExperts:
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
-        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
-        if self.z_groups is not None:  # each group's own likelihood, the marginal of its coordinates: [B, G, M]
-            loglik = torch.where(has_z, group_loglik(nu, S, self.z_groups), 0.0).transpose(1, 2)
-        else:
-            loglik = -0.5 * (maha + logdet + 3.0 * math.log(2.0 * math.pi))
-            loglik = torch.where(has_z[..., 0], loglik, 0.0)
+        loglik, maha = self._loglik(nu, S, S_inv, logdet, has_z)
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
         td.set(keys.EXPERT_AUG_PRIOR_COV, P)

@@ -29,7 +29,7 @@ from tensordict.utils import unravel_key
 from immnet import keys
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
-from immnet.motion import MODE_GROUPS, ModelSet, coupling, mode_groups
+from immnet.motion import MODE_GROUPS, POS, ModelSet, coupling, mode_groups
 from immnet.stages.base import Stage, axis_probs, track_where
 from immnet.stages.fuse import Fuse
 from immnet.stages.predict import Predict
@@ -397,7 +397,7 @@ class IMMNet(TensorDictModuleBase):
         probs = expert_probs @ self.mode_onehot.to(expert_probs.dtype)
         return probs if self.groups is None else axis_probs(probs, self.groups).mean(-2)
 
-    def predictive_loglik(self, before: TensorDict, after: TensorDict) -> torch.Tensor:
+    def predictive_loglik(self, before: TensorDict, after: TensorDict, reported: bool = False) -> torch.Tensor:
         """The log-likelihood of a scan's measurement under what the network predicted for it, ``[B]``:
         ``log sum_i c^(i) N(nu^(i); 0, S^(i))``, each filter expert's innovation likelihood (``("expert", "loglik")``)
         weighted by the predicted mode probabilities ``c`` (the IMM's Markov prediction ``Pi^T mu_{t-1}`` where the mode
@@ -405,10 +405,16 @@ class IMMNet(TensorDictModuleBase):
         is the carry the scan started from, ``after`` the scan's. 0 where the scan has no detection (the same factor
         for any tracker); NaN where the track had no estimate to predict from (not started before this scan). What a
         bank of networks weighs its members by (``immnet.tracking.bank``); a ValueError for experts that keep no
-        likelihood (the paper's KalmanNet experts)."""
+        likelihood (the paper's KalmanNet experts).
+
+        ``reported``: the prediction of the track as the network *reports* it: each expert's predicted position moved
+        by the output correction the network reported at the scan before (``before``'s ``("output", "state")`` less
+        its fused estimate; none where ``before`` holds no report, e.g. a track's first scan), ``S`` unchanged
+        (``shifted_loglik`` of the filter experts). For a network without an output correction it is the filter's."""
         if keys.EXPERT_LOGLIK not in after.keys(True, True):
             raise ValueError(f"these experts keep no innovation likelihood: {self.no_cov_reason() or 'no filter experts'}")
-        loglik = after.get(keys.EXPERT_LOGLIK)
+        shift = self.reported_shift(before) if reported else None
+        loglik = after.get(keys.EXPERT_LOGLIK) if shift is None else self.gain.shifted_loglik(after, shift)
         prev = before.get(keys.EXPERT_PROBS)
         prior = getattr(self.classify, "markov_prior", None)
         log_pred = prior(after, prev) if prior is not None else torch.log(prev.clamp_min(1e-30))
@@ -419,6 +425,16 @@ class IMMNet(TensorDictModuleBase):
         mixed = torch.where(torch.isfinite(z).all(-1), mixed, torch.zeros_like(mixed))
         predicted = before.get(keys.AGE) >= self.start_detections
         return torch.where(predicted, mixed, torch.full_like(mixed, float("nan")))
+
+    def reported_shift(self, carry: TensorDict) -> torch.Tensor | None:
+        """``[B, 3]`` the position the network reported at the scan of ``carry`` less its fused estimate (the output
+        correction; 0 where the track has no estimate), or None where ``carry`` holds no report (no output correction,
+        or a carry reduced to ``carry_keys``)."""
+        names = carry.keys(True, True)
+        if keys.OUTPUT not in names or keys.FUSED not in names:
+            return None
+        shift = carry.get(keys.OUTPUT)[..., list(POS)] - carry.get(keys.FUSED)[..., list(POS)]
+        return torch.nan_to_num(shift, nan=0.0, posinf=0.0, neginf=0.0)
 
     # --- the carry ------------------------------------------------------------------------
     def _steps(self, experts_alone: bool):
@@ -506,7 +522,7 @@ class IMMNet(TensorDictModuleBase):
     # --- a whole sequence -----------------------------------------------------------------
     def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False,
                 intervals: torch.Tensor | None = None, return_cov: bool = False, r: torch.Tensor | None = None,
-                truth: dict | None = None, return_loglik: bool = False):
+                truth: dict | None = None, return_loglik: bool | str = False):
         """Run over ``measurements [B, T, 3]`` (``[B, M, T, 3]`` experts alone), with the interval before each
         scan ``intervals [B, T]`` (``immnet.data.times.scan_intervals``; None: the nominal ``dt`` at every scan)
         and, for filter experts told it (``r="data"``), each track's measurement std ``r [B]``; ``truth``: an
@@ -517,7 +533,7 @@ class IMMNet(TensorDictModuleBase):
         ``[B, T, M]`` and ``expert_post [B, T, M, 9]`` (not experts alone), and with ``return_cov`` the fused
         covariance ``state_cov [B, T, 9, 9]`` (``[B, T, M, 9, 9]`` experts alone; a ValueError saying why where
         the experts carry none, ``has_cov``), and with ``return_loglik`` each scan's ``loglik [B, T]``
-        (``predictive_loglik``); ``carry`` continues the rollout (truncated BPTT detaches it
+        (``predictive_loglik``; ``"reported"``: of the track as reported); ``carry`` continues the rollout (truncated BPTT detaches it
         between chunks).
         """
         B, T = measurements.shape[0], measurements.shape[-2]
@@ -537,7 +553,7 @@ class IMMNet(TensorDictModuleBase):
             if return_cov:
                 covs.append(self.reported_cov(carry))
             if return_loglik and not experts_alone:
-                logliks.append(self.predictive_loglik(before, carry))
+                logliks.append(self.predictive_loglik(before, carry, reported=return_loglik == "reported"))
             if not experts_alone:
                 probs.append(carry.get(keys.EXPERT_PROBS))
                 logits.append(carry.get(keys.MODE_LOGITS))

@@ -97,14 +97,29 @@ def _weighed(loglik: torch.Tensor, takes: torch.Tensor) -> torch.Tensor:
     return torch.where(every & takes, loglik, torch.zeros((), dtype=loglik.dtype))
 
 
+LIKELIHOODS = ("filter", "reported")
+"""What a member is weighed by: its filter's predictive density (``IMMNet.predictive_loglik``), or the density of the
+track as it reports it (``reported=True``: the filter's prediction moved by the member's output correction of the
+scan before; the default, docs/tracking.md "A bank of networks")."""
+TEMPER = 0.5
+"""The shipped bank's power of each scan's likelihood (chosen on the validation sets, docs/tracking.md)."""
+
+
 class NetworkBank:
     """Trained networks run side by side on each track and weighed by how well each predicts it (module doc).
 
     ``members``: name -> ``IMMNet`` (filter experts, each estimating its tracks' r); ``prior``: each member's prior
-    probability (default: equal), positive, as many as members. ``max_position``: the gate on measurements, as
-    ``Tracker``'s."""
+    probability (default: equal), positive, as many as members. ``likelihood``: ``LIKELIHOODS``; ``temper``: the
+    power ``0 < temper <= 1`` of each scan's likelihood (a tempered posterior: members' densities that are too sure of
+    themselves weigh less). ``max_position``: the gate on measurements, as ``Tracker``'s."""
 
-    def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION):
+    def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
+                 likelihood: str = "reported", temper: float = TEMPER):
+        if likelihood not in LIKELIHOODS:
+            raise ValueError(f"a bank's likelihood is one of {', '.join(LIKELIHOODS)}, got {likelihood!r}")
+        if not (isinstance(temper, (int, float)) and math.isfinite(temper) and 0 < temper <= 1):
+            raise ValueError(f"a bank's temper is a number in (0, 1], got {temper!r}")
+        self.likelihood, self.temper = likelihood, float(temper)
         if not members:
             raise ValueError("a bank of networks needs at least one member")
         for name, net in members.items():
@@ -130,11 +145,13 @@ class NetworkBank:
 
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
-                   max_position: float = MAX_ABS_POSITION) -> "NetworkBank":
+                   max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
+                   temper: float = TEMPER) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded by ``load_network``
         with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
         whose modes are the whole target's, since a guard's transitions cannot be per axis: ``IMMNet(modes=...)``),
-        ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy)."""
+        ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``:
+        the bank's."""
         members = list(members)
         if len(set(map(str, members))) != len(members):
             raise ValueError(f"a bank's members are named once each, got {members}")
@@ -143,7 +160,7 @@ class NetworkBank:
             path = _member_path(m)
             joint = read_checkpoint(path)[0].get("modes", "joint") == "joint"
             nets[str(m)] = load_network(path, guard=guard if joint else None, adapt=adapt, r=r)
-        return cls(nets, prior, max_position)
+        return cls(nets, prior, max_position, likelihood, temper)
 
     has_cov = True  # every member keeps one (checked when built)
 
@@ -200,13 +217,16 @@ class NetworkBank:
             if not len(rows):
                 continue
             own = net.own_intervals(intervals[rows])  # as it runs alone (IMMNet.intervals_for)
-            out, _ = run_network(net, z[rows], batch_size, own, return_cov, None, True, self.max_position)
+            out, _ = run_network(net, z[rows], batch_size, own, return_cov, None,
+                                 "reported" if self.likelihood == "reported" else True, self.max_position)
             state[rows, :, k] = out[keys.STATE].double()
             probs[rows, :, k] = out[keys.MODE_PROBS].double()
             loglik[rows, :, k] = out[keys.LOGLIK].double()
             if return_cov:
                 cov[rows, :, k] = out[keys.STATE_COV].double()
-        log_w = self.log_prior + _weighed(loglik, takes[:, None, :]).cumsum(1)
+        inc = self.temper * _weighed(loglik, takes[:, None, :])
+        inc[:, 0] += self.log_prior  # summed in step's order, scan by scan from the prior: the same rounding
+        log_w = inc.cumsum(1)
         out = _mix(log_w.masked_fill(~takes[:, None, :], float("-inf")), state, probs, cov)
         waiting = before_first_detection(z)
         return TensorDict({k: blank_before_first_detection(v, waiting) for k, v in out.items()}, batch_size=[B, T])
@@ -217,9 +237,22 @@ class NetworkBank:
         """The interval a scan given without one is taken at: the first member's ``dt``."""
         return float(next(iter(self.members.values())).dt)
 
+    def _fresh(self, net: IMMNet, n_tracks: int) -> TensorDict:
+        """A member's carry for tracks that have not started: its own, with the report of the scan before
+        (``("output", "state")``, zero) where the bank weighs what the member reports and the member corrects it."""
+        carry = net.initial_carry(n_tracks)
+        if self.likelihood == "reported" and net.correct is not None:
+            carry.set(keys.OUTPUT, torch.zeros_like(carry.get(keys.FUSED)))
+        return carry
+
+    def _kept(self, net: IMMNet, after: TensorDict) -> TensorDict:
+        """What a member keeps of a scan's output: its carry (and its report, as ``_fresh``)."""
+        extra = (keys.OUTPUT,) if self.likelihood == "reported" and net.correct is not None else ()
+        return after.select(*net.carry_keys, *extra)
+
     def reset(self, n_tracks: int) -> None:
         """``n_tracks`` tracks that have not started, each member at its prior; ``n_gated`` back to 0."""
-        self.carries = {name: net.initial_carry(n_tracks) for name, net in self.members.items()}
+        self.carries = {name: self._fresh(net, n_tracks) for name, net in self.members.items()}
         self.log_w = self.log_prior.expand(n_tracks, -1).clone()
         self.n_gated = 0
 
@@ -259,25 +292,25 @@ class NetworkBank:
         for k, (name, net) in enumerate(self.members.items()):
             carry = self.carries[name]
             if reset is not None:
-                carry = select_rows(reset, net.initial_carry(B), carry)
+                carry = select_rows(reset, self._fresh(net, B), carry)
             rows = takes[:, k].nonzero().flatten()
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):
                 before = carry if every else carry[rows]
                 iv = interval[rows].to(torch.float32)
                 after = net.scan(before, z[rows], interval=None if bool((iv == net.dt).all()) else iv)
-                loglik[rows, k] = net.predictive_loglik(before, after).double()
+                loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood == "reported").double()
                 state[rows, k] = net.estimate(after).double()
                 cov[rows, k] = net.reported_cov(after).double()
                 probs[rows, k] = net.to_mode_probs(after.get(keys.EXPERT_PROBS)).double()
                 age[rows] = torch.maximum(age[rows], after.get(keys.AGE))
                 if every:
-                    carry = after.select(*net.carry_keys)
+                    carry = self._kept(net, after)
                 else:
                     carry = carry.clone()
-                    carry[rows] = after.select(*net.carry_keys)
+                    carry[rows] = self._kept(net, after)
             self.carries[name] = carry
-        self.log_w = (log_w + _weighed(loglik, takes)).masked_fill(~takes, float("-inf"))
+        self.log_w = (log_w + self.temper * _weighed(loglik, takes)).masked_fill(~takes, float("-inf"))
         out = _mix(self.log_w, state, probs, cov)
         waiting = (age == 0)[:, None]  # no detection yet: no estimate
         names = {keys.FUSED: keys.STATE, keys.FUSED_COV: keys.STATE_COV, keys.MODE_PROBS: keys.MODE_PROBS,
@@ -289,15 +322,17 @@ class NetworkBank:
 class BankMethod:
     """A bank of networks (``NetworkBank``) as a method of ``immnet evaluate`` and ``immnet track --method``:
     ``members`` shipped names or checkpoint paths, ``prior`` their prior probabilities, ``guard``, ``adapt`` and ``r``
-    each member's (``load_network``'s; no range guard unless asked). Its output: ``state``, ``mode_probs`` and, with ``return_cov``,
+    each member's (``load_network``'s; no range guard unless asked), ``likelihood`` and ``temper`` the bank's. Its output: ``state``, ``mode_probs`` and, with ``return_cov``,
     ``state_cov``."""
 
     needs: tuple[str, ...] = ()
 
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
-                 guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION):
+                 guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
+                 likelihood: str = "reported", temper: float = TEMPER):
         self.name = name
-        self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position)
+        self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
+                                          likelihood=likelihood, temper=temper)
         self.batch_size = batch_size
         self.return_cov = return_cov
 

@@ -137,7 +137,7 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
 
 @torch.no_grad()
 def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
-                return_cov: bool = False, r: torch.Tensor | None = None, return_loglik: bool = False,
+                return_cov: bool = False, r: torch.Tensor | None = None, return_loglik: bool | str = False,
                 max_position: float = MAX_ABS_POSITION) -> tuple[TensorDict, int]:
     """``Tracker.track``'s work, ``(outputs, n_gated)``: ``z [B, T, 3]`` (float32) gated (``max_position``), a gap
     longer than a range network's range cut into missed scans (:func:`coast_long_gaps`), every interval checked
