@@ -5,11 +5,13 @@ takes a track whose every interval lies in the range once an interval longer tha
 inside it, as ``Tracker.track`` coasts it; a network trained at one interval takes a track scanned at that interval
 throughout), and
 the bank reports, scan by scan, the members' estimates weighted by each member's probability for that track: its
-prior times the likelihood of the track's measurements under the member's own predictions so far,
+prior times the likelihood of the track's measurements under the member's own predictions so far, tempered,
 
-    p_k(t) = p_k(0) prod_{s <= t} p(z_s | z_<s, k) / normalization
+    p_k(t) = p_k(0) prod_{s <= t} p(z_s | z_<s, k)^temper / normalization
 
-(``IMMNet.predictive_loglik``: the member's IMM mixture of its filter experts' innovation likelihoods). This is the
+(``IMMNet.predictive_loglik``: the member's IMM mixture of its filter experts' innovation likelihoods; by default of
+the track as the member reports it, each prediction moved by the member's output correction of the scan before, and
+``temper`` 0.5: ``LIKELIHOODS``, ``TEMPER``). This is the
 static multiple-model estimator (Magill 1965; Bar-Shalom, Li and Kirubarajan, *Estimation with Applications to
 Tracking and Navigation*, 2001, "the static multiple model estimator"): the members are hypotheses about the whole
 track (a real aircraft at 1 s, at 5 s, a 3D-LAST target), not about a scan, so, unlike an IMM's modes, no member's
@@ -322,8 +324,8 @@ class NetworkBank:
 class BankMethod:
     """A bank of networks (``NetworkBank``) as a method of ``immnet evaluate`` and ``immnet track --method``:
     ``members`` shipped names or checkpoint paths, ``prior`` their prior probabilities, ``guard``, ``adapt`` and ``r``
-    each member's (``load_network``'s; no range guard unless asked), ``likelihood`` and ``temper`` the bank's. Its output: ``state``, ``mode_probs`` and, with ``return_cov``,
-    ``state_cov``."""
+    each member's (``load_network``'s; no range guard unless asked), ``likelihood`` and ``temper`` the bank's. Its
+    output: ``state``, ``mode_probs`` and, with ``return_cov``, ``state_cov``."""
 
     needs: tuple[str, ...] = ()
 
