@@ -127,13 +127,21 @@ def file_digest(path) -> str:
 
 
 # --- reading ------------------------------------------------------------------------------------
+_UNREADABLE = (OSError, EOFError, UnicodeDecodeError, gzip.BadGzipFile)
+"""What reading a sample file can raise that means it cannot be read (refused by name as a ValueError)."""
+
+
+def _open_text(path: Path, **kwargs):
+    """``path`` opened as text, gzip decompressed where it is gzip, whatever its name (its first two bytes)."""
+    with open(path, "rb") as f:
+        zipped = f.read(2) == b"\x1f\x8b"
+    return (gzip.open if zipped else open)(path, "rt", **kwargs)
+
+
 def _load_json(path: Path):
     """The JSON value of a file (gzip decompressed, whatever its name; ``.jsonl``: a list of its lines' values)."""
     try:
-        with open(path, "rb") as f:
-            zipped = f.read(2) == b"\x1f\x8b"
-        opener = gzip.open if zipped else open
-        with opener(path, "rt", encoding="utf-8") as f:
+        with _open_text(path, encoding="utf-8") as f:
             if ".jsonl" in path.name:
                 out = []
                 for i, line in enumerate(f, 1):
@@ -146,7 +154,7 @@ def _load_json(path: Path):
             return json.load(f)
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: not valid JSON ({err})") from None
-    except (OSError, EOFError, UnicodeDecodeError, gzip.BadGzipFile) as err:
+    except _UNREADABLE as err:
         raise ValueError(f"{path}: cannot be read ({type(err).__name__}: {err})") from None
 
 
@@ -167,10 +175,7 @@ def _load_csv(path: Path) -> list[dict]:
     """The rows of a CSV file with a header (gzip decompressed, whatever its name) as records; ``icao24`` kept as
     text (an address such as ``400123`` is no number)."""
     try:
-        with open(path, "rb") as f:
-            zipped = f.read(2) == b"\x1f\x8b"
-        opener = gzip.open if zipped else open
-        with opener(path, "rt", encoding="utf-8-sig", newline="") as f:  # a spreadsheet's BOM dropped
+        with _open_text(path, encoding="utf-8-sig", newline="") as f:  # a spreadsheet's BOM dropped
             reader = csv.DictReader(f)
             if not reader.fieldnames:
                 raise ValueError(f"{path}: an empty CSV file (no header row)")
@@ -179,10 +184,10 @@ def _load_csv(path: Path) -> list[dict]:
                 if None in row:  # more cells than the header names
                     raise ValueError(f"{path}: data row {i + 1} has {len(reader.fieldnames) + len(row[None])} cells, "
                                      f"the header {len(reader.fieldnames)}")
-                out.append({k: (v.strip() or None) if k == "icao24" and v is not None else
-                            None if v is None else _csv_value(v) for k, v in row.items()})
+                out.append({k: None if v is None else (v.strip() or None) if k == "icao24" else _csv_value(v)
+                            for k, v in row.items()})
             return out
-    except (OSError, EOFError, UnicodeDecodeError, gzip.BadGzipFile, csv.Error) as err:
+    except (*_UNREADABLE, csv.Error) as err:
         raise ValueError(f"{path}: cannot be read ({type(err).__name__}: {err})") from None
 
 
