@@ -431,6 +431,12 @@ class FilterUpdate(Update):
         return td
 
 
+def innovation_cov(P: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
+    """``S = H P H^T + r^2 I`` of a prior covariance ``P [..., 9 or 10, 9 or 10]`` (its positions' block, ``POS``) and
+    the measurement variance ``r2`` (broadcasting as ``[..., 1, 1]``)."""
+    return P[..., 0:7:3, 0:7:3] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
+
+
 class _FilterExperts:
     """What every filter-expert gain shares: the measurement-noise estimate, the carry of a starting
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
@@ -693,7 +699,7 @@ class _FilterExperts:
         correction it reported at the scan before (``IMMNet.predictive_loglik(reported=True)``)."""
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = per_expert(td.get(keys.NOISE_VAR), self.n_experts, event_dims=0)[..., None, None]
-        S = P[..., 0:7:3, 0:7:3] + r2.to(P.dtype) * torch.eye(3, dtype=P.dtype, device=P.device)
+        S = innovation_cov(P, r2.to(P.dtype))
         S_inv, logdet = inv3(S)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR)) - shift.to(P.dtype).unsqueeze(1)
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))
@@ -703,7 +709,7 @@ class _FilterExperts:
         """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
         zero where the measurement is missing; the innovation log-likelihood ``log N(nu; 0, S)``
         (``nu`` the innovation, if the caller has it)."""
-        S = P[..., 0:7:3, 0:7:3] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)  # the positions (POS)
+        S = innovation_cov(P, r2)
         S_inv, logdet = inv3(S)
         K = small_matmul(P[..., :, 0:7:3], S_inv)  # [B, M, 10, 3]
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))  # [B, M, 1]
@@ -876,7 +882,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         Q_parts = self.q_parts(td, base)
         scale = self._noise_scale(td, base)  # [B, M, 5] or None; the whitening below uses the scaled noise too
         Q0 = Q_parts.sum(-3) if scale is None else _noise(scale, Q_parts)
-        S0 = (base + Q0)[..., 0:7:3, 0:7:3] + r2 * torch.eye(3, dtype=base.dtype, device=base.device)
+        S0 = innovation_cov(base + Q0, r2)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         white = slog(nu / torch.diagonal(S0, dim1=-2, dim2=-1).sqrt(), 1.0)
         f1, f2, f3, f4, white = (f.transpose(0, 1) for f in (*self.features(td), white))
