@@ -21,10 +21,10 @@ detection), the filter started as every model-based one (``immnet.filters.imm.in
 - with ``--imm METHOD`` (a decoupled IMM of ``configs/methods/``, ``PerAxisIMMTracker``), the same input on each of its
   models' predictions, its process noise scaled by a factor ``s`` (a filter told the change needs less of it).
 
-Each row's setting (``c``; ``q``; ``s``) is chosen on ``--tune`` (the validation flights) and the row is scored on ``--data``
-with it; ``--baseline`` methods (``configs/methods/``) are scored on ``--data`` in the same run, the first the ratio's
-reference. ``--plot`` draws the reports of several runs (``--json``) as one figure: the best filter's ratio against how
-late, in seconds, the change is told, the other baselines (the shipped networks) as levels.
+Each row's setting (``c``; ``q``; ``s``) is chosen on ``--tune`` (the validation flights) and the row is scored on
+``--data`` with it; ``--baseline`` methods (``configs/methods/``) are scored on ``--data`` in the same run, the first
+the ratio's reference. ``--plot`` draws the reports of several runs (``--json``) as one figure: the best filter's
+ratio against how late, in seconds, the change is told, the other baselines (the shipped networks) as levels.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from immnet.config import instantiate, load_yaml
 from immnet.data.storage import as_batch, load_dataset
 from immnet.data.times import scan_intervals
 from immnet.evaluation.methods import method_config
-from immnet.evaluation.metrics import position_error, rmse, scored_mask
+from immnet.evaluation.search import average_rmse, states_rmse
 from immnet.filters import per_axis
 from immnet.filters.base import output
 from immnet.filters.imm import first_detection, initial_state
@@ -102,10 +102,10 @@ def ca_filter(z: torch.Tensor, r: torch.Tensor, intervals: torch.Tensor, q: torc
     return output(states, {}, measurements=z)[keys.STATE]
 
 
-def score(states: torch.Tensor, batch) -> float:
-    """The table's Average RMSE (``immnet evaluate``'s)."""
-    truth = batch[keys.STATES]
-    return rmse(position_error(states, truth), scored_mask(truth, batch[keys.MEASUREMENTS]))["avg"]
+def late_input(batch, d: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(intervals [B, T], input [B, T, 9])``: the state change of the truth's jerk ``d`` scans late."""
+    iv = scan_intervals(batch, torch.float64)
+    return iv, jerk_input(delayed(truth_jerk(batch[keys.STATES], iv), d), iv)
 
 
 def size_oracle(batch, c: float) -> torch.Tensor:
@@ -117,8 +117,7 @@ def size_oracle(batch, c: float) -> torch.Tensor:
 
 def input_oracle(batch, d: int, q: float) -> torch.Tensor:
     """The change-itself row's states, ``d`` scans late, white-jerk noise ``q``."""
-    iv = scan_intervals(batch, torch.float64)
-    u = jerk_input(delayed(truth_jerk(batch[keys.STATES], iv), d), iv)
+    iv, u = late_input(batch, d)
     z = batch[keys.MEASUREMENTS]
     return ca_filter(z, batch[keys.R], iv, torch.full((*z.shape[:2], 3), q, dtype=torch.float64), u)
 
@@ -132,8 +131,7 @@ def imm_input_oracle(batch, config: dict, d: int, scale: float) -> torch.Tensor:
     method = instantiate(config)
     if not isinstance(method, per_axis.PerAxisIMMTracker):
         raise ValueError(f"--imm takes a decoupled IMM (PerAxisIMMTracker), got {type(method).__name__}")
-    iv = scan_intervals(batch, torch.float64)
-    u = jerk_input(delayed(truth_jerk(batch[keys.STATES], iv), d), iv)
+    _, u = late_input(batch, d)
     B, T = u.shape[:2]
     u = u.reshape(B, T, 3, 3).permute(2, 0, 1, 3).reshape(3 * B, T, 3)  # the tracker's axis-major tracks
 
@@ -237,17 +235,16 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    rows = [{"row": m, "kind": "baseline", "setting": "", "average": score(method.track(sets["data"])[keys.STATE],
-                                                                             sets["data"])}
+    rows = [{"row": m, "kind": "baseline", "setting": "", "average": average_rmse(method, sets["data"])}
             for m, method in baselines.items()]
 
     def chosen(label: str, kind: str, delay, run_with, settings):
-        tuned = {s: score(run_with(sets["tune"], s), sets["tune"]) for s in settings}
+        tuned = {s: states_rmse(run_with(sets["tune"], s), sets["tune"]) for s in settings}
         best = min(tuned, key=tuned.get)
         print(f"[oracle] {label}: {', '.join(f'{s:g} {v:.4f}' for s, v in tuned.items())} on --tune; {best:g}",
               file=sys.stderr, flush=True)
         rows.append({"row": label, "kind": kind, "delay": delay, "setting": f"{best:g}",
-                     "average": score(run_with(sets["data"], best), sets["data"])})
+                     "average": states_rmse(run_with(sets["data"], best), sets["data"])})
 
     chosen("CA told the size of each scan's change of acceleration (noise per scan and axis), c", "size", None,
            size_oracle, args.scales)
@@ -258,10 +255,12 @@ def main(argv=None) -> int:
         chosen(f"{args.imm} told the change itself, {d} scans late, noise x", "imm", d,
                lambda b, s, d=d: imm_input_oracle(b, imm, d, s), args.imm_scales)
     base = rows[0]["average"] if baselines else None
-    print(f"| {args.data} | setting (chosen on {args.tune}) | Average [m] |" + (f" / {rows[0]['row']} |" if base else ""))
+    ratio = (lambda v: f" {v / base:.3f}x |") if base else (lambda v: "")
+    head = f" / {rows[0]['row']} |" if base else ""
+    print(f"| {args.data} | setting (chosen on {args.tune}) | Average [m] |{head}")
     print("|:---|---:|---:|" + ("---:|" if base else ""))
     for r in rows:
-        print(f"| {r['row']} | {r['setting']} | {r['average']:.3f} |" + (f" {r['average'] / base:.3f}x |" if base else ""))
+        print(f"| {r['row']} | {r['setting']} | {r['average']:.3f} |" + ratio(r["average"]))
     if args.json:
         interval = float(scan_intervals(sets["data"], torch.float64)[:, 1:].nanmean())
         args.json.write_text(json.dumps({"tune": args.tune, "data": args.data, "label": args.label or args.data,

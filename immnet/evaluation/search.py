@@ -72,7 +72,11 @@ def coordinate_search(score: Callable[[dict], float], grid: dict, start: dict, m
 def average_rmse(method, batch: TensorDict) -> float:
     """Average RMSE (m) of ``method`` on ``batch`` over the scans ``immnet evaluate`` scores (``scored_mask``)."""
     with torch.no_grad():
-        state = method.track(batch)[keys.STATE]
+        return states_rmse(method.track(batch)[keys.STATE], batch)
+
+
+def states_rmse(state: torch.Tensor, batch: TensorDict) -> float:
+    """Average RMSE (m) of estimates ``state [B, T, 9]`` of ``batch``'s tracks, as ``average_rmse``."""
     mask = scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS])
     return rmse(position_error(state, batch[keys.STATES]), mask)["avg"]
 

@@ -239,18 +239,22 @@ class NetworkBank:
         """The interval a scan given without one is taken at: the first member's ``dt``."""
         return float(next(iter(self.members.values())).dt)
 
+    def _keeps_report(self, net: IMMNet) -> bool:
+        """The member's report of the scan before is kept in its carry: the bank weighs what the member reports and
+        the member corrects its output."""
+        return self.likelihood == "reported" and net.correct is not None
+
     def _fresh(self, net: IMMNet, n_tracks: int) -> TensorDict:
         """A member's carry for tracks that have not started: its own, with the report of the scan before
-        (``("output", "state")``, zero) where the bank weighs what the member reports and the member corrects it."""
+        (``("output", "state")``, zero) where it is kept (``_keeps_report``)."""
         carry = net.initial_carry(n_tracks)
-        if self.likelihood == "reported" and net.correct is not None:
+        if self._keeps_report(net):
             carry.set(keys.OUTPUT, torch.zeros_like(carry.get(keys.FUSED)))
         return carry
 
     def _kept(self, net: IMMNet, after: TensorDict) -> TensorDict:
         """What a member keeps of a scan's output: its carry (and its report, as ``_fresh``)."""
-        extra = (keys.OUTPUT,) if self.likelihood == "reported" and net.correct is not None else ()
-        return after.select(*net.carry_keys, *extra)
+        return after.select(*net.carry_keys, *((keys.OUTPUT,) if self._keeps_report(net) else ()))
 
     def reset(self, n_tracks: int) -> None:
         """``n_tracks`` tracks that have not started, each member at its prior; ``n_gated`` back to 0."""
