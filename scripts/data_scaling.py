@@ -80,9 +80,8 @@ def train(r: dict, recipe_path: Path, recipe: dict, data: Path) -> None:
 
 def figure(rows: list[dict], sets: list[str], path: Path, what: str = "quickstart-1s") -> None:
     """Each network's ratio to the best filter against its training flights, one panel line per set."""
-    import matplotlib
+    from immnet.evaluation.figures import save_figure  # matplotlib on its Agg backend
 
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
@@ -104,9 +103,7 @@ def figure(rows: list[dict], sets: list[str], path: Path, what: str = "quickstar
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def main(argv=None) -> int:

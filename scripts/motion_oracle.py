@@ -159,9 +159,8 @@ def figure(reports: list[dict], path: Path) -> None:
     """The ratio to each report's first baseline against how late the best filter is told the change (s: scans times
     the set's interval), a line per report; its other baselines (the shipped networks) dotted levels of its colour, the
     0.90x target a black dashed one. The CA rows are in the table, not here."""
-    import matplotlib
+    from immnet.evaluation.figures import save_figure  # matplotlib on its Agg backend
 
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
@@ -181,9 +180,7 @@ def figure(reports: list[dict], path: Path) -> None:
     ax.legend(fontsize=8, loc="lower right")
     ax.set_title("What a tracker would need to know (dotted: the shipped network on that set)", fontsize=9)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    save_figure(fig, path, dpi=130)
 
 
 def main(argv=None) -> int:

@@ -75,7 +75,7 @@ def plot_rmse_over_time(curves: Mapping[str, object], path, title="Position RMSE
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_track(truth, measurements, estimates: Mapping[str, object], path, mode=None, before=2, after=10, title=None):
@@ -131,7 +131,7 @@ def plot_track(truth, measurements, estimates: Mapping[str, object], path, mode=
         zax.set_ylabel("y - y(S) [m]", fontsize=8)
         zax.tick_params(labelsize=7)
         zax.grid(True, alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_mode_probs(mode_probs: Mapping[str, object], mode, path, dt=1.0):
@@ -153,7 +153,7 @@ def plot_mode_probs(mode_probs: Mapping[str, object], mode, path, dt=1.0):
         ax.set_ylabel(name, fontsize=9)
     axes[0, 0].legend(loc="lower left", bbox_to_anchor=(0, 1.12), ncol=4, fontsize=8, frameon=False)
     axes[-1, 0].set_xlabel("time [s]")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_confusion(conf, path, title="mode confusion"):
@@ -174,13 +174,14 @@ def plot_confusion(conf, path, title="mode confusion"):
     acc = np.trace(c) / max(c.sum(), 1)
     ax.set_title(f"{title}\naccuracy {100 * acc:.1f} %", fontsize=10)
     fig.colorbar(im, ax=ax, fraction=0.046)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
-def _save(fig, path) -> Path:
+def save_figure(fig, path, dpi: int = 110) -> Path:
+    """Write ``fig`` to ``path`` (its folder made) and close it; the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
 
