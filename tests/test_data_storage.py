@@ -9,7 +9,7 @@ import torch
 from immnet.data import storage
 from immnet.data.generate import BLOCK, generate
 from immnet.data.spec import DataSpec
-from immnet.data.storage import STORE_DTYPES, export_npz, load_dataset, write_dataset
+from immnet.data.storage import STORE_DTYPES, export_npz, load_dataset, tensor_files, write_dataset
 
 SPEC = DataSpec(T=50, min_segment=10)
 
@@ -251,12 +251,12 @@ def test_directory_values_are_checked(tmp_path, key, value, msg):
     """Issue 20, item 2: a data set directory's arrays pass the same checks as an .npz (a tensor
     edited on disk is refused by name, not trained or scored on)."""
     out = write_dataset(tmp_path / "ds", 20, 0, SPEC)
-    td, _ = load_dataset(out)
-    a = np.memmap(td[key].filename, dtype=td[key].numpy().dtype, mode="r+", shape=tuple(td[key].shape))
+    file, _, shape = tensor_files(out / "tensors")[0][key]
+    a = np.memmap(file, dtype=str(STORE_DTYPES[key]).removeprefix("torch."), mode="r+", shape=shape)
     idx = 3 if key in ("dt", "r") else (4, 7) if key == "mode" else (4, 7, 1)
     a[idx] = value
     a.flush()
-    del a, td
+    del a
     with pytest.raises(ValueError, match=msg):
         load_dataset(out)
 
@@ -343,11 +343,11 @@ def test_malformed_scan_times_are_refused_by_name(tmp_path, make, msg):
 
 def test_directory_scan_times_are_checked(tmp_path):
     out = write_dataset(tmp_path / "ds", 20, 0, SPEC)
-    td, _ = load_dataset(out)
-    a = np.memmap(td["t"].filename, dtype=np.float64, mode="r+", shape=tuple(td["t"].shape))
+    file, _, shape = tensor_files(out / "tensors")[0]["t"]
+    a = np.memmap(file, dtype=np.float64, mode="r+", shape=shape)
     a[6, 9] = a[6, 8]
     a.flush()
-    del a, td
+    del a
     with pytest.raises(ValueError, match=r"'t' is not strictly increasing at \[6, 9\]"):
         load_dataset(out)
 
@@ -370,3 +370,59 @@ def test_a_directory_without_scan_times_still_loads(tmp_path):
     assert torch.equal(iv, torch.full((20, 50), 5.0, dtype=torch.float64))
     back, _ = load_dataset(export_npz(out, tmp_path / "old.npz"))
     assert "t" not in back.keys() and (back["dt"] == 5.0).all()
+
+
+def test_writing_into_a_loaded_set_never_reaches_its_files(tmp_path):
+    """A tracker or script that edits a loaded batch in place (marks a scan missed) changes its own copy: the data
+    set on disk keeps its bytes, and loads as written."""
+    out = write_dataset(tmp_path / "ds", 20, 0, SPEC)
+    before = {f.name: f.read_bytes() for f in (out / "tensors").iterdir()}
+    td, _ = load_dataset(out)
+    td["measurements"][2, 5] = float("nan")
+    td["states"].mul_(2.0)
+    assert torch.isnan(td["measurements"][2, 5]).all()
+    assert {f.name: f.read_bytes() for f in (out / "tensors").iterdir()} == before
+    again, _ = load_dataset(out)
+    assert not torch.isnan(again["measurements"][2, 5]).any()
+
+
+def test_a_pickled_field_in_a_set_is_refused_unread(tmp_path):
+    """tensordict stores a non-tensor field as a pickle and unpickles it on loading; a data set directory holding
+    one (or any tensor that is not the set's own) is refused by name before anything in it runs."""
+    import os
+    import pickle
+
+    sentinel = tmp_path / "ran"
+
+    class Runs:
+        def __reduce__(self):
+            return (os.system, (f"touch {sentinel}",))
+
+    out = write_dataset(tmp_path / "ds", 20, 0, SPEC)
+    tensors = out / "tensors"
+    meta = json.loads((tensors / "meta.json").read_text())
+    (tensors / "o").mkdir()
+    (tensors / "o" / "meta.json").write_text(json.dumps({"_type": "<class 'tensordict.tensorclass.NonTensorData'>",
+                                                          "_is_non_tensor": True, "_metadata": None}))
+    (tensors / "o" / "other.pickle").write_bytes(pickle.dumps(Runs()))
+    (tensors / "meta.json").write_text(json.dumps({**meta, "o": {"type": "NonTensorData"}}))
+    with pytest.raises(ValueError, match=r"holds 'o', not one of a data set's tensors"):
+        load_dataset(out)
+    assert not sentinel.exists()
+
+
+@pytest.mark.parametrize("edit, msg", [
+    (lambda m, d: m["states"].update(dtype="torch.float64"), r"'states' is .*expected a torch.float32 tensor"),
+    (lambda m, d: m["r"].update(shape=[19]), r"'r' is .*of shape \[20, \.\.\.\]"),
+    (lambda m, d: (d / "r.memmap").write_bytes((d / "r.memmap").read_bytes()[:-4]), r"r.memmap: 76 bytes, 'r' \[20\] needs 80"),
+    (lambda m, d: (d / "dt.memmap").unlink(), r"dt.memmap: missing"),
+    (lambda m, d: m.update(shape=[20, 2]), r"no batch shape \[n\]"),
+], ids=["dtype", "shape", "truncated", "missing", "batch"])
+def test_a_tensors_directory_unlike_its_meta_is_refused_by_name(tmp_path, edit, msg):
+    out = write_dataset(tmp_path / "ds", 20, 0, SPEC)
+    tensors = out / "tensors"
+    meta = json.loads((tensors / "meta.json").read_text())
+    edit(meta, tensors)
+    (tensors / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=msg):
+        load_dataset(out)

@@ -24,6 +24,7 @@ from immnet.data.generate import BLOCK
 from immnet.data.scratch import publishing
 from immnet.data.storage import (
     META, STORE_DTYPES, TENSORS, _allocate, _check_out, _meta, _rows, _write_meta, load_dataset, shard_rows,
+    tensor_files,
 )
 from immnet.motion import MODE_NAMES
 
@@ -122,6 +123,7 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
             counts = [0] * len(MODE_NAMES)
             for d, meta in shards:
                 src_td, _ = load_dataset(d)
+                src_files, _ = tensor_files(d / TENSORS)
                 row0, n = meta["shard"]["rows"][0], meta["n"]
                 for key, dtype in STORE_DTYPES.items():
                     dtype = str(dtype).removeprefix("torch.")
@@ -131,7 +133,7 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
                         if key not in src_td.keys():  # a shard written before scan times were stored: k dt
                             src = np.arange(T, dtype=np.float64) * src_td[keys.DT][a : a + m].double().numpy()[:, None]
                         else:
-                            src = _rows(src_td[key].filename, dtype, trail, a, m, "r")
+                            src = _rows(src_files[key][0], dtype, trail, a, m, "r")
                         dst = _rows(dst_td[key].filename, dtype, trail, row0 + a, m, "r+")
                         dst[:] = src
                         dst.flush()

@@ -29,6 +29,7 @@ with ``allow_pickle=False`` (nothing in it is executed).
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing as mp
 import zipfile
 import zlib
@@ -36,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import MemoryMappedTensor, TensorDict
+from tensordict import TensorDict
 
 from immnet import keys
 from immnet.data.contract import TRAIL, check_arrays
@@ -261,10 +262,7 @@ def _load_dir(path: Path) -> tuple[TensorDict, dict]:
             raise ValueError(f"{meta_path}: field {k!r} is missing")
     if not (path / TENSORS).is_dir():
         raise FileNotFoundError(f"{path}: the tensors directory {TENSORS}/ is missing")
-    try:
-        td = TensorDict.load_memmap(path / TENSORS)
-    except (OSError, ValueError, KeyError, RuntimeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: the tensors in {TENSORS}/ cannot be read ({type(err).__name__}: {err})") from None
+    td = map_tensors(path / TENSORS)
     n, T = int(meta["n"]), int(meta["T"])
     if tuple(td.batch_size) != (n,):
         raise ValueError(f"{path}: {META} says n={n} but the tensors hold {tuple(td.batch_size)}")
@@ -279,6 +277,57 @@ def _load_dir(path: Path) -> tuple[TensorDict, dict]:
         if counts != expected:
             raise ValueError(f"{path}: mode counts {counts} do not match {META}'s counts_per_mode {expected}")
     return td, meta
+
+
+def tensor_files(tensors_dir) -> tuple[dict[str, tuple[Path, torch.dtype, tuple[int, ...]]], int]:
+    """``({key: (file, dtype, shape)}, n)``: the tensors of a data set's ``tensors/`` directory, read from its
+    ``meta.json`` (JSON only). A ValueError for anything but the data set's own tensors (``STORE_DTYPES``, each in
+    its dtype, ``[n, ...]``, in its file ``<key>.memmap`` of that many bytes): tensordict stores any other field as
+    a pickle, which runs code when it is loaded, so such a directory is refused before anything in it is read."""
+    tensors_dir = Path(tensors_dir)
+    where = tensors_dir / META
+    try:
+        meta = json.loads(where.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{where}: cannot be read ({type(err).__name__}: {err})") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("shape"), list) or len(meta["shape"]) != 1:
+        raise ValueError(f"{where}: not the meta of a data set's tensors (no batch shape [n])")
+    n = meta["shape"][0]
+    if not isinstance(n, int) or n < 0:
+        raise ValueError(f"{where}: batch shape {meta['shape']} is not [n]")
+    out = {}
+    for key, entry in meta.items():
+        if key in ("shape", "device", "_type"):
+            continue
+        if key not in STORE_DTYPES:
+            raise ValueError(f"{where}: holds {key!r}, not one of a data set's tensors ({', '.join(STORE_DTYPES)}); "
+                             f"refused unread (tensordict would unpickle such a field, running code from the file)")
+        want = str(STORE_DTYPES[key])
+        shape = entry.get("shape") if isinstance(entry, dict) else None
+        if (not isinstance(entry, dict) or entry.get("dtype") != want or entry.get("is_nested", False)
+                or not isinstance(shape, list) or not shape or shape[0] != n
+                or not all(isinstance(d, int) and d >= 0 for d in shape)):
+            raise ValueError(f"{where}: {key!r} is {entry!r}, expected a {want} tensor of shape [{n}, ...]")
+        file = tensors_dir / f"{key}.memmap"
+        size = math.prod(shape) * STORE_DTYPES[key].itemsize
+        got = file.stat().st_size if file.is_file() else None
+        if got != size:
+            raise ValueError(f"{file}: " + ("missing" if got is None else f"{got} bytes, {key!r} {shape} needs {size}"))
+        out[key] = (file, STORE_DTYPES[key], tuple(shape))
+    return out, n
+
+
+def map_tensors(tensors_dir) -> TensorDict:
+    """A data set's ``tensors/`` directory as a TensorDict ``[n]`` of its files mapped copy-on-write
+    (``tensor_files`` checks them first): pages are read as they are used, and writing into a loaded tensor
+    changes the process's copy, never the file."""
+    files, n = tensor_files(tensors_dir)
+    out = {}
+    for key, (file, dtype, shape) in files.items():
+        numel = math.prod(shape)
+        out[key] = (torch.from_file(str(file), shared=False, dtype=dtype, size=numel).view(shape) if numel
+                    else torch.empty(shape, dtype=dtype))
+    return TensorDict(out, batch_size=[n])
 
 
 def _mode_counts(mode: torch.Tensor) -> list[int]:
@@ -333,7 +382,8 @@ def _load_npz(path: Path) -> tuple[TensorDict, dict]:
 def load_dataset(path) -> tuple[TensorDict, dict]:
     """A data set directory or ``.npz`` file -> ``(TensorDict [N], meta)``.
 
-    A directory's tensors stay memory-mapped (floats float32, ``mode`` int64); an ``.npz`` is
+    A directory's tensors are mapped copy-on-write (``map_tensors``: writing into them never reaches the files;
+    nothing but the set's own tensors is read, no pickle ever) (floats float32, ``mode`` int64); an ``.npz`` is
     read into memory (floats float32, ``mode`` int64). Only the keys present are returned. Every
     array is checked (:func:`immnet.data.contract.check_arrays`): a ValueError names what is wrong.
     """
@@ -352,8 +402,6 @@ def as_batch(td: TensorDict, float_dtype=torch.float32) -> TensorDict:
     (float64 whatever ``float_dtype``), ``mode`` int64."""
     out = {}
     for key, v in td.items():
-        if isinstance(v, MemoryMappedTensor):
-            v = v.as_subclass(torch.Tensor)
         if key == keys.MODE:
             out[key] = v.to(torch.int64)
         elif key == keys.TIME:  # scan times stay float64 (epoch times); trackers take their differences
