@@ -184,6 +184,28 @@ def test_opensky_csv_and_rest_names_read_as_traffics_json(tmp_path):
         np.testing.assert_allclose(ta["states"].numpy(), tb["states"].numpy(), rtol=0, atol=1e-3)
 
 
+def test_reported_velocity_in_si_under_either_names(tmp_path):
+    """The velocity an aircraft reports: knots and feet per minute under traffic's names, m/s under OpenSky's (its
+    CSV's ``velocity``/``heading``/``vertrate``, its REST API's ``velocity``/``true_track``/``vertical_rate``); NaN
+    where a row has none, and for a file without the fields."""
+    recs = _records(n_aircraft=1, n=3)
+    traffic = [{**r, "groundspeed": 300.0, "track": 90.0, "vertical_rate": -1280.0} for r in recs]
+    traffic[1].update(groundspeed=None, track=None, vertical_rate=None)
+    got = adsb.read_records(_write(tmp_path / "t.json.gz", traffic))
+    np.testing.assert_allclose(got.groundspeed[[0, 2]], 300 * 1852 / 3600)  # 154.33 m/s
+    np.testing.assert_allclose(got.vertical_rate[[0, 2]], -1280 * 0.3048 / 60)  # -6.50 m/s
+    assert (got.track[[0, 2]] == 90).all() and np.isnan([got.groundspeed[1], got.track[1], got.vertical_rate[1]]).all()
+    csv = adsb.read_records(_opensky_csv(tmp_path / "o.csv", recs))  # velocity 150.0, heading 90.0, vertrate 0.0
+    assert (csv.groundspeed == 150.0).all() and (csv.track == 90.0).all() and (csv.vertical_rate == 0.0).all()
+    rest = adsb.read_records(_write(tmp_path / "rest.json.gz", [
+        {"time": r["timestamp"] / 1000, "icao24": r["icao24"], "latitude": r["latitude"], "longitude": r["longitude"],
+         "baro_altitude": r["altitude"] * 0.3048, "velocity": 154.33, "true_track": 271.5, "vertical_rate": -6.5}
+        for r in recs]))
+    assert (rest.groundspeed == 154.33).all() and (rest.track == 271.5).all() and (rest.vertical_rate == -6.5).all()
+    bare = adsb.read_records(_write(tmp_path / "b.json.gz", recs))
+    assert np.isnan(bare.groundspeed).all() and np.isnan(bare.track).all() and np.isnan(bare.vertical_rate).all()
+
+
 def test_csv_errors_name_the_file_row_and_field(tmp_path):
     def csv(name, text):
         (tmp_path / name).write_text(text)

@@ -8,6 +8,10 @@ its wheel as JSON; they are read as data (``json``), the package itself is never
 (``.csv[.gz]``, a header row) holds the same fields; OpenSky's own names are read too (``FIELDS``: its
 historical state vectors' ``time``, ``lat``, ``lon``, ``baroaltitude`` in metres, ``lastposupdate``, and its
 REST API's ``time_position``, ``baro_altitude``, ``on_ground``), so that a recording of one's own reads as it is.
+The velocity an aircraft reports of itself (``groundspeed``, ``track``, ``vertical_rate``; optional, kept in
+:class:`Records` in SI units and read by nothing that builds a data set) is in knots and feet per minute under
+traffic's names, in m/s under OpenSky's (``velocity``, ``heading`` / ``true_track``, ``vertrate`` /
+``vertical_rate``): a file's velocity has its altitude's units (``METRES``).
 
 Cleaning, per aircraft in time order (each step counted in :class:`Flights`' ``counts``):
 
@@ -55,11 +59,17 @@ FIELDS = {
     "altitude": ("altitude", "baroaltitude", "baro_altitude"),
     "onground": ("onground", "on_ground"),
     "last_position": ("last_position", "lastposupdate", "time_position"),
+    "groundspeed": ("groundspeed", "velocity"),
+    "track": ("track", "heading", "true_track"),
+    "vertical_rate": ("vertical_rate", "vertrate"),
 }
 """Each field and the names a file may give it, the first present read: traffic's, then OpenSky's (historical state
 vectors, then the REST API's)."""
 METRES = ("baroaltitude", "baro_altitude")
-"""The altitude names whose values are metres (OpenSky's); ``altitude`` is in feet (traffic's)."""
+"""The altitude names whose values are metres (OpenSky's), and the file's velocity m/s; ``altitude`` is in feet
+(traffic's), and the file's ground speed in knots, its vertical rate in feet per minute."""
+KNOT = 1852.0 / 3600.0
+"""Metres per second per knot."""
 SUFFIXES = (".json.gz", ".json", ".jsonl.gz", ".jsonl")
 CSV_SUFFIXES = (".csv", ".csv.gz")
 MAX_STREAK = 5
@@ -293,6 +303,9 @@ class Records:
     h: np.ndarray
     onground: np.ndarray
     exact: np.ndarray
+    groundspeed: np.ndarray
+    track: np.ndarray
+    vertical_rate: np.ndarray
 
     def __len__(self) -> int:
         return len(self.t)
@@ -324,11 +337,15 @@ def read_records(path) -> Records:
     else:
         onground = np.array([bool(v) if isinstance(v, (bool, int, float)) else False for v in ground])
     onground = onground.astype(bool)
+    si = names["altitude"] in METRES
     return Records(path=path, timestamp=ts, t=t, icao24=icao,
                    lat=_floats(cols["latitude"], names["latitude"], path),
                    lon=_floats(cols["longitude"], names["longitude"], path),
-                   h=_floats(cols["altitude"], names["altitude"], path) * (1.0 if names["altitude"] in METRES else FEET),
-                   onground=onground, exact=np.isfinite(lp))
+                   h=_floats(cols["altitude"], names["altitude"], path) * (1.0 if si else FEET),
+                   onground=onground, exact=np.isfinite(lp),
+                   groundspeed=_floats(cols["groundspeed"], names["groundspeed"], path) * (1.0 if si else KNOT),
+                   track=_floats(cols["track"], names["track"], path),
+                   vertical_rate=_floats(cols["vertical_rate"], names["vertical_rate"], path) * (1.0 if si else FEET / 60))
 
 
 # --- flights ------------------------------------------------------------------------------------

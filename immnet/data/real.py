@@ -203,6 +203,18 @@ def windows(p: dict, spec: RealSpec) -> list[int]:
     return starts
 
 
+def simulate(p: dict, spec: RealSpec) -> list[tuple]:
+    """The radar's windows of one flight (``truth``'s ``p``; draws from its generator): per window ``(states [T, 9],
+    measurements [T, 3], r, scans [T])``, the scans' times in epoch seconds."""
+    out = []
+    for s in windows(p, spec):
+        st = p["states"][s : s + spec.T]
+        r = float(p["rng"].uniform(spec.r_min, spec.r_max))
+        z = radar.measure(st[:, [0, 3, 6]], r, spec.p_miss, p["rng"])
+        out.append((st, z, r, p["scans"][s : s + spec.T]))
+    return out
+
+
 def split_counts(n: int, fractions) -> list[int]:
     """Flights per split: ``round(f n)`` for validation and test (at least 1 where ``f > 0``), the rest to
     train; a ValueError if a split with ``f > 0`` would be empty."""
@@ -283,12 +295,7 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
     rows = {}
     for p in sorted(prepared, key=lambda p: p["flight"].id):
-        wins = []
-        for s in windows(p, spec):
-            st = p["states"][s : s + spec.T]
-            r = float(p["rng"].uniform(spec.r_min, spec.r_max))
-            z = radar.measure(st[:, [0, 3, 6]], r, spec.p_miss, p["rng"])
-            wins.append((st, z, r, p["scans"][s : s + spec.T] - p["scans"][s]))
+        wins = [(st, z, r, scans - scans[0]) for st, z, r, scans in simulate(p, spec)]
         if wins:
             rows[p["flight"].id] = wins
         c = next(src["counts"] for src in sources if src["name"] == p["flight"].sample)

@@ -1,0 +1,271 @@
+"""What the velocity each aircraft reports of itself is worth to a tracker of the radar's positions: the best
+model-based filter told, besides the radar's detections, the ground speed, track angle and vertical rate in the
+aircraft's own ADS-B rows (what a Mode S radar also reads from the aircraft: EHS registers 5,0 and 6,0). A measured
+reference, not a tracker of the package.
+
+    python scripts/downlinked_velocity.py --tune runs/real/data/quickstart-1s/val \\
+        --data runs/real/data/quickstart-1s/test --imm real-imm-singer \\
+        --baseline real-imm-singer [--baseline immnet-bank] [--label "1 s test"] [--json report.json]
+
+A real-flight data set (``immnet data adsb``) stores the radar's windows, not the rows they came from; the script
+builds each window again from its sample file (checked by checksum) with the set's own parameters and seed
+(``immnet.data.real.simulate``), refuses the set unless the rebuilt truth and detections equal the stored ones, and
+reads at each scan the aircraft's latest velocity report at most ``--max-age`` seconds old (the row's time; none
+yet: the scan has no report). A report is ground speed ``g``, track ``chi`` and vertical rate ``c`` in the aircraft's
+east-north-up frame, ``(g sin chi, g cos chi, c)``, turned into the radar site's frame through ECEF.
+
+The filter (docs/real.md "Told the aircraft's velocity"): the decoupled IMM ``--imm`` (``PerAxisIMMTracker``) whose
+per-axis measurement is ``(position, reported velocity)`` with
+
+    H = [[1, 0, 0], [0, 1, -L]],   R = diag(r^2, s_a^2)
+
+a report ``L`` seconds late measuring ``v(t - L) = v(t) - L a(t)`` (exact under constant acceleration), ``s_a`` the
+reports' error per axis measured on ``--tune`` against the truth (horizontal axes together, vertical apart), times a
+factor ``k``; a scan without a report measures the position alone (its velocity's variance ``NO_REPORT``). Its process
+noise is the method's times a factor. ``L``, the noise factor and ``k`` are chosen on ``--tune`` one after the other
+(the validation flights), then each row is scored on ``--data`` once: every axis told, the horizontal ones only, the
+vertical one only. ``--baseline`` methods are scored in the same run, the first the ratio's reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import sys
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+import torch
+
+from immnet import keys
+from immnet.config import instantiate, load_yaml
+from immnet.data import adsb, real
+from immnet.data.geodesy import enu_rotation
+from immnet.data.storage import as_batch, load_dataset
+from immnet.evaluation.methods import method_config
+from immnet.evaluation.search import average_rmse, states_rmse
+from immnet.filters import per_axis
+from immnet.motion import AXES
+
+NO_REPORT = 1e12
+"""The velocity variance (m^2/s^2) of a scan without a report: no information, without a second measurement model."""
+RTOL = 2 * float(np.finfo(np.float32).eps)
+"""The rebuilt windows against the stored ones: float32 storage, one unit in the last place (0.05 m at 200 km)."""
+AXIS_SETS = {"every axis": (0, 1, 2), "horizontal only": (0, 1), "vertical only": (2,)}
+
+
+def site_velocity(speed, track, climb, lat, lon, site) -> np.ndarray:
+    """``[n, 3]`` velocities in the east-north-up frame of ``site = (lat, lon, h)`` from reports at ``(lat, lon)``:
+    ground speed (m/s), track (degrees from true north, clockwise), vertical rate (m/s)."""
+    chi = np.radians(np.asarray(track, float))
+    local = np.stack([speed * np.sin(chi), speed * np.cos(chi), np.asarray(climb, float)], -1)  # [n, 3] local ENU
+    phi, lam = np.radians(np.asarray(lat, float)), np.radians(np.asarray(lon, float))
+    sp, cp, sl, cl = np.sin(phi), np.cos(phi), np.sin(lam), np.cos(lam)
+    zero = np.zeros_like(phi)
+    rows = np.stack([np.stack([-sl, cl, zero], -1), np.stack([-sp * cl, -sp * sl, cp], -1),
+                     np.stack([cp * cl, cp * sl, sp], -1)], -2)  # [n, 3, 3]: enu_rotation at each report
+    ecef = np.einsum("nij,ni->nj", rows, local)  # rows' transpose: local ENU -> ECEF
+    return ecef @ enu_rotation(site[0], site[1]).T
+
+
+def latest(times: np.ndarray, values: np.ndarray, at: np.ndarray, max_age: float) -> np.ndarray:
+    """``[S, 3]`` the latest of ``values [n, 3]`` (at increasing ``times [n]``) at or before each of ``at [S]``, NaN
+    where none is at most ``max_age`` old."""
+    out = np.full((len(at), 3), np.nan)
+    if not len(times):
+        return out
+    i = np.searchsorted(times, at, side="right") - 1
+    ok = (i >= 0) & (at - times[np.maximum(i, 0)] <= max_age)
+    out[ok] = values[i[ok]]
+    return out
+
+
+def flight_reports(rec: adsb.Records, flight: adsb.Flight, site) -> tuple[np.ndarray, np.ndarray]:
+    """``(times [n], velocities [n, 3])``: the airborne rows of ``flight``'s aircraft, over its time span, that carry a
+    whole velocity report, in ``site``'s frame (the reporting position taken from the flight's track at the row's
+    time, so that a row without a fresh position still has one)."""
+    sel = np.flatnonzero((rec.icao24 == flight.icao24) & ~rec.onground & np.isfinite(rec.timestamp)
+                         & np.isfinite(rec.groundspeed) & np.isfinite(rec.track) & np.isfinite(rec.vertical_rate)
+                         & (rec.timestamp >= flight.t[0]) & (rec.timestamp <= flight.t[-1]))
+    sel = sel[np.argsort(rec.timestamp[sel], kind="stable")]
+    t = rec.timestamp[sel]
+    keep = np.diff(t, prepend=-np.inf) > 0  # one report per time
+    sel, t = sel[keep], t[keep]
+    lat, lon = np.interp(t, flight.t, flight.lat), np.interp(t, flight.t, flight.lon)
+    return t, site_velocity(rec.groundspeed[sel], rec.track[sel], rec.vertical_rate[sel], lat, lon, site)
+
+
+def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> np.ndarray:
+    """``[B, T, 3]`` the velocity reports at each scan of a real-flight data set's windows (NaN: none), in its order.
+    A ValueError unless the set is one ``immnet data adsb`` wrote and its windows, rebuilt from the sample files, are
+    the stored ones (truth within ``atol`` m, detections too)."""
+    data = Path(data)
+    td, meta = load_dataset(data)
+    if meta.get("format") != "adsb":
+        raise ValueError(f"{data}: not a real-flight set (format {meta.get('format')!r}); the reports come from its "
+                         f"sample files")
+    spec = real.RealSpec(**{k: tuple(v) if k == "splits" else v for k, v in meta["params"].items()})
+    wanted = set(meta["window_flights"])
+    by_id, records = {}, {}
+    flights = []
+    for s in meta["samples"]:
+        path = adsb.resolve_sample(s["name"])
+        if adsb.file_digest(path) != s["sha256"]:
+            raise ValueError(f"{path}: not the file {data} was built from (its SHA-256 differs)")
+        rec = adsb.read_records(path)
+        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points).flights
+        for f in got:
+            f.sample = s["name"]
+        records[s["name"]] = rec
+        flights += got
+    real.unique_ids(flights)
+    if spec.max_flights:
+        flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
+    flights = [f for f in flights if f.id in wanted]
+    sites = {k: (v["lat"], v["lon"], v["h"]) for k, v in meta["sites"].items()}
+    prepared = real.truth(flights, [sites[f.sample] for f in flights], spec, meta["seed"])
+    for p in sorted(prepared, key=lambda p: p["flight"].id):
+        f = p["flight"]
+        t, v = flight_reports(records[f.sample], f, sites[f.sample])
+        by_id[f.id] = [(st, z, latest(t, v, scans, max_age)) for st, z, _, scans in real.simulate(p, spec)]
+    wins = [w for fid in dict.fromkeys(meta["window_flights"]) for w in by_id.get(fid, [])]
+    states, z = td[keys.STATES].double().numpy(), td[keys.MEASUREMENTS].double().numpy()
+    if len(wins) != len(states) or not all(
+            np.allclose(w[0], s, rtol=RTOL, atol=atol, equal_nan=True)
+            and np.allclose(w[1], m, rtol=RTOL, atol=atol, equal_nan=True)
+            for w, s, m in zip(wins, states, z)):
+        raise ValueError(f"{data}: its windows are not the ones its sample files and parameters give now (rebuilt "
+                         f"{len(wins)} windows, stored {len(states)}); write the set again with `immnet data adsb`")
+    return np.stack([w[2] for w in wins])
+
+
+def report_errors(reports: np.ndarray, states: np.ndarray, lag: float) -> tuple[float, float, float]:
+    """``(horizontal, vertical, share)``: the RMS error per axis of ``reports [B, T, 3]`` against the truth's velocity
+    ``lag`` s before (``v - lag a``, states ``[B, T, 9]``), and the share of scans with truth that have a report."""
+    truth = states[..., [1, 4, 7]] - lag * states[..., [2, 5, 8]]
+    e = reports - truth
+    ok = np.isfinite(e).all(-1)
+    has_truth = np.isfinite(truth).all(-1)
+    return (float(np.sqrt(np.mean(e[ok][:, :2] ** 2))), float(np.sqrt(np.mean(e[ok][:, 2] ** 2))),
+            float(ok.sum() / max(has_truth.sum(), 1)))
+
+
+def told_velocity(method: per_axis.PerAxisIMMTracker, batch, reports: torch.Tensor, sigma: tuple[float, float],
+                  lag: float, axes=(0, 1, 2)):
+    """``method.track(batch)`` with each axis's reported velocity (``reports [B, T, 3]``, NaN: none) measured beside
+    the position (module docstring); ``sigma``: the reports' error, horizontal and vertical (m/s); ``axes``: the axes
+    told. The tracker's output (states ``[B, T, 9]`` and the rest)."""
+    v = reports.double().clone()
+    for a in set(range(AXES)) - set(axes):
+        v[..., a] = float("nan")
+    B, T = v.shape[:2]
+    va = v.permute(2, 0, 1).reshape(AXES * B, T)  # the tracker's axis-major tracks
+    known = torch.isfinite(va)
+    var = torch.tensor([sigma[0] ** 2, sigma[0] ** 2, sigma[1] ** 2], dtype=torch.float64).repeat_interleave(B)
+    inner = per_axis.run
+
+    def with_velocity(za, x, P, mu, Pi, transition, R, H=None, **kw):
+        z2 = torch.cat([za, torch.nan_to_num(va, nan=0.0).to(za.dtype)[..., None]], -1)
+        H2 = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, -lag]], dtype=za.dtype)
+        r2 = torch.as_tensor(R, dtype=za.dtype).expand(AXES * B)
+
+        def R2(t: int) -> torch.Tensor:
+            cov = torch.zeros(AXES * B, 1, 2, 2, dtype=za.dtype)
+            cov[:, 0, 0, 0] = r2
+            cov[:, 0, 1, 1] = torch.where(known[:, t], var, torch.full_like(var, NO_REPORT))
+            return cov
+
+        return inner(z2, x, P, mu, Pi, transition, R2, H=H2, **kw)
+
+    with mock.patch.object(per_axis, "run", with_velocity):
+        return method.track(batch)
+
+
+def scaled(config: dict, scale: float) -> per_axis.PerAxisIMMTracker:
+    """The decoupled IMM of ``config`` with its ``sigma_q`` times ``scale``."""
+    config = copy.deepcopy(config)
+    sq = config["init_args"]["sigma_q"]
+    config["init_args"]["sigma_q"] = [v * scale for v in sq] if isinstance(sq, list) else sq * scale
+    method = instantiate(config)
+    if not isinstance(method, per_axis.PerAxisIMMTracker):
+        raise ValueError(f"--imm takes a decoupled IMM (PerAxisIMMTracker), got {type(method).__name__}")
+    return method
+
+
+def _numbers(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--tune", required=True, help="the real-flight set the settings are chosen on (validation)")
+    p.add_argument("--data", required=True, help="the real-flight set the table scores")
+    p.add_argument("--imm", required=True, help="a decoupled IMM of configs/methods/ told the reports")
+    p.add_argument("--baseline", action="append", default=[],
+                   help="a method of configs/methods/ scored beside (the first: the ratio's reference)")
+    p.add_argument("--max-age", type=float, default=3.0, help="a report older than this (s) is not used")
+    p.add_argument("--lags", type=_numbers, default=[0, 0.5, 1, 1.5, 2, 3], help="L (s) to choose from")
+    p.add_argument("--scales", type=_numbers, default=[2, 1, 0.5, 0.25], help="process noise factors")
+    p.add_argument("--factors", type=_numbers, default=[0.5, 1, 2, 4], help="factors k of the reports' error")
+    p.add_argument("--label", help="the set's name in the JSON (default: --data)")
+    p.add_argument("--json", type=Path)
+    args = p.parse_args(argv)
+    try:
+        imm = load_yaml(method_config(args.imm))
+        scaled(imm, 1.0)
+        baselines = {m: instantiate(load_yaml(method_config(m))) for m in args.baseline}
+        sets = {}
+        for name in ("tune", "data"):
+            td, _ = load_dataset(getattr(args, name))
+            if keys.R not in td.keys():
+                raise ValueError(f"{getattr(args, name)} has no r per track (the filter is told it)")
+            print(f"[velocity] rebuilding the windows of {getattr(args, name)} from its sample files", file=sys.stderr,
+                  flush=True)
+            sets[name] = (as_batch(td), torch.from_numpy(set_reports(getattr(args, name), args.max_age)))
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    tune, tune_v = sets["tune"]
+    data, data_v = sets["data"]
+    tune_states = tune[keys.STATES].double().numpy()
+
+    def score(batch, v, lag, scale, k, axes):  # the reports' error measured on --tune, whichever set is scored
+        h, vert, _ = report_errors(tune_v.numpy(), tune_states, lag)
+        out = told_velocity(scaled(imm, scale), batch, v, (k * h, k * vert), lag, axes)
+        return states_rmse(out[keys.STATE], batch)
+
+    rows = [{"row": m, "kind": "baseline", "setting": "", "average": average_rmse(method, data)}
+            for m, method in baselines.items()]
+    for label, axes in AXIS_SETS.items():
+        best = {"lag": 0.0, "scale": 1.0, "k": 1.0}
+        for name, grid in (("lag", args.lags), ("scale", args.scales), ("k", args.factors)):
+            tried = {g: score(tune, tune_v, **{**best, name: g}, axes=axes) for g in grid}
+            best[name] = min(tried, key=tried.get)
+            print(f"[velocity] {label}: {name} " + ", ".join(f"{g:g} {v:.4f}" for g, v in tried.items())
+                  + f" on --tune; {best[name]:g}", file=sys.stderr, flush=True)
+        h, vert, share = report_errors(tune_v.numpy(), tune_states, best["lag"])
+        rows.append({"row": f"{args.imm} told the reported velocity, {label}", "kind": "told", "axes": list(axes),
+                     "setting": f"L {best['lag']:g} s, noise x{best['scale']:g}, k {best['k']:g}",
+                     "sigma": [best["k"] * h, best["k"] * vert], "reports": share,
+                     "average": score(data, data_v, **best, axes=axes)})
+    h0, v0, share = report_errors(data_v.numpy(), data[keys.STATES].double().numpy(), 0.0)
+    base = rows[0]["average"] if baselines else None
+    print(f"reports on {args.data}: {share:.1%} of scans with truth; RMS error against the truth's velocity at the "
+          f"scan {h0:.2f} m/s horizontal, {v0:.2f} m/s vertical")
+    print(f"| {args.data} | setting (chosen on {args.tune}) | Average [m] |" + (f" / {rows[0]['row']} |" if base else ""))
+    print("|:---|---:|---:|" + ("---:|" if base else ""))
+    for r in rows:
+        print(f"| {r['row']} | {r['setting']} | {r['average']:.3f} |" + (f" {r['average'] / base:.3f}x |" if base else ""))
+    if args.json:
+        args.json.write_text(json.dumps({"tune": args.tune, "data": args.data, "label": args.label or args.data,
+                                         "reports": share, "error_at_scan": [h0, v0], "rows": rows}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
