@@ -22,9 +22,11 @@ per-axis measurement is ``(position, reported velocity)`` with
 a report ``L`` seconds late measuring ``v(t - L) = v(t) - L a(t)`` (exact under constant acceleration), ``s_a`` the
 reports' error per axis measured on ``--tune`` against the truth (horizontal axes together, vertical apart), times a
 factor ``k``; a scan without a report measures the position alone (its velocity's variance ``NO_REPORT``). Its process
-noise is the method's times a factor. ``L``, the noise factor and ``k`` are chosen on ``--tune`` one after the other
-(the validation flights), then each row is scored on ``--data`` once: every axis told, the horizontal ones only, the
-vertical one only. ``--baseline`` methods are scored in the same run, the first the ratio's reference.
+noise is the method's times a factor. On ``--tune`` (the validation flights) ``L`` is chosen, then the noise factor
+and ``k`` together on their grid, then ``L`` again; then each row is scored on ``--data`` once: every axis told, the
+horizontal ones only, the vertical one only. ``--baseline`` methods are scored in the same run, the first the ratio's
+reference. ``--rows-within S`` scores only the windows from sample files whose rows are at most ``S`` s apart (a
+property of the file, ``row_interval``): traffic's resampled samples hold a report over several rows, through turns.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import copy
 import json
 import sys
 from pathlib import Path
+from typing import NamedTuple
 from unittest import mock
 
 import numpy as np
@@ -97,8 +100,24 @@ def flight_reports(rec: adsb.Records, flight: adsb.Flight, site) -> tuple[np.nda
     return t, site_velocity(rec.groundspeed[sel], rec.track[sel], rec.vertical_rate[sel], lat, lon, site)
 
 
-def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> np.ndarray:
-    """``[B, T, 3]`` the velocity reports at each scan of a real-flight data set's windows (NaN: none), in its order.
+class Reports(NamedTuple):
+    velocity: np.ndarray  # [B, T, 3] each scan's report in the site's frame (m/s), NaN: none
+    rows: np.ndarray  # [B] the row interval of each window's sample file (s; ``row_interval``)
+
+
+def row_interval(rec: adsb.Records) -> float:
+    """A sample file's row interval (s): the median over its aircraft of the median time between their rows (1 s for
+    state vectors as recorded; traffic's resampled samples 5-10 s)."""
+    order = np.lexsort((rec.timestamp, rec.icao24))
+    icao, t = rec.icao24[order], rec.timestamp[order]
+    same = icao[1:] == icao[:-1]
+    steps = np.diff(t)[same]
+    per = [np.median(steps[icao[1:][same] == a]) for a in np.unique(icao[1:][same])]
+    return float(np.median(per)) if per else float("nan")
+
+
+def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> Reports:
+    """The velocity reports at each scan of a real-flight data set's windows, in its order (``Reports``).
     A ValueError unless the set is one ``immnet data adsb`` wrote and its windows, rebuilt from the sample files, are
     the stored ones (truth within ``atol`` m, detections too)."""
     data = Path(data)
@@ -108,7 +127,7 @@ def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> np.ndarray:
                          f"sample files")
     spec = real.RealSpec(**{k: tuple(v) if k == "splits" else v for k, v in meta["params"].items()})
     wanted = set(meta["window_flights"])
-    by_id, records = {}, {}
+    by_id, records, rows = {}, {}, {}
     flights = []
     for s in meta["samples"]:
         path = adsb.resolve_sample(s["name"])
@@ -119,6 +138,7 @@ def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> np.ndarray:
         for f in got:
             f.sample = s["name"]
         records[s["name"]] = rec
+        rows[s["name"]] = row_interval(rec)
         flights += got
     real.unique_ids(flights)
     if spec.max_flights:
@@ -129,7 +149,8 @@ def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> np.ndarray:
     for p in sorted(prepared, key=lambda p: p["flight"].id):
         f = p["flight"]
         t, v = flight_reports(records[f.sample], f, sites[f.sample])
-        by_id[f.id] = [(st, z, latest(t, v, scans, max_age)) for st, z, _, scans in real.simulate(p, spec)]
+        by_id[f.id] = [(st, z, latest(t, v, scans, max_age), rows[f.sample])
+                       for st, z, _, scans in real.simulate(p, spec)]
     wins = [w for fid in dict.fromkeys(meta["window_flights"]) for w in by_id.get(fid, [])]
     states, z = td[keys.STATES].double().numpy(), td[keys.MEASUREMENTS].double().numpy()
     if len(wins) != len(states) or not all(
@@ -138,7 +159,7 @@ def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> np.ndarray:
             for w, s, m in zip(wins, states, z)):
         raise ValueError(f"{data}: its windows are not the ones its sample files and parameters give now (rebuilt "
                          f"{len(wins)} windows, stored {len(states)}); write the set again with `immnet data adsb`")
-    return np.stack([w[2] for w in wins])
+    return Reports(np.stack([w[2] for w in wins]), np.array([w[3] for w in wins]))
 
 
 def report_errors(reports: np.ndarray, states: np.ndarray, lag: float) -> tuple[float, float, float]:
@@ -210,8 +231,10 @@ def main(argv=None) -> int:
                    help="a method of configs/methods/ scored beside (the first: the ratio's reference)")
     p.add_argument("--max-age", type=float, default=3.0, help="a report older than this (s) is not used")
     p.add_argument("--lags", type=_numbers, default=[0, 0.5, 1, 1.5, 2, 3], help="L (s) to choose from")
-    p.add_argument("--scales", type=_numbers, default=[2, 1, 0.5, 0.25], help="process noise factors")
-    p.add_argument("--factors", type=_numbers, default=[0.5, 1, 2, 4], help="factors k of the reports' error")
+    p.add_argument("--scales", type=_numbers, default=[4, 2, 1, 0.5, 0.25], help="process noise factors")
+    p.add_argument("--factors", type=_numbers, default=[0.25, 0.5, 1, 2, 4], help="factors k of the reports' error")
+    p.add_argument("--rows-within", type=float, default=float("inf"),
+                   help="score only --data's windows from sample files whose rows are at most this far apart (s)")
     p.add_argument("--label", help="the set's name in the JSON (default: --data)")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
@@ -226,7 +249,15 @@ def main(argv=None) -> int:
                 raise ValueError(f"{getattr(args, name)} has no r per track (the filter is told it)")
             print(f"[velocity] rebuilding the windows of {getattr(args, name)} from its sample files", file=sys.stderr,
                   flush=True)
-            sets[name] = (as_batch(td), torch.from_numpy(set_reports(getattr(args, name), args.max_age)))
+            got = set_reports(getattr(args, name), args.max_age)
+            keep = torch.from_numpy(got.rows <= (args.rows_within if name == "data" else float("inf")))
+            if not keep.any():
+                raise ValueError(f"{args.data}: no window from a sample whose rows are at most {args.rows_within:g} s "
+                                 f"apart (its samples' row intervals: {sorted(set(got.rows.tolist()))})")
+            sets[name] = (as_batch(td)[keep], torch.from_numpy(got.velocity)[keep])
+            if not keep.all():
+                print(f"[velocity] {args.data}: {int(keep.sum())} of {len(keep)} windows, from samples whose rows are "
+                      f"at most {args.rows_within:g} s apart", file=sys.stderr, flush=True)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -243,11 +274,14 @@ def main(argv=None) -> int:
             for m, method in baselines.items()]
     for label, axes in AXIS_SETS.items():
         best = {"lag": 0.0, "scale": 1.0, "k": 1.0}
-        for name, grid in (("lag", args.lags), ("scale", args.scales), ("k", args.factors)):
-            tried = {g: score(tune, tune_v, **{**best, name: g}, axes=axes) for g in grid}
-            best[name] = min(tried, key=tried.get)
-            print(f"[velocity] {label}: {name} " + ", ".join(f"{g:g} {v:.4f}" for g, v in tried.items())
-                  + f" on --tune; {best[name]:g}", file=sys.stderr, flush=True)
+        grids = (("lag",), [(g,) for g in args.lags]), (("scale", "k"), [(a, b) for a in args.scales
+                                                                          for b in args.factors])
+        for names, grid in (*grids, grids[0]):  # L, then the noise and k together, then L again
+            tried = {g: score(tune, tune_v, **{**best, **dict(zip(names, g))}, axes=axes) for g in grid}
+            best.update(zip(names, min(tried, key=tried.get)))
+            print(f"[velocity] {label}: {'/'.join(names)} " + ", ".join(
+                f"{'/'.join(f'{v:g}' for v in g)} {s:.4f}" for g, s in tried.items())
+                + f" on --tune; {'/'.join(f'{best[n]:g}' for n in names)}", file=sys.stderr, flush=True)
         h, vert, share = report_errors(tune_v.numpy(), tune_states, best["lag"])
         rows.append({"row": f"{args.imm} told the reported velocity, {label}", "kind": "told", "axes": list(axes),
                      "setting": f"L {best['lag']:g} s, noise x{best['scale']:g}, k {best['k']:g}",
@@ -260,10 +294,13 @@ def main(argv=None) -> int:
     print(f"| {args.data} | setting (chosen on {args.tune}) | Average [m] |" + (f" / {rows[0]['row']} |" if base else ""))
     print("|:---|---:|---:|" + ("---:|" if base else ""))
     for r in rows:
-        print(f"| {r['row']} | {r['setting']} | {r['average']:.3f} |" + (f" {r['average'] / base:.3f}x |" if base else ""))
+        print(f"| {r['row']} | {r['setting']} | {r['average']:.3f} |"
+              + (f" {r['average'] / base:.3f}x |" if base else ""))
     if args.json:
         args.json.write_text(json.dumps({"tune": args.tune, "data": args.data, "label": args.label or args.data,
-                                         "reports": share, "error_at_scan": [h0, v0], "rows": rows}, indent=2) + "\n")
+                                         "rows_within": args.rows_within if args.rows_within < float("inf") else None,
+                                         "windows": len(data), "reports": share, "error_at_scan": [h0, v0],
+                                         "rows": rows}, indent=2) + "\n")
     return 0
 
 

@@ -144,8 +144,8 @@ def test_the_reports_of_a_rebuilt_set_are_its_truths_velocity(tmp_path, dv):
     3D-LAST set, is refused by name."""
     meta = real.make_adsb(tmp_path / "s", [_sample(tmp_path)], SMALL, seed=2)
     td, _ = load_dataset(tmp_path / "s" / "test")
-    reports = dv["set_reports"](tmp_path / "s" / "test")
-    assert reports.shape == (meta["counts"]["windows"]["test"], SMALL.T, 3)
+    reports, rows = dv["set_reports"](tmp_path / "s" / "test")
+    assert (rows == 1.0).all() and reports.shape == (meta["counts"]["windows"]["test"], SMALL.T, 3)
     h, v, share = dv["report_errors"](reports, td[keys.STATES].double().numpy(), 0.0)
     assert share == 1.0 and h < 1.0 and v < 0.5
     file, _, shape = tensor_files(tmp_path / "s" / "test" / "tensors")[0][keys.STATES]
@@ -176,14 +176,14 @@ def test_the_rows_are_the_filters_run_here(tmp_path, dv, capsys):
     L, scale, k = (float(s.split()[-1].removeprefix("x")) for s in
                    every["setting"].replace(" s,", ",").split(", "))
     tune_b = as_batch(load_dataset(tune)[0])
-    h, v, _ = dv["report_errors"](dv["set_reports"](tune), tune_b[keys.STATES].double().numpy(), L)
+    h, v, _ = dv["report_errors"](dv["set_reports"](tune).velocity, tune_b[keys.STATES].double().numpy(), L)
     again = dv["told_velocity"](dv["scaled"](load_yaml(method_config("real-imm-axis")), scale), batch,
-                                torch.from_numpy(dv["set_reports"](data)), (k * h, k * v), L)
+                                torch.from_numpy(dv["set_reports"](data).velocity), (k * h, k * v), L)
     assert every["average"] == pytest.approx(states_rmse(again[keys.STATE], batch), rel=1e-9)
     assert every["sigma"] == pytest.approx([k * h, k * v])
     tune_base = states_rmse(build_method("real-imm-axis").track(tune_b)[keys.STATE], tune_b)
     told = dv["told_velocity"](dv["scaled"](load_yaml(method_config("real-imm-axis")), scale), tune_b,
-                               torch.from_numpy(dv["set_reports"](tune)), (k * h, k * v), L)
+                               torch.from_numpy(dv["set_reports"](tune).velocity), (k * h, k * v), L)
     assert states_rmse(told[keys.STATE], tune_b) < 0.8 * tune_base  # where it was chosen, far ahead of positions alone
     assert {r["axes"] == [2] for r in report["rows"] if r["kind"] == "told"} == {True, False}
     assert "on --tune" in capsys.readouterr().err
