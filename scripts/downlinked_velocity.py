@@ -32,7 +32,6 @@ property of the file, ``row_interval``): traffic's resampled samples hold a repo
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 from pathlib import Path
@@ -204,11 +203,8 @@ def told_velocity(method: per_axis.PerAxisIMMTracker, batch, reports: torch.Tens
         return method.track(batch)
 
 
-def scaled(config: dict, scale: float) -> per_axis.PerAxisIMMTracker:
-    """The decoupled IMM of ``config`` with its ``sigma_q`` times ``scale``."""
-    config = copy.deepcopy(config)
-    sq = config["init_args"]["sigma_q"]
-    config["init_args"]["sigma_q"] = [v * scale for v in sq] if isinstance(sq, list) else sq * scale
+def decoupled(config: dict) -> per_axis.PerAxisIMMTracker:
+    """The decoupled IMM a method config builds; a ValueError for any other method."""
     method = instantiate(config)
     if not isinstance(method, per_axis.PerAxisIMMTracker):
         raise ValueError(f"--imm takes a decoupled IMM (PerAxisIMMTracker), got {type(method).__name__}")
@@ -239,8 +235,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     try:
-        imm = load_yaml(method_config(args.imm))
-        scaled(imm, 1.0)
+        imm = decoupled(load_yaml(method_config(args.imm)))
         baselines = {m: instantiate(load_yaml(method_config(m))) for m in args.baseline}
         sets = {}
         for name in ("tune", "data"):
@@ -267,7 +262,7 @@ def main(argv=None) -> int:
 
     def score(batch, v, lag, scale, k, axes):  # the reports' error measured on --tune, whichever set is scored
         h, vert, _ = report_errors(tune_v.numpy(), tune_states, lag)
-        out = told_velocity(scaled(imm, scale), batch, v, (k * h, k * vert), lag, axes)
+        out = told_velocity(imm.scaled(scale), batch, v, (k * h, k * vert), lag, axes)
         return states_rmse(out[keys.STATE], batch)
 
     rows = [{"row": m, "kind": "baseline", "setting": "", "average": average_rmse(method, data)}

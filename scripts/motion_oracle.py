@@ -30,7 +30,6 @@ ratio against how late, in seconds, the change is told, the other baselines (the
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 from pathlib import Path
@@ -125,12 +124,10 @@ def input_oracle(batch, d: int, q: float) -> torch.Tensor:
 def imm_input_oracle(batch, config: dict, d: int, scale: float) -> torch.Tensor:
     """The change-itself row of a decoupled IMM (``config``: a ``PerAxisIMMTracker``'s), ``d`` scans late: the input
     added to every model's prediction (each axis's three entries), ``sigma_q`` times ``scale``."""
-    config = copy.deepcopy(config)
-    sq = config["init_args"]["sigma_q"]
-    config["init_args"]["sigma_q"] = [v * scale for v in sq] if isinstance(sq, list) else sq * scale
     method = instantiate(config)
     if not isinstance(method, per_axis.PerAxisIMMTracker):
         raise ValueError(f"--imm takes a decoupled IMM (PerAxisIMMTracker), got {type(method).__name__}")
+    method = method.scaled(scale)
     _, u = late_input(batch, d)
     B, T = u.shape[:2]
     u = u.reshape(B, T, 3, 3).permute(2, 0, 1, 3).reshape(3 * B, T, 3)  # the tracker's axis-major tracks

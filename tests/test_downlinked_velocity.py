@@ -73,7 +73,7 @@ def test_the_filter_told_a_late_velocity_is_filterpys(tmp_path, dv):
     reports = batch[keys.STATES][..., [1, 4, 7]] + torch.randn(B, T, 3, generator=g, dtype=torch.float64)
     reports[torch.rand(B, T, 3, generator=g) < 0.3] = float("nan")
     sq, lag, sigma = 0.7, 1.5, (2.0, 0.5)
-    ours = dv["told_velocity"](dv["scaled"](_one_model_ca(sq), 1.0), batch, reports, sigma, lag)[keys.STATE].double()
+    ours = dv["told_velocity"](dv["decoupled"](_one_model_ca(sq)), batch, reports, sigma, lag)[keys.STATE].double()
     dts = torch.diff(batch[keys.TIME].double(), dim=1)
     for b in range(B):
         z = batch[keys.MEASUREMENTS][b].double().numpy()
@@ -99,8 +99,8 @@ def test_the_filter_told_a_late_velocity_is_filterpys(tmp_path, dv):
                 np.testing.assert_allclose(ours[b, t, 3 * a : 3 * a + 3].numpy(), kf.x, atol=1e-6, rtol=1e-9)
     # told nothing, it is the tracker itself
     none = torch.full_like(reports, float("nan"))
-    plain = dv["scaled"](_one_model_ca(sq), 1.0).track(batch)[keys.STATE].double()
-    torch.testing.assert_close(dv["told_velocity"](dv["scaled"](_one_model_ca(sq), 1.0), batch, none, sigma, lag)[
+    plain = dv["decoupled"](_one_model_ca(sq)).track(batch)[keys.STATE].double()
+    torch.testing.assert_close(dv["told_velocity"](dv["decoupled"](_one_model_ca(sq)), batch, none, sigma, lag)[
         keys.STATE].double(), plain, rtol=0, atol=1e-6)
 
 
@@ -177,12 +177,12 @@ def test_the_rows_are_the_filters_run_here(tmp_path, dv, capsys):
                    every["setting"].replace(" s,", ",").split(", "))
     tune_b = as_batch(load_dataset(tune)[0])
     h, v, _ = dv["report_errors"](dv["set_reports"](tune).velocity, tune_b[keys.STATES].double().numpy(), L)
-    again = dv["told_velocity"](dv["scaled"](load_yaml(method_config("real-imm-axis")), scale), batch,
+    again = dv["told_velocity"](dv["decoupled"](load_yaml(method_config("real-imm-axis"))).scaled(scale), batch,
                                 torch.from_numpy(dv["set_reports"](data).velocity), (k * h, k * v), L)
     assert every["average"] == pytest.approx(states_rmse(again[keys.STATE], batch), rel=1e-9)
     assert every["sigma"] == pytest.approx([k * h, k * v])
     tune_base = states_rmse(build_method("real-imm-axis").track(tune_b)[keys.STATE], tune_b)
-    told = dv["told_velocity"](dv["scaled"](load_yaml(method_config("real-imm-axis")), scale), tune_b,
+    told = dv["told_velocity"](dv["decoupled"](load_yaml(method_config("real-imm-axis"))).scaled(scale), tune_b,
                                torch.from_numpy(dv["set_reports"](tune).velocity), (k * h, k * v), L)
     assert states_rmse(told[keys.STATE], tune_b) < 0.8 * tune_base  # where it was chosen, far ahead of positions alone
     assert {r["axes"] == [2] for r in report["rows"] if r["kind"] == "told"} == {True, False}

@@ -138,6 +138,20 @@ def test_per_axis_imm_of_one_model_is_the_kalman_filter():
     assert measurement_matrix().shape == (3, 9)
 
 
+
+@pytest.mark.parametrize("sigma_q", [[0.2, 1.1], 0.7], ids=["per-model", "one"])
+def test_scaled_is_the_imm_configured_with_that_noise(sigma_q):
+    """``scaled(f)``: the same IMM built with every ``sigma_q`` times ``f``, to the bit; the original unchanged."""
+    data = _irregular(*SCANS["0.5-6 s"], seed=6, B=2, T=120)
+    ms = ModelSet([ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous")])
+    imm = PerAxisIMMTracker(ms, "data", sigma_q, 0.97)
+    times = [v * 0.3 for v in sigma_q] if isinstance(sigma_q, list) else sigma_q * 0.3
+    got = imm.scaled(0.3).track(data)[keys.STATE]
+    torch.testing.assert_close(got, PerAxisIMMTracker(ms, "data", times, 0.97).track(data)[keys.STATE], rtol=0, atol=0,
+                               equal_nan=True)
+    plain = imm.track(data)[keys.STATE]
+    assert imm.sigma_q == sigma_q and not torch.equal(torch.nan_to_num(got), torch.nan_to_num(plain))
+
 def test_per_axis_imm_refuses_a_turn():
     with pytest.raises(ValueError, match="couple the axes"):
         PerAxisIMMTracker(ModelSet([ConstantVelocity(), CoordinatedTurn(3.0)]), 4.0, 1.0)
