@@ -27,6 +27,7 @@ and ``k`` together on their grid, then ``L`` again; then each row is scored on `
 horizontal ones only, the vertical one only. ``--baseline`` methods are scored in the same run, the first the ratio's
 reference. ``--rows-within S`` scores only the windows from sample files whose rows are at most ``S`` s apart (a
 property of the file, ``row_interval``): traffic's resampled samples hold a report over several rows, through turns.
+``--by-sample`` adds a table per sample file of ``--data``: the reports' error, ``--imm`` and its every-axis row.
 """
 
 from __future__ import annotations
@@ -102,6 +103,7 @@ def flight_reports(rec: adsb.Records, flight: adsb.Flight, site) -> tuple[np.nda
 class Reports(NamedTuple):
     velocity: np.ndarray  # [B, T, 3] each scan's report in the site's frame (m/s), NaN: none
     rows: np.ndarray  # [B] the row interval of each window's sample file (s; ``row_interval``)
+    samples: np.ndarray  # [B] the name of each window's sample
 
 
 def row_interval(rec: adsb.Records) -> float:
@@ -148,7 +150,7 @@ def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> Reports:
     for p in sorted(prepared, key=lambda p: p["flight"].id):
         f = p["flight"]
         t, v = flight_reports(records[f.sample], f, sites[f.sample])
-        by_id[f.id] = [(st, z, latest(t, v, scans, max_age), rows[f.sample])
+        by_id[f.id] = [(st, z, latest(t, v, scans, max_age), rows[f.sample], f.sample)
                        for st, z, _, scans in real.simulate(p, spec)]
     wins = [w for fid in dict.fromkeys(meta["window_flights"]) for w in by_id.get(fid, [])]
     states, z = td[keys.STATES].double().numpy(), td[keys.MEASUREMENTS].double().numpy()
@@ -158,7 +160,7 @@ def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> Reports:
             for w, s, m in zip(wins, states, z)):
         raise ValueError(f"{data}: its windows are not the ones its sample files and parameters give now (rebuilt "
                          f"{len(wins)} windows, stored {len(states)}); write the set again with `immnet data adsb`")
-    return Reports(np.stack([w[2] for w in wins]), np.array([w[3] for w in wins]))
+    return Reports(np.stack([w[2] for w in wins]), np.array([w[3] for w in wins]), np.array([w[4] for w in wins]))
 
 
 def report_errors(reports: np.ndarray, states: np.ndarray, lag: float) -> tuple[float, float, float]:
@@ -231,6 +233,8 @@ def main(argv=None) -> int:
     p.add_argument("--factors", type=_numbers, default=[0.25, 0.5, 1, 2, 4], help="factors k of the reports' error")
     p.add_argument("--rows-within", type=float, default=float("inf"),
                    help="score only --data's windows from sample files whose rows are at most this far apart (s)")
+    p.add_argument("--by-sample", action="store_true",
+                   help="also score --imm and its every-axis row on each sample's windows of --data")
     p.add_argument("--label", help="the set's name in the JSON (default: --data)")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
@@ -249,15 +253,15 @@ def main(argv=None) -> int:
             if not keep.any():
                 raise ValueError(f"{args.data}: no window from a sample whose rows are at most {args.rows_within:g} s "
                                  f"apart (its samples' row intervals: {sorted(set(got.rows.tolist()))})")
-            sets[name] = (as_batch(td)[keep], torch.from_numpy(got.velocity)[keep])
+            sets[name] = (as_batch(td)[keep], torch.from_numpy(got.velocity)[keep], got.samples[keep.numpy()])
             if not keep.all():
                 print(f"[velocity] {args.data}: {int(keep.sum())} of {len(keep)} windows, from samples whose rows are "
                       f"at most {args.rows_within:g} s apart", file=sys.stderr, flush=True)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    tune, tune_v = sets["tune"]
-    data, data_v = sets["data"]
+    tune, tune_v, _ = sets["tune"]
+    data, data_v, data_samples = sets["data"]
     tune_states = tune[keys.STATES].double().numpy()
 
     def score(batch, v, lag, scale, k, axes):  # the reports' error measured on --tune, whichever set is scored
@@ -267,6 +271,7 @@ def main(argv=None) -> int:
 
     rows = [{"row": m, "kind": "baseline", "setting": "", "average": average_rmse(method, data)}
             for m, method in baselines.items()]
+    chosen = {}
     for label, axes in AXIS_SETS.items():
         best = {"lag": 0.0, "scale": 1.0, "k": 1.0}
         grids = (("lag",), [(g,) for g in args.lags]), (("scale", "k"), [(a, b) for a in args.scales
@@ -278,6 +283,7 @@ def main(argv=None) -> int:
                 f"{'/'.join(f'{v:g}' for v in g)} {s:.4f}" for g, s in tried.items())
                 + f" on --tune; {'/'.join(f'{best[n]:g}' for n in names)}", file=sys.stderr, flush=True)
         h, vert, share = report_errors(tune_v.numpy(), tune_states, best["lag"])
+        chosen[label] = best
         rows.append({"row": f"{args.imm} told the reported velocity, {label}", "kind": "told", "axes": list(axes),
                      "setting": f"L {best['lag']:g} s, noise x{best['scale']:g}, k {best['k']:g}",
                      "sigma": [best["k"] * h, best["k"] * vert], "reports": share,
@@ -291,11 +297,25 @@ def main(argv=None) -> int:
     for r in rows:
         print(f"| {r['row']} | {r['setting']} | {r['average']:.3f} |"
               + (f" {r['average'] / base:.3f}x |" if base else ""))
+    per_sample = []
+    for name in sorted(set(data_samples)) if args.by_sample else ():
+        m = torch.from_numpy(data_samples == name)
+        b, v = data[m], data_v[m]
+        hs, vs, got = report_errors(v.numpy(), b[keys.STATES].double().numpy(), 0.0)
+        per_sample.append({"sample": str(name), "windows": int(m.sum()), "reports": got, "error_at_scan": [hs, vs],
+                           args.imm: average_rmse(imm, b),
+                           "told": score(b, v, **chosen["every axis"], axes=AXIS_SETS["every axis"])})
+    if per_sample:
+        print(f"\n| sample | windows | scans with a report | report error h / v [m/s] | {args.imm} [m] | told, every axis "
+              f"[m] | ratio |\n|:---|---:|---:|---:|---:|---:|---:|")
+        for r in per_sample:
+            print(f"| {r['sample']} | {r['windows']} | {r['reports']:.0%} | {r['error_at_scan'][0]:.2f} / "
+                  f"{r['error_at_scan'][1]:.2f} | {r[args.imm]:.3f} | {r['told']:.3f} | {r['told'] / r[args.imm]:.3f}x |")
     if args.json:
         args.json.write_text(json.dumps({"tune": args.tune, "data": args.data, "label": args.label or args.data,
                                          "rows_within": args.rows_within if args.rows_within < float("inf") else None,
                                          "windows": len(data), "reports": share, "error_at_scan": [h0, v0],
-                                         "rows": rows}, indent=2) + "\n")
+                                         "rows": rows, "per_sample": per_sample}, indent=2) + "\n")
     return 0
 
 

@@ -144,8 +144,8 @@ def test_the_reports_of_a_rebuilt_set_are_its_truths_velocity(tmp_path, dv):
     3D-LAST set, is refused by name."""
     meta = real.make_adsb(tmp_path / "s", [_sample(tmp_path)], SMALL, seed=2)
     td, _ = load_dataset(tmp_path / "s" / "test")
-    reports, rows = dv["set_reports"](tmp_path / "s" / "test")
-    assert (rows == 1.0).all() and reports.shape == (meta["counts"]["windows"]["test"], SMALL.T, 3)
+    reports, rows, samples = dv["set_reports"](tmp_path / "s" / "test")
+    assert (rows == 1.0).all() and (samples == str(tmp_path / "v.json.gz")).all() and reports.shape == (meta["counts"]["windows"]["test"], SMALL.T, 3)
     h, v, share = dv["report_errors"](reports, td[keys.STATES].double().numpy(), 0.0)
     assert share == 1.0 and h < 1.0 and v < 0.5
     file, _, shape = tensor_files(tmp_path / "s" / "test" / "tensors")[0][keys.STATES]
@@ -165,7 +165,7 @@ def test_the_rows_are_the_filters_run_here(tmp_path, dv, capsys):
     tune, data = tmp_path / "s" / "val", tmp_path / "s" / "test"
     out = tmp_path / "v.json"
     rc = dv["main"](["--tune", str(tune), "--data", str(data), "--imm", "real-imm-axis", "--baseline", "real-imm-axis",
-                     "--lags", "0,1", "--scales", "1,0.5", "--factors", "1,2", "--json", str(out)])
+                     "--lags", "0,1", "--scales", "1,0.5", "--factors", "1,2", "--by-sample", "--json", str(out)])
     assert rc == 0
     report = json.loads(out.read_text())
     rows = {r["row"]: r for r in report["rows"]}
@@ -181,6 +181,9 @@ def test_the_rows_are_the_filters_run_here(tmp_path, dv, capsys):
                                 torch.from_numpy(dv["set_reports"](data).velocity), (k * h, k * v), L)
     assert every["average"] == pytest.approx(states_rmse(again[keys.STATE], batch), rel=1e-9)
     assert every["sigma"] == pytest.approx([k * h, k * v])
+    (one,) = report["per_sample"]  # one sample file: its rows are the set's
+    assert one["windows"] == len(batch) and one["told"] == pytest.approx(every["average"], rel=1e-12)
+    assert one["real-imm-axis"] == pytest.approx(baseline, rel=1e-9)
     tune_base = states_rmse(build_method("real-imm-axis").track(tune_b)[keys.STATE], tune_b)
     told = dv["told_velocity"](dv["decoupled"](load_yaml(method_config("real-imm-axis"))).scaled(scale), tune_b,
                                torch.from_numpy(dv["set_reports"](tune).velocity), (k * h, k * v), L)
