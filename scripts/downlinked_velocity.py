@@ -169,9 +169,10 @@ def report_errors(reports: np.ndarray, states: np.ndarray, lag: float) -> tuple[
     truth = states[..., [1, 4, 7]] - lag * states[..., [2, 5, 8]]
     e = reports - truth
     ok = np.isfinite(e).all(-1)
-    has_truth = np.isfinite(truth).all(-1)
-    return (float(np.sqrt(np.mean(e[ok][:, :2] ** 2))), float(np.sqrt(np.mean(e[ok][:, 2] ** 2))),
-            float(ok.sum() / max(has_truth.sum(), 1)))
+    share = float(ok.sum() / max(np.isfinite(truth).all(-1).sum(), 1))
+    if not ok.any():
+        return float("nan"), float("nan"), share
+    return float(np.sqrt(np.mean(e[ok][:, :2] ** 2))), float(np.sqrt(np.mean(e[ok][:, 2] ** 2))), share
 
 
 def told_velocity(method: per_axis.PerAxisIMMTracker, batch, reports: torch.Tensor, sigma: tuple[float, float],
