@@ -297,7 +297,7 @@ def tensor_files(tensors_dir) -> tuple[dict[str, tuple[Path, torch.dtype, tuple[
         raise ValueError(f"{where}: batch shape {meta['shape']} is not [n]")
     out = {}
     for key, entry in meta.items():
-        if key in ("shape", "device", "_type"):
+        if key in ("shape", "device") or key.startswith("_"):  # tensordict's own: "_type" (never read)
             continue
         if key not in STORE_DTYPES:
             raise ValueError(f"{where}: holds {key!r}, not one of a data set's tensors ({', '.join(STORE_DTYPES)}); "
