@@ -533,7 +533,8 @@ class IMMNet(TensorDictModuleBase):
         ``[B, T, M]`` and ``expert_post [B, T, M, 9]`` (not experts alone), and with ``return_cov`` the fused
         covariance ``state_cov [B, T, 9, 9]`` (``[B, T, M, 9, 9]`` experts alone; a ValueError saying why where
         the experts carry none, ``has_cov``), and with ``return_loglik`` each scan's ``loglik [B, T]``
-        (``predictive_loglik``; ``"reported"``: of the track as reported); ``carry`` continues the rollout
+        (``predictive_loglik``; True or ``"filter"``: of the filter's prediction, ``"reported"``: of the track as
+        reported, ``immnet.tracking.bank.LIKELIHOODS``); ``carry`` continues the rollout
         (truncated BPTT detaches it between chunks).
         """
         B, T = measurements.shape[0], measurements.shape[-2]

@@ -219,8 +219,7 @@ class NetworkBank:
             if not len(rows):
                 continue
             own = net.own_intervals(intervals[rows])  # as it runs alone (IMMNet.intervals_for)
-            out, _ = run_network(net, z[rows], batch_size, own, return_cov, None,
-                                 "reported" if self.likelihood == "reported" else True, self.max_position)
+            out, _ = run_network(net, z[rows], batch_size, own, return_cov, None, self.likelihood, self.max_position)
             state[rows, :, k] = out[keys.STATE].double()
             probs[rows, :, k] = out[keys.MODE_PROBS].double()
             loglik[rows, :, k] = out[keys.LOGLIK].double()
