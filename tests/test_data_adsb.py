@@ -3,6 +3,7 @@
 Most tests use small synthetic samples written to tmp_path; one runs on traffic's ``quickstart`` sample
 where its files are installed (scripts/setup.sh installs them)."""
 
+import dataclasses
 import gzip
 import hashlib
 import json
@@ -438,6 +439,39 @@ def test_window_flights_and_subsets_of_flights(tmp_path, monkeypatch, capsys):
     last = write_dataset(tmp_path / "3dlast", 4, 0, DataSpec(T=120), progress=False)
     with pytest.raises(ValueError, match="format '3d-last' is not real flights"):
         real.subset_flights(last, tmp_path / "bad", 0.5)
+
+
+def test_flights_of_sparse_positions_left_out(tmp_path, monkeypatch, capsys):
+    """``--max-position-interval``: a flight whose fresh positions lie further apart (median) than the limit is left
+    out and counted; every kept flight's windows are those of the set of all flights, byte for byte."""
+    every_second = _records(n_aircraft=3, n=400, seed=0)
+    every_fifth = [{**r, "icao24": "def" + r["icao24"][3:]} for r in _records(n_aircraft=2, n=400, seed=1)
+                   if (r["timestamp"] - T0) // 1000 % 5 == 0]  # a resampled sample: a row every 5 s
+    sample = _write(tmp_path / "s.json.gz", every_second + every_fifth)
+    spec = real.RealSpec(T=40, splits=(0.0, 0.0, 1.0), max_range=60_000.0)  # as the CLI gives it, to compare bytes
+    full = real.make_adsb(tmp_path / "all", [sample], spec)
+    assert full["counts"]["sparse"] == 0 and len(full["flights"]["test"]) == 5  # truth_gap 5: 5 s rows have truth
+    dense = real.make_adsb(tmp_path / "dense", [sample], dataclasses.replace(spec, max_position_interval=2.0))
+    assert dense["counts"]["sparse"] == dense["counts_per_sample"][sample]["sparse"] == 2
+    assert sorted(dense["flights"]["test"]) == sorted(f for f in full["flights"]["test"] if f.startswith("abc"))
+    assert dense["params"]["max_position_interval"] == 2.0
+    td, m = load_dataset(tmp_path / "all" / "test")
+    sub, sm = load_dataset(tmp_path / "dense" / "test")
+    rows = [i for i, f in enumerate(m["window_flights"]) if f.startswith("abc")]
+    assert sm["window_flights"] == [m["window_flights"][i] for i in rows] and sub.batch_size[0] == len(rows) > 0
+    for key in td.keys():
+        assert np.array_equal(sub[key].numpy(), td[key].numpy()[rows], equal_nan=True)
+    assert [real.position_interval(f) for f in adsb.flights(adsb.read_records(sample)).flights] == [1, 1, 1, 5, 5]
+    with pytest.raises(ValueError, match="no flight whose fresh positions are at most 0.5 s apart"):
+        real.make_adsb(tmp_path / "none", [sample], dataclasses.replace(spec, max_position_interval=0.5))
+    with pytest.raises(ValueError, match="max_position_interval must be >= 0"):
+        real.RealSpec(max_position_interval=-1.0)
+    monkeypatch.setattr(immnet.cli, "_COMMAND_MODULES", ("immnet.data.cli",))
+    out = tmp_path / "cli"
+    assert immnet.cli.main(["data", "adsb", "--samples", sample, "--out", str(out), "--splits", "all-test", "--T",
+                            "40", "--max-range", "60000", "--max-position-interval", "2", "--quiet"]) == 0
+    assert "left out 2 flight(s) whose fresh positions lie more than 2 s apart" in capsys.readouterr().out
+    assert _digest(out) == _digest(tmp_path / "dense")
 
 
 def test_turns_added_to_a_real_set(tmp_path, monkeypatch, capsys):

@@ -105,13 +105,17 @@ def _adsb(args) -> int:
 
     spec = RealSpec(T=args.T, dt=args.dt, dt_jitter=args.dt_jitter, p_miss=args.p_miss, r_min=args.r[0],
                     r_max=args.r[1], max_range=args.max_range, splits=args.splits, max_gap=args.max_gap,
-                    max_flights=args.max_flights, truth_gap=args.truth_gap)
+                    max_flights=args.max_flights, truth_gap=args.truth_gap,
+                    max_position_interval=args.max_position_interval)
     meta = make_adsb(args.out, args.samples, spec, seed=args.seed, site=args.site, npz=args.npz,
                      overwrite=args.overwrite, progress=not args.quiet, skip_unreadable=args.skip_unreadable)
     c = meta["counts"]
     wins = ", ".join(f"{k} {v}" for k, v in c["windows"].items() if v)
     print(f"wrote {args.out}: {c['flights_with_windows']} flights with windows ({wins}); {c['fresh_points']} fresh "
           f"points, {c['stale']} stale and {c['glitch']} glitch rows removed ({meta['seconds']:.1f} s)")
+    if c["sparse"]:
+        print(f"left out {c['sparse']} flight(s) whose fresh positions lie more than {spec.max_position_interval:g} s "
+              f"apart (median)")
     if meta["skipped"]:
         print(f"skipped {len(meta['skipped'])} unreadable sample(s): {', '.join(s['name'] for s in meta['skipped'])}")
     return 0
@@ -217,6 +221,9 @@ def register(subparsers) -> None:
     a.add_argument("--truth-gap", type=float, default=5.0,
                    help="a scan has truth only between fresh positions at most this far apart (s, default 5; "
                         "samples of state vectors every 10 s need more)")
+    a.add_argument("--max-position-interval", type=float, default=0.0, metavar="S",
+                   help="leave out flights whose fresh positions lie more than S s apart at the median (counted as "
+                        "'sparse'; default 0: none): at faster scans their truth between positions is interpolation")
     a.add_argument("--max-flights", type=int, default=0, help="only the first N flights by id (default 0: all)")
     a.add_argument("--npz", action="store_true", help="also write OUT/<split>.npz")
     a.add_argument("--skip-unreadable", action="store_true",

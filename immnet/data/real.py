@@ -64,6 +64,8 @@ class RealSpec:
     q_h: float = 1.0  # white-jerk spectral density of the truth, horizontal (m^2/s^5)
     q_v: float = 0.1  # and vertical
     truth_gap: float = 5.0  # a scan has truth only between fresh positions at most this far apart (s)
+    max_position_interval: float = 0.0  # flights whose fresh positions lie further apart, at the median, are left
+    # out (s; 0: none): at scans faster than a flight's positions its truth between them is the smoother's interpolation
     max_flights: int = 0  # only the first max_flights flights by id (0: all): a quick look at a large sample
     chunk: int = 1_000_000  # steps x tracks smoothed at once (memory: about 100 bytes each; a longer flight alone)
 
@@ -72,6 +74,8 @@ class RealSpec:
                and not np.isfinite(float(getattr(self, f.name)))]
         if bad:
             raise ValueError(f"parameter(s) {', '.join(bad)} must be finite numbers")
+        if self.max_position_interval < 0:
+            raise ValueError(f"max_position_interval must be >= 0 (0: no limit), got {self.max_position_interval}")
         if self.T < 1 or self.min_points < 2 or self.chunk < 1 or self.max_flights < 0:
             raise ValueError(f"T >= 1, min_points >= 2, chunk >= 1 and max_flights >= 0 needed, got {self.T}, "
                              f"{self.min_points}, {self.chunk}, {self.max_flights}")
@@ -230,6 +234,12 @@ def split_counts(n: int, fractions) -> list[int]:
     return [train, val, test]
 
 
+def position_interval(flight: adsb.Flight) -> float:
+    """The median time between a flight's fresh positions (s): about 1 for state vectors recorded every second,
+    5 or 10 for traffic's resampled samples."""
+    return float(np.median(np.diff(flight.t)))
+
+
 def unique_ids(flights: list[adsb.Flight]) -> None:
     """Flight ids unique across samples, in place: a repeated one gets #2, #3, ... in the order of ``flights`` (the
     samples' order), as the data sets' ``flights`` and ``window_flights`` name them."""
@@ -290,6 +300,21 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     if not flights:
         raise ValueError(f"no flight of at least {spec.min_points} airborne fresh positions in {', '.join(map(str, samples))}")
     unique_ids(flights)
+    counts["sparse"] = 0
+    for src in sources:
+        src["counts"]["sparse"] = 0
+    if spec.max_position_interval:  # after the ids and sites, so a kept flight's windows are those of a set of all
+        kept = []
+        for f in flights:
+            if position_interval(f) <= spec.max_position_interval:
+                kept.append(f)
+                continue
+            counts["sparse"] += 1
+            next(src["counts"] for src in sources if src["name"] == f.sample)["sparse"] += 1
+        flights = kept
+        if not flights:
+            raise ValueError(f"no flight whose fresh positions are at most {spec.max_position_interval:g} s apart "
+                             f"(median) in {', '.join(map(str, samples))}")
     if spec.max_flights:
         flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
     prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
