@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 65 minutes (the sum of its steps:
-# data 2, training 55 (three runs side by side on the two cores, each 80 steps in about 107 s), the evaluation 5, the
+# data 2, training 55 (three runs side by side on the two cores, each 80 steps in about 107 s), the evaluation 6, the
 # rest 3):
 #   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s and at U[4.5, 5.5] s
-#   scans, every other sample held out (never trained or tuned on) -> the model-based filters for real motion as
-#   tuned on the training flights (configs/methods/real-*.yaml; IMMNET_RETUNE=1 tunes them again) -> IMMNet
+#   scans, every other sample held out (never trained or tuned on; all its flights, and apart those known every
+#   second) -> the model-based filters for real motion as tuned on the training flights (configs/methods/real-*.yaml;
+#   IMMNET_RETUNE=1 tunes them again) -> IMMNet
 #   trained on the training flights (recipes/real-singer-output.yaml three times, two with an overlay of
 #   configs/members/: output corrections on the three-filter decoupled IMM, r estimated, joined into one network, the
 #   shipped immnet-real) -> one table per data set, every method in one run -> the real-flight figure.
@@ -35,6 +36,13 @@ adsb quickstart-5s 0.7,0.15,0.15 --samples collections/quickstart "${SCAN5[@]}"
 adsb heldout-1s all-test --skip-unreadable --samples $HELDOUT
 # shellcheck disable=SC2086
 adsb heldout-5s all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}"
+# the held-out flights known every second (85 % of the held-out windows are of flights known every 5 s, whose truth
+# between positions is the smoother's interpolation): the same windows as theirs in the sets above
+DENSE=(--max-position-interval 2)
+# shellcheck disable=SC2086
+adsb heldout-1s-dense all-test --skip-unreadable --samples $HELDOUT "${DENSE[@]}"
+# shellcheck disable=SC2086
+adsb heldout-5s-dense all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}" "${DENSE[@]}"
 
 if [ -n "${IMMNET_RETUNE:-}" ]; then
   say "2/5 tuning the model-based filters on the training flights (1 s)"
@@ -79,12 +87,12 @@ for m in "${MEMBERS[@]}"; do ckpts+=("$RUN/${m%%:*}/checkpoints/best.ckpt"); don
 say "4/5 evaluation: one table per data set, every method in one run"
 # immnet-bank is the default as shipped: its members are the shipped files (its real network is not this run's)
 BASE=measurements,imm-tuned,imm-ekf,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
-for set in quickstart-1s/test heldout-1s/test; do
+for set in quickstart-1s/test heldout-1s/test heldout-1s-dense/test; do
   out=$RUN/results-${set%%/*}
   "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,immnet,immnet-real,immnet-general,immnet-bank" \
     --checkpoint "immnet-real=$CKPT" --json "$out.json" --markdown "$out.md" --quiet
 done
-for set in quickstart-5s/test heldout-5s/test; do  # the 1 s networks refuse 5 s scans; the shipped real-5s and general take them
+for set in quickstart-5s/test heldout-5s/test heldout-5s-dense/test; do  # the 1 s networks refuse 5 s scans; the shipped real-5s and general take them
   out=$RUN/results-${set%%/*}
   "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s,immnet-general,immnet-real-5s,immnet-bank" \
     --json "$out.json" --markdown "$out.md" --quiet
@@ -94,4 +102,4 @@ say "5/5 figure: a real flight, its estimates and their error over time"
 "$PY" scripts/real_figure.py --data "$DATA/quickstart-1s/test" --methods real-imm-singer,immnet-real \
   --checkpoint "immnet-real=$CKPT" --out "$RUN/figures/real_flight.png"
 
-say "done. Tables: $RUN/results-quickstart-1s.md, $RUN/results-heldout-1s.md, $RUN/results-quickstart-5s.md, $RUN/results-heldout-5s.md"
+say "done. Tables: $RUN/results-{quickstart-1s,heldout-1s,heldout-1s-dense,quickstart-5s,heldout-5s,heldout-5s-dense}.md"
