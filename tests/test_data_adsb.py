@@ -474,6 +474,83 @@ def test_flights_of_sparse_positions_left_out(tmp_path, monkeypatch, capsys):
     assert _digest(out) == _digest(tmp_path / "dense")
 
 
+def test_one_partition_for_every_scan_interval(tmp_path, monkeypatch, capsys):
+    """A set at another scan interval draws its own partition of the flights with windows (a short flight has
+    windows at 1 s and none at 5 s, which moves the others); ``--splits-from`` takes the first set's, and
+    ``immnet data subset --without`` leaves out the flights another set trains and validates on."""
+    long = _records(n_aircraft=8, n=400, seed=0)
+    short = [{**r, "icao24": "abd" + r["icao24"][3:]} for r in _records(n_aircraft=3, n=120, seed=2)]
+    sample = _write(tmp_path / "s.json.gz", long + short)
+    one = real.RealSpec(T=40, splits=(0.5, 0.25, 0.25), max_range=60_000.0)
+    five = dataclasses.replace(one, dt=5.0)
+    a = real.make_adsb(tmp_path / "a", [sample], one)
+    b = real.make_adsb(tmp_path / "b", [sample], five)
+    split_a = {f: k for k, v in a["flights"].items() for f in v}
+    split_b = {f: k for k, v in b["flights"].items() for f in v}
+    assert set(split_b) < set(split_a) and any(split_a[f] != split_b[f] for f in split_b)  # the case: two partitions
+    c = real.make_adsb(tmp_path / "c", [sample], five, splits_from=tmp_path / "a" / "val")
+    assert {f: k for k, v in c["flights"].items() for f in v} == {f: split_a[f] for f in split_b}
+    assert c["splits_from"] == str(tmp_path / "a" / "val") and c["counts"]["unsplit"] == 0
+    def windows(out):  # {flight: its windows' measurements}, over every split
+        got = {}
+        for split in real.SPLITS:
+            td, m = load_dataset(out / split)
+            assert set(m["window_flights"]) == set(m["flights"][split])
+            for f, z in zip(m["window_flights"], td["measurements"].numpy()):
+                got.setdefault(f, []).append(z)
+        return got
+
+    wb, wc = windows(tmp_path / "b"), windows(tmp_path / "c")  # the windows are b's, only the partition differs
+    assert wb.keys() == wc.keys() and all(np.array_equal(np.stack(wb[f]), np.stack(wc[f]), equal_nan=True) for f in wb)
+    assert real.make_adsb(tmp_path / "c2", [sample], five, splits_from=tmp_path / "a")["flights"] == c["flights"]
+    # a reference of some of the samples: the flights it does not name are left out and counted
+    other = _write(tmp_path / "o.json.gz", [{**r, "icao24": "fed" + r["icao24"][3:]} for r in _records(2, 400, seed=5)])
+    d = real.make_adsb(tmp_path / "d", [sample, other], five, splits_from=tmp_path / "a")
+    assert d["counts"]["unsplit"] == d["counts_per_sample"][other]["flights"] > 0
+    assert d["counts_per_sample"][other]["windows"] == 0 and d["flights"] == c["flights"]
+    with pytest.raises(ValueError, match="made from none of these samples"):
+        real.make_adsb(tmp_path / "e", [other], five, splits_from=tmp_path / "a")
+    with pytest.raises(ValueError, match="no meta.json"):
+        real.make_adsb(tmp_path / "e", [sample], five, splits_from=tmp_path / "nowhere")
+    from immnet.data.spec import DataSpec
+    from immnet.data.storage import write_dataset
+
+    last = write_dataset(tmp_path / "3dlast", 4, 0, DataSpec(T=120), progress=False)
+    with pytest.raises(ValueError, match="not a set of `immnet data adsb`"):
+        real.make_adsb(tmp_path / "e", [sample], five, splits_from=last)
+    assert not (tmp_path / "e").exists()
+
+    # the test flights of a at 1 s that b (5 s) neither trains nor validates on
+    test, tm = load_dataset(tmp_path / "a" / "test")
+    seen = set(b["flights"]["train"]) | set(b["flights"]["val"])
+    u = real.subset_flights(tmp_path / "a" / "test", tmp_path / "u", without=[tmp_path / "b" / "train",
+                                                                              tmp_path / "b" / "val"])
+    assert set(u["flights"]["test"]) == set(a["flights"]["test"]) - seen
+    assert u["subset"]["without"]["flights"] == len(set(a["flights"]["test"]) & seen) > 0
+    sub, sm = load_dataset(tmp_path / "u")
+    rows = [i for i, f in enumerate(tm["window_flights"]) if f not in seen]
+    assert sm["window_flights"] == [tm["window_flights"][i] for i in rows]
+    for key in test.keys():
+        assert np.array_equal(sub[key].numpy(), test[key].numpy()[rows], equal_nan=True)
+    with pytest.raises(ValueError, match="every flight of it is in"):
+        real.subset_flights(tmp_path / "a" / "test", tmp_path / "x", without=[tmp_path / "a" / "test"])
+    with pytest.raises(ValueError, match="needs --flights, --without or both"):
+        real.subset_flights(tmp_path / "a" / "test", tmp_path / "x")
+    with pytest.raises(ValueError, match="not one split of a set but a set's OUT"):
+        real.subset_flights(tmp_path / "a" / "test", tmp_path / "x", without=[tmp_path / "d"])
+    monkeypatch.setattr(immnet.cli, "_COMMAND_MODULES", ("immnet.data.cli",))
+    assert immnet.cli.main(["data", "adsb", "--samples", sample, other, "--out", str(tmp_path / "cli"), "--T", "40",
+                            "--dt", "5", "--max-range", "60000", "--splits", "0.5,0.25,0.25", "--splits-from", str(tmp_path / "a"),
+                            "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert f"left out {d['counts']['unsplit']} flight(s) with windows that {tmp_path / 'a' / 'train'} does not" in printed
+    assert _digest(tmp_path / "cli") == _digest(tmp_path / "d")
+    assert immnet.cli.main(["data", "subset", "--data", str(tmp_path / "a" / "test"), "--out", str(tmp_path / "cu"),
+                            "--without", str(tmp_path / "b" / "train"), str(tmp_path / "b" / "val")]) == 0
+    assert "left out as flights of --without" in capsys.readouterr().out and _digest(tmp_path / "cu") == _digest(
+        tmp_path / "u")
+
+
 def test_turns_added_to_a_real_set(tmp_path, monkeypatch, capsys):
     """``immnet data turns``: the windows of a real set, some flown through added coordinated turns and measured
     again with their own r; the others' truth as stored; same seed, same bytes; refusals by name."""

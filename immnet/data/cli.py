@@ -8,6 +8,7 @@ flights.
     immnet data plot --data data/train --out trajectories.png [--n 400] [--seed 0]
     immnet data adsb --samples collections/quickstart --out data/real/quickstart [--T 200] [--dt 1] [--seed 0]
     immnet data subset --data data/real/quickstart/train --out data/real/train-half --flights 0.5 [--seed 0]
+    immnet data subset --data data/real/quickstart-1s/test --out data/real/unseen --without data/real/quickstart-5s/{train,val}
     immnet data turns --data data/real/quickstart/val --out data/real/val-turns --turns 0.5 [--bank 10,30] [--seed 0]
 """
 
@@ -108,11 +109,14 @@ def _adsb(args) -> int:
                     max_flights=args.max_flights, truth_gap=args.truth_gap,
                     max_position_interval=args.max_position_interval)
     meta = make_adsb(args.out, args.samples, spec, seed=args.seed, site=args.site, npz=args.npz,
-                     overwrite=args.overwrite, progress=not args.quiet, skip_unreadable=args.skip_unreadable)
+                     overwrite=args.overwrite, progress=not args.quiet, skip_unreadable=args.skip_unreadable,
+                     splits_from=args.splits_from)
     c = meta["counts"]
     wins = ", ".join(f"{k} {v}" for k, v in c["windows"].items() if v)
     print(f"wrote {args.out}: {c['flights_with_windows']} flights with windows ({wins}); {c['fresh_points']} fresh "
           f"points, {c['stale']} stale and {c['glitch']} glitch rows removed ({meta['seconds']:.1f} s)")
+    if c.get("unsplit"):
+        print(f"left out {c['unsplit']} flight(s) with windows that {meta['splits_from']} does not split")
     if c["sparse"]:
         print(f"left out {c['sparse']} flight(s) whose fresh positions lie more than {spec.max_position_interval:g} s "
               f"apart (median)")
@@ -124,9 +128,11 @@ def _adsb(args) -> int:
 def _subset(args) -> int:
     from immnet.data.real import subset_flights
 
-    meta = subset_flights(args.data, args.out, args.flights, seed=args.seed, overwrite=args.overwrite)
+    meta = subset_flights(args.data, args.out, args.flights, seed=args.seed, overwrite=args.overwrite,
+                          without=args.without)
     s = meta["subset"]
-    print(f"wrote {args.out}: {s['flights']} of {s['of_flights']} flights, {s['windows']} of {s['of_windows']} "
+    out = f" ({s['without']['flights']} left out as flights of --without)" if "without" in s else ""
+    print(f"wrote {args.out}: {s['flights']} of {s['of_flights']} flights{out}, {s['windows']} of {s['of_windows']} "
           f"windows (seed {s['seed']})")
     return 0
 
@@ -213,6 +219,9 @@ def register(subparsers) -> None:
     a.add_argument("--seed", type=int, default=0)
     a.add_argument("--splits", type=_splits, default=(0.7, 0.15, 0.15), metavar="TRAIN,VAL,TEST",
                    help="fractions of flights (default 0.7,0.15,0.15), or all-test")
+    a.add_argument("--splits-from", type=Path, default=None, metavar="SET",
+                   help="take the partition of the flights of SET (a set of the same samples, its OUT or one split) "
+                        "instead of --splits: one partition for every scan interval of a region")
     a.add_argument("--site", type=_floats(3, "LAT,LON,H such as 48.9,2.5,0"), default=None, metavar="LAT,LON,H",
                    help="radar site for every sample (degrees, degrees, m; default: each sample's own radar at the "
                         "median position of its flights, height 0)")
@@ -235,9 +244,12 @@ def register(subparsers) -> None:
     s = sub.add_parser("subset", help="the windows of some of a real-flight set's flights (a data-scaling curve)")
     s.add_argument("--data", required=True, type=Path, help="a split of `immnet data adsb` (e.g. OUT/train)")
     s.add_argument("--out", required=True, type=Path, help="output directory (must be absent or empty)")
-    s.add_argument("--flights", required=True, type=_flights, metavar="N|FRACTION",
+    s.add_argument("--flights", type=_flights, metavar="N|FRACTION",
                    help="flights to keep: a count (40) or a fraction below 1 (0.25); with one seed a smaller subset "
-                        "is part of every larger one")
+                        "is part of every larger one (default: every flight left by --without)")
+    s.add_argument("--without", nargs="+", type=Path, default=[], metavar="SPLIT_DIR",
+                   help="leave out the flights these splits of real-flight sets name (e.g. the training and "
+                        "validation splits of a set of the same samples at another scan interval)")
     s.add_argument("--seed", type=int, default=0, help="seed of the flights' permutation (default 0)")
     s.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     s.set_defaults(func=_subset)

@@ -252,8 +252,15 @@ def unique_ids(flights: list[adsb.Flight]) -> None:
 
 def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 0, site=None,
               npz: bool = False, overwrite: bool = False, progress: bool = False,
-              skip_unreadable: bool = False) -> dict:
+              skip_unreadable: bool = False, splits_from=None) -> dict:
     """Build the data sets ``out/{train,val,test}`` from ADS-B samples (names or files); return the meta.
+
+    ``splits_from``: a split directory (or the ``OUT``) of a set of the same samples, whose partition of the
+    flights this set takes instead of drawing its own (``spec.splits`` unused): each flight in the split the
+    reference names it in, a flight the reference does not name left out (counted as ``unsplit``). Sets of one
+    region at several scan intervals need one partition, or a model trained on one set's training flights is
+    scored on its test flights at another interval (a flight with windows at one interval may have none at
+    another, which changes the permutation of the flights with windows).
 
     ``site``: ``(lat, lon, h)`` of the radar for every sample; default one radar per sample, at the median
     position of its flights at height 0 (samples from several regions each get their own). A split with
@@ -333,10 +340,24 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     if not ids:
         raise ValueError(f"no window of T={spec.T} scans with truth within {spec.max_range:g} m of the radar "
                          f"({', '.join(f'{k}: {v}' for k, v in sites.items())})")
-    perm = np.random.default_rng([int(seed), 1]).permutation(len(ids))
-    n_train, n_val, _ = split_counts(len(ids), spec.splits)
-    member = {"train": perm[:n_train], "val": perm[n_train : n_train + n_val], "test": perm[n_train + n_val :]}
-    members = {k: sorted(ids[i] for i in v) for k, v in member.items()}
+    if splits_from is not None:
+        sample_of = {f.id: f.sample for f in flights}
+        reference, where = reference_partition(splits_from, {s["sha256"] for s in sources})
+        unsplit = [i for i in ids if i not in reference]
+        for i in unsplit:
+            c = next(src["counts"] for src in sources if src["name"] == sample_of[i])
+            c["windows"] -= len(rows[i])
+            c["flights_with_windows"] -= 1
+        ids = [i for i in ids if i in reference]
+        if not ids:
+            raise ValueError(f"--splits-from {where}: it names none of these flights with windows")
+        members = {k: sorted(i for i in ids if reference[i] == k) for k in SPLITS}
+        counts["unsplit"] = len(unsplit)
+    else:
+        perm = np.random.default_rng([int(seed), 1]).permutation(len(ids))
+        n_train, n_val, _ = split_counts(len(ids), spec.splits)
+        member = {"train": perm[:n_train], "val": perm[n_train : n_train + n_val], "test": perm[n_train + n_val :]}
+        members = {k: sorted(ids[i] for i in v) for k, v in member.items()}
     counts["windows"] = {k: sum(len(rows[i]) for i in members[k]) for k in SPLITS}
     counts["flights_with_windows"] = len(ids)
     meta = {
@@ -347,6 +368,8 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
         "params": spec.to_dict(), "counts": counts, "counts_per_sample": {s["name"]: s["counts"] for s in sources},
         "flights": members,
     }
+    if splits_from is not None:
+        meta["splits_from"] = where
     out.parent.mkdir(parents=True, exist_ok=True)  # a new directory's parents, as every other writer makes them
     with publishing(out) as tmp:
         tmp.mkdir()
@@ -401,28 +424,93 @@ def _write_split(out: Path, arrays: dict, meta: dict) -> dict:
     return load_dataset(out)[1]
 
 
-def subset_flights(data, out, flights: float, seed: int = 0, overwrite: bool = False) -> dict:
+def subset_flights(data, out, flights: float | None = None, seed: int = 0, overwrite: bool = False,
+                   without=()) -> dict:
     """Write the windows of some of a real-flight set's flights as the data set ``out``; return its meta.
 
     ``data``: one split of ``immnet data adsb`` (a directory whose ``meta.json`` names each window's flight,
-    format version 2). ``flights``: how many of its flights to keep, a count (a whole number >= 1) or a
-    fraction in (0, 1) of them (rounded, at least one). The flights are taken in a seeded permutation of
-    their ids, so that with one seed a smaller subset is part of every larger one (a data-scaling curve
-    adds flights, it does not swap them). Each kept window is the source's row, byte for byte, in the
-    source's order; ``meta.json`` is the source's with this split's ``flights`` and ``window_flights``
-    narrowed and ``subset`` added (``flights``, ``of_flights``, ``windows``, ``of_windows``, ``seed``).
+    format version 2). ``without``: splits of real-flight sets (``OUT/train``, ...) whose flights are left out
+    first: the flights a model trained, tuned or chose on, wherever they were (a set of the same samples at
+    another scan interval may split them otherwise). ``flights``: how many of the flights left to keep, a count
+    (a whole number >= 1) or a fraction in (0, 1) of them (rounded, at least one); None: all of them (with
+    ``without``). The flights are taken in a seeded permutation of their ids, so that with one seed a smaller
+    subset is part of every larger one (a data-scaling curve adds flights, it does not swap them). Each kept
+    window is the source's row, byte for byte, in the source's order; ``meta.json`` is the source's with this
+    split's ``flights`` and ``window_flights`` narrowed and ``subset`` added (``flights``, ``of_flights``,
+    ``windows``, ``of_windows``, ``seed``, and with ``without`` the splits named and the flights they took out).
     """
     data, out = Path(data), Path(out)
+    if flights is None and not without:
+        raise ValueError("a subset needs --flights, --without or both")
     td, meta = _real_split(data, out, overwrite, "a subset of flights")
     owners = window_flights(meta, td.batch_size[0], data)
     ids = sorted(set(owners))
-    k = _flight_count(flights, len(ids), data)
-    chosen = {ids[i] for i in np.random.default_rng([int(seed), 2]).permutation(len(ids))[:k]}
+    seen = _flights_of(without, meta, data)
+    left = [f for f in ids if f not in seen]
+    if not left:
+        raise ValueError(f"{data}: every flight of it is in {', '.join(map(str, without))}; no window is left")
+    k = len(left) if flights is None else _flight_count(flights, len(left), data)
+    chosen = {left[i] for i in np.random.default_rng([int(seed), 2]).permutation(len(left))[:k]}
     rows = np.array([i for i, f in enumerate(owners) if f in chosen])
     arrays = {key: td[key].numpy()[rows] for key in td.keys()}
     subset = {"flights": k, "of_flights": len(ids), "windows": len(rows), "of_windows": len(owners), "seed": int(seed)}
+    if without:
+        subset["without"] = {"splits": [str(w) for w in without], "flights": len(ids) - len(left)}
     return _write_split(out, arrays, {**meta, "flights": {**meta.get("flights", {}), meta.get("split"): sorted(chosen)},
                                       "window_flights": [owners[i] for i in rows], "subset": subset})
+
+
+def _flights_of(splits, meta: dict, data) -> set[str]:
+    """The flights the real-flight ``splits`` (directories) name, each checked to be a split of a set of the same
+    samples as ``data`` (``meta``), so that its flight ids are ``data``'s."""
+    digests = {s["sha256"] for s in meta.get("samples", [])}
+    seen: set[str] = set()
+    for split in splits:
+        split = Path(split)
+        if not (split / "meta.json").is_file() and any((split / k / "meta.json").is_file() for k in SPLITS):
+            raise ValueError(f"--without {split}: not one split of a set but a set's OUT; give its splits "
+                             f"(OUT/train, OUT/val, ...)")
+        other = _reference_meta(split, digests, "--without")
+        if other.get("split") not in SPLITS:
+            raise ValueError(f"--without {split}: not one split of a set (OUT/train, OUT/val or OUT/test)")
+        seen |= set(other["flights"][other["split"]])
+    return seen
+
+
+def reference_partition(path, digests: set[str]) -> tuple[dict[str, str], str]:
+    """``({flight id: split}, where)``: the partition of the flights of the real-flight set at ``path`` (one of its
+    split directories, or its ``OUT``), checked to be made from some of the samples of SHA-256 ``digests``."""
+    path = Path(path)
+    if not (path / "meta.json").is_file():
+        found = [path / k for k in SPLITS if (path / k / "meta.json").is_file()]
+        path = found[0] if found else path
+    meta = _reference_meta(path, digests, "--splits-from")
+    flights = meta.get("flights")
+    if not isinstance(flights, dict) or not all(isinstance(flights.get(k, []), list) for k in SPLITS):
+        raise ValueError(f"--splits-from {path}: meta.json names no partition of its flights ('flights')")
+    partition = {f: k for k in SPLITS for f in flights.get(k, [])}
+    return partition, str(path)
+
+
+def _reference_meta(path: Path, digests: set[str], option: str) -> dict:
+    """The ``meta.json`` of a real-flight split at ``path`` (read as JSON), refused by name unless it is one and it
+    was made from at least one of the samples of SHA-256 ``digests`` (its flight ids are then theirs)."""
+    import json
+
+    from immnet.data.storage import REAL_FORMAT
+
+    if not (path / "meta.json").is_file():
+        raise ValueError(f"{option} {path}: not a data set directory (no meta.json)")
+    try:
+        meta = json.loads((path / "meta.json").read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{option} {path}: meta.json unreadable ({err})") from None
+    if not isinstance(meta, dict) or meta.get("format") != REAL_FORMAT:
+        raise ValueError(f"{option} {path}: not a set of `immnet data adsb` (format "
+                         f"{meta.get('format') if isinstance(meta, dict) else None!r})")
+    if not digests & {s.get("sha256") for s in meta.get("samples", []) if isinstance(s, dict)}:
+        raise ValueError(f"{option} {path}: made from none of these samples; its flights cannot be theirs")
+    return meta
 
 
 def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), segment=(20.0, 120.0),
