@@ -551,6 +551,42 @@ def test_one_partition_for_every_scan_interval(tmp_path, monkeypatch, capsys):
         tmp_path / "u")
 
 
+def test_training_refuses_flights_another_set_keeps_for_validation_or_test(tmp_path):
+    """``LASTDataModule`` refuses a run whose real-flight training set holds flights that a set of the same samples
+    in the run keeps for validation or test (sets at two scan intervals, each with its own partition), unless told
+    ``allow_seen_flights``; one partition (``--splits-from``) trains, as does a set alone or beside 3D-LAST."""
+    from immnet.data import LASTDataModule
+    from immnet.data.spec import DataSpec
+    from immnet.data.storage import write_dataset
+
+    long = _records(n_aircraft=8, n=400, seed=0)
+    short = [{**r, "icao24": "abd" + r["icao24"][3:]} for r in _records(n_aircraft=3, n=120, seed=2)]
+    sample = _write(tmp_path / "s.json.gz", long + short)
+    one = real.RealSpec(T=40, splits=(0.5, 0.25, 0.25), max_range=60_000.0)
+    five = dataclasses.replace(one, dt=5.0)
+    a = real.make_adsb(tmp_path / "a", [sample], one)
+    b = real.make_adsb(tmp_path / "b", [sample], five)
+    real.make_adsb(tmp_path / "c", [sample], five, splits_from=tmp_path / "a")
+    held_b = set(b["flights"]["val"]) | set(b["flights"]["test"])
+    assert set(a["flights"]["train"]) & held_b  # the case: a trains on flights b holds out
+
+    def setup(data, val, **kw):
+        dm = LASTDataModule([str(tmp_path / d) for d in data], val_data=[v and str(tmp_path / v) for v in val],
+                            batch_size=2, **kw)
+        dm.setup("fit")
+        return dm
+
+    with pytest.raises(ValueError, match=r"a/train trains on \d+ flight\(s\) that the set of .*b/\w+ keeps for"):
+        setup(["a/train", "b/train"], ["a/val", "b/val"])
+    with pytest.raises(ValueError, match="--splits-from"):
+        LASTDataModule(str(tmp_path / "b" / "train"), val_data=str(tmp_path / "b" / "val"),
+                       test_data=str(tmp_path / "a" / "test"), batch_size=2).setup("fit")  # b trains on a's test
+    assert setup(["a/train", "b/train"], ["a/val", "b/val"], allow_seen_flights=True).mixture
+    assert setup(["a/train", "c/train"], ["a/val", "c/val"]).mixture  # one partition
+    write_dataset(tmp_path / "3dlast", 8, 0, DataSpec(T=40, min_segment=12), progress=False)  # trajectories, no flights
+    assert setup(["a/train", "3dlast"], ["a/val", None]).mixture
+
+
 def test_turns_added_to_a_real_set(tmp_path, monkeypatch, capsys):
     """``immnet data turns``: the windows of a real set, some flown through added coordinated turns and measured
     again with their own r; the others' truth as stored; same seed, same bytes; refusals by name."""

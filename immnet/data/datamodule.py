@@ -265,6 +265,34 @@ class _Stage1Dataset(Dataset):
         return torch.stack(rows, 0)
 
 
+def check_flights(train: list, others: list) -> None:
+    """Refuse a run that would train on a flight kept for validation or test: ``train`` and ``others`` are
+    ``(path, meta)`` of the run's training sets and of its validation and test sets. Every real-flight set
+    (``immnet data adsb``) names its whole partition (``meta["flights"]``), so a training set's flights are checked
+    against the validation and test flights of each real-flight set of the same samples in the run, its own partition
+    included: sets of one region written at different scan intervals may split the flights differently (docs/data.md,
+    "One partition per region"). A ValueError names both sets, the count and a flight."""
+    real = [(p, m) for p, m in train + others if isinstance(m, dict) and isinstance(m.get("flights"), dict)]
+    for path, meta in train:
+        if not isinstance(meta, dict) or not isinstance(meta.get("flights"), dict):
+            continue  # 3D-LAST: trajectories, no flights
+        trained = set(meta["flights"].get(meta.get("split"), []))
+        digests = {s.get("sha256") for s in meta.get("samples", []) if isinstance(s, dict)}
+        for other_path, other in real:
+            if not digests & {s.get("sha256") for s in other.get("samples", []) if isinstance(s, dict)}:
+                continue
+            for split in ("val", "test"):
+                if split == meta.get("split"):
+                    continue
+                seen = sorted(trained & set(other["flights"].get(split, [])))
+                if seen:
+                    raise ValueError(
+                        f"{path} trains on {len(seen)} flight(s) that the set of {other_path} keeps for {split} (e.g. "
+                        f"{seen[0]}): its sets split the flights otherwise. Write one set with `immnet data adsb "
+                        f"--splits-from` the other (docs/data.md, \"One partition per region\"), or set "
+                        f"allow_seen_flights: true to train on them anyway")
+
+
 class LASTDataModule(L.LightningDataModule):
     """3D-LAST train / val / test loaders (see the module doc for the splits and stage-1 batches)."""
 
@@ -272,11 +300,14 @@ class LASTDataModule(L.LightningDataModule):
                  batch_size: int = 100, num_workers: int = 0, split_seed: int = 0,
                  single_mode: dict | None = None, own_fraction: float = 0.6,
                  expert_modes: list[str] | None = None, augment: FlightAugment | None = None,
-                 weights: list[float] | None = None):
+                 weights: list[float] | None = None, allow_seen_flights: bool = False):
         """``augment``: a fresh view of each training batch (``FlightAugment``: turned about the radar site, new
         measurement noise), seeded by the training step; validation and test batches as stored. ``weights``: with a
-        mixture, one per data set, its training batches a pass relative to its size (``_MixedBatches``)."""
+        mixture, one per data set, its training batches a pass relative to its size (``_MixedBatches``).
+        ``allow_seen_flights``: train even where a real-flight training set holds flights that a set of the same
+        samples in this run keeps for validation or test (refused by default: ``check_flights``)."""
         super().__init__()
+        self.allow_seen_flights = allow_seen_flights
         self.augment = augment
         sets = len(data) if isinstance(data, (list, tuple)) else 0  # weights are a mixture's (checked now, not at fit)
         self.weights = None if weights is None else _set_weights(weights, sets)
@@ -334,10 +365,11 @@ class LASTDataModule(L.LightningDataModule):
         parts = {"train": (td, perm[n_test + n_val :].sort().values),
                  "val": (td, perm[n_test : n_test + n_val].sort().values),
                  "test": (td, perm[:n_test].sort().values)}
+        val_meta = None
         if val_path is not None:
-            val_td, _ = load_dataset(val_path)
+            val_td, val_meta = load_dataset(val_path)
             parts["val"] = (val_td, torch.arange(val_td.batch_size[0]))
-        return {"meta": meta, **parts}
+        return {"meta": meta, "val_meta": val_meta, "path": path, "val_path": val_path, **parts}
 
     def setup(self, stage: str | None = None) -> None:
         if self._ready:
@@ -348,11 +380,16 @@ class LASTDataModule(L.LightningDataModule):
         g = torch.Generator().manual_seed(int(self.split_seed))
         self._parts = [self._split(p, v, g) for p, v in zip(data, vals)]
         self.meta = self._parts[0]["meta"]
+        test_meta = None
         if self.test_data is not None:
-            test_td, _ = load_dataset(self.test_data)
+            test_td, test_meta = load_dataset(self.test_data)
             self._test = (test_td, torch.arange(test_td.batch_size[0]))
         else:
             self._test = None
+        if not self.allow_seen_flights:
+            check_flights([(p["path"], p["meta"]) for p in self._parts],
+                          [(p["val_path"], p["val_meta"]) for p in self._parts if p["val_meta"] is not None]
+                          + ([(self.test_data, test_meta)] if test_meta is not None else []))
         self._own = None
         if self.single_mode:
             td = self._parts[0]["train"][0]
