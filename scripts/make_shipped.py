@@ -35,13 +35,15 @@ QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --see
 SEEN = {
     "quickstart-1s": ("quickstart-5s splits quickstart's flights otherwise: 10 of these 36 test flights are among its "
                       "training flights and 5 among its validation flights, which immnet-general trained and validated "
-                      "on and imm-ekf-general was tuned on (immnet-bank weighs immnet-general); no other row saw any of "
-                      "them. On the 21 flights no model saw: docs/real.md, \"Flights seen at another interval\""),
+                      "on and imm-ekf-general was tuned on (immnet-bank weighs immnet-general, and its weighing was "
+                      "chosen on both sets' validation flights); no other row saw any of them. On the 21 flights no "
+                      "model saw: docs/real.md, \"Flights seen at another interval\""),
     "quickstart-5s": ("quickstart-1s splits quickstart's flights otherwise: 13 of these 36 test flights are among its "
                       "training flights and 2 among its validation flights, which immnet-general trained and validated "
                       "on and imm-ekf-general and the real-* filters tuned at 1 s were tuned on (immnet-bank weighs "
-                      "immnet-general); the real-*-5s filters and immnet-real-5s saw none of them. On the 21 flights no "
-                      "model saw: docs/real.md, \"Flights seen at another interval\""),
+                      "immnet-general, and its weighing was chosen on both sets' validation flights); the real-*-5s "
+                      "filters and immnet-real-5s saw none of them. On the 21 flights no model saw: docs/real.md, "
+                      "\"Flights seen at another interval\""),
 }
 SHIPS = {
     "real": {
