@@ -474,17 +474,22 @@ def test_flights_of_sparse_positions_left_out(tmp_path, monkeypatch, capsys):
     assert _digest(out) == _digest(tmp_path / "dense")
 
 
-def test_one_partition_for_every_scan_interval(tmp_path, monkeypatch, capsys):
-    """A set at another scan interval draws its own partition of the flights with windows (a short flight has
-    windows at 1 s and none at 5 s, which moves the others); ``--splits-from`` takes the first set's, and
-    ``immnet data subset --without`` leaves out the flights another set trains and validates on."""
+def _two_intervals(tmp_path):
+    """One sample at 1 s and at 5 s scans, each set with its own partition: ``(sample, 5 s spec, meta a, meta b)``
+    (eight long flights, and three short ones that have windows at 1 s only)."""
     long = _records(n_aircraft=8, n=400, seed=0)
     short = [{**r, "icao24": "abd" + r["icao24"][3:]} for r in _records(n_aircraft=3, n=120, seed=2)]
     sample = _write(tmp_path / "s.json.gz", long + short)
     one = real.RealSpec(T=40, splits=(0.5, 0.25, 0.25), max_range=60_000.0)
     five = dataclasses.replace(one, dt=5.0)
-    a = real.make_adsb(tmp_path / "a", [sample], one)
-    b = real.make_adsb(tmp_path / "b", [sample], five)
+    return sample, five, real.make_adsb(tmp_path / "a", [sample], one), real.make_adsb(tmp_path / "b", [sample], five)
+
+
+def test_one_partition_for_every_scan_interval(tmp_path, monkeypatch, capsys):
+    """A set at another scan interval draws its own partition of the flights with windows (a short flight has
+    windows at 1 s and none at 5 s, which moves the others); ``--splits-from`` takes the first set's, and
+    ``immnet data subset --without`` leaves out the flights another set trains and validates on."""
+    sample, five, a, b = _two_intervals(tmp_path)
     split_a = {f: k for k, v in a["flights"].items() for f in v}
     split_b = {f: k for k, v in b["flights"].items() for f in v}
     assert set(split_b) < set(split_a) and any(split_a[f] != split_b[f] for f in split_b)  # the case: two partitions
@@ -559,13 +564,7 @@ def test_training_refuses_flights_another_set_keeps_for_validation_or_test(tmp_p
     from immnet.data.spec import DataSpec
     from immnet.data.storage import write_dataset
 
-    long = _records(n_aircraft=8, n=400, seed=0)
-    short = [{**r, "icao24": "abd" + r["icao24"][3:]} for r in _records(n_aircraft=3, n=120, seed=2)]
-    sample = _write(tmp_path / "s.json.gz", long + short)
-    one = real.RealSpec(T=40, splits=(0.5, 0.25, 0.25), max_range=60_000.0)
-    five = dataclasses.replace(one, dt=5.0)
-    a = real.make_adsb(tmp_path / "a", [sample], one)
-    b = real.make_adsb(tmp_path / "b", [sample], five)
+    sample, five, a, b = _two_intervals(tmp_path)
     real.make_adsb(tmp_path / "c", [sample], five, splits_from=tmp_path / "a")
     held_b = set(b["flights"]["val"]) | set(b["flights"]["test"])
     assert set(a["flights"]["train"]) & held_b  # the case: a trains on flights b holds out
