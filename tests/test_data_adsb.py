@@ -544,12 +544,16 @@ def test_one_partition_for_every_scan_interval(tmp_path, monkeypatch, capsys):
     with pytest.raises(ValueError, match="not one split of a set but a set's OUT"):
         real.subset_flights(tmp_path / "a" / "test", tmp_path / "x", without=[tmp_path / "d"])
     monkeypatch.setattr(immnet.cli, "_COMMAND_MODULES", ("immnet.data.cli",))
-    assert immnet.cli.main(["data", "adsb", "--samples", sample, other, "--out", str(tmp_path / "cli"), "--T", "40",
-                            "--dt", "5", "--max-range", "60000", "--splits", "0.5,0.25,0.25", "--splits-from", str(tmp_path / "a"),
-                            "--quiet"]) == 0
+    cli = ["data", "adsb", "--samples", sample, other, "--T", "40", "--dt", "5", "--max-range", "60000", "--splits-from",
+           str(tmp_path / "a"), "--quiet"]
+    assert immnet.cli.main([*cli, "--out", str(tmp_path / "cli")]) == 0
     printed = capsys.readouterr().out
     assert f"left out {d['counts']['unsplit']} flight(s) with windows that {tmp_path / 'a' / 'train'} does not" in printed
-    assert _digest(tmp_path / "cli") == _digest(tmp_path / "d")
+    real.make_adsb(tmp_path / "d2", [sample, other], dataclasses.replace(five, splits=(0.7, 0.15, 0.15)),
+                   splits_from=tmp_path / "a")  # the CLI's spec: --splits at its default, unused
+    assert _digest(tmp_path / "cli") == _digest(tmp_path / "d2")
+    assert immnet.cli.main([*cli, "--out", str(tmp_path / "both"), "--splits", "0.5,0.25,0.25"]) == 2
+    assert "give --splits or --splits-from, not both" in capsys.readouterr().err and not (tmp_path / "both").exists()
     assert immnet.cli.main(["data", "subset", "--data", str(tmp_path / "a" / "test"), "--out", str(tmp_path / "cu"),
                             "--without", str(tmp_path / "b" / "train"), str(tmp_path / "b" / "val")]) == 0
     assert "left out as flights of --without" in capsys.readouterr().out and _digest(tmp_path / "cu") == _digest(

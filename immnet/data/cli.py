@@ -104,8 +104,11 @@ def _splits(text: str) -> tuple[float, float, float]:
 def _adsb(args) -> int:
     from immnet.data.real import RealSpec, make_adsb
 
+    if args.splits is not None and args.splits_from is not None:
+        raise ValueError("give --splits or --splits-from, not both: --splits-from takes the other set's partition")
     spec = RealSpec(T=args.T, dt=args.dt, dt_jitter=args.dt_jitter, p_miss=args.p_miss, r_min=args.r[0],
-                    r_max=args.r[1], max_range=args.max_range, splits=args.splits, max_gap=args.max_gap,
+                    r_max=args.r[1], max_range=args.max_range, splits=args.splits or (0.7, 0.15, 0.15),
+                    max_gap=args.max_gap,
                     max_flights=args.max_flights, truth_gap=args.truth_gap,
                     max_position_interval=args.max_position_interval)
     meta = make_adsb(args.out, args.samples, spec, seed=args.seed, site=args.site, npz=args.npz,
@@ -217,7 +220,7 @@ def register(subparsers) -> None:
     a.add_argument("--r", type=_floats(2, "RMIN,RMAX such as 1,7"), default=(1.0, 7.0), metavar="RMIN,RMAX",
                    help="measurement noise std per window, U[RMIN, RMAX] (m, default 1,7)")
     a.add_argument("--seed", type=int, default=0)
-    a.add_argument("--splits", type=_splits, default=(0.7, 0.15, 0.15), metavar="TRAIN,VAL,TEST",
+    a.add_argument("--splits", type=_splits, default=None, metavar="TRAIN,VAL,TEST",
                    help="fractions of flights (default 0.7,0.15,0.15), or all-test")
     a.add_argument("--splits-from", type=Path, default=None, metavar="SET",
                    help="take the partition of the flights of SET (a set of the same samples, its OUT or one split) "
