@@ -121,13 +121,10 @@ def input_oracle(batch, d: int, q: float) -> torch.Tensor:
     return ca_filter(z, batch[keys.R], iv, torch.full((*z.shape[:2], 3), q, dtype=torch.float64), u)
 
 
-def imm_input_oracle(batch, config: dict, d: int, scale: float) -> torch.Tensor:
-    """The change-itself row of a decoupled IMM (``config``: a ``PerAxisIMMTracker``'s), ``d`` scans late: the input
+def imm_input_oracle(batch, imm: per_axis.PerAxisIMMTracker, d: int, scale: float) -> torch.Tensor:
+    """The change-itself row of a decoupled IMM (``main`` checks ``--imm`` is one), ``d`` scans late: the input
     added to every model's prediction (each axis's three entries), ``sigma_q`` times ``scale``."""
-    method = instantiate(config)
-    if not isinstance(method, per_axis.PerAxisIMMTracker):
-        raise ValueError(f"--imm takes a decoupled IMM (PerAxisIMMTracker), got {type(method).__name__}")
-    method = method.scaled(scale)
+    method = imm.scaled(scale)
     _, u = late_input(batch, d)
     B, T = u.shape[:2]
     u = u.reshape(B, T, 3, 3).permute(2, 0, 1, 3).reshape(3 * B, T, 3)  # the tracker's axis-major tracks
@@ -222,8 +219,8 @@ def main(argv=None) -> int:
         sets[name] = as_batch(td)
     try:
         baselines = {m: instantiate(load_yaml(method_config(m))) for m in args.baseline}
-        imm = load_yaml(method_config(args.imm)) if args.imm else None
-        if imm is not None and not isinstance(instantiate(imm), per_axis.PerAxisIMMTracker):
+        imm = instantiate(load_yaml(method_config(args.imm))) if args.imm else None
+        if imm is not None and not isinstance(imm, per_axis.PerAxisIMMTracker):
             raise ValueError(f"--imm {args.imm}: not a decoupled IMM (PerAxisIMMTracker); the input goes on each "
                              f"axis's models")
     except ValueError as e:

@@ -11,9 +11,9 @@ import torch
 from filterpy.kalman import KalmanFilter
 
 from immnet import keys
-from immnet.config import REPO_ROOT, load_yaml
+from immnet.config import REPO_ROOT
 from immnet.data.storage import as_batch, load_dataset, write_dataset
-from immnet.evaluation.methods import build_method, method_config
+from immnet.evaluation.methods import build_method
 from immnet.evaluation.search import states_rmse
 from immnet.filters.imm import initial_state
 from immnet.motion import ConstantAcceleration
@@ -119,8 +119,7 @@ def test_the_rows_are_the_filters_run_here_and_the_baseline_is_evaluates(tmp_pat
     assert rows["CA told the change itself, 2 scans late, q"]["average"] == pytest.approx(
         score(mo["input_oracle"](batch, 2, q), batch), rel=1e-9)
     # the IMM told nothing (no input, its noise as configured) is the method itself: the input goes in where it should
-    cfg = load_yaml(method_config("real-imm-axis"))
-    zero = mo["imm_input_oracle"](batch, cfg, 10**6, 1.0)
+    zero = mo["imm_input_oracle"](batch, build_method("real-imm-axis"), 10**6, 1.0)
     torch.testing.assert_close(zero, build_method("real-imm-axis").track(batch)[keys.STATE].double(), rtol=0, atol=1e-9)
     # told the truth's jerk as it happens, with little noise, the IMM is far ahead of itself on a generator's motion
     assert rows["real-imm-axis told the change itself, 0 scans late, noise x"]["average"] < 0.9 * rows["real-imm-axis"][
