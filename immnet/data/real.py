@@ -307,9 +307,15 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     if not flights:
         raise ValueError(f"no flight of at least {spec.min_points} airborne fresh positions in {', '.join(map(str, samples))}")
     unique_ids(flights)
+    per_sample = {src["name"]: src["counts"] for src in sources}
+    reference = where = None
+    if splits_from is not None:  # read and checked before any flight is smoothed
+        reference, where = reference_partition(splits_from, {s["sha256"] for s in sources})
     counts["sparse"] = 0
-    for src in sources:
-        src["counts"]["sparse"] = 0
+    for c in per_sample.values():
+        c["sparse"] = 0
+    if reference is not None:
+        counts["unsplit"] = 0
     if spec.max_position_interval:  # after the ids and sites, so a kept flight's windows are those of a set of all
         kept = []
         for f in flights:
@@ -317,7 +323,7 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
                 kept.append(f)
                 continue
             counts["sparse"] += 1
-            next(src["counts"] for src in sources if src["name"] == f.sample)["sparse"] += 1
+            per_sample[f.sample]["sparse"] += 1
         flights = kept
         if not flights:
             raise ValueError(f"no flight whose fresh positions are at most {spec.max_position_interval:g} s apart "
@@ -328,31 +334,25 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     rows = {}
     for p in sorted(prepared, key=lambda p: p["flight"].id):
         wins = [(st, z, r, scans - scans[0]) for st, z, r, scans in simulate(p, spec)]
+        if wins and reference is not None and p["flight"].id not in reference:
+            counts["unsplit"] += 1  # a flight with windows that the reference does not split: left out
+            continue
         if wins:
             rows[p["flight"].id] = wins
-        c = next(src["counts"] for src in sources if src["name"] == p["flight"].sample)
+        c = per_sample[p["flight"].sample]
         c["windows"] = c.get("windows", 0) + len(wins)
         c["flights_with_windows"] = c.get("flights_with_windows", 0) + bool(wins)
     for src in sources:
         src["counts"].setdefault("windows", 0)
         src["counts"].setdefault("flights_with_windows", 0)
     ids = sorted(rows)
+    if not ids and reference is not None and counts["unsplit"]:
+        raise ValueError(f"--splits-from {where}: it names none of these flights with windows")
     if not ids:
         raise ValueError(f"no window of T={spec.T} scans with truth within {spec.max_range:g} m of the radar "
                          f"({', '.join(f'{k}: {v}' for k, v in sites.items())})")
-    if splits_from is not None:
-        sample_of = {f.id: f.sample for f in flights}
-        reference, where = reference_partition(splits_from, {s["sha256"] for s in sources})
-        unsplit = [i for i in ids if i not in reference]
-        for i in unsplit:
-            c = next(src["counts"] for src in sources if src["name"] == sample_of[i])
-            c["windows"] -= len(rows[i])
-            c["flights_with_windows"] -= 1
-        ids = [i for i in ids if i in reference]
-        if not ids:
-            raise ValueError(f"--splits-from {where}: it names none of these flights with windows")
+    if reference is not None:
         members = {k: sorted(i for i in ids if reference[i] == k) for k in SPLITS}
-        counts["unsplit"] = len(unsplit)
     else:
         perm = np.random.default_rng([int(seed), 1]).permutation(len(ids))
         n_train, n_val, _ = split_counts(len(ids), spec.splits)
@@ -368,7 +368,7 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
         "params": spec.to_dict(), "counts": counts, "counts_per_sample": {s["name"]: s["counts"] for s in sources},
         "flights": members,
     }
-    if splits_from is not None:
+    if reference is not None:
         meta["splits_from"] = where
     out.parent.mkdir(parents=True, exist_ok=True)  # a new directory's parents, as every other writer makes them
     with publishing(out) as tmp:
