@@ -53,7 +53,7 @@ from torch.utils.data import BatchSampler, DataLoader, Dataset, DistributedSampl
 from immnet import keys
 from immnet.data.augment import FlightAugment
 from immnet.data.contract import check_complete
-from immnet.data.storage import as_batch, load_dataset
+from immnet.data.storage import as_batch, load_dataset, sample_digests
 from immnet.motion import MODE_NAMES
 
 SPLITS = ("train", "val", "test")
@@ -272,14 +272,14 @@ def check_flights(train: list, others: list) -> None:
     against the validation and test flights of each real-flight set of the same samples in the run, its own partition
     included: sets of one region written at different scan intervals may split the flights differently (docs/data.md,
     "One partition per region"). A ValueError names both sets, the count and a flight."""
-    real = [(p, m) for p, m in train + others if isinstance(m, dict) and isinstance(m.get("flights"), dict)]
-    for path, meta in train:
-        if not isinstance(meta, dict) or not isinstance(meta.get("flights"), dict):
-            continue  # 3D-LAST: trajectories, no flights
+    def real(sets):  # (path, meta, its samples' digests) of the sets that name flights (3D-LAST's do not)
+        return [(p, m, sample_digests(m)) for p, m in sets if isinstance(m, dict) and isinstance(m.get("flights"), dict)]
+
+    everything = real(train + others)
+    for path, meta, digests in real(train):
         trained = set(meta["flights"].get(meta.get("split"), []))
-        digests = {s.get("sha256") for s in meta.get("samples", []) if isinstance(s, dict)}
-        for other_path, other in real:
-            if not digests & {s.get("sha256") for s in other.get("samples", []) if isinstance(s, dict)}:
+        for other_path, other, other_digests in everything:
+            if not digests & other_digests:
                 continue
             for split in ("val", "test"):
                 if split == meta.get("split"):

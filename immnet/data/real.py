@@ -463,7 +463,9 @@ def subset_flights(data, out, flights: float | None = None, seed: int = 0, overw
 def _flights_of(splits, meta: dict, data) -> set[str]:
     """The flights the real-flight ``splits`` (directories) name, each checked to be a split of a set of the same
     samples as ``data`` (``meta``), so that its flight ids are ``data``'s."""
-    digests = {s["sha256"] for s in meta.get("samples", [])}
+    from immnet.data.storage import sample_digests
+
+    digests = sample_digests(meta)
     seen: set[str] = set()
     for split in splits:
         split = Path(split)
@@ -497,7 +499,7 @@ def _reference_meta(path: Path, digests: set[str], option: str) -> dict:
     was made from at least one of the samples of SHA-256 ``digests`` (its flight ids are then theirs)."""
     import json
 
-    from immnet.data.storage import REAL_FORMAT
+    from immnet.data.storage import REAL_FORMAT, sample_digests
 
     if not (path / "meta.json").is_file():
         raise ValueError(f"{option} {path}: not a data set directory (no meta.json)")
@@ -508,7 +510,7 @@ def _reference_meta(path: Path, digests: set[str], option: str) -> dict:
     if not isinstance(meta, dict) or meta.get("format") != REAL_FORMAT:
         raise ValueError(f"{option} {path}: not a set of `immnet data adsb` (format "
                          f"{meta.get('format') if isinstance(meta, dict) else None!r})")
-    if not digests & {s.get("sha256") for s in meta.get("samples", []) if isinstance(s, dict)}:
+    if not digests & sample_digests(meta):
         raise ValueError(f"{option} {path}: made from none of these samples; its flights cannot be theirs")
     return meta
 

@@ -53,6 +53,14 @@ FORMAT = "3d-last"
 REAL_FORMAT = "adsb"
 """The format tag of a set of real flights seen by a simulated radar (:mod:`immnet.data.real`)."""
 FORMATS = (FORMAT, REAL_FORMAT)
+
+
+def sample_digests(meta: dict) -> set[str]:
+    """The SHA-256 of each sample file a real-flight set's ``meta.json`` names (``samples``): two sets that share one
+    name the same flights by the same ids."""
+    return {s.get("sha256") for s in meta.get("samples", []) if isinstance(s, dict)}
+
+
 STORE_DTYPES = {
     keys.STATES: torch.float32, keys.MEASUREMENTS: torch.float32, keys.MODE: torch.int64,
     keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32, keys.TIME: torch.float64,
