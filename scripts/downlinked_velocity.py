@@ -64,12 +64,7 @@ def site_velocity(speed, track, climb, lat, lon, site) -> np.ndarray:
     ground speed (m/s), track (degrees from true north, clockwise), vertical rate (m/s)."""
     chi = np.radians(np.asarray(track, float))
     local = np.stack([speed * np.sin(chi), speed * np.cos(chi), np.asarray(climb, float)], -1)  # [n, 3] local ENU
-    phi, lam = np.radians(np.asarray(lat, float)), np.radians(np.asarray(lon, float))
-    sp, cp, sl, cl = np.sin(phi), np.cos(phi), np.sin(lam), np.cos(lam)
-    zero = np.zeros_like(phi)
-    rows = np.stack([np.stack([-sl, cl, zero], -1), np.stack([-sp * cl, -sp * sl, cp], -1),
-                     np.stack([cp * cl, cp * sl, sp], -1)], -2)  # [n, 3, 3]: enu_rotation at each report
-    ecef = np.einsum("nij,ni->nj", rows, local)  # rows' transpose: local ENU -> ECEF
+    ecef = np.einsum("nij,ni->nj", enu_rotation(lat, lon), local)  # each report's rows' transpose: local ENU -> ECEF
     return ecef @ enu_rotation(site[0], site[1]).T
 
 
@@ -128,22 +123,9 @@ def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> Reports:
                          f"sample files")
     spec = real.RealSpec(**{k: tuple(v) if k == "splits" else v for k, v in meta["params"].items()})
     wanted = set(meta["window_flights"])
-    by_id, records, rows = {}, {}, {}
-    flights = []
-    for s in meta["samples"]:
-        path = adsb.resolve_sample(s["name"])
-        if adsb.file_digest(path) != s["sha256"]:
-            raise ValueError(f"{path}: not the file {data} was built from (its SHA-256 differs)")
-        rec = adsb.read_records(path)
-        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points).flights
-        for f in got:
-            f.sample = s["name"]
-        records[s["name"]] = rec
-        rows[s["name"]] = row_interval(rec)
-        flights += got
-    real.unique_ids(flights)
-    if spec.max_flights:
-        flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
+    flights, records = real.set_flights(meta, data)
+    rows = {name: row_interval(rec) for name, rec in records.items()}
+    by_id = {}
     flights = [f for f in flights if f.id in wanted]
     sites = {k: (v["lat"], v["lon"], v["h"]) for k, v in meta["sites"].items()}
     prepared = real.truth(flights, [sites[f.sample] for f in flights], spec, meta["seed"])

@@ -20,8 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from immnet import keys
-from immnet.data import adsb
-from immnet.data.real import RealSpec, unique_ids, window_flights
+from immnet.data.real import set_flights, window_flights
 from immnet.data.storage import load_dataset
 from immnet.evaluation.methods import build_method
 from immnet.evaluation.phases import phases
@@ -30,18 +29,9 @@ from immnet.imm.guard import parse_guard
 
 
 def flight_samples(meta: dict) -> dict[str, str]:
-    """``{flight id: sample name}`` for the samples ``meta`` names, read with its cleaning parameters
-    (``immnet.data.real.make_adsb``'s reading and naming)."""
-    spec = RealSpec(**{**meta["params"], "splits": tuple(meta["params"]["splits"])})
-    flights = []
-    for sample in meta["samples"]:
-        got = adsb.flights(adsb.read_records(adsb.resolve_sample(sample["name"])), spec.max_gap, spec.max_speed,
-                           spec.max_climb, spec.time_slack, spec.min_points)
-        for f in got.flights:
-            f.sample = sample["name"]
-        flights += got.flights
-    unique_ids(flights)
-    return {f.id: f.sample for f in flights}
+    """``{flight id: sample name}`` for the samples ``meta`` names, read with its parameters
+    (``immnet.data.real.set_flights``: ``make_adsb``'s reading, naming and selection)."""
+    return {f.id: f.sample for f in set_flights(meta)[0]}
 
 
 def kind(sample: str) -> str:
@@ -58,7 +48,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     data, meta = load_dataset(args.data)
     owners = window_flights(meta, data.batch_size[0], args.data)
-    samples = flight_samples(meta)
+    try:
+        samples = flight_samples(meta)
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
     missing = sorted({f for f in owners if f not in samples})
     if missing:
         raise SystemExit(f"{len(missing)} flight(s) of {args.data} not found in its samples, e.g. {missing[0]}: "

@@ -68,10 +68,12 @@ def ecef_to_geodetic(xyz) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def enu_rotation(lat0, lon0) -> np.ndarray:
-    """The rows of the site's east, north and up unit vectors in ECEF ``[3, 3]``."""
-    phi, lam = np.radians(float(lat0)), np.radians(float(lon0))
+    """The rows of the site's east, north and up unit vectors in ECEF ``[3, 3]`` (``[..., 3, 3]`` for sites
+    ``lat0``, ``lon0`` of shape ``[...]``)."""
+    phi, lam = np.radians(np.asarray(lat0, np.float64)), np.radians(np.asarray(lon0, np.float64))
     sp, cp, sl, cl = np.sin(phi), np.cos(phi), np.sin(lam), np.cos(lam)
-    return np.array([[-sl, cl, 0.0], [-sp * cl, -sp * sl, cp], [cp * cl, cp * sl, sp]])
+    return np.stack([np.stack([-sl, cl, np.zeros_like(phi)], -1), np.stack([-sp * cl, -sp * sl, cp], -1),
+                     np.stack([cp * cl, cp * sl, sp], -1)], -2)
 
 
 def ecef_to_enu(xyz, site) -> np.ndarray:

@@ -240,6 +240,30 @@ def position_interval(flight: adsb.Flight) -> float:
     return float(np.median(np.diff(flight.t)))
 
 
+def set_flights(meta: dict, where="the set") -> tuple[list[adsb.Flight], dict[str, adsb.Records]]:
+    """``(flights, {sample name: records})``: the flights a real-flight set was built from, read again from the
+    samples its ``meta`` names with its parameters and selected as ``make_adsb`` selects them (ids made unique, each
+    ``.sample`` named, ``max_position_interval`` and ``max_flights`` applied), for a script that needs what the set's
+    windows do not keep. A ValueError naming ``where`` if a sample file is not the one the set was built from."""
+    spec = RealSpec(**{**meta["params"], "splits": tuple(meta["params"]["splits"])})
+    flights, records = [], {}
+    for sample in meta["samples"]:
+        path = adsb.resolve_sample(sample["name"])
+        if adsb.file_digest(path) != sample["sha256"]:
+            raise ValueError(f"{path}: not the file {where} was built from (its SHA-256 differs)")
+        rec = records[sample["name"]] = adsb.read_records(path)
+        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points).flights
+        for f in got:
+            f.sample = sample["name"]
+        flights += got
+    unique_ids(flights)
+    if spec.max_position_interval:
+        flights = [f for f in flights if position_interval(f) <= spec.max_position_interval]
+    if spec.max_flights:
+        flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
+    return flights, records
+
+
 def unique_ids(flights: list[adsb.Flight]) -> None:
     """Flight ids unique across samples, in place: a repeated one gets #2, #3, ... in the order of ``flights`` (the
     samples' order), as the data sets' ``flights`` and ``window_flights`` name them."""
