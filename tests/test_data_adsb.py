@@ -7,6 +7,7 @@ import dataclasses
 import gzip
 import hashlib
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -416,8 +417,6 @@ def test_window_flights_and_subsets_of_flights(tmp_path, monkeypatch, capsys):
     with pytest.raises(FileExistsError, match="not empty"):
         real.subset_flights(train, tmp_path / "two", 2)
     old = tmp_path / "v1"  # a set written before the flights of its windows were named
-    import shutil
-
     shutil.copytree(train, old)
     m1 = {k: v for k, v in m.items() if k != "window_flights"}
     (old / "meta.json").write_text(json.dumps({**m1, "format_version": 1}))
@@ -474,25 +473,33 @@ def test_flights_of_sparse_positions_left_out(tmp_path, monkeypatch, capsys):
     assert _digest(out) == _digest(tmp_path / "dense")
 
 
-def _two_intervals(tmp_path):
-    """One sample at 1 s and at 5 s scans, each set with its own partition: ``(sample, 5 s spec, meta a, meta b)``
-    (eight long flights, and three short ones that have windows at 1 s only)."""
+def _two_intervals(tmp_path, seed=2):
+    """One sample at 1 s scans (seed ``seed``) and at 5 s (seed 0): ``(sample, 5 s spec, meta a, meta b)``, two
+    partitions of its flights (eight long flights, and three short ones that have windows at 1 s only)."""
     long = _records(n_aircraft=8, n=400, seed=0)
     short = [{**r, "icao24": "abd" + r["icao24"][3:]} for r in _records(n_aircraft=3, n=120, seed=2)]
     sample = _write(tmp_path / "s.json.gz", long + short)
     one = real.RealSpec(T=40, splits=(0.5, 0.25, 0.25), max_range=60_000.0)
     five = dataclasses.replace(one, dt=5.0)
-    return sample, five, real.make_adsb(tmp_path / "a", [sample], one), real.make_adsb(tmp_path / "b", [sample], five)
+    return (sample, five, real.make_adsb(tmp_path / "a", [sample], one, seed=seed),
+            real.make_adsb(tmp_path / "b", [sample], five))
 
 
 def test_one_partition_for_every_scan_interval(tmp_path, monkeypatch, capsys):
-    """A set at another scan interval draws its own partition of the flights with windows (a short flight has
-    windows at 1 s and none at 5 s, which moves the others); ``--splits-from`` takes the first set's, and
-    ``immnet data subset --without`` leaves out the flights another set trains and validates on."""
+    """Sets of the same samples and seed at two scan intervals split the flights alike, though a short flight has
+    windows at 1 s and none at 5 s (the partition is drawn over the flights selected, not those with windows);
+    ``--splits-from`` takes another set's partition (here one of another seed), and ``immnet data subset --without``
+    leaves out the flights another set trains and validates on."""
     sample, five, a, b = _two_intervals(tmp_path)
+    a0 = real.make_adsb(tmp_path / "a0", [sample], dataclasses.replace(five, dt=1.0))  # b's seed
+    split_0 = {f: k for k, v in a0["flights"].items() for f in v}
     split_a = {f: k for k, v in a["flights"].items() for f in v}
     split_b = {f: k for k, v in b["flights"].items() for f in v}
-    assert set(split_b) < set(split_a) and any(split_a[f] != split_b[f] for f in split_b)  # the case: two partitions
+    assert set(split_b) < set(split_0) and split_b == {f: split_0[f] for f in split_b}  # one partition
+    assert len(split_0) == a0["counts"]["flights"]  # every flight has windows at 1 s
+    ref = real.partition(sorted(split_0), (0.5, 0.25, 0.25), 0)  # the draw, over the flights alone
+    assert {k: [f for f in v if f in split_b] for k, v in ref.items()} == b["flights"]
+    assert any(split_a[f] != split_b[f] for f in split_b)  # the case below: two partitions
     c = real.make_adsb(tmp_path / "c", [sample], five, splits_from=tmp_path / "a" / "val")
     assert {f: k for k, v in c["flights"].items() for f in v} == {f: split_a[f] for f in split_b}
     assert c["splits_from"] == str(tmp_path / "a" / "val") and c["counts"]["unsplit"] == 0
@@ -562,7 +569,7 @@ def test_one_partition_for_every_scan_interval(tmp_path, monkeypatch, capsys):
 
 def test_training_refuses_flights_another_set_keeps_for_validation_or_test(tmp_path):
     """``LASTDataModule`` refuses a run whose real-flight training set holds flights that a set of the same samples
-    in the run keeps for validation or test (sets at two scan intervals, each with its own partition), unless told
+    in the run keeps for validation or test (sets at two scan intervals and two seeds: two partitions), unless told
     ``allow_seen_flights``; one partition (``--splits-from``) trains, as does a set alone or beside 3D-LAST."""
     from immnet.data import LASTDataModule
     from immnet.data.spec import DataSpec

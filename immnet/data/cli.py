@@ -8,7 +8,7 @@ flights.
     immnet data plot --data data/train --out trajectories.png [--n 400] [--seed 0]
     immnet data adsb --samples collections/quickstart --out data/real/quickstart [--T 200] [--dt 1] [--seed 0]
     immnet data subset --data data/real/quickstart/train --out data/real/train-half --flights 0.5 [--seed 0]
-    immnet data subset --data data/real/quickstart-1s/test --out data/real/unseen --without data/real/quickstart-5s/{train,val}
+    immnet data subset --data data/real/quickstart-1s/test --out data/real/unseen --without data/real/other/{train,val}
     immnet data turns --data data/real/quickstart/val --out data/real/val-turns --turns 0.5 [--bank 10,30] [--seed 0]
 """
 

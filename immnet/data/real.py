@@ -229,9 +229,20 @@ def split_counts(n: int, fractions) -> list[int]:
     if f_train == 0:
         val, train = val + train, 0
     if train < 0 or (f_train > 0 and train < 1):
-        raise ValueError(f"{n} flight(s) with windows cannot fill the splits {list(fractions)} (each split with a "
+        raise ValueError(f"{n} flight(s) cannot fill the splits {list(fractions)} (each split with a "
                          f"positive fraction needs a flight); use fewer splits or more data")
     return [train, val, test]
+
+
+def partition(ids: list[str], fractions, seed: int) -> dict[str, list[str]]:
+    """The flights ``ids`` (sorted) of each split: a permutation drawn from ``(seed, 1)``, cut by
+    :func:`split_counts`. A function of the flights selected and the seed alone, not of the scan settings, so
+    the sets of one region at several scan intervals (a flight may have windows at one and none at another)
+    split its flights alike."""
+    perm = np.random.default_rng([int(seed), 1]).permutation(len(ids))
+    n_train, n_val, _ = split_counts(len(ids), fractions)
+    cut = {"train": perm[:n_train], "val": perm[n_train : n_train + n_val], "test": perm[n_train + n_val :]}
+    return {k: sorted(ids[i] for i in v) for k, v in cut.items()}
 
 
 def position_interval(flight: adsb.Flight) -> float:
@@ -377,11 +388,13 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
                          f"({', '.join(f'{k}: {v}' for k, v in sites.items())})")
     if reference is not None:
         members = {k: sorted(i for i in ids if reference[i] == k) for k in SPLITS}
-    else:
-        perm = np.random.default_rng([int(seed), 1]).permutation(len(ids))
-        n_train, n_val, _ = split_counts(len(ids), spec.splits)
-        member = {"train": perm[:n_train], "val": perm[n_train : n_train + n_val], "test": perm[n_train + n_val :]}
-        members = {k: sorted(ids[i] for i in v) for k, v in member.items()}
+    else:  # drawn over every flight selected, with windows at these scan settings or not: one partition per region
+        members = partition(sorted(p["flight"].id for p in prepared), spec.splits, seed)
+        members = {k: [i for i in v if i in rows] for k, v in members.items()}
+        empty = [k for k, f in zip(SPLITS, spec.splits) if float(f) > 0 and not members[k]]
+        if empty:
+            raise ValueError(f"no flight with windows in split(s) {', '.join(empty)} of the {len(prepared)} flight(s) "
+                             f"({len(ids)} with windows of T={spec.T} scans); use fewer splits or more data")
     counts["windows"] = {k: sum(len(rows[i]) for i in members[k]) for k in SPLITS}
     counts["flights_with_windows"] = len(ids)
     meta = {
