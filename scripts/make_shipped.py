@@ -30,21 +30,6 @@ REAL5 = ["measurements", "imm-ekf", "real-ca-5s", "real-imm-5s", "real-imm-axis-
 LAST = ["measurements", "imm-tuned", "imm-ekf", "imm-ekf-guard-sticky", "clairvoyant"]
 QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --seed 0), split by flight; no test flight "
               "trained or tuned on")
-# quickstart's sets at 1 s and at 4.5-5.5 s split its flights differently (each permutes the flights with windows at
-# its own scans; docs/data.md "One partition per region"): what each test set's rows have seen of its flights
-SEEN = {
-    "quickstart-1s": ("quickstart-5s splits quickstart's flights otherwise: 10 of these 36 test flights are among its "
-                      "training flights and 5 among its validation flights, which immnet-general trained and validated "
-                      "on and imm-ekf-general was tuned on (immnet-bank weighs immnet-general, and its weighing was "
-                      "chosen on both sets' validation flights); no other row saw any of them. On the 21 flights no "
-                      "model saw: docs/real.md, \"Flights seen at another interval\""),
-    "quickstart-5s": ("quickstart-1s splits quickstart's flights otherwise: 13 of these 36 test flights are among its "
-                      "training flights and 2 among its validation flights, which immnet-general trained and validated "
-                      "on and imm-ekf-general and the real-* filters tuned at 1 s were tuned on (immnet-bank weighs "
-                      "immnet-general, and its weighing was chosen on both sets' validation flights); the real-*-5s "
-                      "filters and immnet-real-5s saw none of them. On the 21 flights no model saw: docs/real.md, "
-                      "\"Flights seen at another interval\""),
-}
 SHIPS = {
     "real": {
         # three runs of the recipe on one filter, their corrections averaged, as real-5s (docs/real.md "Several
@@ -100,12 +85,9 @@ SHIPS = {
                  "guard: the 3D-LAST weights fine-tuned on a mixture"),
         "data": {"train": ["runs/general/data/3dlast: 3D-LAST at U[0.5, 12] s scans, 1,500 trajectories of 200 scans, "
                            "seed 61 (95 % of it; 5 % validation)",
-                           f"{REAL}/quickstart-1s/train: collections/quickstart's training flights at 1 s (immnet "
-                           "data adsb --seed 0), split by flight, r ~ U[1, 7] m",
-                           f"{REAL}/quickstart-5s/train: collections/quickstart's training flights at U[4.5, 5.5] s "
-                           "scans as that set splits them (not quickstart-1s's partition: 10 of quickstart-1s's test "
-                           "flights are among them, and 13 of quickstart-5s's test flights among quickstart-1s's "
-                           "training flights; docs/real.md \"Flights seen at another interval\"), r ~ U[5, 35] m",
+                           f"{REAL}/quickstart-1s/train: {QUICKSTART}, 1 s scans, r ~ U[1, 7] m",
+                           f"{REAL}/quickstart-5s/train: the same flights at U[4.5, 5.5] s scans (one partition for "
+                           "both intervals; docs/data.md \"One partition per region\"), r ~ U[5, 35] m",
                            "runs/general/data/3dlast-1s: 3D-LAST at 1 s scans, 500 trajectories of 400 scans, seed 63 "
                            "(95 % of it)"],
                  "val": [f"{REAL}/quickstart-1s/val", f"{REAL}/quickstart-5s/val"]},
@@ -179,19 +161,12 @@ def score(ship: dict, registry: str) -> tuple[dict, list[str]]:
         print(format_table(rows))
         tests[set_name] = {"data": path, "n": data.batch_size[0], "metrics": {n: r["rmse"] for n, r in rows.items()},
                            "claims": claims(rows, registry)}
-        seen = f"\nSeen in training or tuning: {SEEN[set_name]}.\n" if set_name in SEEN else ""
-        if seen:
-            tests[set_name]["seen"] = SEEN[set_name]
-        tables.append(f"**{set_name}** (`{path}`, {data.batch_size[0]} windows):\n\n{format_markdown(rows)}\n{seen}")
+        tables.append(f"**{set_name}** (`{path}`, {data.batch_size[0]} windows):\n\n{format_markdown(rows)}\n")
     return tests, tables
 
 
-def tests_heading(tests: dict) -> str:
-    """The line before a provenance's tables: never trained or tuned on, unless a set says what was."""
-    seen = any("seen" in t for t in tests.values())
-    return ("Test sets " + ("(what any row trained or tuned on of a set's flights is said under its table)" if seen
-                            else "(never trained or tuned on)")
-            + ", position RMSE in metres, each set one run (real flights without a range guard)")
+TESTS_HEADING = ("Test sets (never trained or tuned on), position RMSE in metres, each set one run (real flights "
+                 "without a range guard)")
 
 
 def claims_line(tests: dict) -> str:
@@ -228,7 +203,7 @@ def ship_bank(name: str, ship: dict, commit: str) -> int:
              f"Members, as shipped (each with its own provenance), weighed by the `{weighing['likelihood']}` likelihood "
              f"to the power {weighing['temper']:g}:\n\n| member | file | weights_sha256 |\n|:---|:---|:---|\n"
              f"{rows}\n",
-             tests_heading(tests) + ":\n", *tables,
+             TESTS_HEADING + ":\n", *tables,
              claims_line(tests)]
     (OUT / f"PROVENANCE-{name}.md").write_text("\n".join(lines))
     print(f"wrote provenance-{name}.json and PROVENANCE-{name}.md", file=sys.stderr)
@@ -351,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{', '.join(f'{k} {v}' for k, v in prov['settings'].items())} (docs/immnet.md).\n"]
                if prov.get("settings") else []),
              *([f"Note: {note}.\n"] if note else []),
-             tests_heading(tests)
+             TESTS_HEADING
              + (f", scored again at commit `{prov['scored']['commit'][:10]}` ({prov['scored']['date']}) by "
                 f"`{prov['scored']['by']}`" if a.rescore else "") + ":\n", *tables,
              claims_line(tests)]

@@ -43,15 +43,6 @@ DENSE=(--max-position-interval 2)
 adsb heldout-1s-dense all-test --skip-unreadable --samples $HELDOUT "${DENSE[@]}"
 # shellcheck disable=SC2086
 adsb heldout-5s-dense all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}" "${DENSE[@]}"
-# the test flights no model saw at either interval: quickstart's two sets split its flights otherwise, and the general
-# network trains and validates on both (docs/real.md "Flights seen at another interval")
-unseen() {  # out test-set other-set
-  [ -f "$DATA/$1/meta.json" ] && { echo "  $DATA/$1 exists" >&2; return; }
-  "$IMMNET" data subset --data "$DATA/$2/test" --out "$DATA/$1" --without "$DATA/$3/train" "$DATA/$3/val"
-}
-unseen quickstart-1s-unseen quickstart-1s quickstart-5s
-unseen quickstart-5s-unseen quickstart-5s quickstart-1s
-
 if [ -n "${IMMNET_RETUNE:-}" ]; then
   say "2/5 tuning the model-based filters on the training flights (1 s)"
   for m in real-ca real-imm-axis real-imm real-imm-channel real-imm-singer; do
@@ -94,17 +85,15 @@ for m in "${MEMBERS[@]}"; do ckpts+=("$RUN/${m%%:*}/checkpoints/best.ckpt"); don
 
 say "4/5 evaluation: one table per data set, every method in one run"
 # immnet-bank is the default as shipped: its members are the shipped files (its real network is not this run's)
-BASE=measurements,imm-tuned,imm-ekf,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
-for set in quickstart-1s/test heldout-1s/test heldout-1s-dense/test quickstart-1s-unseen; do
-  out=$RUN/results-${set%%/*} extra=
-  [ "$set" = quickstart-1s-unseen ] && extra=imm-ekf-general,  # the general network's filter, which saw some flights too
-  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,$extra""immnet,immnet-real,immnet-general,immnet-bank" \
+BASE=measurements,imm-tuned,imm-ekf,imm-ekf-general,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
+for set in quickstart-1s heldout-1s heldout-1s-dense; do
+  out=$RUN/results-$set
+  "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,immnet,immnet-real,immnet-general,immnet-bank" \
     --checkpoint "immnet-real=$CKPT" --json "$out.json" --markdown "$out.md" --quiet
 done
-for set in quickstart-5s/test heldout-5s/test heldout-5s-dense/test quickstart-5s-unseen; do  # the 1 s networks refuse 5 s scans; the shipped real-5s and general take them
-  out=$RUN/results-${set%%/*} extra=
-  [ "$set" = quickstart-5s-unseen ] && extra=imm-ekf-general,
-  "$IMMNET" evaluate --data "$DATA/$set" --split all --guard none --methods "$BASE,$extra""real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s,immnet-general,immnet-real-5s,immnet-bank" \
+for set in quickstart-5s heldout-5s heldout-5s-dense; do  # the 1 s networks refuse 5 s scans; the shipped real-5s and general take them
+  out=$RUN/results-$set
+  "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s,immnet-general,immnet-real-5s,immnet-bank" \
     --json "$out.json" --markdown "$out.md" --quiet
 done
 
@@ -112,4 +101,4 @@ say "5/5 figure: a real flight, its estimates and their error over time"
 "$PY" scripts/real_figure.py --data "$DATA/quickstart-1s/test" --methods real-imm-singer,immnet-real \
   --checkpoint "immnet-real=$CKPT" --out "$RUN/figures/real_flight.png"
 
-say "done. Tables: $RUN/results-{quickstart-1s,heldout-1s,heldout-1s-dense,quickstart-1s-unseen,quickstart-5s,heldout-5s,heldout-5s-dense,quickstart-5s-unseen}.md"
+say "done. Tables: $RUN/results-{quickstart-1s,heldout-1s,heldout-1s-dense,quickstart-5s,heldout-5s,heldout-5s-dense}.md"

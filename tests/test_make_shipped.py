@@ -109,20 +109,3 @@ def test_rescore_keeps_the_training_record_and_the_weights_and_records_when_it_s
     md = (out / "PROVENANCE-real.md").read_text()
     assert kept["weights_sha256"] in md and f"scored again at commit `{head[:10]}`" in md
     assert "gu82meid" in md  # the training's W&B run, read from the kept record
-
-
-def test_a_test_set_whose_flights_a_row_has_seen_says_so(script, tmp_path, monkeypatch):
-    """A test set named in ``SEEN`` (quickstart's sets at 1 s and 4.5-5.5 s, whose partitions differ) carries what
-    was trained or tuned on its flights, in the provenance's tests and under its table, and the heading no longer
-    says its flights were never trained on; a set not named keeps that heading."""
-    data = write_dataset(tmp_path / "small", 4, 3, DataSpec(T=40, min_segment=12), progress=False)
-    ship = {"tests": {"small": (str(data), ["measurements", "real-imm-singer"])}}
-    plain, _ = script.score(ship, "measurements")
-    assert "seen" not in plain["small"] and script.tests_heading(plain).startswith("Test sets (never trained")
-    monkeypatch.setitem(script.SEEN, "small", "3 of these flights are training flights of another set")
-    tests, tables = script.score(ship, "measurements")
-    assert tests["small"]["seen"] == script.SEEN["small"]
-    assert "Seen in training or tuning: 3 of these flights are training flights of another set." in tables[0]
-    assert "never trained" not in script.tests_heading(tests)
-    assert tests["small"]["metrics"] == plain["small"]["metrics"]  # the scores are the same either way
-    assert set(script.SEEN) >= {"quickstart-1s", "quickstart-5s"}
