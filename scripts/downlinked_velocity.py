@@ -121,7 +121,7 @@ def set_reports(data, max_age: float = 3.0, atol: float = 1e-3) -> Reports:
     if meta.get("format") != "adsb":
         raise ValueError(f"{data}: not a real-flight set (format {meta.get('format')!r}); the reports come from its "
                          f"sample files")
-    spec = real.RealSpec(**{k: tuple(v) if k == "splits" else v for k, v in meta["params"].items()})
+    spec = real.RealSpec.from_dict(meta["params"])
     wanted = set(meta["window_flights"])
     flights, records = real.set_flights(meta, data)
     rows = {name: row_interval(rec) for name, rec in records.items()}

@@ -107,7 +107,7 @@ def _adsb(args) -> int:
     if args.splits is not None and args.splits_from is not None:
         raise ValueError("give --splits or --splits-from, not both: --splits-from takes the other set's partition")
     spec = RealSpec(T=args.T, dt=args.dt, dt_jitter=args.dt_jitter, p_miss=args.p_miss, r_min=args.r[0],
-                    r_max=args.r[1], max_range=args.max_range, splits=args.splits or (0.7, 0.15, 0.15),
+                    r_max=args.r[1], max_range=args.max_range, splits=args.splits or RealSpec.splits,
                     max_gap=args.max_gap,
                     max_flights=args.max_flights, truth_gap=args.truth_gap,
                     max_position_interval=args.max_position_interval)

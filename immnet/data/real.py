@@ -97,6 +97,11 @@ class RealSpec:
         d["splits"] = [float(f) for f in self.splits]
         return d
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "RealSpec":
+        """The spec of ``to_dict`` (a set's ``meta["params"]``), its JSON list of splits a tuple again."""
+        return cls(**{**d, "splits": tuple(d["splits"])})
+
 
 def _log(progress: bool, msg: str) -> None:
     if progress:
@@ -251,12 +256,26 @@ def position_interval(flight: adsb.Flight) -> float:
     return float(np.median(np.diff(flight.t)))
 
 
+def select_flights(flights: list[adsb.Flight], spec: RealSpec) -> tuple[list[adsb.Flight], list[adsb.Flight]]:
+    """``(kept, sparse)``: the flights a set takes, as ``make_adsb`` selects them after the ids are made unique,
+    and those left out as ``sparse``: a flight whose fresh positions lie more than ``spec.max_position_interval``
+    apart (median) is left out, then only the first ``spec.max_flights`` by id are kept (0: no limit for either)."""
+    kept, sparse = flights, []
+    if spec.max_position_interval:
+        kept = []
+        for f in flights:
+            (kept if position_interval(f) <= spec.max_position_interval else sparse).append(f)
+    if spec.max_flights:
+        kept = sorted(kept, key=lambda f: f.id)[: spec.max_flights]
+    return kept, sparse
+
+
 def set_flights(meta: dict, where="the set") -> tuple[list[adsb.Flight], dict[str, adsb.Records]]:
     """``(flights, {sample name: records})``: the flights a real-flight set was built from, read again from the
     samples its ``meta`` names with its parameters and selected as ``make_adsb`` selects them (ids made unique, each
     ``.sample`` named, ``max_position_interval`` and ``max_flights`` applied), for a script that needs what the set's
     windows do not keep. A ValueError naming ``where`` if a sample file is not the one the set was built from."""
-    spec = RealSpec(**{**meta["params"], "splits": tuple(meta["params"]["splits"])})
+    spec = RealSpec.from_dict(meta["params"])
     flights, records = [], {}
     for sample in meta["samples"]:
         path = adsb.resolve_sample(sample["name"])
@@ -268,11 +287,7 @@ def set_flights(meta: dict, where="the set") -> tuple[list[adsb.Flight], dict[st
             f.sample = sample["name"]
         flights += got
     unique_ids(flights)
-    if spec.max_position_interval:
-        flights = [f for f in flights if position_interval(f) <= spec.max_position_interval]
-    if spec.max_flights:
-        flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
-    return flights, records
+    return select_flights(flights, spec)[0], records
 
 
 def unique_ids(flights: list[adsb.Flight]) -> None:
@@ -351,20 +366,13 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
         c["sparse"] = 0
     if reference is not None:
         counts["unsplit"] = 0
-    if spec.max_position_interval:  # after the ids and sites, so a kept flight's windows are those of a set of all
-        kept = []
-        for f in flights:
-            if position_interval(f) <= spec.max_position_interval:
-                kept.append(f)
-                continue
-            counts["sparse"] += 1
-            per_sample[f.sample]["sparse"] += 1
-        flights = kept
-        if not flights:
-            raise ValueError(f"no flight whose fresh positions are at most {spec.max_position_interval:g} s apart "
-                             f"(median) in {', '.join(map(str, samples))}")
-    if spec.max_flights:
-        flights = sorted(flights, key=lambda f: f.id)[: spec.max_flights]
+    flights, sparse = select_flights(flights, spec)  # after the ids and sites: a kept flight's windows are a full set's
+    for f in sparse:
+        counts["sparse"] += 1
+        per_sample[f.sample]["sparse"] += 1
+    if not flights:
+        raise ValueError(f"no flight whose fresh positions are at most {spec.max_position_interval:g} s apart "
+                         f"(median) in {', '.join(map(str, samples))}")
     prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
     rows = {}
     for p in sorted(prepared, key=lambda p: p["flight"].id):
