@@ -34,6 +34,7 @@ gen test-1s 1000 99
 gen test-5s 1000 99 configs/data/scan5.yaml
 gen test-4.5-5.5s 1000 99 configs/data/scan4.5-5.5.yaml
 gen test-0.5-12s 1000 99 configs/data/scan0.5-12.yaml
+gen test-10-12s 1000 99 configs/data/scan10-12.yaml
 HELDOUT=$("$VENV/bin/python" -c "from immnet.data.adsb import available_samples as a; print(' '.join(n for n in a() if n != 'collections/quickstart'))")
 adsb() {  # name splits samples... (as scripts/real.sh)
   local name=$1 splits=$2; shift 2
