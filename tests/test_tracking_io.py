@@ -257,7 +257,9 @@ def test_a_track_is_split_at_coasting_gaps(tmp_path, scans, tracker):
     seg1[t[:20]] = z[:20]
     for idx, seg, steps in ((slice(0, 20), seg1, t[:20]), (slice(20, 40), z[20:], np.arange(20))):
         alone = tracker.track(torch.from_numpy(seg[None]).float())["state"][0].double().numpy()
-        np.testing.assert_allclose(got[idx], alone[steps], rtol=1e-5, atol=TOL)
+        # the scans right after the 20 coasted ones start from a covariance grown over 20 s, which carries the batch's
+        # float32 rounding up to about 0.1 m/s (a wrong segment or an uncoasted gap moves the estimate by metres)
+        np.testing.assert_allclose(got[idx], alone[steps], rtol=1e-5, atol=2.5 * TOL)
     # a limit below the 21 s gap splits there too
     rows.pop(20)
     short = np.stack([_values(r)[:9] for r in _track(tmp_path, rows, "--max-coast", "15", name="short.csv")])
