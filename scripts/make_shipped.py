@@ -2,7 +2,8 @@
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (three runs of
 recipes/real-singer-output.yaml, two with an overlay of configs/members/, their corrections joined: 1 s), `real-5s`
-(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s) or `general` (recipes/general.yaml, 0.5-12 s); `bank`,
+(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s), `real-11s` (of recipes/real-singer-11s-output.yaml: 10-12 s)
+or `general` (recipes/general.yaml, 0.5-12 s); `bank`,
 the default tracker, exports nothing (its members are the shipped files) and writes its provenance from its scores.
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
@@ -27,6 +28,8 @@ OUT = ROOT / "immnet/pretrained"
 REAL = "runs/real/data"
 REAL1 = ["measurements", "imm-ekf", "real-ca", "real-imm", "real-imm-axis", "real-imm-channel", "real-imm-singer"]
 REAL5 = ["measurements", "imm-ekf", "real-ca-5s", "real-imm-5s", "real-imm-axis-5s", "real-imm-channel-5s", "real-imm-singer-5s"]
+REAL11 = ["measurements", "imm-ekf", "real-ca-11s", "real-imm-11s", "real-imm-axis-11s", "real-imm-channel-11s",
+          "real-imm-singer-11s"]
 LAST = ["measurements", "imm-tuned", "imm-ekf", "imm-ekf-guard-sticky", "clairvoyant"]
 QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --seed 0), split by flight; no test flight "
               "trained or tuned on")
@@ -77,6 +80,28 @@ SHIPS = {
         "tests": {"quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general",
                                                                           "immnet-real-5s"])},
     },
+    "real-11s": {
+        # real-5s's form at an en-route radar's scans: three runs of the recipe on one filter, their corrections
+        # averaged (docs/real.md "Results (10-12 s scans, r 5-35 m)")
+        "ckpt": ["runs/real/output-11s/checkpoints/best.ckpt", "runs/real/output-11s-seed1/checkpoints/best.ckpt",
+                 "runs/real/output-11s-turns/checkpoints/best.ckpt"],
+        "recipe": ["recipes/real-singer-11s-output.yaml",
+                   "recipes/real-singer-11s-output.yaml + configs/members/real-11s-seed1.yaml",
+                   "recipes/real-singer-11s-output.yaml + configs/members/real-11s-turns.yaml"],
+        "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
+                 "real-imm-singer-11s with r estimated from a prior of 20 m, exactly)"),
+        "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "
+                 "history, reading each scan's interval), their corrections averaged, on the three-filter decoupled IMM "
+                 "tuned on real flights at 10-12 s (real-imm-singer-11s's CV, CA and Singer filters per axis), each "
+                 "track's r estimated, each trained on real flights at those scans (a fresh view of its flights each "
+                 "batch) as a run of its own, without a range guard; only the corrections learned"),
+        "data": {"train": f"{REAL}/quickstart-11s/train: {QUICKSTART}, U[10, 12] s scans, r ~ U[5, 35] m",
+                 "val": f"{REAL}/quickstart-11s/val"},
+        "interval_range": [10.0, 12.0],
+        "guard": "none",
+        "tests": {"quickstart-11s": (f"{REAL}/quickstart-11s/test", REAL11 + ["imm-ekf-general", "immnet-general",
+                                                                             "immnet-real-11s"])},
+    },
     "general": {
         "ckpt": "runs/general/fit/checkpoints/best.ckpt",
         "recipe": "recipes/general.yaml",
@@ -113,8 +138,9 @@ SHIPS = {
     },
     "bank": {
         # no weights of its own: the shipped networks above (and 3dlast) as they are, scored together as the default
-        "members": ["general", "real", "real-5s", "3dlast"],
-        "what": ("The default tracker: the shipped networks general, real, real-5s and 3dlast (without its range guard) "
+        "members": ["general", "real", "real-5s", "real-11s", "3dlast"],
+        "what": ("The default tracker: the shipped networks general, real, real-5s, real-11s and 3dlast (without its "
+                 "range guard) "
                  "run side by side, each on the tracks whose scan intervals it was trained for and weighed per track by "
                  "the likelihood of the track's measurements under its predictions of the track as it reports it, each "
                  "scan's to the power 0.5 (immnet.tracking.bank, docs/tracking.md \"A bank of networks\"); nothing "
@@ -124,9 +150,12 @@ SHIPS = {
             "quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real", "immnet-general",
                                                                      "immnet-bank"]),
             "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["immnet-real-5s", "immnet-general", "immnet-bank"]),
+            "quickstart-11s": (f"{REAL}/quickstart-11s/test", REAL11 + ["immnet-real-11s", "immnet-general",
+                                                                       "immnet-bank"]),
             "3dlast-1s": ("runs/general/data/test-1s", LAST + ["immnet", "immnet-general", "immnet-bank"]),
             "3dlast-4.5-5.5s": ("runs/general/data/test-4.5-5.5s", LAST + ["immnet-general", "immnet-bank"]),
             "3dlast-0.5-12s": ("runs/general/data/test-0.5-12s", LAST + ["immnet-general", "immnet-bank"]),
+            "3dlast-10-12s": ("runs/general/data/test-10-12s", LAST + ["immnet-general", "immnet-bank"]),
         },
     },
 }

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 65 minutes (the sum of its steps:
-# data 2, training 55 (three runs side by side on the two cores, each 80 steps in about 107 s), the evaluation 6, the
+# Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 70 minutes (the sum of its steps:
+# data 3, training 55 (three runs side by side on the two cores, each 80 steps in about 107 s), the evaluation 10, the
 # rest 3):
-#   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s and at U[4.5, 5.5] s
-#   scans, every other sample held out (never trained or tuned on; all its flights, and apart those known every
+#   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s, at U[4.5, 5.5] s and at
+#   U[10, 12] s scans, every other sample held out (never trained or tuned on; all its flights, and apart those known every
 #   second) -> the model-based filters for real motion as tuned on the training flights (configs/methods/real-*.yaml;
 #   IMMNET_RETUNE=1 tunes them again) -> IMMNet
 #   trained on the training flights (recipes/real-singer-output.yaml three times, two with an overlay of
@@ -30,12 +30,16 @@ adsb() {  # name splits samples... -- options
   "$IMMNET" data adsb --out "$DATA/$name" --splits "$splits" --seed 0 --overwrite --quiet "$@"
 }
 SCAN5=(--dt 5 --dt-jitter 0.5 --T 60 --r 5,35)  # a surveillance radar: 4.5-5.5 s scans, 5-35 m noise, 300 s windows
+SCAN11=(--dt 11 --dt-jitter 1 --T 30 --r 5,35)  # an en-route radar: 10-12 s scans, the same noise, 330 s windows
 adsb quickstart-1s 0.7,0.15,0.15 --samples collections/quickstart
 adsb quickstart-5s 0.7,0.15,0.15 --samples collections/quickstart "${SCAN5[@]}"
+adsb quickstart-11s 0.7,0.15,0.15 --samples collections/quickstart "${SCAN11[@]}"
 # shellcheck disable=SC2086
 adsb heldout-1s all-test --skip-unreadable --samples $HELDOUT
 # shellcheck disable=SC2086
 adsb heldout-5s all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}"
+# shellcheck disable=SC2086
+adsb heldout-11s all-test --skip-unreadable --samples $HELDOUT "${SCAN11[@]}"
 # the held-out flights known every second (85 % of the held-out windows are of flights known every 5 s, whose truth
 # between positions is the smoother's interpolation): the same windows as theirs in the sets above
 DENSE=(--max-position-interval 2)
@@ -43,11 +47,14 @@ DENSE=(--max-position-interval 2)
 adsb heldout-1s-dense all-test --skip-unreadable --samples $HELDOUT "${DENSE[@]}"
 # shellcheck disable=SC2086
 adsb heldout-5s-dense all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}" "${DENSE[@]}"
+# shellcheck disable=SC2086
+adsb heldout-11s-dense all-test --skip-unreadable --samples $HELDOUT "${SCAN11[@]}" "${DENSE[@]}"
 if [ -n "${IMMNET_RETUNE:-}" ]; then
   say "2/5 tuning the model-based filters on the training flights (1 s)"
   for m in real-ca real-imm-axis real-imm real-imm-channel real-imm-singer; do
     "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-1s/train" --out "configs/methods/$m.yaml" --quiet
     "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-5s/train" --out "configs/methods/$m-5s.yaml" --quiet
+    "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-11s/train" --out "configs/methods/$m-11s.yaml" --quiet
   done
 else
   say "2/5 the model-based filters as tuned on the training flights: configs/methods/real-*.yaml (IMMNET_RETUNE=1 to tune again)"
@@ -96,9 +103,14 @@ for set in quickstart-5s heldout-5s heldout-5s-dense; do  # the 1 s networks ref
   "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s,immnet-general,immnet-real-5s,immnet-bank" \
     --json "$out.json" --markdown "$out.md" --quiet
 done
+for set in quickstart-11s heldout-11s heldout-11s-dense; do  # an en-route radar's scans: the shipped real-11s and general take them
+  out=$RUN/results-$set
+  "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-imm-singer-5s,real-ca-11s,real-imm-11s,real-imm-axis-11s,real-imm-channel-11s,real-imm-singer-11s,immnet-general,immnet-real-11s,immnet-bank" \
+    --json "$out.json" --markdown "$out.md" --quiet
+done
 
 say "5/5 figure: a real flight, its estimates and their error over time"
 "$PY" scripts/real_figure.py --data "$DATA/quickstart-1s/test" --methods real-imm-singer,immnet-real \
   --checkpoint "immnet-real=$CKPT" --out "$RUN/figures/real_flight.png"
 
-say "done. Tables: $RUN/results-{quickstart-1s,heldout-1s,heldout-1s-dense,quickstart-5s,heldout-5s,heldout-5s-dense}.md"
+say "done. Tables: $RUN/results-{quickstart-1s,heldout-1s,heldout-1s-dense,quickstart-5s,heldout-5s,heldout-5s-dense,quickstart-11s,heldout-11s,heldout-11s-dense}.md"

@@ -174,9 +174,10 @@ def test_a_banks_likelihood_and_temper_are_checked_by_name():
 
 
 def test_each_member_tracks_the_scans_it_was_trained_for():
-    """The shipped bank in a batch of 1 s and 5 s tracks: the 1 s networks (real flights, 3D-LAST) take only the 1 s
-    tracks, the 5 s one only the 5 s tracks, the general network both; a track only the general network takes is its estimate to the
-    bit. A bank none of whose members takes a track refuses it by name."""
+    """The shipped bank in a batch of 1 s, 5 s and 11.5 s tracks: the 1 s networks (real flights, 3D-LAST) take only the
+    1 s tracks, the 5 s one only the 5 s tracks, the 10-12 s one only the 11.5 s track, the general network all; a bank
+    of the general network alone gives its estimate to the bit. A bank none of whose members takes a track refuses it
+    by name."""
     general, real = load_network(shipped("general")), load_network(shipped("real"))
     assert accepts(real, torch.ones(2, 5)).all() and not accepts(real, torch.full((1, 5), 5.0)).any()
     assert accepts(general, torch.tensor([[1.0, 0.5, 30.0]])).all()  # a long gap is coasted, at 10 s
@@ -184,22 +185,30 @@ def test_each_member_tracks_the_scans_it_was_trained_for():
     real5 = load_network(shipped("real-5s"))  # 4.5-5.5 s: a 10 s gap is two 5 s scans, a 6.25 s one would be 3.125 s
     assert accepts(real5, torch.tensor([[5.0, 4.6, 10.0, 5.4]])).all()
     assert not accepts(real5, torch.tensor([[5.0, 6.25, 5.0]])).any()
+    real11 = load_network(shipped("real-11s"))  # 10-12 s: a 22 s gap is two 11 s scans, a 13 s one would be 6.5 s
+    assert accepts(real11, torch.tensor([[11.0, 10.2, 22.0, 11.8]])).all()
+    assert not accepts(real11, torch.tensor([[11.0, 13.0, 11.0]])).any()
+    assert not accepts(real11, torch.full((1, 5), 5.0)).any() and not accepts(real5, torch.full((1, 5), 11.5)).any()
+    assert accepts(real5, torch.full((1, 5), 11.0)).all()  # two 5.5 s scans, one of them missed
     bank = BankMethod()
     td = generate(4, seed=3, spec=DataSpec(T=45, min_segment=15))
     td5 = generate(2, seed=4, spec=DataSpec(T=45, min_segment=15, dt=5.0))
-    z = torch.cat([td[keys.MEASUREMENTS], td5[keys.MEASUREMENTS]]).float()
-    iv = torch.cat([torch.ones(4, 45), torch.full((2, 45), 5.0)]).double()
+    td11 = generate(1, seed=5, spec=DataSpec(T=45, min_segment=15, dt=11.5))
+    z = torch.cat([td[keys.MEASUREMENTS], td5[keys.MEASUREMENTS], td11[keys.MEASUREMENTS]]).float()
+    iv = torch.cat([torch.ones(4, 45), torch.full((2, 45), 5.0), torch.full((1, 45), 11.5)]).double()
     takes = bank.net.takes(iv)
-    assert bank.net.names == ["general", "real", "real-5s", "3dlast"]
-    assert takes.tolist() == [[True, True, False, True]] * 4 + [[True, False, True, False]] * 2
+    assert bank.net.names == ["general", "real", "real-5s", "real-11s", "3dlast"]
+    assert takes.tolist() == ([[True, True, False, False, True]] * 4 + [[True, False, True, False, False]] * 2
+                              + [[True, False, False, True, False]])
     out = bank.net.track(z, intervals=iv)
     w = out[keys.MEMBER_PROBS].nan_to_num(0)
-    assert (w[:4, :, 2] == 0).all() and (w[4:, :, 1] == 0).all() and (w[4:, :, 3] == 0).all()
-    torch.testing.assert_close(w.sum(-1), torch.ones(6, 45, dtype=torch.float64), rtol=0, atol=1e-12)
+    assert (w[~takes[:, None, :].expand_as(w)] == 0).all()  # a member that does not take a track has no weight in it
+    assert (w[6, 10:, 3] > 0).all()  # the 11 s track: the 10-12 s network in the mixture
+    torch.testing.assert_close(w.sum(-1), torch.ones(7, 45, dtype=torch.float64), rtol=0, atol=1e-12)
     only = NetworkBank({"general": general}).track(z[4:], intervals=iv[4:])
     alone = Tracker(general).track(z[4:], intervals=iv[4:])
     torch.testing.assert_close(only[keys.STATE], alone[keys.STATE].double(), equal_nan=True, rtol=0, atol=0)
-    with pytest.raises(ValueError, match=r"no member of this bank takes track\(s\) 4, 5: the first has scan intervals of 5 to 5 s.*real 1 s"):
+    with pytest.raises(ValueError, match=r"no member of this bank takes track\(s\) 4, 5, 6: the first has scan intervals of 5 to 5 s.*real 1 s"):
         NetworkBank({"real": real}).track(z, intervals=iv)
 
 
@@ -303,8 +312,8 @@ def test_immnet_track_with_the_bank_tracks_each_row_at_its_own_time(tmp_path, sh
     assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz"),
                  "--weights", "bank"]) == 0
     npz = np.load(tmp_path / "out.npz")
-    assert list(npz["member_names"]) == ["general", "real", "real-5s", "3dlast"]
+    assert list(npz["member_names"]) == ["general", "real", "real-5s", "real-11s", "3dlast"]
     ref = shipped_bank.track(torch.from_numpy(z["b"][None]).float(), intervals=torch.full((1, 30), 5.0))
     np.testing.assert_allclose(npz["state"], ref[keys.STATE].numpy(), rtol=0, atol=0)
     np.testing.assert_allclose(npz["member_probs"][0, 5:].sum(-1), 1.0, rtol=1e-12)
-    assert (npz["member_probs"][0, :, [1, 3]] == 0).all() and npz["state_cov"].shape == (1, 30, 9, 9)
+    assert (npz["member_probs"][0, :, [1, 3, 4]] == 0).all() and npz["state_cov"].shape == (1, 30, 9, 9)

@@ -1,5 +1,5 @@
 """Real flights (docs/real.md): each shipped network trained on real flights (``immnet-real``, 1 s; ``immnet-real-5s``,
-4.5-5.5 s; ``immnet-general`` at 1 s and at 4.5-5.5 s scans) and the bank of them that is the default (``immnet-bank``)
+4.5-5.5 s; ``immnet-real-11s``, 10-12 s; ``immnet-general`` at 1 s and at 4.5-5.5 s scans) and the bank of them that is the default (``immnet-bank``)
 meets the claim of its provenance on the test flights of
 collections/quickstart, and the covariances of the best model-based filter and of the networks are calibrated there
 (the 95 % position ellipsoid holds the truth at about 95 % of the scans).
@@ -24,9 +24,11 @@ from immnet.evaluation.metrics import position_error, rmse, scored_mask
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(adsb.samples_dir() is None, reason="traffic's sample files are not installed")]
 SETS = {"quickstart-1s": real.RealSpec(),  # as scripts/real.sh writes them
-        "quickstart-5s": real.RealSpec(dt=5.0, dt_jitter=0.5, T=60, r_min=5.0, r_max=35.0)}
-CASES = [("real", "quickstart-1s"), ("real-5s", "quickstart-5s"), ("general", "quickstart-1s"), ("general", "quickstart-5s"),
-         ("bank", "quickstart-1s"), ("bank", "quickstart-5s")]
+        "quickstart-5s": real.RealSpec(dt=5.0, dt_jitter=0.5, T=60, r_min=5.0, r_max=35.0),
+        "quickstart-11s": real.RealSpec(dt=11.0, dt_jitter=1.0, T=30, r_min=5.0, r_max=35.0)}
+CASES = [("real", "quickstart-1s"), ("real-5s", "quickstart-5s"), ("real-11s", "quickstart-11s"),
+         ("general", "quickstart-1s"), ("general", "quickstart-5s"),
+         ("bank", "quickstart-1s"), ("bank", "quickstart-5s"), ("bank", "quickstart-11s")]
 
 
 def _provenance(name: str) -> dict:

@@ -322,12 +322,13 @@ def _one_track_csv(path, t, seed: int, r: float):
 
 
 @pytest.mark.parametrize("weights", ["general", None])
-@pytest.mark.parametrize("spacing", [1.0, 10.0])
+@pytest.mark.parametrize("spacing", [1.0, 8.5, 10.0])
 def test_immnet_track_says_what_the_general_weights_provenance_says_at_the_datas_interval(tmp_path, capsys, spacing,
                                                                                           weights):
-    """At 10 s scans the general network was measured behind its filter (the provenance's ``interval_bins``), at
-    1 s ahead of it: ``immnet track`` with the general weights, and with the bank (the default, whose one member at
-    10 s scans is the general network), prints the note exactly where the provenance has the network behind."""
+    """At 8.5 s and 10 s scans the general network was measured behind its filter (the provenance's ``interval_bins``),
+    at 1 s ahead of it: ``immnet track`` with the general weights, and with the bank (the default), prints the note
+    exactly where the provenance has the network behind. At 10 s the bank's note adds what real-11s, which the bank
+    runs beside the general network there, measured on real flights; the general weights name it to try."""
     import json
 
     from immnet.checkpoints import provenance_file, shipped
@@ -339,14 +340,21 @@ def test_immnet_track_says_what_the_general_weights_provenance_says_at_the_datas
     args = ["track", "--input", str(path), "--output", str(tmp_path / "o.csv")] + (["--weights", weights] if weights else [])
     assert main(args) == 0
     err = capsys.readouterr().err
+    alone = spacing == 8.5  # the bank's only member at these scans is the general network
+    bank = weights is None
     assert (f"--method {bins['filter']}" in err) == behind, err
-    assert ("the bank's general network" in err) == (behind and weights is None), err
-    assert behind == (spacing == 10.0)  # as measured (docs/results.md "The general model"): ahead at 1 s, behind at 8-12 s
+    assert ("the bank's general network" in err) == (behind and bank), err
+    assert ("(its one member at these scans)" in err) == (behind and bank and alone), err
+    assert ("'real-11s', which the bank runs beside it at these scans, tracked real flights (quickstart-11s) better "
+            f"than {bins['filter']}" in err) == (spacing == 10.0 and bank), err
+    assert ("--weights real-11s" in err) == (spacing == 10.0 and weights == "general"), err
+    assert behind == (spacing >= 8.0)  # as measured (docs/results.md "The general model"): ahead at 1 s, behind at 8-12 s
 
 
 def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans():
     """With the general weights, the note names another shipped network where it was trained for the data's median scan
-    interval and a provenance measured it ahead of the general one: real-5s at 4.5-5.5 s, real at 1 s, with the numbers
+    interval and a provenance measured it ahead of the general one: real-5s at 4.5-5.5 s, real at 1 s, real-11s at
+    10-12 s, with the numbers
     of those provenance files; nothing at other intervals, with other weights loaded, or without intervals."""
     import json
 
@@ -363,6 +371,10 @@ def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans(
     note = weights_note(general, own, [1.0] * 5)  # real's own provenance, both networks in one run
     assert "--weights real " in note
     assert f"{one['immnet-real']['avg']:.3f} m against the general one's {one['immnet-general']['avg']:.3f}" in note
+    eleven = json.loads(provenance_file(shipped("real-11s")).read_text())["tests"]["quickstart-11s"]["metrics"]
+    note = weights_note(general, own, [10.4, 11.0, 11.9])
+    assert "--weights real-11s" in note and "10-12 s" in note and "real flights (quickstart-11s)" in note
+    assert f"{eleven['immnet-real-11s']['avg']:.3f} m against the general one's {eleven['immnet-general']['avg']:.3f}" in note
     assert weights_note(general, own, [8.0, 8.0]) is None and weights_note(general, own, [1.0, 2.0, 2.0]) is None
     for other, dt in (("real-5s", 5.0), ("3dlast", 1.0)):
         assert weights_note(shipped(other), load_provenance(shipped(other)), [dt]) is None
@@ -377,3 +389,21 @@ def test_immnet_track_names_the_5s_weights_for_5s_scans_with_the_general_weights
     args = ["track", "--input", str(path), "--output", str(tmp_path / "o.csv")] + (["--weights", weights] if weights else [])
     assert main(args) == 0
     assert ("--weights real-5s" in capsys.readouterr().err) == (weights == "general")
+
+
+def test_the_bank_note_counts_a_member_where_the_bank_runs_it():
+    """``advice._takes`` reads from a provenance what ``NetworkBank.takes`` decides from the loaded network, for every
+    member whose provenance names its intervals: a constant scan interval from 0.5 to 14 s, a network trained over a
+    range taking a longer one cut into missed scans (real-5s at 10 s, real-11s not at 13 s)."""
+    from immnet.checkpoints import shipped
+    from immnet.tracking import Tracker
+    from immnet.tracking.advice import _takes, load_provenance
+
+    bank = Tracker.pretrained()
+    for dt in np.arange(0.5, 14.01, 0.25):
+        takes = bank.takes(torch.full((1, 4), float(dt), dtype=torch.float64))[0].tolist()
+        for name, took in zip(bank.names, takes):
+            prov = load_provenance(shipped(name)) or {}
+            if prov.get("interval_range") or prov.get("scan_interval"):
+                assert _takes(prov, float(dt)) == took, (name, dt)
+    assert _takes(load_provenance(shipped("real-5s")), 10.0) and not _takes(load_provenance(shipped("real-11s")), 13.0)

@@ -10,9 +10,9 @@ unchanged: the note is advice from measurements, not a switch.
 
 With the general weights (``--weights general``), ``immnet track`` also says where another shipped network was
 trained for the data's median scan interval and a provenance measured it ahead of the general one (``weights_note``:
-``real-5s`` at 4.5-5.5 s, ``real`` at 1 s, each on real flights), naming ``--weights`` to try. With the bank (the
-default), which runs those networks itself, only the general network's interval note is said, where the data's median
-interval is one no other member takes (``bank_note``).
+``real-5s`` at 4.5-5.5 s, ``real-11s`` at 10-12 s, ``real`` at 1 s, each on real flights), naming ``--weights`` to
+try. With the bank (the default), which runs those networks itself, the general network's interval note is said, with
+what another member's provenance measured where one was trained for those scans (``bank_note``).
 """
 
 from __future__ import annotations
@@ -60,6 +60,18 @@ def _span(provenance: dict, median: float) -> tuple[float, float] | None:
     return float(span[0]), float(span[1])
 
 
+def _takes(provenance: dict, median: float) -> bool:
+    """Whether a shipped network runs on a track scanned every ``median`` s, as the bank decides it
+    (``immnet.tracking.bank.accepts``): a network trained over a range takes an interval longer than the range cut into
+    equal ones by missed scans (``real-5s`` takes 10 s scans as two of 5 s); one trained at one interval, that interval
+    (a provenance that names no interval, the 3D-LAST network's, counts as none)."""
+    span = provenance.get("interval_range")
+    if span:
+        cut = median / max(1.0, float(np.ceil(median / float(span[1]) * (1 - 1e-12))))
+        return float(span[0]) * (1 - 1e-6) <= cut <= float(span[1]) * (1 + 1e-6)
+    return _span(provenance, median) is not None
+
+
 def interval_note(provenance: dict | None, intervals, whose: str = "these weights were") -> str | None:
     """A note (one line) where the provenance's ``interval_bins`` put the network (``whose``, with its verb) behind its
     filter in the bin of the median of ``intervals`` (seconds; non-finite values ignored); None where it does not,
@@ -84,16 +96,32 @@ def interval_note(provenance: dict | None, intervals, whose: str = "these weight
 
 def bank_note(intervals) -> str | None:
     """The shipped bank's note: ``interval_note`` of the general network's provenance, where the median of
-    ``intervals`` is one only the general network of the bank takes (``immnet.tracking.bank.DEFAULT_MEMBERS``);
-    None elsewhere."""
+    ``intervals`` lies in a bin that has the general network behind its filter; None elsewhere. Where another member of
+    the bank (``immnet.tracking.bank.DEFAULT_MEMBERS``) was trained for these scans and its provenance measured it
+    ahead of that filter, the note says so too (at 10-12 s: ``real-11s`` on real flights), so that the user, who knows
+    which motion the data holds, has both measurements."""
     from immnet.checkpoints import GENERAL, shipped
     from immnet.tracking.bank import DEFAULT_MEMBERS
 
     median = _median(intervals)
-    if median is None or any(_span(load_provenance(shipped(m)) or {}, median) for m in DEFAULT_MEMBERS if m != GENERAL):
-        return None  # no intervals, or another member takes these scans
-    return interval_note(load_provenance(shipped(GENERAL)), intervals, "the bank's general network (its one member at "
-                         "these scans) was")
+    if median is None:
+        return None
+    general = load_provenance(shipped(GENERAL))
+    others = [m for m in DEFAULT_MEMBERS if m != GENERAL and _takes(load_provenance(shipped(m)) or {}, median)]
+    note = interval_note(general, intervals, "the bank's general network was" if others else
+                         "the bank's general network (its one member at these scans) was")
+    if note is None:
+        return None
+    ref = general["interval_bins"]["filter"]
+    for name in others:
+        for set_name, test in (load_provenance(shipped(name)) or {}).get("tests", {}).items():
+            rmse = {m: (v or {}).get("avg") for m, v in test.get("metrics", {}).items()}
+            a, b = rmse.get(registry_name(name)), rmse.get(ref)
+            if a is not None and b is not None and a < b:
+                note += (f"; {name!r}, which the bank runs beside it at these scans, tracked {what(set_name)} better "
+                         f"than {ref} ({a:.3f} m against {b:.3f}, its provenance)")
+                break
+    return note
 
 
 def registry_name(name: str) -> str:
