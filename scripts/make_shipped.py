@@ -33,75 +33,48 @@ REAL11 = ["measurements", "imm-ekf", "real-ca-11s", "real-imm-11s", "real-imm-ax
 LAST = ["measurements", "imm-tuned", "imm-ekf", "imm-ekf-guard-sticky", "clairvoyant"]
 QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --seed 0), split by flight; no test flight "
               "trained or tuned on")
-SHIPS = {
-    "real": {
-        # three runs of the recipe on one filter, their corrections averaged, as real-5s (docs/real.md "Several
-        # corrections on one filter")
-        "ckpt": ["runs/real/output/checkpoints/best.ckpt", "runs/real/output-seed1/checkpoints/best.ckpt",
-                 "runs/real/output-turns/checkpoints/best.ckpt"],
-        "recipe": ["recipes/real-singer-output.yaml",
-                   "recipes/real-singer-output.yaml + configs/members/real-seed1.yaml",
-                   "recipes/real-singer-output.yaml + configs/members/real-turns.yaml"],
+
+
+def _corrections(tag: str, scans: str, train: str, tests: list[str], prior: str = "", reading: str = "",
+                 tuned: str = "") -> dict:
+    """A real-flight network of three runs of one recipe on one filter, their corrections averaged (docs/real.md
+    "Several corrections on one filter"): the recipe, and it with each overlay of configs/members/ (a second seed;
+    turns flown into half its views). ``tag``: the recipe's, run directories' and filter's suffix (``""``, ``"-5s"``,
+    ``"-11s"``); ``scans``: the scans it was trained at, as the provenance says them; ``train``: its training data's
+    scans and noise; ``tests``: the registry names scored beside its set's filters."""
+    recipe, members = f"recipes/real-singer{tag}-output.yaml", f"configs/members/real{tag}"
+    name, filt, data = f"real{tag}", f"real-imm-singer{tag}", f"{REAL}/quickstart{tag or '-1s'}"
+    return {
+        "ckpt": [f"runs/real/output{tag}{run}/checkpoints/best.ckpt" for run in ("", "-seed1", "-turns")],
+        "recipe": [recipe] + [f"{recipe} + {members}-{overlay}.yaml" for overlay in ("seed1", "turns")],
         "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
-                 "real-imm-singer with r estimated, exactly)"),
+                 f"{filt} with r estimated{prior}, exactly)"),
         "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "
-                 "history), their corrections averaged, on the three-filter decoupled IMM tuned on real flights "
-                 "(real-imm-singer's CV, CA and Singer filters per axis), each track's r estimated, each trained on "
-                 "real flights at 1 s scans (a fresh view of its flights each batch) as a run of its own, without a "
+                 f"history{reading}), their corrections averaged, on the three-filter decoupled IMM tuned on real "
+                 f"flights{tuned} ({filt}'s CV, CA and Singer filters per axis), each track's r estimated, each trained "
+                 f"on real flights at {scans} (a fresh view of its flights each batch) as a run of its own, without a "
                  "range guard; only the corrections learned"),
-        "data": {"train": f"{REAL}/quickstart-1s/train: {QUICKSTART}, 1 s scans, r ~ U[1, 7] m",
-                 "val": f"{REAL}/quickstart-1s/val"},
-        "scan_interval": 1.0,
+        "data": {"train": f"{data}/train: {QUICKSTART}, {train}", "val": f"{data}/val"},
         "guard": "none",
-        "tests": {"quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-general", "immnet-real"])},
-    },
-    "real-5s": {
-        # three runs of the recipe on one filter, their corrections averaged (CorrectionEnsemble): the recipe, a second
-        # seed, and fresh views with turns flown into half of the tracks; chosen on the validation flights over each
-        # run alone and each pair (docs/real.md "Several corrections on one filter")
-        "ckpt": ["runs/real/output-5s/checkpoints/best.ckpt", "runs/real/output-5s-seed1/checkpoints/best.ckpt",
-                 "runs/real/output-5s-turns/checkpoints/best.ckpt"],
-        "recipe": ["recipes/real-singer-5s-output.yaml",
-                   "recipes/real-singer-5s-output.yaml + configs/members/real-5s-seed1.yaml",
-                   "recipes/real-singer-5s-output.yaml + configs/members/real-5s-turns.yaml"],
-        "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
-                 "real-imm-singer-5s with r estimated from a prior of 20 m, exactly)"),
-        "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "
-                 "history, reading each scan's interval), their corrections averaged, on the three-filter decoupled IMM "
-                 "tuned on real flights at 4.5-5.5 s (real-imm-singer-5s's CV, CA and Singer filters per axis), each "
-                 "track's r estimated, each trained on real flights at those scans (a fresh view of its flights each "
-                 "batch) as a run of its own, without a range guard; only the corrections learned"),
-        "data": {"train": f"{REAL}/quickstart-5s/train: {QUICKSTART}, U[4.5, 5.5] s scans, r ~ U[5, 35] m",
-                 "val": f"{REAL}/quickstart-5s/val"},
-        "interval_range": [4.5, 5.5],
-        "guard": "none",
-        # no covariance consistency (docs/immnet.md): of none, 0.005, 0.01, 0.02 and 0.05 its weight, none gives the
-        # mean position NEES nearest 3 on the validation flights (docs/real.md, "Calibration")
-        "tests": {"quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general",
-                                                                          "immnet-real-5s"])},
-    },
-    "real-11s": {
-        # real-5s's form at an en-route radar's scans: three runs of the recipe on one filter, their corrections
-        # averaged (docs/real.md "Results (10-12 s scans, r 5-35 m)")
-        "ckpt": ["runs/real/output-11s/checkpoints/best.ckpt", "runs/real/output-11s-seed1/checkpoints/best.ckpt",
-                 "runs/real/output-11s-turns/checkpoints/best.ckpt"],
-        "recipe": ["recipes/real-singer-11s-output.yaml",
-                   "recipes/real-singer-11s-output.yaml + configs/members/real-11s-seed1.yaml",
-                   "recipes/real-singer-11s-output.yaml + configs/members/real-11s-turns.yaml"],
-        "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
-                 "real-imm-singer-11s with r estimated from a prior of 20 m, exactly)"),
-        "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "
-                 "history, reading each scan's interval), their corrections averaged, on the three-filter decoupled IMM "
-                 "tuned on real flights at 10-12 s (real-imm-singer-11s's CV, CA and Singer filters per axis), each "
-                 "track's r estimated, each trained on real flights at those scans (a fresh view of its flights each "
-                 "batch) as a run of its own, without a range guard; only the corrections learned"),
-        "data": {"train": f"{REAL}/quickstart-11s/train: {QUICKSTART}, U[10, 12] s scans, r ~ U[5, 35] m",
-                 "val": f"{REAL}/quickstart-11s/val"},
-        "interval_range": [10.0, 12.0],
-        "guard": "none",
-        "tests": {"quickstart-11s": (f"{REAL}/quickstart-11s/test", REAL11 + ["imm-ekf-general", "immnet-general",
-                                                                             "immnet-real-11s"])},
-    },
+        "tests": {f"quickstart{tag or '-1s'}": (f"{data}/test", tests + [f"immnet-{name}"])},
+    }
+
+
+PRIOR = " from a prior of 20 m"  # the r estimate's prior at the training flights' mean r (U[5, 35] m)
+READING = ", reading each scan's interval"
+SHIPS = {
+    # each chosen on its validation flights over each run alone and each pair (docs/real.md)
+    "real": {**_corrections("", "1 s scans", "1 s scans, r ~ U[1, 7] m", REAL1 + ["immnet", "immnet-general"]),
+             "scan_interval": 1.0},
+    # no covariance consistency (docs/immnet.md): of none, 0.005, 0.01, 0.02 and 0.05 its weight, none gives the mean
+    # position NEES nearest 3 on the validation flights (docs/real.md, "Calibration")
+    "real-5s": {**_corrections("-5s", "those scans", "U[4.5, 5.5] s scans, r ~ U[5, 35] m",
+                               REAL5 + ["imm-ekf-general", "immnet-general"], PRIOR, READING, " at 4.5-5.5 s"),
+                "interval_range": [4.5, 5.5]},
+    # real-5s's form at an en-route radar's scans (docs/real.md "Results (10-12 s scans, r 5-35 m)")
+    "real-11s": {**_corrections("-11s", "those scans", "U[10, 12] s scans, r ~ U[5, 35] m",
+                                REAL11 + ["imm-ekf-general", "immnet-general"], PRIOR, READING, " at 10-12 s"),
+                 "interval_range": [10.0, 12.0]},
     "general": {
         "ckpt": "runs/general/fit/checkpoints/best.ckpt",
         "recipe": "recipes/general.yaml",
