@@ -5,8 +5,9 @@ It prints a table and rewrites the ``## The bank of networks`` section of BENCHM
 The rows: the shipped general network alone (``IMMNet.scan``, what ``Tracker.pretrained("general").step`` runs) at
 1 s and at 5 s scans, and the shipped bank (``Tracker.pretrained()``, ``immnet.tracking.bank.NetworkBank.step``:
 each member's scan, its predictive likelihood and the mixture; docs/tracking.md "A bank of networks") at 1 s (the
-general, real-flight 1 s and 3D-LAST networks run), 5 s (the general and real-5s networks), 8 s (the general network
-alone in the bank) and 11.5 s (the general and real-11s networks). Tracks that have started, the median of three passes of ``--steps`` scans; the rows take
+general, real-flight 1 s and 3D-LAST networks run), 3 s (the general network alone in the bank), 5 s (the general,
+real-5s and real-4.5-12s networks), 8 s (the general and real-4.5-12s networks) and 11.5 s (the general, real-11s and
+real-4.5-12s networks). Tracks that have started, the median of three passes of ``--steps`` scans; the rows take
 turns over ``--rounds`` rounds and each reports its median round.
 """
 
@@ -24,7 +25,7 @@ from common import rates_in_turns, rates_table, rows_arguments, write_rates  # n
 from immnet.tracking.bank import NetworkBank  # noqa: E402
 from immnet.tracking.tracker import Tracker  # noqa: E402
 
-ROWS = (("general", 1.0), ("general", 5.0), ("bank", 1.0), ("bank", 5.0), ("bank", 8.0), ("bank", 11.5))
+ROWS = (("general", 1.0), ("general", 5.0), ("bank", 1.0), ("bank", 3.0), ("bank", 5.0), ("bank", 8.0), ("bank", 11.5))
 LABELS = {"general": "the general network alone", "bank": "the bank (the default)"}
 
 

@@ -30,19 +30,20 @@ CHECKSUM_KEY = "weights_sha256"
 PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
 """The shipped 3D-LAST weights (``immnet/pretrained/PROVENANCE.md``), the benchmark model; the others beside them."""
 SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "immnet-real.ckpt",
-           "real-5s": "immnet-real-5s.ckpt", "real-11s": "immnet-real-11s.ckpt"}
+           "real-5s": "immnet-real-5s.ckpt", "real-11s": "immnet-real-11s.ckpt",
+           "real-4.5-12s": "immnet-real-4.5-12s.ckpt"}
 """The shipped networks by name (docs/checkpoints.md "Shipped weights"): ``general`` (any interval 0.5-12 s, 3D-LAST
 and real flights, no range guard; with the others, the bank ``Tracker.pretrained()`` and ``immnet track`` run unless
 told, ``BANK``);
 ``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, three learned
 output corrections, averaged, on the three-filter decoupled IMM, trained on real flights); ``real-5s`` the same for a
 surveillance radar's 4.5-5.5 s scans, on that IMM tuned at those scans; ``real-11s`` for an en-route radar's 10-12 s
-scans."""
+scans; ``real-4.5-12s`` one such network for any interval from 4.5 to 12 s (one run, on that IMM tuned over them)."""
 GENERAL = "general"
 """The general network: the bank's member for any interval from 0.5 to 12 s."""
 BANK = "bank"
 """The shipped networks together as one tracker (``immnet.tracking.bank``: ``general``, ``real``, ``real-5s``,
-``real-11s`` and ``3dlast`` without its guard, each weighed per track by how well it predicts the track), the default of
+``real-11s``, ``real-4.5-12s`` and ``3dlast`` without its guard, each weighed per track by how well it predicts the track), the default of
 ``Tracker.pretrained()`` and ``immnet track``; not a file of its own."""
 DEFAULT_WEIGHTS = BANK
 

@@ -2,9 +2,9 @@
 each of its test sets beside the model-based filters (and the clairvoyant bound on 3D-LAST) in one run per set, and
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (three runs of
 recipes/real-singer-output.yaml, two with an overlay of configs/members/, their corrections joined: 1 s), `real-5s`
-(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s), `real-11s` (of recipes/real-singer-11s-output.yaml: 10-12 s)
-or `general` (recipes/general.yaml, 0.5-12 s); `bank`,
-the default tracker, exports nothing (its members are the shipped files) and writes its provenance from its scores.
+(the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s), `real-11s` (of recipes/real-singer-11s-output.yaml:
+10-12 s), `real-4.5-12s` (one run of recipes/real-singer-4.5-12s-output.yaml: 4.5-12 s) or `general`
+(recipes/general.yaml, 0.5-12 s); `bank`, the default tracker, exports nothing (its members are the shipped files) and writes its provenance from its scores.
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
@@ -30,6 +30,8 @@ REAL1 = ["measurements", "imm-ekf", "real-ca", "real-imm", "real-imm-axis", "rea
 REAL5 = ["measurements", "imm-ekf", "real-ca-5s", "real-imm-5s", "real-imm-axis-5s", "real-imm-channel-5s", "real-imm-singer-5s"]
 REAL11 = ["measurements", "imm-ekf", "real-ca-11s", "real-imm-11s", "real-imm-axis-11s", "real-imm-channel-11s",
           "real-imm-singer-11s"]
+REAL7 = ["measurements", "imm-ekf", "real-ca-7s", "real-imm-7s", "real-imm-axis-7s", "real-imm-channel-7s",
+         "real-imm-singer-7s"]
 LAST = ["measurements", "imm-tuned", "imm-ekf", "imm-ekf-guard-sticky", "clairvoyant"]
 QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --seed 0), split by flight; no test flight "
               "trained or tuned on")
@@ -75,6 +77,31 @@ SHIPS = {
     "real-11s": {**_corrections("-11s", "those scans", "U[10, 12] s scans, r ~ U[5, 35] m",
                                 REAL11 + ["imm-ekf-general", "immnet-general"], PRIOR, READING, " at 10-12 s"),
                  "interval_range": [10.0, 12.0]},
+    # one network for every interval from 4.5 to 12 s, one run (docs/real.md "Between the trained intervals")
+    "real-4.5-12s": {
+        "ckpt": "runs/real/output-4.5-12s/checkpoints/best.ckpt",
+        "recipe": "recipes/real-singer-4.5-12s-output.yaml",
+        "init": ("its untrained start (the output correction's last layer zero: the three-filter decoupled IMM of "
+                 f"real-imm-singer-11s's settings with r estimated{PRIOR}, exactly)"),
+        "what": ("an output correction (a GRU after the fusion that corrects the reported position from the track's "
+                 f"history{READING}) on the three-filter decoupled IMM tuned on real flights at 4.5-5.5, 6-8 and 10-12 s "
+                 "together (real-imm-singer-11s's settings: its CV, CA and Singer filters per axis), each track's r "
+                 "estimated, trained on real flights at those three kinds of scans (a fresh view of its flights each "
+                 "batch), without a range guard; only the correction learned"),
+        "data": {"train": [f"{REAL}/quickstart-{s}/train: {QUICKSTART}, {scans} s scans, r ~ U[5, 35] m"
+                           for s, scans in (("5s", "U[4.5, 5.5]"), ("7s", "U[6, 8]"), ("11s", "U[10, 12]"))],
+                 "val": [f"{REAL}/quickstart-{s}/val" for s in ("5s", "7s", "11s")]},
+        "interval_range": [4.5, 12.0],
+        "guard": "none",
+        "tests": {
+            "quickstart-7s": (f"{REAL}/quickstart-7s/test", REAL7 + ["imm-ekf-general", "immnet-general",
+                                                                     "immnet-real-4.5-12s"]),
+            "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["imm-ekf-general", "immnet-general", "immnet-real-5s",
+                                                                     "immnet-real-4.5-12s"]),
+            "quickstart-11s": (f"{REAL}/quickstart-11s/test", REAL11 + ["imm-ekf-general", "immnet-general",
+                                                                       "immnet-real-11s", "immnet-real-4.5-12s"]),
+        },
+    },
     "general": {
         "ckpt": "runs/general/fit/checkpoints/best.ckpt",
         "recipe": "recipes/general.yaml",
@@ -111,9 +138,9 @@ SHIPS = {
     },
     "bank": {
         # no weights of its own: the shipped networks above (and 3dlast) as they are, scored together as the default
-        "members": ["general", "real", "real-5s", "real-11s", "3dlast"],
-        "what": ("The default tracker: the shipped networks general, real, real-5s, real-11s and 3dlast (without its "
-                 "range guard) "
+        "members": ["general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast"],
+        "what": ("The default tracker: the shipped networks general, real, real-5s, real-11s, real-4.5-12s and 3dlast "
+                 "(without its range guard) "
                  "run side by side, each on the tracks whose scan intervals it was trained for and weighed per track by "
                  "the likelihood of the track's measurements under its predictions of the track as it reports it, each "
                  "scan's to the power 0.5 (immnet.tracking.bank, docs/tracking.md \"A bank of networks\"); nothing "
@@ -123,6 +150,8 @@ SHIPS = {
             "quickstart-1s": (f"{REAL}/quickstart-1s/test", REAL1 + ["immnet", "immnet-real", "immnet-general",
                                                                      "immnet-bank"]),
             "quickstart-5s": (f"{REAL}/quickstart-5s/test", REAL5 + ["immnet-real-5s", "immnet-general", "immnet-bank"]),
+            "quickstart-7s": (f"{REAL}/quickstart-7s/test", REAL7 + ["immnet-real-4.5-12s", "immnet-general",
+                                                                     "immnet-bank"]),
             "quickstart-11s": (f"{REAL}/quickstart-11s/test", REAL11 + ["immnet-real-11s", "immnet-general",
                                                                        "immnet-bank"]),
             "3dlast-1s": ("runs/general/data/test-1s", LAST + ["immnet", "immnet-general", "immnet-bank"]),

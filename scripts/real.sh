@@ -2,8 +2,8 @@
 # Real flights, from nothing to the tables (docs/real.md), on a 2-core CPU in about 70 minutes (the sum of its steps:
 # data 3, training 55 (three runs side by side on the two cores, each 80 steps in about 107 s), the evaluation 10, the
 # rest 3):
-#   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s, at U[4.5, 5.5] s and at
-#   U[10, 12] s scans, every other sample held out (never trained or tuned on; all its flights, and apart those known every
+#   set up (with traffic's sample files) -> data: collections/quickstart split by flight at 1 s, U[4.5, 5.5] s, U[6, 8] s
+#   and U[10, 12] s scans, every other sample held out (never trained or tuned on; all its flights, and apart those known every
 #   second) -> the model-based filters for real motion as tuned on the training flights (configs/methods/real-*.yaml;
 #   IMMNET_RETUNE=1 tunes them again) -> IMMNet
 #   trained on the training flights (recipes/real-singer-output.yaml three times, two with an overlay of
@@ -30,14 +30,18 @@ adsb() {  # name splits samples... -- options
   "$IMMNET" data adsb --out "$DATA/$name" --splits "$splits" --seed 0 --overwrite --quiet "$@"
 }
 SCAN5=(--dt 5 --dt-jitter 0.5 --T 60 --r 5,35)  # a surveillance radar: 4.5-5.5 s scans, 5-35 m noise, 300 s windows
+SCAN7=(--dt 7 --dt-jitter 1 --T 40 --r 5,35)  # between the two: 6-8 s scans, the same noise, 280 s windows
 SCAN11=(--dt 11 --dt-jitter 1 --T 30 --r 5,35)  # an en-route radar: 10-12 s scans, the same noise, 330 s windows
 adsb quickstart-1s 0.7,0.15,0.15 --samples collections/quickstart
 adsb quickstart-5s 0.7,0.15,0.15 --samples collections/quickstart "${SCAN5[@]}"
+adsb quickstart-7s 0.7,0.15,0.15 --samples collections/quickstart "${SCAN7[@]}"
 adsb quickstart-11s 0.7,0.15,0.15 --samples collections/quickstart "${SCAN11[@]}"
 # shellcheck disable=SC2086
 adsb heldout-1s all-test --skip-unreadable --samples $HELDOUT
 # shellcheck disable=SC2086
 adsb heldout-5s all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}"
+# shellcheck disable=SC2086
+adsb heldout-7s all-test --skip-unreadable --samples $HELDOUT "${SCAN7[@]}"
 # shellcheck disable=SC2086
 adsb heldout-11s all-test --skip-unreadable --samples $HELDOUT "${SCAN11[@]}"
 # the held-out flights known every second (85 % of the held-out windows are of flights known every 5 s, whose truth
@@ -54,6 +58,7 @@ if [ -n "${IMMNET_RETUNE:-}" ]; then
   for m in real-ca real-imm-axis real-imm real-imm-channel real-imm-singer; do
     "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-1s/train" --out "configs/methods/$m.yaml" --quiet
     "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-5s/train" --out "configs/methods/$m-5s.yaml" --quiet
+    "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-7s/train" --out "configs/methods/$m-7s.yaml" --quiet
     "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-11s/train" --out "configs/methods/$m-11s.yaml" --quiet
   done
 else
@@ -103,6 +108,11 @@ for set in quickstart-5s heldout-5s heldout-5s-dense; do  # the 1 s networks ref
   "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s,immnet-general,immnet-real-5s,immnet-bank" \
     --json "$out.json" --markdown "$out.md" --quiet
 done
+for set in quickstart-7s heldout-7s; do  # between the two: real-4.5-12s and general take them
+  out=$RUN/results-$set
+  "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-imm-singer-5s,real-imm-singer-11s,real-ca-7s,real-imm-7s,real-imm-axis-7s,real-imm-channel-7s,real-imm-singer-7s,immnet-general,immnet-real-4.5-12s,immnet-bank" \
+    --json "$out.json" --markdown "$out.md" --quiet
+done
 for set in quickstart-11s heldout-11s heldout-11s-dense; do  # an en-route radar's scans: the shipped real-11s and general take them
   out=$RUN/results-$set
   "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-imm-singer-5s,real-ca-11s,real-imm-11s,real-imm-axis-11s,real-imm-channel-11s,real-imm-singer-11s,immnet-general,immnet-real-11s,immnet-bank" \
@@ -113,4 +123,4 @@ say "5/5 figure: a real flight, its estimates and their error over time"
 "$PY" scripts/real_figure.py --data "$DATA/quickstart-1s/test" --methods real-imm-singer,immnet-real \
   --checkpoint "immnet-real=$CKPT" --out "$RUN/figures/real_flight.png"
 
-say "done. Tables: $RUN/results-{quickstart-1s,heldout-1s,heldout-1s-dense,quickstart-5s,heldout-5s,heldout-5s-dense,quickstart-11s,heldout-11s,heldout-11s-dense}.md"
+say "done. Tables: $RUN/results-{quickstart-1s,heldout-1s,heldout-1s-dense,quickstart-5s,heldout-5s,heldout-5s-dense,quickstart-7s,heldout-7s,quickstart-11s,heldout-11s,heldout-11s-dense}.md"

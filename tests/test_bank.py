@@ -175,7 +175,8 @@ def test_a_banks_likelihood_and_temper_are_checked_by_name():
 
 def test_each_member_tracks_the_scans_it_was_trained_for():
     """The shipped bank in a batch of 1 s, 5 s and 11.5 s tracks: the 1 s networks (real flights, 3D-LAST) take only the
-    1 s tracks, the 5 s one only the 5 s tracks, the 10-12 s one only the 11.5 s track, the general network all; a bank
+    1 s tracks, the 5 s one only the 5 s tracks, the 10-12 s one only the 11.5 s track, the 4.5-12 s one both of these,
+    the general network all; a bank
     of the general network alone gives its estimate to the bit. A bank none of whose members takes a track refuses it
     by name."""
     general, real = load_network(shipped("general")), load_network(shipped("real"))
@@ -197,9 +198,9 @@ def test_each_member_tracks_the_scans_it_was_trained_for():
     z = torch.cat([td[keys.MEASUREMENTS], td5[keys.MEASUREMENTS], td11[keys.MEASUREMENTS]]).float()
     iv = torch.cat([torch.ones(4, 45), torch.full((2, 45), 5.0), torch.full((1, 45), 11.5)]).double()
     takes = bank.net.takes(iv)
-    assert bank.net.names == ["general", "real", "real-5s", "real-11s", "3dlast"]
-    assert takes.tolist() == ([[True, True, False, False, True]] * 4 + [[True, False, True, False, False]] * 2
-                              + [[True, False, False, True, False]])
+    assert bank.net.names == ["general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast"]
+    assert takes.tolist() == ([[True, True, False, False, False, True]] * 4 + [[True, False, True, False, True, False]] * 2
+                              + [[True, False, False, True, True, False]])
     out = bank.net.track(z, intervals=iv)
     w = out[keys.MEMBER_PROBS].nan_to_num(0)
     assert (w[~takes[:, None, :].expand_as(w)] == 0).all()  # a member that does not take a track has no weight in it
@@ -312,8 +313,8 @@ def test_immnet_track_with_the_bank_tracks_each_row_at_its_own_time(tmp_path, sh
     assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "out.npz"),
                  "--weights", "bank"]) == 0
     npz = np.load(tmp_path / "out.npz")
-    assert list(npz["member_names"]) == ["general", "real", "real-5s", "real-11s", "3dlast"]
+    assert list(npz["member_names"]) == ["general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast"]
     ref = shipped_bank.track(torch.from_numpy(z["b"][None]).float(), intervals=torch.full((1, 30), 5.0))
     np.testing.assert_allclose(npz["state"], ref[keys.STATE].numpy(), rtol=0, atol=0)
     np.testing.assert_allclose(npz["member_probs"][0, 5:].sum(-1), 1.0, rtol=1e-12)
-    assert (npz["member_probs"][0, :, [1, 3, 4]] == 0).all() and npz["state_cov"].shape == (1, 30, 9, 9)
+    assert (npz["member_probs"][0, :, [1, 3, 5]] == 0).all() and npz["state_cov"].shape == (1, 30, 9, 9)

@@ -327,8 +327,9 @@ def test_immnet_track_says_what_the_general_weights_provenance_says_at_the_datas
                                                                                           weights):
     """At 8.5 s and 10 s scans the general network was measured behind its filter (the provenance's ``interval_bins``),
     at 1 s ahead of it: ``immnet track`` with the general weights, and with the bank (the default), prints the note
-    exactly where the provenance has the network behind. At 10 s the bank's note adds what real-11s, which the bank
-    runs beside the general network there, measured on real flights; the general weights name it to try."""
+    exactly where the provenance has the network behind. The bank's note adds what the real-flight network it runs
+    there, trained for those scans, measured on real flights against the same filter (real-4.5-12s at 8.5 s, real-11s
+    at 10 s); the general weights name the network to try."""
     import json
 
     from immnet.checkpoints import provenance_file, shipped
@@ -340,21 +341,23 @@ def test_immnet_track_says_what_the_general_weights_provenance_says_at_the_datas
     args = ["track", "--input", str(path), "--output", str(tmp_path / "o.csv")] + (["--weights", weights] if weights else [])
     assert main(args) == 0
     err = capsys.readouterr().err
-    alone = spacing == 8.5  # the bank's only member at these scans is the general network
     bank = weights is None
+    member = {8.5: ("real-4.5-12s", "quickstart-7s"), 10.0: ("real-11s", "quickstart-11s")}.get(spacing)
     assert (f"--method {bins['filter']}" in err) == behind, err
-    assert ("the bank's general network" in err) == (behind and bank), err
-    assert ("(its one member at these scans)" in err) == (behind and bank and alone), err
-    assert ("'real-11s', which the bank runs beside it at these scans, tracked real flights (quickstart-11s) better "
-            f"than {bins['filter']}" in err) == (spacing == 10.0 and bank), err
-    assert ("--weights real-11s" in err) == (spacing == 10.0 and weights == "general"), err
+    assert ("the bank's general network was" in err) == (behind and bank), err
+    assert "(its one member at these scans)" not in err  # a real-flight network takes every interval of 4.5-12 s
+    for name, data in ({8.5: ("real-4.5-12s", "quickstart-7s"), 10.0: ("real-11s", "quickstart-11s")}).values():
+        said = (f"'{name}', which the bank runs beside it at these scans, tracked real flights ({data}) better than "
+                f"{bins['filter']}")
+        assert (said in err) == (bank and member == (name, data)), err
+    assert ("--weights real-" in err) == (spacing != 1.0 and weights == "general"), err
     assert behind == (spacing >= 8.0)  # as measured (docs/results.md "The general model"): ahead at 1 s, behind at 8-12 s
 
 
 def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans():
     """With the general weights, the note names another shipped network where it was trained for the data's median scan
     interval and a provenance measured it ahead of the general one: real-5s at 4.5-5.5 s, real at 1 s, real-11s at
-    10-12 s, with the numbers
+    10-12 s, real-4.5-12s at 8 s, with the numbers
     of those provenance files; nothing at other intervals, with other weights loaded, or without intervals."""
     import json
 
@@ -375,7 +378,9 @@ def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans(
     note = weights_note(general, own, [10.4, 11.0, 11.9])
     assert "--weights real-11s" in note and "10-12 s" in note and "real flights (quickstart-11s)" in note
     assert f"{eleven['immnet-real-11s']['avg']:.3f} m against the general one's {eleven['immnet-general']['avg']:.3f}" in note
-    assert weights_note(general, own, [8.0, 8.0]) is None and weights_note(general, own, [1.0, 2.0, 2.0]) is None
+    note = weights_note(general, own, [8.0, 8.0])  # between the real networks' own: the one for 4.5-12 s
+    assert "--weights real-4.5-12s" in note and "real flights (quickstart-7s)" in note
+    assert weights_note(general, own, [3.0, 3.0]) is None and weights_note(general, own, [1.0, 2.0, 2.0]) is None
     for other, dt in (("real-5s", 5.0), ("3dlast", 1.0)):
         assert weights_note(shipped(other), load_provenance(shipped(other)), [dt]) is None
     assert weights_note(general, own, []) is None

@@ -41,9 +41,10 @@ from immnet.filters.base import before_first_detection, blank_before_first_detec
 from immnet.stages import IMMNet
 from immnet.tracking.networks import KEEP, load_network, read_checkpoint, run_network, select_rows, trained_for
 
-DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "3dlast")
+DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
 """The shipped bank (``Tracker.pretrained("bank")``, ``immnet track --weights bank``, the method ``immnet-bank``): the
-general network (any interval 0.5-12 s), the real-flight networks at 1 s, 4.5-5.5 s and 10-12 s, and the 3D-LAST network
+general network (any interval 0.5-12 s), the real-flight networks at 1 s, 4.5-5.5 s, 10-12 s and any of 4.5-12 s, and the
+3D-LAST network
 (1 s; in the bank without its range guard, as every member, unless asked), chosen on the validation sets (docs/tracking.md
 "A bank of networks")."""
 

@@ -34,12 +34,12 @@ def register(subparsers) -> None:
     p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
     p.add_argument("--weights", default=None, choices=sorted([*SHIPPED, BANK]),
-                   help=f"shipped weights by name (default {DEFAULT_WEIGHTS}: the five below as one tracker, each weighed "
+                   help=f"shipped weights by name (default {DEFAULT_WEIGHTS}: the six below as one tracker, each weighed "
                         "per track by how well it predicts it, any scan interval 0.5-12 s, no range guard unless --guard "
                         "asks, docs/tracking.md; general: one network for any scan interval 0.5-12 s, real flights and "
                         "3D-LAST, no range guard; 3dlast: the 3D-LAST benchmark network, 1 s, its range guard; real: 1 s "
                         "real flights; real-5s: real flights at a surveillance radar's 4.5-5.5 s scans; real-11s: at an en-route "
-                        "radar's 10-12 s scans; "
+                        "radar's 10-12 s scans; real-4.5-12s: real flights at any interval 4.5-12 s; "
                         "immnet/pretrained/PROVENANCE-*.md)")
     p.add_argument("--checkpoint", default=None, help="a Lightning checkpoint or exported weights of your own instead")
     p.add_argument("--method", default=None,

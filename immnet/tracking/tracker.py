@@ -67,10 +67,11 @@ class Tracker:
         ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (any scan interval from 0.5 to 12 s, real flights and
         3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range guard:
         ``guard=None`` for data from another surveillance region), ``real`` (1 s real flights), ``real-5s`` (real
-        flights at a surveillance radar's 4.5-5.5 s scans), ``real-11s`` (at an en-route radar's 10-12 s scans).
+        flights at a surveillance radar's 4.5-5.5 s scans), ``real-11s`` (at an en-route radar's 10-12 s scans),
+        ``real-4.5-12s`` (real flights at any interval from 4.5 to 12 s).
         ``adapt=True`` adds adaptive process noise (targets noisier than the training data's; docs/immnet.md).
         ``r``: the radar's measurement std in metres where it is known (each shipped network estimates each track's
-        from its measurements; ``load_network``). ``bank``, the default: all five as one tracker, each weighed per
+        from its measurements; ``load_network``). ``bank``, the default: all six as one tracker, each weighed per
         track by how well it predicts the track (``immnet.tracking.bank.NetworkBank``: ``reset``, ``step`` and
         ``track`` as here, its ``member_probs`` in place of one network's expert outputs; no range guard unless
         ``guard`` asks)."""
