@@ -43,8 +43,8 @@ GENERAL = "general"
 """The general network: the bank's member for any interval from 0.5 to 12 s."""
 BANK = "bank"
 """The shipped networks together as one tracker (``immnet.tracking.bank``: ``general``, ``real``, ``real-5s``,
-``real-11s``, ``real-4.5-12s`` and ``3dlast`` without its guard, each weighed per track by how well it predicts the track), the default of
-``Tracker.pretrained()`` and ``immnet track``; not a file of its own."""
+``real-11s``, ``real-4.5-12s`` and ``3dlast`` without its guard, each weighed per track by how well it predicts the
+track), the default of ``Tracker.pretrained()`` and ``immnet track``; not a file of its own."""
 DEFAULT_WEIGHTS = BANK
 
 

@@ -43,10 +43,9 @@ from immnet.tracking.networks import KEEP, load_network, read_checkpoint, run_ne
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
 """The shipped bank (``Tracker.pretrained("bank")``, ``immnet track --weights bank``, the method ``immnet-bank``): the
-general network (any interval 0.5-12 s), the real-flight networks at 1 s, 4.5-5.5 s, 10-12 s and any of 4.5-12 s, and the
-3D-LAST network
-(1 s; in the bank without its range guard, as every member, unless asked), chosen on the validation sets (docs/tracking.md
-"A bank of networks")."""
+general network (any interval 0.5-12 s), the real-flight networks at 1 s, 4.5-5.5 s, 10-12 s and any of 4.5-12 s, and
+the 3D-LAST network (1 s; in the bank without its range guard, as every member, unless asked), chosen on the validation
+sets (docs/tracking.md "A bank of networks")."""
 
 
 def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
