@@ -4,7 +4,8 @@ write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one
 recipes/real-singer-output.yaml, two with an overlay of configs/members/, their corrections joined: 1 s), `real-5s`
 (the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s), `real-11s` (of recipes/real-singer-11s-output.yaml:
 10-12 s), `real-4.5-12s` (one run of recipes/real-singer-4.5-12s-output.yaml: 4.5-12 s) or `general`
-(recipes/general.yaml, 0.5-12 s); `bank`, the default tracker, exports nothing (its members are the shipped files) and writes its provenance from its scores.
+(recipes/general.yaml, 0.5-12 s); `bank`, the default tracker, exports nothing (its members are the shipped files) and
+writes its provenance from its scores.
 
 Run (after the run that trains it: `bash scripts/real.sh` or `bash scripts/general.sh`):
     .venv/bin/python scripts/make_shipped.py --name general [--commit C] [--wandb-runs ID,...] [--note TEXT]
@@ -26,12 +27,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "immnet/pretrained"
 REAL = "runs/real/data"
-REAL1 = ["measurements", "imm-ekf", "real-ca", "real-imm", "real-imm-axis", "real-imm-channel", "real-imm-singer"]
-REAL5 = ["measurements", "imm-ekf", "real-ca-5s", "real-imm-5s", "real-imm-axis-5s", "real-imm-channel-5s", "real-imm-singer-5s"]
-REAL11 = ["measurements", "imm-ekf", "real-ca-11s", "real-imm-11s", "real-imm-axis-11s", "real-imm-channel-11s",
-          "real-imm-singer-11s"]
-REAL7 = ["measurements", "imm-ekf", "real-ca-7s", "real-imm-7s", "real-imm-axis-7s", "real-imm-channel-7s",
-         "real-imm-singer-7s"]
+
+
+def real_filters(tag: str) -> list[str]:
+    """A real-flight test set's baselines: the raw measurements, 3D-LAST's imm-ekf and the five filters tuned at the
+    set's scans (``tag``: the configs' suffix, ``""`` at 1 s, ``"-5s"``, ``"-7s"``, ``"-11s"``)."""
+    return ["measurements", "imm-ekf",
+            *(f"{m}{tag}" for m in ("real-ca", "real-imm", "real-imm-axis", "real-imm-channel", "real-imm-singer"))]
+
+
+REAL1, REAL5, REAL7, REAL11 = (real_filters(tag) for tag in ("", "-5s", "-7s", "-11s"))
 LAST = ["measurements", "imm-tuned", "imm-ekf", "imm-ekf-guard-sticky", "clairvoyant"]
 QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --seed 0), split by flight; no test flight "
               "trained or tuned on")

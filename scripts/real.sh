@@ -54,12 +54,12 @@ adsb heldout-5s-dense all-test --skip-unreadable --samples $HELDOUT "${SCAN5[@]}
 # shellcheck disable=SC2086
 adsb heldout-11s-dense all-test --skip-unreadable --samples $HELDOUT "${SCAN11[@]}" "${DENSE[@]}"
 if [ -n "${IMMNET_RETUNE:-}" ]; then
-  say "2/5 tuning the model-based filters on the training flights (1 s)"
+  say "2/5 tuning the model-based filters on the training flights (at 1, 4.5-5.5, 6-8 and 10-12 s)"
   for m in real-ca real-imm-axis real-imm real-imm-channel real-imm-singer; do
-    "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-1s/train" --out "configs/methods/$m.yaml" --quiet
-    "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-5s/train" --out "configs/methods/$m-5s.yaml" --quiet
-    "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-7s/train" --out "configs/methods/$m-7s.yaml" --quiet
-    "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart-11s/train" --out "configs/methods/$m-11s.yaml" --quiet
+    for tag in "" -5s -7s -11s; do  # the configs' suffix; the 1 s set is quickstart-1s
+      "$IMMNET" tune --search "configs/tuning/$m.yaml" --data "$DATA/quickstart${tag:--1s}/train" \
+        --out "configs/methods/$m$tag.yaml" --quiet
+    done
   done
 else
   say "2/5 the model-based filters as tuned on the training flights: configs/methods/real-*.yaml (IMMNET_RETUNE=1 to tune again)"
@@ -98,26 +98,23 @@ for m in "${MEMBERS[@]}"; do ckpts+=("$RUN/${m%%:*}/checkpoints/best.ckpt"); don
 say "4/5 evaluation: one table per data set, every method in one run"
 # immnet-bank is the default as shipped: its members are the shipped files (its real network is not this run's)
 BASE=measurements,imm-tuned,imm-ekf,imm-ekf-general,real-ca,real-imm,real-imm-axis,real-imm-channel,real-imm-singer
-for set in quickstart-1s heldout-1s heldout-1s-dense; do
-  out=$RUN/results-$set
-  "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,immnet,immnet-real,immnet-general,immnet-bank" \
-    --checkpoint "immnet-real=$CKPT" --json "$out.json" --markdown "$out.md" --quiet
-done
-for set in quickstart-5s heldout-5s heldout-5s-dense; do  # the 1 s networks refuse 5 s scans; the shipped real-5s and general take them
-  out=$RUN/results-$set
-  "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-ca-5s,real-imm-5s,real-imm-axis-5s,real-imm-channel-5s,real-imm-singer-5s,immnet-general,immnet-real-5s,immnet-bank" \
-    --json "$out.json" --markdown "$out.md" --quiet
-done
-for set in quickstart-7s heldout-7s; do  # between the two: real-4.5-12s and general take them
-  out=$RUN/results-$set
-  "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-imm-singer-5s,real-imm-singer-11s,real-ca-7s,real-imm-7s,real-imm-axis-7s,real-imm-channel-7s,real-imm-singer-7s,immnet-general,immnet-real-4.5-12s,immnet-bank" \
-    --json "$out.json" --markdown "$out.md" --quiet
-done
-for set in quickstart-11s heldout-11s heldout-11s-dense; do  # an en-route radar's scans: the shipped real-11s and general take them
-  out=$RUN/results-$set
-  "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$BASE,real-imm-singer-5s,real-ca-11s,real-imm-11s,real-imm-axis-11s,real-imm-channel-11s,real-imm-singer-11s,immnet-general,immnet-real-11s,immnet-bank" \
-    --json "$out.json" --markdown "$out.md" --quiet
-done
+tuned() { echo "real-ca$1,real-imm$1,real-imm-axis$1,real-imm-channel$1,real-imm-singer$1"; }  # the five tuned at a set's scans
+score() {  # "METHODS" SET...: one table per set, every method in one run; more evaluate options in the array OPTS
+  local methods=$1 set; shift
+  for set in "$@"; do
+    "$IMMNET" evaluate --data "$DATA/$set/test" --split all --guard none --methods "$methods" "${OPTS[@]}" \
+      --json "$RUN/results-$set.json" --markdown "$RUN/results-$set.md" --quiet
+  done
+}
+OPTS=(--checkpoint "immnet-real=$CKPT")
+score "$BASE,immnet,immnet-real,immnet-general,immnet-bank" quickstart-1s heldout-1s heldout-1s-dense
+OPTS=()
+# the 1 s networks refuse longer scans; general, the bank and the real-flight networks trained for them take them
+score "$BASE,$(tuned -5s),immnet-general,immnet-real-5s,immnet-bank" quickstart-5s heldout-5s heldout-5s-dense
+score "$BASE,real-imm-singer-5s,real-imm-singer-11s,$(tuned -7s),immnet-general,immnet-real-4.5-12s,immnet-bank" \
+  quickstart-7s heldout-7s
+score "$BASE,real-imm-singer-5s,$(tuned -11s),immnet-general,immnet-real-11s,immnet-bank" \
+  quickstart-11s heldout-11s heldout-11s-dense
 
 say "5/5 figure: a real flight, its estimates and their error over time"
 "$PY" scripts/real_figure.py --data "$DATA/quickstart-1s/test" --methods real-imm-singer,immnet-real \

@@ -176,9 +176,8 @@ def test_a_banks_likelihood_and_temper_are_checked_by_name():
 def test_each_member_tracks_the_scans_it_was_trained_for():
     """The shipped bank in a batch of 1 s, 5 s and 11.5 s tracks: the 1 s networks (real flights, 3D-LAST) take only the
     1 s tracks, the 5 s one only the 5 s tracks, the 10-12 s one only the 11.5 s track, the 4.5-12 s one both of these,
-    the general network all; a bank
-    of the general network alone gives its estimate to the bit. A bank none of whose members takes a track refuses it
-    by name."""
+    the general network all; a bank of the general network alone gives its estimate to the bit. A bank none of whose
+    members takes a track refuses it by name."""
     general, real = load_network(shipped("general")), load_network(shipped("real"))
     assert accepts(real, torch.ones(2, 5)).all() and not accepts(real, torch.full((1, 5), 5.0)).any()
     assert accepts(general, torch.tensor([[1.0, 0.5, 30.0]])).all()  # a long gap is coasted, at 10 s

@@ -428,8 +428,8 @@ LINEAR = ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-i
 PER_AXIS = ["real-imm-axis", "real-imm-axis-5s", "real-imm-axis-7s", "real-imm-axis-11s", "real-imm-singer",
             "real-imm-singer-5s", "real-imm-singer-7s", "real-imm-singer-11s"]
 ORACLES = ["clairvoyant", "clairvoyant-switch"]  # tests/test_filters_clairvoyant.py
-PER_CHANNEL = ["real-imm-channel", "real-imm-channel-5s", "real-imm-channel-7s", "real-imm-channel-11s"]  # track runs network();
-# tests/test_filters_per_axis.py
+# track runs network(); tests/test_filters_per_axis.py
+PER_CHANNEL = ["real-imm-channel", "real-imm-channel-5s", "real-imm-channel-7s", "real-imm-channel-11s"]
 
 
 def test_every_model_based_method_of_the_registry_is_held_to_its_step_configuration():

@@ -44,12 +44,13 @@ def test_shipped_weights_meet_their_claims_on_fresh_data():
 def test_the_default_is_the_bank_of_the_shipped_networks():
     """``Tracker.pretrained()`` and ``immnet track`` with no options run the bank (``immnet.tracking.bank``): the
     general network (any interval from 0.5 to 12 s, no range guard), the real-flight networks at 1 s, 4.5-5.5 s,
-    10-12 s and 4.5-12 s and the 3D-LAST network, none with a range guard unless asked; each network by name as before; an unknown name is
-    refused naming the shipped ones."""
+    10-12 s and 4.5-12 s and the 3D-LAST network, none with a range guard unless asked; each network by name as
+    before; an unknown name is refused naming the shipped ones."""
     from immnet.tracking.bank import NetworkBank
 
     bank = Tracker.pretrained()
-    assert isinstance(bank, NetworkBank) and bank.names == ["general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast"]
+    assert isinstance(bank, NetworkBank)
+    assert bank.names == ["general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast"]
     assert all(getattr(net.interact, "guard", None) is None for net in bank.members.values())
     assert tuple(bank.members["general"].interval_range) == (0.5, 12.0)
     guarded = Tracker.pretrained("bank", guard=True).members["3dlast"]

@@ -1,7 +1,7 @@
 """Real flights (docs/real.md): each shipped network trained on real flights (``immnet-real``, 1 s; ``immnet-real-5s``,
-4.5-5.5 s; ``immnet-real-11s``, 10-12 s; ``immnet-real-4.5-12s`` at 6-8 s; ``immnet-general`` at 1 s and at 4.5-5.5 s scans) and the bank of them that is the default (``immnet-bank``)
-meets the claim of its provenance on the test flights of
-collections/quickstart, and the covariances of the best model-based filter and of the networks are calibrated there
+4.5-5.5 s; ``immnet-real-11s``, 10-12 s; ``immnet-real-4.5-12s`` at 6-8 s; ``immnet-general`` at 1 s and at 4.5-5.5 s
+scans) and the bank of them that is the default (``immnet-bank``) meets the claim of its provenance on the test flights
+of collections/quickstart, and the covariances of the best model-based filter and of the networks are calibrated there
 (the 95 % position ellipsoid holds the truth at about 95 % of the scans).
 
 The data are written by ``immnet data adsb``'s code with the settings the weights and the filters were tuned with

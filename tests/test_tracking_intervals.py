@@ -342,14 +342,14 @@ def test_immnet_track_says_what_the_general_weights_provenance_says_at_the_datas
     assert main(args) == 0
     err = capsys.readouterr().err
     bank = weights is None
-    member = {8.5: ("real-4.5-12s", "quickstart-7s"), 10.0: ("real-11s", "quickstart-11s")}.get(spacing)
+    said_of = {8.5: ("real-4.5-12s", "quickstart-7s"), 10.0: ("real-11s", "quickstart-11s")}  # spacing -> member, set
     assert (f"--method {bins['filter']}" in err) == behind, err
     assert ("the bank's general network was" in err) == (behind and bank), err
     assert "(its one member at these scans)" not in err  # a real-flight network takes every interval of 4.5-12 s
-    for name, data in ({8.5: ("real-4.5-12s", "quickstart-7s"), 10.0: ("real-11s", "quickstart-11s")}).values():
+    for at, (name, data) in said_of.items():
         said = (f"'{name}', which the bank runs beside it at these scans, tracked real flights ({data}) better than "
                 f"{bins['filter']}")
-        assert (said in err) == (bank and member == (name, data)), err
+        assert (said in err) == (bank and spacing == at), err
     assert ("--weights real-" in err) == (spacing != 1.0 and weights == "general"), err
     assert behind == (spacing >= 8.0)  # as measured (docs/results.md "The general model"): ahead at 1 s, behind at 8-12 s
 
@@ -357,8 +357,8 @@ def test_immnet_track_says_what_the_general_weights_provenance_says_at_the_datas
 def test_the_weights_note_names_the_shipped_network_trained_for_the_datas_scans():
     """With the general weights, the note names another shipped network where it was trained for the data's median scan
     interval and a provenance measured it ahead of the general one: real-5s at 4.5-5.5 s, real at 1 s, real-11s at
-    10-12 s, real-4.5-12s at 8 s, with the numbers
-    of those provenance files; nothing at other intervals, with other weights loaded, or without intervals."""
+    10-12 s, real-4.5-12s at 8 s, with the numbers of those provenance files; nothing at other intervals, with other
+    weights loaded, or without intervals."""
     import json
 
     from immnet.checkpoints import provenance_file, shipped

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -61,15 +62,30 @@ def _span(provenance: dict, median: float) -> tuple[float, float] | None:
 
 
 def _takes(provenance: dict, median: float) -> bool:
-    """Whether a shipped network runs on a track scanned every ``median`` s, as the bank decides it
-    (``immnet.tracking.bank.accepts``): a network trained over a range takes an interval longer than the range cut into
-    equal ones by missed scans (``real-5s`` takes 10 s scans as two of 5 s); one trained at one interval, that interval
-    (a provenance that names no interval, the 3D-LAST network's, counts as none)."""
-    span = provenance.get("interval_range")
-    if span:
-        cut = median / max(1.0, float(np.ceil(median / float(span[1]) * (1 - 1e-12))))
-        return float(span[0]) * (1 - 1e-6) <= cut <= float(span[1]) * (1 + 1e-6)
-    return _span(provenance, median) is not None
+    """Whether a shipped network runs on a track scanned every ``median`` s: ``immnet.tracking.bank.accepts`` of a
+    network with the intervals its provenance names (a network trained over a range takes an interval longer than the
+    range cut into equal ones by missed scans: ``real-5s`` takes 10 s scans as two of 5 s; one trained at one interval,
+    that interval; a provenance that names none, the 3D-LAST network's, counts as none)."""
+    import torch
+
+    from immnet.tracking.bank import accepts
+
+    span, dt = provenance.get("interval_range"), provenance.get("scan_interval")
+    if span is None and dt is None:
+        return False
+    # two scans: the first interval is scan 0's, which accepts takes as at most the range's end
+    return bool(accepts(SimpleNamespace(interval_range=span, dt=dt), torch.full((1, 2), float(median)))[0])
+
+
+def _ahead(tests, name: str, ref: str) -> tuple[str, float, float] | None:
+    """``(set name, name's RMSE, ref's RMSE)`` of the first of ``tests`` (a provenance's ``tests`` items, ``(set name,
+    entry)``) where the registry method ``name`` scored below ``ref`` in the same run; None where none did."""
+    for set_name, test in tests:
+        rmse = {m: (v or {}).get("avg") for m, v in test.get("metrics", {}).items()}
+        a, b = rmse.get(name), rmse.get(ref)
+        if a is not None and b is not None and a < b:
+            return set_name, a, b
+    return None
 
 
 def interval_note(provenance: dict | None, intervals, whose: str = "these weights were") -> str | None:
@@ -108,21 +124,20 @@ def bank_note(intervals) -> str | None:
     if median is None:
         return None
     general = load_provenance(shipped(GENERAL))
-    others = [m for m in DEFAULT_MEMBERS if m != GENERAL and _takes(load_provenance(shipped(m)) or {}, median)]
+    provs = {m: load_provenance(shipped(m)) or {} for m in DEFAULT_MEMBERS if m != GENERAL}
+    others = [m for m, prov in provs.items() if _takes(prov, median)]
     note = interval_note(general, intervals, "the bank's general network was" if others else
                          "the bank's general network (its one member at these scans) was")
     if note is None:
         return None
     ref = general["interval_bins"]["filter"]
     # one measurement: of a member trained at these scans before one that takes them as longer ones cut by missed scans
-    others.sort(key=lambda m: _span(load_provenance(shipped(m)) or {}, median) is None)
-    for name in others:
-        for set_name, test in (load_provenance(shipped(name)) or {}).get("tests", {}).items():
-            rmse = {m: (v or {}).get("avg") for m, v in test.get("metrics", {}).items()}
-            a, b = rmse.get(registry_name(name)), rmse.get(ref)
-            if a is not None and b is not None and a < b:
-                return note + (f"; {name!r}, which the bank runs beside it at these scans, tracked {what(set_name)} "
-                               f"better than {ref} ({a:.3f} m against {b:.3f}, its provenance)")
+    for name in sorted(others, key=lambda m: _span(provs[m], median) is None):
+        found = _ahead(provs[name].get("tests", {}).items(), registry_name(name), ref)
+        if found:
+            set_name, a, b = found
+            return note + (f"; {name!r}, which the bank runs beside it at these scans, tracked {what(set_name)} "
+                           f"better than {ref} ({a:.3f} m against {b:.3f}, its provenance)")
     return note
 
 
@@ -153,12 +168,12 @@ def weights_note(loaded, provenance: dict | None, intervals) -> str | None:
         span = _span(prov, median)
         if span is None:
             continue
-        for set_name, test in [*prov.get("tests", {}).items(), *mine.get("tests", {}).items()]:
-            rmse = {m: (v or {}).get("avg") for m, v in test.get("metrics", {}).items()}
-            a, b = rmse.get(registry_name(name)), rmse.get(registry_name(GENERAL))
-            if a is not None and b is not None and a < b:
-                scans = f"{span[0]:g}-{span[1]:g} s" if span[0] != span[1] else f"{span[0]:g} s"
-                return (f"note: this data's median scan interval is {median:.3g} s; the shipped weights {name!r} were "
-                        f"trained for scans of {scans} and tracked {what(set_name)} better ({a:.3f} m against the general one's "
-                        f"{b:.3f}, their provenance): --weights {name} may track these scans better")
+        found = _ahead([*prov.get("tests", {}).items(), *mine.get("tests", {}).items()], registry_name(name),
+                       registry_name(GENERAL))
+        if found:
+            set_name, a, b = found
+            scans = f"{span[0]:g}-{span[1]:g} s" if span[0] != span[1] else f"{span[0]:g} s"
+            return (f"note: this data's median scan interval is {median:.3g} s; the shipped weights {name!r} were "
+                    f"trained for scans of {scans} and tracked {what(set_name)} better ({a:.3f} m against the general "
+                    f"one's {b:.3f}, their provenance): --weights {name} may track these scans better")
     return None
