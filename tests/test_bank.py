@@ -11,6 +11,7 @@ from filterpy.kalman import IMMEstimator, KalmanFilter
 from immnet import keys
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
+from immnet.data.times import scan_intervals
 from immnet.evaluation.methods import build_method
 from immnet.filters.imm import initial_state
 from immnet.motion import measurement_matrix
@@ -276,6 +277,38 @@ def test_streaming_gives_the_banks_whole_sequence_numbers(shipped_bank):
     torch.testing.assert_close(real.step(z[:2, 1])[keys.FUSED], again.step(z[:2, 1])[keys.FUSED], equal_nan=True, rtol=0,
                                atol=0)
     assert first[keys.MEMBER_PROBS][0, 0] == 1 and torch.isnan(first[keys.MEMBER_PROBS][1]).all()  # track 1: no detection yet
+
+
+def test_streaming_coasts_a_long_interval_as_the_whole_sequence_does(shipped_bank):
+    """At scans 9-11 s apart (and one 20 s gap) ``track`` cuts each interval for real-5s (4.5-5.5 s) into two scans,
+    the first missed; ``step`` does the same, so that real-5s stays in the track and streaming gives ``track``'s
+    numbers to the bit (estimate, covariance, member and mode probabilities) with missed detections, a late start,
+    one track coasting longer than the others, and a reset."""
+    bank = shipped_bank
+    td = generate(3, seed=7, spec=DataSpec(T=30, min_segment=10, dt=10.0, dt_jitter=1.0))
+    z = td[keys.MEASUREMENTS].float()
+    iv = scan_intervals(td).clone()
+    iv[:, 0] = iv[1, 10] = 9.5  # a track's first scan: no member but those of the whole track takes it
+    iv[0, 12] = 20.0  # general and real-4.5-12s coast it as two 10 s scans, real-5s as four of 5 s
+    z[1, :2] = float("nan")
+    z[2, 15:17] = float("nan")
+    ref = bank.track(z, intervals=iv, return_cov=True)
+    takes = bank.takes(iv)
+    assert takes[:, [0, 2, 4]].all() and not takes[:, [1, 3, 5]].any()  # real-5s coasts every other scan
+    assert (ref[keys.MEMBER_PROBS][:, 5:, 2] > 1e-3).any()  # and carries weight
+    bank.reset(3)
+    outs = [bank.step(z[:, t], dt=iv[:, t]) for t in range(30)]
+    for key, name in ((keys.FUSED, keys.STATE), (keys.FUSED_COV, keys.STATE_COV), (keys.MEMBER_PROBS, keys.MEMBER_PROBS),
+                      (keys.MODE_PROBS, keys.MODE_PROBS)):
+        torch.testing.assert_close(torch.stack([o[key] for o in outs], 1), ref[name], equal_nan=True, rtol=0, atol=0)
+    # a reset at scan 10: that track again from there, its first interval nominal
+    bank.reset(3)
+    got = [bank.step(z[:, t], reset=torch.tensor([False, t == 10, False]), dt=iv[:, t]) for t in range(30)]
+    alone = bank.track(z[1:2, 10:], intervals=iv[1:2, 10:])  # a batch of one: float32 rounding of positions
+    torch.testing.assert_close(torch.stack([o[keys.FUSED][1] for o in got[10:]]), alone[keys.STATE][0], rtol=1e-5,
+                               atol=1e-3)
+    torch.testing.assert_close(torch.stack([o[keys.MEMBER_PROBS][1] for o in got[10:]]), alone[keys.MEMBER_PROBS][0],
+                               rtol=0, atol=1e-3)
 
 
 def test_immnet_track_with_the_bank_tracks_each_row_at_its_own_time(tmp_path, shipped_bank):

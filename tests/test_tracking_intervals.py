@@ -172,11 +172,11 @@ def test_an_npz_gap_beyond_the_networks_range_is_coasted_as_a_csvs_is(tmp_path, 
     np.testing.assert_allclose(out["state"][0][4:, [4, 7]], 0.0, atol=15.0)
 
 
-def test_tracker_track_coasts_a_long_gap_and_refuses_intervals_it_was_not_trained_at():
+def test_tracker_coasts_a_long_gap_in_track_and_step_and_refuses_intervals_it_was_not_trained_at():
     """``Tracker.track(z, intervals=...)``: for the general weights (0.5-12 s) a 20 s interval is two 10 s scans, the
-    first missed, and the output holds the scans given (equal to the 10 s grid tracked outright); an interval below
-    the range, or for the 1 s benchmark network any interval but 1 s, is refused by name, as ``Tracker.step`` refuses
-    it (it ran, extrapolated, before)."""
+    first missed, and the output holds the scans given (equal to the 10 s grid tracked outright; ``Tracker.step``
+    coasts it as well, to the same numbers); an interval below the range, or for the 1 s benchmark network any
+    interval but 1 s, is refused by name, by ``track`` and ``step`` alike (it ran, extrapolated, before)."""
     from immnet.tracking import Tracker
 
     t = np.r_[0.0, 5.0, 10.0, 30.0, 35.0, 40.0, 60.0, 65.0]
@@ -193,6 +193,14 @@ def test_tracker_track_coasts_a_long_gap_and_refuses_intervals_it_was_not_traine
     ref = Tracker.pretrained("general").track(grid, intervals=steps, return_cov=True)
     for key in ("state", "mode_probs", "state_cov"):
         torch.testing.assert_close(out[key], ref[key][:, keep], rtol=1e-5, atol=1e-4)
+    # streaming: the same numbers, the 20 s intervals coasted in the step (a track's first scan's interval is nominal)
+    stream = Tracker.pretrained("general")
+    stream.reset(1)
+    steps = [stream.step(z[:, k], dt=float(intervals[0, k]) if k else 25.0) for k in range(8)]
+    for key, name in ((("fused", "state"), "state"), (("fused", "cov"), "state_cov"), ("mode_probs", "mode_probs")):
+        torch.testing.assert_close(torch.stack([o[key] for o in steps], 1), out[name], rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match="trained on intervals 0.5-12 s but this data has an interval of 0.2 s"):
+        stream.step(z[:, 0], dt=0.2)
     with pytest.raises(ValueError, match="trained on intervals 0.5-12 s but this data has an interval of 0.2 s"):
         tracker.track(z, intervals=torch.full((1, 8), 0.2))
     with pytest.raises(ValueError, match=r"intervals are \[n_tracks, T\]"):

@@ -39,7 +39,9 @@ from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
-from immnet.tracking.networks import KEEP, load_network, read_checkpoint, run_network, select_rows, trained_for
+from immnet.tracking.networks import (
+    KEEP, coast_cuts, coast_scan, load_network, read_checkpoint, run_network, select_rows, trained_for,
+)
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
 """The shipped bank (``Tracker.pretrained("bank")``, ``immnet track --weights bank``, the method ``immnet-bank``): the
@@ -55,13 +57,10 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     gap it coasts through, ``immnet.tracking.networks.coast_long_gaps``; scan 0's taken at most the range's end); for
     one trained at one interval, every interval its ``dt`` (``check_dt``'s rule, per track)."""
     intervals = torch.as_tensor(intervals, dtype=torch.float64)
-    span = getattr(net, "interval_range", None)
-    iv = intervals
-    if span is not None:  # each interval as coast_long_gaps cuts it (segments.cut_gaps)
-        hi = float(span[1])
-        iv = torch.cat([intervals[:, :1].clamp(max=hi), intervals[:, 1:]], -1)
-        iv = iv / torch.ceil(iv / hi * (1 - 1e-12)).clamp(min=1)
-    return (trained_for(net, iv) | torch.isnan(intervals)).all(-1)
+    first = torch.zeros(intervals.shape, dtype=torch.bool)
+    first[:, :1] = True
+    each = coast_cuts(net, intervals, first)[1]  # each interval as coast_long_gaps cuts it
+    return (trained_for(net, each) | torch.isnan(intervals)).all(-1)
 
 
 def _scans(net: IMMNet) -> str:
@@ -141,7 +140,7 @@ class NetworkBank:
         total = sum(prior)
         self.log_prior = torch.tensor([math.log(p / total) for p in prior], dtype=torch.float64)
         self.n_gated = 0
-        self.carries, self.log_w = None, None  # the streaming state (``reset``, ``step``)
+        self.carries, self.log_w, self.fresh = None, None, None  # the streaming state (``reset``, ``step``)
         # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
         # ``immnet track`` hands the bank each row at its own time, uncut (``track_rows`` without ``max_interval``)
 
@@ -259,14 +258,17 @@ class NetworkBank:
         """``n_tracks`` tracks that have not started, each member at its prior; ``n_gated`` back to 0."""
         self.carries = {name: self._fresh(net, n_tracks) for name, net in self.members.items()}
         self.log_w = self.log_prior.expand(n_tracks, -1).clone()
+        self.fresh = torch.ones(n_tracks, dtype=torch.bool)  # no scan yet: the first one's interval is nominal
         self.n_gated = 0
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
         """One scan ``z [B, 3]`` (NaN: a missed detection) of every track, as ``Tracker.step``: ``reset [B]`` restarts
         those tracks (each member at its prior again), ``dt`` the time since each track's previous scan (a number or
-        ``[B]``, s; None: ``self.dt``). A member drops out of a track at a scan it cannot take (its weight 0 until the
-        track restarts); a scan no member still in the track can take is refused before anything changes. Returns
+        ``[B]``, s; None: ``self.dt``; a track's first scan after a reset takes it as nominal, ``track``'s scan 0). A member
+        trained over a range coasts an interval longer than the range as ``track`` does (missed scans inside it,
+        ``coast_scan``); a member drops out of a track at a scan it cannot take (its weight 0 until the track
+        restarts); a scan no member still in the track can take is refused before anything changes. Returns
         ``("fused", "state")``, ``("fused", "cov")``, ``mode_probs`` and ``member_probs [B, K]``, NaN before a track's
         first detection. Over a sequence, ``track``'s numbers."""
         z = torch.as_tensor(z, dtype=torch.float32)
@@ -276,12 +278,15 @@ class NetworkBank:
         if self.carries is None or self.log_w.shape[0] != B:
             self.reset(B)
         interval = torch.as_tensor(self.dt if dt is None else dt, dtype=torch.float64).reshape(-1).expand(B)
-        log_w = self.log_w.clone()
+        log_w, fresh = self.log_w.clone(), self.fresh.clone()
         reset = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
         if reset is not None:
             log_w[reset] = self.log_prior
-        # Tracker.step's check per track: a scan inside each member's range, or its one interval
-        takes = torch.stack([trained_for(net, interval) for net in self.members.values()], -1) & (log_w > -math.inf)
+            fresh |= reset
+        # Tracker.step's check per track: each scan, as the member coasts a long interval (coast_cuts), inside its
+        # range, or its one interval
+        takes = torch.stack([trained_for(net, coast_cuts(net, interval, fresh)[1]) for net in self.members.values()],
+                            -1) & (log_w > -math.inf)
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
@@ -301,9 +306,8 @@ class NetworkBank:
             rows = takes[:, k].nonzero().flatten()
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):
-                before = carry if every else carry[rows]
-                iv = interval[rows].to(torch.float32)
-                after = net.scan(before, z[rows], interval=None if bool((iv == net.dt).all()) else iv)
+                before, after = coast_scan(net, carry if every else carry[rows], z[rows], interval[rows], fresh[rows],
+                                           lambda td, net=net: self._kept(net, td))
                 loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood == "reported").double()
                 state[rows, k] = net.estimate(after).double()
                 cov[rows, k] = net.reported_cov(after).double()
@@ -316,6 +320,7 @@ class NetworkBank:
                     carry[rows] = self._kept(net, after)
             self.carries[name] = carry
         self.log_w = (log_w + self.temper * _weighed(loglik, takes)).masked_fill(~takes, float("-inf"))
+        self.fresh = torch.zeros(B, dtype=torch.bool)
         out = _mix(self.log_w, state, probs, cov)
         waiting = (age == 0)[:, None]  # no detection yet: no estimate
         names = {keys.FUSED: keys.STATE, keys.FUSED_COV: keys.STATE_COV, keys.MODE_PROBS: keys.MODE_PROBS,

@@ -113,26 +113,68 @@ def check_dt(net, dt, name: str = "immnet", method=None) -> None:
             f"{others}")
 
 
+def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(scans, each)``: how many scans ``net`` takes each interval (s) in, and each scan's interval, as
+    :func:`coast_long_gaps` cuts a sequence's: for a network trained over a range, an interval longer than the range
+    is ``ceil(interval / end)`` equal intervals inside it, the scans before the last missed detections (a gap the
+    track coasts through); where ``first`` (bool, the intervals' shape: a track's first scan, whose interval is the
+    nominal one) it is one scan of at most the range's end. Otherwise one scan of the interval as given (NaN too)."""
+    iv = torch.as_tensor(intervals, dtype=torch.float64)
+    span = getattr(net, "interval_range", None)
+    if span is None:
+        return torch.ones(iv.shape, dtype=torch.long), iv
+    hi = float(span[1])
+    if first is not None:
+        iv = torch.where(torch.as_tensor(first, dtype=torch.bool), iv.clamp(max=hi), iv)
+    cuts = torch.ceil(iv / hi * (1 - 1e-12)).clamp(min=1)  # segments._scan_times' rule
+    cuts = torch.where(torch.isnan(cuts), torch.ones_like(cuts), cuts)
+    return cuts.long(), iv / cuts
+
+
+def coast_scan(net: IMMNet, carry: TensorDict, z: torch.Tensor, intervals: torch.Tensor, first: torch.Tensor,
+               keep, r: torch.Tensor | None = None) -> tuple[TensorDict, TensorDict]:
+    """One scan ``z [B, 3]`` of ``net`` after ``intervals [B]`` (s) since each track's previous one, as
+    :func:`run_network` runs it inside a sequence: an interval longer than a range network's range is cut by
+    :func:`coast_cuts` (``first [B]``: each track's first scan), each track coasting through the missed scans before
+    its detection, ``keep(after)`` what it carries from one to the next. Returns ``(before, after)``: the carry the
+    scan of ``z`` starts from (``carry`` where nothing was cut) and that scan's output. ``r [B]``: each track's
+    measurement std, for a network told it. The caller checks the intervals (:func:`check_dt`)."""
+    cuts, each = coast_cuts(net, intervals, first)
+    each = each.to(z.dtype)
+
+    def scan(c, zz):
+        return net.scan(c, zz, interval=None if bool((each == net.dt).all()) else each, r=r)
+
+    missed = torch.full_like(z, float("nan"))
+    for i in range(int(cuts.max()) - 1 if len(cuts) else 0):  # the missed scans, each track's before its detection
+        coasting = cuts > i + 1
+        after = keep(scan(carry, missed))  # the whole batch, as in a sequence (a batch's size moves float32 rounding)
+        carry = after if bool(coasting.all()) else select_rows(coasting, after, carry)
+    return carry, scan(carry, z)
+
+
 def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
     """``(z, intervals, where)`` for a network trained over a range of intervals (``net.interval_range``): every
-    interval longer than the range cut into equal intervals inside it by missed scans (``segments.cut_gaps``, as the
-    CSV path cuts a gap: a gap is a gap, the track coasts through it), ``where [B, T]`` (numpy) the input's scans
-    among the new ones; scan 0's interval (a track's start) at most the range's end. Otherwise the input and None."""
-    import numpy as np
-
-    from immnet.tracking.segments import cut_gaps
-
+    interval longer than the range cut into equal intervals inside it by missed scans (:func:`coast_cuts`, as the
+    CSV path cuts a gap, ``segments._scan_times``: a gap is a gap, the track coasts through it), ``where [B, T]``
+    (numpy) the input's scans among the new ones; scan 0's interval (a track's start) at most the range's end. A track
+    with fewer scans than the longest continues with missed scans at the range's end (whose estimates no one reads).
+    Otherwise the input and None."""
     span = getattr(net, "interval_range", None)
     if span is None or not bool((intervals > float(span[1]) * (1 + 1e-6)).any()):
         return z, intervals, None
-    hi = float(span[1])
-    times = torch.cat([torch.zeros_like(intervals[:, :1]), intervals[:, 1:].cumsum(-1)], -1).numpy()
-    full_times, where = cut_gaps(times, hi)
-    B = z.shape[0]
-    full = torch.full((B, full_times.shape[1], 3), float("nan"), dtype=z.dtype)
-    full[torch.arange(B)[:, None], torch.from_numpy(where)] = z
-    steps = torch.from_numpy(np.diff(full_times, axis=-1))
-    return full, torch.cat([intervals[:, :1].clamp(max=hi), steps], -1), where
+    first = torch.zeros(intervals.shape, dtype=torch.bool)
+    first[:, :1] = True
+    cuts, each = coast_cuts(net, intervals, first)
+    where = cuts.cumsum(-1) - 1  # each scan is the last of its interval's
+    B, width = z.shape[0], int(where[:, -1].max()) + 1
+    full = torch.full((B, width, 3), float("nan"), dtype=z.dtype)
+    steps = torch.full((B, width), float(span[1]), dtype=torch.float64)
+    for b in range(B):
+        n = int(where[b, -1]) + 1
+        full[b, where[b]] = z[b]
+        steps[b, :n] = torch.repeat_interleave(each[b], cuts[b])
+    return full, steps, where.numpy()
 
 
 @torch.no_grad()

@@ -158,21 +158,6 @@ def _scan_times(times: np.ndarray, max_interval: float | None) -> tuple[np.ndarr
     return full, pos
 
 
-def cut_gaps(t: np.ndarray, max_interval: float) -> tuple[np.ndarray, np.ndarray]:
-    """Scan times ``t [N, T]`` (each row strictly increasing) with every gap longer than ``max_interval`` cut into
-    equal intervals by missed scans, as :func:`track_rows` cuts a CSV's (:func:`_scan_times`): ``(times [N, T'],
-    where [N, T])``, ``where[i, k]`` the index of scan ``k`` of track ``i`` among ``times[i]``. A track with fewer
-    scans than ``T'`` continues after its last one every ``max_interval`` seconds (scans after a track's end, whose
-    estimates no one reads)."""
-    rows = [_scan_times(np.asarray(ti, dtype=np.float64), max_interval) for ti in t]
-    width = max(len(full) for full, _ in rows)
-    times = np.empty((len(rows), width))
-    for i, (full, _) in enumerate(rows):
-        times[i, : len(full)] = full
-        times[i, len(full):] = full[-1] + max_interval * np.arange(1, width - len(full) + 1)
-    return times, np.stack([pos for _, pos in rows])
-
-
 def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512, return_cov: bool = False,
                max_interval: float | None = None, r: float | None = None):
     """``state [R, 9]``, ``mode_probs [R, 4]`` per row of :func:`split_rows`' segments, each tracked as a

@@ -36,7 +36,8 @@ from immnet.filters.base import blank_before_first_detection
 from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    KEEP, check_dt, coast_long_gaps, load_network, read_checkpoint, run_network, select_rows,
+    KEEP, check_dt, coast_cuts, coast_long_gaps, coast_scan, load_network, read_checkpoint, run_network, select_rows,
+    trained_for,
 )
 
 
@@ -51,6 +52,7 @@ class Tracker:
         self.net = net.eval()
         self.max_position = check_limit(max_position)
         self.carry: TensorDict | None = None
+        self.fresh: torch.Tensor | None = None  # [B] no scan yet since a reset: the first one's interval is nominal
         self.n_gated = 0
 
     @classmethod
@@ -83,6 +85,7 @@ class Tracker:
     def reset(self, n_tracks: int) -> None:
         """``n_tracks`` tracks that have not started; ``n_gated`` back to 0."""
         self.carry = self.net.initial_carry(n_tracks)
+        self.fresh = torch.ones(n_tracks, dtype=torch.bool)
         self.n_gated = 0
 
     @torch.no_grad()
@@ -90,8 +93,12 @@ class Tracker:
         """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks;
         ``dt`` the time since each track's previous scan (a number or ``[B]``, seconds; None: the
         network's ``net.dt``), checked against the intervals the network was trained at
-        (:func:`check_dt`) and passed to ``IMMNet.scan`` as its ``interval``; ``r`` each track's measurement std (a
-        number or ``[B]``, metres), for a network whose filter experts are told it (``r="data"``).
+        (:func:`check_dt`) and passed to ``IMMNet.scan`` as its ``interval``: for a network trained over a range, an
+        interval longer than it is coasted through at equal intervals inside it, missed scans before this one
+        (:func:`coast_scan`, as ``track`` cuts a long gap), and a track's first scan after a reset takes its interval
+        as nominal (at most the range's end, as ``track``'s scan 0); ``r`` each track's measurement std (a
+        number or ``[B]``, metres), for a network whose filter experts are told it (``r="data"``). Over a sequence,
+        ``track``'s numbers.
 
         The outputs of a track that has had no detection yet are NaN; a gated measurement (module doc)
         is a missed detection and adds one to ``n_gated``. Where the experts carry a covariance
@@ -111,16 +118,18 @@ class Tracker:
             fresh = self.net.initial_carry(z.shape[0])
             mask = torch.as_tensor(reset, dtype=torch.bool)
             self.carry = select_rows(mask, fresh, self.carry)
+            self.fresh = self.fresh | mask
         told = None if r is None else torch.as_tensor(r, dtype=torch.float32).reshape(-1).expand(z.shape[0])
         if dt is None:
             self.carry = self.net.scan(self.carry, z, r=told)
         else:
-            interval = torch.as_tensor(dt, dtype=torch.float32).reshape(-1).expand(z.shape[0])
-            check_dt(self.net, interval, "this tracker")
-            if bool((interval == self.net.dt).all()):  # the nominal interval: the network's own step
-                self.carry = self.net.scan(self.carry, z, r=told)
-            else:
-                self.carry = self.net.scan(self.carry, z, interval=interval, r=told)
+            interval = torch.as_tensor(dt, dtype=torch.float64).reshape(-1).expand(z.shape[0])
+            each = coast_cuts(self.net, interval, self.fresh)[1]
+            bad = ~trained_for(self.net, each)
+            check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
+            keep = lambda td: td.select(*self.net.carry_keys)  # noqa: E731
+            self.carry = coast_scan(self.net, self.carry, z, interval, self.fresh, keep, told)[1]
+        self.fresh = torch.zeros_like(self.fresh)
         out = self.carry.select(keys.EXPERT_PROBS, keys.EXPERT_POST).clone()
         out.set(keys.FUSED, self.net.estimate(self.carry).clone())  # the output correction's, where it has one
         if self.net.has_cov:
