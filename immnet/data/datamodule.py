@@ -275,8 +275,9 @@ def check_flights(train: list, others: list) -> None:
     def real(sets):  # (path, meta, its samples' digests) of the sets that name flights (3D-LAST's do not)
         return [(p, m, sample_digests(m)) for p, m in sets if isinstance(m, dict) and isinstance(m.get("flights"), dict)]
 
-    everything = real(train + others)
-    for path, meta, digests in real(train):
+    trains = real(train)
+    everything = trains + real(others)
+    for path, meta, digests in trains:
         trained = set(meta["flights"].get(meta.get("split"), []))
         for other_path, other, other_digests in everything:
             if not digests & other_digests:
