@@ -1,8 +1,8 @@
 """What estimating each track's measurement std r costs a trained IMMNet on a data set with truth: the network with r
 estimated scan by scan from the altitude's third differences (docs/immnet.md), told each track's true r, and
-told two look-ahead estimates from the whole window (not trackers: references for how much a better estimate from
-the same measurements could give): the altitude's, and a trimmed one from all three axes (each difference's square
-capped at 9 times the window's median-based estimate). Then where the cost of the estimate lies: the windows by how
+told three look-ahead estimates from the whole window (not trackers: references for how much a better estimate from
+the same measurements could give): the altitude's, the altitude's trimmed (each difference's square capped at 9 times
+the window's median-based estimate), and a trimmed one from all three axes. Then where the cost of the estimate lies: the windows by how
 far their whole-window estimate is from the truth.
 
     python scripts/r_estimate.py --data runs/real/data/heldout-5s/test \\
@@ -60,15 +60,17 @@ def main(argv=None) -> int:
     axes = np.concatenate([third_difference_samples(z[..., a], t) for a in range(3)], 1)
     median_based = np.nanmedian(axes, 1) / CHI2_MEDIAN
     trimmed = np.sqrt(np.nanmean(np.minimum(axes, 9 * median_based[:, None]), 1))
+    alt_trimmed = np.sqrt(np.nanmean(np.minimum(alt, 9 * np.nanmedian(alt, 1, keepdims=True) / CHI2_MEDIAN), 1))
     q = lambda v: " / ".join(f"{x:.3f}" for x in np.quantile(v / r, [0.1, 0.5, 0.9]))  # noqa: E731
     print(f"whole-window estimate over the truth (10th / 50th / 90th percentile): altitude {q(whole)}, "
-          f"three axes trimmed {q(trimmed)}")
+          f"altitude trimmed {q(alt_trimmed)}, three axes trimmed {q(trimmed)}")
 
     estimated = IMMNetMethod(args.checkpoint, "r estimated", r=None)  # as the shipped networks run, however trained
     told = IMMNetMethod(args.checkpoint, "told r", r="data")
     everyone = range(len(r))  # each window's estimates kept, for the cost per window below
     results = evaluate({m.name: m for m in (estimated, told)}, data, progress=False, keep=everyone)
     for name, v in (("told the window's altitude estimate (look-ahead)", whole),
+                    ("told the window's trimmed altitude estimate (look-ahead)", alt_trimmed),
                     ("told the window's trimmed 3-axis estimate (look-ahead)", trimmed)):
         looked = data.clone()  # the same windows, each told the look-ahead estimate as its r
         looked.set(keys.R, torch.as_tensor(v, dtype=data[keys.R].dtype))
