@@ -3,7 +3,7 @@ each of its test sets beside the model-based filters (and the clairvoyant bound 
 write immnet/pretrained/provenance-NAME.json and PROVENANCE-NAME.md. NAME is one of SHIPS: `real` (three runs of
 recipes/real-singer-output.yaml, two with an overlay of configs/members/, their corrections joined: 1 s), `real-5s`
 (the same of recipes/real-singer-5s-output.yaml: 4.5-5.5 s), `real-11s` (of recipes/real-singer-11s-output.yaml:
-10-12 s), `real-4.5-12s` (one run of recipes/real-singer-4.5-12s-output.yaml: 4.5-12 s) or `general`
+10-12 s), `real-4.5-12s` (the same of recipes/real-singer-4.5-12s-output.yaml: 4.5-12 s) or `general`
 (recipes/general.yaml, 0.5-12 s); `bank`, the default tracker, exports nothing (its members are the shipped files) and
 writes its provenance from its scores.
 
@@ -82,17 +82,18 @@ SHIPS = {
     "real-11s": {**_corrections("-11s", "those scans", "U[10, 12] s scans, r ~ U[5, 35] m",
                                 REAL11 + ["imm-ekf-general", "immnet-general"], PRIOR, READING, " at 10-12 s"),
                  "interval_range": [10.0, 12.0]},
-    # one network for every interval from 4.5 to 12 s, one run (docs/real.md "Between the trained intervals")
+    # one network for every interval from 4.5 to 12 s, three runs as real-5s's (docs/real.md "Between the trained
+    # intervals"), chosen on the three validation sets together
     "real-4.5-12s": {
-        "ckpt": "runs/real/output-4.5-12s/checkpoints/best.ckpt",
-        "recipe": "recipes/real-singer-4.5-12s-output.yaml",
-        "init": ("its untrained start (the output correction's last layer zero: the three-filter decoupled IMM of "
+        **{k: v for k, v in _corrections("-4.5-12s", "", "", []).items() if k in ("ckpt", "recipe")},
+        "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM of "
                  f"real-imm-singer-11s's settings with r estimated{PRIOR}, exactly)"),
-        "what": ("an output correction (a GRU after the fusion that corrects the reported position from the track's "
-                 f"history{READING}) on the three-filter decoupled IMM tuned on real flights at 4.5-5.5, 6-8 and 10-12 s "
-                 "together (real-imm-singer-11s's settings: its CV, CA and Singer filters per axis), each track's r "
-                 "estimated, trained on real flights at those three kinds of scans (a fresh view of its flights each "
-                 "batch), without a range guard; only the correction learned"),
+        "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "
+                 f"history{READING}), their corrections averaged, on the three-filter decoupled IMM tuned on real "
+                 "flights at 4.5-5.5, 6-8 and 10-12 s together (real-imm-singer-11s's settings: its CV, CA and Singer "
+                 "filters per axis), each track's r estimated, each trained on real flights at those three kinds of "
+                 "scans (a fresh view of its flights each batch) as a run of its own, without a range guard; only the "
+                 "corrections learned"),
         "data": {"train": [f"{REAL}/quickstart-{s}/train: {QUICKSTART}, {scans} s scans, r ~ U[5, 35] m"
                            for s, scans in (("5s", "U[4.5, 5.5]"), ("7s", "U[6, 8]"), ("11s", "U[10, 12]"))],
                  "val": [f"{REAL}/quickstart-{s}/val" for s in ("5s", "7s", "11s")]},
