@@ -213,6 +213,29 @@ def test_tracker_coasts_a_long_gap_in_track_and_step_and_refuses_intervals_it_wa
                                atol=1e-2)
 
 
+def test_an_interval_a_hair_over_the_range_is_one_scan_and_scan_0_is_nominal():
+    """An interval within ``check_dt``'s tolerance (1e-6) above a range's end is one scan the network takes, not two
+    halves below its range, in ``track`` and ``step`` alike; a track's first interval longer than the range is taken as
+    nominal even where no other interval is cut."""
+    from immnet.tracking import Tracker
+    from immnet.tracking.networks import coast_cuts
+    from immnet.tracking.segments import _scan_times
+
+    real5 = Tracker.pretrained("real-5s")
+    hair = 5.5 * (1 + 5e-7)
+    cuts, each = coast_cuts(real5.net, torch.tensor([hair, 11.0, 12.0], dtype=torch.float64))
+    assert cuts.tolist() == [1, 2, 3] and each[0] == hair
+    full, pos = _scan_times(np.array([0.0, hair, hair + 11.0]), 5.5)
+    assert pos.tolist() == [0, 1, 3]
+    z = torch.from_numpy(np.stack([np.arange(6) * 1000.0, np.full(6, 5e3), np.full(6, 3e3)], -1)).float()[None]
+    out = real5.track(z, intervals=torch.tensor([[30.0, 5.0, hair, 11.0, 5.0, 5.0]], dtype=torch.float64))
+    assert torch.isfinite(out["state"][0, 1:]).all()
+    assert torch.isfinite(real5.track(z, intervals=torch.tensor([[30.0, 5.0, 5.0, 5.0, 5.0, 5.0]]))["state"][0, 1:]).all()
+    real5.reset(1)
+    steps = [real5.step(z[:, k], dt=float(v)) for k, v in enumerate([30.0, 5.0, hair, 11.0, 5.0, 5.0])]
+    torch.testing.assert_close(torch.stack([o["fused", "state"] for o in steps], 1), out["state"], rtol=1e-5, atol=1e-3)
+
+
 def test_a_gap_beyond_the_networks_range_is_coasted_at_intervals_inside_it():
     """``track_rows(max_interval=...)``: rows 20 s apart for a network trained up to 12 s are two 10 s scans, the
     one between them a missed detection; rows inside the range keep their own times."""

@@ -126,7 +126,10 @@ def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
     hi = float(span[1])
     if first is not None:
         iv = torch.where(torch.as_tensor(first, dtype=torch.bool), iv.clamp(max=hi), iv)
-    cuts = torch.ceil(iv / hi * (1 - 1e-12)).clamp(min=1)  # segments._scan_times' rule
+    end = hi + 1e-6 * max(1.0, hi)  # trained_for's tolerance, as segments._scan_times'
+    if not bool((iv > end).any()):  # nothing to cut (NaN neither)
+        return torch.ones(iv.shape, dtype=torch.long), iv
+    cuts = torch.ceil(iv / end).clamp(min=1)
     cuts = torch.where(torch.isnan(cuts), torch.ones_like(cuts), cuts)
     return cuts.long(), iv / cuts
 
@@ -157,15 +160,17 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
     """``(z, intervals, where)`` for a network trained over a range of intervals (``net.interval_range``): every
     interval longer than the range cut into equal intervals inside it by missed scans (:func:`coast_cuts`, as the
     CSV path cuts a gap, ``segments._scan_times``: a gap is a gap, the track coasts through it), ``where [B, T]``
-    (numpy) the input's scans among the new ones; scan 0's interval (a track's start) at most the range's end. A track
-    with fewer scans than the longest continues with missed scans at the range's end (whose estimates no one reads).
-    Otherwise the input and None."""
+    (numpy) the input's scans among the new ones (None where nothing is cut); scan 0's interval (a track's start) at
+    most the range's end. A track with fewer scans than the longest continues with missed scans at the range's end
+    (whose estimates no one reads). For a network of one interval, the input and None."""
     span = getattr(net, "interval_range", None)
-    if span is None or not bool((intervals > float(span[1]) * (1 + 1e-6)).any()):
+    if span is None:
         return z, intervals, None
     first = torch.zeros(intervals.shape, dtype=torch.bool)
     first[:, :1] = True
     cuts, each = coast_cuts(net, intervals, first)
+    if not bool((cuts > 1).any()):
+        return z, each, None  # scan 0's at most the range's end
     where = cuts.cumsum(-1) - 1  # each scan is the last of its interval's
     B, width = z.shape[0], int(where[:, -1].max()) + 1
     full = torch.full((B, width, 3), float("nan"), dtype=z.dtype)

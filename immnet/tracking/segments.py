@@ -149,7 +149,8 @@ def _scan_times(times: np.ndarray, max_interval: float | None) -> tuple[np.ndarr
     if max_interval is None or len(times) < 2:
         return times, np.arange(len(times))
     gaps = np.diff(times)
-    cuts = np.maximum(1, np.ceil(gaps / max_interval * (1 - 1e-12))).astype(np.int64)
+    cuts = np.maximum(1, np.ceil(gaps / (max_interval + 1e-6 * max(1.0, max_interval)))).astype(np.int64)  # check_dt's
+    # tolerance: a gap a hair over the range's end is one scan the network takes, not two halves it may not
     pos = np.concatenate([[0], np.cumsum(cuts)])
     full = np.empty(pos[-1] + 1)
     for i, (g, k) in enumerate(zip(gaps, cuts)):
