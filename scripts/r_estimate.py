@@ -2,8 +2,8 @@
 estimated scan by scan from the altitude's third differences (docs/immnet.md), told each track's true r, and
 told three look-ahead estimates from the whole window (not trackers: references for how much a better estimate from
 the same measurements could give): the altitude's, the altitude's trimmed (each difference's square capped at 9 times
-the window's median-based estimate), and a trimmed one from all three axes. Then where the cost of the estimate lies: the windows by how
-far their whole-window estimate is from the truth.
+the window's median-based estimate), and a trimmed one from all three axes. Then where the cost of the estimate lies:
+the windows by how far their whole-window estimate is from the truth.
 
     python scripts/r_estimate.py --data runs/real/data/heldout-5s/test \\
         --checkpoint immnet/pretrained/immnet-real-5s.ckpt

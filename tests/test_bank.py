@@ -298,8 +298,8 @@ def test_streaming_coasts_a_long_interval_as_the_whole_sequence_does(shipped_ban
     assert (ref[keys.MEMBER_PROBS][:, 5:, 2] > 1e-3).any()  # and carries weight
     bank.reset(3)
     outs = [bank.step(z[:, t], dt=iv[:, t]) for t in range(30)]
-    for key, name in ((keys.FUSED, keys.STATE), (keys.FUSED_COV, keys.STATE_COV), (keys.MEMBER_PROBS, keys.MEMBER_PROBS),
-                      (keys.MODE_PROBS, keys.MODE_PROBS)):
+    for key, name in ((keys.FUSED, keys.STATE), (keys.FUSED_COV, keys.STATE_COV),
+                      (keys.MEMBER_PROBS, keys.MEMBER_PROBS), (keys.MODE_PROBS, keys.MODE_PROBS)):
         torch.testing.assert_close(torch.stack([o[key] for o in outs], 1), ref[name], equal_nan=True, rtol=0, atol=0)
     # a reset at scan 10: that track again from there, its first interval nominal
     bank.reset(3)

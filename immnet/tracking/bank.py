@@ -265,9 +265,9 @@ class NetworkBank:
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
         """One scan ``z [B, 3]`` (NaN: a missed detection) of every track, as ``Tracker.step``: ``reset [B]`` restarts
         those tracks (each member at its prior again), ``dt`` the time since each track's previous scan (a number or
-        ``[B]``, s; None: ``self.dt``; a track's first scan after a reset takes it as nominal, ``track``'s scan 0). A member
-        trained over a range coasts an interval longer than the range as ``track`` does (missed scans inside it,
-        ``coast_scan``); a member drops out of a track at a scan it cannot take (its weight 0 until the track
+        ``[B]``, s; None: ``self.dt``; a track's first scan after a reset takes it as nominal, ``track``'s scan 0).
+        A member trained over a range coasts an interval longer than the range as ``track`` does (missed scans inside
+        it, ``coast_scan``); a member drops out of a track at a scan it cannot take (its weight 0 until the track
         restarts); a scan no member still in the track can take is refused before anything changes. Returns
         ``("fused", "state")``, ``("fused", "cov")``, ``mode_probs`` and ``member_probs [B, K]``, NaN before a track's
         first detection. Over a sequence, ``track``'s numbers."""

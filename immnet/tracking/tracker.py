@@ -112,24 +112,24 @@ class Tracker:
         self._check_told(r)  # before anything of the tracker's state changes
         if self.carry is None or self.carry.batch_size[0] != z.shape[0]:
             self.reset(z.shape[0])
-        z, n_gated = gate_measurements(z, self.max_position)
-        self.n_gated += n_gated
-        if reset is not None:
-            fresh = self.net.initial_carry(z.shape[0])
-            mask = torch.as_tensor(reset, dtype=torch.bool)
-            self.carry = select_rows(mask, fresh, self.carry)
-            self.fresh = self.fresh | mask
-        told = None if r is None else torch.as_tensor(r, dtype=torch.float32).reshape(-1).expand(z.shape[0])
-        if dt is None:
-            self.carry = self.net.scan(self.carry, z, r=told)
-        else:
-            interval = torch.as_tensor(dt, dtype=torch.float64).reshape(-1).expand(z.shape[0])
-            each = coast_cuts(self.net, interval, self.fresh)[1]
+        mask = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
+        first = self.fresh if mask is None else self.fresh | mask  # each track's first scan since a reset
+        interval = None if dt is None else torch.as_tensor(dt, dtype=torch.float64).reshape(-1).expand(z.shape[0])
+        if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
+            each = coast_cuts(self.net, interval, first)[1]
             bad = ~trained_for(self.net, each)
             check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
+        z, n_gated = gate_measurements(z, self.max_position)
+        self.n_gated += n_gated
+        if mask is not None:
+            self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
+        told = None if r is None else torch.as_tensor(r, dtype=torch.float32).reshape(-1).expand(z.shape[0])
+        if interval is None:
+            self.carry = self.net.scan(self.carry, z, r=told)
+        else:
             keep = lambda td: td.select(*self.net.carry_keys)  # noqa: E731
-            self.carry = coast_scan(self.net, self.carry, z, interval, self.fresh, keep, told)[1]
-        self.fresh = torch.zeros_like(self.fresh)
+            self.carry = coast_scan(self.net, self.carry, z, interval, first, keep, told)[1]
+        self.fresh = torch.zeros_like(first)
         out = self.carry.select(keys.EXPERT_PROBS, keys.EXPERT_POST).clone()
         out.set(keys.FUSED, self.net.estimate(self.carry).clone())  # the output correction's, where it has one
         if self.net.has_cov:
