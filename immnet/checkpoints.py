@@ -38,7 +38,7 @@ told, ``BANK``);
 ``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, three learned
 output corrections, averaged, on the three-filter decoupled IMM, trained on real flights); ``real-5s`` the same for a
 surveillance radar's 4.5-5.5 s scans, on that IMM tuned at those scans; ``real-11s`` for an en-route radar's 10-12 s
-scans; ``real-4.5-12s`` one such network for any interval from 4.5 to 12 s (one run, on that IMM tuned over them)."""
+scans; ``real-4.5-12s`` one such network for any interval from 4.5 to 12 s (on that IMM tuned over them)."""
 GENERAL = "general"
 """The general network: the bank's member for any interval from 0.5 to 12 s."""
 BANK = "bank"

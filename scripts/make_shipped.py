@@ -42,18 +42,24 @@ QUICKSTART = ("collections/quickstart's training flights (immnet data adsb --see
               "trained or tuned on")
 
 
+def _runs(tag: str) -> dict:
+    """The three runs whose corrections a shipped real-flight network averages: the recipe, and it with each overlay
+    of configs/members/ (a second seed; turns flown into half its views); ``tag`` the recipe's and run directories'
+    suffix (``""``, ``"-5s"``, ``"-11s"``, ``"-4.5-12s"``)."""
+    recipe, members = f"recipes/real-singer{tag}-output.yaml", f"configs/members/real{tag}"
+    return {"ckpt": [f"runs/real/output{tag}{run}/checkpoints/best.ckpt" for run in ("", "-seed1", "-turns")],
+            "recipe": [recipe] + [f"{recipe} + {members}-{overlay}.yaml" for overlay in ("seed1", "turns")]}
+
+
 def _corrections(tag: str, scans: str, train: str, tests: list[str], prior: str = "", reading: str = "",
                  tuned: str = "") -> dict:
     """A real-flight network of three runs of one recipe on one filter, their corrections averaged (docs/real.md
-    "Several corrections on one filter"): the recipe, and it with each overlay of configs/members/ (a second seed;
-    turns flown into half its views). ``tag``: the recipe's, run directories' and filter's suffix (``""``, ``"-5s"``,
-    ``"-11s"``); ``scans``: the scans it was trained at, as the provenance says them; ``train``: its training data's
-    scans and noise; ``tests``: the registry names scored beside its set's filters."""
-    recipe, members = f"recipes/real-singer{tag}-output.yaml", f"configs/members/real{tag}"
+    "Several corrections on one filter"): ``_runs(tag)``. ``tag``: the recipe's, run directories' and filter's suffix
+    (``""``, ``"-5s"``, ``"-11s"``); ``scans``: the scans it was trained at, as the provenance says them; ``train``:
+    its training data's scans and noise; ``tests``: the registry names scored beside its set's filters."""
     name, filt, data = f"real{tag}", f"real-imm-singer{tag}", f"{REAL}/quickstart{tag or '-1s'}"
     return {
-        "ckpt": [f"runs/real/output{tag}{run}/checkpoints/best.ckpt" for run in ("", "-seed1", "-turns")],
-        "recipe": [recipe] + [f"{recipe} + {members}-{overlay}.yaml" for overlay in ("seed1", "turns")],
+        **_runs(tag),
         "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM "
                  f"{filt} with r estimated{prior}, exactly)"),
         "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "
@@ -85,7 +91,7 @@ SHIPS = {
     # one network for every interval from 4.5 to 12 s, three runs as real-5s's (docs/real.md "Between the trained
     # intervals"), chosen on the three validation sets together
     "real-4.5-12s": {
-        **{k: v for k, v in _corrections("-4.5-12s", "", "", []).items() if k in ("ckpt", "recipe")},
+        **_runs("-4.5-12s"),
         "init": ("each its untrained start (the output correction's last layer zero: the three-filter decoupled IMM of "
                  f"real-imm-singer-11s's settings with r estimated{PRIOR}, exactly)"),
         "what": ("three output corrections (GRUs after the fusion that correct the reported position from the track's "

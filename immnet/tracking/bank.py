@@ -285,8 +285,9 @@ class NetworkBank:
             fresh |= reset
         # Tracker.step's check per track: each scan, as the member coasts a long interval (coast_cuts), inside its
         # range, or its one interval
-        takes = torch.stack([trained_for(net, coast_cuts(net, interval, fresh)[1]) for net in self.members.values()],
-                            -1) & (log_w > -math.inf)
+        cut = [coast_cuts(net, interval, fresh) for net in self.members.values()]  # (scans, each's interval) per member
+        takes = torch.stack([trained_for(net, each) for net, (_, each) in zip(self.members.values(), cut)], -1)
+        takes &= log_w > -math.inf
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
@@ -306,8 +307,8 @@ class NetworkBank:
             rows = takes[:, k].nonzero().flatten()
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):
-                before, after = coast_scan(net, carry if every else carry[rows], z[rows], interval[rows], fresh[rows],
-                                           lambda td, net=net: self._kept(net, td))
+                before, after = coast_scan(net, carry if every else carry[rows], z[rows], cut[k][0][rows],
+                                           cut[k][1][rows], lambda td, net=net: self._kept(net, td))
                 loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood == "reported").double()
                 state[rows, k] = net.estimate(after).double()
                 cov[rows, k] = net.reported_cov(after).double()

@@ -134,15 +134,13 @@ def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
     return cuts.long(), iv / cuts
 
 
-def coast_scan(net: IMMNet, carry: TensorDict, z: torch.Tensor, intervals: torch.Tensor, first: torch.Tensor,
-               keep, r: torch.Tensor | None = None) -> tuple[TensorDict, TensorDict]:
-    """One scan ``z [B, 3]`` of ``net`` after ``intervals [B]`` (s) since each track's previous one, as
-    :func:`run_network` runs it inside a sequence: an interval longer than a range network's range is cut by
-    :func:`coast_cuts` (``first [B]``: each track's first scan), each track coasting through the missed scans before
-    its detection, ``keep(after)`` what it carries from one to the next. Returns ``(before, after)``: the carry the
-    scan of ``z`` starts from (``carry`` where nothing was cut) and that scan's output. ``r [B]``: each track's
-    measurement std, for a network told it. The caller checks the intervals (:func:`check_dt`)."""
-    cuts, each = coast_cuts(net, intervals, first)
+def coast_scan(net: IMMNet, carry: TensorDict, z: torch.Tensor, cuts: torch.Tensor, each: torch.Tensor, keep,
+               r: torch.Tensor | None = None) -> tuple[TensorDict, TensorDict]:
+    """One scan ``z [B, 3]`` of ``net`` as :func:`run_network` runs it inside a sequence: each track's interval since
+    its previous scan as :func:`coast_cuts` cut it, ``cuts [B]`` scans of ``each [B]`` s, the track coasting through
+    the missed scans before its detection, ``keep(after)`` what it carries from one to the next. Returns ``(before,
+    after)``: the carry the scan of ``z`` starts from (``carry`` where nothing was cut) and that scan's output. ``r
+    [B]``: each track's measurement std, for a network told it. The caller checks the intervals (:func:`check_dt`)."""
     each = each.to(z.dtype)
 
     def scan(c, zz):

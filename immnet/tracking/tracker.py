@@ -116,7 +116,7 @@ class Tracker:
         first = self.fresh if mask is None else self.fresh | mask  # each track's first scan since a reset
         interval = None if dt is None else torch.as_tensor(dt, dtype=torch.float64).reshape(-1).expand(z.shape[0])
         if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
-            each = coast_cuts(self.net, interval, first)[1]
+            cuts, each = coast_cuts(self.net, interval, first)
             bad = ~trained_for(self.net, each)
             check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
         z, n_gated = gate_measurements(z, self.max_position)
@@ -128,7 +128,7 @@ class Tracker:
             self.carry = self.net.scan(self.carry, z, r=told)
         else:
             keep = lambda td: td.select(*self.net.carry_keys)  # noqa: E731
-            self.carry = coast_scan(self.net, self.carry, z, interval, first, keep, told)[1]
+            self.carry = coast_scan(self.net, self.carry, z, cuts, each, keep, told)[1]
         self.fresh = torch.zeros_like(first)
         out = self.carry.select(keys.EXPERT_PROBS, keys.EXPERT_POST).clone()
         out.set(keys.FUSED, self.net.estimate(self.carry).clone())  # the output correction's, where it has one
