@@ -28,7 +28,7 @@ import torch
 from immnet import keys
 from immnet.data.augment import FlightAugment
 from immnet.data.storage import as_batch, load_dataset
-from immnet.evaluation.calibration import LEVELS, chi2_3_cdf
+from immnet.evaluation.calibration import LEVELS, coverage
 from immnet.evaluation.metrics import scored_mask
 from immnet.motion import POS
 from immnet.stages.correct import CorrectionEnsemble, OutputCorrection
@@ -129,8 +129,7 @@ def fit(h, e, P, ridge: float | None = None, max_iter: int = 300) -> Scale:
 
 def row(name: str, e, P, s=None) -> str:
     nees = scaled_nees(e, P, s)
-    u = chi2_3_cdf(nees)
-    cells = " | ".join(f"{float((u <= p).double().mean()):.3f}" for p in LEVELS)
+    cells = " | ".join(f"{v:.3f}" for v in coverage(nees, torch.ones_like(nees, dtype=torch.bool)).values())
     return f"| {name} | {cells} | {float(nees.mean()):.2f} |"
 
 

@@ -78,14 +78,10 @@ def test_the_per_scan_scale_finds_what_the_states_carry(script):
     e = torch.exp(s_true / 2) * (L @ torch.randn(n, 3, 1, generator=g, dtype=torch.float64)).squeeze(-1)
     head = script["fit"](h, e, P, ridge=1e-6)
     assert float((head(h) - s_true).pow(2).mean().sqrt()) < 0.03  # s spans about +-2.5
-    u_head = _u(script["scaled_nees"](e, P, head(h)))
-    u_const = _u(script["scaled_nees"](e, P, script["fit"](None, e, P)(h)))
+    u_head = chi2_3_cdf(script["scaled_nees"](e, P, head(h)))
+    u_const = chi2_3_cdf(script["scaled_nees"](e, P, script["fit"](None, e, P)(h)))
     assert abs(float((u_head <= 0.5).double().mean()) - 0.5) < 0.015
     assert abs(float((u_const <= 0.5).double().mean()) - 0.5) > 0.03  # a mixture of scales: peaked, heavy-tailed
-
-
-def _u(nees):
-    return chi2_3_cdf(nees)
 
 
 def test_it_reads_the_states_the_network_corrects_from(script):
