@@ -6,6 +6,7 @@ import builtins
 import hashlib
 import json
 import os
+import re
 import shlex
 import shutil
 
@@ -356,3 +357,58 @@ def test_export_sets_what_a_network_reports_and_nothing_it_learned(tmp_path):
     with pytest.raises(ValueError, match="export sets only cov_consistency, not p_stay"):
         export_weights(shipped("real"), tmp_path / "d.ckpt", {"p_stay": 0.9})
     assert not (tmp_path / "d.ckpt").exists()
+
+
+def _resaved(ckpt: dict, path):
+    """``ckpt`` saved as the project saves a checkpoint: its checksum recomputed (``add_checksum``), so that only
+    what it holds can refuse it."""
+    from immnet.checkpoints import add_checksum
+
+    torch.save(add_checksum(ckpt), path)
+    assert load_checkpoint(path)[CHECKSUM_KEY] == _sha256_by_hand(ckpt["state_dict"])  # the checksum is valid
+    return path
+
+
+def _refused_by_track_and_evaluate(path, why: str, tmp_path, capsys) -> None:
+    """``immnet track`` (CSV and .npz) and ``immnet evaluate`` refuse ``path``: one line containing ``why``, exit 2,
+    no output written."""
+    z = generate(2, seed=5, spec=DataSpec(T=30, min_segment=10))
+    np.savez(tmp_path / "in.npz", measurements=z["measurements"].numpy(), states=z["states"].numpy(), dt=1.0)
+    (tmp_path / "in.csv").write_text("track_id,t,x,y,z\n" + "".join(
+        f"a,{k},{x:.3f},{y:.3f},{h:.3f}\n" for k, (x, y, h) in enumerate(z["measurements"][0].tolist())))
+    for argv, out in (
+            (["track", "--input", str(tmp_path / "in.csv"), "--output", str(tmp_path / "o.csv"), "--checkpoint", str(path)],
+             tmp_path / "o.csv"),
+            (["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "o.npz"), "--checkpoint", str(path)],
+             tmp_path / "o.npz"),
+            (["evaluate", "--data", str(tmp_path / "in.npz"), "--split", "all", "--methods", "measurements,immnet",
+              "--checkpoint", f"immnet={path}", "--json", str(tmp_path / "o.json"), "--quiet"], tmp_path / "o.json")):
+        assert main(argv) == 2, argv
+        line = _one_error_line(capsys.readouterr().err, argv[0])
+        assert why in line, line
+        assert not out.exists()
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), float("-inf")])
+def test_weights_that_are_not_finite_are_refused_by_file_and_weight(tmp_path, capsys, value):
+    """Issue 60, item 4: weights holding a NaN or an infinity (a run that diverged), saved with a valid checksum,
+    tracked to mostly empty output with exit code 0; now the tracker, the bank's members, Stage2Module's
+    ``init_checkpoint``, ``immnet track`` and ``immnet evaluate`` refuse the file, naming it and its first
+    non-finite weight in the file's order (two are spoilt here: the later one is not named)."""
+    from immnet.tracking import NetworkBank
+
+    ckpt = load_checkpoint(PRETRAINED)
+    names = [k for k, v in ckpt["state_dict"].items() if v.is_floating_point() and v.numel() > 3]
+    first, later = names[2], names[-1]
+    ckpt["state_dict"][first].view(-1)[[0, 3]] = value
+    ckpt["state_dict"][later].view(-1)[0] = value
+    path = _resaved(ckpt, tmp_path / "diverged.ckpt")
+    numel = ckpt["state_dict"][first].numel()
+    why = f"{path}: its weight {first} holds 2 non-finite value(s) (NaN or inf) of {numel}"
+    with pytest.raises(CheckpointError, match=re.escape(why)):
+        Tracker.from_checkpoint(path)
+    with pytest.raises(CheckpointError, match=re.escape(why)):
+        NetworkBank.from_names(["general", str(path)])
+    with pytest.raises(CheckpointError, match=re.escape(why)):
+        Stage2Module(net=_shipped()["hyper_parameters"]["net"], init_checkpoint=str(path))
+    _refused_by_track_and_evaluate(path, why, tmp_path, capsys)

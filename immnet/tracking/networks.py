@@ -12,7 +12,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import load_checkpoint
+from immnet.checkpoints import CheckpointError, load_checkpoint
 from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
@@ -35,7 +35,19 @@ def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
     if not isinstance(config, dict):
         raise ValueError(f"{path} is not an IMMNet checkpoint (its hyper_parameters' net is a {type(config).__name__})")
     state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if isinstance(k, str) and k.startswith("net.")}
+    check_finite(state, path)
     return net_arguments(copy.deepcopy(config)), state
+
+
+def check_finite(state: dict, path) -> None:
+    """A ``CheckpointError`` naming ``path`` and the first weight (in the file's order) that holds a NaN or an
+    infinity: a network that diverged in training, whose checksum can be valid, would track to NaN."""
+    for name, value in state.items():
+        if isinstance(value, torch.Tensor) and value.is_floating_point():
+            bad = int((~torch.isfinite(value)).sum())
+            if bad:
+                raise CheckpointError(f"{path}: its weight net.{name} holds {bad} non-finite value(s) (NaN or inf) of "
+                                      f"{value.numel()}: weights that diverged in training cannot track")
 
 
 _NEEDS_FILTERS = {"guard": "a range guard", "adapt": "adaptive process noise", "r": "a measurement std"}
