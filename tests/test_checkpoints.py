@@ -412,3 +412,38 @@ def test_weights_that_are_not_finite_are_refused_by_file_and_weight(tmp_path, ca
     with pytest.raises(CheckpointError, match=re.escape(why)):
         Stage2Module(net=_shipped()["hyper_parameters"]["net"], init_checkpoint=str(path))
     _refused_by_track_and_evaluate(path, why, tmp_path, capsys)
+
+
+@pytest.mark.parametrize("change", ["wider", "deeper", "foreign weights"])
+def test_weights_of_another_architecture_are_refused_by_file_and_weight(tmp_path, capsys, change):
+    """Issue 60, item 7: a checkpoint whose config builds another network than its weights fit (a wider or deeper
+    classifier in its config, or another network's weights under it; checksum valid) ended ``immnet track`` in
+    load_state_dict's RuntimeError traceback; now one line naming the file and the first weight that differs."""
+    from immnet.checkpoints import shipped
+
+    ckpt = load_checkpoint(PRETRAINED)
+    args = ckpt["hyper_parameters"]["net"]["classifier"].setdefault("init_args", {})
+    if change == "wider":
+        args["d_model"] = 64
+        why = "(net.classify."  # a weight of the classifier, in both shapes
+    elif change == "deeper":
+        args["layers"] = 3
+        why = "(the file has no weight net.classify."
+    else:
+        ckpt["state_dict"] = load_checkpoint(shipped("real"))["state_dict"]
+        why = "another architecture than the network its config builds ("
+    path = _resaved(ckpt, tmp_path / "other.ckpt")
+    with pytest.raises(CheckpointError, match=re.escape(why)) as err:
+        Tracker.from_checkpoint(path)
+    message = str(err.value)
+    assert message.startswith(f"{path}: its weights are of another architecture than the network its config builds (")
+    if change == "wider":  # the shapes named: the file's, and those of the network its changed config builds
+        from immnet.stages import IMMNet
+        from immnet.stages.network import net_arguments
+
+        name = re.search(r"\(net\.(\S+) is ", message).group(1)
+        built = IMMNet(**net_arguments(ckpt["hyper_parameters"]["net"])).state_dict()[name]
+        file = ckpt["state_dict"]["net." + name]
+        assert list(file.shape) != list(built.shape) and 64 in built.shape and 32 in file.shape
+        assert f"is {list(file.shape)} in the file, {list(built.shape)} in the network)" in message
+    _refused_by_track_and_evaluate(path, why, tmp_path, capsys)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import inspect
+import re
 from pathlib import Path
 
 import torch
@@ -50,6 +51,31 @@ def check_finite(state: dict, path) -> None:
                                       f"{value.numel()}: weights that diverged in training cannot track")
 
 
+def fit_weights(net: torch.nn.Module, state: dict, path) -> None:
+    """Load ``state`` into ``net`` (strict); a ``CheckpointError`` naming ``path`` and the first weight that
+    differs (one of another shape, one the network has no place for, one the file lacks) where the file's weights
+    are of another architecture than the network its config builds."""
+    try:
+        net.load_state_dict(state)
+        return
+    except RuntimeError as err:
+        text = str(err)
+    own = net.state_dict()
+    shaped = [k for k in state if k in own and tuple(state[k].shape) != tuple(own[k].shape)]
+    extra = re.search(r'Unexpected key\(s\) in state_dict: "([^"]+)"', text)
+    missing = re.search(r'Missing key\(s\) in state_dict: "([^"]+)"', text)
+    if shaped:
+        why = f"net.{shaped[0]} is {list(state[shaped[0]].shape)} in the file, {list(own[shaped[0]].shape)} in the network"
+    elif extra:
+        why = f"the network has no weight net.{extra.group(1)}"
+    elif missing:
+        why = f"the file has no weight net.{missing.group(1)}"
+    else:
+        why = text.strip().splitlines()[-1].strip()
+    raise CheckpointError(f"{path}: its weights are of another architecture than the network its config builds "
+                          f"({why})")
+
+
 _NEEDS_FILTERS = {"guard": "a range guard", "adapt": "adaptive process noise", "r": "a measurement std"}
 
 
@@ -77,7 +103,7 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
         config.pop(name, None)  # set once: on the gain, for this load
         config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}
     net = IMMNet(**config)
-    net.load_state_dict(state)
+    fit_weights(net, state, path)
     return net.eval()
 
 
