@@ -265,3 +265,38 @@ def test_a_track_is_split_at_coasting_gaps(tmp_path, scans, tracker):
     short = np.stack([_values(r)[:9] for r in _track(tmp_path, rows, "--max-coast", "15", name="short.csv")])
     alone = tracker.track(torch.from_numpy(z[None, 10:20]).float())["state"][0].double().numpy()
     np.testing.assert_allclose(short[10:20], alone, rtol=1e-5, atol=TOL)
+
+
+def _one_error_line(err: str) -> str:
+    assert "Traceback" not in err, err[-2000:]
+    lines = [s for s in err.splitlines() if s.startswith("immnet track: error: ")]
+    assert len(lines) == 1, err[-2000:]
+    return lines[0]
+
+
+@pytest.mark.parametrize("extra,why", [
+    (("--checkpoint", "CKPT"), "give --method (a method of immnet evaluate) or --checkpoint (a file of your own), not both"),
+    (("--weights", "real"), "give --method (a method of immnet evaluate) or --weights (shipped weights by name), not both"),
+], ids=["checkpoint", "weights"])
+def test_a_method_with_a_network_is_refused_not_ignored(tmp_path, scans, extra, why, capsys):
+    """Issue 60, item 8: ``--method imm-ekf`` with ``--checkpoint`` (or ``--weights``) tracked with the method and
+    ignored the network without a word (exit 0); now refused in one line, nothing written."""
+    from immnet.checkpoints import shipped
+
+    _write(tmp_path / "in.csv", _rows(scans[0, :10]))
+    extra = [shipped("3dlast").as_posix() if e == "CKPT" else e for e in extra]
+    out = tmp_path / "o.csv"
+    assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(out), "--method", "imm-ekf", *extra]) == 2
+    assert _one_error_line(capsys.readouterr().err) == f"immnet track: error: {why}"
+    assert not out.exists()
+
+
+def test_a_method_with_an_npz_input_is_refused_not_ignored(tmp_path, scans, capsys):
+    """``--method`` is for CSV rows: with an .npz input it was ignored (the network tracked it, exit 0)."""
+    np.savez(tmp_path / "in.npz", measurements=scans[:, :10].astype(np.float32), dt=1.0)
+    out = tmp_path / "o.npz"
+    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(out), "--method", "imm-ekf"]) == 2
+    assert _one_error_line(capsys.readouterr().err) == (
+        f"immnet track: error: --method tracks a CSV input (each row a scan at its own time); {tmp_path / 'in.npz'} "
+        f"is not one: leave --method out to track it with the network")
+    assert not out.exists()

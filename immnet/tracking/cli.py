@@ -105,6 +105,19 @@ def _weights(args) -> Path | None:
     return None if name == BANK else shipped(name)
 
 
+def _check_options(args) -> None:
+    """A clear error for options that cannot go together: ``--method`` tracks without a network, so with
+    ``--checkpoint`` or ``--weights`` one of them would be ignored; and it tracks CSV rows, not an .npz."""
+    if args.method is None:
+        return
+    for option, what in (("checkpoint", "a file of your own"), ("weights", "shipped weights by name")):
+        if getattr(args, option) is not None:
+            raise ValueError(f"give --method (a method of immnet evaluate) or --{option} ({what}), not both")
+    if args.input.suffix.lower() != ".csv":
+        raise ValueError(f"--method tracks a CSV input (each row a scan at its own time); {args.input} is not one: "
+                         f"leave --method out to track it with the network")
+
+
 def check_paths(source: Path, target: Path) -> None:
     """A clear error unless ``source`` exists, ``target``'s folder does, both are .csv or both .npz,
     and ``target`` is not ``source`` (compared as files: symlinks and hard links included)."""
@@ -188,6 +201,7 @@ def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
     from immnet.tracking.tracker import KEEP, Tracker
 
+    _check_options(args)
     check_paths(args.input, args.output)
     limit = check_limit(args.max_position)
     r = _told_r(args)
