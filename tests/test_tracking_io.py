@@ -300,3 +300,25 @@ def test_a_method_with_an_npz_input_is_refused_not_ignored(tmp_path, scans, caps
         f"immnet track: error: --method tracks a CSV input (each row a scan at its own time); {tmp_path / 'in.npz'} "
         f"is not one: leave --method out to track it with the network")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("how", [(), ("--weights", "general"), ("--weights", "3dlast"), ("--method", "imm-ekf")],
+                         ids=["bank", "range-network", "one-interval-network", "method"])
+def test_gated_measurements_are_reported_with_their_csv_lines(tmp_path, scans, how, capsys):
+    """Issue 60, item 9: docs/tracking.md says ``immnet track`` reports the gated measurements with their CSV lines;
+    only the 3D-LAST network's path did, the default (the bank), a range network and ``--method`` gave the count
+    alone. Two tracks, rows interleaved, seven gated rows (inf, 1e30, a partly empty row): the count and the first
+    five lines, in the file's order, for each."""
+    rows = []
+    for k in range(20):
+        rows += [_rows(scans[0, :20])[k], _rows(scans[1, :20], tid="b")[k]]
+    bad = {3: "inf", 8: "1e30", 11: "-inf", 16: "", 20: "inf", 27: "1e30", 33: "inf"}  # 0-based data rows
+    for i, value in bad.items():
+        rows[i][2] = value
+    _write(tmp_path / "in.csv", rows)
+    assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(tmp_path / "o.csv"), "--guard", "none",
+                 *how]) == 0
+    err = capsys.readouterr().err
+    lines = [i + 2 for i in sorted(bad)]  # line 1 is the header
+    assert (f"gated 7 measurement(s) a sensor cannot report (non-finite, or |x|, |y| or |z| > 1e+07 m) on line(s) "
+            f"{', '.join(map(str, lines[:5]))}, ...: tracked as missed detections") in err, err

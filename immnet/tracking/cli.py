@@ -134,6 +134,15 @@ def check_paths(source: Path, target: Path) -> None:
         raise FileExistsError(f"--output {target} is the input file {source}: refusing to overwrite the input")
 
 
+def _gated_lines(rows, z) -> str:
+    """`` on line(s) L1, L2, ...``: the CSV lines of ``rows`` whose measurement ``z`` (gated) made a missed
+    detection, the first five; empty where none was gated."""
+    gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
+    if not len(gated):
+        return ""
+    return " on line(s) " + ", ".join(str(rows.lines[i]) for i in gated[:5]) + (", ..." if len(gated) > 5 else "")
+
+
 def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
     if n_gated:
         print(f"gated {n_gated} measurement(s) a sensor cannot report (non-finite, or |x|, |y| or |z| > {limit:g} m)"
@@ -191,7 +200,7 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
     if not has_cov:
         _report_no_cov(why)
-    _report_gated(n_gated, limit)
+    _report_gated(n_gated, limit, _gated_lines(rows, z))
     print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows with {label} "
           f"-> {args.output}", file=sys.stderr)
     return 0
@@ -230,15 +239,13 @@ def run(args) -> int:
             _advise(weights, track_intervals(rows.ids, rows.t))
             return code
         z, n_gated = gate_measurements(rows.z, limit)
-        gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
-        lines = ", ".join(str(rows.lines[r]) for r in gated[:5]) + (", ..." if len(gated) > 5 else "")
         segs = split_segments(rows.ids, rows.t, z, tracker.net.dt, args.max_coast, rows.lines, rows.times)
         has_cov = tracker.net.has_cov
         state, probs, *cov = track_segments(tracker, segs, return_cov=has_cov)
         write_tracks_csv(args.output, rows, state, probs, cov[0] if cov else None)
         if not has_cov:
             _report_no_cov(tracker.net.no_cov_reason())
-        _report_gated(n_gated, limit, f" on line(s) {lines}" if n_gated else "")
+        _report_gated(n_gated, limit, _gated_lines(rows, z))
         print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows -> {args.output}",
               file=sys.stderr)
         return 0
