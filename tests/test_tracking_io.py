@@ -322,3 +322,20 @@ def test_gated_measurements_are_reported_with_their_csv_lines(tmp_path, scans, h
     lines = [i + 2 for i in sorted(bad)]  # line 1 is the header
     assert (f"gated 7 measurement(s) a sensor cannot report (non-finite, or |x|, |y| or |z| > 1e+07 m) on line(s) "
             f"{', '.join(map(str, lines[:5]))}, ...: tracked as missed detections") in err, err
+
+
+@pytest.mark.parametrize("where", ["x", "track_id"])
+def test_a_field_over_the_csv_limit_is_refused_by_line(tmp_path, where, capsys):
+    """Issue 60, item 7: a field longer than the csv module's limit (131072 characters) ended ``immnet track`` in
+    ``_csv.Error: field larger than field limit``; now one line naming the file's line, nothing written."""
+    import csv as csv_module
+
+    limit = csv_module.field_size_limit()
+    huge = "1" * (limit + 1) if where == "x" else "a" * (limit + 1)
+    row = ["a", "1", huge, "2", "3"] if where == "x" else [huge, "1", "1", "2", "3"]
+    _write(tmp_path / "in.csv", [["a", "0", "1", "2", "3"], row, ["a", "2", "1", "2", "3"]])
+    out = tmp_path / "o.csv"
+    assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(out), "--method", "imm-ekf"]) == 2
+    assert _one_error_line(capsys.readouterr().err) == (
+        f"immnet track: error: line 3: not readable as CSV (field larger than field limit ({limit}))")
+    assert sorted(os.listdir(tmp_path)) == ["in.csv"]

@@ -83,43 +83,51 @@ def _time(value: str, line: int) -> Decimal:
     return t
 
 
+def _read_rows(path: Path, reader, ids, times, ts, zs, lines) -> None:
+    """The rows of ``reader`` (after its header) appended to the lists, each checked (module doc)."""
+    last: dict[str, tuple[Decimal, str]] = {}
+    header = next(reader, None)
+    if header is None:
+        raise ValueError(f"{path}: empty file (expected a header {','.join(IN_COLUMNS)})")
+    header = [h.strip() for h in header]
+    missing = [c for c in IN_COLUMNS if c not in header]
+    if missing:
+        raise ValueError(f"line 1: missing column(s) {', '.join(missing)} (expected {','.join(IN_COLUMNS)})")
+    col = {c: header.index(c) for c in IN_COLUMNS}
+    for line, rec in enumerate(reader, start=2):
+        if not rec or all(not v.strip() for v in rec):
+            continue
+        if len(rec) < len(header):
+            raise ValueError(f"line {line}: {len(rec)} fields, expected {len(header)}")
+        tid = rec[col["track_id"]].strip()
+        if not tid:
+            raise ValueError(f"line {line}: column 'track_id' is empty")
+        text = rec[col["t"]].strip()
+        t = _time(text, line)
+        xyz = [_number(rec[col[c]], c, line) for c in "xyz"]
+        if tid in last and t <= last[tid][0]:
+            raise ValueError(f"line {line}: time {text} of track {tid!r} is not after its previous time "
+                             f"{last[tid][1]} (rows of a track must be in time order)")
+        last[tid] = (t, text)
+        ids.append(tid)
+        times.append(text)
+        ts.append(t)
+        zs.append(xyz)
+        lines.append(line)
+
+
 def read_tracks_csv(path: str | Path) -> CsvTracks:
     """Parse and check a tracks CSV (module doc); memory proportional to its rows."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"input not found: {path}")
     ids, times, ts, zs, lines = [], [], [], [], []
-    last: dict[str, tuple[Decimal, str]] = {}
     with path.open(newline="", encoding="utf-8-sig") as f:  # utf-8-sig: a byte-order mark is not a column name
         reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
-            raise ValueError(f"{path}: empty file (expected a header {','.join(IN_COLUMNS)})")
-        header = [h.strip() for h in header]
-        missing = [c for c in IN_COLUMNS if c not in header]
-        if missing:
-            raise ValueError(f"line 1: missing column(s) {', '.join(missing)} (expected {','.join(IN_COLUMNS)})")
-        col = {c: header.index(c) for c in IN_COLUMNS}
-        for line, rec in enumerate(reader, start=2):
-            if not rec or all(not v.strip() for v in rec):
-                continue
-            if len(rec) < len(header):
-                raise ValueError(f"line {line}: {len(rec)} fields, expected {len(header)}")
-            tid = rec[col["track_id"]].strip()
-            if not tid:
-                raise ValueError(f"line {line}: column 'track_id' is empty")
-            text = rec[col["t"]].strip()
-            t = _time(text, line)
-            xyz = [_number(rec[col[c]], c, line) for c in "xyz"]
-            if tid in last and t <= last[tid][0]:
-                raise ValueError(f"line {line}: time {text} of track {tid!r} is not after its previous time "
-                                 f"{last[tid][1]} (rows of a track must be in time order)")
-            last[tid] = (t, text)
-            ids.append(tid)
-            times.append(text)
-            ts.append(t)
-            zs.append(xyz)
-            lines.append(line)
+        try:
+            _read_rows(path, reader, ids, times, ts, zs, lines)
+        except csv.Error as err:  # a field over the csv module's limit, a quote left open at the end
+            raise ValueError(f"line {reader.line_num}: not readable as CSV ({err})") from None
     if not ids:
         raise ValueError(f"{path}: no data rows")
     return CsvTracks(ids, times, ts, np.asarray(zs, dtype=np.float64).reshape(-1, 3), lines)
