@@ -426,3 +426,31 @@ def test_a_tensors_directory_unlike_its_meta_is_refused_by_name(tmp_path, edit, 
     (tensors / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match=msg):
         load_dataset(out)
+
+
+@pytest.mark.parametrize("field,value,expected", [
+    ("n", None, "a whole number >= 0"), ("n", "20", "a whole number >= 0"), ("n", 20.0, "a whole number >= 0"),
+    ("n", True, "a whole number >= 0"), ("T", None, "a whole number >= 0"), ("T", -50, "a whole number >= 0"),
+    ("spec_version", None, "a whole number >= 0"),
+    ("counts_per_mode", [1, 2, 3, 4], "an object of label counts by mode name (cv, ca, ct+, ct-)"),
+    ("counts_per_mode", None, "an object of label counts by mode name (cv, ca, ct+, ct-)"),
+    ("counts_per_mode", {"cv": "3", "ca": 0, "ct+": 0, "ct-": 0}, "an object of label counts by mode name"),
+], ids=["n-null", "n-string", "n-float", "n-bool", "T-null", "T-negative", "spec_version-null", "counts-list",
+        "counts-null", "counts-string"])
+def test_a_meta_json_field_of_the_wrong_type_is_refused_by_name(tmp_path, field, value, expected, capsys):
+    """Issue 60, item 7: a meta.json whose ``n`` is null or a string, or whose ``counts_per_mode`` is a list, ended
+    in a TypeError / AttributeError traceback in storage.py (or, for "20", loaded as if it were a number); now one
+    line naming the file, the field and its value, from ``load_dataset`` and from ``immnet evaluate`` (exit 2)."""
+    from immnet.cli import main
+
+    out = write_dataset(tmp_path / "ds", 20, 0, SPEC)
+    meta = json.loads((out / "meta.json").read_text())
+    (out / "meta.json").write_text(json.dumps(dict(meta, **{field: value})))
+    why = f"{out / 'meta.json'}: field {field!r} is {json.dumps(value)}, expected {expected}"
+    with pytest.raises(ValueError) as err:
+        load_dataset(out)
+    assert str(err.value).startswith(why), str(err.value)
+    capsys.readouterr()
+    assert main(["evaluate", "--data", str(out), "--split", "all", "--methods", "measurements", "--quiet"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"immnet evaluate: error: {why}"), lines

@@ -252,6 +252,28 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
 
 
 # --- reading ----------------------------------------------------------------------------------
+def _count(value) -> bool:
+    """Whether a meta.json value is a whole number >= 0 (JSON's integers; not a bool, a float or a string)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _check_meta_types(meta: dict, meta_path: Path) -> None:
+    """A ValueError naming ``meta_path`` and the field, for a ``n``, ``T`` or ``spec_version`` that is not a whole
+    number >= 0, or a ``counts_per_mode`` that is not an object of such numbers by mode name."""
+    for k in ("n", "T", "spec_version"):
+        if k in meta and not _count(meta[k]):
+            raise ValueError(f"{meta_path}: field {k!r} is {_shown(meta[k])}, expected a whole number >= 0")
+    counts = meta["counts_per_mode"]
+    if not (isinstance(counts, dict) and all(_count(c) for c in counts.values())):
+        raise ValueError(f"{meta_path}: field 'counts_per_mode' is {_shown(counts)}, expected an object of label "
+                         f"counts by mode name ({', '.join(MODE_NAMES)})")
+
+
+def _shown(value, width: int = 60) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= width else text[: width - 3] + "..."
+
+
 def _load_dir(path: Path) -> tuple[TensorDict, dict]:
     meta_path = path / META
     if not meta_path.exists():
@@ -263,15 +285,16 @@ def _load_dir(path: Path) -> tuple[TensorDict, dict]:
     if not isinstance(meta, dict) or meta.get("format") not in FORMATS:
         got = meta.get("format") if isinstance(meta, dict) else meta
         raise ValueError(f"{meta_path}: format is {got!r}, expected one of {', '.join(map(repr, FORMATS))}")
-    if int(meta.get("spec_version", -1)) > SPEC_VERSION:
-        raise ValueError(f"{meta_path}: spec version {meta.get('spec_version')} is newer than {SPEC_VERSION}")
     for k in ("n", "T", "counts_per_mode"):
         if k not in meta:
             raise ValueError(f"{meta_path}: field {k!r} is missing")
+    _check_meta_types(meta, meta_path)
+    if meta.get("spec_version", -1) > SPEC_VERSION:
+        raise ValueError(f"{meta_path}: spec version {meta.get('spec_version')} is newer than {SPEC_VERSION}")
     if not (path / TENSORS).is_dir():
         raise FileNotFoundError(f"{path}: the tensors directory {TENSORS}/ is missing")
     td = map_tensors(path / TENSORS)
-    n, T = int(meta["n"]), int(meta["T"])
+    n, T = meta["n"], meta["T"]
     if tuple(td.batch_size) != (n,):
         raise ValueError(f"{path}: {META} says n={n} but the tensors hold {tuple(td.batch_size)}")
     arrays = {k: td[k].numpy() for k in (*_NPZ_SHAPES, keys.DT) if k in td.keys()}
