@@ -54,12 +54,21 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
-        print(f"immnet {args.command}: error: {err}", file=sys.stderr)
+    except (ValueError, OSError) as err:  # OSError: a full disk, a read-only folder, a missing file, ...
+        print(f"immnet {args.command}: error: {_reason(err)}", file=sys.stderr)
         return 2
     except Terminated:
         print(f"immnet {args.command}: terminated (SIGTERM); its temporary files are removed", file=sys.stderr)
         return 128 + 15
+
+
+def _reason(err: Exception) -> str:
+    """One line: an ``OSError`` the system raised as ``PATH: reason`` (``strerror``: "No space left on device",
+    "Permission denied", ...), any other error as its message."""
+    if isinstance(err, OSError) and err.filename is not None and err.strerror:
+        also = f" -> {err.filename2}" if err.filename2 is not None else ""
+        return f"{err.filename}{also}: {err.strerror}"
+    return str(err)
 
 
 if __name__ == "__main__":

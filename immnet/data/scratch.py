@@ -10,11 +10,17 @@ too. ``kill -9`` cannot be caught: the next writer of the same ``NAME`` removes 
 every ``.NAME.tmp-PID-*`` whose ``PID`` is no running process. A sibling of a live process (a
 concurrent writer of the same output) is never touched; one whose PID has since been reused by
 another process stays until that process ends.
+
+Before the work: :func:`check_writable` meets the error that writing an output would (a read-only folder, a
+path under a file) by creating and removing a file where it would go, and :func:`check_space` / :func:`reserve`
+the full disk, so that a file written through a memory map never finds it full (a page that cannot be
+stored is a SIGBUS, "Bus error", which no ``except`` catches and which leaves the sibling behind).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import shutil
@@ -103,7 +109,8 @@ def publishing(out, suffix: str = ""):
     """Write ``out`` (a file or a directory) through a temporary sibling: removes the stale siblings
     of dead writers, yields a fresh :func:`tmp_sibling` (nothing created: the body makes the file or
     directory), moves it onto ``out`` when the body ends normally, and removes it on any exception,
-    SIGTERM included (:func:`terminating_raises`)."""
+    SIGTERM included (:func:`terminating_raises`); an ``OSError`` that names no file (a write to an open one: a
+    full disk) is raised again naming ``out``."""
     out = Path(out)
     remove_stale(out)
     tmp = tmp_sibling(out, suffix)
@@ -111,6 +118,67 @@ def publishing(out, suffix: str = ""):
         try:
             yield tmp
             replace(tmp, out)
+        except OSError as err:
+            remove(tmp)
+            if err.filename is None and err.errno is not None:  # a write to an open file: name what it was writing
+                raise OSError(err.errno, err.strerror or str(err), str(out)) from err
+            raise
         except BaseException:
             remove(tmp)
             raise
+
+
+def check_writable(out, kind: str = "file") -> None:
+    """Raise the ``OSError`` that writing ``out`` would meet, before any work, naming the path: ``kind`` ``"file"``
+    (written whole: not a folder), ``"folder"`` (a folder written whole, through a sibling) or ``"into"`` (a folder
+    that files are written into: not a file). A file is created and removed where the writing would create one
+    (in ``out`` for ``"into"``, else beside it; in the nearest existing folder above where folders are missing,
+    none of which is made here)."""
+    out = Path(out)
+    if kind == "file" and out.is_dir():
+        raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(out))
+    if kind == "into" and out.exists() and not out.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(out))
+    folder = out if kind == "into" else out.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
+    probe = folder / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}.probe"
+    try:
+        probe.open("x").close()
+    except OSError as err:
+        raise type(err)(err.errno, f"{err.strerror}, so {out.name} cannot be written there", str(folder)) from None
+    probe.unlink()
+
+
+def _size(nbytes: int) -> str:
+    return f"{nbytes / 1e6:.1f} MB" if nbytes >= 1e5 else f"{nbytes} bytes"
+
+
+def check_space(directory, nbytes: int, what: str) -> None:
+    """An ``OSError`` (``ENOSPC``) naming ``directory`` unless its file system has ``nbytes`` free for ``what``."""
+    free = shutil.disk_usage(directory).free
+    if nbytes > free:
+        raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)}: {what} needs {_size(nbytes)}, {_size(free)} free",
+                      str(directory))
+
+
+def reserve(file, nbytes: int) -> None:
+    """Allocate the disk blocks of the first ``nbytes`` of ``file`` (``posix_fallocate``), so that writing them
+    through a memory map cannot find the disk full; an ``OSError`` naming the file where they cannot be had. Where
+    the file system or the platform cannot allocate ahead, :func:`check_space` is the check instead."""
+    if nbytes <= 0:
+        return
+    fd = os.open(file, os.O_RDWR)
+    try:
+        os.posix_fallocate(fd, 0, nbytes)
+    except AttributeError:  # no posix_fallocate on this platform
+        check_space(Path(file).parent, nbytes - os.fstat(fd).st_blocks * 512, Path(file).name)
+    except OSError as err:
+        if err.errno in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+            check_space(Path(file).parent, nbytes - os.fstat(fd).st_blocks * 512, Path(file).name)
+        else:
+            raise OSError(err.errno, err.strerror, str(file)) from None
+    finally:
+        os.close(fd)

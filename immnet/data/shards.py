@@ -118,7 +118,7 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
     try:
         with publishing(out) as tmp:
             tmp.mkdir()
-            _allocate(tmp / TENSORS, n_total, T)
+            _allocate(tmp / TENSORS, n_total, T, out)
             dst_td = TensorDict.load_memmap(tmp / TENSORS)
             counts = [0] * len(MODE_NAMES)
             for d, meta in shards:

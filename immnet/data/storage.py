@@ -42,7 +42,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.data.contract import TRAIL, check_arrays
 from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
-from immnet.data.scratch import publishing
+from immnet.data.scratch import check_space, check_writable, publishing, reserve
 from immnet.data.spec import SPEC_VERSION, DataSpec
 from immnet.data.times import nominal_dt
 from immnet.motion import MODE_NAMES
@@ -76,12 +76,18 @@ def _check_out(out: Path, overwrite: bool) -> None:
         raise FileExistsError(f"{out} exists and is not empty (pass overwrite=True / --overwrite)")
 
 
-def _allocate(tensors_dir: Path, n: int, T: int) -> None:
+def _allocate(tensors_dir: Path, n: int, T: int, out: Path) -> None:
+    """The data set's files of ``n`` trajectories of ``T`` scans in ``tensors_dir``, their disk blocks allocated
+    (:func:`immnet.data.scratch.reserve`): the blocks are then written through memory maps, where a full disk would
+    be a SIGBUS. An ``OSError`` naming ``out``'s folder where the disk lacks the room."""
+    shapes = {keys.STATES: (T, 9), keys.MEASUREMENTS: (T, 3), keys.MODE: (T,), keys.TURN_RATE: (T,), keys.R: (),
+              keys.DT: (), keys.TIME: (T,)}
+    size = {key: n * math.prod(trail) * STORE_DTYPES[key].itemsize for key, trail in shapes.items()}
+    check_space(out.parent, sum(size.values()), f"the data set ({n} trajectories of {T} scans)")
     td = TensorDict({}, batch_size=[n])
     td.memmap_(tensors_dir)
-    for key, trail in ((keys.STATES, (T, 9)), (keys.MEASUREMENTS, (T, 3)), (keys.MODE, (T,)),
-                       (keys.TURN_RATE, (T,)), (keys.R, ()), (keys.DT, ()), (keys.TIME, (T,))):
-        td.make_memmap(key, shape=[n, *trail], dtype=STORE_DTYPES[key])
+    for key, trail in shapes.items():
+        reserve(td.make_memmap(key, shape=[n, *trail], dtype=STORE_DTYPES[key]).filename, size[key])
 
 
 _WORKER: dict = {}
@@ -179,6 +185,7 @@ def write_arrays(directory, arrays: dict, meta: dict) -> Path:
     data = {k: torch.from_numpy(np.ascontiguousarray(np.asarray(arrays[k]))).to(STORE_DTYPES[k])
             for k in STORE_DTYPES if k in arrays}
     directory.mkdir()
+    check_space(directory, sum(t.nbytes for t in data.values()), f"the data set ({n} trajectories)")  # memmap_ maps
     TensorDict(data, batch_size=[n]).memmap_(directory / TENSORS)
     counts = _mode_counts(data[keys.MODE]) if keys.MODE in data else [0] * len(MODE_NAMES)
     meta = {**meta, "n": int(n), "T": int(T), "counts_per_mode": dict(zip(MODE_NAMES, counts)),
@@ -210,10 +217,11 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     blocks = range(n_blocks(n)) if shard is None else shard_blocks(n, *shard)
     row0, row1 = _block_rows(blocks, n)
     _check_out(out, overwrite)
+    check_writable(out, "folder")
     out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         tmp.mkdir()
-        _allocate(tmp / TENSORS, row1 - row0, spec.T)
+        _allocate(tmp / TENSORS, row1 - row0, spec.T, out)
         counts = [0] * len(MODE_NAMES)
         blocks = list(blocks)
         bar = None
@@ -449,6 +457,7 @@ def export_npz(path_in, out_npz) -> Path:
     out_npz = Path(out_npz)
     if out_npz.suffix != ".npz":
         raise ValueError(f"{out_npz}: the output must end in .npz")
+    check_writable(out_npz)
     td, meta = load_dataset(path_in)
     arrays = {}
     for key in _NPZ_SHAPES:

@@ -208,6 +208,7 @@ def run_evaluate(args) -> int:
 
     limit = check_limit(MAX_ABS_POSITION if args.max_position is None else args.max_position)
     guard = parse_guard(args.guard)
+    _check_outputs(args)
     data, meta = load_split(args.data, args.split, args.limit)
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data, meta, guard, args.sigma_q,
@@ -231,14 +232,12 @@ def run_evaluate(args) -> int:
     rows = to_json(results)
     print(format_table(rows))
     if args.markdown:
-        args.markdown.parent.mkdir(parents=True, exist_ok=True)
-        args.markdown.write_text(format_markdown(rows) + "\n")
+        _write_text(args.markdown, format_markdown(rows) + "\n")
         note(f"wrote {args.markdown}")
     if args.json:
         doc = {"n_trajectories": data.batch_size[0], "data": str(args.data), "split": split, "seed": args.seed,
                "guard": args.guard, "told_r": args.told_r, "max_position": limit, "scans": scans, "methods": rows}
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
+        _write_text(args.json, json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
         note(f"wrote {args.json}")
     paths = []
     if figures:
@@ -254,6 +253,27 @@ def run_evaluate(args) -> int:
 
             shutil.rmtree(figures, ignore_errors=True)
     return 0
+
+
+def _check_outputs(args) -> None:
+    """The error that writing ``--json``, ``--markdown`` or ``--figures`` would meet (a read-only folder, a path
+    under a file), raised before the scoring rather than after it."""
+    from immnet.data.scratch import check_writable
+
+    for path in (args.json, args.markdown):
+        if path is not None:
+            check_writable(path)
+    if args.figures is not None:
+        check_writable(args.figures, "into")
+
+
+def _write_text(path: Path, text: str) -> None:
+    """``text`` written to ``path`` whole or not at all (through a temporary sibling), its folder made."""
+    from immnet.data.scratch import publishing
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with publishing(path) as tmp:
+        tmp.write_text(text)
 
 
 def log_run(args, results, rows, figures, data, meta, split, note) -> None:

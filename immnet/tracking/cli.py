@@ -119,8 +119,8 @@ def _check_options(args) -> None:
 
 
 def check_paths(source: Path, target: Path) -> None:
-    """A clear error unless ``source`` exists, ``target``'s folder does, both are .csv or both .npz,
-    and ``target`` is not ``source`` (compared as files: symlinks and hard links included)."""
+    """A clear error unless ``source`` exists, ``target``'s folder does and a file can be written there, both are
+    .csv or both .npz, and ``target`` is not ``source`` (compared as files: symlinks and hard links included)."""
     suffix_in, suffix_out = source.suffix.lower(), target.suffix.lower()
     if suffix_in not in (".csv", ".npz") or suffix_out != suffix_in:
         raise ValueError(f"--input and --output must both be .csv or both .npz (got {source.name}, {target.name})")
@@ -130,6 +130,9 @@ def check_paths(source: Path, target: Path) -> None:
         raise FileNotFoundError(f"the folder of --output does not exist: {target.parent}")
     if target.is_dir():
         raise ValueError(f"--output {target} is a folder; name the file to write")
+    from immnet.data.scratch import check_writable
+
+    check_writable(target)  # a read-only folder refused now, not after the tracking
     if target.resolve() == source.resolve() or (target.exists() and os.path.samefile(source, target)):
         raise FileExistsError(f"--output {target} is the input file {source}: refusing to overwrite the input")
 
