@@ -24,8 +24,6 @@ import re
 import warnings
 from pathlib import Path
 
-import torch
-
 CHECKSUM_KEY = "weights_sha256"
 PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
 """The shipped 3D-LAST weights (``immnet/pretrained/PROVENANCE.md``), the benchmark model; the others beside them."""
@@ -86,6 +84,8 @@ class CheckpointError(ValueError):
 
 def weights_checksum(state_dict: dict) -> str:
     """SHA-256 (hex) of a ``state_dict``: names, dtypes, shapes and bytes, in sorted name order."""
+    import torch
+
     digest = hashlib.sha256()
     for name in sorted(state_dict):
         t = state_dict[name]
@@ -126,6 +126,8 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
     """Read a checkpoint file as plain data (``weights_only=True`` with ``ALLOWED_GLOBALS``) and verify its
     checksum. ``FileNotFoundError`` for a missing file, ``CheckpointError`` (one line naming the file) for
     one that is unreadable, holds a global outside the allow-list, is not a dict, or fails its checksum."""
+    import torch
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")

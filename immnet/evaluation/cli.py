@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 
 from immnet.evaluation import wandb_log
-from immnet.evaluation.methods import KEEP_GUARD, available_methods, build_method, missing_keys, takes_checkpoint
 
 
 def register(subparsers) -> None:
@@ -100,6 +99,8 @@ def pick_cases(data, n: int = 2, seed: int = 0) -> list[int]:
 
 # --- methods ----------------------------------------------------------------------------------
 def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
+    from immnet.evaluation.methods import takes_checkpoint
+
     named, bare = {}, []
     for s in specs:
         name, sep, ck = s.partition("=")
@@ -120,12 +121,15 @@ def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
 
 
 def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print, data=None,
-                   meta: dict | None = None, guard=KEEP_GUARD, sigma_q: float | None = None,
+                   meta: dict | None = None, guard="checkpoint", sigma_q: float | None = None,
                    told_r: bool = False) -> dict:
     """``{name: method}``: the requested names (errors are errors) or, by default, every available
     method that builds, whose ``needs`` the data meet and whose ``check(data)`` (where it has one
-    and ``data`` is given) passes; the others skipped with a note. ``guard`` and ``told_r`` go to ``build_method``;
+    and ``data`` is given) passes; the others skipped with a note. ``guard`` (default ``"checkpoint"``, ``KEEP_GUARD``:
+    each as configured) and ``told_r`` go to ``build_method``;
     a method with ``configure`` is told the data's ``meta`` and ``sigma_q`` (``--sigma-q``)."""
+    from immnet.evaluation.methods import available_methods, build_method, missing_keys
+
     explicit = requested is not None
     names = [n.strip() for n in requested.split(",") if n.strip()] if explicit else available_methods()
     if explicit and not names:

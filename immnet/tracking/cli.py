@@ -21,7 +21,6 @@ import numpy as np
 from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, shipped
 from immnet.data.validate import MAX_ABS_POSITION
-from immnet.imm.guard import parse_guard
 from immnet.tracking.segments import MAX_COAST
 
 
@@ -87,6 +86,7 @@ def _told_r(args):
 def _bank(args, limit: float, r):
     """``--weights bank``: the shipped bank as a method (``immnet.tracking.bank.BankMethod``), no range guard unless
     ``--guard`` gives one, ``--adapt`` and ``--r`` for every member."""
+    from immnet.imm.guard import parse_guard
     from immnet.tracking.bank import BankMethod
     from immnet.tracking.tracker import KEEP
 
@@ -186,6 +186,7 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
 
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
+    from immnet.imm.guard import parse_guard
     from immnet.tracking.tracker import KEEP, Tracker
 
     check_paths(args.input, args.output)
