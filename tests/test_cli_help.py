@@ -82,3 +82,35 @@ def test_select_methods_default_guard_keeps_each_as_configured():
     from immnet.evaluation.methods import KEEP_GUARD
 
     assert inspect.signature(select_methods).parameters["guard"].default == KEEP_GUARD
+
+
+def _evaluate_help_names(capsys, monkeypatch) -> list[str]:
+    monkeypatch.setenv("COLUMNS", "100000")  # one line per option: no name broken at a hyphen
+    with pytest.raises(SystemExit) as exit_:
+        main(["evaluate", "--help"])
+    assert exit_.value.code == 0
+    line = next(t for t in capsys.readouterr().out.splitlines() if t.lstrip().startswith("--methods"))
+    listed = line.split(" of: ", 1)[1].split(" (the built-in", 1)[0]
+    return listed.split(", ")
+
+
+def test_evaluate_help_lists_exactly_the_methods_it_accepts(capsys, monkeypatch, tmp_path):
+    """Issue 60, item 11: ``immnet evaluate --help`` names the methods, the working directory's own configs too; each
+    name listed is one ``--methods`` takes (its config found, its class imported), and each it takes is listed."""
+    from immnet.evaluation.cli import select_methods
+    from immnet.evaluation.methods import BUILTIN, _method_class, available_methods
+    from immnet.evaluation.registry import BUILTIN_NAMES, METHODS_DIR
+
+    (tmp_path / "configs/methods").mkdir(parents=True)
+    (tmp_path / "configs/methods/mine.yaml").write_text("class_path: immnet.evaluation.methods.RawMeasurements\n")
+    monkeypatch.chdir(tmp_path)
+    listed = _evaluate_help_names(capsys, monkeypatch)
+    packaged = sorted(p.stem for p in Path(METHODS_DIR).glob("*.yaml"))
+    assert len(packaged) > 10 and set(listed) == {*packaged, "mine", "measurements"} and len(listed) == len(set(listed))
+    assert listed == available_methods()  # every one accepted, in table order
+    for name in listed:
+        assert _method_class(name)[0] is not None
+    assert select_methods("mine", [], ["measurements"])["mine"].name == "mine"
+    with pytest.raises(ValueError, match="unknown method 'nope'"):
+        select_methods("nope", [], ["measurements"])
+    assert set(BUILTIN) == set(BUILTIN_NAMES)

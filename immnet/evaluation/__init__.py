@@ -11,8 +11,8 @@ The names below load their modules (torch) when first asked for, so that ``immne
 import importlib
 
 _WHERE = {
-    **dict.fromkeys(("Method", "RawMeasurements", "available_methods", "build_method", "configured_methods"),
-                    "immnet.evaluation.methods"),
+    **dict.fromkeys(("Method", "RawMeasurements", "available_methods", "build_method"), "immnet.evaluation.methods"),
+    "configured_methods": "immnet.evaluation.registry",
     **dict.fromkeys(("MetricAccumulator", "confusion", "mode_accuracy", "position_error", "post_switch_mask", "rmse",
                      "rmse_over_time", "rmse_pooled", "rmse_post_switch", "scored_mask"), "immnet.evaluation.metrics"),
     "evaluate": "immnet.evaluation.runner", "to_json": "immnet.evaluation.runner",

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from immnet.evaluation import wandb_log
+from immnet.evaluation.registry import configured_methods
 
 
 def register(subparsers) -> None:
@@ -20,7 +21,10 @@ def register(subparsers) -> None:
     p.add_argument("--split", choices=("test", "all"), default="test",
                    help="test: the DataModule's test split of a generated directory (default); all: every "
                         "trajectory (an .npz is always taken whole)")
-    p.add_argument("--methods", help="comma-separated method names (default: every available one the data allows)")
+    p.add_argument("--methods", metavar="NAME,...",
+                   help="comma-separated method names (default: every available one the data allows), of: "
+                        f"{', '.join(configured_methods())} (the built-in and each configs/methods/NAME.yaml, the "
+                        "working directory's and the packaged ones: docs/configs.md)")
     p.add_argument("--checkpoint", action="append", default=[], metavar="[NAME=]CKPT",
                    help="checkpoint for a neural method; a bare path goes to every selected method that takes one")
     p.add_argument("--guard", default="checkpoint",
