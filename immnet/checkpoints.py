@@ -43,6 +43,8 @@ BANK = "bank"
 """The shipped networks together as one tracker (``immnet.tracking.bank``: ``general``, ``real``, ``real-5s``,
 ``real-11s``, ``real-4.5-12s`` and ``3dlast`` without its guard, each weighed per track by how well it predicts the
 track), the default of ``Tracker.pretrained()`` and ``immnet track``; not a file of its own."""
+BANK_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
+"""The bank's networks by shipped name (``immnet.tracking.bank.DEFAULT_MEMBERS``)."""
 DEFAULT_WEIGHTS = BANK
 
 

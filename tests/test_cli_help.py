@@ -114,3 +114,34 @@ def test_evaluate_help_lists_exactly_the_methods_it_accepts(capsys, monkeypatch,
     with pytest.raises(ValueError, match="unknown method 'nope'"):
         select_methods("nope", [], ["measurements"])
     assert set(BUILTIN) == set(BUILTIN_NAMES)
+
+
+def test_track_help_shows_the_weights_default_and_every_name(capsys, monkeypatch):
+    """Issue 60, item 11: ``--weights`` shows its real default (the bank, what ``immnet track`` loads when told no
+    weights) and describes each name it takes; no option claims a default of None."""
+    from immnet.checkpoints import BANK, BANK_MEMBERS, DEFAULT_WEIGHTS, SHIPPED
+    from immnet.cli import build_parser
+    from immnet.tracking.bank import DEFAULT_MEMBERS
+    from immnet.tracking.cli import _weights
+
+    monkeypatch.setenv("COLUMNS", "100000")
+    with pytest.raises(SystemExit) as exit_:
+        main(["track", "--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert "None" not in out
+    lines = out.splitlines()
+    at = next(i for i, t in enumerate(lines) if t.lstrip().startswith("--weights"))
+    names = {*SHIPPED, BANK}
+    assert lines[at].split()[1] == "{" + ",".join(sorted(names)) + "}"  # the names it takes
+    line = lines[at + 1]  # its help, on one line
+    assert f"shipped weights by name (default {DEFAULT_WEIGHTS}); {DEFAULT_WEIGHTS}: " in line
+    described = "; " + line.split(f"(default {DEFAULT_WEIGHTS}); ", 1)[1]
+    for name in names:
+        assert f"; {name}: " in described, name
+    assert f"{BANK}: {', '.join(DEFAULT_MEMBERS)} as one tracker" in line and BANK_MEMBERS == DEFAULT_MEMBERS
+    # the default the help names is what the command runs with no --weights: the bank (no single file)
+    args = build_parser().parse_args(["track", "--input", "a.csv", "--output", "b.csv"])
+    assert DEFAULT_WEIGHTS == BANK and _weights(args) is None
+    for name in SHIPPED:
+        assert build_parser().parse_args(["track", "--input", "a.csv", "--output", "b.csv", "--weights", name]).weights == name
