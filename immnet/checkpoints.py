@@ -24,8 +24,6 @@ import re
 import warnings
 from pathlib import Path
 
-import torch
-
 CHECKSUM_KEY = "weights_sha256"
 PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
 """The shipped 3D-LAST weights (``immnet/pretrained/PROVENANCE.md``), the benchmark model; the others beside them."""
@@ -45,6 +43,8 @@ BANK = "bank"
 """The shipped networks together as one tracker (``immnet.tracking.bank``: ``general``, ``real``, ``real-5s``,
 ``real-11s``, ``real-4.5-12s`` and ``3dlast`` without its guard, each weighed per track by how well it predicts the
 track), the default of ``Tracker.pretrained()`` and ``immnet track``; not a file of its own."""
+BANK_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
+"""The bank's networks by shipped name (``immnet.tracking.bank.DEFAULT_MEMBERS``)."""
 DEFAULT_WEIGHTS = BANK
 
 
@@ -86,6 +86,8 @@ class CheckpointError(ValueError):
 
 def weights_checksum(state_dict: dict) -> str:
     """SHA-256 (hex) of a ``state_dict``: names, dtypes, shapes and bytes, in sorted name order."""
+    import torch
+
     digest = hashlib.sha256()
     for name in sorted(state_dict):
         t = state_dict[name]
@@ -126,6 +128,8 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
     """Read a checkpoint file as plain data (``weights_only=True`` with ``ALLOWED_GLOBALS``) and verify its
     checksum. ``FileNotFoundError`` for a missing file, ``CheckpointError`` (one line naming the file) for
     one that is unreadable, holds a global outside the allow-list, is not a dict, or fails its checksum."""
+    import torch
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")

@@ -4,25 +4,45 @@
 handle data sets on disk (memmapped directory or ``.npz``), ``LASTDataModule`` batches them for
 training and ``LASTEnv`` streams them to a tracker policy. ``immnet.data.real.make_adsb`` makes data sets of
 real ADS-B flights seen by a simulated radar. See ``docs/data.md``.
+
+The names below load their modules (torch, Lightning, TorchRL) when first asked for, so that importing a light
+submodule (``immnet.data.cli`` to build ``immnet --help``, ``immnet.data.spec``) loads none of them.
 """
 
-from immnet.data.generate import BLOCK, generate
-from immnet.data.spec import SPEC_VERSION, DataSpec
-from immnet.data.storage import as_batch, export_npz, load_dataset, write_dataset
+import importlib
+import sys
+import types
 
-__all__ = [
-    "BLOCK", "SPEC_VERSION", "DataSpec", "LASTDataModule", "LASTEnv", "as_batch", "export_npz",
-    "generate", "load_dataset", "write_dataset",
-]
+_WHERE = {
+    "BLOCK": "immnet.data.generate", "generate": "immnet.data.generate", "SPEC_VERSION": "immnet.data.spec",
+    "DataSpec": "immnet.data.spec", "as_batch": "immnet.data.storage", "export_npz": "immnet.data.storage",
+    "load_dataset": "immnet.data.storage", "write_dataset": "immnet.data.storage",
+    "LASTDataModule": "immnet.data.datamodule", "LASTEnv": "immnet.data.env",
+}
+__all__ = sorted(_WHERE)
 
 
-def __getattr__(name):  # Lightning and TorchRL load only when asked for
-    if name == "LASTDataModule":
-        from immnet.data.datamodule import LASTDataModule
+def __getattr__(name):
+    if name not in _WHERE:
+        raise AttributeError(f"module 'immnet.data' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_WHERE[name]), name)
+    globals()[name] = value
+    return value
 
-        return LASTDataModule
-    if name == "LASTEnv":
-        from immnet.data.env import LASTEnv
 
-        return LASTEnv
-    raise AttributeError(f"module 'immnet.data' has no attribute {name!r}")
+def __dir__():
+    return sorted({*globals(), *__all__})
+
+
+class _Package(types.ModuleType):
+    """``immnet.data.generate`` is the function, as ``from immnet.data import generate`` reads it: the import system
+    binds a package's attribute to each submodule it loads, which here would shadow the function by its module
+    ``immnet.data.generate`` (still in ``sys.modules`` and importable by name)."""
+
+    def __setattr__(self, name, value):
+        if name == "generate" and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from immnet.motion import MODE_NAMES
+from immnet.labels import MODE_NAMES
 
 
 def _generate(args) -> int:

@@ -10,7 +10,6 @@ A row that is all NaN already is a missed detection and is not counted.
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 MAX_ABS_POSITION = 1e7
 """Default limit on ``|z_a|`` in metres (10,000 km: beyond any radar's reach, far inside float32)."""
@@ -40,6 +39,8 @@ def gate_measurements(z, limit: float = MAX_ABS_POSITION):
         out = z.copy()
         out[bad] = np.nan
         return out, int(bad.sum())
+    import torch
+
     z = torch.as_tensor(z)
     if z.shape[-1:] != (3,):
         raise ValueError(f"measurements must be [..., 3], got shape {tuple(z.shape)}")

@@ -3,33 +3,31 @@
     from immnet.evaluation import build_method, evaluate, format_table, to_json
     results = evaluate({"imm-accurate": build_method("imm-accurate")}, data)
     print(format_table(to_json(results)))
+
+The names below load their modules (torch) when first asked for, so that ``immnet.evaluation.cli`` builds
+``immnet evaluate --help`` without them.
 """
 
-from immnet.evaluation.methods import (
-    Method,
-    RawMeasurements,
-    available_methods,
-    build_method,
-    configured_methods,
-)
-from immnet.evaluation.metrics import (
-    MetricAccumulator,
-    confusion,
-    mode_accuracy,
-    position_error,
-    post_switch_mask,
-    rmse,
-    rmse_over_time,
-    rmse_pooled,
-    rmse_post_switch,
-    scored_mask,
-)
-from immnet.evaluation.runner import evaluate, to_json
-from immnet.evaluation.table import format_markdown, format_table
+import importlib
 
-__all__ = [
-    "Method", "MetricAccumulator", "RawMeasurements", "available_methods", "build_method",
-    "configured_methods", "confusion", "evaluate", "format_markdown", "format_table", "mode_accuracy",
-    "position_error", "post_switch_mask", "rmse", "rmse_over_time", "rmse_pooled", "rmse_post_switch",
-    "scored_mask", "to_json",
-]
+_WHERE = {
+    **dict.fromkeys(("Method", "RawMeasurements", "available_methods", "build_method"), "immnet.evaluation.methods"),
+    "configured_methods": "immnet.evaluation.registry",
+    **dict.fromkeys(("MetricAccumulator", "confusion", "mode_accuracy", "position_error", "post_switch_mask", "rmse",
+                     "rmse_over_time", "rmse_pooled", "rmse_post_switch", "scored_mask"), "immnet.evaluation.metrics"),
+    "evaluate": "immnet.evaluation.runner", "to_json": "immnet.evaluation.runner",
+    "format_markdown": "immnet.evaluation.table", "format_table": "immnet.evaluation.table",
+}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name):
+    if name not in _WHERE:
+        raise AttributeError(f"module 'immnet.evaluation' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_WHERE[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted({*globals(), *__all__})

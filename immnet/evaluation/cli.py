@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from immnet.evaluation import wandb_log
-from immnet.evaluation.methods import KEEP_GUARD, available_methods, build_method, missing_keys, takes_checkpoint
+from immnet.evaluation.registry import configured_methods
 
 
 def register(subparsers) -> None:
@@ -21,7 +21,10 @@ def register(subparsers) -> None:
     p.add_argument("--split", choices=("test", "all"), default="test",
                    help="test: the DataModule's test split of a generated directory (default); all: every "
                         "trajectory (an .npz is always taken whole)")
-    p.add_argument("--methods", help="comma-separated method names (default: every available one the data allows)")
+    p.add_argument("--methods", metavar="NAME,...",
+                   help="comma-separated method names (default: every available one the data allows), of: "
+                        f"{', '.join(configured_methods())} (the built-in and each configs/methods/NAME.yaml, the "
+                        "working directory's and the packaged ones: docs/configs.md)")
     p.add_argument("--checkpoint", action="append", default=[], metavar="[NAME=]CKPT",
                    help="checkpoint for a neural method; a bare path goes to every selected method that takes one")
     p.add_argument("--guard", default="checkpoint",
@@ -100,6 +103,8 @@ def pick_cases(data, n: int = 2, seed: int = 0) -> list[int]:
 
 # --- methods ----------------------------------------------------------------------------------
 def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
+    from immnet.evaluation.methods import takes_checkpoint
+
     named, bare = {}, []
     for s in specs:
         name, sep, ck = s.partition("=")
@@ -120,12 +125,15 @@ def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
 
 
 def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print, data=None,
-                   meta: dict | None = None, guard=KEEP_GUARD, sigma_q: float | None = None,
+                   meta: dict | None = None, guard="checkpoint", sigma_q: float | None = None,
                    told_r: bool = False) -> dict:
     """``{name: method}``: the requested names (errors are errors) or, by default, every available
     method that builds, whose ``needs`` the data meet and whose ``check(data)`` (where it has one
-    and ``data`` is given) passes; the others skipped with a note. ``guard`` and ``told_r`` go to ``build_method``;
+    and ``data`` is given) passes; the others skipped with a note. ``guard`` (default ``"checkpoint"``, ``KEEP_GUARD``:
+    each as configured) and ``told_r`` go to ``build_method``;
     a method with ``configure`` is told the data's ``meta`` and ``sigma_q`` (``--sigma-q``)."""
+    from immnet.evaluation.methods import available_methods, build_method, missing_keys
+
     explicit = requested is not None
     names = [n.strip() for n in requested.split(",") if n.strip()] if explicit else available_methods()
     if explicit and not names:

@@ -8,7 +8,8 @@ whole data before running any method: a learned tracker refuses a ``dt`` it was 
 
 Methods are configured, not coded in: ``configs/methods/<name>.yaml`` holds one ``class_path`` /
 ``init_args`` mapping, looked for in the working directory's ``configs/methods/`` first (a user's own
-or tuned methods), then among the packaged configs (``immnet.config``; docs/configs.md).
+or tuned methods), then among the packaged configs (``immnet.config``; docs/configs.md); their names are
+``immnet.evaluation.registry``'s, read without torch for ``immnet evaluate --help``.
 ``build_method(name, checkpoint)`` loads it; a checkpoint (from the YAML's
 ``init_args`` or from the caller) reaches the constructor as ``checkpoint=``, and a range guard
 (``immnet evaluate --guard``) as ``guard=``. A method may also have ``configure(meta, sigma_q=None)``:
@@ -27,19 +28,12 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.config import REPO_ROOT, import_class, load_yaml, packaged_configs
+from immnet.config import REPO_ROOT, import_class, load_yaml
+from immnet.evaluation.registry import METHODS_DIR, ORDER, USER_METHODS_DIR, configured_methods  # noqa: F401
+from immnet.evaluation.registry import method_dirs as _method_dirs
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
 from immnet.motion import POS
-
-METHODS_DIR = packaged_configs() / "methods"
-"""Where the packaged ``<name>.yaml`` method configs live."""
-USER_METHODS_DIR = Path("configs") / "methods"
-"""The working directory's own method configs, looked in before ``METHODS_DIR``."""
-
-ORDER = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "kalmannet", "immnet", "clairvoyant-switch", "clairvoyant")
-"""Row order of the results table; other configured methods follow alphabetically."""
-
 
 @runtime_checkable
 class Method(Protocol):
@@ -73,15 +67,7 @@ class RawMeasurements:
         return TensorDict({keys.STATE: state}, batch_size=batch.batch_size, device=batch.device)
 
 
-BUILTIN = {"measurements": RawMeasurements}
-
-
-def _sort_key(name: str):
-    return (ORDER.index(name), "") if name in ORDER else (len(ORDER), name)
-
-
-def _method_dirs(methods_dir: Path | None) -> list[Path]:
-    return [Path(methods_dir)] if methods_dir else [USER_METHODS_DIR, Path(METHODS_DIR)]
+BUILTIN = {RawMeasurements.name: RawMeasurements}
 
 
 def method_config(name: str, methods_dir: Path | None = None) -> Path:
@@ -94,12 +80,6 @@ def method_config(name: str, methods_dir: Path | None = None) -> Path:
             return path
     raise ValueError(f"unknown method {name!r} (no {' or '.join(map(str, paths))}); "
                      f"available: {', '.join(available_methods(methods_dir))}")
-
-
-def configured_methods(methods_dir: Path | None = None) -> list[str]:
-    """Every method name with a config or a built-in, in table order (not checked for importability)."""
-    names = set(BUILTIN) | {p.stem for d in _method_dirs(methods_dir) if d.is_dir() for p in d.glob("*.yaml")}
-    return sorted(names, key=_sort_key)
 
 
 def _method_class(name: str, methods_dir: Path | None = None):

@@ -30,14 +30,14 @@ import math
 
 import torch
 
+from immnet.labels import MODE_NAMES
+
 DEG = math.pi / 180.0
 
 TURN_RATE_LIMIT_DEG = 30.0
 """The fastest turn a tracker's rate estimate may reach (deg/s): an aircraft's limit (30 deg/s is 4.9 g at
 150 m/s), not a data set's range. A turn filter bounded at its prior's edge (3D-LAST's 10 deg/s) holds a
 faster turn's rate below the truth and falls behind the target (docs/robustness.md)."""
-MODE_NAMES = ("cv", "ca", "ct+", "ct-")
-"""Data mode labels, in the fixed order of docs/spec.md: 0 CV, 1 CA, 2 CT+, 3 CT-."""
 CV, CA, CT_POS, CT_NEG = range(len(MODE_NAMES))
 """The data modes by name (the one set of mode constants)."""
 RATE = 9

@@ -1,8 +1,26 @@
 """Trained trackers in use: the streaming ``Tracker``, the bank of networks (the default), evaluation methods,
-``immnet track``."""
+``immnet track``.
 
-from immnet.tracking.bank import BankMethod, NetworkBank
-from immnet.tracking.methods import IMMNetMethod, KalmanNetMethod
-from immnet.tracking.tracker import Tracker, load_network
+The names below load their modules (torch) when first asked for, so that ``immnet.tracking.cli`` builds
+``immnet track --help`` without them."""
 
-__all__ = ["BankMethod", "IMMNetMethod", "KalmanNetMethod", "NetworkBank", "Tracker", "load_network"]
+import importlib
+
+_WHERE = {
+    "BankMethod": "immnet.tracking.bank", "NetworkBank": "immnet.tracking.bank",
+    "IMMNetMethod": "immnet.tracking.methods", "KalmanNetMethod": "immnet.tracking.methods",
+    "Tracker": "immnet.tracking.tracker", "load_network": "immnet.tracking.tracker",
+}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name):
+    if name not in _WHERE:
+        raise AttributeError(f"module 'immnet.tracking' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_WHERE[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted({*globals(), *__all__})

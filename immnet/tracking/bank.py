@@ -34,7 +34,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import SHIPPED, shipped
+from immnet.checkpoints import BANK_MEMBERS, SHIPPED, shipped
 from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
@@ -43,7 +43,7 @@ from immnet.tracking.networks import (
     KEEP, coast_cuts, coast_scan, load_network, read_checkpoint, run_network, select_rows, trained_for,
 )
 
-DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
+DEFAULT_MEMBERS = BANK_MEMBERS
 """The shipped bank (``Tracker.pretrained("bank")``, ``immnet track --weights bank``, the method ``immnet-bank``): the
 general network (any interval 0.5-12 s), the real-flight networks at 1 s, 4.5-5.5 s, 10-12 s and any of 4.5-12 s, and
 the 3D-LAST network (1 s; in the bank without its range guard, as every member, unless asked), chosen on the validation

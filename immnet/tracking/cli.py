@@ -19,28 +19,45 @@ from pathlib import Path
 import numpy as np
 
 from immnet import keys
-from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, shipped
+from immnet.checkpoints import BANK, BANK_MEMBERS, DEFAULT_WEIGHTS, SHIPPED, shipped
 from immnet.data.validate import MAX_ABS_POSITION
-from immnet.imm.guard import parse_guard
 from immnet.tracking.segments import MAX_COAST
+
+
+WEIGHTS_HELP = {
+    BANK: f"{', '.join(BANK_MEMBERS)} as one tracker, each weighed per track by how well it predicts it, any scan "
+          "interval 0.5-12 s, no range guard unless --guard asks, docs/tracking.md",
+    "general": "one network for any scan interval 0.5-12 s, real flights and 3D-LAST, no range guard",
+    "3dlast": "the 3D-LAST benchmark network, 1 s, its range guard",
+    "real": "1 s real flights",
+    "real-5s": "real flights at a surveillance radar's 4.5-5.5 s scans",
+    "real-11s": "real flights at an en-route radar's 10-12 s scans",
+    "real-4.5-12s": "real flights at any interval 4.5-12 s",
+}
+"""What each name ``--weights`` takes tracks with (``immnet.checkpoints.SHIPPED`` and ``BANK``), for its help."""
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Each option's default after its help where it has one; an option whose default is None (left out: its help
+    says what happens then) shows none."""
+
+    def _get_help_string(self, action):
+        return action.help if action.default is None else super()._get_help_string(action)
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "track",
         help="track your own measurements (CSV track_id,t,x,y,z or .npz) with a trained IMMNet",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=_HelpFormatter,
     )
     p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
+    names = (DEFAULT_WEIGHTS, *(name for name in (BANK, *SHIPPED) if name != DEFAULT_WEIGHTS))
     p.add_argument("--weights", default=None, choices=sorted([*SHIPPED, BANK]),
-                   help=f"shipped weights by name (default {DEFAULT_WEIGHTS}: the six below as one tracker, each weighed "
-                        "per track by how well it predicts it, any scan interval 0.5-12 s, no range guard unless --guard "
-                        "asks, docs/tracking.md; general: one network for any scan interval 0.5-12 s, real flights and "
-                        "3D-LAST, no range guard; 3dlast: the 3D-LAST benchmark network, 1 s, its range guard; real: 1 s "
-                        "real flights; real-5s: real flights at a surveillance radar's 4.5-5.5 s scans; real-11s: at an en-route "
-                        "radar's 10-12 s scans; real-4.5-12s: real flights at any interval 4.5-12 s; "
-                        "immnet/pretrained/PROVENANCE-*.md)")
+                   help=f"shipped weights by name (default {DEFAULT_WEIGHTS}); "
+                        + "; ".join(f"{name}: {WEIGHTS_HELP[name]}" for name in names)
+                        + " (immnet/pretrained/PROVENANCE-*.md)")
     p.add_argument("--checkpoint", default=None, help="a Lightning checkpoint or exported weights of your own instead")
     p.add_argument("--method", default=None,
                    help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "
@@ -87,6 +104,7 @@ def _told_r(args):
 def _bank(args, limit: float, r):
     """``--weights bank``: the shipped bank as a method (``immnet.tracking.bank.BankMethod``), no range guard unless
     ``--guard`` gives one, ``--adapt`` and ``--r`` for every member."""
+    from immnet.imm.guard import parse_guard
     from immnet.tracking.bank import BankMethod
     from immnet.tracking.tracker import KEEP
 
@@ -211,6 +229,7 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
 
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
+    from immnet.imm.guard import parse_guard
     from immnet.tracking.tracker import KEEP, Tracker
 
     _check_options(args)
