@@ -38,8 +38,11 @@ TURN_RATE_LIMIT_DEG = 30.0
 faster turn's rate below the truth and falls behind the target (docs/robustness.md)."""
 MODE_NAMES = ("cv", "ca", "ct+", "ct-")
 """Data mode labels, in the fixed order of docs/spec.md: 0 CV, 1 CA, 2 CT+, 3 CT-."""
-CV, CA, CT_POS, CT_NEG = range(len(MODE_NAMES))
+N_MODES = len(MODE_NAMES)
+CV, CA, CT_POS, CT_NEG = range(N_MODES)
 """The data modes by name (the one set of mode constants)."""
+MODE_LABELS = tuple(name.upper() for name in MODE_NAMES)
+"""The data modes as tables and figures print them: CV, CA, CT+, CT-."""
 RATE = 9
 """The turn rate's slot in a filter's augmented state ``[x (9), w]``."""
 N_AUG = 10
