@@ -162,12 +162,17 @@ def mode_update(prior_log: torch.Tensor, loglik: torch.Tensor) -> torch.Tensor:
     return torch.softmax(prior_log + loglik, -1)
 
 
+def moment_match(weights: torch.Tensor, x: torch.Tensor, xf: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+    """The covariance of a Gaussian mixture about its mean, ``sum_j W_j (P_j + d_j d_j^T)``, ``d_j = x_j - xf``: the
+    components' means ``x [B, M, n]`` and covariances ``P [B, M, n, n]``, the mean ``xf [B, n]``, weights ``W``
+    broadcastable to ``[B, M, n, n]`` (``mu [B, M, 1, 1]``; modes per group weigh each block with its group's
+    probability, ``immnet.stages.base.block_weights``); in ``P``'s dtype."""
+    d = (x - xf.unsqueeze(-2)).to(P.dtype)
+    return (weights.to(P.dtype) * (P + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(-3)
+
+
 def combine(x: torch.Tensor, P: torch.Tensor | None, mu: torch.Tensor):
-    """Moment-matched fusion ``x = sum mu_j x_j`` (``x [B, M, n]``) and, where ``P`` is given,
-    ``P = sum mu_j (P_j + d_j d_j^T)``; returns ``(x, P or None)``."""
+    """Moment-matched fusion ``x = sum mu_j x_j`` (``x [B, M, n]``) and, where ``P`` is given, its covariance
+    ``moment_match``; returns ``(x, P or None)``."""
     xf = (mu.unsqueeze(-2) @ x).squeeze(-2)
-    if P is None:
-        return xf, None
-    d = x - xf.unsqueeze(-2)
-    Pf = torch.einsum("bm,bmij->bij", mu, P) + (mu.unsqueeze(-1) * d).transpose(-1, -2) @ d
-    return xf, Pf
+    return xf, None if P is None else moment_match(mu[..., None, None], x, xf, P)

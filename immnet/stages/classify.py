@@ -16,13 +16,12 @@ Ablations, same keys: ``UniformMix`` (``mu = 1/M``) and ``BayesianModeUpdate`` (
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
 from immnet import keys
 from immnet.imm.interaction import transition_matrix
+from immnet.imm.kalman import gaussian_loglik, inv3
 from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, N_MODES, ModelSet, n_groups
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
@@ -359,8 +358,9 @@ class BayesianModeUpdate(_MarkovPrior, Stage):
             self.in_keys = [keys.EXPERT_LOGLIK, keys.EXPERT_PROBS]
         else:
             _, _, S = steady_state(model_set, sigma_q, r, dt)
-            self.register_buffer("S_inv", torch.linalg.inv(S).float())
-            self.register_buffer("log_norm", (-0.5 * torch.logdet(2 * math.pi * S)).float())
+            S_inv, logdet = inv3(S)
+            self.register_buffer("S_inv", S_inv.float())
+            self.register_buffer("log_norm", gaussian_loglik(torch.zeros_like(logdet), logdet, 3).float())  # at nu = 0
 
     def forward(self, td):
         if self.from_experts:
