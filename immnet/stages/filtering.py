@@ -243,7 +243,8 @@ class FilterInteraction(Stage):
         M = len(model_set)
         f64 = torch.float64  # float64, so that a .double() model is exact
         self.register_buffer("Pi", transition_matrix(p_stay, M), persistent=False)
-        keep, mean, cov = onset_priors(own_acc, own_rate, nominal, spec)
+        keep, mean, cov = onset_priors(own_acc, own_rate, nominal, acc_var=spec.ca_acc_var(),
+                                       rate_prior_deg=spec.turn_rate_prior_deg())
         self.register_buffer("mix_keep", keep, persistent=False)
         self.register_buffer("mix_mean", mean, persistent=False)
         self.register_buffer("mix_cov", cov, persistent=False)
