@@ -81,3 +81,59 @@ def test_the_core_takes_an_interval_per_track_and_scan():
         xs, mus = _filterpy_imm_varying(F[b], Q[b], Pi, mu0, r, x0[b].numpy(), P0[b].numpy(), z[b].numpy())
         np.testing.assert_allclose(states[b].numpy(), xs, rtol=1e-9, atol=1e-9 * np.abs(xs).max())
         np.testing.assert_allclose(probs[b].numpy(), mus, rtol=1e-9, atol=1e-12)
+
+
+def test_the_imm_core_imports_nothing_of_the_data():
+    """Issue 61: immnet/imm knows nothing of 3D-LAST; the range guard's bounds and the onset priors' statistics are
+    arguments whose defaults, constants of immnet/imm, are 3D-LAST's ``DataSpec``'s."""
+    import ast
+    from pathlib import Path
+
+    import immnet.imm
+    from immnet.data.spec import DataSpec
+    from immnet.imm import RangeGuard
+    from immnet.imm.interaction import ONSET_ACC_VAR, ONSET_RATE_PRIOR_DEG
+
+    for path in Path(immnet.imm.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [node.module] if isinstance(node, ast.ImportFrom) else [a.name for a in getattr(node, "names", [])]
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                assert not any(n and n.startswith("immnet.data") for n in names), (path.name, names)
+    spec = DataSpec()
+    assert RangeGuard() == RangeGuard(**spec.guard_bounds())
+    assert ONSET_ACC_VAR == spec.ca_acc_var() and ONSET_RATE_PRIOR_DEG == spec.turn_rate_prior_deg()
+    other = DataSpec(bound_range_outer=50_000.0, bound_clear_heading_deg=45.0)
+    assert RangeGuard(**other.guard_bounds()).outer == 50_000.0
+    assert RangeGuard(**other.guard_bounds()).clear_share == pytest.approx(2**-0.5)
+
+
+def test_one_gaussian_loglik_one_3x3_solve_one_moment_match():
+    """Issue 61: the core's Gaussian log-likelihood, 3x3 inverse and moment match against independent computations
+    (torch.distributions, LAPACK, a loop over the mixture's components)."""
+    from immnet.imm.interaction import combine, moment_match
+    from immnet.imm.kalman import gaussian_loglik, group_loglik, inv3
+
+    g = torch.Generator().manual_seed(61)
+    A = torch.randn(5, 3, 3, generator=g, dtype=torch.float64)
+    S = A @ A.mT + 0.5 * torch.eye(3, dtype=torch.float64)
+    nu = torch.randn(5, 3, generator=g, dtype=torch.float64)
+    Si, logdet = inv3(S)
+    torch.testing.assert_close(Si, torch.linalg.inv(S), rtol=1e-10, atol=1e-12)
+    maha = (nu * (Si @ nu[..., None])[..., 0]).sum(-1)
+    want = torch.distributions.MultivariateNormal(torch.zeros(3, dtype=torch.float64), S).log_prob(nu)
+    torch.testing.assert_close(gaussian_loglik(maha, logdet, 3), want, rtol=1e-12, atol=1e-12)
+    pair = torch.distributions.MultivariateNormal(torch.zeros(2, dtype=torch.float64), S[:, :2, :2]).log_prob(nu[:, :2])
+    one = torch.distributions.Normal(0.0, S[:, 2, 2].sqrt()).log_prob(nu[:, 2])
+    torch.testing.assert_close(group_loglik(nu, S, [[0, 1], [2]]), torch.stack([pair, one], -1), rtol=1e-12, atol=1e-12)
+    # a mixture of M = 3 Gaussians in n = 4 per batch entry
+    mu = torch.softmax(torch.randn(2, 3, generator=g, dtype=torch.float64), -1)
+    x = torch.randn(2, 3, 4, generator=g, dtype=torch.float64)
+    B = torch.randn(2, 3, 4, 4, generator=g, dtype=torch.float64)
+    P = B @ B.mT
+    xf, Pf = combine(x, P, mu)
+    for b in range(2):
+        mean = sum(mu[b, j] * x[b, j] for j in range(3))
+        cov = sum(mu[b, j] * (P[b, j] + torch.outer(x[b, j] - mean, x[b, j] - mean)) for j in range(3))
+        torch.testing.assert_close(xf[b], mean, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(Pf[b], cov, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(moment_match(mu[..., None, None], x, xf, P), Pf, rtol=0, atol=0)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from immnet import keys
-from immnet.motion import MODE_NAMES
+from immnet.motion import MODE_NAMES, N_MODES
 
 NO_LABEL = -1
 """A ``mode`` value meaning "no label at this scan" (e.g. padding after a track's end)."""
@@ -88,10 +88,10 @@ def check_values(key: str, a: np.ndarray, where: str, row0: int = 0) -> None:
             raise ValueError(f"{where}: array 'states' at {_first(bad, row0)} is neither all finite nor all NaN "
                              f"(a scan without truth is a row of NaN)")
     elif key == keys.MODE:
-        bad = (a < NO_LABEL) | (a >= len(MODE_NAMES))
+        bad = (a < NO_LABEL) | (a >= N_MODES)
         if bad.any():
             at = _first(bad, row0)
-            raise ValueError(f"{where}: array 'mode' holds {int(a[bad][0])} at {at}; valid: 0..{len(MODE_NAMES) - 1} "
+            raise ValueError(f"{where}: array 'mode' holds {int(a[bad][0])} at {at}; valid: 0..{N_MODES - 1} "
                              f"({', '.join(MODE_NAMES)}) or {NO_LABEL} (no label)")
     elif key == keys.TURN_RATE:
         bad = np.isinf(a)

@@ -47,7 +47,7 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.data.spec import DataSpec
-from immnet.motion import DEG, MODE_NAMES
+from immnet.motion import DEG, MODE_NAMES, N_MODES
 
 BLOCK = 4096
 MAX_REDRAWS = 64
@@ -89,9 +89,9 @@ def _schedule(g, m, spec: DataSpec, single: int | None):
         switches = j * spec.min_segment + pos - (j - 1)
     else:
         switches = torch.empty(m, 0, dtype=torch.long)
-    first = torch.randint(0, 4, (m, 1), generator=g)
-    steps = torch.randint(1, 4, (m, k), generator=g)  # next mode uniform among the other three
-    modes = (first + torch.cat([torch.zeros(m, 1, dtype=torch.long), steps.cumsum(1)], 1)) % 4
+    first = torch.randint(0, N_MODES, (m, 1), generator=g)
+    steps = torch.randint(1, N_MODES, (m, k), generator=g)  # next mode uniform among the other three
+    modes = (first + torch.cat([torch.zeros(m, 1, dtype=torch.long), steps.cumsum(1)], 1)) % N_MODES
     if single is not None:
         switches = torch.empty(m, 0, dtype=torch.long)
         modes = torch.full((m, 1), single, dtype=torch.long)

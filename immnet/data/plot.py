@@ -8,10 +8,9 @@ import numpy as np
 import torch
 
 from immnet import keys
-from immnet.motion import MODE_NAMES
+from immnet.motion import MODE_LABELS
 
 MODE_COLORS = {0: "tab:blue", 1: "tab:orange", 2: "tab:green", 3: "tab:red"}
-MODE_LABELS = {0: "CV", 1: "CA", 2: "CT+", 3: "CT-"}
 
 
 def plot_trajectories(td, out, n: int = 400, seed: int = 0, title: str | None = None) -> Path:
@@ -53,7 +52,7 @@ def plot_trajectories(td, out, n: int = 400, seed: int = 0, title: str | None = 
     if mode is not None:
         from matplotlib.lines import Line2D
 
-        handles = [Line2D([], [], color=MODE_COLORS[k], label=MODE_LABELS[k]) for k in range(len(MODE_NAMES))]
+        handles = [Line2D([], [], color=MODE_COLORS[k], label=MODE_LABELS[k]) for k in range(len(MODE_LABELS))]
         ax.legend(handles=handles, loc="upper left")
     ax.scatter([0], [0], [0], marker="^", color="k", s=30)
     ax.set_xlabel("x (km)")

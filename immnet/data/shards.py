@@ -26,7 +26,7 @@ from immnet.data.storage import (
     META, STORE_DTYPES, TENSORS, _allocate, _check_out, _meta, _rows, _write_meta, load_dataset, shard_rows,
     tensor_files,
 )
-from immnet.motion import MODE_NAMES
+from immnet.motion import MODE_NAMES, N_MODES
 
 _SAME = ("format", "spec_version", "seed", "T", "single_mode", "block", "spec", "dtype")
 """``meta.json`` fields every shard of one whole shares (plus ``shard.count`` and ``shard.n_total``)."""
@@ -120,7 +120,7 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
             tmp.mkdir()
             _allocate(tmp / TENSORS, n_total, T, out)
             dst_td = TensorDict.load_memmap(tmp / TENSORS)
-            counts = [0] * len(MODE_NAMES)
+            counts = [0] * N_MODES
             for d, meta in shards:
                 src_td, _ = load_dataset(d)
                 src_files, _ = tensor_files(d / TENSORS)

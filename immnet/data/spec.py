@@ -108,6 +108,15 @@ class DataSpec:
         lo, hi = self.turn_rate_min_deg, self.turn_rate_max_deg
         return (lo + hi) / 2.0, (hi - lo) / 12.0**0.5
 
+    def guard_bounds(self) -> dict:
+        """The soft bounds as ``immnet.imm.RangeGuard``'s fields (``RangeGuard(**spec.guard_bounds())``): the range
+        bounds, the bound turn's rate, the radial share at which it clears (its heading back by
+        ``bound_clear_heading_deg``: sin 30 deg = 0.5, to 12 digits) and a CA segment's speed bounds."""
+        return {"outer": self.bound_range_outer, "inner": self.bound_range_inner, "rate_deg": self.bound_turn_rate_deg,
+                "clear_share": round(math.sin(math.radians(self.bound_clear_heading_deg)), 12),
+                "speed_min": self.bound_speed_min,
+                "speed_max": self.bound_speed_max, "vz_max": self.bound_vz}
+
     # --- dict / YAML --------------------------------------------------------------------------
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

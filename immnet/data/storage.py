@@ -45,7 +45,7 @@ from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
 from immnet.data.scratch import check_space, check_writable, publishing, reserve
 from immnet.data.spec import SPEC_VERSION, DataSpec
 from immnet.data.times import nominal_dt
-from immnet.motion import MODE_NAMES
+from immnet.motion import MODE_NAMES, N_MODES
 
 META = "meta.json"
 TENSORS = "tensors"
@@ -153,7 +153,7 @@ def _write_block(b: int) -> list[int]:
         mm[:] = a
         mm.flush()
         del mm
-    return torch.bincount(block[keys.MODE].flatten(), minlength=len(MODE_NAMES)).tolist()
+    return torch.bincount(block[keys.MODE].flatten(), minlength=N_MODES).tolist()
 
 
 def _meta(seed: int, n: int, spec_dict: dict, single_mode, counts, shard: dict | None = None) -> dict:
@@ -187,7 +187,7 @@ def write_arrays(directory, arrays: dict, meta: dict) -> Path:
     directory.mkdir()
     check_space(directory, sum(t.nbytes for t in data.values()), f"the data set ({n} trajectories)")  # memmap_ maps
     TensorDict(data, batch_size=[n]).memmap_(directory / TENSORS)
-    counts = _mode_counts(data[keys.MODE]) if keys.MODE in data else [0] * len(MODE_NAMES)
+    counts = _mode_counts(data[keys.MODE]) if keys.MODE in data else [0] * N_MODES
     meta = {**meta, "n": int(n), "T": int(T), "counts_per_mode": dict(zip(MODE_NAMES, counts)),
             "dtype": {k: str(v).removeprefix("torch.") for k, v in STORE_DTYPES.items() if k in data}}
     _write_meta(directory, meta)
@@ -222,7 +222,7 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     with publishing(out) as tmp:
         tmp.mkdir()
         _allocate(tmp / TENSORS, row1 - row0, spec.T, out)
-        counts = [0] * len(MODE_NAMES)
+        counts = [0] * N_MODES
         blocks = list(blocks)
         bar = None
         if progress:
@@ -371,7 +371,7 @@ def map_tensors(tensors_dir) -> TensorDict:
 
 def _mode_counts(mode: torch.Tensor) -> list[int]:
     """Labels per mode (``NO_LABEL`` scans not counted), in ``MODE_NAMES`` order."""
-    counts = torch.bincount(mode.flatten().to(torch.int64) + 1, minlength=len(MODE_NAMES) + 1)  # checked >= -1
+    counts = torch.bincount(mode.flatten().to(torch.int64) + 1, minlength=N_MODES + 1)  # checked >= -1
     return counts[1:].tolist()
 
 

@@ -23,9 +23,8 @@ import torch  # noqa: E402
 
 from immnet import keys  # noqa: E402
 from immnet.evaluation.metrics import avg_curve, switch_steps  # noqa: E402
-from immnet.motion import MODE_NAMES, POS  # noqa: E402
+from immnet.motion import MODE_LABELS, POS  # noqa: E402
 
-MODE_LABELS = tuple(n.upper() for n in MODE_NAMES)
 MODE_COLORS = ("#4c72b0", "#dd8452", "#55a868", "#c44e52")
 _CYCLE = plt.get_cmap("tab10").colors
 

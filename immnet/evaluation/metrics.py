@@ -32,13 +32,12 @@ from __future__ import annotations
 
 import torch
 
-from immnet.motion import POS
+from immnet.motion import N_MODES, POS
 
 AXES = ("x", "y", "z")
 POST_SWITCH_STEPS = 20
 POST_SWITCH_S = 20.0
 """The post-switch window in seconds: ``POST_SWITCH_STEPS`` scans at 3D-LAST's 1 s."""
-N_MODES = 4
 
 
 def position_error(state: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:

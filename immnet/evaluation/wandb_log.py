@@ -27,13 +27,13 @@ from pathlib import Path
 from typing import Mapping
 
 from immnet.evaluation.table import BOUND
+from immnet.labels import MODE_LABELS
 
 PROJECT = "immnet"
 AXES = ("x", "y", "z", "avg")
 COLUMNS = ["method", "x [m]", "y [m]", "z [m]", "Average [m]", "post-switch [m]", "mode accuracy", "ratio to bound",
            "diverged tracks"]
 """The ``results`` table's columns (the results table's, as numbers; ``diverged tracks`` 0 for a finite method)."""
-MODE_NAMES = ("CV", "CA", "CT+", "CT-")
 
 
 def add_arguments(parser, default: bool = False) -> None:
@@ -136,7 +136,7 @@ def confusion_chart(counts, title: str):
     draws) over counts ``C[true][predicted]``: the evaluation has the counts, not the labels per scan."""
     import wandb
 
-    data = [[MODE_NAMES[i], MODE_NAMES[j], int(counts[i][j])] for i in range(len(counts)) for j in range(len(counts[i]))]
+    data = [[MODE_LABELS[i], MODE_LABELS[j], int(counts[i][j])] for i in range(len(counts)) for j in range(len(counts[i]))]
     return wandb.plot_table("wandb/confusion_matrix/v1", wandb.Table(columns=["Actual", "Predicted", "nPredictions"], data=data),
                             {"Actual": "Actual", "Predicted": "Predicted", "nPredictions": "nPredictions"},
                             {"title": title})

@@ -16,7 +16,7 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.data.times import regular
-from immnet.motion import MODE_NAMES
+from immnet.motion import N_MODES
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
 
@@ -68,7 +68,7 @@ def fixed_interval(intervals: torch.Tensor) -> float | None:
 
 def data_mode_probs(probs: torch.Tensor, modes: torch.Tensor) -> torch.Tensor:
     """Expert probabilities ``[..., M]`` summed per data mode -> ``[..., 4]`` (absent modes get 0)."""
-    onehot = torch.nn.functional.one_hot(modes.to(probs.device), len(MODE_NAMES)).to(probs.dtype)
+    onehot = torch.nn.functional.one_hot(modes.to(probs.device), N_MODES).to(probs.dtype)
     return probs @ onehot
 
 

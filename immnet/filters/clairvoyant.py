@@ -53,7 +53,7 @@ from immnet.filters.imm import first_detection, initial_state
 from immnet.imm.interaction import enter, onset_priors
 from immnet.imm.kalman import predict
 from immnet.imm.runner import run
-from immnet.motion import CA, CT_POS, ca_matrix, ct_jacobian, ct_matrix, ct_propagate, cv_matrix, process_noise
+from immnet.motion import CA, CT_POS, N_MODES, ca_matrix, ct_jacobian, ct_matrix, ct_propagate, cv_matrix, process_noise
 
 
 class ClairvoyantKF(Method):
@@ -282,7 +282,7 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
         P[:, :9, :9] = P9
         x, P = enter(x[:, None], P[:, None], keep, mean, cov)  # each filter as the track starts in its mode
-        one = torch.full((4, 4), 0.25, dtype=dtype, device=dev)
-        states, _, _ = run(z, x, P, one[0].expand(B, 4), one, transition, r**2, onset=onset, oracle=mode, H=H,
+        one = torch.full((N_MODES, N_MODES), 1.0 / N_MODES, dtype=dtype, device=dev)
+        states, _, _ = run(z, x, P, one[0].expand(B, N_MODES), one, transition, r**2, onset=onset, oracle=mode, H=H,
                            restart=self.restarts(mode, rate), start=first_detection(z))
         return output(states[..., :9], measurements=z)

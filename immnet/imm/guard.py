@@ -44,36 +44,24 @@ from dataclasses import dataclass
 
 import torch
 
-from immnet.data.spec import DataSpec
 from immnet.imm.option import Option
 from immnet.motion import DEG
 
 G_MAX = 0.999  # the most probable a guard event is made
 
 
-def _bounds(spec: DataSpec) -> dict:
-    """The guard's fields that are the generator's soft bounds, from ``spec``: the range bounds, the bound
-    turn's rate, the radial share at which it clears (its heading back by ``bound_clear_heading_deg``: sin 30
-    deg = 0.5, to 12 digits) and a CA segment's speed bounds."""
-    return {"outer": spec.bound_range_outer, "inner": spec.bound_range_inner, "rate_deg": spec.bound_turn_rate_deg,
-            "clear_share": round(math.sin(math.radians(spec.bound_clear_heading_deg)), 12),
-            "speed_min": spec.bound_speed_min, "speed_max": spec.bound_speed_max, "vz_max": spec.bound_vz}
-
-
-_DEFAULT = _bounds(DataSpec())  # 3D-LAST's bounds: the defaults (``RangeGuard.from_spec`` for another spec's)
-
-
 @dataclass(frozen=True)
 class RangeGuard(Option):
-    """The soft range and speed bounds of the 3D-LAST generator as guard conditions (module doc); the bounds
-    default to ``DataSpec()``'s, the ramps' widths and tolerances are the guard's own."""
+    """Soft range and speed bounds as guard conditions (module doc); the bounds default to the 3D-LAST generator's
+    (``immnet.data.spec.DataSpec.guard_bounds`` gives another data set's), the ramps' widths and tolerances are the
+    guard's own."""
 
     ARG = "guard"
 
-    outer: float = _DEFAULT["outer"]  # m: beyond, moving outward -> turn toward the radar
-    inner: float = _DEFAULT["inner"]  # m: within, moving inward -> turn away from it
-    rate_deg: float = _DEFAULT["rate_deg"]  # the bound turn's rate
-    clear_share: float = _DEFAULT["clear_share"]  # the turn clears once the radial speed is beyond this share of the speed
+    outer: float = 33_000.0  # m: beyond, moving outward -> turn toward the radar
+    inner: float = 4_000.0  # m: within, moving inward -> turn away from it
+    rate_deg: float = 8.0  # the bound turn's rate
+    clear_share: float = 0.5  # the turn clears once the radial speed is beyond this share of the speed (heading back 30 deg)
     clear_margin: float = 3_000.0  # m: a clear is looked for within this distance of the bound
     range_soft: float = 10.0  # m: logistic width of the range thresholds
     speed_soft: float = 1.0  # m/s: of the radial-speed sign
@@ -81,15 +69,10 @@ class RangeGuard(Option):
     rate_tol_deg: float = 2.0  # how close a turn's rate must be to rate_deg to be the bound's turn
     rate_std_deg: float = 0.2  # the rate prior of a turn entered at the bound
     speeds: bool = True  # the speed rules too: a CA leaving the speed bounds turns for one scan
-    speed_min: float = _DEFAULT["speed_min"]  # m/s: horizontal speed bounds of a CA segment
-    speed_max: float = _DEFAULT["speed_max"]
-    vz_max: float = _DEFAULT["vz_max"]  # m/s: vertical speed bound of a CA segment
+    speed_min: float = 40.0  # m/s: horizontal speed bounds of a CA segment
+    speed_max: float = 330.0
+    vz_max: float = 25.0  # m/s: vertical speed bound of a CA segment
     bound_speed_soft: float = 1.0  # m/s: logistic width of the speed bounds (a CA filter's speed error)
-
-    @classmethod
-    def from_spec(cls, spec: DataSpec, **fields) -> "RangeGuard":
-        """The guard of the soft bounds of ``spec`` (a ``DataSpec``); ``fields`` override the rest."""
-        return cls(**(_bounds(spec) | fields))
 
     def __post_init__(self):
         for name in ("outer", "inner", "rate_deg", "clear_share", "clear_margin", "range_soft", "speed_soft",

@@ -23,8 +23,15 @@ import math
 
 import torch
 
-from immnet.data.spec import DataSpec
 from immnet.motion import ACC, RATE
+
+ONSET_ACC_VAR = ((3.0**3 - 0.5**3) / (3.0 * (3.0 - 0.5)) / 2.0,) * 2 + (0.3**2 / 3.0,)
+"""The default variance per axis (x, y, z) of the acceleration a switch into a CA filter draws: 3D-LAST's, a
+horizontal magnitude ``U[0.5, 3]`` m/s^2 at a uniform direction and a vertical ``U[-0.3, 0.3]`` (1.7917, 1.7917,
+0.03; ``immnet.data.spec.DataSpec.ca_acc_var`` of another data set's)."""
+ONSET_RATE_PRIOR_DEG = ((1.0 + 10.0) / 2.0, (10.0 - 1.0) / 12.0**0.5)
+"""The default mean and standard deviation (deg/s) of the rate a switch into a turn filter draws: 3D-LAST's
+magnitude ``U[1, 10]`` (5.5 and 2.6; ``DataSpec.turn_rate_prior_deg`` of another data set's)."""
 
 
 def transition_matrix(p_stay, M: int, dtype=torch.float64) -> torch.Tensor:
@@ -47,26 +54,23 @@ def transition_matrix(p_stay, M: int, dtype=torch.float64) -> torch.Tensor:
     return Pi
 
 
-def onset_priors(own_acc, own_rate, nominal, spec: DataSpec | None = None, n: int = RATE + 1, acc_var=None,
-                 rate_prior_deg=None):
+def onset_priors(own_acc, own_rate, nominal, n: int = RATE + 1, acc_var=None, rate_prior_deg=None):
     """What enters filter ``j`` from any other filter (a switch into ``j``), float64: ``keep [M, n]`` (1
     where a component is kept, 0 where it is replaced), the prior's mean ``mean [M, n]`` and covariance
     ``cov [M, n, n]`` on the replaced components. What a filter brings into itself is kept whole.
 
     ``own_acc [M]``: the filters that keep an acceleration of their own (CA: a switch into it draws a new
-    one, mean 0 and ``spec.ca_acc_var()``); ``own_rate [M]``: the turn filters that estimate their rate
-    (a switch into one draws a rate, ``spec.turn_rate_prior_deg()`` in the sign of ``nominal [M]``); ``n`` the
-    state's size (9: no turn rate of its own); ``acc_var`` fixes the acceleration's variances instead, and
-    ``rate_prior_deg`` ``(mean, std)`` the turn rate's prior."""
-    spec = spec or DataSpec()
+    one, mean 0 and variances ``acc_var``, None: ``ONSET_ACC_VAR``); ``own_rate [M]``: the turn filters that
+    estimate their rate (a switch into one draws a rate, ``rate_prior_deg`` ``(mean, std)``, None:
+    ``ONSET_RATE_PRIOR_DEG``, in the sign of ``nominal [M]``); ``n`` the state's size (9: no turn rate of its own)."""
     M = len(own_acc)
     f64 = torch.float64
     keep = torch.ones(M, n, dtype=f64)
     mean, cov = torch.zeros(M, n, dtype=f64), torch.zeros(M, n, n, dtype=f64)
-    w_mean, w_std = (v * math.pi / 180.0 for v in (rate_prior_deg or spec.turn_rate_prior_deg()))
+    w_mean, w_std = (v * math.pi / 180.0 for v in (rate_prior_deg or ONSET_RATE_PRIOR_DEG))
     for j in range(M):
         if own_acc[j]:
-            for a, v in zip(ACC, spec.ca_acc_var() if acc_var is None else acc_var):
+            for a, v in zip(ACC, ONSET_ACC_VAR if acc_var is None else acc_var):
                 keep[j, a] = 0.0
                 cov[j, a, a] = v
         if own_rate[j]:
@@ -162,12 +166,17 @@ def mode_update(prior_log: torch.Tensor, loglik: torch.Tensor) -> torch.Tensor:
     return torch.softmax(prior_log + loglik, -1)
 
 
+def moment_match(weights: torch.Tensor, x: torch.Tensor, xf: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+    """The covariance of a Gaussian mixture about its mean, ``sum_j W_j (P_j + d_j d_j^T)``, ``d_j = x_j - xf``: the
+    components' means ``x [B, M, n]`` and covariances ``P [B, M, n, n]``, the mean ``xf [B, n]``, weights ``W``
+    broadcastable to ``[B, M, n, n]`` (``mu [B, M, 1, 1]``; modes per group weigh each block with its group's
+    probability, ``immnet.stages.base.block_weights``); in ``P``'s dtype."""
+    d = (x - xf.unsqueeze(-2)).to(P.dtype)
+    return (weights.to(P.dtype) * (P + d.unsqueeze(-1) * d.unsqueeze(-2))).sum(-3)
+
+
 def combine(x: torch.Tensor, P: torch.Tensor | None, mu: torch.Tensor):
-    """Moment-matched fusion ``x = sum mu_j x_j`` (``x [B, M, n]``) and, where ``P`` is given,
-    ``P = sum mu_j (P_j + d_j d_j^T)``; returns ``(x, P or None)``."""
+    """Moment-matched fusion ``x = sum mu_j x_j`` (``x [B, M, n]``) and, where ``P`` is given, its covariance
+    ``moment_match``; returns ``(x, P or None)``."""
     xf = (mu.unsqueeze(-2) @ x).squeeze(-2)
-    if P is None:
-        return xf, None
-    d = x - xf.unsqueeze(-2)
-    Pf = torch.einsum("bm,bmij->bij", mu, P) + (mu.unsqueeze(-1) * d).transpose(-1, -2) @ d
-    return xf, Pf
+    return xf, None if P is None else moment_match(mu[..., None, None], x, xf, P)

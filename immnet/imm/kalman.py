@@ -35,6 +35,12 @@ def predict(x: torch.Tensor, P: torch.Tensor, F: torch.Tensor, Q: torch.Tensor):
     return x, P
 
 
+def gaussian_loglik(maha: torch.Tensor, logdet: torch.Tensor, m: int) -> torch.Tensor:
+    """``log N(nu; 0, S) = -1/2 (nu^T S^-1 nu + log det S + m log 2 pi)`` of an ``m``-dimensional innovation from its
+    Mahalanobis distance ``maha = nu^T S^-1 nu`` and ``log det S`` (each ``[...]``): every tracker's likelihood."""
+    return -0.5 * (maha + logdet + m * LOG_2PI)
+
+
 def inv3(S: torch.Tensor):
     """Inverse and log-determinant of symmetric positive-definite 3x3 matrices ``[..., 3, 3]`` (covariances), in
     closed form by their ``L D L^T`` factorization: ``(S^{-1}, log det S)``.
@@ -81,14 +87,14 @@ def group_loglik(nu: torch.Tensor, S: torch.Tensor, groups: list[list[int]]) -> 
         if len(g) == 1:
             i = g[0]
             s, n = S[..., i, i], nu[..., i]
-            out.append(-0.5 * (n * n / s + torch.log(s) + LOG_2PI))
+            out.append(gaussian_loglik(n * n / s, torch.log(s), 1))
         elif len(g) == 2:
             i, j = g
             a, b, d = S[..., i, i], 0.5 * (S[..., i, j] + S[..., j, i]), S[..., j, j]
             n, m = nu[..., i], nu[..., j]
             d1 = torch.maximum(d - b * b / a, torch.finfo(S.dtype).eps * d)  # L D L^T, as inv3's pivots
             e = m - b / a * n  # the second coordinate's innovation given the first
-            out.append(-0.5 * (n * n / a + e * e / d1 + torch.log(a) + torch.log(d1) + 2.0 * LOG_2PI))
+            out.append(gaussian_loglik(n * n / a + e * e / d1, torch.log(a) + torch.log(d1), 2))
         else:
             raise ValueError(f"group_loglik takes groups of one or two coordinates, got {g}")
     return torch.stack(out, -1)
@@ -160,7 +166,7 @@ def update(x, P, z, H=None, R=1.0):
     x_post = x + (K @ y.unsqueeze(-1)).squeeze(-1)
     P_post = P - K @ PHt.transpose(-1, -2)
     P_post = 0.5 * (P_post + P_post.transpose(-1, -2))
-    loglik = -0.5 * ((y * Siy).sum(-1) + logdet + m * LOG_2PI)
+    loglik = gaussian_loglik((y * Siy).sum(-1), logdet, m)
     if not torch.is_grad_enabled() and missed.device.type == "cpu" and not bool(missed.any()):
         return x_post, P_post, loglik  # nothing missed: skip three passes over P (CPU only, no sync)
     # Broadcast ``missed`` over what F, Q or R may have added in front, then keep the prior.

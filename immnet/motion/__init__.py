@@ -13,8 +13,10 @@ from immnet.motion.models import (
     CV,
     DEG,
     MODE_GROUPS,
+    MODE_LABELS,
     MODE_NAMES,
     MODES,
+    N_MODES,
     N_AUG,
     POS,
     RATE,
@@ -46,7 +48,7 @@ from immnet.motion.models import (
 )
 
 __all__ = [
-    "ACC", "AXES", "AXIS_OF", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODES", "MODE_GROUPS", "MODE_NAMES", "N_AUG", "POS", "RATE",
+    "ACC", "AXES", "AXIS_OF", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODES", "MODE_GROUPS", "MODE_LABELS", "MODE_NAMES", "N_AUG", "N_MODES", "POS", "RATE",
     "TURN_ENTRIES", "TURN_RATE_LIMIT_DEG", "VEL", "ct_jacobian", "ct_jacobian_entries", "ct_rate_derivative",
     "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
     "adaptive_ct_propagate", "ca_matrix", "coupling", "ct_matrix", "ct_propagate", "cv_matrix", "fits_groups",

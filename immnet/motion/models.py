@@ -30,7 +30,7 @@ import math
 
 import torch
 
-from immnet.labels import MODE_NAMES
+from immnet.labels import MODE_LABELS, MODE_NAMES, N_MODES
 
 DEG = math.pi / 180.0
 
@@ -38,7 +38,7 @@ TURN_RATE_LIMIT_DEG = 30.0
 """The fastest turn a tracker's rate estimate may reach (deg/s): an aircraft's limit (30 deg/s is 4.9 g at
 150 m/s), not a data set's range. A turn filter bounded at its prior's edge (3D-LAST's 10 deg/s) holds a
 faster turn's rate below the truth and falls behind the target (docs/robustness.md)."""
-CV, CA, CT_POS, CT_NEG = range(len(MODE_NAMES))
+CV, CA, CT_POS, CT_NEG = range(N_MODES)
 """The data modes by name (the one set of mode constants)."""
 RATE = 9
 """The turn rate's slot in a filter's augmented state ``[x (9), w]``."""

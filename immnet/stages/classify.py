@@ -16,14 +16,13 @@ Ablations, same keys: ``UniformMix`` (``mu = 1/M``) and ``BayesianModeUpdate`` (
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
 from immnet import keys
 from immnet.imm.interaction import transition_matrix
-from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, ModelSet, n_groups
+from immnet.imm.kalman import gaussian_loglik, inv3
+from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, N_MODES, ModelSet, n_groups
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.update import innovation
@@ -296,7 +295,7 @@ class TrueModeUpdate(Stage):
                     raise ValueError(f"TrueModeUpdate: the data mode {name!r} has no expert in the model set "
                                      f"{model_set.names}; give experts=[...] (one index per data mode)")
                 experts.append(found[0])
-        if len(experts) != len(MODE_NAMES) or not all(isinstance(i, int) and 0 <= i < M for i in experts):
+        if len(experts) != N_MODES or not all(isinstance(i, int) and 0 <= i < M for i in experts):
             raise ValueError(f"experts needs one expert index in [0, {M}) per data mode {MODE_NAMES}, got {experts!r}")
         self.experts = list(experts)
         self.register_buffer("expert_of", torch.tensor(self.experts), persistent=False)
@@ -309,7 +308,7 @@ class TrueModeUpdate(Stage):
         """``[B, M]``: 1 on the expert of each track's data mode ``mode [B]``; a ValueError (eager) where a mode is
         not one of the four (``-1``: a scan without a label, as real flights have)."""
         mode = mode.long()
-        if not torch.compiler.is_compiling() and bool(((mode < 0) | (mode >= len(MODE_NAMES))).any()):
+        if not torch.compiler.is_compiling() and bool(((mode < 0) | (mode >= N_MODES)).any()):
             raise ValueError(f"TrueModeUpdate needs the truth's mode at every scan, one of {MODE_NAMES} (0-3); this scan "
                              "has a track without one (-1: real flights, padding)")
         return self.onehot[self.expert_of[mode]]
@@ -359,8 +358,9 @@ class BayesianModeUpdate(_MarkovPrior, Stage):
             self.in_keys = [keys.EXPERT_LOGLIK, keys.EXPERT_PROBS]
         else:
             _, _, S = steady_state(model_set, sigma_q, r, dt)
-            self.register_buffer("S_inv", torch.linalg.inv(S).float())
-            self.register_buffer("log_norm", (-0.5 * torch.logdet(2 * math.pi * S)).float())
+            S_inv, logdet = inv3(S)
+            self.register_buffer("S_inv", S_inv.float())
+            self.register_buffer("log_norm", gaussian_loglik(torch.zeros_like(logdet), logdet, 3).float())  # at nu = 0
 
     def forward(self, td):
         if self.from_experts:

@@ -46,7 +46,7 @@ from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
-from immnet.imm.kalman import group_loglik, inv3, joseph, small_matmul
+from immnet.imm.kalman import gaussian_loglik, group_loglik, inv3, joseph, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
@@ -243,7 +243,8 @@ class FilterInteraction(Stage):
         M = len(model_set)
         f64 = torch.float64  # float64, so that a .double() model is exact
         self.register_buffer("Pi", transition_matrix(p_stay, M), persistent=False)
-        keep, mean, cov = onset_priors(own_acc, own_rate, nominal, spec)
+        keep, mean, cov = onset_priors(own_acc, own_rate, nominal, acc_var=spec.ca_acc_var(),
+                                       rate_prior_deg=spec.turn_rate_prior_deg())
         self.register_buffer("mix_keep", keep, persistent=False)
         self.register_buffer("mix_mean", mean, persistent=False)
         self.register_buffer("mix_cov", cov, persistent=False)
@@ -689,7 +690,7 @@ class _FilterExperts:
         maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
         if self.z_groups is not None:  # each group's own likelihood, the marginal of its coordinates: [B, G, M]
             return torch.where(has_z, group_loglik(nu, S, self.z_groups), 0.0).transpose(1, 2), maha
-        loglik = -0.5 * (maha + logdet + 3.0 * math.log(2.0 * math.pi))
+        loglik = gaussian_loglik(maha, logdet, 3)
         return torch.where(has_z[..., 0], loglik, 0.0), maha
 
     def shifted_loglik(self, td, shift: torch.Tensor) -> torch.Tensor:

@@ -32,22 +32,12 @@ from __future__ import annotations
 import torch
 
 from immnet import keys
+from immnet.imm.interaction import moment_match
 from immnet.motion import POS, mode_groups
 from immnet.stages.base import Stage, axis_probs, block_weights, coordinate_weights, measured
 
 COV_KEYS = (keys.EXPERT_COV, keys.EXPERT_AUG_COV)
 """The experts' covariances ``Fuse`` fuses, first found first: the analytic gain's, the filter experts'."""
-
-
-def moment_match(mu: torch.Tensor, post: torch.Tensor, fused: torch.Tensor, cov: torch.Tensor,
-                 groups: tuple[int, ...] | None = None) -> torch.Tensor:
-    """``sum_i mu_i (P_i + d_i d_i^T)``, ``d_i = x_i - x``: weights ``mu [B, M]`` (or per group ``[B, G, M]``,
-    ``groups`` the group of each coordinate: each group's block with its group's weights, 0 across groups,
-    ``block_weights``), posteriors ``post [B, M, 9]``, their mean ``fused [B, 9]``, covariances ``cov [B, M, 9, 9]``;
-    in ``cov``'s dtype."""
-    d = (post - fused.unsqueeze(1)).to(cov.dtype)
-    spread = cov + d.unsqueeze(-1) * d.unsqueeze(-2)
-    return (block_weights(mu.to(cov.dtype), cov.shape[-1], groups) * spread).sum(1)
 
 
 class Fuse(Stage):
@@ -131,7 +121,8 @@ class Fuse(Stage):
             cov = cov[..., :9, :9]
         if self.per_expert:
             return cov
-        return moment_match(td.get(keys.EXPERT_PROBS), td.get(keys.EXPERT_POST), fused, cov, self.groups)
+        weights = block_weights(td.get(keys.EXPERT_PROBS).to(cov.dtype), cov.shape[-1], self.groups)
+        return moment_match(weights, td.get(keys.EXPERT_POST), fused, cov)
 
     def consistency_scale(self, scale: torch.Tensor, mu: torch.Tensor, nis: torch.Tensor, has_z: torch.Tensor):
         """The next scale of the reported covariance ``[B]`` (module doc) from the previous one ``[B]``, the mode

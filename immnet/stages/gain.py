@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from immnet import keys
-from immnet.imm.kalman import joseph
+from immnet.imm.kalman import inv3, joseph
 from immnet.motion import POS, ModelSet
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import F1_SCALE, F2_SCALE, F3_SCALE, F4_SCALE, slog, state_scale
@@ -49,13 +49,13 @@ def steady_state(model_set: ModelSet, sigma_q: float, r: float, dt: float = 1.0,
     P = Q + torch.eye(9, dtype=torch.float64) * 1e2
     for _ in range(iters):
         S = P[:, _P][:, :, _P] + R
-        K = torch.linalg.solve(S, P[:, _P, :]).transpose(-1, -2)
+        K = (inv3(S)[0] @ P[:, _P, :]).transpose(-1, -2)
         IKH = torch.eye(9, dtype=torch.float64).expand_as(P).clone()
         IKH[:, :, _P] -= K
         post = IKH @ P @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
         P = F @ post @ F.transpose(-1, -2) + Q
     S = P[:, _P][:, :, _P] + R
-    K = torch.linalg.solve(S, P[:, _P, :]).transpose(-1, -2)
+    K = (inv3(S)[0] @ P[:, _P, :]).transpose(-1, -2)
     return P, K, S
 
 
@@ -243,7 +243,7 @@ class AnalyticGain(Stage):
         P = F @ P @ F.transpose(-1, -2) + Q
         R = self.r**2 * torch.eye(3, dtype=P.dtype, device=P.device)
         S = P[..., _P, :][..., _P] + R
-        K = torch.linalg.solve(S, P[..., _P, :]).transpose(-1, -2)
+        K = (inv3(S)[0] @ P[..., _P, :]).transpose(-1, -2)
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts)).unsqueeze(-1)
         K = torch.where(has_z, K, 0.0)
         post = joseph(P, K, P.new_tensor(self.r**2))

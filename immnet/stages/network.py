@@ -29,7 +29,7 @@ from tensordict.utils import unravel_key
 from immnet import keys
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
-from immnet.motion import MODE_GROUPS, POS, ModelSet, coupling, mode_groups
+from immnet.motion import MODE_GROUPS, N_MODES, POS, ModelSet, coupling, mode_groups
 from immnet.stages.base import Stage, axis_probs, track_where
 from immnet.stages.fuse import Fuse
 from immnet.stages.predict import Predict
@@ -253,7 +253,7 @@ class IMMNet(TensorDictModuleBase):
         self.carry_keys = carry
         self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry, *self.start.inputs]
         self.out_keys = [keys.ACTION, *(("next", *k) for k in carry)]
-        onehot = torch.zeros(len(ms), 4)
+        onehot = torch.zeros(len(ms), N_MODES)
         onehot[torch.arange(len(ms)), ms.modes] = 1.0
         self.register_buffer("mode_onehot", onehot)
 
