@@ -406,7 +406,8 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
 
     def knock_out(self) -> None:
         """Set the Transformer's correction to zero (its head's last layer): the IMM's mode update exactly. An
-        untrained classifier starts so; on a trained one it measures what the correction is worth (docs/real.md)."""
+        untrained classifier starts so; on a trained one it measures what the correction is worth
+        (docs/notebook/real-flights.md, "What each learned part is worth")."""
         with torch.no_grad():
             self.head[-1].weight.zero_()
             self.head[-1].bias.zero_()
