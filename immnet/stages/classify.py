@@ -96,7 +96,7 @@ class TransformerClassifier(Stage):
         modes: str = "joint",
     ):
         """``interval_input``: each token also reads its scan's interval, ``log(interval / dt)`` (a network
-        trained over a range of intervals, docs/immnet.md "Any scan interval"). ``modes``: modes per group
+        trained over a range of intervals, docs/stages.md "Any scan interval"). ``modes``: modes per group
         (``IMMNet``'s, set there once): the head gives logits per group and mode, ``[B, G, M]``."""
         super().__init__(model_set)
         self.window, self.dt, self.interval_input = window, dt, bool(interval_input)
