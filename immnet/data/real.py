@@ -1,4 +1,4 @@
-"""Data sets of real flights seen by a simulated radar: ``immnet data adsb`` (docs/data.md, "Real flights").
+"""Data sets of real flights seen by a simulated radar: ``immnet data adsb`` (docs/real-data.md, "Real flights").
 
 Pipeline: read and clean ADS-B samples into flights (:mod:`immnet.data.adsb`); convert their fresh
 positions to the radar site's east-north-up frame (:mod:`immnet.data.geodesy`); lay each flight's scan
