@@ -14,8 +14,8 @@ reads at each scan the aircraft's latest velocity report at most ``--max-age`` s
 yet: the scan has no report). A report is ground speed ``g``, track ``chi`` and vertical rate ``c`` in the aircraft's
 east-north-up frame, ``(g sin chi, g cos chi, c)``, turned into the radar site's frame through ECEF.
 
-The filter (docs/real.md "Told the aircraft's velocity"): the decoupled IMM ``--imm`` (``PerAxisIMMTracker``) whose
-per-axis measurement is ``(position, reported velocity)`` with
+The filter (docs/notebook/real-flights.md "Told the aircraft's velocity"): the decoupled IMM ``--imm``
+(``PerAxisIMMTracker``) whose per-axis measurement is ``(position, reported velocity)`` with
 
     H = [[1, 0, 0], [0, 1, -L]],   R = diag(r^2, s_a^2)
 

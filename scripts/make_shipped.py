@@ -53,10 +53,11 @@ def _runs(tag: str) -> dict:
 
 def _corrections(tag: str, scans: str, train: str, tests: list[str], prior: str = "", reading: str = "",
                  tuned: str = "") -> dict:
-    """A real-flight network of three runs of one recipe on one filter, their corrections averaged (docs/real.md
-    "Several corrections on one filter"): ``_runs(tag)``. ``tag``: the recipe's, run directories' and filter's suffix
-    (``""``, ``"-5s"``, ``"-11s"``); ``scans``: the scans it was trained at, as the provenance says them; ``train``:
-    its training data's scans and noise; ``tests``: the registry names scored beside its set's filters."""
+    """A real-flight network of three runs of one recipe on one filter, their corrections averaged
+    (docs/notebook/real-flights.md "Several corrections on one filter"): ``_runs(tag)``. ``tag``: the recipe's, run
+    directories' and filter's suffix (``""``, ``"-5s"``, ``"-11s"``); ``scans``: the scans it was trained at, as the
+    provenance says them; ``train``: its training data's scans and noise; ``tests``: the registry names scored beside
+    its set's filters."""
     name, filt, data = f"real{tag}", f"real-imm-singer{tag}", f"{REAL}/quickstart{tag or '-1s'}"
     return {
         **_runs(tag),

@@ -7,9 +7,10 @@ Kalman filter told, by the truth, how each scan's acceleration changed. Referenc
     python scripts/motion_oracle.py --plot A.json B.json ... --figure motion_oracle.png
 
 The truth's change of acceleration over the interval before scan ``t`` is its jerk ``j_t = (a_t - a_{t-1}) / dt_t``
-per axis (the truth of real flights is one trajectory of the white-jerk model, docs/data.md). Rows (docs/real.md
-"What a tracker would need to know"), each the table's Average RMSE (``immnet evaluate``'s, from each track's first
-detection), the filter started as every model-based one (``immnet.filters.imm.initial_state``) and told each track's r:
+per axis (the truth of real flights is one trajectory of the white-jerk model, docs/data.md). Rows
+(docs/notebook/real-flights.md "What a tracker would need to know"), each the table's Average RMSE (``immnet
+evaluate``'s, from each track's first detection), the filter started as every model-based one
+(``immnet.filters.imm.initial_state``) and told each track's r:
 
 - **the size of the change**: process noise set scan by scan and axis from the truth, white-jerk spectral density
   ``q_t = c j_t^2 dt_t + floor`` (a jerk held over the interval changes the acceleration by ``j_t dt_t``, the noise's

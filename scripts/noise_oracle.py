@@ -4,8 +4,8 @@ best setting chosen per window (and per window and axis) with the truth. A refer
     python scripts/noise_oracle.py --data runs/real/data/quickstart-1s/test --method real-imm-axis \\
         --knob sigma_q.0=0.1,0.2,0.4,0.7,1.0 --knob sigma_q.1=0.2,0.35,0.5,0.7,1.0,1.5 [--json oracle.json]
 
-Rows (docs/real.md "How far the noise can take a tracker"), each the table's Average RMSE (per window over its
-scored scans, then the mean over windows; ``immnet evaluate``'s):
+Rows (docs/notebook/real-flights.md "How far the noise can take a tracker"), each the table's Average RMSE (per window
+over its scored scans, then the mean over windows; ``immnet evaluate``'s):
 
 - the method as configured (its YAML in ``configs/methods/``);
 - the best single setting of the grid on this set: tuning on the set itself, what a filter tuned on it would give;

@@ -65,8 +65,8 @@ else
   say "2/5 the model-based filters as tuned on the training flights: configs/methods/real-*.yaml (IMMNET_RETUNE=1 to tune again)"
 fi
 
-# the shipped real averages three runs' corrections on one filter (docs/real.md "Several corrections on one filter"):
-# the recipe, and the recipe with each overlay of configs/members/ (another seed; turns flown into its views)
+# the shipped real averages three runs' corrections on one filter (docs/notebook/real-flights.md "Several corrections on
+# one filter"): the recipe, and the recipe with each overlay of configs/members/ (another seed; turns flown into its views)
 MEMBERS=(output:- output-seed1:configs/members/real-seed1.yaml output-turns:configs/members/real-turns.yaml)
 member() {  # run-directory:overlay (- for none)
   local dir=${1%%:*} overlay=${1#*:} extra=()

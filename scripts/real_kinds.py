@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     ckpts = dict(c.split("=", 1) for c in args.checkpoint)
     names = [n for n in args.methods.split(",") if n]
     methods = {n: build_method(n, ckpts.get(n), guard=parse_guard("none"), told_r=args.told_r) for n in names}
-    turning = phases(data[keys.STATES].double())["turn"].numpy()  # the turn phase's scans (docs/real.md)
+    turning = phases(data[keys.STATES].double())["turn"].numpy()  # the turn phase's scans (docs/notebook/real-flights.md)
     print("| kind (windows, flights) | turning | " + " | ".join(names) + " |")
     print("|:---|---:|" + "---:|" * len(names))
     for group, rows in sorted(kinds.items(), key=lambda kv: -len(kv[1])) + [("all", list(range(len(owners))))]:

@@ -19,7 +19,7 @@ if ! "$PY" -c "import immnet, filterpy, pytest, xdist" 2>/dev/null; then
   "$PY" -m pip install -q -e ".[dev]" 2> >(grep -v "is ignored: it is neither" >&2)
 fi
 # the ADS-B sample files of `immnet data adsb` and its tests: traffic's wheel without its dependencies
-# (immnet reads its JSON files and never imports it; docs/data.md, "Real flights")
+# (immnet reads its JSON files and never imports it; docs/real-data.md, "Real flights")
 if ! "$PY" -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('traffic') is None)"; then
   echo "[setup] installing the ADS-B sample files (traffic==2.13, --no-deps)"
   "$PY" -m pip install -q --no-deps "traffic==2.13" 2> >(grep -v "is ignored: it is neither" >&2) \

@@ -1,5 +1,5 @@
-"""``scripts/data_scaling.py`` (docs/real.md "How much more flights would give"): the overlay that places each run,
-and the table, checked against ``immnet evaluate`` of the same weights on the same sets."""
+"""``scripts/data_scaling.py`` (docs/notebook/real-flights.md "How much more flights would give"): the overlay that
+places each run, and the table, checked against ``immnet evaluate`` of the same weights on the same sets."""
 
 import json
 import runpy

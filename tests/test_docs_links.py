@@ -1,4 +1,4 @@
-"""Every link and file path named in README.md and docs/*.md resolves to a file of the repository.
+"""Every link and file path named in README.md, docs/*.md and docs/notebook/*.md resolves to a file of the repository.
 
 Issue 21, item 5: the front door and the docs cite the repository's own files (docs/spec.md is the
 spec), never a path outside it such as ``../shared/SPEC.md``. Checked: markdown links and images
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "docs" / "notebook").glob("*.md"))]
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)")
 CODE = re.compile(r"`([^`\s]+)`")
 FILE_EXT = (".md", ".py", ".yaml", ".yml", ".toml", ".sh", ".png", ".tex", ".ckpt", ".json", ".txt")

@@ -1,6 +1,6 @@
-"""``scripts/downlinked_velocity.py`` (docs/real.md "Told the aircraft's velocity"): a report turned into the radar's
-frame against the geodesy's positions, the filter told a late velocity against FilterPy, the reports of a rebuilt
-real-flight set against its truth, and the script's rows against the filters run here."""
+"""``scripts/downlinked_velocity.py`` (docs/notebook/real-flights.md "Told the aircraft's velocity"): a report turned
+into the radar's frame against the geodesy's positions, the filter told a late velocity against FilterPy, the reports of
+a rebuilt real-flight set against its truth, and the script's rows against the filters run here."""
 
 import json
 import math

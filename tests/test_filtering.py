@@ -624,9 +624,10 @@ def test_a_network_written_with_per_axis_loads_with_modes_per_axis():
 
 
 def test_a_trained_network_with_its_learned_parts_knocked_out_is_the_model_based_imm():
-    """``IMMNet.knock_out`` (the real-flight ablations, docs/real.md): the shipped network with KalmanNet's and the
-    Transformer's corrections set to zero is IMMNet with nothing learned, the filter experts at the gain's base noise
-    and the IMM's mode update, with the network's own p_stay and guard; one part alone changes the estimates."""
+    """``IMMNet.knock_out`` (the real-flight ablations, docs/notebook/real-flights.md): the shipped network with
+    KalmanNet's and the Transformer's corrections set to zero is IMMNet with nothing learned, the filter experts at the
+    gain's base noise and the IMM's mode update, with the network's own p_stay and guard; one part alone changes the
+    estimates."""
     from immnet.checkpoints import PRETRAINED
     from immnet.tracking.methods import IMMNetMethod
     from immnet.tracking.tracker import load_network

@@ -1,5 +1,5 @@
-"""``scripts/motion_oracle.py`` (docs/real.md "What a tracker would need to know"): the truth's jerk, the state change
-it makes, the oracle filter against FilterPy, and the script's rows against the filters run here."""
+"""``scripts/motion_oracle.py`` (docs/notebook/real-flights.md "What a tracker would need to know"): the truth's jerk,
+the state change it makes, the oracle filter against FilterPy, and the script's rows against the filters run here."""
 
 import json
 import math

@@ -1,5 +1,5 @@
-"""``scripts/noise_oracle.py`` (docs/real.md "How far the noise can take a tracker"): the per-window choice of a
-method's settings made with the truth, checked against the method's own runs and a hand computation."""
+"""``scripts/noise_oracle.py`` (docs/notebook/real-flights.md "How far the noise can take a tracker"): the per-window
+choice of a method's settings made with the truth, checked against the method's own runs and a hand computation."""
 
 import json
 import runpy

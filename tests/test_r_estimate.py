@@ -1,5 +1,6 @@
-"""``scripts/r_estimate.py`` (docs/real.md "Estimating r at 4.5-5.5 s"): its third divided differences cancel CV
-and CA motion at any scan spacing, give an unbiased r^2 under measurement noise, and are the network's own estimate."""
+"""``scripts/r_estimate.py`` (docs/notebook/real-flights.md "Estimating r at 4.5-5.5 s"): its third divided
+differences cancel CV and CA motion at any scan spacing, give an unbiased r^2 under measurement noise, and are the
+network's own estimate."""
 
 import runpy
 

@@ -93,10 +93,10 @@ def test_covariances_are_calibrated_on_the_test_flights(outputs, case, who):
     mask[:, 20:] = True  # past the track start
     cov = coverage(nees, mask)
     assert 0.90 <= cov[0.95] <= 0.98, cov
-    # an output correction moves the estimate and reports its filter's covariance (docs/real.md, "An output correction
-    # on the best filter": slightly wide for the corrected estimate), so its 50 % ellipsoid may hold a little more
-    # (real-4.5-12s at 6-8 s: 0.591 on the test flights, 0.587 on the validation flights), and so may the bank's, the
-    # mixture of such members' covariances (docs/real.md, "Calibration": 0.583 at 6-8 s, 0.581 at 10-12 s)
+    # an output correction moves the estimate and reports its filter's covariance (docs/notebook/real-flights.md, "An
+    # output correction on the best filter": slightly wide for the corrected estimate), so its 50 % ellipsoid may hold a
+    # little more (real-4.5-12s at 6-8 s: 0.591 on the test flights, 0.587 on the validation flights), and so may the
+    # bank's, the mixture of such members' covariances (docs/real.md, "Calibration": 0.583 at 6-8 s, 0.581 at 10-12 s)
     hi = 0.60 if who == "network" and (case[0] in CORRECTED or case[0] == "bank") else 0.58
     assert 0.45 <= cov[0.5] <= hi, cov
 

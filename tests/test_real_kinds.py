@@ -1,5 +1,5 @@
-"""``scripts/real_kinds.py`` (docs/real.md, "Where the held-out error is, by kind of flight"): each window's flight is
-found in the sample that holds it, and the kinds are the samples' folders."""
+"""``scripts/real_kinds.py`` (docs/notebook/real-flights.md, "Where the held-out error is, by kind of flight"): each
+window's flight is found in the sample that holds it, and the kinds are the samples' folders."""
 
 import runpy
 

@@ -1,5 +1,5 @@
-"""KalmanNet's learned state correction (``KalmanNetFilterGain(state_correction=...)``, docs/real.md "A learned
-state correction"): the update adds it to each expert's posterior mean and leaves the covariance the filter's;
+"""KalmanNet's learned state correction (``KalmanNetFilterGain(state_correction=...)``, docs/notebook/real-flights.md "A
+learned state correction"): the update adds it to each expert's posterior mean and leaves the covariance the filter's;
 knocked out, the network is exactly the one without it; bad settings are refused by name."""
 
 import pytest

@@ -1,4 +1,4 @@
-"""Real ADS-B flights: read a sample file, clean it and cut it into flights (docs/data.md, "Real flights").
+"""Real ADS-B flights: read a sample file, clean it and cut it into flights (docs/real-data.md, "Real flights").
 
 A sample is a file of ADS-B state vectors, one record per aircraft and time: ``timestamp``
 (epoch, ms or s, or an ISO 8601 string), ``icao24`` (the transponder's address), ``latitude``,

@@ -18,9 +18,9 @@ network that passes over it many times can learn that region's headings and the 
   at the rate of a coordinated turn banked ``turn_bank`` degrees at the track's mean speed, ``g tan(bank) / v``
   (30 deg at 100 m/s: 3.2 deg/s; at 230 m/s: 1.4 deg/s), rolling from one rate to the next in ``ROLL_S`` seconds.
   Each track keeps its own speed profile, vertical profile and turns; on top of them it flies orbits, racetracks and
-  S-turns, which the training flights of one region hold few of (docs/real.md, "Turns added to the training
-  flights"). Its draws come from a generator of their own, so ``rotate`` and ``renoise`` draw the same views with and
-  without it.
+  S-turns, which the training flights of one region hold few of (docs/notebook/real-flights.md, "Turns added to the
+  training flights"). Its draws come from a generator of their own, so ``rotate`` and ``renoise`` draw the same views
+  with and without it.
 
 Validation and test batches are never changed. ``LASTDataModule(augment=...)`` applies it (docs/training.md).
 """

@@ -270,7 +270,7 @@ def check_flights(train: list, others: list) -> None:
     ``(path, meta)`` of the run's training sets and of its validation and test sets. Every real-flight set
     (``immnet data adsb``) names its whole partition (``meta["flights"]``), so a training set's flights are checked
     against the validation and test flights of each real-flight set of the same samples in the run, its own partition
-    included: sets of one region written at different scan intervals may split the flights differently (docs/data.md,
+    included: sets of one region written at different scan intervals may split the flights differently (docs/real-data.md,
     "One partition per region"). A ValueError names both sets, the count and a flight."""
     def real(sets):  # (path, meta, its samples' digests) of the sets that name flights (3D-LAST's do not)
         return [(p, m, sample_digests(m)) for p, m in sets if isinstance(m, dict) and isinstance(m.get("flights"), dict)]
@@ -290,7 +290,7 @@ def check_flights(train: list, others: list) -> None:
                     raise ValueError(
                         f"{path} trains on {len(seen)} flight(s) that the set of {other_path} keeps for {split} (e.g. "
                         f"{seen[0]}): its sets split the flights otherwise. Write one set with `immnet data adsb "
-                        f"--splits-from` the other (docs/data.md, \"One partition per region\"), or set "
+                        f"--splits-from` the other (docs/real-data.md, \"One partition per region\"), or set "
                         f"allow_seen_flights: true to train on them anyway")
 
 

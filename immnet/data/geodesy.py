@@ -1,6 +1,6 @@
 """WGS-84 geodesy: geodetic <-> Earth-centred Earth-fixed (ECEF) <-> local east-north-up (ENU).
 
-Exact formulas in float64, Earth curvature kept (docs/data.md, "Real flights"). With the semi-major
+Exact formulas in float64, Earth curvature kept (docs/real-data.md, "Real flights"). With the semi-major
 axis ``a``, flattening ``f``, ``e^2 = f (2 - f)`` and the prime-vertical radius
 ``N(phi) = a / sqrt(1 - e^2 sin^2 phi)``, a point at latitude ``phi``, longitude ``lam`` and height
 ``h`` above the ellipsoid is::

@@ -1,4 +1,4 @@
-"""Data sets of real flights seen by a simulated radar: ``immnet data adsb`` (docs/data.md, "Real flights").
+"""Data sets of real flights seen by a simulated radar: ``immnet data adsb`` (docs/real-data.md, "Real flights").
 
 Pipeline: read and clean ADS-B samples into flights (:mod:`immnet.data.adsb`); convert their fresh
 positions to the radar site's east-north-up frame (:mod:`immnet.data.geodesy`); lay each flight's scan
@@ -569,8 +569,8 @@ def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), se
     (``immnet.data.augment``: segments of ``segment`` seconds, half of them turning at a coordinated turn's rate
     for a bank drawn from ``bank`` degrees) and measured again with its own ``r`` (its missed scans stay missed);
     no rotation, so each window stays where its radar saw it. A validation set of the training region's own
-    flights that turns as much as patterns and orbits do (docs/real.md, "Turns added to the training flights").
-    ``meta.json`` is the source's with ``turns`` added (``turns``, ``bank``, ``segment``, ``seed``)."""
+    flights that turns as much as patterns and orbits do (docs/notebook/real-flights.md, "Turns added to the training
+    flights"). ``meta.json`` is the source's with ``turns`` added (``turns``, ``bank``, ``segment``, ``seed``)."""
     import torch
     from tensordict import TensorDict
 

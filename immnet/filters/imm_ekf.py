@@ -100,7 +100,7 @@ class IMMEKF(Method):
         one = fixed_interval(intervals)
         if one is not None:  # one interval for every track and scan: the network at that interval
             out, _ = self.network(one).to(z.device).rollout(z, return_cov=self.return_cov)
-        else:  # each scan's interval per track (docs/baselines.md, "Any scan interval")
+        else:  # each scan's interval per track (docs/baselines.md, "Scan intervals")
             out, _ = self.network(1.0).to(z.device).rollout(z, intervals=intervals, return_cov=self.return_cov)
         probs = data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], self.model_set.modes)
         cov = out[keys.STATE_COV] if self.return_cov else None

@@ -95,7 +95,7 @@ class TransformerClassifier(Stage):
         modes: str = "joint",
     ):
         """``interval_input``: each token also reads its scan's interval, ``log(interval / dt)`` (a network
-        trained over a range of intervals, docs/immnet.md "Any scan interval"). ``modes``: modes per group
+        trained over a range of intervals, docs/stages.md "Any scan interval"). ``modes``: modes per group
         (``IMMNet``'s, set there once): the head gives logits per group and mode, ``[B, G, M]``."""
         super().__init__(model_set)
         self.window, self.dt, self.interval_input = window, dt, bool(interval_input)
@@ -406,7 +406,8 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
 
     def knock_out(self) -> None:
         """Set the Transformer's correction to zero (its head's last layer): the IMM's mode update exactly. An
-        untrained classifier starts so; on a trained one it measures what the correction is worth (docs/real.md)."""
+        untrained classifier starts so; on a trained one it measures what the correction is worth
+        (docs/notebook/real-flights.md, "What each learned part is worth")."""
         with torch.no_grad():
             self.head[-1].weight.zero_()
             self.head[-1].bias.zero_()

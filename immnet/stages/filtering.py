@@ -106,7 +106,7 @@ def _noise_components(own_acc, own_rate, dt, nominal: float | None = None) -> to
     ``dt`` a float (the nominal interval: the acceleration and turn-rate components are per scan) or a
     tensor ``[B]`` of intervals (``[B, M, 5, 10, 10]``): the white-acceleration components of that interval,
     the random-walk ones (acceleration, turn rate) scaled by ``dt / nominal``, a variance per unit time
-    (docs/immnet.md, "Any scan interval")."""
+    (docs/stages.md, "Any scan interval")."""
     dtype = dt.dtype if isinstance(dt, torch.Tensor) else torch.float64
     G = noise_gain(dt, "white", dtype=dtype, device=dt.device if isinstance(dt, torch.Tensor) else None)  # [..., 9, 3]
     lead = G.shape[:-2]

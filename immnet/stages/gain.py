@@ -112,7 +112,8 @@ class KalmanNetGain(Stage):
     def knock_out(self) -> None:
         """Set FC2's last layer to zero: no learned correction, each expert its model-based base (here the
         steady-state Kalman gain; filter experts: the filter at its base process noise with its own Kalman gain,
-        ``FilterGain``). For measuring what the learned part of a trained network is worth (docs/real.md)."""
+        ``FilterGain``). For measuring what the learned part of a trained network is worth
+        (docs/notebook/real-flights.md, "What each learned part is worth")."""
         with torch.no_grad():
             self.fc2b.weight.zero_()
             self.fc2b.bias.zero_()

@@ -1,6 +1,6 @@
 """Track starts as stages of the step: ``TrackStart`` first, ``JoinStarts`` last.
 
-A track starts from two detections (docs/immnet.md, "Track start"): at its first the estimate is
+A track starts from two detections (docs/stages.md, "Track start and missed detections"): at its first the estimate is
 ``[z_0, 0, 0]``, at its second ``[z_1, (z_1 - z_0) / elapsed, 0]`` (position and differenced velocity,
 ``elapsed`` the time since the first detection, missed scans between counting), and from its third scan on
 the step's estimate is the track's. Tracks start independently (the carry holds each one's ``age``), so
