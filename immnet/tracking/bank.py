@@ -40,7 +40,8 @@ from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurement
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
 from immnet.tracking.networks import (
-    KEEP, coast_cuts, coast_scan, load_network, read_checkpoint, run_network, select_rows, trained_for,
+    KEEP, as_measurements, check_batch, check_n_tracks, check_nan_intervals, coast_cuts, coast_scan, load_network,
+    per_track, read_checkpoint, run_network, select_rows, trained_for,
 )
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
@@ -205,6 +206,7 @@ class NetworkBank:
         intervals = torch.as_tensor(intervals, dtype=torch.float64)
         if tuple(intervals.shape) != tuple(z.shape[:2]):
             raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
+        check_nan_intervals(intervals, "intervals")
         takes = self.takes(intervals)
         self.check(intervals, takes)
         self.n_gated = gate_measurements(z, self.max_position)[1]  # each member gates the same rows as it runs
@@ -278,6 +280,7 @@ class NetworkBank:
         if self.carries is None or self.log_w.shape[0] != B:
             self.reset(B)
         interval = torch.as_tensor(self.dt if dt is None else dt, dtype=torch.float64).reshape(-1).expand(B)
+        check_nan_intervals(interval, "dt")
         log_w, fresh = self.log_w.clone(), self.fresh.clone()
         reset = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
         if reset is not None:

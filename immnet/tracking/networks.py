@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import copy
 import inspect
+import numbers
 from pathlib import Path
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 
@@ -215,3 +217,57 @@ def select_rows(mask, a: TensorDict, b: TensorDict) -> TensorDict:
     """``a``'s rows where ``mask`` [B], ``b``'s elsewhere, over ``a``'s keys (a fresh carry for the tracks that
     restart)."""
     return _where(mask, a, b.select(*a.keys(True, True)))
+
+
+# --- the streaming and whole-sequence APIs' input checks: one line naming what is wrong, before anything changes ----
+def as_measurements(z, dims: int) -> torch.Tensor:
+    """``z`` as float32 measurements ``[n_tracks, 3]`` (``dims`` 2, a scan) or ``[n_tracks, T, 3]`` (3, sequences); a
+    ValueError for another shape, no track or no scan, and for booleans or complex numbers (which a cast would turn
+    into positions without a word)."""
+    raw = z if isinstance(z, torch.Tensor) else torch.as_tensor(np.asarray(z))
+    if raw.dtype == torch.bool or raw.is_complex():
+        raise ValueError(f"measurements are real numbers of metres, got {raw.dtype}".replace("torch.", ""))
+    z = raw.to(torch.float32)
+    shape = "[n_tracks, 3]" if dims == 2 else "[n_tracks, T, 3]"
+    what = "a scan of measurements is" if dims == 2 else "measurements are"
+    if z.dim() != dims or z.shape[-1] != 3:
+        raise ValueError(f"{what} {shape}, got {tuple(z.shape)}")
+    if z.shape[0] == 0 or (dims == 3 and z.shape[1] == 0):
+        raise ValueError(f"{what} {shape} with at least one track{'' if dims == 2 else ' and one scan'}, "
+                         f"got {tuple(z.shape)}")
+    return z
+
+
+def check_n_tracks(n_tracks) -> int:
+    """``n_tracks`` as an int; a ValueError unless it is a whole number of at least 1 (a bool is not one)."""
+    if isinstance(n_tracks, (bool, np.bool_)) or not isinstance(n_tracks, (numbers.Integral, torch.Tensor)) \
+            or (isinstance(n_tracks, torch.Tensor) and (n_tracks.numel() != 1 or n_tracks.dtype.is_floating_point
+                                                        or n_tracks.dtype == torch.bool)) or int(n_tracks) < 1:
+        raise ValueError(f"reset(n_tracks) takes a whole number of tracks, at least 1, got {n_tracks!r}")
+    return int(n_tracks)
+
+
+def check_batch(held: int | None, n: int) -> None:
+    """A ValueError where a scan of ``n`` rows comes to a tracker holding ``held`` tracks (None: none yet, the scan
+    sizes it)."""
+    if held is not None and held != n:
+        raise ValueError(f"this tracker holds {held} tracks but the scan has {n} rows: give one row per track (NaN for "
+                         f"a missed detection), or reset({n}) first")
+
+
+def per_track(value, n: int, name: str, dtype=torch.float64) -> torch.Tensor:
+    """``value`` (one number or one per track) as ``[n]``; a ValueError naming both lengths otherwise."""
+    v = torch.as_tensor(value, dtype=dtype).reshape(-1)
+    if v.numel() not in (1, n):
+        raise ValueError(f"{name} has {v.numel()} values for {n} tracks: give one, or one per track")
+    return v.expand(n)
+
+
+def check_nan_intervals(intervals: torch.Tensor, name: str) -> None:
+    """A ValueError naming the first NaN interval of ``intervals`` (``[B]`` a step's ``dt``, ``[B, T]`` a sequence's);
+    ``check_dt`` refuses the other intervals a network was not trained at (0, negative, inf)."""
+    nan = torch.isnan(intervals)
+    if bool(nan.any()):
+        where = nan.nonzero()[0].tolist()
+        at = f"track {where[0]}" + (f", scan {where[1]}" if len(where) > 1 else "")
+        raise ValueError(f"{name} is NaN at {at}: the time since a track's previous scan is a number of seconds")

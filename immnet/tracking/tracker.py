@@ -36,8 +36,8 @@ from immnet.filters.base import blank_before_first_detection
 from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    KEEP, check_dt, coast_cuts, coast_long_gaps, coast_scan, load_network, read_checkpoint, run_network, select_rows,
-    trained_for,
+    KEEP, as_measurements, check_batch, check_dt, check_n_tracks, check_nan_intervals, coast_cuts, coast_long_gaps,
+    coast_scan, load_network, per_track, read_checkpoint, run_network, select_rows, trained_for,
 )
 
 
@@ -115,6 +115,8 @@ class Tracker:
         mask = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
         first = self.fresh if mask is None else self.fresh | mask  # each track's first scan since a reset
         interval = None if dt is None else torch.as_tensor(dt, dtype=torch.float64).reshape(-1).expand(z.shape[0])
+        if interval is not None:
+            check_nan_intervals(interval, "dt")
         if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
             cuts, each = coast_cuts(self.net, interval, first)
             bad = ~trained_for(self.net, each)
@@ -164,6 +166,8 @@ class Tracker:
         self._check_told(r)
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
+        if intervals is not None:
+            check_nan_intervals(torch.as_tensor(intervals, dtype=torch.float64), "intervals")
         out, self.n_gated = run_network(self.net, z, batch_size, intervals, return_cov, r, return_loglik,
                                         self.max_position)
         return out

@@ -1,0 +1,80 @@
+"""The streaming Python API (``Tracker`` and ``NetworkBank``: ``reset``, ``step``, ``track``) refuses bad input with one
+line naming what is wrong, before anything of the tracker's state changes."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from immnet import keys
+from immnet.data.generate import generate
+from immnet.data.spec import DataSpec
+from immnet.tracking.bank import NetworkBank
+from immnet.tracking.tracker import Tracker
+
+
+@pytest.fixture(scope="module")
+def z():
+    return generate(3, seed=5, spec=DataSpec(T=30, min_segment=10))[keys.MEASUREMENTS].float()
+
+
+@pytest.fixture(scope="module")
+def general():
+    return Tracker.pretrained("general")
+
+
+@pytest.fixture(scope="module")
+def bank():
+    return NetworkBank.from_names()  # the shipped bank, Tracker.pretrained()'s
+
+
+def _state(tracker):
+    """Everything a step may change, copied."""
+    if isinstance(tracker, NetworkBank):
+        carry = {name: c.clone() for name, c in tracker.carries.items()}
+        return carry, tracker.log_w.clone(), tracker.fresh.clone(), tracker.n_gated
+    return tracker.carry.clone(), tracker.fresh.clone(), tracker.n_gated
+
+
+def _same(a, b) -> bool:
+    """Two ``_state``s equal to the bit (NaN where NaN)."""
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (tuple, list)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, torch.Tensor):
+        return torch.equal(a.isnan(), b.isnan()) and torch.equal(a.nan_to_num(), b.nan_to_num())
+    if hasattr(a, "to_dict"):
+        return _same(a.to_dict(), b.to_dict())
+    return a == b
+
+
+def _started(tracker, z, n=5):
+    tracker.reset(z.shape[0])
+    for t in range(n):
+        tracker.step(z[:, t], dt=1.0)
+    return _state(tracker)
+
+
+@pytest.mark.parametrize("which", ["general", "bank"])
+def test_a_nan_interval_is_refused_before_anything_changes(which, request, z):
+    """``step(dt=nan)``, a NaN among a step's intervals and a NaN in ``track``'s intervals are refused, naming where,
+    as dt 0, -1 and inf are; the tracker's carry, fresh flags and gated count are as before, and it runs on."""
+    tracker = request.getfixturevalue(which)
+    before = _started(tracker, z)
+    with pytest.raises(ValueError, match=r"^dt is NaN at track 0: the time since a track's previous scan is a number"):
+        tracker.step(z[:, 5], dt=float("nan"))
+    with pytest.raises(ValueError, match=r"^dt is NaN at track 1:"):
+        tracker.step(z[:, 5], dt=[1.0, float("nan"), 1.0])
+    for bad in (0.0, -1.0, math.inf):
+        with pytest.raises(ValueError):
+            tracker.step(z[:, 5], dt=bad)
+    assert _same(_state(tracker), before)
+    iv = torch.ones(z.shape[:2], dtype=torch.float64)
+    iv[2, 7] = float("nan")
+    with pytest.raises(ValueError, match=r"^intervals is NaN at track 2, scan 7:"):
+        tracker.track(z, intervals=iv)
+    assert _same(_state(tracker), before)
+    out = tracker.step(z[:, 5], dt=1.0)
+    assert torch.isfinite(out[keys.FUSED]).all()
