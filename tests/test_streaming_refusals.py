@@ -78,3 +78,29 @@ def test_a_nan_interval_is_refused_before_anything_changes(which, request, z):
     assert _same(_state(tracker), before)
     out = tracker.step(z[:, 5], dt=1.0)
     assert torch.isfinite(out[keys.FUSED]).all()
+
+
+@pytest.mark.parametrize("which", ["general", "bank"])
+def test_a_scan_of_another_number_of_tracks_is_refused(which, request, z):
+    """After ``reset(3)`` a scan of 2 rows is refused, naming both numbers, and the three tracks run on as if it had
+    not come (their velocities not back to 0); a first scan without a reset sizes the tracker."""
+    tracker = request.getfixturevalue(which)
+    before = _started(tracker, z)
+    with pytest.raises(ValueError, match=r"^this tracker holds 3 tracks but the scan has 2 rows: give one row per "
+                                         r"track \(NaN for a missed detection\), or reset\(2\) first$"):
+        tracker.step(z[:2, 5], dt=1.0)
+    assert _same(_state(tracker), before)
+    torch.testing.assert_close(tracker.step(z[:, 5], dt=1.0)[keys.FUSED], _replay(tracker, z, 6)[keys.FUSED],
+                               rtol=0, atol=0)
+    fresh = Tracker.pretrained("general") if which == "general" else NetworkBank.from_names(["general"])
+    fresh.step(z[:2, 0])  # no reset: the first scan sizes it
+    with pytest.raises(ValueError, match="holds 2 tracks but the scan has 3 rows"):
+        fresh.step(z[:, 1])
+
+
+def _replay(tracker, z, n):
+    """The tracker's output at scan ``n - 1`` of ``z`` at 1 s, run again from a reset."""
+    tracker.reset(z.shape[0])
+    for t in range(n):
+        out = tracker.step(z[:, t], dt=1.0)
+    return out

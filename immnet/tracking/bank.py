@@ -265,7 +265,8 @@ class NetworkBank:
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
-        """One scan ``z [B, 3]`` (NaN: a missed detection) of every track, as ``Tracker.step``: ``reset [B]`` restarts
+        """One scan ``z [B, 3]`` (NaN: a missed detection) of every track (as many as the last ``reset``'s; the first
+        scan without one sets their number), as ``Tracker.step``: ``reset [B]`` restarts
         those tracks (each member at its prior again), ``dt`` the time since each track's previous scan (a number or
         ``[B]``, s; None: ``self.dt``; a track's first scan after a reset takes it as nominal, ``track``'s scan 0).
         A member trained over a range coasts an interval longer than the range as ``track`` does (missed scans inside
@@ -277,7 +278,8 @@ class NetworkBank:
         if z.dim() != 2 or z.shape[-1] != 3:
             raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
         B = z.shape[0]
-        if self.carries is None or self.log_w.shape[0] != B:
+        check_batch(None if self.carries is None else self.log_w.shape[0], B)
+        if self.carries is None:
             self.reset(B)
         interval = torch.as_tensor(self.dt if dt is None else dt, dtype=torch.float64).reshape(-1).expand(B)
         check_nan_intervals(interval, "dt")

@@ -90,7 +90,9 @@ class Tracker:
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None, r=None) -> TensorDict:
-        """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks;
+        """One scan ``z [B, 3]`` (NaN = missed detection), one row per track: the tracks of the last ``reset`` (the first
+        scan without one sets their number; a scan of another number of rows is refused); ``reset [B]`` bool restarts
+        those tracks;
         ``dt`` the time since each track's previous scan (a number or ``[B]``, seconds; None: the
         network's ``net.dt``), checked against the intervals the network was trained at
         (:func:`check_dt`) and passed to ``IMMNet.scan`` as its ``interval``: for a network trained over a range, an
@@ -110,7 +112,8 @@ class Tracker:
         if z.dim() != 2 or z.shape[-1] != 3:
             raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
         self._check_told(r)  # before anything of the tracker's state changes
-        if self.carry is None or self.carry.batch_size[0] != z.shape[0]:
+        check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
+        if self.carry is None:
             self.reset(z.shape[0])
         mask = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
         first = self.fresh if mask is None else self.fresh | mask  # each track's first scan since a reset
