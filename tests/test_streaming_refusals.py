@@ -104,3 +104,33 @@ def _replay(tracker, z, n):
     for t in range(n):
         out = tracker.step(z[:, t], dt=1.0)
     return out
+
+
+@pytest.mark.parametrize("which", ["general", "bank"])
+def test_bad_numbers_of_tracks_lengths_and_kinds_of_measurement_are_refused(which, request, z):
+    """``reset`` of a negative, fractional or boolean number of tracks; ``track`` of no track or no scan; a dt list
+    (or reset mask) of another length than the scan's, naming both; boolean or complex measurements, in ``step`` and
+    ``track``: one ValueError each, the tracker as before."""
+    tracker = request.getfixturevalue(which)
+    before = _started(tracker, z)
+    for n in (-1, 0, 2.5, True, "3"):
+        with pytest.raises(ValueError, match=r"^reset\(n_tracks\) takes a whole number of tracks, at least 1, got "):
+            tracker.reset(n)
+    with pytest.raises(ValueError, match=r"^measurements are \[n_tracks, T, 3\] with at least one track and one "
+                                         r"scan, got \(0, 30, 3\)$"):
+        tracker.track(z[:0])
+    with pytest.raises(ValueError, match=r"got \(3, 0, 3\)$"):
+        tracker.track(z[:, :0])
+    with pytest.raises(ValueError, match=r"^dt has 2 values for 3 tracks: give one, or one per track$"):
+        tracker.step(z[:, 5], dt=[1.0, 1.0])
+    with pytest.raises(ValueError, match=r"^reset has 2 values for 3 tracks"):
+        tracker.step(z[:, 5], reset=[True, False])
+    for kind, bad in (("bool", z[:, 5] > 0), ("complex64", z[:, 5].to(torch.complex64)),
+                      ("bool", np.ones((3, 3), dtype=bool))):
+        with pytest.raises(ValueError, match=rf"^measurements are real numbers of metres, got {kind}$"):
+            tracker.step(bad)
+    with pytest.raises(ValueError, match=r"^measurements are real numbers of metres, got complex128$"):
+        tracker.track(z.numpy().astype(np.complex128))
+    assert _same(_state(tracker), before)
+    tracker.reset(np.int64(2))  # a whole number of any integer type
+    assert tracker.step(z[:2, 0])[keys.FUSED].shape == (2, 9)

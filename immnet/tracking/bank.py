@@ -198,9 +198,7 @@ class NetworkBank:
         if r is not None:
             raise ValueError("a bank's members estimate each track's measurement std; to give them the radar's, build "
                              "the bank with r=METRES (NetworkBank.from_names, Tracker.pretrained('bank', r=...))")
-        z = torch.as_tensor(measurements, dtype=torch.float32)
-        if z.dim() != 3 or z.shape[-1] != 3:
-            raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
+        z = as_measurements(measurements, 3)
         if intervals is None:
             intervals = torch.full(z.shape[:2], self.dt, dtype=torch.float64)
         intervals = torch.as_tensor(intervals, dtype=torch.float64)
@@ -257,7 +255,9 @@ class NetworkBank:
         return after.select(*net.carry_keys, *((keys.OUTPUT,) if self._keeps_report(net) else ()))
 
     def reset(self, n_tracks: int) -> None:
-        """``n_tracks`` tracks that have not started, each member at its prior; ``n_gated`` back to 0."""
+        """``n_tracks`` (a whole number, at least 1) tracks that have not started, each member at its prior;
+        ``n_gated`` back to 0."""
+        n_tracks = check_n_tracks(n_tracks)
         self.carries = {name: self._fresh(net, n_tracks) for name, net in self.members.items()}
         self.log_w = self.log_prior.expand(n_tracks, -1).clone()
         self.fresh = torch.ones(n_tracks, dtype=torch.bool)  # no scan yet: the first one's interval is nominal
@@ -274,17 +274,16 @@ class NetworkBank:
         restarts); a scan no member still in the track can take is refused before anything changes. Returns
         ``("fused", "state")``, ``("fused", "cov")``, ``mode_probs`` and ``member_probs [B, K]``, NaN before a track's
         first detection. Over a sequence, ``track``'s numbers."""
-        z = torch.as_tensor(z, dtype=torch.float32)
-        if z.dim() != 2 or z.shape[-1] != 3:
-            raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
+        z = as_measurements(z, 2)
         B = z.shape[0]
         check_batch(None if self.carries is None else self.log_w.shape[0], B)
-        if self.carries is None:
-            self.reset(B)
-        interval = torch.as_tensor(self.dt if dt is None else dt, dtype=torch.float64).reshape(-1).expand(B)
+        interval = per_track(self.dt if dt is None else dt, B, "dt")
         check_nan_intervals(interval, "dt")
-        log_w, fresh = self.log_w.clone(), self.fresh.clone()
-        reset = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
+        reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
+        if self.carries is None:  # the first scan without a reset: as after reset(B)
+            log_w, fresh = self.log_prior.expand(B, -1).clone(), torch.ones(B, dtype=torch.bool)
+        else:
+            log_w, fresh = self.log_w.clone(), self.fresh.clone()
         if reset is not None:
             log_w[reset] = self.log_prior
             fresh |= reset
@@ -297,6 +296,8 @@ class NetworkBank:
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
                              f"a scan after {float(interval[lost[0]]):g} s")
+        if self.carries is None:
+            self.reset(B)
         z, n_gated = gate_measurements(z, self.max_position)
         self.n_gated += n_gated
         K = len(self.names)

@@ -83,7 +83,8 @@ class Tracker:
         return cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
 
     def reset(self, n_tracks: int) -> None:
-        """``n_tracks`` tracks that have not started; ``n_gated`` back to 0."""
+        """``n_tracks`` (a whole number, at least 1) tracks that have not started; ``n_gated`` back to 0."""
+        n_tracks = check_n_tracks(n_tracks)
         self.carry = self.net.initial_carry(n_tracks)
         self.fresh = torch.ones(n_tracks, dtype=torch.bool)
         self.n_gated = 0
@@ -108,27 +109,26 @@ class Tracker:
         reports it (``IMMNet.reported_cov``: times its consistency scale where it keeps one); the paper's
         KalmanNet experts give none (no such key).
         """
-        z = torch.as_tensor(z, dtype=torch.float32)
-        if z.dim() != 2 or z.shape[-1] != 3:
-            raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
+        z = as_measurements(z, 2)
         self._check_told(r)  # before anything of the tracker's state changes
         check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
-        if self.carry is None:
-            self.reset(z.shape[0])
-        mask = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
-        first = self.fresh if mask is None else self.fresh | mask  # each track's first scan since a reset
-        interval = None if dt is None else torch.as_tensor(dt, dtype=torch.float64).reshape(-1).expand(z.shape[0])
+        mask = None if reset is None else per_track(reset, z.shape[0], "reset", torch.bool)
+        fresh = torch.ones(z.shape[0], dtype=torch.bool) if self.carry is None else self.fresh
+        first = fresh if mask is None else fresh | mask  # each track's first scan since a reset
+        interval = None if dt is None else per_track(dt, z.shape[0], "dt")
+        told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
         if interval is not None:
             check_nan_intervals(interval, "dt")
         if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
             cuts, each = coast_cuts(self.net, interval, first)
             bad = ~trained_for(self.net, each)
             check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
+        if self.carry is None:  # the first scan without a reset: its number of tracks
+            self.reset(z.shape[0])
         z, n_gated = gate_measurements(z, self.max_position)
         self.n_gated += n_gated
         if mask is not None:
             self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
-        told = None if r is None else torch.as_tensor(r, dtype=torch.float32).reshape(-1).expand(z.shape[0])
         if interval is None:
             self.carry = self.net.scan(self.carry, z, r=told)
         else:
@@ -163,9 +163,7 @@ class Tracker:
         (:func:`coast_long_gaps`; the output holds the scans given). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
         (``FilterGain(r="data")``). ``return_loglik``: also each scan's
         measurement log-likelihood under the network's prediction, ``loglik [B, T]`` (``IMMNet.predictive_loglik``)."""
-        z = torch.as_tensor(measurements, dtype=torch.float32)
-        if z.dim() != 3 or z.shape[-1] != 3:
-            raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
+        z = as_measurements(measurements, 3)
         self._check_told(r)
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
