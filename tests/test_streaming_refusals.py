@@ -134,3 +134,26 @@ def test_bad_numbers_of_tracks_lengths_and_kinds_of_measurement_are_refused(whic
     assert _same(_state(tracker), before)
     tracker.reset(np.int64(2))  # a whole number of any integer type
     assert tracker.step(z[:2, 0])[keys.FUSED].shape == (2, 9)
+
+
+def test_a_tracker_says_what_it_is():
+    """``print(Tracker.pretrained())`` (the bank) names each member, the scan intervals it serves and where its
+    provenance is; ``print(Tracker.pretrained("real"))`` the network, its interval and provenance; neither an object
+    address. Each provenance named is a file shipped in the package."""
+    from immnet.checkpoints import PRETRAINED
+    from immnet.tracking.bank import DEFAULT_MEMBERS
+
+    bank = repr(Tracker.pretrained())
+    assert " at 0x" not in bank and "PROVENANCE-bank.md" in bank.splitlines()[0]
+    bands = {"general": "0.5-12 s", "real": "1 s", "real-5s": "4.5-5.5 s", "real-11s": "10-12 s",
+             "real-4.5-12s": "4.5-12 s", "3dlast": "1 s"}
+    files = {name: f"PROVENANCE-{name}.md" for name in bands} | {"3dlast": "PROVENANCE.md"}
+    lines = bank.splitlines()[1:]
+    assert [line.split()[0] for line in lines] == list(DEFAULT_MEMBERS)
+    for line in lines:
+        name = line.split()[0]
+        assert f"scans of {bands[name]} " in line and line.rstrip(")").endswith(f"immnet/pretrained/{files[name]}")
+        assert (PRETRAINED.parent / files[name]).is_file()
+    real = repr(Tracker.pretrained("real"))
+    assert real == "Tracker(real: scans of 1 s, no range guard; provenance immnet/pretrained/PROVENANCE-real.md)"
+    assert "range guard;" in repr(Tracker.pretrained("3dlast")).replace("no range guard", "")

@@ -40,8 +40,8 @@ from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurement
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
 from immnet.tracking.networks import (
-    KEEP, as_measurements, check_batch, check_n_tracks, check_nan_intervals, coast_cuts, coast_scan, load_network,
-    per_track, read_checkpoint, run_network, select_rows, trained_for,
+    KEEP, as_measurements, check_batch, check_n_tracks, check_nan_intervals, coast_cuts, coast_scan, guarded,
+    load_network, per_track, provenance_of, read_checkpoint, run_network, scans_served, select_rows, trained_for,
 )
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
@@ -64,10 +64,6 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     return (trained_for(net, each) | torch.isnan(intervals)).all(-1)
 
 
-def _scans(net: IMMNet) -> str:
-    """The scan intervals a network was trained for, as an error names them: ``0.5-12 s`` or ``1 s``."""
-    span = getattr(net, "interval_range", None)
-    return f"{span[0]:g}-{span[1]:g} s" if span is not None else f"{net.dt:g} s"
 
 
 def _member_path(member: str | Path) -> Path:
@@ -142,6 +138,7 @@ class NetworkBank:
         self.log_prior = torch.tensor([math.log(p / total) for p in prior], dtype=torch.float64)
         self.n_gated = 0
         self.carries, self.log_w, self.fresh = None, None, None  # the streaming state (``reset``, ``step``)
+        self.paths = {name: None for name in self.names}  # each member's checkpoint, where it was loaded from one
         # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
         # ``immnet track`` hands the bank each row at its own time, uncut (``track_rows`` without ``max_interval``)
 
@@ -162,7 +159,24 @@ class NetworkBank:
             path = _member_path(m)
             joint = read_checkpoint(path)[0].get("modes", "joint") == "joint"
             nets[str(m)] = load_network(path, guard=guard if joint else None, adapt=adapt, r=r)
-        return cls(nets, prior, max_position, likelihood, temper)
+        bank = cls(nets, prior, max_position, likelihood, temper)
+        bank.paths = {str(m): _member_path(m) for m in members}
+        return bank
+
+    def __repr__(self) -> str:
+        """What the bank is: each member by name, the scan intervals it serves, its prior, its range guard and its
+        provenance, one line each."""
+        prior = torch.exp(self.log_prior).tolist()
+        width = max(len(n) for n in self.names)
+        lines = [f"  {name:<{width}}  scans of {scans_served(net):<10}  prior {p:.3g}, "
+                 f"{'range guard' if guarded(net) else 'no range guard'}; {provenance_of(self.paths[name])}"
+                 for (name, net), p in zip(self.members.items(), prior)]
+        shipped_bank = set(self.names) == set(DEFAULT_MEMBERS) and all(
+            p is not None and provenance_of(p).startswith("provenance") for p in self.paths.values())
+        about = "; provenance immnet/pretrained/PROVENANCE-bank.md" if shipped_bank else ""
+        return (f"NetworkBank({len(self.names)} member{'s' if len(self.names) > 1 else ''}, each weighed per track by "
+                f"how well it predicts the track: likelihood {self.likelihood!r}, temper {self.temper:g}{about}\n"
+                + "\n".join(lines) + ")")
 
     has_cov = True  # every member keeps one (checked when built)
 
@@ -179,7 +193,7 @@ class NetworkBank:
         takes = self.takes(intervals) if takes is None else takes
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
-            spans = ", ".join(f"{name} {_scans(net)}" for name, net in self.members.items())
+            spans = ", ".join(f"{name} {scans_served(net)}" for name, net in self.members.items())
             iv = torch.as_tensor(intervals, dtype=torch.float64)[lost[0]]
             iv = iv[~torch.isnan(iv)]
             raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in lost[:5])}"

@@ -271,3 +271,29 @@ def check_nan_intervals(intervals: torch.Tensor, name: str) -> None:
         where = nan.nonzero()[0].tolist()
         at = f"track {where[0]}" + (f", scan {where[1]}" if len(where) > 1 else "")
         raise ValueError(f"{name} is NaN at {at}: the time since a track's previous scan is a number of seconds")
+
+
+def guarded(net) -> bool:
+    """Whether ``net`` keeps a range guard (``immnet.imm.guard``: its rules read positions as radar-centred)."""
+    return any(getattr(m, "guard", None) is not None for m in net.modules())
+
+
+def scans_served(net) -> str:
+    """The scan intervals a network was trained for, as the trackers name them: ``0.5-12 s`` or ``1 s``."""
+    span = getattr(net, "interval_range", None)
+    return f"{span[0]:g}-{span[1]:g} s" if span is not None else f"{net.dt:g} s"
+
+
+def provenance_of(path) -> str:
+    """Where shipped weights' provenance is (``immnet/pretrained/PROVENANCE-NAME.md``, as the docs name it), else
+    the checkpoint's path (a network of one's own: no provenance shipped)."""
+    from immnet.checkpoints import PRETRAINED
+
+    if path is None:
+        return "no provenance (built in Python)"
+    path = Path(path)
+    tail = path.stem[len("immnet"):] if path.stem.startswith("immnet") else None
+    md = path.with_name(f"PROVENANCE{tail}.md") if tail is not None else None
+    if md is not None and path.resolve().parent == PRETRAINED.parent and md.is_file():
+        return f"provenance immnet/pretrained/{md.name}"
+    return f"no provenance shipped (checkpoint {path})"

@@ -37,7 +37,7 @@ from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
     KEEP, as_measurements, check_batch, check_dt, check_n_tracks, check_nan_intervals, coast_cuts, coast_long_gaps,
-    coast_scan, load_network, per_track, read_checkpoint, run_network, select_rows, trained_for,
+    coast_scan, guarded, load_network, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, trained_for,
 )
 
 
@@ -54,13 +54,22 @@ class Tracker:
         self.carry: TensorDict | None = None
         self.fresh: torch.Tensor | None = None  # [B] no scan yet since a reset: the first one's interval is nominal
         self.n_gated = 0
+        self.name, self.path = None, None  # what ``repr`` names: the shipped name or checkpoint it was loaded from
+
+    def __repr__(self) -> str:
+        """What the tracker is: its network, the scan intervals it serves, its range guard and its provenance."""
+        name = self.name or (str(self.path) if self.path is not None else type(self.net).__name__)
+        guard = "range guard" if guarded(self.net) else "no range guard"
+        return f"Tracker({name}: scans of {scans_served(self.net)}, {guard}; {provenance_of(self.path)})"
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
                         r=KEEP) -> "Tracker":
         """The IMMNet of a checkpoint; ``guard``, ``adapt`` and ``r`` as in ``load_network``; ``max_position`` the
         gate on measurements (``immnet.data.validate``)."""
-        return cls(load_network(path, guard, adapt, r), max_position)
+        tracker = cls(load_network(path, guard, adapt, r), max_position)
+        tracker.path = Path(path)
+        return tracker
 
     @classmethod
     def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
@@ -80,7 +89,9 @@ class Tracker:
         if name == BANK:
             return NetworkBank.from_names(guard=None if isinstance(guard, str) and guard == KEEP else guard, adapt=adapt,
                                           r=r, max_position=max_position)
-        return cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
+        tracker = cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
+        tracker.name = name
+        return tracker
 
     def reset(self, n_tracks: int) -> None:
         """``n_tracks`` (a whole number, at least 1) tracks that have not started; ``n_gated`` back to 0."""
