@@ -64,8 +64,6 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     return (trained_for(net, each) | torch.isnan(intervals)).all(-1)
 
 
-
-
 def _member_path(member: str | Path) -> Path:
     """A shipped network's file by name (``immnet.checkpoints.SHIPPED``), else the path as given."""
     return shipped(member) if isinstance(member, str) and member in SHIPPED else Path(member)
