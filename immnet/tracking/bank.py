@@ -39,9 +39,10 @@ from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
+from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
-    KEEP, as_measurements, check_batch, check_n_tracks, check_nan_intervals, coast_cuts, coast_scan, guarded,
-    load_network, per_track, provenance_of, read_checkpoint, run_network, scans_served, select_rows, trained_for,
+    KEEP, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
+    coast_scan, coast_step, guarded, load_network, per_track, provenance_of, read_checkpoint, run_network, scans_served, select_rows, trained_for,
 )
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
@@ -107,10 +108,11 @@ class NetworkBank:
     ``members``: name -> ``IMMNet`` (filter experts, each estimating its tracks' r); ``prior``: each member's prior
     probability (default: equal), positive, as many as members. ``likelihood``: ``LIKELIHOODS``; ``temper``: the
     power ``0 < temper <= 1`` of each scan's likelihood (a tempered posterior: members' densities that are too sure of
-    themselves weigh less). ``max_position``: the gate on measurements, as ``Tracker``'s."""
+    themselves weigh less). ``max_position``: the gate on measurements, ``max_coast`` the coasting limit, as
+    ``Tracker``'s."""
 
     def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER):
+                 likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST):
         if likelihood not in LIKELIHOODS:
             raise ValueError(f"a bank's likelihood is one of {', '.join(LIKELIHOODS)}, got {likelihood!r}")
         if not (isinstance(temper, (int, float)) and math.isfinite(temper) and 0 < temper <= 1):
@@ -136,6 +138,8 @@ class NetworkBank:
         self.log_prior = torch.tensor([math.log(p / total) for p in prior], dtype=torch.float64)
         self.n_gated = 0
         self.carries, self.log_w, self.fresh = None, None, None  # the streaming state (``reset``, ``step``)
+        self.since, self.last = None, None  # [B] s since each track's last detection (or start): ``max_coast``'s
+        self.max_coast = check_coast(max_coast, self.dt)
         self.paths = {name: None for name in self.names}  # each member's checkpoint, where it was loaded from one
         # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
         # ``immnet track`` hands the bank each row at its own time, uncut (``track_rows`` without ``max_interval``)
@@ -143,7 +147,7 @@ class NetworkBank:
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
-                   temper: float = TEMPER) -> "NetworkBank":
+                   temper: float = TEMPER, max_coast: float = MAX_COAST) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded by ``load_network``
         with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
         whose modes are the whole target's, since a guard's transitions cannot be per axis: ``IMMNet(modes=...)``),
@@ -157,7 +161,7 @@ class NetworkBank:
             path = _member_path(m)
             joint = read_checkpoint(path)[0].get("modes", "joint") == "joint"
             nets[str(m)] = load_network(path, guard=guard if joint else None, adapt=adapt, r=r)
-        bank = cls(nets, prior, max_position, likelihood, temper)
+        bank = cls(nets, prior, max_position, likelihood, temper, max_coast)
         bank.paths = {str(m): _member_path(m) for m in members}
         return bank
 
@@ -185,17 +189,19 @@ class NetworkBank:
         """``[B, K]`` bool: which member can take which track (:func:`accepts`)."""
         return torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
 
-    def check(self, intervals: torch.Tensor, takes: torch.Tensor | None = None) -> None:
+    def check(self, intervals: torch.Tensor, takes: torch.Tensor | None = None, tracks: torch.Tensor | None = None
+              ) -> None:
         """A ValueError naming the tracks no member can take, and each member's intervals (``takes``: ``self.takes(
-        intervals)`` where the caller has it)."""
+        intervals)`` where the caller has it; ``tracks``: the rows' track numbers, where they are segments)."""
         takes = self.takes(intervals) if takes is None else takes
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
+            named = lost if tracks is None else tracks[lost].unique()
             spans = ", ".join(f"{name} {scans_served(net)}" for name, net in self.members.items())
             iv = torch.as_tensor(intervals, dtype=torch.float64)[lost[0]]
             iv = iv[~torch.isnan(iv)]
-            raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in lost[:5])}"
-                             f"{', ...' if len(lost) > 5 else ''}: the first has scan intervals of {float(iv.min()):g} to "
+            raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in named[:5])}"
+                             f"{', ...' if len(named) > 5 else ''}: the first has scan intervals of {float(iv.min()):g} to "
                              f"{float(iv.max()):g} s, and its members were trained for {spans}; resample the data, or use "
                              f"a method that takes any interval (the model-based ones, e.g. --method imm-tuned)")
 
@@ -216,10 +222,23 @@ class NetworkBank:
         intervals = torch.as_tensor(intervals, dtype=torch.float64)
         if tuple(intervals.shape) != tuple(z.shape[:2]):
             raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
-        check_nan_intervals(intervals, "intervals")
+        check_finite_intervals(intervals, "intervals")
+        gated, n_gated = gate_measurements(z, self.max_position)  # each member gates the same rows as it runs
+        restart, taken = coast_restarts(~torch.isnan(gated).any(-1), intervals, self.max_coast)
+        if bool(restart.any()):  # no detection for longer than max_coast: a track starts again, a fresh one
+            out = by_segments(lambda zs, ivs, rows: self._track(zs, ivs, batch_size, return_cov, rows), restart, z,
+                              taken)
+        else:
+            out = self._track(z, intervals, batch_size, return_cov)
+        self.n_gated = n_gated
+        return out
+
+    def _track(self, z: torch.Tensor, intervals: torch.Tensor, batch_size: int, return_cov: bool,
+               tracks: torch.Tensor | None = None) -> TensorDict:
+        """``track``'s work on tracks that run from their first scan to their last without a restart (``tracks [B]``:
+        their numbers in the caller's, where they are segments of its tracks)."""
         takes = self.takes(intervals)
-        self.check(intervals, takes)
-        self.n_gated = gate_measurements(z, self.max_position)[1]  # each member gates the same rows as it runs
+        self.check(intervals, takes, tracks)
         B, T, K = z.shape[0], z.shape[1], len(self.names)
         state = torch.zeros(B, T, K, 9, dtype=torch.float64)
         probs = torch.zeros(B, T, K, 4, dtype=torch.float64)
@@ -273,6 +292,8 @@ class NetworkBank:
         self.carries = {name: self._fresh(net, n_tracks) for name, net in self.members.items()}
         self.log_w = self.log_prior.expand(n_tracks, -1).clone()
         self.fresh = torch.ones(n_tracks, dtype=torch.bool)  # no scan yet: the first one's interval is nominal
+        self.since = torch.zeros(n_tracks, dtype=torch.float64)
+        self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)  # the interval of each one's last scan
         self.n_gated = 0
 
     @torch.no_grad()
@@ -283,14 +304,15 @@ class NetworkBank:
         ``[B]``, s; None: ``self.dt``; a track's first scan after a reset takes it as nominal, ``track``'s scan 0).
         A member trained over a range coasts an interval longer than the range as ``track`` does (missed scans inside
         it, ``coast_scan``); a member drops out of a track at a scan it cannot take (its weight 0 until the track
-        restarts); a scan no member still in the track can take is refused before anything changes. Returns
+        restarts); a scan no member still in the track can take is refused before anything changes. A track with no
+        detection for longer than ``max_coast`` s restarts, as in ``Tracker.step`` (a long interval costs one scan). Returns
         ``("fused", "state")``, ``("fused", "cov")``, ``mode_probs`` and ``member_probs [B, K]``, NaN before a track's
         first detection. Over a sequence, ``track``'s numbers."""
         z = as_measurements(z, 2)
         B = z.shape[0]
         check_batch(None if self.carries is None else self.log_w.shape[0], B)
         interval = per_track(self.dt if dt is None else dt, B, "dt")
-        check_nan_intervals(interval, "dt")
+        check_finite_intervals(interval, "dt")
         reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
         if self.carries is None:  # the first scan without a reset: as after reset(B)
             log_w, fresh = self.log_prior.expand(B, -1).clone(), torch.ones(B, dtype=torch.bool)
@@ -299,6 +321,14 @@ class NetworkBank:
         if reset is not None:
             log_w[reset] = self.log_prior
             fresh |= reset
+        gated, n_gated = gate_measurements(z, self.max_position)
+        since = torch.zeros(B, dtype=torch.float64) if self.carries is None else self.since
+        since, restart = coast_step(since, interval, ~torch.isnan(gated).any(-1), fresh, self.max_coast)
+        if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset
+            reset = restart if reset is None else reset | restart  # its first scan at the interval of the scan before
+            log_w[restart] = self.log_prior
+            fresh |= restart
+            interval = torch.where(restart, self.last, interval)
         # Tracker.step's check per track: each scan, as the member coasts a long interval (coast_cuts), inside its
         # range, or its one interval
         cut = [coast_cuts(net, interval, fresh) for net in self.members.values()]  # (scans, each's interval) per member
@@ -310,8 +340,9 @@ class NetworkBank:
                              f"a scan after {float(interval[lost[0]]):g} s")
         if self.carries is None:
             self.reset(B)
-        z, n_gated = gate_measurements(z, self.max_position)
+        z = gated
         self.n_gated += n_gated
+        self.since, self.last = since, interval
         K = len(self.names)
         state = torch.zeros(B, K, 9, dtype=torch.float64)
         probs = torch.zeros(B, K, 4, dtype=torch.float64)

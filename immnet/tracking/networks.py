@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import inspect
+import math
 import numbers
 from pathlib import Path
 
@@ -263,14 +264,15 @@ def per_track(value, n: int, name: str, dtype=torch.float64) -> torch.Tensor:
     return v.expand(n)
 
 
-def check_nan_intervals(intervals: torch.Tensor, name: str) -> None:
-    """A ValueError naming the first NaN interval of ``intervals`` (``[B]`` a step's ``dt``, ``[B, T]`` a sequence's);
-    ``check_dt`` refuses the other intervals a network was not trained at (0, negative, inf)."""
-    nan = torch.isnan(intervals)
-    if bool(nan.any()):
-        where = nan.nonzero()[0].tolist()
+def check_finite_intervals(intervals: torch.Tensor, name: str) -> None:
+    """A ValueError naming the first NaN or infinite interval of ``intervals`` (``[B]`` a step's ``dt``, ``[B, T]`` a
+    sequence's); ``check_dt`` refuses the other intervals a network was not trained at (0, negative)."""
+    bad = ~torch.isfinite(intervals)
+    if bool(bad.any()):
+        where = bad.nonzero()[0].tolist()
         at = f"track {where[0]}" + (f", scan {where[1]}" if len(where) > 1 else "")
-        raise ValueError(f"{name} is NaN at {at}: the time since a track's previous scan is a number of seconds")
+        raise ValueError(f"{name} is {float(intervals[tuple(where)]):g} at {at}: the time since a track's previous scan "
+                         f"is a number of seconds")
 
 
 def guarded(net) -> bool:
@@ -297,3 +299,67 @@ def provenance_of(path) -> str:
     if md is not None and path.resolve().parent == PRETRAINED.parent and md.is_file():
         return f"provenance immnet/pretrained/{md.name}"
     return f"no provenance shipped (checkpoint {path})"
+
+
+# --- the coasting limit: a track with no detection for longer than ``max_coast`` seconds restarts ---------------------
+def _beyond(since: torch.Tensor, max_coast: float) -> torch.Tensor:
+    """Where ``since`` (s, float64) is past ``max_coast``, to 1e-9 of it (times summed from intervals round; the CSV
+    path's segments, ``segments._join``, keep a gap of exactly ``max_coast`` in its track)."""
+    return since > max_coast * (1 + 1e-9)
+
+
+def coast_restarts(detected: torch.Tensor, intervals: torch.Tensor, max_coast: float):
+    """``(restart, taken)``: ``restart [B, T]`` bool, the scans at which a track restarts, as ``Tracker.step`` restarts
+    it (:func:`coast_step`): where the time since its last detection (or its start) would pass ``max_coast`` seconds;
+    ``taken [B, T]`` the intervals as the trackers take them: a restarted track's first scan at the interval of the
+    scan before it (the time before a restart is none the track coasts through). ``detected [B, T]``: the scans with
+    a detection (after the gate), ``intervals [B, T]`` (s) the interval before each scan (scan 0's a track's start)."""
+    B, T = detected.shape
+    since = torch.zeros(B, dtype=torch.float64)
+    restart = torch.zeros(B, T, dtype=torch.bool)
+    if not math.isfinite(max_coast):
+        return restart, intervals
+    taken = intervals.clone()
+    for t in range(1, T):
+        since, restart[:, t] = coast_step(since, intervals[:, t], detected[:, t], None, max_coast)
+        taken[:, t] = torch.where(restart[:, t], taken[:, t - 1], intervals[:, t])
+    return restart, taken
+
+
+def coast_step(since: torch.Tensor, interval: torch.Tensor, detected: torch.Tensor, first, max_coast: float):
+    """``(since, restart)`` after one scan: ``restart [B]`` where a track that is not at its first scan (``first``,
+    None: none is) has had no detection for longer than ``max_coast`` s by this scan; ``since [B]`` the seconds since
+    each track's last detection, its start or its restart, after it."""
+    total = since + interval
+    restart = _beyond(total, max_coast) if math.isfinite(max_coast) else torch.zeros_like(detected)
+    if first is not None:
+        restart = restart & ~first
+        total = torch.where(first, torch.zeros_like(total), total)
+    return torch.where(restart | detected, torch.zeros_like(total), total), restart
+
+
+def by_segments(run, restart: torch.Tensor, z: torch.Tensor, intervals: torch.Tensor | None) -> TensorDict:
+    """``run(z [S, L, 3], intervals [S, L] or None, rows [S])`` over each track's segments (a track cut at each scan
+    of ``restart [B, T]``, each segment a fresh track from there; ``rows`` each one's track), segments of one length
+    together; their outputs put back in place ``[B, T]``."""
+    B, T = restart.shape
+    starts = restart.clone()
+    starts[:, 0] = True
+    segs = []  # (track, first scan, length)
+    for b in range(B):
+        cut = starts[b].nonzero().flatten().tolist() + [T]
+        segs += [(b, s, e - s) for s, e in zip(cut[:-1], cut[1:])]
+    out = None
+    for length in sorted({n for _, _, n in segs}):
+        group = [(b, s) for b, s, n in segs if n == length]
+        rows = torch.tensor([b for b, _ in group])
+        zs = torch.stack([z[b, s : s + length] for b, s in group])
+        ivs = None if intervals is None else torch.stack([intervals[b, s : s + length] for b, s in group])
+        got = run(zs, ivs, rows)
+        if out is None:
+            out = TensorDict({k: torch.full((B, T, *v.shape[2:]), float("nan"), dtype=v.dtype)
+                              for k, v in got.items(True, True)}, batch_size=[B, T])
+        for i, (b, s) in enumerate(group):
+            for k, v in got.items(True, True):
+                out.get(k)[b, s : s + length] = v[i]
+    return out

@@ -35,9 +35,10 @@ from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurement
 from immnet.filters.base import blank_before_first_detection
 from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
+from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    KEEP, as_measurements, check_batch, check_dt, check_n_tracks, check_nan_intervals, coast_cuts, coast_long_gaps,
-    coast_scan, guarded, load_network, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, trained_for,
+    KEEP, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals, coast_cuts, coast_long_gaps,
+    by_segments, coast_restarts, coast_scan, coast_step, guarded, load_network, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, trained_for,
 )
 
 
@@ -45,14 +46,18 @@ class Tracker:
     """A stateful wrapper around ``IMMNet.scan`` for streaming use (inference only).
 
     ``max_position``: the largest ``|z_a|`` (m) a detection may have; beyond it, or non-finite, a
-    measurement is a missed detection, counted in ``n_gated`` (module doc).
+    measurement is a missed detection, counted in ``n_gated`` (module doc). ``max_coast``: the seconds a track may go
+    without a detection before it restarts (``step``; ``immnet.tracking.segments.MAX_COAST``, ``inf``: never).
     """
 
-    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION):
+    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION, max_coast: float = MAX_COAST):
         self.net = net.eval()
         self.max_position = check_limit(max_position)
+        self.max_coast = check_coast(max_coast, float(self.net.dt))
         self.carry: TensorDict | None = None
         self.fresh: torch.Tensor | None = None  # [B] no scan yet since a reset: the first one's interval is nominal
+        self.since: torch.Tensor | None = None  # [B] s since each track's last detection (or its start): max_coast's
+        self.last: torch.Tensor | None = None  # [B] the interval each track's last scan was taken at (NaN: none yet)
         self.n_gated = 0
         self.name, self.path = None, None  # what ``repr`` names: the shipped name or checkpoint it was loaded from
 
@@ -98,6 +103,8 @@ class Tracker:
         n_tracks = check_n_tracks(n_tracks)
         self.carry = self.net.initial_carry(n_tracks)
         self.fresh = torch.ones(n_tracks, dtype=torch.bool)
+        self.since = torch.zeros(n_tracks, dtype=torch.float64)
+        self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)
         self.n_gated = 0
 
     @torch.no_grad()
@@ -110,7 +117,9 @@ class Tracker:
         (:func:`check_dt`) and passed to ``IMMNet.scan`` as its ``interval``: for a network trained over a range, an
         interval longer than it is coasted through at equal intervals inside it, missed scans before this one
         (:func:`coast_scan`, as ``track`` cuts a long gap), and a track's first scan after a reset takes its interval
-        as nominal (at most the range's end, as ``track``'s scan 0); ``r`` each track's measurement std (a
+        as nominal (at most the range's end, as ``track``'s scan 0). A track with no detection for longer than
+        ``max_coast`` seconds (the CSV path's coasting limit, 30 s by default) restarts at this scan, as with ``reset``,
+        its first scan at the interval of its scan before: a long interval costs one scan. ``r`` each track's measurement std (a
         number or ``[B]``, metres), for a network whose filter experts are told it (``r="data"``). Over a sequence,
         ``track``'s numbers.
 
@@ -129,15 +138,25 @@ class Tracker:
         interval = None if dt is None else per_track(dt, z.shape[0], "dt")
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
         if interval is not None:
-            check_nan_intervals(interval, "dt")
+            check_finite_intervals(interval, "dt")
+        gated, n_gated = gate_measurements(z, self.max_position)
+        since = torch.zeros(z.shape[0], dtype=torch.float64) if self.carry is None else self.since
+        now = torch.full_like(since, float(self.net.dt)) if interval is None else interval
+        since, restart = coast_step(since, now, ~torch.isnan(gated).any(-1), first, self.max_coast)
+        if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset,
+            mask = restart if mask is None else mask | restart  # its first scan at the interval of the scan before
+            first = first | restart
+            interval = None if interval is None else torch.where(restart, self.last, interval)
         if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
             cuts, each = coast_cuts(self.net, interval, first)
             bad = ~trained_for(self.net, each)
             check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
         if self.carry is None:  # the first scan without a reset: its number of tracks
             self.reset(z.shape[0])
-        z, n_gated = gate_measurements(z, self.max_position)
+        z = gated
         self.n_gated += n_gated
+        self.since = since
+        self.last = now if interval is None else interval
         if mask is not None:
             self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
         if interval is None:
@@ -171,15 +190,33 @@ class Tracker:
         ``intervals [B, T]``: the interval before each scan (``immnet.data.times.scan_intervals``; None: the
         network's ``dt``), each one the network was trained at (:func:`check_dt`), except that for a network trained
         over a range an interval longer than it is a gap the track coasts through at intervals inside it
-        (:func:`coast_long_gaps`; the output holds the scans given). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
+        (:func:`coast_long_gaps`; the output holds the scans given); a track with no detection for longer than
+        ``max_coast`` seconds restarts there, as in ``step`` (the parts between restarts tracked as fresh tracks). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
         (``FilterGain(r="data")``). ``return_loglik``: also each scan's
         measurement log-likelihood under the network's prediction, ``loglik [B, T]`` (``IMMNet.predictive_loglik``)."""
         z = as_measurements(measurements, 3)
         self._check_told(r)
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
+        iv = None
         if intervals is not None:
-            check_nan_intervals(torch.as_tensor(intervals, dtype=torch.float64), "intervals")
-        out, self.n_gated = run_network(self.net, z, batch_size, intervals, return_cov, r, return_loglik,
-                                        self.max_position)
+            iv = torch.as_tensor(intervals, dtype=torch.float64)
+            if tuple(iv.shape) != tuple(z.shape[:2]):
+                raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(iv.shape)}")
+            check_finite_intervals(iv, "intervals")
+        told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
+        gated, n_gated = gate_measurements(z, self.max_position)
+        every = torch.full(z.shape[:2], float(self.net.dt), dtype=torch.float64) if iv is None else iv
+        restart, taken = coast_restarts(~torch.isnan(gated).any(-1), every, self.max_coast)
+        if not bool(restart.any()):
+            out, self.n_gated = run_network(self.net, z, batch_size, iv, return_cov, told, return_loglik,
+                                            self.max_position)
+            return out
+
+        def run(zs, ivs, rows):  # each segment a fresh track
+            return run_network(self.net, zs, batch_size, ivs, return_cov, None if told is None else told[rows],
+                               return_loglik, self.max_position)[0]
+
+        out = by_segments(run, restart, z, None if iv is None else taken)
+        self.n_gated = n_gated
         return out
