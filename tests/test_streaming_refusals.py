@@ -10,6 +10,7 @@ import torch
 from immnet import keys
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
+from immnet.data.times import scan_intervals
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.tracker import Tracker
 
@@ -200,3 +201,28 @@ def test_a_long_interval_restarts_the_track_in_step_and_track_alike(which, reque
         assert st[b, t].isfinite().all() and st[b, t, vel].eq(0).all() and st[b, t + 1, vel].ne(0).all()
     assert st[2, 33].isfinite().all() and st[2, 34].isnan().all()  # coasting at 30 s; restarted, no detection yet
     assert st[:2, 12:20].isfinite().all() and st[:2, [11, 19]][:, :, vel].ne(0).all()
+
+
+@pytest.mark.parametrize("which", ["immnet", "immnet-bank"])
+def test_evaluate_scores_a_window_as_one_track_through_a_long_stretch_without_detection(which):
+    """``immnet evaluate`` scores each data window as one track: its methods have no coasting limit
+    (``max_coast=inf``), so a track with 40 s without a detection (40 missed scans at 1 s) coasts through them, as a
+    tracker with no limit, and keeps its velocity after them, where the streaming API's 30 s would restart it."""
+    from immnet.evaluation.methods import build_method
+    from immnet.tracking.methods import IMMNetMethod
+
+    batch = generate(2, seed=7, spec=DataSpec(T=70, min_segment=10))
+    batch[keys.MEASUREMENTS][0, 15:55] = float("nan")  # scans 15-54 missed: 41 s from scan 14's detection to 55's
+    method = build_method(which)
+    assert math.isinf(method.net.max_coast if which == "immnet-bank" else method.tracker.max_coast)
+    got = method.track(batch)[keys.STATE]
+    z, iv = batch[keys.MEASUREMENTS], scan_intervals(batch)
+    if which == "immnet":
+        assert isinstance(method, IMMNetMethod)
+        ref = Tracker(method.net, max_coast=math.inf).track(z, 500, method.net.intervals_for(batch))[keys.STATE]
+    else:
+        bank = NetworkBank(method.net.members, max_coast=math.inf)
+        ref = bank.track(z, 500, iv)[keys.STATE]
+    torch.testing.assert_close(got, ref.double(), rtol=0, atol=0, equal_nan=True)
+    vel = [1, 4, 7]
+    assert got[0, 55:].isfinite().all() and got[0, 55, vel].ne(0).all()  # coasted through: it has a velocity

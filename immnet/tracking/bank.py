@@ -383,7 +383,9 @@ class BankMethod:
     """A bank of networks (``NetworkBank``) as a method of ``immnet evaluate`` and ``immnet track --method``:
     ``members`` shipped names or checkpoint paths, ``prior`` their prior probabilities, ``guard``, ``adapt`` and ``r``
     each member's (``load_network``'s; no range guard unless asked), ``likelihood`` and ``temper`` the bank's. Its
-    output: ``state``, ``mode_probs`` and, with ``return_cov``, ``state_cov``."""
+    output: ``state``, ``mode_probs`` and, with ``return_cov``, ``state_cov``. ``immnet evaluate`` scores a data set's
+    window as one track, so the bank has no coasting limit here (``max_coast=math.inf``: a track coasts through any
+    stretch without detections; ``immnet track`` sets its ``--max-coast``, the streaming and CSV APIs' limit)."""
 
     needs: tuple[str, ...] = ()
 
@@ -392,7 +394,7 @@ class BankMethod:
                  likelihood: str = "reported", temper: float = TEMPER):
         self.name = name
         self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
-                                          likelihood=likelihood, temper=temper)
+                                          likelihood=likelihood, temper=temper, max_coast=math.inf)
         self.batch_size = batch_size
         self.return_cov = return_cov
 

@@ -264,8 +264,8 @@ def per_track(value, n: int, name: str, dtype=torch.float64) -> torch.Tensor:
     return v.expand(n)
 
 
-def check_finite_intervals(intervals: torch.Tensor, name: str) -> None:
-    """A ValueError naming the first NaN or infinite interval of ``intervals`` (``[B]`` a step's ``dt``, ``[B, T]`` a
+def check_finite_intervals(intervals: torch.Tensor, name: str) -> torch.Tensor:
+    """``intervals``, checked: a ValueError naming the first NaN or infinite one (``[B]`` a step's ``dt``, ``[B, T]`` a
     sequence's); ``check_dt`` refuses the other intervals a network was not trained at (0, negative)."""
     bad = ~torch.isfinite(intervals)
     if bool(bad.any()):
@@ -273,6 +273,7 @@ def check_finite_intervals(intervals: torch.Tensor, name: str) -> None:
         at = f"track {where[0]}" + (f", scan {where[1]}" if len(where) > 1 else "")
         raise ValueError(f"{name} is {float(intervals[tuple(where)]):g} at {at}: the time since a track's previous scan "
                          f"is a number of seconds")
+    return intervals
 
 
 def guarded(net) -> bool:

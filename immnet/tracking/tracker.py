@@ -135,10 +135,8 @@ class Tracker:
         mask = None if reset is None else per_track(reset, z.shape[0], "reset", torch.bool)
         fresh = torch.ones(z.shape[0], dtype=torch.bool) if self.carry is None else self.fresh
         first = fresh if mask is None else fresh | mask  # each track's first scan since a reset
-        interval = None if dt is None else per_track(dt, z.shape[0], "dt")
+        interval = None if dt is None else check_finite_intervals(per_track(dt, z.shape[0], "dt"), "dt")
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
-        if interval is not None:
-            check_finite_intervals(interval, "dt")
         gated, n_gated = gate_measurements(z, self.max_position)
         since = torch.zeros(z.shape[0], dtype=torch.float64) if self.carry is None else self.since
         now = torch.full_like(since, float(self.net.dt)) if interval is None else interval
