@@ -42,7 +42,8 @@ from immnet.stages import IMMNet
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
     KEEP, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
-    coast_scan, coast_step, guarded, load_network, per_track, provenance_of, read_checkpoint, run_network, scans_served, select_rows, trained_for,
+    coast_scan, coast_step, guarded, load_network, next_origin, per_track, provenance_of, read_checkpoint, run_network,
+    scans_served, select_rows, to_local, to_world, trained_for,
 )
 
 DEFAULT_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
@@ -138,7 +139,7 @@ class NetworkBank:
         self.log_prior = torch.tensor([math.log(p / total) for p in prior], dtype=torch.float64)
         self.n_gated = 0
         self.carries, self.log_w, self.fresh = None, None, None  # the streaming state (``reset``, ``step``)
-        self.since, self.last = None, None  # [B] s since each track's last detection (or start): ``max_coast``'s
+        self.since, self.last, self.origin = None, None, None  # [B] s since each track's last detection (or start): ``max_coast``'s
         self.max_coast = check_coast(max_coast, self.dt)
         self.paths = {name: None for name in self.names}  # each member's checkpoint, where it was loaded from one
         # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
@@ -294,6 +295,7 @@ class NetworkBank:
         self.fresh = torch.ones(n_tracks, dtype=torch.bool)  # no scan yet: the first one's interval is nominal
         self.since = torch.zeros(n_tracks, dtype=torch.float64)
         self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)  # the interval of each one's last scan
+        self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)  # each one's frame (frame_origin)
         self.n_gated = 0
 
     @torch.no_grad()
@@ -340,9 +342,10 @@ class NetworkBank:
                              f"a scan after {float(interval[lost[0]]):g} s")
         if self.carries is None:
             self.reset(B)
-        z = gated
+        origin = self.origin if reset is None else torch.where(reset[:, None], float("nan"), self.origin)
+        origin = next_origin(origin, gated)  # the members' frame (a member with a range guard keeps the radar's)
         self.n_gated += n_gated
-        self.since, self.last = since, interval
+        self.since, self.last, self.origin = since, interval, origin
         K = len(self.names)
         state = torch.zeros(B, K, 9, dtype=torch.float64)
         probs = torch.zeros(B, K, 4, dtype=torch.float64)
@@ -354,12 +357,14 @@ class NetworkBank:
             if reset is not None:
                 carry = select_rows(reset, self._fresh(net, B), carry)
             rows = takes[:, k].nonzero().flatten()
+            at = torch.zeros_like(origin) if guarded(net) else origin.nan_to_num()
+            z = to_local(gated, at)
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):
                 before, after = coast_scan(net, carry if every else carry[rows], z[rows], cut[k][0][rows],
                                            cut[k][1][rows], lambda td, net=net: self._kept(net, td))
                 loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood == "reported").double()
-                state[rows, k] = net.estimate(after).double()
+                state[rows, k] = to_world(net.estimate(after), at[rows])
                 cov[rows, k] = net.reported_cov(after).double()
                 probs[rows, k] = net.to_mode_probs(after.get(keys.EXPERT_PROBS)).double()
                 age[rows] = torch.maximum(age[rows], after.get(keys.AGE))

@@ -20,6 +20,7 @@ from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
+from immnet.motion import POS
 from immnet.stages import IMMNet
 from immnet.stages.network import DEFAULT_GAIN, _where, net_arguments
 
@@ -183,15 +184,74 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
     return full, steps, where.numpy()
 
 
+# --- the local frame: each track tracked around its first detection, so that float32 keeps its digits anywhere -----
+POSITIONS = list(POS)  # the state's position components [x, y, z] (``immnet.motion.POS``)
+WORLD = (keys.STATE, keys.ROLLOUT_EXPERT_POST, keys.FUSED, keys.EXPERT_POST)  # outputs that hold positions
+
+
+def frame_origin(net, z: torch.Tensor) -> torch.Tensor:
+    """Each track's origin ``[B, 3]`` (float64) in ``z [B, T, 3]`` (gated measurements, NaN rows missed): its first
+    detection (zero for a track with none). A network with a range guard (:func:`guarded`) keeps the radar's frame,
+    origin zero: its guard's rules read radar-centred positions (3D-LAST's region, tens of km, where float32 keeps
+    millimetres)."""
+    origin = torch.zeros(z.shape[0], 3, dtype=torch.float64)
+    if guarded(net):
+        return origin
+    seen = ~torch.isnan(z).any(-1)
+    has = seen.any(-1)
+    first = seen.to(torch.uint8).argmax(-1)
+    origin[has] = z[has, first[has]].to(torch.float64)
+    return origin
+
+
+def next_origin(origin: torch.Tensor, z: torch.Tensor, radar: bool = False) -> torch.Tensor:
+    """The streaming trackers' :func:`frame_origin` after one scan ``z [B, 3]`` (gated): ``origin [B, 3]`` (NaN: the
+    track has had no detection since its start or restart) set to this scan's detection where it has none yet; zero
+    where the network keeps the radar's frame (``radar``: it has a range guard)."""
+    if radar:
+        return torch.zeros_like(origin)
+    new = torch.isnan(origin).any(-1) & ~torch.isnan(z).any(-1)
+    return torch.where(new[:, None], z.to(torch.float64), origin)
+
+
+def to_local(z: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """Measurements ``z [B, (T,) 3]`` in each track's frame, ``z - origin [B, 3]`` in float64, then as the network's
+    float32 (NaN rows stay NaN)."""
+    at = origin.view(origin.shape[0], *([1] * (z.dim() - 2)), 3)
+    return (z.to(torch.float64) - at).to(torch.float32)
+
+
+def to_world(v: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """States ``v [B, ..., 9]`` of each track's frame back in the caller's: the position components plus ``origin
+    [B, 3]`` in float64 (the output is float64; velocities and accelerations as the network gave them)."""
+    at = origin.view(origin.shape[0], *([1] * (v.dim() - 2)), 3)
+    v = v.to(torch.float64).clone()
+    v[..., POSITIONS] = v[..., POSITIONS] + at
+    return v
+
+
+def outputs_to_world(out: TensorDict, origin: torch.Tensor) -> TensorDict:
+    """``out``'s states (``WORLD``: the fused state, each expert's posterior) back in the caller's frame
+    (:func:`to_world`); covariances, probabilities and likelihoods are the same in either frame."""
+    for k in WORLD:
+        if k in out.keys(True, True):
+            out.set(k, to_world(out.get(k), origin))
+    return out
+
+
 @torch.no_grad()
 def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
                 return_cov: bool = False, r: torch.Tensor | None = None, return_loglik: bool | str = False,
                 max_position: float = MAX_ABS_POSITION) -> tuple[TensorDict, int]:
-    """``Tracker.track``'s work, ``(outputs, n_gated)``: ``z [B, T, 3]`` (float32) gated (``max_position``), a gap
-    longer than a range network's range cut into missed scans (:func:`coast_long_gaps`), every interval checked
+    """``Tracker.track``'s work, ``(outputs, n_gated)``: ``z [B, T, 3]`` (float64, or float32) gated (``max_position``)
+    and moved into each track's frame (:func:`frame_origin`, :func:`to_local`: float32 from there), a gap longer than
+    a range network's range cut into missed scans (:func:`coast_long_gaps`), every interval checked
     (:func:`check_dt`), ``net.rollout`` in batches of ``batch_size`` tracks, ``mode_probs`` added, NaN before each
-    track's first detection, and the scans asked for returned."""
+    track's first detection, the scans asked for returned and the states back in the caller's frame (float64,
+    :func:`outputs_to_world`)."""
     z, n_gated = gate_measurements(z, max_position)
+    origin = frame_origin(net, z)
+    z = to_local(z, origin)
     where = None
     if intervals is not None:
         intervals = torch.as_tensor(intervals, dtype=torch.float64)
@@ -211,7 +271,7 @@ def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: 
     out = torch.cat(outs, 0)
     if where is not None:  # the scans asked for, without the missed ones cut into the long gaps
         out = out[torch.arange(out.batch_size[0])[:, None], torch.from_numpy(where)]
-    return out, n_gated
+    return outputs_to_world(out, origin), n_gated
 
 
 def select_rows(mask, a: TensorDict, b: TensorDict) -> TensorDict:
@@ -222,13 +282,14 @@ def select_rows(mask, a: TensorDict, b: TensorDict) -> TensorDict:
 
 # --- the streaming and whole-sequence APIs' input checks: one line naming what is wrong, before anything changes ----
 def as_measurements(z, dims: int) -> torch.Tensor:
-    """``z`` as float32 measurements ``[n_tracks, 3]`` (``dims`` 2, a scan) or ``[n_tracks, T, 3]`` (3, sequences); a
+    """``z`` as float64 measurements ``[n_tracks, 3]`` (``dims`` 2, a scan) or ``[n_tracks, T, 3]`` (3, sequences):
+    float64 until each track is moved into its own frame (:func:`frame_origin`), then the network's float32; a
     ValueError for another shape, no track or no scan, and for booleans or complex numbers (which a cast would turn
     into positions without a word)."""
     raw = z if isinstance(z, torch.Tensor) else torch.as_tensor(np.asarray(z))
     if raw.dtype == torch.bool or raw.is_complex():
         raise ValueError(f"measurements are real numbers of metres, got {raw.dtype}".replace("torch.", ""))
-    z = raw.to(torch.float32)
+    z = raw.to(torch.float64)
     shape = "[n_tracks, 3]" if dims == 2 else "[n_tracks, T, 3]"
     what = "a scan of measurements is" if dims == 2 else "measurements are"
     if z.dim() != dims or z.shape[-1] != 3:

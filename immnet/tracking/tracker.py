@@ -38,7 +38,9 @@ from immnet.tracking.bank import NetworkBank
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
     KEEP, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals, coast_cuts, coast_long_gaps,
-    by_segments, coast_restarts, coast_scan, coast_step, guarded, load_network, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, trained_for,
+    by_segments, coast_restarts, coast_scan, coast_step, frame_origin, guarded, load_network, next_origin,
+    outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, to_local,
+    trained_for,
 )
 
 
@@ -58,6 +60,7 @@ class Tracker:
         self.fresh: torch.Tensor | None = None  # [B] no scan yet since a reset: the first one's interval is nominal
         self.since: torch.Tensor | None = None  # [B] s since each track's last detection (or its start): max_coast's
         self.last: torch.Tensor | None = None  # [B] the interval each track's last scan was taken at (NaN: none yet)
+        self.origin: torch.Tensor | None = None  # [B, 3] float64: each track's frame, its first detection (NaN: none)
         self.n_gated = 0
         self.name, self.path = None, None  # what ``repr`` names: the shipped name or checkpoint it was loaded from
 
@@ -105,6 +108,7 @@ class Tracker:
         self.fresh = torch.ones(n_tracks, dtype=torch.bool)
         self.since = torch.zeros(n_tracks, dtype=torch.float64)
         self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)
+        self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)
         self.n_gated = 0
 
     @torch.no_grad()
@@ -151,9 +155,11 @@ class Tracker:
             check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
         if self.carry is None:  # the first scan without a reset: its number of tracks
             self.reset(z.shape[0])
-        z = gated
+        origin = self.origin if mask is None else torch.where(mask[:, None], float("nan"), self.origin)
+        origin = next_origin(origin, gated, guarded(self.net))
+        z = to_local(gated, origin.nan_to_num())
         self.n_gated += n_gated
-        self.since = since
+        self.since, self.origin = since, origin
         self.last = now if interval is None else interval
         if mask is not None:
             self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
@@ -168,6 +174,7 @@ class Tracker:
         if self.net.has_cov:
             out.set(keys.FUSED_COV, self.net.reported_cov(self.carry).clone())
         out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))
+        out = outputs_to_world(out, origin.nan_to_num())
         waiting = (self.carry.get(keys.AGE) == 0)[:, None]  # no detection yet: no estimate
         return out.apply(lambda v: blank_before_first_detection(v.unsqueeze(1), waiting).squeeze(1))
 
