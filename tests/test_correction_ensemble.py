@@ -15,6 +15,7 @@ from immnet.data.storage import as_batch
 from immnet.evaluation.methods import method_config
 from immnet.motion import POS
 from immnet.stages import IMMNet
+from immnet.tracking.networks import frame_origin, to_local, to_world
 from immnet.training.export import join_corrections
 from immnet.tracking.tracker import Tracker, load_network
 
@@ -80,7 +81,8 @@ def test_the_ensemble_reports_the_mean_of_its_members_run_alone():
     assert carry.get(keys.OUTPUT_HIDDEN).shape == (z.shape[0], 3, 2, 16)
     single = _ensemble(members)  # float32, as a user's tracker runs
     with torch.no_grad():
-        rolled = single.rollout(z.float())[0][keys.STATE]
+        origin = frame_origin(single, z)  # the streaming tracker's frame: each track's first detection
+        rolled = to_world(single.rollout(to_local(z, origin))[0][keys.STATE], origin)
         tracker = Tracker(single)
         streamed = torch.stack([tracker.step(z[:, t].float())[keys.FUSED] for t in range(z.shape[1])], 1)
     torch.testing.assert_close(streamed, rolled, rtol=0, atol=1e-4)

@@ -535,14 +535,16 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
             net.rollout(z[:, :3])
         # as a method of immnet evaluate (Tracker.track), told the data's r as the filter is
         from immnet.tracking.methods import IMMNetMethod
+        from immnet.tracking.networks import frame_origin, to_local, to_world
         from immnet.tracking.tracker import Tracker
 
         method = IMMNetMethod.from_tracker(Tracker(net.float()))
         assert keys.R in method.needs
         got = method.track(data)[keys.STATE]
+        origin = frame_origin(net, z)  # Tracker.track's frame: each track's first detection
         with torch.no_grad():
-            ref, _ = net.rollout(z.float(), r=r.float())
-        torch.testing.assert_close(got[seen_probs], ref[keys.STATE].double()[seen_probs], rtol=0, atol=0)
+            ref, _ = net.rollout(to_local(z, origin), r=r.float())
+        torch.testing.assert_close(got[seen_probs], to_world(ref[keys.STATE], origin)[seen_probs], rtol=0, atol=0)
         assert torch.isnan(got[~seen_probs]).all()
 
 

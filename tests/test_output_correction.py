@@ -18,6 +18,7 @@ from immnet.data.spec import DataSpec
 from immnet.data.storage import as_batch, write_dataset
 from immnet.evaluation.methods import method_config
 from immnet.stages import IMMNet
+from immnet.tracking.networks import frame_origin, to_local, to_world
 from immnet.tracking.tracker import Tracker, load_network
 
 SCRIPT = REPO_ROOT / "scripts" / "learned_residual.py"
@@ -135,7 +136,10 @@ def test_the_streaming_tracker_reports_the_corrected_estimate():
     torch.manual_seed(2)
     net = IMMNet(**method.network().config, correction=CORRECTION).eval()
     torch.nn.init.normal_(net.correct.out.weight)
-    expected = _rollout(net, batch, torch.float32)[keys.STATE]
+    origin = frame_origin(net, batch[keys.MEASUREMENTS])  # the streaming tracker's frame: each track's first detection
+    local = batch.clone()
+    local.set(keys.MEASUREMENTS, to_local(batch[keys.MEASUREMENTS], origin))
+    expected = to_world(_rollout(net, local, torch.float32)[keys.STATE], origin)
     tracker = Tracker(net)
     z, r = batch[keys.MEASUREMENTS].float(), batch[keys.R].float()
     states = torch.stack([tracker.step(z[:, t], r=r)[keys.FUSED] for t in range(z.shape[1])], 1)

@@ -14,6 +14,7 @@ from immnet import keys
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.stages import IMMNet
+from immnet.tracking.networks import frame_origin, to_local, to_world
 from immnet.tracking.tracker import Tracker
 
 SCANS = (2, 9, 29)  # a second detection, early running, the last
@@ -59,9 +60,11 @@ def test_the_fused_covariance_is_the_moment_matched_mixture_of_the_experts(track
     net = tracker.net
     assert net.has_cov and net.fuse.cov == keys.EXPERT_AUG_COV
     carry, states, covs = net.initial_carry(z.shape[0]), [], []
+    origin = frame_origin(net, z)  # Tracker.track's frame: each track's first detection
+    local = to_local(z, origin)
     with torch.no_grad():
         for t in range(z.shape[1]):
-            carry = net.scan(carry, z[:, t])
+            carry = net.scan(carry, local[:, t])
             states.append(carry.get(keys.FUSED))
             covs.append(net.reported_cov(carry))
             if t in SCANS:
@@ -70,7 +73,7 @@ def test_the_fused_covariance_is_the_moment_matched_mixture_of_the_experts(track
                 torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5 * float(want.abs().amax()))
     started = ~torch.isnan(tracked[keys.STATE][..., 0])  # the rollout's, where Tracker.track reports it
     assert torch.equal(tracked[keys.STATE_COV][started], torch.stack(covs, 1)[started])
-    assert torch.equal(tracked[keys.STATE][started], torch.stack(states, 1)[started])
+    assert torch.equal(tracked[keys.STATE][started], to_world(torch.stack(states, 1), origin)[started])
 
 
 def test_a_starting_track_has_its_start_covariance(tracked):

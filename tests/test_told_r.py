@@ -88,8 +88,9 @@ def test_immnet_track_r_gives_the_network_and_a_told_filter_the_radars_accuracy(
     assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(out), "--weights", "real-5s",
                  "--r", str(R)]) == 0
     api = Tracker.pretrained("real-5s", r=R).track(torch.from_numpy(z), intervals=torch.full(z.shape[:2], 5.0))
-    np.testing.assert_allclose(_read_xyz(out), api["state"][..., [0, 3, 6]].reshape(-1, 3).numpy(), rtol=1e-6,
-                               atol=1e-3)
+    # float32 rounding of positions in each track's frame (up to 30 km from its first detection here: a few mm)
+    np.testing.assert_allclose(_read_xyz(out), api["state"][..., [0, 3, 6]].reshape(-1, 3).numpy(), rtol=0,
+                               atol=1e-2)
     # a filter told each track's r (the real-flight filters' r: data) refuses a CSV without --r, naming it
     capsys.readouterr()
     assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(out), "--method",

@@ -67,7 +67,7 @@ def test_csv_covariance_columns_read_back_as_the_trackers(tmp_path, z):
     _write(tmp_path / "in.csv", z)
     assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(tmp_path / "out.csv")]) == 0
     got = _read(tmp_path / "out.csv")
-    api = Tracker.pretrained().track(torch.from_numpy(z).float(), return_cov=True)[keys.STATE_COV]
+    api = Tracker.pretrained().track(torch.from_numpy(z), return_cov=True)[keys.STATE_COV]  # the CSV's float64
     want = _columns(api.double().numpy())
     for i, tid in enumerate(("a", "b")):
         assert np.isnan(got[tid][:LEAD]).all() and np.isfinite(got[tid][LEAD:]).all()

@@ -39,8 +39,11 @@ from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.stages import IMMNet
+from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
-    KEEP, coast_cuts, coast_scan, load_network, read_checkpoint, run_network, select_rows, trained_for,
+    KEEP, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
+    coast_scan, coast_step, guarded, load_network, next_origin, per_track, provenance_of, read_checkpoint, run_network,
+    scans_served, select_rows, to_local, to_world, trained_for,
 )
 
 DEFAULT_MEMBERS = BANK_MEMBERS
@@ -61,12 +64,6 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     first[:, :1] = True
     each = coast_cuts(net, intervals, first)[1]  # each interval as coast_long_gaps cuts it
     return (trained_for(net, each) | torch.isnan(intervals)).all(-1)
-
-
-def _scans(net: IMMNet) -> str:
-    """The scan intervals a network was trained for, as an error names them: ``0.5-12 s`` or ``1 s``."""
-    span = getattr(net, "interval_range", None)
-    return f"{span[0]:g}-{span[1]:g} s" if span is not None else f"{net.dt:g} s"
 
 
 def _member_path(member: str | Path) -> Path:
@@ -112,10 +109,11 @@ class NetworkBank:
     ``members``: name -> ``IMMNet`` (filter experts, each estimating its tracks' r); ``prior``: each member's prior
     probability (default: equal), positive, as many as members. ``likelihood``: ``LIKELIHOODS``; ``temper``: the
     power ``0 < temper <= 1`` of each scan's likelihood (a tempered posterior: members' densities that are too sure of
-    themselves weigh less). ``max_position``: the gate on measurements, as ``Tracker``'s."""
+    themselves weigh less). ``max_position``: the gate on measurements, ``max_coast`` the coasting limit, as
+    ``Tracker``'s."""
 
     def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER):
+                 likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST):
         if likelihood not in LIKELIHOODS:
             raise ValueError(f"a bank's likelihood is one of {', '.join(LIKELIHOODS)}, got {likelihood!r}")
         if not (isinstance(temper, (int, float)) and math.isfinite(temper) and 0 < temper <= 1):
@@ -141,13 +139,16 @@ class NetworkBank:
         self.log_prior = torch.tensor([math.log(p / total) for p in prior], dtype=torch.float64)
         self.n_gated = 0
         self.carries, self.log_w, self.fresh = None, None, None  # the streaming state (``reset``, ``step``)
+        self.since, self.last, self.origin = None, None, None  # [B] s since each track's last detection (or start): ``max_coast``'s
+        self.max_coast = check_coast(max_coast, self.dt)
+        self.paths = {name: None for name in self.names}  # each member's checkpoint, where it was loaded from one
         # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
         # ``immnet track`` hands the bank each row at its own time, uncut (``track_rows`` without ``max_interval``)
 
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
-                   temper: float = TEMPER) -> "NetworkBank":
+                   temper: float = TEMPER, max_coast: float = MAX_COAST) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded by ``load_network``
         with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
         whose modes are the whole target's, since a guard's transitions cannot be per axis: ``IMMNet(modes=...)``),
@@ -161,7 +162,24 @@ class NetworkBank:
             path = _member_path(m)
             joint = read_checkpoint(path)[0].get("modes", "joint") == "joint"
             nets[str(m)] = load_network(path, guard=guard if joint else None, adapt=adapt, r=r)
-        return cls(nets, prior, max_position, likelihood, temper)
+        bank = cls(nets, prior, max_position, likelihood, temper, max_coast)
+        bank.paths = {str(m): _member_path(m) for m in members}
+        return bank
+
+    def __repr__(self) -> str:
+        """What the bank is: each member by name, the scan intervals it serves, its prior, its range guard and its
+        provenance, one line each."""
+        prior = torch.exp(self.log_prior).tolist()
+        width = max(len(n) for n in self.names)
+        lines = [f"  {name:<{width}}  scans of {scans_served(net):<10}  prior {p:.3g}, "
+                 f"{'range guard' if guarded(net) else 'no range guard'}; {provenance_of(self.paths[name])}"
+                 for (name, net), p in zip(self.members.items(), prior)]
+        shipped_bank = set(self.names) == set(DEFAULT_MEMBERS) and all(
+            p is not None and provenance_of(p).startswith("provenance") for p in self.paths.values())
+        about = "; provenance immnet/pretrained/PROVENANCE-bank.md" if shipped_bank else ""
+        return (f"NetworkBank({len(self.names)} member{'s' if len(self.names) > 1 else ''}, each weighed per track by "
+                f"how well it predicts the track: likelihood {self.likelihood!r}, temper {self.temper:g}{about}\n"
+                + "\n".join(lines) + ")")
 
     has_cov = True  # every member keeps one (checked when built)
 
@@ -172,17 +190,19 @@ class NetworkBank:
         """``[B, K]`` bool: which member can take which track (:func:`accepts`)."""
         return torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
 
-    def check(self, intervals: torch.Tensor, takes: torch.Tensor | None = None) -> None:
+    def check(self, intervals: torch.Tensor, takes: torch.Tensor | None = None, tracks: torch.Tensor | None = None
+              ) -> None:
         """A ValueError naming the tracks no member can take, and each member's intervals (``takes``: ``self.takes(
-        intervals)`` where the caller has it)."""
+        intervals)`` where the caller has it; ``tracks``: the rows' track numbers, where they are segments)."""
         takes = self.takes(intervals) if takes is None else takes
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
-            spans = ", ".join(f"{name} {_scans(net)}" for name, net in self.members.items())
+            named = lost if tracks is None else tracks[lost].unique()
+            spans = ", ".join(f"{name} {scans_served(net)}" for name, net in self.members.items())
             iv = torch.as_tensor(intervals, dtype=torch.float64)[lost[0]]
             iv = iv[~torch.isnan(iv)]
-            raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in lost[:5])}"
-                             f"{', ...' if len(lost) > 5 else ''}: the first has scan intervals of {float(iv.min()):g} to "
+            raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in named[:5])}"
+                             f"{', ...' if len(named) > 5 else ''}: the first has scan intervals of {float(iv.min()):g} to "
                              f"{float(iv.max()):g} s, and its members were trained for {spans}; resample the data, or use "
                              f"a method that takes any interval (the model-based ones, e.g. --method imm-tuned)")
 
@@ -197,17 +217,29 @@ class NetworkBank:
         if r is not None:
             raise ValueError("a bank's members estimate each track's measurement std; to give them the radar's, build "
                              "the bank with r=METRES (NetworkBank.from_names, Tracker.pretrained('bank', r=...))")
-        z = torch.as_tensor(measurements, dtype=torch.float32)
-        if z.dim() != 3 or z.shape[-1] != 3:
-            raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
+        z = as_measurements(measurements, 3)
         if intervals is None:
             intervals = torch.full(z.shape[:2], self.dt, dtype=torch.float64)
         intervals = torch.as_tensor(intervals, dtype=torch.float64)
         if tuple(intervals.shape) != tuple(z.shape[:2]):
             raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
+        check_finite_intervals(intervals, "intervals")
+        gated, n_gated = gate_measurements(z, self.max_position)  # each member gates the same rows as it runs
+        restart, taken = coast_restarts(~torch.isnan(gated).any(-1), intervals, self.max_coast)
+        if bool(restart.any()):  # no detection for longer than max_coast: a track starts again, a fresh one
+            out = by_segments(lambda zs, ivs, rows: self._track(zs, ivs, batch_size, return_cov, rows), restart, z,
+                              taken)
+        else:
+            out = self._track(z, intervals, batch_size, return_cov)
+        self.n_gated = n_gated
+        return out
+
+    def _track(self, z: torch.Tensor, intervals: torch.Tensor, batch_size: int, return_cov: bool,
+               tracks: torch.Tensor | None = None) -> TensorDict:
+        """``track``'s work on tracks that run from their first scan to their last without a restart (``tracks [B]``:
+        their numbers in the caller's, where they are segments of its tracks)."""
         takes = self.takes(intervals)
-        self.check(intervals, takes)
-        self.n_gated = gate_measurements(z, self.max_position)[1]  # each member gates the same rows as it runs
+        self.check(intervals, takes, tracks)
         B, T, K = z.shape[0], z.shape[1], len(self.names)
         state = torch.zeros(B, T, K, 9, dtype=torch.float64)
         probs = torch.zeros(B, T, K, 4, dtype=torch.float64)
@@ -255,34 +287,50 @@ class NetworkBank:
         return after.select(*net.carry_keys, *((keys.OUTPUT,) if self._keeps_report(net) else ()))
 
     def reset(self, n_tracks: int) -> None:
-        """``n_tracks`` tracks that have not started, each member at its prior; ``n_gated`` back to 0."""
+        """``n_tracks`` (a whole number, at least 1) tracks that have not started, each member at its prior;
+        ``n_gated`` back to 0."""
+        n_tracks = check_n_tracks(n_tracks)
         self.carries = {name: self._fresh(net, n_tracks) for name, net in self.members.items()}
         self.log_w = self.log_prior.expand(n_tracks, -1).clone()
         self.fresh = torch.ones(n_tracks, dtype=torch.bool)  # no scan yet: the first one's interval is nominal
+        self.since = torch.zeros(n_tracks, dtype=torch.float64)
+        self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)  # the interval of each one's last scan
+        self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)  # each one's frame (frame_origin)
         self.n_gated = 0
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
-        """One scan ``z [B, 3]`` (NaN: a missed detection) of every track, as ``Tracker.step``: ``reset [B]`` restarts
+        """One scan ``z [B, 3]`` (NaN: a missed detection) of every track (as many as the last ``reset``'s; the first
+        scan without one sets their number), as ``Tracker.step``: ``reset [B]`` restarts
         those tracks (each member at its prior again), ``dt`` the time since each track's previous scan (a number or
         ``[B]``, s; None: ``self.dt``; a track's first scan after a reset takes it as nominal, ``track``'s scan 0).
         A member trained over a range coasts an interval longer than the range as ``track`` does (missed scans inside
         it, ``coast_scan``); a member drops out of a track at a scan it cannot take (its weight 0 until the track
-        restarts); a scan no member still in the track can take is refused before anything changes. Returns
+        restarts); a scan no member still in the track can take is refused before anything changes. A track with no
+        detection for longer than ``max_coast`` s restarts, as in ``Tracker.step`` (a long interval costs one scan). Returns
         ``("fused", "state")``, ``("fused", "cov")``, ``mode_probs`` and ``member_probs [B, K]``, NaN before a track's
         first detection. Over a sequence, ``track``'s numbers."""
-        z = torch.as_tensor(z, dtype=torch.float32)
-        if z.dim() != 2 or z.shape[-1] != 3:
-            raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
+        z = as_measurements(z, 2)
         B = z.shape[0]
-        if self.carries is None or self.log_w.shape[0] != B:
-            self.reset(B)
-        interval = torch.as_tensor(self.dt if dt is None else dt, dtype=torch.float64).reshape(-1).expand(B)
-        log_w, fresh = self.log_w.clone(), self.fresh.clone()
-        reset = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
+        check_batch(None if self.carries is None else self.log_w.shape[0], B)
+        interval = per_track(self.dt if dt is None else dt, B, "dt")
+        check_finite_intervals(interval, "dt")
+        reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
+        if self.carries is None:  # the first scan without a reset: as after reset(B)
+            log_w, fresh = self.log_prior.expand(B, -1).clone(), torch.ones(B, dtype=torch.bool)
+        else:
+            log_w, fresh = self.log_w.clone(), self.fresh.clone()
         if reset is not None:
             log_w[reset] = self.log_prior
             fresh |= reset
+        gated, n_gated = gate_measurements(z, self.max_position)
+        since = torch.zeros(B, dtype=torch.float64) if self.carries is None else self.since
+        since, restart = coast_step(since, interval, ~torch.isnan(gated).any(-1), fresh, self.max_coast)
+        if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset
+            reset = restart if reset is None else reset | restart  # its first scan at the interval of the scan before
+            log_w[restart] = self.log_prior
+            fresh |= restart
+            interval = torch.where(restart, self.last, interval)
         # Tracker.step's check per track: each scan, as the member coasts a long interval (coast_cuts), inside its
         # range, or its one interval
         cut = [coast_cuts(net, interval, fresh) for net in self.members.values()]  # (scans, each's interval) per member
@@ -292,8 +340,12 @@ class NetworkBank:
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
                              f"a scan after {float(interval[lost[0]]):g} s")
-        z, n_gated = gate_measurements(z, self.max_position)
+        if self.carries is None:
+            self.reset(B)
+        origin = self.origin if reset is None else torch.where(reset[:, None], float("nan"), self.origin)
+        origin = next_origin(origin, gated)  # the members' frame (a member with a range guard keeps the radar's)
         self.n_gated += n_gated
+        self.since, self.last, self.origin = since, interval, origin
         K = len(self.names)
         state = torch.zeros(B, K, 9, dtype=torch.float64)
         probs = torch.zeros(B, K, 4, dtype=torch.float64)
@@ -305,12 +357,14 @@ class NetworkBank:
             if reset is not None:
                 carry = select_rows(reset, self._fresh(net, B), carry)
             rows = takes[:, k].nonzero().flatten()
+            at = torch.zeros_like(origin) if guarded(net) else origin.nan_to_num()
+            z = to_local(gated, at)
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):
                 before, after = coast_scan(net, carry if every else carry[rows], z[rows], cut[k][0][rows],
                                            cut[k][1][rows], lambda td, net=net: self._kept(net, td))
                 loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood == "reported").double()
-                state[rows, k] = net.estimate(after).double()
+                state[rows, k] = to_world(net.estimate(after), at[rows])
                 cov[rows, k] = net.reported_cov(after).double()
                 probs[rows, k] = net.to_mode_probs(after.get(keys.EXPERT_PROBS)).double()
                 age[rows] = torch.maximum(age[rows], after.get(keys.AGE))
@@ -334,7 +388,9 @@ class BankMethod:
     """A bank of networks (``NetworkBank``) as a method of ``immnet evaluate`` and ``immnet track --method``:
     ``members`` shipped names or checkpoint paths, ``prior`` their prior probabilities, ``guard``, ``adapt`` and ``r``
     each member's (``load_network``'s; no range guard unless asked), ``likelihood`` and ``temper`` the bank's. Its
-    output: ``state``, ``mode_probs`` and, with ``return_cov``, ``state_cov``."""
+    output: ``state``, ``mode_probs`` and, with ``return_cov``, ``state_cov``. ``immnet evaluate`` scores a data set's
+    window as one track, so the bank has no coasting limit here (``max_coast=math.inf``: a track coasts through any
+    stretch without detections; ``immnet track`` sets its ``--max-coast``, the streaming and CSV APIs' limit)."""
 
     needs: tuple[str, ...] = ()
 
@@ -343,7 +399,7 @@ class BankMethod:
                  likelihood: str = "reported", temper: float = TEMPER):
         self.name = name
         self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
-                                          likelihood=likelihood, temper=temper)
+                                          likelihood=likelihood, temper=temper, max_coast=math.inf)
         self.batch_size = batch_size
         self.return_cov = return_cov
 

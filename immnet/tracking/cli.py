@@ -21,7 +21,7 @@ import numpy as np
 from immnet import keys
 from immnet.checkpoints import BANK, BANK_MEMBERS, DEFAULT_WEIGHTS, SHIPPED, shipped
 from immnet.data.validate import MAX_ABS_POSITION
-from immnet.tracking.segments import MAX_COAST
+from immnet.tracking.segments import MAX_COAST, check_coast
 
 
 WEIGHTS_HELP = {
@@ -66,7 +66,7 @@ def register(subparsers) -> None:
                    help="largest |x|, |y|, |z| (m) a detection may have; beyond it, or non-finite, a measurement "
                         "is a missed detection (counted on stderr); 'inf' keeps every finite one")
     p.add_argument("--max-coast", type=float, default=MAX_COAST,
-                   help="CSV: seconds a track may go without a detection before it is dropped; its next "
+                   help="seconds a track may go without a detection before it is dropped; its next "
                         "detection starts it again ('inf': never dropped)")
     p.add_argument(
         "--guard", default="checkpoint",
@@ -109,7 +109,9 @@ def _bank(args, limit: float, r):
     from immnet.tracking.tracker import KEEP
 
     guard = None if args.guard == "checkpoint" else parse_guard(args.guard)
-    return BankMethod(guard=guard, adapt=True if args.adapt else KEEP, r=r, return_cov=True, max_position=limit)
+    method = BankMethod(guard=guard, adapt=True if args.adapt else KEEP, r=r, return_cov=True, max_position=limit)
+    method.net.max_coast = check_coast(args.max_coast, method.net.dt)  # the rows' segments are cut at it already
+    return method
 
 
 def _weights(args) -> Path | None:
@@ -250,6 +252,7 @@ def run(args) -> int:
             _advise_bank(track_intervals(rows.ids, rows.t))
             return code
         tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
+        tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)  # the rows' segments are cut at it already
         if tracker.net.start.told_r:
             raise ValueError(f"{weights}: this network's filter experts are told each track's measurement std, which a "
                              f"CSV does not hold: give the radar's with --r METRES")
@@ -280,6 +283,7 @@ def run(args) -> int:
     if weights is None:
         return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
     tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
+    tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
     from immnet.data.times import scan_intervals
 
     intervals = scan_intervals(data) if "t" in data.keys() else data["dt"]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDict
 
@@ -32,14 +34,17 @@ class IMMNetMethod(_LearnedMethod):
     ``load_network``'s (``"data"``: each track's from the data, as the model-based filters are told it); ``knock_out``
     learned parts set to their model-based base (``IMMNet.knock_out``: ``gain``, ``classifier``), the ablations of a trained network.
 
-    Its estimates are ``Tracker.track``'s: NaN before a track's first detection. ``return_cov``: also the fused
+    Its estimates are ``Tracker.track``'s: NaN before a track's first detection. ``immnet evaluate`` scores a data
+    set's window as one track, so its tracker has no coasting limit (``max_coast=math.inf``: a track coasts through
+    any stretch without detections; the limit is the streaming and CSV APIs', ``Tracker(max_coast=...)``). ``return_cov``: also the fused
     covariance ``state_cov [B, T, 9, 9]`` (``IMMNet.rollout``'s); a ValueError now, naming why, for a checkpoint
     whose experts carry none (the paper's KalmanNet experts)."""
 
     def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP,
                  adapt=KEEP, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = (), r=KEEP):
         self.name = name
-        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r).knock_out(*knock_out))
+        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r).knock_out(*knock_out),
+                               max_coast=math.inf)
         self.net = self.tracker.net
         self.needs = (keys.R,) if self.net.start.told_r else ()  # a network told each track's r reads the data's
         self.batch_size = batch_size
@@ -49,7 +54,7 @@ class IMMNetMethod(_LearnedMethod):
 
     @classmethod
     def from_tracker(cls, tracker: Tracker, name: str = "immnet", batch_size: int = 500, return_cov: bool = False):
-        """The method of a loaded ``Tracker`` (its network as loaded: guard, adaptation, gate)."""
+        """The method of a loaded ``Tracker`` (its network as loaded: guard, adaptation, gate, coasting limit)."""
         self = cls.__new__(cls)
         self.name, self.tracker, self.net, self.batch_size = name, tracker, tracker.net, batch_size
         self.needs = (keys.R,) if self.net.start.told_r else ()

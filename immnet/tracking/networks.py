@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import copy
 import inspect
+import math
+import numbers
 import re
 from pathlib import Path
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 
@@ -18,6 +21,7 @@ from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
+from immnet.motion import POS
 from immnet.stages import IMMNet
 from immnet.stages.network import DEFAULT_GAIN, _where, net_arguments
 
@@ -218,15 +222,74 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
     return full, steps, where.numpy()
 
 
+# --- the local frame: each track tracked around its first detection, so that float32 keeps its digits anywhere -----
+POSITIONS = list(POS)  # the state's position components [x, y, z] (``immnet.motion.POS``)
+WORLD = (keys.STATE, keys.ROLLOUT_EXPERT_POST, keys.FUSED, keys.EXPERT_POST)  # outputs that hold positions
+
+
+def frame_origin(net, z: torch.Tensor) -> torch.Tensor:
+    """Each track's origin ``[B, 3]`` (float64) in ``z [B, T, 3]`` (gated measurements, NaN rows missed): its first
+    detection (zero for a track with none). A network with a range guard (:func:`guarded`) keeps the radar's frame,
+    origin zero: its guard's rules read radar-centred positions (3D-LAST's region, tens of km, where float32 keeps
+    millimetres)."""
+    origin = torch.zeros(z.shape[0], 3, dtype=torch.float64)
+    if guarded(net):
+        return origin
+    seen = ~torch.isnan(z).any(-1)
+    has = seen.any(-1)
+    first = seen.to(torch.uint8).argmax(-1)
+    origin[has] = z[has, first[has]].to(torch.float64)
+    return origin
+
+
+def next_origin(origin: torch.Tensor, z: torch.Tensor, radar: bool = False) -> torch.Tensor:
+    """The streaming trackers' :func:`frame_origin` after one scan ``z [B, 3]`` (gated): ``origin [B, 3]`` (NaN: the
+    track has had no detection since its start or restart) set to this scan's detection where it has none yet; zero
+    where the network keeps the radar's frame (``radar``: it has a range guard)."""
+    if radar:
+        return torch.zeros_like(origin)
+    new = torch.isnan(origin).any(-1) & ~torch.isnan(z).any(-1)
+    return torch.where(new[:, None], z.to(torch.float64), origin)
+
+
+def to_local(z: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """Measurements ``z [B, (T,) 3]`` in each track's frame, ``z - origin [B, 3]`` in float64, then as the network's
+    float32 (NaN rows stay NaN)."""
+    at = origin.view(origin.shape[0], *([1] * (z.dim() - 2)), 3)
+    return (z.to(torch.float64) - at).to(torch.float32)
+
+
+def to_world(v: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+    """States ``v [B, ..., 9]`` of each track's frame back in the caller's: the position components plus ``origin
+    [B, 3]`` in float64 (the output is float64; velocities and accelerations as the network gave them)."""
+    at = origin.view(origin.shape[0], *([1] * (v.dim() - 2)), 3)
+    v = v.to(torch.float64).clone()
+    v[..., POSITIONS] = v[..., POSITIONS] + at
+    return v
+
+
+def outputs_to_world(out: TensorDict, origin: torch.Tensor) -> TensorDict:
+    """``out``'s states (``WORLD``: the fused state, each expert's posterior) back in the caller's frame
+    (:func:`to_world`); covariances, probabilities and likelihoods are the same in either frame."""
+    for k in WORLD:
+        if k in out.keys(True, True):
+            out.set(k, to_world(out.get(k), origin))
+    return out
+
+
 @torch.no_grad()
 def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
                 return_cov: bool = False, r: torch.Tensor | None = None, return_loglik: bool | str = False,
                 max_position: float = MAX_ABS_POSITION) -> tuple[TensorDict, int]:
-    """``Tracker.track``'s work, ``(outputs, n_gated)``: ``z [B, T, 3]`` (float32) gated (``max_position``), a gap
-    longer than a range network's range cut into missed scans (:func:`coast_long_gaps`), every interval checked
+    """``Tracker.track``'s work, ``(outputs, n_gated)``: ``z [B, T, 3]`` (float64, or float32) gated (``max_position``)
+    and moved into each track's frame (:func:`frame_origin`, :func:`to_local`: float32 from there), a gap longer than
+    a range network's range cut into missed scans (:func:`coast_long_gaps`), every interval checked
     (:func:`check_dt`), ``net.rollout`` in batches of ``batch_size`` tracks, ``mode_probs`` added, NaN before each
-    track's first detection, and the scans asked for returned."""
+    track's first detection, the scans asked for returned and the states back in the caller's frame (float64,
+    :func:`outputs_to_world`)."""
     z, n_gated = gate_measurements(z, max_position)
+    origin = frame_origin(net, z)
+    z = to_local(z, origin)
     where = None
     if intervals is not None:
         intervals = torch.as_tensor(intervals, dtype=torch.float64)
@@ -246,10 +309,157 @@ def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: 
     out = torch.cat(outs, 0)
     if where is not None:  # the scans asked for, without the missed ones cut into the long gaps
         out = out[torch.arange(out.batch_size[0])[:, None], torch.from_numpy(where)]
-    return out, n_gated
+    return outputs_to_world(out, origin), n_gated
 
 
 def select_rows(mask, a: TensorDict, b: TensorDict) -> TensorDict:
     """``a``'s rows where ``mask`` [B], ``b``'s elsewhere, over ``a``'s keys (a fresh carry for the tracks that
     restart)."""
     return _where(mask, a, b.select(*a.keys(True, True)))
+
+
+# --- the streaming and whole-sequence APIs' input checks: one line naming what is wrong, before anything changes ----
+def as_measurements(z, dims: int) -> torch.Tensor:
+    """``z`` as float64 measurements ``[n_tracks, 3]`` (``dims`` 2, a scan) or ``[n_tracks, T, 3]`` (3, sequences):
+    float64 until each track is moved into its own frame (:func:`frame_origin`), then the network's float32; a
+    ValueError for another shape, no track or no scan, and for booleans or complex numbers (which a cast would turn
+    into positions without a word)."""
+    raw = z if isinstance(z, torch.Tensor) else torch.as_tensor(np.asarray(z))
+    if raw.dtype == torch.bool or raw.is_complex():
+        raise ValueError(f"measurements are real numbers of metres, got {raw.dtype}".replace("torch.", ""))
+    z = raw.to(torch.float64)
+    shape = "[n_tracks, 3]" if dims == 2 else "[n_tracks, T, 3]"
+    what = "a scan of measurements is" if dims == 2 else "measurements are"
+    if z.dim() != dims or z.shape[-1] != 3:
+        raise ValueError(f"{what} {shape}, got {tuple(z.shape)}")
+    if z.shape[0] == 0 or (dims == 3 and z.shape[1] == 0):
+        raise ValueError(f"{what} {shape} with at least one track{'' if dims == 2 else ' and one scan'}, "
+                         f"got {tuple(z.shape)}")
+    return z
+
+
+def check_n_tracks(n_tracks) -> int:
+    """``n_tracks`` as an int; a ValueError unless it is a whole number of at least 1 (a bool is not one)."""
+    if isinstance(n_tracks, (bool, np.bool_)) or not isinstance(n_tracks, (numbers.Integral, torch.Tensor)) \
+            or (isinstance(n_tracks, torch.Tensor) and (n_tracks.numel() != 1 or n_tracks.dtype.is_floating_point
+                                                        or n_tracks.dtype == torch.bool)) or int(n_tracks) < 1:
+        raise ValueError(f"reset(n_tracks) takes a whole number of tracks, at least 1, got {n_tracks!r}")
+    return int(n_tracks)
+
+
+def check_batch(held: int | None, n: int) -> None:
+    """A ValueError where a scan of ``n`` rows comes to a tracker holding ``held`` tracks (None: none yet, the scan
+    sizes it)."""
+    if held is not None and held != n:
+        raise ValueError(f"this tracker holds {held} tracks but the scan has {n} rows: give one row per track (NaN for "
+                         f"a missed detection), or reset({n}) first")
+
+
+def per_track(value, n: int, name: str, dtype=torch.float64) -> torch.Tensor:
+    """``value`` (one number or one per track) as ``[n]``; a ValueError naming both lengths otherwise."""
+    v = torch.as_tensor(value, dtype=dtype).reshape(-1)
+    if v.numel() not in (1, n):
+        raise ValueError(f"{name} has {v.numel()} values for {n} tracks: give one, or one per track")
+    return v.expand(n)
+
+
+def check_finite_intervals(intervals: torch.Tensor, name: str) -> torch.Tensor:
+    """``intervals``, checked: a ValueError naming the first NaN or infinite one (``[B]`` a step's ``dt``, ``[B, T]`` a
+    sequence's); ``check_dt`` refuses the other intervals a network was not trained at (0, negative)."""
+    bad = ~torch.isfinite(intervals)
+    if bool(bad.any()):
+        where = bad.nonzero()[0].tolist()
+        at = f"track {where[0]}" + (f", scan {where[1]}" if len(where) > 1 else "")
+        raise ValueError(f"{name} is {float(intervals[tuple(where)]):g} at {at}: the time since a track's previous scan "
+                         f"is a number of seconds")
+    return intervals
+
+
+def guarded(net) -> bool:
+    """Whether ``net`` keeps a range guard (``immnet.imm.guard``: its rules read positions as radar-centred)."""
+    return any(getattr(m, "guard", None) is not None for m in net.modules())
+
+
+def scans_served(net) -> str:
+    """The scan intervals a network was trained for, as the trackers name them: ``0.5-12 s`` or ``1 s``."""
+    span = getattr(net, "interval_range", None)
+    return f"{span[0]:g}-{span[1]:g} s" if span is not None else f"{net.dt:g} s"
+
+
+def provenance_of(path) -> str:
+    """Where shipped weights' provenance is (``immnet/pretrained/PROVENANCE-NAME.md``, as the docs name it), else
+    the checkpoint's path (a network of one's own: no provenance shipped)."""
+    from immnet.checkpoints import PRETRAINED
+
+    if path is None:
+        return "no provenance (built in Python)"
+    path = Path(path)
+    tail = path.stem[len("immnet"):] if path.stem.startswith("immnet") else None
+    md = path.with_name(f"PROVENANCE{tail}.md") if tail is not None else None
+    if md is not None and path.resolve().parent == PRETRAINED.parent and md.is_file():
+        return f"provenance immnet/pretrained/{md.name}"
+    return f"no provenance shipped (checkpoint {path})"
+
+
+# --- the coasting limit: a track with no detection for longer than ``max_coast`` seconds restarts ---------------------
+def _beyond(since: torch.Tensor, max_coast: float) -> torch.Tensor:
+    """Where ``since`` (s, float64) is past ``max_coast``, to 1e-9 of it (times summed from intervals round; the CSV
+    path's segments, ``segments._join``, keep a gap of exactly ``max_coast`` in its track)."""
+    return since > max_coast * (1 + 1e-9)
+
+
+def coast_restarts(detected: torch.Tensor, intervals: torch.Tensor, max_coast: float):
+    """``(restart, taken)``: ``restart [B, T]`` bool, the scans at which a track restarts, as ``Tracker.step`` restarts
+    it (:func:`coast_step`): where the time since its last detection (or its start) would pass ``max_coast`` seconds;
+    ``taken [B, T]`` the intervals as the trackers take them: a restarted track's first scan at the interval of the
+    scan before it (the time before a restart is none the track coasts through). ``detected [B, T]``: the scans with
+    a detection (after the gate), ``intervals [B, T]`` (s) the interval before each scan (scan 0's a track's start)."""
+    B, T = detected.shape
+    since = torch.zeros(B, dtype=torch.float64)
+    restart = torch.zeros(B, T, dtype=torch.bool)
+    if not math.isfinite(max_coast):
+        return restart, intervals
+    taken = intervals.clone()
+    for t in range(1, T):
+        since, restart[:, t] = coast_step(since, intervals[:, t], detected[:, t], None, max_coast)
+        taken[:, t] = torch.where(restart[:, t], taken[:, t - 1], intervals[:, t])
+    return restart, taken
+
+
+def coast_step(since: torch.Tensor, interval: torch.Tensor, detected: torch.Tensor, first, max_coast: float):
+    """``(since, restart)`` after one scan: ``restart [B]`` where a track that is not at its first scan (``first``,
+    None: none is) has had no detection for longer than ``max_coast`` s by this scan; ``since [B]`` the seconds since
+    each track's last detection, its start or its restart, after it."""
+    total = since + interval
+    restart = _beyond(total, max_coast) if math.isfinite(max_coast) else torch.zeros_like(detected)
+    if first is not None:
+        restart = restart & ~first
+        total = torch.where(first, torch.zeros_like(total), total)
+    return torch.where(restart | detected, torch.zeros_like(total), total), restart
+
+
+def by_segments(run, restart: torch.Tensor, z: torch.Tensor, intervals: torch.Tensor | None) -> TensorDict:
+    """``run(z [S, L, 3], intervals [S, L] or None, rows [S])`` over each track's segments (a track cut at each scan
+    of ``restart [B, T]``, each segment a fresh track from there; ``rows`` each one's track), segments of one length
+    together; their outputs put back in place ``[B, T]``."""
+    B, T = restart.shape
+    starts = restart.clone()
+    starts[:, 0] = True
+    segs = []  # (track, first scan, length)
+    for b in range(B):
+        cut = starts[b].nonzero().flatten().tolist() + [T]
+        segs += [(b, s, e - s) for s, e in zip(cut[:-1], cut[1:])]
+    out = None
+    for length in sorted({n for _, _, n in segs}):
+        group = [(b, s) for b, s, n in segs if n == length]
+        rows = torch.tensor([b for b, _ in group])
+        zs = torch.stack([z[b, s : s + length] for b, s in group])
+        ivs = None if intervals is None else torch.stack([intervals[b, s : s + length] for b, s in group])
+        got = run(zs, ivs, rows)
+        if out is None:
+            out = TensorDict({k: torch.full((B, T, *v.shape[2:]), float("nan"), dtype=v.dtype)
+                              for k, v in got.items(True, True)}, batch_size=[B, T])
+        for i, (b, s) in enumerate(group):
+            for k, v in got.items(True, True):
+                out.get(k)[b, s : s + length] = v[i]
+    return out

@@ -221,7 +221,7 @@ def track_segments(tracker, segs: Segments, batch_size: int = 512, return_cov: b
     ``return_cov`` a third, ``state_cov [R, 9, 9]`` (``Tracker.track``'s, which refuses experts without one)."""
     groups, (state, probs, cov) = _groups(segs, batch_size)
     for T, rows in groups:
-        z = np.full((len(rows), T, 3), np.nan, dtype=np.float32)
+        z = np.full((len(rows), T, 3), np.nan)  # float64: the tracker moves each track into its frame first
         for i, r in enumerate(rows):
             z[i, segs.step[r]] = segs.z[r]
         out = tracker.track(z, batch_size=len(rows), return_cov=return_cov)

@@ -35,8 +35,11 @@ from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurement
 from immnet.filters.base import blank_before_first_detection
 from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
+from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    KEEP, check_dt, coast_cuts, coast_long_gaps, coast_scan, load_network, read_checkpoint, run_network, select_rows,
+    KEEP, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals, coast_cuts, coast_long_gaps,
+    by_segments, coast_restarts, coast_scan, coast_step, frame_origin, guarded, load_network, next_origin,
+    outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, to_local,
     trained_for,
 )
 
@@ -45,22 +48,36 @@ class Tracker:
     """A stateful wrapper around ``IMMNet.scan`` for streaming use (inference only).
 
     ``max_position``: the largest ``|z_a|`` (m) a detection may have; beyond it, or non-finite, a
-    measurement is a missed detection, counted in ``n_gated`` (module doc).
+    measurement is a missed detection, counted in ``n_gated`` (module doc). ``max_coast``: the seconds a track may go
+    without a detection before it restarts (``step``; ``immnet.tracking.segments.MAX_COAST``, ``inf``: never).
     """
 
-    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION):
+    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION, max_coast: float = MAX_COAST):
         self.net = net.eval()
         self.max_position = check_limit(max_position)
+        self.max_coast = check_coast(max_coast, float(self.net.dt))
         self.carry: TensorDict | None = None
         self.fresh: torch.Tensor | None = None  # [B] no scan yet since a reset: the first one's interval is nominal
+        self.since: torch.Tensor | None = None  # [B] s since each track's last detection (or its start): max_coast's
+        self.last: torch.Tensor | None = None  # [B] the interval each track's last scan was taken at (NaN: none yet)
+        self.origin: torch.Tensor | None = None  # [B, 3] float64: each track's frame, its first detection (NaN: none)
         self.n_gated = 0
+        self.name, self.path = None, None  # what ``repr`` names: the shipped name or checkpoint it was loaded from
+
+    def __repr__(self) -> str:
+        """What the tracker is: its network, the scan intervals it serves, its range guard and its provenance."""
+        name = self.name or (str(self.path) if self.path is not None else type(self.net).__name__)
+        guard = "range guard" if guarded(self.net) else "no range guard"
+        return f"Tracker({name}: scans of {scans_served(self.net)}, {guard}; {provenance_of(self.path)})"
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
                         r=KEEP) -> "Tracker":
         """The IMMNet of a checkpoint; ``guard``, ``adapt`` and ``r`` as in ``load_network``; ``max_position`` the
         gate on measurements (``immnet.data.validate``)."""
-        return cls(load_network(path, guard, adapt, r), max_position)
+        tracker = cls(load_network(path, guard, adapt, r), max_position)
+        tracker.path = Path(path)
+        return tracker
 
     @classmethod
     def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
@@ -80,23 +97,33 @@ class Tracker:
         if name == BANK:
             return NetworkBank.from_names(guard=None if isinstance(guard, str) and guard == KEEP else guard, adapt=adapt,
                                           r=r, max_position=max_position)
-        return cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
+        tracker = cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
+        tracker.name = name
+        return tracker
 
     def reset(self, n_tracks: int) -> None:
-        """``n_tracks`` tracks that have not started; ``n_gated`` back to 0."""
+        """``n_tracks`` (a whole number, at least 1) tracks that have not started; ``n_gated`` back to 0."""
+        n_tracks = check_n_tracks(n_tracks)
         self.carry = self.net.initial_carry(n_tracks)
         self.fresh = torch.ones(n_tracks, dtype=torch.bool)
+        self.since = torch.zeros(n_tracks, dtype=torch.float64)
+        self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)
+        self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)
         self.n_gated = 0
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None, r=None) -> TensorDict:
-        """One scan ``z [B, 3]`` (NaN = missed detection); ``reset [B]`` bool restarts those tracks;
+        """One scan ``z [B, 3]`` (NaN = missed detection), one row per track: the tracks of the last ``reset`` (the first
+        scan without one sets their number; a scan of another number of rows is refused); ``reset [B]`` bool restarts
+        those tracks;
         ``dt`` the time since each track's previous scan (a number or ``[B]``, seconds; None: the
         network's ``net.dt``), checked against the intervals the network was trained at
         (:func:`check_dt`) and passed to ``IMMNet.scan`` as its ``interval``: for a network trained over a range, an
         interval longer than it is coasted through at equal intervals inside it, missed scans before this one
         (:func:`coast_scan`, as ``track`` cuts a long gap), and a track's first scan after a reset takes its interval
-        as nominal (at most the range's end, as ``track``'s scan 0); ``r`` each track's measurement std (a
+        as nominal (at most the range's end, as ``track``'s scan 0). A track with no detection for longer than
+        ``max_coast`` seconds (the CSV path's coasting limit, 30 s by default) restarts at this scan, as with ``reset``,
+        its first scan at the interval of its scan before: a long interval costs one scan. ``r`` each track's measurement std (a
         number or ``[B]``, metres), for a network whose filter experts are told it (``r="data"``). Over a sequence,
         ``track``'s numbers.
 
@@ -106,24 +133,36 @@ class Tracker:
         reports it (``IMMNet.reported_cov``: times its consistency scale where it keeps one); the paper's
         KalmanNet experts give none (no such key).
         """
-        z = torch.as_tensor(z, dtype=torch.float32)
-        if z.dim() != 2 or z.shape[-1] != 3:
-            raise ValueError(f"a scan of measurements is [n_tracks, 3], got {tuple(z.shape)}")
+        z = as_measurements(z, 2)
         self._check_told(r)  # before anything of the tracker's state changes
-        if self.carry is None or self.carry.batch_size[0] != z.shape[0]:
-            self.reset(z.shape[0])
-        mask = None if reset is None else torch.as_tensor(reset, dtype=torch.bool)
-        first = self.fresh if mask is None else self.fresh | mask  # each track's first scan since a reset
-        interval = None if dt is None else torch.as_tensor(dt, dtype=torch.float64).reshape(-1).expand(z.shape[0])
+        check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
+        mask = None if reset is None else per_track(reset, z.shape[0], "reset", torch.bool)
+        fresh = torch.ones(z.shape[0], dtype=torch.bool) if self.carry is None else self.fresh
+        first = fresh if mask is None else fresh | mask  # each track's first scan since a reset
+        interval = None if dt is None else check_finite_intervals(per_track(dt, z.shape[0], "dt"), "dt")
+        told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
+        gated, n_gated = gate_measurements(z, self.max_position)
+        since = torch.zeros(z.shape[0], dtype=torch.float64) if self.carry is None else self.since
+        now = torch.full_like(since, float(self.net.dt)) if interval is None else interval
+        since, restart = coast_step(since, now, ~torch.isnan(gated).any(-1), first, self.max_coast)
+        if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset,
+            mask = restart if mask is None else mask | restart  # its first scan at the interval of the scan before
+            first = first | restart
+            interval = None if interval is None else torch.where(restart, self.last, interval)
         if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
             cuts, each = coast_cuts(self.net, interval, first)
             bad = ~trained_for(self.net, each)
             check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
-        z, n_gated = gate_measurements(z, self.max_position)
+        if self.carry is None:  # the first scan without a reset: its number of tracks
+            self.reset(z.shape[0])
+        origin = self.origin if mask is None else torch.where(mask[:, None], float("nan"), self.origin)
+        origin = next_origin(origin, gated, guarded(self.net))
+        z = to_local(gated, origin.nan_to_num())
         self.n_gated += n_gated
+        self.since, self.origin = since, origin
+        self.last = now if interval is None else interval
         if mask is not None:
             self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
-        told = None if r is None else torch.as_tensor(r, dtype=torch.float32).reshape(-1).expand(z.shape[0])
         if interval is None:
             self.carry = self.net.scan(self.carry, z, r=told)
         else:
@@ -135,6 +174,7 @@ class Tracker:
         if self.net.has_cov:
             out.set(keys.FUSED_COV, self.net.reported_cov(self.carry).clone())
         out.set(keys.MODE_PROBS, self.net.to_mode_probs(out.get(keys.EXPERT_PROBS)))
+        out = outputs_to_world(out, origin.nan_to_num())
         waiting = (self.carry.get(keys.AGE) == 0)[:, None]  # no detection yet: no estimate
         return out.apply(lambda v: blank_before_first_detection(v.unsqueeze(1), waiting).squeeze(1))
 
@@ -155,15 +195,33 @@ class Tracker:
         ``intervals [B, T]``: the interval before each scan (``immnet.data.times.scan_intervals``; None: the
         network's ``dt``), each one the network was trained at (:func:`check_dt`), except that for a network trained
         over a range an interval longer than it is a gap the track coasts through at intervals inside it
-        (:func:`coast_long_gaps`; the output holds the scans given). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
+        (:func:`coast_long_gaps`; the output holds the scans given); a track with no detection for longer than
+        ``max_coast`` seconds restarts there, as in ``step`` (the parts between restarts tracked as fresh tracks). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
         (``FilterGain(r="data")``). ``return_loglik``: also each scan's
         measurement log-likelihood under the network's prediction, ``loglik [B, T]`` (``IMMNet.predictive_loglik``)."""
-        z = torch.as_tensor(measurements, dtype=torch.float32)
-        if z.dim() != 3 or z.shape[-1] != 3:
-            raise ValueError(f"measurements are [n_tracks, T, 3], got {tuple(z.shape)}")
+        z = as_measurements(measurements, 3)
         self._check_told(r)
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
-        out, self.n_gated = run_network(self.net, z, batch_size, intervals, return_cov, r, return_loglik,
-                                        self.max_position)
+        iv = None
+        if intervals is not None:
+            iv = torch.as_tensor(intervals, dtype=torch.float64)
+            if tuple(iv.shape) != tuple(z.shape[:2]):
+                raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(iv.shape)}")
+            check_finite_intervals(iv, "intervals")
+        told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
+        gated, n_gated = gate_measurements(z, self.max_position)
+        every = torch.full(z.shape[:2], float(self.net.dt), dtype=torch.float64) if iv is None else iv
+        restart, taken = coast_restarts(~torch.isnan(gated).any(-1), every, self.max_coast)
+        if not bool(restart.any()):
+            out, self.n_gated = run_network(self.net, z, batch_size, iv, return_cov, told, return_loglik,
+                                            self.max_position)
+            return out
+
+        def run(zs, ivs, rows):  # each segment a fresh track
+            return run_network(self.net, zs, batch_size, ivs, return_cov, None if told is None else told[rows],
+                               return_loglik, self.max_position)[0]
+
+        out = by_segments(run, restart, z, None if iv is None else taken)
+        self.n_gated = n_gated
         return out
