@@ -1,7 +1,8 @@
 """The shipped networks and the model-based methods give the outputs they gave before the IMM core was written once
 (issue 61): ``tests/data/core_outputs.npz`` holds their outputs on a small fixed input, written by this file run as a
 script (``python tests/test_core_outputs.py``) at commit 62f11b6, before the 3x3 solves, the Gaussian
-log-likelihoods and the moment matches were made one each."""
+log-likelihoods and the moment matches were made one each. The networks are run by ``rollout`` in the radar's
+frame, as ``Tracker.track`` ran them then (it now moves each track into its own frame first)."""
 
 from pathlib import Path
 
@@ -21,6 +22,7 @@ def outputs() -> dict:
     from immnet.data.spec import DataSpec
     from immnet.data.times import scan_intervals
     from immnet.evaluation.methods import build_method
+    from immnet.filters.base import before_first_detection, blank_before_first_detection
     from immnet.tracking.tracker import Tracker
 
     data = generate(3, seed=61, spec=DataSpec(T=120))
@@ -29,9 +31,11 @@ def outputs() -> dict:
         res = build_method(name).track(data)
         out |= {f"{name}/{k}": res[k] for k in FIELDS if k in res.keys()}
     z = data["measurements"].float()
-    for name, guard in NETWORKS:
-        tracker = Tracker.pretrained(name, **({} if guard is None else {"guard": guard}))
-        res = tracker.track(z, intervals=scan_intervals(data), return_cov=True, return_loglik=True)
+    for name, guard in NETWORKS:  # the network itself, in the radar's frame (the Tracker moves each track to its own)
+        net = Tracker.pretrained(name, **({} if guard is None else {"guard": guard})).net
+        res, _ = net.rollout(z, intervals=scan_intervals(data).float(), return_cov=True, return_loglik=True)
+        res.set("mode_probs", net.to_mode_probs(res["expert_probs"]))
+        res = res.apply(lambda v: blank_before_first_detection(v, before_first_detection(z)))
         out |= {f"{name}/{k}": res[k] for k in FIELDS if k in res.keys()}
     return {k: v.detach().double().numpy() for k, v in out.items()}
 
