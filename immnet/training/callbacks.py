@@ -1,6 +1,5 @@
-"""Callbacks of every training run: plain-text progress (one line per validation, readable in logs and
-CI; under DDP only rank 0 prints, its validation metrics averaged over the ranks) and the last
-checkpoint a run resumes from."""
+"""Callbacks of every training run: plain-text progress (readable in logs and CI; under DDP only rank 0
+prints, its validation metrics averaged over the ranks) and the last checkpoint a run resumes from."""
 
 from __future__ import annotations
 
@@ -12,29 +11,62 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 
-class PrintProgress(L.Callback):
-    """Print step, elapsed time, the training loss and the validation metrics after each validation."""
+def duration(seconds: float) -> str:
+    """``seconds`` as ``1h02m03s`` / ``2m05s`` / ``45s``."""
+    s = int(round(seconds))
+    h, m = s // 3600, s % 3600 // 60
+    return f"{h}h{m:02d}m{s % 60:02d}s" if h else f"{m}m{s % 60:02d}s" if m else f"{s}s"
 
-    def __init__(self, every_n_steps: int = 0):
+
+class PrintProgress(L.Callback):
+    """Progress lines on stderr: one after each validation (the training loss and the validation
+    metrics), and between validations one every ``every_n_steps`` optimizer steps (0: none) and one
+    whenever ``every_seconds`` have passed since the last line, so that a slow run (a busy machine)
+    still says where it is at least that often. Each line reads
+    ``[train] step K/N epoch E elapsed 2m05s left ~6m40s <metrics>``: N is the run's step budget
+    (``max_steps``, else ``max_epochs`` passes), elapsed counts from the start of this process's training,
+    and the time left is the mean time per step so far (this process's steps: a resumed run counts from
+    its resumed step) times the steps to go."""
+
+    clock = staticmethod(time.monotonic)
+    """The clock the lines read (seconds; a test replaces it on the instance)."""
+
+    def __init__(self, every_n_steps: int = 0, every_seconds: float = 60.0):
         self.every = every_n_steps
+        self.every_seconds = every_seconds
         self.start = None
+        self.first_step = 0
+        self.last_line = None
 
     def on_train_start(self, trainer, pl_module):
         if not trainer.is_global_zero:
             return
-        self.start = time.time()
+        self.start = self.last_line = self.clock()
+        self.first_step = trainer.global_step
         n = sum(p.numel() for p in pl_module.parameters())
         learn = sum(p.numel() for p in pl_module.parameters() if p.requires_grad)
         frozen = "" if learn == n else f" ({learn:,} learn, the rest frozen)"
         print(f"[train] {type(pl_module).__name__}: {n:,} parameters{frozen}", file=sys.stderr, flush=True)
 
     def _line(self, trainer, prefix):
+        from immnet.training.resume import budget
+
+        now = self.clock()
+        k, n = trainer.global_step, budget(trainer)
+        done = k - self.first_step
+        left = f"~{duration((now - self.start) / done * max(n - k, 0))}" if done > 0 else "?"
         m = trainer.callback_metrics
-        shown = " ".join(f"{k}={float(v):.4g}" for k, v in sorted(m.items()) if k.startswith(prefix))
-        return f"[train] epoch {trainer.current_epoch} batch {trainer.global_step} {time.time() - self.start:6.0f}s {shown}"
+        shown = " ".join(f"{key}={float(v):.4g}" for key, v in sorted(m.items()) if key.startswith(prefix))
+        self.last_line = now
+        return (f"[train] step {k}/{n} epoch {trainer.current_epoch} elapsed {duration(now - self.start)} "
+                f"left {left} {shown}").rstrip()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        if self.start is not None and self.every and trainer.global_step % self.every == 0:
+        if self.start is None:
+            return
+        by_steps = self.every and trainer.global_step % self.every == 0
+        by_time = self.every_seconds and self.clock() - self.last_line >= self.every_seconds
+        if by_steps or by_time:
             print(self._line(trainer, "train/"), file=sys.stderr, flush=True)
 
     def on_validation_end(self, trainer, pl_module):
