@@ -10,12 +10,7 @@ import lightning as L
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-
-def duration(seconds: float) -> str:
-    """``seconds`` as ``1h02m03s`` / ``2m05s`` / ``45s``."""
-    s = int(round(seconds))
-    h, m = s // 3600, s % 3600 // 60
-    return f"{h}h{m:02d}m{s % 60:02d}s" if h else f"{m}m{s % 60:02d}s" if m else f"{s}s"
+from immnet.progress import duration
 
 
 class PrintProgress(L.Callback):
