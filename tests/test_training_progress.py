@@ -34,7 +34,7 @@ def test_a_progress_line_at_least_every_minute_with_step_loss_elapsed_and_time_l
     (elapsed / K * (10 - K)), computed here independently."""
     clock = [1000.0]
     progress = PrintProgress()
-    progress.clock = lambda: clock[0]
+    progress.clock, progress.watch = (lambda: clock[0]), False  # the clock moves only in the steps
     trainer = L.Trainer(max_steps=10, callbacks=[progress], logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
     trainer.fit(Timed(clock))
@@ -55,10 +55,60 @@ def test_a_step_cadence_still_prints_on_its_steps(capsys):
     """every_n_steps keeps its cadence besides the minute (here a step takes no time on the clock)."""
     clock = [0.0]
     progress = PrintProgress(every_n_steps=4)
-    progress.clock = lambda: clock[0]
+    progress.clock, progress.watch = (lambda: clock[0]), False
     trainer = L.Trainer(max_steps=10, callbacks=[progress], logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
     trainer.fit(BoringModel())
     lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("[train] step")]
     assert [line.split()[2] for line in lines] == ["4/10", "8/10"]
-    assert all("elapsed 0s left ~0s" in line for line in lines)
+    assert all("elapsed 0s left ~0s" in line for line in lines), lines
+
+
+class SlowValidation(BoringModel):
+    """Each validation batch takes 40 s on the fake clock."""
+
+    def __init__(self, clock):
+        super().__init__()
+        self.clock = clock
+
+    def validation_step(self, batch, batch_idx):
+        self.clock[0] += 40.0
+        return super().validation_step(batch, batch_idx)
+
+
+def test_the_check_before_training_says_so_and_a_long_one_still_prints_each_minute(capsys):
+    """Issue 60, item 10: on a busy machine Lightning's validation check before training took 6 minutes in
+    silence: it is announced, and its batches (40 s each on the fake clock) print the minute's line."""
+    clock = [0.0]
+    progress = PrintProgress()
+    progress.clock, progress.watch = (lambda: clock[0]), False
+    trainer = L.Trainer(max_steps=2, callbacks=[progress], logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=3,
+                        limit_val_batches=3, val_check_interval=2)
+    trainer.fit(SlowValidation(clock))
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("[train]")]
+    assert lines[1] == "[train] checking validation before training (Lightning's sanity check)"
+    assert lines[2] == "[train] step 0/2 epoch 0 elapsed 1m20s left ? (checking validation before training)"
+    # the check's batches end at 40, 80 (a line: 80 s since the start), 120 s; the two steps take no time;
+    # the validation at step 2: its first batch ends at 160 s, 80 s after the last line, and says so
+    assert lines[3] == "[train] step 2/2 epoch 0 elapsed 2m40s left ~0s (validating)"
+
+
+def test_a_step_that_takes_minutes_still_gets_its_line(capsys):
+    """The watch thread prints while no hook runs (here one step of 1.5 s, the minute shrunk to 0.2 s),
+    and is stopped when the fit ends."""
+    import time
+
+    class OneSlowStep(BoringModel):
+        def training_step(self, batch, batch_idx):
+            if self.global_step == 0:
+                time.sleep(1.5)
+            return super().training_step(batch, batch_idx)
+
+    progress = PrintProgress(every_seconds=0.2)
+    trainer = L.Trainer(max_steps=2, callbacks=[progress], logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0)
+    trainer.fit(OneSlowStep())
+    lines = capsys.readouterr().err.splitlines()
+    assert any(line.startswith("[train] step 0/2 epoch 0 elapsed") for line in lines), lines
+    assert progress._thread is None and not [t for t in __import__("threading").enumerate() if t.name == "immnet-progress"]
