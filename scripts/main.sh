@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The main job, from nothing to the results table, on a CPU in about 15 minutes:
+# The main job, from nothing to the results table, on an idle 2-core CPU in about 15 minutes (budgets are steps,
+# not time: a busy machine takes longer, never cuts the training short, and prints progress each minute):
 #   set up -> generate 3D-LAST data -> train IMMNet (recipes/quick.yaml) -> evaluate every method on a
 #   held-out test set in one run -> table + figures.
 # A finished quick run is reused, an interrupted one resumes; IMMNET_RETRAIN=1 retrains from scratch.
@@ -47,7 +48,7 @@ fi
 if [ -f "$RUN/stage2/checkpoints/finished.json" ]; then
   say "2/4 training: reusing the finished quick run $CKPT (IMMNET_RETRAIN=1 to train again)"
 else
-  say "2/4 training: recipes/quick.yaml (stage 1 about 3.5 min, stage 2 about 5 min; an interrupted run resumes)"
+  say "2/4 training: recipes/quick.yaml (on 2 idle cores stage 1 about 3.5 min, stage 2 about 5 min; a busy machine is slower, each minute's progress line says how long is left; an interrupted run resumes)"
   WANDB_JOB_TYPE=train fit --config recipes/quick.yaml  # runs "quick 1/2", "quick 2/2"
 fi
 # the table's plain KalmanNet: one KalmanNet (architecture 2, CA) alone on maneuvering data, at the
