@@ -228,6 +228,14 @@ def test_a_run_stopped_short_of_its_budget_is_not_marked_finished(tmp_path):
                                                   r"short of its budget: the run is not finished"):
         resume.mark_finished(short)
     assert not (tmp_path / "short/ckpt" / resume.FINISHED).exists()
+    timed = _boring_fit(tmp_path / "timed", max_steps=10, max_time={"days": 1, "hours": 2, "minutes": 3, "seconds": 4})
+    resume.mark_finished(timed)  # reached its steps well within its time: finished
+    assert (tmp_path / "timed/ckpt" / resume.FINISHED).is_file()
+    out_of_time = _boring_fit(tmp_path / "out", max_steps=10, max_time="00:00:00:00")  # stops before its first step
+    with pytest.raises(resume.StoppedShort, match=r"training stopped at step 0 of 10 \(its time limit max_time "
+                                                  r"\(00:00:00:00\) ran out\)"):
+        resume.mark_finished(out_of_time)
+    assert not (tmp_path / "out/ckpt" / resume.FINISHED).exists()
     whole = _boring_fit(tmp_path / "whole", max_steps=10)
     resume.mark_finished(whole)
     assert (tmp_path / "whole/ckpt" / resume.FINISHED).is_file()

@@ -132,8 +132,8 @@ def stopped_short(trainer) -> str | None:
         return None
     timers = [c for c in trainer.callbacks if isinstance(c, Timer) and c._duration is not None]
     if timers and (timers[0].time_remaining("train") or 0.0) <= 0.0:
-        limit = timers[0]._duration
-        why = f"its time limit max_time ({int(limit // 3600):02d}:{int(limit % 3600 // 60):02d}:{int(limit % 60):02d}) ran out"
+        t = int(timers[0]._duration)
+        why = f"its time limit max_time ({t // 86400:02d}:{t % 86400 // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}) ran out"
     elif trainer.should_stop:
         why = "a callback stopped the trainer"
     else:
