@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The main job, from nothing to the results table, on a CPU in about 15 minutes:
+# The main job, from nothing to the results table, on an idle 2-core CPU in about 15 minutes (budgets are steps,
+# not time: a busy machine takes longer, never cuts the training short, and prints progress each minute):
 #   set up -> generate 3D-LAST data -> train IMMNet (recipes/quick.yaml) -> evaluate every method on a
 #   held-out test set in one run -> table + figures.
 # A finished quick run is reused, an interrupted one resumes; IMMNET_RETRAIN=1 retrains from scratch.
@@ -30,6 +31,14 @@ gen single-ct+ 600 14 ct+
 gen single-ct- 600 15 ct-
 gen test 1000 99
 
+fit() {  # immnet fit; a run stopped short of its step budget (exit 3, docs/immnet.md) ends the job, said plainly
+  local rc=0
+  "$IMMNET" fit "$@" || rc=$?
+  if [ "$rc" = 3 ]; then
+    say "stopped: a training run ended short of its step budget (above), so it is not the recipe's model and no table is made from it; rerun bash scripts/main.sh to resume it"
+  fi
+  [ "$rc" = 0 ] || exit "$rc"
+}
 CKPT=$RUN/stage2/checkpoints/best.ckpt
 # a run that ended has finished.json beside its checkpoints; an interrupted one resumes (the chain skips a
 # finished stage and resumes the other from its last.ckpt: docs/immnet.md, "What a run saves")
@@ -39,8 +48,8 @@ fi
 if [ -f "$RUN/stage2/checkpoints/finished.json" ]; then
   say "2/4 training: reusing the finished quick run $CKPT (IMMNET_RETRAIN=1 to train again)"
 else
-  say "2/4 training: recipes/quick.yaml (stage 1 about 3.5 min, stage 2 about 5 min; an interrupted run resumes)"
-  WANDB_JOB_TYPE=train "$IMMNET" fit --config recipes/quick.yaml  # runs "quick 1/2", "quick 2/2"
+  say "2/4 training: recipes/quick.yaml (on 2 idle cores stage 1 about 3.5 min, stage 2 about 5 min; a busy machine is slower, each minute's progress line says how long is left; an interrupted run resumes)"
+  WANDB_JOB_TYPE=train fit --config recipes/quick.yaml  # runs "quick 1/2", "quick 2/2"
 fi
 # the table's plain KalmanNet: one KalmanNet (architecture 2, CA) alone on maneuvering data, at the
 # quick stage-1 budget (the single-expert ablation; scripts/ablations.py reuses it)
@@ -50,10 +59,10 @@ if [ -f "$KDIR/finished.json" ]; then
   say "2/4 training: reusing the plain KalmanNet $KNET"
 elif [ -f "$KDIR/last.ckpt" ]; then
   say "2/4 training: plain KalmanNet, resuming $KDIR/last.ckpt"
-  WANDB_JOB_TYPE=train WANDB_NAME=kalmannet "$IMMNET" fit --config configs/ablations/single-expert.yaml --ckpt_path last
+  WANDB_JOB_TYPE=train WANDB_NAME=kalmannet fit --config configs/ablations/single-expert.yaml --ckpt_path last
 else
   say "2/4 training: plain KalmanNet (configs/ablations/single-expert.yaml, about 1 min)"
-  WANDB_JOB_TYPE=train WANDB_NAME=kalmannet "$IMMNET" fit --config configs/ablations/single-expert.yaml --overwrite_checkpoints true
+  WANDB_JOB_TYPE=train WANDB_NAME=kalmannet fit --config configs/ablations/single-expert.yaml --overwrite_checkpoints true
 fi
 
 say "3/4 evaluation: every method on the test set, one run"

@@ -19,6 +19,7 @@ from immnet.config import REPO_ROOT
 from immnet.data.spec import DataSpec
 from immnet.data.storage import write_dataset
 from immnet.training import resume
+from tests.tiny_runs import StopAt
 
 TINY = DataSpec(T=20, min_segment=5)  # one TBPTT chunk of 20 scans: one optimizer step per batch
 # 46 training trajectories in batches of 8: 6 batches a pass; validation (and last.ckpt) every 3 batches;
@@ -202,3 +203,81 @@ def test_kill_9_of_a_chain_stops_its_stage_and_the_rerun_resumes_that_stage(tmp_
     assert (s2 / resume.FINISHED).is_file()
     assert [p.name for p in (work / "tmp").iterdir() if "immnet" in p.name] == []  # (wandb's own stay there)
     assert [p for p in (work / "runs").rglob("*") if p.name.startswith(".") or ".tmp" in p.name] == []
+
+
+def _boring_fit(tmp_path: Path, *callbacks, **limits) -> L.Trainer:
+    from lightning.pytorch.demos.boring_classes import BoringModel
+
+    d = tmp_path / "ckpt"
+    trainer = L.Trainer(callbacks=[L.pytorch.callbacks.ModelCheckpoint(dirpath=d), *callbacks], logger=False,
+                        enable_progress_bar=False, enable_model_summary=False, limit_val_batches=0, **limits)
+    trainer.fit(BoringModel())
+    return trainer
+
+
+def test_a_run_stopped_short_of_its_budget_is_not_marked_finished(tmp_path):
+    """Issue 60, item 10: a run that a callback stopped at step 3 of its 10 is not finished: mark_finished
+    refuses it, naming the step and the budget, and writes no finished.json (a chain rerun then resumes it
+    from last.ckpt instead of skipping it); one that reached max_steps, or max_epochs, or that EarlyStopping
+    stopped, is marked."""
+    from lightning.pytorch.callbacks import EarlyStopping
+
+    short = _boring_fit(tmp_path / "short", StopAt(3), max_steps=10)
+    assert short.global_step == 3
+    with pytest.raises(resume.StoppedShort, match=r"training stopped at step 3 of 10 \(a callback stopped the trainer\), "
+                                                  r"short of its budget: the run is not finished"):
+        resume.mark_finished(short)
+    assert not (tmp_path / "short/ckpt" / resume.FINISHED).exists()
+    timed = _boring_fit(tmp_path / "timed", max_steps=10, max_time={"days": 1, "hours": 2, "minutes": 3, "seconds": 4})
+    resume.mark_finished(timed)  # reached its steps well within its time: finished
+    assert (tmp_path / "timed/ckpt" / resume.FINISHED).is_file()
+    out_of_time = _boring_fit(tmp_path / "out", max_steps=10, max_time="00:00:00:00")  # stops before its first step
+    with pytest.raises(resume.StoppedShort, match=r"training stopped at step 0 of 10 \(its time limit max_time "
+                                                  r"\(00:00:00:00\) ran out\)"):
+        resume.mark_finished(out_of_time)
+    assert not (tmp_path / "out/ckpt" / resume.FINISHED).exists()
+    whole = _boring_fit(tmp_path / "whole", max_steps=10)
+    resume.mark_finished(whole)
+    assert (tmp_path / "whole/ckpt" / resume.FINISHED).is_file()
+    epochs = _boring_fit(tmp_path / "epochs", max_epochs=2, limit_train_batches=4)
+    assert epochs.global_step == 8
+    resume.mark_finished(epochs)
+    assert (tmp_path / "epochs/ckpt" / resume.FINISHED).is_file()
+    # EarlyStopping on the training loss (BoringModel logs none: stop on a metric that never improves)
+    early = EarlyStopping(monitor="flat", patience=1, check_on_train_epoch_end=True)
+
+    class Flat(L.Callback):
+        def on_train_epoch_end(self, trainer, pl_module):
+            trainer.callback_metrics["flat"] = torch.tensor(1.0)
+
+    stopped = _boring_fit(tmp_path / "early", Flat(), early, max_steps=1000, limit_train_batches=4)
+    assert stopped.global_step < 1000 and early.stopped_epoch > 0
+    resume.mark_finished(stopped)
+    assert (tmp_path / "early/ckpt" / resume.FINISHED).is_file()
+
+
+@pytest.mark.slow
+def test_a_chain_stage_stopped_short_stops_the_chain_and_the_rerun_resumes_it(tmp_path, data):
+    """Issue 60, item 10: recipes/quick.yaml whose stage 1 a callback stops at step 4 of its 7 (as max_time
+    did on a busy machine) is not reused as finished: the stage says where it stopped and what that means,
+    writes no finished.json, and the chain stops there (exit STOPPED_SHORT, no stage 2); the same command
+    without that callback resumes stage 1 from its last.ckpt (not from step 0) and runs the chain to its end."""
+    work = _workdir(tmp_path, data)
+    s1, s2 = work / "runs/quick/stage1/checkpoints", work / "runs/quick/stage2/checkpoints"
+    cmd = _fit("--config", str(REPO_ROOT / "recipes/quick.yaml"), *ARGS)
+    env = _env(work / "tmp")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO_ROOT), env.get("PYTHONPATH")]))  # tests.tiny_runs
+    cut = subprocess.run([*cmd, "--trainer.callbacks+=tests.tiny_runs.StopAt", "--trainer.callbacks.step=4"], cwd=work,
+                         env=env, capture_output=True, text=True)
+    assert cut.returncode == resume.STOPPED_SHORT, cut.stderr[-3000:]
+    assert ("[immnet fit] training stopped at step 4 of 7 (a callback stopped the trainer), short of its budget: the "
+            "run is not finished (no finished.json is written), its best checkpoint so far "
+            f"({s1 / 'best.ckpt'}) is not the config's model, and the same command resumes it from last.ckpt") in cut.stderr
+    assert "stage 1/2 (" in cut.stderr and "stopped short of its budget (above): the chain stops here" in cut.stderr
+    assert not (s1 / resume.FINISHED).exists() and _weights(s1 / "last.ckpt")["global_step"] == 4
+    assert not s2.exists()
+    done = subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert f"resuming from {s1 / 'last.ckpt'}" in done.stderr and "has finished earlier" not in done.stderr
+    assert _weights(s1 / "last.ckpt")["global_step"] == 7 and (s1 / resume.FINISHED).is_file()
+    assert (s2 / resume.FINISHED).is_file()

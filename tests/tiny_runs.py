@@ -1,5 +1,6 @@
 """Tiny real runs shared by the test modules (a module of helpers, not a test file)."""
 
+import lightning as L
 import torch
 
 from immnet import keys
@@ -38,3 +39,14 @@ def at_an_interval_it_takes(method, batch):
         del out[keys.TIME]
     out["dt"] = torch.full(out.batch_size, (lo + hi) / 2, dtype=torch.float64)
     return out
+
+
+class StopAt(L.Callback):
+    """Stops the trainer once it has made ``step`` optimizer steps, as a guard callback (``max_time``) would."""
+
+    def __init__(self, step: int):
+        self.step = step
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.global_step >= self.step:
+            trainer.should_stop = True

@@ -303,7 +303,7 @@ def generate(n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | 
     single = mode_index(single_mode)
     blocks = range(n_blocks(n))
     if progress:
-        from tqdm import tqdm
+        from immnet.progress import progress as progress_bar
 
-        blocks = tqdm(blocks, desc="3D-LAST", unit="block")
+        blocks = progress_bar(blocks, desc="3D-LAST", unit="block")
     return torch.cat([generate_block(seed, b, n, spec, single) for b in blocks], 0)

@@ -112,9 +112,9 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
     out.parent.mkdir(parents=True, exist_ok=True)
     bar = None
     if progress:
-        from tqdm import tqdm
+        from immnet.progress import progress as progress_bar
 
-        bar = tqdm(total=n_total, desc=f"merge -> {out.name}", unit="traj")
+        bar = progress_bar(total=n_total, desc=f"merge -> {out.name}", unit="traj")
     try:
         with publishing(out) as tmp:
             tmp.mkdir()

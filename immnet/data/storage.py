@@ -226,9 +226,9 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
         blocks = list(blocks)
         bar = None
         if progress:
-            from tqdm import tqdm
+            from immnet.progress import progress as progress_bar
 
-            bar = tqdm(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
+            bar = progress_bar(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
         init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
         if workers == 1 or len(blocks) == 1:
             threads = torch.get_num_threads()

@@ -14,13 +14,13 @@ from typing import Mapping, Sequence
 
 import torch
 from tensordict import TensorDict
-from tqdm import tqdm
 
 from immnet import keys
 from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.evaluation.metrics import MetricAccumulator
 from immnet.evaluation.methods import missing_keys
+from immnet.progress import progress as progress_bar
 
 
 def _as_mapping(methods) -> dict:
@@ -66,7 +66,7 @@ def evaluate(
         acc = MetricAccumulator()
         seconds, gated = 0.0, 0
         kept: dict[str, list[torch.Tensor]] = {}
-        bar = tqdm(
+        bar = progress_bar(
             range(0, n, batch_size), desc=f"{name:>14}", unit="batch", file=sys.stderr,
             disable=not progress, leave=True,
         )

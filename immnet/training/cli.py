@@ -13,7 +13,9 @@ worker runs exactly one stage, and the next stage launches its workers afresh.
 Crash safety (docs/immnet.md, "Training"): every run saves ``last.ckpt`` beside its best checkpoint
 (:class:`immnet.training.callbacks.LastCheckpoint`), ``--ckpt_path last`` resumes from it, and a fresh
 run never overwrites an earlier run's checkpoints unless told to (:mod:`immnet.training.resume`). A
-chain rerun skips its finished stages and resumes the unfinished one. A stage's process gets SIGTERM
+run stopped short of its step budget (``max_time``, a callback) is not finished: it says so and exits
+with ``resume.STOPPED_SHORT``, and a chain stops there. A chain rerun skips its finished stages and
+resumes the unfinished one. A stage's process gets SIGTERM
 when the chain's process dies (Linux: ``PR_SET_PDEATHSIG``), and the chain forwards SIGTERM and SIGINT
 to it; the stage then saves its last checkpoint and stops. Nothing is written outside the runs'
 checkpoint directories: an inline stage config goes to the stage as a YAML string, and its best
@@ -96,7 +98,12 @@ class IMMNetCLI(LightningCLI):
                       f"{last[0] if last else 'not written'} (resume: the same command with --ckpt_path last)",
                       file=sys.stderr, flush=True)
             raise SystemExit(128 + signal.SIGTERM) from None
-        resume.mark_finished(trainer)
+        try:
+            resume.mark_finished(trainer)
+        except resume.StoppedShort as short:
+            if trainer.is_global_zero:
+                print(f"[immnet fit] {short}", file=sys.stderr, flush=True)
+            raise SystemExit(resume.STOPPED_SHORT) from None
         if trainer.is_global_zero:
             _report(report, resume.best_checkpoint(trainer))
 
@@ -230,7 +237,7 @@ def run_stages(recipe: dict, extra: list[str], label: str | None = None) -> str:
     ``"<label> <i>/<n>"`` (``"<label>"`` for a chain of one) through wandb's ``WANDB_NAME`` (``label``:
     ``WANDB_NAME`` if set, else the recipe's file name), unless the stage's logger names it; the group
     and job type come from wandb's own ``WANDB_RUN_GROUP`` and ``WANDB_JOB_TYPE``."""
-    from immnet.training.resume import CHAIN_ENV
+    from immnet.training.resume import CHAIN_ENV, STOPPED_SHORT
 
     ckpt = None
     n = len(recipe["stages"])
@@ -248,6 +255,10 @@ def run_stages(recipe: dict, extra: list[str], label: str | None = None) -> str:
             print(f"[immnet fit] stopped by signal {signum} in stage {i + 1}/{n} ({name}); the same command "
                   "resumes it", file=sys.stderr, flush=True)
             raise SystemExit(128 + signum)
+        if code == STOPPED_SHORT:
+            print(f"[immnet fit] stage {i + 1}/{n} ({name}) stopped short of its budget (above): the chain stops "
+                  "here, and the same command resumes that stage", file=sys.stderr, flush=True)
+            raise SystemExit(STOPPED_SHORT)
         if code != 0:
             raise SystemExit(f"[immnet fit] stage {i + 1}/{n} ({name}) failed with exit code {code}")
         if not ckpt:

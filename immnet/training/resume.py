@@ -3,7 +3,11 @@
 A run's checkpoint directory (the ``dirpath`` of its ``ModelCheckpoint``) holds ``best.ckpt`` (the best
 validation loss), ``last.ckpt`` (:class:`immnet.training.callbacks.LastCheckpoint`: every validation,
 the end, SIGTERM) and, once training has ended normally, ``finished.json`` (the best checkpoint's path
-and the final step). Before training:
+and the final step). A run has ended normally when it reached its budget (``max_steps``, else ``max_epochs``)
+or an ``EarlyStopping`` callback stopped it; a run stopped short of its budget otherwise (by ``max_time``, or
+any callback that stops the trainer) is not finished: :func:`mark_finished` refuses it
+(:class:`StoppedShort`), ``immnet fit`` says so and exits with :data:`STOPPED_SHORT`, and its
+``last.ckpt`` is what a rerun resumes. Before training:
 
 - ``--ckpt_path last`` resumes from ``last.ckpt``; without one it is an error (nothing to resume).
 - A fresh run (no ``--ckpt_path``) into a directory that holds any of these files is refused, so that a
@@ -30,7 +34,13 @@ from immnet.training.callbacks import LastCheckpoint
 FINISHED = "finished.json"
 LAST = "last.ckpt"
 CHAIN_ENV = "IMMNET_CHAIN_STAGE"
+STOPPED_SHORT = 3
+"""The exit code of an ``immnet fit`` whose training stopped short of its budget (not finished)."""
 """Set by ``run_stages`` to ``I/N`` for the ``immnet fit`` of stage ``I`` of ``N``."""
+
+
+class StoppedShort(RuntimeError):
+    """A run's training stopped short of its budget: it is not finished (the message says where and why)."""
 
 
 class Finished:
@@ -100,9 +110,53 @@ def best_checkpoint(trainer) -> str:
     return (cb.best_model_path or cb.last_model_path) if cb is not None else ""
 
 
+def budget(trainer) -> int:
+    """The run's budget in optimizer steps: ``max_steps``, else ``max_epochs`` passes estimated by Lightning."""
+    if trainer.max_steps is not None and trainer.max_steps >= 0:
+        return int(trainer.max_steps)
+    return int(trainer.estimated_stepping_batches)
+
+
+def stopped_short(trainer) -> str | None:
+    """Why the run's training ended before its budget (``max_steps`` or ``max_epochs``), or ``None`` when it
+    reached it or an ``EarlyStopping`` callback stopped it (a stop the config asked for)."""
+    from lightning.pytorch.callbacks import EarlyStopping, Timer
+    from lightning.pytorch.callbacks.early_stopping import EarlyStoppingReason
+
+    loop = trainer.fit_loop
+    if trainer.max_steps is not None and 0 <= trainer.max_steps <= trainer.global_step:
+        return None
+    if loop.max_epochs is not None and 0 <= loop.max_epochs <= loop.epoch_progress.current.processed:
+        return None
+    if any(isinstance(c, EarlyStopping) and c.stopping_reason != EarlyStoppingReason.NOT_STOPPED for c in trainer.callbacks):
+        return None
+    timers = [c for c in trainer.callbacks if isinstance(c, Timer) and c._duration is not None]
+    if timers and (timers[0].time_remaining("train") or 0.0) <= 0.0:
+        t = int(timers[0]._duration)
+        why = f"its time limit max_time ({t // 86400:02d}:{t % 86400 // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}) ran out"
+    elif trainer.should_stop:
+        why = "a callback stopped the trainer"
+    else:
+        why = "the trainer ended with no training batch left to run"
+    return why
+
+
 def mark_finished(trainer) -> None:
-    """Write ``finished.json`` in each checkpoint directory of a run whose training ended normally."""
-    if not trainer.is_global_zero or trainer.interrupted:
+    """Write ``finished.json`` in each checkpoint directory of a run whose training ended normally (its
+    budget reached, or stopped early by ``EarlyStopping``); raise :class:`StoppedShort` for a run stopped
+    short of its budget, which is not finished and writes nothing."""
+    if trainer.interrupted:
+        return
+    why = stopped_short(trainer)
+    if why is not None:
+        n = budget(trainer)
+        alone = "--ckpt_path last" + (" and a larger --trainer.max_time or none, as the time spent counts against it"
+                                      if "max_time" in why else "")
+        raise StoppedShort(
+            f"training stopped at step {trainer.global_step} of {n} ({why}), short of its budget: the run is not "
+            f"finished (no {FINISHED} is written), its best checkpoint so far ({best_checkpoint(trainer) or 'none'}) "
+            f"is not the config's model, and the same command resumes it from {LAST} (a single run: with {alone})")
+    if not trainer.is_global_zero:
         return
     record = {"best": best_checkpoint(trainer), "global_step": int(trainer.global_step)}
     for d in checkpoint_dirs(trainer):
