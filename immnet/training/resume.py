@@ -34,9 +34,9 @@ from immnet.training.callbacks import LastCheckpoint
 FINISHED = "finished.json"
 LAST = "last.ckpt"
 CHAIN_ENV = "IMMNET_CHAIN_STAGE"
+"""Set by ``run_stages`` to ``I/N`` for the ``immnet fit`` of stage ``I`` of ``N``."""
 STOPPED_SHORT = 3
 """The exit code of an ``immnet fit`` whose training stopped short of its budget (not finished)."""
-"""Set by ``run_stages`` to ``I/N`` for the ``immnet fit`` of stage ``I`` of ``N``."""
 
 
 class StoppedShort(RuntimeError):
