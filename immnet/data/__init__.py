@@ -9,29 +9,17 @@ The names below load their modules (torch, Lightning, TorchRL) when first asked 
 submodule (``immnet.data.cli`` to build ``immnet --help``, ``immnet.data.spec``) loads none of them.
 """
 
-import importlib
 import sys
 import types
 
-_WHERE = {
+from immnet.lazy import lazy_names
+
+__getattr__, __dir__, __all__ = lazy_names(__name__, {
     "BLOCK": "immnet.data.generate", "generate": "immnet.data.generate", "SPEC_VERSION": "immnet.data.spec",
     "DataSpec": "immnet.data.spec", "as_batch": "immnet.data.storage", "export_npz": "immnet.data.storage",
     "load_dataset": "immnet.data.storage", "write_dataset": "immnet.data.storage",
     "LASTDataModule": "immnet.data.datamodule", "LASTEnv": "immnet.data.env",
-}
-__all__ = sorted(_WHERE)
-
-
-def __getattr__(name):
-    if name not in _WHERE:
-        raise AttributeError(f"module 'immnet.data' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_WHERE[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted({*globals(), *__all__})
+})
 
 
 class _Package(types.ModuleType):

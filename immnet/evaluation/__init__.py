@@ -8,26 +8,14 @@ The names below load their modules (torch) when first asked for, so that ``immne
 ``immnet evaluate --help`` without them.
 """
 
-import importlib
+from immnet.lazy import lazy_names
 
-_WHERE = {
+__getattr__, __dir__, __all__ = lazy_names(__name__, {
     **dict.fromkeys(("Method", "RawMeasurements", "available_methods", "build_method"), "immnet.evaluation.methods"),
     "configured_methods": "immnet.evaluation.registry",
     **dict.fromkeys(("MetricAccumulator", "confusion", "mode_accuracy", "position_error", "post_switch_mask", "rmse",
                      "rmse_over_time", "rmse_pooled", "rmse_post_switch", "scored_mask"), "immnet.evaluation.metrics"),
     "evaluate": "immnet.evaluation.runner", "to_json": "immnet.evaluation.runner",
     "format_markdown": "immnet.evaluation.table", "format_table": "immnet.evaluation.table",
-}
-__all__ = sorted(_WHERE)
+})
 
-
-def __getattr__(name):
-    if name not in _WHERE:
-        raise AttributeError(f"module 'immnet.evaluation' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_WHERE[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted({*globals(), *__all__})

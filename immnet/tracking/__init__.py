@@ -4,23 +4,11 @@
 The names below load their modules (torch) when first asked for, so that ``immnet.tracking.cli`` builds
 ``immnet track --help`` without them."""
 
-import importlib
+from immnet.lazy import lazy_names
 
-_WHERE = {
+__getattr__, __dir__, __all__ = lazy_names(__name__, {
     "BankMethod": "immnet.tracking.bank", "NetworkBank": "immnet.tracking.bank",
     "IMMNetMethod": "immnet.tracking.methods", "KalmanNetMethod": "immnet.tracking.methods",
     "Tracker": "immnet.tracking.tracker", "load_network": "immnet.tracking.tracker",
-}
-__all__ = sorted(_WHERE)
+})
 
-
-def __getattr__(name):
-    if name not in _WHERE:
-        raise AttributeError(f"module 'immnet.tracking' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_WHERE[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted({*globals(), *__all__})
