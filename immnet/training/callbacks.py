@@ -14,6 +14,13 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from immnet.progress import duration
 
 
+def budget(trainer) -> int:
+    """The run's budget in optimizer steps: ``max_steps``, else ``max_epochs`` passes estimated by Lightning."""
+    if trainer.max_steps is not None and trainer.max_steps >= 0:
+        return int(trainer.max_steps)
+    return int(trainer.estimated_stepping_batches)
+
+
 class PrintProgress(L.Callback):
     """Progress lines on stderr: one after each validation (the training loss and the validation
     metrics), one every ``every_n_steps`` optimizer steps (0: none), and one whenever ``every_seconds``
@@ -82,8 +89,6 @@ class PrintProgress(L.Callback):
             self._say(f"[train] {self.doing} (Lightning's sanity check)")
 
     def on_train_start(self, trainer, pl_module):
-        from immnet.training.resume import budget
-
         self.n = budget(trainer)
         self.train_start, self.first_step, self.doing = self.clock(), trainer.global_step, "training"
 

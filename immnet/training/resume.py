@@ -29,7 +29,7 @@ from pathlib import Path
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from immnet.data.scratch import publishing
-from immnet.training.callbacks import LastCheckpoint
+from immnet.training.callbacks import LastCheckpoint, budget
 
 FINISHED = "finished.json"
 LAST = "last.ckpt"
@@ -108,13 +108,6 @@ def best_checkpoint(trainer) -> str:
     """The run's best checkpoint (its first checkpoint callback's), else its last; "" without either."""
     cb = trainer.checkpoint_callback
     return (cb.best_model_path or cb.last_model_path) if cb is not None else ""
-
-
-def budget(trainer) -> int:
-    """The run's budget in optimizer steps: ``max_steps``, else ``max_epochs`` passes estimated by Lightning."""
-    if trainer.max_steps is not None and trainer.max_steps >= 0:
-        return int(trainer.max_steps)
-    return int(trainer.estimated_stepping_batches)
 
 
 def stopped_short(trainer) -> str | None:
