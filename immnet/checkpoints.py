@@ -27,25 +27,23 @@ from pathlib import Path
 CHECKSUM_KEY = "weights_sha256"
 PRETRAINED = Path(__file__).resolve().parent / "pretrained" / "immnet.ckpt"
 """The shipped 3D-LAST weights (``immnet/pretrained/PROVENANCE.md``), the benchmark model; the others beside them."""
-SHIPPED = {"general": "immnet-general.ckpt", "3dlast": "immnet.ckpt", "real": "immnet-real.ckpt",
-           "real-5s": "immnet-real-5s.ckpt", "real-11s": "immnet-real-11s.ckpt",
-           "real-4.5-12s": "immnet-real-4.5-12s.ckpt"}
-"""The shipped networks by name (docs/checkpoints.md "Shipped weights"): ``general`` (any interval 0.5-12 s, 3D-LAST
-and real flights, no range guard; with the others, the bank ``Tracker.pretrained()`` and ``immnet track`` run unless
-told, ``BANK``);
-``3dlast`` the 3D-LAST benchmark network (1 s, its range guard); ``real`` the real-flight network (1 s, three learned
-output corrections, averaged, on the three-filter decoupled IMM, trained on real flights); ``real-5s`` the same for a
-surveillance radar's 4.5-5.5 s scans, on that IMM tuned at those scans; ``real-11s`` for an en-route radar's 10-12 s
-scans; ``real-4.5-12s`` one such network for any interval from 4.5 to 12 s (on that IMM tuned over them)."""
+WEIGHTS_TABLE = PRETRAINED.with_name("weights.json")
+"""The one table of shipped weights (docs/checkpoints.md "Shipped weights"): for each network its name, file,
+weights checksum (checked at every load of the file: ``load_checkpoint``), the scan intervals it serves, the data it
+was trained on, whether it keeps a range guard, a one-line summary and its provenance files; and the bank, the shipped
+networks as one tracker (``immnet.tracking.bank``), the default of ``Tracker.pretrained()`` and ``immnet track``."""
+TABLE = json.loads(WEIGHTS_TABLE.read_text())
+WEIGHTS = {entry["name"]: entry for entry in TABLE["weights"]}
+"""The table's networks by name."""
+SHIPPED = {name: entry["file"] for name, entry in WEIGHTS.items()}
+"""The shipped networks' files by name (read from ``WEIGHTS_TABLE``)."""
 GENERAL = "general"
 """The general network: the bank's member for any interval from 0.5 to 12 s."""
-BANK = "bank"
-"""The shipped networks together as one tracker (``immnet.tracking.bank``: ``general``, ``real``, ``real-5s``,
-``real-11s``, ``real-4.5-12s`` and ``3dlast`` without its guard, each weighed per track by how well it predicts the
-track), the default of ``Tracker.pretrained()`` and ``immnet track``; not a file of its own."""
-BANK_MEMBERS = ("general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast")
+BANK = TABLE["bank"]["name"]
+"""The shipped networks together as one tracker (the table's ``bank``), not a file of its own."""
+BANK_MEMBERS = tuple(TABLE["bank"]["members"])
 """The bank's networks by shipped name (``immnet.tracking.bank.DEFAULT_MEMBERS``)."""
-DEFAULT_WEIGHTS = BANK
+DEFAULT_WEIGHTS = TABLE["default"]
 
 
 def shipped(name: str) -> Path:
@@ -56,12 +54,20 @@ def shipped(name: str) -> Path:
     return PRETRAINED.with_name(SHIPPED[name])
 
 
+def shipped_entry(path) -> dict | None:
+    """The table's entry of a shipped file (a path inside ``immnet/pretrained`` named in the table), else None."""
+    path = Path(path)
+    if path.resolve().parent != PRETRAINED.parent:
+        return None
+    return next((entry for entry in TABLE["weights"] if entry["file"] == path.name), None)
+
+
 def provenance_file(ckpt) -> Path:
-    """Where shipped weights keep their provenance: ``immnet.ckpt`` -> ``provenance.json``, ``immnet-NAME.ckpt`` ->
-    ``provenance-NAME.json`` beside it (the file need not exist: a checkpoint of one's own has none)."""
+    """Where shipped weights keep their provenance JSON (the table's ``provenance_json``, beside them); for a
+    checkpoint of one's own ``provenance-STEM.json`` beside it (which need not exist)."""
     ckpt = Path(ckpt)
-    tail = ckpt.stem[len("immnet"):] if ckpt.stem.startswith("immnet") else f"-{ckpt.stem}"
-    return ckpt.with_name(f"provenance{tail}.json")
+    entry = shipped_entry(ckpt)
+    return ckpt.with_name(entry["provenance_json"] if entry else f"provenance-{ckpt.stem}.json")
 
 ALLOWED_GLOBALS: tuple = ()
 """Globals a checkpoint of ours may hold beyond torch's weights-only set (tensors, storages, dtypes,
@@ -124,10 +130,11 @@ def verify_checksum(checkpoint: dict, name) -> None:
                               f"(stored sha256 {stored[:16]}..., the weights give {actual[:16]}...): the file was altered or damaged")
 
 
-def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
+def load_checkpoint(path: str | Path, map_location="cpu", check_table: bool = True) -> dict:
     """Read a checkpoint file as plain data (``weights_only=True`` with ``ALLOWED_GLOBALS``) and verify its
     checksum. ``FileNotFoundError`` for a missing file, ``CheckpointError`` (one line naming the file) for
-    one that is unreadable, holds a global outside the allow-list, is not a dict, or fails its checksum."""
+    one that is unreadable, holds a global outside the allow-list, is not a dict, or fails its checksum, or a shipped
+    file whose weights are not the ones the weights table names (``check_table``)."""
     import torch
 
     path = Path(path)
@@ -153,7 +160,29 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
                               f"a checkpoint may build from ({', '.join(ALLOWED_PACKAGES)}; docs/checkpoints.md); "
                               "nothing in it was imported")
     verify_checksum(ckpt, path)
+    if check_table:
+        _check_table(ckpt, path)
     return ckpt
+
+
+def _check_table(ckpt: dict, path: Path) -> None:
+    """Refuse a shipped file (one the weights table names) whose weights are not the ones the table ships."""
+    entry = shipped_entry(path)
+    if entry is not None and ckpt.get(CHECKSUM_KEY) != entry["weights_sha256"]:
+        raise CheckpointError(f"{path}: its weights are not the ones {WEIGHTS_TABLE.name} ships under "
+                              f"{entry['name']!r} (sha256 {str(ckpt.get(CHECKSUM_KEY))[:16]}..., the table says "
+                              f"{entry['weights_sha256'][:16]}...)")
+
+
+def record_shipped(name: str) -> str:
+    """Write the checksum of the file shipped as ``name`` (just exported: ``scripts/make_shipped.py``) into the weights
+    table; returns it."""
+    checksum = load_checkpoint(shipped(name), check_table=False)[CHECKSUM_KEY]
+    text = WEIGHTS_TABLE.read_text()
+    old = WEIGHTS[name]["weights_sha256"]
+    WEIGHTS_TABLE.write_text(text.replace(f'"weights_sha256": "{old}"', f'"weights_sha256": "{checksum}"', 1))
+    WEIGHTS[name]["weights_sha256"] = checksum
+    return checksum
 
 
 def foreign_classes(config) -> list:

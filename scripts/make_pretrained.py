@@ -89,6 +89,9 @@ def main() -> int:
 
     ckpt = last_checkpoint(ROOT / "recipes/pretrained.yaml")
     export_weights(ckpt, OUT / "immnet.ckpt")
+    from immnet.checkpoints import record_shipped
+
+    record_shipped("3dlast")  # the weights table names the new file's weights
     test_dir = RUN / "test"
     if not (test_dir / "meta.json").exists():
         write_dataset(test_dir, n=TEST_N, seed=TEST_SEED, overwrite=True)

@@ -316,6 +316,9 @@ def main(argv: list[str] | None = None) -> int:
             out = join_corrections([ROOT / r for r in trained], OUT / f"{registry}.ckpt")
         else:
             out = export_weights(ROOT / trained[0], OUT / f"{registry}.ckpt", ship.get("settings"))
+        from immnet.checkpoints import record_shipped
+
+        record_shipped(a.name)  # the weights table names the new file's weights
     tests, tables = score(ship, registry)
     bins = interval_bins(ship["interval_bins"], registry) if "interval_bins" in ship else None
     if bins:

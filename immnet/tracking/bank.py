@@ -34,7 +34,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import BANK_MEMBERS, SHIPPED, shipped
+from immnet.checkpoints import BANK_MEMBERS, SHIPPED, TABLE, shipped
 from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
@@ -176,7 +176,7 @@ class NetworkBank:
                  for (name, net), p in zip(self.members.items(), prior)]
         shipped_bank = set(self.names) == set(DEFAULT_MEMBERS) and all(
             p is not None and provenance_of(p).startswith("provenance") for p in self.paths.values())
-        about = "; provenance immnet/pretrained/PROVENANCE-bank.md" if shipped_bank else ""
+        about = f"; provenance immnet/pretrained/{TABLE['bank']['provenance']}" if shipped_bank else ""
         return (f"NetworkBank({len(self.names)} member{'s' if len(self.names) > 1 else ''}, each weighed per track by "
                 f"how well it predicts the track: likelihood {self.likelihood!r}, temper {self.temper:g}{about}\n"
                 + "\n".join(lines) + ")")

@@ -19,21 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from immnet import keys
-from immnet.checkpoints import BANK, BANK_MEMBERS, DEFAULT_WEIGHTS, SHIPPED, shipped
+from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, shipped
 from immnet.data.validate import MAX_ABS_POSITION
 from immnet.tracking.segments import MAX_COAST, check_coast
 
 
-WEIGHTS_HELP = {
-    BANK: f"{', '.join(BANK_MEMBERS)} as one tracker, each weighed per track by how well it predicts it, any scan "
-          "interval 0.5-12 s, no range guard unless --guard asks, docs/tracking.md",
-    "general": "one network for any scan interval 0.5-12 s, real flights and 3D-LAST, no range guard",
-    "3dlast": "the 3D-LAST benchmark network, 1 s, its range guard",
-    "real": "1 s real flights",
-    "real-5s": "real flights at a surveillance radar's 4.5-5.5 s scans",
-    "real-11s": "real flights at an en-route radar's 10-12 s scans",
-    "real-4.5-12s": "real flights at any interval 4.5-12 s",
-}
+WEIGHTS_HELP = {BANK: TABLE["bank"]["summary"], **{name: entry["summary"] for name, entry in WEIGHTS.items()}}
 """What each name ``--weights`` takes tracks with (``immnet.checkpoints.SHIPPED`` and ``BANK``), for its help."""
 
 

@@ -387,17 +387,15 @@ def scans_served(net) -> str:
 
 
 def provenance_of(path) -> str:
-    """Where shipped weights' provenance is (``immnet/pretrained/PROVENANCE-NAME.md``, as the docs name it), else
-    the checkpoint's path (a network of one's own: no provenance shipped)."""
-    from immnet.checkpoints import PRETRAINED
+    """Where shipped weights' provenance is (the weights table's ``PROVENANCE-NAME.md``: ``immnet.checkpoints``),
+    else the checkpoint's path (a network of one's own: no provenance shipped)."""
+    from immnet.checkpoints import shipped_entry
 
     if path is None:
         return "no provenance (built in Python)"
-    path = Path(path)
-    tail = path.stem[len("immnet"):] if path.stem.startswith("immnet") else None
-    md = path.with_name(f"PROVENANCE{tail}.md") if tail is not None else None
-    if md is not None and path.resolve().parent == PRETRAINED.parent and md.is_file():
-        return f"provenance immnet/pretrained/{md.name}"
+    entry = shipped_entry(path)
+    if entry is not None:
+        return f"provenance immnet/pretrained/{entry['provenance']}"
     return f"no provenance shipped (checkpoint {path})"
 
 
