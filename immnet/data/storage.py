@@ -21,7 +21,8 @@ SIGINT removes it, and the next writer of the same output removes one left by a 
 The ``.npz`` interchange format (docs/data.md): ``measurements [N,T,3]`` (NaN = missed
 detection), optional ``states [N,T,9]`` (a NaN row: no truth at that scan), ``mode [N,T]``
 (-1: no label), ``turn_rate [N,T]`` (rad/s), ``r [N]``, ``t [N,T]`` (scan times, s; absent: scans at
-``k dt``) and ``dt`` (scalar; absent: the median spacing of ``t`` per track where ``t`` is given, else 1). Both
+``k dt``), ``meas_cov [N,T,3,3]`` (each detection's measurement covariance, m^2, NaN where missed; optional) and
+``dt`` (scalar; absent: the median spacing of ``t`` per track where ``t`` is given, else 1). Both
 formats are checked on loading by :func:`immnet.data.contract.check_arrays`; an ``.npz`` is read
 with ``allow_pickle=False`` (nothing in it is executed).
 """
@@ -64,6 +65,7 @@ def sample_digests(meta: dict) -> set[str]:
 STORE_DTYPES = {
     keys.STATES: torch.float32, keys.MEASUREMENTS: torch.float32, keys.MODE: torch.int64,
     keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32, keys.TIME: torch.float64,
+    keys.MEAS_COV: torch.float32,
 }
 _NPZ_SHAPES = TRAIL  # trailing shapes after [N]: the arrays of a data set besides dt
 
