@@ -111,6 +111,17 @@ class FlightAugment:
             fresh = (turned if self.rotate else states.to(torch.float64))[..., list(POS)] + r[..., None, None] * e
             z = torch.where(torch.isnan(z), z, fresh.to(z.dtype))
         out[keys.MEASUREMENTS] = z
+        if keys.MEAS_COV in out.keys():  # each detection's covariance follows its measurement
+            cov = out[keys.MEAS_COV]
+            if self.renoise:
+                fresh_cov = (r * r)[..., None, None, None] * torch.eye(3, dtype=torch.float64)
+                cov = torch.where(torch.isnan(z).any(-1)[..., None, None], float("nan"), fresh_cov).to(cov.dtype)
+            else:  # turned about the vertical: C' = Rot C Rot^T
+                zero, one = torch.zeros_like(c), torch.ones_like(c)
+                rot = torch.stack([torch.cat([c, -s, zero], -1), torch.cat([s, c, zero], -1),
+                                   torch.cat([zero, zero, one], -1)], -2)[..., None, :, :]
+                cov = (rot @ cov.to(torch.float64) @ rot.transpose(-1, -2)).to(cov.dtype)
+            out[keys.MEAS_COV] = cov
         if self.turns > 0 and keys.TURN_RATE in out.keys():
             # the data writer's turn_rate (immnet.data.real.turn_rate: a floor of 1e-9 m^2/s^2 on the speed squared)
             rate = turn_rate_of(out[keys.STATES].to(torch.float64), min_speed=_WRITER_MIN_SPEED)

@@ -110,7 +110,10 @@ def _adsb(args) -> int:
                     r_max=args.r[1], max_range=args.max_range, splits=args.splits or RealSpec.splits,
                     max_gap=args.max_gap,
                     max_flights=args.max_flights, truth_gap=args.truth_gap,
-                    max_position_interval=args.max_position_interval)
+                    max_position_interval=args.max_position_interval,
+                    sigma_range=args.sigma_range or (), sigma_azimuth=args.sigma_azimuth or (),
+                    sigma_elevation=args.sigma_elevation or (), outliers=args.outliers,
+                    outlier_scale=args.outlier_scale, range_km=args.range_km or ())
     meta = make_adsb(args.out, args.samples, spec, seed=args.seed, site=args.site, npz=args.npz,
                      overwrite=args.overwrite, progress=not args.quiet, skip_unreadable=args.skip_unreadable,
                      splits_from=args.splits_from)
@@ -219,6 +222,17 @@ def register(subparsers) -> None:
     a.add_argument("--p-miss", type=float, default=0.0, help="missed-detection probability (default 0)")
     a.add_argument("--r", type=_floats(2, "RMIN,RMAX such as 1,7"), default=(1.0, 7.0), metavar="RMIN,RMAX",
                    help="measurement noise std per window, U[RMIN, RMAX] (m, default 1,7)")
+    for option, unit, what in (("range", "m", "slant range"), ("azimuth", "degrees", "azimuth"),
+                               ("elevation", "degrees", "elevation")):
+        a.add_argument(f"--sigma-{option}", type=_floats(2, "LOW,HIGH such as 20,60"), default=None, metavar="LOW,HIGH",
+                       help=f"a radar's plots: the {what} noise std per window, U[LOW, HIGH] ({unit}); the three "
+                            f"--sigma-* together, in place of --r (default: 3D-LAST's noise r N(0, I3))")
+    a.add_argument("--outliers", type=float, default=0.0,
+                   help="share of the detections whose noise is --outlier-scale times larger (default 0)")
+    a.add_argument("--outlier-scale", type=float, default=10.0, help="an outlier's noise factor (default 10)")
+    a.add_argument("--range-km", type=_floats(2, "LOW,HIGH such as 10,150"), default=None, metavar="LOW,HIGH",
+                   help="a radar per flight, U[LOW, HIGH] km from the flight's median position, seeing slant ranges "
+                        "in [LOW, HIGH] km (default: --site or each sample's median)")
     a.add_argument("--seed", type=int, default=0)
     a.add_argument("--splits", type=_splits, default=None, metavar="TRAIN,VAL,TEST",
                    help="fractions of flights (default 0.7,0.15,0.15), or all-test")

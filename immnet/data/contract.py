@@ -15,6 +15,8 @@ what is wrong and, for a value, where (``[n, t]``). ``N`` trajectories of ``T`` 
 - ``t [N, T]`` (s, optional): scan times, finite and strictly increasing along ``T`` (any origin, epoch
   times included; float64 keeps their hundredths of a second); integers accepted. Absent: scan ``k``
   is at ``k dt``.
+- ``meas_cov [N, T, 3, 3]`` float32/float64 (m^2, optional): each detection's measurement covariance, a matrix all
+  finite with a positive diagonal, or all NaN (a missed detection, or padding).
 
 float16 is refused: its 11-bit significand would round positions of tens of km to 16-32 m, more
 than the measurement noise. Values are checked ``ROWS`` trajectories at a time, so that a
@@ -33,7 +35,7 @@ NO_LABEL = -1
 ROWS = 1024
 FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 TRAIL = {keys.MEASUREMENTS: ("T", 3), keys.STATES: ("T", 9), keys.MODE: ("T",), keys.TURN_RATE: ("T",),
-         keys.R: (), keys.TIME: ("T",)}
+         keys.R: (), keys.TIME: ("T",), keys.MEAS_COV: ("T", 3, 3)}
 """Trailing shapes after ``[N]`` (``T`` filled in): the contract of a data set's arrays."""
 _INT_OK = (keys.R, keys.DT, keys.MODE, keys.TIME)
 
@@ -108,6 +110,13 @@ def check_values(key: str, a: np.ndarray, where: str, row0: int = 0) -> None:
                 n, k = np.argwhere(bad)[0]
                 raise ValueError(f"{where}: array 't' is not strictly increasing at {_first(bad, row0)}: scan time "
                                  f"{float(a[n, k])!r} s follows {float(a[n, k - 1])!r} s (scan times must increase along T)")
+    elif key == keys.MEAS_COV:
+        flat = a.reshape(*a.shape[:-2], 9)
+        diag = a[..., [0, 1, 2], [0, 1, 2]]
+        bad = ~(np.isnan(flat).all(-1) | (np.isfinite(flat).all(-1) & (diag > 0).all(-1)))
+        if bad.any():
+            raise ValueError(f"{where}: array 'meas_cov' at {_first(bad, row0)} is neither a covariance (all finite, "
+                             f"a positive diagonal) nor all NaN (a missed detection)")
     elif key in (keys.R, keys.DT):
         bad = ~(np.isfinite(a) & (a > 0))
         if bad.any():

@@ -31,7 +31,7 @@ import numpy as np
 from immnet import keys
 from immnet.data import adsb, radar
 from immnet.data.contract import NO_LABEL
-from immnet.data.geodesy import geodetic_to_enu
+from immnet.data.geodesy import enu_to_geodetic, geodetic_to_enu
 from immnet.data.scratch import publishing
 from immnet.data.smoother import rts_smooth
 
@@ -68,9 +68,17 @@ class RealSpec:
     # out (s; 0: none): at scans faster than a flight's positions its truth between them is the smoother's interpolation
     max_flights: int = 0  # only the first max_flights flights by id (0: all): a quick look at a large sample
     chunk: int = 1_000_000  # steps x tracks smoothed at once (memory: about 100 bytes each; a longer flight alone)
+    # a radar's plots (all three given, each (low, high), drawn per window): noise in slant range (m), azimuth and
+    # elevation (degrees), converted to east-north-up with each plot's covariance (meas_cov); (): 3D-LAST's r N(0, I3)
+    sigma_range: tuple = ()
+    sigma_azimuth: tuple = ()
+    sigma_elevation: tuple = ()
+    outliers: float = 0.0  # the share of detections whose noise is multiplied by outlier_scale (their meas_cov is not)
+    outlier_scale: float = 10.0
+    range_km: tuple = ()  # (low, high): a radar per flight, U[low, high] km from it, seeing slant ranges in [low, high]
 
     def __post_init__(self):
-        bad = [f.name for f in dataclasses.fields(self) if f.name != "splits"
+        bad = [f.name for f in dataclasses.fields(self) if f.name not in ("splits", *PAIRS)
                and not np.isfinite(float(getattr(self, f.name)))]
         if bad:
             raise ValueError(f"parameter(s) {', '.join(bad)} must be finite numbers")
@@ -91,16 +99,50 @@ class RealSpec:
         for name in ("max_range", "max_gap", "max_speed", "max_climb", "sigma_h", "sigma_v", "q_h", "q_v", "truth_gap"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in PAIRS:
+            v = getattr(self, name)
+            if v and not (len(v) == 2 and all(np.isfinite(float(x)) for x in v) and 0 < float(v[0]) <= float(v[1])):
+                raise ValueError(f"{name} is a pair LOW,HIGH with 0 < LOW <= HIGH, got {tuple(v)}")
+        given = [n for n in PAIRS[:3] if getattr(self, n)]
+        if given and len(given) < 3:
+            raise ValueError(f"a radar's plots need sigma_range, sigma_azimuth and sigma_elevation together, got "
+                             f"{', '.join(given)} alone")
+        if not 0 <= self.outliers < 1 or not self.outlier_scale >= 1:
+            raise ValueError(f"outliers is a share in [0, 1) and outlier_scale >= 1, got {self.outliers}, "
+                             f"{self.outlier_scale}")
+
+    @property
+    def plots(self) -> bool:
+        """The radar measures plots (range, azimuth, elevation): ``sigma_*`` given."""
+        return bool(self.sigma_range)
+
+    @property
+    def writes_cov(self) -> bool:
+        """The data hold each detection's covariance ``meas_cov``: plots, outliers or a placed radar asked for (a set
+        of the defaults keeps the bytes it had without them)."""
+        return self.plots or self.outliers > 0 or bool(self.range_km)
 
     def to_dict(self) -> dict:
+        """The parameters as JSON; those of plots, outliers and placement only where not their defaults (a set of
+        the defaults keeps the meta.json it had without them)."""
         d = dataclasses.asdict(self)
         d["splits"] = [float(f) for f in self.splits]
+        for name in (*PAIRS, "outliers", "outlier_scale"):
+            if d[name] == _DEFAULTS[name]:
+                del d[name]
+            elif name in PAIRS:
+                d[name] = [float(x) for x in d[name]]
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "RealSpec":
-        """The spec of ``to_dict`` (a set's ``meta["params"]``), its JSON list of splits a tuple again."""
-        return cls(**{**d, "splits": tuple(d["splits"])})
+        """The spec of ``to_dict`` (a set's ``meta["params"]``), its JSON lists tuples again."""
+        return cls(**{**d, "splits": tuple(d["splits"]), **{k: tuple(d[k]) for k in PAIRS if k in d}})
+
+
+PAIRS = ("sigma_range", "sigma_azimuth", "sigma_elevation", "range_km")
+"""RealSpec's (low, high) fields, () where not asked for."""
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(RealSpec)}
 
 
 def _log(progress: bool, msg: str) -> None:
@@ -191,10 +233,20 @@ def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, pr
             ok = p["ok"]
             s[~ok] = np.nan
             p["states"] = s
-            p["valid"] = ok & radar.covered(np.nan_to_num(s[:, [0, 3, 6]], nan=np.inf), spec.max_range, spec.min_elevation)
+            p["valid"] = ok & _covered(np.nan_to_num(s[:, [0, 3, 6]], nan=np.inf), spec)
         done += len(chunk)
         _log(progress, f"truth: {done}/{len(order)} flights smoothed")
     return prepared
+
+
+def _covered(pos: np.ndarray, spec: RealSpec) -> np.ndarray:
+    """Where the radar sees ``pos [S, 3]``: within ``max_range`` above its horizon, and with ``range_km`` a slant range
+    in ``[low, high]`` km."""
+    if not spec.range_km:
+        return radar.covered(pos, spec.max_range, spec.min_elevation)
+    low, high = (1000.0 * float(v) for v in spec.range_km)
+    rho = radar.polar(pos)[0]
+    return radar.covered(pos, min(spec.max_range, high), spec.min_elevation) & (rho >= low)
 
 
 def windows(p: dict, spec: RealSpec) -> list[int]:
@@ -212,16 +264,65 @@ def windows(p: dict, spec: RealSpec) -> list[int]:
     return starts
 
 
-def simulate(p: dict, spec: RealSpec) -> list[tuple]:
+def _converted(rho, az, el, s_rho, s_az, s_el) -> tuple[np.ndarray, np.ndarray]:
+    """Plots (m, rad, rad) and their stds -> east-north-up ``[..., 3]`` and covariance ``[..., 3, 3]``, float64."""
+    # first order until the debiased conversion lands (immnet.data.radar.converted)
+    return radar.from_polar(rho, az, el), radar.polar_covariance(rho, az, el, s_rho, s_az, s_el)
+
+
+def _plots(pos: np.ndarray, spec: RealSpec, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray]:
+    """A window's detections of true positions ``pos [T, 3]`` as a radar's plots: stds drawn per window from
+    ``spec.sigma_*`` (m, degrees, degrees), range, azimuth and elevation each measured with its own Gaussian noise,
+    scans after the second missed with probability ``p_miss``; converted to east-north-up with each plot's
+    covariance (:func:`_converted`). Returns ``(z [T, 3], r, cov [T, 3, 3])``, ``r`` the RMS of the per-axis stds of
+    the window's covariances. The noise only, not the plot's stated covariance, of a share ``outliers`` of the
+    detections is ``outlier_scale`` times larger."""
+    s = np.array([rng.uniform(*spec.sigma_range), np.radians(rng.uniform(*spec.sigma_azimuth)),
+                  np.radians(rng.uniform(*spec.sigma_elevation))])
+    noise = rng.standard_normal(pos.shape) * s
+    miss = np.zeros(len(pos), bool)
+    if spec.p_miss > 0:
+        miss = rng.random(len(pos)) < spec.p_miss
+        miss[:2] = False
+    if spec.outliers > 0:
+        noise[rng.random(len(pos)) < spec.outliers] *= spec.outlier_scale
+    rho, az, el = radar.polar(pos)
+    z, cov = _converted(rho + noise[:, 0], np.mod(az + noise[:, 1], 2 * np.pi), el + noise[:, 2], *s)
+    z[miss], cov[miss] = np.nan, np.nan
+    return z, float(np.sqrt(np.mean(np.trace(cov[~miss], axis1=-2, axis2=-1) / 3))), cov
+
+
+def simulate(p: dict, spec: RealSpec, with_cov: bool = False) -> list[tuple]:
     """The radar's windows of one flight (``truth``'s ``p``; draws from its generator): per window ``(states [T, 9],
-    measurements [T, 3], r, scans [T])``, the scans' times in epoch seconds."""
+    measurements [T, 3], r, scans [T])``, the scans' times in epoch seconds; ``with_cov``: and each detection's
+    covariance ``[T, 3, 3]`` (m^2, NaN where missed). 3D-LAST's noise ``r N(0, I3)`` (covariance ``r^2 I``) unless
+    ``spec.plots`` (:func:`_plots`); a share ``outliers`` of the detections with ``outlier_scale`` times the noise
+    (drawn after the rest of the window's, none drawn at share 0)."""
     out = []
     for s in windows(p, spec):
         st = p["states"][s : s + spec.T]
-        r = float(p["rng"].uniform(spec.r_min, spec.r_max))
-        z = radar.measure(st[:, [0, 3, 6]], r, spec.p_miss, p["rng"])
-        out.append((st, z, r, p["scans"][s : s + spec.T]))
+        pos = st[:, [0, 3, 6]]
+        if spec.plots:
+            z, r, cov = _plots(pos, spec, p["rng"])
+        else:
+            r = float(p["rng"].uniform(spec.r_min, spec.r_max))
+            z = radar.measure(pos, r, spec.p_miss, p["rng"])
+            if spec.outliers > 0:
+                wild = p["rng"].random(len(z)) < spec.outliers
+                z[wild] = pos[wild] + spec.outlier_scale * (z[wild] - pos[wild])
+            cov = np.where(np.isnan(z).any(-1)[:, None, None], np.nan, r * r * np.eye(3))
+        out.append((st, z, r, p["scans"][s : s + spec.T], *((cov,) if with_cov else ())))
     return out
+
+
+def place_site(f: adsb.Flight, range_km, seed: int) -> tuple[float, float, float]:
+    """A radar for flight ``f``: at height 0, ``U[low, high]`` km (``range_km``) from the flight's median latitude and
+    longitude on a bearing ``U[0, 360)`` degrees, drawn from a generator of its own, ``(seed, 3, crc32(flight id))``."""
+    rng = np.random.default_rng([int(seed), 3, zlib.crc32(f.id.encode())])
+    d, b = 1000.0 * rng.uniform(*range_km), rng.uniform(0.0, 2 * np.pi)
+    centre = radar.median_site(f.lat, f.lon)
+    lat, lon, _ = enu_to_geodetic(np.array([d * np.sin(b), d * np.cos(b), 0.0]), centre)
+    return float(lat), float(lon), 0.0
 
 
 def split_counts(n: int, fractions) -> list[int]:
@@ -324,6 +425,8 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     out = Path(out)
     if not samples:
         raise ValueError("no ADS-B samples given")
+    if site is not None and spec.range_km:
+        raise ValueError("give --site (one radar for every sample) or --range-km (a radar per flight), not both")
     _check_out(out, overwrite)
     flights, sources, counts, skipped, sites = [], [], {}, [], {}
     for name in samples:
@@ -373,10 +476,14 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     if not flights:
         raise ValueError(f"no flight whose fresh positions are at most {spec.max_position_interval:g} s apart "
                          f"(median) in {', '.join(map(str, samples))}")
-    prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
+    if spec.range_km:  # a radar per flight, placed from the flight's own generator
+        flight_sites = {f.id: place_site(f, spec.range_km, seed) for f in flights}
+        prepared = truth(flights, [flight_sites[f.id] for f in flights], spec, seed, progress)
+    else:
+        prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
     rows = {}
     for p in sorted(prepared, key=lambda p: p["flight"].id):
-        wins = [(st, z, r, scans - scans[0]) for st, z, r, scans in simulate(p, spec)]
+        wins = [(st, z, r, scans - scans[0], *cov) for st, z, r, scans, *cov in simulate(p, spec, spec.writes_cov)]
         if wins and reference is not None and p["flight"].id not in reference:
             counts["unsplit"] += 1  # a flight with windows that the reference does not split: left out
             continue
@@ -415,6 +522,10 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     }
     if reference is not None:
         meta["splits_from"] = where
+    if spec.range_km:  # each flight's own radar: "sites" by flight id
+        meta["site_from"] = (f"one radar per flight, U[{spec.range_km[0]:g}, {spec.range_km[1]:g}] km from its median "
+                             f"position, height 0")
+        meta["sites"] = {i: dict(zip(("lat", "lon", "h"), flight_sites[i])) for i in sorted(flight_sites)}
     out.parent.mkdir(parents=True, exist_ok=True)  # a new directory's parents, as every other writer makes them
     with publishing(out) as tmp:
         tmp.mkdir()
@@ -429,6 +540,8 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
                 keys.R: np.array([w[2] for w in wins]), keys.DT: np.full(len(wins), spec.dt),
                 keys.TIME: np.stack([w[3] for w in wins]),
             }
+            if spec.writes_cov:
+                arrays[keys.MEAS_COV] = np.stack([w[4] for w in wins])
             write_arrays(tmp / split, arrays,
                          {**meta, "split": split, "window_flights": [i for i in members[split] for _ in rows[i]]})
             if npz:

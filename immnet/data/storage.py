@@ -21,7 +21,8 @@ SIGINT removes it, and the next writer of the same output removes one left by a 
 The ``.npz`` interchange format (docs/data.md): ``measurements [N,T,3]`` (NaN = missed
 detection), optional ``states [N,T,9]`` (a NaN row: no truth at that scan), ``mode [N,T]``
 (-1: no label), ``turn_rate [N,T]`` (rad/s), ``r [N]``, ``t [N,T]`` (scan times, s; absent: scans at
-``k dt``) and ``dt`` (scalar; absent: the median spacing of ``t`` per track where ``t`` is given, else 1). Both
+``k dt``), ``meas_cov [N,T,3,3]`` (each detection's measurement covariance, m^2, NaN where missed; optional) and
+``dt`` (scalar; absent: the median spacing of ``t`` per track where ``t`` is given, else 1). Both
 formats are checked on loading by :func:`immnet.data.contract.check_arrays`; an ``.npz`` is read
 with ``allow_pickle=False`` (nothing in it is executed).
 """
@@ -65,6 +66,10 @@ STORE_DTYPES = {
     keys.STATES: torch.float32, keys.MEASUREMENTS: torch.float32, keys.MODE: torch.int64,
     keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32, keys.TIME: torch.float64,
 }
+"""The tensors every generated data set holds, and their stored dtypes."""
+OPTIONAL_DTYPES = {keys.MEAS_COV: torch.float32}
+"""Tensors a set written whole may hold besides (``write_arrays``: real flights' detection covariances)."""
+ALL_DTYPES = {**STORE_DTYPES, **OPTIONAL_DTYPES}
 _NPZ_SHAPES = TRAIL  # trailing shapes after [N]: the arrays of a data set besides dt
 
 
@@ -174,22 +179,22 @@ def _write_meta(directory: Path, meta: dict) -> None:
 
 
 def write_arrays(directory, arrays: dict, meta: dict) -> Path:
-    """Write whole arrays (numpy ``[N, ...]``, the keys of ``STORE_DTYPES``) as the data set directory
+    """Write whole arrays (numpy ``[N, ...]``, the keys of ``ALL_DTYPES``) as the data set directory
     ``directory`` (created; it must not exist: the caller writes it inside a :func:`publishing` sibling).
 
-    The arrays are checked (:func:`immnet.data.contract.check_arrays`) and stored in ``STORE_DTYPES``;
+    The arrays are checked (:func:`immnet.data.contract.check_arrays`) and stored in ``ALL_DTYPES``;
     ``meta`` (which names its ``format``) gets ``n``, ``T``, ``counts_per_mode`` and ``dtype`` added.
     """
     directory = Path(directory)
     n, T = check_arrays(arrays, str(directory))
-    data = {k: torch.from_numpy(np.ascontiguousarray(np.asarray(arrays[k]))).to(STORE_DTYPES[k])
-            for k in STORE_DTYPES if k in arrays}
+    data = {k: torch.from_numpy(np.ascontiguousarray(np.asarray(arrays[k]))).to(ALL_DTYPES[k])
+            for k in ALL_DTYPES if k in arrays}
     directory.mkdir()
     check_space(directory, sum(t.nbytes for t in data.values()), f"the data set ({n} trajectories)")  # memmap_ maps
     TensorDict(data, batch_size=[n]).memmap_(directory / TENSORS)
     counts = _mode_counts(data[keys.MODE]) if keys.MODE in data else [0] * N_MODES
     meta = {**meta, "n": int(n), "T": int(T), "counts_per_mode": dict(zip(MODE_NAMES, counts)),
-            "dtype": {k: str(v).removeprefix("torch.") for k, v in STORE_DTYPES.items() if k in data}}
+            "dtype": {k: str(v).removeprefix("torch.") for k, v in ALL_DTYPES.items() if k in data}}
     _write_meta(directory, meta)
     return directory
 
@@ -320,7 +325,7 @@ def _load_dir(path: Path) -> tuple[TensorDict, dict]:
 
 def tensor_files(tensors_dir) -> tuple[dict[str, tuple[Path, torch.dtype, tuple[int, ...]]], int]:
     """``({key: (file, dtype, shape)}, n)``: the tensors of a data set's ``tensors/`` directory, read from its
-    ``meta.json`` (JSON only). A ValueError for anything but the data set's own tensors (``STORE_DTYPES``, each in
+    ``meta.json`` (JSON only). A ValueError for anything but the data set's own tensors (``ALL_DTYPES``, each in
     its dtype, ``[n, ...]``, in its file ``<key>.memmap`` of that many bytes): tensordict stores any other field as
     a pickle, which runs code when it is loaded, so such a directory is refused before anything in it is read."""
     tensors_dir = Path(tensors_dir)
@@ -338,21 +343,21 @@ def tensor_files(tensors_dir) -> tuple[dict[str, tuple[Path, torch.dtype, tuple[
     for key, entry in meta.items():
         if key in ("shape", "device") or key.startswith("_"):  # tensordict's own: "_type" (never read)
             continue
-        if key not in STORE_DTYPES:
-            raise ValueError(f"{where}: holds {key!r}, not one of a data set's tensors ({', '.join(STORE_DTYPES)}); "
+        if key not in ALL_DTYPES:
+            raise ValueError(f"{where}: holds {key!r}, not one of a data set's tensors ({', '.join(ALL_DTYPES)}); "
                              f"refused unread (tensordict would unpickle such a field, running code from the file)")
-        want = str(STORE_DTYPES[key])
+        want = str(ALL_DTYPES[key])
         shape = entry.get("shape") if isinstance(entry, dict) else None
         if (not isinstance(entry, dict) or entry.get("dtype") != want or entry.get("is_nested", False)
                 or not isinstance(shape, list) or not shape or shape[0] != n
                 or not all(isinstance(d, int) and d >= 0 for d in shape)):
             raise ValueError(f"{where}: {key!r} is {entry!r}, expected a {want} tensor of shape [{n}, ...]")
         file = tensors_dir / f"{key}.memmap"
-        size = math.prod(shape) * STORE_DTYPES[key].itemsize
+        size = math.prod(shape) * ALL_DTYPES[key].itemsize
         got = file.stat().st_size if file.is_file() else None
         if got != size:
             raise ValueError(f"{file}: " + ("missing" if got is None else f"{got} bytes, {key!r} {shape} needs {size}"))
-        out[key] = (file, STORE_DTYPES[key], tuple(shape))
+        out[key] = (file, ALL_DTYPES[key], tuple(shape))
     return out, n
 
 

@@ -42,7 +42,9 @@ def register(subparsers) -> None:
         help="track your own measurements (CSV track_id,t,x,y,z or .npz) with a trained IMMNet",
         formatter_class=_HelpFormatter,
     )
-    p.add_argument("--input", required=True, type=Path, help="CSV (track_id,t,x,y,z) or .npz with measurements [N,T,3]")
+    p.add_argument("--input", required=True, type=Path,
+                   help="CSV (track_id,t,x,y,z, optional r_xx..r_zz; or a radar's plots track_id,t,range,azimuth,"
+                        "elevation) or .npz with measurements [N,T,3]")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
     names = (DEFAULT_WEIGHTS, *(name for name in (BANK, *SHIPPED) if name != DEFAULT_WEIGHTS))
     p.add_argument("--weights", default=None, choices=sorted([*SHIPPED, BANK]),
@@ -73,6 +75,13 @@ def register(subparsers) -> None:
              "place of each track's estimate from its measurements, and a --method told each track's r (the "
              "real-flight filters) reads it (docs/tracking.md, 'A radar that knows its accuracy')",
     )
+    for option, unit, what in (("range", "METRES", "slant range (m)"), ("azimuth", "DEG", "azimuth (degrees)"),
+                               ("elevation", "DEG", "elevation (degrees)")):
+        p.add_argument(
+            f"--sigma-{option}", type=float, default=None, metavar=unit,
+            help=f"the radar's {what} std, for a CSV of plots (track_id,t,range,azimuth,elevation) without the columns "
+                 f"sigma_range,sigma_azimuth,sigma_elevation: the three options together (docs/tracking.md, 'Input')",
+        )
     p.add_argument(
         "--adapt", action="store_true",
         help="adaptive process noise in the filter experts (immnet.imm.adaptive.AdaptiveNoise): for targets "
@@ -119,6 +128,9 @@ def _weights(args) -> Path | None:
 def _check_options(args) -> None:
     """A clear error for options that cannot go together: ``--method`` tracks without a network, so with
     ``--checkpoint`` or ``--weights`` one of them would be ignored; and it tracks CSV rows, not an .npz."""
+    if args.input.suffix.lower() != ".csv" and _sigmas(args) is not None:
+        raise ValueError(f"--sigma-range, --sigma-azimuth, --sigma-elevation are the stds of a CSV of plots "
+                         f"(range,azimuth,elevation); {args.input} is not a CSV")
     if args.method is None:
         return
     for option, what in (("checkpoint", "a file of your own"), ("weights", "shipped weights by name")):
@@ -127,6 +139,40 @@ def _check_options(args) -> None:
     if args.input.suffix.lower() != ".csv":
         raise ValueError(f"--method tracks a CSV input (each row a scan at its own time); {args.input} is not one: "
                          f"leave --method out to track it with the network")
+
+
+def _sigmas(args):
+    """The radar's stds the options give, ``(range, azimuth, elevation)``, or None where none is given."""
+    got = (args.sigma_range, args.sigma_azimuth, args.sigma_elevation)
+    return None if all(v is None for v in got) else got
+
+
+def _detection_cov(args, rows, method, label: str):
+    """Each row's measurement covariance for ``method``'s batch (``keys.MEAS_COV``): the rows' own, or for a method
+    that reads it from a CSV without any, ``--r`` squared on the diagonal; None where the method has no use for it
+    and the rows give none. Said on stderr where the rows give one the method does not read."""
+    reads = keys.MEAS_COV in getattr(method, "needs", ())
+    if rows.cov is not None:
+        if reads and args.r is not None:
+            raise ValueError(f"--r and the CSV's {'plots' if rows.polar else 'covariance columns'} both give the "
+                             f"measurement noise of --method {label}: give one of the two")
+        if not reads:
+            print(f"{label} assumes its own measurement noise: each detection's covariance from the CSV is not used "
+                  f"(docs/tracking.md, 'Input')", file=sys.stderr)
+        return rows.cov
+    if not reads:
+        return None
+    if args.r is None:
+        raise ValueError(f"--method {label} is told each detection's covariance, which this CSV does not hold: give "
+                         f"the columns r_xx..r_zz, a radar's plots with their stds, or one std for all with --r METRES")
+    cov = np.where(np.isnan(rows.z).any(-1)[:, None, None], np.nan, np.eye(3) * float(args.r) ** 2)
+    return cov
+
+
+def _report_cov_unused(rows, what: str) -> None:
+    if rows.cov is not None:
+        print(f"{what} estimates each track's measurement noise from its measurements: each detection's covariance "
+              f"from the CSV is not used (a --method that reads it does: docs/tracking.md, 'Input')", file=sys.stderr)
 
 
 def check_paths(source: Path, target: Path) -> None:
@@ -197,6 +243,7 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     from immnet.tracking.io import write_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 
+    meas_cov = None
     if method is None:
         has_cov = gives_cov(args.method)
         method, label = build_method(args.method, return_cov=has_cov), args.method
@@ -204,13 +251,17 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
         if keys.R in getattr(method, "needs", ()) and args.r is None:
             raise ValueError(f"--method {args.method} is told each track's measurement std, which a CSV does not hold: "
                              f"give the radar's with --r METRES")
+        meas_cov = _detection_cov(args, rows, method, label)
     else:
         has_cov, why = method.net.has_cov, method.net.no_cov_reason()
+        _report_cov_unused(rows, label)
     span = getattr(getattr(method, "net", None), "interval_range", None)
     z, n_gated = gate_measurements(rows.z, limit)
+    if meas_cov is not None:  # a gated detection is a missed one: no covariance
+        meas_cov = np.where(np.isnan(z).any(-1)[:, None, None], np.nan, meas_cov)
     segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
     state, probs, cov = track_rows(method, segs, offset, return_cov=True,
-                                   max_interval=None if span is None else span[1], r=args.r)
+                                   max_interval=None if span is None else span[1], r=args.r, meas_cov=meas_cov)
     write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
     if not has_cov:
         _report_no_cov(why)
@@ -234,7 +285,7 @@ def run(args) -> int:
         from immnet.tracking.io import read_tracks_csv, write_tracks_csv
         from immnet.tracking.segments import split_segments, track_segments
 
-        rows = read_tracks_csv(args.input)
+        rows = read_tracks_csv(args.input, _sigmas(args))
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
         weights = _weights(args)
@@ -254,6 +305,7 @@ def run(args) -> int:
             code = _track_rows_with_method(args, rows, limit, method, str(weights))
             _advise(weights, track_intervals(rows.ids, rows.t))
             return code
+        _report_cov_unused(rows, str(weights))
         z, n_gated = gate_measurements(rows.z, limit)
         segs = split_segments(rows.ids, rows.t, z, tracker.net.dt, args.max_coast, rows.lines, rows.times)
         has_cov = tracker.net.has_cov

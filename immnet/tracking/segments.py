@@ -160,7 +160,7 @@ def _scan_times(times: np.ndarray, max_interval: float | None) -> tuple[np.ndarr
 
 
 def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512, return_cov: bool = False,
-               max_interval: float | None = None, r: float | None = None):
+               max_interval: float | None = None, r: float | None = None, meas_cov: np.ndarray | None = None):
     """``state [R, 9]``, ``mode_probs [R, 4]`` per row of :func:`split_rows`' segments, each tracked as a
     fresh track by ``method.track(batch)`` with ``t [B, T]`` (its rows' times since its first); padding
     after a segment's end is missed detections, its times continuing at the segment's median spacing
@@ -168,7 +168,8 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
     missed scans (:func:`_scan_times`; a network trained over a range of intervals). ``mode_probs`` NaN where the
     method has none. With ``return_cov`` a third, ``state_cov [R, 9, 9]`` from the method's output, NaN where it
     gives none. ``r``: every track's measurement std (m), the batch's ``r`` for a method told it (the real-flight
-    filters' ``r: data``)."""
+    filters' ``r: data``). ``meas_cov [R, 3, 3]``: each row's measurement covariance (m^2, NaN where missed), the
+    batch's ``meas_cov [B, T, 3, 3]`` (NaN at the scans no row fills)."""
     from tensordict import TensorDict
 
     import torch
@@ -199,6 +200,11 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
                             keys.DT: torch.from_numpy(dt)}, batch_size=[len(rows)])
         if told is not None:
             batch.set(keys.R, torch.full((len(rows),), told, dtype=torch.float64))
+        if meas_cov is not None:
+            c = np.full((len(rows), T, 3, 3), np.nan)
+            for i, r in enumerate(rows):
+                c[i, scans[int(r[0])][1]] = meas_cov[r]
+            batch.set(keys.MEAS_COV, torch.from_numpy(c))
         if hasattr(method, "check"):
             method.check(batch)
         out = method.track(batch)

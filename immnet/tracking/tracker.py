@@ -24,8 +24,10 @@ CA maneuver leaving 40-330 m/s turns for one scan. For data from another region,
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 
@@ -42,6 +44,25 @@ from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the tr
     outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, to_local,
     trained_for,
 )
+
+
+def check_meas_cov(R, z: torch.Tensor) -> torch.Tensor:
+    """``R`` as float64 ``[B, 3, 3]`` for a scan ``z [B, 3]``; a ValueError unless it has that shape and, where the track
+    has a detection, is finite, symmetric and positive definite (m^2)."""
+    cov = torch.as_tensor(np.asarray(R) if not isinstance(R, torch.Tensor) else R).to(torch.float64)
+    want = (z.shape[0], 3, 3)
+    if tuple(cov.shape) != want:
+        raise ValueError(f"R is each track's measurement covariance [n_tracks, 3, 3] = {list(want)}, got "
+                         f"{list(cov.shape)}")
+    seen = ~torch.isnan(z).all(-1)
+    ok = torch.isfinite(cov).all(-1).all(-1) & torch.isclose(cov, cov.transpose(-1, -2), rtol=1e-9, atol=0).all(-1).all(-1)
+    ok = ok & (torch.linalg.cholesky_ex(torch.where(ok[:, None, None], cov, torch.eye(3, dtype=cov.dtype)))[1] == 0)
+    bad = (seen & ~ok).nonzero()
+    if len(bad):
+        i = int(bad[0])
+        raise ValueError(f"R of track {i} is not a symmetric positive-definite covariance (m^2): "
+                         f"{cov[i].tolist()}")
+    return cov
 
 
 class Tracker:
@@ -112,7 +133,7 @@ class Tracker:
         self.n_gated = 0
 
     @torch.no_grad()
-    def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None, r=None) -> TensorDict:
+    def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None, r=None, R=None) -> TensorDict:
         """One scan ``z [B, 3]`` (NaN = missed detection), one row per track: the tracks of the last ``reset`` (the first
         scan without one sets their number; a scan of another number of rows is refused); ``reset [B]`` bool restarts
         those tracks;
@@ -132,9 +153,20 @@ class Tracker:
         (``net.has_cov``) the output holds the fused state's, ``("fused", "cov")`` ``[B, 9, 9]``, as the network
         reports it (``IMMNet.reported_cov``: times its consistency scale where it keeps one); the paper's
         KalmanNet experts give none (no such key).
+
+        ``R [B, 3, 3]``: each detection's measurement covariance (m^2; a NaN matrix where the track has no detection),
+        e.g. a radar plot's (``immnet.tracking.io``). It is checked (its shape, and symmetric positive definite where
+        the track has a detection: a ValueError otherwise) and **not used**: no network here takes a full measurement
+        covariance yet (the shipped ones estimate each track's noise from its measurements, ``r`` tells a told-``r``
+        network one std per track); a UserWarning says so. The model-based filters read it from a batch's
+        ``meas_cov`` (``immnet track --method``).
         """
         z = as_measurements(z, 2)
         self._check_told(r)  # before anything of the tracker's state changes
+        if R is not None:
+            check_meas_cov(R, z)
+            warnings.warn("Tracker.step: this network does not use R (each detection's covariance): it was checked and "
+                          "left unused (docs/tracking.md, 'Input')", UserWarning, stacklevel=3)
         check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
         mask = None if reset is None else per_track(reset, z.shape[0], "reset", torch.bool)
         fresh = torch.ones(z.shape[0], dtype=torch.bool) if self.carry is None else self.fresh
