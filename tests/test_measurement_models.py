@@ -340,3 +340,14 @@ def test_polar_robust_update_shrinks_an_outliers_pull():
     pull, pull_r = ((v[0::3] - torch.tensor(x[0::3])).norm() for v in (xp, xr))
     assert pull_r < 0.5 * pull
     assert isinstance(Polar(30.0, 1e-3, 1e-3).needs, tuple)
+
+
+def test_polar_start_covariance_is_the_conversions_first_order_covariance():
+    from immnet.data.radar import polar_covariance
+
+    plots = np.array([[80e3, 0.2, 0.05], [20e3, 5.0, 0.4]])
+    sig = np.array([[40.0, 0.002, 0.003], [20.0, 0.001, 0.004]])
+    z0 = torch.tensor(from_polar(*plots.T))
+    got = Polar(1.0, 1.0, 1.0).initial_cov(z0, torch.tensor(sig))
+    want = polar_covariance(*plots.T, *sig.T)
+    np.testing.assert_allclose(got.numpy(), want, rtol=1e-9, atol=1e-9 * np.abs(want).max())

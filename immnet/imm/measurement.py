@@ -3,7 +3,7 @@
 
 Positions are the radar's east-north-up frame (x east, y north, z up, metres, origin at the radar); a polar plot is
 slant range ``rho``, azimuth ``az`` clockwise from north and elevation ``el`` above the horizontal
-(``immnet.data.radar``). One class per role, each a small frozen dataclass:
+(``immnet.data.radar``, which this module does not import: the IMM core knows no data set). One class per role, each a small frozen dataclass:
 
 - ``Isotropic(r)``: ``z = H x + v``, ``v ~ N(0, r^2 I)``, one ``r`` (m) for every track, or ``r="data"`` each
   track's own (the batch's ``r [B]``): the model every tracker here was built on;
@@ -27,7 +27,6 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
-import numpy as np
 import torch
 from tensordict import TensorDict
 
@@ -146,15 +145,19 @@ class Polar:
         return to_polar(z)
 
     def initial_cov(self, z0: torch.Tensor, sig0: torch.Tensor) -> torch.Tensor:
-        """The first detection's Cartesian covariance ``[B, 3, 3]``: ``immnet.data.radar.converted``'s at the plot
-        of ``z0 [B, 3]`` (float64 numpy; a track with no detection, its NaN row, gets ``sigma_range^2 I``)."""
-        from immnet.data.radar import converted
-
-        p = to_polar(z0.double()).cpu().numpy()
-        s = sig0.double().cpu().numpy()
-        _, R = converted(p[:, 0], p[:, 1], p[:, 2], s[:, 0], s[:, 1], s[:, 2])
-        R = np.where(np.isfinite(R).all((-1, -2))[:, None, None], R, s[:, 0, None, None] ** 2 * np.eye(3))
-        return torch.as_tensor(R, dtype=z0.dtype, device=z0.device)
+        """The first detection's Cartesian covariance ``[B, 3, 3]`` to first order, ``J diag(sigma^2) J^T`` with ``J``
+        the Jacobian of the conversion at the plot of ``z0 [B, 3]`` (``immnet.data.radar.polar_covariance``'s; a
+        track with no detection, its NaN row, gets ``sigma_range^2 I``)."""
+        rho, az, el = to_polar(z0).unbind(-1)
+        ca, sa, ce, se = az.cos(), az.sin(), el.cos(), el.sin()
+        J = torch.stack([
+            torch.stack([ce * sa, rho * ce * ca, -rho * se * sa], -1),
+            torch.stack([ce * ca, -rho * ce * sa, -rho * se * ca], -1),
+            torch.stack([se, torch.zeros_like(se), rho * ce], -1),
+        ], -2)
+        R = (J * (sig0 * sig0).unsqueeze(-2)) @ J.transpose(-1, -2)
+        fallback = sig0[:, :1, None] ** 2 * torch.eye(3, dtype=z0.dtype, device=z0.device)
+        return torch.where(torch.isfinite(R).all(-1).all(-1)[:, None, None], R, fallback)
 
     def measure(self, z: torch.Tensor, robust: float | None = None) -> Callable:
         """``run``'s ``measure(t, xp, Pp)`` over ENU measurements ``z [B, T, 3]``: :func:`polar_update` of each filter
