@@ -9,7 +9,9 @@ The radar sits at a site ``(lat0, lon0, h0)``; positions are its local east-nort
 Polar measurements (range ``rho``, azimuth ``az`` clockwise from north, elevation ``el``) convert to ENU as
 ``e = rho cos el sin az``, ``n = rho cos el cos az``, ``u = rho sin el``; the converted measurement's
 covariance to first order is ``J diag(s_rho^2, s_az^2, s_el^2) J^T`` with ``J`` the Jacobian of that map
-(:func:`polar_covariance`; exact to O(s_angle^2) relative, e.g. 1 mrad at 100 km).
+(:func:`polar_covariance`; exact to O(s_angle^2) relative, e.g. 1 mrad at 100 km). That plain conversion is biased
+(``E[cos(az + v)] = cos(az) e^{-s_az^2/2}``): :func:`converted` gives the unbiased converted measurement and its
+covariance, the input of every tracker that filters Cartesian positions (docs/tracking.md "Measurement models").
 """
 
 from __future__ import annotations
@@ -49,6 +51,70 @@ def polar_covariance(rho, az, el, s_rho, s_az, s_el) -> np.ndarray:
     ], -2)
     s2 = np.stack(np.broadcast_arrays(*(np.asarray(s, np.float64) ** 2 for s in (s_rho, s_az, s_el))), -1)
     return (J * s2[..., None, :]) @ np.swapaxes(J, -1, -2)
+
+
+def _ucm_cov(A, Bq, az, el, s_az, s_el, g1a, g2a, g2e):
+    """The covariance ``[..., 3, 3]`` of the unbiased conversion (:func:`converted`'s formula) from its moments: ``A``
+    the expected ``rho_m^2``, ``Bq`` the expected ``rho^2`` and ``g1a``, ``g2a``, ``g2e`` the factors that take
+    ``sin az``, ``sin/cos 2 az`` and ``sin/cos 2 el`` to their expectations."""
+    la2, le2 = np.exp(-s_az * s_az), np.exp(-s_el * s_el)  # lambda_az^2, lambda_el^2
+    la4, le4 = la2 * la2, le2 * le2
+    c2a, s2a, c2e, s2e = np.cos(2 * az), np.sin(2 * az), np.cos(2 * el), np.sin(2 * el)
+    horizontal = A / (la2 * le2) * 0.25 * (1 + le4 * g2e * c2e)
+    ground = Bq * 0.25 * (1 + g2e * c2e)
+    xx = horizontal * (1 - la4 * g2a * c2a) - ground * (1 - g2a * c2a)
+    yy = horizontal * (1 + la4 * g2a * c2a) - ground * (1 + g2a * c2a)
+    xy = horizontal * la4 * g2a * s2a - ground * g2a * s2a
+    zz = A / le2 * 0.5 * (1 - le4 * g2e * c2e) - Bq * 0.5 * (1 - g2e * c2e)
+    vertical = 0.5 * g2e * s2e * g1a * (A * le2 - Bq)
+    xz, yz = vertical * np.sin(az), vertical * np.cos(az)
+    return np.stack([np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], -2)
+
+
+def converted(rho, az, el, s_rho, s_az, s_el, given: str = "measurement") -> tuple[np.ndarray, np.ndarray]:
+    """The unbiased converted measurement of a polar plot and its covariance (float64): ``(enu [..., 3], R [..., 3, 3])``.
+
+    ``rho`` (m), ``az`` (rad, clockwise from north), ``el`` (rad, above the horizontal) measured with independent
+    Gaussian errors of standard deviations ``s_rho`` (m), ``s_az``, ``s_el`` (rad); all broadcast together. With
+    ``lambda_a = e^{-s_az^2/2}``, ``lambda_e = e^{-s_el^2/2}`` (``E[cos v] = lambda`` for ``v ~ N(0, s^2)``), the
+    conversion divides the plain one (:func:`from_polar`) by what its expectation multiplies the truth by::
+
+        e = rho cos(el) sin(az) / (lambda_a lambda_e)
+        n = rho cos(el) cos(az) / (lambda_a lambda_e)
+        u = rho sin(el) / lambda_e
+
+    so that ``E[enu | truth] = truth`` at any range and noise (Mo, Song, Zhou, Sun and Bar-Shalom, "Unbiased
+    converted measurements for tracking", IEEE TAES 1998, in this frame).
+
+    ``R`` is the covariance of that error given the truth, ``C(truth) = Cov(enu | rho, az, el)``, averaged over the
+    truths the measurement could have come from (``truth = measured - v``), ``E[C | measured]`` (Duan, Han and Li's
+    correction, IEEE TAES 2004: ``C`` evaluated at the measured values is biased itself). With ``A = rho^2 + 2
+    s_rho^2``, ``Bq = rho^2 + s_rho^2`` (``E[rho_m^2 | truth]`` and ``E[rho^2 | measured]``), ``g1a = lambda_a``,
+    ``g2a = lambda_a^4``, ``g2e = lambda_e^4`` (``E[sin(az - v)] = lambda_a sin az``, ``E[cos 2(az - v)] = lambda_a^4
+    cos 2 az``), and ``ce2 = 1 + lambda_e^4 g2e cos 2el``::
+
+        R_ee = A/(la^2 le^2) ce2 (1 - la^4 g2a cos 2az)/4 - Bq (1 + g2e cos 2el)(1 - g2a cos 2az)/4
+        R_nn = A/(la^2 le^2) ce2 (1 + la^4 g2a cos 2az)/4 - Bq (1 + g2e cos 2el)(1 + g2a cos 2az)/4
+        R_en = A/(la^2 le^2) ce2 la^4 g2a sin 2az / 4   - Bq (1 + g2e cos 2el) g2a sin 2az / 4
+        R_uu = A/le^2 (1 - le^4 g2e cos 2el)/2          - Bq (1 - g2e cos 2el)/2
+        R_eu = g2e sin 2el g1a sin az (A le^2 - Bq)/2    R_nu = the same with cos az
+
+    (``la``, ``le`` the lambdas; each line ``E[(enu)(enu)^T]`` less the truth's outer product). ``given="truth"``
+    reads ``(rho, az, el)`` as the truth and returns ``C(truth)`` itself (``A = rho^2 + s_rho^2``, ``Bq = rho^2``,
+    ``g1a = g2a = g2e = 1``): the covariance a Monte Carlo of the conversion at that truth measures. To first order
+    in the noise both are :func:`polar_covariance`'s ``J diag(s^2) J^T``.
+    """
+    rho, az, el, s_rho, s_az, s_el = (np.asarray(a, np.float64) for a in (rho, az, el, s_rho, s_az, s_el))
+    la, le = np.exp(-0.5 * s_az * s_az), np.exp(-0.5 * s_el * s_el)
+    c = rho * np.cos(el) / (la * le)
+    enu = np.stack(np.broadcast_arrays(c * np.sin(az), c * np.cos(az), rho * np.sin(el) / le), -1)
+    if given == "measurement":
+        A, Bq, g1a, g2a, g2e = rho * rho + 2 * s_rho * s_rho, rho * rho + s_rho * s_rho, la, la**4, le**4
+    elif given == "truth":
+        A, Bq, g1a, g2a, g2e = rho * rho + s_rho * s_rho, rho * rho, 1.0, 1.0, 1.0
+    else:
+        raise ValueError(f"given must be 'measurement' or 'truth', got {given!r}")
+    return enu, _ucm_cov(A, Bq, az, el, s_az, s_el, g1a, g2a, g2e)
 
 
 def covered(enu, max_range: float, min_elevation: float = 0.0) -> np.ndarray:

@@ -36,11 +36,12 @@ def first_detection(z: torch.Tensor) -> torch.Tensor:
     return torch.where(finite.any(-1), finite.long().argmax(-1), torch.zeros_like(finite[:, 0], dtype=torch.long))
 
 
-def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float = ACC_STD):
+def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float = ACC_STD, cov0=None):
     """``x0``, ``P0`` from the first measurement of each track (docs/spec.md section 3).
 
     ``z [B, T, 3]``; ``r`` the filter's assumed measurement standard deviation (scalar or ``[B]``).
-    ``x0 = [z0x, 0, 0, z0y, 0, 0, z0z, 0, 0]`` and ``P0 = diag(r^2, vel_std^2, acc_std^2)`` per axis.
+    ``x0 = [z0x, 0, 0, z0y, 0, 0, z0z, 0, 0]`` and ``P0 = diag(r^2, vel_std^2, acc_std^2)`` per axis; ``cov0 [B, 3, 3]``
+    (given, ``r`` unused): the first detection's own measurement covariance as ``P0``'s position block.
     A track whose first measurement is missing starts at its first detected position (zeros if it
     has none), at the scan of that detection (``first_detection``; give it to ``imm_filter``/``runner.run`` as
     ``start``, so that the filters hold this state until then and never filter that detection a second time); the
@@ -52,16 +53,20 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     B = z.shape[0]
     x0 = z.new_zeros(B, 9)
     x0[:, 0::3] = z0
-    r2 = torch.as_tensor(r, dtype=z.dtype, device=z.device) ** 2
+    r2 = None if cov0 is not None else torch.as_tensor(r, dtype=z.dtype, device=z.device) ** 2
     diag = z.new_zeros(B, 9)
-    diag[:, 0::3] = r2.reshape(-1, 1) if r2.dim() else r2
+    if cov0 is None:
+        diag[:, 0::3] = r2.reshape(-1, 1) if r2.dim() else r2
     diag[:, 1::3] = vel_std**2
     diag[:, 2::3] = acc_std**2
-    return x0, torch.diag_embed(diag)
+    P0 = torch.diag_embed(diag)
+    if cov0 is not None:
+        P0[:, 0::3, 0::3] = cov0.to(P0)
+    return x0, P0
 
 
 def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False, general: bool = False,
-               return_cov: bool = False, start: torch.Tensor | None = None):
+               return_cov: bool = False, start: torch.Tensor | None = None, robust: float | None = None):
     """Run the IMM over ``z [B, T, 3]`` from ``x0 [B, 9]``, ``P0 [B, 9, 9]`` and ``mu0 [M]``.
 
     At ``t = 0`` the output is the initial state (every expert at ``x0, P0``); steps ``t >= 1``
@@ -76,11 +81,15 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     count compiles, seconds); if compiling fails it logs a warning and runs the eager path. ``return_cov`` runs the
     core's loop and returns a fourth output, the combined covariance ``[B, T, 9, 9]``. ``start [B]``: the scan at
     which each track starts from ``x0``, ``P0`` (``first_detection``; ``runner.run``'s), None: scan 0.
+    ``R``: a variance (a number or ``[B]``), one covariance ``[3, 3]`` or one per track ``[B, 3, 3]``, or one per
+    detection ``[B, T, 3, 3]`` (``immnet.imm.measurement.PerDetection``: finite where a scan is missed). ``robust``:
+    Huber's ``k`` of the update (``immnet.imm.kalman``), None: the plain update (it runs the core's loop).
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
-    if not (general or return_cov) and _lean_ok(F, Q, R, M, x0.shape[-1]):
-        if compile:
+    R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
+    if not (general or return_cov or robust is not None) and _lean_ok(F, Q, R, M, x0.shape[-1]):
+        if compile and R.dim() < 4:
             from immnet.filters.imm_fused import imm_filter_fused
 
             out = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=start)
@@ -90,22 +99,25 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     x = x0.unsqueeze(1).expand(B, M, 9).contiguous()
     P = P0.unsqueeze(1).expand(B, M, 9, 9).contiguous()
     mu = mu0.to(z).expand(B, M).contiguous()
-    R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
     if R.dim() == 3:
         R = R[:, None]  # one covariance per track [B, 3, 3], for every filter
+    if R.dim() == 4:
+        per_detection = R
+        R = lambda t: per_detection[:, t, None]  # noqa: E731 (each detection's [B, 1, 3, 3], for every filter)
     return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts, return_cov=return_cov,
-               start=start)
+               start=start, robust=robust)
 
 
 _SMALL = 1024
 
 
 def _lean_ok(F, Q, R, M, n) -> bool:
-    """Whether ``_imm_filter_lean`` applies: the same ``F``, ``Q`` for every track, scalar or 3x3 ``R``."""
+    """Whether ``_imm_filter_lean`` applies: the same ``F``, ``Q`` for every track, a scalar or 3x3 ``R`` or one
+    per detection ``[B, T, 3, 3]``."""
     R = torch.as_tensor(R)
     return (
         n == 9 and F.shape == (M, 9, 9) and Q.dim() <= 3 and Q.shape[-2:] == (9, 9) and Q.shape[0] in (1, M)
-        and (R.numel() == 1 or R.shape == (3, 3))
+        and (R.numel() == 1 or R.shape == (3, 3) or R.dim() == 4)
     )
 
 
@@ -132,6 +144,7 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=None):
     KT = _kron_t(F)
     Qv = Q.expand(M, 9, 9).reshape(M, 1, 81)
     Rm = _as_cov(R, 3, z)
+    per_detection = Rm.dim() == 4  # [B, T, 3, 3]
     FT = F.transpose(1, 2)
     PiT = Pi.T.contiguous()
     tiny = torch.finfo(z.dtype).tiny
@@ -165,7 +178,7 @@ def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=None):
         Pp = torch.baddbmm(Qv, Pm, KT)
         # 3. update with the positions
         PHt = Pp.view(M, B, 9, 9)[..., 0::3]  # [M, B, 9, 3]
-        S = PHt[..., 0::3, :] + Rm
+        S = PHt[..., 0::3, :] + (Rm[:, t] if per_detection else Rm)
         S2 = S.index_select(-2, rows).unflatten(-2, (2, 3))  # rows (1, 2, 0) and (2, 0, 1)
         C = torch.linalg.cross(S2[..., 0, :, :], S2[..., 1, :, :], dim=-1)  # rows: cofactors of S's rows
         det = (S[..., 0, :] * C[..., 0, :]).sum(-1)

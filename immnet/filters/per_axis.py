@@ -24,7 +24,8 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, output
 from immnet.filters.imm import first_detection, initial_state
-from immnet.filters.trackers import _interval_or_intervals, _linear_network, assumed_r, filter_settings, variance
+from immnet.filters.trackers import (_interval_or_intervals, _linear_network, assumed_r, check_robust, filter_settings,
+                                     variance)
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import AXES, AXIS_OF, ModelSet, coupling
@@ -46,13 +47,15 @@ class PerAxisIMMTracker(Method):
     ``r``: the assumed measurement std (m), or ``"data"`` (each track's own ``r``); ``sigma_q`` one for all
     models or one per model; ``p_stay``: the Markov chain's staying probability (or a matrix ``[M, M]``).
     ``track`` gives ``state [B, T, 9]`` and ``("mode", "probs") [B, T, 3, M]``, each axis's mode
-    probabilities (no data modes: an axis has none of 3D-LAST's).
+    probabilities (no data modes: an axis has none of 3D-LAST's). ``robust``: Huber's ``k`` of each axis's update
+    (``immnet.imm.kalman``'s module doc; the distance is the axis's own innovation over its standard deviation),
+    None: off.
     """
 
     any_interval = True
 
     def __init__(self, model_set, r: float | str, sigma_q: float | Sequence[float], p_stay=0.98,
-                 dtype="float64", name: str = "imm-axis", return_cov: bool = False):
+                 dtype="float64", name: str = "imm-axis", return_cov: bool = False, robust: float | None = None):
         self.model_set = ModelSet.from_config(model_set)
         M = len(self.model_set)
         moving = coupling(self.model_set, AXIS_OF)
@@ -64,6 +67,7 @@ class PerAxisIMMTracker(Method):
         self.dtype = as_dtype(dtype)
         self.name = name
         self.return_cov = return_cov
+        self.robust = check_robust(robust)
 
     def scaled(self, factor: float) -> "PerAxisIMMTracker":
         """A copy whose process noise is ``factor`` times this one's (every model's ``sigma_q``); the rest shared."""
@@ -75,7 +79,9 @@ class PerAxisIMMTracker(Method):
         """This IMM as IMMNet with nothing learned and modes per axis (``IMMNet(modes="axis")``; otherwise as
         ``IMMTracker.network``): each axis's mix, mode update and fusion over the model set's filter experts, whose
         9-D filters are the three axes' filters side by side. It filters what ``track`` filters, to float64
-        rounding, each track from its first detection on. A ValueError for a full transition matrix."""
+        rounding, each track from its first detection on. A ValueError for a full transition matrix or a robust update."""
+        if self.robust is not None:
+            raise ValueError(f"{self.name}: IMMNet's filter experts have no robust update, this IMM has robust={self.robust!r}")
         return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
                                modes="axis")
 
@@ -107,7 +113,7 @@ class PerAxisIMMTracker(Method):
         H = torch.tensor([[1.0, 0.0, 0.0]], dtype=self.dtype, device=dev)
         states, probs, _, *cov = run(za, x, P, mu, self.Pi.to(dtype=self.dtype, device=dev),
                                      linear_transition(per_track(F, F.dim() == 3), per_track(Q, Q.dim() == 3)), R, H=H,
-                                     return_cov=self.return_cov, start=first_detection(z).repeat(AXES))
+                                     return_cov=self.return_cov, start=first_detection(z).repeat(AXES), robust=self.robust)
         state = states.reshape(AXES, B, T, 3).permute(1, 2, 0, 3).reshape(B, T, 9)
         probs = probs.reshape(AXES, B, T, M).permute(1, 2, 0, 3)
         extra = {keys.EXPERT_PROBS: probs}

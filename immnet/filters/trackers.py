@@ -24,6 +24,7 @@ from immnet.data.times import scan_intervals
 from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
 from immnet.filters.imm import first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
+from immnet.imm.measurement import Isotropic, PerDetection, Polar, measurement_model
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
 
@@ -49,6 +50,15 @@ def check_r(r) -> float | str:
         return r
     _positive("r", r, allow_zero=False)
     return float(r)
+
+
+def check_robust(robust) -> float | None:
+    """``robust`` as Huber's ``k`` of the update (``immnet.imm.kalman``'s module doc): None (off) or a positive number."""
+    if robust is None:
+        return None
+    if isinstance(robust, bool) or not (isinstance(robust, (int, float)) and math.isfinite(robust) and robust > 0):
+        raise ValueError(f"robust must be None (off) or Huber's k, a positive number of standard deviations, got {robust!r}")
+    return float(robust)
 
 
 def filter_settings(r, sigma_q, n_models: int) -> tuple[float | str, tuple[str, ...], float | list[float]]:
@@ -104,12 +114,13 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
 
 
 class KalmanFilterTracker(Method):
-    """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r``."""
+    """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r``; ``robust``: Huber's
+    ``k`` of the update (``IMMTracker``'s)."""
 
     any_interval = True
 
     def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None,
-                 return_cov: bool = False):
+                 return_cov: bool = False, robust: float | None = None):
         self.model = model if isinstance(model, MotionModel) else instantiate(model)
         self.r = check_r(r)
         _positive("sigma_q", sigma_q)
@@ -117,6 +128,7 @@ class KalmanFilterTracker(Method):
         self.name = name or f"kf-{self.model.name}"
         self.needs = (keys.R,) if self.r == TOLD else ()
         self.return_cov = return_cov
+        self.robust = check_robust(robust)
 
     def network(self, dt: float = 1.0):
         """This filter as IMMNet with nothing learned: the one-model case of ``IMMTracker.network`` (its docstring)."""
@@ -135,7 +147,7 @@ class KalmanFilterTracker(Method):
         R = variance(r, self.dtype, dev)
         one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
         states, _, _, *cov = run(z, x[:, None], P[:, None], one, one[:1], linear_transition(F.unsqueeze(-3), Q.unsqueeze(-3)),
-                                 R, return_cov=self.return_cov, start=first_detection(z))
+                                 R, return_cov=self.return_cov, start=first_detection(z), robust=self.robust)
         return output(states, {keys.STATE_COV: cov[0] if cov else None}, measurements=z)
 
 
@@ -155,6 +167,14 @@ class IMMTracker(Method):
     [B, T, G, M]``, and the data modes of the axes' mean.
     ``compile``: run the step through ``torch.compile`` (``imm_filter(compile=True)``; seconds to compile
     on first use, then several times faster on CPU for one track or thousands; fixed intervals only).
+
+    ``r`` is the measurement model (``immnet.imm.measurement``): a number or ``"data"`` (isotropic, ``r`` m or each
+    track's own), ``"detection"`` (each detection's covariance, the batch's ``meas_cov [B, T, 3, 3]``: ``r^2 I`` there
+    gives the isotropic filter's numbers bit for bit) or ``{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}``
+    (the plots themselves, an extended Kalman filter in polar coordinates about the radar at the origin). A track
+    starts with its first detection's covariance. ``robust``: Huber's ``k`` (``immnet.imm.kalman``'s module doc: an
+    innovation beyond ``k`` standard deviations moves the state by ``k`` of them, and the mode update weighs it by
+    Huber's density), None: off. The last three are the joint IMM's (``modes="joint"``).
     """
 
     any_interval = True
@@ -172,6 +192,7 @@ class IMMTracker(Method):
         compile: bool = False,
         return_cov: bool = False,
         modes: str = "joint",
+        robust: float | None = None,
     ):
         self.model_set = ModelSet.from_config(model_set)
         self.modes, groups = modes, mode_groups(modes)
@@ -186,7 +207,18 @@ class IMMTracker(Method):
         moving = [m.name for m in self.model_set if m.state_dependent]
         if moving:
             raise ValueError(f"the IMM needs a constant F per model; {moving} are state-dependent (IMMNet experts only)")
-        self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)
+        isotropic = isinstance(r, (int, float)) or r == TOLD
+        if isotropic:
+            self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)
+            self.measurement = Isotropic(self.r)
+        else:
+            self.measurement = measurement_model(r)
+            _, _, self.sigma_q = filter_settings(1.0, sigma_q, M)
+            self.r, self.needs = r, tuple(self.measurement.needs)
+        self.robust = check_robust(robust)
+        if groups is not None and not (isotropic and self.robust is None):
+            raise ValueError(f"{name}: modes per {modes} track with IMMNet's step, which takes an isotropic r and no "
+                             f"robust update")
         self.Pi = transition_matrix(p_stay, M)
         self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
         if mu0 is None:
@@ -213,6 +245,9 @@ class IMMTracker(Method):
         With ``r: data`` the filter experts are told each track's ``r`` (``FilterGain(r="data")``): give it to
         ``rollout(..., r=batch["r"])``. A ValueError where this IMM is not such a configuration: a full transition
         matrix, a non-uniform ``mu0``."""
+        if not isinstance(self.measurement, Isotropic) or self.robust is not None:
+            raise ValueError(f"{self.name}: IMMNet's filter experts take an isotropic r and no robust update, this IMM "
+                             f"has r={self.r!r}, robust={self.robust!r}")
         if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
         return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
@@ -231,16 +266,41 @@ class IMMTracker(Method):
             return self._track_by_step(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         F, Q, Pi, mu0 = self.matrices(_interval_or_intervals(batch, self.dtype, z.device), z.device)
-        r = assumed_r(self.r, batch, self.dtype, z.device)
-        x0, P0 = initial_state(z, r)
-        R = variance(r, self.dtype, z.device)
-        states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts, compile=self.compile,
-                                                  return_cov=self.return_cov, start=first_detection(z))
+        first = first_detection(z)
+        model = self.measurement
+        if isinstance(model, Polar):
+            states, probs, experts, *cov = self._track_polar(z, F, Q, Pi, mu0, first)
+        else:
+            if isinstance(model, PerDetection):
+                R = model.R(batch, self.dtype, z.device)
+                x0, P0 = initial_state(z, None, cov0=R[torch.arange(len(first), device=z.device), first])
+            else:
+                r = assumed_r(self.r, batch, self.dtype, z.device)
+                x0, P0 = initial_state(z, r)
+                R = variance(r, self.dtype, z.device)
+            states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
+                                                      compile=self.compile, return_cov=self.return_cov, start=first,
+                                                      robust=self.robust)
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None}
         if self.return_experts:
             extra[keys.EXPERT_POST] = experts
             extra[keys.EXPERT_PROBS] = probs
         return output(states, extra, measurements=z)
+
+    def _track_polar(self, z, F, Q, Pi, mu0, first):
+        """``track``'s filters with the polar model: the core's loop (``runner.run``) with the extended Kalman
+        filter's update (``Polar.measure``), each track started at its first detection with its converted covariance."""
+        model = self.measurement
+        B, M = z.shape[0], len(mu0)
+        rows = torch.arange(B, device=z.device)
+        sig0 = model.sigmas(z.shape[:2], z.dtype, z.device)[rows, first]
+        z0 = z[rows, first]
+        x0, P0 = initial_state(z, None, cov0=model.initial_cov(z0, sig0))
+        x = x0[:, None].expand(B, M, 9).contiguous()
+        P = P0[:, None].expand(B, M, 9, 9).contiguous()
+        mu = mu0.expand(B, M).contiguous()
+        return run(z, x, P, mu, Pi, linear_transition(F, Q), None, return_experts=self.return_experts,
+                   return_cov=self.return_cov, start=first, measure=model.measure(z, self.robust))
 
     @torch.no_grad()
     def _track_by_step(self, batch: TensorDict) -> TensorDict:

@@ -17,6 +17,18 @@ With ``H=None`` the measurement is the position ``[lx, ly, lz]`` (``x[..., 0::3]
 ``S = P[pos, pos] + R`` and ``P H^T = P[:, pos]`` are strided views (no product with ``H``) and
 ``S^{-1}`` is the closed-form 3x3 inverse (``inv3``: its ``L D L^T`` pivots), which is much faster than a
 batched LAPACK call for millions of 3x3 matrices. A general ``H`` uses a Cholesky solve.
+
+Robust update (``robust=k``, Huber's weight on the innovation's Mahalanobis distance ``d = sqrt(y^T S^-1 y)``)::
+
+    w = 1 (d <= k),  k / d (d > k)          R' = R + (1/w - 1) S, so S' = S / w and K' = w K
+    x_{t|t} = x + w K y                      P_{t|t} = P - w K H P   (Joseph's form with K', R')
+    log l = -1/2 (2 rho_k(d) + log det S + m log 2 pi),  rho_k(d) = d^2/2 (d <= k),  k d - k^2/2 (d > k)
+
+The correction's size grows with ``d`` up to ``d = k`` and stays at ``k`` standard deviations beyond it (Huber's
+bounded influence), and the likelihood is Huber's least-favourable density, a Gaussian core with exponential tails
+(its normalizing constant, the same for every filter of an IMM, is left out, so it cancels in the mode update): an
+outlier neither drags the state nor gives every filter but the widest a likelihood of ``e^{-d^2/2}``. Where
+``d <= k`` the update is the plain one, bit for bit.
 """
 
 from __future__ import annotations
@@ -130,6 +142,16 @@ def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     return (0.5 * (post + post.transpose(-1, -2))).to(P.dtype)
 
 
+def huber(maha: torch.Tensor, k: float):
+    """Huber's weight ``w = min(1, k / d)`` of an innovation of squared Mahalanobis distance ``maha = d^2`` and the
+    ``2 rho_k(d)`` that replaces ``d^2`` in its log-likelihood (module doc), each ``[...]``: ``(w, 2 rho_k(d))``; exactly
+    ``(1, maha)`` where ``d <= k``."""
+    d = torch.sqrt(maha)
+    out = d > k
+    w = torch.where(out, k / torch.where(out, d, torch.ones_like(d)), torch.ones_like(d))
+    return w, torch.where(out, 2 * k * d - k * k, maha)
+
+
 def _as_cov(R: torch.Tensor | float, m: int, like: torch.Tensor) -> torch.Tensor:
     """``R`` as ``[..., m, m]``: a covariance, or a variance ``[...]`` times ``I_m``."""
     R = torch.as_tensor(R, dtype=like.dtype, device=like.device)
@@ -138,12 +160,13 @@ def _as_cov(R: torch.Tensor | float, m: int, like: torch.Tensor) -> torch.Tensor
     return R[..., None, None] * torch.eye(m, dtype=like.dtype, device=like.device)
 
 
-def update(x, P, z, H=None, R=1.0):
+def update(x, P, z, H=None, R=1.0, robust: float | None = None):
     """One measurement update; returns ``(x_post, P_post, loglik)``.
 
     ``x [..., n]``, ``P [..., n, n]``, ``z [..., m]`` (NaN anywhere = missed), ``H [m, n]`` or None
     (positions of the 9-D state), ``R`` a covariance ``[..., m, m]`` or a variance ``[...]``/scalar.
     ``loglik [...]`` is the Gaussian log-density of the innovation, 0 where the measurement is missed.
+    ``robust``: Huber's ``k`` (module doc), None: the plain update.
     """
     missed = torch.isnan(z).any(-1)
     if H is None:
@@ -163,10 +186,14 @@ def update(x, P, z, H=None, R=1.0):
     y = torch.where(missed[..., None], torch.zeros_like(z), z - Hx)
     K = PHt @ Si
     Siy = (Si @ y.unsqueeze(-1)).squeeze(-1)
+    maha = (y * Siy).sum(-1)
+    if robust is not None:
+        w, maha = huber(maha, robust)
+        K = K * w[..., None, None]
     x_post = x + (K @ y.unsqueeze(-1)).squeeze(-1)
     P_post = P - K @ PHt.transpose(-1, -2)
     P_post = 0.5 * (P_post + P_post.transpose(-1, -2))
-    loglik = gaussian_loglik((y * Siy).sum(-1), logdet, m)
+    loglik = gaussian_loglik(maha, logdet, m)
     if not torch.is_grad_enabled() and missed.device.type == "cpu" and not bool(missed.any()):
         return x_post, P_post, loglik  # nothing missed: skip three passes over P (CPU only, no sync)
     # Broadcast ``missed`` over what F, Q or R may have added in front, then keep the prior.

@@ -81,6 +81,8 @@ def run(
     return_cov: bool = False,
     start: torch.Tensor | None = None,
     restart: torch.Tensor | None = None,
+    robust: float | None = None,
+    measure: Callable | None = None,
 ):
     """Filter ``z [B, T, m]`` from the filters' states at scan 0, ``x [B, M, n]``, ``P [B, M, n, n]``, and
     ``mu [B, M]``; ``Pi [M, M]``; ``R`` the measurement variance (a scalar, ``[B]``, or a covariance
@@ -96,7 +98,10 @@ def run(
     ``mu`` (an oracle's modes stand), so that a track whose first scans are missed starts at its first detection
     and filters it once. None: every track starts at scan 0. ``restart [B, T]`` (bool, with ``onset``): where the
     truth draws anew what its mode draws without a mode switch (a turn's new rate within a turn), the filters enter
-    from themselves with their onset priors too, after the mix.
+    from themselves with their onset priors too, after the mix. ``robust``: Huber's ``k`` of the update
+    (``immnet.imm.kalman``'s module doc), None: the plain update. ``measure(t, xp, Pp) -> (x, P, l)``: the update of
+    scan ``t`` in place of the linear one (a nonlinear measurement model's, ``immnet.imm.measurement.Polar``; ``z``,
+    ``H``, ``R`` and ``robust`` are then its business, ``z`` only says which scans are detections).
     """
     B, T, _ = z.shape
     M = x.shape[1]
@@ -121,7 +126,10 @@ def run(
             xe, Pe = enter(x0, P0, *onset)  # idempotent for what entered from another filter
             x0, P0 = torch.where(again, xe, x0), torch.where(again[..., None], Pe, P0)
         xp, Pp = transition(t, x0, P0)
-        x, P, ll = update(xp, Pp, z[:, t, None], H, _per_filter(R(t) if callable(R) else R, z))
+        if measure is not None:
+            x, P, ll = measure(t, xp, Pp)
+        else:
+            x, P, ll = update(xp, Pp, z[:, t, None], H, _per_filter(R(t) if callable(R) else R, z), robust=robust)
         if onehot is not None:
             mu = onehot[:, t]
         else:

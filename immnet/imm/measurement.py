@@ -1,0 +1,270 @@
+"""Measurement models as a role: what a model-based filter's update takes a detection's error to be (docs/tracking.md,
+"Measurement models").
+
+Positions are the radar's east-north-up frame (x east, y north, z up, metres, origin at the radar); a polar plot is
+slant range ``rho``, azimuth ``az`` clockwise from north and elevation ``el`` above the horizontal
+(``immnet.data.radar``, which this module does not import: the IMM core knows no data set). One class per role, each a small frozen dataclass:
+
+- ``Isotropic(r)``: ``z = H x + v``, ``v ~ N(0, r^2 I)``, one ``r`` (m) for every track, or ``r="data"`` each
+  track's own (the batch's ``r [B]``): the model every tracker here was built on;
+- ``PerDetection()``: ``v ~ N(0, R_t)``, each detection's own covariance, the batch's ``meas_cov [B, T, 3, 3]``
+  (``immnet.keys.MEAS_COV``; a polar plot's :func:`immnet.data.radar.converted` covariance, or any sensor's);
+- ``Polar(sigma_range, sigma_azimuth, sigma_elevation)``: the plot itself, ``h(x) = (rho, az, el)`` of the position
+  rows (0, 3, 6) of the 9-D state ``[x, vx, ax, y, vy, ay, z, vz, az]``, with independent Gaussian errors of those
+  standard deviations (m, rad, rad; numbers, one radar, or tensors ``[B, T]``, one per detection), updated by the
+  extended Kalman filter (:func:`polar_update`).
+
+Each gives what an update needs: the first two a covariance for ``immnet.imm.kalman.update`` (``R``); ``Polar`` its
+update, ``measure``, for ``immnet.imm.runner.run``. Every model's first detection starts a track with its own
+covariance (``initial_cov``). A ``Polar`` model reads a batch's measurements as the conversion of its plots
+(``immnet.data.radar.from_polar``: the plain conversion is inverted exactly; an unbiased converted measurement
+differs from it by ``rho s^2 / 2``, under a tenth of the range error at the issue's stds).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.imm.kalman import gaussian_loglik, huber, inv3
+
+TOLD = "data"
+
+
+def _wide(dtype: torch.dtype, device) -> torch.dtype:
+    """float64 for a float32 update (as ``kalman.joseph``), except where float64 is unavailable (MPS)."""
+    return dtype if dtype == torch.float64 or torch.device(device).type == "mps" else torch.float64
+
+
+@dataclass(frozen=True)
+class Isotropic:
+    """``R = r^2 I``: ``r`` (m) for every track, or ``"data"``, each track's ``r [B]`` from the batch."""
+
+    r: float | str
+
+    def __post_init__(self):
+        if isinstance(self.r, str):
+            if self.r != TOLD:
+                raise ValueError(f"Isotropic.r must be a positive number or {TOLD!r}, got {self.r!r}")
+        elif not (isinstance(self.r, (int, float)) and math.isfinite(self.r) and self.r > 0):
+            raise ValueError(f"Isotropic.r must be a positive number or {TOLD!r}, got {self.r!r}")
+
+    @property
+    def needs(self) -> tuple[str, ...]:
+        return (keys.R,) if self.r == TOLD else ()
+
+    def std(self, batch: TensorDict, dtype, device) -> float | torch.Tensor:
+        """``r`` itself, or the batch's ``r [B]``."""
+        if self.r == TOLD:
+            return batch[keys.R].to(dtype=dtype, device=device).reshape(-1)
+        return float(self.r)
+
+    def R(self, batch: TensorDict, dtype, device) -> torch.Tensor:
+        """The variance ``r^2``: a 0-d tensor (squared in float64 first) or ``[B]``."""
+        r = self.std(batch, dtype, device)
+        return r * r if isinstance(r, torch.Tensor) else torch.tensor(r**2, dtype=dtype, device=device)
+
+
+@dataclass(frozen=True)
+class PerDetection:
+    """Each detection's own covariance, the batch's ``meas_cov [B, T, 3, 3]`` (m^2, ENU; NaN where missed)."""
+
+    needs = (keys.MEAS_COV,)
+
+    def R(self, batch: TensorDict, dtype, device) -> torch.Tensor:
+        """``[B, T, 3, 3]``, checked: finite and symmetric with positive pivots at every detection (a ValueError in
+        one line naming the first that is not); the identity where a scan is missed (no update reads it)."""
+        z = batch[keys.MEASUREMENTS]
+        R = batch[keys.MEAS_COV]
+        if R.shape != (*z.shape[:2], 3, 3):
+            raise ValueError(f"{keys.MEAS_COV!r} must be [B, T, 3, 3] beside measurements {list(z.shape)}, "
+                             f"got {list(R.shape)}")
+        R = R.to(dtype=dtype, device=device)
+        detected = ~torch.isnan(z.to(device)).any(-1)
+        bad = detected & ~torch.isfinite(R).flatten(-2).all(-1)
+        if not bad.any():
+            a, b, c = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+            sym = (R - R.transpose(-1, -2)).abs().flatten(-2).amax(-1) <= 1e-6 * torch.maximum(torch.maximum(a, b), c).abs()
+            det = torch.linalg.det(R.double().nan_to_num(0.0))
+            m2 = a * b - R[..., 0, 1] * R[..., 1, 0]
+            bad = detected & ~(sym & (a > 0) & (m2 > 0) & (det > 0))
+        if bad.any():
+            b, t = (int(v) for v in bad.nonzero()[0])
+            raise ValueError(f"{keys.MEAS_COV!r} of track {b}, scan {t} is not a finite symmetric positive-definite "
+                             f"3x3 covariance: {R[b, t].tolist()}")
+        eye = torch.eye(3, dtype=dtype, device=device)
+        return torch.where(detected[..., None, None], R, eye)
+
+
+def _sigma(value, name: str):
+    if isinstance(value, torch.Tensor):
+        if not (torch.isfinite(value).all() and (value > 0).all()):
+            raise ValueError(f"Polar.{name} must be finite and > 0 everywhere")
+        return value
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ValueError(f"Polar.{name} must be a positive number (or a tensor of them), got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class Polar:
+    """A plot's slant range, azimuth and elevation with independent Gaussian errors of standard deviations
+    ``sigma_range`` (m), ``sigma_azimuth``, ``sigma_elevation`` (rad): numbers (one radar) or tensors broadcastable to
+    ``[B, T]`` (one per detection). ``from_config`` takes degrees (``sigma_azimuth_deg``, ``sigma_elevation_deg``)."""
+
+    sigma_range: float | torch.Tensor
+    sigma_azimuth: float | torch.Tensor
+    sigma_elevation: float | torch.Tensor
+
+    needs = ()
+
+    def __post_init__(self):
+        for name in ("sigma_range", "sigma_azimuth", "sigma_elevation"):
+            _sigma(getattr(self, name), name)
+
+    @classmethod
+    def from_config(cls, config: dict) -> "Polar":
+        known = {"sigma_range", "sigma_azimuth_deg", "sigma_elevation_deg"}
+        if not isinstance(config, dict) or set(config) != known:
+            raise ValueError(f"a polar measurement model takes exactly {sorted(known)}, got {config!r}")
+        return cls(float(config["sigma_range"]), math.radians(config["sigma_azimuth_deg"]),
+                   math.radians(config["sigma_elevation_deg"]))
+
+    def sigmas(self, shape, dtype, device) -> torch.Tensor:
+        """The three standard deviations of every detection, ``[*shape, 3]`` (``shape`` ``(B, T)``)."""
+        return torch.stack([torch.as_tensor(s, dtype=dtype, device=device).expand(shape)
+                            for s in (self.sigma_range, self.sigma_azimuth, self.sigma_elevation)], -1)
+
+    def measurements(self, z: torch.Tensor) -> torch.Tensor:
+        """ENU positions ``[..., 3]`` -> plots ``(rho, az, el) [..., 3]`` (az in ``[0, 2 pi)``; NaN stays NaN)."""
+        return to_polar(z)
+
+    def initial_cov(self, z0: torch.Tensor, sig0: torch.Tensor) -> torch.Tensor:
+        """The first detection's Cartesian covariance ``[B, 3, 3]`` to first order, ``J diag(sigma^2) J^T`` with ``J``
+        the Jacobian of the conversion at the plot of ``z0 [B, 3]`` (``immnet.data.radar.polar_covariance``'s; a
+        track with no detection, its NaN row, gets ``sigma_range^2 I``)."""
+        rho, az, el = to_polar(z0).unbind(-1)
+        ca, sa, ce, se = az.cos(), az.sin(), el.cos(), el.sin()
+        J = torch.stack([
+            torch.stack([ce * sa, rho * ce * ca, -rho * se * sa], -1),
+            torch.stack([ce * ca, -rho * ce * sa, -rho * se * ca], -1),
+            torch.stack([se, torch.zeros_like(se), rho * ce], -1),
+        ], -2)
+        R = (J * (sig0 * sig0).unsqueeze(-2)) @ J.transpose(-1, -2)
+        fallback = sig0[:, :1, None] ** 2 * torch.eye(3, dtype=z0.dtype, device=z0.device)
+        return torch.where(torch.isfinite(R).all(-1).all(-1)[:, None, None], R, fallback)
+
+    def measure(self, z: torch.Tensor, robust: float | None = None) -> Callable:
+        """``run``'s ``measure(t, xp, Pp)`` over ENU measurements ``z [B, T, 3]``: :func:`polar_update` of each filter
+        ``[B, M, ...]`` with scan ``t``'s plot."""
+        plots = self.measurements(z)
+        sig = self.sigmas(z.shape[:2], z.dtype, z.device)
+
+        def measure(t: int, xp: torch.Tensor, Pp: torch.Tensor):
+            return polar_update(xp, Pp, plots[:, t, None], sig[:, t, None], robust=robust)
+
+        return measure
+
+
+def to_polar(z: torch.Tensor) -> torch.Tensor:
+    """ENU ``[..., 3]`` -> ``(rho, az, el)``: azimuth clockwise from north in ``[0, 2 pi)``, elevation above the
+    horizontal (``immnet.data.radar.polar`` in torch)."""
+    e, n, u = z[..., 0], z[..., 1], z[..., 2]
+    ground = torch.hypot(e, n)
+    return torch.stack([torch.sqrt(ground * ground + u * u), torch.remainder(torch.atan2(e, n), 2 * math.pi),
+                        torch.atan2(u, ground)], -1)
+
+
+def wrap(angle: torch.Tensor) -> torch.Tensor:
+    """An angle difference in ``(-pi, pi]``."""
+    return math.pi - torch.remainder(math.pi - angle, 2 * math.pi)
+
+
+def polar_jacobian(pos: torch.Tensor) -> torch.Tensor:
+    """``d(rho, az, el) / d(e, n, u)`` ``[..., 3, 3]`` at positions ``pos [..., 3]`` (``az = atan2(e, n)``,
+    ``el = atan2(u, sqrt(e^2 + n^2))``)."""
+    e, n, u = pos[..., 0], pos[..., 1], pos[..., 2]
+    g2 = e * e + n * n
+    g = torch.sqrt(g2)
+    r2 = g2 + u * u
+    rho = torch.sqrt(r2)
+    zero = torch.zeros_like(e)
+    return torch.stack([
+        torch.stack([e / rho, n / rho, u / rho], -1),
+        torch.stack([n / g2, -e / g2, zero], -1),
+        torch.stack([-u * e / (r2 * g), -u * n / (r2 * g), g / r2], -1),
+    ], -2)
+
+
+def polar_update(x: torch.Tensor, P: torch.Tensor, plot: torch.Tensor, sigma: torch.Tensor,
+                 robust: float | None = None):
+    """The extended Kalman filter's update with a polar plot; returns ``(x_post, P_post, loglik)``.
+
+    ``x [..., 9]``, ``P [..., 9, 9]`` (positions at rows 0, 3, 6), ``plot [..., 3]`` = ``(rho, az, el)`` (NaN anywhere:
+    missed, the prior kept and ``loglik`` 0), ``sigma [..., 3]`` its standard deviations (m, rad, rad)::
+
+        nu = plot - h(x),  nu_az wrapped to (-pi, pi]      H = dh/dx at x (polar_jacobian on the position columns)
+        S = H P H^T + diag(sigma^2)   K = P H^T S^-1       x_post = x + K nu
+        P_post = (I - K H) P (I - K H)^T + K R K^T  (Joseph's form, expanded as P - K H P - (K H P)^T + K S K^T)
+        loglik = log N(nu; 0, S)
+
+    The wrapped azimuth innovation keeps a target crossing north (359.9 -> 0.1 deg) a 0.2 deg step. ``robust``:
+    Huber's ``k`` (``immnet.imm.kalman``'s module doc: ``K -> w K``, ``S -> S / w``). A float32 input is updated in
+    float64 (``kalman.joseph``'s reason: a large prior's terms cancel to a small posterior) and rounded back.
+    """
+    dtype = x.dtype
+    wide = _wide(dtype, x.device)
+    x, P, plot, sigma = (v.to(wide) for v in (x, P, plot, sigma))
+    missed = torch.isnan(plot).any(-1)
+    pos = x[..., 0::3]
+    J = polar_jacobian(pos)  # [..., 3, 3]
+    h = to_polar(pos)
+    nu = torch.where(missed[..., None], torch.zeros_like(plot), plot - h)
+    nu = torch.cat([nu[..., :1], wrap(nu[..., 1:2]), nu[..., 2:]], -1)
+    HP = J @ P[..., 0::3, :]  # [..., 3, 9]
+    S = HP[..., 0::3] @ J.transpose(-1, -2) + torch.diag_embed(sigma * sigma)
+    Si, logdet = inv3(S)
+    K = HP.transpose(-1, -2) @ Si  # [..., 9, 3]
+    maha = (nu * (Si @ nu.unsqueeze(-1)).squeeze(-1)).sum(-1)
+    if robust is not None:
+        w, maha = huber(maha, robust)
+        K = K * w[..., None, None]
+        S = S / w[..., None, None]
+    KHP = K @ HP
+    post = P - KHP - KHP.transpose(-1, -2) + K @ S @ K.transpose(-1, -2)
+    post = 0.5 * (post + post.transpose(-1, -2))
+    x_post = x + (K @ nu.unsqueeze(-1)).squeeze(-1)
+    ll = gaussian_loglik(maha, logdet, 3)
+    keep = missed.expand(ll.shape)
+    x_post = torch.where(keep[..., None], x.expand_as(x_post), x_post)
+    post = torch.where(keep[..., None, None], P.expand_as(post), post)
+    ll = torch.where(keep, torch.zeros_like(ll), ll)
+    return x_post.to(dtype), post.to(dtype), ll.to(dtype)
+
+
+def measurement_model(r) -> Isotropic | PerDetection | Polar:
+    """A tracker's ``r`` as its measurement model: a positive number or ``"data"`` (``Isotropic``), ``"detection"``
+    (``PerDetection``), a dict ``{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}`` (``Polar.from_config``) or a
+    model itself; anything else a ValueError in one line."""
+    if isinstance(r, (Isotropic, PerDetection, Polar)):
+        return r
+    if r == DETECTION:
+        return PerDetection()
+    if isinstance(r, dict):
+        return Polar.from_config(r)
+    if isinstance(r, str) and r != TOLD:
+        raise ValueError(f"r must be a positive number, {TOLD!r} (each track's own r), {DETECTION!r} (each "
+                         f"detection's covariance, {keys.MEAS_COV!r}) or a polar model "
+                         f"{{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}}, got {r!r}")
+    if isinstance(r, bool) or not isinstance(r, (int, float, str)):
+        raise ValueError(f"r must be a positive number, {TOLD!r}, {DETECTION!r} or a polar model, got {r!r}")
+    return Isotropic(r if isinstance(r, str) else float(r))
+
+
+DETECTION = "detection"
+"""``r: detection``: each detection's own covariance, the batch's ``meas_cov`` (``PerDetection``)."""
