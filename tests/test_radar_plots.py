@@ -306,7 +306,8 @@ def test_adsb_plots_are_placed_10_to_150_km_away_with_their_covariance(tmp_path)
     z, cov = td[keys.MEASUREMENTS].double().numpy(), td[keys.MEAS_COV].double().numpy()
     seen = ~np.isnan(z).any(-1)
     assert np.isnan(cov[~seen]).all() and np.isfinite(cov[seen]).all()
-    # each plot's covariance is J diag(s_rho^2, s_az^2, s_el^2) J^T at its measured position, one s per window
+    # each plot's covariance is J diag(s_rho^2, s_az^2, s_el^2) J^T at its measured position, one s per window, to the
+    # unbiased conversion's second-order terms (immnet.data.radar.converted: a few per cent at 150 km and these stds)
     m_rho, m_az, m_el = radar.polar(z[seen])
     n_win = np.nonzero(seen)[0]
     D = np.array([np.linalg.solve(J, np.linalg.solve(J, C).T) for J, C in
@@ -316,9 +317,9 @@ def test_adsb_plots_are_placed_10_to_150_km_away_with_their_covariance(tmp_path)
     assert np.abs(off).max() <= 1e-3 * d.max(1).min()
     s = np.sqrt(d) * np.array([1.0, 180 / np.pi, 180 / np.pi])
     lo, hi = np.array([20, 0.05, 0.1]), np.array([60, 0.2, 0.3])
-    assert (s >= lo * (1 - 1e-3)).all() and (s <= hi * (1 + 1e-3)).all()
-    for w in np.unique(n_win):  # one draw per window (float32 storage: 1e-3)
-        np.testing.assert_allclose(s[n_win == w], np.broadcast_to(s[n_win == w][0], s[n_win == w].shape), rtol=1e-3)
+    assert (s >= lo * (1 - 3e-2)).all() and (s <= hi * (1 + 3e-2)).all()
+    for w in np.unique(n_win):  # one draw per window
+        np.testing.assert_allclose(s[n_win == w], np.broadcast_to(s[n_win == w][0], s[n_win == w].shape), rtol=3e-2)
     # without outliers the errors are what the covariances say: NIS ~ chi^2_3 (mean 3)
     nis, _ = _nis(td)
     assert len(nis) > 2000 and 2.8 < nis.mean() < 3.2

@@ -264,17 +264,11 @@ def windows(p: dict, spec: RealSpec) -> list[int]:
     return starts
 
 
-def _converted(rho, az, el, s_rho, s_az, s_el) -> tuple[np.ndarray, np.ndarray]:
-    """Plots (m, rad, rad) and their stds -> east-north-up ``[..., 3]`` and covariance ``[..., 3, 3]``, float64."""
-    # first order until the debiased conversion lands (immnet.data.radar.converted)
-    return radar.from_polar(rho, az, el), radar.polar_covariance(rho, az, el, s_rho, s_az, s_el)
-
-
 def _plots(pos: np.ndarray, spec: RealSpec, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray]:
     """A window's detections of true positions ``pos [T, 3]`` as a radar's plots: stds drawn per window from
     ``spec.sigma_*`` (m, degrees, degrees), range, azimuth and elevation each measured with its own Gaussian noise,
     scans after the second missed with probability ``p_miss``; converted to east-north-up with each plot's
-    covariance (:func:`_converted`). Returns ``(z [T, 3], r, cov [T, 3, 3])``, ``r`` the RMS of the per-axis stds of
+    covariance (the unbiased converted measurement, :func:`immnet.data.radar.converted`). Returns ``(z [T, 3], r, cov [T, 3, 3])``, ``r`` the RMS of the per-axis stds of
     the window's covariances. The noise only, not the plot's stated covariance, of a share ``outliers`` of the
     detections is ``outlier_scale`` times larger."""
     s = np.array([rng.uniform(*spec.sigma_range), np.radians(rng.uniform(*spec.sigma_azimuth)),
@@ -287,7 +281,7 @@ def _plots(pos: np.ndarray, spec: RealSpec, rng: np.random.Generator) -> tuple[n
     if spec.outliers > 0:
         noise[rng.random(len(pos)) < spec.outliers] *= spec.outlier_scale
     rho, az, el = radar.polar(pos)
-    z, cov = _converted(rho + noise[:, 0], np.mod(az + noise[:, 1], 2 * np.pi), el + noise[:, 2], *s)
+    z, cov = radar.converted(rho + noise[:, 0], np.mod(az + noise[:, 1], 2 * np.pi), el + noise[:, 2], *s)
     z[miss], cov[miss] = np.nan, np.nan
     return z, float(np.sqrt(np.mean(np.trace(cov[~miss], axis1=-2, axis2=-1) / 3))), cov
 

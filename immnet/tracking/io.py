@@ -104,11 +104,11 @@ def _time(value: str, line: int) -> Decimal:
 
 
 def _converted(rho, az, el, s_rho, s_az, s_el) -> tuple[np.ndarray, np.ndarray]:
-    """Plots (m, rad, rad) and their stds -> east-north-up ``[..., 3]`` and covariance ``[..., 3, 3]``, float64."""
-    from immnet.data.radar import from_polar, polar_covariance
+    """Plots (m, rad, rad) and their stds -> east-north-up ``[..., 3]`` and covariance ``[..., 3, 3]``, float64: the
+    unbiased converted measurement (``immnet.data.radar.converted``)."""
+    from immnet.data.radar import converted
 
-    # first order until the debiased conversion lands (immnet.data.radar.converted)
-    return from_polar(rho, az, el), polar_covariance(rho, az, el, s_rho, s_az, s_el)
+    return converted(rho, az, el, s_rho, s_az, s_el)
 
 
 def check_sigmas(sigmas) -> tuple[float, float, float] | None:
