@@ -150,7 +150,7 @@ def run_stonesoup(kind: str, scene: Scene, params: dict) -> dict:
     from stonesoup.types.detection import Detection
 
     tracker, mm = stonesoup_tracker(kind, scene, **params)
-    est_ids, est_pos, seconds = [], [], []
+    est_ids, est_pos, seconds, number = [], [], [], {}  # Stone Soup's track ids (text) numbered in order of birth
     for k in range(len(scene)):
         a, b = scene.plot_offsets[k], scene.plot_offsets[k + 1]
         when = EPOCH + datetime.timedelta(seconds=float(scene.t[k]))
@@ -163,7 +163,7 @@ def run_stonesoup(kind: str, scene: Scene, params: dict) -> dict:
         _, tracks = tracker.update_tracker(when, dets)
         seconds.append(time.perf_counter() - t0)
         tracks = sorted(tracks, key=lambda tr: tr.id)
-        est_ids.append(np.array([tr.id for tr in tracks], dtype=object))
+        est_ids.append(np.array([number.setdefault(tr.id, len(number)) for tr in tracks], dtype=np.int64))
         est_pos.append(np.array([np.asarray(tr.state_vector, float).ravel()[[0, 2, 4]] for tr in tracks]).reshape(-1, 3))
     return {"est_ids": est_ids, "est_pos": est_pos, "seconds": seconds}
 
@@ -191,7 +191,7 @@ def run_ours(scene: Scene, associator: str = "gnn") -> dict:
         reports = tracker.step(t, plots, cov)
         seconds.append(time.perf_counter() - t0)
         conf = [r for r in reports if r.confirmed]
-        est_ids.append(np.array([r.track_id for r in conf], dtype=object))
+        est_ids.append(np.array([r.track_id for r in conf], dtype=np.int64))
         est_pos.append(np.array([np.asarray(r.state, float)[[0, 3, 6]] for r in conf]).reshape(-1, 3))
     return {"est_ids": est_ids, "est_pos": est_pos, "seconds": seconds}
 
@@ -213,7 +213,7 @@ def truth_told(scene: Scene) -> dict:
     for k in range(len(scene)):
         a, b = scene.plot_offsets[k], scene.plot_offsets[k + 1]
         src = scene.plot_source[a:b]
-        ids.append(src[src >= 0].astype(object))
+        ids.append(src[src >= 0])
         pos.append(scene.plots[a:b][src >= 0])
     return {"est_ids": ids, "est_pos": pos, "seconds": [0.0] * len(scene)}
 
