@@ -213,3 +213,38 @@ def test_cli_writes_a_set_and_refuses_bad_settings(tmp_path, capsys):
     assert immnet.cli.main(["data", "scenes", "--out", str(bad)]) == 2
     assert "no scenes asked for" in capsys.readouterr().err
     assert not bad.exists() and not list(tmp_path.glob(".bad*"))
+
+
+def _gospa_brute(X, Y, c=200.0, p=2.0, alpha=2.0) -> float:
+    """GOSPA by enumerating every partial assignment (pairs closer than c), for a handful of points."""
+    import itertools
+
+    best = (c**p / alpha) * (len(X) + len(Y))
+    for k in range(1, min(len(X), len(Y)) + 1):
+        for xs in itertools.combinations(range(len(X)), k):
+            for ys in itertools.permutations(range(len(Y)), k):
+                d = [np.linalg.norm(X[i] - Y[j]) for i, j in zip(xs, ys)]
+                if max(d) < c:
+                    best = min(best, sum(v**p for v in d) + (c**p / alpha) * (len(X) + len(Y) - 2 * k))
+    return best ** (1 / p)
+
+
+def test_the_peer_benchmark_scores_gospa_as_its_definition():
+    pytest.importorskip("stonesoup")
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import mtt_peer
+
+    rng = np.random.default_rng(0)
+    tid, tpos, eid, epos = [], [], [], []
+    for n, m in ((0, 0), (3, 0), (0, 2), (3, 3), (2, 4), (4, 2)):
+        tpos.append(rng.uniform(0, 400, (n, 3)))
+        epos.append(rng.uniform(0, 400, (m, 3)))
+        tid.append(np.arange(n))
+        eid.append(np.arange(m))
+    got = mtt_peer.score(tid, tpos, eid, epos)
+    want = [_gospa_brute(X, Y) for X, Y in zip(tpos, epos)]
+    assert np.allclose(got["gospa_per_scan"], want, rtol=1e-9, atol=1e-9)
+    assert got["gospa"] == pytest.approx(np.mean(want))
