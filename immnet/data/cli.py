@@ -1,5 +1,5 @@
-"""``immnet data generate|merge|export|plot|adsb|subset|turns``: make, convert and look at 3D-LAST data sets; real
-flights.
+"""``immnet data generate|merge|export|plot|adsb|subset|turns|scenes``: make, convert and look at 3D-LAST data sets;
+real flights; multi-target scenes.
 
     immnet data generate --out data/train --n 100000 --seed 0 [--single-mode ct+] [--config configs/data/tiny.yaml] [--workers 2]
     immnet data generate --out data/train-1 --n 1000000 --seed 0 --shard 1/4      # shard 1 of 4 (one machine's part)
@@ -10,6 +10,7 @@ flights.
     immnet data subset --data data/real/quickstart/train --out data/real/train-half --flights 0.5 [--seed 0]
     immnet data subset --data data/real/quickstart-1s/test --out data/real/unseen --without data/real/other/{train,val}
     immnet data turns --data data/real/quickstart/val --out data/real/val-turns --turns 0.5 [--bank 10,30] [--seed 0]
+    immnet data scenes --samples collections/quickstart collections/switzerland --out data/scenes --n 3 [--last 2]
 """
 
 from __future__ import annotations
@@ -172,6 +173,32 @@ def _flights(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a count such as 40 or a fraction such as 0.25, got {text!r}") from None
 
 
+def _scenes(args) -> int:
+    from immnet.data.scenes import SceneSpec, make_scenes
+
+    spec = SceneSpec(duration=args.duration, dt=args.dt, dt_jitter=args.dt_jitter, pd=args.pd, clutter=args.clutter,
+                     sigma_range=args.sigma_range, sigma_azimuth_deg=args.sigma_azimuth,
+                     sigma_elevation_deg=args.sigma_elevation, max_range=args.max_range,
+                     max_elevation=args.max_elevation, min_targets=args.targets_in_cover[0],
+                     max_targets=args.targets_in_cover[1], truth_gap=args.truth_gap, targets=args.last_targets,
+                     crossing_pairs=args.crossing_pairs, close_pairs=args.close_pairs)
+    index = make_scenes(args.out, args.samples, n=args.n, spec=spec, seed=args.seed, site=args.site, last=args.last,
+                        last_split=args.last_split, write_csv=args.csv, overwrite=args.overwrite, progress=not args.quiet)
+    per = {}
+    for e in index["scenes"]:
+        per.setdefault(e["split"], []).append(e["name"])
+    print(f"wrote {args.out}: " + "; ".join(f"{k} {len(v)} ({', '.join(v)})" for k, v in sorted(per.items()))
+          + f" ({index['seconds']:.1f} s)")
+    return 0
+
+
+def _ints2(text: str) -> tuple[int, int]:
+    lo, hi = _pair(text)
+    if lo != int(lo) or hi != int(hi):
+        raise argparse.ArgumentTypeError(f"expected MIN,MAX (two whole numbers), got {text!r}")
+    return int(lo), int(hi)
+
+
 def register(subparsers) -> None:
     data = subparsers.add_parser("data", help="generate, merge, export and plot 3D-LAST data sets; real ADS-B flights",
                                  description=__doc__.splitlines()[0])
@@ -282,3 +309,40 @@ def register(subparsers) -> None:
     t.add_argument("--seed", type=int, default=0, help="seed of the turns and the new noise (default 0)")
     t.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     t.set_defaults(func=_turns)
+
+    sc = sub.add_parser("scenes", help="multi-target scenes: several aircraft, one radar, missed detections and "
+                                       "clutter (docs/data.md)")
+    sc.add_argument("--samples", nargs="*", default=[], metavar="SAMPLE",
+                    help="ADS-B samples (names or files); scenes of collections/quickstart are for training and "
+                         "tuning (OUT/train), of any other sample for evaluation only (OUT/test)")
+    sc.add_argument("--out", required=True, type=Path, help="output directory: OUT/scenes.json, OUT/<split>/NAME.npz")
+    sc.add_argument("--n", type=int, default=3, help="scenes per sample (default 3)")
+    sc.add_argument("--last", type=int, default=0, help="3D-LAST scenes to add (default 0)")
+    sc.add_argument("--last-split", choices=("train", "test"), default="test", help="split of the 3D-LAST scenes")
+    sc.add_argument("--seed", type=int, default=0)
+    sc.add_argument("--duration", type=float, default=300.0, help="seconds per scene (default 300)")
+    sc.add_argument("--dt", type=float, default=5.0, help="scan interval, or its mean with --dt-jitter (s, default 5)")
+    sc.add_argument("--dt-jitter", type=float, default=0.5, help="intervals U[dt - j, dt + j] (s, default 0.5)")
+    sc.add_argument("--pd", type=float, default=0.9, help="detection probability (default 0.9)")
+    sc.add_argument("--clutter", type=float, default=10.0, help="mean clutter plots per scan (Poisson, default 10)")
+    sc.add_argument("--sigma-range", type=float, default=30.0, help="range noise std (m, default 30)")
+    sc.add_argument("--sigma-azimuth", type=float, default=0.15, help="azimuth noise std (degrees, default 0.15)")
+    sc.add_argument("--sigma-elevation", type=float, default=0.15, help="elevation noise std (degrees, default 0.15)")
+    sc.add_argument("--max-range", type=float, default=60_000.0, help="radar cover, slant range (m, default 60000)")
+    sc.add_argument("--max-elevation", type=float, default=30.0,
+                    help="top of the clutter's cover (degrees, default 30)")
+    sc.add_argument("--targets-in-cover", type=_ints2, default=(5, 14), metavar="MIN,MAX",
+                    help="aircraft in cover at every scan of an ADS-B scene (default 5,14)")
+    sc.add_argument("--truth-gap", type=float, default=30.0,
+                    help="an aircraft has truth at a scan only between fresh positions at most this far apart "
+                         "(s, default 30)")
+    sc.add_argument("--site", type=_floats(3, "LAT,LON,H such as 48.9,2.5,0"), default=None, metavar="LAT,LON,H",
+                    help="radar site for every sample (default: each sample's median position, height 0)")
+    sc.add_argument("--last-targets", type=int, default=8, help="targets per 3D-LAST scene (default 8)")
+    sc.add_argument("--crossing-pairs", type=int, default=2, help="crossing pairs per 3D-LAST scene (default 2)")
+    sc.add_argument("--close-pairs", type=int, default=2, help="close pairs per 3D-LAST scene (default 2)")
+    sc.add_argument("--csv", action="store_true", help="also write each scene's plots as NAME.csv "
+                                                      "(t,range,azimuth,elevation)")
+    sc.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
+    sc.add_argument("--quiet", action="store_true", help="no progress lines")
+    sc.set_defaults(func=_scenes)
