@@ -465,7 +465,7 @@ class MultiTargetTracker:
     the filter's)."""
 
     def __init__(self, filter: TrackFilter | str = "real-imm-singer", gate: float = 0.999,
-                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (3, 4), delete_after: int = 4,
+                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = 4,
                  max_pos_std: float = 5000.0, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
                  clutter_density: float = 1e-12, jpda_max_events: int = 20000):
         if isinstance(filter, str):
