@@ -137,9 +137,11 @@ def test_mixture_update_with_certain_association_is_the_update():
     z = plots[:, 0].copy()
     z[3] = np.nan  # track 3: no plot
     fa.update(z, R)
-    beta = np.zeros((K, 3))
-    beta[:3, 1], beta[3, 0] = 1.0, 1.0
-    fb.update_mixture(plots, np.broadcast_to(R[:, None], (K, 2, 3, 3)), beta)
+    # every track's two plots as pairs: the first with probability 1 (tracks 0-2), none with probability 1 (track 3)
+    track = np.repeat(np.arange(K), 2)
+    beta = np.tile([1.0, 0.0], K)
+    beta[6] = 0.0
+    fb.update_mixture(track, plots.reshape(-1, 3), np.repeat(R, 2, 0), beta, np.array([0.0, 0.0, 0.0, 1.0]))
     for a, b in zip(fa.state(), fb.state()):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-8)
     np.testing.assert_allclose(fa.mode_probs(), fb.mode_probs(), atol=1e-12)
@@ -438,3 +440,33 @@ def test_monte_carlo_error_is_the_imm_told_the_association():
         x = method.track(batch)[keys.STATE].numpy()
         told.extend(np.linalg.norm(x[:, 10:, 0::3] - truth[:, 10:], axis=-1).ravel())
     assert np.mean(ours) == pytest.approx(np.mean(told), rel=0.10)
+
+
+def test_refusals_name_what_is_wrong():
+    """Bad settings and bad scans: one ValueError naming the problem; the tracker is unchanged by a refused scan."""
+    for kwargs, msg in (({"confirm": (1, 3)}, r"confirm \(M, N\) needs 2 <= M <= N"),
+                        ({"confirm": (5, 4)}, r"confirm \(M, N\) needs 2 <= M <= N"),
+                        ({"confirm": "x"}, r"confirm must be \(M, N\)"),
+                        ({"associator": "nn"}, "associator must be one of gnn, jpda"),
+                        ({"gate": 1.0}, r"gate is a probability in \(0, 1\)"),
+                        ({"delete_after": 0}, "delete_after must be a whole number of scans >= 1"),
+                        ({"pd": 0.0}, r"pd is a probability in \(0, 1\]"),
+                        ({"r": -1.0}, "r must be finite and > 0")):
+        with pytest.raises(ValueError, match=msg):
+            MultiTargetTracker("real-imm-singer", **kwargs)
+    with pytest.raises(ValueError, match="the multi-target tracker's filters are the model-based IMMs"):
+        TrackFilter.from_method("clairvoyant")
+    tracker = MultiTargetTracker("real-imm-singer")  # r: data, so plots need R
+    with pytest.raises(ValueError, match=r"plots without R need the tracker's r \(m\): real-imm-singer assumes none"):
+        tracker.step(0.0, np.zeros((1, 3)))
+    tracker = MultiTargetTracker("real-imm-singer", r=30.0)
+    tracker.step(0.0, np.ones((1, 3)))
+    for args, msg in (((1.0, np.zeros((2, 2))), r"plots must be an array \[N, 3\] of ENU positions \(m\)"),
+                      ((1.0, np.array([[0.0, np.nan, 0.0]])), "plot 0 has a non-finite coordinate"),
+                      ((1.0, np.zeros((1, 3)), np.eye(3)[None].repeat(2, 0)), r"R must be \[N, 3, 3\] for the 1 plots"),
+                      ((1.0, np.zeros((1, 3)), -np.eye(3)[None]), r"R\[0\] is not a finite symmetric positive-definite"),
+                      ((0.0, np.zeros((1, 3))), "scan times must increase, got t = 0.0 after 0.0"),
+                      ((float("nan"), np.zeros((1, 3))), "t must be finite")):
+        with pytest.raises(ValueError, match=msg):
+            tracker.step(*args)
+    assert tracker._t == 0.0 and tracker._scan == 0 and len(tracker.seed_z) == 1

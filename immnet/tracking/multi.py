@@ -59,7 +59,7 @@ class TrackFilter:
     together. ``start`` appends tracks at the end; ``predict`` moves every track to the next scan and gives its
     predicted position ``[K, 3]`` and that position's covariance ``H P H^T`` ``[K, 3, 3]`` (without the measurement
     noise, which the tracker adds per plot); ``update`` takes one plot per track (a NaN row: missed, the posterior
-    is the prior); ``update_mixture`` (JPDA) a track's gated plots with their association probabilities;
+    is the prior); ``update_mixture`` (JPDA) the gated pairs' plots with their association probabilities;
     ``drop(keep)`` keeps the rows of ``keep [K]``; ``state()`` gives the combined estimate ``x [K, 9]``,
     ``P [K, 9, 9]`` in the layout ``[x, vx, ax, y, vy, ay, z, vz, az]``. Arrays in and out are numpy float64.
 
@@ -81,7 +81,7 @@ class TrackFilter:
     def update(self, z, R) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def update_mixture(self, z, R, beta) -> None:
+    def update_mixture(self, track, z, R, beta, beta0) -> None:
         raise NotImplementedError(f"{self.name} has no mixture update: JPDA needs one (use associator='gnn')")
 
     def drop(self, keep) -> None:  # pragma: no cover - interface
@@ -262,31 +262,33 @@ class IMMFilter(TrackFilter):
         self.x, self.P, self.mu = x, P, mode_update(torch.log(self.mu), ll)
 
     @torch.no_grad()
-    def update_mixture(self, z, R, beta) -> None:
-        """JPDA: ``z [K, H, 3]`` each track's gated plots (NaN rows: padding), ``R [K, H, 3, 3]``, ``beta [K, H + 1]``
-        the association probabilities (column 0: no plot is the track's). Each mode's posterior is the mixture over the
-        hypotheses, weighted by ``beta_h P(mode | h)`` (its likelihood under ``h``), moment-matched (``moment_match``);
-        the mode probabilities are ``sum_h beta_h P(mode | h)``."""
+    def update_mixture(self, track, z, R, beta, beta0) -> None:
+        """JPDA: the gated pairs, ``track [P]`` (the track's row), ``z [P, 3]``, ``R [P, 3, 3]`` (the plot), ``beta [P]``
+        (the pair's association probability), and ``beta0 [K]`` (no plot is the track's). Each mode's posterior is the
+        mixture over the track's hypotheses (no plot: the prior) weighted by ``beta_h P(mode | h)`` (the mode's
+        likelihood under ``h``), moment-matched (``moment_match``, a pair at a time, summed per track); the mode
+        probabilities are ``sum_h beta_h P(mode | h)``. Its cost grows with the pairs, not tracks times plots."""
         K, G, M, d = len(self), self.G, self.M, self.d
         if K == 0:
             return
-        z, R, beta = _t(z), _t(R), _t(beta)
-        Hh = z.shape[1]
-        z = torch.cat([torch.full((K, 1, 3), float("nan"), dtype=torch.float64), z], 1)  # h = 0: missed
-        R = torch.cat([torch.eye(3, dtype=torch.float64).expand(K, 1, 3, 3), R], 1)
+        track = torch.from_numpy(np.asarray(track, dtype=np.int64))
+        z, R, beta, beta0 = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3), _t(beta), _t(beta0)
+        n = len(track)
         zm, Rm, H = self._measure(z, R)
-        xh, Ph, ll = update(self.x[:, None], self.P[:, None], zm, H, Rm)  # [K, H+1, G, M, ...]
-        cond = torch.softmax(torch.log(self.mu)[:, None] + ll, -1)  # P(mode | h) [K, H+1, G, M]
-        W = beta[:, :, None, None] * cond
-        mu = W.sum(1)  # [K, G, M]
-        Wn = (W / mu[:, None].clamp_min(torch.finfo(W.dtype).tiny)).permute(0, 2, 3, 1)  # [K, G, M, H+1]
-        xh = xh.expand(K, Hh + 1, G, M, d).permute(0, 2, 3, 1, 4)  # [K, G, M, H+1, d]
-        Ph = Ph.expand(K, Hh + 1, G, M, d, d).permute(0, 2, 3, 1, 4, 5)
-        B = K * G * M
-        x = (Wn[..., None] * xh).sum(-2)  # [K, G, M, d]
-        P = moment_match(Wn.reshape(B, Hh + 1, 1, 1), xh.reshape(B, Hh + 1, d), x.reshape(B, d),
-                         Ph.reshape(B, Hh + 1, d, d))
-        self.x, self.P, self.mu = x, P.view(K, G, M, d, d), mu
+        xh, Ph, ll = update(self.x[track], self.P[track], zm[:, 0], H, Rm[:, 0])  # [n, G, M, ...]
+        W = beta[:, None, None] * torch.softmax(torch.log(self.mu[track]) + ll, -1)  # beta_h P(mode | h)
+        W0 = beta0[:, None, None] * self.mu
+        mu = W0.index_add(0, track, W)  # [K, G, M]
+        scale = mu.clamp_min(torch.finfo(mu.dtype).tiny)
+        x = (W0[..., None] * self.x).index_add(0, track, W[..., None] * xh) / scale[..., None]
+
+        def spread(w, xs, Ps, xf):  # w (P + (x - xf)(x - xf)^T) per row, one component each
+            rows = w.numel()
+            return moment_match(w.reshape(rows, 1, 1, 1), xs.reshape(rows, 1, d), xf.reshape(rows, d),
+                                Ps.reshape(rows, 1, d, d)).view(-1, G, M, d, d)
+
+        P = spread(W0, self.x, self.P, x).index_add(0, track, spread(W, xh, Ph, x[track]))
+        self.x, self.P, self.mu = x, P / scale[..., None, None], mu
 
     def drop(self, keep) -> None:
         keep = torch.as_tensor(np.asarray(keep, dtype=bool))
@@ -398,9 +400,8 @@ def jpda_probabilities(ti: np.ndarray, pj: np.ndarray, loglik: np.ndarray, n_tra
         tu, tl = np.unique(ti[members], return_inverse=True)
         pu, pl = np.unique(pj[members], return_inverse=True)
         nt = len(tu)
-        opts = [np.flatnonzero(tl == i) for i in range(nt)]  # each track's pairs (local to the cluster)
-        sizes = [len(o) + 1 for o in opts]
-        if math.prod(sizes) > max_events:
+        sizes = np.bincount(tl, minlength=nt) + 1
+        if float(np.log(sizes).sum()) > math.log(max_events):
             G = np.exp(logw[members] - logw[members].max())
             b = math.exp(miss - logw[members].max())
             T = np.bincount(tl, G, nt)
@@ -409,6 +410,7 @@ def jpda_probabilities(ti: np.ndarray, pj: np.ndarray, loglik: np.ndarray, n_tra
             beta[members] = bij
             beta0[tu] = 1.0 - np.bincount(tl, bij, nt)
             continue
+        opts = _groups(tl, nt)  # each track's pairs (local to the cluster)
         grid = np.indices(sizes).reshape(nt, -1).T  # [E, nt]: each track's option, 0 = none
         plot = np.full(grid.shape, -1, np.int64)
         lw = np.zeros(len(grid))
@@ -595,26 +597,12 @@ class MultiTargetTracker:
 
     def _update_jpda(self, ti, pj, beta, beta0, tt, tp, plots, R, updated):
         """The mixture update of every track: confirmed tracks' gated plots with their JPDA probabilities, tentative
-        tracks' assigned plot with probability 1 (none: 0)."""
-        K = len(self)
+        tracks' assigned plot with probability 1 (none: no plot with probability 1)."""
         b0 = beta0.copy()
         b0[tt] = 0.0
-        rows = np.concatenate([ti, tt])
-        cols = np.concatenate([pj, tp])
-        w = np.concatenate([beta, np.ones(len(tt))])
-        counts = np.bincount(rows, minlength=K)
-        H = max(int(counts.max(initial=0)), 1)
-        slot = np.zeros(len(rows), np.int64)
-        order = np.argsort(rows, kind="stable")
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        slot[order] = np.arange(len(rows)) - starts[rows[order]]
-        z = np.full((K, H, 3), np.nan)
-        Rh = np.broadcast_to(np.eye(3), (K, H, 3, 3)).copy()
-        bh = np.zeros((K, H + 1))
-        bh[:, 0] = b0
-        z[rows, slot], Rh[rows, slot], bh[rows, slot + 1] = plots[cols], R[cols], w
+        rows, cols = np.concatenate([ti, tt]), np.concatenate([pj, tp])
         updated[ti] = True
-        self.filter.update_mixture(z, Rh, bh)
+        self.filter.update_mixture(rows, plots[cols], R[cols], np.concatenate([beta, np.ones(len(tt))]), b0)
 
     def _initiate(self, t, plots, R, tree):
         """Pair this scan's free plots with the seeds, start a tentative track per pair, keep the rest as seeds."""
