@@ -15,6 +15,7 @@ __getattr__, __dir__, __all__ = lazy_names(__name__, {
     "configured_methods": "immnet.evaluation.registry",
     **dict.fromkeys(("MetricAccumulator", "confusion", "mode_accuracy", "position_error", "post_switch_mask", "rmse",
                      "rmse_over_time", "rmse_pooled", "rmse_post_switch", "scored_mask"), "immnet.evaluation.metrics"),
+    "gospa": "immnet.evaluation.gospa", "track_metrics": "immnet.evaluation.gospa",
     "evaluate": "immnet.evaluation.runner", "to_json": "immnet.evaluation.runner",
     "format_markdown": "immnet.evaluation.table", "format_table": "immnet.evaluation.table",
 })

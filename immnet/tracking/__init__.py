@@ -10,5 +10,7 @@ __getattr__, __dir__, __all__ = lazy_names(__name__, {
     "BankMethod": "immnet.tracking.bank", "NetworkBank": "immnet.tracking.bank",
     "IMMNetMethod": "immnet.tracking.methods", "KalmanNetMethod": "immnet.tracking.methods",
     "Tracker": "immnet.tracking.tracker", "load_network": "immnet.tracking.tracker",
+    **dict.fromkeys(("IMMFilter", "MultiTargetTracker", "TrackFilter", "TrackReport", "TwoPointStart"),
+                    "immnet.tracking.multi"),
 })
 

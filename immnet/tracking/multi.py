@@ -1,0 +1,666 @@
+"""Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, M-of-N confirmation,
+coasting and deletion around a batched per-track filter (docs/tracking.md, "Many targets").
+
+    tracker = MultiTargetTracker("real-imm-singer", r=50.0)      # any model-based IMM or Kalman filter by name
+    for t, plots in scans:                                        # plots [N, 3] ENU (m); R [N, 3, 3] optional
+        for rep in tracker.step(t, plots):                        # the confirmed tracks
+            rep.track_id, rep.state, rep.cov, rep.updated
+
+One scan, for every live track at once:
+
+1. the filter predicts every track to the scan (one tensor step) and gives each track's predicted position and its
+   covariance ``S_i = H P_i H^T`` (an IMM's moment-matched prior over its modes);
+2. gating: a k-d tree of the plots gives the plots inside a ball that holds each track's gate; on those pairs only,
+   ``d^2 = nu^T (S_i + R_j)^{-1} nu <= chi2_3(gate)`` (``immnet.imm.kalman.inv3``), and the pair's log-likelihood
+   ``log N(nu; 0, S_i + R_j)`` (``gaussian_loglik``);
+3. association, confirmed tracks first: GNN, an optimal assignment (``linear_sum_assignment``) of cost
+   ``-log N`` per cluster of tracks and plots linked by gated pairs, the most pairs first; or JPDA, each cluster's
+   association probabilities over its joint events. Tentative tracks then take, by GNN, the plots the confirmed
+   tracks left (not assigned; under JPDA, outside their gates);
+4. the filter updates every track at once with its plot (a NaN row where none: it coasts on its prediction) or,
+   under JPDA, with the mixture of its gated plots (``TrackFilter.update_mixture``);
+5. initiation: a plot nobody took pairs with a seed, an unpaired plot of an earlier scan, whose distance fits a
+   speed of at most ``max_speed`` (plus ``sigma`` measurement standard deviations), by an assignment over the pairs
+   a k-d tree finds; a pair starts a tentative track (two-point differencing); the plots left over become seeds;
+6. confirmation after M hits within the first N scans (the seed's scan the first); a tentative track that can no
+   longer reach M is dropped; a confirmed track is deleted after ``delete_after`` consecutive misses, any track
+   once its position standard deviation ``sqrt(tr P_pos)`` exceeds ``max_pos_std``.
+
+Every step of gating, association and initiation touches only the pairs inside a gate (the trees find them), so a
+scan costs about ``N log N + K log N + pairs``: clutter far from every track adds plots, not plots times tracks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+from scipy.stats import chi2
+
+from immnet.filters.imm import ACC_STD, VEL_STD
+from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
+from immnet.imm.kalman import gaussian_loglik, inv3, predict, update
+from immnet.motion import AXES, ModelSet, coupling
+from immnet.motion import AXIS_OF
+
+GROUPS = ("joint", "axis")
+
+
+# --- the per-track filter ------------------------------------------------------------------------------------------
+
+class TrackFilter:
+    """What the multi-target tracker asks of a filter: a batch of ``K`` live tracks (rows, in order), stepped
+    together. ``start`` appends tracks at the end; ``predict`` moves every track to the next scan and gives its
+    predicted position ``[K, 3]`` and that position's covariance ``H P H^T`` ``[K, 3, 3]`` (without the measurement
+    noise, which the tracker adds per plot); ``update`` takes one plot per track (a NaN row: missed, the posterior
+    is the prior); ``update_mixture`` (JPDA) the gated pairs' plots with their association probabilities;
+    ``drop(keep)`` keeps the rows of ``keep [K]``; ``state()`` gives the combined estimate ``x [K, 9]``,
+    ``P [K, 9, 9]`` in the layout ``[x, vx, ax, y, vy, ay, z, vz, az]``. Arrays in and out are numpy float64.
+
+    ``r``: the measurement std (m) the filter assumes where plots come without covariances (None: it assumes
+    none); ``name``: what it is, for messages."""
+
+    r: float | None = None
+    name: str = "filter"
+
+    def __len__(self) -> int:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def predict(self, dt: float):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def update(self, z, R) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def update_mixture(self, track, z, R, beta, beta0) -> None:
+        raise NotImplementedError(f"{self.name} has no mixture update: JPDA needs one (use associator='gnn')")
+
+    def drop(self, keep) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def state(self):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    @staticmethod
+    def from_method(name: str, r: float | None = None) -> "IMMFilter":
+        """The filter of the method ``name`` (``configs/methods/<name>.yaml``): a model-based IMM (``IMMTracker``
+        with joint modes, ``PerAxisIMMTracker``) or a Kalman filter (``KalmanFilterTracker``), with its model set,
+        process noise, transition matrix and initial mode probabilities. ``r``: the measurement std to assume where
+        plots come without covariances; None: the method's own ``r`` where it is a number (``r: data`` assumes
+        none)."""
+        from immnet.evaluation.methods import build_method
+        from immnet.filters.per_axis import PerAxisIMMTracker
+        from immnet.filters.trackers import IMMTracker, KalmanFilterTracker
+
+        method = build_method(name)
+        own_r = method.r if isinstance(getattr(method, "r", None), float) else None
+        r = own_r if r is None else r
+        if isinstance(method, PerAxisIMMTracker):
+            return IMMFilter(method.model_set, method.sigma_q, method.Pi, groups="axis", r=r, name=name)
+        if isinstance(method, IMMTracker):
+            if method.modes != "joint":
+                raise ValueError(f"{name}: an IMM with modes per {method.modes} is not a multi-target filter "
+                                 f"(joint modes or a per-axis IMM are)")
+            return IMMFilter(method.model_set, method.sigma_q, method.Pi, mu0=method.mu0, groups="joint", r=r,
+                             name=name)
+        if isinstance(method, KalmanFilterTracker):
+            return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], groups="joint", r=r, name=name)
+        raise ValueError(f"{name} is a {type(method).__name__}: the multi-target tracker's filters are the model-based "
+                         f"IMMs and Kalman filters (IMMTracker, PerAxisIMMTracker, KalmanFilterTracker)")
+
+
+def _t(a) -> torch.Tensor:
+    return torch.from_numpy(np.array(a, dtype=np.float64))
+
+
+class IMMFilter(TrackFilter):
+    """A model-based IMM over a model set, for a batch of tracks: ``groups="joint"`` one set of mode probabilities
+    per track (``IMMTracker``), ``"axis"`` one per Cartesian axis (``PerAxisIMMTracker``: three independent IMMs over
+    ``[l, v, a]``, each measuring its coordinate with the plot covariance's diagonal element; models must be block
+    diagonal per axis). One model is a Kalman filter. The stages are ``immnet.imm``'s (``mixing_weights``, ``mix``,
+    ``predict``, ``update``, ``mode_update``, ``combine``), batched over tracks, axes and models: a step is one
+    tensor expression for every track.
+
+    ``sigma_q``: the process noise, one value or one per model; ``p_stay``: the staying probability or a transition
+    matrix ``[M, M]``; ``mu0``: the initial mode probabilities (uniform). A one-point start (``start(z, R)``) is the
+    single-target IMMs' (``immnet.filters.imm.initial_state``: velocity std ``vel_std``, acceleration std
+    ``acc_std``); a two-point start (``start(z, R, z_prev, R_prev, dt)``) differences the plots: velocity
+    ``(z - z_prev) / dt`` with covariance ``(R + R_prev) / dt^2`` plus what an acceleration of std ``acc_std``
+    adds over the interval (``acc_std^2 dt^2 / 4``, the average velocity being the one at mid-interval)."""
+
+    def __init__(self, model_set, sigma_q, p_stay=0.98, mu0=None, groups: str = "joint", r: float | None = None,
+                 vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm"):
+        if groups not in GROUPS:
+            raise ValueError(f"groups must be one of {', '.join(GROUPS)}, got {groups!r}")
+        self.model_set = ModelSet.from_config(model_set)
+        M = len(self.model_set)
+        if any(m.state_dependent for m in self.model_set):
+            raise ValueError(f"{name}: the IMM needs a constant F per model")
+        if groups == "axis" and (moving := coupling(self.model_set, AXIS_OF)):
+            raise ValueError(f"{name}: a per-axis IMM needs models block diagonal per axis; {moving} couple the axes")
+        self.sigma_q = [float(v) for v in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
+        self.Pi = transition_matrix(p_stay, M) if not isinstance(p_stay, torch.Tensor) else p_stay.double()
+        self.mu0 = torch.full((M,), 1.0 / M, dtype=torch.float64) if mu0 is None else _t(mu0).reshape(M)
+        self.groups, self.G, self.d = groups, (1 if groups == "joint" else AXES), (9 if groups == "joint" else 3)
+        self.r, self.name = (None if r is None else float(r)), name
+        self.vel_std, self.acc_std = float(vel_std), float(acc_std)
+        self.M = M
+        f64 = torch.float64
+        self.x = torch.zeros(0, self.G, M, self.d, dtype=f64)
+        self.P = torch.zeros(0, self.G, M, self.d, self.d, dtype=f64)
+        self.mu = torch.zeros(0, self.G, M, dtype=f64)
+        self._cache = (None, None)
+        self._H = torch.tensor([[1.0, 0.0, 0.0]], dtype=f64)
+
+    def __len__(self) -> int:
+        return self.x.shape[0]
+
+    def __repr__(self) -> str:
+        return f"IMMFilter({self.name}: {self.model_set}, modes {self.groups}, {len(self)} tracks)"
+
+    # the 9-D state to the filter's groups and back
+    def _split(self, A: torch.Tensor) -> torch.Tensor:
+        """``[K, 9]`` or ``[K, 9, 9]`` -> ``[K, G, d]`` or ``[K, G, d, d]`` (the axis blocks; joint: one group)."""
+        if self.groups == "joint":
+            return A[:, None]
+        if A.dim() == 3:
+            return torch.stack([A[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(AXES)], 1)
+        return torch.stack([A[:, 3 * a:3 * a + 3] for a in range(AXES)], 1)
+
+    def _join(self, x: torch.Tensor, P: torch.Tensor):
+        """``[K, G, d]``, ``[K, G, d, d]`` -> ``[K, 9]``, ``[K, 9, 9]`` (axis blocks on the diagonal)."""
+        if self.groups == "joint":
+            return x[:, 0], P[:, 0]
+        K = x.shape[0]
+        out = torch.zeros(K, 9, 9, dtype=P.dtype)
+        for a in range(AXES):
+            out[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] = P[:, a]
+        return x.reshape(K, 9), out
+
+    def _matrices(self, dt: float):
+        if self._cache[0] != dt:
+            F = self.model_set.F(dt, dtype=torch.float64)  # [M, 9, 9]
+            Q = self.model_set.Q(self.sigma_q, dt, dtype=torch.float64)
+            if self.groups == "joint":
+                F, Q = F[None], Q[None]
+            else:
+                F = torch.stack([F[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(AXES)])
+                Q = torch.stack([Q[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(AXES)])
+            self._cache = (dt, (F, Q))  # [G, M, d, d]
+        return self._cache[1]
+
+    @torch.no_grad()
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:
+        z, R = _t(z).reshape(-1, 3), _t(R).reshape(-1, 3, 3)
+        k = z.shape[0]
+        if k == 0:
+            return
+        x0 = torch.zeros(k, 9, dtype=torch.float64)
+        P0 = torch.zeros(k, 9, 9, dtype=torch.float64)
+        pos, vel, acc = slice(0, 9, 3), slice(1, 9, 3), slice(2, 9, 3)
+        x0[:, pos] = z
+        P0[:, pos, pos] = R
+        eye = torch.eye(3, dtype=torch.float64)
+        qa = self.acc_std**2
+        P0[:, acc, acc] = qa * eye
+        if z_prev is None:
+            P0[:, vel, vel] = self.vel_std**2 * eye
+        else:
+            zp, Rp = _t(z_prev).reshape(-1, 3), _t(R_prev).reshape(-1, 3, 3)
+            dt = _t(dt).reshape(-1).expand(k)[:, None]
+            x0[:, vel] = (z - zp) / dt
+            P0[:, pos, vel] = R / dt[..., None]
+            P0[:, vel, pos] = R / dt[..., None]
+            P0[:, vel, vel] = (R + Rp) / dt[..., None] ** 2 + qa * dt[..., None] ** 2 / 4 * eye
+            P0[:, vel, acc] = qa * dt[..., None] / 2 * eye
+            P0[:, acc, vel] = qa * dt[..., None] / 2 * eye
+        G, M, d = self.G, self.M, self.d
+        self.x = torch.cat([self.x, self._split(x0)[:, :, None].expand(k, G, M, d)])
+        self.P = torch.cat([self.P, self._split(P0)[:, :, None].expand(k, G, M, d, d)])
+        self.mu = torch.cat([self.mu, self.mu0.expand(k, G, M)])
+
+    @torch.no_grad()
+    def predict(self, dt: float):
+        K, G, M, d = len(self), self.G, self.M, self.d
+        if K == 0:
+            return np.zeros((0, 3)), np.zeros((0, 3, 3))
+        F, Q = self._matrices(float(dt))
+        w = mixing_weights(self.mu.reshape(K * G, M), self.Pi)
+        x0, P0 = mix(w, self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d))
+        self.x, self.P = predict(x0.view(K, G, M, d), P0.view(K, G, M, d, d), F, Q)
+        self.mu = self.mu @ self.Pi  # the predicted mode probabilities (the update's prior)
+        xc, Pc = combine(self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d), self.mu.reshape(K * G, M))
+        if self.groups == "joint":
+            return xc[:, 0::3].numpy(), Pc[:, 0::3, 0::3].numpy()
+        xc, Pc = xc.view(K, G, d), Pc.view(K, G, d, d)
+        return xc[..., 0].numpy(), torch.diag_embed(Pc[..., 0, 0]).numpy()
+
+    def _measure(self, z: torch.Tensor, R: torch.Tensor):
+        """A plot per track and hypothesis ``z [K, H, 3]``, ``R [K, H, 3, 3]`` as the filter's groups measure it:
+        ``(z [K, H, G, 1, m], R [K, H, G, 1, m, m], H)`` (per axis: the coordinate and ``R``'s diagonal element)."""
+        if self.groups == "joint":
+            return z[:, :, None, None, :], R[:, :, None, None], None
+        diag = torch.diagonal(R, dim1=-2, dim2=-1)
+        return z[..., None, None], diag[..., None, None, None], self._H
+
+    @torch.no_grad()
+    def update(self, z, R) -> None:
+        if len(self) == 0:
+            return
+        z, R = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3)
+        zm, Rm, H = self._measure(z, R)
+        x, P, ll = update(self.x, self.P, zm[:, 0], H, Rm[:, 0])
+        self.x, self.P, self.mu = x, P, mode_update(torch.log(self.mu), ll)
+
+    @torch.no_grad()
+    def update_mixture(self, track, z, R, beta, beta0) -> None:
+        """JPDA: the gated pairs, ``track [P]`` (the track's row), ``z [P, 3]``, ``R [P, 3, 3]`` (the plot), ``beta [P]``
+        (the pair's association probability), and ``beta0 [K]`` (no plot is the track's). Each mode's posterior is the
+        mixture over the track's hypotheses (no plot: the prior) weighted by ``beta_h P(mode | h)`` (the mode's
+        likelihood under ``h``), moment-matched (``moment_match``, a pair at a time, summed per track); the mode
+        probabilities are ``sum_h beta_h P(mode | h)``. Its cost grows with the pairs, not tracks times plots."""
+        K, G, M, d = len(self), self.G, self.M, self.d
+        if K == 0:
+            return
+        track = torch.from_numpy(np.asarray(track, dtype=np.int64))
+        z, R, beta, beta0 = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3), _t(beta), _t(beta0)
+        n = len(track)
+        zm, Rm, H = self._measure(z, R)
+        xh, Ph, ll = update(self.x[track], self.P[track], zm[:, 0], H, Rm[:, 0])  # [n, G, M, ...]
+        W = beta[:, None, None] * torch.softmax(torch.log(self.mu[track]) + ll, -1)  # beta_h P(mode | h)
+        W0 = beta0[:, None, None] * self.mu
+        mu = W0.index_add(0, track, W)  # [K, G, M]
+        scale = mu.clamp_min(torch.finfo(mu.dtype).tiny)
+        x = (W0[..., None] * self.x).index_add(0, track, W[..., None] * xh) / scale[..., None]
+
+        def spread(w, xs, Ps, xf):  # w (P + (x - xf)(x - xf)^T) per row, one component each
+            rows = w.numel()
+            return moment_match(w.reshape(rows, 1, 1, 1), xs.reshape(rows, 1, d), xf.reshape(rows, d),
+                                Ps.reshape(rows, 1, d, d)).view(-1, G, M, d, d)
+
+        P = spread(W0, self.x, self.P, x).index_add(0, track, spread(W, xh, Ph, x[track]))
+        self.x, self.P, self.mu = x, P / scale[..., None, None], mu
+
+    def drop(self, keep) -> None:
+        keep = torch.as_tensor(np.asarray(keep, dtype=bool))
+        self.x, self.P, self.mu = self.x[keep], self.P[keep], self.mu[keep]
+
+    @torch.no_grad()
+    def state(self):
+        K, G, M, d = len(self), self.G, self.M, self.d
+        if K == 0:
+            return np.zeros((0, 9)), np.zeros((0, 9, 9))
+        xc, Pc = combine(self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d), self.mu.reshape(K * G, M))
+        x, P = self._join(xc.view(K, G, d), Pc.view(K, G, d, d))
+        return x.numpy(), P.numpy()
+
+    def mode_probs(self) -> np.ndarray:
+        """The mode probabilities ``[K, G, M]`` (after ``predict``: the predicted ones)."""
+        return self.mu.numpy()
+
+
+# --- association ---------------------------------------------------------------------------------------------------
+
+def gate_pairs(z_pred: np.ndarray, S: np.ndarray, plots: np.ndarray, R: np.ndarray, threshold: float,
+               tree: cKDTree | None = None):
+    """The gated (track, plot) pairs: ``nu^T (S_i + R_j)^{-1} nu <= threshold``, ``nu = plot_j - z_pred_i``. A k-d tree
+    of the plots gives the candidates, the plots inside a ball of radius ``sqrt(threshold (tr S_i + max_j tr R_j))``,
+    which holds the gate's ellipsoid (its largest semi-axis is ``sqrt(threshold lambda_max)``, ``lambda_max <=``
+    the trace); the test itself runs on those alone. Returns ``(track [P], plot [P], loglik [P])`` with
+    ``loglik = log N(nu; 0, S_i + R_j)``."""
+    K, N = len(z_pred), len(plots)
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    if K == 0 or N == 0:
+        return empty
+    tree = cKDTree(plots) if tree is None else tree
+    rmax = float(np.trace(R, axis1=1, axis2=2).max())
+    radius = np.sqrt(threshold * (np.trace(S, axis1=1, axis2=2) + rmax))
+    found = tree.query_ball_point(z_pred, radius)
+    counts = np.fromiter((len(f) for f in found), np.int64, K)
+    if counts.sum() == 0:
+        return empty
+    ti = np.repeat(np.arange(K), counts)
+    pj = np.fromiter((j for f in found for j in f), np.int64, int(counts.sum()))
+    nu = torch.from_numpy(plots[pj] - z_pred[ti])
+    Si, logdet = inv3(torch.from_numpy(S[ti] + R[pj]))
+    maha = (nu * (Si @ nu[..., None])[..., 0]).sum(-1)
+    keep = (maha <= threshold).numpy()
+    ll = gaussian_loglik(maha, logdet, 3).numpy()
+    return ti[keep], pj[keep], ll[keep]
+
+
+def _clusters(ti: np.ndarray, pj: np.ndarray):
+    """The connected components of the bipartite graph of pairs: a label per pair and the number of clusters."""
+    ut, tc = np.unique(ti, return_inverse=True)
+    up, pc = np.unique(pj, return_inverse=True)
+    n = len(ut) + len(up)
+    graph = coo_matrix((np.ones(len(ti)), (tc, len(ut) + pc)), shape=(n, n))
+    count, labels = connected_components(graph, directed=False)
+    return labels[tc], count
+
+
+def _groups(labels: np.ndarray, count: int):
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(count + 1))
+    return [order[bounds[c]:bounds[c + 1]] for c in range(count)]
+
+
+def assign(ti: np.ndarray, pj: np.ndarray, cost: np.ndarray):
+    """Global nearest neighbour over the gated pairs ``(ti, pj)`` of cost ``cost``: per cluster of tracks and plots
+    linked by pairs, the assignment with the most pairs and, among those, the least total cost
+    (``linear_sum_assignment`` over the cluster's tracks and plots, a pair outside the gates costing more than every
+    gated pair together). Returns the assigned pairs' indices into ``ti``."""
+    if len(ti) == 0:
+        return np.zeros(0, np.int64)
+    labels, count = _clusters(ti, pj)
+    sizes = np.bincount(labels, minlength=count)
+    out = [np.flatnonzero(sizes[labels] == 1)]  # a cluster of one pair: assigned
+    for members in _groups(labels, count):
+        if len(members) < 2:
+            continue
+        tu, tl = np.unique(ti[members], return_inverse=True)
+        pu, pl = np.unique(pj[members], return_inverse=True)
+        c = cost[members] - cost[members].min()
+        big = c.sum() + 1.0
+        dense = np.full((len(tu), len(pu)), big)
+        dense[tl, pl] = c
+        index = np.full((len(tu), len(pu)), -1, np.int64)
+        index[tl, pl] = members
+        rows, cols = linear_sum_assignment(dense)
+        chosen = index[rows, cols]
+        out.append(chosen[chosen >= 0])
+    return np.concatenate(out)
+
+
+def jpda_probabilities(ti: np.ndarray, pj: np.ndarray, loglik: np.ndarray, n_tracks: int, pd: float, pg: float,
+                       clutter_density: float, max_events: int = 20000):
+    """JPDA's association probabilities of the gated pairs: per cluster, the joint events (each track takes one of its
+    gated plots or none, each plot at most one track) weighted by the product over tracks of ``1 - pd pg`` (none) or
+    ``pd N(nu; 0, S + R) / clutter_density`` (a plot). Returns ``beta [P]`` per pair and ``beta0 [n_tracks]`` (no plot;
+    1 for a track with no gated plot). A cluster of more than ``max_events`` candidate events takes Fitzgerald's cheap
+    JPDA, ``beta_ij = G_ij / (T_i + S_j - G_ij + 1 - pd pg)`` (``G`` the weights, ``T_i``, ``S_j`` their track and plot
+    sums), the rest to no plot."""
+    beta0 = np.ones(n_tracks)
+    beta = np.zeros(len(ti))
+    if len(ti) == 0:
+        return beta, beta0
+    miss = math.log1p(-pd * pg)
+    logw = math.log(pd) + loglik - math.log(clutter_density)
+    labels, count = _clusters(ti, pj)
+    for members in _groups(labels, count):
+        tu, tl = np.unique(ti[members], return_inverse=True)
+        pu, pl = np.unique(pj[members], return_inverse=True)
+        nt = len(tu)
+        sizes = np.bincount(tl, minlength=nt) + 1
+        if float(np.log(sizes).sum()) > math.log(max_events):
+            G = np.exp(logw[members] - logw[members].max())
+            b = math.exp(miss - logw[members].max())
+            T = np.bincount(tl, G, nt)
+            Sp = np.bincount(pl, G, len(pu))
+            bij = G / (T[tl] + Sp[pl] - G + b)
+            beta[members] = bij
+            beta0[tu] = 1.0 - np.bincount(tl, bij, nt)
+            continue
+        opts = _groups(tl, nt)  # each track's pairs (local to the cluster)
+        grid = np.indices(sizes).reshape(nt, -1).T  # [E, nt]: each track's option, 0 = none
+        plot = np.full(grid.shape, -1, np.int64)
+        lw = np.zeros(len(grid))
+        for i, o in enumerate(opts):
+            took = grid[:, i] > 0
+            pair = o[np.maximum(grid[:, i] - 1, 0)]
+            plot[:, i] = np.where(took, pl[pair], -1 - i)  # none: a value of its own, never shared
+            lw += np.where(took, logw[members][pair], miss)
+        srt = np.sort(plot, 1)
+        valid = (np.diff(srt, axis=1) != 0).all(1) if nt > 1 else np.ones(len(grid), bool)
+        w = np.exp(lw[valid] - lw[valid].max())
+        w /= w.sum()
+        g = grid[valid]
+        for i, o in enumerate(opts):
+            beta0[tu[i]] = w[g[:, i] == 0].sum()
+            beta[members[o]] = np.bincount(g[:, i], w, len(o) + 1)[1:]
+    return beta, beta0
+
+
+# --- the tracker ---------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TwoPointStart:
+    """Initiation from two plots: a plot nobody took pairs with a seed (a plot left over ``dt`` earlier) within
+    ``max_speed dt + sigma sqrt(tr R + tr R_seed)`` (m/s, and measurement standard deviations)."""
+
+    max_speed: float = 350.0
+    sigma: float = 3.0
+
+
+@dataclass(frozen=True)
+class TrackReport:
+    """One track at a scan: ``track_id`` (stable: a track keeps it from its start to its deletion, and no other
+    track ever takes it), ``state [9]`` (``x, vx, ax, y, vy, ay, z, vz, az``, ENU m), ``cov [9, 9]``, ``confirmed``,
+    ``updated`` (a plot was assigned to it this scan; under JPDA: a plot was in its gate)."""
+
+    track_id: int
+    state: np.ndarray
+    cov: np.ndarray | None
+    confirmed: bool
+    updated: bool
+
+
+ASSOCIATORS = ("gnn", "jpda")
+
+
+class MultiTargetTracker:
+    """Tracks from unlabelled plots (module doc). ``filter``: a ``TrackFilter`` with no tracks, or a method's name
+    (``TrackFilter.from_method``); ``gate``: the gate probability ``pg`` (the chi-square threshold with 3 degrees of
+    freedom); ``init``: ``TwoPointStart``; ``confirm``: ``(M, N)``, ``2 <= M <= N``; ``delete_after``: the consecutive
+    misses that delete a confirmed track; ``max_pos_std``: the position standard deviation (m) beyond which any track
+    is deleted; ``associator``: ``"gnn"`` or ``"jpda"`` (with ``pd`` the detection probability and
+    ``clutter_density`` the false plots per m^3); ``r``: the measurement std (m) of plots given without ``R`` (None:
+    the filter's)."""
+
+    def __init__(self, filter: TrackFilter | str = "real-imm-singer", gate: float = 0.999,
+                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = 4,
+                 max_pos_std: float = 5000.0, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
+                 clutter_density: float = 1e-12, jpda_max_events: int = 20000):
+        if isinstance(filter, str):
+            filter = TrackFilter.from_method(filter)
+        if not isinstance(filter, TrackFilter):
+            raise TypeError(f"filter must be a TrackFilter or a method's name, got {type(filter).__name__}")
+        if len(filter):
+            raise ValueError(f"filter must hold no tracks yet, it holds {len(filter)}")
+        if not 0.0 < gate < 1.0:
+            raise ValueError(f"gate is a probability in (0, 1), got {gate}")
+        try:
+            M, N = (int(v) for v in confirm)
+        except (TypeError, ValueError):
+            raise ValueError(f"confirm must be (M, N), got {confirm!r}") from None
+        if not 2 <= M <= N:
+            raise ValueError(f"confirm (M, N) needs 2 <= M <= N (a track starts from two plots), got {confirm!r}")
+        if int(delete_after) != delete_after or delete_after < 1:
+            raise ValueError(f"delete_after must be a whole number of scans >= 1, got {delete_after!r}")
+        if associator not in ASSOCIATORS:
+            raise ValueError(f"associator must be one of {', '.join(ASSOCIATORS)}, got {associator!r}")
+        for label, v in (("max_pos_std", max_pos_std), ("init.max_speed", init.max_speed),
+                         ("clutter_density", clutter_density)):
+            if not v > 0:
+                raise ValueError(f"{label} must be > 0, got {v}")
+        if not 0.0 < pd <= 1.0:
+            raise ValueError(f"pd is a probability in (0, 1], got {pd}")
+        if r is not None and not (math.isfinite(r) and r > 0):
+            raise ValueError(f"r must be finite and > 0, got {r}")
+        self.filter, self.pg, self.threshold = filter, float(gate), float(chi2.ppf(gate, 3))
+        self.init, self.M, self.N, self.delete_after = init, M, N, int(delete_after)
+        self.max_pos_std, self.associator, self.pd = float(max_pos_std), associator, float(pd)
+        self.clutter_density, self.jpda_max_events = float(clutter_density), int(jpda_max_events)
+        self.r = filter.r if r is None else float(r)
+        self.seed_life = N - M + 1  # the latest scan after a seed whose pair can still reach M hits within N scans
+        self._t, self._scan, self._next_id = None, -1, 1
+        self.ids = np.zeros(0, np.int64)
+        self.confirmed = np.zeros(0, bool)
+        self.hits = np.zeros(0, np.int64)
+        self.scans = np.zeros(0, np.int64)  # scans since the seed's, inclusive (tentative tracks' window)
+        self.misses = np.zeros(0, np.int64)  # consecutive
+        self.updated = np.zeros(0, bool)
+        self.seed_z, self.seed_R = np.zeros((0, 3)), np.zeros((0, 3, 3))
+        self.seed_t, self.seed_scan = np.zeros(0), np.zeros(0, np.int64)
+        self._x, self._P = np.zeros((0, 9)), np.zeros((0, 9, 9))
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    # -- input --------------------------------------------------------------------------------------------------------
+    def _inputs(self, t, plots, R):
+        t = float(t)
+        if not math.isfinite(t):
+            raise ValueError(f"step: t must be finite, got {t}")
+        if self._t is not None and not t > self._t:
+            raise ValueError(f"step: scan times must increase, got t = {t} after {self._t}")
+        plots = np.asarray(plots, dtype=np.float64)
+        if plots.size == 0:
+            plots = plots.reshape(0, 3)
+        if plots.ndim != 2 or plots.shape[1] != 3:
+            raise ValueError(f"step: plots must be an array [N, 3] of ENU positions (m), got shape {plots.shape}")
+        if not np.isfinite(plots).all():
+            raise ValueError(f"step: plot {int(np.flatnonzero(~np.isfinite(plots).all(1))[0])} has a non-finite "
+                             f"coordinate")
+        N = len(plots)
+        if R is None:
+            if self.r is None:
+                raise ValueError(f"step: plots without R need the tracker's r (m): {self.filter.name} assumes none")
+            R = np.broadcast_to(self.r**2 * np.eye(3), (N, 3, 3)).copy()
+        else:
+            R = np.asarray(R, dtype=np.float64)
+            if R.shape != (N, 3, 3):
+                raise ValueError(f"step: R must be [N, 3, 3] for the {N} plots, got shape {R.shape}")
+            bad = ~np.isfinite(R).all((1, 2)) | (np.abs(R - R.transpose(0, 2, 1)).max((1, 2), initial=0.0)
+                                                   > 1e-9 * np.abs(R).max((1, 2), initial=0.0))
+            if N and not bad.any():
+                bad = np.linalg.eigvalsh(R)[:, 0] <= 0
+            if bad.any():
+                raise ValueError(f"step: R[{int(np.flatnonzero(bad)[0])}] is not a finite symmetric positive-definite "
+                                 f"covariance")
+        return t, plots, R
+
+    # -- one scan -----------------------------------------------------------------------------------------------------
+    def step(self, t: float, plots: np.ndarray, R: np.ndarray | None = None) -> list[TrackReport]:
+        """One scan at time ``t`` (s) of plots ``[N, 3]`` (ENU, m) with covariances ``R [N, 3, 3]`` (None: ``r^2 I``).
+        Returns the confirmed tracks' reports (``tracks()``: every live track)."""
+        t, plots, R = self._inputs(t, plots, R)
+        N, K = len(plots), len(self)
+        self._scan += 1
+        tree = cKDTree(plots) if N else None
+        free = np.ones(N, bool)  # plots no track took
+        if K:
+            z_pred, S = self.filter.predict(t - self._t)
+            ti, pj, ll = gate_pairs(z_pred, S, plots, R, self.threshold, tree)
+            conf = self.confirmed[ti]
+            z_k = np.full((K, 3), np.nan)
+            R_k = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()
+            if self.associator == "gnn":
+                chosen = assign(ti[conf], pj[conf], -ll[conf])
+                ct, cp = ti[conf][chosen], pj[conf][chosen]
+                free[cp] = False
+            else:
+                beta, beta0 = jpda_probabilities(ti[conf], pj[conf], ll[conf], K, self.pd, self.pg,
+                                                 self.clutter_density, self.jpda_max_events)
+                free[pj[conf]] = False
+                ct, cp = np.zeros(0, np.int64), np.zeros(0, np.int64)
+            tent = ~conf & free[pj]
+            chosen = assign(ti[tent], pj[tent], -ll[tent])
+            tt, tp = ti[tent][chosen], pj[tent][chosen]
+            free[tp] = False
+            updated = np.zeros(K, bool)
+            for a, b in ((ct, cp), (tt, tp)):
+                z_k[a], R_k[a] = plots[b], R[b]
+                updated[a] = True
+            if self.associator == "gnn":
+                self.filter.update(z_k, R_k)
+            else:
+                self._update_jpda(ti[conf], pj[conf], beta, beta0, tt, tp, plots, R, updated)
+            self.updated = updated
+            self.hits = self.hits + updated
+            self.misses = np.where(updated, 0, self.misses + 1)
+            self.scans = self.scans + 1
+        self._initiate(t, plots[free], R[free], tree if free.all() else None)
+        self._t = t
+        self._x, self._P = self.filter.state()
+        self._confirm_and_delete()
+        return [r for r in self.tracks() if r.confirmed]
+
+    def _update_jpda(self, ti, pj, beta, beta0, tt, tp, plots, R, updated):
+        """The mixture update of every track: confirmed tracks' gated plots with their JPDA probabilities, tentative
+        tracks' assigned plot with probability 1 (none: no plot with probability 1)."""
+        b0 = beta0.copy()
+        b0[tt] = 0.0
+        rows, cols = np.concatenate([ti, tt]), np.concatenate([pj, tp])
+        updated[ti] = True
+        self.filter.update_mixture(rows, plots[cols], R[cols], np.concatenate([beta, np.ones(len(tt))]), b0)
+
+    def _initiate(self, t, plots, R, tree):
+        """Pair this scan's free plots with the seeds, start a tentative track per pair, keep the rest as seeds."""
+        live = self._scan - self.seed_scan <= self.seed_life
+        self.seed_z, self.seed_R = self.seed_z[live], self.seed_R[live]
+        self.seed_t, self.seed_scan = self.seed_t[live], self.seed_scan[live]
+        n = len(plots)
+        paired = np.zeros(n, bool)
+        if n and len(self.seed_z):
+            tree = cKDTree(plots) if tree is None else tree
+            dt = t - self.seed_t
+            tr_seed = np.trace(self.seed_R, axis1=1, axis2=2)
+            tr_plot = np.trace(R, axis1=1, axis2=2)
+            sig = self.init.sigma
+            found = tree.query_ball_point(self.seed_z, self.init.max_speed * dt + sig * np.sqrt(tr_seed + tr_plot.max()))
+            counts = np.fromiter((len(f) for f in found), np.int64, len(found))
+            si = np.repeat(np.arange(len(found)), counts)
+            pq = np.fromiter((j for f in found for j in f), np.int64, int(counts.sum()))
+            dist = np.linalg.norm(plots[pq] - self.seed_z[si], axis=1)
+            ok = dist <= self.init.max_speed * dt[si] + sig * np.sqrt(tr_seed[si] + tr_plot[pq])
+            si, pq, dist = si[ok], pq[ok], dist[ok]
+            chosen = assign(si, pq, dist / (self.init.max_speed * dt[si]))
+            si, pq = si[chosen], pq[chosen]
+            if len(si):
+                self.filter.start(plots[pq], R[pq], self.seed_z[si], self.seed_R[si], dt[si])
+                k = len(si)
+                self.ids = np.concatenate([self.ids, np.arange(self._next_id, self._next_id + k)])
+                self._next_id += k
+                self.confirmed = np.concatenate([self.confirmed, np.zeros(k, bool)])
+                self.hits = np.concatenate([self.hits, np.full(k, 2)])
+                self.scans = np.concatenate([self.scans, self._scan - self.seed_scan[si] + 1])
+                self.misses = np.concatenate([self.misses, np.zeros(k, np.int64)])
+                self.updated = np.concatenate([self.updated, np.ones(k, bool)])
+                paired[pq] = True
+                used = np.zeros(len(self.seed_z), bool)
+                used[si] = True
+                self.seed_z, self.seed_R = self.seed_z[~used], self.seed_R[~used]
+                self.seed_t, self.seed_scan = self.seed_t[~used], self.seed_scan[~used]
+        rest = ~paired
+        self.seed_z = np.concatenate([self.seed_z, plots[rest]])
+        self.seed_R = np.concatenate([self.seed_R, R[rest]])
+        self.seed_t = np.concatenate([self.seed_t, np.full(int(rest.sum()), t)])
+        self.seed_scan = np.concatenate([self.seed_scan, np.full(int(rest.sum()), self._scan)])
+
+    def _confirm_and_delete(self):
+        self.confirmed = self.confirmed | (self.hits >= self.M) & (self.scans <= self.N)
+        hopeless = ~self.confirmed & (self.hits + (self.N - self.scans) < self.M)
+        lost = self.confirmed & (self.misses >= self.delete_after)
+        pos = np.trace(self._P[:, 0::3, 0::3], axis1=1, axis2=2)
+        vague = ~(np.sqrt(np.maximum(pos, 0.0)) <= self.max_pos_std)  # NaN too
+        keep = ~(hopeless | lost | vague)
+        if keep.all():
+            return
+        self.filter.drop(keep)
+        for name in ("ids", "confirmed", "hits", "scans", "misses", "updated", "_x", "_P"):
+            setattr(self, name, getattr(self, name)[keep])
+
+    def tracks(self) -> list[TrackReport]:
+        """Every live track (confirmed and tentative) as of the last scan."""
+        return [TrackReport(int(i), self._x[k].copy(), self._P[k].copy(), bool(self.confirmed[k]),
+                            bool(self.updated[k])) for k, i in enumerate(self.ids)]

@@ -1,0 +1,472 @@
+"""Many targets: GOSPA and the identity metrics (against Stone Soup and hand counts), the multi-target tracker's
+filter (against the single-target IMMs), association on hand-made scenes, clutter, and a Monte Carlo check against
+the IMM told the association (docs/tracking.md, "Many targets")."""
+
+from __future__ import annotations
+
+import datetime
+
+import numpy as np
+import pytest
+
+from immnet.evaluation.gospa import gospa, track_metrics
+
+
+# --- GOSPA ---------------------------------------------------------------------------------------------------------
+
+def test_gospa_matches_stone_soup_on_random_sets():
+    """Stone Soup 1.9.1's ``GOSPAMetric.compute_gospa_metric``: the distance, its three parts (p-th power sums) and the
+    truth-to-estimate assignment, on random sets of 0 to 6 points each (empty truth, empty estimates), to 1e-9."""
+    from stonesoup.metricgenerator.ospametric import GOSPAMetric
+    from stonesoup.types.state import State
+
+    rng = np.random.default_rng(0)
+    stamp = datetime.datetime(2024, 1, 1)
+    checked = {"empty truth": 0, "empty estimates": 0, "both": 0}
+    for c, p in ((200.0, 2.0), (150.0, 1.0), (300.0, 3.0)):
+        metric = GOSPAMetric(c=c, p=p)
+        for _ in range(120):
+            n, m = (int(v) for v in rng.integers(0, 7, 2))
+            if n == 0 and m == 0:
+                continue  # Stone Soup needs a timestamp from some state (the empty case is checked below)
+            X, Y = rng.uniform(0, 500, (n, 3)), rng.uniform(0, 500, (m, 3))
+            ref, ref_assign = metric.compute_gospa_metric([State(y.reshape(3, 1), timestamp=stamp) for y in Y],
+                                                          [State(x.reshape(3, 1), timestamp=stamp) for x in X])
+            ours = gospa(X, Y, c=c, p=p)
+            scale = max(1.0, ref.value["distance"] ** p)
+            for key in ("localisation", "missed", "false"):
+                assert abs(ours[key] - ref.value[key]) <= 1e-9 * scale, (key, n, m)
+            assert abs(ours["gospa"] - ref.value["distance"]) <= 1e-9 * max(1.0, ref.value["distance"])
+            if n and m:
+                assert (ours["assignment"] == np.asarray(ref_assign)).all()
+                checked["both"] += 1
+            else:
+                checked["empty truth" if n == 0 else "empty estimates"] += 1
+    assert min(checked.values()) > 5, checked
+    empty = gospa(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert empty["gospa"] == 0.0 and len(empty["assignment"]) == 0
+
+
+def test_gospa_by_hand():
+    """Two truths, three estimates: one pair at 30 m, one at 250 m (beyond c = 200: a missed and a false target)."""
+    X = np.array([[0.0, 0, 0], [1000, 0, 0]])
+    Y = np.array([[30.0, 0, 0], [1250, 0, 0], [5000, 0, 0]])
+    g = gospa(X, Y, c=200.0, p=2.0)
+    assert g["localisation"] == pytest.approx(900.0)
+    assert g["missed"] == pytest.approx(200.0**2 / 2)
+    assert g["false"] == pytest.approx(2 * 200.0**2 / 2)
+    assert g["gospa"] == pytest.approx((900.0 + 3 * 20000.0) ** 0.5)
+    assert g["assignment"].tolist() == [0, -1]
+
+
+def test_track_metrics_counts_switches_fragments_continuity():
+    """One truth over 8 scans, estimates by hand: ids 7 7 _ 7 9 9 _ 9 (``_``: no estimate near it): one switch
+    (7 -> 9), two fragmentations (the resumptions at scans 3 and 7), longest run 2 of 8 present scans."""
+    ids = [7, 7, None, 7, 9, 9, None, 9]
+    truth_ids, truth_pos, est_ids, est_pos = [], [], [], []
+    for s, e in enumerate(ids):
+        x = np.array([[100.0 * s, 0.0, 0.0]])
+        truth_ids.append(np.array([1]))
+        truth_pos.append(x)
+        if e is None:
+            est_ids.append(np.array([3]))
+            est_pos.append(x + 5000.0)  # a false track far away
+        else:
+            est_ids.append(np.array([e]))
+            est_pos.append(x + 10.0)
+    out = track_metrics(truth_ids, truth_pos, est_ids, est_pos, c=200.0)
+    assert out["id_switches"] == 1
+    assert out["fragmentations"] == 2
+    assert out["continuity"] == pytest.approx(2 / 8)
+    assert out["coverage"] == pytest.approx(6 / 8)
+    expected = [gospa(t, e)["gospa"] for t, e in zip(truth_pos, est_pos)]
+    assert out["gospa"] == pytest.approx(np.mean(expected))
+    with pytest.raises(ValueError, match="one entry per scan"):
+        track_metrics(truth_ids, truth_pos[:-1], est_ids, est_pos)
+
+
+# --- the per-track filter ------------------------------------------------------------------------------------------
+
+from immnet.tracking.multi import (  # noqa: E402
+    IMMFilter, MultiTargetTracker, TrackFilter, assign, gate_pairs, jpda_probabilities,
+)
+
+
+@pytest.mark.parametrize("name", ["real-imm-singer", "real-imm", "real-ca"])
+def test_filter_is_the_single_target_method(name):
+    """The batched filter of a method (per-axis IMM, joint IMM, Kalman filter), started at the first plot and stepped
+    with predict/update (a NaN row: missed), filters what the method's own ``track`` filters."""
+    import torch
+    from tensordict import TensorDict
+
+    from immnet import keys
+    from immnet.evaluation.methods import build_method
+
+    rng = np.random.default_rng(1)
+    B, T, dt, r = 3, 25, 2.0, 40.0
+    z = np.cumsum(rng.normal(0, 60.0 * dt, (B, T, 3)), 1) + rng.normal(0, r, (B, T, 3))
+    z[0, 5] = np.nan
+    method = build_method(name)
+    method.r, method.needs = r, ()
+    batch = TensorDict({keys.MEASUREMENTS: torch.tensor(z), keys.DT: torch.full((B,), dt, dtype=torch.float64)},
+                       batch_size=[B])
+    ref = method.track(batch)[keys.STATE].numpy()
+    f = TrackFilter.from_method(name, r=r)
+    R = np.broadcast_to(r * r * np.eye(3), (B, 3, 3))
+    f.start(z[:, 0], R)
+    out = [f.state()[0]]
+    for k in range(1, T):
+        f.predict(dt)
+        f.update(z[:, k], R)
+        out.append(f.state()[0])
+    np.testing.assert_allclose(np.stack(out, 1), ref, rtol=1e-9, atol=1e-6)
+
+
+def test_mixture_update_with_certain_association_is_the_update():
+    """``update_mixture`` with all the probability on one plot (or on none) is ``update`` with that plot (or NaN)."""
+    rng = np.random.default_rng(2)
+    K, r = 4, 30.0
+    R = np.broadcast_to(r * r * np.eye(3), (K, 3, 3)).copy()
+    fa, fb = TrackFilter.from_method("real-imm-singer", r=r), TrackFilter.from_method("real-imm-singer", r=r)
+    z0, z1 = rng.normal(0, 1000, (K, 3)), rng.normal(0, 1000, (K, 3))
+    for f in (fa, fb):
+        f.start(z1, R, z0, R, np.full(K, 2.0))
+        f.predict(2.0)
+    x_prior = fa.state()[0]
+    plots = x_prior[:, None, 0::3] + rng.normal(0, 50, (K, 2, 3))
+    z = plots[:, 0].copy()
+    z[3] = np.nan  # track 3: no plot
+    fa.update(z, R)
+    # every track's two plots as pairs: the first with probability 1 (tracks 0-2), none with probability 1 (track 3)
+    track = np.repeat(np.arange(K), 2)
+    beta = np.tile([1.0, 0.0], K)
+    beta[6] = 0.0
+    fb.update_mixture(track, plots.reshape(-1, 3), np.repeat(R, 2, 0), beta, np.array([0.0, 0.0, 0.0, 1.0]))
+    for a, b in zip(fa.state(), fb.state()):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-8)
+    np.testing.assert_allclose(fa.mode_probs(), fb.mode_probs(), atol=1e-12)
+
+
+# --- gating and association against brute force --------------------------------------------------------------------
+
+def test_gate_pairs_is_the_full_chi_square_test():
+    """The k-d tree's candidates lose no pair: the gated pairs and their log-likelihoods are those of testing every
+    track against every plot (numpy's inverse, scipy's Gaussian density)."""
+    from scipy.stats import chi2, multivariate_normal
+
+    rng = np.random.default_rng(3)
+    K, N = 30, 400
+    z_pred = rng.uniform(0, 5000, (K, 3))
+    A = rng.normal(0, 1, (K, 3, 3)) * rng.uniform(20, 200, (K, 1, 1))
+    S = A @ A.transpose(0, 2, 1) + 10 * np.eye(3)
+    plots = rng.uniform(0, 5000, (N, 3))
+    plots[:K] = z_pred + rng.normal(0, 100, (K, 3))
+    Bm = rng.normal(0, 1, (N, 3, 3)) * rng.uniform(5, 60, (N, 1, 1))
+    R = Bm @ Bm.transpose(0, 2, 1) + np.eye(3)
+    thr = chi2.ppf(0.999, 3)
+    ti, pj, ll = gate_pairs(z_pred, S, plots, R, thr)
+    want = {}
+    for i in range(K):
+        for j in range(N):
+            C = S[i] + R[j]
+            nu = plots[j] - z_pred[i]
+            if nu @ np.linalg.inv(C) @ nu <= thr:
+                want[(i, j)] = multivariate_normal(z_pred[i], C).logpdf(plots[j])
+    got = {(int(i), int(j)): v for i, j, v in zip(ti, pj, ll)}
+    assert set(got) == set(want) and len(want) >= K
+    for key, v in want.items():
+        assert got[key] == pytest.approx(v, rel=1e-9, abs=1e-9)
+
+
+def test_assign_is_the_best_assignment_by_brute_force():
+    """Per random gated-pair pattern: the clustered assignment has the most pairs and, among those, the least cost,
+    found by enumerating every matching."""
+    import itertools
+
+    rng = np.random.default_rng(4)
+    for _ in range(60):
+        K, N = int(rng.integers(1, 5)), int(rng.integers(1, 5))
+        mask = rng.random((K, N)) < 0.5
+        ti, pj = np.nonzero(mask)
+        cost = rng.normal(0, 5, len(ti))
+        c = {(i, j): v for i, j, v in zip(ti, pj, cost)}
+        best = (0, 0.0)
+        for perm in itertools.permutations(range(max(K, N)), K):
+            pairs = [(i, j) for i, j in enumerate(perm) if j < N and (i, j) in c]
+            key = (len(pairs), sum(c[p] for p in pairs))
+            if key[0] > best[0] or (key[0] == best[0] and key[1] < best[1] - 1e-12):
+                best = key
+        chosen = assign(ti, pj, cost)
+        assert len(set(ti[chosen])) == len(chosen) == len(set(pj[chosen]))
+        assert len(chosen) == best[0]
+        assert cost[chosen].sum() == pytest.approx(best[1], abs=1e-9)
+
+
+def _jpda_brute(ti, pj, ll, K, pd, pg, lam):
+    """Every joint event by recursion over tracks, weights multiplied out as written."""
+    opts = {i: [(k, j) for k, (t, j) in enumerate(zip(ti, pj)) if t == i] for i in range(K)}
+    beta, beta0, total = np.zeros(len(ti)), np.zeros(K), 0.0
+    events = []
+
+    def rec(i, used, chosen, w):
+        if i == K:
+            events.append((list(chosen), w))
+            return
+        rec(i + 1, used, chosen + [None], w * (1 - pd * pg))
+        for k, j in opts[i]:
+            if j not in used:
+                rec(i + 1, used | {j}, chosen + [k], w * pd * np.exp(ll[k]) / lam)
+
+    rec(0, frozenset(), [], 1.0)
+    for chosen, w in events:
+        total += w
+        for i, k in enumerate(chosen):
+            if k is None:
+                beta0[i] += w
+            else:
+                beta[k] += w
+    return beta / total, beta0 / total
+
+
+def test_jpda_probabilities_by_brute_force():
+    """Exact JPDA: each cluster's probabilities are those of enumerating the whole scene's joint events (clusters
+    are independent); one track with two plots: ``beta_j = L_j / (1 - pd pg + L_1 + L_2)``."""
+    rng = np.random.default_rng(5)
+    pd, pg, lam = 0.9, 0.999, 1e-9
+    for _ in range(30):
+        K, N = int(rng.integers(1, 5)), int(rng.integers(1, 6))
+        ti, pj = np.nonzero(rng.random((K, N)) < 0.5)
+        ll = rng.uniform(-25, -15, len(ti))
+        beta, beta0 = jpda_probabilities(ti, pj, ll, K, pd, pg, lam)
+        want, want0 = _jpda_brute(ti, pj, ll, K, pd, pg, lam)
+        np.testing.assert_allclose(beta, want, atol=1e-12)
+        np.testing.assert_allclose(beta0, want0, atol=1e-12)
+    ll = np.array([-18.0, -20.0])
+    beta, beta0 = jpda_probabilities(np.array([0, 0]), np.array([0, 1]), ll, 1, pd, pg, lam)
+    L = pd * np.exp(ll) / lam
+    np.testing.assert_allclose(beta, L / (1 - pd * pg + L.sum()), rtol=1e-12)
+    cheap, cheap0 = jpda_probabilities(ti, pj, rng.uniform(-25, -15, len(ti)), K, pd, pg, lam, max_events=1)
+    assert (cheap >= 0).all() and (cheap0 > 0).all()
+    assert np.allclose(np.bincount(ti, cheap, K) + cheap0, 1.0)
+
+
+# --- hand-made scenes ----------------------------------------------------------------------------------------------
+
+BOX = np.array([[-20e3, 20e3], [-20e3, 20e3], [0.0, 10e3]])
+
+
+def _scene(rng, starts, vels, T, dt, r, pd=1.0, clutter=0.0, box=BOX):
+    """Straight flights ``start + v t``; per scan the detected truths' plots (noise ``r``, each detected with ``pd``)
+    and Poisson(``clutter``) false plots uniform in ``box``, shuffled. Yields ``(t, truth [n, 3], plots, is_true)``."""
+    starts, vels = np.asarray(starts, float), np.asarray(vels, float)
+    for k in range(T):
+        t = k * dt
+        truth = starts + vels * t
+        det = rng.random(len(truth)) < pd
+        true_plots = truth[det] + rng.normal(0, r, (int(det.sum()), 3))
+        false_plots = rng.uniform(box[:, 0], box[:, 1], (rng.poisson(clutter), 3))
+        plots = np.concatenate([true_plots, false_plots])
+        is_true = np.full(len(plots), -1)
+        is_true[:len(true_plots)] = np.flatnonzero(det)
+        order = rng.permutation(len(plots))
+        yield t, truth, plots[order], is_true[order]
+
+
+def _run(tracker, scenes):
+    """Step through a scene; the metrics' per-scan lists (confirmed tracks as estimates)."""
+    lists = ([], [], [], [])
+    for t, truth, plots, _ in scenes:
+        reps = tracker.step(t, plots)
+        for v, a in zip(lists, (np.arange(len(truth)), truth, [p.track_id for p in reps],
+                                np.array([p.state[0::3] for p in reps]).reshape(-1, 3))):
+            v.append(np.asarray(a))
+    return lists
+
+
+@pytest.mark.parametrize("associator", ["gnn", "jpda"])
+def test_crossing_targets_keep_their_ids(associator):
+    """Two flights crossing at 30 degrees, at the same point at the same scan: after the crossing each is still
+    followed by the track that followed it before (no id switch), by two different tracks, without a break."""
+    rng = np.random.default_rng(10)
+    v = 200.0
+    a = np.deg2rad(15.0)
+    vels = [[v * np.cos(a), v * np.sin(a), 0.0], [v * np.cos(a), -v * np.sin(a), 0.0]]
+    T, dt = 40, 2.0
+    starts = [[-np.array(w[0]) * 20 * dt, -np.array(w[1]) * 20 * dt, 5000.0] for w in vels]  # the same point at scan 20
+    tracker = MultiTargetTracker("real-imm-singer", r=30.0, associator=associator)
+    ti, tp, ei, ep = _run(tracker, _scene(rng, starts, vels, T, dt, 30.0))
+    out = track_metrics(ti, tp, ei, ep, c=200.0)
+    assert out["id_switches"] == 0 and out["fragmentations"] == 0
+    ids = {truth: {int(e[g["assignment"][k]]) for e, g in zip(ei, out["per_scan"]) if g["assignment"][k] >= 0}
+           for k, truth in enumerate([0, 1])}
+    assert all(len(s) == 1 for s in ids.values()) and ids[0] != ids[1]
+    # confirmed at the M-th scan (M of N), followed throughout since
+    assert all(r["assigned"] == T - (tracker.M - 1) for r in out["per_truth"].values())
+
+
+def test_plot_outside_every_gate_starts_a_tentative_track():
+    """A confirmed track; a plot far outside its gate is kept as a seed, and the next scan's plot within the
+    velocity gate of it starts a tentative track of a new id at that plot, with the velocity the two plots give."""
+    r, dt = 20.0, 1.0
+    tracker = MultiTargetTracker("real-imm-singer", r=r)
+    far0 = np.array([15000.0, 15000.0, 8000.0])
+    far1 = far0 + np.array([-150.0, 100.0, 5.0])
+    for k in range(4):
+        plots = [[200.0 * k, 0.0, 3000.0]]
+        if k == 2:
+            plots.append(far0)
+        if k == 3:
+            plots.append(far1)
+        reps = tracker.step(k * dt, np.array(plots))
+        if k == 2:
+            assert len(tracker.tracks()) == 1 and len(tracker.seed_z) == 1  # a seed, not yet a track
+    (old,) = reps
+    assert old.confirmed and old.updated
+    new = [t for t in tracker.tracks() if t.track_id != old.track_id]
+    assert len(new) == 1 and not new[0].confirmed and new[0].updated and new[0].track_id > old.track_id
+    np.testing.assert_allclose(new[0].state[0::3], far1, atol=1e-9)
+    np.testing.assert_allclose(new[0].state[1::3], (far1 - far0) / dt, atol=1e-9)
+    # a plot too far for max_speed (500 m in 1 s: beyond 300 m/s and 3 standard deviations of the two plots' noise)
+    # pairs with nothing
+    tracker2 = MultiTargetTracker("real-imm-singer", r=r, init=type(tracker.init)(max_speed=300.0))
+    tracker2.step(0.0, far0[None])
+    tracker2.step(1.0, (far0 + [500.0, 0.0, 0.0])[None])
+    assert tracker2.tracks() == [] and len(tracker2.seed_z) == 2
+
+
+def test_unconfirmed_track_is_dropped_after_its_window():
+    """3 of 4: a pair of plots (scans 0, 1) starts a tentative track; with nothing more it lives through scan 2 (it
+    may still get its third hit at scan 3) and is dropped at scan 3; it is never confirmed."""
+    tracker = MultiTargetTracker("real-imm-singer", r=20.0, confirm=(3, 4))
+    p = np.array([1000.0, 2000.0, 3000.0])
+    tracker.step(0.0, p[None])
+    tracker.step(1.0, (p + [100.0, 0, 0])[None])
+    (tent,) = tracker.tracks()
+    assert not tent.confirmed
+    assert tracker.step(2.0, np.zeros((0, 3))) == []
+    assert [t.track_id for t in tracker.tracks()] == [tent.track_id]
+    tracker.step(3.0, np.zeros((0, 3)))
+    assert tracker.tracks() == []
+    # the same start with its third plot at scan 3 confirms
+    tracker = MultiTargetTracker("real-imm-singer", r=20.0, confirm=(3, 4))
+    for k in (0, 1):
+        tracker.step(float(k), (p + [100.0 * k, 0, 0])[None])
+    tracker.step(2.0, np.zeros((0, 3)))
+    (conf,) = tracker.step(3.0, (p + [300.0, 0, 0])[None])
+    assert conf.confirmed and conf.track_id == tent.track_id
+
+
+def test_missed_scan_coasts_then_deletes():
+    """A confirmed track missed at a scan keeps its id, is not updated and stands at its prediction (the last
+    position plus the velocity times the interval); detected again it is updated under the same id; after
+    ``delete_after`` consecutive misses it is gone."""
+    dt = 2.0
+    tracker = MultiTargetTracker("real-imm-singer", r=10.0, delete_after=3)
+    v = np.array([150.0, -80.0, 2.0])
+    p0 = np.array([0.0, 0.0, 4000.0])
+    for k in range(6):
+        reps = tracker.step(k * dt, (p0 + v * k * dt)[None])
+    (rep,) = reps
+    (coast,) = tracker.step(6 * dt, np.zeros((0, 3)))
+    assert coast.track_id == rep.track_id and coast.confirmed and not coast.updated
+    np.testing.assert_allclose(coast.state[0::3], rep.state[0::3] + rep.state[1::3] * dt, atol=1.0)
+    assert np.trace(coast.cov[0::3, 0::3]) > np.trace(rep.cov[0::3, 0::3])
+    (back,) = tracker.step(7 * dt, (p0 + v * 7 * dt)[None])
+    assert back.track_id == rep.track_id and back.updated
+    for k in (8, 9):
+        assert [t.track_id for t in tracker.step(k * dt, np.zeros((0, 3)))] == [rep.track_id]
+    assert tracker.step(10 * dt, np.zeros((0, 3))) == [] and tracker.tracks() == []
+
+
+@pytest.mark.parametrize("associator", ["gnn", "jpda"])
+def test_clutter_alone_confirms_no_track(associator):
+    """40 scans of 20 false plots each (uniform over 40 x 40 x 10 km, 1.25e-12 per m^3) at 5 s: pairs within the
+    speed gate start tentative tracks, and none of them is confirmed."""
+    rng = np.random.default_rng(11)
+    tracker = MultiTargetTracker("real-imm-singer", r=50.0, associator=associator, clutter_density=1.25e-12)
+    started = 0
+    for t, _, plots, _ in _scene(rng, np.zeros((0, 3)), np.zeros((0, 3)), 40, 5.0, 50.0, clutter=20.0):
+        assert tracker.step(t, plots) == []
+        started = max(started, tracker._next_id - 1)
+    assert started >= 3  # initiation ran: tentative tracks were started and dropped
+
+
+def test_one_target_at_pd_09_keeps_one_id():
+    """One flight, detected with probability 0.9, among 5 false plots a scan, 120 scans: one confirmed track follows
+    it from its confirmation to the end, and no other track is ever confirmed."""
+    rng = np.random.default_rng(12)
+    tracker = MultiTargetTracker("real-imm-singer", r=50.0)
+    ti, tp, ei, ep = _run(tracker, _scene(rng, [[-15000.0, -5000.0, 6000.0]], [[120.0, 40.0, 0.0]], 120, 2.0, 50.0,
+                                           pd=0.9, clutter=5.0))
+    out = track_metrics(ti, tp, ei, ep, c=200.0)
+    ids = {int(i) for e in ei for i in e}
+    assert len(ids) == 1 and out["id_switches"] == 0 and out["fragmentations"] == 0
+    first = next(s for s, e in enumerate(ei) if len(e))
+    assert first <= 6 and out["per_truth"][0]["assigned"] == 120 - first
+
+
+def test_monte_carlo_error_is_the_imm_told_the_association():
+    """Three flights, detected with probability 0.95, among 10 false plots a scan (10 runs of 40 scans at 2 s): the
+    tracker's mean position error (each flight against the confirmed track GOSPA pairs it with, scans 10 on) is
+    within 10 % of the single-target IMM's (``real-imm-singer``'s own ``track``) run on each flight's own plots."""
+    import torch
+    from tensordict import TensorDict
+
+    from immnet import keys
+    from immnet.evaluation.methods import build_method
+
+    rng = np.random.default_rng(13)
+    r, dt, T = 40.0, 2.0, 40
+    method = build_method("real-imm-singer")
+    method.r, method.needs = r, ()
+    ours, told = [], []
+    for _ in range(10):
+        starts = rng.uniform([-10e3, -10e3, 3e3], [10e3, 10e3, 8e3], (3, 3))
+        vels = np.concatenate([rng.uniform(-200, 200, (3, 2)), rng.uniform(-5, 5, (3, 1))], 1)
+        z_true = np.full((3, T, 3), np.nan)
+        truth = np.zeros((3, T, 3))
+        tracker = MultiTargetTracker("real-imm-singer", r=r)
+        for k, (t, tr, plots, is_true) in enumerate(_scene(rng, starts, vels, T, dt, r, pd=0.95, clutter=10.0)):
+            truth[:, k] = tr
+            z_true[is_true[is_true >= 0], k] = plots[is_true >= 0]
+            reps = tracker.step(t, plots)
+            if k >= 10:
+                est = np.array([p.state[0::3] for p in reps]).reshape(-1, 3)
+                g = gospa(tr, est, c=500.0)
+                assert g["n_missed"] == 0
+                ours.extend(np.linalg.norm(est[g["assignment"]] - tr, axis=1))
+        batch = TensorDict({keys.MEASUREMENTS: torch.tensor(z_true), keys.DT: torch.full((3,), dt, dtype=torch.float64)},
+                           batch_size=[3])
+        x = method.track(batch)[keys.STATE].numpy()
+        told.extend(np.linalg.norm(x[:, 10:, 0::3] - truth[:, 10:], axis=-1).ravel())
+    assert np.mean(ours) == pytest.approx(np.mean(told), rel=0.10)
+
+
+def test_refusals_name_what_is_wrong():
+    """Bad settings and bad scans: one ValueError naming the problem; the tracker is unchanged by a refused scan."""
+    for kwargs, msg in (({"confirm": (1, 3)}, r"confirm \(M, N\) needs 2 <= M <= N"),
+                        ({"confirm": (5, 4)}, r"confirm \(M, N\) needs 2 <= M <= N"),
+                        ({"confirm": "x"}, r"confirm must be \(M, N\)"),
+                        ({"associator": "nn"}, "associator must be one of gnn, jpda"),
+                        ({"gate": 1.0}, r"gate is a probability in \(0, 1\)"),
+                        ({"delete_after": 0}, "delete_after must be a whole number of scans >= 1"),
+                        ({"pd": 0.0}, r"pd is a probability in \(0, 1\]"),
+                        ({"r": -1.0}, "r must be finite and > 0")):
+        with pytest.raises(ValueError, match=msg):
+            MultiTargetTracker("real-imm-singer", **kwargs)
+    with pytest.raises(ValueError, match="the multi-target tracker's filters are the model-based IMMs"):
+        TrackFilter.from_method("clairvoyant")
+    tracker = MultiTargetTracker("real-imm-singer")  # r: data, so plots need R
+    with pytest.raises(ValueError, match=r"plots without R need the tracker's r \(m\): real-imm-singer assumes none"):
+        tracker.step(0.0, np.zeros((1, 3)))
+    tracker = MultiTargetTracker("real-imm-singer", r=30.0)
+    tracker.step(0.0, np.ones((1, 3)))
+    for args, msg in (((1.0, np.zeros((2, 2))), r"plots must be an array \[N, 3\] of ENU positions \(m\)"),
+                      ((1.0, np.array([[0.0, np.nan, 0.0]])), "plot 0 has a non-finite coordinate"),
+                      ((1.0, np.zeros((1, 3)), np.eye(3)[None].repeat(2, 0)), r"R must be \[N, 3, 3\] for the 1 plots"),
+                      ((1.0, np.zeros((1, 3)), -np.eye(3)[None]), r"R\[0\] is not a finite symmetric positive-definite"),
+                      ((0.0, np.zeros((1, 3))), "scan times must increase, got t = 0.0 after 0.0"),
+                      ((float("nan"), np.zeros((1, 3))), "t must be finite")):
+        with pytest.raises(ValueError, match=msg):
+            tracker.step(*args)
+    assert tracker._t == 0.0 and tracker._scan == 0 and len(tracker.seed_z) == 1
