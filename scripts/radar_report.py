@@ -1,0 +1,92 @@
+"""What a radar engineer asks of a tracker on plots beyond its RMSE: its worst track and its covariance's honesty.
+
+For each method on a data set's split (as ``immnet evaluate``'s): the Average RMSE (the mean over x, y, z of each
+axis's RMSE over every scored scan, ``immnet.evaluation.metrics``), the largest position error of any scan of any track
+(3D, metres) with the number of tracks that ever exceed ``--limit-m`` (1 km), and, where the method gives its state's
+covariance, the share of scans whose 95 % position ellipsoid holds the truth and the mean NEES (3 when calibrated),
+from scan ``--from-scan`` on:
+
+    python scripts/radar_report.py --data runs/radar/data/q5-out --methods radar-imm-5s,radar-imm-robust-5s,immnet-bank \\
+        --json runs/radar/q5-out-report.json --markdown runs/radar/q5-out-report.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def report(method, data, from_scan: int, limit_m: float) -> dict:
+    """One method's row on ``data`` (a TensorDict [N] with ``states``): see the module doc."""
+    import torch
+
+    from immnet import keys
+    from immnet.evaluation.calibration import coverage, position_nees
+    from immnet.evaluation.metrics import scored_mask
+
+    out = method.track(data)
+    truth = data[keys.STATES].double()
+    state = out[keys.STATE].double()
+    mask = scored_mask(data[keys.STATES], data[keys.MEASUREMENTS]).to(state.device)
+    err = state[..., 0::3] - truth[..., 0::3]  # [N, T, 3]
+    axis_rmse = torch.sqrt((err.square() * mask[..., None]).sum((0, 1)) / mask.sum())
+    dist = torch.linalg.vector_norm(err, dim=-1).where(mask, torch.zeros((), dtype=err.dtype))
+    worst = dist.amax(1)  # [N]
+    row = {"rmse": float(axis_rmse.mean()), "worst_m": float(worst.max()), "tracks": int(data.batch_size[0]),
+           "tracks_over_limit": int((worst > limit_m).sum())}
+    if keys.STATE_COV in out.keys():
+        nees = position_nees(out[keys.STATE], out[keys.STATE_COV], data[keys.STATES])
+        m = mask.clone()
+        m[:, :from_scan] = False
+        ok = m & torch.isfinite(nees)
+        row["coverage_95"] = coverage(nees, m, (0.95,))[0.95]
+        row["nees_mean"] = float(nees[ok].mean())
+    return row
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", required=True, help="a data set directory or .npz (with states, the truth)")
+    p.add_argument("--split", choices=("test", "all"), default="test", help="as immnet evaluate's")
+    p.add_argument("--methods", required=True, help="comma-separated method names")
+    p.add_argument("--from-scan", type=int, default=5, help="the first scan whose coverage is scored (default 5)")
+    p.add_argument("--limit-m", type=float, default=1000.0, help="the error a track must never exceed (m, default 1000)")
+    p.add_argument("--json", type=Path)
+    p.add_argument("--markdown", type=Path)
+    args = p.parse_args(argv)
+
+    from immnet.evaluation.cli import load_split
+    from immnet.evaluation.methods import build_method, gives_cov
+
+    data, _ = load_split(args.data, args.split, None)
+    rows = {}
+    for name in (n.strip() for n in args.methods.split(",") if n.strip()):
+        start = time.perf_counter()
+        rows[name] = report(build_method(name, return_cov=gives_cov(name)), data, args.from_scan, args.limit_m)
+        print(f"{name}: {rows[name]} [{time.perf_counter() - start:.0f} s]", file=sys.stderr)
+    lines = [f"| method | Average RMSE (m) | worst error (m) | tracks over {args.limit_m:g} m | 95 % coverage | mean NEES |",
+             "|:---|---:|---:|---:|---:|---:|"]
+    for name, r in rows.items():
+        cov = f"{r['coverage_95']:.3f}" if "coverage_95" in r else "-"
+        nees = f"{r['nees_mean']:.2f}" if "nees_mean" in r else "-"
+        lines.append(f"| {name} | {r['rmse']:.1f} | {r['worst_m']:.0f} | {r['tracks_over_limit']} of {r['tracks']} | "
+                     f"{cov} | {nees} |")
+    print("\n".join(lines))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"data": str(args.data), "split": args.split, "from_scan": args.from_scan,
+                                         "methods": rows}, indent=1) + "\n")
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        args.markdown.write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
