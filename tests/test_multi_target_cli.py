@@ -279,3 +279,23 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
                  "--scene", str(other)]) == 2
     assert capsys.readouterr().err.strip().startswith(f"immnet track: error: --scene {other}: not the scene of this CSV")
     assert not out.exists() and not png.exists()
+
+
+def test_long_inputs_say_where_they_are_and_the_help_names_the_default_filter(tmp_path, capsys, monkeypatch):
+    """From ``LONG`` scans a run prints progress lines on stderr (here, not a terminal: plain lines); the help's
+    defaults (the filter, JPDA's pd and clutter density) are the tracker's."""
+    from immnet.tracking import cli, multi, multi_cli
+
+    import inspect
+
+    assert cli.DEFAULT_FILTER == multi.DEFAULT_FILTER
+    defaults = inspect.signature(multi.MultiTargetTracker).parameters
+    assert (defaults["pd"].default, defaults["clutter_density"].default) == (0.9, 1e-12)  # as the help says
+    monkeypatch.setattr(multi_cli, "LONG", T)
+    _track(tmp_path, ["t", "x", "y", "z"], _scans(_cartesian), "--r", str(R_STD))
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == f"[track] 0/{T} scans" and err[-2].startswith(f"[track] {T} scans in ")
+    monkeypatch.setattr(multi_cli, "LONG", T + 1)
+    (tmp_path / "tracks.csv").unlink()
+    _track(tmp_path, ["t", "x", "y", "z"], _scans(_cartesian), "--r", str(R_STD))
+    assert not any(line.startswith("[track]") for line in capsys.readouterr().err.splitlines())

@@ -53,7 +53,8 @@ On disk (:func:`save_scene`, :func:`load_scene`): one ``.npz`` per scene, read w
 ``truth_states`` is ``[x, vx, ax, y, vy, ay, z, vz, az]`` (m, m/s, m/s^2), the layout of every data set. The
 truth (``truth_*``, ``plot_source``) is for scoring only: a tracker reads ``t``, ``plots`` and ``plot_cov``
 (:meth:`Scene.scans`). :func:`write_plots_csv` writes a scene's plots as ``t,range,azimuth,elevation``
-(m, degrees clockwise from north, degrees), the polar stream a radar gives.
+(m, degrees clockwise from north, degrees), the polar stream a radar gives; :func:`read_plots_csv` reads it back
+through ``immnet.tracking.io.read_plots_csv``, the reader of ``immnet track`` (docs/multi-target.md).
 """
 
 from __future__ import annotations

@@ -88,7 +88,7 @@ def register(subparsers) -> None:
                                ("elevation", "DEG", "elevation (degrees)")):
         p.add_argument(
             f"--sigma-{option}", type=float, default=None, metavar=unit,
-            help=f"the radar's {what} std, for a CSV of plots (track_id,t,range,azimuth,elevation) without the columns "
+            help=f"the radar's {what} std, for a CSV of plots (range,azimuth,elevation) without the columns "
                  f"sigma_range,sigma_azimuth,sigma_elevation: the three options together (docs/tracking.md, 'Input')",
         )
     p.add_argument("--associator", default=None, choices=("gnn", "jpda"),

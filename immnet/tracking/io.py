@@ -16,6 +16,11 @@ in input order, its ``t`` written exactly as the input gave it, and empty fields
 estimate (before a track's first detection, or after it was dropped for coasting too long). After the state
 and the mode probabilities come the 21 entries of the position-velocity covariance (``COV_COLUMNS``), empty
 throughout for a tracker that keeps no covariance.
+
+A radar's unlabelled plots (:func:`read_plots_csv`, the multi-target tracker's input; docs/multi-target.md): the same
+columns without ``track_id``, ``t, range, azimuth, elevation`` or ``t, x, y, z``, the rows of a scan sharing its ``t``
+(equal as exact decimals), scans in time order, a row of ``t`` alone a scan without plots; the output has one line
+per confirmed track per scan (``PLOT_OUT_COLUMNS``: the state columns, ``updated``, the covariance columns).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, M-of-N confirmation,
-coasting and deletion around a batched per-track filter (docs/tracking.md, "Many targets").
+coasting and deletion around a batched per-track filter (docs/multi-target.md, "The tracker").
 
     tracker = MultiTargetTracker("real-imm-singer", r=50.0)      # any model-based IMM or Kalman filter by name
     for t, plots in scans:                                        # plots [N, 3] ENU (m); R [N, 3, 3] optional
