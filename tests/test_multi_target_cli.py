@@ -142,7 +142,7 @@ def test_joint_imm_gives_the_data_modes(tmp_path):
 
 def test_a_scan_without_plots_and_sigma_columns(tmp_path):
     """``t,,,`` is a scan without plots (the tracks coast: updated 0); per-row stds as the single-target CSV takes
-    them give what the options give."""
+    them give what the options give; scans without any plot make no track, a header alone and an empty display."""
     scans = _scans(_polar)
     header = ["t", "range", "azimuth", "elevation", "sigma_range", "sigma_azimuth", "sigma_elevation"]
     rows = []
@@ -159,6 +159,11 @@ def test_a_scan_without_plots_and_sigma_columns(tmp_path):
     _write(tmp_path / "q.csv", header[:4], [r[:4] for r in rows])
     assert main(["track", "--input", str(tmp_path / "q.csv"), "--output", str(tmp_path / "b.csv"), *SIGMAS]) == 0
     assert got == _read(tmp_path / "b.csv")
+    _write(tmp_path / "none.csv", header[:4], [[t, "", "", ""] for t, _ in scans])  # scans, none with a plot
+    assert main(["track", "--input", str(tmp_path / "none.csv"), "--output", str(tmp_path / "c.csv"), *SIGMAS,
+                 "--figure", str(tmp_path / "c.png")]) == 0
+    assert (tmp_path / "c.csv").read_text().splitlines() == [",".join(PLOT_OUT_COLUMNS)]
+    assert (tmp_path / "c.png").stat().st_size > 5_000
 
 
 GOOD = [["0", "1000", "2000", "3000"], ["2", "1400", "2000", "3000"]]

@@ -254,8 +254,8 @@ def plot_radar_display(plots, tracks: Mapping[int, object], path, clutter=None, 
     dot, or with ``clutter [P]`` (True: a false plot, known from a scene's truth) the clutter apart; each track of
     ``tracks`` (id -> positions ``[n, >=2]``, m, in time order) as a line with its id at its last point. East and
     north in km, the radar at the origin, range rings at a round spacing."""
-    P = np.asarray(plots, dtype=np.float64).reshape(len(plots), -1)[:, :2] / 1e3
-    lines = {int(k): np.asarray(v, dtype=np.float64).reshape(len(v), -1)[:, :2] / 1e3 for k, v in tracks.items()}
+    P = np.asarray(plots, dtype=np.float64)[:, :2] / 1e3
+    lines = {int(k): np.asarray(v, dtype=np.float64)[:, :2] / 1e3 for k, v in tracks.items()}
     every = np.concatenate([P, *lines.values(), np.zeros((1, 2))])
     extent = max(float(np.hypot(every[:, 0], every[:, 1]).max()), 1.0)
     step = _ring_step(extent)
