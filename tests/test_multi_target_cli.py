@@ -289,9 +289,9 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
 def test_long_inputs_say_where_they_are_and_the_help_names_the_default_filter(tmp_path, capsys, monkeypatch):
     """From ``LONG`` scans a run prints progress lines on stderr (here, not a terminal: plain lines); the help's
     defaults (the filter, JPDA's pd and clutter density) are the tracker's."""
-    from immnet.tracking import cli, multi, multi_cli
-
     import inspect
+
+    from immnet.tracking import cli, multi, multi_cli
 
     assert cli.DEFAULT_FILTER == multi.DEFAULT_FILTER
     defaults = inspect.signature(multi.MultiTargetTracker).parameters
