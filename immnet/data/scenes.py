@@ -75,8 +75,10 @@ import numpy as np
 from immnet.data import adsb, radar
 from immnet.data.geodesy import geodetic_to_enu
 from immnet.data.scratch import check_writable, publishing
+
 # the plot CSV is immnet track's: one reader of it, immnet.tracking.io's
-from immnet.tracking.io import PLOT_COLUMNS as CSV_COLUMNS, read_plots_csv as _read_plots
+from immnet.tracking.io import PLOT_COLUMNS as CSV_COLUMNS
+from immnet.tracking.io import read_plots_csv as _read_plots
 
 FORMAT = "scene"
 FORMAT_VERSION = 1
