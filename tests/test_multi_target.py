@@ -1,6 +1,6 @@
 """Many targets: GOSPA and the identity metrics (against Stone Soup and hand counts), the multi-target tracker's
 filter (against the single-target IMMs), association on hand-made scenes, clutter, and a Monte Carlo check against
-the IMM told the association (docs/tracking.md, "Many targets")."""
+the IMM told the association (docs/multi-target.md, "The tracker")."""
 
 from __future__ import annotations
 

@@ -163,7 +163,7 @@ def test_plot_csv_round_trips(tmp_path):
                            rtol=0, atol=1e-6)
     bad = tmp_path / "bad.csv"
     bad.write_text("t,range,azimuth,elevation\n1,100,2,x\n")
-    with pytest.raises(ValueError, match="line 2 is not four numbers"):
+    with pytest.raises(ValueError, match="line 2: column .elevation. is not a number: .x."):
         S.read_plots_csv(bad)
 
 

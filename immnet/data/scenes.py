@@ -53,7 +53,8 @@ On disk (:func:`save_scene`, :func:`load_scene`): one ``.npz`` per scene, read w
 ``truth_states`` is ``[x, vx, ax, y, vy, ay, z, vz, az]`` (m, m/s, m/s^2), the layout of every data set. The
 truth (``truth_*``, ``plot_source``) is for scoring only: a tracker reads ``t``, ``plots`` and ``plot_cov``
 (:meth:`Scene.scans`). :func:`write_plots_csv` writes a scene's plots as ``t,range,azimuth,elevation``
-(m, degrees clockwise from north, degrees), the polar stream a radar gives.
+(m, degrees clockwise from north, degrees), the polar stream a radar gives; :func:`read_plots_csv` reads it back
+through ``immnet.tracking.io.read_plots_csv``, the reader of ``immnet track`` (docs/multi-target.md).
 """
 
 from __future__ import annotations
@@ -75,12 +76,15 @@ from immnet.data import adsb, radar
 from immnet.data.geodesy import geodetic_to_enu
 from immnet.data.scratch import check_writable, publishing
 
+# the plot CSV is immnet track's: one reader of it, immnet.tracking.io's
+from immnet.tracking.io import PLOT_COLUMNS as CSV_COLUMNS
+from immnet.tracking.io import read_plots_csv as _read_plots
+
 FORMAT = "scene"
 FORMAT_VERSION = 1
 TRAIN_SAMPLES = ("collections/quickstart",)
 """The samples whose scenes are for training and tuning; scenes of any other sample are for evaluation only."""
 INDEX = "scenes.json"
-CSV_COLUMNS = ("t", "range", "azimuth", "elevation")
 SPLITS = ("train", "test")
 
 
@@ -608,36 +612,14 @@ def write_plots_csv(scene: Scene, path) -> Path:
 
 
 def read_plots_csv(path) -> list[tuple[float, np.ndarray]]:
-    """``[(t, polar [N, 3])]`` per scan (rows of one ``t`` together, in file order; ``t,,,`` a scan without plots):
-    range (m), azimuth and elevation (degrees), from a ``t,range,azimuth,elevation`` CSV. A ValueError names the row that is wrong."""
-    path = Path(path)
-    scans: list[tuple[float, list]] = []
-    with open(path, newline="", encoding="utf-8-sig") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None or [h.strip() for h in header] != list(CSV_COLUMNS):
-            raise ValueError(f"{path}: expected the header {','.join(CSV_COLUMNS)}, got {header}")
-        for i, row in enumerate(reader, 2):
-            if not row:
-                continue
-            empty = len(row) == 4 and not any(v.strip() for v in row[1:])
-            try:
-                if len(row) != 4:
-                    raise ValueError
-                t, rho, az, el = (float(v) for v in (row if not empty else [row[0], 0, 0, 0]))
-            except ValueError:
-                raise ValueError(f"{path}: line {i} is not four numbers t,range,azimuth,elevation (or a time "
-                                 f"alone: a scan without plots): {row}") from None
-            if not all(map(math.isfinite, (t, rho, az, el))) or rho < 0 or not -90 <= el <= 90:
-                raise ValueError(f"{path}: line {i} has t={t}, range={rho}, elevation={el}: need finite numbers, "
-                                 f"range >= 0 and elevation in [-90, 90] degrees")
-            if scans and t < scans[-1][0]:
-                raise ValueError(f"{path}: line {i}: time {t} goes back (previous scan at {scans[-1][0]})")
-            if not scans or t != scans[-1][0]:
-                scans.append((t, []))
-            if not empty:
-                scans[-1][1].append((rho, az, el))
-    return [(t, np.asarray(p, np.float64).reshape(-1, 3)) for t, p in scans]
+    """``[(t, polar [N, 3])]`` per scan: range (m), azimuth and elevation (degrees), from a ``t,range,azimuth,elevation``
+    CSV, read and checked by the one reader of plot CSVs, ``immnet.tracking.io.read_plots_csv`` (which ``immnet track``
+    reads them with): rows of one ``t`` together, scans in time order, ``t,,,`` a scan without plots. A ValueError
+    names the line that is wrong."""
+    got = _read_plots(path, convert=False)
+    if not got.polar:
+        raise ValueError(f"{path}: the plots are x,y,z; a scene's are {','.join(CSV_COLUMNS)}")
+    return [(float(t), got.given[a:b]) for t, a, b in zip(got.t, got.offsets[:-1], got.offsets[1:])]
 
 
 # --- a set of scenes ------------------------------------------------------------------------------

@@ -6,7 +6,8 @@
     trajectory against its true modes; (d) :func:`plot_confusion`: a row-normalized confusion
     matrix. :func:`write_figures` writes the set that ``immnet evaluate --figures DIR`` makes.
 (e) :func:`plot_calibration`: coverage of the position ellipsoids against their confidence level
-    (``scripts/calibration.py``).
+    (``scripts/calibration.py``). (f) :func:`plot_radar_display`: the multi-target tracker's plots, clutter and
+    tracks on a radar display (``immnet track --figure``).
 """
 
 from __future__ import annotations
@@ -236,3 +237,51 @@ def plot_calibration(curves: Mapping[str, Mapping[float, float]], path, title="P
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def _ring_step(extent_km: float) -> float:
+    """A round spacing (1, 2 or 5 times a power of ten, km) giving three to six range rings out to ``extent_km``."""
+    for power in range(-1, 6):
+        for m in (1.0, 2.0, 5.0):
+            step = m * 10.0**power
+            if extent_km / step <= 6:
+                return step
+    return 10.0**6
+
+
+def plot_radar_display(plots, tracks: Mapping[int, object], path, clutter=None, title=None) -> Path:
+    """A radar display of a run of the multi-target tracker: every plot ``plots [P, >=2]`` (east, north, m) as a grey
+    dot, or with ``clutter [P]`` (True: a false plot, known from a scene's truth) the clutter apart; each track of
+    ``tracks`` (id -> positions ``[n, >=2]``, m, in time order) as a line with its id at its last point. East and
+    north in km, the radar at the origin, range rings at a round spacing."""
+    P = np.asarray(plots, dtype=np.float64)[:, :2] / 1e3
+    lines = {int(k): np.asarray(v, dtype=np.float64)[:, :2] / 1e3 for k, v in tracks.items()}
+    every = np.concatenate([P, *lines.values(), np.zeros((1, 2))])
+    extent = max(float(np.hypot(every[:, 0], every[:, 1]).max()), 1.0)
+    step = _ring_step(extent)
+    fig, ax = plt.subplots(figsize=(7.0, 7.0))
+    for r in np.arange(step, extent + step, step):
+        ax.add_patch(matplotlib.patches.Circle((0.0, 0.0), r, fill=False, color="0.8", lw=0.7, zorder=0))
+        ax.text(r * 0.7071, r * 0.7071, f"{r:g} km", color="0.55", fontsize=7, zorder=0)
+    if clutter is None:
+        ax.scatter(P[:, 0], P[:, 1], s=4, color="0.6", lw=0, label="plots", zorder=1)
+    else:
+        c = np.asarray(clutter, dtype=bool)
+        ax.scatter(P[~c, 0], P[~c, 1], s=4, color="0.5", lw=0, label="plots of aircraft", zorder=1)
+        ax.scatter(P[c, 0], P[c, 1], s=9, color="tab:orange", marker="x", lw=0.6, alpha=0.7, label="clutter", zorder=1)
+    colors = plt.get_cmap("tab10")
+    for i, (tid, xy) in enumerate(sorted(lines.items())):
+        color = colors(i % 10)
+        ax.plot(xy[:, 0], xy[:, 1], color=color, lw=1.3, zorder=2, label="tracks (id at the last point)" if i == 0 else None)
+        ax.text(xy[-1, 0], xy[-1, 1], f" {tid}", color=color, fontsize=8, fontweight="bold", zorder=3)
+    ax.plot([0.0], [0.0], marker="^", color="k", ms=7, ls="", label="radar", zorder=3)
+    lim = extent + step * 0.25
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.set_aspect("equal")
+    ax.set_xlabel("east (km)")
+    ax.set_ylabel("north (km)")
+    ax.set_title(title or f"{len(lines)} tracks, {len(P)} plots")
+    ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
+    fig.tight_layout()
+    return save_figure(fig, path)

@@ -23,6 +23,10 @@ from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, s
 from immnet.data.validate import MAX_ABS_POSITION
 from immnet.tracking.segments import MAX_COAST, check_coast
 
+DEFAULT_FILTER = "real-imm-singer"
+"""``immnet.tracking.multi.DEFAULT_FILTER``, named here so that ``immnet track --help`` needs no torch (a test holds
+them equal)."""
+
 
 WEIGHTS_HELP = {BANK: TABLE["bank"]["summary"], **{name: entry["summary"] for name, entry in WEIGHTS.items()}}
 """What each name ``--weights`` takes tracks with (``immnet.checkpoints.SHIPPED`` and ``BANK``), for its help."""
@@ -39,12 +43,15 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "track",
-        help="track your own measurements (CSV track_id,t,x,y,z or .npz) with a trained IMMNet",
+        help="track your own measurements (CSV track_id,t,x,y,z or .npz) with a trained IMMNet, or a radar's "
+             "unlabelled plots (CSV t,range,azimuth,elevation or t,x,y,z) with the multi-target tracker",
         formatter_class=_HelpFormatter,
     )
     p.add_argument("--input", required=True, type=Path,
                    help="CSV (track_id,t,x,y,z, optional r_xx..r_zz; or a radar's plots track_id,t,range,azimuth,"
-                        "elevation) or .npz with measurements [N,T,3]")
+                        "elevation) or .npz with measurements [N,T,3]; a CSV without a track_id column (t,range,"
+                        "azimuth,elevation or t,x,y,z, the rows of a scan sharing its t) is a radar's unlabelled "
+                        "plots, tracked by the multi-target tracker (docs/multi-target.md)")
     p.add_argument("--output", required=True, type=Path, help="CSV or .npz (same kind as the input)")
     names = (DEFAULT_WEIGHTS, *(name for name in (BANK, *SHIPPED) if name != DEFAULT_WEIGHTS))
     p.add_argument("--weights", default=None, choices=sorted([*SHIPPED, BANK]),
@@ -54,13 +61,15 @@ def register(subparsers) -> None:
     p.add_argument("--checkpoint", default=None, help="a Lightning checkpoint or exported weights of your own instead")
     p.add_argument("--method", default=None,
                    help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "
-                        "interval (e.g. imm-tuned) tracks each row as a scan at its own time (any spacing)")
+                        "interval (e.g. imm-tuned) tracks each row as a scan at its own time (any spacing). Plots "
+                        f"without track_id: the multi-target tracker's per-track filter, a model-based IMM or Kalman "
+                        f"filter by name (default {DEFAULT_FILTER}, the per-axis IMM tuned on real flights)")
     p.add_argument("--max-position", type=float, default=MAX_ABS_POSITION,
                    help="largest |x|, |y|, |z| (m) a detection may have; beyond it, or non-finite, a measurement "
                         "is a missed detection (counted on stderr); 'inf' keeps every finite one")
-    p.add_argument("--max-coast", type=float, default=MAX_COAST,
-                   help="seconds a track may go without a detection before it is dropped; its next "
-                        "detection starts it again ('inf': never dropped)")
+    p.add_argument("--max-coast", type=float, default=None,
+                   help=f"seconds a track may go without a detection before it is dropped; its next "
+                        f"detection starts it again ('inf': never dropped; default {MAX_COAST:g})")
     p.add_argument(
         "--guard", default="checkpoint",
         help="range guard: 'checkpoint' (as trained: none in the general weights and in the bank's members, the default; "
@@ -79,9 +88,22 @@ def register(subparsers) -> None:
                                ("elevation", "DEG", "elevation (degrees)")):
         p.add_argument(
             f"--sigma-{option}", type=float, default=None, metavar=unit,
-            help=f"the radar's {what} std, for a CSV of plots (track_id,t,range,azimuth,elevation) without the columns "
+            help=f"the radar's {what} std, for a CSV of plots (range,azimuth,elevation) without the columns "
                  f"sigma_range,sigma_azimuth,sigma_elevation: the three options together (docs/tracking.md, 'Input')",
         )
+    p.add_argument("--associator", default=None, choices=("gnn", "jpda"),
+                   help="plots without track_id: how plots go to tracks, gnn (an optimal assignment, the default) "
+                        "or jpda (each track updated by its gated plots, weighted by their association probabilities)")
+    p.add_argument("--pd", type=float, default=None,
+                   help="--associator jpda: the probability that an aircraft is detected at a scan (default 0.9)")
+    p.add_argument("--clutter-density", type=float, default=None, metavar="PER_M3",
+                   help="--associator jpda: false plots per m^3 (default 1e-12)")
+    p.add_argument("--figure", type=Path, default=None, metavar="FILE.png",
+                   help="plots without track_id: draw the run as a radar display (plots, tracks with their ids, "
+                        "range rings)")
+    p.add_argument("--scene", type=Path, default=None, metavar="SCENE.npz",
+                   help="with --figure: the scene file (immnet data scenes) the CSV was written from; its truth "
+                        "marks the clutter")
     p.add_argument(
         "--adapt", action="store_true",
         help="adaptive process noise in the filter experts (immnet.imm.adaptive.AdaptiveNoise): for targets "
@@ -271,15 +293,32 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     return 0
 
 
+def _labelled(path: Path) -> bool:
+    """Whether a CSV's rows name their track (a ``track_id`` column; an empty file too, which its reader refuses):
+    else they are a radar's unlabelled plots, for the multi-target tracker."""
+    from immnet.tracking.io import csv_header
+
+    header = csv_header(path)
+    return header is None or "track_id" in header
+
+
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
     from immnet.imm.guard import parse_guard
     from immnet.tracking.tracker import KEEP, Tracker
 
+    from immnet.tracking import multi_cli
+
     _check_options(args)
     check_paths(args.input, args.output)
+    labelled = args.input.suffix.lower() != ".csv" or _labelled(args.input)
+    multi_cli.check_options(args, labelled)
     limit = check_limit(args.max_position)
     r = _told_r(args)
+    if not labelled:
+        return multi_cli.track_plots(args, limit)
+    if args.max_coast is None:
+        args.max_coast = MAX_COAST
     if args.input.suffix.lower() == ".csv":
         from immnet.tracking.advice import track_intervals
         from immnet.tracking.io import read_tracks_csv, write_tracks_csv

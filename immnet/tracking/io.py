@@ -16,6 +16,11 @@ in input order, its ``t`` written exactly as the input gave it, and empty fields
 estimate (before a track's first detection, or after it was dropped for coasting too long). After the state
 and the mode probabilities come the 21 entries of the position-velocity covariance (``COV_COLUMNS``), empty
 throughout for a tracker that keeps no covariance.
+
+A radar's unlabelled plots (:func:`read_plots_csv`, the multi-target tracker's input; docs/multi-target.md): the same
+columns without ``track_id``, ``t, range, azimuth, elevation`` or ``t, x, y, z``, the rows of a scan sharing its ``t``
+(equal as exact decimals), scans in time order, a row of ``t`` alone a scan without plots; the output has one line
+per confirmed track per scan (``PLOT_OUT_COLUMNS``: the state columns, ``updated``, the covariance columns).
 """
 
 from __future__ import annotations
@@ -126,9 +131,10 @@ def check_sigmas(sigmas) -> tuple[float, float, float] | None:
     return tuple(float(v) for v in sigmas)
 
 
-def _layout(header: list[str], sigmas) -> tuple[bool, tuple[str, ...]]:
+def _layout(header: list[str], sigmas, ids: bool = True, need_stds: bool = True) -> tuple[bool, tuple[str, ...]]:
     """``(polar, extra)``: whether the rows are a radar's plots, and the optional columns read beside the
-    positions (``SIGMA_COLUMNS``, ``R_COLUMNS`` or none); a ValueError for a header this module does not read."""
+    positions (``SIGMA_COLUMNS``, ``R_COLUMNS`` or none); a ValueError for a header this module does not read.
+    ``ids``: the rows name their track (``track_id``); ``need_stds``: plots are converted, so need their stds."""
     cart = [c for c in "xyz" if c in header]
     pol = [c for c in POLAR_COLUMNS[2:] if c in header]
     sig = [c for c in SIGMA_COLUMNS if c in header]
@@ -138,12 +144,13 @@ def _layout(header: list[str], sigmas) -> tuple[bool, tuple[str, ...]]:
                          f"(range,azimuth,elevation) positions: give one of the two")
     want, extra, other, other_kind = ((POLAR_COLUMNS, sig, cov, "x,y,z rows' covariance") if pol else
                                       (IN_COLUMNS, cov, sig, "range,azimuth,elevation rows' stds"))
+    want = want if ids else want[1:]
     missing = [c for c in want if c not in header]
     if missing:
         raise ValueError(f"line 1: missing column(s) {', '.join(missing)} (expected {','.join(want)})")
     if other:
         raise ValueError(f"line 1: column(s) {','.join(other)} are the {other_kind}, not for "
-                         f"{','.join(want[2:])} rows")
+                         f"{','.join(want[-3:])} rows")
     full = SIGMA_COLUMNS if pol else R_COLUMNS
     if extra and len(extra) < len(full):
         raise ValueError(f"line 1: missing column(s) {', '.join(c for c in full if c not in extra)} (the columns "
@@ -151,7 +158,7 @@ def _layout(header: list[str], sigmas) -> tuple[bool, tuple[str, ...]]:
     if pol and extra and sigmas is not None:
         raise ValueError(f"line 1: columns {','.join(SIGMA_COLUMNS)} and the options {', '.join(SIGMA_OPTIONS)} both "
                          f"give the radar's stds: give one of the two")
-    if pol and not extra and sigmas is None:
+    if pol and not extra and sigmas is None and need_stds:
         raise ValueError(f"line 1: range,azimuth,elevation rows need the radar's stds: give {' METRES '.join(SIGMA_OPTIONS[:2])} "
                          f"DEG {SIGMA_OPTIONS[2]} DEG, or the columns {','.join(SIGMA_COLUMNS)}")
     if not pol and sigmas is not None:
@@ -220,7 +227,8 @@ def _read_rows(path: Path, reader, ids, times, ts, zs, lines, extras, sigmas=Non
             raise ValueError(f"line {line}: {len(rec)} fields, expected {len(header)}")
         tid = rec[col["track_id"]].strip()
         if not tid:
-            raise ValueError(f"line {line}: column 'track_id' is empty")
+            raise ValueError(f"line {line}: column 'track_id' is empty: in a CSV with a track_id column every row "
+                             f"names its track (unlabelled plots, for the multi-target tracker, have no such column)")
         text = rec[col["t"]].strip()
         t = _time(text, line)
         xyz = _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in "xyz"]
@@ -282,6 +290,149 @@ def read_tracks_csv(path: str | Path, sigmas=None) -> CsvTracks:
             if e is not None:
                 cov[i] = e
     return CsvTracks(ids, times, ts, z, lines, cov, polar)
+
+
+PLOT_COLUMNS = ("t", "range", "azimuth", "elevation")
+"""A radar's unlabelled plots (no ``track_id``): the multi-target tracker's input, as ``immnet data scenes`` writes it."""
+CART_PLOT_COLUMNS = ("t", "x", "y", "z")
+"""Unlabelled plots in east-north-up coordinates (m)."""
+PLOT_OUT_COLUMNS = STATE_COLUMNS + ("updated",) + COV_COLUMNS
+"""The multi-target output: a confirmed track at a scan, ``updated`` 1 where a plot updated it there, else 0."""
+
+
+@dataclass
+class CsvPlots:
+    """The scans of a plots CSV (no ``track_id``), in file order. Per scan: ``times [S]`` (its ``t`` text as its
+    first row gives it, stripped), ``t [S]`` (the same as exact decimals), ``scan_lines [S]`` (its first line),
+    ``offsets [S + 1]`` (scan ``k``'s plots are rows ``offsets[k]:offsets[k + 1]``). Per plot: ``given [P, 3]`` (as
+    the file gives it: ``x, y, z`` m, or ``range`` m, ``azimuth``, ``elevation`` degrees), ``lines [P]``, ``z [P, 3]``
+    (east-north-up, m; None where the plots were read without converting them) and ``cov [P, 3, 3]`` (m^2; None for
+    ``x, y, z`` without ``R_COLUMNS``); ``polar``: the plots were ``range, azimuth, elevation``."""
+
+    times: list[str]
+    t: list[Decimal]
+    scan_lines: list[int]
+    offsets: np.ndarray
+    given: np.ndarray
+    lines: np.ndarray
+    z: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    polar: bool = False
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def scan(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """Scan ``k``'s plots ``z [N, 3]`` and their covariances ``[N, 3, 3]`` (None where the file gives none)."""
+        a, b = self.offsets[k], self.offsets[k + 1]
+        return self.z[a:b], None if self.cov is None else self.cov[a:b]
+
+
+def csv_header(path: str | Path) -> list[str] | None:
+    """A CSV's first row, each name stripped (a byte-order mark dropped); None for an empty file."""
+    with Path(path).open(newline="", encoding="utf-8-sig") as f:
+        try:
+            header = next(csv.reader(f), None)
+        except csv.Error as err:
+            raise ValueError(f"line 1: not readable as CSV ({err})") from None
+    return None if header is None else [h.strip() for h in header]
+
+
+def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
+    """The scans of ``reader``'s rows after its header, each row checked (``read_plots_csv``)."""
+    header = next(reader, None)
+    if header is None:
+        raise ValueError(f"{path}: empty file (expected a header {','.join(PLOT_COLUMNS)} or "
+                         f"{','.join(CART_PLOT_COLUMNS)})")
+    header = [h.strip() for h in header]
+    polar, extra = _layout(header, sigmas, ids=False, need_stds=convert)
+    names = PLOT_COLUMNS if polar else CART_PLOT_COLUMNS
+    pos = names[1:]
+    col = {c: header.index(c) for c in (*names, *extra)}
+    times, ts, scan_lines, offsets, given, lines, extras = [], [], [], [0], [], [], []
+    empty_line = None  # the line of the current scan's empty row (a scan without plots), if any
+    for line, rec in enumerate(reader, start=2):
+        if not rec or all(not v.strip() for v in rec):
+            continue
+        if len(rec) != len(header):
+            raise ValueError(f"line {line}: {len(rec)} fields, but the header has {len(header)} ({','.join(header)})")
+        text = rec[col["t"]].strip()
+        t = _time(text, line)
+        xyz = _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in pos]
+        empty = [repr(c) for c, v in zip(pos, xyz) if math.isnan(v)]
+        if 0 < len(empty) < 3:
+            raise ValueError(f"line {line}: column{'s' if len(empty) > 1 else ''} {', '.join(empty)} "
+                             f"{'are' if len(empty) > 1 else 'is'} empty in a plot: a plot gives {','.join(pos)}, all "
+                             f"three (a scan without plots leaves all three empty)")
+        if not ts or t != ts[-1]:  # a new scan
+            if ts and t < ts[-1]:
+                raise ValueError(f"line {line}: time {text} is before the previous scan's time {times[-1]} (line "
+                                 f"{scan_lines[-1]}): scans come in time order, the plots of a scan together under "
+                                 f"its t")
+            if ts and float(t) <= float(ts[-1]):
+                raise ValueError(f"line {line}: time {text} and the previous scan's time {times[-1]} are one number in "
+                                 f"float64: give the plots of one scan one t")
+            if ts:
+                offsets.append(len(given))
+            times.append(text)
+            ts.append(t)
+            scan_lines.append(line)
+            empty_line = None
+        has_plots = len(given) > offsets[-1]
+        if empty and has_plots or not empty and empty_line is not None:
+            first = lines[offsets[-1]] if has_plots else line
+            raise ValueError(f"line {line}: the scan at time {times[-1]} has a plot (line {first}) and an empty row "
+                             f"(line {line if empty else empty_line}: a scan without plots): give one or the other")
+        if empty:
+            empty_line = line
+            continue
+        if extra:
+            extras.append(_stds(rec, col, line) if polar else _covariance(rec, col, line))
+        given.append(xyz)
+        lines.append(line)
+    if not ts:
+        raise ValueError(f"{path}: no data rows")
+    offsets.append(len(given))
+    given = np.asarray(given, dtype=np.float64).reshape(-1, 3)
+    out = CsvPlots(times, ts, scan_lines, np.asarray(offsets, np.int64), given, np.asarray(lines, np.int64),
+                   polar=polar)
+    if polar and convert:
+        out.z, out.cov = _to_enu(given, extras, sigmas)
+    elif not polar:
+        out.z = given
+        if extra:
+            out.cov = np.asarray(extras, dtype=np.float64).reshape(-1, 3, 3)
+    return out
+
+
+def read_plots_csv(path: str | Path, sigmas=None, convert: bool = True) -> CsvPlots:
+    """Parse and check a CSV of unlabelled plots, ``t, range, azimuth, elevation`` or ``t, x, y, z`` (no
+    ``track_id``; optional columns as for ``read_tracks_csv``: ``SIGMA_COLUMNS`` beside polar plots, ``R_COLUMNS``
+    beside Cartesian ones), into scans: the rows of one scan share its ``t`` (equal as exact decimals), scans come in
+    time order, and a row of ``t`` alone (the positions empty) is a scan without plots. Polar plots are converted to
+    east-north-up with their covariance (``sigmas`` or the ``sigma_*`` columns, as ``read_tracks_csv``); with
+    ``convert=False`` they are only read and checked (no stds needed). Every problem is a ValueError naming its
+    line."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"input not found: {path}")
+    sigmas = check_sigmas(sigmas)
+    with path.open(newline="", encoding="utf-8-sig") as f:
+        reader = csv.reader(f)
+        try:
+            return _read_plot_rows(path, reader, sigmas, convert)
+        except csv.Error as err:
+            raise ValueError(f"line {reader.line_num}: not readable as CSV ({err})") from None
+
+
+def plot_track_rows(time: str, ids, state: np.ndarray, mode_probs: np.ndarray | None, updated,
+                    state_cov: np.ndarray) -> list[list]:
+    """The ``PLOT_OUT_COLUMNS`` rows of a scan's confirmed tracks: ``ids [K]``, ``state [K, 9]``, ``mode_probs
+    [K, 4]`` (None: empty fields), ``updated [K]`` (written 1/0), ``state_cov [K, 9, 9]``."""
+    cov = cov_columns(state_cov)
+    probs = np.full((len(ids), 4), np.nan) if mode_probs is None else mode_probs
+    return [[int(i), time, *map(_field, state[k]), *map(_field, probs[k]), int(bool(updated[k])),
+             *map(_cov_field, cov[k])] for k, i in enumerate(ids)]
 
 
 def _field(v: float) -> str:

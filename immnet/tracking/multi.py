@@ -1,5 +1,5 @@
 """Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, M-of-N confirmation,
-coasting and deletion around a batched per-track filter (docs/tracking.md, "Many targets").
+coasting and deletion around a batched per-track filter (docs/multi-target.md, "The tracker").
 
     tracker = MultiTargetTracker("real-imm-singer", r=50.0)      # any model-based IMM or Kalman filter by name
     for t, plots in scans:                                        # plots [N, 3] ENU (m); R [N, 3, 3] optional
@@ -307,6 +307,16 @@ class IMMFilter(TrackFilter):
         """The mode probabilities ``[K, G, M]`` (after ``predict``: the predicted ones)."""
         return self.mu.numpy()
 
+    def data_mode_probs(self) -> np.ndarray | None:
+        """The probabilities of the data modes CV, CA, CT+, CT- ``[K, 4]`` (each model's summed into the mode it
+        stands for, as the single-target IMMs report them); None for modes per axis (an axis has none of the data
+        modes) and for one model (a Kalman filter: no mode to weigh)."""
+        if self.groups != "joint" or self.M == 1:
+            return None
+        from immnet.filters.base import data_mode_probs
+
+        return data_mode_probs(self.mu[:, 0], self.model_set.modes).numpy()
+
 
 # --- association ---------------------------------------------------------------------------------------------------
 
@@ -455,6 +465,9 @@ class TrackReport:
 
 
 ASSOCIATORS = ("gnn", "jpda")
+DEFAULT_FILTER = "real-imm-singer"
+"""The per-track filter a ``MultiTargetTracker`` builds unless told another: the per-axis IMM over CV, CA and Singer
+tuned on real flights."""
 
 
 class MultiTargetTracker:
@@ -466,7 +479,7 @@ class MultiTargetTracker:
     ``clutter_density`` the false plots per m^3); ``r``: the measurement std (m) of plots given without ``R`` (None:
     the filter's)."""
 
-    def __init__(self, filter: TrackFilter | str = "real-imm-singer", gate: float = 0.999,
+    def __init__(self, filter: TrackFilter | str = DEFAULT_FILTER, gate: float = 0.999,
                  init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = 4,
                  max_pos_std: float = 5000.0, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
                  clutter_density: float = 1e-12, jpda_max_events: int = 20000):
@@ -659,6 +672,12 @@ class MultiTargetTracker:
         self.filter.drop(keep)
         for name in ("ids", "confirmed", "hits", "scans", "misses", "updated", "_x", "_P"):
             setattr(self, name, getattr(self, name)[keep])
+
+    def data_mode_probs(self) -> np.ndarray | None:
+        """Every live track's data-mode probabilities ``[K, 4]`` (CV, CA, CT+, CT-) as of the last scan, in the order
+        of ``tracks()``; None where the filter has none (``IMMFilter.data_mode_probs``)."""
+        get = getattr(self.filter, "data_mode_probs", None)
+        return None if get is None else get()
 
     def tracks(self) -> list[TrackReport]:
         """Every live track (confirmed and tentative) as of the last scan."""
