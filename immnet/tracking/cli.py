@@ -89,7 +89,7 @@ def register(subparsers) -> None:
         p.add_argument(
             f"--sigma-{option}", type=float, default=None, metavar=unit,
             help=f"the radar's {what} std, for a CSV of plots (range,azimuth,elevation) without the columns "
-                 f"sigma_range,sigma_azimuth,sigma_elevation: the three options together (docs/tracking.md, 'Input')",
+                 f"sigma_range,sigma_azimuth,sigma_elevation: the three options together (docs/radar.md, 'Input')",
         )
     p.add_argument("--associator", default=None, choices=("gnn", "jpda"),
                    help="plots without track_id: how plots go to tracks, gnn (an optimal assignment, the default) "
@@ -180,7 +180,7 @@ def _detection_cov(args, rows, method, label: str):
                              f"measurement noise of --method {label}: give one of the two")
         if not reads:
             print(f"{label} assumes its own measurement noise: each detection's covariance from the CSV is not used "
-                  f"(docs/tracking.md, 'Input')", file=sys.stderr)
+                  f"(docs/radar.md, 'Input')", file=sys.stderr)
         return rows.cov
     if not reads:
         return None
@@ -194,7 +194,7 @@ def _detection_cov(args, rows, method, label: str):
 def _report_cov_unused(rows, what: str) -> None:
     if rows.cov is not None:
         print(f"{what} estimates each track's measurement noise from its measurements: each detection's covariance "
-              f"from the CSV is not used (a --method that reads it does: docs/tracking.md, 'Input')", file=sys.stderr)
+              f"from the CSV is not used (a --method that reads it does: docs/radar.md, 'Input')", file=sys.stderr)
 
 
 def check_paths(source: Path, target: Path) -> None:
