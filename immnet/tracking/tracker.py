@@ -166,7 +166,7 @@ class Tracker:
         if R is not None:
             check_meas_cov(R, z)
             warnings.warn("Tracker.step: this network does not use R (each detection's covariance): it was checked and "
-                          "left unused (docs/tracking.md, 'Input')", UserWarning, stacklevel=3)
+                          "left unused (docs/radar.md, 'Input')", UserWarning, stacklevel=3)
         check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
         mask = None if reset is None else per_track(reset, z.shape[0], "reset", torch.bool)
         fresh = torch.ones(z.shape[0], dtype=torch.bool) if self.carry is None else self.fresh
