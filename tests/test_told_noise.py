@@ -1,0 +1,173 @@
+"""Filter experts told each detection's measurement covariance (``FilterGain(r="detection")``, the step's input
+``"meas_cov"``): with ``R = r^2 I`` the same numbers as told ``r`` (``r="data"``), bit for bit; with anisotropic
+covariances the model-based IMM told them (``IMMTracker(r="detection")``, the core's own scan loop) to FilterPy's
+criterion; through ``Tracker`` and ``immnet evaluate``'s method as the rollout; and the refusals."""
+
+import pytest
+import torch
+import yaml
+
+from immnet import keys
+from immnet.config import resolve_path
+from immnet.data.generate import generate
+from immnet.data.spec import DataSpec
+from immnet.filters.trackers import IMMTracker
+from immnet.stages import IMMNet
+from immnet.stages.filtering import FilterGain
+from immnet.tracking.methods import IMMNetMethod
+from immnet.tracking.networks import frame_origin, to_local, to_world
+from immnet.tracking.tracker import Tracker
+
+ADAPTIVE = "configs/model_sets/imm4-adaptive.yaml"
+
+
+def _data(seed: int = 8, T: int = 60):
+    data = generate(10, seed=seed, spec=DataSpec(T=T, min_segment=min(20, T // 3)))
+    z = data[keys.MEASUREMENTS].double()
+    z[3, 20:25] = float("nan")  # missed detections inside a track
+    z[5, 1] = float("nan")  # right after the start
+    z[7, :3] = float("nan")  # a track first detected at scan 3
+    data[keys.MEASUREMENTS] = z
+    return data
+
+
+def _anisotropic(z: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    """Random symmetric positive-definite covariances [B, T, 3, 3] (variances 5 to a few hundred m^2, correlated), NaN
+    where a scan is missed."""
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(*z.shape[:2], 3, 3, generator=g, dtype=torch.float64)
+    R = A @ A.transpose(-1, -2) * 30.0 + 5.0 * torch.eye(3, dtype=torch.float64)
+    R[torch.isnan(z).any(-1)] = float("nan")
+    return R
+
+
+def _real_imm(r):
+    args = yaml.safe_load(resolve_path("configs/methods/real-imm-5s.yaml").read_text())["init_args"]
+    return IMMTracker(**{**args, "r": r, "name": f"real-imm-5s-{r}"})
+
+
+@pytest.mark.parametrize("gain", ["immnet.stages.filtering.FilterGain", "immnet.stages.filtering.KalmanNetFilterGain"])
+@pytest.mark.parametrize("start", [1, 2])
+def test_told_isotropic_covariance_is_told_r_exactly(gain, start):
+    """``R_t = r^2 I`` at every detection: the experts told each detection's covariance give what the experts told each
+    track's ``r`` give, exactly (the start's covariance, ``S``, the Joseph update, the likelihoods), for the
+    model-based filters and for KalmanNet's (the same untrained weights), a start from one detection or two."""
+    data = _data()
+    z = data[keys.MEASUREMENTS]
+    r = data[keys.R].double()
+    R = (r * r)[:, None, None, None] * torch.eye(3, dtype=torch.float64).expand(*z.shape[:2], 3, 3)
+    R = torch.where(torch.isnan(z).any(-1)[..., None, None], float("nan"), R)
+    nets = []
+    for told in ("data", "detection"):
+        torch.manual_seed(0)
+        g = {"class_path": gain, "init_args": {"r": told, "interaction": "imm"}}
+        nets.append(IMMNet(model_set=ADAPTIVE, gain=g, classifier={"class_path": "immnet.stages.BayesianModeUpdate",
+                                                                   "init_args": {"from_experts": True}},
+                           start_detections=start).double().eval())
+    nets[1].load_state_dict(nets[0].state_dict())
+    data[keys.MEAS_COV] = R
+    with torch.no_grad():
+        a, _ = nets[0].rollout(z, r=r, return_cov=True, return_loglik=True)
+        b, _ = nets[1].rollout(z, meas_cov=nets[1].told_cov(data), return_cov=True, return_loglik=True)
+    for key in (keys.STATE, keys.STATE_COV, keys.ROLLOUT_EXPERT_PROBS, keys.LOGLIK):
+        torch.testing.assert_close(b[key], a[key], rtol=0, atol=0, equal_nan=True)
+    assert torch.isfinite(a[keys.STATE][:, 5:]).all()
+
+
+def test_told_anisotropic_covariance_is_the_imm_told_it():
+    """Each detection's own correlated covariance: ``IMMTracker(r="detection").network()`` (filter experts told it)
+    filters what the IMM told it filters (``track``: the core's scan loop with ``R_t``, its start at the first
+    detection with that detection's ``R``) to FilterPy's criterion, 1e-9 of the state's scale; ``R = r^2 I`` would not
+    (the test can fail). As ``immnet evaluate``'s method (``Tracker.track`` in each track's frame, float32) it is the
+    float32 rollout there exactly, and it reads the data's ``meas_cov``."""
+    data = _data()
+    z = data[keys.MEASUREMENTS]
+    data[keys.MEAS_COV] = _anisotropic(z)
+    tracker = _real_imm("detection")
+    net = tracker.network()
+    assert net.start.told_cov and not net.start.told_r
+    with torch.no_grad():
+        out, _ = net.rollout(z, meas_cov=net.told_cov(data))
+    ours = tracker.track(data)[keys.STATE]
+    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
+    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
+    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
+    told_r = _real_imm("data").track(data)[keys.STATE]  # each track's r instead: another filter
+    assert ((told_r - ours).abs() > 1e-3)[seen].any()
+
+    method = IMMNetMethod.from_tracker(Tracker(net.float()))
+    assert method.needs == (keys.MEAS_COV,)
+    got = method.track(data)[keys.STATE]
+    origin = frame_origin(net, z)
+    with torch.no_grad():
+        ref, _ = net.rollout(to_local(z, origin), meas_cov=net.told_cov(data).float())
+    torch.testing.assert_close(got[seen], to_world(ref[keys.STATE], origin)[seen], rtol=0, atol=0)
+    assert torch.isnan(got[~seen]).all()
+
+
+def test_streaming_steps_with_each_detections_covariance_are_the_sequence():
+    """``Tracker.step(z, R=...)`` scan by scan, for a network told each detection's covariance, is ``Tracker.track`` of
+    the sequence with its ``meas_cov``: R is used, not warned about and dropped."""
+    data = _data(T=25)
+    z = data[keys.MEASUREMENTS]
+    R = _anisotropic(z, seed=1)
+    data[keys.MEAS_COV] = R
+    net = _real_imm("detection").network().float()
+    whole = Tracker(net).track(z, meas_cov=net.told_cov(data))[keys.STATE]
+    stream = Tracker(net)
+    steps = torch.stack([stream.step(z[:, t], R=R[:, t])[keys.FUSED] for t in range(z.shape[1])], 1)
+    torch.testing.assert_close(steps, whole, rtol=0, atol=1e-6, equal_nan=True)
+    with pytest.raises(ValueError, match=r"give Tracker.step its R \[n_tracks, 3, 3\]"):
+        Tracker(net).step(z[:, 0])
+
+
+def test_refusals_of_a_network_told_each_detections_covariance():
+    """One line naming what is missing or wrong: an unknown ``r``; a rollout without ``meas_cov``; data without
+    ``meas_cov``; a covariance that is not one at a detection."""
+    with pytest.raises(ValueError, match="'detection' \\(each detection's covariance told\\)"):
+        FilterGain(IMMNet(model_set=ADAPTIVE).model_set, r="detections")
+    data = _data(T=10)
+    z = data[keys.MEASUREMENTS]
+    net = _real_imm("detection").network()
+    with pytest.raises(ValueError, match=r"r='detection'\): give the step its input 'meas_cov' \[B, 3, 3\]"):
+        net.rollout(z)
+    with pytest.raises(ValueError, match="the data holds no 'meas_cov'"):
+        net.told_cov(data)
+    R = _anisotropic(z)
+    R[2, 4] = -R[2, 4]
+    data[keys.MEAS_COV] = R
+    with pytest.raises(ValueError, match="'meas_cov' of track 2, scan 4 is not a finite symmetric positive-definite"):
+        net.told_cov(data)
+    other = _real_imm("data").network()
+    with pytest.raises(ValueError, match="give it no meas_cov"):
+        Tracker(other).track(z, r=data[keys.R], meas_cov=R)
+
+
+@pytest.mark.parametrize("r", ["detection", "data"])
+def test_robust_filter_experts_are_the_robust_imm(r):
+    """``FilterGain(robust=k)``: Huber's update (the gain ``w K``, the covariance ``P - w K H P`` by Joseph's form with
+    ``R + (1/w - 1) S``, Huber's likelihood in the mode update) is the robust IMM's: ``IMMTracker(robust=k).network()``
+    filters what its ``track`` filters (the core's ``kalman.update``) to 1e-9 of the state's scale, on tracks with
+    outliers 1.5-2 km off, where the plain IMM is kilometres away from it (the test can fail)."""
+    data = _data()
+    z = data[keys.MEASUREMENTS]
+    z[2, 30] += 2000.0
+    z[4, 10] -= 1500.0
+    data[keys.MEASUREMENTS] = z
+    data[keys.MEAS_COV] = _anisotropic(z)
+    args = yaml.safe_load(resolve_path("configs/methods/real-imm-5s.yaml").read_text())["init_args"]
+    tracker = IMMTracker(**{**args, "r": r, "robust": 2.0, "name": "robust"})
+    net = tracker.network()
+    assert net.gain.robust == 2.0
+    with torch.no_grad():
+        out, _ = net.rollout(z, meas_cov=net.told_cov(data), r=net.told_r(data), return_cov=True)
+    ours = tracker.track(data)[keys.STATE]
+    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
+    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
+    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
+    plain = IMMTracker(**{**args, "r": r, "name": "plain"}).track(data)[keys.STATE]
+    assert ((plain - ours).abs() > 500.0)[seen].any()
+    with pytest.raises(ValueError, match="robust must be None \\(off\\) or Huber's k"):
+        FilterGain(net.model_set, robust=-1.0)
+    with pytest.raises(ValueError, match="a robust update \\(robust=2.0\\) weighs the whole innovation"):
+        FilterGain(net.model_set, robust=2.0, modes="axis")
