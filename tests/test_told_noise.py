@@ -143,6 +143,93 @@ def test_refusals_of_a_network_told_each_detections_covariance():
         Tracker(other).track(z, r=data[keys.R], meas_cov=R)
 
 
+def _corrected(whiten: bool, r: str, seed: int = 0):
+    """The IMM told ``r`` (``real-imm-5s``'s filters) with an output correction, its ``out`` layer a constant
+    correction ``delta = (1, 2, -1)`` (weights 0, bias set)."""
+    config = dict(_real_imm(r).network().config)
+    config["dt"] = 1.0
+    config["correction"] = {"class_path": "immnet.stages.correct.OutputCorrection",
+                            "init_args": {"hidden": 8, "layers": 1, "whiten": whiten}}
+    torch.manual_seed(seed)
+    net = IMMNet(**config).double().eval()
+    with torch.no_grad():
+        net.correct.out.bias.copy_(torch.tensor([1.0, 2.0, -1.0]))
+    return net
+
+
+def test_whitened_correction_moves_the_estimate_by_the_noise_factor():
+    """``OutputCorrection(whiten=True)`` on filters told each detection's covariance: a constant correction ``delta``
+    moves the reported position by ``L delta`` (``R = L L^T`` of the last detection), checked against numpy's Cholesky
+    factor: ``|L^-1 shift|^2 = shift^T R^-1 shift = |delta|^2`` and the first column ``R[:, 0] / sqrt(R_00)``; without
+    whitening, ``sqrt(tr R / 3) delta``. The filter under it is the filter without a correction, exactly."""
+    import numpy as np
+
+    data = _data(T=12)
+    z = data[keys.MEASUREMENTS]
+    R = _anisotropic(z, seed=2)
+    data[keys.MEAS_COV] = R
+    delta = torch.tensor([1.0, 2.0, -1.0], dtype=torch.float64)
+    bare = _real_imm("detection").network()
+    with torch.no_grad():
+        base, _ = bare.rollout(z, meas_cov=bare.told_cov(data), return_cov=True)
+    for whiten in (True, False):
+        net = _corrected(whiten, "detection")
+        with torch.no_grad():
+            out, _ = net.rollout(z, meas_cov=net.told_cov(data), return_cov=True)
+        torch.testing.assert_close(out[keys.STATE_COV], base[keys.STATE_COV], rtol=0, atol=0, equal_nan=True)
+        shift = (out[keys.STATE] - base[keys.STATE])[..., 0::3]
+        b, t = 0, 6  # a scan with a detection, the correction running
+        assert not torch.isnan(z[b, t]).any()
+        Rbt = R[b, t].numpy()
+        if whiten:
+            L = np.linalg.cholesky(Rbt)
+            np.testing.assert_allclose(shift[b, t].numpy(), L @ delta.numpy(), rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(shift[b, t].numpy() @ np.linalg.solve(Rbt, shift[b, t].numpy()), 6.0, rtol=1e-9)
+            probe = _corrected(True, "detection")
+            with torch.no_grad():
+                probe.correct.out.bias.copy_(torch.tensor([1.0, 0.0, 0.0]))
+                one, _ = probe.rollout(z, meas_cov=probe.told_cov(data))
+            np.testing.assert_allclose((one[keys.STATE] - base[keys.STATE])[b, t, 0::3].numpy(),
+                                       Rbt[:, 0] / np.sqrt(Rbt[0, 0]), rtol=1e-9)
+        else:
+            np.testing.assert_allclose(shift[b, t].numpy(), np.sqrt(np.trace(Rbt) / 3) * delta.numpy(), rtol=1e-9)
+
+
+def test_whitened_features_are_the_innovation_in_the_noise_frame():
+    """The whitened features: ``|L^-1 (z - p)|^2 = (z - p)^T R^-1 (z - p)`` and ``sum diag(L^-1 P L^-T) = tr(R^-1 P)``
+    (numpy), ``log sqrt(diag R) / 5``; with ``R = r^2 I`` the plain features' columns (the innovation over ``r``, the
+    position std over ``r``) and the correction ``r delta``."""
+    import numpy as np
+
+    from immnet.stages.correct import cholesky_noise, correction_features, whitened_features
+
+    g = torch.Generator().manual_seed(3)
+    B = 5
+    A = torch.randn(B, 3, 3, generator=g, dtype=torch.float64)
+    R = A @ A.transpose(-1, -2) * 50 + 10 * torch.eye(3, dtype=torch.float64)
+    C = torch.randn(B, 9, 9, generator=g, dtype=torch.float64)
+    P = C @ C.transpose(-1, -2) * 20
+    x = torch.randn(B, 9, generator=g, dtype=torch.float64) * 100
+    z = x[:, 0::3] + torch.randn(B, 3, generator=g, dtype=torch.float64) * 30
+    mu = torch.softmax(torch.randn(B, 4, generator=g, dtype=torch.float64), -1)
+    f = whitened_features(z, x, P, mu, cholesky_noise(R), 5.0)
+    for b in range(B):
+        d, Rb, Pp = (z[b] - x[b, 0::3]).numpy(), R[b].numpy(), P[b][0::3, 0::3].numpy()
+        np.testing.assert_allclose((f[b, :3] ** 2).sum().item(), d @ np.linalg.solve(Rb, d), rtol=1e-9)
+        np.testing.assert_allclose((f[b, 10:13] ** 2).sum().item(), np.trace(np.linalg.solve(Rb, Pp)), rtol=1e-9)
+        np.testing.assert_allclose(f[b, 23:26].numpy(), np.log(np.sqrt(np.diag(Rb)) / 5.0), rtol=1e-12)
+    r = torch.tensor([[7.0], [20.0], [3.0], [50.0], [11.0]], dtype=torch.float64)
+    iso = (r * r)[..., None] * torch.eye(3, dtype=torch.float64)
+    white = whitened_features(z, x, P, mu, cholesky_noise(iso), 5.0)
+    plain = correction_features(z, x, P, mu, r, 5.0)
+    torch.testing.assert_close(white[:, :23], plain[:, :23], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(white[:, -1], plain[:, -1], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="whiten must be true or false, got 'yes'"):
+        from immnet.stages.correct import OutputCorrection
+
+        OutputCorrection(IMMNet(model_set=ADAPTIVE).model_set, whiten="yes")
+
+
 @pytest.mark.parametrize("r", ["detection", "data"])
 def test_robust_filter_experts_are_the_robust_imm(r):
     """``FilterGain(robust=k)``: Huber's update (the gain ``w K``, the covariance ``P - w K H P`` by Joseph's form with
