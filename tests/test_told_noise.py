@@ -258,3 +258,30 @@ def test_robust_filter_experts_are_the_robust_imm(r):
         FilterGain(net.model_set, robust=-1.0)
     with pytest.raises(ValueError, match="a robust update \\(robust=2.0\\) weighs the whole innovation"):
         FilterGain(net.model_set, robust=2.0, modes="axis")
+
+
+RADAR = ["radar-imm-5s", "radar-imm-11s", "radar-imm-robust-5s", "radar-imm-robust-11s"]
+
+
+@pytest.mark.parametrize("name", RADAR)
+def test_each_radar_imm_is_immnet_with_nothing_learned(name):
+    """Issue 21, item 1, for the IMMs told each plot's covariance (``r: detection``, plain and robust): the registry's
+    method equals its ``network()`` (filter experts told ``meas_cov``, Huber's update where the method has one) to
+    FilterPy's criterion, with outliers 1.5-2 km off among correlated covariances."""
+    from immnet.evaluation.methods import build_method
+
+    data = _data()
+    z = data[keys.MEASUREMENTS]
+    z[2, 30] += 2000.0
+    z[4, 10] -= 1500.0
+    data[keys.MEASUREMENTS] = z
+    data[keys.MEAS_COV] = _anisotropic(z)
+    method = build_method(name)
+    net = method.network()
+    assert net.start.told_cov and (net.gain.robust is not None) == ("robust" in name)
+    with torch.no_grad():
+        out, _ = net.rollout(z, meas_cov=net.told_cov(data))
+    ours = method.track(data)[keys.STATE]
+    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
+    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
+    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
