@@ -67,6 +67,7 @@ EXPERT_COV = ("expert", "cov")  # P^(i) for the analytic gain [B, M, 9, 9]
 EXPERT_RATE = ("expert", "rate")  # a filter expert's own turn rate w^(i) [B, M] (rad/s)
 EXPERT_LOGLIK = ("expert", "loglik")  # a filter expert's log N(nu; 0, S) [B, M] (modes per group: [B, G, M])
 EXPERT_NIS = ("expert", "nis")  # and its normalized innovation squared nu^T S^-1 nu [B, M] (0 where no detection)
+EXPERT_ROBUST_WEIGHT = ("expert", "robust_weight")  # Huber's weight of a robust filter expert's update [B, M] (1: plain)
 EXPERT_RATE_GAIN = ("expert", "rate_gain")  # its gain row for w [B, M, 3]
 EXPERT_MIXED = ("expert", "mixed")  # a filter expert's input point [x~, w~] from the interaction [B, M, 10]
 EXPERT_MIXED_COV = ("expert", "mixed_cov")  # and its covariance [B, M, 10, 10]

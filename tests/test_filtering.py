@@ -428,6 +428,7 @@ LINEAR = ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-i
 PER_AXIS = ["real-imm-axis", "real-imm-axis-5s", "real-imm-axis-7s", "real-imm-axis-11s", "real-imm-singer",
             "real-imm-singer-5s", "real-imm-singer-7s", "real-imm-singer-11s"]
 ORACLES = ["clairvoyant", "clairvoyant-switch"]  # tests/test_filters_clairvoyant.py
+TOLD_COV = ["radar-imm-5s", "radar-imm-11s", "radar-imm-robust-5s", "radar-imm-robust-11s"]  # tests/test_told_noise.py
 # track runs network(); tests/test_filters_per_axis.py
 PER_CHANNEL = ["real-imm-channel", "real-imm-channel-5s", "real-imm-channel-7s", "real-imm-channel-11s"]
 
@@ -441,7 +442,7 @@ def test_every_model_based_method_of_the_registry_is_held_to_its_step_configurat
     from immnet.config import resolve_path
     from immnet.evaluation.methods import BUILTIN, available_methods, build_method
 
-    held = set(IMM_EKF + LINEAR + PER_AXIS + ORACLES + PER_CHANNEL)
+    held = set(IMM_EKF + LINEAR + PER_AXIS + ORACLES + PER_CHANNEL + TOLD_COV)
     model_based = []
     for name in available_methods():
         if name in BUILTIN:  # the raw measurements: no filter

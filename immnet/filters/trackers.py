@@ -24,7 +24,8 @@ from immnet.data.times import scan_intervals
 from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
 from immnet.filters.imm import first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
-from immnet.imm.measurement import Isotropic, PerDetection, Polar, measurement_model
+from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its users import it from here)
+from immnet.imm.measurement import DETECTION, Isotropic, PerDetection, Polar, measurement_model
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
 
@@ -50,15 +51,6 @@ def check_r(r) -> float | str:
         return r
     _positive("r", r, allow_zero=False)
     return float(r)
-
-
-def check_robust(robust) -> float | None:
-    """``robust`` as Huber's ``k`` of the update (``immnet.imm.kalman``'s module doc): None (off) or a positive number."""
-    if robust is None:
-        return None
-    if isinstance(robust, bool) or not (isinstance(robust, (int, float)) and math.isfinite(robust) and robust > 0):
-        raise ValueError(f"robust must be None (off) or Huber's k, a positive number of standard deviations, got {robust!r}")
-    return float(robust)
 
 
 def filter_settings(r, sigma_q, n_models: int) -> tuple[float | str, tuple[str, ...], float | list[float]]:
@@ -95,7 +87,7 @@ def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Te
 
 
 def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | None, dt: float, dtype,
-                    modes: str = "joint"):
+                    modes: str = "joint", robust: float | None = None):
     """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``modes``: ``IMMNet``'s
     (per axis: ``PerAxisIMMTracker.network``). ``p_stay`` None (a method given a full transition matrix): a
     ValueError naming the method ``name``."""
@@ -107,6 +99,8 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
 
     gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
         "model_noise": sigma_q, "r": r, "interaction": "imm", "onset": False, "start_acc_std": ACC_STD}}
+    if robust is not None:
+        gain["init_args"]["robust"] = robust
     bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
     net = IMMNet(model_set=model_set, gain=gain, classifier=bayes, dt=dt, p_stay=p_stay, start_detections=1,
                  modes=modes)
@@ -243,15 +237,18 @@ class IMMTracker(Method):
         mode update, ``p_stay`` set once; an ``IMMNet`` in this method's dtype, ``eval``. It filters what
         ``track`` filters, to float64 rounding, each track from its first detection on (both start it there).
         With ``r: data`` the filter experts are told each track's ``r`` (``FilterGain(r="data")``): give it to
-        ``rollout(..., r=batch["r"])``. A ValueError where this IMM is not such a configuration: a full transition
-        matrix, a non-uniform ``mu0``."""
-        if not isinstance(self.measurement, Isotropic) or self.robust is not None:
-            raise ValueError(f"{self.name}: IMMNet's filter experts take an isotropic r and no robust update, this IMM "
-                             f"has r={self.r!r}, robust={self.robust!r}")
+        ``rollout(..., r=batch["r"])``; with ``r: detection`` each detection's covariance (``FilterGain(r="detection")``):
+        ``rollout(..., meas_cov=net.told_cov(batch))``; ``robust``: the experts' Huber update (``FilterGain(robust=k)``).
+        A ValueError where this IMM is not such a configuration: a polar measurement model, a full transition matrix, a
+        non-uniform ``mu0``."""
+        if isinstance(self.measurement, Polar):
+            raise ValueError(f"{self.name}: IMMNet's filter experts take an isotropic r or each detection's covariance, "
+                             f"this IMM has the polar model r={self.r!r}")
         if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
-        return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
-                               self.modes)
+        r = DETECTION if isinstance(self.measurement, PerDetection) else self.r
+        return _linear_network(self.name, self.model_set, self.sigma_q, r, self._p_stay, dt, self.dtype, self.modes,
+                               self.robust)
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``

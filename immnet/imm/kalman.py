@@ -125,7 +125,8 @@ def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     """The posterior covariance ``(I - K H) P (I - K H)^T + K R K^T`` of any gain ``K [..., n, 3]`` (Joseph's
     form: positive semi-definite for every ``K``, the learned gains' too), ``P [..., n, n]``, ``H`` the position
-    rows (0, 3, 6 of the state layout), ``R = r2 I`` (``r2`` broadcastable to ``[..., 1, 1]``).
+    rows (0, 3, 6 of the state layout), ``R = r2 I`` (``r2`` broadcastable to ``[..., 1, 1]``), or ``R = r2`` where
+    ``r2`` is a covariance ``[..., 3, 3]`` (each detection's).
 
     Expanded as ``P - K H P - (K H P)^T + K S K^T`` (``S = H P H^T + R``; fewer and smaller products), whose terms
     are of the prior's size while the result can be ten orders smaller: after a 10 s gap under a large learned
@@ -136,10 +137,20 @@ def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     wide = P.dtype if P.dtype == torch.float64 or P.device.type == "mps" else torch.float64
     Pw, Kw = P.to(wide), K.to(wide)
     HP = Pw[..., 0:7:3, :]  # the position rows (POS)
-    S = HP[..., 0:7:3] + r2.to(wide) * torch.eye(3, dtype=wide, device=P.device)
+    R = r2.to(wide)
+    S = HP[..., 0:7:3] + (R if R.dim() >= 2 and R.shape[-1] == 3 else R * torch.eye(3, dtype=wide, device=P.device))
     KHP = small_matmul(Kw, HP)
     post = Pw - KHP - KHP.transpose(-1, -2) + small_matmul(small_matmul(Kw, S), Kw.transpose(-1, -2))
     return (0.5 * (post + post.transpose(-1, -2))).to(P.dtype)
+
+
+def check_robust(robust) -> float | None:
+    """``robust`` as Huber's ``k`` of the update (``immnet.imm.kalman``'s module doc): None (off) or a positive number."""
+    if robust is None:
+        return None
+    if isinstance(robust, bool) or not (isinstance(robust, (int, float)) and math.isfinite(robust) and robust > 0):
+        raise ValueError(f"robust must be None (off) or Huber's k, a positive number of standard deviations, got {robust!r}")
+    return float(robust)
 
 
 def huber(maha: torch.Tensor, k: float):

@@ -167,6 +167,10 @@ def step_input(td, key) -> torch.Tensor:
     if key == keys.R:
         return told_r(td)
     value = None if td is None else td.get(key, None)
+    if value is None and key == keys.MEAS_COV:
+        raise ValueError("this step's filter gain is told each detection's measurement covariance (r='detection'): "
+                         f"give the step its input {key!r} [B, 3, 3] (IMMNet.rollout(..., meas_cov=...), "
+                         "IMMNet.scan(..., meas_cov=...))")
     if value is None:
         raise ValueError(f"this step reads the truth's {key[-1]!r} at each scan (an oracle: the clairvoyant filters' "
                          f"configuration): give the step its input {key} [B] (IMMNet.rollout(..., truth=...), "

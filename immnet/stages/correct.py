@@ -19,6 +19,16 @@ everything the next scan's stages read are unchanged, so it cannot destabilize t
 (its start's first detection) on. The reported covariance stays the filter's (docs/immnet.md "The output
 correction").
 
+``whiten=True`` reads and writes the innovation in the frame of the measurement noise the filter experts use,
+``R`` (``("memory", "r2")``: each detection's covariance where they are told it, ``FilterGain(r="detection")``, else
+``r^2 I``), ``L`` its Cholesky factor (``R = L L^T``)::
+
+    o_t = x_t + [L delta_t, 0, 0 per axis]
+
+with ``L^-1 (z_t - p_t)`` in place of ``(z_t - p_t) / r``, ``sqrt(diag(L^-1 P_pos L^-T))`` in place of the position's
+``sqrt(diag P) / r``, and ``log(sqrt(diag R) / 5 m)`` (three features) in place of ``r / 5``: a radar's plot, 40 m in range
+and hundreds of metres across it at 100 km, is read as the three independent unit errors it is, whatever its geometry.
+
 ``CorrectionEnsemble`` runs several such corrections on one filter and reports the mean of their corrections (each
 trained as a run of its own, joined by ``immnet.training.export.join_corrections``).
 
@@ -37,6 +47,50 @@ from immnet.motion import ACC, POS, VEL, mode_groups
 from immnet.stages.base import Stage, measured, scan_interval
 
 VEL_SCALE, ACC_SCALE, R_SCALE = 100.0, 1.0, 5.0
+
+
+def cholesky_noise(R: torch.Tensor) -> torch.Tensor:
+    """``L [B, 3, 3]`` lower triangular with ``R = L L^T`` of covariances ``R [B, 3, 3]``; where one is not positive
+    definite to the dtype's precision, the square root of its (clamped) diagonal."""
+    L, info = torch.linalg.cholesky_ex(R)
+    diag = torch.diag_embed(R.diagonal(dim1=-2, dim2=-1).clamp_min(1e-12).sqrt())
+    return torch.where((info == 0)[..., None, None], L, diag)
+
+
+def noise_covariance(noise: torch.Tensor) -> torch.Tensor:
+    """The measurement noise ``("memory", "r2")`` as a covariance ``[B, 3, 3]``: a variance ``[B]`` as ``r^2 I``, a
+    covariance (filter experts told each detection's, ``[B, 3, 3]``) as it is."""
+    if noise.dim() >= 3:
+        return noise
+    return noise.reshape(-1, 1, 1) * torch.eye(3, dtype=noise.dtype, device=noise.device)
+
+
+def noise_std(noise: torch.Tensor) -> torch.Tensor:
+    """One std per track ``[B, 1]`` of the measurement noise ``("memory", "r2")``: ``r`` of a variance, the root mean
+    of a covariance's diagonal (``sqrt(tr R / 3)``)."""
+    if noise.dim() >= 3:
+        noise = noise.diagonal(dim1=-2, dim2=-1).mean(-1)
+    return noise.clamp_min(1e-12).sqrt().reshape(-1, 1)
+
+
+def whitened_features(z, x, P, mu, L, dt) -> torch.Tensor:
+    """``f_t`` with ``whiten`` (module doc) ``[B, 23 + G M]``: as :func:`correction_features`, in the frame of the
+    measurement noise's Cholesky factor ``L [B, 3, 3]``; a non-finite entry is 0."""
+    seen = measured(z)
+    d = torch.where(seen, z - x[..., list(POS)], torch.zeros_like(z))
+    d = torch.linalg.solve_triangular(L, d.unsqueeze(-1), upper=False).squeeze(-1)
+    pos = P[..., list(POS), :][..., list(POS)]
+    Li_P = torch.linalg.solve_triangular(L, pos, upper=False)
+    white_pos = torch.linalg.solve_triangular(L, Li_P.transpose(-1, -2), upper=False)  # L^-1 P L^-T
+    var = P.diagonal(dim1=-2, dim2=-1).clamp_min(0)
+    R_std = (L * L).sum(-1).clamp_min(1e-12).sqrt()  # sqrt(diag(L L^T))
+    log_dt = torch.log(torch.as_tensor(dt, dtype=x.dtype, device=x.device)).expand(x.shape[0], 1)
+    f = torch.cat([
+        d, seen.to(x.dtype), x[..., list(VEL)] / VEL_SCALE, x[..., list(ACC)] / ACC_SCALE,
+        white_pos.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt(), var[..., list(VEL)].sqrt(), var[..., list(ACC)].sqrt(),
+        mu.reshape(mu.shape[0], -1).to(x.dtype), torch.log(R_std / R_SCALE), log_dt,
+    ], -1)
+    return torch.where(torch.isfinite(f), f, torch.zeros_like(f))
 
 
 def correction_features(z, x, P, mu, r, dt) -> torch.Tensor:
@@ -58,21 +112,26 @@ def correction_features(z, x, P, mu, r, dt) -> torch.Tensor:
 class OutputCorrection(Stage):
     """The output correction (module doc): ``hidden`` units in ``layers`` GRU layers. Built by
     ``IMMNet(correction=...)`` after the step's fusion, for its model set and ``modes`` (the number of mode
-    probabilities it reads)."""
+    probabilities it reads). ``whiten``: the innovation in the measurement noise's frame (module doc); off, the
+    scalar ``r`` (the root mean of the diagonal where the filter experts are told each detection's covariance)."""
 
     in_keys = [keys.MEASUREMENT, keys.FUSED, keys.FUSED_COV, keys.EXPERT_PROBS, keys.OUTPUT_HIDDEN, keys.OUTPUT_SEEN,
                keys.AGE, keys.NOISE_VAR]
     out_keys = [keys.OUTPUT, keys.OUTPUT_HIDDEN, keys.OUTPUT_SEEN]
 
-    def __init__(self, model_set=None, dt: float = 1.0, hidden: int = 128, layers: int = 2, modes: str = "joint"):
+    def __init__(self, model_set=None, dt: float = 1.0, hidden: int = 128, layers: int = 2, modes: str = "joint",
+                 whiten: bool = False):
         super().__init__(model_set)
         if int(hidden) < 1 or int(layers) < 1:
             raise ValueError(f"hidden and layers must be at least 1, got hidden={hidden!r}, layers={layers!r}")
+        if not isinstance(whiten, bool):
+            raise ValueError(f"whiten must be true or false, got {whiten!r}")
+        self.whiten = whiten
         self.dt = float(dt)
         self.hidden, self.layers = int(hidden), int(layers)
         groups = mode_groups(modes)
         self.n_groups = 1 if groups is None else max(groups) + 1
-        self.n_features = 21 + self.n_groups * self.n_experts
+        self.n_features = (23 if whiten else 21) + self.n_groups * self.n_experts
         self.inp = nn.Linear(self.n_features, self.hidden)
         self.gru = nn.GRU(self.hidden, self.hidden, num_layers=self.layers, batch_first=True)
         self.out = nn.Linear(self.hidden, 3)
@@ -102,17 +161,23 @@ class OutputCorrection(Stage):
         """This scan's correction of the reported position ``[B, 3]`` (m; zero where the track has no estimate yet
         or is at its first detection) and the GRU's next state, from its state ``h [B, layers, hidden]``."""
         z, x = td.get(keys.MEASUREMENT), td.get(keys.FUSED)
-        r = td.get(keys.NOISE_VAR).to(x.dtype).clamp_min(1e-12).sqrt().reshape(-1, 1)
+        noise = td.get(keys.NOISE_VAR).to(x.dtype)
         dt, _ = scan_interval(td, self.dt)
-        f = correction_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), r, dt)
+        if self.whiten:
+            L = cholesky_noise(noise_covariance(noise))
+            f = whitened_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), L, dt)
+        else:
+            r = noise_std(noise)
+            f = correction_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), r, dt)
         w = self.inp.weight
         y, h_new = self.gru(torch.relu(self.inp(f.to(w.dtype))).unsqueeze(1), h.to(w.dtype).transpose(0, 1).contiguous())
         delta = self.out(y[:, 0]).to(x.dtype)
+        step = (L @ delta.unsqueeze(-1)).squeeze(-1) if self.whiten else r * delta
         running = _has_estimate(td).reshape(-1, 1)
         # a track's first detection is reported as its filter reports it (the measurement, as every tracker's); the
         # correction starts at the scan after, when its state has seen the track
         corrects = running & (td.get(keys.OUTPUT_SEEN) >= 1).reshape(-1, 1)
-        return (torch.where(corrects, r * delta, torch.zeros_like(delta)),
+        return (torch.where(corrects, step, torch.zeros_like(delta)),
                 torch.where(running[..., None], h_new.transpose(0, 1).to(h.dtype), h))
 
     def forward(self, td):
@@ -149,11 +214,11 @@ class CorrectionEnsemble(Stage):
     out_keys = OutputCorrection.out_keys
 
     def __init__(self, model_set=None, dt: float = 1.0, members: int = 2, hidden: int = 128, layers: int = 2,
-                 modes: str = "joint"):
+                 modes: str = "joint", whiten: bool = False):
         super().__init__(model_set)
         if int(members) < 2:
             raise ValueError(f"an ensemble has at least 2 members, got members={members!r} (one: OutputCorrection)")
-        self.members = nn.ModuleList(OutputCorrection(model_set, dt, hidden, layers, modes)
+        self.members = nn.ModuleList(OutputCorrection(model_set, dt, hidden, layers, modes, whiten)
                                      for _ in range(int(members)))
         self.hidden, self.layers = self.members[0].hidden, self.members[0].layers
 

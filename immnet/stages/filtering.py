@@ -46,7 +46,7 @@ from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
-from immnet.imm.kalman import gaussian_loglik, group_loglik, inv3, joseph, small_matmul
+from immnet.imm.kalman import check_robust, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
@@ -62,6 +62,10 @@ N_NOISE = 5  # velocity h / v, acceleration h / v, turn rate
 TOLD_R = "data"
 """``r="data"``: the filter experts are told each track's measurement std, the step's input ``"r"`` ``[B]`` (a radar
 that knows its accuracy; the linear IMMs' ``r: data``), in place of a fixed or estimated one."""
+TOLD_COV = "detection"
+"""``r="detection"``: the filter experts are told each detection's measurement covariance ``R_t``, the step's input
+``"meas_cov"`` ``[B, 3, 3]`` (m^2, the batch's ``meas_cov`` column of the scan; the model-based IMMs' ``r: detection``):
+``S = H P H^T + R_t``, the Joseph update with ``R_t``, a track's start covariance from its detections' ``R``."""
 WHITE = (0, 1)  # the white-acceleration components, which AdaptiveNoise's scale multiplies
 
 
@@ -401,8 +405,12 @@ class FilterUpdate(Update):
     ]
     out_keys = [keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
 
-    def __init__(self, model_set: ModelSet, dt: float = 1.0, correction: bool = False, turn_rate: str | None = None):
-        """``correction``: add the gain's learned state correction (``("expert", "correction")``,
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, correction: bool = False, turn_rate: str | None = None,
+                 told_cov: bool = False, robust: bool = False):
+        """``told_cov``: the carried measurement noise ``("memory", "r2")`` is each detection's covariance ``[B, 3, 3]``
+        (``FilterGain(r="detection")``), not a variance ``[B]``. ``robust``: the gain is Huber's robust one (``FilterGain(
+        robust=k)``), ``K' = w K`` with its weight ``("expert", "robust_weight")``, whose covariance is Joseph's with
+        ``R' = R + (1 / w - 1) S`` (``immnet.imm.kalman``'s module doc: ``P - w K H P``). ``correction``: add the gain's learned state correction (``("expert", "correction")``,
         ``KalmanNetFilterGain(state_correction=...)``) to each expert's posterior mean; the covariance is the
         filter's (the correction enters as a known input). ``turn_rate``: ``FilterPredict``'s; bounded to the
         model's range where None, else kept as it is."""
@@ -412,6 +420,10 @@ class FilterUpdate(Update):
         self.register_buffer("own_rate", torch.tensor(own_rate))
         _register_rate_bounds(self, lo, hi)
         self.correction = bool(correction)
+        self.told_cov = bool(told_cov)
+        self.robust = bool(robust)
+        if self.robust:
+            self.in_keys = [*self.in_keys, keys.EXPERT_ROBUST_WEIGHT]
         if self.correction:
             self.in_keys = [*self.in_keys, keys.EXPERT_CORRECTION]
 
@@ -425,17 +437,38 @@ class FilterUpdate(Update):
             w = torch.where(self.own_rate, torch.clamp(w, self.rate_min.to(w.dtype), self.rate_max.to(w.dtype)), w)
         K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        r2 = td.get(keys.NOISE_VAR)
-        r2 = per_expert(r2, P.shape[1], event_dims=0)[..., None, None]
+        r2 = noise_matrix(td.get(keys.NOISE_VAR), P.shape[1], self.told_cov)
+        if self.robust:  # R' = R + (1 / w - 1) S
+            weight = td.get(keys.EXPERT_ROBUST_WEIGHT).to(P.dtype)[..., None, None]
+            r2 = as_covariance(r2.to(P.dtype), P)
+            r2 = r2 + (1.0 / weight - 1.0) * (P[..., 0:7:3, 0:7:3] + r2)
         td.set(keys.EXPERT_RATE, w)
         td.set(keys.EXPERT_AUG_COV, joseph(P, K, r2))
         return td
 
 
 def innovation_cov(P: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
-    """``S = H P H^T + r^2 I`` of a prior covariance ``P [..., 9 or 10, 9 or 10]`` (its positions' block, ``POS``) and
-    the measurement variance ``r2`` (broadcasting as ``[..., 1, 1]``)."""
-    return P[..., 0:7:3, 0:7:3] + r2 * torch.eye(3, dtype=P.dtype, device=P.device)
+    """``S = H P H^T + R`` of a prior covariance ``P [..., 9 or 10, 9 or 10]`` (its positions' block, ``POS``) and
+    the measurement noise ``r2``: a variance broadcasting as ``[..., 1, 1]`` (``R = r^2 I``) or a covariance
+    ``[..., 3, 3]`` (``noise_matrix``)."""
+    return P[..., 0:7:3, 0:7:3] + as_covariance(r2, P)
+
+
+def as_covariance(r2: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """The measurement covariance ``R`` of ``r2``: ``r2 I`` for a variance ``[..., 1, 1]`` (or a number), ``r2`` itself
+    for a covariance ``[..., 3, 3]``."""
+    if r2.dim() >= 2 and r2.shape[-1] == 3:
+        return r2
+    return r2 * torch.eye(3, dtype=like.dtype, device=like.device)
+
+
+def noise_matrix(noise: torch.Tensor, n_experts: int, told_cov: bool) -> torch.Tensor:
+    """The carried measurement noise ``("memory", "r2")`` per expert, as ``innovation_cov`` takes it: a variance
+    ``[B]`` / ``[B, M]`` as ``[B, M, 1, 1]``, or (``told_cov``) a covariance ``[B, 3, 3]`` / ``[B, M, 3, 3]`` as
+    ``[B, M, 3, 3]``."""
+    if told_cov:
+        return per_expert(noise, n_experts, event_dims=2)
+    return per_expert(noise, n_experts, event_dims=0)[..., None, None]
 
 
 class _FilterExperts:
@@ -445,7 +478,8 @@ class _FilterExperts:
 
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need (``FilterUpdate``, with this gain's ``turn_rate``)."""
-        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate)
+        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.r == TOLD_COV,
+                            robust=getattr(self, "robust", None) is not None)
 
     def interaction_stage(self, model_set: ModelSet, dt: float) -> FilterInteraction:
         """The interaction these experts need, with this gain's ``interaction``, ``p_stay`` and ``guard``."""
@@ -483,12 +517,14 @@ class _FilterExperts:
         stds = [None if v is None else float(v) for v in stds]  # per expert
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
         if isinstance(r, str):
-            if r != TOLD_R:
-                raise ValueError(f"r must be a number > 0, {TOLD_R!r} (told per track) or None (estimated), got {r!r}")
-            self.in_keys = [*self.in_keys, keys.R]  # the step's input r [B], each track's measurement std
-        elif r is not None and not (math.isfinite(r) and r > 0):
-            raise ValueError(f"r must be finite and > 0, {TOLD_R!r} (told per track) or None (estimated per track), "
-                             f"got {r}")
+            if r not in (TOLD_R, TOLD_COV):
+                raise ValueError(f"r must be a number > 0, {TOLD_R!r} (told per track), {TOLD_COV!r} (each detection's "
+                                 f"covariance told) or None (estimated), got {r!r}")
+            # the step's input: r [B], each track's measurement std, or meas_cov [B, 3, 3], each detection's covariance
+            self.in_keys = [*self.in_keys, keys.R] if r == TOLD_R else [*self.in_keys, keys.MEAS_COV, keys.NOISE_VAR]
+        elif isinstance(r, bool) or r is not None and not (math.isfinite(r) and r > 0):
+            raise ValueError(f"r must be finite and > 0, {TOLD_R!r} (told per track), {TOLD_COV!r} (each detection's "
+                             f"covariance told) or None (estimated per track), got {r}")
         self.r = r if r is None or isinstance(r, str) else float(r)
         self.adapt = AdaptiveNoise.from_config(adapt)
         if self.adapt is not None:  # the track's log lambda is carried
@@ -550,9 +586,23 @@ class _FilterExperts:
         if self.r == TOLD_R:
             told = told_r(td).to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
             return (told * told).expand_as(total)
+        if self.r == TOLD_COV:
+            return self._told_cov(td)
         if self.r is not None:
             return torch.full_like(total, self.r**2)
         return (self.k0 * self.r0**2 + total) / (self.k0 + count)
+
+    def _told_cov(self, td, z: torch.Tensor | None = None) -> torch.Tensor:
+        """Each detection's covariance ``[B, 3, 3]`` (experts alone ``[B, M, 3, 3]``), the step's input ``"meas_cov"``,
+        where the scan has a detection (and its covariance is finite); elsewhere the carried one (the last detection's),
+        which a missed scan's update does not read. ``z``: the scan's measurement (None: ``td``'s)."""
+        prev = td.get(keys.NOISE_VAR)
+        R = step_input(td, keys.MEAS_COV).to(prev.dtype)
+        if R.dim() < prev.dim():  # experts alone: one detection for every expert
+            R = R.unsqueeze(1).expand_as(prev)
+        z = td.get(keys.MEASUREMENT) if z is None else z
+        ok = measured(z)[..., None] & torch.isfinite(R).flatten(-2).all(-1)[..., None, None]
+        return torch.where(ok, R, prev)
 
     def noise(self, td):
         """Push ``z_t`` into the history; the running estimate of ``r^2`` from altitude third differences."""
@@ -601,32 +651,51 @@ class _FilterExperts:
         B = shape[0]
         adapt = {} if self.adapt is None else {keys.Q_SCALE: torch.zeros(shape, dtype=dtype, device=device)}
         r2 = (self.r if isinstance(self.r, float) else self.r0) ** 2
+        noise = torch.full(shape, r2, dtype=dtype, device=device)
+        if self.r == TOLD_COV:  # a covariance per detection: r0^2 I until the track's first detection
+            noise = noise[..., None, None] * torch.eye(3, dtype=dtype, device=device)
         return adapt | {
             keys.EXPERT_POST: torch.zeros(B, M, 9, dtype=dtype, device=device),
             keys.EXPERT_RATE: self.rate_nominal.to(dtype).expand(B, M).clone(),
             keys.EXPERT_AUG_COV: self.start_cov(B, torch.full((B, M), r2, dtype=dtype, device=device), False),
-            keys.NOISE_VAR: torch.full(shape, r2, dtype=dtype, device=device),
+            keys.NOISE_VAR: noise,
             keys.NOISE_SUM: torch.zeros(shape, dtype=dtype, device=device),
             keys.NOISE_COUNT: torch.zeros(shape, dtype=dtype, device=device),
             keys.Z_HISTORY: torch.full((*shape, 3, 3), float("nan"), dtype=dtype, device=device),
             keys.INTERVAL_HISTORY: torch.full((*shape, 2), float(self.dt), dtype=dtype, device=device),
         }
 
-    def start_cov(self, B: int, r2: torch.Tensor, second: bool, elapsed=None) -> torch.Tensor:
+    def start_cov(self, B: int, r2: torch.Tensor, second: bool, elapsed=None, r2_first=None) -> torch.Tensor:
         """Covariance of a starting track ``[B, M, 10, 10]``: after one scan position ``r^2``,
         velocity ``300^2``; after two (differenced velocity over ``elapsed``, the time between the
         detections ``[B]``; the nominal ``dt`` where None) velocity ``2 r^2 / elapsed^2`` with the
         position-velocity covariance ``r^2 / elapsed``; acceleration the CA draw's (``start_acc_std^2`` on every
-        axis where set, for every expert or each its own), turn rate ``rate_std0``."""
+        axis where set, for every expert or each its own), turn rate ``rate_std0``. ``r2`` ``[B, M]``, or each
+        detection's covariance ``[B, M, 3, 3]`` (``r="detection"``): the position block ``R_1``, after two scans
+        the velocity block ``(R_0 + R_1) / elapsed^2`` and the position-velocity block ``R_1 / elapsed``, ``R_0`` the
+        first detection's (``r2_first``)."""
         P = r2.new_zeros(B, self.n_experts, N_AUG, N_AUG)
-        e = self.dt if elapsed is None else elapsed.to(r2.dtype).view(B, *([1] * (r2.dim() - 1)))
+        told = r2.dim() == 4
+        lead = r2[..., 0, 0] if told else r2  # [B, M]
+        e = self.dt if elapsed is None else elapsed.to(r2.dtype).view(B, *([1] * (lead.dim() - 1)))
         acc = self.start_acc_var.to(P.dtype)  # [M, 3]
+        if told:
+            first = r2 if r2_first is None else r2_first.to(r2.dtype)
+            for a in range(3):
+                for b in range(3):
+                    P[..., POS[a], POS[b]] = r2[..., a, b]
+                    if second:
+                        P[..., VEL[a], VEL[b]] = (first[..., a, b] + r2[..., a, b]) / e**2
+                        P[..., POS[a], VEL[b]] = P[..., VEL[b], POS[a]] = r2[..., a, b] / e
         for a in range(3):
             p, v, c = POS[a], VEL[a], ACC[a]
-            P[..., p, p] = r2
-            P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
-            if second:
-                P[..., p, v] = P[..., v, p] = r2 / e
+            if not told:
+                P[..., p, p] = r2
+                P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
+                if second:
+                    P[..., p, v] = P[..., v, p] = r2 / e
+            elif not second:
+                P[..., v, v] = 300.0**2
             P[..., c, c] = acc[:, a]
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
@@ -646,13 +715,18 @@ class _FilterExperts:
         gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
         gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
         gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
-        r2_track = self.noise_var(carry.get(keys.NOISE_SUM), carry.get(keys.NOISE_COUNT), carry)
-        r2 = per_expert(r2_track, M, event_dims=0)
+        told = self.r == TOLD_COV
+        if told:
+            r2_track = self._told_cov(carry, z)
+        else:
+            r2_track = self.noise_var(carry.get(keys.NOISE_SUM), carry.get(keys.NOISE_COUNT), carry)
+        r2 = per_expert(r2_track, M, event_dims=2 if told else 0)
+        first = per_expert(carry.get(keys.NOISE_VAR), M, event_dims=2) if told and second else None
         adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
         return adapt | {
             keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
             keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
-            keys.EXPERT_AUG_COV: self.start_cov(B, r2, second, elapsed),
+            keys.EXPERT_AUG_COV: self.start_cov(B, r2, second, elapsed, first),
             keys.Z_HISTORY: torch.stack([z, prev, nan], -2),
             keys.INTERVAL_HISTORY: gaps.clone(),
             keys.NOISE_VAR: r2_track,
@@ -663,8 +737,7 @@ class _FilterExperts:
     # --- one scan ----------------------------------------------------------------------------
     def _r2(self, td) -> torch.Tensor:
         """This scan's ``r^2`` estimate as ``[B, M, 1, 1]``."""
-        r2 = self.noise(td)
-        return per_expert(r2, self.n_experts, event_dims=0)[..., None, None]
+        return noise_matrix(self.noise(td), self.n_experts, self.r == TOLD_COV)
 
     def _noise_scale(self, td, like: torch.Tensor) -> torch.Tensor | None:
         """Multipliers of the five noise components ``[B, M, 5]``: the track's ``lambda``
@@ -699,7 +772,7 @@ class _FilterExperts:
         ``r^2``). What a bank of networks weighs a network with an output correction by: its prediction moved by the
         correction it reported at the scan before (``IMMNet.predictive_loglik(reported=True)``)."""
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        r2 = per_expert(td.get(keys.NOISE_VAR), self.n_experts, event_dims=0)[..., None, None]
+        r2 = noise_matrix(td.get(keys.NOISE_VAR), self.n_experts, self.r == TOLD_COV)
         S = innovation_cov(P, r2.to(P.dtype))
         S_inv, logdet = inv3(S)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR)) - shift.to(P.dtype).unsqueeze(1)
@@ -717,7 +790,17 @@ class _FilterExperts:
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
-        loglik, maha = self._loglik(nu, S, S_inv, logdet, has_z)
+        robust = getattr(self, "robust", None)
+        if robust is not None:  # Huber's weight on the innovation's Mahalanobis distance (immnet.imm.kalman)
+            maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
+            weight, rho = huber(maha, robust)
+            weight = torch.where(has_z[..., 0], weight, torch.ones_like(weight))
+            K = K * weight[..., None, None]
+            gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
+            loglik = torch.where(has_z[..., 0], gaussian_loglik(rho, logdet, 3), 0.0)
+            td.set(keys.EXPERT_ROBUST_WEIGHT, weight)
+        else:
+            loglik, maha = self._loglik(nu, S, S_inv, logdet, has_z)
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
         td.set(keys.EXPERT_AUG_PRIOR_COV, P)
@@ -764,8 +847,11 @@ class FilterGain(_FilterExperts, Stage):
         modes: str = "joint",
         turn_rate: str | None = None,
         restart: str | None = None,
+        robust: float | None = None,
     ):
-        """``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
+        """``robust``: Huber's ``k`` of each expert's update (``immnet.imm.kalman``'s module doc: the gain ``w K``,
+        ``w = min(1, k / d)`` of the innovation's Mahalanobis distance ``d``, the likelihood Huber's; the model-based
+        IMMs' ``robust``), None: the plain update. ``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
         model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
         the ``noise_std`` components; ``start_acc_std``: the start covariance's acceleration standard deviation on
         every axis (None: the CA draw's), one for every expert or one per expert. The three make the linear IMMs'
@@ -775,6 +861,12 @@ class FilterGain(_FilterExperts, Stage):
         the step's input ``("truth", "turn_rate")`` (``"data"``, an oracle: the clairvoyant bound's configuration;
         ``FilterPredict``). ``restart="data"``: the interaction's oracle restart (``FilterInteraction``)."""
         super().__init__(model_set)
+        self.robust = check_robust(robust)
+        if self.robust is not None:
+            if mode_groups(modes) is not None:
+                raise ValueError(f"a robust update (robust={robust!r}) weighs the whole innovation: it takes modes "
+                                 f"'joint', got modes={modes!r}")
+            self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT]
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
                           onset, model_noise, start_acc_std, modes, turn_rate, restart)
 
@@ -867,7 +959,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
 
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need: with ``state_correction``, one that adds it."""
-        return FilterUpdate(model_set, dt, correction=self.state_correction is not None)
+        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.r == TOLD_COV)
 
     def knock_out_correction(self) -> None:
         """Set the state correction's rows of FC2 to zero (the rest of the network as trained)."""

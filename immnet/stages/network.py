@@ -301,6 +301,21 @@ class IMMNet(TensorDictModuleBase):
                              "holds no 'r'")
         return batch[keys.R].to(batch[keys.MEASUREMENTS].dtype).reshape(-1)
 
+    def told_cov(self, batch: TensorDict) -> torch.Tensor | None:
+        """Each detection's measurement covariance ``[B, T, 3, 3]`` of ``batch`` (its ``meas_cov``, checked:
+        ``immnet.imm.measurement.PerDetection.R``) where this network's filter experts are told it
+        (``FilterGain(r="detection")``: the step's input ``"meas_cov"``), else None; a ValueError in one line where the
+        batch has none or one is not a covariance."""
+        if not self.start.told_cov:
+            return None
+        if keys.MEAS_COV not in batch.keys():
+            raise ValueError("this IMMNet's filter experts are told each detection's measurement covariance "
+                             f"(r='detection'); the data holds no {keys.MEAS_COV!r}")
+        from immnet.imm.measurement import PerDetection
+
+        z = batch[keys.MEASUREMENTS]
+        return PerDetection().R(batch, z.dtype, z.device)
+
     # the parts a network can learn -> the stage that holds each: the names ``Stage2Module(learn=...)``, ``knock_out``
     # and ``learned_parts`` share (``correction``: the output correction, as ``IMMNet(correction=...)`` names it)
     PARTS = {"gain": "gain", "classifier": "classify", "correction": "correct"}
@@ -447,11 +462,13 @@ class IMMNet(TensorDictModuleBase):
 
     # --- one scan -------------------------------------------------------------------------
     def scan(self, carry: TensorDict, z: torch.Tensor, experts_alone: bool = False, interval=None, r=None,
-             truth: dict | None = None) -> TensorDict:
+             truth: dict | None = None, meas_cov=None) -> TensorDict:
         """Advance every track by one scan of measurements ``z [B, 3]`` (``[B, M, 3]`` experts alone).
 
         ``interval [B]``: the time since the previous scan per track (s); None: the nominal ``dt``. ``r [B]``: each
-        track's measurement std (m), for filter experts told it (``FilterGain(r="data")``); None: none. ``truth``: an
+        track's measurement std (m), for filter experts told it (``FilterGain(r="data")``); None: none. ``meas_cov [B, 3,
+        3]``: each detection's measurement covariance (m^2), for filter experts told it (``FilterGain(r="detection")``;
+        any matrix where the scan has no detection); None: none. ``truth``: an
         oracle's inputs of this scan, ``{("truth", name): [B]}`` (``keys.TRUE_MODE``, ``TRUE_TURN_RATE``), for the
         stages that read them (the clairvoyant filters' configuration, ``ClairvoyantKF.network()``). Returns
         the new carry, which also holds this scan's outputs (``("fused", "state")``, ``("expert", "post")``,
@@ -469,6 +486,8 @@ class IMMNet(TensorDictModuleBase):
             td.set(keys.INTERVAL, interval)
         if r is not None:
             td.set(keys.R, torch.as_tensor(r, dtype=z.dtype, device=z.device).reshape(-1).expand(z.shape[0]))
+        if meas_cov is not None:
+            td.set(keys.MEAS_COV, torch.as_tensor(meas_cov, dtype=z.dtype, device=z.device).expand(z.shape[0], 3, 3))
         for key, value in (truth or {}).items():
             td.set(key, value)
         out = step(td)
@@ -476,6 +495,8 @@ class IMMNet(TensorDictModuleBase):
             out.del_(keys.INTERVAL)
         if r is not None:
             out.del_(keys.R)
+        if meas_cov is not None:
+            out.del_(keys.MEAS_COV)
         if truth:
             out.del_(unravel_key(next(iter(truth)))[0])  # the ("truth", ...) inputs
         return out
@@ -512,8 +533,10 @@ class IMMNet(TensorDictModuleBase):
             raise ValueError(f"IMMNet: the TensorDict holds no carry {missing[:3]}{'...' if len(missing) > 3 else ''} for "
                              "tracks that are not starting (is_init False); in an environment, append "
                              "net.make_tensordict_primer()")
-        truth = {k: td.get(k) for k in self.start.inputs if k != keys.R and k in present}  # an oracle's inputs
-        new = self.scan(carry, z, interval=td.get(keys.INTERVAL, None), r=td.get(keys.R, None), truth=truth or None)
+        told = (keys.R, keys.MEAS_COV)
+        truth = {k: td.get(k) for k in self.start.inputs if k not in told and k in present}  # an oracle's inputs
+        new = self.scan(carry, z, interval=td.get(keys.INTERVAL, None), r=td.get(keys.R, None), truth=truth or None,
+                        meas_cov=td.get(keys.MEAS_COV, None))
         td.set(keys.ACTION, self.estimate(new))
         for key in self.carry_keys:
             td.set(("next", *key), new.get(key))
@@ -522,10 +545,11 @@ class IMMNet(TensorDictModuleBase):
     # --- a whole sequence -----------------------------------------------------------------
     def rollout(self, measurements: torch.Tensor, carry: TensorDict | None = None, experts_alone: bool = False,
                 intervals: torch.Tensor | None = None, return_cov: bool = False, r: torch.Tensor | None = None,
-                truth: dict | None = None, return_loglik: bool | str = False):
+                truth: dict | None = None, return_loglik: bool | str = False, meas_cov: torch.Tensor | None = None):
         """Run over ``measurements [B, T, 3]`` (``[B, M, T, 3]`` experts alone), with the interval before each
         scan ``intervals [B, T]`` (``immnet.data.times.scan_intervals``; None: the nominal ``dt`` at every scan)
-        and, for filter experts told it (``r="data"``), each track's measurement std ``r [B]``; ``truth``: an
+        and, for filter experts told it (``r="data"``), each track's measurement std ``r [B]``, or (``r="detection"``)
+        each detection's covariance ``meas_cov [B, T, 3, 3]`` (``told_cov``); ``truth``: an
         oracle's inputs over the sequence, ``{("truth", name): [B, T]}`` (``scan``'s, each scan's column).
 
         Returns ``(outputs, carry)``: ``outputs`` a TensorDict ``[B, T]`` with ``state``
@@ -549,7 +573,8 @@ class IMMNet(TensorDictModuleBase):
             before = carry
             carry = self.scan(carry, measurements[..., t, :], experts_alone,
                               None if intervals is None else intervals[:, t], r,
-                              None if truth is None else {k: v[:, t] for k, v in truth.items()})
+                              None if truth is None else {k: v[:, t] for k, v in truth.items()},
+                              None if meas_cov is None else meas_cov[:, t])
             states.append(carry.get(keys.FUSED) if experts_alone else self.estimate(carry))
             if return_cov:
                 covs.append(self.reported_cov(carry))

@@ -39,9 +39,9 @@ from immnet.stages.base import Stage, measured, step_input, track_where
 
 COUNTS = (keys.AGE, keys.START_SCANS, keys.START_TIME)
 """The track-start counts ``TrackStart`` carries."""
-STEP_INPUTS = (keys.R, keys.TRUE_MODE, keys.TRUE_TURN_RATE, keys.TRUE_RESTART)
-"""The step's inputs per track that are neither carried nor measured: each track's measurement std (a filter gain told
-it) and an oracle's truth (the clairvoyant filters, docs/stages.md); ``IMMNet.scan`` sets them."""
+STEP_INPUTS = (keys.R, keys.MEAS_COV, keys.TRUE_MODE, keys.TRUE_TURN_RATE, keys.TRUE_RESTART)
+"""The step's inputs per track that are neither carried nor measured: each track's measurement std or each detection's
+covariance ``[B, 3, 3]`` (a filter gain told it, ``r="data"``, ``r="detection"``) and an oracle's truth (the clairvoyant filters, docs/stages.md); ``IMMNet.scan`` sets them."""
 
 
 def _compiling() -> bool:
@@ -72,6 +72,7 @@ class TrackStart(Stage):
         read = {unravel_key(k) for stage in stages for k in stage.in_keys}
         self.inputs = [k for k in STEP_INPUTS if k in read]
         self.told_r = keys.R in self.inputs
+        self.told_cov = keys.MEAS_COV in self.inputs
         self.in_keys = [keys.MEASUREMENT, *self.carried, *self.inputs]  # a nested key whole
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:

@@ -14,6 +14,12 @@ from immnet.filters.base import before_first_detection, blank_before_first_detec
 from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker, check_dt, load_network
 
 
+def told_needs(net) -> tuple[str, ...]:
+    """What of the data a network's filter experts are told: each track's ``r`` (``r="data"``), each detection's
+    ``meas_cov`` (``r="detection"``)."""
+    return ((keys.R,) if net.start.told_r else ()) + ((keys.MEAS_COV,) if net.start.told_cov else ())
+
+
 class _LearnedMethod:
     """What the learned methods share: ``net`` (an ``IMMNet``), ``name``, and the ``dt`` check."""
 
@@ -46,7 +52,7 @@ class IMMNetMethod(_LearnedMethod):
         self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r).knock_out(*knock_out),
                                max_coast=math.inf)
         self.net = self.tracker.net
-        self.needs = (keys.R,) if self.net.start.told_r else ()  # a network told each track's r reads the data's
+        self.needs = told_needs(self.net)  # a network told each track's r (each detection's R) reads the data's
         self.batch_size = batch_size
         if return_cov and not self.net.has_cov:
             raise ValueError(f"{name}: {self.net.no_cov_reason()}")
@@ -57,7 +63,7 @@ class IMMNetMethod(_LearnedMethod):
         """The method of a loaded ``Tracker`` (its network as loaded: guard, adaptation, gate, coasting limit)."""
         self = cls.__new__(cls)
         self.name, self.tracker, self.net, self.batch_size = name, tracker, tracker.net, batch_size
-        self.needs = (keys.R,) if self.net.start.told_r else ()
+        self.needs = told_needs(self.net)
         if return_cov and not self.net.has_cov:
             raise ValueError(f"{name}: {self.net.no_cov_reason()}")
         self.return_cov = return_cov
@@ -66,7 +72,8 @@ class IMMNetMethod(_LearnedMethod):
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)  # every interval the one it was trained at, or inside its interval_range
         out = self.tracker.track(batch[keys.MEASUREMENTS], self.batch_size, self.net.intervals_for(batch),
-                                 return_cov=self.return_cov, r=self.net.told_r(batch))
+                                 return_cov=self.return_cov, r=self.net.told_r(batch),
+                                 meas_cov=self.net.told_cov(batch))
         names = (keys.STATE, keys.MODE_PROBS, keys.STATE_COV) if self.return_cov else (keys.STATE, keys.MODE_PROBS)
         return TensorDict({k: out[k].double() for k in names}, batch_size=batch.batch_size)
 

@@ -177,16 +177,17 @@ def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def coast_scan(net: IMMNet, carry: TensorDict, z: torch.Tensor, cuts: torch.Tensor, each: torch.Tensor, keep,
-               r: torch.Tensor | None = None) -> tuple[TensorDict, TensorDict]:
+               r: torch.Tensor | None = None, meas_cov: torch.Tensor | None = None) -> tuple[TensorDict, TensorDict]:
     """One scan ``z [B, 3]`` of ``net`` as :func:`run_network` runs it inside a sequence: each track's interval since
     its previous scan as :func:`coast_cuts` cut it, ``cuts [B]`` scans of ``each [B]`` s, the track coasting through
     the missed scans before its detection, ``keep(after)`` what it carries from one to the next. Returns ``(before,
     after)``: the carry the scan of ``z`` starts from (``carry`` where nothing was cut) and that scan's output. ``r
-    [B]``: each track's measurement std, for a network told it. The caller checks the intervals (:func:`check_dt`)."""
+    [B]``: each track's measurement std, for a network told it; ``meas_cov [B, 3, 3]`` the detection's covariance, for a
+    network told it (the missed scans before it read none). The caller checks the intervals (:func:`check_dt`)."""
     each = each.to(z.dtype)
 
     def scan(c, zz):
-        return net.scan(c, zz, interval=None if bool((each == net.dt).all()) else each, r=r)
+        return net.scan(c, zz, interval=None if bool((each == net.dt).all()) else each, r=r, meas_cov=meas_cov)
 
     missed = torch.full_like(z, float("nan"))
     for i in range(int(cuts.max()) - 1 if len(cuts) else 0):  # the missed scans, each track's before its detection
@@ -202,7 +203,8 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
     CSV path cuts a gap, ``segments._scan_times``: a gap is a gap, the track coasts through it), ``where [B, T]``
     (numpy) the input's scans among the new ones (None where nothing is cut); scan 0's interval (a track's start) at
     most the range's end. A track with fewer scans than the longest continues with missed scans at the range's end
-    (whose estimates no one reads). For a network of one interval, the input and None."""
+    (whose estimates no one reads). For a network of one interval, the input and None. ``z`` may carry more per scan
+    than its measurement (``[B, T, ...]``: what the scan's rows hold, NaN in the missed scans cut in)."""
     span = getattr(net, "interval_range", None)
     if span is None:
         return z, intervals, None
@@ -213,7 +215,7 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
         return z, each, None  # scan 0's at most the range's end
     where = cuts.cumsum(-1) - 1  # each scan is the last of its interval's
     B, width = z.shape[0], int(where[:, -1].max()) + 1
-    full = torch.full((B, width, 3), float("nan"), dtype=z.dtype)
+    full = torch.full((B, width, *z.shape[2:]), float("nan"), dtype=z.dtype)
     steps = torch.full((B, width), float(span[1]), dtype=torch.float64)
     for b in range(B):
         n = int(where[b, -1]) + 1
@@ -280,13 +282,14 @@ def outputs_to_world(out: TensorDict, origin: torch.Tensor) -> TensorDict:
 @torch.no_grad()
 def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
                 return_cov: bool = False, r: torch.Tensor | None = None, return_loglik: bool | str = False,
-                max_position: float = MAX_ABS_POSITION) -> tuple[TensorDict, int]:
+                max_position: float = MAX_ABS_POSITION, meas_cov: torch.Tensor | None = None) -> tuple[TensorDict, int]:
     """``Tracker.track``'s work, ``(outputs, n_gated)``: ``z [B, T, 3]`` (float64, or float32) gated (``max_position``)
     and moved into each track's frame (:func:`frame_origin`, :func:`to_local`: float32 from there), a gap longer than
     a range network's range cut into missed scans (:func:`coast_long_gaps`), every interval checked
     (:func:`check_dt`), ``net.rollout`` in batches of ``batch_size`` tracks, ``mode_probs`` added, NaN before each
     track's first detection, the scans asked for returned and the states back in the caller's frame (float64,
-    :func:`outputs_to_world`)."""
+    :func:`outputs_to_world`). ``meas_cov [B, T, 3, 3]``: each detection's covariance, for a network told it (a
+    translation of the frame leaves it as it is)."""
     z, n_gated = gate_measurements(z, max_position)
     origin = frame_origin(net, z)
     z = to_local(z, origin)
@@ -295,14 +298,20 @@ def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: 
         intervals = torch.as_tensor(intervals, dtype=torch.float64)
         if tuple(intervals.shape) != tuple(z.shape[:2]):
             raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
-        z, intervals, where = coast_long_gaps(net, z, intervals)
+        if meas_cov is None:
+            z, intervals, where = coast_long_gaps(net, z, intervals)
+        else:  # each detection's covariance moves with its scan
+            rows = torch.cat([z, torch.as_tensor(meas_cov).to(z.dtype).flatten(-2)], -1)
+            rows, intervals, where = coast_long_gaps(net, rows, intervals)
+            z, meas_cov = rows[..., :3], rows[..., 3:].unflatten(-1, (3, 3))
         check_dt(net, intervals, "this tracker")
     outs = []
     for i in range(0, z.shape[0], batch_size):
         gaps = None if intervals is None else intervals[i : i + batch_size].to(z.dtype)
         told = None if r is None else torch.as_tensor(r, dtype=z.dtype).reshape(-1)[i : i + batch_size]
+        cov = None if meas_cov is None else torch.as_tensor(meas_cov).to(z.dtype)[i : i + batch_size]
         out, _ = net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov, r=told,
-                             return_loglik=return_loglik)
+                             return_loglik=return_loglik, meas_cov=cov)
         out.set(keys.MODE_PROBS, net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
         waiting = before_first_detection(z[i : i + batch_size])
         outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))

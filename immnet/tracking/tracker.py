@@ -156,15 +156,20 @@ class Tracker:
 
         ``R [B, 3, 3]``: each detection's measurement covariance (m^2; a NaN matrix where the track has no detection),
         e.g. a radar plot's (``immnet.tracking.io``). It is checked (its shape, and symmetric positive definite where
-        the track has a detection: a ValueError otherwise) and **not used**: no network here takes a full measurement
-        covariance yet (the shipped ones estimate each track's noise from its measurements, ``r`` tells a told-``r``
-        network one std per track); a UserWarning says so. The model-based filters read it from a batch's
+        the track has a detection: a ValueError otherwise). A network whose filter experts are told it
+        (``FilterGain(r="detection")``, ``net.start.told_cov``) filters with it, and needs it at every scan; any other
+        **does not use** it (the shipped ones estimate each track's noise from its measurements, ``r`` tells a
+        told-``r`` network one std per track): a UserWarning says so. The model-based filters read it from a batch's
         ``meas_cov`` (``immnet track --method``).
         """
         z = as_measurements(z, 2)
         self._check_told(r)  # before anything of the tracker's state changes
-        if R is not None:
-            check_meas_cov(R, z)
+        told_cov = self.net.start.told_cov
+        if told_cov and R is None:
+            raise ValueError("this network's filter experts are told each detection's measurement covariance "
+                             "(r='detection'): give Tracker.step its R [n_tracks, 3, 3]")
+        cov = None if R is None else check_meas_cov(R, z)
+        if R is not None and not told_cov:
             warnings.warn("Tracker.step: this network does not use R (each detection's covariance): it was checked and "
                           "left unused (docs/radar.md, 'Input')", UserWarning, stacklevel=3)
         check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
@@ -195,11 +200,13 @@ class Tracker:
         self.last = now if interval is None else interval
         if mask is not None:
             self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
+        cov = None if not told_cov else torch.where(torch.isnan(z).any(-1)[:, None, None], torch.eye(3, dtype=cov.dtype),
+                                                     cov).to(z.dtype)
         if interval is None:
-            self.carry = self.net.scan(self.carry, z, r=told)
+            self.carry = self.net.scan(self.carry, z, r=told, meas_cov=cov)
         else:
             keep = lambda td: td.select(*self.net.carry_keys)  # noqa: E731
-            self.carry = coast_scan(self.net, self.carry, z, cuts, each, keep, told)[1]
+            self.carry = coast_scan(self.net, self.carry, z, cuts, each, keep, told, cov)[1]
         self.fresh = torch.zeros_like(first)
         out = self.carry.select(keys.EXPERT_PROBS, keys.EXPERT_POST).clone()
         out.set(keys.FUSED, self.net.estimate(self.carry).clone())  # the output correction's, where it has one
@@ -219,7 +226,8 @@ class Tracker:
 
     @torch.no_grad()
     def track(self, measurements: torch.Tensor, batch_size: int = 512, intervals: torch.Tensor | None = None,
-              return_cov: bool = False, r: torch.Tensor | None = None, return_loglik: bool = False) -> TensorDict:
+              return_cov: bool = False, r: torch.Tensor | None = None, return_loglik: bool = False,
+              meas_cov: torch.Tensor | None = None) -> TensorDict:
         """Whole sequences ``[B, T, 3]`` -> ``state [B, T, 9]``, ``mode_probs [B, T, 4]``, ``expert_probs``,
         ``expert_post``, ``mode_logits`` and, with ``return_cov``, ``state_cov [B, T, 9, 9]`` (the fused
         covariance; a ValueError saying why where the experts carry none, ``net.has_cov``), NaN before each
@@ -230,9 +238,16 @@ class Tracker:
         (:func:`coast_long_gaps`; the output holds the scans given); a track with no detection for longer than
         ``max_coast`` seconds restarts there, as in ``step`` (the parts between restarts tracked as fresh tracks). ``r [B]``: each track's measurement std, for a network whose filter experts are told it
         (``FilterGain(r="data")``). ``return_loglik``: also each scan's
-        measurement log-likelihood under the network's prediction, ``loglik [B, T]`` (``IMMNet.predictive_loglik``)."""
+        measurement log-likelihood under the network's prediction, ``loglik [B, T]`` (``IMMNet.predictive_loglik``).
+        ``meas_cov [B, T, 3, 3]``: each detection's covariance, for a network whose filter experts are told it
+        (``FilterGain(r="detection")``; ``IMMNet.told_cov`` of a batch)."""
         z = as_measurements(measurements, 3)
         self._check_told(r)
+        if meas_cov is not None and not self.net.start.told_cov:
+            raise ValueError("this network is not told each detection's covariance (its filter gain's r is not "
+                             "'detection'): give it no meas_cov")
+        if meas_cov is not None and tuple(meas_cov.shape) != (*z.shape[:2], 3, 3):
+            raise ValueError(f"meas_cov is [n_tracks, T, 3, 3] = {[*z.shape[:2], 3, 3]}, got {list(meas_cov.shape)}")
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
         iv = None
@@ -247,13 +262,15 @@ class Tracker:
         restart, taken = coast_restarts(~torch.isnan(gated).any(-1), every, self.max_coast)
         if not bool(restart.any()):
             out, self.n_gated = run_network(self.net, z, batch_size, iv, return_cov, told, return_loglik,
-                                            self.max_position)
+                                            self.max_position, meas_cov)
             return out
 
-        def run(zs, ivs, rows):  # each segment a fresh track
-            return run_network(self.net, zs, batch_size, ivs, return_cov, None if told is None else told[rows],
-                               return_loglik, self.max_position)[0]
+        def run(zs, ivs, rows):  # each segment a fresh track (its detections' covariances after its measurements)
+            cov = None if meas_cov is None else zs[..., 3:].unflatten(-1, (3, 3))
+            return run_network(self.net, zs[..., :3], batch_size, ivs, return_cov, None if told is None else told[rows],
+                               return_loglik, self.max_position, cov)[0]
 
-        out = by_segments(run, restart, z, None if iv is None else taken)
+        rows = z if meas_cov is None else torch.cat([z, meas_cov.to(z.dtype).flatten(-2)], -1)
+        out = by_segments(run, restart, rows, None if iv is None else taken)
         self.n_gated = n_gated
         return out

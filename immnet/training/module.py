@@ -377,9 +377,10 @@ class Stage2Module(_TrackerModule):
         intervals = self.net.intervals_for(batch)  # None at the network's own dt
         carry, tot = None, torch.zeros(4)
         told = self.net.told_r(batch)  # each track's r, where the filter experts are told it
+        cov = self.net.told_cov(batch)  # each detection's covariance, where they are told it
         for s, e in self.chunks(z.shape[1]):
             out, carry = self.net.rollout(z[:, s:e], carry, intervals=None if intervals is None else intervals[:, s:e],
-                                          r=told)
+                                          r=told, meas_cov=None if cov is None else cov[:, s:e])
             parts = self.losses(out, batch, s, e)
             self._optimize(parts[0])
             carry = carry.detach()
@@ -424,7 +425,7 @@ class Stage2Module(_TrackerModule):
 
     def _evaluate(self, batch, prefix):
         out, _ = self.net.rollout(batch[keys.MEASUREMENTS], intervals=self.net.intervals_for(batch),
-                                  r=self.net.told_r(batch))
+                                  r=self.net.told_r(batch), meas_cov=self.net.told_cov(batch))
         loss, mse, ce, own = self.losses(out, batch)
         B = batch.batch_size[0]
         self.log(f"{prefix}/loss", loss, prog_bar=True, batch_size=B, sync_dist=True)

@@ -1,0 +1,287 @@
+"""Filter experts told each detection's measurement covariance (``FilterGain(r="detection")``, the step's input
+``"meas_cov"``): with ``R = r^2 I`` the same numbers as told ``r`` (``r="data"``), bit for bit; with anisotropic
+covariances the model-based IMM told them (``IMMTracker(r="detection")``, the core's own scan loop) to FilterPy's
+criterion; through ``Tracker`` and ``immnet evaluate``'s method as the rollout; and the refusals."""
+
+import pytest
+import torch
+import yaml
+
+from immnet import keys
+from immnet.config import resolve_path
+from immnet.data.generate import generate
+from immnet.data.spec import DataSpec
+from immnet.filters.trackers import IMMTracker
+from immnet.stages import IMMNet
+from immnet.stages.filtering import FilterGain
+from immnet.tracking.methods import IMMNetMethod
+from immnet.tracking.networks import frame_origin, to_local, to_world
+from immnet.tracking.tracker import Tracker
+
+ADAPTIVE = "configs/model_sets/imm4-adaptive.yaml"
+
+
+def _data(seed: int = 8, T: int = 60):
+    data = generate(10, seed=seed, spec=DataSpec(T=T, min_segment=min(20, T // 3)))
+    z = data[keys.MEASUREMENTS].double()
+    z[3, 20:25] = float("nan")  # missed detections inside a track
+    z[5, 1] = float("nan")  # right after the start
+    z[7, :3] = float("nan")  # a track first detected at scan 3
+    data[keys.MEASUREMENTS] = z
+    return data
+
+
+def _anisotropic(z: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    """Random symmetric positive-definite covariances [B, T, 3, 3] (variances 5 to a few hundred m^2, correlated), NaN
+    where a scan is missed."""
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(*z.shape[:2], 3, 3, generator=g, dtype=torch.float64)
+    R = A @ A.transpose(-1, -2) * 30.0 + 5.0 * torch.eye(3, dtype=torch.float64)
+    R[torch.isnan(z).any(-1)] = float("nan")
+    return R
+
+
+def _real_imm(r):
+    args = yaml.safe_load(resolve_path("configs/methods/real-imm-5s.yaml").read_text())["init_args"]
+    return IMMTracker(**{**args, "r": r, "name": f"real-imm-5s-{r}"})
+
+
+@pytest.mark.parametrize("gain", ["immnet.stages.filtering.FilterGain", "immnet.stages.filtering.KalmanNetFilterGain"])
+@pytest.mark.parametrize("start", [1, 2])
+def test_told_isotropic_covariance_is_told_r_exactly(gain, start):
+    """``R_t = r^2 I`` at every detection: the experts told each detection's covariance give what the experts told each
+    track's ``r`` give, exactly (the start's covariance, ``S``, the Joseph update, the likelihoods), for the
+    model-based filters and for KalmanNet's (the same untrained weights), a start from one detection or two."""
+    data = _data()
+    z = data[keys.MEASUREMENTS]
+    r = data[keys.R].double()
+    R = (r * r)[:, None, None, None] * torch.eye(3, dtype=torch.float64).expand(*z.shape[:2], 3, 3)
+    R = torch.where(torch.isnan(z).any(-1)[..., None, None], float("nan"), R)
+    nets = []
+    for told in ("data", "detection"):
+        torch.manual_seed(0)
+        g = {"class_path": gain, "init_args": {"r": told, "interaction": "imm"}}
+        nets.append(IMMNet(model_set=ADAPTIVE, gain=g, classifier={"class_path": "immnet.stages.BayesianModeUpdate",
+                                                                   "init_args": {"from_experts": True}},
+                           start_detections=start).double().eval())
+    nets[1].load_state_dict(nets[0].state_dict())
+    data[keys.MEAS_COV] = R
+    with torch.no_grad():
+        a, _ = nets[0].rollout(z, r=r, return_cov=True, return_loglik=True)
+        b, _ = nets[1].rollout(z, meas_cov=nets[1].told_cov(data), return_cov=True, return_loglik=True)
+    for key in (keys.STATE, keys.STATE_COV, keys.ROLLOUT_EXPERT_PROBS, keys.LOGLIK):
+        torch.testing.assert_close(b[key], a[key], rtol=0, atol=0, equal_nan=True)
+    assert torch.isfinite(a[keys.STATE][:, 5:]).all()
+
+
+def test_told_anisotropic_covariance_is_the_imm_told_it():
+    """Each detection's own correlated covariance: ``IMMTracker(r="detection").network()`` (filter experts told it)
+    filters what the IMM told it filters (``track``: the core's scan loop with ``R_t``, its start at the first
+    detection with that detection's ``R``) to FilterPy's criterion, 1e-9 of the state's scale; ``R = r^2 I`` would not
+    (the test can fail). As ``immnet evaluate``'s method (``Tracker.track`` in each track's frame, float32) it is the
+    float32 rollout there exactly, and it reads the data's ``meas_cov``."""
+    data = _data()
+    z = data[keys.MEASUREMENTS]
+    data[keys.MEAS_COV] = _anisotropic(z)
+    tracker = _real_imm("detection")
+    net = tracker.network()
+    assert net.start.told_cov and not net.start.told_r
+    with torch.no_grad():
+        out, _ = net.rollout(z, meas_cov=net.told_cov(data))
+    ours = tracker.track(data)[keys.STATE]
+    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
+    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
+    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
+    told_r = _real_imm("data").track(data)[keys.STATE]  # each track's r instead: another filter
+    assert ((told_r - ours).abs() > 1e-3)[seen].any()
+
+    method = IMMNetMethod.from_tracker(Tracker(net.float()))
+    assert method.needs == (keys.MEAS_COV,)
+    got = method.track(data)[keys.STATE]
+    origin = frame_origin(net, z)
+    with torch.no_grad():
+        ref, _ = net.rollout(to_local(z, origin), meas_cov=net.told_cov(data).float())
+    torch.testing.assert_close(got[seen], to_world(ref[keys.STATE], origin)[seen], rtol=0, atol=0)
+    assert torch.isnan(got[~seen]).all()
+
+
+def test_streaming_steps_with_each_detections_covariance_are_the_sequence():
+    """``Tracker.step(z, R=...)`` scan by scan, for a network told each detection's covariance, is ``Tracker.track`` of
+    the sequence with its ``meas_cov``: R is used, not warned about and dropped."""
+    data = _data(T=25)
+    z = data[keys.MEASUREMENTS]
+    R = _anisotropic(z, seed=1)
+    data[keys.MEAS_COV] = R
+    net = _real_imm("detection").network().float()
+    whole = Tracker(net).track(z, meas_cov=net.told_cov(data))[keys.STATE]
+    stream = Tracker(net)
+    steps = torch.stack([stream.step(z[:, t], R=R[:, t])[keys.FUSED] for t in range(z.shape[1])], 1)
+    torch.testing.assert_close(steps, whole, rtol=0, atol=1e-6, equal_nan=True)
+    with pytest.raises(ValueError, match=r"give Tracker.step its R \[n_tracks, 3, 3\]"):
+        Tracker(net).step(z[:, 0])
+
+
+def test_refusals_of_a_network_told_each_detections_covariance():
+    """One line naming what is missing or wrong: an unknown ``r``; a rollout without ``meas_cov``; data without
+    ``meas_cov``; a covariance that is not one at a detection."""
+    with pytest.raises(ValueError, match="'detection' \\(each detection's covariance told\\)"):
+        FilterGain(IMMNet(model_set=ADAPTIVE).model_set, r="detections")
+    data = _data(T=10)
+    z = data[keys.MEASUREMENTS]
+    net = _real_imm("detection").network()
+    with pytest.raises(ValueError, match=r"r='detection'\): give the step its input 'meas_cov' \[B, 3, 3\]"):
+        net.rollout(z)
+    with pytest.raises(ValueError, match="the data holds no 'meas_cov'"):
+        net.told_cov(data)
+    R = _anisotropic(z)
+    R[2, 4] = -R[2, 4]
+    data[keys.MEAS_COV] = R
+    with pytest.raises(ValueError, match="'meas_cov' of track 2, scan 4 is not a finite symmetric positive-definite"):
+        net.told_cov(data)
+    other = _real_imm("data").network()
+    with pytest.raises(ValueError, match="give it no meas_cov"):
+        Tracker(other).track(z, r=data[keys.R], meas_cov=R)
+
+
+def _corrected(whiten: bool, r: str, seed: int = 0):
+    """The IMM told ``r`` (``real-imm-5s``'s filters) with an output correction, its ``out`` layer a constant
+    correction ``delta = (1, 2, -1)`` (weights 0, bias set)."""
+    config = dict(_real_imm(r).network().config)
+    config["dt"] = 1.0
+    config["correction"] = {"class_path": "immnet.stages.correct.OutputCorrection",
+                            "init_args": {"hidden": 8, "layers": 1, "whiten": whiten}}
+    torch.manual_seed(seed)
+    net = IMMNet(**config).double().eval()
+    with torch.no_grad():
+        net.correct.out.bias.copy_(torch.tensor([1.0, 2.0, -1.0]))
+    return net
+
+
+def test_whitened_correction_moves_the_estimate_by_the_noise_factor():
+    """``OutputCorrection(whiten=True)`` on filters told each detection's covariance: a constant correction ``delta``
+    moves the reported position by ``L delta`` (``R = L L^T`` of the last detection), checked against numpy's Cholesky
+    factor: ``|L^-1 shift|^2 = shift^T R^-1 shift = |delta|^2`` and the first column ``R[:, 0] / sqrt(R_00)``; without
+    whitening, ``sqrt(tr R / 3) delta``. The filter under it is the filter without a correction, exactly."""
+    import numpy as np
+
+    data = _data(T=12)
+    z = data[keys.MEASUREMENTS]
+    R = _anisotropic(z, seed=2)
+    data[keys.MEAS_COV] = R
+    delta = torch.tensor([1.0, 2.0, -1.0], dtype=torch.float64)
+    bare = _real_imm("detection").network()
+    with torch.no_grad():
+        base, _ = bare.rollout(z, meas_cov=bare.told_cov(data), return_cov=True)
+    for whiten in (True, False):
+        net = _corrected(whiten, "detection")
+        with torch.no_grad():
+            out, _ = net.rollout(z, meas_cov=net.told_cov(data), return_cov=True)
+        torch.testing.assert_close(out[keys.STATE_COV], base[keys.STATE_COV], rtol=0, atol=0, equal_nan=True)
+        shift = (out[keys.STATE] - base[keys.STATE])[..., 0::3]
+        b, t = 0, 6  # a scan with a detection, the correction running
+        assert not torch.isnan(z[b, t]).any()
+        Rbt = R[b, t].numpy()
+        if whiten:
+            L = np.linalg.cholesky(Rbt)
+            np.testing.assert_allclose(shift[b, t].numpy(), L @ delta.numpy(), rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(shift[b, t].numpy() @ np.linalg.solve(Rbt, shift[b, t].numpy()), 6.0, rtol=1e-9)
+            probe = _corrected(True, "detection")
+            with torch.no_grad():
+                probe.correct.out.bias.copy_(torch.tensor([1.0, 0.0, 0.0]))
+                one, _ = probe.rollout(z, meas_cov=probe.told_cov(data))
+            np.testing.assert_allclose((one[keys.STATE] - base[keys.STATE])[b, t, 0::3].numpy(),
+                                       Rbt[:, 0] / np.sqrt(Rbt[0, 0]), rtol=1e-9)
+        else:
+            np.testing.assert_allclose(shift[b, t].numpy(), np.sqrt(np.trace(Rbt) / 3) * delta.numpy(), rtol=1e-9)
+
+
+def test_whitened_features_are_the_innovation_in_the_noise_frame():
+    """The whitened features: ``|L^-1 (z - p)|^2 = (z - p)^T R^-1 (z - p)`` and ``sum diag(L^-1 P L^-T) = tr(R^-1 P)``
+    (numpy), ``log sqrt(diag R) / 5``; with ``R = r^2 I`` the plain features' columns (the innovation over ``r``, the
+    position std over ``r``) and the correction ``r delta``."""
+    import numpy as np
+
+    from immnet.stages.correct import cholesky_noise, correction_features, whitened_features
+
+    g = torch.Generator().manual_seed(3)
+    B = 5
+    A = torch.randn(B, 3, 3, generator=g, dtype=torch.float64)
+    R = A @ A.transpose(-1, -2) * 50 + 10 * torch.eye(3, dtype=torch.float64)
+    C = torch.randn(B, 9, 9, generator=g, dtype=torch.float64)
+    P = C @ C.transpose(-1, -2) * 20
+    x = torch.randn(B, 9, generator=g, dtype=torch.float64) * 100
+    z = x[:, 0::3] + torch.randn(B, 3, generator=g, dtype=torch.float64) * 30
+    mu = torch.softmax(torch.randn(B, 4, generator=g, dtype=torch.float64), -1)
+    f = whitened_features(z, x, P, mu, cholesky_noise(R), 5.0)
+    for b in range(B):
+        d, Rb, Pp = (z[b] - x[b, 0::3]).numpy(), R[b].numpy(), P[b][0::3, 0::3].numpy()
+        np.testing.assert_allclose((f[b, :3] ** 2).sum().item(), d @ np.linalg.solve(Rb, d), rtol=1e-9)
+        np.testing.assert_allclose((f[b, 10:13] ** 2).sum().item(), np.trace(np.linalg.solve(Rb, Pp)), rtol=1e-9)
+        np.testing.assert_allclose(f[b, 23:26].numpy(), np.log(np.sqrt(np.diag(Rb)) / 5.0), rtol=1e-12)
+    r = torch.tensor([[7.0], [20.0], [3.0], [50.0], [11.0]], dtype=torch.float64)
+    iso = (r * r)[..., None] * torch.eye(3, dtype=torch.float64)
+    white = whitened_features(z, x, P, mu, cholesky_noise(iso), 5.0)
+    plain = correction_features(z, x, P, mu, r, 5.0)
+    torch.testing.assert_close(white[:, :23], plain[:, :23], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(white[:, -1], plain[:, -1], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="whiten must be true or false, got 'yes'"):
+        from immnet.stages.correct import OutputCorrection
+
+        OutputCorrection(IMMNet(model_set=ADAPTIVE).model_set, whiten="yes")
+
+
+@pytest.mark.parametrize("r", ["detection", "data"])
+def test_robust_filter_experts_are_the_robust_imm(r):
+    """``FilterGain(robust=k)``: Huber's update (the gain ``w K``, the covariance ``P - w K H P`` by Joseph's form with
+    ``R + (1/w - 1) S``, Huber's likelihood in the mode update) is the robust IMM's: ``IMMTracker(robust=k).network()``
+    filters what its ``track`` filters (the core's ``kalman.update``) to 1e-9 of the state's scale, on tracks with
+    outliers 1.5-2 km off, where the plain IMM is kilometres away from it (the test can fail)."""
+    data = _data()
+    z = data[keys.MEASUREMENTS]
+    z[2, 30] += 2000.0
+    z[4, 10] -= 1500.0
+    data[keys.MEASUREMENTS] = z
+    data[keys.MEAS_COV] = _anisotropic(z)
+    args = yaml.safe_load(resolve_path("configs/methods/real-imm-5s.yaml").read_text())["init_args"]
+    tracker = IMMTracker(**{**args, "r": r, "robust": 2.0, "name": "robust"})
+    net = tracker.network()
+    assert net.gain.robust == 2.0
+    with torch.no_grad():
+        out, _ = net.rollout(z, meas_cov=net.told_cov(data), r=net.told_r(data), return_cov=True)
+    ours = tracker.track(data)[keys.STATE]
+    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
+    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
+    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
+    plain = IMMTracker(**{**args, "r": r, "name": "plain"}).track(data)[keys.STATE]
+    assert ((plain - ours).abs() > 500.0)[seen].any()
+    with pytest.raises(ValueError, match="robust must be None \\(off\\) or Huber's k"):
+        FilterGain(net.model_set, robust=-1.0)
+    with pytest.raises(ValueError, match="a robust update \\(robust=2.0\\) weighs the whole innovation"):
+        FilterGain(net.model_set, robust=2.0, modes="axis")
+
+
+RADAR = ["radar-imm-5s", "radar-imm-11s", "radar-imm-robust-5s", "radar-imm-robust-11s"]
+
+
+@pytest.mark.parametrize("name", RADAR)
+def test_each_radar_imm_is_immnet_with_nothing_learned(name):
+    """Issue 21, item 1, for the IMMs told each plot's covariance (``r: detection``, plain and robust): the registry's
+    method equals its ``network()`` (filter experts told ``meas_cov``, Huber's update where the method has one) to
+    FilterPy's criterion, with outliers 1.5-2 km off among correlated covariances."""
+    from immnet.evaluation.methods import build_method
+
+    data = _data()
+    z = data[keys.MEASUREMENTS]
+    z[2, 30] += 2000.0
+    z[4, 10] -= 1500.0
+    data[keys.MEASUREMENTS] = z
+    data[keys.MEAS_COV] = _anisotropic(z)
+    method = build_method(name)
+    net = method.network()
+    assert net.start.told_cov and (net.gain.robust is not None) == ("robust" in name)
+    with torch.no_grad():
+        out, _ = net.rollout(z, meas_cov=net.told_cov(data))
+    ours = method.track(data)[keys.STATE]
+    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
+    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
+    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
