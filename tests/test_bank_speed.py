@@ -4,6 +4,7 @@ Each test counts the calls of the work it names."""
 
 import numpy as np
 import pytest
+import torch
 from scipy.linalg import solve_discrete_are
 
 import immnet.stages.gain as gain
@@ -44,3 +45,25 @@ def test_filter_experts_with_kalmannet_do_not_solve_for_a_gain_they_do_not_use(r
         P = solve_discrete_are(F[m].T, H.T, Q[m], R)  # the prior covariance's fixed point
         K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
         np.testing.assert_allclose(plain.K_ss[m].double().numpy(), K, rtol=1e-4, atol=1e-6)
+
+
+def test_the_bank_reads_each_members_file_once(monkeypatch):
+    """Building the shipped bank reads (and checksums) each of its six files once, not once for its modes and again
+    for its weights; the members are the networks ``load_network`` gives, to the bit."""
+    import immnet.tracking.bank as bank
+    import immnet.tracking.networks as networks
+    from immnet.checkpoints import BANK_MEMBERS, shipped
+    from immnet.tracking.networks import load_network
+
+    read = []
+    real = networks.read_checkpoint
+    for module in (bank, networks):  # where the bank reads them, and where load_network does
+        monkeypatch.setattr(module, "read_checkpoint", lambda path: read.append(path) or real(path))
+    built = bank.NetworkBank.from_names()
+    monkeypatch.undo()
+    assert sorted(map(str, read)) == sorted(str(shipped(m)) for m in BANK_MEMBERS)
+    for name, net in built.members.items():
+        alone = load_network(shipped(name), guard=None)
+        assert net.config == alone.config
+        mine, theirs = net.state_dict(), alone.state_dict()
+        assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine)

@@ -42,7 +42,7 @@ from immnet.stages import IMMNet
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
     KEEP, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
-    coast_scan, coast_step, guarded, load_network, next_origin, per_track, provenance_of, read_checkpoint, run_network,
+    coast_scan, coast_step, guarded, network_from, next_origin, per_track, provenance_of, read_checkpoint, run_network,
     scans_served, select_rows, to_local, to_world, trained_for,
 )
 
@@ -153,8 +153,8 @@ class NetworkBank:
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
                    temper: float = TEMPER, max_coast: float = MAX_COAST) -> "NetworkBank":
-        """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded by ``load_network``
-        with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
+        """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
+        loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
         whose modes are the whole target's, since a guard's transitions cannot be per axis: ``IMMNet(modes=...)``),
         ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``:
         the bank's."""
@@ -164,8 +164,9 @@ class NetworkBank:
         nets = {}
         for m in members:
             path = _member_path(m)
-            joint = read_checkpoint(path)[0].get("modes", "joint") == "joint"
-            nets[str(m)] = load_network(path, guard=guard if joint else None, adapt=adapt, r=r)
+            config, state = read_checkpoint(path)
+            joint = config.get("modes", "joint") == "joint"
+            nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r)
         bank = cls(nets, prior, max_position, likelihood, temper, max_coast)
         bank.paths = {str(m): _member_path(m) for m in members}
         return bank
