@@ -256,7 +256,9 @@ class NetworkBank:
             net = nets[k]
             rows = takes[:, k].nonzero().flatten()
             own = net.own_intervals(intervals[rows])  # as it runs alone (IMMNet.intervals_for)
-            out, _ = run_network(net, z[rows], batch_size, own, return_cov, None, self.likelihood, self.max_position)
+            with torch.inference_mode():  # no autograd bookkeeping; its outputs are copied into the bank's below
+                out, _ = run_network(net, z[rows], batch_size, own, return_cov, None, self.likelihood,
+                                     self.max_position)
             state[rows, :, j] = out[keys.STATE].double()
             probs[rows, :, j] = out[keys.MODE_PROBS].double()
             loglik[rows, :, k] = out[keys.LOGLIK].double()
