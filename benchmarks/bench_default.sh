@@ -14,7 +14,7 @@ export PYTHONPATH=$root OMP_NUM_THREADS=1 WANDB_MODE=offline WANDB_SILENT=true
 cd "$root"  # python -m puts the working directory first on sys.path
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
-echo "$(git -C "$root" rev-parse --short HEAD); $(nproc) CPUs; load average $(cut -d' ' -f1-3 /proc/loadavg); $csv"
+echo "$(git -C "$root" rev-parse --short HEAD); $(nproc --all) CPUs; load average $(cut -d' ' -f1-3 /proc/loadavg); $csv"
 one() {  # one(LOG, ARGS...): one run of immnet track, its user, sys and wall seconds appended to LOG
   local log=$1; shift
   rm -f "$work/out.csv"
