@@ -154,8 +154,9 @@ class NetworkBank:
                    max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
                    temper: float = TEMPER, max_coast: float = MAX_COAST) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
-        loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
-        whose modes are the whole target's, since a guard's transitions cannot be per axis: ``IMMNet(modes=...)``),
+        loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one
+        asked for goes to the members whose modes are the whole target's, since a guard's transitions cannot be per
+        axis: ``IMMNet(modes=...)``),
         ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``:
         the bank's."""
         members = list(members)
