@@ -49,8 +49,9 @@ def test_every_search_file_builds_its_method_at_every_grid_value(path):
     for knob, values in search.grid.items():
         for v in values:
             method = instantiate(search.config({**search.start, knob: v}))
-            told = (search.method["init_args"].get("r") == "data")  # told each track's r, or estimating it
-            assert method.any_interval and method.needs == ((keys.R,) if told else ())
+            r = search.method["init_args"].get("r")  # told each track's r or each detection's covariance, or neither
+            needs = {"data": (keys.R,), "detection": (keys.MEAS_COV,)}.get(r, ())
+            assert method.any_interval and method.needs == needs
 
 
 def _kalman_search(path, model: str, sigmas: list[float]):

@@ -120,11 +120,10 @@ def track_plots(args, limit: float) -> int:
     """``immnet track`` for a CSV of unlabelled plots (module doc)."""
     from immnet.data.scratch import publishing
     from immnet.progress import progress
-    from immnet.tracking.cli import _sigmas
-    from immnet.tracking.io import PLOT_OUT_COLUMNS, R_COLUMNS, plot_track_rows, read_plots_csv
+    from immnet.tracking.io import PLOT_OUT_COLUMNS, R_COLUMNS, option_sigmas, plot_track_rows, read_plots_csv
     from immnet.tracking.multi import DEFAULT_FILTER, MultiTargetTracker, TrackFilter
 
-    plots = read_plots_csv(args.input, _sigmas(args))
+    plots = read_plots_csv(args.input, option_sigmas(args))
     clutter = _scene_clutter(Path(args.scene), plots) if args.scene is not None else None
     name = args.method or DEFAULT_FILTER
     filt = TrackFilter.from_method(name)
