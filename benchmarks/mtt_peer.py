@@ -355,6 +355,9 @@ def table(result: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", required=True, type=Path, help="a scene set of `immnet data scenes`")
+    ap.add_argument("--tune-set", type=Path, default=None,
+                    help="take the training scenes from this scene set instead (e.g. 3D-LAST scenes made with "
+                         "--last-split train and another --seed)")
     ap.add_argument("--tune-scenes", type=int, default=2, help="training scenes to tune on (default 2)")
     ap.add_argument("--test-scenes", type=int, default=3, help="test scenes to evaluate on (default 3)")
     ap.add_argument("--trackers", default="gnn,jpda,ours,told",
@@ -380,7 +383,9 @@ def main(argv=None) -> int:
 
     index = load_index(a.scenes)
     entries = {s: [e for e in index["scenes"] if e["split"] == s] for s in ("train", "test")}
-    train = [load_scene(a.scenes / e["file"]) for e in entries["train"][: a.tune_scenes]]
+    tune_set = a.tune_set or a.scenes
+    train = [load_scene(tune_set / e["file"]) for e in load_index(tune_set)["scenes"]
+             if e["split"] == "train"][: a.tune_scenes]
     test = [load_scene(a.scenes / e["file"]) for e in entries["test"][: a.test_scenes]]
     if not test or (not train and a.params is None and ({"gnn", "jpda"} & set(trackers))):
         ap.error(f"{a.scenes}: needs test scenes and, to tune, training scenes (has {len(train)} train, "
