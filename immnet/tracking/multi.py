@@ -1,7 +1,7 @@
 """Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, M-of-N confirmation,
 coasting and deletion around a batched per-track filter (docs/tracking.md, "Many targets").
 
-    tracker = MultiTargetTracker("real-imm-singer", r=50.0)      # any model-based IMM or Kalman filter by name
+    tracker = MultiTargetTracker("real-imm-5s", r=50.0)          # any model-based IMM or Kalman filter by name
     for t, plots in scans:                                        # plots [N, 3] ENU (m); R [N, 3, 3] optional
         for rep in tracker.step(t, plots):                        # the confirmed tracks
             rep.track_id, rep.state, rep.cov, rep.updated
@@ -466,8 +466,8 @@ class MultiTargetTracker:
     ``clutter_density`` the false plots per m^3); ``r``: the measurement std (m) of plots given without ``R`` (None:
     the filter's)."""
 
-    def __init__(self, filter: TrackFilter | str = "real-imm-singer", gate: float = 0.999,
-                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = 4,
+    def __init__(self, filter: TrackFilter | str = "real-imm-5s", gate: float = 0.9999,
+                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = 3,
                  max_pos_std: float = 5000.0, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
                  clutter_density: float = 1e-12, jpda_max_events: int = 20000):
         if isinstance(filter, str):
