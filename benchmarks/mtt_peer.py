@@ -55,7 +55,7 @@ from common import machine, write_section  # noqa: E402
 from immnet.data.scenes import Scene, load_index, load_scene  # noqa: E402
 
 C, P, ALPHA = 200.0, 2.0, 2.0
-GRID = {"q": (0.5, 5.0, 50.0), "delete_steps": (3, 5), "min_points": (3, 4)}
+GRID = {"q": (0.5, 5.0, 50.0), "delete_steps": (2, 3, 5), "min_points": (2, 3, 4)}
 """The tuning grid of both Stone Soup trackers."""
 FIXED = {"missed_distance": 4.0, "init_speed": 300.0, "tentative_steps": 2, "prob_gate": 0.9999}
 EPOCH = datetime.datetime(1970, 1, 1)
@@ -326,9 +326,15 @@ def mean_rows(rows: list[dict]) -> dict:
     return out
 
 
-def tune(kind: str, scenes: list[Scene], log) -> tuple[dict, list]:
+def tune(kind: str, scenes: list[Scene], log, done: list | None = None) -> tuple[dict, list]:
+    """The grid's points on the training scenes, the lowest mean GOSPA chosen; ``done``: points already scored on the
+    same scenes (a previous OUT.json's), kept and not run again."""
     grid = []
     for q, ds, mp in itertools.product(GRID["q"], GRID["delete_steps"], GRID["min_points"]):
+        old = [r for r in done or [] if (r["q"], r["delete_steps"], r["min_points"]) == (q, ds, mp)]
+        if old:
+            grid.append(old[0])
+            continue
         params = {**FIXED, "q": q, "delete_steps": ds, "min_points": mp}
         rows = [evaluate(run_stonesoup(kind, sc, params), sc) for sc in scenes]
         g = float(np.mean(np.concatenate([r["gospa_per_scan"] for r in rows])))
@@ -367,7 +373,7 @@ def main(argv=None) -> int:
                     help="stop each Stone Soup run of a scene after S seconds of wall time; the scans it finished are "
                          "scored and the table says how many (default: no limit)")
     ap.add_argument("--params", type=Path, default=None,
-                    help="a previous OUT.json: take its tuned settings instead of tuning again")
+                    help="a previous OUT.json of the same training scenes: its grid points are kept, the others scored")
     ap.add_argument("--out", type=Path, default=Path("results/mtt_peer"), help="OUT.json and OUT.md")
     ap.add_argument("--write-benchmarks", action="store_true", help="rewrite the section of BENCHMARKS.md")
     ap.add_argument("--quiet", action="store_true")
@@ -397,11 +403,13 @@ def main(argv=None) -> int:
     for kind in ("gnn", "jpda"):
         if kind not in trackers:
             continue
-        if previous is not None and kind in previous.get("chosen", {}):
-            result["chosen"][kind] = previous["chosen"][kind]
-            result["tuning"][kind] = previous.get("tuning", {}).get(kind, [])
-        else:
-            result["chosen"][kind], result["tuning"][kind] = tune(kind, train, log)
+        done = (previous or {}).get("tuning", {}).get(kind, [])
+        if previous is not None and previous.get("train") not in (None, result["train"]):
+            ap.error(f"--params {a.params}: tuned on {previous['train']}, these training scenes are {result['train']}")
+        if previous is not None and kind in previous.get("chosen", {}) and not done:
+            result["chosen"][kind], result["tuning"][kind] = previous["chosen"][kind], []
+        else:  # the grid's points the previous run did not score are scored now
+            result["chosen"][kind], result["tuning"][kind] = tune(kind, train, log, done)
         log(f"[{kind}] chosen {result['chosen'][kind]}")
     names = {"gnn": "Stone Soup GNN (EKF, CV)", "jpda": "Stone Soup JPDA (EKF, CV)", "ours": "ours (MultiTargetTracker)",
              "told": "ours told the association", "ss-told": "Stone Soup EKF+CV told the association"}
