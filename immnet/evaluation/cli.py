@@ -17,14 +17,21 @@ from immnet.evaluation.registry import configured_methods
 def register(subparsers) -> None:
     p = subparsers.add_parser("evaluate", help="score tracking methods on a data set (RMSE table, JSON, figures)",
                               description="Score tracking methods on a 3D-LAST data set: RMSE table, JSON, figures.")
-    p.add_argument("--data", required=True, help="a data set directory (immnet data generate) or an .npz file")
+    p.add_argument("--data", required=True,
+                   help="a data set directory (immnet data generate) or an .npz file; or a scene set (immnet data "
+                        "scenes), whose scenes the multi-target tracker runs on, scored by GOSPA (docs/evaluation.md, "
+                        "\"Scenes\")")
     p.add_argument("--split", choices=("test", "all"), default="test",
-                   help="test: the DataModule's test split of a generated directory (default); all: every "
-                        "trajectory (an .npz is always taken whole)")
+                   help="test: the DataModule's test split of a generated directory, a scene set's held-out scenes "
+                        "(default); all: every trajectory or scene (an .npz is always taken whole)")
     p.add_argument("--methods", metavar="NAME,...",
                    help="comma-separated method names (default: every available one the data allows), of: "
                         f"{', '.join(configured_methods())} (the built-in and each configs/methods/NAME.yaml, the "
-                        "working directory's and the packaged ones: docs/configs.md)")
+                        "working directory's and the packaged ones: docs/configs.md); on a scene set: the multi-target "
+                        "tracker's per-track filters (model-based IMMs and Kalman filters; default: the tracker's "
+                        "default filter), each also told the association")
+    p.add_argument("--associator", choices=("gnn", "jpda"), default=None,
+                   help="scene sets only: the multi-target tracker's association (default gnn)")
     p.add_argument("--checkpoint", action="append", default=[], metavar="[NAME=]CKPT",
                    help="checkpoint for a neural method; a bare path goes to every selected method that takes one")
     p.add_argument("--guard", default="checkpoint",
@@ -38,8 +45,8 @@ def register(subparsers) -> None:
     p.add_argument("--sigma-q", type=float, default=None, metavar="SIGMA_Q",
                    help="the truth's process noise (m/s^2) for the clairvoyant references (default: the data's "
                         "meta.json spec; 3D-LAST's 0.2 for an .npz)")
-    p.add_argument("--batch-size", type=int, default=256, help="trajectories per batch (default 256)")
-    p.add_argument("--limit", type=int, help="only the first N trajectories of the split")
+    p.add_argument("--batch-size", type=int, default=None, help="trajectories per batch (default 256)")
+    p.add_argument("--limit", type=int, help="only the first N trajectories (scenes, of a scene set) of the split")
     p.add_argument("--max-position", type=float, default=None, metavar="M",
                    help="a measurement with a component beyond M metres from the radar (or not finite) is "
                         "beyond what a sensor reports: it is treated as a missed detection, counted and "
@@ -214,6 +221,10 @@ def run_evaluate(args) -> int:
     from immnet.evaluation.table import format_markdown, format_table
     from immnet.imm.guard import parse_guard
 
+    if is_scene_set(args.data):
+        return run_scenes(args)
+    if args.associator is not None:
+        raise ValueError(f"--associator is for scene sets (immnet data scenes); {args.data} is not one")
     limit = check_limit(MAX_ABS_POSITION if args.max_position is None else args.max_position)
     guard = parse_guard(args.guard)
     _check_outputs(args)
@@ -221,6 +232,8 @@ def run_evaluate(args) -> int:
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     methods = select_methods(args.methods, args.checkpoint, list(data.keys()), note, data, meta, guard, args.sigma_q,
                              args.told_r)
+    if args.batch_size is None:
+        args.batch_size = 256
     if args.batch_size < 1:
         raise ValueError("--batch-size must be positive")
     log = wandb_log.wanted(args.wandb)
@@ -260,6 +273,79 @@ def run_evaluate(args) -> int:
             import shutil
 
             shutil.rmtree(figures, ignore_errors=True)
+    return 0
+
+
+def is_scene_set(path) -> bool:
+    """Whether ``path`` is a scene set of ``immnet data scenes`` (a directory holding its index)."""
+    from immnet.data.scenes import INDEX
+
+    return Path(path).is_dir() and (Path(path) / INDEX).is_file()
+
+
+SCENE_REFUSED = (("checkpoint", "--checkpoint", []), ("guard", "--guard", "checkpoint"), ("told_r", "--told-r", False),
+                 ("sigma_q", "--sigma-q", None), ("batch_size", "--batch-size", None),
+                 ("max_position", "--max-position", None), ("figures", "--figures", None))
+"""The options of trajectory data sets that a scene set refuses: (attribute, option, its default)."""
+
+
+def run_scenes(args) -> int:
+    """``immnet evaluate`` on a scene set: the multi-target tracker with each filter of ``--methods``, each filter
+    told the association, and the raw plots, scored by GOSPA and the identity metrics (``immnet.evaluation.scenes``)."""
+    import inspect
+
+    from immnet.data.scenes import load_index, load_scene
+    from immnet.evaluation import scenes as sc
+    from immnet.evaluation.runner import finite_or_none
+    from immnet.tracking.multi import MultiTargetTracker, TrackFilter
+
+    for attr, option, default in SCENE_REFUSED:
+        if getattr(args, attr) != default:
+            raise ValueError(f"{option} is for trajectory data sets; {args.data} is a scene set, scored by GOSPA "
+                             f"(docs/evaluation.md, \"Scenes\")")
+    _check_outputs(args)
+    index = load_index(args.data)
+    entries = [e for e in index["scenes"] if args.split == "all" or e["split"] == args.split]
+    if not entries:
+        raise ValueError(f"{args.data} has no {args.split} scenes (split {args.split}); --split all takes every scene")
+    if args.limit is not None:
+        if args.limit < 1:
+            raise ValueError("--limit must be positive")
+        entries = entries[: args.limit]
+    names = [n.strip() for n in (args.methods or "").split(",") if n.strip()]
+    if args.methods is not None and not names:
+        raise ValueError("--methods is empty")
+    names = names or [inspect.signature(MultiTargetTracker).parameters["filter"].default]
+    for name in names:  # refused before any scene runs: a name that is not a multi-target filter
+        TrackFilter.from_method(name)
+    settings = {"associator": args.associator or "gnn"}
+    scenes = [load_scene(Path(args.data) / e["file"]) for e in entries]
+    note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
+    note(f"evaluating the multi-target tracker with {', '.join(names)} ({settings['associator']}) on {len(scenes)} "
+         f"scenes ({args.data}, split {args.split})")
+    results = sc.evaluate_scenes(scenes, names, settings=settings, note=None if args.quiet else note)
+    over = {n: r["mean"]["over_interval"] for n, r in results.items() if r["mean"]["over_interval"]}
+    for n, k in over.items():
+        note(f"note: {n}: {k} scans took longer than the interval to the next scan")
+    print(sc.format_table(results))
+    if args.markdown:
+        _write_text(args.markdown, sc.format_table(results, markdown=True) + "\n")
+        note(f"wrote {args.markdown}")
+    doc = {"data": str(args.data), "split": args.split, "kind": "scenes", "scenes": [s.name for s in scenes],
+           "gospa": {"c": 200.0, "p": 2.0, "alpha": 2.0}, "tracker": settings, "methods": results}
+    if args.json:
+        _write_text(args.json, json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
+        note(f"wrote {args.json}")
+    if wandb_log.wanted(args.wandb):
+        config = {"command": "evaluate", "data": {"path": str(args.data), "split": args.split, "kind": "scenes",
+                                                  "scenes": doc["scenes"], "limit": args.limit,
+                                                  "spec": scenes[0].meta.get("spec")},
+                  "methods": {n: wandb_log.method_info(n) for n in names}, "tracker": settings, "gospa": doc["gospa"]}
+        run = wandb_log.start(config, args.wandb_project, args.wandb_group, args.wandb_name, args.wandb_dir)
+        wandb_log.log_scenes(run, results)
+        where = wandb_log.finish(run)
+        if where:
+            note(f"W&B run {run.id} (offline): {where}; upload with `wandb sync {where}`")
     return 0
 
 

@@ -24,7 +24,7 @@ from immnet.data.validate import MAX_ABS_POSITION
 from immnet.tracking.io import option_sigmas
 from immnet.tracking.segments import MAX_COAST, check_coast
 
-DEFAULT_FILTER = "real-imm-singer"
+DEFAULT_FILTER = "real-imm-5s"
 """``immnet.tracking.multi.DEFAULT_FILTER``, named here so that ``immnet track --help`` needs no torch (a test holds
 them equal)."""
 
@@ -64,7 +64,7 @@ def register(subparsers) -> None:
                    help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "
                         "interval (e.g. imm-tuned) tracks each row as a scan at its own time (any spacing). Plots "
                         f"without track_id: the multi-target tracker's per-track filter, a model-based IMM or Kalman "
-                        f"filter by name (default {DEFAULT_FILTER}, the per-axis IMM tuned on real flights)")
+                        f"filter by name (default {DEFAULT_FILTER}, the joint IMM tuned on real flights at 4.5-5.5 s)")
     p.add_argument("--max-position", type=float, default=MAX_ABS_POSITION,
                    help="largest |x|, |y|, |z| (m) a detection may have; beyond it, or non-finite, a measurement "
                         "is a missed detection (counted on stderr); 'inf' keeps every finite one")

@@ -1,7 +1,7 @@
 """Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, M-of-N confirmation,
 coasting and deletion around a batched per-track filter (docs/multi-target.md, "The tracker").
 
-    tracker = MultiTargetTracker("real-imm-singer", r=50.0)      # any model-based IMM or Kalman filter by name
+    tracker = MultiTargetTracker("real-imm-5s", r=50.0)          # any model-based IMM or Kalman filter by name
     for t, plots in scans:                                        # plots [N, 3] ENU (m); R [N, 3, 3] optional
         for rep in tracker.step(t, plots):                        # the confirmed tracks
             rep.track_id, rep.state, rep.cov, rep.updated
@@ -465,9 +465,9 @@ class TrackReport:
 
 
 ASSOCIATORS = ("gnn", "jpda")
-DEFAULT_FILTER = "real-imm-singer"
-"""The per-track filter a ``MultiTargetTracker`` builds unless told another: the per-axis IMM over CV, CA and Singer
-tuned on real flights."""
+DEFAULT_FILTER = "real-imm-5s"
+"""The per-track filter a ``MultiTargetTracker`` builds unless told another: the joint IMM over CV, CA and two turns
+tuned on real flights at 4.5-5.5 s (chosen by mean GOSPA on training scenes, docs/multi-target.md "Defaults")."""
 
 
 class MultiTargetTracker:
@@ -479,8 +479,8 @@ class MultiTargetTracker:
     ``clutter_density`` the false plots per m^3); ``r``: the measurement std (m) of plots given without ``R`` (None:
     the filter's)."""
 
-    def __init__(self, filter: TrackFilter | str = DEFAULT_FILTER, gate: float = 0.999,
-                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = 4,
+    def __init__(self, filter: TrackFilter | str = DEFAULT_FILTER, gate: float = 0.9999,
+                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = 3,
                  max_pos_std: float = 5000.0, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
                  clutter_density: float = 1e-12, jpda_max_events: int = 20000):
         if isinstance(filter, str):
