@@ -144,3 +144,21 @@ def test_options_the_radar_default_has_not_are_refused_in_one_line(tmp_path, cap
         err = capsys.readouterr().err.strip()
         assert err.endswith(message) and "\n" not in err
         assert not out.exists()
+
+
+def test_the_shipped_radar_weights_by_name_are_told_the_rows_covariances(tmp_path, capsys):
+    src = _polar_csv(tmp_path / "plots.csv", 5.0, 0.5)
+    assert main(["track", "--input", str(src), "--output", str(tmp_path / "w.csv"), *SIGMAS,
+                 "--weights", "radar-5s"]) == 0
+    assert "not used" not in capsys.readouterr().err
+    assert main(["track", "--input", str(src), "--output", str(tmp_path / "m.csv"), *SIGMAS,
+                 "--method", "immnet-radar-5s"]) == 0
+    assert (tmp_path / "w.csv").read_bytes() == (tmp_path / "m.csv").read_bytes()
+    capsys.readouterr()
+    # a CSV without covariances gives it none: refused by name
+    xyz = _cartesian_csv(tmp_path / "xyz.csv", 5.0)
+    assert main(["track", "--input", str(xyz), "--output", str(tmp_path / "x.csv"), "--weights", "radar-5s"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("is told each detection's covariance, which this CSV does not hold: give the columns "
+                        "r_xx..r_zz, a radar's plots with their stds, or one std for all with --r METRES")
+    assert "\n" not in err and not (tmp_path / "x.csv").exists()
