@@ -162,3 +162,21 @@ def test_the_shipped_radar_weights_by_name_are_told_the_rows_covariances(tmp_pat
     assert err.endswith("is told each detection's covariance, which this CSV does not hold: give the columns "
                         "r_xx..r_zz, a radar's plots with their stds, or one std for all with --r METRES")
     assert "\n" not in err and not (tmp_path / "x.csv").exists()
+
+
+def test_a_track_of_one_plot_is_tracked_by_the_radar_network(tmp_path, capsys):
+    """A segment of one row is padded at an interval inside the network's range (it was 1 s, which the network
+    refuses): the lone plot's row is its converted position, the track starting there."""
+    from immnet.tracking.io import read_tracks_csv
+
+    src = _polar_csv(tmp_path / "plots.csv", 5.0, 0.5)
+    with open(src, "a") as f:
+        f.write("lone,3.0,30000.0,40.0,10.0\n")
+    out = tmp_path / "o.csv"
+    assert main(["track", "--input", str(src), "--output", str(out), *SIGMAS]) == 0
+    assert "rows with immnet-radar-5s -> " in capsys.readouterr().err
+    rows = read_tracks_csv(src, (40.0, 0.12, 0.2))
+    with open(out) as f:
+        got = [r for r in csv.DictReader(f) if r["track_id"] == "lone"]
+    assert len(got) == 1
+    np.testing.assert_allclose([float(got[0][k]) for k in ("x", "y", "z")], rows.z[-1], rtol=0, atol=1e-5)

@@ -259,7 +259,7 @@ def _report_no_cov(why: str) -> None:
 
 
 def _track_rows_with_method(args, rows, limit: float, method=None, label: str | None = None,
-                            name: str | None = None, who: str | None = None) -> int:
+                            name: str | None = None, who: str | None = None, bank: bool = False) -> int:
     """CSV rows tracked by ``--method`` (or the registry method ``name``, or ``method``, built; ``who``: the tracker as
     the refusals name it): each row one scan at its own time (``segments.split_rows``); for a network trained over a
     range of intervals, a gap longer than the range is cut into missed scans inside it (``track_rows(max_interval=...)``).
@@ -290,8 +290,11 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     if meas_cov is not None:  # a gated detection is a missed one: no covariance
         meas_cov = np.where(np.isnan(z).any(-1)[:, None, None], np.nan, meas_cov)
     segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
+    # a segment of one row padded at an interval the method takes (the bank's members choose by it: kept at 1 s)
+    pad = 1.0 if span is None or bank else (float(span[0]) + float(span[1])) / 2
     state, probs, cov = track_rows(method, segs, offset, return_cov=True,
-                                   max_interval=None if span is None else span[1], r=args.r, meas_cov=meas_cov)
+                                   max_interval=None if span is None else span[1], r=args.r, meas_cov=meas_cov,
+                                   one_row_interval=pad)
     write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
     if not has_cov:
         _report_no_cov(why)
@@ -362,7 +365,7 @@ def run(args) -> int:
             return _track_plots(args, rows, limit)
         weights = _weights(args)
         if weights is None:  # the bank: each row a scan at its own time, as for a network trained over a range
-            code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank")
+            code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank", bank=True)
             _advise_bank(track_intervals(rows.ids, rows.t))
             return code
         tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
