@@ -952,10 +952,12 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         with torch.no_grad():
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
-        del self.K_ss  # the base gain is the filter's own
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
                           onset, model_noise, start_acc_std, modes)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
+
+    def base_gain(self, model_set: ModelSet, sigma_q: float, r: float, dt: float) -> None:
+        """None: the base gain is each filter expert's own Kalman gain (no steady-state ``K_ss``)."""
 
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need: with ``state_correction``, one that adds it."""

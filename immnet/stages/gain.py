@@ -102,12 +102,16 @@ class KalmanNetGain(Stage):
         self.h0_q = nn.Parameter(torch.zeros(M, self.d_q))
         self.h0_sigma = nn.Parameter(torch.zeros(M, self.d_sigma))
         self.h0_s = nn.Parameter(torch.zeros(M, self.d_s))
-        _, K_ss, _ = steady_state(model_set, init_sigma_q, init_r, dt)
-        self.register_buffer("K_ss", K_ss.float())
+        self.base_gain(model_set, init_sigma_q, init_r, dt)
         row = state_scale(*gain_scale)
         self.register_buffer("K_scale", row[:, None].expand(9, 3).clone())
         self.register_buffer("f3_scale", state_scale(*F3_SCALE))
         self.register_buffer("f4_scale", state_scale(*F4_SCALE))
+
+    def base_gain(self, model_set: ModelSet, sigma_q: float, r: float, dt: float) -> None:
+        """The gain the learned correction is added to: the steady-state Kalman gain ``K_ss`` (a buffer)."""
+        _, K_ss, _ = steady_state(model_set, sigma_q, r, dt)
+        self.register_buffer("K_ss", K_ss.float())
 
     def knock_out(self) -> None:
         """Set FC2's last layer to zero: no learned correction, each expert its model-based base (here the

@@ -42,7 +42,7 @@ from immnet.stages import IMMNet
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
     KEEP, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
-    coast_scan, coast_step, guarded, load_network, next_origin, per_track, provenance_of, read_checkpoint, run_network,
+    coast_scan, coast_step, guarded, network_from, next_origin, per_track, provenance_of, read_checkpoint, run_network,
     scans_served, select_rows, to_local, to_world, trained_for,
 )
 
@@ -71,16 +71,20 @@ def _member_path(member: str | Path) -> Path:
     return shipped(member) if isinstance(member, str) and member in SHIPPED else Path(member)
 
 
-def _mix(log_w: torch.Tensor, state: torch.Tensor, probs: torch.Tensor, cov: torch.Tensor | None) -> dict:
+def _mix(log_w: torch.Tensor, state: torch.Tensor, probs: torch.Tensor, cov: torch.Tensor | None,
+         ran: list[int] | None = None) -> dict:
     """The members' outputs ``[..., K, ...]`` weighted by ``softmax(log_w [..., K])``: ``state``, ``mode_probs``,
     ``member_probs`` and, given ``cov``, the mixture's covariance ``sum_k p_k (P_k + (x_k - x)(x_k - x)^T)``. A member
-    with no weight (-inf: it does not take the track) adds nothing, whatever its output."""
-    w = torch.softmax(log_w, -1)
+    with no weight (-inf: it does not take the track) adds nothing, whatever its output. ``ran``: the members whose
+    outputs ``state``, ``probs`` and ``cov`` hold (``[..., len(ran), ...]``, in order), where the others take no track
+    (no weight anywhere: they would add nothing)."""
+    w_all = torch.softmax(log_w, -1)
+    w = w_all if ran is None else w_all[..., ran]
     live = (w > 0)[..., None]
     x = torch.where(live, state, 0.0)
     fused = (w[..., None] * x).sum(-2)
     out = {keys.STATE: fused, keys.MODE_PROBS: (w[..., None] * torch.where(live, probs, 0.0)).sum(-2),
-           keys.MEMBER_PROBS: w}
+           keys.MEMBER_PROBS: w_all}
     if cov is not None:
         d = x - fused[..., None, :]
         spread = torch.where(live[..., None], cov + d[..., :, None] * d[..., None, :], 0.0)
@@ -149,9 +153,10 @@ class NetworkBank:
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
                    temper: float = TEMPER, max_coast: float = MAX_COAST) -> "NetworkBank":
-        """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded by ``load_network``
-        with ``guard`` (default none: no member keeps a range guard unless asked; one asked for goes to the members
-        whose modes are the whole target's, since a guard's transitions cannot be per axis: ``IMMNet(modes=...)``),
+        """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
+        loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one
+        asked for goes to the members whose modes are the whole target's, since a guard's transitions cannot be per
+        axis: ``IMMNet(modes=...)``),
         ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``:
         the bank's."""
         members = list(members)
@@ -160,8 +165,9 @@ class NetworkBank:
         nets = {}
         for m in members:
             path = _member_path(m)
-            joint = read_checkpoint(path)[0].get("modes", "joint") == "joint"
-            nets[str(m)] = load_network(path, guard=guard if joint else None, adapt=adapt, r=r)
+            config, state = read_checkpoint(path)
+            joint = config.get("modes", "joint") == "joint"
+            nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r)
         bank = cls(nets, prior, max_position, likelihood, temper, max_coast)
         bank.paths = {str(m): _member_path(m) for m in members}
         return bank
@@ -241,25 +247,28 @@ class NetworkBank:
         takes = self.takes(intervals)
         self.check(intervals, takes, tracks)
         B, T, K = z.shape[0], z.shape[1], len(self.names)
-        state = torch.zeros(B, T, K, 9, dtype=torch.float64)
-        probs = torch.zeros(B, T, K, 4, dtype=torch.float64)
-        cov = torch.zeros(B, T, K, 9, 9, dtype=torch.float64) if return_cov else None
+        ran = takes.any(0).nonzero().flatten().tolist()  # the members that take a track: the others run on none
+        state = torch.zeros(B, T, len(ran), 9, dtype=torch.float64)
+        probs = torch.zeros(B, T, len(ran), 4, dtype=torch.float64)
+        cov = torch.zeros(B, T, len(ran), 9, 9, dtype=torch.float64) if return_cov else None
         loglik = torch.full((B, T, K), float("nan"), dtype=torch.float64)
-        for k, (name, net) in enumerate(self.members.items()):
+        nets = list(self.members.values())
+        for j, k in enumerate(ran):
+            net = nets[k]
             rows = takes[:, k].nonzero().flatten()
-            if not len(rows):
-                continue
             own = net.own_intervals(intervals[rows])  # as it runs alone (IMMNet.intervals_for)
-            out, _ = run_network(net, z[rows], batch_size, own, return_cov, None, self.likelihood, self.max_position)
-            state[rows, :, k] = out[keys.STATE].double()
-            probs[rows, :, k] = out[keys.MODE_PROBS].double()
+            with torch.inference_mode():  # no autograd bookkeeping; its outputs are copied into the bank's below
+                out, _ = run_network(net, z[rows], batch_size, own, return_cov, None, self.likelihood,
+                                     self.max_position)
+            state[rows, :, j] = out[keys.STATE].double()
+            probs[rows, :, j] = out[keys.MODE_PROBS].double()
             loglik[rows, :, k] = out[keys.LOGLIK].double()
             if return_cov:
-                cov[rows, :, k] = out[keys.STATE_COV].double()
+                cov[rows, :, j] = out[keys.STATE_COV].double()
         inc = self.temper * _weighed(loglik, takes[:, None, :])
         inc[:, 0] += self.log_prior  # summed in step's order, scan by scan from the prior: the same rounding
         log_w = inc.cumsum(1)
-        out = _mix(log_w.masked_fill(~takes[:, None, :], float("-inf")), state, probs, cov)
+        out = _mix(log_w.masked_fill(~takes[:, None, :], float("-inf")), state, probs, cov, ran)
         waiting = before_first_detection(z)
         return TensorDict({k: blank_before_first_detection(v, waiting) for k, v in out.items()}, batch_size=[B, T])
 
@@ -376,7 +385,8 @@ class NetworkBank:
             self.carries[name] = carry
         self.log_w = (log_w + self.temper * _weighed(loglik, takes)).masked_fill(~takes, float("-inf"))
         self.fresh = torch.zeros(B, dtype=torch.bool)
-        out = _mix(self.log_w, state, probs, cov)
+        ran = takes.any(0).nonzero().flatten().tolist()  # mixed over the members that take a track, as ``track``
+        out = _mix(self.log_w, state[:, ran], probs[:, ran], cov[:, ran], ran)
         waiting = (age == 0)[:, None]  # no detection yet: no estimate
         names = {keys.FUSED: keys.STATE, keys.FUSED_COV: keys.STATE_COV, keys.MODE_PROBS: keys.MODE_PROBS,
                  keys.MEMBER_PROBS: keys.MEMBER_PROBS}

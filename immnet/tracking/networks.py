@@ -96,7 +96,12 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
     track (``"data"``: the step's input ``"r"``, ``Tracker.track(r=...)``); no weights either
     (``FilterGain``'s ``r``; docs/tracking.md "A radar that knows its accuracy").
     """
-    config, state = read_checkpoint(path)
+    return network_from(*read_checkpoint(path), path, guard, adapt, r)
+
+
+def network_from(config: dict, state: dict, path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
+    """``load_network``'s IMMNet from a checkpoint read already (``read_checkpoint``'s ``config`` and ``state``, of
+    the file ``path``, named in its errors)."""
     for name, value in (("guard", guard), ("adapt", adapt), ("r", r)):
         if isinstance(value, str) and value == KEEP:
             continue
