@@ -26,14 +26,16 @@ def write_quick_data(root, spec: DataSpec = TINY, test: bool = False):
 def at_an_interval_it_takes(method, batch):
     """``batch`` as ``method`` can take it: for a learned tracker trained over a range of scan intervals that leaves
     out the batch's (the shipped ``real-5s``: 4.5-5.5 s), every scan at the middle of that range (``dt``, no times);
-    for a method told each detection's covariance (``keys.MEAS_COV``) where the batch has none, ``r^2 I`` at every
-    scan (the batch's ``r``); any other method gets ``batch`` as it is. For the tests that run every registry method
-    on 1 s data."""
+    any other method gets ``batch`` as it is. A method told each detection's covariance (``keys.MEAS_COV`` in its
+    ``needs``: ``r: detection``) gets ``r^2 I`` at each detection (``r`` the batch's per track, else 5 m; NaN where
+    missed) where the batch has none. For the tests that run every registry method on 1 s data."""
     if keys.MEAS_COV in getattr(method, "needs", ()) and keys.MEAS_COV not in batch.keys():
         z = batch[keys.MEASUREMENTS]
-        r2 = batch[keys.R].to(torch.float64).reshape(-1, 1, 1, 1) ** 2
+        r = batch[keys.R].to(z.dtype) if keys.R in batch.keys() else torch.full(batch.batch_size, 5.0, dtype=z.dtype)
+        cov = (r**2)[:, None, None, None] * torch.eye(3, dtype=z.dtype).expand(*z.shape[:2], 3, 3)
+        cov = torch.where(torch.isnan(z).any(-1)[..., None, None], torch.full_like(cov, float("nan")), cov)
         batch = batch.clone()
-        batch[keys.MEAS_COV] = (r2 * torch.eye(3, dtype=torch.float64)).expand(*z.shape[:2], 3, 3).to(z.dtype)
+        batch[keys.MEAS_COV] = cov
     span = getattr(getattr(method, "net", None), "interval_range", None)
     if span is None:
         return batch

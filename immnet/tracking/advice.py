@@ -177,3 +177,53 @@ def weights_note(loaded, provenance: dict | None, intervals) -> str | None:
                     f"trained for scans of {scans} and tracked {what(set_name)} better ({a:.3f} m against the general "
                     f"one's {b:.3f}, their provenance): --weights {name} may track these scans better")
     return None
+
+
+RADAR_BANDS = (("immnet-radar-5s", "radar-imm-robust-5s", (4.5, 5.5)),
+               ("immnet-radar-11s", "radar-imm-robust-11s", (10.0, 12.0)))
+"""The default tracker of CSV rows that carry each detection's covariance (a radar's plots with their stds, or the
+``r_xx..r_zz`` columns), per scan band: the shipped network told each plot's covariance for those scans and the
+model-based filter it is built on (the joint IMM told each plot's covariance, Huber's update; docs/radar.md)."""
+
+
+def _band_takes(span: tuple[float, float], intervals) -> bool:
+    """Whether a network trained over the intervals ``span`` takes every one of ``intervals`` (s) as ``immnet track``
+    runs it: an interval longer than the span's end cut into equal ones by missed scans
+    (``immnet.tracking.segments._scan_times``), each then inside the span (``trained_for``'s tolerance)."""
+    lo, hi = span
+    tol = 1e-6 * max(1.0, hi)
+    dt = np.asarray(intervals, dtype=np.float64)
+    dt = dt[np.isfinite(dt)]
+    cuts = np.maximum(1, np.ceil(dt / (hi + 1e-6 * max(1.0, hi))))
+    each = dt / cuts
+    return bool(((each >= lo - tol) & (each <= hi + tol)).all())
+
+
+def radar_default(intervals) -> tuple[str, str]:
+    """``(method, line)``: the registry method that tracks CSV rows with each detection's covariance by default, from
+    their scan ``intervals`` (s, every track's together: :func:`track_intervals`), and the line ``immnet track`` says
+    on stderr. The shipped radar network of the band (``RADAR_BANDS``) that takes every interval (a longer gap cut
+    into missed scans); where none does (scans between or outside the bands, or a track with an interval shorter than
+    its band), the model-based filter of the band nearer the median interval (on the bands' ends), which takes any
+    interval: the radar networks were trained only at their band's scans, and on plots the filter told each plot's
+    covariance was measured ahead of the bank, which is not told it (docs/radar.md)."""
+    median = _median(intervals)
+    if median is None:  # no track of two rows: any band's network takes one scan; the first band's
+        net, _, span = RADAR_BANDS[0]
+        return net, (f"note: the rows carry each detection's covariance: tracked by {net}, the shipped network told "
+                     f"each plot's covariance (no track has two rows to read a scan interval from; --method or "
+                     f"--weights bank chooses another tracker)")
+    for net, _, span in RADAR_BANDS:
+        if span[0] - 1e-6 * span[1] <= median <= span[1] * (1 + 1e-6) and _band_takes(span, intervals):
+            return net, (f"note: the rows carry each detection's covariance and their median scan interval is "
+                         f"{median:.3g} s: tracked by {net}, the shipped network told each plot's covariance for "
+                         f"{span[0]:g}-{span[1]:g} s scans (--method or --weights bank chooses another tracker)")
+    distance = [max(span[0] - median, median - span[1], 0.0) for _, _, span in RADAR_BANDS]
+    net, filt, span = RADAR_BANDS[int(np.argmin(distance))]
+    bands = ", ".join(f"{s[0]:g}-{s[1]:g} s" for _, _, s in RADAR_BANDS)
+    why = (f"an interval outside {span[0]:g}-{span[1]:g} s, where {net} was trained" if distance[int(np.argmin(distance))] == 0
+           else f"whose scans the shipped radar networks ({bands}) were not trained at")
+    return filt, (f"note: the rows carry each detection's covariance and their median scan interval is {median:.3g} s, "
+                  f"{why}: tracked by {filt}, the "
+                  f"model-based filter told each plot's covariance tuned at {span[0]:g}-{span[1]:g} s scans, which "
+                  f"takes any interval (--method or --weights bank chooses another tracker)")

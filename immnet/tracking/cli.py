@@ -164,15 +164,17 @@ def _check_options(args) -> None:
                          f"leave --method out to track it with the network")
 
 
-def _detection_cov(args, rows, method, label: str):
+def _detection_cov(args, rows, method, label: str, who: str | None = None):
     """Each row's measurement covariance for ``method``'s batch (``keys.MEAS_COV``): the rows' own, or for a method
     that reads it from a CSV without any, ``--r`` squared on the diagonal; None where the method has no use for it
-    and the rows give none. Said on stderr where the rows give one the method does not read."""
+    and the rows give none. Said on stderr where the rows give one the method does not read. ``who``: the tracker as
+    the refusals name it (default ``--method LABEL``)."""
     reads = keys.MEAS_COV in getattr(method, "needs", ())
+    who = who or f"--method {label}"
     if rows.cov is not None:
         if reads and args.r is not None:
             raise ValueError(f"--r and the CSV's {'plots' if rows.polar else 'covariance columns'} both give the "
-                             f"measurement noise of --method {label}: give one of the two")
+                             f"measurement noise of {who}: give one of the two")
         if not reads:
             print(f"{label} assumes its own measurement noise: each detection's covariance from the CSV is not used "
                   f"(docs/radar.md, 'Input')", file=sys.stderr)
@@ -180,7 +182,7 @@ def _detection_cov(args, rows, method, label: str):
     if not reads:
         return None
     if args.r is None:
-        raise ValueError(f"--method {label} is told each detection's covariance, which this CSV does not hold: give "
+        raise ValueError(f"{who} is told each detection's covariance, which this CSV does not hold: give "
                          f"the columns r_xx..r_zz, a radar's plots with their stds, or one std for all with --r METRES")
     cov = np.where(np.isnan(rows.z).any(-1)[:, None, None], np.nan, np.eye(3) * float(args.r) ** 2)
     return cov
@@ -251,34 +253,43 @@ def _report_no_cov(why: str) -> None:
     print(f"no covariance: {why}; the cov_* columns are empty (an .npz output has no state_cov)", file=sys.stderr)
 
 
-def _track_rows_with_method(args, rows, limit: float, method=None, label: str | None = None) -> int:
-    """CSV rows tracked by ``--method`` (or ``method``, built): each row one scan at its own time
-    (``segments.split_rows``); for a network trained over a range of intervals, a gap longer than the range is cut
-    into missed scans inside it (``track_rows(max_interval=...)``)."""
+def _track_rows_with_method(args, rows, limit: float, method=None, label: str | None = None,
+                            name: str | None = None, who: str | None = None, bank: bool = False) -> int:
+    """CSV rows tracked by ``--method`` (or the registry method ``name``, or ``method``, built; ``who``: the tracker as
+    the refusals name it): each row one scan at its own time (``segments.split_rows``); for a network trained over a
+    range of intervals, a gap longer than the range is cut into missed scans inside it (``track_rows(max_interval=...)``).
+    A method told each detection's covariance (``keys.MEAS_COV`` in its ``needs``) is given the rows'."""
     from immnet.data.validate import gate_measurements
     from immnet.evaluation.methods import build_method, gives_cov
     from immnet.tracking.io import write_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 
-    meas_cov = None
+    name = name or args.method
     if method is None:
-        has_cov = gives_cov(args.method)
-        method, label = build_method(args.method, return_cov=has_cov), args.method
-        why = f"{args.method} keeps no covariance of its state"
+        has_cov = gives_cov(name)
+        method, label = build_method(name, return_cov=has_cov), name
+        why = f"{name} keeps no covariance of its state"
         if keys.R in getattr(method, "needs", ()) and args.r is None:
-            raise ValueError(f"--method {args.method} is told each track's measurement std, which a CSV does not hold: "
+            raise ValueError(f"--method {name} is told each track's measurement std, which a CSV does not hold: "
                              f"give the radar's with --r METRES")
-        meas_cov = _detection_cov(args, rows, method, label)
+        meas_cov = _detection_cov(args, rows, method, label, who)
     else:
         has_cov, why = method.net.has_cov, method.net.no_cov_reason()
-        _report_cov_unused(rows, label)
+        if keys.MEAS_COV in getattr(method, "needs", ()):
+            meas_cov = _detection_cov(args, rows, method, label, f"the network {label}")
+        else:
+            meas_cov = None
+            _report_cov_unused(rows, label)
     span = getattr(getattr(method, "net", None), "interval_range", None)
     z, n_gated = gate_measurements(rows.z, limit)
     if meas_cov is not None:  # a gated detection is a missed one: no covariance
         meas_cov = np.where(np.isnan(z).any(-1)[:, None, None], np.nan, meas_cov)
     segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
+    # a segment of one row padded at an interval the method takes (the bank's members choose by it: kept at 1 s)
+    pad = 1.0 if span is None or bank else (float(span[0]) + float(span[1])) / 2
     state, probs, cov = track_rows(method, segs, offset, return_cov=True,
-                                   max_interval=None if span is None else span[1], r=args.r, meas_cov=meas_cov)
+                                   max_interval=None if span is None else span[1], r=args.r, meas_cov=meas_cov,
+                                   one_row_interval=pad)
     write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
     if not has_cov:
         _report_no_cov(why)
@@ -286,6 +297,29 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows with {label} "
           f"-> {args.output}", file=sys.stderr)
     return 0
+
+
+def _track_plots(args, rows, limit: float) -> int:
+    """The default for CSV rows that carry each detection's covariance (a radar's plots, or ``r_xx..r_zz``): the
+    registry method ``immnet.tracking.advice.radar_default`` picks for their scan intervals (the shipped radar network
+    of their band, told each plot's covariance, else the model-based filter told it), named on stderr."""
+    from immnet.tracking.advice import radar_default, track_intervals
+
+    name, line = radar_default(track_intervals(rows.ids, rows.t))
+    if args.adapt:
+        raise ValueError(f"--adapt is the bank's and the shipped networks' option; these rows carry each detection's "
+                         f"covariance and are tracked by {name} by default, which has none: give --weights bank to "
+                         f"track them with the bank")
+    if args.guard not in ("checkpoint", "none"):
+        raise ValueError(f"--guard is the bank's and the shipped networks' option; these rows carry each detection's "
+                         f"covariance and are tracked by {name} by default, which has none: give --weights bank to "
+                         f"track them with the bank")
+    who = f"{name} (the default for rows with covariances)"
+    if args.r is not None:
+        raise ValueError(f"--r and the CSV's {'plots' if rows.polar else 'covariance columns'} both give the "
+                         f"measurement noise of {who}: give one of the two")
+    print(line, file=sys.stderr)
+    return _track_rows_with_method(args, rows, limit, name=name, who=who)
 
 
 def _labelled(path: Path) -> bool:
@@ -322,9 +356,11 @@ def run(args) -> int:
         rows = read_tracks_csv(args.input, option_sigmas(args))
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
+        if rows.cov is not None and args.weights is None and args.checkpoint is None:
+            return _track_plots(args, rows, limit)
         weights = _weights(args)
         if weights is None:  # the bank: each row a scan at its own time, as for a network trained over a range
-            code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank")
+            code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank", bank=True)
             _advise_bank(track_intervals(rows.ids, rows.t))
             return code
         tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)

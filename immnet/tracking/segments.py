@@ -160,7 +160,8 @@ def _scan_times(times: np.ndarray, max_interval: float | None) -> tuple[np.ndarr
 
 
 def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512, return_cov: bool = False,
-               max_interval: float | None = None, r: float | None = None, meas_cov: np.ndarray | None = None):
+               max_interval: float | None = None, r: float | None = None, meas_cov: np.ndarray | None = None,
+               one_row_interval: float = 1.0):
     """``state [R, 9]``, ``mode_probs [R, 4]`` per row of :func:`split_rows`' segments, each tracked as a
     fresh track by ``method.track(batch)`` with ``t [B, T]`` (its rows' times since its first); padding
     after a segment's end is missed detections, its times continuing at the segment's median spacing
@@ -169,7 +170,9 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
     method has none. With ``return_cov`` a third, ``state_cov [R, 9, 9]`` from the method's output, NaN where it
     gives none. ``r``: every track's measurement std (m), the batch's ``r`` for a method told it (the real-flight
     filters' ``r: data``). ``meas_cov [R, 3, 3]``: each row's measurement covariance (m^2, NaN where missed), the
-    batch's ``meas_cov [B, T, 3, 3]`` (NaN at the scans no row fills)."""
+    batch's ``meas_cov [B, T, 3, 3]`` (NaN at the scans no row fills). ``one_row_interval``: the spacing of the padding
+    after a segment of one row, which has none of its own (s; a network trained over a range of intervals needs one
+    inside it)."""
     from tensordict import TensorDict
 
     import torch
@@ -194,7 +197,7 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
             z[i, pos] = segs.z[r]
             t[i, : len(full)] = full
             gaps = np.diff(full)
-            dt[i] = float(np.median(gaps)) if len(gaps) else 1.0
+            dt[i] = float(np.median(gaps)) if len(gaps) else float(one_row_interval)
             t[i, len(full):] = full[-1] + dt[i] * np.arange(1, T - len(full) + 1)
         batch = TensorDict({keys.MEASUREMENTS: torch.from_numpy(z), keys.TIME: torch.from_numpy(t),
                             keys.DT: torch.from_numpy(dt)}, batch_size=[len(rows)])
