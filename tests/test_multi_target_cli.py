@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from immnet.cli import main
+from immnet.tracking.cli import DEFAULT_FILTER
 from immnet.tracking.io import COV_COLUMNS, PLOT_OUT_COLUMNS
 
 T, DT, R_STD = 30, 2.0, 30.0
@@ -97,7 +98,7 @@ def test_cartesian_plots_two_crossing_targets_keep_their_ids(tmp_path):
     from immnet.tracking.multi import MultiTargetTracker
 
     scans = _scans(_cartesian)
-    rows = _track(tmp_path, ["t", "x", "y", "z"], scans, "--r", str(R_STD))
+    rows = _track(tmp_path, ["t", "x", "y", "z"], scans, "--r", str(R_STD), "--method", "real-imm-singer")
     assert list(rows[0]) == list(PLOT_OUT_COLUMNS)
     _check_crossing(rows, tol=150.0)
     assert all(r[c] == "" for r in rows for c in ("p_cv", "p_ca", "p_ctp", "p_ctm"))  # modes per axis: none
@@ -200,7 +201,7 @@ REFUSALS = [
     (CART, [["", "1", "2", "3"]], ("--r", "30"), "line 2: column 't' is empty"),
     (POLAR, [["0", "-5", "2", "3"]], SIGMAS, "line 2: column 'range' is -5: a slant range is > 0 (m)"),
     (POLAR, GOOD_POLAR, (), f"line 1: range,azimuth,elevation rows need the radar's stds: give {SIGMA_HINT}"),
-    (CART, GOOD, (), f"x,y,z plots without the columns {R_COLS} need their measurement std, which real-imm-singer "
+    (CART, GOOD, (), f"x,y,z plots without the columns {R_COLS} need their measurement std, which {DEFAULT_FILTER} "
                      f"does not assume: give --r METRES"),
     (POLAR, GOOD_POLAR, (*SIGMAS, "--r", "30"),
      "--r and the CSV's plots both give the plots' measurement noise: give one of the two"),
@@ -267,9 +268,9 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
     assert main(["track", "--input", str(plots), "--output", str(out), *stds, "--figure", str(png),
                  "--scene", str(npz)]) == 0
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
-        f"tracked {len(scene)} scans, {len(scene.plots)} plots with real-imm-singer (GNN)")
+        f"tracked {len(scene)} scans, {len(scene.plots)} plots with {DEFAULT_FILTER} (GNN)")
     rows = _read(out)
-    tracker = MultiTargetTracker("real-imm-singer")
+    tracker = MultiTargetTracker(DEFAULT_FILTER)
     want = [(str(rep.track_id), repr(t), rep.state[[0, 3, 6]]) for t, z, cov in scene.scans()
             for rep in tracker.step(t, z, cov)]
     assert len({w[0] for w in want}) >= 3
