@@ -9,7 +9,7 @@ import pytest
 
 from immnet.cli import main
 from immnet.tracking.cli import DEFAULT_FILTER
-from immnet.tracking.io import COV_COLUMNS, PLOT_OUT_COLUMNS
+from immnet.data.csvio import COV_COLUMNS, PLOT_OUT_COLUMNS
 
 T, DT, R_STD = 30, 2.0, 30.0
 MISSED = (22, 1)  # (scan, target): the one plot left out

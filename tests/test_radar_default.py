@@ -78,7 +78,7 @@ def test_plots_are_tracked_by_their_bands_radar_network(tmp_path, capsys, dt, ji
 
 
 def test_covariance_columns_are_tracked_by_the_radar_network_told_them(tmp_path, capsys):
-    from immnet.tracking.io import read_tracks_csv
+    from immnet.data.csvio import read_tracks_csv
 
     src = _polar_csv(tmp_path / "plots.csv", 5.0, 0.5)
     rows = read_tracks_csv(src, (40.0, 0.12, 0.2))
@@ -167,7 +167,7 @@ def test_the_shipped_radar_weights_by_name_are_told_the_rows_covariances(tmp_pat
 def test_a_track_of_one_plot_is_tracked_by_the_radar_network(tmp_path, capsys):
     """A segment of one row is padded at an interval inside the network's range (it was 1 s, which the network
     refuses): the lone plot's row is its converted position, the track starting there."""
-    from immnet.tracking.io import read_tracks_csv
+    from immnet.data.csvio import read_tracks_csv
 
     src = _polar_csv(tmp_path / "plots.csv", 5.0, 0.5)
     with open(src, "a") as f:

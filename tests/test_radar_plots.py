@@ -11,7 +11,7 @@ import torch
 from immnet import keys
 from immnet.cli import main
 from immnet.data import adsb, radar
-from immnet.tracking.io import read_tracks_csv
+from immnet.data.csvio import read_tracks_csv
 
 SIGMAS = ("--sigma-range", "30", "--sigma-azimuth", "0.1", "--sigma-elevation", "0.2")
 TINY = (1e-9, 1e-9, 1e-9)

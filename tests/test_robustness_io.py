@@ -243,7 +243,7 @@ class _FullDisk:
 def test_track_on_a_full_disk_ends_in_one_line_and_leaves_nothing(inputs, tmp_path, monkeypatch, capsys):
     """``immnet track`` onto a disk that fills up while it writes: an OSError traceback; now one line naming the
     output and the reason, no output, no temporary file (CSV: the writer's rows; .npz: numpy's savez)."""
-    monkeypatch.setattr("immnet.tracking.io.csv.writer", _FullDisk)
+    monkeypatch.setattr("immnet.data.csvio.csv.writer", _FullDisk)
     out = tmp_path / "o.csv"
     assert main(["track", "--input", str(inputs / "in.csv"), "--output", str(out), "--method", "imm-ekf"]) == 2
     assert _error(capsys, "track") == f"{out}: {NOSPC}"

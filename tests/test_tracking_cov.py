@@ -13,7 +13,7 @@ from immnet.cli import main
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.tracking import Tracker
-from immnet.tracking.io import COV_COLUMNS, COV_INDEX, OUT_COLUMNS
+from immnet.data.csvio import COV_COLUMNS, COV_INDEX, OUT_COLUMNS
 
 LEAD = 3  # rows before each track's first detection: no estimate, empty fields
 
@@ -77,7 +77,7 @@ def test_csv_covariance_columns_read_back_as_the_trackers(tmp_path, z):
 
 def test_csv_covariance_of_a_method_any_interval(tmp_path, z, capsys):
     from immnet.evaluation.methods import build_method
-    from immnet.tracking.io import read_tracks_csv
+    from immnet.data.csvio import read_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 
     times = [np.cumsum(np.r_[0.0, np.full(z.shape[1] - 1, 2.5)]) + 1_733_070_000.25, np.arange(z.shape[1]) * 4.0]

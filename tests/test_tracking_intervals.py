@@ -66,7 +66,7 @@ def test_track_at_irregular_epoch_times_estimates_every_row_below_the_raw_error(
     path, rows, truth = irregular
     est = _tracked_below_the_raw_error(irregular, tmp_path, "--method", "imm-tuned")
     # the Python API: the same segments through Method.track with t gives the same numbers
-    from immnet.tracking.io import read_tracks_csv
+    from immnet.data.csvio import read_tracks_csv
 
     tracks = read_tracks_csv(path)
     segs, offset = split_rows(tracks.ids, tracks.t, tracks.z)
@@ -257,7 +257,7 @@ def test_a_gap_beyond_the_networks_range_is_coasted_at_intervals_inside_it():
 
 def test_rows_keep_hundredths_at_epoch_times(irregular):
     """Offsets from each segment's first time are exact to 0.01 s at 1.7e9 s (taken from the decimals)."""
-    from immnet.tracking.io import read_tracks_csv
+    from immnet.data.csvio import read_tracks_csv
 
     tracks = read_tracks_csv(irregular[0])
     segs, offset = split_rows(tracks.ids, tracks.t, tracks.z)

@@ -54,7 +54,7 @@ On disk (:func:`save_scene`, :func:`load_scene`): one ``.npz`` per scene, read w
 truth (``truth_*``, ``plot_source``) is for scoring only: a tracker reads ``t``, ``plots`` and ``plot_cov``
 (:meth:`Scene.scans`). :func:`write_plots_csv` writes a scene's plots as ``t,range,azimuth,elevation``
 (m, degrees clockwise from north, degrees), the polar stream a radar gives; :func:`read_plots_csv` reads it back
-through ``immnet.tracking.io.read_plots_csv``, the reader of ``immnet track`` (docs/multi-target.md).
+through ``immnet.data.csvio.read_plots_csv``, the reader of ``immnet track`` (docs/multi-target.md).
 """
 
 from __future__ import annotations
@@ -76,9 +76,9 @@ from immnet.data import adsb, radar
 from immnet.data.geodesy import geodetic_to_enu
 from immnet.data.scratch import check_writable, publishing
 
-# the plot CSV is immnet track's: one reader of it, immnet.tracking.io's
-from immnet.tracking.io import PLOT_COLUMNS as CSV_COLUMNS
-from immnet.tracking.io import read_plots_csv as _read_plots
+# the plot CSV is immnet track's: one reader of it, immnet.data.csvio's
+from immnet.data.csvio import PLOT_COLUMNS as CSV_COLUMNS
+from immnet.data.csvio import read_plots_csv as _read_plots
 
 FORMAT = "scene"
 FORMAT_VERSION = 1
@@ -613,7 +613,7 @@ def write_plots_csv(scene: Scene, path) -> Path:
 
 def read_plots_csv(path) -> list[tuple[float, np.ndarray]]:
     """``[(t, polar [N, 3])]`` per scan: range (m), azimuth and elevation (degrees), from a ``t,range,azimuth,elevation``
-    CSV, read and checked by the one reader of plot CSVs, ``immnet.tracking.io.read_plots_csv`` (which ``immnet track``
+    CSV, read and checked by the one reader of plot CSVs, ``immnet.data.csvio.read_plots_csv`` (which ``immnet track``
     reads them with): rows of one ``t`` together, scans in time order, ``t,,,`` a scan without plots. A ValueError
     names the line that is wrong."""
     got = _read_plots(path, convert=False)

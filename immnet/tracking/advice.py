@@ -38,7 +38,7 @@ def load_provenance(ckpt) -> dict | None:
 
 def track_intervals(ids, t) -> np.ndarray:
     """The scan intervals of CSV rows: the differences of each track's times (rows of a track in time order, as
-    ``immnet.tracking.io.read_tracks_csv`` checks them), all tracks together, in seconds."""
+    ``immnet.data.csvio.read_tracks_csv`` checks them), all tracks together, in seconds."""
     t = np.asarray([float(v) for v in t], dtype=np.float64)
     ids = np.asarray(ids)
     order = np.argsort(ids, kind="stable")  # each track's rows together, in their time order

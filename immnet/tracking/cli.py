@@ -6,7 +6,7 @@ input file (by any path, symlink or hard link) is refused. A measurement a senso
 tracked in segments (``immnet.tracking.segments``: a track with no detection for more than
 ``--max-coast`` seconds is dropped and restarts at its next detection). Beside the state and the mode
 probabilities the output holds the state's covariance where the tracker keeps one (CSV: the position and
-velocity entries ``immnet.tracking.io.COV_COLUMNS``; .npz: ``state_cov [N, T, 9, 9]``). See ``docs/tracking.md``.
+velocity entries ``immnet.data.csvio.COV_COLUMNS``; .npz: ``state_cov [N, T, 9, 9]``). See ``docs/tracking.md``.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, shipped
 from immnet.data.validate import MAX_ABS_POSITION
-from immnet.tracking.io import option_sigmas
+from immnet.data.csvio import option_sigmas
 from immnet.tracking.segments import MAX_COAST, check_coast
 
 DEFAULT_FILTER = "real-imm-5s"
@@ -261,7 +261,7 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     A method told each detection's covariance (``keys.MEAS_COV`` in its ``needs``) is given the rows'."""
     from immnet.data.validate import gate_measurements
     from immnet.evaluation.methods import build_method, gives_cov
-    from immnet.tracking.io import write_tracks_csv
+    from immnet.data.csvio import write_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 
     name = name or args.method
@@ -325,7 +325,7 @@ def _track_plots(args, rows, limit: float) -> int:
 def _labelled(path: Path) -> bool:
     """Whether a CSV's rows name their track (a ``track_id`` column; an empty file too, which its reader refuses):
     else they are a radar's unlabelled plots, for the multi-target tracker."""
-    from immnet.tracking.io import csv_header
+    from immnet.data.csvio import csv_header
 
     header = csv_header(path)
     return header is None or "track_id" in header
@@ -350,7 +350,7 @@ def run(args) -> int:
         args.max_coast = MAX_COAST
     if args.input.suffix.lower() == ".csv":
         from immnet.tracking.advice import track_intervals
-        from immnet.tracking.io import read_tracks_csv, write_tracks_csv
+        from immnet.data.csvio import read_tracks_csv, write_tracks_csv
         from immnet.tracking.segments import split_segments, track_segments
 
         rows = read_tracks_csv(args.input, option_sigmas(args))

@@ -155,7 +155,7 @@ class Tracker:
         KalmanNet experts give none (no such key).
 
         ``R [B, 3, 3]``: each detection's measurement covariance (m^2; a NaN matrix where the track has no detection),
-        e.g. a radar plot's (``immnet.tracking.io``). It is checked (its shape, and symmetric positive definite where
+        e.g. a radar plot's (``immnet.data.csvio``). It is checked (its shape, and symmetric positive definite where
         the track has a detection: a ValueError otherwise). A network whose filter experts are told it
         (``FilterGain(r="detection")``, ``net.start.told_cov``) filters with it, and needs it at every scan; any other
         **does not use** it (the shipped ones estimate each track's noise from its measurements, ``r`` tells a
