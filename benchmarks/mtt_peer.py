@@ -1,7 +1,7 @@
 """The multi-target peer: Stone Soup's GNN and JPDA trackers on the scenes of ``immnet data scenes``, tuned on the
 training scenes only, against ours (``immnet.tracking.multi.MultiTargetTracker``, where importable) in the same run.
 
-Run (Stone Soup is the ``bench`` extra: ``pip install -e '.[bench]'``)::
+Run (Stone Soup is in the ``dev`` extra, the tests' peer: ``pip install -e '.[dev]'``)::
 
     immnet data scenes --samples collections/quickstart collections/switzerland --out data/scenes --n 3
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/mtt_peer.py --scenes data/scenes [--tune-scenes 2] \\

@@ -14,7 +14,7 @@ if ! "$PY" -c "import torch" 2>/dev/null; then
   echo "[setup] installing ${IMMNET_TORCH:-torch==2.13.0}"
   "$PY" -m pip install -q "${IMMNET_TORCH:-torch==2.13.0}" 2> >(grep -v "is ignored: it is neither" >&2)
 fi
-if ! "$PY" -c "import immnet, filterpy, pytest, xdist" 2>/dev/null; then
+if ! "$PY" -c "import immnet, filterpy, pytest, xdist, stonesoup" 2>/dev/null; then
   echo "[setup] installing immnet with its dev extra"
   "$PY" -m pip install -q -e ".[dev]" 2> >(grep -v "is ignored: it is neither" >&2)
 fi
@@ -24,10 +24,5 @@ if ! "$PY" -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('tr
   echo "[setup] installing the ADS-B sample files (traffic==2.13, --no-deps)"
   "$PY" -m pip install -q --no-deps "traffic==2.13" 2> >(grep -v "is ignored: it is neither" >&2) \
     || echo "[setup] traffic's sample files could not be installed: the quickstart test is skipped" >&2
-fi
-# Stone Soup for the multi-target peer benchmark (benchmarks/mtt_peer.py), asked for with IMMNET_BENCH=1
-if [ "${IMMNET_BENCH:-0}" = 1 ] && ! "$PY" -c "import stonesoup" 2>/dev/null; then
-  echo "[setup] installing the bench extra (stonesoup==1.9.1)"
-  "$PY" -m pip install -q -e ".[bench]" 2> >(grep -v "is ignored: it is neither" >&2)
 fi
 echo "[setup] ready: $("$PY" -c 'import torch, immnet; print("torch", torch.__version__)')"
