@@ -63,6 +63,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, write_section  # noqa: E402
 
 from immnet.data.scenes import Scene, load_index, load_scene  # noqa: E402
+from immnet.evaluation.scenes import raw_plots  # noqa: E402
 
 C, P, ALPHA = 200.0, 2.0, 2.0
 GRID = {"q": (0.5, 5.0, 50.0), "delete_steps": (2, 3, 5), "min_points": (2, 3, 4)}
@@ -304,18 +305,6 @@ def evaluate(run: dict, scene: Scene) -> dict:
             "scans": len(scene), "scans_done": n}
 
 
-def truth_told(scene: Scene) -> dict:
-    """No tracker: each scan's detections of the aircraft (the plots that are not clutter) as the estimates: what the
-    radar's plots are worth without association or filtering."""
-    ids, pos = [], []
-    for k in range(len(scene)):
-        a, b = scene.plot_offsets[k], scene.plot_offsets[k + 1]
-        src = scene.plot_source[a:b]
-        ids.append(src[src >= 0])
-        pos.append(scene.plots[a:b][src >= 0])
-    return {"est_ids": ids, "est_pos": pos, "seconds": [0.0] * len(scene)}
-
-
 def mean_rows(rows: list[dict]) -> dict:
     keys = ("gospa", "localisation", "missed", "false", "ms_per_scan_median", "ms_per_scan_mean")
     out = {"scans": int(sum(r["scans"] for r in rows)), "scans_done": int(sum(r["scans_done"] for r in rows)),
@@ -455,7 +444,7 @@ def main(argv=None) -> int:
             rows_of[names[kind]].append(row)
             log(f"[{sc.name}] {kind}: GOSPA {row['gospa']:.1f} m over {row['scans_done']}/{row['scans']} scans, "
                 f"{row['ms_per_scan_median']:.1f} ms/scan")
-        rows_of[RAW].append(evaluate(truth_told(sc), sc))
+        rows_of[RAW].append(evaluate(raw_plots(sc), sc))
     result["filter"] = a.filter
     result["time_limit"] = a.time_limit
     for name, rows in rows_of.items():
