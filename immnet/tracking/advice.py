@@ -221,7 +221,10 @@ def radar_default(intervals) -> tuple[str, str]:
     distance = [max(span[0] - median, median - span[1], 0.0) for _, _, span in RADAR_BANDS]
     net, filt, span = RADAR_BANDS[int(np.argmin(distance))]
     bands = ", ".join(f"{s[0]:g}-{s[1]:g} s" for _, _, s in RADAR_BANDS)
-    why = (f"an interval outside {span[0]:g}-{span[1]:g} s, where {net} was trained" if distance[int(np.argmin(distance))] == 0
+    dt = np.asarray(intervals, dtype=np.float64)
+    shortest = float(np.min(dt[np.isfinite(dt)]))
+    why = (f"but their shortest, {shortest:.3g} s, is below {span[0]:g}-{span[1]:g} s, where {net} was trained"
+           if distance[int(np.argmin(distance))] == 0
            else f"whose scans the shipped radar networks ({bands}) were not trained at")
     return filt, (f"note: the rows carry each detection's covariance and their median scan interval is {median:.3g} s, "
                   f"{why}: tracked by {filt}, the "
