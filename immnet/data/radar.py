@@ -146,3 +146,37 @@ def measure(pos: np.ndarray, r: float, p_miss: float, rng: np.random.Generator) 
         miss[:2] = False
         z[miss] = np.nan
     return z
+
+
+def plots(pos: np.ndarray, sigma_range, sigma_azimuth, sigma_elevation, p_miss: float, outliers: float,
+          outlier_scale: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A radar's plots of true positions ``pos [..., T, 3]`` (ENU about the radar, m), one window per leading
+    index: stds drawn per window, ``U[LOW, HIGH]`` of each pair ``sigma_range`` (m), ``sigma_azimuth``,
+    ``sigma_elevation`` (degrees); slant range, azimuth and elevation each measured with its own Gaussian noise; scans
+    after the second missed with probability ``p_miss``; converted to east-north-up with each plot's covariance
+    (the unbiased converted measurement, :func:`converted`). The noise only, not the plot's stated covariance, of a
+    share ``outliers`` of the detections is ``outlier_scale`` times larger.
+
+    Returns ``(z [..., T, 3], r [...], cov [..., T, 3, 3])`` (NaN where missed), ``r`` the RMS of the per-axis stds
+    of each window's covariances. Draws, in order: the three stds, the noise, the misses (only with ``p_miss > 0``),
+    the outliers (only with ``outliers > 0``)."""
+    pos = np.asarray(pos, np.float64)
+    batch = pos.shape[:-2]
+    s = np.stack([rng.uniform(*sigma_range, size=batch), np.radians(rng.uniform(*sigma_azimuth, size=batch)),
+                  np.radians(rng.uniform(*sigma_elevation, size=batch))], -1)
+    noise = rng.standard_normal(pos.shape) * s[..., None, :]
+    miss = np.zeros(pos.shape[:-1], bool)
+    if p_miss > 0:
+        miss = rng.random(pos.shape[:-1]) < p_miss
+        miss[..., :2] = False
+    if outliers > 0:
+        noise[rng.random(pos.shape[:-1]) < outliers] *= outlier_scale
+    rho, az, el = polar(pos)
+    stds = s[..., None, :] if batch else s  # one window: scalars (numpy rounds scalar exp, sin a bit unlike arrays)
+    z, cov = converted(rho + noise[..., 0], np.mod(az + noise[..., 1], 2 * np.pi), el + noise[..., 2],
+                       *(stds[..., i] for i in range(3)))
+    z[miss], cov[miss] = np.nan, np.nan
+    var = np.trace(cov, axis1=-2, axis2=-1).reshape(-1, pos.shape[-2]) / 3
+    seen = ~miss.reshape(var.shape)
+    r = np.sqrt(np.array([np.mean(v[k]) for v, k in zip(var, seen)])).reshape(batch)
+    return z, r, cov

@@ -265,25 +265,11 @@ def windows(p: dict, spec: RealSpec) -> list[int]:
 
 
 def _plots(pos: np.ndarray, spec: RealSpec, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray]:
-    """A window's detections of true positions ``pos [T, 3]`` as a radar's plots: stds drawn per window from
-    ``spec.sigma_*`` (m, degrees, degrees), range, azimuth and elevation each measured with its own Gaussian noise,
-    scans after the second missed with probability ``p_miss``; converted to east-north-up with each plot's
-    covariance (the unbiased converted measurement, :func:`immnet.data.radar.converted`). Returns ``(z [T, 3], r, cov [T, 3, 3])``, ``r`` the RMS of the per-axis stds of
-    the window's covariances. The noise only, not the plot's stated covariance, of a share ``outliers`` of the
-    detections is ``outlier_scale`` times larger."""
-    s = np.array([rng.uniform(*spec.sigma_range), np.radians(rng.uniform(*spec.sigma_azimuth)),
-                  np.radians(rng.uniform(*spec.sigma_elevation))])
-    noise = rng.standard_normal(pos.shape) * s
-    miss = np.zeros(len(pos), bool)
-    if spec.p_miss > 0:
-        miss = rng.random(len(pos)) < spec.p_miss
-        miss[:2] = False
-    if spec.outliers > 0:
-        noise[rng.random(len(pos)) < spec.outliers] *= spec.outlier_scale
-    rho, az, el = radar.polar(pos)
-    z, cov = radar.converted(rho + noise[:, 0], np.mod(az + noise[:, 1], 2 * np.pi), el + noise[:, 2], *s)
-    z[miss], cov[miss] = np.nan, np.nan
-    return z, float(np.sqrt(np.mean(np.trace(cov[~miss], axis1=-2, axis2=-1) / 3))), cov
+    """A window's detections of true positions ``pos [T, 3]`` as a radar's plots (:func:`immnet.data.radar.plots`
+    with ``spec``'s ``sigma_*``, ``p_miss`` and outliers): ``(z [T, 3], r, cov [T, 3, 3])``."""
+    z, r, cov = radar.plots(pos, spec.sigma_range, spec.sigma_azimuth, spec.sigma_elevation, spec.p_miss,
+                            spec.outliers, spec.outlier_scale, rng)
+    return z, float(r), cov
 
 
 def simulate(p: dict, spec: RealSpec, with_cov: bool = False) -> list[tuple]:
