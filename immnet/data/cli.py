@@ -3,6 +3,7 @@ real flights; multi-target scenes.
 
     immnet data generate --out data/train --n 100000 --seed 0 [--single-mode ct+] [--config configs/data/tiny.yaml] [--workers 2]
     immnet data generate --out data/train-1 --n 1000000 --seed 0 --shard 1/4      # shard 1 of 4 (one machine's part)
+    immnet data generate --out data/polar --n 10000 --seed 0 --sigma-range 20,60 --sigma-azimuth 0.05,0.2 --sigma-elevation 0.05,0.3
     immnet data merge --out data/train data/train-0 data/train-1 data/train-2 data/train-3
     immnet data export --data data/train --out train.npz
     immnet data plot --data data/train --out trajectories.png [--n 400] [--seed 0]
@@ -30,6 +31,14 @@ def _generate(args) -> int:
         from immnet.config import resolve_path
 
         spec = DataSpec.from_yaml(resolve_path(args.config))
+    plots = {}
+    for option, unit in (("range", ""), ("azimuth", "_deg"), ("elevation", "_deg")):
+        pair = getattr(args, f"sigma_{option}")
+        if pair is not None:
+            plots.update({f"sigma_{option}_min{unit}": pair[0], f"sigma_{option}_max{unit}": pair[1]})
+    plots.update({k: getattr(args, k) for k in ("outliers", "outlier_scale") if getattr(args, k) is not None})
+    if plots:
+        spec = DataSpec.from_dict({**spec.to_dict(), **plots})
     out = write_dataset(args.out, args.n, args.seed, spec, single_mode=args.single_mode,
                         overwrite=args.overwrite, workers=args.workers, progress=not args.quiet,
                         shard=args.shard)
@@ -211,6 +220,15 @@ def register(subparsers) -> None:
     g.add_argument("--single-mode", choices=MODE_NAMES, default=None,
                    help="one-segment trajectories of this mode (stage-1 data)")
     g.add_argument("--config", default=None, help="YAML of DataSpec fields to override (e.g. configs/data/tiny.yaml)")
+    for option, unit, what in (("range", "m", "slant range"), ("azimuth", "degrees", "azimuth"),
+                               ("elevation", "degrees", "elevation")):
+        g.add_argument(f"--sigma-{option}", type=_floats(2, "LOW,HIGH such as 20,60"), default=None, metavar="LOW,HIGH",
+                       help=f"a radar's plots from the origin: the {what} noise std per trajectory, U[LOW, HIGH] "
+                            f"({unit}); the three --sigma-* together, in place of r N(0, I3), writing meas_cov")
+    g.add_argument("--outliers", type=float, default=None,
+                   help="with the plots: share of the detections whose noise is --outlier-scale times larger "
+                        "(default 0)")
+    g.add_argument("--outlier-scale", type=float, default=None, help="an outlier's noise factor (default 10)")
     g.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     g.add_argument("--workers", type=int, default=1, help="processes to shard generation over (same bytes)")
     g.add_argument("--shard", type=_shard, default=None, metavar="I/K",

@@ -4,6 +4,14 @@ Truth: ``x_t = F_{m_t}(w_t, dt_t) x_{t-1} + G(dt_t) n_t``, ``n_t ~ N(0, sigma_q^
 ``[dt_t^2/2, dt_t, 0]`` for every mode; measurements ``z_t = H x_t + v_t``, ``v_t ~ N(0, r^2 I3)``;
 with ``p_miss > 0`` each scan from the third on is missed (NaN) with that probability.
 
+A radar's plots (``DataSpec``'s ``sigma_range``, ``sigma_azimuth``, ``sigma_elevation`` pairs, optional
+``outliers``): the radar sits at the origin, and each trajectory's measurements are
+:func:`immnet.data.radar.plots` of its positions (stds drawn per trajectory, polar noise, the unbiased converted
+measurement) with each detection's covariance ``meas_cov [m, T, 3, 3]`` (NaN where missed) and ``r`` the RMS of
+the per-axis stds of those covariances. They are drawn after everything else from a numpy generator seeded by one
+draw of the block's generator (in place of the misses' draw), so that a set of the same seed holds the same truth
+with or without plots; a spec without them draws nothing more.
+
 Scan intervals: ``dt_t = dt`` at every step, or with ``dt_jitter > 0`` one draw per trajectory and step
 ``t >= 1``, ``dt_t ~ U[dt - dt_jitter, dt + dt_jitter]`` (drawn after the measurement noise and before
 the missed detections; with ``dt_jitter = 0`` nothing is drawn, so that the bytes are those of a fixed
@@ -42,10 +50,12 @@ from __future__ import annotations
 import hashlib
 import math
 
+import numpy as np
 import torch
 from tensordict import TensorDict
 
 from immnet import keys
+from immnet.data import radar
 from immnet.data.spec import DataSpec
 from immnet.motion import DEG, MODE_NAMES, N_MODES
 
@@ -236,7 +246,13 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     states = states.transpose(0, 1).contiguous()
     mode, turn = mode.T.contiguous(), turn.T.contiguous()
     meas = states[..., [0, 3, 6]] + v
-    if spec.p_miss > 0:  # drawn last, so that p_miss = 0 leaves every other draw as it was
+    cov = None
+    if spec.plots:  # the radar's plots replace meas and r; drawn last from a numpy generator seeded from g
+        plot_rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,), generator=g)))
+        z, r_plot, c = radar.plots(states[..., [0, 3, 6]].numpy(), *spec.plot_stds(), spec.p_miss, spec.outliers,
+                                   spec.outlier_scale, plot_rng)
+        meas, r, cov = torch.from_numpy(z), torch.from_numpy(r_plot), torch.from_numpy(c)
+    elif spec.p_miss > 0:  # drawn last, so that p_miss = 0 leaves every other draw as it was
         missed = torch.rand(m, T, generator=g, dtype=_DT) < spec.p_miss
         missed[:, :2] = False  # a track starts from two detections
         meas[missed] = float("nan")
@@ -252,6 +268,8 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
          keys.R: r, keys.DT: torch.full((m,), float(spec.dt), dtype=_DT), keys.TIME: times},
         batch_size=[m],
     )
+    if cov is not None:
+        td.set(keys.MEAS_COV, cov)
     return (td, bad) if return_bad else td
 
 

@@ -22,8 +22,9 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.data.generate import BLOCK
 from immnet.data.scratch import publishing
+from immnet.data.spec import DataSpec
 from immnet.data.storage import (
-    META, STORE_DTYPES, TENSORS, _allocate, _check_out, _meta, _rows, _write_meta, load_dataset, shard_rows,
+    META, TENSORS, _allocate, _check_out, _meta, _rows, _write_meta, load_dataset, shard_rows, store_dtypes,
     tensor_files,
 )
 from immnet.motion import MODE_NAMES, N_MODES
@@ -118,14 +119,15 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
     try:
         with publishing(out) as tmp:
             tmp.mkdir()
-            _allocate(tmp / TENSORS, n_total, T, out)
+            dtypes = store_dtypes(DataSpec.from_dict(first["spec"]))
+            _allocate(tmp / TENSORS, n_total, T, out, dtypes)
             dst_td = TensorDict.load_memmap(tmp / TENSORS)
             counts = [0] * N_MODES
             for d, meta in shards:
                 src_td, _ = load_dataset(d)
                 src_files, _ = tensor_files(d / TENSORS)
                 row0, n = meta["shard"]["rows"][0], meta["n"]
-                for key, dtype in STORE_DTYPES.items():
+                for key, dtype in dtypes.items():
                     dtype = str(dtype).removeprefix("torch.")
                     trail = tuple(dst_td[key].shape[1:])
                     for a in range(0, n, block):

@@ -64,6 +64,17 @@ class DataSpec:
     hard_speed_max: float = 340.0
     hard_alt_min: float = 100.0
     hard_alt_max: float = 15_000.0
+    # a radar's plots at the origin (all three stds given, LOW > 0, drawn U[LOW, HIGH] per trajectory): noise in slant
+    # range (m), azimuth and elevation (degrees), converted to east-north-up with each plot's covariance (meas_cov),
+    # in place of r N(0, I3); 0: not asked for (immnet.data.radar.plots)
+    sigma_range_min: float = 0.0
+    sigma_range_max: float = 0.0
+    sigma_azimuth_min_deg: float = 0.0
+    sigma_azimuth_max_deg: float = 0.0
+    sigma_elevation_min_deg: float = 0.0
+    sigma_elevation_max_deg: float = 0.0
+    outliers: float = 0.0  # with plots: the share of detections whose noise is outlier_scale times larger
+    outlier_scale: float = 10.0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -91,6 +102,29 @@ class DataSpec:
                        ("hard_alt_min", "hard_alt_max")):
             if getattr(self, lo) > getattr(self, hi):
                 raise ValueError(f"{lo}={getattr(self, lo)} exceeds {hi}={getattr(self, hi)}")
+        given = [name for name in PLOT_PAIRS if getattr(self, f"{name}_min{PLOT_PAIRS[name]}")
+                 or getattr(self, f"{name}_max{PLOT_PAIRS[name]}")]
+        for name in given:
+            lo, hi = (getattr(self, f"{name}_{end}{PLOT_PAIRS[name]}") for end in ("min", "max"))
+            if not 0 < lo <= hi:
+                raise ValueError(f"{name} is a pair LOW,HIGH with 0 < LOW <= HIGH, got {lo:g},{hi:g}")
+        if given and len(given) < 3:
+            raise ValueError(f"a radar's plots need sigma_range, sigma_azimuth and sigma_elevation together, got "
+                             f"{', '.join(given)} alone")
+        if not 0 <= self.outliers < 1 or not self.outlier_scale >= 1:
+            raise ValueError(f"outliers is a share in [0, 1) and outlier_scale >= 1, got {self.outliers:g}, "
+                             f"{self.outlier_scale:g}")
+        if self.outliers > 0 and not given:
+            raise ValueError("outliers need a radar's plots: give sigma_range, sigma_azimuth and sigma_elevation")
+
+    @property
+    def plots(self) -> bool:
+        """The measurements are a radar's plots (range, azimuth, elevation): the ``sigma_*`` pairs given."""
+        return self.sigma_range_max > 0
+
+    def plot_stds(self) -> tuple[tuple[float, float], tuple[float, float], tuple[float, float]]:
+        """The ``(LOW, HIGH)`` pairs of the plots' stds: slant range (m), azimuth and elevation (degrees)."""
+        return tuple((getattr(self, f"{n}_min{u}"), getattr(self, f"{n}_max{u}")) for n, u in PLOT_PAIRS.items())
 
     # --- what a filter told this spec's statistics needs ------------------------------------------
     def ca_acc_var(self) -> tuple[float, float, float]:
@@ -119,7 +153,13 @@ class DataSpec:
 
     # --- dict / YAML --------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        """Every field; those of the plots only where not their defaults (a spec without plots keeps the meta.json
+        it had before plots existed)."""
+        d = dataclasses.asdict(self)
+        for name in PLOT_FIELDS:
+            if d[name] == _DEFAULTS[name]:
+                del d[name]
+        return d
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "DataSpec":
@@ -150,3 +190,10 @@ class DataSpec:
 
     def to_yaml(self, path: str | Path) -> None:
         Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+
+PLOT_PAIRS = {"sigma_range": "", "sigma_azimuth": "_deg", "sigma_elevation": "_deg"}
+"""The plots' std pairs: ``{name}_min{unit}`` and ``{name}_max{unit}`` fields of :class:`DataSpec`."""
+PLOT_FIELDS = (*(f"{n}_{end}{u}" for n, u in PLOT_PAIRS.items() for end in ("min", "max")), "outliers",
+               "outlier_scale")
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(DataSpec)}

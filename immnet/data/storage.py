@@ -70,6 +70,18 @@ STORE_DTYPES = {
 OPTIONAL_DTYPES = {keys.MEAS_COV: torch.float32}
 """Tensors a set written whole may hold besides (``write_arrays``: real flights' detection covariances)."""
 ALL_DTYPES = {**STORE_DTYPES, **OPTIONAL_DTYPES}
+_TRAILS = {keys.STATES: (9,), keys.MEASUREMENTS: (3,), keys.MODE: (), keys.TURN_RATE: (), keys.R: (), keys.DT: (),
+           keys.TIME: (), keys.MEAS_COV: (3, 3)}  # after [N, T] for the per-scan tensors, [N] for r and dt
+
+
+def store_dtypes(spec: DataSpec) -> dict:
+    """The tensors a generated set of ``spec`` holds, and their stored dtypes: ``STORE_DTYPES``, and ``meas_cov``
+    where the measurements are a radar's plots."""
+    return {**STORE_DTYPES, **({keys.MEAS_COV: OPTIONAL_DTYPES[keys.MEAS_COV]} if spec.plots else {})}
+
+
+def _trail(key: str, T: int) -> tuple[int, ...]:
+    return _TRAILS[key] if key in (keys.R, keys.DT) else (T, *_TRAILS[key])
 _NPZ_SHAPES = TRAIL  # trailing shapes after [N]: the arrays of a data set besides dt
 
 
@@ -81,18 +93,17 @@ def _check_out(out: Path, overwrite: bool) -> None:
         raise FileExistsError(f"{out} exists and is not empty (pass overwrite=True / --overwrite)")
 
 
-def _allocate(tensors_dir: Path, n: int, T: int, out: Path) -> None:
-    """The data set's files of ``n`` trajectories of ``T`` scans in ``tensors_dir``, their disk blocks allocated
-    (:func:`immnet.data.scratch.reserve`): the blocks are then written through memory maps, where a full disk would
-    be a SIGBUS. An ``OSError`` naming ``out``'s folder where the disk lacks the room."""
-    shapes = {keys.STATES: (T, 9), keys.MEASUREMENTS: (T, 3), keys.MODE: (T,), keys.TURN_RATE: (T,), keys.R: (),
-              keys.DT: (), keys.TIME: (T,)}
-    size = {key: n * math.prod(trail) * STORE_DTYPES[key].itemsize for key, trail in shapes.items()}
+def _allocate(tensors_dir: Path, n: int, T: int, out: Path, dtypes: dict = STORE_DTYPES) -> None:
+    """The data set's files (the keys of ``dtypes``) of ``n`` trajectories of ``T`` scans in ``tensors_dir``, their
+    disk blocks allocated (:func:`immnet.data.scratch.reserve`): the blocks are then written through memory maps,
+    where a full disk would be a SIGBUS. An ``OSError`` naming ``out``'s folder where the disk lacks the room."""
+    shapes = {key: _trail(key, T) for key in dtypes}
+    size = {key: n * math.prod(trail) * dtypes[key].itemsize for key, trail in shapes.items()}
     check_space(out.parent, sum(size.values()), f"the data set ({n} trajectories of {T} scans)")
     td = TensorDict({}, batch_size=[n])
     td.memmap_(tensors_dir)
     for key, trail in shapes.items():
-        reserve(td.make_memmap(key, shape=[n, *trail], dtype=STORE_DTYPES[key]).filename, size[key])
+        reserve(td.make_memmap(key, shape=[n, *trail], dtype=dtypes[key]).filename, size[key])
 
 
 _WORKER: dict = {}
@@ -137,8 +148,10 @@ def _rows(filename, dtype, trail, start: int, m: int, mode: str) -> np.memmap:
 def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, threads=1, row0=0):
     torch.set_num_threads(threads)
     td = TensorDict.load_memmap(tensors_dir)
-    files = {k: (td[k].filename, tuple(td[k].shape[1:])) for k in STORE_DTYPES}
-    _WORKER.update(files=files, seed=seed, n=n, spec=DataSpec.from_dict(spec_dict), single=single_mode, row0=row0)
+    spec = DataSpec.from_dict(spec_dict)
+    dtypes = store_dtypes(spec)
+    files = {k: (td[k].filename, tuple(td[k].shape[1:])) for k in dtypes}
+    _WORKER.update(files=files, seed=seed, n=n, spec=spec, single=single_mode, row0=row0, dtypes=dtypes)
 
 
 def _write_block(b: int) -> list[int]:
@@ -151,7 +164,7 @@ def _write_block(b: int) -> list[int]:
     w = _WORKER
     block = generate_block(w["seed"], b, w["n"], w["spec"], w["single"])
     m, start = block.batch_size[0], b * BLOCK - w["row0"]
-    for key, dtype in STORE_DTYPES.items():
+    for key, dtype in w["dtypes"].items():
         filename, trail = w["files"][key]
         a = block[key].to(dtype).numpy()
         mm = _rows(filename, a.dtype, trail, start, m, "r+")
@@ -162,12 +175,13 @@ def _write_block(b: int) -> list[int]:
 
 
 def _meta(seed: int, n: int, spec_dict: dict, single_mode, counts, shard: dict | None = None) -> dict:
-    """A data set's ``meta.json`` (``shard`` only for one shard of a larger whole)."""
+    """A data set's ``meta.json`` (``shard`` only for one shard of a larger whole); ``spec_dict`` a
+    ``DataSpec.to_dict()``."""
     meta = {
         "format": FORMAT, "spec_version": SPEC_VERSION, "seed": int(seed), "n": int(n), "T": int(spec_dict["T"]),
         "single_mode": single_mode, "block": BLOCK, "spec": spec_dict,
         "counts_per_mode": dict(zip(MODE_NAMES, counts)),
-        "dtype": {k: str(v).removeprefix("torch.") for k, v in STORE_DTYPES.items()},
+        "dtype": {k: str(v).removeprefix("torch.") for k, v in store_dtypes(DataSpec.from_dict(spec_dict)).items()},
     }
     if shard is not None:
         meta["shard"] = shard
@@ -226,7 +240,7 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         tmp.mkdir()
-        _allocate(tmp / TENSORS, row1 - row0, spec.T, out)
+        _allocate(tmp / TENSORS, row1 - row0, spec.T, out, store_dtypes(spec))
         counts = [0] * N_MODES
         blocks = list(blocks)
         bar = None
