@@ -392,11 +392,21 @@ def run(args) -> int:
     from immnet.tracking.tracker import check_dt
 
     data, meta = load_dataset(args.input)
+    told = keys.MEAS_COV in data.keys()
+    if told and args.weights is None and args.checkpoint is None:
+        return _npz_plots(args, data, meta, limit)
     weights = _weights(args)
     if weights is None:
+        _report_npz_cov_unused(data, "the bank", args.r)
         return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
     tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
     tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
+    if tracker.net.start.told_cov and not told:
+        raise ValueError(f"{weights}: this network is told each detection's covariance, which {args.input} does not "
+                         f"hold: give the .npz its {keys.MEAS_COV!r} [N, T, 3, 3] (immnet data adsb --sigma-* writes "
+                         f"it), or one std for all with --r METRES")
+    if not tracker.net.start.told_cov:
+        _report_npz_cov_unused(data, str(weights), args.r)
     from immnet.data.times import scan_intervals
 
     intervals = scan_intervals(data) if "t" in data.keys() else data["dt"]
@@ -406,7 +416,7 @@ def run(args) -> int:
     # each scan at its own interval (a network trained over a range runs F(dt), Q(dt) per scan; a gap longer than
     # the range coasted at intervals inside it), each track's r where the network's filter experts are told it
     out = tracker.track(data["measurements"], intervals=tracker.net.intervals_for(data), return_cov=has_cov,
-                        r=tracker.net.told_r(data))
+                        r=tracker.net.told_r(data), meas_cov=tracker.net.told_cov(data))
     with publishing(args.output, suffix=".npz") as tmp:
         times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
         cov = {"state_cov": out["state_cov"].numpy()} if has_cov else {}
@@ -437,4 +447,53 @@ def _npz_with_bank(args, data, meta, bank, limit: float) -> int:
     _report_gated(bank.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks with the bank ({', '.join(bank.names)}) -> {args.output}", file=sys.stderr)
     _advise_bank(intervals.numpy()[:, 1:].ravel())
+    return 0
+
+
+def _report_npz_cov_unused(data, what: str, r: float | None = None) -> None:
+    if keys.MEAS_COV in data.keys():
+        how = f"is given --r {r:g}" if r is not None else "estimates each track's measurement noise from its measurements"
+        print(f"{what} {how}: the .npz's "
+              f"{keys.MEAS_COV!r} is not used (docs/radar.md, 'Input')", file=sys.stderr)
+
+
+def _npz_plots(args, data, meta, limit: float) -> int:
+    """The default for an .npz holding each detection's covariance (``meas_cov``): the registry method
+    ``immnet.tracking.advice.radar_default`` picks for its scan intervals (``t``, else ``dt``), as for CSV rows with
+    covariances, told ``meas_cov``; each window tracked as ``immnet evaluate`` tracks it (a network's coasting limit
+    ``--max-coast``; a model-based filter has none). Written as the other .npz outputs, the tracker named on stderr."""
+    from immnet.data.scratch import publishing
+    from immnet.data.times import scan_intervals
+    from immnet.data.validate import gate_measurements
+    from immnet.evaluation.methods import build_method, gives_cov
+    from immnet.tracking.advice import radar_default
+    from tensordict import TensorDict
+
+    name, line = radar_default(scan_intervals(data).numpy()[:, 1:].ravel())
+    line = (line.replace("the rows carry", "the .npz carries").replace("their median", "its median")
+            .replace("--method or --weights bank", "--weights or --checkpoint"))
+    for option, given in (("--adapt", args.adapt), ("--guard", args.guard not in ("checkpoint", "none"))):
+        if given:
+            raise ValueError(f"{option} is the bank's and the shipped networks' option; this .npz carries each "
+                             f"detection's covariance ({keys.MEAS_COV!r}) and is tracked by {name} by default, which "
+                             f"has none: give --weights bank to track it with the bank")
+    if args.r is not None:
+        raise ValueError(f"--r and the .npz's {keys.MEAS_COV!r} both give the measurement noise of {name} (the "
+                         f"default for an .npz with {keys.MEAS_COV!r}): give one of the two")
+    has_cov = gives_cov(name)
+    method = build_method(name, return_cov=has_cov)
+    tracker = getattr(method, "tracker", None)
+    if tracker is not None:
+        tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
+    print(line, file=sys.stderr)
+    z, n_gated = gate_measurements(data[keys.MEASUREMENTS], limit)
+    batch = TensorDict({**dict(data.items()), keys.MEASUREMENTS: z}, batch_size=data.batch_size)
+    out = method.track(batch)
+    with publishing(args.output, suffix=".npz") as tmp:
+        times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
+        probs = {"mode_probs": out[keys.MODE_PROBS].numpy()} if keys.MODE_PROBS in out.keys() else {}
+        cov = {"state_cov": out[keys.STATE_COV].numpy()} if has_cov else {}
+        np.savez(tmp, state=out[keys.STATE].numpy(), **probs, dt=np.float64(meta["dt"]), **times, **cov)
+    _report_gated(n_gated, limit)
+    print(f"tracked {out.batch_size[0]} tracks with {name} -> {args.output}", file=sys.stderr)
     return 0
