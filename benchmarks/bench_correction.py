@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_immnet import inference  # noqa: E402
 from common import rates_in_turns, rates_table, rows_arguments, write_rates  # noqa: E402
 
-from immnet.evaluation.methods import build_method  # noqa: E402
+from immnet.filters.methods import build_method  # noqa: E402
 from immnet.filters.trackers import _linear_network  # noqa: E402
 from immnet.stages import IMMNet  # noqa: E402
 

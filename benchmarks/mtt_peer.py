@@ -1,5 +1,5 @@
 """The multi-target peer: Stone Soup's GNN and JPDA trackers on the scenes of ``immnet data scenes``, tuned on the
-training scenes only, against ours (``immnet.tracking.multi.MultiTargetTracker``, where importable) in the same run.
+training scenes only, against ours (``immnet.filters.multi.MultiTargetTracker``, where importable) in the same run.
 
 Run (Stone Soup is in the ``dev`` extra, the tests' peer: ``pip install -e '.[dev]'``)::
 
@@ -197,7 +197,7 @@ def run_ours(scene: Scene, filter: str | None = None, associator: str = "gnn") -
     import inspect
 
     from immnet.evaluation.scenes import run_tracker
-    from immnet.tracking.multi import MultiTargetTracker
+    from immnet.filters.multi import MultiTargetTracker
 
     filter = filter or inspect.signature(MultiTargetTracker).parameters["filter"].default
     return run_tracker(scene, filter, associator=associator)
@@ -208,7 +208,7 @@ def run_ours_told(scene: Scene, filter: str | None = None) -> dict:
     import inspect
 
     from immnet.evaluation.scenes import run_told
-    from immnet.tracking.multi import MultiTargetTracker
+    from immnet.filters.multi import MultiTargetTracker
 
     filter = filter or inspect.signature(MultiTargetTracker).parameters["filter"].default
     return run_told(scene, filter)

@@ -142,7 +142,7 @@ def main() -> int:
     from immnet.data.storage import load_dataset
     from immnet.evaluation.runner import evaluate, to_json
     from immnet.evaluation.table import format_markdown, format_table
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.tracking import IMMNetMethod, KalmanNetMethod
 
     data, _ = load_dataset(QUICK / "data/test")

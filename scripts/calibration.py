@@ -67,7 +67,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from immnet.evaluation.calibration import CURVE_LEVELS, LEVELS, track_coverage
-    from immnet.evaluation.methods import build_method, gives_cov
+    from immnet.filters.methods import build_method, gives_cov
 
     if args.generate is not None:
         from immnet.data.generate import generate

@@ -28,7 +28,7 @@ import yaml
 
 from immnet.data.real import subset_flights, window_flights
 from immnet.data.storage import load_dataset
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.runner import evaluate, to_json
 from immnet.imm.guard import parse_guard
 from immnet.tracking.methods import IMMNetMethod

@@ -47,7 +47,7 @@ from immnet.config import instantiate, load_yaml
 from immnet.data import adsb, real
 from immnet.data.geodesy import enu_rotation
 from immnet.data.storage import as_batch, load_dataset
-from immnet.evaluation.methods import method_config
+from immnet.filters.methods import method_config
 from immnet.evaluation.search import average_rmse, states_rmse
 from immnet.filters import per_axis
 from immnet.motion import AXES

@@ -18,7 +18,7 @@ import argparse
 
 from immnet.config import load_yaml, resolve_path
 from immnet.data.storage import load_dataset
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.metrics import interval_bin
 from immnet.evaluation.runner import evaluate_by_interval
 from immnet.tracking.methods import IMMNetMethod

@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 
 from immnet.data.storage import load_dataset
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.runner import evaluate, to_json
 from immnet.evaluation.table import format_markdown, format_table
 from immnet.imm.guard import parse_guard

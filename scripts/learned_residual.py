@@ -32,7 +32,7 @@ from immnet.config import instantiate, load_yaml
 from immnet.data.augment import FlightAugment
 from immnet.data.storage import as_batch, load_dataset
 from immnet.data.times import scan_intervals
-from immnet.evaluation.methods import method_config
+from immnet.filters.methods import method_config
 from immnet.evaluation.metrics import AXES, position_error, rmse, scored_mask
 from immnet.motion import ACC, POS, VEL
 

@@ -82,7 +82,7 @@ def main() -> int:
         run_ids = sorted(wandb_runs() - before)
     else:
         run_ids = [r.strip() for r in a.wandb_runs.split(",") if r.strip()]
-    from immnet.evaluation.methods import ORDER, build_method
+    from immnet.filters.methods import ORDER, build_method
     from immnet.evaluation.runner import evaluate, to_json
     from immnet.evaluation.table import format_markdown, format_table
     from immnet.training.export import export_weights

@@ -190,7 +190,7 @@ def score(ship: dict, registry: str) -> tuple[dict, list[str]]:
     """Each of ``ship``'s test sets scored in one run of its methods (real flights without a range guard): the
     provenance's ``tests`` (data, n, metrics, claims) and a Markdown table per set."""
     from immnet.data.storage import load_dataset
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.evaluation.runner import evaluate, to_json
     from immnet.evaluation.table import format_markdown, format_table
     from immnet.imm.guard import parse_guard
@@ -230,7 +230,7 @@ def ship_bank(name: str, ship: dict, commit: str) -> int:
                for m in ship["members"]}
     tests, tables = score(ship, registry)
     from immnet.config import load_yaml
-    from immnet.evaluation.methods import method_config
+    from immnet.filters.methods import method_config
 
     config = load_yaml(method_config(registry))["init_args"]
     weighing = {k: config[k] for k in ("likelihood", "temper")}
@@ -258,7 +258,7 @@ def interval_bins(spec: dict, registry: str) -> dict:
     """The network and its filter scored by scan interval on ``spec["data"]`` (``runner.evaluate_by_interval``):
     the provenance's ``interval_bins`` (``immnet.tracking.advice``)."""
     from immnet.data.storage import load_dataset
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.evaluation.runner import evaluate_by_interval
 
     td, _ = load_dataset(ROOT / spec["data"])

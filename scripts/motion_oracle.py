@@ -42,7 +42,7 @@ from immnet import keys
 from immnet.config import instantiate, load_yaml
 from immnet.data.storage import as_batch, load_dataset
 from immnet.data.times import scan_intervals
-from immnet.evaluation.methods import method_config
+from immnet.filters.methods import method_config
 from immnet.evaluation.search import average_rmse, states_rmse
 from immnet.filters import per_axis
 from immnet.filters.base import output

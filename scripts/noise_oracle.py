@@ -31,7 +31,7 @@ import torch
 from immnet import keys
 from immnet.config import instantiate, load_yaml
 from immnet.data.storage import as_batch, load_dataset
-from immnet.evaluation.methods import method_config
+from immnet.filters.methods import method_config
 from immnet.evaluation.metrics import per_trajectory_rmse, position_error, scored_mask
 from immnet.evaluation.search import Search
 

@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from immnet.evaluation.cli import load_split
-    from immnet.evaluation.methods import build_method, gives_cov
+    from immnet.filters.methods import build_method, gives_cov
 
     data, _ = load_split(args.data, args.split, None)
     rows = {}

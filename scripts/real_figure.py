@@ -24,7 +24,7 @@ from immnet import keys  # noqa: E402
 from immnet.data.storage import as_batch, load_dataset  # noqa: E402
 from immnet.data.times import scan_intervals  # noqa: E402
 from immnet.evaluation.figures import method_colors  # noqa: E402
-from immnet.evaluation.methods import build_method  # noqa: E402
+from immnet.filters.methods import build_method  # noqa: E402
 from immnet.imm.guard import parse_guard  # noqa: E402
 
 

@@ -22,7 +22,7 @@ import numpy as np
 from immnet import keys
 from immnet.data.real import set_flights, window_flights
 from immnet.data.storage import load_dataset
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.phases import phases
 from immnet.evaluation.runner import evaluate, to_json
 from immnet.imm.guard import parse_guard

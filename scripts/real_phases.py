@@ -19,7 +19,7 @@ import torch
 from immnet import keys
 from immnet.config import instantiate, load_yaml
 from immnet.data.storage import as_batch, load_dataset
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.metrics import scored_mask
 from immnet.evaluation.phases import PHASES, rmse_by_phase
 from immnet.imm.guard import parse_guard

@@ -10,7 +10,7 @@ import torch
 from immnet import keys
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.metrics import per_trajectory_rmse, position_error
 from immnet.imm.adaptive import AdaptiveNoise
 

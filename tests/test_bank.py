@@ -12,7 +12,7 @@ from immnet import keys
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.data.times import scan_intervals
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.filters.imm import initial_state
 from immnet.motion import measurement_matrix
 from immnet.tracking.bank import BankMethod, NetworkBank, accepts

@@ -8,7 +8,7 @@ import pytest
 
 from immnet.config import REPO_ROOT
 from immnet.data.storage import as_batch, load_dataset, write_dataset
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.search import average_rmse
 from immnet.tracking.bank import BankMethod
 from tests.tiny_runs import TINY

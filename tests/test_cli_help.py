@@ -79,7 +79,7 @@ def test_generate_stays_the_function_after_its_module_is_imported():
 
 def test_select_methods_default_guard_keeps_each_as_configured():
     from immnet.evaluation.cli import select_methods
-    from immnet.evaluation.methods import KEEP_GUARD
+    from immnet.filters.methods import KEEP_GUARD
 
     assert inspect.signature(select_methods).parameters["guard"].default == KEEP_GUARD
 
@@ -98,11 +98,11 @@ def test_evaluate_help_lists_exactly_the_methods_it_accepts(capsys, monkeypatch,
     """Issue 60, item 11: ``immnet evaluate --help`` names the methods, the working directory's own configs too; each
     name listed is one ``--methods`` takes (its config found, its class imported), and each it takes is listed."""
     from immnet.evaluation.cli import select_methods
-    from immnet.evaluation.methods import BUILTIN, _method_class, available_methods
-    from immnet.evaluation.registry import BUILTIN_NAMES, METHODS_DIR
+    from immnet.filters.methods import BUILTIN, _method_class, available_methods
+    from immnet.filters.registry import BUILTIN_NAMES, METHODS_DIR
 
     (tmp_path / "configs/methods").mkdir(parents=True)
-    (tmp_path / "configs/methods/mine.yaml").write_text("class_path: immnet.evaluation.methods.RawMeasurements\n")
+    (tmp_path / "configs/methods/mine.yaml").write_text("class_path: immnet.filters.methods.RawMeasurements\n")
     monkeypatch.chdir(tmp_path)
     listed = _evaluate_help_names(capsys, monkeypatch)
     packaged = sorted(p.stem for p in Path(METHODS_DIR).glob("*.yaml"))

@@ -21,7 +21,7 @@ def outputs() -> dict:
     from immnet.data.generate import generate
     from immnet.data.spec import DataSpec
     from immnet.data.times import scan_intervals
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.filters.base import before_first_detection, blank_before_first_detection
     from immnet.tracking.tracker import Tracker
 

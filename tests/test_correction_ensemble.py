@@ -12,7 +12,7 @@ from immnet.config import instantiate, load_yaml
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.data.storage import as_batch
-from immnet.evaluation.methods import method_config
+from immnet.filters.methods import method_config
 from immnet.motion import POS
 from immnet.stages import IMMNet
 from immnet.tracking.networks import frame_origin, to_local, to_world

@@ -16,7 +16,7 @@ from immnet.config import REPO_ROOT, load_yaml
 from immnet.data import adsb, real
 from immnet.data.geodesy import enu_to_geodetic, geodetic_to_enu
 from immnet.data.storage import as_batch, load_dataset, tensor_files, write_dataset
-from immnet.evaluation.methods import build_method, method_config
+from immnet.filters.methods import build_method, method_config
 from immnet.evaluation.search import states_rmse
 from immnet.filters.imm import ACC_STD, VEL_STD
 from tests.test_data_adsb import SMALL, T0, _track, _write

@@ -11,7 +11,7 @@ from immnet import keys
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.evaluation.calibration import chi2_3_cdf, coverage, position_nees, track_coverage
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.filters import IMMTracker, KalmanFilterTracker
 from immnet.filters.per_axis import PerAxisIMMTracker
 from immnet.motion import ConstantAcceleration, ConstantVelocity, ModelSet

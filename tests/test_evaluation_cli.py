@@ -137,7 +137,7 @@ def test_bad_npz_ends_with_exit_2_and_one_line(arrays, tmp_path, capsys, make):
     assert cap.out == ""
 
 
-from immnet.evaluation.methods import configured_methods  # noqa: E402
+from immnet.filters.methods import configured_methods  # noqa: E402
 
 METHODS = configured_methods()  # every method of configs/methods/, the model-based ones and the learned
 
@@ -223,7 +223,7 @@ def test_json_is_strict_with_padded_truth_and_a_diverged_method(arrays, tmp_path
     mod.Diverging = Diverging
     monkeypatch.setitem(sys.modules, "fake_diverging", mod)
     (tmp_path / "diverging.yaml").write_text("class_path: fake_diverging.Diverging\n")
-    monkeypatch.setattr("immnet.evaluation.registry.METHODS_DIR", tmp_path)
+    monkeypatch.setattr("immnet.filters.registry.METHODS_DIR", tmp_path)
     s, z, m = arrays["states"].copy(), arrays["measurements"].copy(), arrays["mode"].copy()
     s[1, 70:], z[1, 70:], m[1, 70:] = np.nan, np.nan, -1
     s[5], m[5] = np.nan, -1

@@ -10,7 +10,7 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.evaluation import RawMeasurements, build_method, evaluate, format_markdown, format_table, to_json
-from immnet.evaluation.methods import available_methods, configured_methods
+from immnet.filters.methods import available_methods, configured_methods
 
 
 def _data(n=6, t=30, seed=0):

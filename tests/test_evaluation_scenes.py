@@ -13,7 +13,7 @@ import immnet.cli
 from immnet.cli import main
 from immnet.data.scenes import SceneSpec, load_scene, observe, save_scene
 from immnet.evaluation.scenes import RAW, TOLD, run_told
-from immnet.tracking.multi import MultiTargetTracker, TrackFilter
+from immnet.filters.multi import MultiTargetTracker, TrackFilter
 
 FILTER = "real-ca-5s"
 

@@ -440,7 +440,7 @@ def test_every_model_based_method_of_the_registry_is_held_to_its_step_configurat
     import yaml
 
     from immnet.config import resolve_path
-    from immnet.evaluation.methods import BUILTIN, available_methods, build_method
+    from immnet.filters.methods import BUILTIN, available_methods, build_method
 
     held = set(IMM_EKF + LINEAR + PER_AXIS + ORACLES + PER_CHANNEL + TOLD_COV)
     model_based = []
@@ -465,7 +465,7 @@ def test_each_model_based_imm_is_immnet_with_nothing_learned(method):
     import yaml
 
     from immnet.config import resolve_path
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
 
     args = yaml.safe_load(resolve_path(f"configs/methods/{method}.yaml").read_text())["init_args"]
     data = generate(12, seed=8, spec=DataSpec(T=150, min_segment=40))
@@ -496,7 +496,7 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
     import yaml
 
     from immnet.config import resolve_path
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.filters.base import data_mode_probs
     from immnet.filters.imm import first_detection, imm_filter, initial_state
 
@@ -557,7 +557,7 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis(method):
     filters (the core's ``run`` over ``3 B`` one-coordinate tracks) to FilterPy's criterion (1e-9 of the state's
     scale), its modes per axis and its covariance (the axes' blocks, 0 across) too, at 1 s and at irregular 4.5-5.5 s
     scans. A model set with a turn, a range guard or a classifier without modes per axis is refused."""
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.stages.network import IMMNet
 
     data = generate(12, seed=8, spec=DataSpec(T=150, min_segment=40))

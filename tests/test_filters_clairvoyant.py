@@ -102,7 +102,7 @@ def test_the_clairvoyant_filters_are_configurations_of_the_step(kind, scans):
     each track's first detection; its modes are the truth's there, one-hot."""
     from immnet.filters import SwitchClairvoyantKF
 
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
 
     spec, data = _oracle_data(scans)
     method = build_method(kind)  # the registry's, told the data's statistics as `immnet evaluate` tells it
@@ -163,7 +163,7 @@ def test_an_oracle_step_traces_as_one_graph_and_gives_the_eager_outputs(kind):
     """Issue 21, item 1: an oracle's step, as every step, has no data-dependent branch under ``torch.compile``
     (``fullgraph=True``; the ``eager`` backend runs the traced graph, no C++ compiler needed; the check of the
     truth's labels is eager only) and the graph's outputs are the eager step's."""
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
 
     spec, data = _oracle_data("4.5-5.5s")
     method = build_method(kind)

@@ -15,7 +15,7 @@ import torch
 from immnet import keys
 from immnet.config import REPO_ROOT
 from immnet.evaluation.metrics import position_error, rmse
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.filters import IMMEKF, ClairvoyantKF
 
 DEG = math.pi / 180.0

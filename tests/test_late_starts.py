@@ -48,7 +48,7 @@ def _same_from_start(late_state: torch.Tensor, cut_state: torch.Tensor):
 def test_a_method_starts_a_late_track_at_its_first_detection(method, jitter):
     """Issue 21 (one core, one start): each method's estimates of a track whose first scans are missed are those of
     the track cut to start at its first detection; at 1 s scans (the linear IMMs' lean path) and at irregular ones."""
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
 
     late, cut = _late_and_cut(jitter)
     tracker = build_method(method)
@@ -59,7 +59,7 @@ def test_a_method_starts_a_late_track_at_its_first_detection(method, jitter):
 def test_each_path_of_the_linear_imm_starts_a_late_track_at_its_first_detection(path):
     """The same for each of ``imm_filter``'s formulations with ``start`` (``first_detection``), the combined state and
     the mode probabilities; without ``start`` a late track filters its first detection twice, which the test sees."""
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.filters.imm import first_detection, imm_filter, initial_state
     from immnet.filters.imm_fused import fused_step, imm_filter_fused
 

@@ -11,7 +11,7 @@ import torch
 from immnet import keys
 from immnet.config import REPO_ROOT, instantiate, load_yaml
 from immnet.data.storage import as_batch, load_dataset, write_dataset
-from immnet.evaluation.methods import build_method, method_config
+from immnet.filters.methods import build_method, method_config
 from immnet.evaluation.search import average_rmse
 from tests.tiny_runs import TINY
 

@@ -13,7 +13,7 @@ from filterpy.kalman import KalmanFilter
 from immnet import keys
 from immnet.config import REPO_ROOT
 from immnet.data.storage import as_batch, load_dataset, write_dataset
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.search import states_rmse
 from immnet.filters.imm import initial_state
 from immnet.motion import ConstantAcceleration

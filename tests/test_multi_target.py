@@ -87,7 +87,7 @@ def test_track_metrics_counts_switches_fragments_continuity():
 
 # --- the per-track filter ------------------------------------------------------------------------------------------
 
-from immnet.tracking.multi import (  # noqa: E402
+from immnet.filters.multi import (  # noqa: E402
     IMMFilter, MultiTargetTracker, TrackFilter, assign, gate_pairs, jpda_probabilities,
 )
 
@@ -100,7 +100,7 @@ def test_filter_is_the_single_target_method(name):
     from tensordict import TensorDict
 
     from immnet import keys
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
 
     rng = np.random.default_rng(1)
     B, T, dt, r = 3, 25, 2.0, 40.0
@@ -413,7 +413,7 @@ def test_monte_carlo_error_is_the_imm_told_the_association():
     from tensordict import TensorDict
 
     from immnet import keys
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
 
     rng = np.random.default_rng(13)
     r, dt, T = 40.0, 2.0, 40

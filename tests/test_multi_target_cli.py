@@ -95,7 +95,7 @@ def _check_crossing(rows, tol):
 
 def test_cartesian_plots_two_crossing_targets_keep_their_ids(tmp_path):
     """t,x,y,z with --r: the output is the tracker's own, row for row (state, covariance), for its confirmed tracks."""
-    from immnet.tracking.multi import MultiTargetTracker
+    from immnet.filters.multi import MultiTargetTracker
 
     scans = _scans(_cartesian)
     rows = _track(tmp_path, ["t", "x", "y", "z"], scans, "--r", str(R_STD), "--method", "real-imm-singer")
@@ -126,7 +126,7 @@ def test_polar_plots_two_crossing_targets_keep_their_ids(tmp_path):
 def test_joint_imm_gives_the_data_modes(tmp_path):
     """--method real-imm (joint modes CV, CA, CT+2, CT-2 deg/s): the mode columns are each model's probability, as the
     tracker's filter holds it, summed into its data mode."""
-    from immnet.tracking.multi import MultiTargetTracker
+    from immnet.filters.multi import MultiTargetTracker
 
     scans = _scans(_cartesian)
     rows = _track(tmp_path, ["t", "x", "y", "z"], scans, "--r", str(R_STD), "--method", "real-imm")
@@ -258,7 +258,7 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
     tracker stepped through the scene's own arrays (ENU plots with their first-order covariance, where the CSV's are
     converted unbiased from its text: the same tracks, within a metre); the radar display is written. Another scene's
     file is refused as not this CSV's, leaving nothing."""
-    from immnet.tracking.multi import MultiTargetTracker
+    from immnet.filters.multi import MultiTargetTracker
 
     scene, npz, plots = _scene(tmp_path)
     spec = scene.meta["spec"]
@@ -292,7 +292,8 @@ def test_long_inputs_say_where_they_are_and_the_help_names_the_default_filter(tm
     defaults (the filter, JPDA's pd and clutter density) are the tracker's."""
     import inspect
 
-    from immnet.tracking import cli, multi, multi_cli
+    from immnet.filters import multi
+    from immnet.tracking import cli, multi_cli
 
     assert cli.DEFAULT_FILTER == multi.DEFAULT_FILTER
     defaults = inspect.signature(multi.MultiTargetTracker).parameters

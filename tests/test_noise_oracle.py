@@ -9,7 +9,7 @@ import torch
 
 from immnet.config import REPO_ROOT
 from immnet.data.storage import as_batch, load_dataset, write_dataset
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.search import average_rmse
 from immnet.filters import KalmanFilterTracker
 from immnet.motion import ConstantAcceleration

@@ -16,7 +16,7 @@ from immnet.config import REPO_ROOT, instantiate, load_yaml
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.data.storage import as_batch, write_dataset
-from immnet.evaluation.methods import method_config
+from immnet.filters.methods import method_config
 from immnet.stages import IMMNet
 from immnet.tracking.networks import frame_origin, to_local, to_world
 from immnet.tracking.tracker import Tracker, load_network

@@ -10,7 +10,7 @@ import pytest
 from immnet.checkpoints import shipped
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.runner import evaluate
 from immnet.tracking.tracker import PRETRAINED, Tracker
 

@@ -176,7 +176,7 @@ class _Reading:
 
 @pytest.fixture
 def reading(monkeypatch):
-    from immnet.evaluation import methods
+    from immnet.filters import methods
 
     built = []
     original = methods.build_method

@@ -18,7 +18,7 @@ from immnet.checkpoints import PRETRAINED
 from immnet.data import adsb, real
 from immnet.data.storage import as_batch, load_dataset
 from immnet.evaluation.calibration import coverage, position_nees
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.evaluation.metrics import position_error, rmse, scored_mask
 
 pytestmark = [pytest.mark.slow,

@@ -208,7 +208,7 @@ def test_evaluate_scores_a_window_as_one_track_through_a_long_stretch_without_de
     """``immnet evaluate`` scores each data window as one track: its methods have no coasting limit
     (``max_coast=inf``), so a track with 40 s without a detection (40 missed scans at 1 s) coasts through them, as a
     tracker with no limit, and keeps its velocity after them, where the streaming API's 30 s would restart it."""
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.tracking.methods import IMMNetMethod
 
     batch = generate(2, seed=7, spec=DataSpec(T=70, min_segment=10))

@@ -268,7 +268,7 @@ def test_each_radar_imm_is_immnet_with_nothing_learned(name):
     """Issue 21, item 1, for the IMMs told each plot's covariance (``r: detection``, plain and robust): the registry's
     method equals its ``network()`` (filter experts told ``meas_cov``, Huber's update where the method has one) to
     FilterPy's criterion, with outliers 1.5-2 km off among correlated covariances."""
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
 
     data = _data()
     z = data[keys.MEASUREMENTS]

@@ -12,7 +12,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.checkpoints import shipped
 from immnet.cli import main
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.tracking import Tracker
 from immnet.tracking.tracker import load_network
 

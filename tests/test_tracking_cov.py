@@ -76,7 +76,7 @@ def test_csv_covariance_columns_read_back_as_the_trackers(tmp_path, z):
 
 
 def test_csv_covariance_of_a_method_any_interval(tmp_path, z, capsys):
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from immnet.data.csvio import read_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 

@@ -9,7 +9,7 @@ import torch
 
 from immnet import keys
 from immnet.cli import main
-from immnet.evaluation.methods import build_method
+from immnet.filters.methods import build_method
 from immnet.tracking.methods import check_dt
 from immnet.tracking.segments import split_rows, track_rows
 

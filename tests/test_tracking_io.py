@@ -176,7 +176,7 @@ def test_csv_fields_are_empty_before_the_first_detection(tmp_path, scans):
 
 
 def _methods():
-    from immnet.evaluation.methods import available_methods
+    from immnet.filters.methods import available_methods
 
     return available_methods()
 
@@ -186,7 +186,7 @@ def test_no_method_makes_up_an_estimate_before_the_first_detection(name):
     """Issue 20, item 3: every method of ``immnet evaluate`` (each config of configs/methods/ and the raw
     measurements) outputs NaN before a track's first detection, all NaN for a track without one, and
     finite numbers everywhere else (nothing it carries turned NaN)."""
-    from immnet.evaluation.methods import build_method
+    from immnet.filters.methods import build_method
     from tiny_runs import at_an_interval_it_takes
 
     data = generate(3, seed=5, spec=DataSpec(T=30, min_segment=10))

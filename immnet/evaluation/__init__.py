@@ -11,8 +11,8 @@ The names below load their modules (torch) when first asked for, so that ``immne
 from immnet.lazy import lazy_names
 
 __getattr__, __dir__, __all__ = lazy_names(__name__, {
-    **dict.fromkeys(("Method", "RawMeasurements", "available_methods", "build_method"), "immnet.evaluation.methods"),
-    "configured_methods": "immnet.evaluation.registry",
+    **dict.fromkeys(("Method", "RawMeasurements", "available_methods", "build_method"), "immnet.filters.methods"),
+    "configured_methods": "immnet.filters.registry",
     **dict.fromkeys(("MetricAccumulator", "confusion", "mode_accuracy", "position_error", "post_switch_mask", "rmse",
                      "rmse_over_time", "rmse_pooled", "rmse_post_switch", "scored_mask"), "immnet.evaluation.metrics"),
     "gospa": "immnet.evaluation.gospa", "track_metrics": "immnet.evaluation.gospa",

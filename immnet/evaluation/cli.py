@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from immnet.evaluation import wandb_log
-from immnet.evaluation.registry import configured_methods
+from immnet.filters.registry import configured_methods
 
 
 def register(subparsers) -> None:
@@ -110,7 +110,7 @@ def pick_cases(data, n: int = 2, seed: int = 0) -> list[int]:
 
 # --- methods ----------------------------------------------------------------------------------
 def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
-    from immnet.evaluation.methods import takes_checkpoint
+    from immnet.filters.methods import takes_checkpoint
 
     named, bare = {}, []
     for s in specs:
@@ -139,7 +139,7 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     and ``data`` is given) passes; the others skipped with a note. ``guard`` (default ``"checkpoint"``, ``KEEP_GUARD``:
     each as configured) and ``told_r`` go to ``build_method``;
     a method with ``configure`` is told the data's ``meta`` and ``sigma_q`` (``--sigma-q``)."""
-    from immnet.evaluation.methods import available_methods, build_method, missing_keys
+    from immnet.filters.methods import available_methods, build_method, missing_keys
 
     explicit = requested is not None
     names = [n.strip() for n in requested.split(",") if n.strip()] if explicit else available_methods()
@@ -297,7 +297,7 @@ def run_scenes(args) -> int:
     from immnet.data.scenes import load_index, load_scene
     from immnet.evaluation import scenes as sc
     from immnet.evaluation.runner import finite_or_none
-    from immnet.tracking.multi import MultiTargetTracker, TrackFilter
+    from immnet.filters.multi import MultiTargetTracker, TrackFilter
 
     for attr, option, default in SCENE_REFUSED:
         if getattr(args, attr) != default:

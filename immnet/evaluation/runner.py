@@ -19,7 +19,7 @@ from immnet import keys
 from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.evaluation.metrics import MetricAccumulator
-from immnet.evaluation.methods import missing_keys
+from immnet.filters.methods import missing_keys
 from immnet.progress import progress as progress_bar
 
 

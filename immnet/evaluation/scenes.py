@@ -1,7 +1,7 @@
 """Scoring multi-target trackers on scenes (``immnet evaluate --data SCENES``; docs/evaluation.md, "Scenes").
 
 A scene set (``immnet data scenes``) is scored per method, a method being the per-track filter of the multi-target
-tracker (``immnet.tracking.multi.MultiTargetTracker``; any model-based IMM or Kalman filter by name). Three kinds of
+tracker (``immnet.filters.multi.MultiTargetTracker``; any model-based IMM or Kalman filter by name). Three kinds of
 row:
 
 * ``NAME``: the tracker with filter ``NAME`` on each scene's plots (clutter and missed detections included), its
@@ -41,7 +41,7 @@ def run_tracker(scene, filter: str, **settings) -> dict:
     """One scene through ``MultiTargetTracker(filter, **settings)``, told the scene's detection probability and
     clutter density (JPDA's; GNN reads neither): per scan the confirmed tracks' ids and positions, and the seconds of
     each ``step``."""
-    from immnet.tracking.multi import MultiTargetTracker
+    from immnet.filters.multi import MultiTargetTracker
 
     spec = scene.meta["spec"]
     tracker = MultiTargetTracker(filter, pd=spec["pd"], clutter_density=clutter_density(spec), **settings)
@@ -65,7 +65,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
     start to its deletion, under its own id. Returns what :func:`run_tracker` returns."""
     import inspect
 
-    from immnet.tracking.multi import MultiTargetTracker, TrackFilter
+    from immnet.filters.multi import MultiTargetTracker, TrackFilter
 
     defaults = inspect.signature(MultiTargetTracker).parameters
     delete_after = defaults["delete_after"].default if delete_after is None else int(delete_after)

@@ -202,7 +202,7 @@ def checkpoint_info(path) -> dict:
 def method_info(name: str, checkpoint=None) -> dict:
     """A method in the run's config: its config file and init_args, and its checkpoint
     (:func:`checkpoint_info`; a learned method given none runs the shipped weights)."""
-    from immnet.evaluation.methods import BUILTIN, _method_class, method_config, takes_checkpoint
+    from immnet.filters.methods import BUILTIN, _method_class, method_config, takes_checkpoint
 
     if name in BUILTIN:
         return {"builtin": True}

@@ -11,6 +11,6 @@ __getattr__, __dir__, __all__ = lazy_names(__name__, {
     "IMMNetMethod": "immnet.tracking.methods", "KalmanNetMethod": "immnet.tracking.methods",
     "Tracker": "immnet.tracking.tracker", "load_network": "immnet.tracking.tracker",
     **dict.fromkeys(("IMMFilter", "MultiTargetTracker", "TrackFilter", "TrackReport", "TwoPointStart"),
-                    "immnet.tracking.multi"),
+                    "immnet.filters.multi"),
 })
 

@@ -25,7 +25,7 @@ from immnet.data.csvio import option_sigmas
 from immnet.tracking.segments import MAX_COAST, check_coast
 
 DEFAULT_FILTER = "real-imm-5s"
-"""``immnet.tracking.multi.DEFAULT_FILTER``, named here so that ``immnet track --help`` needs no torch (a test holds
+"""``immnet.filters.multi.DEFAULT_FILTER``, named here so that ``immnet track --help`` needs no torch (a test holds
 them equal)."""
 
 
@@ -260,7 +260,7 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     range of intervals, a gap longer than the range is cut into missed scans inside it (``track_rows(max_interval=...)``).
     A method told each detection's covariance (``keys.MEAS_COV`` in its ``needs``) is given the rows'."""
     from immnet.data.validate import gate_measurements
-    from immnet.evaluation.methods import build_method, gives_cov
+    from immnet.filters.methods import build_method, gives_cov
     from immnet.data.csvio import write_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 
@@ -465,7 +465,7 @@ def _npz_plots(args, data, meta, limit: float) -> int:
     from immnet.data.scratch import publishing
     from immnet.data.times import scan_intervals
     from immnet.data.validate import gate_measurements
-    from immnet.evaluation.methods import build_method, gives_cov
+    from immnet.filters.methods import build_method, gives_cov
     from immnet.tracking.advice import radar_default
     from tensordict import TensorDict
 

@@ -1,6 +1,6 @@
 """``immnet track`` for unlabelled plots: a CSV without a ``track_id`` column (``t,range,azimuth,elevation`` or
 ``t,x,y,z``, ``immnet.data.csvio.read_plots_csv``) goes to the multi-target tracker
-(``immnet.tracking.multi.MultiTargetTracker``), scan by scan. The output has one row per confirmed track per scan,
+(``immnet.filters.multi.MultiTargetTracker``), scan by scan. The output has one row per confirmed track per scan,
 from its confirmation to its deletion (``immnet.data.csvio.PLOT_OUT_COLUMNS``), written through a temporary file
 and moved into place only when complete; ``--figure`` draws the run as a radar display. See docs/multi-target.md.
 """
@@ -121,7 +121,7 @@ def track_plots(args, limit: float) -> int:
     from immnet.data.scratch import publishing
     from immnet.progress import progress
     from immnet.data.csvio import PLOT_OUT_COLUMNS, R_COLUMNS, option_sigmas, plot_track_rows, read_plots_csv
-    from immnet.tracking.multi import DEFAULT_FILTER, MultiTargetTracker, TrackFilter
+    from immnet.filters.multi import DEFAULT_FILTER, MultiTargetTracker, TrackFilter
 
     plots = read_plots_csv(args.input, option_sigmas(args))
     clutter = _scene_clutter(Path(args.scene), plots) if args.scene is not None else None

@@ -97,7 +97,7 @@ class TrackFilter:
         process noise, transition matrix and initial mode probabilities. ``r``: the measurement std to assume where
         plots come without covariances; None: the method's own ``r`` where it is a number (``r: data`` assumes
         none)."""
-        from immnet.evaluation.methods import build_method
+        from immnet.filters.methods import build_method
         from immnet.filters.per_axis import PerAxisIMMTracker
         from immnet.filters.trackers import IMMTracker, KalmanFilterTracker
 

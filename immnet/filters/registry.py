@@ -1,7 +1,7 @@
 """The names of the methods ``immnet evaluate --methods`` takes, found without building any (no torch).
 
 A method is a built-in (``BUILTIN_NAMES``) or a ``<name>.yaml`` config in the working directory's
-``configs/methods/`` or among the packaged ones (``METHODS_DIR``); ``immnet.evaluation.methods`` builds them.
+``configs/methods/`` or among the packaged ones (``METHODS_DIR``); ``immnet.filters.methods`` builds them.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ METHODS_DIR = packaged_configs() / "methods"
 USER_METHODS_DIR = Path("configs") / "methods"
 """The working directory's own method configs, looked in before ``METHODS_DIR``."""
 BUILTIN_NAMES = ("measurements",)
-"""Methods that need no config (``immnet.evaluation.methods.BUILTIN``)."""
+"""Methods that need no config (``immnet.filters.methods.BUILTIN``)."""
 
 ORDER = ("measurements", "imm-accurate", "imm-min", "imm-max", "imm-tuned", "imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "kalmannet", "immnet", "clairvoyant-switch", "clairvoyant")
 """Row order of the results table; other configured methods follow alphabetically."""

@@ -9,7 +9,7 @@ whole data before running any method: a learned tracker refuses a ``dt`` it was 
 Methods are configured, not coded in: ``configs/methods/<name>.yaml`` holds one ``class_path`` /
 ``init_args`` mapping, looked for in the working directory's ``configs/methods/`` first (a user's own
 or tuned methods), then among the packaged configs (``immnet.config``; docs/configs.md); their names are
-``immnet.evaluation.registry``'s, read without torch for ``immnet evaluate --help``.
+``immnet.filters.registry``'s, read without torch for ``immnet evaluate --help``.
 ``build_method(name, checkpoint)`` loads it; a checkpoint (from the YAML's
 ``init_args`` or from the caller) reaches the constructor as ``checkpoint=``, and a range guard
 (``immnet evaluate --guard``) as ``guard=``. A method may also have ``configure(meta, sigma_q=None)``:
@@ -29,8 +29,8 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.config import REPO_ROOT, import_class, load_yaml
-from immnet.evaluation.registry import METHODS_DIR, ORDER, USER_METHODS_DIR, configured_methods  # noqa: F401
-from immnet.evaluation.registry import method_dirs as _method_dirs
+from immnet.filters.registry import METHODS_DIR, ORDER, USER_METHODS_DIR, configured_methods  # noqa: F401
+from immnet.filters.registry import method_dirs as _method_dirs
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
 from immnet.motion import POS
