@@ -117,6 +117,16 @@ def converted(rho, az, el, s_rho, s_az, s_el, given: str = "measurement") -> tup
     return enu, _ucm_cov(A, Bq, az, el, s_az, s_el, g1a, g2a, g2e)
 
 
+def check_plot_settings(given: list[str], outliers: float, outlier_scale: float) -> None:
+    """A radar's plot settings as real flights' and 3D-LAST's data take them: the stds ``given`` (their names) all three
+    or none, the outliers' share in [0, 1) and their scale >= 1; a ValueError naming what is wrong."""
+    if given and len(given) < 3:
+        raise ValueError(f"a radar's plots need sigma_range, sigma_azimuth and sigma_elevation together, got "
+                         f"{', '.join(given)} alone")
+    if not 0 <= outliers < 1 or not outlier_scale >= 1:
+        raise ValueError(f"outliers is a share in [0, 1) and outlier_scale >= 1, got {outliers:g}, {outlier_scale:g}")
+
+
 def covered(enu, max_range: float, min_elevation: float = 0.0) -> np.ndarray:
     """Where the radar sees a point: slant range <= ``max_range`` (m), elevation >= ``min_elevation`` (degrees)."""
     rho, _, el = polar(enu)

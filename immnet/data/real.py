@@ -103,13 +103,7 @@ class RealSpec:
             v = getattr(self, name)
             if v and not (len(v) == 2 and all(np.isfinite(float(x)) for x in v) and 0 < float(v[0]) <= float(v[1])):
                 raise ValueError(f"{name} is a pair LOW,HIGH with 0 < LOW <= HIGH, got {tuple(v)}")
-        given = [n for n in PAIRS[:3] if getattr(self, n)]
-        if given and len(given) < 3:
-            raise ValueError(f"a radar's plots need sigma_range, sigma_azimuth and sigma_elevation together, got "
-                             f"{', '.join(given)} alone")
-        if not 0 <= self.outliers < 1 or not self.outlier_scale >= 1:
-            raise ValueError(f"outliers is a share in [0, 1) and outlier_scale >= 1, got {self.outliers}, "
-                             f"{self.outlier_scale}")
+        radar.check_plot_settings([n for n in PAIRS[:3] if getattr(self, n)], self.outliers, self.outlier_scale)
 
     @property
     def plots(self) -> bool:

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import yaml
 
+from immnet.data.radar import check_plot_settings
+
 SPEC_VERSION = 1
 """Bumped whenever the generator's output for a given (seed, n, spec) changes. ``dt_jitter`` (0 by default)
 draws nothing at 0, so that every spec of version 1 still gives the same bytes: it did not bump the version."""
@@ -108,12 +110,7 @@ class DataSpec:
             lo, hi = (getattr(self, f"{name}_{end}{PLOT_PAIRS[name]}") for end in ("min", "max"))
             if not 0 < lo <= hi:
                 raise ValueError(f"{name} is a pair LOW,HIGH with 0 < LOW <= HIGH, got {lo:g},{hi:g}")
-        if given and len(given) < 3:
-            raise ValueError(f"a radar's plots need sigma_range, sigma_azimuth and sigma_elevation together, got "
-                             f"{', '.join(given)} alone")
-        if not 0 <= self.outliers < 1 or not self.outlier_scale >= 1:
-            raise ValueError(f"outliers is a share in [0, 1) and outlier_scale >= 1, got {self.outliers:g}, "
-                             f"{self.outlier_scale:g}")
+        check_plot_settings(given, self.outliers, self.outlier_scale)
         if self.outliers > 0 and not given:
             raise ValueError("outliers need a radar's plots: give sigma_range, sigma_azimuth and sigma_elevation")
 
