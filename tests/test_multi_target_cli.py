@@ -10,6 +10,7 @@ import pytest
 from immnet.cli import main
 from immnet.tracking.cli import DEFAULT_FILTER
 from immnet.data.csvio import COV_COLUMNS, PLOT_OUT_COLUMNS
+from tiny_runs import write_csv
 
 T, DT, R_STD = 30, 2.0, 30.0
 MISSED = (22, 1)  # (scan, target): the one plot left out
@@ -48,14 +49,6 @@ def _polar(rng, p):
     return np.array([rho + rng.normal(0, 30.0), az + rng.normal(0, 0.05), el + rng.normal(0, 0.05)])
 
 
-def _write(path, header, rows):
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(header)
-        w.writerows(rows)
-    return path
-
-
 def _rows(scans):
     return [[t, *map(repr, map(float, p))] for t, plots in scans for p in plots]
 
@@ -66,7 +59,7 @@ def _read(path):
 
 
 def _track(tmp_path, header, scans, *extra):
-    src = _write(tmp_path / "plots.csv", header, _rows(scans))
+    src = write_csv(tmp_path / "plots.csv", header, _rows(scans))
     out = tmp_path / "tracks.csv"
     assert main(["track", "--input", str(src), "--output", str(out), *extra]) == 0
     return _read(out)
@@ -152,15 +145,15 @@ def test_a_scan_without_plots_and_sigma_columns(tmp_path):
             rows.append([t, "", "", "", "", "", ""])
             continue
         rows += [[t, *map(repr, map(float, p)), "30", "0.05", "0.05"] for p in plots]
-    src = _write(tmp_path / "p.csv", header, rows)
+    src = write_csv(tmp_path / "p.csv", header, rows)
     assert main(["track", "--input", str(src), "--output", str(tmp_path / "a.csv")]) == 0
     got = _read(tmp_path / "a.csv")
     gap = [r for r in got if r["t"] == scans[20][0]]
     assert len(gap) == 2 and all(r["updated"] == "0" for r in gap)
-    _write(tmp_path / "q.csv", header[:4], [r[:4] for r in rows])
+    write_csv(tmp_path / "q.csv", header[:4], [r[:4] for r in rows])
     assert main(["track", "--input", str(tmp_path / "q.csv"), "--output", str(tmp_path / "b.csv"), *SIGMAS]) == 0
     assert got == _read(tmp_path / "b.csv")
-    _write(tmp_path / "none.csv", header[:4], [[t, "", "", ""] for t, _ in scans])  # scans, none with a plot
+    write_csv(tmp_path / "none.csv", header[:4], [[t, "", "", ""] for t, _ in scans])  # scans, none with a plot
     assert main(["track", "--input", str(tmp_path / "none.csv"), "--output", str(tmp_path / "c.csv"), *SIGMAS,
                  "--figure", str(tmp_path / "c.png")]) == 0
     assert (tmp_path / "c.csv").read_text().splitlines() == [",".join(PLOT_OUT_COLUMNS)]
@@ -237,7 +230,7 @@ REFUSALS = [
 @pytest.mark.parametrize("header, rows, extra, message", REFUSALS, ids=[m[:40] for *_, m in REFUSALS])
 def test_refusals_are_one_line_and_leave_nothing(tmp_path, capsys, monkeypatch, header, rows, extra, message):
     monkeypatch.chdir(tmp_path)
-    src = _write(tmp_path / "plots.csv", header, rows)
+    src = write_csv(tmp_path / "plots.csv", header, rows)
     assert main(["track", "--input", str(src), "--output", "tracks.csv", *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == "immnet track: error: " + message.replace("IN", str(src))

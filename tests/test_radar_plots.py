@@ -12,6 +12,7 @@ from immnet import keys
 from immnet.cli import main
 from immnet.data import adsb, radar
 from immnet.data.csvio import read_tracks_csv
+from tiny_runs import write_csv
 
 SIGMAS = ("--sigma-range", "30", "--sigma-azimuth", "0.1", "--sigma-elevation", "0.2")
 TINY = (1e-9, 1e-9, 1e-9)
@@ -29,14 +30,6 @@ def _plots(enu: np.ndarray) -> np.ndarray:
     e, n, u = enu[:, 0], enu[:, 1], enu[:, 2]
     return np.stack([np.sqrt(e * e + n * n + u * u), np.degrees(np.arctan2(e, n)) % 360.0,
                      np.degrees(np.arctan2(u, np.hypot(e, n)))], -1)
-
-
-def _write(path, header, rows):
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(header)
-        w.writerows(rows)
-    return path
 
 
 def _polar_rows(plots, tid="a", sigmas=None):
@@ -59,7 +52,7 @@ def test_plots_come_back_to_their_positions_across_north(tmp_path):
     assert plots[0, 1] > 359 and plots[-1, 1] < 1  # the target crosses north
     plots[7, 1] -= 360.0  # azimuths of any finite value are wrapped: -359.x is 0.x
     plots[3] = np.nan  # an empty range, azimuth, elevation is a missed detection
-    rows = read_tracks_csv(_write(tmp_path / "p.csv", ["track_id", "t", "range", "azimuth", "elevation"],
+    rows = read_tracks_csv(write_csv(tmp_path / "p.csv", ["track_id", "t", "range", "azimuth", "elevation"],
                                   _polar_rows(plots)), TINY)
     want = enu.copy()
     want[3] = np.nan
@@ -70,7 +63,7 @@ def test_plots_come_back_to_their_positions_across_north(tmp_path):
 
 def test_the_cli_tracks_plots_in_the_radars_frame(tmp_path, capsys):
     enu = _enu_track()
-    src = _write(tmp_path / "p.csv", ["track_id", "t", "range", "azimuth", "elevation"], _polar_rows(_plots(enu)))
+    src = write_csv(tmp_path / "p.csv", ["track_id", "t", "range", "azimuth", "elevation"], _polar_rows(_plots(enu)))
     out = tmp_path / "o.csv"
     assert main(["track", "--input", str(src), "--output", str(out), "--method", "imm-tuned",
                  "--sigma-range", "1e-9", "--sigma-azimuth", "1e-9", "--sigma-elevation", "1e-9"]) == 0
@@ -84,15 +77,15 @@ def test_the_cli_tracks_plots_in_the_radars_frame(tmp_path, capsys):
 def test_per_row_stds_are_the_options_and_the_covariance_is_the_conversions(tmp_path):
     plots = _plots(_enu_track())
     header = ["track_id", "t", "range", "azimuth", "elevation"]
-    by_option = read_tracks_csv(_write(tmp_path / "a.csv", header, _polar_rows(plots)), (30.0, 0.1, 0.2))
-    per_row = read_tracks_csv(_write(tmp_path / "b.csv", header + ["sigma_range", "sigma_azimuth", "sigma_elevation"],
+    by_option = read_tracks_csv(write_csv(tmp_path / "a.csv", header, _polar_rows(plots)), (30.0, 0.1, 0.2))
+    per_row = read_tracks_csv(write_csv(tmp_path / "b.csv", header + ["sigma_range", "sigma_azimuth", "sigma_elevation"],
                                      _polar_rows(plots, sigmas=(30.0, 0.1, 0.2))))
     np.testing.assert_array_equal(per_row.z, by_option.z)
     np.testing.assert_array_equal(per_row.cov, by_option.cov)
     stds = np.array([[20.0 + k, 0.05 + 0.01 * k, 0.1 + 0.02 * k] for k in range(len(plots))])
     rows = [["a", repr(float(k)), *_polar_rows(plots[k : k + 1], sigmas=tuple(stds[k]))[0][2:]]
             for k in range(len(plots))]
-    varied = read_tracks_csv(_write(tmp_path / "c.csv", header + ["sigma_range", "sigma_azimuth", "sigma_elevation"],
+    varied = read_tracks_csv(write_csv(tmp_path / "c.csv", header + ["sigma_range", "sigma_azimuth", "sigma_elevation"],
                                     rows))
     for k, (rho, az, el) in enumerate(plots):
         J = _jacobian(rho, np.radians(az), np.radians(el))
@@ -199,7 +192,7 @@ def _cartesian(tmp_path, name, enu, cov=None):
         extra = [] if cov is None else ["" if np.isnan(p).any() else repr(float(cov[k][i, j]))
                                         for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
         rows.append(["a", repr(float(k)), *("" if np.isnan(v) else repr(float(v)) for v in p), *extra])
-    return _write(tmp_path / name, header, rows)
+    return write_csv(tmp_path / name, header, rows)
 
 
 def test_each_rows_covariance_reaches_the_batch(tmp_path, reading):

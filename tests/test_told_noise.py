@@ -41,6 +41,17 @@ def _anisotropic(z: torch.Tensor, seed: int = 0) -> torch.Tensor:
     return R
 
 
+def _after_first_detection(z: torch.Tensor) -> torch.Tensor:
+    """``[B, T]`` True from each track's first detection on."""
+    return ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
+
+
+def _assert_close_to_its_scale(got: torch.Tensor, want: torch.Tensor, seen: torch.Tensor) -> None:
+    """``got`` equals ``want`` to 1e-9 of each track's largest state component, where ``seen``."""
+    scale = want.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(want)
+    assert ((got - want).abs() <= 1e-9 * scale)[seen].all()
+
+
 def _real_imm(r):
     args = yaml.safe_load(resolve_path("configs/methods/real-imm-5s.yaml").read_text())["init_args"]
     return IMMTracker(**{**args, "r": r, "name": f"real-imm-5s-{r}"})
@@ -89,9 +100,8 @@ def test_told_anisotropic_covariance_is_the_imm_told_it():
     with torch.no_grad():
         out, _ = net.rollout(z, meas_cov=net.told_cov(data))
     ours = tracker.track(data)[keys.STATE]
-    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
-    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
-    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
+    seen = _after_first_detection(z)
+    _assert_close_to_its_scale(out[keys.STATE], ours, seen)
     told_r = _real_imm("data").track(data)[keys.STATE]  # each track's r instead: another filter
     assert ((told_r - ours).abs() > 1e-3)[seen].any()
 
@@ -249,9 +259,8 @@ def test_robust_filter_experts_are_the_robust_imm(r):
     with torch.no_grad():
         out, _ = net.rollout(z, meas_cov=net.told_cov(data), r=net.told_r(data), return_cov=True)
     ours = tracker.track(data)[keys.STATE]
-    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
-    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
-    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
+    seen = _after_first_detection(z)
+    _assert_close_to_its_scale(out[keys.STATE], ours, seen)
     plain = IMMTracker(**{**args, "r": r, "name": "plain"}).track(data)[keys.STATE]
     assert ((plain - ours).abs() > 500.0)[seen].any()
     with pytest.raises(ValueError, match="robust must be None \\(off\\) or Huber's k"):
@@ -282,6 +291,5 @@ def test_each_radar_imm_is_immnet_with_nothing_learned(name):
     with torch.no_grad():
         out, _ = net.rollout(z, meas_cov=net.told_cov(data))
     ours = method.track(data)[keys.STATE]
-    seen = ((~torch.isnan(z[..., :1])).cumsum(1) > 0)[..., 0]
-    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True).expand_as(ours)
-    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
+    seen = _after_first_detection(z)
+    _assert_close_to_its_scale(out[keys.STATE], ours, seen)

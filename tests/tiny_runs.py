@@ -1,5 +1,7 @@
 """Tiny real runs shared by the test modules (a module of helpers, not a test file)."""
 
+import csv
+
 import lightning as L
 import torch
 
@@ -48,6 +50,16 @@ def at_an_interval_it_takes(method, batch):
         del out[keys.TIME]
     out["dt"] = torch.full(out.batch_size, (lo + hi) / 2, dtype=torch.float64)
     return out
+
+
+
+def write_csv(path, header, rows):
+    """A CSV file at ``path``: ``header`` then ``rows`` (the tests' inputs of ``immnet track``); returns ``path``."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        w.writerows(rows)
+    return path
 
 
 class StopAt(L.Callback):

@@ -116,12 +116,6 @@ def _converted(rho, az, el, s_rho, s_az, s_el) -> tuple[np.ndarray, np.ndarray]:
     return converted(rho, az, el, s_rho, s_az, s_el)
 
 
-def option_sigmas(args):
-    """The radar's stds ``immnet track``'s options give, ``(range, azimuth, elevation)``, or None where none is given."""
-    got = (args.sigma_range, args.sigma_azimuth, args.sigma_elevation)
-    return None if all(v is None for v in got) else got
-
-
 def check_sigmas(sigmas) -> tuple[float, float, float] | None:
     """The radar's stds ``(range m, azimuth deg, elevation deg)`` as given by the options (None: not given); a
     ValueError naming the option unless all three are given, each a finite number > 0."""

@@ -44,6 +44,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from immnet.filters.imm import ACC_STD, VEL_STD
+from immnet.filters.registry import MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
 from immnet.imm.kalman import gaussian_loglik, inv3, predict, update
 from immnet.motion import AXES, ModelSet, coupling
@@ -465,9 +466,8 @@ class TrackReport:
 
 
 ASSOCIATORS = ("gnn", "jpda")
-DEFAULT_FILTER = "real-imm-5s"
-"""The per-track filter a ``MultiTargetTracker`` builds unless told another: the joint IMM over CV, CA and two turns
-tuned on real flights at 4.5-5.5 s (chosen by mean GOSPA on training scenes, docs/multi-target.md "Defaults")."""
+DEFAULT_FILTER = MULTI_TARGET_FILTER
+"""The per-track filter a ``MultiTargetTracker`` builds unless told another (``immnet.filters.registry``)."""
 
 
 class MultiTargetTracker:

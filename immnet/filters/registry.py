@@ -14,6 +14,10 @@ METHODS_DIR = packaged_configs() / "methods"
 """Where the packaged ``<name>.yaml`` method configs live."""
 USER_METHODS_DIR = Path("configs") / "methods"
 """The working directory's own method configs, looked in before ``METHODS_DIR``."""
+MULTI_TARGET_FILTER = "real-imm-5s"
+"""The per-track filter a multi-target tracker (``immnet.filters.multi.MultiTargetTracker``) builds unless told
+another: the joint IMM over CV, CA and two turns tuned on real flights at 4.5-5.5 s (chosen by mean GOSPA on training
+scenes, docs/multi-target.md "Defaults"); here, torch-free, so that ``immnet track --help`` names it."""
 BUILTIN_NAMES = ("measurements",)
 """Methods that need no config (``immnet.filters.methods.BUILTIN``)."""
 

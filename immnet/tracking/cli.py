@@ -21,12 +21,11 @@ import numpy as np
 from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, shipped
 from immnet.data.validate import MAX_ABS_POSITION
-from immnet.data.csvio import option_sigmas
+from immnet.filters.registry import MULTI_TARGET_FILTER
 from immnet.tracking.segments import MAX_COAST, check_coast
 
-DEFAULT_FILTER = "real-imm-5s"
-"""``immnet.filters.multi.DEFAULT_FILTER``, named here so that ``immnet track --help`` needs no torch (a test holds
-them equal)."""
+DEFAULT_FILTER = MULTI_TARGET_FILTER
+"""The multi-target tracker's per-track filter (``immnet.filters.registry``, read without torch for the help)."""
 
 
 WEIGHTS_HELP = {BANK: TABLE["bank"]["summary"], **{name: entry["summary"] for name, entry in WEIGHTS.items()}}
@@ -151,7 +150,7 @@ def _weights(args) -> Path | None:
 def _check_options(args) -> None:
     """A clear error for options that cannot go together: ``--method`` tracks without a network, so with
     ``--checkpoint`` or ``--weights`` one of them would be ignored; and it tracks CSV rows, not an .npz."""
-    if args.input.suffix.lower() != ".csv" and option_sigmas(args) is not None:
+    if args.input.suffix.lower() != ".csv" and _sigmas(args) is not None:
         raise ValueError(f"--sigma-range, --sigma-azimuth, --sigma-elevation are the stds of a CSV of plots "
                          f"(range,azimuth,elevation); {args.input} is not a CSV")
     if args.method is None:
@@ -162,6 +161,12 @@ def _check_options(args) -> None:
     if args.input.suffix.lower() != ".csv":
         raise ValueError(f"--method tracks a CSV input (each row a scan at its own time); {args.input} is not one: "
                          f"leave --method out to track it with the network")
+
+
+def _sigmas(args):
+    """The radar's stds the options give, ``(range, azimuth, elevation)``, or None where none is given."""
+    got = (args.sigma_range, args.sigma_azimuth, args.sigma_elevation)
+    return None if all(v is None for v in got) else got
 
 
 def _detection_cov(args, rows, method, label: str, who: str | None = None):
@@ -345,7 +350,7 @@ def run(args) -> int:
     limit = check_limit(args.max_position)
     r = _told_r(args)
     if not labelled:
-        return multi_cli.track_plots(args, limit)
+        return multi_cli.track_plots(args, limit, _sigmas(args))
     if args.max_coast is None:
         args.max_coast = MAX_COAST
     if args.input.suffix.lower() == ".csv":
@@ -353,7 +358,7 @@ def run(args) -> int:
         from immnet.data.csvio import read_tracks_csv, write_tracks_csv
         from immnet.tracking.segments import split_segments, track_segments
 
-        rows = read_tracks_csv(args.input, option_sigmas(args))
+        rows = read_tracks_csv(args.input, _sigmas(args))
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
         if rows.cov is not None and args.weights is None and args.checkpoint is None:

@@ -116,14 +116,14 @@ def _gated(plots, limit: float) -> tuple[np.ndarray, np.ndarray]:
     return keep, z
 
 
-def track_plots(args, limit: float) -> int:
+def track_plots(args, limit: float, sigmas) -> int:
     """``immnet track`` for a CSV of unlabelled plots (module doc)."""
     from immnet.data.scratch import publishing
     from immnet.progress import progress
-    from immnet.data.csvio import PLOT_OUT_COLUMNS, R_COLUMNS, option_sigmas, plot_track_rows, read_plots_csv
+    from immnet.data.csvio import PLOT_OUT_COLUMNS, R_COLUMNS, plot_track_rows, read_plots_csv
     from immnet.filters.multi import DEFAULT_FILTER, MultiTargetTracker, TrackFilter
 
-    plots = read_plots_csv(args.input, option_sigmas(args))
+    plots = read_plots_csv(args.input, sigmas)
     clutter = _scene_clutter(Path(args.scene), plots) if args.scene is not None else None
     name = args.method or DEFAULT_FILTER
     filt = TrackFilter.from_method(name)
