@@ -37,8 +37,8 @@ imports done before): the scans it finished are scored, the table says how many 
 
 Scoring, per scan: GOSPA (c = 200 m, p = 2, alpha = 2) between the positions of the aircraft in cover and the
 positions of the tracks a tracker reports at that scan (Stone Soup: its tracks, confirmed by construction; ours:
-the confirmed ``TrackReport``s), with its parts (Stone Soup's p-th power sums) and the identity metrics where
-``immnet.evaluation.gospa.track_metrics`` is importable (else Stone Soup's ``GOSPAMetric``: GOSPA and parts only).
+the confirmed ``TrackReport``s), with its parts (Stone Soup's p-th power sums) and the identity metrics
+(``immnet.evaluation.gospa.track_metrics``, held to Stone Soup's ``GOSPAMetric`` by the tests).
 Time: the wall time of each scan's update (detections built outside it), its median and max over the scans, and the
 scans whose update took longer than the interval to the next scan.
 
@@ -75,34 +75,13 @@ RAW = "raw plots of the aircraft (no tracker)"
 
 # --- scoring: the one place that computes GOSPA ---------------------------------------------------------------------
 def score(truth_ids: list, truth_pos: list, est_ids: list, est_pos: list) -> dict:
-    """GOSPA per scan (means over the scans) and, where ``immnet.evaluation.gospa`` is importable, the identity metrics;
-    else Stone Soup's ``GOSPAMetric`` for GOSPA and its parts."""
-    try:
-        from immnet.evaluation.gospa import track_metrics
-    except ImportError:
-        track_metrics = None
-    if track_metrics is not None:
-        m = track_metrics(truth_ids, truth_pos, est_ids, est_pos, c=C, p=P, alpha=ALPHA)
-        per = m.pop("per_scan")
-        m.pop("per_truth", None)
-        return {**m, "gospa_per_scan": [float(g["gospa"]) for g in per], "scored_by": "immnet.evaluation.gospa"}
-    from stonesoup.metricgenerator.ospametric import GOSPAMetric
-    from stonesoup.types.state import State
+    """GOSPA per scan (means over the scans) and the identity metrics (``immnet.evaluation.gospa.track_metrics``)."""
+    from immnet.evaluation.gospa import track_metrics
 
-    metric = GOSPAMetric(c=C, p=P)
-    rows = []
-    for tp, ep in zip(truth_pos, est_pos):
-        truths = [State(np.asarray(x, float).reshape(3, 1), timestamp=EPOCH) for x in tp]
-        ests = [State(np.asarray(x, float).reshape(3, 1), timestamp=EPOCH) for x in ep]
-        if not truths and not ests:
-            rows.append(dict.fromkeys(("distance", "localisation", "missed", "false"), 0.0))
-            continue
-        single, _ = metric.compute_gospa_metric(ests, truths)
-        rows.append(single.value)
-    mean = {k: float(np.mean([r[k] for r in rows])) for k in ("distance", "localisation", "missed", "false")}
-    return {"gospa": mean["distance"], "localisation": mean["localisation"], "missed": mean["missed"],
-            "false": mean["false"], "gospa_per_scan": [float(r["distance"]) for r in rows],
-            "scored_by": "stonesoup GOSPAMetric"}
+    m = track_metrics(truth_ids, truth_pos, est_ids, est_pos, c=C, p=P, alpha=ALPHA)
+    per = m.pop("per_scan")
+    m.pop("per_truth", None)
+    return {**m, "gospa_per_scan": [float(g["gospa"]) for g in per]}
 
 
 # --- Stone Soup -----------------------------------------------------------------------------------------------------
@@ -183,14 +162,6 @@ def run_stonesoup(kind: str, scene: Scene, params: dict, out: dict | None = None
 
 
 # --- ours -----------------------------------------------------------------------------------------------------------
-def ours_available() -> bool:
-    try:
-        from immnet.evaluation.scenes import run_tracker  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def run_ours(scene: Scene, filter: str | None = None, associator: str = "gnn") -> dict:
     """Our ``MultiTargetTracker`` with its defaults (the settings tuned on training scenes: benchmarks/mtt_tune.py),
     ``filter`` the per-track filter (None: the default), told the scene's Pd and clutter density."""
@@ -412,9 +383,6 @@ def main(argv=None) -> int:
         log(f"[{kind}] chosen {result['chosen'][kind]}")
     names = {"gnn": "Stone Soup GNN (EKF, CV)", "jpda": "Stone Soup JPDA (EKF, CV)", "ours": "ours (MultiTargetTracker)",
              "told": "ours told the association", "ss-told": "Stone Soup EKF+CV told the association"}
-    if {"ours", "told"} & set(trackers) and not ours_available():
-        log("[ours] immnet.evaluation.scenes is not importable here: ours left out")
-        trackers = [t for t in trackers if t not in ("ours", "told")]
     if "told" in trackers and "chosen" in result and not ({"gnn", "jpda"} & set(result["chosen"])):
         log("[told] Stone Soup told the association needs a tuned q: left out")
     kinds = [k for k in ("gnn", "jpda", "ours", "told") if k in trackers]
