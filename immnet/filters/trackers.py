@@ -26,6 +26,7 @@ from immnet.filters.imm import first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its users import it from here)
 from immnet.imm.measurement import DETECTION, Isotropic, PerDetection, Polar, measurement_model
+from immnet.imm.reacquire import Reacquire, Restarts, check_reacquire
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
 
@@ -87,7 +88,7 @@ def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Te
 
 
 def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | None, dt: float, dtype,
-                    modes: str = "joint", robust: float | None = None):
+                    modes: str = "joint", robust: float | None = None, reacquire=None):
     """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``modes``: ``IMMNet``'s
     (per axis: ``PerAxisIMMTracker.network``). ``p_stay`` None (a method given a full transition matrix): a
     ValueError naming the method ``name``."""
@@ -101,10 +102,20 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
         "model_noise": sigma_q, "r": r, "interaction": "imm", "onset": False, "start_acc_std": ACC_STD}}
     if robust is not None:
         gain["init_args"]["robust"] = robust
+    if reacquire is not None:
+        gain["init_args"]["reacquire"] = reacquire.to_config()
     bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
     net = IMMNet(model_set=model_set, gain=gain, classifier=bayes, dt=dt, p_stay=p_stay, start_detections=1,
                  modes=modes)
     return net.to(dtype).eval()
+
+
+def _restarts(rule, intervals, mu0: torch.Tensor) -> Restarts | None:
+    """The scan loop's re-acquisition (``immnet.imm.reacquire.Restarts``) of ``rule`` at ``intervals`` (a number or
+    ``[B, T]``), restarting at the start's velocity and acceleration stds and ``mu0``; None where ``rule`` is."""
+    from immnet.filters.imm import ACC_STD, VEL_STD
+
+    return None if rule is None else Restarts(rule, intervals, VEL_STD, ACC_STD, mu0)
 
 
 class KalmanFilterTracker(Method):
@@ -114,7 +125,7 @@ class KalmanFilterTracker(Method):
     any_interval = True
 
     def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None,
-                 return_cov: bool = False, robust: float | None = None):
+                 return_cov: bool = False, robust: float | None = None, reacquire=None):
         self.model = model if isinstance(model, MotionModel) else instantiate(model)
         self.r = check_r(r)
         _positive("sigma_q", sigma_q)
@@ -123,11 +134,13 @@ class KalmanFilterTracker(Method):
         self.needs = (keys.R,) if self.r == TOLD else ()
         self.return_cov = return_cov
         self.robust = check_robust(robust)
+        self.reacquire = check_reacquire(reacquire)
 
     def network(self, dt: float = 1.0):
         """This filter as IMMNet with nothing learned: the one-model case of ``IMMTracker.network`` (its docstring)."""
         # one model: Pi = [[1]] whatever p_stay (which the interaction holds to (0, 1))
-        return _linear_network(self.name, ModelSet([self.model]), self.sigma_q, self.r, 0.5, dt, self.dtype)
+        return _linear_network(self.name, ModelSet([self.model]), self.sigma_q, self.r, 0.5, dt, self.dtype,
+                               robust=self.robust, reacquire=self.reacquire)
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
@@ -141,7 +154,8 @@ class KalmanFilterTracker(Method):
         R = variance(r, self.dtype, dev)
         one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
         states, _, _, *cov = run(z, x[:, None], P[:, None], one, one[:1], linear_transition(F.unsqueeze(-3), Q.unsqueeze(-3)),
-                                 R, return_cov=self.return_cov, start=first_detection(z), robust=self.robust)
+                                 R, return_cov=self.return_cov, start=first_detection(z), robust=self.robust,
+                                 reacquire=_restarts(self.reacquire, dt, one[0]))
         return output(states, {keys.STATE_COV: cov[0] if cov else None}, measurements=z)
 
 
@@ -168,7 +182,10 @@ class IMMTracker(Method):
     (the plots themselves, an extended Kalman filter in polar coordinates about the radar at the origin). A track
     starts with its first detection's covariance. ``robust``: Huber's ``k`` (``immnet.imm.kalman``'s module doc: an
     innovation beyond ``k`` standard deviations moves the state by ``k`` of them, and the mode update weighs it by
-    Huber's density), None: off. The last three are the joint IMM's (``modes="joint"``).
+    Huber's density), None: off. ``reacquire``: re-acquisition (``immnet.imm.reacquire.Reacquire``, its fields as a dict,
+    True its defaults; None: off): after ``scans`` consecutive detections each beyond ``gate`` (``d^2``) of every filter
+    and within ``speed`` of the one before, the track restarts at the last as at its first detection; a Cartesian ``r``.
+    The last four are the joint IMM's (``modes="joint"``).
     """
 
     any_interval = True
@@ -187,6 +204,7 @@ class IMMTracker(Method):
         return_cov: bool = False,
         modes: str = "joint",
         robust: float | None = None,
+        reacquire: Reacquire | dict | bool | None = None,
     ):
         self.model_set = ModelSet.from_config(model_set)
         self.modes, groups = modes, mode_groups(modes)
@@ -210,9 +228,13 @@ class IMMTracker(Method):
             _, _, self.sigma_q = filter_settings(1.0, sigma_q, M)
             self.r, self.needs = r, tuple(self.measurement.needs)
         self.robust = check_robust(robust)
-        if groups is not None and not (isotropic and self.robust is None):
-            raise ValueError(f"{name}: modes per {modes} track with IMMNet's step, which takes an isotropic r and no "
-                             f"robust update")
+        self.reacquire = check_reacquire(reacquire)
+        if groups is not None and not (isotropic and self.robust is None and self.reacquire is None):
+            raise ValueError(f"{name}: modes per {modes} track with IMMNet's step, which takes an isotropic r, no "
+                             f"robust update and no re-acquisition")
+        if self.reacquire is not None and isinstance(self.measurement, Polar):
+            raise ValueError(f"{name}: re-acquisition takes a Cartesian measurement model (a number, 'data' or "
+                             f"'detection'), not the polar one")
         self.Pi = transition_matrix(p_stay, M)
         self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
         if mu0 is None:
@@ -248,7 +270,7 @@ class IMMTracker(Method):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
         r = DETECTION if isinstance(self.measurement, PerDetection) else self.r
         return _linear_network(self.name, self.model_set, self.sigma_q, r, self._p_stay, dt, self.dtype, self.modes,
-                               self.robust)
+                               self.robust, self.reacquire)
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``
@@ -262,7 +284,8 @@ class IMMTracker(Method):
         if self.modes != "joint":
             return self._track_by_step(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
-        F, Q, Pi, mu0 = self.matrices(_interval_or_intervals(batch, self.dtype, z.device), z.device)
+        intervals = _interval_or_intervals(batch, self.dtype, z.device)
+        F, Q, Pi, mu0 = self.matrices(intervals, z.device)
         first = first_detection(z)
         model = self.measurement
         if isinstance(model, Polar):
@@ -275,14 +298,32 @@ class IMMTracker(Method):
                 r = assumed_r(self.r, batch, self.dtype, z.device)
                 x0, P0 = initial_state(z, r)
                 R = variance(r, self.dtype, z.device)
-            states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
-                                                      compile=self.compile, return_cov=self.return_cov, start=first,
-                                                      robust=self.robust)
+            if self.reacquire is not None:
+                states, probs, experts, *cov = self._track_reacquiring(z, x0, P0, F, Q, R, Pi, mu0, first, intervals)
+            else:
+                states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
+                                                          compile=self.compile, return_cov=self.return_cov, start=first,
+                                                          robust=self.robust)
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None}
         if self.return_experts:
             extra[keys.EXPERT_POST] = experts
             extra[keys.EXPERT_PROBS] = probs
         return output(states, extra, measurements=z)
+
+    def _track_reacquiring(self, z, x0, P0, F, Q, R, Pi, mu0, first, intervals):
+        """``track``'s filters with re-acquisition: the core's loop (``runner.run``) with ``Restarts``, from ``x0``,
+        ``P0`` at each track's first detection; ``R`` a variance (a number or ``[B]``) or each detection's covariance
+        ``[B, T, 3, 3]``."""
+        B, M = z.shape[0], len(mu0)
+        x = x0[:, None].expand(B, M, 9).contiguous()
+        P = P0[:, None].expand(B, M, 9, 9).contiguous()
+        mu = mu0.expand(B, M).contiguous()
+        if R.dim() == 4:
+            per_detection = R
+            R = lambda t: per_detection[:, t, None]  # noqa: E731 (each detection's [B, 1, 3, 3], for every filter)
+        return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=self.return_experts,
+                   return_cov=self.return_cov, start=first, robust=self.robust,
+                   reacquire=_restarts(self.reacquire, intervals, mu0))
 
     def _track_polar(self, z, F, Q, Pi, mu0, first):
         """``track``'s filters with the polar model: the core's loop (``runner.run``) with the extended Kalman

@@ -83,6 +83,7 @@ def run(
     restart: torch.Tensor | None = None,
     robust: float | None = None,
     measure: Callable | None = None,
+    reacquire=None,
 ):
     """Filter ``z [B, T, m]`` from the filters' states at scan 0, ``x [B, M, n]``, ``P [B, M, n, n]``, and
     ``mu [B, M]``; ``Pi [M, M]``; ``R`` the measurement variance (a scalar, ``[B]``, or a covariance
@@ -101,10 +102,14 @@ def run(
     from themselves with their onset priors too, after the mix. ``robust``: Huber's ``k`` of the update
     (``immnet.imm.kalman``'s module doc), None: the plain update. ``measure(t, xp, Pp) -> (x, P, l)``: the update of
     scan ``t`` in place of the linear one (a nonlinear measurement model's, ``immnet.imm.measurement.Polar``; ``z``,
-    ``H``, ``R`` and ``robust`` are then its business, ``z`` only says which scans are detections).
+    ``H``, ``R`` and ``robust`` are then its business, ``z`` only says which scans are detections). ``reacquire``: an
+    ``immnet.imm.reacquire.Restarts`` (the positions' ``H``, the linear update): a track whose run of far detections
+    agrees restarts at the last of them (that module's doc); None: none.
     """
     B, T, _ = z.shape
     M = x.shape[1]
+    if reacquire is not None and (measure is not None or H is not None):
+        raise ValueError("re-acquisition takes the linear update of the positions (H None, no measure)")
     onehot = None if oracle is None else torch.nn.functional.one_hot(oracle.long(), M).to(z.dtype)  # [B, T, M]
     if onehot is not None:
         mu = onehot[:, 0]
@@ -117,6 +122,7 @@ def run(
     if return_experts:
         experts[:, 0] = x
     held = _holding(start, x, P, mu)
+    watching = None if reacquire is None else reacquire.begin(x, P)
     restarts = None if restart is None else restart.any(0).tolist()  # one host read per sequence
     for t in range(1, T):
         w = mixing_weights(mu, Pi)
@@ -129,7 +135,8 @@ def run(
         if measure is not None:
             x, P, ll = measure(t, xp, Pp)
         else:
-            x, P, ll = update(xp, Pp, z[:, t, None], H, _per_filter(R(t) if callable(R) else R, z), robust=robust)
+            Rt = _per_filter(R(t) if callable(R) else R, z)
+            x, P, ll = update(xp, Pp, z[:, t, None], H, Rt, robust=robust)
         if onehot is not None:
             mu = onehot[:, t]
         else:
@@ -137,6 +144,8 @@ def run(
         if held is not None and t <= held[0]:
             x, P, held_mu = _hold(held, t, x, P, mu)
             mu = held_mu if onehot is None else mu  # an oracle's modes stand
+        if watching is not None:
+            watching, x, P, mu = reacquire.scan(watching, t, z[:, t], Rt, xp, Pp, x, P, mu, start)
         if return_cov:
             states[:, t], covs[:, t] = combine(x, P, mu)
         else:

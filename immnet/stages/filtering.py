@@ -47,6 +47,7 @@ from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import check_robust, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul
+from immnet.imm import reacquire as reacq
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
@@ -801,6 +802,8 @@ class _FilterExperts:
             td.set(keys.EXPERT_ROBUST_WEIGHT, weight)
         else:
             loglik, maha = self._loglik(nu, S, S_inv, logdet, has_z)
+        if getattr(self, "reacquire", None) is not None and td.get(keys.MEASUREMENT).dim() == 2:
+            self._watch(td, r2, maha)
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
         td.set(keys.EXPERT_AUG_PRIOR_COV, P)
@@ -810,6 +813,24 @@ class _FilterExperts:
             self._adapt(td, maha, has_z)
         return td
 
+
+    def _watch(self, td, r2: torch.Tensor, maha: torch.Tensor) -> None:
+        """Re-acquisition's scan (``immnet.imm.reacquire.advance``): the carried watch after this scan's detection and
+        ``("expert", "reacquire") [B]``, the tracks whose run of far detections restarts them here (``IMMNet.scan``
+        restarts them)."""
+        z = td.get(keys.MEASUREMENT)
+        B = z.shape[0]
+        R = reacq.per_track_cov(r2[:, 0], B, z)
+        dt, per_track = scan_interval(td, self.dt)
+        state = reacq.Watch(*(td.get(k) for k in REACQUIRE_CARRY))
+        state, restart = reacq.advance(self.reacquire, state, z, R, dt[:, 0] if per_track else dt, maha.detach())
+        for key, value in zip(REACQUIRE_CARRY, state):
+            td.set(key, value)
+        td.set(keys.REACQUIRE, restart)
+
+
+REACQUIRE_CARRY = (keys.REACQUIRE_COUNT, keys.REACQUIRE_PLOT, keys.REACQUIRE_COV, keys.REACQUIRE_ELAPSED)
+"""What a filter gain with re-acquisition carries (``immnet.imm.reacquire.Watch``'s fields, in order)."""
 
 _FILTER_IN = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_AUG_PRIOR_COV, keys.NOISE_SUM, keys.NOISE_COUNT,
               keys.Z_HISTORY, keys.INTERVAL_HISTORY]
@@ -848,8 +869,11 @@ class FilterGain(_FilterExperts, Stage):
         turn_rate: str | None = None,
         restart: str | None = None,
         robust: float | None = None,
+        reacquire: dict | bool | None = None,
     ):
-        """``robust``: Huber's ``k`` of each expert's update (``immnet.imm.kalman``'s module doc: the gain ``w K``,
+        """``reacquire``: re-acquisition (``immnet.imm.reacquire.Reacquire``'s fields as a dict, True its defaults,
+        None off; the model-based IMMs' ``reacquire``): a track whose run of detections far from every expert agrees
+        restarts at the last of them as at its first detection (``IMMNet.scan``). ``robust``: Huber's ``k`` of each expert's update (``immnet.imm.kalman``'s module doc: the gain ``w K``,
         ``w = min(1, k / d)`` of the innovation's Mahalanobis distance ``d``, the likelihood Huber's; the model-based
         IMMs' ``robust``), None: the plain update. ``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
         model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
@@ -867,8 +891,28 @@ class FilterGain(_FilterExperts, Stage):
                 raise ValueError(f"a robust update (robust={robust!r}) weighs the whole innovation: it takes modes "
                                  f"'joint', got modes={modes!r}")
             self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT]
+        self.reacquire = reacq.check_reacquire(reacquire)
+        if self.reacquire is not None:
+            if mode_groups(modes) is not None:
+                raise ValueError(f"re-acquisition reads the whole innovation: it takes modes 'joint', got modes={modes!r}")
+            self.in_keys = [*self.in_keys, *REACQUIRE_CARRY]
+            self.out_keys = [*self.out_keys, *REACQUIRE_CARRY, keys.REACQUIRE]
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
                           onset, model_noise, start_acc_std, modes, turn_rate, restart)
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """``_FilterExperts``' carry, and re-acquisition's watch where it has one (not experts alone)."""
+        spec = super().carry_spec(batch, experts_alone, dtype, device)
+        if self.reacquire is None or experts_alone:
+            return spec
+        return spec | dict(zip(REACQUIRE_CARRY, reacq.watch(batch, dtype, device)))
+
+    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
+        """``_FilterExperts``' start, and a watch that waits for the detection confirming it (re-acquisition's)."""
+        out = super().start_carry(carry, z, x, second)
+        if self.reacquire is None or z.dim() != 2:
+            return out
+        return out | dict(zip(REACQUIRE_CARRY, reacq.started(z, reacq.per_track_cov(out[keys.NOISE_VAR], z.shape[0], z))))
 
     def forward(self, td):
         r2 = self._r2(td)

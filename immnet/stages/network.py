@@ -474,11 +474,33 @@ class IMMNet(TensorDictModuleBase):
         the new carry, which also holds this scan's outputs (``("fused", "state")``, ``("expert", "post")``,
         ``("mode", "probs")``, ...). NaN in ``z`` is a missed detection. It is one call of the step (track
         starts included), with the measurement and the interval set; where every track has started, of
-        ``running_step`` (the step without the start's two stages, which would change nothing).
+        ``running_step`` (the step without the start's two stages, which would change nothing). A track that the filter
+        gain's re-acquisition restarts at this scan (``("expert", "reacquire")``, ``immnet.imm.reacquire``) takes the
+        step of a fresh carry at this detection: it starts again there, as at its first detection.
         """
         step = self.expert_step if experts_alone else self.step
         if not experts_alone and bool((carry.get(keys.AGE) >= self.start_detections).all()):
             step = self.running_step  # nothing starts: the same result without the start's two stages
+        out = step(self._scan_input(carry, z, interval, r, meas_cov, truth))
+        restart = out.get(keys.REACQUIRE, None)  # a filter gain with re-acquisition (immnet.imm.reacquire)
+        if restart is not None:
+            restart = restart & (carry.get(keys.AGE) >= self.start_detections)
+            if bool(restart.any()):  # those tracks restart at this detection as at their first
+                fresh = self.initial_carry(z.shape[0], dtype=z.dtype, device=z.device)
+                out = _where(restart, self.step(self._scan_input(fresh, z, interval, r, meas_cov, truth)), out)
+        if interval is not None:
+            out.del_(keys.INTERVAL)
+        if r is not None:
+            out.del_(keys.R)
+        if meas_cov is not None:
+            out.del_(keys.MEAS_COV)
+        if truth:
+            out.del_(unravel_key(next(iter(truth)))[0])  # the ("truth", ...) inputs
+        return out
+
+    @staticmethod
+    def _scan_input(carry: TensorDict, z: torch.Tensor, interval, r, meas_cov, truth) -> TensorDict:
+        """The step's input of ``scan``: the carry with the scan's measurement and inputs set."""
         td = carry.copy()
         td.set(keys.MEASUREMENT, z)
         if interval is not None:
@@ -490,16 +512,7 @@ class IMMNet(TensorDictModuleBase):
             td.set(keys.MEAS_COV, torch.as_tensor(meas_cov, dtype=z.dtype, device=z.device).expand(z.shape[0], 3, 3))
         for key, value in (truth or {}).items():
             td.set(key, value)
-        out = step(td)
-        if interval is not None:
-            out.del_(keys.INTERVAL)
-        if r is not None:
-            out.del_(keys.R)
-        if meas_cov is not None:
-            out.del_(keys.MEAS_COV)
-        if truth:
-            out.del_(unravel_key(next(iter(truth)))[0])  # the ("truth", ...) inputs
-        return out
+        return td
 
     # --- a policy -------------------------------------------------------------------------
     def make_tensordict_primer(self, dtype=torch.float32):

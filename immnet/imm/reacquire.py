@@ -1,0 +1,185 @@
+"""Re-acquisition: a track that its detections have left restarts from them.
+
+A robust update (``immnet.imm.kalman``, Huber's) moves a track at most ``k`` standard deviations a scan towards a
+detection it cannot explain. That is right for an outlier and wrong for a track that is itself off: a track started on
+an outlier, or taken off by one before its velocity was known, or coasted through a maneuver, is pulled back ``k``
+sigma a scan and stays kilometres off for many scans. The radar engineer's rule: a detection far outside every
+filter's gate is set aside, and after ``scans`` consecutive such detections that agree with one another (each within
+``speed`` of the one before it, over the time between them, to three standard deviations of the two plots' noise)
+the track restarts at the last of them as at its first detection (its position that plot's, its covariance the plot's,
+the velocity and acceleration unknown, the modes the filters' prior). A detection inside some filter's gate clears the
+run; a missed scan leaves it as it is (the time between the plots grows).
+
+``Reacquire`` is the setting (``IMMTracker(reacquire=...)``, ``FilterGain(reacquire=...)``); ``Watch`` the state
+each track carries, ``advance`` one scan of it, the same function in the model-based scan loop
+(``immnet.imm.runner.run``) and in IMMNet's filter experts (``immnet.stages.filtering``), so the two runtimes
+restart the same tracks at the same scans. Where no track restarts nothing changes, bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+
+from immnet.imm.option import Option
+
+
+@dataclass(frozen=True)
+class Reacquire(Option):
+    """Re-acquisition's setting (module doc).
+
+    ``scans``: how many consecutive far detections restart a track (>= 2: the run's consistency needs two);
+    ``gate``: the squared Mahalanobis distance ``d^2 = nu^T S^-1 nu`` beyond which a detection is far, for every filter
+    of the track (the chi-square with 3 degrees of freedom exceeds 30 with probability 1e-6 and 50 with 1e-10);
+    ``speed``: the largest speed (m/s) at which one far detection follows the one before it."""
+
+    ARG = "reacquire"
+    scans: int = 2
+    gate: float = 50.0
+    speed: float = 400.0
+
+    def __post_init__(self):
+        if isinstance(self.scans, bool) or not isinstance(self.scans, int) or self.scans < 2:
+            raise ValueError(f"reacquire's scans must be an integer >= 2 (consecutive far detections), got {self.scans!r}")
+        for name in ("gate", "speed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+                raise ValueError(f"reacquire's {name} must be a finite number > 0, got {value!r}")
+
+
+def check_reacquire(config) -> Reacquire | None:
+    """``config`` as a ``Reacquire`` (``Option.from_config``: None/False off, True the defaults, a dict of fields)."""
+    return Reacquire.from_config(config)
+
+
+class Watch(NamedTuple):
+    """What each track carries for re-acquisition: ``count [B]`` (in the state's dtype) -1 while the track waits for the
+    detection that confirms its start, else the length of its run of far detections; ``plot [B, 3]`` the start's
+    detection or the run's last, ``cov [B, 3, 3]`` its covariance, ``elapsed [B]`` the time since it (s)."""
+
+    count: torch.Tensor
+    plot: torch.Tensor
+    cov: torch.Tensor
+    elapsed: torch.Tensor
+
+
+def watch(batch: int, dtype=torch.float64, device=None) -> Watch:
+    """The watch of ``batch`` tracks that have not started."""
+    return Watch(torch.full((batch,), -1.0, dtype=dtype, device=device), torch.zeros(batch, 3, dtype=dtype, device=device),
+                 torch.zeros(batch, 3, 3, dtype=dtype, device=device), torch.zeros(batch, dtype=dtype, device=device))
+
+
+def started(z: torch.Tensor, R: torch.Tensor) -> Watch:
+    """The watch of tracks that start at the detections ``z [B, 3]`` with covariances ``R [B, 3, 3]``."""
+    return Watch(torch.full(z.shape[:1], -1.0, dtype=z.dtype, device=z.device), z.clone(), R.to(z.dtype).clone(),
+                 torch.zeros(z.shape[:1], dtype=z.dtype, device=z.device))
+
+
+def mahalanobis(z: torch.Tensor, x: torch.Tensor, P: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """Each filter's squared Mahalanobis distance of the detection ``z [B, 3]`` from its prediction ``x [B, M, 9]``,
+    ``P [B, M, 9, 9]`` (the position's rows 0, 3, 6), measurement covariance ``R [B, 3, 3]``: ``[B, M]``."""
+    from immnet.imm.kalman import inv3
+
+    nu = z[:, None, :] - x[..., 0::3]
+    S = P[..., 0::3, 0::3] + R[:, None]
+    Si, _ = inv3(S)
+    return (nu * (Si @ nu.unsqueeze(-1)).squeeze(-1)).sum(-1)
+
+
+def advance(rule: Reacquire, state: Watch, z: torch.Tensor, R: torch.Tensor, interval, maha: torch.Tensor,
+            active: torch.Tensor | None = None) -> tuple[Watch, torch.Tensor]:
+    """One scan of re-acquisition for every track: the watch after it and the tracks that restart at it ``[B]`` (bool).
+
+    ``z [B, 3]`` the scan's detections (NaN: missed), ``R [B, 3, 3]`` their covariances (read where detected),
+    ``interval`` the time since the previous scan (a number or ``[B]``, s), ``maha [B, M]`` each filter's squared
+    Mahalanobis distance of the detection (``mahalanobis``; read where detected), ``active [B]`` the tracks that
+    started before this scan (None: all; the others' watch is left as it is).
+
+    Two detections agree where the second lies within ``speed`` times the time between them of the first, to three
+    standard deviations of their noise (``sqrt(tr(R_1 + R_2))``). A starting track's next detection that disagrees
+    with its first restarts it there (the first was an outlier, or this one is and the next restarts it again); one
+    that agrees confirms the start. A confirmed track's detection beyond ``gate`` of every filter is far: ``scans``
+    consecutive far detections, each agreeing with the one before (missed scans between them count as time), restart
+    the track at the last; a detection inside some filter's gate ends the run. A restarted track starts anew there."""
+    count, plot, cov, elapsed = state
+    detected = torch.isfinite(z).all(-1)
+    if active is not None:
+        detected = detected & active
+    iv = torch.as_tensor(interval, dtype=elapsed.dtype, device=elapsed.device)
+    since = elapsed + iv if active is None else torch.where(active, elapsed + iv, elapsed)
+    zc, Rc = torch.nan_to_num(z), torch.nan_to_num(R)
+    step = torch.linalg.vector_norm(zc - plot, dim=-1)
+    noise = torch.diagonal(Rc + cov, dim1=-2, dim2=-1).sum(-1).clamp_min(0).sqrt()
+    agrees = step <= rule.speed * since + 3.0 * noise
+    starting = count < 0
+    far = detected & ~starting & (torch.nan_to_num(maha, nan=math.inf).amin(-1) > rule.gate)
+    run = torch.where(far & (count > 0) & agrees, count + 1, torch.ones_like(count))
+    count = torch.where(far, run, torch.where(detected, torch.zeros_like(count), count))
+    restart = (far & (count >= rule.scans)) | (detected & starting & ~agrees)
+    mark = far | restart  # the plot watched from here on: the run's last, or the new start's
+    new = Watch(torch.where(restart, torch.full_like(count, -1.0), count),
+                torch.where(mark[:, None], zc, plot),
+                torch.where(mark[:, None, None], Rc.to(cov.dtype), cov),
+                torch.where(mark, torch.zeros_like(since), since))
+    return new, restart
+
+
+def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A track's state at a detection ``z [B, 3]`` with covariance ``R [B, 3, 3]``, as at its first:
+    ``[z, 0, 0]`` per axis, the position's covariance ``R``, velocity and acceleration ``vel_std``, ``acc_std`` on every
+    axis (``immnet.filters.imm.initial_state``'s)."""
+    B = z.shape[0]
+    x = z.new_zeros(B, 9)
+    x[:, 0::3] = z
+    diag = z.new_zeros(B, 9)
+    diag[:, 1::3] = vel_std**2
+    diag[:, 2::3] = acc_std**2
+    P = torch.diag_embed(diag)
+    P[:, 0::3, 0::3] = R
+    return x, P
+
+
+def per_track_cov(R, batch: int, like: torch.Tensor) -> torch.Tensor:
+    """A scan's measurement variance or covariance as the scan loop holds it (a number, ``[B]``, ``[B, 1]``, ``[3, 3]``,
+    ``[B, 1, 3, 3]`` or ``[B, 3, 3]``) as one covariance per track ``[B, 3, 3]``."""
+    R = torch.as_tensor(R, dtype=like.dtype, device=like.device)
+    if R.dim() < 2 or R.shape[-2:] != (3, 3):
+        R = R.reshape(-1)[:, None, None] * torch.eye(3, dtype=like.dtype, device=like.device)
+    R = R.reshape(-1, 3, 3)
+    return R.expand(batch, 3, 3)
+
+
+class Restarts:
+    """Re-acquisition in the model-based scan loop (``immnet.imm.runner.run(reacquire=...)``): the ``rule``, the
+    interval before each scan ``intervals`` (a number, or ``[B, T]``), the start's velocity and acceleration stds
+    (``immnet.filters.imm``'s ``VEL_STD``, ``ACC_STD``) and the filters' prior mode probabilities ``mu0 [M]``."""
+
+    def __init__(self, rule: Reacquire, intervals, vel_std: float, acc_std: float, mu0: torch.Tensor):
+        self.rule, self.intervals, self.vel_std, self.acc_std, self.mu0 = rule, intervals, vel_std, acc_std, mu0
+
+    def begin(self, x: torch.Tensor, P: torch.Tensor) -> Watch:
+        """The watch of tracks that start at the filters' states ``x [B, M, 9]``, ``P`` (their first detection's
+        position and covariance)."""
+        return started(x[:, 0, 0::3], P[:, 0, 0::3, 0::3])
+
+    def scan(self, state: Watch, t: int, z: torch.Tensor, R, xp, Pp, x, P, mu, start=None):
+        """Scan ``t``'s re-acquisition after the update: ``z [B, 3]``, ``R`` its measurement noise as the loop holds it,
+        the filters' predictions ``xp [B, M, 9]``, ``Pp`` and posteriors ``x``, ``P``, the mode probabilities ``mu
+        [B, M]``; ``start [B]`` each track's first scan (None: 0). Returns ``(state, x, P, mu)``, the restarted tracks'
+        filters at their detection (``start_state``) with ``mu0``."""
+        B = z.shape[0]
+        Rb = per_track_cov(R, B, z)
+        iv = self.intervals[:, t] if isinstance(self.intervals, torch.Tensor) and self.intervals.dim() == 2 else self.intervals
+        active = None if start is None else t > start.to(z.device)
+        state, restart = advance(self.rule, state, z, Rb, iv, mahalanobis(torch.nan_to_num(z), xp, Pp, Rb), active)
+        if not bool(restart.any()):  # one host read per scan, with re-acquisition on
+            return state, x, P, mu
+        x1, P1 = start_state(torch.nan_to_num(z), Rb, self.vel_std, self.acc_std)
+        again = restart[:, None]
+        x = torch.where(again[..., None], x1[:, None].to(x.dtype), x)
+        P = torch.where(again[..., None, None], P1[:, None].to(P.dtype), P)
+        mu = torch.where(again, self.mu0.to(mu).expand_as(mu), mu)
+        return state, x, P, mu
