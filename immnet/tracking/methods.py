@@ -38,7 +38,8 @@ class IMMNetMethod(_LearnedMethod):
     its range guard as ``load_network``'s (``"checkpoint"``: as trained; ``immnet evaluate --guard``), ``adapt``
     its filter experts' adaptive process noise as ``load_network``'s, ``r`` their measurement std as
     ``load_network``'s (``"data"``: each track's from the data, as the model-based filters are told it); ``knock_out``
-    learned parts set to their model-based base (``IMMNet.knock_out``: ``gain``, ``classifier``), the ablations of a trained network.
+    learned parts set to their model-based base (``IMMNet.knock_out``: ``gain``, ``classifier``), the ablations of a trained network;
+    ``reacquire`` its filter experts' re-acquisition as ``load_network``'s.
 
     Its estimates are ``Tracker.track``'s: NaN before a track's first detection. ``immnet evaluate`` scores a data
     set's window as one track, so its tracker has no coasting limit (``max_coast=math.inf``: a track coasts through
@@ -47,9 +48,10 @@ class IMMNetMethod(_LearnedMethod):
     whose experts carry none (the paper's KalmanNet experts)."""
 
     def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP,
-                 adapt=KEEP, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = (), r=KEEP):
+                 adapt=KEEP, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = (), r=KEEP,
+                 reacquire=KEEP):
         self.name = name
-        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r).knock_out(*knock_out),
+        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r, reacquire).knock_out(*knock_out),
                                max_coast=math.inf)
         self.net = self.tracker.net
         self.needs = told_needs(self.net)  # a network told each track's r (each detection's R) reads the data's

@@ -80,10 +80,11 @@ def fit_weights(net: torch.nn.Module, state: dict, path) -> None:
                           f"({why})")
 
 
-_NEEDS_FILTERS = {"guard": "a range guard", "adapt": "adaptive process noise", "r": "a measurement std"}
+_NEEDS_FILTERS = {"guard": "a range guard", "adapt": "adaptive process noise", "r": "a measurement std",
+                  "reacquire": "re-acquisition"}
 
 
-def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
+def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP, reacquire=KEEP) -> IMMNet:
     """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
 
     ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
@@ -95,14 +96,16 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
     track's measurements (``None``), one number for every track (a radar that knows its accuracy), or told per
     track (``"data"``: the step's input ``"r"``, ``Tracker.track(r=...)``); no weights either
     (``FilterGain``'s ``r``; docs/tracking.md "A radar that knows its accuracy").
+    ``reacquire``: the filter experts' re-acquisition (``FilterGain``'s, ``immnet.imm.reacquire``), as the checkpoint
+    has it (``"checkpoint"``), off (None) or a dict of its fields; no weights either.
     """
-    return network_from(*read_checkpoint(path), path, guard, adapt, r)
+    return network_from(*read_checkpoint(path), path, guard, adapt, r, reacquire)
 
 
-def network_from(config: dict, state: dict, path, guard=KEEP, adapt=KEEP, r=KEEP) -> IMMNet:
+def network_from(config: dict, state: dict, path, guard=KEEP, adapt=KEEP, r=KEEP, reacquire=KEEP) -> IMMNet:
     """``load_network``'s IMMNet from a checkpoint read already (``read_checkpoint``'s ``config`` and ``state``, of
     the file ``path``, named in its errors)."""
-    for name, value in (("guard", guard), ("adapt", adapt), ("r", r)):
+    for name, value in (("guard", guard), ("adapt", adapt), ("r", r), ("reacquire", reacquire)):
         if isinstance(value, str) and value == KEEP:
             continue
         gain = config.get("gain") or DEFAULT_GAIN

@@ -1,0 +1,152 @@
+"""Re-acquisition (``immnet.imm.reacquire``): a start its next plot contradicts, and a run of agreeing detections far
+outside every filter's gate, restart the track; a no-op where neither happens; the same in IMMNet's step."""
+
+import math
+
+import pytest
+import torch
+import yaml
+from tensordict import TensorDict
+
+from immnet import keys
+from immnet.config import resolve_path
+from immnet.filters.trackers import IMMTracker
+from immnet.imm.reacquire import Reacquire
+from immnet.stages.filtering import FilterGain
+from immnet.tracking.tracker import Tracker
+
+RULE = {"scans": 2, "gate": 25.0, "speed": 300.0}
+R_DIAG = (40.0**2, 100.0**2, 170.0**2)  # a plot's noise at ~50 km (m^2): 40 m in range, 0.12 / 0.2 deg across
+
+
+def _robust(reacquire=None) -> IMMTracker:
+    args = yaml.safe_load(resolve_path("configs/methods/radar-imm-robust-5s.yaml").read_text())["init_args"]
+    return IMMTracker(**{**args, "reacquire": reacquire})
+
+
+def _scene(B: int = 4, T: int = 40, dt: float = 5.0, seed: int = 0) -> TensorDict:
+    """Straight and level tracks at 216 m/s seen every ``dt`` s with the plot noise ``R_DIAG``."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(T, dtype=torch.float64) * dt
+    v = torch.tensor([180.0, -120.0, 0.0], dtype=torch.float64)
+    truth = (torch.tensor([30e3, 40e3, 9e3], dtype=torch.float64) + t[:, None] * v).expand(B, T, 3).clone()
+    R = torch.diag(torch.tensor(R_DIAG, dtype=torch.float64)).expand(B, T, 3, 3).clone()
+    z = truth + torch.randn(B, T, 3, generator=g, dtype=torch.float64) * torch.tensor(R_DIAG, dtype=torch.float64).sqrt()
+    states = torch.zeros(B, T, 9, dtype=torch.float64)
+    states[..., 0::3] = truth
+    states[..., 1::3] = v
+    return TensorDict({keys.MEASUREMENTS: z, keys.MEAS_COV: R, keys.STATES: states,
+                       keys.DT: torch.full((B,), dt, dtype=torch.float64)}, batch_size=[B])
+
+
+def _error(method, data) -> torch.Tensor:
+    est = method.track(data)[keys.STATE][..., 0::3]
+    return torch.linalg.vector_norm(est - data[keys.STATES][..., 0::3], dim=-1)  # [B, T]
+
+
+def test_a_first_plot_3_km_off_restarts_at_the_next():
+    """The first plot 3 km north of the truth: the second is 3.7 km from it, beyond 300 m/s over 5 s and three
+    standard deviations of the two plots' noise (1.5 km + 0.85 km), so the track restarts there: its estimate at scan 1
+    is that plot exactly (a start's), and from scan 2 on it is within 600 m of the truth; Huber's update alone drags
+    the track more than 1 km off at scans 2 and 3."""
+    data = _scene()
+    data[keys.MEASUREMENTS][:, 0, 1] += 3000.0
+    z = data[keys.MEASUREMENTS]
+    est = _robust(RULE).track(data)[keys.STATE]
+    assert torch.equal(est[:, 1, 0::3], z[:, 1])
+    assert (est[:, 1, 1::3] == 0).all()  # velocity unknown again, as at a first detection
+    after = _error(_robust(RULE), data)
+    assert after[:, 2:].max() < 600.0
+    before = _error(_robust(), data)
+    assert (before[:, 2:4] > 1000.0).all()
+
+
+def test_a_run_of_far_agreeing_plots_restarts_the_track_at_the_second():
+    """From scan 20 on the plots lie 3 km east of where the track was (the track is off, as after a start on an
+    outlier): scan 20 is far (d^2 far beyond 25 for every filter), scan 21 far again and 1 km from scan 20's, within
+    300 m/s of it: the track restarts at scan 21, its estimate that plot; Huber's update alone is still kilometres off."""
+    data = _scene()
+    data[keys.MEASUREMENTS][:, 20:, 0] += 3000.0
+    data[keys.STATES][:, 20:, 0] += 3000.0  # the truth moved with them: the track is what is off
+    z = data[keys.MEASUREMENTS]
+    est = _robust(RULE).track(data)[keys.STATE]
+    assert torch.equal(est[:, 21, 0::3], z[:, 21])
+    assert not torch.equal(est[:, 20, 0::3], z[:, 20])  # one far plot is not a run
+    assert _error(_robust(RULE), data)[:, 23:].max() < 600.0
+    assert (_error(_robust(), data)[:, 21:24] > 1000.0).all()
+
+
+def test_a_no_op_bit_for_bit_on_clean_plots():
+    """Clean plots (missed scans, a late first detection included): the filter with re-acquisition is the filter
+    without it, bit for bit, and so is the network of each."""
+    data = _scene(B=6, T=60, seed=3)
+    z = data[keys.MEASUREMENTS]
+    z[1, 10:13] = float("nan")
+    z[2, :4] = float("nan")
+    with_rule, without = _robust(RULE), _robust()
+    assert _same(with_rule.track(data)[keys.STATE], without.track(data)[keys.STATE])
+    a, b = with_rule.network(5.0), without.network(5.0)
+    with torch.no_grad():
+        ra = a.rollout(z, meas_cov=a.told_cov(data))[0][keys.STATE]
+        rb = b.rollout(z, meas_cov=b.told_cov(data))[0][keys.STATE]
+    assert _same(ra, rb)
+
+
+def _same(a: torch.Tensor, b: torch.Tensor) -> bool:
+    """Bit for bit, NaN (no estimate before a track's first detection) where the other is NaN."""
+    return torch.equal(torch.isnan(a), torch.isnan(b)) and torch.equal(a.nan_to_num(), b.nan_to_num())
+
+
+def _restarting_scene() -> TensorDict:
+    data = _scene(B=5, T=40, seed=1)
+    z = data[keys.MEASUREMENTS]
+    z[0, 0, 1] += 3000.0  # a start on an outlier
+    z[1, 15:, 0] += 3000.0  # a run of far plots
+    z[2, 17:19] = float("nan")
+    z[2, 19:, 2] -= 2500.0  # a run after missed scans
+    z[3, 5] += torch.tensor([1500.0, 1500.0, 0.0], dtype=torch.float64)  # one outlier: no run
+    z[4, :3] = float("nan")  # a late first detection, its next plot 4 km off
+    z[4, 4, 1] += 4000.0
+    return data
+
+
+def test_the_network_and_the_streaming_tracker_restart_the_same_tracks():
+    """``IMMTracker(reacquire=...).network()`` (IMMNet's step, ``FilterGain(reacquire=...)``) and the streaming
+    ``Tracker`` restart the tracks the model-based loop restarts, at the same scans: the estimates agree to 1e-9 of
+    their scale, and restarts did happen (a restarted track's estimate is its plot)."""
+    data = _restarting_scene()
+    z = data[keys.MEASUREMENTS]
+    method = _robust(RULE)
+    ours = method.track(data)[keys.STATE]
+    assert torch.equal(ours[0, 1, 0::3], z[0, 1]) and torch.equal(ours[1, 16, 0::3], z[1, 16])
+    assert torch.equal(ours[2, 20, 0::3], z[2, 20]) and torch.equal(ours[4, 4, 0::3], z[4, 4])
+    net = method.network(5.0)
+    assert net.gain.reacquire == Reacquire(**RULE)
+    with torch.no_grad():
+        out, _ = net.rollout(z, meas_cov=net.told_cov(data))
+    seen = (~torch.isnan(z[..., :1])).cumsum(1)[..., 0] > 0
+    scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True)
+    assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
+    streamed = Tracker(net, max_coast=math.inf).track(z, meas_cov=data[keys.MEAS_COV])[keys.STATE].double()
+    assert ((streamed - ours).abs() <= 1e-6 * scale)[seen].all()  # float32 inside the Tracker
+
+
+@pytest.mark.parametrize("config, message", [
+    ({"scans": 1}, "reacquire's scans must be an integer >= 2 (consecutive far detections), got 1"),
+    ({"gate": 0.0}, "reacquire's gate must be a finite number > 0, got 0.0"),
+    ({"speed": float("inf")}, "reacquire's speed must be a finite number > 0, got inf"),
+    ({"span": 3}, "unknown Reacquire field(s) ['span']; known: ['gate', 'scans', 'speed']"),
+])
+def test_refusals(config, message):
+    with pytest.raises(ValueError) as err:
+        _robust(config)
+    assert str(err.value) == message
+
+
+def test_refused_where_the_rule_cannot_run():
+    args = yaml.safe_load(resolve_path("configs/methods/radar-imm-robust-5s.yaml").read_text())["init_args"]
+    polar = {"sigma_range": 40.0, "sigma_azimuth_deg": 0.12, "sigma_elevation_deg": 0.2}
+    with pytest.raises(ValueError, match="re-acquisition takes a Cartesian measurement model"):
+        IMMTracker(**{**args, "r": polar, "reacquire": RULE, "name": "p"})
+    with pytest.raises(ValueError, match="re-acquisition reads the whole innovation: it takes modes 'joint'"):
+        FilterGain(_robust().model_set, reacquire=RULE, modes="axis")
