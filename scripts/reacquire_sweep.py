@@ -1,4 +1,13 @@
-"""Re-acquisition's settings on the validation splits: Average RMSE (immnet evaluate's), worst error, tracks > 1 km, restarts."""
+"""Re-acquisition's settings (immnet.imm.reacquire) on data sets of plots: for each set and setting, the robust IMM's (or
+with `net` the band's shipped network's) Average RMSE (immnet evaluate's, --split all), its z, the worst 3D error of
+any scan, the tracks ever above 1 km, and the restarts of the model-based loop (a start contradicted by its next plot;
+a run of far plots; the network's count includes starting tracks it discards):
+
+    python scripts/reacquire_sweep.py runs/radar/data/q5-out/val,runs/radar/data/q11-out/val \
+        '[null, {"scans": 2, "gate": 25.0, "speed": 300.0}]' [net]
+
+A set's band is 5 s where its directory names q5 or h5 (else 11 s).
+"""
 import sys, time, json, yaml, torch
 from immnet import keys
 from immnet.config import resolve_path
@@ -31,8 +40,8 @@ sets = sys.argv[1].split(",")
 settings = json.loads(sys.argv[2])  # list of reacquire configs (None = off)
 nets = len(sys.argv) > 3 and sys.argv[3] == "net"
 for s in sets:
-    band = "5s" if s.startswith(("q5", "h5")) else "11s"
-    data, _ = load_split(f"/work/runs62/data/{s}", "all", None)
+    band = "5s" if ("q5-" in s or "h5-" in s) else "11s"
+    data, _ = load_split(s, "all", None)
     args = yaml.safe_load(resolve_path(f"configs/methods/radar-imm-robust-{band}.yaml").read_text())["init_args"]
     for re in settings:
         t0 = time.time()
