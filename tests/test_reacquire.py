@@ -111,9 +111,10 @@ def _restarting_scene() -> TensorDict:
 
 
 def test_the_network_and_the_streaming_tracker_restart_the_same_tracks():
-    """``IMMTracker(reacquire=...).network()`` (IMMNet's step, ``FilterGain(reacquire=...)``) and the streaming
-    ``Tracker`` restart the tracks the model-based loop restarts, at the same scans: the estimates agree to 1e-9 of
-    their scale, and restarts did happen (a restarted track's estimate is its plot)."""
+    """``IMMTracker(reacquire=...).network()`` (IMMNet's step, ``FilterGain(reacquire=...)``), ``Tracker.track`` and
+    the streaming ``Tracker.step`` restart the tracks the model-based loop restarts, at the same scans: the network's
+    rollout agrees to 1e-9 of the estimates' scale, the Tracker's (float32 inside) to 1e-6, and restarts did happen (a
+    restarted track's estimate is its plot)."""
     data = _restarting_scene()
     z = data[keys.MEASUREMENTS]
     method = _robust(RULE)
@@ -127,8 +128,11 @@ def test_the_network_and_the_streaming_tracker_restart_the_same_tracks():
     seen = (~torch.isnan(z[..., :1])).cumsum(1)[..., 0] > 0
     scale = ours.nan_to_num().abs().amax((1, 2), keepdim=True)
     assert ((out[keys.STATE] - ours).abs() <= 1e-9 * scale)[seen].all()
-    streamed = Tracker(net, max_coast=math.inf).track(z, meas_cov=data[keys.MEAS_COV])[keys.STATE].double()
-    assert ((streamed - ours).abs() <= 1e-6 * scale)[seen].all()  # float32 inside the Tracker
+    whole = Tracker(net, max_coast=math.inf).track(z, meas_cov=data[keys.MEAS_COV])[keys.STATE].double()
+    assert ((whole - ours).abs() <= 1e-6 * scale)[seen].all()  # float32 inside the Tracker
+    stream = Tracker(net, max_coast=math.inf)
+    steps = torch.stack([stream.step(z[:, t], R=data[keys.MEAS_COV][:, t])[keys.FUSED] for t in range(z.shape[1])], 1)
+    assert ((steps.double() - ours).abs() <= 1e-6 * scale)[seen].all()
 
 
 @pytest.mark.parametrize("config, message", [
