@@ -15,7 +15,7 @@ from immnet.imm.reacquire import Reacquire
 from immnet.stages.filtering import FilterGain
 from immnet.tracking.tracker import Tracker
 
-RULE = {"scans": 2, "gate": 25.0, "speed": 300.0}
+RULE = {"scans": 2, "gate": 25.0, "speed": 300.0, "climb": 50.0, "reject": True}
 R_DIAG = (40.0**2, 100.0**2, 170.0**2)  # a plot's noise at ~50 km (m^2): 40 m in range, 0.12 / 0.2 deg across
 
 
@@ -74,6 +74,26 @@ def test_a_run_of_far_agreeing_plots_restarts_the_track_at_the_second():
     assert not torch.equal(est[:, 20, 0::3], z[:, 20])  # one far plot is not a run
     assert _error(_robust(RULE), data)[:, 23:].max() < 600.0
     assert (_error(_robust(), data)[:, 21:24] > 1000.0).all()
+
+
+def test_a_far_plot_that_restarts_nothing_is_gated_out():
+    """One plot 2.1 km off at scan 12 (d^2 far beyond 25), the next ones true: with ``reject`` the filters take it as
+    a missed detection, so every estimate is, bit for bit, the one of the same plots with scan 12 missed (in the IMM
+    and in its network); without ``reject`` Huber's update moves the track towards it."""
+    data = _scene()
+    data[keys.MEASUREMENTS][:, 12, :2] += 1500.0
+    missed = data.clone()
+    missed[keys.MEASUREMENTS][:, 12] = float("nan")
+    method = _robust(RULE)
+    gated = method.track(data)[keys.STATE]
+    assert torch.equal(gated, method.track(missed)[keys.STATE])
+    net = method.network(5.0)
+    with torch.no_grad():
+        a = net.rollout(data[keys.MEASUREMENTS], meas_cov=net.told_cov(data))[0][keys.STATE]
+        b = net.rollout(missed[keys.MEASUREMENTS], meas_cov=net.told_cov(missed))[0][keys.STATE]
+    assert torch.equal(a, b)
+    huber = _robust({**RULE, "reject": False}).track(data)[keys.STATE]
+    assert ((huber[:, 12, 0::3] - gated[:, 12, 0::3]).norm(dim=-1) > 50.0).all()
 
 
 def test_a_no_op_bit_for_bit_on_clean_plots():
@@ -139,7 +159,9 @@ def test_the_network_and_the_streaming_tracker_restart_the_same_tracks():
     ({"scans": 1}, "reacquire's scans must be an integer >= 2 (consecutive far detections), got 1"),
     ({"gate": 0.0}, "reacquire's gate must be a finite number > 0, got 0.0"),
     ({"speed": float("inf")}, "reacquire's speed must be a finite number > 0, got inf"),
-    ({"span": 3}, "unknown Reacquire field(s) ['span']; known: ['gate', 'scans', 'speed']"),
+    ({"climb": -1.0}, "reacquire's climb must be a finite number > 0, got -1.0"),
+    ({"reject": 1}, "reacquire's reject must be true or false, got 1"),
+    ({"span": 3}, "unknown Reacquire field(s) ['span']; known: ['climb', 'gate', 'reject', 'scans', 'speed']"),
 ])
 def test_refusals(config, message):
     with pytest.raises(ValueError) as err:

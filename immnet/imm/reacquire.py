@@ -5,8 +5,8 @@ detection it cannot explain. That is right for an outlier and wrong for a track 
 an outlier, or taken off by one before its velocity was known, or coasted through a maneuver, is pulled back ``k``
 sigma a scan and stays kilometres off for many scans. The radar engineer's rule: a detection far outside every
 filter's gate is set aside, and after ``scans`` consecutive such detections that agree with one another (each within
-``speed`` of the one before it, over the time between them, to three standard deviations of the two plots' noise)
-the track restarts at the last of them as at its first detection (its position that plot's, its covariance the plot's,
+``speed`` of the one before it horizontally and ``climb`` vertically, over the time between them, to three standard
+deviations of the two plots' noise) the track restarts at the last of them as at its first detection (its position that plot's, its covariance the plot's,
 the velocity and acceleration unknown, the modes the filters' prior). A detection inside some filter's gate clears the
 run; a missed scan leaves it as it is (the time between the plots grows).
 
@@ -34,17 +34,23 @@ class Reacquire(Option):
     ``scans``: how many consecutive far detections restart a track (>= 2: the run's consistency needs two);
     ``gate``: the squared Mahalanobis distance ``d^2 = nu^T S^-1 nu`` beyond which a detection is far, for every filter
     of the track (the chi-square with 3 degrees of freedom exceeds 30 with probability 1e-6 and 50 with 1e-10);
-    ``speed``: the largest speed (m/s) at which one far detection follows the one before it."""
+    ``speed``, ``climb``: the largest horizontal and vertical speeds (m/s) between two detections that agree;
+    ``reject``: a far detection that does not restart the track is not filtered (a gate: the filters predict through
+    it as through a missed scan), else the update takes it (Huber's, where the filter has one)."""
 
     ARG = "reacquire"
     scans: int = 2
     gate: float = 50.0
     speed: float = 400.0
+    climb: float = 100.0
+    reject: bool = True
 
     def __post_init__(self):
         if isinstance(self.scans, bool) or not isinstance(self.scans, int) or self.scans < 2:
             raise ValueError(f"reacquire's scans must be an integer >= 2 (consecutive far detections), got {self.scans!r}")
-        for name in ("gate", "speed"):
+        if not isinstance(self.reject, bool):
+            raise ValueError(f"reacquire's reject must be true or false, got {self.reject!r}")
+        for name in ("gate", "speed", "climb"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
                 raise ValueError(f"reacquire's {name} must be a finite number > 0, got {value!r}")
@@ -90,16 +96,18 @@ def mahalanobis(z: torch.Tensor, x: torch.Tensor, P: torch.Tensor, R: torch.Tens
 
 
 def advance(rule: Reacquire, state: Watch, z: torch.Tensor, R: torch.Tensor, interval, maha: torch.Tensor,
-            active: torch.Tensor | None = None) -> tuple[Watch, torch.Tensor]:
-    """One scan of re-acquisition for every track: the watch after it and the tracks that restart at it ``[B]`` (bool).
+            active: torch.Tensor | None = None) -> tuple[Watch, torch.Tensor, torch.Tensor]:
+    """One scan of re-acquisition for every track: the watch after it, the tracks that restart at it ``[B]`` (bool) and
+    those whose detection the filters do not take (far, not restarting, with ``reject``; ``[B]`` bool).
 
     ``z [B, 3]`` the scan's detections (NaN: missed), ``R [B, 3, 3]`` their covariances (read where detected),
     ``interval`` the time since the previous scan (a number or ``[B]``, s), ``maha [B, M]`` each filter's squared
     Mahalanobis distance of the detection (``mahalanobis``; read where detected), ``active [B]`` the tracks that
     started before this scan (None: all; the others' watch is left as it is).
 
-    Two detections agree where the second lies within ``speed`` times the time between them of the first, to three
-    standard deviations of their noise (``sqrt(tr(R_1 + R_2))``). A starting track's next detection that disagrees
+    Two detections agree where the second lies within ``speed`` times the time between them of the first horizontally
+    and within ``climb`` times it vertically, each to three standard deviations of their noise there (``sqrt`` of the
+    horizontal trace of ``R_1 + R_2``, of its vertical variance). A starting track's next detection that disagrees
     with its first restarts it there (the first was an outlier, or this one is and the next restarts it again); one
     that agrees confirms the start. A confirmed track's detection beyond ``gate`` of every filter is far: ``scans``
     consecutive far detections, each agreeing with the one before (missed scans between them count as time), restart
@@ -111,9 +119,11 @@ def advance(rule: Reacquire, state: Watch, z: torch.Tensor, R: torch.Tensor, int
     iv = torch.as_tensor(interval, dtype=elapsed.dtype, device=elapsed.device)
     since = elapsed + iv if active is None else torch.where(active, elapsed + iv, elapsed)
     zc, Rc = torch.nan_to_num(z), torch.nan_to_num(R)
-    step = torch.linalg.vector_norm(zc - plot, dim=-1)
-    noise = torch.diagonal(Rc + cov, dim1=-2, dim2=-1).sum(-1).clamp_min(0).sqrt()
-    agrees = step <= rule.speed * since + 3.0 * noise
+    gap = zc - plot
+    var = torch.diagonal(Rc + cov, dim1=-2, dim2=-1).clamp_min(0)  # [B, 3]
+    horizontal = torch.linalg.vector_norm(gap[:, :2], dim=-1) <= rule.speed * since + 3.0 * var[:, :2].sum(-1).sqrt()
+    vertical = gap[:, 2].abs() <= rule.climb * since + 3.0 * var[:, 2].sqrt()
+    agrees = horizontal & vertical
     starting = count < 0
     far = detected & ~starting & (torch.nan_to_num(maha, nan=math.inf).amin(-1) > rule.gate)
     run = torch.where(far & (count > 0) & agrees, count + 1, torch.ones_like(count))
@@ -124,7 +134,7 @@ def advance(rule: Reacquire, state: Watch, z: torch.Tensor, R: torch.Tensor, int
                 torch.where(mark[:, None], zc, plot),
                 torch.where(mark[:, None, None], Rc.to(cov.dtype), cov),
                 torch.where(mark, torch.zeros_like(since), since))
-    return new, restart
+    return new, restart, (far & ~restart) if rule.reject else torch.zeros_like(far)
 
 
 def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -165,21 +175,26 @@ class Restarts:
         position and covariance)."""
         return started(x[:, 0, 0::3], P[:, 0, 0::3, 0::3])
 
-    def scan(self, state: Watch, t: int, z: torch.Tensor, R, xp, Pp, x, P, mu, start=None):
-        """Scan ``t``'s re-acquisition after the update: ``z [B, 3]``, ``R`` its measurement noise as the loop holds it,
-        the filters' predictions ``xp [B, M, 9]``, ``Pp`` and posteriors ``x``, ``P``, the mode probabilities ``mu
-        [B, M]``; ``start [B]`` each track's first scan (None: 0). Returns ``(state, x, P, mu)``, the restarted tracks'
-        filters at their detection (``start_state``) with ``mu0``."""
-        B = z.shape[0]
-        Rb = per_track_cov(R, B, z)
+    def observe(self, state: Watch, t: int, z: torch.Tensor, R, xp, Pp, start=None):
+        """Scan ``t``'s re-acquisition before the update: ``z [B, 3]``, ``R`` its measurement noise as the loop holds
+        it, the filters' predictions ``xp [B, M, 9]``, ``Pp``; ``start [B]`` each track's first scan (None: 0). Returns
+        ``(state, z, restart)``: the watch after it, the detections the update takes (NaN where rejected) and the
+        tracks that restart here (``restart``)."""
+        Rb = per_track_cov(R, z.shape[0], z)
         iv = self.intervals[:, t] if isinstance(self.intervals, torch.Tensor) and self.intervals.dim() == 2 else self.intervals
         active = None if start is None else t > start.to(z.device)
-        state, restart = advance(self.rule, state, z, Rb, iv, mahalanobis(torch.nan_to_num(z), xp, Pp, Rb), active)
+        state, restart, rejected = advance(self.rule, state, z, Rb, iv, mahalanobis(torch.nan_to_num(z), xp, Pp, Rb),
+                                           active)
+        return state, torch.where(rejected[:, None], torch.full_like(z, float("nan")), z), restart
+
+    def restart(self, restart: torch.Tensor, z: torch.Tensor, R, x, P, mu):
+        """The filters ``x [B, M, 9]``, ``P`` and mode probabilities ``mu [B, M]`` after the update, the tracks of
+        ``restart [B]`` at their detection ``z [B, 3]`` (``start_state``, its covariance ``R``) with ``mu0``."""
         if not bool(restart.any()):  # one host read per scan, with re-acquisition on
-            return state, x, P, mu
-        x1, P1 = start_state(torch.nan_to_num(z), Rb, self.vel_std, self.acc_std)
+            return x, P, mu
+        x1, P1 = start_state(torch.nan_to_num(z), per_track_cov(R, z.shape[0], z), self.vel_std, self.acc_std)
         again = restart[:, None]
         x = torch.where(again[..., None], x1[:, None].to(x.dtype), x)
         P = torch.where(again[..., None, None], P1[:, None].to(P.dtype), P)
         mu = torch.where(again, self.mu0.to(mu).expand_as(mu), mu)
-        return state, x, P, mu
+        return x, P, mu

@@ -136,7 +136,10 @@ def run(
             x, P, ll = measure(t, xp, Pp)
         else:
             Rt = _per_filter(R(t) if callable(R) else R, z)
-            x, P, ll = update(xp, Pp, z[:, t, None], H, Rt, robust=robust)
+            zt = z[:, t]
+            if watching is not None:  # re-acquisition: a far detection may be gated out, a track restarted
+                watching, zt, restarting = reacquire.observe(watching, t, zt, Rt, xp, Pp, start)
+            x, P, ll = update(xp, Pp, zt[:, None], H, Rt, robust=robust)
         if onehot is not None:
             mu = onehot[:, t]
         else:
@@ -145,7 +148,7 @@ def run(
             x, P, held_mu = _hold(held, t, x, P, mu)
             mu = held_mu if onehot is None else mu  # an oracle's modes stand
         if watching is not None:
-            watching, x, P, mu = reacquire.scan(watching, t, z[:, t], Rt, xp, Pp, x, P, mu, start)
+            x, P, mu = reacquire.restart(restarting, z[:, t], Rt, x, P, mu)
         if return_cov:
             states[:, t], covs[:, t] = combine(x, P, mu)
         else:

@@ -803,7 +803,11 @@ class _FilterExperts:
         else:
             loglik, maha = self._loglik(nu, S, S_inv, logdet, has_z)
         if getattr(self, "reacquire", None) is not None and td.get(keys.MEASUREMENT).dim() == 2:
-            self._watch(td, r2, maha)
+            rejected = self._watch(td, r2, maha)  # a far detection gated out: the experts take it as missed
+            has_z = has_z & ~rejected[:, None, None]
+            loglik = torch.where(rejected[:, None], 0.0, loglik)
+            if robust is not None:
+                td.set(keys.EXPERT_ROBUST_WEIGHT, torch.where(rejected[:, None], 1.0, td.get(keys.EXPERT_ROBUST_WEIGHT)))
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
         td.set(keys.EXPERT_AUG_PRIOR_COV, P)
@@ -814,19 +818,21 @@ class _FilterExperts:
         return td
 
 
-    def _watch(self, td, r2: torch.Tensor, maha: torch.Tensor) -> None:
+    def _watch(self, td, r2: torch.Tensor, maha: torch.Tensor) -> torch.Tensor:
         """Re-acquisition's scan (``immnet.imm.reacquire.advance``): the carried watch after this scan's detection and
-        ``("expert", "reacquire") [B]``, the tracks whose run of far detections restarts them here (``IMMNet.scan``
-        restarts them)."""
+        ``("expert", "reacquire") [B]``, the tracks that restart here (``IMMNet.scan`` restarts them); returns the
+        tracks whose detection the experts do not take (gated out) ``[B]``."""
         z = td.get(keys.MEASUREMENT)
         B = z.shape[0]
         R = reacq.per_track_cov(r2[:, 0], B, z)
         dt, per_track = scan_interval(td, self.dt)
         state = reacq.Watch(*(td.get(k) for k in REACQUIRE_CARRY))
-        state, restart = reacq.advance(self.reacquire, state, z, R, dt[:, 0] if per_track else dt, maha.detach())
+        state, restart, rejected = reacq.advance(self.reacquire, state, z, R, dt[:, 0] if per_track else dt,
+                                                 maha.detach())
         for key, value in zip(REACQUIRE_CARRY, state):
             td.set(key, value)
         td.set(keys.REACQUIRE, restart)
+        return rejected
 
 
 REACQUIRE_CARRY = (keys.REACQUIRE_COUNT, keys.REACQUIRE_PLOT, keys.REACQUIRE_COV, keys.REACQUIRE_ELAPSED)
