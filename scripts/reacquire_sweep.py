@@ -20,10 +20,10 @@ import immnet.imm.reacquire as R_
 count = [0, 0]
 orig = R_.advance
 def spy(rule, state, z, R, interval, maha, active=None):
-    new, restart = orig(rule, state, z, R, interval, maha, active)
+    new, restart, rejected = orig(rule, state, z, R, interval, maha, active)
     starting = state.count < 0
     count[0] += int((restart & starting).sum()); count[1] += int((restart & ~starting).sum())
-    return new, restart
+    return new, restart, rejected
 R_.advance = spy
 
 def row(method, data):

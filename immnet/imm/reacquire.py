@@ -29,20 +29,21 @@ from immnet.imm.option import Option
 
 @dataclass(frozen=True)
 class Reacquire(Option):
-    """Re-acquisition's setting (module doc).
+    """Re-acquisition's setting (module doc); the defaults are the radar IMMs' (``radar-imm-robust-5s``, ``-11s``),
+    chosen on the training and validation flights (docs/radar.md, "Re-acquisition, measured").
 
     ``scans``: how many consecutive far detections restart a track (>= 2: the run's consistency needs two);
     ``gate``: the squared Mahalanobis distance ``d^2 = nu^T S^-1 nu`` beyond which a detection is far, for every filter
-    of the track (the chi-square with 3 degrees of freedom exceeds 30 with probability 1e-6 and 50 with 1e-10);
+    of the track (a chi-square with 3 degrees of freedom exceeds 25 with probability 1.5e-5, 50 with 1e-10);
     ``speed``, ``climb``: the largest horizontal and vertical speeds (m/s) between two detections that agree;
     ``reject``: a far detection that does not restart the track is not filtered (a gate: the filters predict through
     it as through a missed scan), else the update takes it (Huber's, where the filter has one)."""
 
     ARG = "reacquire"
     scans: int = 2
-    gate: float = 50.0
-    speed: float = 400.0
-    climb: float = 100.0
+    gate: float = 25.0
+    speed: float = 300.0
+    climb: float = 50.0
     reject: bool = True
 
     def __post_init__(self):
