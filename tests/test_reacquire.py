@@ -176,3 +176,32 @@ def test_refused_where_the_rule_cannot_run():
         IMMTracker(**{**args, "r": polar, "reacquire": RULE, "name": "p"})
     with pytest.raises(ValueError, match="re-acquisition reads the whole innovation: it takes modes 'joint'"):
         FilterGain(_robust().model_set, reacquire=RULE, modes="axis")
+
+
+def test_a_kalman_filter_restarts_too():
+    """``KalmanFilterTracker(robust=2.5, reacquire=...)``: the first plot 3 km north, its start restarts at the second plot (the
+    estimate there is that plot), and from scan 2 on the track is within 600 m; with Huber's update alone scans 2-3 pass 1 km."""
+    from immnet.filters.trackers import KalmanFilterTracker
+
+    data = _scene()
+    data[keys.MEASUREMENTS][:, 0, 1] += 3000.0
+    model = {"class_path": "immnet.motion.ConstantVelocity", "init_args": {"noise": "continuous"}}
+    kf = KalmanFilterTracker(model, r=120.0, sigma_q=1.0, robust=2.5, reacquire=RULE)
+    assert torch.equal(kf.track(data)[keys.STATE][:, 1, 0::3], data[keys.MEASUREMENTS][:, 1])
+    assert _error(kf, data)[:, 2:].max() < 600.0
+    assert (_error(KalmanFilterTracker(model, r=120.0, sigma_q=1.0, robust=2.5), data)[:, 2:4] > 1000.0).all()
+
+
+def test_the_shipped_radar_networks_take_the_rule_by_name_and_by_load():
+    """The registry's ``immnet-radar-5s`` (the default on plots at 4.5-5.5 s) carries the robust IMM's rule;
+    ``load_network(..., reacquire=None)`` takes it off, and a checkpoint whose gain has none is refused in one line."""
+    from immnet.filters.methods import build_method
+    from immnet.tracking.networks import load_network
+
+    assert build_method("immnet-radar-5s").net.gain.reacquire == Reacquire(**RULE)
+    assert build_method("radar-imm-robust-5s").reacquire == Reacquire(**RULE)
+    assert load_network("immnet/pretrained/immnet-radar-5s.ckpt", reacquire=None).gain.reacquire is None
+    with pytest.raises(ValueError) as err:
+        load_network("immnet/pretrained/immnet.ckpt", reacquire=True)
+    assert str(err.value) == ("immnet/pretrained/immnet.ckpt: re-acquisition needs the model-based filter experts "
+                              "(FilterGain); this checkpoint's gain is immnet.stages.filtering.KalmanNetFilterGain")

@@ -80,8 +80,9 @@ def fit_weights(net: torch.nn.Module, state: dict, path) -> None:
                           f"({why})")
 
 
-_NEEDS_FILTERS = {"guard": "a range guard", "adapt": "adaptive process noise", "r": "a measurement std",
-                  "reacquire": "re-acquisition"}
+_NEEDS_FILTERS = {"guard": "a range guard needs filter experts", "adapt": "adaptive process noise needs filter experts",
+                  "r": "a measurement std needs filter experts",
+                  "reacquire": "re-acquisition needs the model-based filter experts (FilterGain)"}
 
 
 def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP, reacquire=KEEP) -> IMMNet:
@@ -111,7 +112,7 @@ def network_from(config: dict, state: dict, path, guard=KEEP, adapt=KEEP, r=KEEP
         gain = config.get("gain") or DEFAULT_GAIN
         if name not in inspect.signature(import_class(gain.get("class_path", ""))).parameters:
             what = _NEEDS_FILTERS[name]
-            raise ValueError(f"{path}: {what} needs filter experts; this checkpoint's gain is {gain.get('class_path')}")
+            raise ValueError(f"{path}: {what}; this checkpoint's gain is {gain.get('class_path')}")
         config.pop(name, None)  # set once: on the gain, for this load
         config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}
     net = IMMNet(**config)
