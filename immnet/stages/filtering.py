@@ -879,7 +879,7 @@ class FilterGain(_FilterExperts, Stage):
     ):
         """``reacquire``: re-acquisition (``immnet.imm.reacquire.Reacquire``'s fields as a dict, True its defaults,
         None off; the model-based IMMs' ``reacquire``): a track whose run of detections far from every expert agrees
-        restarts at the last of them as at its first detection (``IMMNet.scan``). ``robust``: Huber's ``k`` of each expert's update (``immnet.imm.kalman``'s module doc: the gain ``w K``,
+        restarts at the last of them as at its first detection (``IMMNet.scan``); experts alone (stage 1) run without it. ``robust``: Huber's ``k`` of each expert's update (``immnet.imm.kalman``'s module doc: the gain ``w K``,
         ``w = min(1, k / d)`` of the innovation's Mahalanobis distance ``d``, the likelihood Huber's; the model-based
         IMMs' ``robust``), None: the plain update. ``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
         model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
