@@ -41,8 +41,16 @@ LOG_2PI = math.log(2.0 * math.pi)
 
 
 def predict(x: torch.Tensor, P: torch.Tensor, F: torch.Tensor, Q: torch.Tensor):
-    """``x [..., n]``, ``P [..., n, n]``, ``F``/``Q`` broadcastable to ``[..., n, n]`` -> ``(x, P)`` prior."""
+    """``x [..., n]``, ``P [..., n, n]``, ``F``/``Q`` broadcastable to ``[..., n, n]`` -> ``(x, P)`` prior.
+
+    Where every track shares its filters' ``F [M, n, n]`` (``P [B, M, n, n]``), ``F P F^T`` is one product per
+    filter over every track, ``vec(P) (F (x) F)^T``: a few large matrix products in place of ``2 B M`` small ones."""
     x = (F @ x.unsqueeze(-1)).squeeze(-1)
+    if F.dim() == 3 and P.dim() == 4 and P.shape[1] == F.shape[0] and P.shape[0] > 1:
+        B, M, n, _ = P.shape
+        kron_t = torch.einsum("mli,mkj->mijlk", F, F).reshape(M, n * n, n * n)  # [(i, j), (l, k)] = F_li F_kj
+        FPFt = torch.bmm(P.reshape(B, M, n * n).transpose(0, 1), kron_t).transpose(0, 1).reshape(B, M, n, n)
+        return x, FPFt + Q
     P = F @ P @ F.transpose(-1, -2) + Q
     return x, P
 
@@ -118,7 +126,7 @@ def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     products, which ``torch.compile`` fuses into one loop."""
     out = a[..., :, :1] * b[..., :1, :]
     for k in range(1, a.shape[-1]):
-        out = out + a[..., :, k : k + 1] * b[..., k : k + 1, :]
+        out = out.addcmul_(a[..., :, k : k + 1], b[..., k : k + 1, :])
     return out
 
 
@@ -195,17 +203,17 @@ def update(x, P, z, H=None, R=1.0, robust: float | None = None):
         logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
     m = z.shape[-1]
     y = torch.where(missed[..., None], torch.zeros_like(z), z - Hx)
-    K = PHt @ Si
+    K = small_matmul(PHt, Si)
     Siy = (Si @ y.unsqueeze(-1)).squeeze(-1)
     maha = (y * Siy).sum(-1)
     if robust is not None:
         w, maha = huber(maha, robust)
         K = K * w[..., None, None]
     x_post = x + (K @ y.unsqueeze(-1)).squeeze(-1)
-    P_post = P - K @ PHt.transpose(-1, -2)
+    P_post = P - small_matmul(K, PHt.transpose(-1, -2))
     P_post = 0.5 * (P_post + P_post.transpose(-1, -2))
     loglik = gaussian_loglik(maha, logdet, m)
-    if not torch.is_grad_enabled() and missed.device.type == "cpu" and not bool(missed.any()):
+    if not torch.is_grad_enabled() and missed.device.type == "cpu" and not torch.compiler.is_compiling() and not bool(missed.any()):
         return x_post, P_post, loglik  # nothing missed: skip three passes over P (CPU only, no sync)
     # Broadcast ``missed`` over what F, Q or R may have added in front, then keep the prior.
     keep = missed.expand(loglik.shape)
