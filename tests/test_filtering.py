@@ -489,7 +489,7 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
     filter (an IMM of one model): the registry's method equals its ``network()``,
     IMMNet's step with filter experts of the method's own motion models and process noise, its ``r``, the mix
     without onset priors, a start from the first detection and the Bayesian mode update; both against the
-    core's scan loop (``imm_filter(general=True)``), to FilterPy's criterion (1e-9 of the state's scale; the mode
+    core's scan loop (``imm_filter``), to FilterPy's criterion (1e-9 of the state's scale; the mode
     update's exponential makes float64 rounding of the two covariance forms, Joseph's and the standard one,
     reach 1e-7 m where r is 1 m, as between the core's two formulations). Missed detections inside the tracks and a
     track first detected at scan 3 (each starts there, nothing reported before); the real-flight IMMs (continuous white noise, a vertical factor per model) are told each track's r."""
@@ -520,7 +520,7 @@ def test_each_linear_imm_is_immnet_with_nothing_learned(method):
         Pi, mu0 = torch.ones(1, 1, dtype=torch.float64), torch.ones(1, dtype=torch.float64)
     x0, P0 = initial_state(z, r)
     R = r * r if told else torch.tensor(r * r, dtype=torch.float64)
-    core, probs, _ = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, general=True, start=first_detection(z))
+    core, probs, _ = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, start=first_detection(z))
     ours = tracker.track(data)
     scale = core.abs().amax((1, 2), keepdim=True)  # each track's
     seen = ~torch.isnan(z[..., :1])  # from each track's first detection on

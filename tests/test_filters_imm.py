@@ -109,18 +109,25 @@ def test_float32_close_to_float64():
     assert (p32.double() - p64).abs().max() < 1e-3
 
 
-@pytest.mark.parametrize("B", [2, 400], ids=["few-tracks", "many-tracks"])
-def test_lean_path_equals_general_step(B):
-    """``imm_filter``'s lean path (shared F, Q; both batch regimes) equals the core's scan loop (``immnet.imm.runner.run``)."""
-    F, Q, Pi, mu0, r, z = _problem(SETS["imm6"], seed=11, B=B, T=25)
-    z[0, 5:9] = float("nan")
-    z[-1, 12, 2] = float("nan")
-    R = torch.tensor(r * r, dtype=torch.float64)
-    x0, P0 = initial_state(z, r)
-    lean = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True)
-    general = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True, general=True)
-    for a, b in zip(lean, general):
-        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-7)
+@pytest.mark.parametrize("B", [1, 400], ids=["one-track", "many-tracks"])
+def test_prediction_of_shared_matrices_equals_each_product(B):
+    """``predict`` with every track's filters sharing ``F [M, 9, 9]`` (one product per filter over the tracks,
+    ``vec(P) (F (x) F)^T``) equals ``F_m P_bm F_m^T + Q_m`` of each track and filter, formed one by one in numpy."""
+    from immnet.imm.kalman import predict
+
+    g = torch.Generator().manual_seed(3)
+    M = 3
+    F = torch.randn(M, 9, 9, generator=g, dtype=torch.float64)
+    Q = torch.randn(M, 9, 9, generator=g, dtype=torch.float64)
+    x = torch.randn(B, M, 9, generator=g, dtype=torch.float64)
+    A = torch.randn(B, M, 9, 9, generator=g, dtype=torch.float64)
+    P = A @ A.mT
+    xp, Pp = predict(x, P, F, Q)
+    Fn, Qn, xn, Pn = F.numpy(), Q.numpy(), x.numpy(), P.numpy()
+    for b in range(B):
+        for m in range(M):
+            np.testing.assert_allclose(xp[b, m].numpy(), Fn[m] @ xn[b, m], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(Pp[b, m].numpy(), Fn[m] @ Pn[b, m] @ Fn[m].T + Qn[m], rtol=1e-12, atol=1e-11)
 
 
 @pytest.mark.parametrize("set_name", list(SETS), ids=list(SETS))
@@ -134,8 +141,8 @@ def test_fused_step_equals_filterpy(set_name):
     x0, P0 = initial_state(z, r)
     R = torch.tensor(r * r, dtype=torch.float64)
     states, probs, experts = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, True, step=fused_step)
-    lean = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True)
-    torch.testing.assert_close(experts, lean[2], rtol=1e-9, atol=1e-7)
+    core = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True)
+    torch.testing.assert_close(experts, core[2], rtol=1e-9, atol=1e-7)
     for b in range(z.shape[0]):
         xs, mus = _filterpy_imm(F, Q, Pi, mu0, r, x0[b].numpy(), P0[b].numpy(), z[b].numpy())
         np.testing.assert_allclose(states[b].numpy(), xs, rtol=1e-9, atol=1e-9 * np.abs(xs).max())
@@ -152,7 +159,7 @@ def test_compiled_equals_general_step(set_name):
     z[3, 12, 2] = float("nan")
     R = torch.tensor(r * r, dtype=torch.float64)
     x0, P0 = initial_state(z, r)
-    general = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True, general=True)
+    general = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, True)
     for B in (1, 5, 3):
         compiled = imm_filter(z[:B], x0[:B], P0[:B], F, Q, R, Pi, mu0, True, compile=True)
         for a, b in zip(compiled, general):

@@ -47,7 +47,7 @@ def _same_from_start(late_state: torch.Tensor, cut_state: torch.Tensor):
                                     "clairvoyant", "clairvoyant-switch"])
 def test_a_method_starts_a_late_track_at_its_first_detection(method, jitter):
     """Issue 21 (one core, one start): each method's estimates of a track whose first scans are missed are those of
-    the track cut to start at its first detection; at 1 s scans (the linear IMMs' lean path) and at irregular ones."""
+    the track cut to start at its first detection; at 1 s scans (every track's F and Q shared) and at irregular ones."""
     from immnet.filters.methods import build_method
 
     late, cut = _late_and_cut(jitter)
@@ -55,7 +55,7 @@ def test_a_method_starts_a_late_track_at_its_first_detection(method, jitter):
     _same_from_start(tracker.track(late)[keys.STATE], tracker.track(cut)[keys.STATE])
 
 
-@pytest.mark.parametrize("path", ["lean", "general", "fused"])
+@pytest.mark.parametrize("path", ["core", "fused"])
 def test_each_path_of_the_linear_imm_starts_a_late_track_at_its_first_detection(path):
     """The same for each of ``imm_filter``'s formulations with ``start`` (``first_detection``), the combined state and
     the mode probabilities; without ``start`` a late track filters its first detection twice, which the test sees."""
@@ -72,7 +72,7 @@ def test_each_path_of_the_linear_imm_starts_a_late_track_at_its_first_detection(
         x0, P0 = initial_state(z, tracker.r)
         if path == "fused":
             return imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, False, step=fused_step, start=start)[:2]
-        return imm_filter(z, x0, P0, F, Q, R, Pi, mu0, general=path == "general", start=start)[:2]
+        return imm_filter(z, x0, P0, F, Q, R, Pi, mu0, start=start)[:2]
 
     z_late, z_cut = late[keys.MEASUREMENTS], cut[keys.MEASUREMENTS]
     state, probs = filtered(z_late, first_detection(z_late))

@@ -12,17 +12,16 @@ probabilities ``mu_{t-1}`` ``[B, M]`` and the Markov transition ``Pi[i, j] = P(j
 5. combination: ``x = sum_j mu_j x_j`` (and ``P = sum_j mu_j (P_j + (x_j - x)(x_j - x)^T)``).
 
 Everything is one batched tensor expression per stage: no loop over tracks or experts. The stages are
-``immnet.imm``'s, in ``immnet.imm.runner.run``'s loop; ``_imm_filter_lean`` and ``immnet.filters.imm_fused``
-are the same equations rearranged for speed where every track shares ``F`` and ``Q`` (the tests hold them
-to the core's loop and to FilterPy).
+``immnet.imm``'s, in ``immnet.imm.runner.run``'s loop, the one eager scan loop of every model-based IMM;
+``imm_filter(compile=True)`` runs ``immnet.filters.imm_fused``, the same equations written for ``torch.compile``
+where every track shares ``F`` and ``Q`` (the tests hold it to the core's loop and to FilterPy).
 """
 
 from __future__ import annotations
 
 import torch
 
-from immnet.imm.kalman import _as_cov
-from immnet.imm.runner import late_starts, linear_transition, run
+from immnet.imm.runner import linear_transition, run
 
 VEL_STD = 300.0
 """Initial velocity standard deviation (m/s), every axis: covers the 340 m/s speed bound."""
@@ -65,7 +64,7 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     return x0, P0
 
 
-def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False, general: bool = False,
+def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False,
                return_cov: bool = False, start: torch.Tensor | None = None, robust: float | None = None):
     """Run the IMM over ``z [B, T, 3]`` from ``x0 [B, 9]``, ``P0 [B, 9, 9]`` and ``mu0 [M]``.
 
@@ -74,28 +73,24 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     the experts' posteriors ``[B, T, M, 9]`` (else None).
 
     ``F``, ``Q`` are ``[M, 9, 9]`` (every track's), ``[B, M, 9, 9]`` (one interval per track) or
-    ``[B, T, M, 9, 9]`` (one per track and scan). The scan loop is ``immnet.imm.runner.run``; where every
-    track shares ``F`` and ``Q`` the same equations run rearranged for speed (``_imm_filter_lean``;
-    ``general=True`` runs the core's loop anyway). ``compile=True`` runs the step of
-    ``immnet.filters.imm_fused`` through ``torch.compile`` there (the first call per dtype, device and model
-    count compiles, seconds); if compiling fails it logs a warning and runs the eager path. ``return_cov`` runs the
-    core's loop and returns a fourth output, the combined covariance ``[B, T, 9, 9]``. ``start [B]``: the scan at
+    ``[B, T, M, 9, 9]`` (one per track and scan). The scan loop is ``immnet.imm.runner.run``. ``compile=True``
+    runs the step of ``immnet.filters.imm_fused`` through ``torch.compile`` where every track shares ``F``, ``Q`` and
+    ``R`` (the first call per dtype, device and model count compiles, seconds); if compiling fails it logs a warning
+    and runs the core's loop. ``return_cov``: a fourth output, the combined covariance ``[B, T, 9, 9]``. ``start [B]``: the scan at
     which each track starts from ``x0``, ``P0`` (``first_detection``; ``runner.run``'s), None: scan 0.
     ``R``: a variance (a number or ``[B]``), one covariance ``[3, 3]`` or one per track ``[B, 3, 3]``, or one per
     detection ``[B, T, 3, 3]`` (``immnet.imm.measurement.PerDetection``: finite where a scan is missed). ``robust``:
-    Huber's ``k`` of the update (``immnet.imm.kalman``), None: the plain update (it runs the core's loop).
+    Huber's ``k`` of the update (``immnet.imm.kalman``), None: the plain update.
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
     R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
-    if not (general or return_cov or robust is not None) and _lean_ok(F, Q, R, M, x0.shape[-1]):
-        if compile and R.dim() < 4:
-            from immnet.filters.imm_fused import imm_filter_fused
+    if compile and not (return_cov or robust is not None) and _fused_ok(F, Q, R, M, x0.shape[-1]):
+        from immnet.filters.imm_fused import imm_filter_fused
 
-            out = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=start)
-            if out is not None:
-                return out
-        return _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start)
+        out = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=start)
+        if out is not None:
+            return out
     x = x0.unsqueeze(1).expand(B, M, 9).contiguous()
     P = P0.unsqueeze(1).expand(B, M, 9, 9).contiguous()
     mu = mu0.to(z).expand(B, M).contiguous()
@@ -108,119 +103,9 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
                start=start, robust=robust)
 
 
-_SMALL = 1024
-
-
-def _lean_ok(F, Q, R, M, n) -> bool:
-    """Whether ``_imm_filter_lean`` applies: the same ``F``, ``Q`` for every track, a scalar or 3x3 ``R`` or one
-    per detection ``[B, T, 3, 3]``."""
-    R = torch.as_tensor(R)
+def _fused_ok(F, Q, R, M, n) -> bool:
+    """Whether ``immnet.filters.imm_fused`` applies: the same ``F``, ``Q`` for every track, a scalar or one 3x3 ``R``."""
     return (
         n == 9 and F.shape == (M, 9, 9) and Q.dim() <= 3 and Q.shape[-2:] == (9, 9) and Q.shape[0] in (1, M)
-        and (R.numel() == 1 or R.shape == (3, 3) or R.dim() == 4)
+        and (R.numel() == 1 or R.shape == (3, 3))
     )
-
-
-def _kron_t(F):
-    """``(F (x) F)^T``, symmetrized, ``[M, n^2, n^2]``: ``vec(P) @ K`` is ``vec(F sym(P) F^T)``."""
-    M, n, _ = F.shape
-    K = torch.einsum("mli,mkj->mlkij", F, F).reshape(M, n * n, n * n)
-    K = 0.5 * (K + K.reshape(M, n, n, n * n).transpose(1, 2).reshape(M, n * n, n * n))
-    return K.transpose(1, 2).contiguous()
-
-
-def _imm_filter_lean(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=None):
-    """``imm_filter`` for shared ``F``, ``Q`` ``[M, 9, 9]``: the same steps, fewer and larger ops.
-
-    Experts lie first (``x [M, B, 9]``, ``P [M, B, 81]``) so that the prediction of every track is one
-    GEMM per model, ``vec(P) (F (x) F)^T + vec(Q)`` (symmetrizing ``P`` on the way, which replaces the
-    update's symmetrization), and the update uses the position block of ``P`` directly (``H`` selects
-    positions) with the adjugate inverse of ``S``. Missed detections zero the gain and the likelihood,
-    which leaves the prior exactly; steps without one skip that work. The mode update drops the
-    constant ``-3/2 log 2 pi``, which cancels in the normalization.
-    """
-    B, T, _ = z.shape
-    M = Pi.shape[-1]
-    KT = _kron_t(F)
-    Qv = Q.expand(M, 9, 9).reshape(M, 1, 81)
-    Rm = _as_cov(R, 3, z)
-    per_detection = Rm.dim() == 4  # [B, T, 3, 3]
-    FT = F.transpose(1, 2)
-    PiT = Pi.T.contiguous()
-    tiny = torch.finfo(z.dtype).tiny
-    x = x0.unsqueeze(0).expand(M, B, 9).contiguous()
-    P = P0.reshape(1, B, 81).expand(M, B, 81).contiguous()
-    mu = mu0.to(z).expand(B, M).contiguous()
-    missed = torch.isnan(z).any(-1)  # [B, T]
-    miss_t = missed.any(0).tolist()
-    states, probs, experts = [x0], [mu], [x.transpose(0, 1)]
-    late, mu_start, P_start = late_starts(start), mu.clone(), P0.reshape(B, 81)
-    rows = torch.tensor([1, 2, 0, 2, 0, 1], device=z.device)
-    small = B * M * M <= _SMALL
-    for t in range(1, T):
-        # 1. mixing, w^T [j, i, B]
-        cbar = mu @ Pi
-        wT = (PiT * mu[:, None, :] / cbar.clamp_min(tiny)[:, :, None]).permute(1, 2, 0)
-        wx = wT[..., None]
-        xm = (wx * x).sum(1)  # [j, B, 9]
-        d = x - xm[:, None]  # [j, i, B, 9]: x_i - x0_j
-        if small:  # few ops: E_ji = P_i + d_ji d_ji^T [j, i, B, 81], then the weighted sum over i
-            Pm = (wx * torch.addcmul(P.view(M, B, 9, 9), d[..., :, None], d[..., None, :]).view(M, M, B, 81)).sum(1)
-        else:  # many tracks: accumulate w_ji P_i + (w_ji d_ji) d_ji^T in place (no batches of tiny matmuls)
-            wd = wx * d
-            Pm = (wx[:, 0] * P[0]).view(M, B, 9, 9).addcmul_(wd[:, 0, ..., :, None], d[:, 0, ..., None, :])
-            for i in range(1, M):
-                Pm.view(M, B, 81).addcmul_(wx[:, i], P[i])
-                Pm.addcmul_(wd[:, i, ..., :, None], d[:, i, ..., None, :])
-            Pm = Pm.view(M, B, 81)
-        # 2. prediction
-        xp = torch.bmm(xm, FT)
-        Pp = torch.baddbmm(Qv, Pm, KT)
-        # 3. update with the positions
-        PHt = Pp.view(M, B, 9, 9)[..., 0::3]  # [M, B, 9, 3]
-        S = PHt[..., 0::3, :] + (Rm[:, t] if per_detection else Rm)
-        S2 = S.index_select(-2, rows).unflatten(-2, (2, 3))  # rows (1, 2, 0) and (2, 0, 1)
-        C = torch.linalg.cross(S2[..., 0, :, :], S2[..., 1, :, :], dim=-1)  # rows: cofactors of S's rows
-        det = (S[..., 0, :] * C[..., 0, :]).sum(-1)
-        Si = C.mT / det[..., None, None]
-        zt = z[:, t]
-        if miss_t[t]:
-            zt = zt.nan_to_num(0.0)
-        y = zt - xp[..., 0::3]
-        if miss_t[t]:
-            y = y.masked_fill(missed[:, t, None], 0.0)
-        if small:
-            K = PHt @ Si
-        else:  # contractions over 3 as broadcast multiply-adds
-            K = (PHt[..., 0:1] * Si[..., 0:1, :]).addcmul_(PHt[..., 1:2], Si[..., 1:2, :])
-            K = K.addcmul_(PHt[..., 2:3], Si[..., 2:3, :])
-        if miss_t[t]:
-            K = K.masked_fill(missed[:, t, None, None], 0.0)
-        if small:
-            Siy = Si @ y[..., None]
-            x = torch.baddbmm(xp.view(M * B, 9, 1), PHt.reshape(M * B, 9, 3), Siy.view(M * B, 3, 1)).view(M, B, 9)
-            P = torch.baddbmm(Pp.view(M * B, 9, 9), K.view(M * B, 9, 3), PHt.mT.reshape(M * B, 3, 9), alpha=-1)
-            q = (y[..., None, :] @ Siy).view(M, B)
-        else:
-            Siy = (Si * y[..., None, :]).sum(-1)
-            x = xp + (PHt * Siy[..., None, :]).sum(-1)
-            P = torch.addcmul(Pp.view(M, B, 9, 9), K[..., :, 0, None], PHt[..., None, :, 0], value=-1)
-            P = P.addcmul_(K[..., :, 1, None], PHt[..., None, :, 1], value=-1)
-            P = P.addcmul_(K[..., :, 2, None], PHt[..., None, :, 2], value=-1)
-            q = (y * Siy).sum(-1)
-        P = P.view(M, B, 81)
-        # 4. mode probabilities, 5. fused state
-        ll = (q + det.log()) * -0.5
-        if miss_t[t]:
-            ll = ll.masked_fill(missed[:, t], 0.0)
-        mu = torch.softmax(cbar.log() + ll.T, -1)
-        if t <= late:  # tracks that start at t or later hold their start (runner.run's start)
-            h = (t <= start)[:, None]
-            x, P, mu = torch.where(h, x0, x), torch.where(h, P_start, P), torch.where(h, mu_start, mu)
-        xs = x.transpose(0, 1)
-        states.append((mu[:, None, :] @ xs).squeeze(1) if small else (mu.T[..., None] * x).sum(0))
-        probs.append(mu)
-        if return_experts:
-            experts.append(xs)
-    stack = lambda seq: torch.stack(seq, 1)  # noqa: E731
-    return stack(states), stack(probs), stack(experts) if return_experts else None

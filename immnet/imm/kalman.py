@@ -7,16 +7,21 @@ Predict::
 Update with ``z_t = H x_t + v``, ``v ~ N(0, R)``::
 
     y = z_t - H x_{t|t-1}      S = H P H^T + R      K = P H^T S^{-1}
-    x_{t|t} = x_{t|t-1} + K y  P_{t|t} = P - K S K^T (symmetrized)
+    x_{t|t} = x_{t|t-1} + K y  P_{t|t} = (I - K H) P (I - K H)^T + K R K^T  (Joseph's form, symmetrized)
     log l = -1/2 (y^T S^{-1} y + log det S + m log 2 pi)
+
+One update for every filter (``innovation_update``): the linear one (``update``), the extended polar one
+(``immnet.imm.measurement.polar_update``) and, with a learned gain, IMMNet's (``joseph``) differ only in how they form
+the innovation, ``H P`` and ``S``. A float32 input is updated in float64 and rounded back (``wide_dtype``).
 
 A measurement with any NaN component is a missed detection: the posterior is the prior and the
 log-likelihood is 0 (it leaves an IMM's mode probabilities at their predicted values).
 
 With ``H=None`` the measurement is the position ``[lx, ly, lz]`` (``x[..., 0::3]``): then
-``S = P[pos, pos] + R`` and ``P H^T = P[:, pos]`` are strided views (no product with ``H``) and
+``S = P[pos, pos] + R`` and ``H P = P[pos, :]`` are strided views (no product with ``H``) and
 ``S^{-1}`` is the closed-form 3x3 inverse (``inv3``: its ``L D L^T`` pivots), which is much faster than a
-batched LAPACK call for millions of 3x3 matrices. A general ``H`` uses a Cholesky solve.
+batched LAPACK call for millions of 3x3 matrices; the one 3x3 solve of the package. A general ``H`` uses a Cholesky
+solve.
 
 Robust update (``robust=k``, Huber's weight on the innovation's Mahalanobis distance ``d = sqrt(y^T S^-1 y)``)::
 
@@ -41,8 +46,16 @@ LOG_2PI = math.log(2.0 * math.pi)
 
 
 def predict(x: torch.Tensor, P: torch.Tensor, F: torch.Tensor, Q: torch.Tensor):
-    """``x [..., n]``, ``P [..., n, n]``, ``F``/``Q`` broadcastable to ``[..., n, n]`` -> ``(x, P)`` prior."""
+    """``x [..., n]``, ``P [..., n, n]``, ``F``/``Q`` broadcastable to ``[..., n, n]`` -> ``(x, P)`` prior.
+
+    Where every track shares its filters' ``F [M, n, n]`` (``P [B, M, n, n]``), ``F P F^T`` is one product per
+    filter over every track, ``vec(P) (F (x) F)^T``: a few large matrix products in place of ``2 B M`` small ones."""
     x = (F @ x.unsqueeze(-1)).squeeze(-1)
+    if F.dim() == 3 and P.dim() == 4 and P.shape[1] == F.shape[0] and P.shape[0] > 1:
+        B, M, n, _ = P.shape
+        kron_t = torch.einsum("mli,mkj->mijlk", F, F).reshape(M, n * n, n * n)  # [(i, j), (l, k)] = F_li F_kj
+        FPFt = torch.bmm(P.reshape(B, M, n * n).transpose(0, 1), kron_t).transpose(0, 1).reshape(B, M, n, n)
+        return x, FPFt + Q
     P = F @ P @ F.transpose(-1, -2) + Q
     return x, P
 
@@ -118,30 +131,41 @@ def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     products, which ``torch.compile`` fuses into one loop."""
     out = a[..., :, :1] * b[..., :1, :]
     for k in range(1, a.shape[-1]):
-        out = out + a[..., :, k : k + 1] * b[..., k : k + 1, :]
+        out = out.addcmul_(a[..., :, k : k + 1], b[..., k : k + 1, :])
     return out
 
 
-def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
-    """The posterior covariance ``(I - K H) P (I - K H)^T + K R K^T`` of any gain ``K [..., n, 3]`` (Joseph's
-    form: positive semi-definite for every ``K``, the learned gains' too), ``P [..., n, n]``, ``H`` the position
-    rows (0, 3, 6 of the state layout), ``R = r2 I`` (``r2`` broadcastable to ``[..., 1, 1]``), or ``R = r2`` where
-    ``r2`` is a covariance ``[..., 3, 3]`` (each detection's).
+def wide_dtype(dtype: torch.dtype, device) -> torch.dtype:
+    """The dtype an update runs in: float64 for float32 input (a large prior's terms cancel to a small posterior:
+    ``joseph``), except where float64 is unavailable (MPS)."""
+    return dtype if dtype == torch.float64 or torch.device(device).type == "mps" else torch.float64
 
-    Expanded as ``P - K H P - (K H P)^T + K S K^T`` (``S = H P H^T + R``; fewer and smaller products), whose terms
-    are of the prior's size while the result can be ten orders smaller: after a 10 s gap under a large learned
-    process noise the prior's position variance reaches 1e10 m^2 and the posterior's is ``r^2``. In float32 the
-    rounding of those terms is larger than the result, a negative variance and a NaN track a scan later, so a
-    float32 covariance is updated in float64 (the n x n blocks of one scan; where float64 is unavailable, MPS,
-    in its own dtype) and rounded back."""
-    wide = P.dtype if P.dtype == torch.float64 or P.device.type == "mps" else torch.float64
+
+def joseph_form(P: torch.Tensor, K: torch.Tensor, HP: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+    """The posterior covariance ``(I - K H) P (I - K H)^T + K R K^T`` of any gain ``K [..., n, m]``, from the prior
+    ``P [..., n, n]``, its measured rows ``HP = H P [..., m, n]`` and the innovation covariance ``S = H P H^T + R``
+    ``[..., m, m]``, expanded as ``P - K H P - (K H P)^T + K S K^T`` and symmetrized; in the inputs' dtype."""
+    KHP = small_matmul(K, HP)
+    post = P - KHP - KHP.transpose(-1, -2) + small_matmul(small_matmul(K, S), K.transpose(-1, -2))
+    return 0.5 * (post + post.transpose(-1, -2))
+
+
+def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
+    """The posterior covariance of any gain ``K [..., n, 3]`` (Joseph's form, ``joseph_form``: positive
+    semi-definite for every ``K``, the learned gains' too), ``P [..., n, n]``, ``H`` the position rows (0, 3, 6 of the
+    state layout), ``R = r2 I`` (``r2`` broadcastable to ``[..., 1, 1]``), or ``R = r2`` where ``r2`` is a covariance
+    ``[..., 3, 3]`` (each detection's).
+
+    The expanded form's terms are of the prior's size while the result can be ten orders smaller: after a 10 s gap
+    under a large learned process noise the prior's position variance reaches 1e10 m^2 and the posterior's is
+    ``r^2``. In float32 the rounding of those terms is larger than the result, a negative variance and a NaN track a
+    scan later, so a float32 covariance is updated in float64 (``wide_dtype``) and rounded back."""
+    wide = wide_dtype(P.dtype, P.device)
     Pw, Kw = P.to(wide), K.to(wide)
     HP = Pw[..., 0:7:3, :]  # the position rows (POS)
     R = r2.to(wide)
     S = HP[..., 0:7:3] + (R if R.dim() >= 2 and R.shape[-1] == 3 else R * torch.eye(3, dtype=wide, device=P.device))
-    KHP = small_matmul(Kw, HP)
-    post = Pw - KHP - KHP.transpose(-1, -2) + small_matmul(small_matmul(Kw, S), Kw.transpose(-1, -2))
-    return (0.5 * (post + post.transpose(-1, -2))).to(P.dtype)
+    return joseph_form(Pw, Kw, HP, S).to(P.dtype)
 
 
 def check_robust(robust) -> float | None:
@@ -177,35 +201,54 @@ def update(x, P, z, H=None, R=1.0, robust: float | None = None):
     ``x [..., n]``, ``P [..., n, n]``, ``z [..., m]`` (NaN anywhere = missed), ``H [m, n]`` or None
     (positions of the 9-D state), ``R`` a covariance ``[..., m, m]`` or a variance ``[...]``/scalar.
     ``loglik [...]`` is the Gaussian log-density of the innovation, 0 where the measurement is missed.
-    ``robust``: Huber's ``k`` (module doc), None: the plain update.
+    ``robust``: Huber's ``k`` (module doc), None: the plain update. The update is ``innovation_update``'s.
     """
+    dtype = x.dtype
+    wide = wide_dtype(dtype, x.device)
+    x, P, z = x.to(wide), P.to(wide), z.to(wide)
     missed = torch.isnan(z).any(-1)
     if H is None:
         Hx = x[..., 0::3]
-        PHt = P[..., :, 0::3]
-        S = PHt[..., 0::3, :] + _as_cov(R, 3, x)
+        HP = P[..., 0::3, :]
+        S = HP[..., 0::3] + _as_cov(R, 3, x)
+    else:
+        H = H.to(dtype=wide, device=x.device)
+        Hx = (H @ x.unsqueeze(-1)).squeeze(-1)
+        HP = H @ P
+        S = HP @ H.transpose(-1, -2) + _as_cov(R, H.shape[-2], x)
+    nu = torch.where(missed[..., None], torch.zeros_like(z), z - Hx)
+    return tuple(v.to(dtype) for v in innovation_update(x, P, nu, HP, S, missed, robust))
+
+
+def innovation_update(x, P, nu, HP, S, missed, robust: float | None = None):
+    """The Kalman update every model-based filter runs, linear or extended: ``(x_post, P_post, loglik)`` from the
+    prior ``x [..., n]``, ``P [..., n, n]``, the innovation ``nu [..., m]`` (0 where missed), the measured rows ``HP =
+    H P [..., m, n]`` (``H`` the measurement's Jacobian for an extended filter), ``S = H P H^T + R [..., m, m]`` and
+    ``missed [...]`` (bool)::
+
+        K = (H P)^T S^-1     x_post = x + K nu     P_post = joseph_form(P, K, H P, S)     loglik = log N(nu; 0, S)
+
+    ``S^-1`` is ``inv3``'s for ``m = 3``, a Cholesky solve otherwise. ``robust``: Huber's ``k`` (module doc: ``K -> w
+    K``, ``S -> S / w``). Where a measurement is missed the prior is kept and ``loglik`` is 0. In the inputs' dtype
+    (``update`` and the polar update give it float64 for float32 input, ``wide_dtype``)."""
+    m = nu.shape[-1]
+    if m == 3:
         Si, logdet = inv3(S)
     else:
-        H = H.to(dtype=x.dtype, device=x.device)
-        Hx = (H @ x.unsqueeze(-1)).squeeze(-1)
-        PHt = P @ H.transpose(-1, -2)
-        S = H @ PHt + _as_cov(R, H.shape[-2], x)
         L = torch.linalg.cholesky(S)
         Si = torch.cholesky_inverse(L)
         logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
-    m = z.shape[-1]
-    y = torch.where(missed[..., None], torch.zeros_like(z), z - Hx)
-    K = PHt @ Si
-    Siy = (Si @ y.unsqueeze(-1)).squeeze(-1)
-    maha = (y * Siy).sum(-1)
+    K = small_matmul(HP.transpose(-1, -2), Si)
+    Siy = (Si @ nu.unsqueeze(-1)).squeeze(-1)
+    maha = (nu * Siy).sum(-1)
     if robust is not None:
         w, maha = huber(maha, robust)
         K = K * w[..., None, None]
-    x_post = x + (K @ y.unsqueeze(-1)).squeeze(-1)
-    P_post = P - K @ PHt.transpose(-1, -2)
-    P_post = 0.5 * (P_post + P_post.transpose(-1, -2))
+        S = S / w[..., None, None]
+    x_post = x + (K @ nu.unsqueeze(-1)).squeeze(-1)
+    P_post = joseph_form(P, K, HP, S)
     loglik = gaussian_loglik(maha, logdet, m)
-    if not torch.is_grad_enabled() and missed.device.type == "cpu" and not bool(missed.any()):
+    if not torch.is_grad_enabled() and missed.device.type == "cpu" and not torch.compiler.is_compiling() and not bool(missed.any()):
         return x_post, P_post, loglik  # nothing missed: skip three passes over P (CPU only, no sync)
     # Broadcast ``missed`` over what F, Q or R may have added in front, then keep the prior.
     keep = missed.expand(loglik.shape)

@@ -31,14 +31,9 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.imm.kalman import gaussian_loglik, huber, inv3
+from immnet.imm.kalman import innovation_update, wide_dtype
 
 TOLD = "data"
-
-
-def _wide(dtype: torch.dtype, device) -> torch.dtype:
-    """float64 for a float32 update (as ``kalman.joseph``), except where float64 is unavailable (MPS)."""
-    return dtype if dtype == torch.float64 or torch.device(device).type == "mps" else torch.float64
 
 
 @dataclass(frozen=True)
@@ -215,36 +210,19 @@ def polar_update(x: torch.Tensor, P: torch.Tensor, plot: torch.Tensor, sigma: to
 
     The wrapped azimuth innovation keeps a target crossing north (359.9 -> 0.1 deg) a 0.2 deg step. ``robust``:
     Huber's ``k`` (``immnet.imm.kalman``'s module doc: ``K -> w K``, ``S -> S / w``). A float32 input is updated in
-    float64 (``kalman.joseph``'s reason: a large prior's terms cancel to a small posterior) and rounded back.
+    float64 (``kalman.wide_dtype``) and rounded back; the update is ``kalman.innovation_update``'s.
     """
     dtype = x.dtype
-    wide = _wide(dtype, x.device)
+    wide = wide_dtype(dtype, x.device)
     x, P, plot, sigma = (v.to(wide) for v in (x, P, plot, sigma))
     missed = torch.isnan(plot).any(-1)
     pos = x[..., 0::3]
     J = polar_jacobian(pos)  # [..., 3, 3]
-    h = to_polar(pos)
-    nu = torch.where(missed[..., None], torch.zeros_like(plot), plot - h)
+    nu = torch.where(missed[..., None], torch.zeros_like(plot), plot - to_polar(pos))
     nu = torch.cat([nu[..., :1], wrap(nu[..., 1:2]), nu[..., 2:]], -1)
     HP = J @ P[..., 0::3, :]  # [..., 3, 9]
     S = HP[..., 0::3] @ J.transpose(-1, -2) + torch.diag_embed(sigma * sigma)
-    Si, logdet = inv3(S)
-    K = HP.transpose(-1, -2) @ Si  # [..., 9, 3]
-    maha = (nu * (Si @ nu.unsqueeze(-1)).squeeze(-1)).sum(-1)
-    if robust is not None:
-        w, maha = huber(maha, robust)
-        K = K * w[..., None, None]
-        S = S / w[..., None, None]
-    KHP = K @ HP
-    post = P - KHP - KHP.transpose(-1, -2) + K @ S @ K.transpose(-1, -2)
-    post = 0.5 * (post + post.transpose(-1, -2))
-    x_post = x + (K @ nu.unsqueeze(-1)).squeeze(-1)
-    ll = gaussian_loglik(maha, logdet, 3)
-    keep = missed.expand(ll.shape)
-    x_post = torch.where(keep[..., None], x.expand_as(x_post), x_post)
-    post = torch.where(keep[..., None, None], P.expand_as(post), post)
-    ll = torch.where(keep, torch.zeros_like(ll), ll)
-    return x_post.to(dtype), post.to(dtype), ll.to(dtype)
+    return tuple(v.to(dtype) for v in innovation_update(x, P, nu, HP, S, missed, robust))
 
 
 def measurement_model(r) -> Isotropic | PerDetection | Polar:
