@@ -23,7 +23,6 @@ import math
 
 import torch
 
-from immnet.imm.kalman import small_matmul
 from immnet.motion import ACC, RATE
 
 ONSET_ACC_VAR = ((3.0**3 - 0.5**3) / (3.0 * (3.0 - 0.5)) / 2.0,) * 2 + (0.3**2 / 3.0,)
@@ -119,7 +118,7 @@ def _weighted(W: torch.Tensor, P: torch.Tensor, mask=None, cov=None) -> torch.Te
 
 def _spread(W: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
     """``sum_i W_ij d_ij d_ij^T`` ``[B, j, n, n]`` from ``W [B, i, j]`` and ``d [B, i, j, n]``."""
-    return small_matmul((W.unsqueeze(-1) * d).permute(0, 2, 3, 1), d.transpose(1, 2))
+    return (W.unsqueeze(-1) * d).permute(0, 2, 3, 1) @ d.transpose(1, 2)
 
 
 def mix(w: torch.Tensor, x: torch.Tensor, P: torch.Tensor, priors=None, bound=None):

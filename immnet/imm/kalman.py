@@ -131,7 +131,7 @@ def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     products, which ``torch.compile`` fuses into one loop."""
     out = a[..., :, :1] * b[..., :1, :]
     for k in range(1, a.shape[-1]):
-        out = out.addcmul_(a[..., :, k : k + 1], b[..., k : k + 1, :])
+        out = out + a[..., :, k : k + 1] * b[..., k : k + 1, :]
     return out
 
 
