@@ -317,7 +317,7 @@ def run_scenes(args) -> int:
         raise ValueError("--methods is empty")
     names = names or [inspect.signature(MultiTargetTracker).parameters["filter"].default]
     for name in names:  # refused before any scene runs: a name that is not a multi-target filter
-        TrackFilter.from_method(name)
+        TrackFilter.by_name(name)
     settings = {"associator": args.associator or "gnn"}
     scenes = [load_scene(Path(args.data) / e["file"]) for e in entries]
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731

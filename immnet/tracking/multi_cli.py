@@ -126,7 +126,7 @@ def track_plots(args, limit: float, sigmas) -> int:
     plots = read_plots_csv(args.input, sigmas)
     clutter = _scene_clutter(Path(args.scene), plots) if args.scene is not None else None
     name = args.method or DEFAULT_FILTER
-    filt = TrackFilter.from_method(name)
+    filt = TrackFilter.by_name(name)
     if plots.cov is not None and args.r is not None:
         raise ValueError(f"--r and the CSV's {'plots' if plots.polar else 'covariance columns'} both give the "
                          f"plots' measurement noise: give one of the two")
