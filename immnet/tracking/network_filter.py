@@ -171,4 +171,4 @@ def no_mixture(name: str) -> str:
     """Why a network filter refuses JPDA, in one line."""
     return (f"{name} is a network: JPDA needs a mixture update over a track's gated plots, and a network's carry (its "
             f"recurrent memory and noise estimate) is one track's history, which no weighted blend stands for; use "
-            f"associator='gnn'")
+            f"GNN (associator gnn)")
