@@ -316,9 +316,9 @@ def run_scenes(args) -> int:
     if args.methods is not None and not names:
         raise ValueError("--methods is empty")
     names = names or [inspect.signature(MultiTargetTracker).parameters["filter"].default]
-    for name in names:  # refused before any scene runs: a name that is not a multi-target filter
-        TrackFilter.by_name(name)
     settings = {"associator": args.associator or "gnn"}
+    for name in names:  # refused before any scene runs: a name that is not a multi-target filter (or not for JPDA)
+        MultiTargetTracker(TrackFilter.by_name(name), associator=settings["associator"])
     scenes = [load_scene(Path(args.data) / e["file"]) for e in entries]
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     note(f"evaluating the multi-target tracker with {', '.join(names)} ({settings['associator']}) on {len(scenes)} "
