@@ -119,6 +119,14 @@ def test_a_shipped_network_is_a_method_of_the_scenes(scene_set, tmp_path):
                 for k, (t, plots, cov) in enumerate(sc.scans())]
         assert doc["methods"]["radar-5s"]["scenes"][name]["gospa_per_scan"] == pytest.approx(want, abs=1e-6)
     assert doc["methods"]["radar-5s" + TOLD]["mean"]["id_switches"] == 0
+    # in a W&B run's config: the network by name with its checkpoint's checksum, as weights.json lists it
+    from immnet.checkpoints import WEIGHTS
+    from immnet.evaluation.cli import filter_info
+
+    info = filter_info("radar-5s")
+    assert info["network"] == "radar-5s"
+    assert info["checkpoint"]["weights_sha256"] == WEIGHTS["radar-5s"]["weights_sha256"]
+    assert "config" in filter_info(FILTER)
 
 
 def test_told_association_is_one_filter_per_aircraft_by_hand():

@@ -340,13 +340,23 @@ def run_scenes(args) -> int:
         config = {"command": "evaluate", "data": {"path": str(args.data), "split": args.split, "kind": "scenes",
                                                   "scenes": doc["scenes"], "limit": args.limit,
                                                   "spec": scenes[0].meta.get("spec")},
-                  "methods": {n: wandb_log.method_info(n) for n in names}, "tracker": settings, "gospa": doc["gospa"]}
+                  "methods": {n: filter_info(n) for n in names}, "tracker": settings, "gospa": doc["gospa"]}
         run = wandb_log.start(config, args.wandb_project, args.wandb_group, args.wandb_name, args.wandb_dir)
         wandb_log.log_scenes(run, results)
         where = wandb_log.finish(run)
         if where:
             note(f"W&B run {run.id} (offline): {where}; upload with `wandb sync {where}`")
     return 0
+
+
+def filter_info(name: str) -> dict:
+    """A multi-target filter in a W&B run's config: a shipped network's name and checkpoint
+    (``wandb_log.checkpoint_info``), or a method's config (``wandb_log.method_info``)."""
+    from immnet.checkpoints import SHIPPED, shipped
+
+    if name in SHIPPED:
+        return {"network": name, "checkpoint": wandb_log.checkpoint_info(shipped(name))}
+    return wandb_log.method_info(name)
 
 
 def _check_outputs(args) -> None:
