@@ -2,8 +2,7 @@
 
 A scene set (``immnet data scenes``) is scored per method, a method being the per-track filter of the multi-target
 tracker (``immnet.filters.multi.MultiTargetTracker``; any model-based IMM or Kalman filter, or a shipped network, by
-name: ``TrackFilter.by_name``). Three kinds of
-row:
+name: ``TrackFilter.by_name``). Three kinds of row:
 
 * ``NAME``: the tracker with filter ``NAME`` on each scene's plots (clutter and missed detections included), its
   confirmed tracks at each scan being the estimates;
