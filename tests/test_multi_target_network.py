@@ -103,7 +103,7 @@ def test_tracks_added_and_dropped_leave_the_others_unchanged(name):
     rng = np.random.default_rng(3)
     T = 12
     t, z = _flights(rng, T)
-    Rk = lambda n: np.broadcast_to(R_PLOT, (n, 3, 3)).copy()  # noqa: E731
+    Rk = lambda n: np.broadcast_to(R_PLOT, (n, 3, 3)).copy()
     f, a, c = (TrackFilter.by_name(name) for _ in range(3))
     f.start(z[:2, 1], Rk(2), z[:2, 0], Rk(2), t[1] - t[0])
     a.start(z[:1, 1], Rk(1), z[:1, 0], Rk(1), t[1] - t[0])

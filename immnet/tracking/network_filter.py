@@ -98,7 +98,7 @@ class NetworkFilter(TrackFilter):
         P = out.get(keys.FUSED_COV).double()
         self._out = (x.numpy(), P.numpy(), out.get(keys.MODE_PROBS).double().numpy())
 
-    # -- the protocol ---------------------------------------------------------------------------------------------------
+    # -- the protocol -------------------------------------------------------------------------------------------------
     @torch.no_grad()
     def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:
         z, R = np.asarray(z, dtype=np.float64).reshape(-1, 3), np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
