@@ -138,6 +138,34 @@ def test_tracks_added_and_dropped_leave_the_others_unchanged(name):
     np.testing.assert_array_equal(f.state()[0][0], _alone(name, t[:2], z[0, :2])[1][0])
 
 
+def test_a_network_of_one_interval_coasts_between_a_seed_and_its_pair():
+    """``real`` (trained at 1 s alone, on flights' positions of a few metres' noise: its own noise estimate gates),
+    1 s scans. Flight A's plot is missed at scan 1: its seed (scan 0) pairs with scan 2's plot; flight B appears at
+    scan 1 and its seed pairs at scan 2 too (one start of two tracks, spanning two scans and one). Each track is the
+    network alone on its flight's plots (A coasting through scan 1: the interval of 2 s is two of its scans), to
+    float32 rounding (two tracks in one batch)."""
+    rng = np.random.default_rng(4)
+    T = 10
+    t = np.arange(T, dtype=np.float64)
+    za = np.array([20e3, -10e3, 7e3]) + np.outer(t, [180.0, 60.0, 1.0]) + rng.normal(0, 3.0, (T, 3))
+    zb = np.array([-30e3, 15e3, 9e3]) + np.outer(t, [-90.0, 200.0, 0.0]) + rng.normal(0, 3.0, (T, 3))
+    tracker = MultiTargetTracker("real", r=3.0)
+    got = {}
+    for k in range(T):
+        plots = [p for p, seen in ((za[k], k != 1), (zb[k], k >= 1)) if seen]
+        tracker.step(t[k], np.array(plots).reshape(-1, 3))
+        if k >= 2:
+            reps = tracker.tracks()
+            assert len(reps) == 2
+            for rep in reps:  # each track by where it is
+                got.setdefault(int(np.linalg.norm(rep.state[0::3] - za[k]) > 1e3), {})[k] = rep
+    ref_a = _alone("real", t, za, missed={1})
+    ref_b = _alone("real", t[1:], zb[1:])
+    for k in range(2, T):
+        np.testing.assert_allclose(got[0][k].state, ref_a[k][0], rtol=1e-7, atol=1e-4)
+        np.testing.assert_allclose(got[1][k].state, ref_b[k - 1][0], rtol=1e-7, atol=1e-4)
+
+
 def test_refusals_of_a_network_filter():
     """JPDA with a network, the bank, a network given a one-point start: one line each, naming why."""
     with pytest.raises(ValueError, match=r"^radar-5s is a network: JPDA needs a mixture update over a track's gated "
@@ -151,3 +179,12 @@ def test_refusals_of_a_network_filter():
     assert len(f) == 0
     with pytest.raises(ValueError, match="and the shipped networks by their weights' name"):
         TrackFilter.by_name("immnet-radar-5s")
+    # a scan at an interval the network does not take: refused before the tracker changes anything
+    tracker = MultiTargetTracker("radar-5s", r=30.0)
+    tracker.step(0.0, np.array([[1000.0, 2000.0, 3000.0]]))
+    with pytest.raises(ValueError, match=r"^radar-5s was trained on intervals 4.5-5.5 s but this data has an interval "
+                                         r"of 2 s, outside that range"):
+        tracker.step(2.0, np.array([[1200.0, 2000.0, 3000.0]]))
+    assert tracker._t == 0.0 and tracker._scan == 0 and len(tracker.seed_z) == 1 and len(tracker) == 0
+    tracker.step(16.0, np.array([[3000.0, 2000.0, 3000.0]]))  # longer than the range: coasted through, taken
+    assert len(tracker) == 1

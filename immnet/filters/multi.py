@@ -92,6 +92,10 @@ class TrackFilter:
     def update_mixture(self, track, z, R, beta, beta0) -> None:
         raise NotImplementedError(f"{self.name} has no mixture update: JPDA needs one (use associator='gnn')")
 
+    def check_interval(self, dt: float) -> None:
+        """A ValueError unless the filter takes a scan ``dt`` seconds after the last (the tracker asks before it
+        changes anything; the model-based filters take any interval)."""
+
     def drop(self, keep) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
@@ -568,6 +572,8 @@ class MultiTargetTracker:
             raise ValueError(f"step: t must be finite, got {t}")
         if self._t is not None and not t > self._t:
             raise ValueError(f"step: scan times must increase, got t = {t} after {self._t}")
+        if self._t is not None:
+            self.filter.check_interval(t - self._t)
         plots = np.asarray(plots, dtype=np.float64)
         if plots.size == 0:
             plots = plots.reshape(0, 3)

@@ -7,8 +7,9 @@ one call of the network's step, and each track runs as the network runs alone on
 own frame, its own start, coasting through an interval longer than the network's range):
 
 * ``start`` runs the new tracks' two plots through a fresh ``Tracker`` of their own (the seed's plot, then the
-  plot that paired with it, ``dt`` after it; the seed's scan takes ``dt`` as its interval too) and appends their
-  carry to the live tracks';
+  plot that paired with it, ``dt`` after it; the seed's scan takes ``dt`` as its interval too; a network of one
+  interval coasts through the scans between the two, missed, as it would alone) and appends their carry to the live
+  tracks';
 * ``predict`` gives each track's prediction as the network makes it: the estimate and covariance it reports after a
   scan without a detection (its coast; for filter experts and a Bayesian mode update, each expert's prior combined
   with the predicted mode probabilities, the IMM prior, moved by the output correction where the network has one).
@@ -18,7 +19,8 @@ own frame, its own start, coasting through an interval longer than the network's
   track's noise (``real-5s`` ...) filters with its estimate ``r^2 I``, which ``predict`` adds to the covariance it
   gives (``plot_noise`` False: the tracker adds nothing);
 * ``update`` is one scan of the network with each track's plot (a NaN row: missed, the network coasts);
-* ``drop`` keeps the rows asked for; the others' carry is unchanged.
+* ``drop`` keeps the rows asked for; the others' carry is unchanged;
+* ``check_interval`` refuses, before the tracker changes anything, a scan at an interval the network does not take.
 
 JPDA is refused: its update is a mixture of the hypotheses' posteriors, and a network's carry (its recurrent memory,
 its noise estimate, its history of plots) is one track's history, which no weighted blend of carries stands for.
@@ -31,6 +33,7 @@ import torch
 
 from immnet import keys
 from immnet.filters.multi import TrackFilter
+from immnet.tracking.networks import check_dt, coast_cuts, trained_for
 from immnet.tracking.tracker import Tracker
 
 
@@ -49,7 +52,8 @@ class NetworkFilter(TrackFilter):
         if net.start.told_r:
             raise ValueError(f"{name or tracker} is told each track's measurement std (r='data'): the multi-target "
                              f"tracker has none per track to tell it (load it with r=<metres> or without r)")
-        self.net, self.name = net, name or (tracker.name or "network")
+        self.net = net
+        self.name = name or tracker.name or (tracker.path.name if tracker.path is not None else "network")
         self.told_cov = bool(net.start.told_cov)
         self.plot_noise = self.told_cov
         self.no_mixture = no_mixture(self.name)
@@ -99,6 +103,23 @@ class NetworkFilter(TrackFilter):
         self._out = (x.numpy(), P.numpy(), out.get(keys.MODE_PROBS).double().numpy())
 
     # -- the protocol -------------------------------------------------------------------------------------------------
+    def check_interval(self, dt: float) -> None:
+        """A ValueError, before anything changes, unless the network takes a scan ``dt`` seconds after the last:
+        an interval it was trained at, or (a network trained over a range) one longer than the range, coasted through
+        in equal intervals inside it (``Tracker.step``'s rule)."""
+        iv = torch.tensor([float(dt)], dtype=torch.float64)
+        _, each = coast_cuts(self.net, iv, torch.zeros(1, dtype=torch.bool))
+        check_dt(self.net, each if bool(trained_for(self.net, each).all()) else iv, f"{self.name}")
+
+    def _multiples(self, dt: np.ndarray) -> np.ndarray:
+        """The scans each start's interval spans for a network of one interval (its ``dt`` times a whole number: the
+        seed's scan, missed scans, the pair's scan); 1 for a network over a range (``Tracker.step`` cuts those)."""
+        if getattr(self.net, "interval_range", None) is not None:
+            return np.ones(len(dt), np.int64)
+        k = np.rint(dt / float(self.net.dt))
+        whole = (k >= 2) & np.isclose(dt, k * float(self.net.dt), rtol=1e-9, atol=0.0)
+        return np.where(whole, k, 1).astype(np.int64)
+
     @torch.no_grad()
     def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:
         z, R = np.asarray(z, dtype=np.float64).reshape(-1, 3), np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
@@ -108,17 +129,28 @@ class NetworkFilter(TrackFilter):
         if z_prev is None:
             raise ValueError(f"{self.name}: a network's track starts from two plots (z_prev, R_prev and dt)")
         zp, Rp = np.asarray(z_prev, dtype=np.float64).reshape(-1, 3), np.asarray(R_prev, dtype=np.float64)
+        Rp = Rp.reshape(-1, 3, 3)
         dt = np.broadcast_to(np.asarray(dt, dtype=np.float64).reshape(-1), (k,)).copy()
-        new = self._fresh(self._tr)
-        new.reset(k)
-        self._step(new, zp, Rp.reshape(-1, 3, 3), dt)
-        self._step(new, z, R, dt)
-        x, P, probs = self._out
+        spans = self._multiples(dt)
+        parts, order = [], []
+        for n in np.unique(spans):  # the starts spanning n scans together: seed, n - 1 missed scans, pair
+            rows = np.flatnonzero(spans == n)
+            new = self._fresh(self._tr)
+            new.reset(len(rows))
+            each = dt[rows] / n
+            self._step(new, zp[rows], Rp[rows], each)
+            for _ in range(n - 1):
+                self._step(new, np.full((len(rows), 3), np.nan), None, each)
+            self._step(new, z[rows], R[rows], each)
+            parts.append((new, self._out))
+            order.append(rows)
+        back = torch.from_numpy(np.argsort(np.concatenate(order), kind="stable"))  # the rows in the order given
+        fields = {f: torch.cat([getattr(new, f) for new, _ in parts])[back] for f in self._FIELDS}
+        x, P, probs = (np.concatenate([out[i] for _, out in parts])[back.numpy()] for i in range(3))
         if self._tr.carry is None:
-            self._restore({f: getattr(new, f) for f in self._FIELDS})
+            self._restore(fields)
         else:
-            for f in self._FIELDS:
-                setattr(self._tr, f, torch.cat([getattr(self._tr, f), getattr(new, f)]))
+            self._restore({f: torch.cat([getattr(self._tr, f), v]) for f, v in fields.items()})
         self._x, self._P = np.concatenate([self._x, x]), np.concatenate([self._P, P])
         self._probs = np.concatenate([self._probs, probs])
 
