@@ -167,12 +167,18 @@ def test_a_network_of_one_interval_coasts_between_a_seed_and_its_pair():
 
 
 def test_refusals_of_a_network_filter():
-    """JPDA with a network, the bank, a network given a one-point start: one line each, naming why."""
+    """JPDA with a network, the bank, a network told r per track, a one-point start, a method config of a network, a
+    scan at an interval the network does not take: one line each, naming why."""
     with pytest.raises(ValueError, match=r"^radar-5s is a network: JPDA needs a mixture update over a track's gated "
                                          r"plots, .* use GNN \(associator gnn\)$"):
         MultiTargetTracker("radar-5s", associator="jpda")
     with pytest.raises(ValueError, match=r"^bank is several networks weighed per track, not one"):
         MultiTargetTracker("bank")
+    from immnet.tracking.network_filter import NetworkFilter
+
+    with pytest.raises(ValueError, match=r"^real-5s is told each track's measurement std \(r='data'\): the "
+                                         r"multi-target tracker has none per track to tell it"):
+        NetworkFilter(Tracker.pretrained("real-5s", r="data"), "real-5s")
     f = TrackFilter.by_name("radar-5s")
     with pytest.raises(ValueError, match="a network's track starts from two plots"):
         f.start(np.zeros((1, 3)), np.eye(3)[None])

@@ -38,8 +38,8 @@ from immnet.tracking.tracker import Tracker
 
 
 class NetworkFilter(TrackFilter):
-    """A network's tracks for the multi-target tracker (module doc). ``tracker``: a streaming ``Tracker`` (its
-    network and settings; it must hold no tracks); ``name``: what it is, for messages. The tracker's ``max_coast`` is
+    """A network's tracks for the multi-target tracker (module doc). ``tracker``: a streaming ``Tracker`` whose
+    network and ``max_position`` it takes (not its tracks); ``name``: what it is, for messages (None: the tracker's). The tracker's ``max_coast`` is
     set to ``inf``: the multi-target tracker deletes a track after its misses, the network never restarts one."""
 
     def __init__(self, tracker: Tracker, name: str | None = None):
