@@ -5,7 +5,8 @@ Run (Stone Soup is in the ``dev`` extra, the tests' peer: ``pip install -e '.[de
 
     immnet data scenes --samples collections/quickstart collections/switzerland --out data/scenes --n 3
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/mtt_peer.py --scenes data/scenes [--tune-scenes 2] \\
-        [--trackers gnn,jpda,ours,told] [--params OUT.json] [--time-limit S] [--out results/mtt_peer] [--write-benchmarks]
+        [--trackers gnn,jpda,ours,told] [--filter NAME[,NAME...]] [--split test|train] [--params OUT.json] \\
+        [--time-limit S] [--out results/mtt_peer] [--write-benchmarks]
 
 Stone Soup 1.9.1, as its documentation's examples build them: an extended Kalman filter (``ExtendedKalmanPredictor``,
 ``ExtendedKalmanUpdater``) with a nearly-constant-velocity model per axis (``ConstantVelocity``, noise diffusion
@@ -23,9 +24,11 @@ counterclockwise from east, range; the scene's noise); each detection in polar c
 
 Tuning (training scenes only, the first ``--tune-scenes`` of split ``train``, of ``--tune-set`` where given): the grid
 ``GRID`` over ``q``, ``delete_steps`` and ``min_points``; the choice is the lowest mean GOSPA over the scans of those
-scenes. The chosen settings then run on every ``test`` scene. Ours runs with its defaults (tuned on training scenes
-by ``benchmarks/mtt_tune.py``; ``--filter`` another per-track filter), told the scenes' detection probability and
-clutter density (nothing of it tuned on the test scenes).
+scenes. The chosen settings then run on every ``test`` scene (``--split train``: on the training scenes instead, to
+choose among our filters there; the table then holds no held-out number). Ours runs with its defaults (tuned on
+training scenes by ``benchmarks/mtt_tune.py``; ``--filter`` another per-track filter, or several, comma-separated: a
+row each, e.g. ``--filter real-imm-5s,radar-5s`` for the model-based default beside a shipped network), told the
+scenes' detection probability and clutter density (nothing of it tuned on the test scenes).
 
 References told the association (``--trackers ... told``): ours (``immnet.evaluation.scenes.run_told``: our filter on
 each aircraft's own plots, its two-point start, coasting and deletion) and Stone Soup's EKF with the CV model (the
@@ -338,7 +341,11 @@ def main(argv=None) -> int:
     ap.add_argument("--test-scenes", type=int, default=3, help="test scenes to evaluate on (default 3)")
     ap.add_argument("--trackers", default="gnn,jpda,ours,told",
                     help="of gnn, jpda, ours, told (ours and Stone Soup's EKF told the association), default all")
-    ap.add_argument("--filter", default=None, help="our per-track filter (default: the tracker's default)")
+    ap.add_argument("--filter", default=None,
+                    help="our per-track filter, or several comma-separated, a row each (a method's or a shipped "
+                         "network's name; default: the tracker's default)")
+    ap.add_argument("--split", choices=("test", "train"), default="test",
+                    help="the scenes to evaluate on (default test; train: to choose among filters on training scenes)")
     ap.add_argument("--time-limit", type=float, default=None, metavar="S",
                     help="stop each Stone Soup run of a scene after S seconds of wall time; the scans it finished are "
                          "scored and the table says how many (default: no limit)")
@@ -362,7 +369,8 @@ def main(argv=None) -> int:
     tune_set = a.tune_set or a.scenes
     train = [load_scene(tune_set / e["file"]) for e in load_index(tune_set)["scenes"]
              if e["split"] == "train"][: a.tune_scenes]
-    test = [load_scene(a.scenes / e["file"]) for e in entries["test"][: a.test_scenes]]
+    test = [load_scene(a.scenes / e["file"]) for e in entries[a.split][: a.test_scenes]]
+    filters = [f.strip() for f in (a.filter or "").split(",") if f.strip()] or [None]
     if not test or (not train and a.params is None and ({"gnn", "jpda"} & set(trackers))):
         ap.error(f"{a.scenes}: needs test scenes and, to tune, training scenes (has {len(train)} train, "
                  f"{len(test)} test)")
@@ -385,7 +393,15 @@ def main(argv=None) -> int:
              "told": "ours told the association", "ss-told": "Stone Soup EKF+CV told the association"}
     if "told" in trackers and "chosen" in result and not ({"gnn", "jpda"} & set(result["chosen"])):
         log("[told] Stone Soup told the association needs a tuned q: left out")
-    kinds = [k for k in ("gnn", "jpda", "ours", "told") if k in trackers]
+    kinds = [k for k in ("gnn", "jpda") if k in trackers]
+    for f in filters:  # a row of ours (and ours told the association) per filter
+        for k in ("ours", "told"):
+            if k in trackers:
+                kinds.append((k, f))
+                if len(filters) > 1:
+                    names[(k, f)] = f"{names[k]}, {f}"
+                else:
+                    names[(k, f)] = names[k]
     if "told" in trackers and ({"gnn", "jpda"} & set(result["chosen"])):
         kinds.append("ss-told")
     rows_of = {names[k]: [] for k in kinds}
@@ -395,14 +411,12 @@ def main(argv=None) -> int:
         # Stone Soup's told reference takes the settings of its tracker that scored best in tuning
         best_ss = min((k for k in ("gnn", "jpda") if k in result["chosen"]),
                       key=lambda k: min((r["gospa"] for r in result["tuning"].get(k) or []), default=math.inf))
-    for kind in set(kinds) & {"gnn", "jpda"}:  # Stone Soup's imports done before any run is timed or capped
+    for kind in {"gnn", "jpda"} & set(result["chosen"]) & set(kinds):  # Stone Soup's imports done before any run is timed or capped
         stonesoup_tracker(kind, test[0], **result["chosen"][kind])
     for sc in test:  # every tracker on one scene before the next: same machine state for each
         for kind in kinds:
-            if kind == "ours":
-                run = run_ours(sc, a.filter)
-            elif kind == "told":
-                run = run_ours_told(sc, a.filter)
+            if isinstance(kind, tuple):
+                run = (run_ours if kind[0] == "ours" else run_ours_told)(sc, kind[1])
             elif kind == "ss-told":
                 run = run_stonesoup_told(sc, result["chosen"][best_ss])
             else:
@@ -410,10 +424,11 @@ def main(argv=None) -> int:
                 capped(lambda k=kind, s=sc, r=run: run_stonesoup(k, s, result["chosen"][k], r), a.time_limit)
             row = evaluate(run, sc)
             rows_of[names[kind]].append(row)
-            log(f"[{sc.name}] {kind}: GOSPA {row['gospa']:.1f} m over {row['scans_done']}/{row['scans']} scans, "
+            log(f"[{sc.name}] {names[kind]}: GOSPA {row['gospa']:.1f} m over {row['scans_done']}/{row['scans']} scans, "
                 f"{row['ms_per_scan_median']:.1f} ms/scan")
         rows_of[RAW].append(evaluate(raw_plots(sc), sc))
     result["filter"] = a.filter
+    result["split"] = a.split
     result["time_limit"] = a.time_limit
     for name, rows in rows_of.items():
         result["test"][name] = mean_rows(rows)

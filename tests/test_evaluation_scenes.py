@@ -106,6 +106,29 @@ def test_scores_are_gospa_of_the_confirmed_tracks(scene_set, tmp_path, capsys):
         assert 0 <= ms["median"] <= ms["max"]
 
 
+def test_a_shipped_network_is_a_method_of_the_scenes(scene_set, tmp_path):
+    """``--methods real-ca-5s,radar-5s``: the network's rows beside the model-based filter's, its scores those of
+    ``MultiTargetTracker("radar-5s")`` on each scene (GOSPA by brute force), its told row the network told the
+    association (no id switch)."""
+    doc = run_cli(scene_set, tmp_path, "--methods", f"{FILTER},radar-5s")
+    assert list(doc["methods"]) == [FILTER, FILTER + TOLD, "radar-5s", "radar-5s" + TOLD, RAW]
+    for name in doc["scenes"]:
+        sc = load_scene(scene_set / "test" / f"{name}.npz")
+        tracker = MultiTargetTracker("radar-5s")
+        want = [brute_gospa(sc.truth(k)[0], [r.state[[0, 3, 6]] for r in tracker.step(t, plots, cov)])
+                for k, (t, plots, cov) in enumerate(sc.scans())]
+        assert doc["methods"]["radar-5s"]["scenes"][name]["gospa_per_scan"] == pytest.approx(want, abs=1e-6)
+    assert doc["methods"]["radar-5s" + TOLD]["mean"]["id_switches"] == 0
+    # in a W&B run's config: the network by name with its checkpoint's checksum, as weights.json lists it
+    from immnet.checkpoints import WEIGHTS
+    from immnet.evaluation.cli import filter_info
+
+    info = filter_info("radar-5s")
+    assert info["network"] == "radar-5s"
+    assert info["checkpoint"]["weights_sha256"] == WEIGHTS["radar-5s"]["weights_sha256"]
+    assert "config" in filter_info(FILTER)
+
+
 def test_told_association_is_one_filter_per_aircraft_by_hand():
     """The told reference (batched, with coasting, deletion after 2 misses and restarts) gives at every scan the
     estimates of one filter per aircraft stepped by hand on that aircraft's plots alone; clutter never enters."""
@@ -192,6 +215,7 @@ def test_wandb_offline_logs_the_table_and_gospa_over_time_per_scene(scene_set, t
     (["--methods", "immnet"], "immnet is a IMMNet"),
     (["--methods", "real-imm-channel-5s"], "an IMM with modes per channel is not a multi-target filter"),
     (["--methods", ","], "--methods is empty"),
+    (["--methods", "radar-5s", "--associator", "jpda"], "radar-5s is a network: JPDA needs a mixture update"),
     (["--limit", "0"], "--limit must be positive"),
 ])
 def test_refusals(scene_set, tmp_path, capsys, args, message):

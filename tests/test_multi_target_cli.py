@@ -200,7 +200,18 @@ REFUSALS = [
      "--r and the CSV's plots both give the plots' measurement noise: give one of the two"),
     (CART, GOOD, ("--r", "30", "--weights", "3dlast"),
      "--weights does not apply to plots without a track_id column (the multi-target tracker): its per-track filter "
-     "is a model-based method (--method NAME), not a network"),
+     "is named by --method NAME (a model-based method, or a shipped network such as radar-5s)"),
+    (CART, GOOD, ("--r", "30", "--checkpoint", "my.ckpt"),
+     "--checkpoint does not apply to plots without a track_id column (the multi-target tracker): its per-track "
+     "filter is named by --method NAME (a model-based method, or a shipped network such as radar-5s), not a "
+     "checkpoint file"),
+    (CART, GOOD, ("--r", "30", "--method", "radar-5s", "--associator", "jpda"),
+     "radar-5s is a network: JPDA needs a mixture update over a track's gated plots, and a network's carry (its "
+     "recurrent memory and noise estimate) is one track's history, which no weighted blend stands for; use GNN "
+     "(associator gnn)"),
+    (CART, GOOD, ("--r", "30", "--method", "bank"),
+     "bank is several networks weighed per track, not one: the multi-target tracker's network filters are the "
+     "shipped networks by name (general, real, real-5s, real-11s, real-4.5-12s, 3dlast, ...)"),
     (CART, GOOD, ("--r", "30", "--max-coast", "60"),
      "--max-coast does not apply to plots without a track_id column (the multi-target tracker): a confirmed track "
      "is deleted after missed scans in a row, not after seconds"),
@@ -220,7 +231,8 @@ REFUSALS = [
      "--figure radar.jpg: the radar display is a PNG file (a name ending .png)"),
     (CART, GOOD, ("--r", "30", "--method", "clairvoyant"),
      "clairvoyant is a ClairvoyantKF: the multi-target tracker's filters are the model-based IMMs and Kalman filters "
-     "(IMMTracker, PerAxisIMMTracker, KalmanFilterTracker)"),
+     "(IMMTracker, PerAxisIMMTracker, KalmanFilterTracker) and the shipped networks by their weights' name "
+     "(radar-5s, real-5s, ...)"),
     (["track_id", *CART], [["a", *GOOD[0]]], ("--method", "imm-tuned", "--associator", "jpda"),
      "--associator is the multi-target tracker's, for a CSV of plots without a track_id column; IN has a track_id "
      "column"),
@@ -278,6 +290,32 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
                  "--scene", str(other)]) == 2
     assert capsys.readouterr().err.strip().startswith(f"immnet track: error: --scene {other}: not the scene of this CSV")
     assert not out.exists() and not png.exists()
+
+
+def test_a_shipped_network_as_the_per_track_filter(tmp_path, capsys):
+    """``--method radar-5s``: the scene's CSV tracked with the network as each track's filter gives the tracks of
+    ``MultiTargetTracker("radar-5s")`` stepped through the scene's own arrays (within a metre: the CSV's covariances
+    are converted from its text), with the data modes' probabilities the network reports (each row sums to 1)."""
+    from immnet.filters.multi import MultiTargetTracker
+
+    scene, _, plots = _scene(tmp_path)
+    spec = scene.meta["spec"]
+    stds = ("--sigma-range", repr(spec["sigma_range"]), "--sigma-azimuth", repr(spec["sigma_azimuth_deg"]),
+            "--sigma-elevation", repr(spec["sigma_elevation_deg"]))
+    out = tmp_path / "tracks.csv"
+    assert main(["track", "--input", str(plots), "--output", str(out), *stds, "--method", "radar-5s"]) == 0
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
+        f"tracked {len(scene)} scans, {len(scene.plots)} plots with radar-5s (GNN)")
+    rows = _read(out)
+    tracker = MultiTargetTracker("radar-5s")
+    want = [(str(rep.track_id), repr(t), rep.state[[0, 3, 6]]) for t, z, cov in scene.scans()
+            for rep in tracker.step(t, z, cov)]
+    assert len({w[0] for w in want}) >= 3
+    assert [(r["track_id"], r["t"]) for r in rows] == [w[:2] for w in want]
+    got = np.array([[float(r[c]) for c in "xyz"] for r in rows])
+    assert np.abs(got - np.array([w[2] for w in want])).max() < 1.0
+    probs = np.array([[float(r[c]) for c in ("p_cv", "p_ca", "p_ctp", "p_ctm")] for r in rows])
+    np.testing.assert_allclose(probs.sum(1), 1.0, atol=1e-5)
 
 
 def test_long_inputs_say_where_they_are_and_the_help_names_the_default_filter(tmp_path, capsys, monkeypatch):

@@ -316,9 +316,9 @@ def run_scenes(args) -> int:
     if args.methods is not None and not names:
         raise ValueError("--methods is empty")
     names = names or [inspect.signature(MultiTargetTracker).parameters["filter"].default]
-    for name in names:  # refused before any scene runs: a name that is not a multi-target filter
-        TrackFilter.from_method(name)
     settings = {"associator": args.associator or "gnn"}
+    for name in names:  # refused before any scene runs: a name that is not a multi-target filter (or not for JPDA)
+        MultiTargetTracker(TrackFilter.by_name(name), associator=settings["associator"])
     scenes = [load_scene(Path(args.data) / e["file"]) for e in entries]
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     note(f"evaluating the multi-target tracker with {', '.join(names)} ({settings['associator']}) on {len(scenes)} "
@@ -340,13 +340,23 @@ def run_scenes(args) -> int:
         config = {"command": "evaluate", "data": {"path": str(args.data), "split": args.split, "kind": "scenes",
                                                   "scenes": doc["scenes"], "limit": args.limit,
                                                   "spec": scenes[0].meta.get("spec")},
-                  "methods": {n: wandb_log.method_info(n) for n in names}, "tracker": settings, "gospa": doc["gospa"]}
+                  "methods": {n: filter_info(n) for n in names}, "tracker": settings, "gospa": doc["gospa"]}
         run = wandb_log.start(config, args.wandb_project, args.wandb_group, args.wandb_name, args.wandb_dir)
         wandb_log.log_scenes(run, results)
         where = wandb_log.finish(run)
         if where:
             note(f"W&B run {run.id} (offline): {where}; upload with `wandb sync {where}`")
     return 0
+
+
+def filter_info(name: str) -> dict:
+    """A multi-target filter in a W&B run's config: a shipped network's name and checkpoint
+    (``wandb_log.checkpoint_info``), or a method's config (``wandb_log.method_info``)."""
+    from immnet.checkpoints import SHIPPED, shipped
+
+    if name in SHIPPED:
+        return {"network": name, "checkpoint": wandb_log.checkpoint_info(shipped(name))}
+    return wandb_log.method_info(name)
 
 
 def _check_outputs(args) -> None:

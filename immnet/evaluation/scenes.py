@@ -1,8 +1,8 @@
 """Scoring multi-target trackers on scenes (``immnet evaluate --data SCENES``; docs/evaluation.md, "Scenes").
 
 A scene set (``immnet data scenes``) is scored per method, a method being the per-track filter of the multi-target
-tracker (``immnet.filters.multi.MultiTargetTracker``; any model-based IMM or Kalman filter by name). Three kinds of
-row:
+tracker (``immnet.filters.multi.MultiTargetTracker``; any model-based IMM or Kalman filter, or a shipped network, by
+name: ``TrackFilter.by_name``). Three kinds of row:
 
 * ``NAME``: the tracker with filter ``NAME`` on each scene's plots (clutter and missed detections included), its
   confirmed tracks at each scan being the estimates;
@@ -70,7 +70,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
     defaults = inspect.signature(MultiTargetTracker).parameters
     delete_after = defaults["delete_after"].default if delete_after is None else int(delete_after)
     max_pos_std = defaults["max_pos_std"].default if max_pos_std is None else float(max_pos_std)
-    f = TrackFilter.from_method(filter)
+    f = TrackFilter.by_name(filter)
     A = len(scene.aircraft)
     track_of = np.full(A, -1, np.int64)  # each aircraft's row in the filter (-1: none)
     ids = np.zeros(0, np.int64)

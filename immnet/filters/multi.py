@@ -1,7 +1,8 @@
 """Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, M-of-N confirmation,
 coasting and deletion around a batched per-track filter (docs/multi-target.md, "The tracker").
 
-    tracker = MultiTargetTracker("real-imm-5s", r=50.0)          # any model-based IMM or Kalman filter by name
+    tracker = MultiTargetTracker("real-imm-5s", r=50.0)          # a model-based IMM or Kalman filter, or a network,
+                                                                  # by name ("radar-5s": immnet.tracking.network_filter)
     for t, plots in scans:                                        # plots [N, 3] ENU (m); R [N, 3, 3] optional
         for rep in tracker.step(t, plots):                        # the confirmed tracks
             rep.track_id, rep.state, rep.cov, rep.updated
@@ -9,7 +10,8 @@ coasting and deletion around a batched per-track filter (docs/multi-target.md, "
 One scan, for every live track at once:
 
 1. the filter predicts every track to the scan (one tensor step) and gives each track's predicted position and its
-   covariance ``S_i = H P_i H^T`` (an IMM's moment-matched prior over its modes);
+   covariance ``S_i = H P_i H^T`` (an IMM's moment-matched prior over its modes; a filter with a measurement noise
+   of its own, ``plot_noise`` False, includes it, and the gate adds no plot's ``R_j`` below);
 2. gating: a k-d tree of the plots gives the plots inside a ball that holds each track's gate; on those pairs only,
    ``d^2 = nu^T (S_i + R_j)^{-1} nu <= chi2_3(gate)`` (``immnet.imm.kalman.inv3``), and the pair's log-likelihood
    ``log N(nu; 0, S_i + R_j)`` (``gaussian_loglik``);
@@ -65,10 +67,15 @@ class TrackFilter:
     ``P [K, 9, 9]`` in the layout ``[x, vx, ax, y, vy, ay, z, vz, az]``. Arrays in and out are numpy float64.
 
     ``r``: the measurement std (m) the filter assumes where plots come without covariances (None: it assumes
-    none); ``name``: what it is, for messages."""
+    none); ``name``: what it is, for messages; ``plot_noise``: the filter measures with each plot's ``R``, which the
+    gate adds to the predicted covariance (False: the filter has its own measurement noise, already in the covariance
+    ``predict`` gives); ``no_mixture``: None, or why the filter has no mixture update (JPDA is then refused, with
+    this line)."""
 
     r: float | None = None
     name: str = "filter"
+    plot_noise: bool = True
+    no_mixture: str | None = None
 
     def __len__(self) -> int:  # pragma: no cover - interface
         raise NotImplementedError
@@ -85,11 +92,33 @@ class TrackFilter:
     def update_mixture(self, track, z, R, beta, beta0) -> None:
         raise NotImplementedError(f"{self.name} has no mixture update: JPDA needs one (use associator='gnn')")
 
+    def check_interval(self, dt: float) -> None:
+        """A ValueError unless the filter takes a scan ``dt`` seconds after the last (the tracker asks before it
+        changes anything; the model-based filters take any interval)."""
+
     def drop(self, keep) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
     def state(self):  # pragma: no cover - interface
         raise NotImplementedError
+
+    @staticmethod
+    def by_name(name: str, r: float | None = None) -> "TrackFilter":
+        """The filter named ``name``: a shipped network (``immnet.checkpoints.SHIPPED``: ``radar-5s``, ``real-5s``,
+        ...; ``immnet.tracking.network_filter.NetworkFilter``, built from its class path as a method config's class
+        is, so that this layer imports nothing of ``immnet.tracking``) or a model-based method (``from_method``).
+        ``r``: the measurement std to assume where plots come without covariances (a method's; a network assumes
+        none)."""
+        from immnet.checkpoints import BANK, BANK_MEMBERS, SHIPPED
+
+        if name == BANK:
+            raise ValueError(f"{name} is several networks weighed per track, not one: the multi-target tracker's "
+                             f"network filters are the shipped networks by name ({', '.join(BANK_MEMBERS)}, ...)")
+        if name in SHIPPED:
+            from immnet.config import import_class
+
+            return import_class(NETWORK_FILTER, TrackFilter).pretrained(name)
+        return TrackFilter.from_method(name, r)
 
     @staticmethod
     def from_method(name: str, r: float | None = None) -> "IMMFilter":
@@ -116,7 +145,12 @@ class TrackFilter:
         if isinstance(method, KalmanFilterTracker):
             return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], groups="joint", r=r, name=name)
         raise ValueError(f"{name} is a {type(method).__name__}: the multi-target tracker's filters are the model-based "
-                         f"IMMs and Kalman filters (IMMTracker, PerAxisIMMTracker, KalmanFilterTracker)")
+                         f"IMMs and Kalman filters (IMMTracker, PerAxisIMMTracker, KalmanFilterTracker) and the "
+                         f"shipped networks by their weights' name (radar-5s, real-5s, ...)")
+
+
+NETWORK_FILTER = "immnet.tracking.network_filter.NetworkFilter"
+"""The class of a shipped network as a per-track filter (``TrackFilter.by_name``)."""
 
 
 def _t(a) -> torch.Tensor:
@@ -471,8 +505,8 @@ DEFAULT_FILTER = MULTI_TARGET_FILTER
 
 
 class MultiTargetTracker:
-    """Tracks from unlabelled plots (module doc). ``filter``: a ``TrackFilter`` with no tracks, or a method's name
-    (``TrackFilter.from_method``); ``gate``: the gate probability ``pg`` (the chi-square threshold with 3 degrees of
+    """Tracks from unlabelled plots (module doc). ``filter``: a ``TrackFilter`` with no tracks, or a method's or a
+    shipped network's name (``TrackFilter.by_name``; a network refuses ``associator="jpda"``); ``gate``: the gate probability ``pg`` (the chi-square threshold with 3 degrees of
     freedom); ``init``: ``TwoPointStart``; ``confirm``: ``(M, N)``, ``2 <= M <= N``; ``delete_after``: the consecutive
     misses that delete a confirmed track; ``max_pos_std``: the position standard deviation (m) beyond which any track
     is deleted; ``associator``: ``"gnn"`` or ``"jpda"`` (with ``pd`` the detection probability and
@@ -484,7 +518,7 @@ class MultiTargetTracker:
                  max_pos_std: float = 5000.0, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
                  clutter_density: float = 1e-12, jpda_max_events: int = 20000):
         if isinstance(filter, str):
-            filter = TrackFilter.from_method(filter)
+            filter = TrackFilter.by_name(filter)
         if not isinstance(filter, TrackFilter):
             raise TypeError(f"filter must be a TrackFilter or a method's name, got {type(filter).__name__}")
         if len(filter):
@@ -501,6 +535,8 @@ class MultiTargetTracker:
             raise ValueError(f"delete_after must be a whole number of scans >= 1, got {delete_after!r}")
         if associator not in ASSOCIATORS:
             raise ValueError(f"associator must be one of {', '.join(ASSOCIATORS)}, got {associator!r}")
+        if associator == "jpda" and filter.no_mixture:
+            raise ValueError(filter.no_mixture)
         for label, v in (("max_pos_std", max_pos_std), ("init.max_speed", init.max_speed),
                          ("clutter_density", clutter_density)):
             if not v > 0:
@@ -536,6 +572,8 @@ class MultiTargetTracker:
             raise ValueError(f"step: t must be finite, got {t}")
         if self._t is not None and not t > self._t:
             raise ValueError(f"step: scan times must increase, got t = {t} after {self._t}")
+        if self._t is not None:
+            self.filter.check_interval(t - self._t)
         plots = np.asarray(plots, dtype=np.float64)
         if plots.size == 0:
             plots = plots.reshape(0, 3)
@@ -573,7 +611,8 @@ class MultiTargetTracker:
         free = np.ones(N, bool)  # plots no track took
         if K:
             z_pred, S = self.filter.predict(t - self._t)
-            ti, pj, ll = gate_pairs(z_pred, S, plots, R, self.threshold, tree)
+            ti, pj, ll = gate_pairs(z_pred, S, plots, R if self.filter.plot_noise else np.zeros_like(R),
+                                    self.threshold, tree)
             conf = self.confirmed[ti]
             z_k = np.full((K, 3), np.nan)
             R_k = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()

@@ -10,6 +10,7 @@ __getattr__, __dir__, __all__ = lazy_names(__name__, {
     "BankMethod": "immnet.tracking.bank", "NetworkBank": "immnet.tracking.bank",
     "IMMNetMethod": "immnet.tracking.methods", "KalmanNetMethod": "immnet.tracking.methods",
     "Tracker": "immnet.tracking.tracker", "load_network": "immnet.tracking.tracker",
+    "NetworkFilter": "immnet.tracking.network_filter",
     **dict.fromkeys(("IMMFilter", "MultiTargetTracker", "TrackFilter", "TrackReport", "TwoPointStart"),
                     "immnet.filters.multi"),
 })

@@ -19,8 +19,10 @@ LONG = 1000
 MULTI_OPTIONS = ("associator", "pd", "clutter_density", "figure", "scene")
 """The options of the multi-target tracker alone (None where not given)."""
 SINGLE_OPTIONS = {
-    "weights": "its per-track filter is a model-based method (--method NAME), not a network",
-    "checkpoint": "its per-track filter is a model-based method (--method NAME), not a network",
+    "weights": "its per-track filter is named by --method NAME (a model-based method, or a shipped network such as "
+               "radar-5s)",
+    "checkpoint": "its per-track filter is named by --method NAME (a model-based method, or a shipped network such as "
+                  "radar-5s), not a checkpoint file",
     "adapt": "its filters keep the method's own process noise",
     "max_coast": "a confirmed track is deleted after missed scans in a row, not after seconds",
 }
@@ -126,7 +128,7 @@ def track_plots(args, limit: float, sigmas) -> int:
     plots = read_plots_csv(args.input, sigmas)
     clutter = _scene_clutter(Path(args.scene), plots) if args.scene is not None else None
     name = args.method or DEFAULT_FILTER
-    filt = TrackFilter.from_method(name)
+    filt = TrackFilter.by_name(name)
     if plots.cov is not None and args.r is not None:
         raise ValueError(f"--r and the CSV's {'plots' if plots.polar else 'covariance columns'} both give the "
                          f"plots' measurement noise: give one of the two")
