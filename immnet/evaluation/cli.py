@@ -292,12 +292,10 @@ SCENE_REFUSED = (("checkpoint", "--checkpoint", []), ("guard", "--guard", "check
 def run_scenes(args) -> int:
     """``immnet evaluate`` on a scene set: the multi-target tracker with each filter of ``--methods``, each filter
     told the association, and the raw plots, scored by GOSPA and the identity metrics (``immnet.evaluation.scenes``)."""
-    import inspect
-
     from immnet.data.scenes import load_index, load_scene
     from immnet.evaluation import scenes as sc
     from immnet.evaluation.runner import finite_or_none
-    from immnet.filters.multi import MultiTargetTracker, TrackFilter
+    from immnet.filters.multi import DEFAULT_FILTER, MultiTargetTracker, TrackFilter
 
     for attr, option, default in SCENE_REFUSED:
         if getattr(args, attr) != default:
@@ -315,7 +313,7 @@ def run_scenes(args) -> int:
     names = [n.strip() for n in (args.methods or "").split(",") if n.strip()]
     if args.methods is not None and not names:
         raise ValueError("--methods is empty")
-    names = names or [inspect.signature(MultiTargetTracker).parameters["filter"].default]
+    names = names or [DEFAULT_FILTER]
     settings = {"associator": args.associator or "gnn"}
     for name in names:  # refused before any scene runs: a name that is not a multi-target filter (or not for JPDA)
         MultiTargetTracker(TrackFilter.by_name(name), associator=settings["associator"])

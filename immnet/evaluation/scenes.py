@@ -63,13 +63,10 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
     ``delete_after`` consecutive scans without one or once its position std exceeds ``max_pos_std`` (the tracker's
     defaults where None); its aircraft's next plot then seeds a new track. A track is reported at every scan from its
     start to its deletion, under its own id. Returns what :func:`run_tracker` returns."""
-    import inspect
+    from immnet.filters.multi import DELETE_AFTER, MAX_POS_STD, TrackFilter
 
-    from immnet.filters.multi import MultiTargetTracker, TrackFilter
-
-    defaults = inspect.signature(MultiTargetTracker).parameters
-    delete_after = defaults["delete_after"].default if delete_after is None else int(delete_after)
-    max_pos_std = defaults["max_pos_std"].default if max_pos_std is None else float(max_pos_std)
+    delete_after = DELETE_AFTER if delete_after is None else int(delete_after)
+    max_pos_std = MAX_POS_STD if max_pos_std is None else float(max_pos_std)
     f = TrackFilter.by_name(filter)
     A = len(scene.aircraft)
     track_of = np.full(A, -1, np.int64)  # each aircraft's row in the filter (-1: none)

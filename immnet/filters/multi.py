@@ -502,6 +502,10 @@ class TrackReport:
 ASSOCIATORS = ("gnn", "jpda")
 DEFAULT_FILTER = MULTI_TARGET_FILTER
 """The per-track filter a ``MultiTargetTracker`` builds unless told another (``immnet.filters.registry``)."""
+DELETE_AFTER = 3
+"""The consecutive misses that delete a confirmed track, unless told otherwise (chosen on the training scenes)."""
+MAX_POS_STD = 5000.0
+"""The position standard deviation (m) beyond which any track is deleted, unless told otherwise."""
 
 
 class MultiTargetTracker:
@@ -514,8 +518,8 @@ class MultiTargetTracker:
     the filter's)."""
 
     def __init__(self, filter: TrackFilter | str = DEFAULT_FILTER, gate: float = 0.9999,
-                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = 3,
-                 max_pos_std: float = 5000.0, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
+                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = DELETE_AFTER,
+                 max_pos_std: float = MAX_POS_STD, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
                  clutter_density: float = 1e-12, jpda_max_events: int = 20000):
         if isinstance(filter, str):
             filter = TrackFilter.by_name(filter)
