@@ -107,6 +107,28 @@ TEMPER = 0.5
 """The shipped bank's power of each scan's likelihood (chosen on the validation sets, docs/tracking.md)."""
 
 
+def _check_defer(defer, names: list[str]) -> dict[str, tuple[str, ...]]:
+    """``defer`` (member -> the members it gives way to) as checked: every name a member's, none giving way to itself,
+    and none giving way that another gives way to (no chains); a ValueError naming what is wrong."""
+    if defer is None:
+        return {}
+    if not isinstance(defer, dict):
+        raise ValueError(f"a bank's defer maps a member to the members it gives way to, got {defer!r}")
+    out = {}
+    for k, others in defer.items():
+        others = (others,) if isinstance(others, str) else tuple(others)
+        unknown = [str(n) for n in (k, *others) if n not in names]
+        if unknown:
+            raise ValueError(f"a bank's defer names {', '.join(unknown)}, not a member ({', '.join(names)})")
+        if k in others or not others:
+            raise ValueError(f"a bank's member {k!r} gives way to other members, one or more, got {list(others)}")
+        out[str(k)] = tuple(map(str, others))
+    chained = [k for k in out if any(k in others for others in out.values())]
+    if chained:
+        raise ValueError(f"bank member {chained[0]!r} both gives way (defer) and is given way to")
+    return out
+
+
 class NetworkBank:
     """Trained networks run side by side on each track and weighed by how well each predicts it (module doc).
 
@@ -117,7 +139,11 @@ class NetworkBank:
     ``Tracker``'s."""
 
     def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST):
+                 likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST,
+                 prune: float = 0.0, defer: dict | None = None):
+        if not (isinstance(prune, (int, float)) and not isinstance(prune, bool) and 0 <= prune < 1):
+            raise ValueError(f"a bank's prune is a probability in [0, 1), got {prune!r}")
+        self.prune = float(prune)
         if likelihood not in LIKELIHOODS:
             raise ValueError(f"a bank's likelihood is one of {', '.join(LIKELIHOODS)}, got {likelihood!r}")
         if not (isinstance(temper, (int, float)) and math.isfinite(temper) and 0 < temper <= 1):
@@ -135,6 +161,8 @@ class NetworkBank:
                 raise ValueError(f"bank member {name!r} cannot be weighed: {net.no_cov_reason()}")
         self.names = list(members)
         self.members = {name: net.eval() for name, net in members.items()}
+        self.defer = _check_defer(defer, self.names)
+        self._defers = {self.names.index(k): [self.names.index(o) for o in others] for k, others in self.defer.items()}
         self.max_position = check_limit(max_position)
         prior = [1.0] * len(members) if prior is None else [float(p) for p in prior]
         if len(prior) != len(members) or not all(math.isfinite(p) and p > 0 for p in prior):
@@ -144,6 +172,7 @@ class NetworkBank:
         self.n_gated = 0
         self.carries, self.log_w, self.fresh = None, None, None  # the streaming state (``reset``, ``step``)
         self.since, self.last, self.origin = None, None, None  # [B] s since each track's last detection (or start): ``max_coast``'s
+        self.stays = None
         self.max_coast = check_coast(max_coast, self.dt)
         self.paths = {name: None for name in self.names}  # each member's checkpoint, where it was loaded from one
         # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
@@ -152,7 +181,8 @@ class NetworkBank:
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
-                   temper: float = TEMPER, max_coast: float = MAX_COAST) -> "NetworkBank":
+                   temper: float = TEMPER, max_coast: float = MAX_COAST, prune: float = 0.0,
+                   defer: dict | None = None) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
         loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one
         asked for goes to the members whose modes are the whole target's, since a guard's transitions cannot be per
@@ -168,7 +198,7 @@ class NetworkBank:
             config, state = read_checkpoint(path)
             joint = config.get("modes", "joint") == "joint"
             nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r)
-        bank = cls(nets, prior, max_position, likelihood, temper, max_coast)
+        bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer)
         bank.paths = {str(m): _member_path(m) for m in members}
         return bank
 
@@ -193,8 +223,13 @@ class NetworkBank:
         return ""
 
     def takes(self, intervals: torch.Tensor) -> torch.Tensor:
-        """``[B, K]`` bool: which member can take which track (:func:`accepts`)."""
-        return torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
+        """``[B, K]`` bool: which member takes which track: :func:`accepts`, but not a member that ``defer``s to one
+        that accepts the track."""
+        fits = torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
+        takes = fits.clone()
+        for k, others in self._defers.items():
+            takes[:, k] &= ~fits[:, others].any(-1)
+        return takes
 
     def check(self, intervals: torch.Tensor, takes: torch.Tensor | None = None, tracks: torch.Tensor | None = None
               ) -> None:
@@ -246,6 +281,8 @@ class NetworkBank:
         their numbers in the caller's, where they are segments of its tracks)."""
         takes = self.takes(intervals)
         self.check(intervals, takes, tracks)
+        if self.prune > 0:
+            return self._track_by_scans(z, intervals, takes, return_cov)
         B, T, K = z.shape[0], z.shape[1], len(self.names)
         ran = takes.any(0).nonzero().flatten().tolist()  # the members that take a track: the others run on none
         state = torch.zeros(B, T, len(ran), 9, dtype=torch.float64)
@@ -272,11 +309,46 @@ class NetworkBank:
         waiting = before_first_detection(z)
         return TensorDict({k: blank_before_first_detection(v, waiting) for k, v in out.items()}, batch_size=[B, T])
 
+    def _track_by_scans(self, z: torch.Tensor, intervals: torch.Tensor, takes: torch.Tensor, return_cov: bool
+                        ) -> TensorDict:
+        """``_track``'s outputs scan by scan (``step``, which gives ``track``'s numbers to the bit), so that a member
+        pruned from a track (``prune``) runs on it no more; the streaming state is left as it was."""
+        kept = (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.n_gated)
+        try:
+            self.reset(z.shape[0])
+            self.log_w = self.log_w.masked_fill(~takes, float("-inf"))  # the whole track's members (``takes``)
+            outs = [self.step(z[:, t], dt=intervals[:, t]) for t in range(z.shape[1])]
+        finally:
+            self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.n_gated = kept
+        names = {keys.STATE: keys.FUSED, keys.MODE_PROBS: keys.MODE_PROBS, keys.MEMBER_PROBS: keys.MEMBER_PROBS}
+        if return_cov:
+            names[keys.STATE_COV] = keys.FUSED_COV
+        return TensorDict({key: torch.stack([o[name] for o in outs], 1) for key, name in names.items()},
+                          batch_size=list(z.shape[:2]))
+
     # --- streaming: one scan at a time, as ``Tracker.step`` -----------------------------------------------------
     @property
     def dt(self) -> float:
         """The interval a scan given without one is taken at: the first member's ``dt``."""
         return float(next(iter(self.members.values())).dt)
+
+    def _in_track(self, stays: torch.Tensor, alive: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(takes, shadow)``, each ``[B, K]`` bool, from ``stays`` (the member took every scan of the track so far)
+        and ``alive`` (not pruned, not out): ``takes`` the members weighed into the track's estimate, ``shadow`` a
+        member that ``defer``s on the track, run aside (not weighed in) so that it carries the track from the scan
+        the members it defers to leave it (in ``track``, which sees the whole track, it does not run there)."""
+        takes = stays & alive
+        shadow = torch.zeros_like(takes)
+        for k, others in self._defers.items():
+            shadow[:, k] = takes[:, k] & stays[:, others].any(-1)
+        return takes & ~shadow, shadow
+
+    def _pruned(self, p: torch.Tensor, takes: torch.Tensor) -> torch.Tensor:
+        """``[B, K]`` bool: the members out of a track from the next scan on, with probabilities ``p [B, K]`` of the
+        scan's mixture: below ``prune`` and not the most probable (none where ``prune`` is 0)."""
+        if self.prune == 0:
+            return torch.zeros_like(takes)
+        return takes & (p < self.prune) & (p < p.amax(-1, keepdim=True))
 
     def _keeps_report(self, net: IMMNet) -> bool:
         """The member's report of the scan before is kept in its carry: the bank weighs what the member reports and
@@ -305,6 +377,7 @@ class NetworkBank:
         self.since = torch.zeros(n_tracks, dtype=torch.float64)
         self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)  # the interval of each one's last scan
         self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)  # each one's frame (frame_origin)
+        self.stays = torch.ones(n_tracks, len(self.names), dtype=torch.bool)  # each member took every scan so far
         self.n_gated = 0
 
     @torch.no_grad()
@@ -343,8 +416,9 @@ class NetworkBank:
         # Tracker.step's check per track: each scan, as the member coasts a long interval (coast_cuts), inside its
         # range, or its one interval
         cut = [coast_cuts(net, interval, fresh) for net in self.members.values()]  # (scans, each's interval) per member
-        takes = torch.stack([trained_for(net, each) for net, (_, each) in zip(self.members.values(), cut)], -1)
-        takes &= log_w > -math.inf
+        fits = torch.stack([trained_for(net, each) for net, (_, each) in zip(self.members.values(), cut)], -1)
+        stays = fits if self.carries is None else fits & (self.stays | fresh[:, None])  # every scan since the start
+        takes, shadow = self._in_track(stays, log_w > -math.inf)
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
@@ -354,7 +428,8 @@ class NetworkBank:
         origin = self.origin if reset is None else torch.where(reset[:, None], float("nan"), self.origin)
         origin = next_origin(origin, gated)  # the members' frame (a member with a range guard keeps the radar's)
         self.n_gated += n_gated
-        self.since, self.last, self.origin = since, interval, origin
+        self.since, self.last, self.origin, self.stays = since, interval, origin, stays
+        runs = takes | shadow
         K = len(self.names)
         state = torch.zeros(B, K, 9, dtype=torch.float64)
         probs = torch.zeros(B, K, 4, dtype=torch.float64)
@@ -365,7 +440,7 @@ class NetworkBank:
             carry = self.carries[name]
             if reset is not None:
                 carry = select_rows(reset, self._fresh(net, B), carry)
-            rows = takes[:, k].nonzero().flatten()
+            rows = runs[:, k].nonzero().flatten()
             at = torch.zeros_like(origin) if guarded(net) else origin.nan_to_num()
             z = to_local(gated, at)
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
@@ -383,10 +458,12 @@ class NetworkBank:
                     carry = carry.clone()
                     carry[rows] = self._kept(net, after)
             self.carries[name] = carry
-        self.log_w = (log_w + self.temper * _weighed(loglik, takes)).masked_fill(~takes, float("-inf"))
+        inc = _weighed(loglik, takes) + torch.where(shadow & torch.isfinite(loglik), loglik, 0.0)
+        log_w = (log_w + self.temper * inc).masked_fill(~runs, float("-inf"))
         self.fresh = torch.zeros(B, dtype=torch.bool)
         ran = takes.any(0).nonzero().flatten().tolist()  # mixed over the members that take a track, as ``track``
-        out = _mix(self.log_w, state[:, ran], probs[:, ran], cov[:, ran], ran)
+        out = _mix(log_w.masked_fill(~takes, float("-inf")), state[:, ran], probs[:, ran], cov[:, ran], ran)
+        self.log_w = log_w.masked_fill(self._pruned(out[keys.MEMBER_PROBS], takes), float("-inf"))
         waiting = (age == 0)[:, None]  # no detection yet: no estimate
         names = {keys.FUSED: keys.STATE, keys.FUSED_COV: keys.STATE_COV, keys.MODE_PROBS: keys.MODE_PROBS,
                  keys.MEMBER_PROBS: keys.MEMBER_PROBS}
@@ -406,10 +483,11 @@ class BankMethod:
 
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
                  guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER):
+                 likelihood: str = "reported", temper: float = TEMPER, prune: float = 0.0, defer: dict | None = None):
         self.name = name
         self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
-                                          likelihood=likelihood, temper=temper, max_coast=math.inf)
+                                          likelihood=likelihood, temper=temper, max_coast=math.inf, prune=prune,
+                                          defer=defer)
         self.batch_size = batch_size
         self.return_cov = return_cov
 
