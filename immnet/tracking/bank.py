@@ -105,6 +105,15 @@ track as it reports it (``reported=True``: the filter's prediction moved by the 
 scan before; the default, docs/tracking.md "A bank of networks")."""
 TEMPER = 0.5
 """The shipped bank's power of each scan's likelihood (chosen on the validation sets, docs/tracking.md)."""
+PRUNE = 1e-3
+"""The shipped bank's pruning: a member whose probability on a track falls below it runs on that track no more
+(chosen on the validation sets, docs/tracking.md)."""
+PRUNE_AFTER = 20
+"""No member is pruned from a track in its first scans from its first detection, while the members' likelihoods
+still carry their start (chosen on the validation sets, docs/tracking.md)."""
+DEFER = {"general": ("3dlast",)}
+"""The shipped bank's members that give way: the general network does not run on a track the 3D-LAST network takes
+(1 s scans; docs/tracking.md)."""
 
 
 def _check_defer(defer, names: list[str]) -> dict[str, tuple[str, ...]]:
@@ -140,10 +149,12 @@ class NetworkBank:
 
     def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
                  likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST,
-                 prune: float = 0.0, defer: dict | None = None):
+                 prune: float = 0.0, defer: dict | None = None, prune_after: int = 0):
         if not (isinstance(prune, (int, float)) and not isinstance(prune, bool) and 0 <= prune < 1):
             raise ValueError(f"a bank's prune is a probability in [0, 1), got {prune!r}")
-        self.prune = float(prune)
+        if not (isinstance(prune_after, int) and not isinstance(prune_after, bool) and prune_after >= 0):
+            raise ValueError(f"a bank's prune_after is a whole number of scans, 0 or more, got {prune_after!r}")
+        self.prune, self.prune_after = float(prune), prune_after
         if likelihood not in LIKELIHOODS:
             raise ValueError(f"a bank's likelihood is one of {', '.join(LIKELIHOODS)}, got {likelihood!r}")
         if not (isinstance(temper, (int, float)) and math.isfinite(temper) and 0 < temper <= 1):
@@ -172,7 +183,7 @@ class NetworkBank:
         self.n_gated = 0
         self.carries, self.log_w, self.fresh = None, None, None  # the streaming state (``reset``, ``step``)
         self.since, self.last, self.origin = None, None, None  # [B] s since each track's last detection (or start): ``max_coast``'s
-        self.stays = None
+        self.stays, self.seen = None, None  # [B, K] each member took every scan so far; [B] scans since a detection
         self.max_coast = check_coast(max_coast, self.dt)
         self.paths = {name: None for name in self.names}  # each member's checkpoint, where it was loaded from one
         # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
@@ -181,8 +192,8 @@ class NetworkBank:
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
-                   temper: float = TEMPER, max_coast: float = MAX_COAST, prune: float = 0.0,
-                   defer: dict | None = None) -> "NetworkBank":
+                   temper: float = TEMPER, max_coast: float = MAX_COAST, prune: float = PRUNE,
+                   defer: dict | None = None, prune_after: int = PRUNE_AFTER) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
         loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one
         asked for goes to the members whose modes are the whole target's, since a guard's transitions cannot be per
@@ -192,13 +203,17 @@ class NetworkBank:
         members = list(members)
         if len(set(map(str, members))) != len(members):
             raise ValueError(f"a bank's members are named once each, got {members}")
+        if defer is None:  # the shipped bank's, between the members present
+            named = set(map(str, members))
+            defer = {k: tuple(o for o in others if o in named) for k, others in DEFER.items() if k in named}
+            defer = {k: others for k, others in defer.items() if others}
         nets = {}
         for m in members:
             path = _member_path(m)
             config, state = read_checkpoint(path)
             joint = config.get("modes", "joint") == "joint"
             nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r)
-        bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer)
+        bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer, prune_after)
         bank.paths = {str(m): _member_path(m) for m in members}
         return bank
 
@@ -313,13 +328,15 @@ class NetworkBank:
                         ) -> TensorDict:
         """``_track``'s outputs scan by scan (``step``, which gives ``track``'s numbers to the bit), so that a member
         pruned from a track (``prune``) runs on it no more; the streaming state is left as it was."""
-        kept = (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.n_gated)
+        kept = (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.seen,
+                self.n_gated)
         try:
             self.reset(z.shape[0])
             self.log_w = self.log_w.masked_fill(~takes, float("-inf"))  # the whole track's members (``takes``)
             outs = [self.step(z[:, t], dt=intervals[:, t]) for t in range(z.shape[1])]
         finally:
-            self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.n_gated = kept
+            (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.seen,
+             self.n_gated) = kept
         names = {keys.STATE: keys.FUSED, keys.MODE_PROBS: keys.MODE_PROBS, keys.MEMBER_PROBS: keys.MEMBER_PROBS}
         if return_cov:
             names[keys.STATE_COV] = keys.FUSED_COV
@@ -343,12 +360,13 @@ class NetworkBank:
             shadow[:, k] = takes[:, k] & stays[:, others].any(-1)
         return takes & ~shadow, shadow
 
-    def _pruned(self, p: torch.Tensor, takes: torch.Tensor) -> torch.Tensor:
+    def _pruned(self, p: torch.Tensor, takes: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
         """``[B, K]`` bool: the members out of a track from the next scan on, with probabilities ``p [B, K]`` of the
-        scan's mixture: below ``prune`` and not the most probable (none where ``prune`` is 0)."""
+        scan's mixture: below ``prune`` and not the most probable, on a track detected ``prune_after`` scans ago or
+        more (``seen [B]`` scans since its first detection; none where ``prune`` is 0)."""
         if self.prune == 0:
             return torch.zeros_like(takes)
-        return takes & (p < self.prune) & (p < p.amax(-1, keepdim=True))
+        return takes & (p < self.prune) & (p < p.amax(-1, keepdim=True)) & (seen >= self.prune_after)[:, None]
 
     def _keeps_report(self, net: IMMNet) -> bool:
         """The member's report of the scan before is kept in its carry: the bank weighs what the member reports and
@@ -378,6 +396,7 @@ class NetworkBank:
         self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)  # the interval of each one's last scan
         self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)  # each one's frame (frame_origin)
         self.stays = torch.ones(n_tracks, len(self.names), dtype=torch.bool)  # each member took every scan so far
+        self.seen = torch.zeros(n_tracks, dtype=torch.long)  # scans since each one's first detection
         self.n_gated = 0
 
     @torch.no_grad()
@@ -463,7 +482,9 @@ class NetworkBank:
         self.fresh = torch.zeros(B, dtype=torch.bool)
         ran = takes.any(0).nonzero().flatten().tolist()  # mixed over the members that take a track, as ``track``
         out = _mix(log_w.masked_fill(~takes, float("-inf")), state[:, ran], probs[:, ran], cov[:, ran], ran)
-        self.log_w = log_w.masked_fill(self._pruned(out[keys.MEMBER_PROBS], takes), float("-inf"))
+        seen = self.seen if reset is None else self.seen.masked_fill(reset, 0)
+        self.seen = seen + (age > 0)
+        self.log_w = log_w.masked_fill(self._pruned(out[keys.MEMBER_PROBS], takes, self.seen), float("-inf"))
         waiting = (age == 0)[:, None]  # no detection yet: no estimate
         names = {keys.FUSED: keys.STATE, keys.FUSED_COV: keys.STATE_COV, keys.MODE_PROBS: keys.MODE_PROBS,
                  keys.MEMBER_PROBS: keys.MEMBER_PROBS}
@@ -483,11 +504,12 @@ class BankMethod:
 
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
                  guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER, prune: float = 0.0, defer: dict | None = None):
+                 likelihood: str = "reported", temper: float = TEMPER, prune: float = PRUNE,
+                 defer: dict | None = None, prune_after: int = PRUNE_AFTER):
         self.name = name
         self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
                                           likelihood=likelihood, temper=temper, max_coast=math.inf, prune=prune,
-                                          defer=defer)
+                                          defer=defer, prune_after=prune_after)
         self.batch_size = batch_size
         self.return_cov = return_cov
 
