@@ -154,3 +154,29 @@ def test_prune_and_defer_are_checked_by_name():
         NetworkBank(nets, defer={"a": ["b"], "b": ["c"]})
     with pytest.raises(ValueError, match=r"a bank's defer maps a member to the members it gives way to, got"):
         NetworkBank(nets, defer=["a", "b"])
+
+
+def test_the_fallback_is_never_pruned():
+    """The general network, which gives way to the 3D-LAST network (``DEFER``), is the bank's member for any
+    interval: at a prior of 0.001 against 1 for each other member, pruned at 0.01 from the first scan, 5 s tracks keep
+    it, so that in streaming a track scanned every 5 s and then every second goes on with it (the 5 s networks cannot
+    take 1 s scans) where a bank that pruned it refuses the scan."""
+    prior = [0.001, 1, 1, 1, 1, 1]
+    td = generate(4, seed=8, spec=DataSpec(T=30, min_segment=10, dt=5.0))
+    z = td[keys.MEASUREMENTS].double()
+    iv = torch.full(z.shape[:2], 5.0, dtype=torch.float64)
+    bank = NetworkBank.from_names(prior=prior, prune=0.01, prune_after=0)
+    w = bank.track(z, intervals=iv)[keys.MEMBER_PROBS]
+    seen = ~torch.isnan(w[..., 0])
+    assert (w[..., 0][seen] > 0).all()
+    bank.reset(4)
+    for t in range(30):
+        out = bank.step(z[:, t], dt=5.0 if t < 20 else 1.0)
+        if t >= 20:  # the 1 s scans: only the general network takes them
+            torch.testing.assert_close(out[keys.MEMBER_PROBS][:, 0], torch.ones(4, dtype=torch.float64), rtol=0, atol=0)
+    unguarded = NetworkBank.from_names(prior=prior, prune=0.01, prune_after=0, defer={})  # general may be pruned
+    assert (unguarded.track(z, intervals=iv)[keys.MEMBER_PROBS][:, -1, 0] == 0).all()
+    unguarded.reset(4)
+    with pytest.raises(ValueError, match=r"no member of this bank still in track\(s\) .* takes a scan after 1 s"):
+        for t in range(30):
+            unguarded.step(z[:, t], dt=5.0 if t < 20 else 1.0)

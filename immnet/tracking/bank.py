@@ -113,7 +113,7 @@ PRUNE_AFTER = 20
 still carry their start (chosen on the validation sets, docs/tracking.md)."""
 DEFER = {"general": ("3dlast",)}
 """The shipped bank's members that give way: the general network does not run on a track the 3D-LAST network takes
-(1 s scans; docs/tracking.md)."""
+(1 s scans), and, the bank's fallback for any interval, is never pruned (docs/tracking.md)."""
 
 
 def _check_defer(defer, names: list[str]) -> dict[str, tuple[str, ...]]:
@@ -363,10 +363,13 @@ class NetworkBank:
     def _pruned(self, p: torch.Tensor, takes: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
         """``[B, K]`` bool: the members out of a track from the next scan on, with probabilities ``p [B, K]`` of the
         scan's mixture: below ``prune`` and not the most probable, on a track detected ``prune_after`` scans ago or
-        more (``seen [B]`` scans since its first detection; none where ``prune`` is 0)."""
+        more (``seen [B]`` scans since its first detection; none where ``prune`` is 0). A member that gives way
+        (``defer``) is the bank's fallback and is never pruned: a track keeps the member that takes any scan."""
         if self.prune == 0:
             return torch.zeros_like(takes)
-        return takes & (p < self.prune) & (p < p.amax(-1, keepdim=True)) & (seen >= self.prune_after)[:, None]
+        pruned = takes & (p < self.prune) & (p < p.amax(-1, keepdim=True)) & (seen >= self.prune_after)[:, None]
+        pruned[:, list(self._defers)] = False
+        return pruned
 
     def _keeps_report(self, net: IMMNet) -> bool:
         """The member's report of the scan before is kept in its carry: the bank weighs what the member reports and
