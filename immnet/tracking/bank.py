@@ -333,7 +333,8 @@ class NetworkBank:
         try:
             self.reset(z.shape[0])
             self.log_w = self.log_w.masked_fill(~takes, float("-inf"))  # the whole track's members (``takes``)
-            outs = [self.step(z[:, t], dt=intervals[:, t]) for t in range(z.shape[1])]
+            with torch.inference_mode():  # no autograd bookkeeping; the outputs are stacked into new tensors below
+                outs = [self.step(z[:, t], dt=intervals[:, t]) for t in range(z.shape[1])]
         finally:
             (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.seen,
              self.n_gated) = kept
@@ -463,10 +464,10 @@ class NetworkBank:
             if reset is not None:
                 carry = select_rows(reset, self._fresh(net, B), carry)
             rows = runs[:, k].nonzero().flatten()
-            at = torch.zeros_like(origin) if guarded(net) else origin.nan_to_num()
-            z = to_local(gated, at)
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):
+                at = torch.zeros_like(origin) if guarded(net) else origin.nan_to_num()
+                z = to_local(gated, at)
                 before, after = coast_scan(net, carry if every else carry[rows], z[rows], cut[k][0][rows],
                                            cut[k][1][rows], lambda td, net=net: self._kept(net, td))
                 loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood == "reported").double()
