@@ -19,6 +19,10 @@ estimate is mixed into another's and each runs as it runs alone. The bank's cova
 ``sum_k p_k (P_k + (x_k - x)(x_k - x)^T)``, its mode probabilities the members' weighted (each reports the same four
 data modes), and ``member_probs [B, T, K]`` says which member carries each track.
 
+A member whose probability on a track falls below ``prune`` runs on it no more (``PRUNE``, from a track's
+``PRUNE_AFTER``-th scan), and a member may give way, on the tracks another takes, to that one (``DEFER``: the general
+network to the 3D-LAST network, at 1 s); where it prunes, ``track`` runs scan by scan (``step``).
+
 Only the scans that every member taking the track predicted are weighed (a member that starts from two detections
 predicts from the third); until then the members keep their prior. A scan without a detection weighs nothing. The
 members estimate each track's measurement std themselves (a member told it, ``r="data"``, is refused: the bank takes
@@ -145,7 +149,10 @@ class NetworkBank:
     probability (default: equal), positive, as many as members. ``likelihood``: ``LIKELIHOODS``; ``temper``: the
     power ``0 < temper <= 1`` of each scan's likelihood (a tempered posterior: members' densities that are too sure of
     themselves weigh less). ``max_position``: the gate on measurements, ``max_coast`` the coasting limit, as
-    ``Tracker``'s."""
+    ``Tracker``'s. ``prune``: a member whose probability on a track falls below it, from the ``prune_after``-th scan
+    since the track's first detection, runs on that track no more (never the most probable, never a member that gives
+    way); ``defer``: member name -> the members it gives way to, on the tracks they take. None of them here (0, 0,
+    none); the shipped bank's (``from_names``' defaults) are ``PRUNE``, ``PRUNE_AFTER`` and ``DEFER``."""
 
     def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
                  likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST,
