@@ -205,8 +205,9 @@ class NetworkBank:
         loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one
         asked for goes to the members whose modes are the whole target's, since a guard's transitions cannot be per
         axis: ``IMMNet(modes=...)``),
-        ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``:
-        the bank's."""
+        ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``,
+        ``prune``, ``prune_after`` and ``defer``: the bank's (``defer`` None: ``DEFER``'s pairs among these members;
+        ``{}`` none)."""
         members = list(members)
         if len(set(map(str, members))) != len(members):
             raise ValueError(f"a bank's members are named once each, got {members}")
