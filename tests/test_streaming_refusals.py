@@ -221,7 +221,8 @@ def test_evaluate_scores_a_window_as_one_track_through_a_long_stretch_without_de
         assert isinstance(method, IMMNetMethod)
         ref = Tracker(method.net, max_coast=math.inf).track(z, 500, method.net.intervals_for(batch))[keys.STATE]
     else:
-        bank = NetworkBank(method.net.members, max_coast=math.inf)
+        net = method.net
+        bank = NetworkBank(net.members, max_coast=math.inf, prune=net.prune, defer=net.defer, prune_after=net.prune_after)
         ref = bank.track(z, 500, iv)[keys.STATE]
     torch.testing.assert_close(got, ref.double(), rtol=0, atol=0, equal_nan=True)
     vel = [1, 4, 7]

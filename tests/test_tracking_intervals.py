@@ -435,18 +435,27 @@ def test_immnet_track_names_the_5s_weights_for_5s_scans_with_the_general_weights
 
 
 def test_the_bank_note_counts_a_member_where_the_bank_runs_it():
-    """``advice._takes`` reads from a provenance what ``NetworkBank.takes`` decides from the loaded network, for every
-    member whose provenance names its intervals: a constant scan interval from 0.5 to 14 s, a network trained over a
-    range taking a longer one cut into missed scans (real-5s at 10 s, real-11s not at 13 s)."""
+    """``advice._takes`` reads from a provenance (or, for the 3D-LAST network, whose provenance names none, from the
+    weights table) what ``NetworkBank.takes`` decides from the loaded network, for every member: a constant scan
+    interval from 0.5 to 14 s, a network trained over a range taking a longer one cut into missed scans (real-5s at
+    10 s, real-11s not at 13 s), the general network not where the 3D-LAST network takes the track (``DEFER``, 1 s),
+    where the bank's note is not given."""
     from immnet.checkpoints import shipped
     from immnet.tracking import Tracker
-    from immnet.tracking.advice import _takes, load_provenance
+    from immnet.tracking.advice import _table_scans, _takes, bank_note, load_provenance
 
     bank = Tracker.pretrained()
     for dt in np.arange(0.5, 14.01, 0.25):
         takes = bank.takes(torch.full((1, 4), float(dt), dtype=torch.float64))[0].tolist()
+        last = _takes(_table_scans("3dlast"), float(dt))
+        assert last == (dt == 1.0)
         for name, took in zip(bank.names, takes):
             prov = load_provenance(shipped(name)) or {}
-            if prov.get("interval_range") or prov.get("scan_interval"):
+            if name == "3dlast":
+                assert last == took
+            elif name == "general":
+                assert (_takes(prov, float(dt)) and not last) == took, (name, dt)
+            else:
                 assert _takes(prov, float(dt)) == took, (name, dt)
+    assert bank_note(np.ones(10)) is None
     assert _takes(load_provenance(shipped("real-5s")), 10.0) and not _takes(load_provenance(shipped("real-11s")), 13.0)

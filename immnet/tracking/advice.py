@@ -77,6 +77,15 @@ def _takes(provenance: dict, median: float) -> bool:
     return bool(accepts(SimpleNamespace(interval_range=span, dt=dt), torch.full((1, 2), float(median)))[0])
 
 
+def _table_scans(name: str) -> dict:
+    """The intervals of the shipped network ``name`` as a provenance names them, from the weights table's ``scans``
+    (``immnet/pretrained/weights.json``: ``[lo, hi]``, one interval where they are equal), for :func:`_takes`."""
+    from immnet.checkpoints import WEIGHTS
+
+    lo, hi = (float(v) for v in WEIGHTS[name]["scans"])
+    return {"interval_range": [lo, hi]} if lo < hi else {"scan_interval": lo}
+
+
 def _ahead(tests, name: str, ref: str) -> tuple[str, float, float] | None:
     """``(set name, name's RMSE, ref's RMSE)`` of the first of ``tests`` (a provenance's ``tests`` items, ``(set name,
     entry)``) where the registry method ``name`` scored below ``ref`` in the same run; None where none did."""
@@ -112,17 +121,20 @@ def interval_note(provenance: dict | None, intervals, whose: str = "these weight
 
 def bank_note(intervals) -> str | None:
     """The shipped bank's note: ``interval_note`` of the general network's provenance, where the median of
-    ``intervals`` lies in a bin that has the general network behind its filter; None elsewhere. Where another member of
+    ``intervals`` lies in a bin that has the general network behind its filter; None elsewhere, and where the general
+    network gives way to another member (``immnet.tracking.bank.DEFER``). Where another member of
     the bank (``immnet.tracking.bank.DEFAULT_MEMBERS``) takes these scans and its provenance measured it ahead of that
     filter, the note says so too, of the first such member (one trained at these scans first: ``real-11s`` at 10-12 s,
     ``real-4.5-12s`` at 8-10 s, each on real flights), so that the user, who knows which motion the data holds, has
     both measurements."""
     from immnet.checkpoints import GENERAL, shipped
-    from immnet.tracking.bank import DEFAULT_MEMBERS
+    from immnet.tracking.bank import DEFAULT_MEMBERS, DEFER
 
     median = _median(intervals)
     if median is None:
         return None
+    if any(_takes(_table_scans(m), median) for m in DEFER.get(GENERAL, ())):
+        return None  # the general network gives way there (the 3D-LAST network's 1 s): the bank does not run it
     general = load_provenance(shipped(GENERAL))
     provs = {m: load_provenance(shipped(m)) or {} for m in DEFAULT_MEMBERS if m != GENERAL}
     others = [m for m, prov in provs.items() if _takes(prov, median)]

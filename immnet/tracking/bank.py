@@ -19,6 +19,10 @@ estimate is mixed into another's and each runs as it runs alone. The bank's cova
 ``sum_k p_k (P_k + (x_k - x)(x_k - x)^T)``, its mode probabilities the members' weighted (each reports the same four
 data modes), and ``member_probs [B, T, K]`` says which member carries each track.
 
+A member whose probability on a track falls below ``prune`` runs on it no more (``PRUNE``, from a track's
+``PRUNE_AFTER``-th scan), and a member may give way, on the tracks another takes, to that one (``DEFER``: the general
+network to the 3D-LAST network, at 1 s); where it prunes, ``track`` runs scan by scan (``step``).
+
 Only the scans that every member taking the track predicted are weighed (a member that starts from two detections
 predicts from the third); until then the members keep their prior. A scan without a detection weighs nothing. The
 members estimate each track's measurement std themselves (a member told it, ``r="data"``, is refused: the bank takes
@@ -105,6 +109,37 @@ track as it reports it (``reported=True``: the filter's prediction moved by the 
 scan before; the default, docs/tracking.md "A bank of networks")."""
 TEMPER = 0.5
 """The shipped bank's power of each scan's likelihood (chosen on the validation sets, docs/tracking.md)."""
+PRUNE = 1e-3
+"""The shipped bank's pruning: a member whose probability on a track falls below it runs on that track no more
+(chosen on the validation sets, docs/tracking.md)."""
+PRUNE_AFTER = 20
+"""No member is pruned from a track in its first scans from its first detection, while the members' likelihoods
+still carry their start (chosen on the validation sets, docs/tracking.md)."""
+DEFER = {"general": ("3dlast",)}
+"""The shipped bank's members that give way: the general network does not run on a track the 3D-LAST network takes
+(1 s scans), and, the bank's fallback for any interval, is never pruned (docs/tracking.md)."""
+
+
+def _check_defer(defer, names: list[str]) -> dict[str, tuple[str, ...]]:
+    """``defer`` (member -> the members it gives way to) as checked: every name a member's, none giving way to itself,
+    and none giving way that another gives way to (no chains); a ValueError naming what is wrong."""
+    if defer is None:
+        return {}
+    if not isinstance(defer, dict):
+        raise ValueError(f"a bank's defer maps a member to the members it gives way to, got {defer!r}")
+    out = {}
+    for k, others in defer.items():
+        others = (others,) if isinstance(others, str) else tuple(others)
+        unknown = [str(n) for n in (k, *others) if n not in names]
+        if unknown:
+            raise ValueError(f"a bank's defer names {', '.join(unknown)}, not a member ({', '.join(names)})")
+        if k in others or not others:
+            raise ValueError(f"a bank's member {k!r} gives way to other members, one or more, got {list(others)}")
+        out[str(k)] = tuple(map(str, others))
+    chained = [k for k in out if any(k in others for others in out.values())]
+    if chained:
+        raise ValueError(f"bank member {chained[0]!r} both gives way (defer) and is given way to")
+    return out
 
 
 class NetworkBank:
@@ -114,10 +149,19 @@ class NetworkBank:
     probability (default: equal), positive, as many as members. ``likelihood``: ``LIKELIHOODS``; ``temper``: the
     power ``0 < temper <= 1`` of each scan's likelihood (a tempered posterior: members' densities that are too sure of
     themselves weigh less). ``max_position``: the gate on measurements, ``max_coast`` the coasting limit, as
-    ``Tracker``'s."""
+    ``Tracker``'s. ``prune``: a member whose probability on a track falls below it, from the ``prune_after``-th scan
+    since the track's first detection, runs on that track no more (never the most probable, never a member that gives
+    way); ``defer``: member name -> the members it gives way to, on the tracks they take. None of them here (0, 0,
+    none); the shipped bank's (``from_names``' defaults) are ``PRUNE``, ``PRUNE_AFTER`` and ``DEFER``."""
 
     def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST):
+                 likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST,
+                 prune: float = 0.0, defer: dict | None = None, prune_after: int = 0):
+        if not (isinstance(prune, (int, float)) and not isinstance(prune, bool) and 0 <= prune < 1):
+            raise ValueError(f"a bank's prune is a probability in [0, 1), got {prune!r}")
+        if not (isinstance(prune_after, int) and not isinstance(prune_after, bool) and prune_after >= 0):
+            raise ValueError(f"a bank's prune_after is a whole number of scans, 0 or more, got {prune_after!r}")
+        self.prune, self.prune_after = float(prune), prune_after
         if likelihood not in LIKELIHOODS:
             raise ValueError(f"a bank's likelihood is one of {', '.join(LIKELIHOODS)}, got {likelihood!r}")
         if not (isinstance(temper, (int, float)) and math.isfinite(temper) and 0 < temper <= 1):
@@ -135,6 +179,8 @@ class NetworkBank:
                 raise ValueError(f"bank member {name!r} cannot be weighed: {net.no_cov_reason()}")
         self.names = list(members)
         self.members = {name: net.eval() for name, net in members.items()}
+        self.defer = _check_defer(defer, self.names)
+        self._defers = {self.names.index(k): [self.names.index(o) for o in others] for k, others in self.defer.items()}
         self.max_position = check_limit(max_position)
         prior = [1.0] * len(members) if prior is None else [float(p) for p in prior]
         if len(prior) != len(members) or not all(math.isfinite(p) and p > 0 for p in prior):
@@ -144,6 +190,7 @@ class NetworkBank:
         self.n_gated = 0
         self.carries, self.log_w, self.fresh = None, None, None  # the streaming state (``reset``, ``step``)
         self.since, self.last, self.origin = None, None, None  # [B] s since each track's last detection (or start): ``max_coast``'s
+        self.stays, self.seen = None, None  # [B, K] each member took every scan so far; [B] scans since a detection
         self.max_coast = check_coast(max_coast, self.dt)
         self.paths = {name: None for name in self.names}  # each member's checkpoint, where it was loaded from one
         # no ``interval_range`` of its own: each member cuts a gap longer than its range into scans inside it, so that
@@ -152,23 +199,29 @@ class NetworkBank:
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
-                   temper: float = TEMPER, max_coast: float = MAX_COAST) -> "NetworkBank":
+                   temper: float = TEMPER, max_coast: float = MAX_COAST, prune: float = PRUNE,
+                   defer: dict | None = None, prune_after: int = PRUNE_AFTER) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
         loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one
         asked for goes to the members whose modes are the whole target's, since a guard's transitions cannot be per
         axis: ``IMMNet(modes=...)``),
-        ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``:
-        the bank's."""
+        ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``,
+        ``prune``, ``prune_after`` and ``defer``: the bank's (``defer`` None: ``DEFER``'s pairs among these members;
+        ``{}`` none)."""
         members = list(members)
         if len(set(map(str, members))) != len(members):
             raise ValueError(f"a bank's members are named once each, got {members}")
+        if defer is None:  # the shipped bank's, between the members present
+            named = set(map(str, members))
+            defer = {k: tuple(o for o in others if o in named) for k, others in DEFER.items() if k in named}
+            defer = {k: others for k, others in defer.items() if others}
         nets = {}
         for m in members:
             path = _member_path(m)
             config, state = read_checkpoint(path)
             joint = config.get("modes", "joint") == "joint"
             nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r)
-        bank = cls(nets, prior, max_position, likelihood, temper, max_coast)
+        bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer, prune_after)
         bank.paths = {str(m): _member_path(m) for m in members}
         return bank
 
@@ -193,8 +246,13 @@ class NetworkBank:
         return ""
 
     def takes(self, intervals: torch.Tensor) -> torch.Tensor:
-        """``[B, K]`` bool: which member can take which track (:func:`accepts`)."""
-        return torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
+        """``[B, K]`` bool: which member takes which track: :func:`accepts`, but not a member that ``defer``s to one
+        that accepts the track."""
+        fits = torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
+        takes = fits.clone()
+        for k, others in self._defers.items():
+            takes[:, k] &= ~fits[:, others].any(-1)
+        return takes
 
     def check(self, intervals: torch.Tensor, takes: torch.Tensor | None = None, tracks: torch.Tensor | None = None
               ) -> None:
@@ -246,6 +304,8 @@ class NetworkBank:
         their numbers in the caller's, where they are segments of its tracks)."""
         takes = self.takes(intervals)
         self.check(intervals, takes, tracks)
+        if self.prune > 0:
+            return self._track_by_scans(z, intervals, takes, return_cov)
         B, T, K = z.shape[0], z.shape[1], len(self.names)
         ran = takes.any(0).nonzero().flatten().tolist()  # the members that take a track: the others run on none
         state = torch.zeros(B, T, len(ran), 9, dtype=torch.float64)
@@ -272,11 +332,53 @@ class NetworkBank:
         waiting = before_first_detection(z)
         return TensorDict({k: blank_before_first_detection(v, waiting) for k, v in out.items()}, batch_size=[B, T])
 
+    def _track_by_scans(self, z: torch.Tensor, intervals: torch.Tensor, takes: torch.Tensor, return_cov: bool
+                        ) -> TensorDict:
+        """``_track``'s outputs scan by scan (``step``, which gives ``track``'s numbers to the bit), so that a member
+        pruned from a track (``prune``) runs on it no more; the streaming state is left as it was."""
+        kept = (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.seen,
+                self.n_gated)
+        try:
+            self.reset(z.shape[0])
+            self.log_w = self.log_w.masked_fill(~takes, float("-inf"))  # the whole track's members (``takes``)
+            with torch.inference_mode():  # no autograd bookkeeping; the outputs are stacked into new tensors below
+                outs = [self.step(z[:, t], dt=intervals[:, t]) for t in range(z.shape[1])]
+        finally:
+            (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.seen,
+             self.n_gated) = kept
+        names = {keys.STATE: keys.FUSED, keys.MODE_PROBS: keys.MODE_PROBS, keys.MEMBER_PROBS: keys.MEMBER_PROBS}
+        if return_cov:
+            names[keys.STATE_COV] = keys.FUSED_COV
+        return TensorDict({key: torch.stack([o[name] for o in outs], 1) for key, name in names.items()},
+                          batch_size=list(z.shape[:2]))
+
     # --- streaming: one scan at a time, as ``Tracker.step`` -----------------------------------------------------
     @property
     def dt(self) -> float:
         """The interval a scan given without one is taken at: the first member's ``dt``."""
         return float(next(iter(self.members.values())).dt)
+
+    def _in_track(self, stays: torch.Tensor, alive: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(takes, shadow)``, each ``[B, K]`` bool, from ``stays`` (the member took every scan of the track so far)
+        and ``alive`` (not pruned, not out): ``takes`` the members weighed into the track's estimate, ``shadow`` a
+        member that ``defer``s on the track, run aside (not weighed in) so that it carries the track from the scan
+        the members it defers to leave it (in ``track``, which sees the whole track, it does not run there)."""
+        takes = stays & alive
+        shadow = torch.zeros_like(takes)
+        for k, others in self._defers.items():
+            shadow[:, k] = takes[:, k] & stays[:, others].any(-1)
+        return takes & ~shadow, shadow
+
+    def _pruned(self, p: torch.Tensor, takes: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+        """``[B, K]`` bool: the members out of a track from the next scan on, with probabilities ``p [B, K]`` of the
+        scan's mixture: below ``prune`` and not the most probable, on a track detected ``prune_after`` scans ago or
+        more (``seen [B]`` scans since its first detection; none where ``prune`` is 0). A member that gives way
+        (``defer``) is the bank's fallback and is never pruned: a track keeps the member that takes any scan."""
+        if self.prune == 0:
+            return torch.zeros_like(takes)
+        pruned = takes & (p < self.prune) & (p < p.amax(-1, keepdim=True)) & (seen >= self.prune_after)[:, None]
+        pruned[:, list(self._defers)] = False
+        return pruned
 
     def _keeps_report(self, net: IMMNet) -> bool:
         """The member's report of the scan before is kept in its carry: the bank weighs what the member reports and
@@ -305,6 +407,8 @@ class NetworkBank:
         self.since = torch.zeros(n_tracks, dtype=torch.float64)
         self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)  # the interval of each one's last scan
         self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)  # each one's frame (frame_origin)
+        self.stays = torch.ones(n_tracks, len(self.names), dtype=torch.bool)  # each member took every scan so far
+        self.seen = torch.zeros(n_tracks, dtype=torch.long)  # scans since each one's first detection
         self.n_gated = 0
 
     @torch.no_grad()
@@ -343,8 +447,9 @@ class NetworkBank:
         # Tracker.step's check per track: each scan, as the member coasts a long interval (coast_cuts), inside its
         # range, or its one interval
         cut = [coast_cuts(net, interval, fresh) for net in self.members.values()]  # (scans, each's interval) per member
-        takes = torch.stack([trained_for(net, each) for net, (_, each) in zip(self.members.values(), cut)], -1)
-        takes &= log_w > -math.inf
+        fits = torch.stack([trained_for(net, each) for net, (_, each) in zip(self.members.values(), cut)], -1)
+        stays = fits if self.carries is None else fits & (self.stays | fresh[:, None])  # every scan since the start
+        takes, shadow = self._in_track(stays, log_w > -math.inf)
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
@@ -354,7 +459,8 @@ class NetworkBank:
         origin = self.origin if reset is None else torch.where(reset[:, None], float("nan"), self.origin)
         origin = next_origin(origin, gated)  # the members' frame (a member with a range guard keeps the radar's)
         self.n_gated += n_gated
-        self.since, self.last, self.origin = since, interval, origin
+        self.since, self.last, self.origin, self.stays = since, interval, origin, stays
+        runs = takes | shadow
         K = len(self.names)
         state = torch.zeros(B, K, 9, dtype=torch.float64)
         probs = torch.zeros(B, K, 4, dtype=torch.float64)
@@ -365,11 +471,11 @@ class NetworkBank:
             carry = self.carries[name]
             if reset is not None:
                 carry = select_rows(reset, self._fresh(net, B), carry)
-            rows = takes[:, k].nonzero().flatten()
-            at = torch.zeros_like(origin) if guarded(net) else origin.nan_to_num()
-            z = to_local(gated, at)
+            rows = runs[:, k].nonzero().flatten()
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):
+                at = torch.zeros_like(origin) if guarded(net) else origin.nan_to_num()
+                z = to_local(gated, at)
                 before, after = coast_scan(net, carry if every else carry[rows], z[rows], cut[k][0][rows],
                                            cut[k][1][rows], lambda td, net=net: self._kept(net, td))
                 loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood == "reported").double()
@@ -383,10 +489,14 @@ class NetworkBank:
                     carry = carry.clone()
                     carry[rows] = self._kept(net, after)
             self.carries[name] = carry
-        self.log_w = (log_w + self.temper * _weighed(loglik, takes)).masked_fill(~takes, float("-inf"))
+        inc = _weighed(loglik, takes) + torch.where(shadow & torch.isfinite(loglik), loglik, 0.0)
+        log_w = (log_w + self.temper * inc).masked_fill(~runs, float("-inf"))
         self.fresh = torch.zeros(B, dtype=torch.bool)
         ran = takes.any(0).nonzero().flatten().tolist()  # mixed over the members that take a track, as ``track``
-        out = _mix(self.log_w, state[:, ran], probs[:, ran], cov[:, ran], ran)
+        out = _mix(log_w.masked_fill(~takes, float("-inf")), state[:, ran], probs[:, ran], cov[:, ran], ran)
+        seen = self.seen if reset is None else self.seen.masked_fill(reset, 0)
+        self.seen = seen + (age > 0)
+        self.log_w = log_w.masked_fill(self._pruned(out[keys.MEMBER_PROBS], takes, self.seen), float("-inf"))
         waiting = (age == 0)[:, None]  # no detection yet: no estimate
         names = {keys.FUSED: keys.STATE, keys.FUSED_COV: keys.STATE_COV, keys.MODE_PROBS: keys.MODE_PROBS,
                  keys.MEMBER_PROBS: keys.MEMBER_PROBS}
@@ -406,10 +516,12 @@ class BankMethod:
 
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
                  guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER):
+                 likelihood: str = "reported", temper: float = TEMPER, prune: float = PRUNE,
+                 defer: dict | None = None, prune_after: int = PRUNE_AFTER):
         self.name = name
         self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
-                                          likelihood=likelihood, temper=temper, max_coast=math.inf)
+                                          likelihood=likelihood, temper=temper, max_coast=math.inf, prune=prune,
+                                          defer=defer, prune_after=prune_after)
         self.batch_size = batch_size
         self.return_cov = return_cov
 
