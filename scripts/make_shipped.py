@@ -233,7 +233,7 @@ def ship_bank(name: str, ship: dict, commit: str) -> int:
     from immnet.filters.methods import method_config
 
     config = load_yaml(method_config(registry))["init_args"]
-    weighing = {k: config[k] for k in ("likelihood", "temper")}
+    weighing = {k: config[k] for k in ("likelihood", "temper", "prune", "prune_after", "defer") if k in config}
     prov = {"members": members, "weighing": weighing,
             "made_by": f".venv/bin/python scripts/make_shipped.py --name {name}",
             "date": datetime.date.today().isoformat(), "commit": commit, "guard": None,
