@@ -42,6 +42,7 @@ from immnet.checkpoints import BANK_MEMBERS, SHIPPED, TABLE, shipped
 from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
+from immnet.imm.interaction import moment_match
 from immnet.stages import IMMNet
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
@@ -90,9 +91,7 @@ def _mix(log_w: torch.Tensor, state: torch.Tensor, probs: torch.Tensor, cov: tor
     out = {keys.STATE: fused, keys.MODE_PROBS: (w[..., None] * torch.where(live, probs, 0.0)).sum(-2),
            keys.MEMBER_PROBS: w_all}
     if cov is not None:
-        d = x - fused[..., None, :]
-        spread = torch.where(live[..., None], cov + d[..., :, None] * d[..., None, :], 0.0)
-        out[keys.STATE_COV] = (w[..., None, None] * spread).sum(-3)
+        out[keys.STATE_COV] = moment_match(w[..., None, None], x, fused, torch.where(live[..., None], cov, 0.0))
     return out
 
 
