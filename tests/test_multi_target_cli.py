@@ -58,6 +58,21 @@ def _read(path):
         return list(csv.DictReader(f))
 
 
+def _are_the_trackers_tracks(rows, scene, filter_name):
+    """The CSV rows are the tracks of ``MultiTargetTracker(filter_name)`` stepped through the scene's own arrays: the
+    same ids at the same scans (at least three tracks), positions within a metre (the CSV's covariances are converted
+    from its text)."""
+    from immnet.filters.multi import MultiTargetTracker
+
+    tracker = MultiTargetTracker(filter_name)
+    want = [(str(rep.track_id), repr(t), rep.state[[0, 3, 6]]) for t, z, cov in scene.scans()
+            for rep in tracker.step(t, z, cov)]
+    assert len({w[0] for w in want}) >= 3
+    assert [(r["track_id"], r["t"]) for r in rows] == [w[:2] for w in want]
+    got = np.array([[float(r[c]) for c in "xyz"] for r in rows])
+    assert np.abs(got - np.array([w[2] for w in want])).max() < 1.0
+
+
 def _track(tmp_path, header, scans, *extra):
     src = write_csv(tmp_path / "plots.csv", header, _rows(scans))
     out = tmp_path / "tracks.csv"
@@ -263,8 +278,6 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
     tracker stepped through the scene's own arrays (ENU plots with their first-order covariance, where the CSV's are
     converted unbiased from its text: the same tracks, within a metre); the radar display is written. Another scene's
     file is refused as not this CSV's, leaving nothing."""
-    from immnet.filters.multi import MultiTargetTracker
-
     scene, npz, plots = _scene(tmp_path)
     spec = scene.meta["spec"]
     stds = ("--sigma-range", repr(spec["sigma_range"]), "--sigma-azimuth", repr(spec["sigma_azimuth_deg"]),
@@ -275,13 +288,7 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
         f"tracked {len(scene)} scans, {len(scene.plots)} plots with {DEFAULT_FILTER} (GNN)")
     rows = _read(out)
-    tracker = MultiTargetTracker(DEFAULT_FILTER)
-    want = [(str(rep.track_id), repr(t), rep.state[[0, 3, 6]]) for t, z, cov in scene.scans()
-            for rep in tracker.step(t, z, cov)]
-    assert len({w[0] for w in want}) >= 3
-    assert [(r["track_id"], r["t"]) for r in rows] == [w[:2] for w in want]
-    got = np.array([[float(r[c]) for c in "xyz"] for r in rows])
-    assert np.abs(got - np.array([w[2] for w in want])).max() < 1.0
+    _are_the_trackers_tracks(rows, scene, DEFAULT_FILTER)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
     _, other, _ = _scene(tmp_path, 1)
     out.unlink()
@@ -296,8 +303,6 @@ def test_a_shipped_network_as_the_per_track_filter(tmp_path, capsys):
     """``--method radar-5s``: the scene's CSV tracked with the network as each track's filter gives the tracks of
     ``MultiTargetTracker("radar-5s")`` stepped through the scene's own arrays (within a metre: the CSV's covariances
     are converted from its text), with the data modes' probabilities the network reports (each row sums to 1)."""
-    from immnet.filters.multi import MultiTargetTracker
-
     scene, _, plots = _scene(tmp_path)
     spec = scene.meta["spec"]
     stds = ("--sigma-range", repr(spec["sigma_range"]), "--sigma-azimuth", repr(spec["sigma_azimuth_deg"]),
@@ -307,13 +312,7 @@ def test_a_shipped_network_as_the_per_track_filter(tmp_path, capsys):
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
         f"tracked {len(scene)} scans, {len(scene.plots)} plots with radar-5s (GNN)")
     rows = _read(out)
-    tracker = MultiTargetTracker("radar-5s")
-    want = [(str(rep.track_id), repr(t), rep.state[[0, 3, 6]]) for t, z, cov in scene.scans()
-            for rep in tracker.step(t, z, cov)]
-    assert len({w[0] for w in want}) >= 3
-    assert [(r["track_id"], r["t"]) for r in rows] == [w[:2] for w in want]
-    got = np.array([[float(r[c]) for c in "xyz"] for r in rows])
-    assert np.abs(got - np.array([w[2] for w in want])).max() < 1.0
+    _are_the_trackers_tracks(rows, scene, "radar-5s")
     probs = np.array([[float(r[c]) for c in ("p_cv", "p_ca", "p_ctp", "p_ctm")] for r in rows])
     np.testing.assert_allclose(probs.sum(1), 1.0, atol=1e-5)
 
