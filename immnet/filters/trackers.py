@@ -25,7 +25,7 @@ from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interva
 from immnet.filters.imm import first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its users import it from here)
-from immnet.imm.measurement import DETECTION, Isotropic, PerDetection, Polar, measurement_model
+from immnet.imm.measurement import DETECTION, TOLD, Isotropic, PerDetection, Polar, measurement_model
 from immnet.imm.reacquire import Reacquire, Restarts, check_reacquire
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
@@ -37,11 +37,6 @@ def _positive(name: str, value, allow_zero: bool = True) -> None:
         if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
             bound = ">= 0" if allow_zero else "> 0"
             raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
-
-
-TOLD = "data"
-"""``r: data``: the filter is told each track's measurement std, the data set's ``r [B]`` (a radar that knows
-its own accuracy), instead of assuming one value for every track."""
 
 
 def check_r(r) -> float | str:

@@ -34,6 +34,8 @@ from immnet import keys
 from immnet.imm.kalman import innovation_update, wide_dtype
 
 TOLD = "data"
+"""``r: data``: a filter is told each track's measurement std, the batch's ``r [B]`` (a radar that knows its accuracy;
+IMMNet's filter experts: the step's input ``"r"``), in place of a fixed or estimated one."""
 
 
 @dataclass(frozen=True)
@@ -245,4 +247,6 @@ def measurement_model(r) -> Isotropic | PerDetection | Polar:
 
 
 DETECTION = "detection"
-"""``r: detection``: each detection's own covariance, the batch's ``meas_cov`` (``PerDetection``)."""
+"""``r: detection``: each detection's own covariance, the batch's ``meas_cov`` (``PerDetection``; IMMNet's filter
+experts: the step's input ``"meas_cov"`` ``[B, 3, 3]``, ``S = H P H^T + R_t`` and the Joseph update with ``R_t``, a
+track's start covariance from its detections')."""

@@ -48,6 +48,7 @@ from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import check_robust, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul
 from immnet.imm import reacquire as reacq
+from immnet.imm.measurement import DETECTION, TOLD
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
@@ -60,13 +61,6 @@ from immnet.stages.predict import Predict
 from immnet.stages.update import Update, innovation
 
 N_NOISE = 5  # velocity h / v, acceleration h / v, turn rate
-TOLD_R = "data"
-"""``r="data"``: the filter experts are told each track's measurement std, the step's input ``"r"`` ``[B]`` (a radar
-that knows its accuracy; the linear IMMs' ``r: data``), in place of a fixed or estimated one."""
-TOLD_COV = "detection"
-"""``r="detection"``: the filter experts are told each detection's measurement covariance ``R_t``, the step's input
-``"meas_cov"`` ``[B, 3, 3]`` (m^2, the batch's ``meas_cov`` column of the scan; the model-based IMMs' ``r: detection``):
-``S = H P H^T + R_t``, the Joseph update with ``R_t``, a track's start covariance from its detections' ``R``."""
 WHITE = (0, 1)  # the white-acceleration components, which AdaptiveNoise's scale multiplies
 
 
@@ -161,15 +155,15 @@ FREE = "free"
 
 
 def _check_turn_rate(turn_rate: str | None) -> str | None:
-    if turn_rate not in (None, FREE, TOLD_R):
+    if turn_rate not in (None, FREE, TOLD):
         raise ValueError(f"turn_rate must be None (each turn filter's own, bounded), {FREE!r} (its own, unbounded) or "
-                         f"{TOLD_R!r} (the truth's, an oracle), got {turn_rate!r}")
+                         f"{TOLD!r} (the truth's, an oracle), got {turn_rate!r}")
     return turn_rate
 
 
 def _check_restart(restart: str | None, interaction: str, onset: bool) -> str | None:
-    if restart not in (None, TOLD_R):
-        raise ValueError(f"restart must be None or {TOLD_R!r} (the truth's, an oracle), got {restart!r}")
+    if restart not in (None, TOLD):
+        raise ValueError(f"restart must be None or {TOLD!r} (the truth's, an oracle), got {restart!r}")
     if restart is not None and not (interaction == "imm" and onset):
         raise ValueError("restart='data' re-enters the experts with their onset priors: it needs interaction='imm' "
                          "and onset=True")
@@ -348,7 +342,7 @@ class FilterPredict(Predict):
     def __init__(self, model_set: ModelSet, dt: float = 1.0, turn_rate: str | None = None):
         super().__init__(model_set, dt)
         self.turn_rate = _check_turn_rate(turn_rate)
-        if self.turn_rate == TOLD_R:
+        if self.turn_rate == TOLD:
             self.in_keys = [*self.in_keys, keys.TRUE_TURN_RATE]
         own_acc, own_rate, lo, hi, _ = _kinds(model_set, dt)
         self.register_buffer("own_acc", torch.tensor(own_acc))  # the model set's, kept with the weights
@@ -368,7 +362,7 @@ class FilterPredict(Predict):
         M = self.n_experts
         y0, P0 = td.get(keys.EXPERT_MIXED), td.get(keys.EXPERT_MIXED_COV)
         x, w = y0[..., :9], y0[..., RATE]
-        if self.turn_rate == TOLD_R:  # the truth's rate, known: no variance, no covariance with the state
+        if self.turn_rate == TOLD:  # the truth's rate, known: no variance, no covariance with the state
             w = step_input(td, keys.TRUE_TURN_RATE).to(w.dtype).unsqueeze(-1).expand_as(w)
             P0 = P0.masked_fill(self.rate_known.unsqueeze(-1) | self.rate_known.unsqueeze(-2), 0.0)
         elif self.turn_rate is None:
@@ -479,7 +473,7 @@ class _FilterExperts:
 
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need (``FilterUpdate``, with this gain's ``turn_rate``)."""
-        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.r == TOLD_COV,
+        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.r == DETECTION,
                             robust=getattr(self, "robust", None) is not None)
 
     def interaction_stage(self, model_set: ModelSet, dt: float) -> FilterInteraction:
@@ -518,13 +512,13 @@ class _FilterExperts:
         stds = [None if v is None else float(v) for v in stds]  # per expert
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
         if isinstance(r, str):
-            if r not in (TOLD_R, TOLD_COV):
-                raise ValueError(f"r must be a number > 0, {TOLD_R!r} (told per track), {TOLD_COV!r} (each detection's "
+            if r not in (TOLD, DETECTION):
+                raise ValueError(f"r must be a number > 0, {TOLD!r} (told per track), {DETECTION!r} (each detection's "
                                  f"covariance told) or None (estimated), got {r!r}")
             # the step's input: r [B], each track's measurement std, or meas_cov [B, 3, 3], each detection's covariance
-            self.in_keys = [*self.in_keys, keys.R] if r == TOLD_R else [*self.in_keys, keys.MEAS_COV, keys.NOISE_VAR]
+            self.in_keys = [*self.in_keys, keys.R] if r == TOLD else [*self.in_keys, keys.MEAS_COV, keys.NOISE_VAR]
         elif isinstance(r, bool) or r is not None and not (math.isfinite(r) and r > 0):
-            raise ValueError(f"r must be finite and > 0, {TOLD_R!r} (told per track), {TOLD_COV!r} (each detection's "
+            raise ValueError(f"r must be finite and > 0, {TOLD!r} (told per track), {DETECTION!r} (each detection's "
                              f"covariance told) or None (estimated per track), got {r}")
         self.r = r if r is None or isinstance(r, str) else float(r)
         self.adapt = AdaptiveNoise.from_config(adapt)
@@ -584,10 +578,10 @@ class _FilterExperts:
         """``r^2`` per track: the running mean ``(k0 r0^2 + total) / (k0 + count)`` of the third-difference
         samples, the fixed ``r^2`` where ``r`` was given, or the square of the step's input ``r`` (``td``'s ``"r"``
         ``[B]``) where ``r`` is told per track (``"data"``)."""
-        if self.r == TOLD_R:
+        if self.r == TOLD:
             told = told_r(td).to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
             return (told * told).expand_as(total)
-        if self.r == TOLD_COV:
+        if self.r == DETECTION:
             return self._told_cov(td)
         if self.r is not None:
             return torch.full_like(total, self.r**2)
@@ -653,7 +647,7 @@ class _FilterExperts:
         adapt = {} if self.adapt is None else {keys.Q_SCALE: torch.zeros(shape, dtype=dtype, device=device)}
         r2 = (self.r if isinstance(self.r, float) else self.r0) ** 2
         noise = torch.full(shape, r2, dtype=dtype, device=device)
-        if self.r == TOLD_COV:  # a covariance per detection: r0^2 I until the track's first detection
+        if self.r == DETECTION:  # a covariance per detection: r0^2 I until the track's first detection
             noise = noise[..., None, None] * torch.eye(3, dtype=dtype, device=device)
         return adapt | {
             keys.EXPERT_POST: torch.zeros(B, M, 9, dtype=dtype, device=device),
@@ -716,7 +710,7 @@ class _FilterExperts:
         gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
         gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
         gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
-        told = self.r == TOLD_COV
+        told = self.r == DETECTION
         if told:
             r2_track = self._told_cov(carry, z)
         else:
@@ -738,7 +732,7 @@ class _FilterExperts:
     # --- one scan ----------------------------------------------------------------------------
     def _r2(self, td) -> torch.Tensor:
         """This scan's ``r^2`` estimate as ``[B, M, 1, 1]``."""
-        return noise_matrix(self.noise(td), self.n_experts, self.r == TOLD_COV)
+        return noise_matrix(self.noise(td), self.n_experts, self.r == DETECTION)
 
     def _noise_scale(self, td, like: torch.Tensor) -> torch.Tensor | None:
         """Multipliers of the five noise components ``[B, M, 5]``: the track's ``lambda``
@@ -773,7 +767,7 @@ class _FilterExperts:
         ``r^2``). What a bank of networks weighs a network with an output correction by: its prediction moved by the
         correction it reported at the scan before (``IMMNet.predictive_loglik(reported=True)``)."""
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        r2 = noise_matrix(td.get(keys.NOISE_VAR), self.n_experts, self.r == TOLD_COV)
+        r2 = noise_matrix(td.get(keys.NOISE_VAR), self.n_experts, self.r == DETECTION)
         S = innovation_cov(P, r2.to(P.dtype))
         S_inv, logdet = inv3(S)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR)) - shift.to(P.dtype).unsqueeze(1)
@@ -1011,7 +1005,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
 
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need: with ``state_correction``, one that adds it."""
-        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.r == TOLD_COV)
+        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.r == DETECTION)
 
     def knock_out_correction(self) -> None:
         """Set the state correction's rows of FC2 to zero (the rest of the network as trained)."""
