@@ -1,6 +1,7 @@
 """Motion models as data: ``F(dt)``, ``Q(sigma_q, dt)``, the coordinated turn's map and Jacobian, names and
 the mode each stands for."""
 
+from immnet.labels import MODE_LABELS, MODE_NAMES
 from immnet.motion.base import ModelSet, MotionModel, instantiate
 from immnet.motion.kinds import AdaptiveTurn, ConstantAcceleration, ConstantVelocity, CoordinatedTurn, Singer
 from immnet.motion.models import (
@@ -13,8 +14,6 @@ from immnet.motion.models import (
     CV,
     DEG,
     MODE_GROUPS,
-    MODE_LABELS,
-    MODE_NAMES,
     MODES,
     N_MODES,
     N_AUG,

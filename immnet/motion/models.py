@@ -30,7 +30,7 @@ import math
 
 import torch
 
-from immnet.labels import MODE_LABELS, MODE_NAMES, N_MODES
+from immnet.labels import N_MODES
 
 DEG = math.pi / 180.0
 
