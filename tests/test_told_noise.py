@@ -240,18 +240,25 @@ def test_whitened_features_are_the_innovation_in_the_noise_frame():
         OutputCorrection(IMMNet(model_set=ADAPTIVE).model_set, whiten="yes")
 
 
-@pytest.mark.parametrize("r", ["detection", "data"])
-def test_robust_filter_experts_are_the_robust_imm(r):
-    """``FilterGain(robust=k)``: Huber's update (the gain ``w K``, the covariance ``P - w K H P`` by Joseph's form with
-    ``R + (1/w - 1) S``, Huber's likelihood in the mode update) is the robust IMM's: ``IMMTracker(robust=k).network()``
-    filters what its ``track`` filters (the core's ``kalman.update``) to 1e-9 of the state's scale, on tracks with
-    outliers 1.5-2 km off, where the plain IMM is kilometres away from it (the test can fail)."""
+def _data_with_outliers():
+    """``_data()`` with two detections 1.5 and 2 km off (tracks 2 and 4) and each detection's anisotropic covariance."""
     data = _data()
     z = data[keys.MEASUREMENTS]
     z[2, 30] += 2000.0
     z[4, 10] -= 1500.0
     data[keys.MEASUREMENTS] = z
     data[keys.MEAS_COV] = _anisotropic(z)
+    return data
+
+
+@pytest.mark.parametrize("r", ["detection", "data"])
+def test_robust_filter_experts_are_the_robust_imm(r):
+    """``FilterGain(robust=k)``: Huber's update (the gain ``w K``, the covariance ``P - w K H P`` by Joseph's form with
+    ``R + (1/w - 1) S``, Huber's likelihood in the mode update) is the robust IMM's: ``IMMTracker(robust=k).network()``
+    filters what its ``track`` filters (the core's ``kalman.update``) to 1e-9 of the state's scale, on tracks with
+    outliers 1.5-2 km off, where the plain IMM is kilometres away from it (the test can fail)."""
+    data = _data_with_outliers()
+    z = data[keys.MEASUREMENTS]
     args = yaml.safe_load(resolve_path("configs/methods/real-imm-5s.yaml").read_text())["init_args"]
     tracker = IMMTracker(**{**args, "r": r, "robust": 2.0, "name": "robust"})
     net = tracker.network()
@@ -279,12 +286,8 @@ def test_each_radar_imm_is_immnet_with_nothing_learned(name):
     FilterPy's criterion, with outliers 1.5-2 km off among correlated covariances."""
     from immnet.filters.methods import build_method
 
-    data = _data()
+    data = _data_with_outliers()
     z = data[keys.MEASUREMENTS]
-    z[2, 30] += 2000.0
-    z[4, 10] -= 1500.0
-    data[keys.MEASUREMENTS] = z
-    data[keys.MEAS_COV] = _anisotropic(z)
     method = build_method(name)
     net = method.network()
     assert net.start.told_cov and (net.gain.robust is not None) == ("robust" in name)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import torch
 
+from immnet.imm.kalman import _as_cov, start_state
 from immnet.imm.runner import linear_transition, run
 
 VEL_STD = 300.0
@@ -49,23 +50,14 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     first = first_detection(z)
     z0 = z.gather(1, first[:, None, None].expand(-1, 1, 3))[:, 0]
     z0 = torch.nan_to_num(z0, nan=0.0)
-    B = z.shape[0]
-    x0 = z.new_zeros(B, 9)
-    x0[:, 0::3] = z0
-    r2 = None if cov0 is not None else torch.as_tensor(r, dtype=z.dtype, device=z.device) ** 2
-    diag = z.new_zeros(B, 9)
     if cov0 is None:
-        diag[:, 0::3] = r2.reshape(-1, 1) if r2.dim() else r2
-    diag[:, 1::3] = vel_std**2
-    diag[:, 2::3] = acc_std**2
-    P0 = torch.diag_embed(diag)
-    if cov0 is not None:
-        P0[:, 0::3, 0::3] = cov0.to(P0)
-    return x0, P0
+        r2 = torch.as_tensor(r, dtype=z.dtype, device=z.device) ** 2
+        cov0 = _as_cov(r2.expand(z.shape[0]), 3, z)
+    return start_state(z0, cov0, vel_std, acc_std)
 
 
 def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False,
-               return_cov: bool = False, start: torch.Tensor | None = None, robust: float | None = None):
+               return_cov: bool = False, start: torch.Tensor | None = None, robust: float | None = None, reacquire=None):
     """Run the IMM over ``z [B, T, 3]`` from ``x0 [B, 9]``, ``P0 [B, 9, 9]`` and ``mu0 [M]``.
 
     At ``t = 0`` the output is the initial state (every expert at ``x0, P0``); steps ``t >= 1``
@@ -80,12 +72,13 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     which each track starts from ``x0``, ``P0`` (``first_detection``; ``runner.run``'s), None: scan 0.
     ``R``: a variance (a number or ``[B]``), one covariance ``[3, 3]`` or one per track ``[B, 3, 3]``, or one per
     detection ``[B, T, 3, 3]`` (``immnet.imm.measurement.PerDetection``: finite where a scan is missed). ``robust``:
-    Huber's ``k`` of the update (``immnet.imm.kalman``), None: the plain update.
+    Huber's ``k`` of the update (``immnet.imm.kalman``), None: the plain update. ``reacquire``: ``runner.run``'s
+    re-acquisition (``immnet.imm.reacquire.Restarts``), None: none.
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
     R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
-    if compile and not (return_cov or robust is not None) and _fused_ok(F, Q, R, M, x0.shape[-1]):
+    if compile and not (return_cov or robust is not None or reacquire is not None) and _fused_ok(F, Q, R, M, x0.shape[-1]):
         from immnet.filters.imm_fused import imm_filter_fused
 
         out = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=start)
@@ -100,7 +93,7 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
         per_detection = R
         R = lambda t: per_detection[:, t, None]  # noqa: E731 (each detection's [B, 1, 3, 3], for every filter)
     return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts, return_cov=return_cov,
-               start=start, robust=robust)
+               start=start, robust=robust, reacquire=reacquire)
 
 
 def _fused_ok(F, Q, R, M, n) -> bool:

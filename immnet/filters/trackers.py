@@ -293,32 +293,15 @@ class IMMTracker(Method):
                 r = assumed_r(self.r, batch, self.dtype, z.device)
                 x0, P0 = initial_state(z, r)
                 R = variance(r, self.dtype, z.device)
-            if self.reacquire is not None:
-                states, probs, experts, *cov = self._track_reacquiring(z, x0, P0, F, Q, R, Pi, mu0, first, intervals)
-            else:
-                states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
-                                                          compile=self.compile, return_cov=self.return_cov, start=first,
-                                                          robust=self.robust)
+            states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
+                                                      compile=self.compile, return_cov=self.return_cov, start=first,
+                                                      robust=self.robust,
+                                                      reacquire=_restarts(self.reacquire, intervals, mu0))
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None}
         if self.return_experts:
             extra[keys.EXPERT_POST] = experts
             extra[keys.EXPERT_PROBS] = probs
         return output(states, extra, measurements=z)
-
-    def _track_reacquiring(self, z, x0, P0, F, Q, R, Pi, mu0, first, intervals):
-        """``track``'s filters with re-acquisition: the core's loop (``runner.run``) with ``Restarts``, from ``x0``,
-        ``P0`` at each track's first detection; ``R`` a variance (a number or ``[B]``) or each detection's covariance
-        ``[B, T, 3, 3]``."""
-        B, M = z.shape[0], len(mu0)
-        x = x0[:, None].expand(B, M, 9).contiguous()
-        P = P0[:, None].expand(B, M, 9, 9).contiguous()
-        mu = mu0.expand(B, M).contiguous()
-        if R.dim() == 4:
-            per_detection = R
-            R = lambda t: per_detection[:, t, None]  # noqa: E731 (each detection's [B, 1, 3, 3], for every filter)
-        return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=self.return_experts,
-                   return_cov=self.return_cov, start=first, robust=self.robust,
-                   reacquire=_restarts(self.reacquire, intervals, mu0))
 
     def _track_polar(self, z, F, Q, Pi, mu0, first):
         """``track``'s filters with the polar model: the core's loop (``runner.run``) with the extended Kalman

@@ -60,6 +60,21 @@ def predict(x: torch.Tensor, P: torch.Tensor, F: torch.Tensor, Q: torch.Tensor):
     return x, P
 
 
+def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A track started at a detection ``z [B, 3]`` with covariance ``R [B, 3, 3]``: ``x = [z, 0, 0]`` per axis and
+    ``P`` with the position block ``R``, velocity and acceleration variances ``vel_std^2``, ``acc_std^2`` on every axis
+    (the 9-D state ``[x, vx, ax, y, vy, ay, z, vz, az]``)."""
+    B = z.shape[0]
+    x = z.new_zeros(B, 9)
+    x[:, 0::3] = z
+    diag = z.new_zeros(B, 9)
+    diag[:, 1::3] = vel_std**2
+    diag[:, 2::3] = acc_std**2
+    P = torch.diag_embed(diag)
+    P[:, 0::3, 0::3] = R.to(P)
+    return x, P
+
+
 def gaussian_loglik(maha: torch.Tensor, logdet: torch.Tensor, m: int) -> torch.Tensor:
     """``log N(nu; 0, S) = -1/2 (nu^T S^-1 nu + log det S + m log 2 pi)`` of an ``m``-dimensional innovation from its
     Mahalanobis distance ``maha = nu^T S^-1 nu`` and ``log det S`` (each ``[...]``): every tracker's likelihood."""
@@ -163,9 +178,16 @@ def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     wide = wide_dtype(P.dtype, P.device)
     Pw, Kw = P.to(wide), K.to(wide)
     HP = Pw[..., 0:7:3, :]  # the position rows (POS)
-    R = r2.to(wide)
-    S = HP[..., 0:7:3] + (R if R.dim() >= 2 and R.shape[-1] == 3 else R * torch.eye(3, dtype=wide, device=P.device))
+    S = HP[..., 0:7:3] + as_covariance(r2.to(wide), Pw)
     return joseph_form(Pw, Kw, HP, S).to(P.dtype)
+
+
+def as_covariance(r2: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """The measurement covariance ``R`` of ``r2``: ``r2 I`` for a variance broadcasting as ``[..., 1, 1]`` (or a 0-d
+    one), ``r2`` itself for a covariance ``[..., 3, 3]``; in ``like``'s dtype and device where it builds ``I``."""
+    if r2.dim() >= 2 and r2.shape[-1] == 3:
+        return r2
+    return r2 * torch.eye(3, dtype=like.dtype, device=like.device)
 
 
 def check_robust(robust) -> float | None:

@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 import torch
 
+from immnet.imm.kalman import _as_cov, inv3, start_state
 from immnet.imm.option import Option
 
 
@@ -88,8 +89,6 @@ def started(z: torch.Tensor, R: torch.Tensor) -> Watch:
 def mahalanobis(z: torch.Tensor, x: torch.Tensor, P: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     """Each filter's squared Mahalanobis distance of the detection ``z [B, 3]`` from its prediction ``x [B, M, 9]``,
     ``P [B, M, 9, 9]`` (the position's rows 0, 3, 6), measurement covariance ``R [B, 3, 3]``: ``[B, M]``."""
-    from immnet.imm.kalman import inv3
-
     nu = z[:, None, :] - x[..., 0::3]
     S = P[..., 0::3, 0::3] + R[:, None]
     Si, _ = inv3(S)
@@ -138,29 +137,13 @@ def advance(rule: Reacquire, state: Watch, z: torch.Tensor, R: torch.Tensor, int
     return new, restart, (far & ~restart) if rule.reject else torch.zeros_like(far)
 
 
-def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """A track's state at a detection ``z [B, 3]`` with covariance ``R [B, 3, 3]``, as at its first:
-    ``[z, 0, 0]`` per axis, the position's covariance ``R``, velocity and acceleration ``vel_std``, ``acc_std`` on every
-    axis (``immnet.filters.imm.initial_state``'s)."""
-    B = z.shape[0]
-    x = z.new_zeros(B, 9)
-    x[:, 0::3] = z
-    diag = z.new_zeros(B, 9)
-    diag[:, 1::3] = vel_std**2
-    diag[:, 2::3] = acc_std**2
-    P = torch.diag_embed(diag)
-    P[:, 0::3, 0::3] = R
-    return x, P
-
-
 def per_track_cov(R, batch: int, like: torch.Tensor) -> torch.Tensor:
     """A scan's measurement variance or covariance as the scan loop holds it (a number, ``[B]``, ``[B, 1]``, ``[3, 3]``,
     ``[B, 1, 3, 3]`` or ``[B, 3, 3]``) as one covariance per track ``[B, 3, 3]``."""
     R = torch.as_tensor(R, dtype=like.dtype, device=like.device)
     if R.dim() < 2 or R.shape[-2:] != (3, 3):
-        R = R.reshape(-1)[:, None, None] * torch.eye(3, dtype=like.dtype, device=like.device)
-    R = R.reshape(-1, 3, 3)
-    return R.expand(batch, 3, 3)
+        R = _as_cov(R.reshape(-1), 3, like)
+    return R.reshape(-1, 3, 3).expand(batch, 3, 3)
 
 
 class Restarts:

@@ -43,6 +43,7 @@ import torch
 from torch import nn
 
 from immnet import keys
+from immnet.imm.kalman import as_covariance
 from immnet.motion import ACC, POS, VEL, mode_groups
 from immnet.stages.base import Stage, measured, scan_interval
 
@@ -60,9 +61,7 @@ def cholesky_noise(R: torch.Tensor) -> torch.Tensor:
 def noise_covariance(noise: torch.Tensor) -> torch.Tensor:
     """The measurement noise ``("memory", "r2")`` as a covariance ``[B, 3, 3]``: a variance ``[B]`` as ``r^2 I``, a
     covariance (filter experts told each detection's, ``[B, 3, 3]``) as it is."""
-    if noise.dim() >= 3:
-        return noise
-    return noise.reshape(-1, 1, 1) * torch.eye(3, dtype=noise.dtype, device=noise.device)
+    return as_covariance(noise if noise.dim() >= 3 else noise.reshape(-1, 1, 1), noise)
 
 
 def noise_std(noise: torch.Tensor) -> torch.Tensor:

@@ -46,7 +46,9 @@ from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
-from immnet.imm.kalman import check_robust, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul
+from immnet.imm.kalman import (
+    as_covariance, check_robust, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul,
+)
 from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import DETECTION, TOLD
 from immnet.motion import (
@@ -436,7 +438,7 @@ class FilterUpdate(Update):
         if self.robust:  # R' = R + (1 / w - 1) S
             weight = td.get(keys.EXPERT_ROBUST_WEIGHT).to(P.dtype)[..., None, None]
             r2 = as_covariance(r2.to(P.dtype), P)
-            r2 = r2 + (1.0 / weight - 1.0) * (P[..., 0:7:3, 0:7:3] + r2)
+            r2 = r2 + (1.0 / weight - 1.0) * innovation_cov(P, r2)
         td.set(keys.EXPERT_RATE, w)
         td.set(keys.EXPERT_AUG_COV, joseph(P, K, r2))
         return td
@@ -447,14 +449,6 @@ def innovation_cov(P: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     the measurement noise ``r2``: a variance broadcasting as ``[..., 1, 1]`` (``R = r^2 I``) or a covariance
     ``[..., 3, 3]`` (``noise_matrix``)."""
     return P[..., 0:7:3, 0:7:3] + as_covariance(r2, P)
-
-
-def as_covariance(r2: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """The measurement covariance ``R`` of ``r2``: ``r2 I`` for a variance ``[..., 1, 1]`` (or a number), ``r2`` itself
-    for a covariance ``[..., 3, 3]``."""
-    if r2.dim() >= 2 and r2.shape[-1] == 3:
-        return r2
-    return r2 * torch.eye(3, dtype=like.dtype, device=like.device)
 
 
 def noise_matrix(noise: torch.Tensor, n_experts: int, told_cov: bool) -> torch.Tensor:

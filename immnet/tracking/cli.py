@@ -305,6 +305,16 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     return 0
 
 
+def _refuse_bank_options(args, what: str, name: str, them: str) -> None:
+    """``--adapt`` and ``--guard`` refused where input with each detection's covariance (``what`` it is) goes to the
+    default ``name`` for it, which has neither: one line naming the option and saying how to track ``them`` with the
+    bank."""
+    for option, given in (("--adapt", args.adapt), ("--guard", args.guard not in ("checkpoint", "none"))):
+        if given:
+            raise ValueError(f"{option} is the bank's and the shipped networks' option; {what} tracked by {name} by "
+                             f"default, which has none: give --weights bank to track {them} with the bank")
+
+
 def _track_plots(args, rows, limit: float) -> int:
     """The default for CSV rows that carry each detection's covariance (a radar's plots, or ``r_xx..r_zz``): the
     registry method ``immnet.tracking.advice.radar_default`` picks for their scan intervals (the shipped radar network
@@ -312,14 +322,7 @@ def _track_plots(args, rows, limit: float) -> int:
     from immnet.tracking.advice import radar_default, track_intervals
 
     name, line = radar_default(track_intervals(rows.ids, rows.t))
-    if args.adapt:
-        raise ValueError(f"--adapt is the bank's and the shipped networks' option; these rows carry each detection's "
-                         f"covariance and are tracked by {name} by default, which has none: give --weights bank to "
-                         f"track them with the bank")
-    if args.guard not in ("checkpoint", "none"):
-        raise ValueError(f"--guard is the bank's and the shipped networks' option; these rows carry each detection's "
-                         f"covariance and are tracked by {name} by default, which has none: give --weights bank to "
-                         f"track them with the bank")
+    _refuse_bank_options(args, "these rows carry each detection's covariance and are", name, "them")
     who = f"{name} (the default for rows with covariances)"
     if args.r is not None:
         raise ValueError(f"--r and the CSV's {'plots' if rows.polar else 'covariance columns'} both give the "
@@ -478,11 +481,7 @@ def _npz_plots(args, data, meta, limit: float) -> int:
     name, line = radar_default(scan_intervals(data).numpy()[:, 1:].ravel())
     line = (line.replace("the rows carry", "the .npz carries").replace("their median", "its median")
             .replace("--method or --weights bank", "--weights or --checkpoint"))
-    for option, given in (("--adapt", args.adapt), ("--guard", args.guard not in ("checkpoint", "none"))):
-        if given:
-            raise ValueError(f"{option} is the bank's and the shipped networks' option; this .npz carries each "
-                             f"detection's covariance ({keys.MEAS_COV!r}) and is tracked by {name} by default, which "
-                             f"has none: give --weights bank to track it with the bank")
+    _refuse_bank_options(args, f"this .npz carries each detection's covariance ({keys.MEAS_COV!r}) and is", name, "it")
     if args.r is not None:
         raise ValueError(f"--r and the .npz's {keys.MEAS_COV!r} both give the measurement noise of {name} (the "
                          f"default for an .npz with {keys.MEAS_COV!r}): give one of the two")
