@@ -356,3 +356,37 @@ def test_the_carry_is_what_the_stages_declare(name, alone, data):
                 before.set(key, value)
             started = _leaves(TensorDict(stage.start_carry(before, z[..., 1, :], x, second), batch_size=[B]))
             assert set(started) <= own, (type(stage).__name__, set(started) - own)
+
+
+def _stage_classes():
+    import immnet.stages as stages_pkg
+    from immnet.stages import classify, correct, filtering, fuse, gain, predict, start, update  # noqa: F401
+    from immnet.stages.base import Stage
+
+    seen, todo = set(), [Stage]
+    while todo:
+        for sub in todo.pop().__subclasses__():
+            if sub not in seen and sub.__module__.startswith(stages_pkg.__name__):
+                seen.add(sub)
+                todo.append(sub)
+    return sorted(seen, key=lambda c: c.__qualname__)
+
+
+@pytest.mark.parametrize("cls", _stage_classes(), ids=lambda c: c.__qualname__)
+def test_what_a_stage_declares_it_takes_is_what_its_constructor_takes(cls):
+    """IMMNet hands its settings (SET_ONCE) to a component by the class's ``shared`` and ``load_network`` sets a
+    gain's weightless options by its ``load_options``, never by reading the constructor: each declaration must name
+    exactly the constructor's parameters among those settings, or a setting would be dropped or refused silently."""
+    import inspect
+
+    from immnet.stages.network import SET_ONCE
+
+    from immnet.stages.gain import AnalyticGain, KalmanNetGain
+    from immnet.tracking.networks import _NEEDS_FILTERS
+
+    params = set(inspect.signature(cls).parameters)
+    assert set(cls.shared) == params & set(SET_ONCE)
+    if issubclass(cls, (KalmanNetGain, AnalyticGain)) or cls.__name__.endswith("FilterGain"):  # a gain
+        assert set(cls.load_options) == params & set(_NEEDS_FILTERS)
+    else:
+        assert cls.load_options == ()

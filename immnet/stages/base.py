@@ -82,6 +82,12 @@ class Stage(TensorDictModuleBase):
 
     in_keys: list = []
     out_keys: list = []
+    shared: tuple[str, ...] = ()
+    """The settings of ``IMMNet`` (``p_stay``, ``guard``, ``modes``: what the interaction and the mode update must
+    agree on) this stage takes: ``IMMNet`` hands each of them to the stage in place of its own value."""
+    load_options: tuple[str, ...] = ()
+    """Its settings that hold no weights and that ``immnet.tracking.load_network`` may set on a trained stage
+    (a gain's ``guard``, ``adapt``, ``r``, ``reacquire``)."""
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)

@@ -82,6 +82,8 @@ class TransformerClassifier(Stage):
     in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
     out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
 
+    shared = ("modes",)
+
     def __init__(
         self,
         model_set: ModelSet,
@@ -250,6 +252,8 @@ class UniformMix(Stage):
     in_keys = [keys.FUSED]
     out_keys = _MODE_KEYS_OUT
 
+    shared = ("modes",)
+
     def __init__(self, model_set: ModelSet, dt: float = 1.0, modes: str = "joint"):
         super().__init__(model_set)
         self.modes, self.groups = modes, n_groups(modes)
@@ -278,6 +282,8 @@ class TrueModeUpdate(Stage):
 
     in_keys = [keys.TRUE_MODE]
     out_keys = _MODE_KEYS_OUT
+
+    shared = ("modes",)
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, experts: list[int] | None = None, modes: str = "joint"):
         super().__init__(model_set)
@@ -337,6 +343,8 @@ class BayesianModeUpdate(_MarkovPrior, Stage):
     in_keys = [keys.MEASUREMENT, keys.EXPERT_PRIOR, keys.EXPERT_PROBS]
     out_keys = _MODE_KEYS_OUT
 
+    shared = ("p_stay", "modes")
+
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0,
                  from_experts: bool = False, modes: str = "joint"):
         super().__init__(model_set)
@@ -393,6 +401,8 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
     in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL, keys.EXPERT_LOGLIK,
                                keys.EXPERT_PROBS]
     out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
+
+    shared = ("p_stay", "modes")
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.995, window: int = 20,
                  d_model: int = 32, heads: int = 4, layers: int = 2, ff: int = 64, interval_input: bool = False,

@@ -118,6 +118,8 @@ class OutputCorrection(Stage):
                keys.AGE, keys.NOISE_VAR]
     out_keys = [keys.OUTPUT, keys.OUTPUT_HIDDEN, keys.OUTPUT_SEEN]
 
+    shared = ("modes",)
+
     def __init__(self, model_set=None, dt: float = 1.0, hidden: int = 128, layers: int = 2, modes: str = "joint",
                  whiten: bool = False):
         super().__init__(model_set)
@@ -211,6 +213,8 @@ class CorrectionEnsemble(Stage):
 
     in_keys = OutputCorrection.in_keys
     out_keys = OutputCorrection.out_keys
+
+    shared = ("modes",)
 
     def __init__(self, model_set=None, dt: float = 1.0, members: int = 2, hidden: int = 128, layers: int = 2,
                  modes: str = "joint", whiten: bool = False):

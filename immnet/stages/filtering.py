@@ -210,6 +210,8 @@ class FilterInteraction(Stage):
     in_keys = [keys.FUSED, keys.EXPERT_POST, keys.EXPERT_RATE, keys.EXPERT_AUG_COV]
     out_keys = [keys.EXPERT_MIXED, keys.EXPERT_MIXED_COV]
 
+    shared = ("p_stay", "guard", "modes")
+
     def __init__(self, model_set: ModelSet, dt: float = 1.0, interaction: str = "fused", p_stay: float = 0.995,
                  guard=None, spec: DataSpec | dict | None = None, onset: bool = True, modes: str = "joint",
                  restart: str | None = None):
@@ -842,6 +844,9 @@ class FilterGain(_FilterExperts, Stage):
     in_keys = _FILTER_IN
     out_keys = _FILTER_OUT
 
+    shared = ("p_stay", "guard", "modes")
+    load_options = ("guard", "adapt", "r", "reacquire")
+
     def __init__(
         self,
         model_set: ModelSet,
@@ -940,6 +945,9 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         keys.PREV_INTERVAL,
     ] + _FILTER_IN
     out_keys = [keys.EXPERT_HIDDEN, keys.PREV_INTERVAL] + _FILTER_OUT
+
+    shared = ("p_stay", "guard", "modes")
+    load_options = ("guard", "adapt", "r")
 
     def __init__(
         self,

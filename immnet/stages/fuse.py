@@ -44,6 +44,8 @@ class Fuse(Stage):
     in_keys = [keys.EXPERT_POST, keys.EXPERT_PROBS, keys.FUSED, keys.EXPERT_PRIOR, keys.MEASUREMENT]
     out_keys = [keys.FUSED, keys.PREV_FUSED, keys.PREV_EXPERT_PRIOR, keys.PREV_MEASUREMENT]
 
+    shared = ("modes",)
+
     def __init__(self, model_set=None, per_expert: bool = False, cov=None, consistency: float | None = None,
                  modes: str = "joint"):
         """``cov``: the key of the experts' covariances to fuse (one of ``COV_KEYS``), or None (as ``wire`` finds).

@@ -207,6 +207,8 @@ class AnalyticGain(Stage):
     in_keys = [keys.MEASUREMENT, keys.FUSED_COV, keys.FUSED]
     out_keys = [keys.EXPERT_GAIN, keys.EXPERT_COV]
 
+    load_options = ("r",)
+
     def __init__(self, model_set: ModelSet, dt: float = 1.0, sigma_q: float = 1.0, r: float = 4.0):
         super().__init__(model_set)
         if r <= 0 or sigma_q < 0:

@@ -92,11 +92,10 @@ def _migrate(config: dict) -> dict:
 
 def build_component(component, model_set: ModelSet, dt: float, settings: dict) -> Stage:
     """The stage ``component`` names, for ``model_set`` and ``dt``, with the ``settings`` (``SET_ONCE``, set on
-    ``IMMNet``) in place of the component's own values wherever its class takes them."""
+    ``IMMNet``) in place of the component's own values wherever its class takes them (its ``Stage.shared``)."""
     config = component_config(component)
     cls = import_class(config["class_path"], Stage)
-    params = inspect.signature(cls).parameters
-    args = dict(config["init_args"]) | {name: value for name, value in settings.items() if name in params}
+    args = dict(config["init_args"]) | {name: value for name, value in settings.items() if name in cls.shared}
     return cls(model_set=model_set, dt=dt, **args)
 
 
@@ -110,7 +109,7 @@ def _check_modes(modes: str, model_set: ModelSet, gain, classifier) -> None:
                          f"group, a turn's rate with the plane it turns in); {coupled} couple them")
     for role, component in (("gain", gain), ("classifier", classifier)):
         config = component_config(component)
-        if "modes" not in inspect.signature(import_class(config["class_path"])).parameters:
+        if "modes" not in import_class(config["class_path"], Stage).shared:
             raise ValueError(f"modes per {modes}: the {role} {config['class_path']} has none (filter experts, "
                              "immnet.stages.filtering, and the Bayesian or Transformer mode updates have)")
 

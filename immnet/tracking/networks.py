@@ -5,7 +5,6 @@ networks (``immnet.tracking.bank``) share (``load_network``, ``read_checkpoint``
 from __future__ import annotations
 
 import copy
-import inspect
 import math
 import numbers
 import re
@@ -23,6 +22,7 @@ from immnet.filters.base import before_first_detection, blank_before_first_detec
 from immnet.imm.guard import AS_CONFIGURED
 from immnet.motion import POS
 from immnet.stages import IMMNet
+from immnet.stages.base import Stage
 from immnet.stages.network import DEFAULT_GAIN, _where, net_arguments
 
 KEEP = AS_CONFIGURED  # load_network's guard: as the checkpoint was trained
@@ -110,7 +110,7 @@ def network_from(config: dict, state: dict, path, guard=KEEP, adapt=KEEP, r=KEEP
         if isinstance(value, str) and value == KEEP:
             continue
         gain = config.get("gain") or DEFAULT_GAIN
-        if name not in inspect.signature(import_class(gain.get("class_path", ""))).parameters:
+        if name not in import_class(gain.get("class_path", ""), Stage).load_options:
             what = _NEEDS_FILTERS[name]
             raise ValueError(f"{path}: {what}; this checkpoint's gain is {gain.get('class_path')}")
         config.pop(name, None)  # set once: on the gain, for this load
