@@ -27,6 +27,7 @@ class Offset:
     """Truth plus a constant position offset ``c`` (RMSE ``c`` on every axis), perfect mode probs."""
 
     needs = (keys.STATES, keys.MODE)
+    build_options = {"checkpoint": None}
 
     def __init__(self, c=1.0, checkpoint=None, name="offset"):
         self.c, self.checkpoint, self.name = c, checkpoint, name
@@ -148,3 +149,23 @@ def test_the_working_directorys_method_configs_come_first(tmp_path, monkeypatch)
     with pytest.raises(ValueError, match="unknown method 'nope'") as err:
         build_method("nope")
     assert str(mine / "nope.yaml") in str(err.value) and str(packaged_configs() / "methods" / "nope.yaml") in str(err.value)
+
+
+def test_what_a_method_class_declares_build_method_may_set_is_what_its_constructor_takes():
+    """``build_method`` sets checkpoint, return_cov, guard and r on a method by its class's ``build_options``, never by
+    reading the constructor: each configured class's declaration must name exactly those of its parameters, with
+    their defaults (a guard's default decides whether ``--guard`` replaces it), or an option would be dropped."""
+    import inspect
+
+    from immnet.config import import_class, load_yaml
+    from immnet.filters.methods import build_options, method_config
+
+    classes = {import_class(load_yaml(method_config(name))["class_path"]) for name in configured_methods()
+               if name != "measurements"}
+    assert len(classes) >= 9
+    for cls in classes:
+        params = inspect.signature(cls).parameters
+        taken = {k: params[k].default for k in ("checkpoint", "return_cov", "guard", "r") if k in params}
+        if "checkpoint" not in taken:
+            taken.pop("r", None)  # r is set only on a trained network (told_r)
+        assert build_options(cls) == taken, cls.__name__

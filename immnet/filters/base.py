@@ -31,6 +31,10 @@ class Method:
     any_interval: bool = False
     """True where ``track`` takes any interval before each scan (``immnet.data.times.scan_intervals``):
     the model-based filters, which build ``F`` and ``Q`` per track and scan (docs/baselines.md)."""
+    build_options: dict = {}
+    """The options ``immnet.filters.methods.build_method`` may set on this method's constructor, each with the
+    constructor's default: ``checkpoint`` (a file), ``return_cov`` (give ``state_cov``), ``guard`` (a range guard,
+    replaced where the configured one is not off), ``r`` (told each track's measurement std, with a checkpoint)."""
 
     def track(self, batch: TensorDict) -> TensorDict:  # pragma: no cover - interface
         raise NotImplementedError

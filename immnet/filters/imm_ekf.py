@@ -55,6 +55,8 @@ class IMMEKF(Method):
 
     any_interval = True  # each scan's interval per track (scan_intervals)
 
+    build_options = {"return_cov": False, "guard": None}
+
     def __init__(
         self,
         p_stay: float = 0.995,

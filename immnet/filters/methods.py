@@ -20,7 +20,6 @@ is ``measurements`` (:class:`RawMeasurements`), which needs no configuration.
 
 from __future__ import annotations
 
-import inspect
 from pathlib import Path
 from typing import Protocol, Sequence, runtime_checkable
 
@@ -114,10 +113,16 @@ def available_methods(methods_dir: Path | None = None) -> list[str]:
     return out
 
 
+def build_options(cls) -> dict:
+    """What ``build_method`` may set on a method class's constructor, with its defaults (``Method.build_options``;
+    none for a class that declares none)."""
+    return getattr(cls, "build_options", {})
+
+
 def takes_checkpoint(name: str, methods_dir: Path | None = None) -> bool:
-    """Whether a method is built from a checkpoint (its YAML or its constructor names one)."""
+    """Whether a method is built from a checkpoint (its YAML names one, or its class takes one)."""
     cls, init_args = _method_class(name, methods_dir)
-    return "checkpoint" in init_args or "checkpoint" in inspect.signature(cls).parameters
+    return "checkpoint" in init_args or "checkpoint" in build_options(cls)
 
 
 KEEP_GUARD = AS_CONFIGURED
@@ -125,9 +130,9 @@ KEEP_GUARD = AS_CONFIGURED
 
 
 def gives_cov(name: str, methods_dir: Path | None = None) -> bool:
-    """Whether a method can give its state's covariance ``state_cov`` (its constructor takes ``return_cov``)."""
+    """Whether a method can give its state's covariance ``state_cov`` (its class takes ``return_cov``)."""
     cls, _ = _method_class(name, methods_dir)
-    return "return_cov" in inspect.signature(cls).parameters
+    return "return_cov" in build_options(cls)
 
 
 def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None, guard=KEEP_GUARD,
@@ -139,8 +144,9 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
     checkout, or ``site-packages``: ``immnet/pretrained/...`` works in both). The object's
     ``name`` is set to ``name`` so that rows carry the registry name.
 
+    The options below reach a class's constructor where it declares them (``Method.build_options``).
     ``guard`` (``immnet.imm.guard.parse_guard``'s: ``"checkpoint"``, ``None`` or ``{"outer", "inner"}``)
-    replaces the range guard (``immnet.imm.guard``) of every method that has one: a constructor taking
+    replaces the range guard (``immnet.imm.guard``) of every method that has one: a class taking
     ``guard`` whose configured value is not off (IMMNet's ``"checkpoint"``, imm-ekf-guard's ``true``). A
     method configured without a guard (imm-ekf) keeps none: ``--guard none`` makes imm-ekf-guard its
     unguarded twin, never the reverse.
@@ -153,17 +159,16 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
     filters for real flights are, in place of estimating it; the other methods are as configured.
     """
     cls, init_args = _method_class(name, methods_dir)
-    params = inspect.signature(cls).parameters
-    if told_r and {"checkpoint", "r"} <= set(params):
+    options = build_options(cls)
+    if told_r and {"checkpoint", "r"} <= set(options):
         init_args["r"] = "data"
-    if return_cov and "return_cov" in params:
+    if return_cov and "return_cov" in options:
         init_args["return_cov"] = True
     if not (isinstance(guard, str) and guard == KEEP_GUARD):
-        param = params.get("guard")
-        if param is not None and init_args.get("guard", param.default) not in (None, False):
+        if "guard" in options and init_args.get("guard", options["guard"]) not in (None, False):
             init_args["guard"] = guard
     if checkpoint is not None:
-        if "checkpoint" not in init_args and "checkpoint" not in params:
+        if "checkpoint" not in init_args and "checkpoint" not in options:
             raise ValueError(f"method {name!r} ({cls.__name__}) does not take a checkpoint")
         init_args["checkpoint"] = str(checkpoint)
     ckpt = init_args.get("checkpoint")

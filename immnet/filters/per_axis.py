@@ -54,6 +54,8 @@ class PerAxisIMMTracker(Method):
 
     any_interval = True
 
+    build_options = {"return_cov": False}
+
     def __init__(self, model_set, r: float | str, sigma_q: float | Sequence[float], p_stay=0.98,
                  dtype="float64", name: str = "imm-axis", return_cov: bool = False, robust: float | None = None):
         self.model_set = ModelSet.from_config(model_set)

@@ -119,6 +119,8 @@ class KalmanFilterTracker(Method):
 
     any_interval = True
 
+    build_options = {"return_cov": False}
+
     def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None,
                  return_cov: bool = False, robust: float | None = None, reacquire=None):
         self.model = model if isinstance(model, MotionModel) else instantiate(model)
@@ -184,6 +186,8 @@ class IMMTracker(Method):
     """
 
     any_interval = True
+
+    build_options = {"return_cov": False}
 
     def __init__(
         self,

@@ -513,6 +513,8 @@ class BankMethod:
 
     needs: tuple[str, ...] = ()
 
+    build_options = {"return_cov": False, "guard": None}
+
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
                  guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
                  likelihood: str = "reported", temper: float = TEMPER, prune: float = PRUNE,

@@ -47,6 +47,8 @@ class IMMNetMethod(_LearnedMethod):
     covariance ``state_cov [B, T, 9, 9]`` (``IMMNet.rollout``'s); a ValueError now, naming why, for a checkpoint
     whose experts carry none (the paper's KalmanNet experts)."""
 
+    build_options = {"checkpoint": None, "r": "checkpoint", "return_cov": False, "guard": "checkpoint"}
+
     def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP,
                  adapt=KEEP, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = (), r=KEEP,
                  reacquire=KEEP):
@@ -89,6 +91,8 @@ class KalmanNetMethod(_LearnedMethod):
     ``return_cov``: also the expert's own covariance ``state_cov [B, T, 9, 9]`` (a filter expert's; a ValueError
     naming why for the paper's KalmanNet experts, which carry none).
     """
+
+    build_options = {"checkpoint": None, "return_cov": False}
 
     def __init__(self, checkpoint: str | None = None, expert: str | None = None, name: str = "kalmannet", batch_size: int = 500,
                  return_cov: bool = False):
