@@ -57,7 +57,7 @@ from immnet.motion import (
 )
 from immnet.stages.base import Stage, measured, per_expert, scan_interval, step_input, told_r, track_where
 from immnet.stages.features import slog, state_scale
-from immnet.stages.gain import KalmanNetGain
+from immnet.stages.gain import Gain, KalmanNetGain
 from immnet.stages.layers import StackedLinear
 from immnet.stages.predict import Predict
 from immnet.stages.update import Update, innovation
@@ -472,14 +472,12 @@ class _FilterExperts:
         return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.r == DETECTION,
                             robust=getattr(self, "robust", None) is not None)
 
-    def interaction_stage(self, model_set: ModelSet, dt: float) -> FilterInteraction:
-        """The interaction these experts need, with this gain's ``interaction``, ``p_stay`` and ``guard``."""
-        return FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset,
-                                 self.modes, self.restart)
-
-    def predict_stage(self, model_set: ModelSet, dt: float) -> FilterPredict:
-        """The predict stage these experts need (``FilterPredict``, with this gain's ``turn_rate``)."""
-        return FilterPredict(model_set, dt, turn_rate=self.turn_rate)
+    def stages(self, model_set: ModelSet, dt: float) -> tuple[FilterInteraction, FilterPredict, FilterUpdate]:
+        """The interaction, predict and update these experts need (``Gain.stages``): the interaction with this gain's
+        ``interaction``, ``p_stay`` and ``guard``, the predict with its ``turn_rate``, its ``update_stage``."""
+        return (FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset,
+                                  self.modes, self.restart),
+                FilterPredict(model_set, dt, turn_rate=self.turn_rate), self.update_stage(model_set, dt))
 
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
@@ -836,7 +834,7 @@ _FILTER_OUT = [
 ]
 
 
-class FilterGain(_FilterExperts, Stage):
+class FilterGain(_FilterExperts, Gain):
     """Filter experts with their base process noise and nothing learned: each expert is the
     extended Kalman filter of its own model (the ablation of the KalmanNet part; only the
     classifier trains)."""

@@ -32,7 +32,8 @@ from immnet.motion import POS, ModelSet
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import F1_SCALE, F2_SCALE, F3_SCALE, F4_SCALE, slog, state_scale
 from immnet.stages.layers import StackedGRUCell, StackedLinear
-from immnet.stages.update import innovation
+from immnet.stages.predict import Predict
+from immnet.stages.update import Update, innovation
 
 _P = list(POS)
 
@@ -59,7 +60,18 @@ def steady_state(model_set: ModelSet, sigma_q: float, r: float, dt: float = 1.0,
     return P, K, S
 
 
-class KalmanNetGain(Stage):
+class Gain(Stage):
+    """The gain's role: each expert's Kalman gain (``("expert", "gain")`` ``[B, M, 9, 3]``), between the step's
+    predict and update. A gain brings the stages around it (``stages``): these gains the shared ``Predict`` and
+    ``Update`` and no interaction; filter experts (``immnet.stages.filtering``), which keep their own covariances and
+    mode parameters and mix as an IMM, their own interaction, predict and update."""
+
+    def stages(self, model_set: ModelSet, dt: float) -> tuple[Stage | None, Stage, Stage]:
+        """``(interaction or None, predict, update)`` of a step with this gain."""
+        return None, Predict(model_set, dt), Update(model_set)
+
+
+class KalmanNetGain(Gain):
     """KalmanNet architecture 2 per expert, stacked. ``in_mult`` and ``out_mult`` as in KalmanNet."""
 
     in_keys = [
@@ -196,7 +208,7 @@ class KalmanNetGain(Stage):
         return td
 
 
-class AnalyticGain(Stage):
+class AnalyticGain(Gain):
     """The Kalman gain of each expert from its covariance (ablation; no learned parameters).
 
     Reads the fused covariance ``P_{t-1|t-1}`` (``("fused", "cov")``), writes each expert's prior

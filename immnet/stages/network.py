@@ -32,9 +32,8 @@ from immnet.data.times import scan_intervals
 from immnet.motion import MODE_GROUPS, N_MODES, POS, ModelSet, coupling, mode_groups
 from immnet.stages.base import Stage, axis_probs, track_where
 from immnet.stages.fuse import Fuse
-from immnet.stages.predict import Predict
+from immnet.stages.gain import Gain
 from immnet.stages.start import JoinStarts, TrackStart
-from immnet.stages.update import Update
 
 DEFAULT_GAIN = {"class_path": "immnet.stages.KalmanNetGain"}
 DEFAULT_CLASSIFIER = {"class_path": "immnet.stages.TransformerClassifier"}
@@ -90,11 +89,12 @@ def _migrate(config: dict) -> dict:
     return config
 
 
-def build_component(component, model_set: ModelSet, dt: float, settings: dict) -> Stage:
-    """The stage ``component`` names, for ``model_set`` and ``dt``, with the ``settings`` (``SET_ONCE``, set on
-    ``IMMNet``) in place of the component's own values wherever its class takes them (its ``Stage.shared``)."""
+def build_component(component, model_set: ModelSet, dt: float, settings: dict, role: type = Stage) -> Stage:
+    """The stage ``component`` names (a ``role``: ``Stage``, or ``Gain`` for the gain), for ``model_set`` and
+    ``dt``, with the ``settings`` (``SET_ONCE``, set on ``IMMNet``) in place of the component's own values wherever
+    its class takes them (its ``Stage.shared``)."""
     config = component_config(component)
-    cls = import_class(config["class_path"], Stage)
+    cls = import_class(config["class_path"], role)
     args = dict(config["init_args"]) | {name: value for name, value in settings.items() if name in cls.shared}
     return cls(model_set=model_set, dt=dt, **args)
 
@@ -213,15 +213,9 @@ class IMMNet(TensorDictModuleBase):
         if start_detections != 2:
             self.config["start_detections"] = int(start_detections)
         self.start_detections = int(start_detections)
-        self.gain = build_component(gain, ms, dt, settings)
+        self.gain = build_component(gain, ms, dt, settings, Gain)
         self.classify = build_component(classifier, ms, dt, settings)
-        # a gain may bring the interaction, predict and update stages its experts need (filter experts keep their
-        # own covariance and mode parameter, and mix as an IMM: immnet.stages.filtering)
-        interaction = getattr(self.gain, "interaction_stage", None)
-        self.interact = interaction(ms, dt) if interaction is not None else None
-        self.predict = getattr(self.gain, "predict_stage", Predict)(ms, dt)
-        update = getattr(self.gain, "update_stage", None)
-        self.update = update(ms, dt) if update is not None else Update(ms)
+        self.interact, self.predict, self.update = self.gain.stages(ms, dt)  # the stages the gain's experts need
         self.fuse = Fuse(ms, consistency=cov_consistency, modes=modes)
         self.correct = None
         if correction is not None:
