@@ -149,7 +149,7 @@ def test_a_checkpoint_naming_a_class_outside_immnet_is_refused_before_anything_i
     a class outside the allowed packages (``ALLOWED_PACKAGES``: immnet) is refused by every reader (the tracker,
     Stage2Module's checkpoints, the exporter, ``immnet fit --ckpt_path``'s check, ``immnet track``), and the module
     is never imported (its sentinel file is not created). Added to the allowed packages, the same name loads as far
-    as the import (the class is then refused as no stage)."""
+    as the import (the class is then refused as no gain)."""
     import sys
 
     from immnet.checkpoints import ALLOWED_PACKAGES
@@ -161,9 +161,9 @@ def test_a_checkpoint_naming_a_class_outside_immnet_is_refused_before_anything_i
     with pytest.raises(CheckpointError, match=why):
         check_checkpoints({"subcommand": "fit", "fit": {"ckpt_path": str(path), "model": {}}})
     assert not sentinel.exists() and module not in sys.modules
-    if where == "gain":  # one's own package, allowed: imported, then refused as no immnet stage, never built
+    if where == "gain":  # one's own package, allowed: imported, then refused as no immnet gain, never built
         monkeypatch.setattr("immnet.checkpoints.ALLOWED_PACKAGES", (*ALLOWED_PACKAGES, module))
-        with pytest.raises(ValueError, match=f"class_path '{module}.Gain' is not a immnet.stages.base.Stage"):
+        with pytest.raises(ValueError, match=f"class_path '{module}.Gain' is not a immnet.stages.gain.Gain"):
             Tracker.from_checkpoint(path)
         assert sentinel.exists()
         sys.modules.pop(module)
@@ -178,8 +178,10 @@ def test_a_component_that_is_no_stage_is_never_called(tmp_path):
 
     net = _shipped()["hyper_parameters"]["net"]
     called = {"class_path": "immnet.config.instantiate", "init_args": {"entry": {"class_path": "builtins.print"}}}
-    with pytest.raises(ValueError, match="'immnet.config.instantiate' is not a immnet.stages.base.Stage"):
+    with pytest.raises(ValueError, match="'immnet.config.instantiate' is not a immnet.stages.classify.ModeUpdate"):
         IMMNet(**{**net, "classifier": called})
+    with pytest.raises(ValueError, match="'immnet.config.instantiate' is not a immnet.stages.base.Stage"):
+        IMMNet(**{**net, "correction": called})
     with pytest.raises(ValueError, match="'immnet.config.instantiate' is not a immnet.motion.base.MotionModel"):
         ModelSet.from_config([called])
 

@@ -78,7 +78,15 @@ class _Block(nn.Module):
         return x + self.ff(self.norm2(x))
 
 
-class TransformerClassifier(Stage):
+class ModeUpdate(Stage):
+    """The classifier's role: each expert's probability at this scan (``("expert", "probs")``), which the fusion
+    weighs the experts by. ``markov_prior(td, prev)``: the log prior ``log (Pi^T mu_{t-1})`` a Bayesian mode update
+    predicts the modes with, None for one that has none (``IMMNet.innovation_loglik`` weighs a track by it)."""
+
+    markov_prior = None
+
+
+class TransformerClassifier(ModeUpdate):
     in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
     out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
 
@@ -246,7 +254,7 @@ class _MarkovPrior:
         return markov_prior(prev, self.log_pi.to(prev.dtype), transition)
 
 
-class UniformMix(Stage):
+class UniformMix(ModeUpdate):
     """Ablation: a fixed uniform mix ``mu = 1/M``."""
 
     in_keys = [keys.FUSED]
@@ -269,7 +277,7 @@ class UniformMix(Stage):
         return td
 
 
-class TrueModeUpdate(Stage):
+class TrueModeUpdate(ModeUpdate):
     """An oracle in the classifier's slot: the mode probabilities are the truth's, one-hot on the expert of the
     data's mode at each scan (the step's input ``("truth", "mode")`` ``[B]``), also at a track's start. A bound, not a
     tracker: with it the IMM's interaction takes each expert's prior from the true mode's expert (a mix with one-hot
@@ -330,7 +338,7 @@ class TrueModeUpdate(Stage):
         return td
 
 
-class BayesianModeUpdate(_MarkovPrior, Stage):
+class BayesianModeUpdate(_MarkovPrior, ModeUpdate):
     """Ablation: the IMM's Bayesian mode update with a Markov transition ``Pi`` (``p_stay`` on the diagonal).
 
     ``mu_t^(i) ∝ N(nu_t^(i); 0, S^(i)) sum_j Pi_ji mu_{t-1}^(j)``, in log space; ``S^(i)`` is the

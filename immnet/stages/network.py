@@ -31,6 +31,7 @@ from immnet.config import import_class
 from immnet.data.times import scan_intervals
 from immnet.motion import MODE_GROUPS, N_MODES, POS, ModelSet, coupling, mode_groups
 from immnet.stages.base import Stage, axis_probs, track_where
+from immnet.stages.classify import ModeUpdate
 from immnet.stages.fuse import Fuse
 from immnet.stages.gain import Gain
 from immnet.stages.start import JoinStarts, TrackStart
@@ -90,7 +91,7 @@ def _migrate(config: dict) -> dict:
 
 
 def build_component(component, model_set: ModelSet, dt: float, settings: dict, role: type = Stage) -> Stage:
-    """The stage ``component`` names (a ``role``: ``Stage``, or ``Gain`` for the gain), for ``model_set`` and
+    """The stage ``component`` names (of a ``role``: ``Gain``, ``ModeUpdate``, or any ``Stage``), for ``model_set`` and
     ``dt``, with the ``settings`` (``SET_ONCE``, set on ``IMMNet``) in place of the component's own values wherever
     its class takes them (its ``Stage.shared``)."""
     config = component_config(component)
@@ -214,7 +215,7 @@ class IMMNet(TensorDictModuleBase):
             self.config["start_detections"] = int(start_detections)
         self.start_detections = int(start_detections)
         self.gain = build_component(gain, ms, dt, settings, Gain)
-        self.classify = build_component(classifier, ms, dt, settings)
+        self.classify = build_component(classifier, ms, dt, settings, ModeUpdate)
         self.interact, self.predict, self.update = self.gain.stages(ms, dt)  # the stages the gain's experts need
         self.fuse = Fuse(ms, consistency=cov_consistency, modes=modes)
         self.correct = None
@@ -424,7 +425,7 @@ class IMMNet(TensorDictModuleBase):
         shift = self.reported_shift(before) if reported else None
         loglik = after.get(keys.EXPERT_LOGLIK) if shift is None else self.gain.shifted_loglik(after, shift)
         prev = before.get(keys.EXPERT_PROBS)
-        prior = getattr(self.classify, "markov_prior", None)
+        prior = self.classify.markov_prior
         log_pred = prior(after, prev) if prior is not None else torch.log(prev.clamp_min(1e-30))
         mixed = torch.logsumexp(log_pred.to(loglik.dtype) + loglik, -1)
         if mixed.dim() > 1:  # modes per group: [B, G]
