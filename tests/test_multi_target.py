@@ -101,13 +101,14 @@ def test_filter_is_the_single_target_method(name):
 
     from immnet import keys
     from immnet.filters.methods import build_method
+    from immnet.imm.measurement import Isotropic
 
     rng = np.random.default_rng(1)
     B, T, dt, r = 3, 25, 2.0, 40.0
     z = np.cumsum(rng.normal(0, 60.0 * dt, (B, T, 3)), 1) + rng.normal(0, r, (B, T, 3))
     z[0, 5] = np.nan
     method = build_method(name)
-    method.r, method.needs = r, ()
+    method.measurement, method.needs = Isotropic(r), ()
     batch = TensorDict({keys.MEASUREMENTS: torch.tensor(z), keys.DT: torch.full((B,), dt, dtype=torch.float64)},
                        batch_size=[B])
     ref = method.track(batch)[keys.STATE].numpy()
@@ -426,11 +427,12 @@ def test_monte_carlo_error_is_the_imm_told_the_association():
 
     from immnet import keys
     from immnet.filters.methods import build_method
+    from immnet.imm.measurement import Isotropic
 
     rng = np.random.default_rng(13)
     r, dt, T = 40.0, 2.0, 40
     method = build_method("real-imm-singer")
-    method.r, method.needs = r, ()
+    method.measurement, method.needs = Isotropic(r), ()
     ours, told = [], []
     for _ in range(10):
         starts = rng.uniform([-10e3, -10e3, 3e3], [10e3, 10e3, 8e3], (3, 3))

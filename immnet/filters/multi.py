@@ -130,9 +130,10 @@ class TrackFilter:
         from immnet.filters.methods import build_method
         from immnet.filters.per_axis import PerAxisIMMTracker
         from immnet.filters.trackers import IMMTracker, KalmanFilterTracker
+        from immnet.imm.measurement import Isotropic
 
         method = build_method(name)
-        own_r = method.r if isinstance(getattr(method, "r", None), float) else None
+        own_r = method.measurement.r if isinstance(getattr(method, "measurement", None), Isotropic) else None
         r = own_r if r is None else r
         if isinstance(method, PerAxisIMMTracker):
             return IMMFilter(method.model_set, method.sigma_q, method.Pi, groups="axis", r=r, name=name)

@@ -24,9 +24,10 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, output
 from immnet.filters.imm import first_detection, initial_state
-from immnet.filters.trackers import (_interval_or_intervals, _linear_network, assumed_r, check_robust, filter_settings,
+from immnet.filters.trackers import (ISOTROPIC, _interval_or_intervals, _linear_network, check_robust, check_sigma_q,
                                      variance)
 from immnet.imm.interaction import transition_matrix
+from immnet.imm.measurement import measurement_model
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import AXES, AXIS_OF, ModelSet, coupling
 
@@ -63,7 +64,8 @@ class PerAxisIMMTracker(Method):
         moving = coupling(self.model_set, AXIS_OF)
         if moving:
             raise ValueError(f"a per-axis IMM needs models whose F is block diagonal per axis; {moving} couple the axes")
-        self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)
+        self.measurement = measurement_model(r, ISOTROPIC)
+        self.r, self.needs, self.sigma_q = r, self.measurement.needs, check_sigma_q(sigma_q, M)
         self.Pi = transition_matrix(p_stay, M)
         self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
         self.dtype = as_dtype(dtype)
@@ -96,7 +98,7 @@ class PerAxisIMMTracker(Method):
         dt = _interval_or_intervals(batch, self.dtype, dev)
         F = self.model_set.F(dt, dtype=self.dtype, device=dev)  # [M | B, T, M, 9, 9]
         Q = self.model_set.Q(self.sigma_q, dt, dtype=self.dtype, device=dev)
-        r = assumed_r(self.r, batch, self.dtype, dev)
+        r = self.measurement.std(batch, self.dtype, dev)
         x0, P0 = initial_state(z, r)
 
         def per_track(A: torch.Tensor, shared: bool = False) -> torch.Tensor:

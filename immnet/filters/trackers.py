@@ -25,7 +25,7 @@ from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interva
 from immnet.filters.imm import first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its users import it from here)
-from immnet.imm.measurement import DETECTION, TOLD, Isotropic, PerDetection, Polar, measurement_model
+from immnet.imm.measurement import Isotropic, PerDetection, Polar, ToldStd, measurement_model
 from immnet.imm.reacquire import Reacquire, Restarts, check_reacquire
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
@@ -39,32 +39,16 @@ def _positive(name: str, value, allow_zero: bool = True) -> None:
             raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
 
 
-def check_r(r) -> float | str:
-    """``r`` as a filter's assumed measurement std: a positive number or ``"data"`` (``TOLD``)."""
-    if isinstance(r, str):
-        if r != TOLD:
-            raise ValueError(f"r must be a positive number or {TOLD!r} (each track's own r), got {r!r}")
-        return r
-    _positive("r", r, allow_zero=False)
-    return float(r)
+ISOTROPIC = (Isotropic, ToldStd)
+"""The measurement models of a filter with one ``r`` per track: a number or ``"data"`` (each track's own ``r``)."""
 
 
-def filter_settings(r, sigma_q, n_models: int) -> tuple[float | str, tuple[str, ...], float | list[float]]:
-    """A model set's filter settings, checked: ``r`` (``check_r``), the data keys it needs (``r`` itself where it
-    is ``"data"``) and ``sigma_q``, one for every model or one per model."""
-    r = check_r(r)
+def check_sigma_q(sigma_q, n_models: int) -> float | list[float]:
+    """``sigma_q``, checked: one for every model or one per model."""
     _positive("sigma_q", sigma_q)
     if isinstance(sigma_q, (list, tuple)) and len(sigma_q) != n_models:
         raise ValueError(f"sigma_q has {len(sigma_q)} values for {n_models} models")
-    sq = [float(v) for v in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
-    return r, ((keys.R,) if r == TOLD else ()), sq
-
-
-def assumed_r(r: float | str, batch: TensorDict, dtype, device) -> float | torch.Tensor:
-    """The assumed measurement std of every track: ``r`` itself, or the data's ``r [B]`` where ``r`` is ``"data"``."""
-    if r == TOLD:
-        return batch[keys.R].to(dtype=dtype, device=device).reshape(-1)
-    return r
+    return [float(v) for v in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
 
 
 def variance(r: float | torch.Tensor, dtype, device) -> torch.Tensor:
@@ -124,11 +108,11 @@ class KalmanFilterTracker(Method):
     def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None,
                  return_cov: bool = False, robust: float | None = None, reacquire=None):
         self.model = model if isinstance(model, MotionModel) else instantiate(model)
-        self.r = check_r(r)
+        self.measurement = measurement_model(r, ISOTROPIC)
+        self.r, self.needs = r, self.measurement.needs
         _positive("sigma_q", sigma_q)
         self.sigma_q, self.dtype = float(sigma_q), as_dtype(dtype)
         self.name = name or f"kf-{self.model.name}"
-        self.needs = (keys.R,) if self.r == TOLD else ()
         self.return_cov = return_cov
         self.robust = check_robust(robust)
         self.reacquire = check_reacquire(reacquire)
@@ -146,7 +130,7 @@ class KalmanFilterTracker(Method):
         dt = _interval_or_intervals(batch, self.dtype, dev)
         F = self.model.F(dt, dtype=self.dtype, device=dev)
         Q = self.model.Q(self.sigma_q, dt, dtype=self.dtype, device=dev)
-        r = assumed_r(self.r, batch, self.dtype, dev)
+        r = self.measurement.std(batch, self.dtype, dev)
         x, P = initial_state(z, r)
         R = variance(r, self.dtype, dev)
         one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
@@ -218,14 +202,10 @@ class IMMTracker(Method):
         moving = [m.name for m in self.model_set if m.state_dependent]
         if moving:
             raise ValueError(f"the IMM needs a constant F per model; {moving} are state-dependent (IMMNet experts only)")
-        isotropic = isinstance(r, (int, float)) or r == TOLD
-        if isotropic:
-            self.r, self.needs, self.sigma_q = filter_settings(r, sigma_q, M)
-            self.measurement = Isotropic(self.r)
-        else:
-            self.measurement = measurement_model(r)
-            _, _, self.sigma_q = filter_settings(1.0, sigma_q, M)
-            self.r, self.needs = r, tuple(self.measurement.needs)
+        self.measurement = measurement_model(r)
+        self.r, self.needs = r, self.measurement.needs
+        self.sigma_q = check_sigma_q(sigma_q, M)
+        isotropic = isinstance(self.measurement, ISOTROPIC)
         self.robust = check_robust(robust)
         self.reacquire = check_reacquire(reacquire)
         if groups is not None and not (isotropic and self.robust is None and self.reacquire is None):
@@ -267,8 +247,7 @@ class IMMTracker(Method):
                              f"this IMM has the polar model r={self.r!r}")
         if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
-        r = DETECTION if isinstance(self.measurement, PerDetection) else self.r
-        return _linear_network(self.name, self.model_set, self.sigma_q, r, self._p_stay, dt, self.dtype, self.modes,
+        return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype, self.modes,
                                self.robust, self.reacquire)
 
     def matrices(self, dt, device=None):
@@ -294,7 +273,7 @@ class IMMTracker(Method):
                 R = model.R(batch, self.dtype, z.device)
                 x0, P0 = initial_state(z, None, cov0=R[torch.arange(len(first), device=z.device), first])
             else:
-                r = assumed_r(self.r, batch, self.dtype, z.device)
+                r = model.std(batch, self.dtype, z.device)
                 x0, P0 = initial_state(z, r)
                 R = variance(r, self.dtype, z.device)
             states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
@@ -331,7 +310,7 @@ class IMMTracker(Method):
             self._step_net = self.network()
         net = self._step_net.to(z.device)
         intervals = net.intervals_for(batch)
-        r = assumed_r(self.r, batch, self.dtype, z.device) if self.r == TOLD else None
+        r = self.measurement.std(batch, self.dtype, z.device) if isinstance(self.measurement, ToldStd) else None
         out, _ = net.rollout(z, intervals=None if intervals is None else intervals.to(self.dtype), r=r,
                              return_cov=self.return_cov)
         probs = out[keys.ROLLOUT_EXPERT_PROBS]

@@ -3,20 +3,27 @@
 
 Positions are the radar's east-north-up frame (x east, y north, z up, metres, origin at the radar); a polar plot is
 slant range ``rho``, azimuth ``az`` clockwise from north and elevation ``el`` above the horizontal
-(``immnet.data.radar``, which this module does not import: the IMM core knows no data set). One class per role, each a small frozen dataclass:
+(``immnet.data.radar``, which this module does not import: the IMM core knows no data set). One class per kind, each a
+small frozen dataclass, with the configuration's spelling of it (a method YAML's or a checkpoint's ``r``, which
+:func:`measurement_model` reads):
 
-- ``Isotropic(r)``: ``z = H x + v``, ``v ~ N(0, r^2 I)``, one ``r`` (m) for every track, or ``r="data"`` each
-  track's own (the batch's ``r [B]``): the model every tracker here was built on;
-- ``PerDetection()``: ``v ~ N(0, R_t)``, each detection's own covariance, the batch's ``meas_cov [B, T, 3, 3]``
-  (``immnet.keys.MEAS_COV``; a polar plot's :func:`immnet.data.radar.converted` covariance, or any sensor's);
-- ``Polar(sigma_range, sigma_azimuth, sigma_elevation)``: the plot itself, ``h(x) = (rho, az, el)`` of the position
-  rows (0, 3, 6) of the 9-D state ``[x, vx, ax, y, vy, ay, z, vz, az]``, with independent Gaussian errors of those
-  standard deviations (m, rad, rad; numbers, one radar, or tensors ``[B, T]``, one per detection), updated by the
-  extended Kalman filter (:func:`polar_update`).
+- ``Isotropic(r)`` (a number): ``z = H x + v``, ``v ~ N(0, r^2 I)``, one ``r`` (m) for every track: the model every
+  tracker here was built on;
+- ``ToldStd()`` (``"data"``): the same with each track's own ``r``, the batch's ``r [B]``;
+- ``PerDetection()`` (``"detection"``): ``v ~ N(0, R_t)``, each detection's own covariance, the batch's
+  ``meas_cov [B, T, 3, 3]`` (``immnet.keys.MEAS_COV``; a polar plot's :func:`immnet.data.radar.converted`
+  covariance, or any sensor's);
+- ``Polar(sigma_range, sigma_azimuth, sigma_elevation)`` (``{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}``):
+  the plot itself, ``h(x) = (rho, az, el)`` of the position rows (0, 3, 6) of the 9-D state
+  ``[x, vx, ax, y, vy, ay, z, vz, az]``, with independent Gaussian errors of those standard deviations (m, rad, rad;
+  numbers, one radar, or tensors ``[B, T]``, one per detection), updated by the extended Kalman filter
+  (:func:`polar_update`);
+- ``Estimated()`` (None): each track's ``r`` estimated from its own measurements, IMMNet's filter experts alone.
 
-Each gives what an update needs: the first two a covariance for ``immnet.imm.kalman.update`` (``R``); ``Polar`` its
-update, ``measure``, for ``immnet.imm.runner.run``. Every model's first detection starts a track with its own
-covariance (``initial_cov``). A ``Polar`` model reads a batch's measurements as the conversion of its plots
+Each says what of the batch it ``needs`` and gives what an update needs: the first two a standard deviation
+(``std``), ``PerDetection`` a covariance for ``immnet.imm.kalman.update`` (``R``); ``Polar`` its update, ``measure``,
+for ``immnet.imm.runner.run``; a filter branches on the model's kind, never on its spelling. Every model's first
+detection starts a track with its own covariance (``initial_cov``). A ``Polar`` model reads a batch's measurements as the conversion of its plots
 (``immnet.data.radar.from_polar``: the plain conversion is inverted exactly; an unbiased converted measurement
 differs from it by ``rho s^2 / 2``, under a tenth of the range error at the issue's stds).
 """
@@ -34,37 +41,51 @@ from immnet import keys
 from immnet.imm.kalman import innovation_update, wide_dtype
 
 TOLD = "data"
-"""``r: data``: a filter is told each track's measurement std, the batch's ``r [B]`` (a radar that knows its accuracy;
-IMMNet's filter experts: the step's input ``"r"``), in place of a fixed or estimated one."""
+"""The configuration's spelling of ``ToldStd``: ``r: data``."""
+DETECTION = "detection"
+"""The configuration's spelling of ``PerDetection``: ``r: detection``."""
+
+
+def _positive(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value) and value > 0
 
 
 @dataclass(frozen=True)
 class Isotropic:
-    """``R = r^2 I``: ``r`` (m) for every track, or ``"data"``, each track's ``r [B]`` from the batch."""
+    """``R = r^2 I``, one ``r`` (m) for every track (configured as a number)."""
 
-    r: float | str
+    r: float
+
+    needs = ()
+    spelling = "a positive number"
 
     def __post_init__(self):
-        if isinstance(self.r, str):
-            if self.r != TOLD:
-                raise ValueError(f"Isotropic.r must be a positive number or {TOLD!r}, got {self.r!r}")
-        elif not (isinstance(self.r, (int, float)) and math.isfinite(self.r) and self.r > 0):
-            raise ValueError(f"Isotropic.r must be a positive number or {TOLD!r}, got {self.r!r}")
+        if not _positive(self.r):
+            raise ValueError(f"Isotropic.r must be a positive number, got {self.r!r}")
 
-    @property
-    def needs(self) -> tuple[str, ...]:
-        return (keys.R,) if self.r == TOLD else ()
-
-    def std(self, batch: TensorDict, dtype, device) -> float | torch.Tensor:
-        """``r`` itself, or the batch's ``r [B]``."""
-        if self.r == TOLD:
-            return batch[keys.R].to(dtype=dtype, device=device).reshape(-1)
+    def std(self, batch: TensorDict, dtype, device) -> float:
         return float(self.r)
 
-    def R(self, batch: TensorDict, dtype, device) -> torch.Tensor:
-        """The variance ``r^2``: a 0-d tensor (squared in float64 first) or ``[B]``."""
-        r = self.std(batch, dtype, device)
-        return r * r if isinstance(r, torch.Tensor) else torch.tensor(r**2, dtype=dtype, device=device)
+
+@dataclass(frozen=True)
+class ToldStd:
+    """``R = r^2 I`` with each track's own ``r``, the batch's ``r [B]`` (configured as ``"data"``: a radar that knows
+    its accuracy; IMMNet's filter experts: the step's input ``"r"``)."""
+
+    needs = (keys.R,)
+    spelling = f"{TOLD!r} (each track's own r)"
+
+    def std(self, batch: TensorDict, dtype, device) -> torch.Tensor:
+        return batch[keys.R].to(dtype=dtype, device=device).reshape(-1)
+
+
+@dataclass(frozen=True)
+class Estimated:
+    """Each track's ``r`` estimated from its own measurements (configured as None): IMMNet's filter experts alone
+    (``FilterGain``: the running mean of the altitude's third differences)."""
+
+    needs = ()
+    spelling = "None (estimated per track)"
 
 
 @dataclass(frozen=True)
@@ -72,6 +93,7 @@ class PerDetection:
     """Each detection's own covariance, the batch's ``meas_cov [B, T, 3, 3]`` (m^2, ENU; NaN where missed)."""
 
     needs = (keys.MEAS_COV,)
+    spelling = f"{DETECTION!r} (each detection's covariance, {keys.MEAS_COV!r})"
 
     def R(self, batch: TensorDict, dtype, device) -> torch.Tensor:
         """``[B, T, 3, 3]``, checked: finite and symmetric with positive pivots at every detection (a ValueError in
@@ -103,7 +125,7 @@ def _sigma(value, name: str):
         if not (torch.isfinite(value).all() and (value > 0).all()):
             raise ValueError(f"Polar.{name} must be finite and > 0 everywhere")
         return value
-    if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+    if not _positive(value):
         raise ValueError(f"Polar.{name} must be a positive number (or a tensor of them), got {value!r}")
     return float(value)
 
@@ -119,6 +141,7 @@ class Polar:
     sigma_elevation: float | torch.Tensor
 
     needs = ()
+    spelling = "a polar model {sigma_range, sigma_azimuth_deg, sigma_elevation_deg}"
 
     def __post_init__(self):
         for name in ("sigma_range", "sigma_azimuth", "sigma_elevation"):
@@ -227,26 +250,28 @@ def polar_update(x: torch.Tensor, P: torch.Tensor, plot: torch.Tensor, sigma: to
     return tuple(v.to(dtype) for v in innovation_update(x, P, nu, HP, S, missed, robust))
 
 
-def measurement_model(r) -> Isotropic | PerDetection | Polar:
-    """A tracker's ``r`` as its measurement model: a positive number or ``"data"`` (``Isotropic``), ``"detection"``
-    (``PerDetection``), a dict ``{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}`` (``Polar.from_config``) or a
-    model itself; anything else a ValueError in one line."""
-    if isinstance(r, (Isotropic, PerDetection, Polar)):
-        return r
-    if r == DETECTION:
-        return PerDetection()
+KINDS = (Isotropic, ToldStd, PerDetection, Polar, Estimated)
+"""Every measurement model's kind."""
+
+
+def measurement_model(r, takes: tuple[type, ...] = (Isotropic, ToldStd, PerDetection, Polar)):
+    """A configuration's ``r`` as its measurement model, one of ``takes`` (the kinds the caller filters with; a
+    model-based tracker's by default): a positive number (``Isotropic``), ``"data"`` (``ToldStd``), ``"detection"``
+    (``PerDetection``), a dict ``{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}`` (``Polar.from_config``),
+    None (``Estimated``) or a model itself; anything else, or a kind not in ``takes``, a ValueError in one
+    line naming what ``takes`` takes."""
+    model = r
     if isinstance(r, dict):
-        return Polar.from_config(r)
-    if isinstance(r, str) and r != TOLD:
-        raise ValueError(f"r must be a positive number, {TOLD!r} (each track's own r), {DETECTION!r} (each "
-                         f"detection's covariance, {keys.MEAS_COV!r}) or a polar model "
-                         f"{{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}}, got {r!r}")
-    if isinstance(r, bool) or not isinstance(r, (int, float, str)):
-        raise ValueError(f"r must be a positive number, {TOLD!r}, {DETECTION!r} or a polar model, got {r!r}")
-    return Isotropic(r if isinstance(r, str) else float(r))
-
-
-DETECTION = "detection"
-"""``r: detection``: each detection's own covariance, the batch's ``meas_cov`` (``PerDetection``; IMMNet's filter
-experts: the step's input ``"meas_cov"`` ``[B, 3, 3]``, ``S = H P H^T + R_t`` and the Joseph update with ``R_t``, a
-track's start covariance from its detections')."""
+        model = Polar.from_config(r)
+    elif r is None:
+        model = Estimated()
+    elif isinstance(r, str):
+        model = {TOLD: ToldStd(), DETECTION: PerDetection()}.get(r, r)
+    elif _positive(r):
+        model = Isotropic(float(r))
+    if not isinstance(model, takes):
+        kinds = [kind.spelling for kind in takes]
+        options = kinds[0] if len(kinds) == 1 else f"{', '.join(kinds[:-1])} or {kinds[-1]}"
+        kind = f" ({type(model).__name__}, which this filter does not take)" if isinstance(model, KINDS) else ""
+        raise ValueError(f"r must be {options}, got {r!r}{kind}")
+    return model
