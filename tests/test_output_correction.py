@@ -17,6 +17,7 @@ from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.data.storage import as_batch, write_dataset
 from immnet.filters.methods import method_config
+from immnet.imm.measurement import Estimated
 from immnet.stages import IMMNet
 from immnet.tracking.networks import frame_origin, to_local, to_world
 from immnet.tracking.tracker import Tracker, load_network
@@ -189,7 +190,7 @@ def test_the_recipe_trains_loads_and_evaluates(tmp_path, monkeypatch):
     net = load_network(ckpt)
     assert net.correct is not None and float(net.correct.out.weight.abs().max()) > 0
     assert all(name.startswith("correct.") for name, _ in net.named_parameters())  # the filters learn nothing
-    assert net.gain.r is None  # each track's r estimated
+    assert isinstance(net.gain.measurement, Estimated)  # each track's r estimated
     config = _filter().network().config
     config["gain"] = {**config["gain"], "init_args": {**config["gain"]["init_args"], "r": None}}
     base = IMMNet(**config)

@@ -134,7 +134,8 @@ def test_streaming_steps_with_each_detections_covariance_are_the_sequence():
 def test_refusals_of_a_network_told_each_detections_covariance():
     """One line naming what is missing or wrong: an unknown ``r``; a rollout without ``meas_cov``; data without
     ``meas_cov``; a covariance that is not one at a detection."""
-    with pytest.raises(ValueError, match="'detection' \\(each detection's covariance told\\)"):
+    with pytest.raises(ValueError, match=r"'detection' \(each detection's covariance, 'meas_cov'\) or None "
+                                         r"\(estimated per track\), got 'detections'"):
         FilterGain(IMMNet(model_set=ADAPTIVE).model_set, r="detections")
     data = _data(T=10)
     z = data[keys.MEASUREMENTS]

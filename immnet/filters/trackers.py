@@ -247,8 +247,8 @@ class IMMTracker(Method):
                              f"this IMM has the polar model r={self.r!r}")
         if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
-        return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype, self.modes,
-                               self.robust, self.reacquire)
+        return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
+                               self.modes, self.robust, self.reacquire)
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``

@@ -4,26 +4,22 @@
 Positions are the radar's east-north-up frame (x east, y north, z up, metres, origin at the radar); a polar plot is
 slant range ``rho``, azimuth ``az`` clockwise from north and elevation ``el`` above the horizontal
 (``immnet.data.radar``, which this module does not import: the IMM core knows no data set). One class per kind, each a
-small frozen dataclass, with the configuration's spelling of it (a method YAML's or a checkpoint's ``r``, which
-:func:`measurement_model` reads):
+small frozen dataclass, written in a configuration's ``r`` as in brackets (:func:`measurement_model` reads it):
 
-- ``Isotropic(r)`` (a number): ``z = H x + v``, ``v ~ N(0, r^2 I)``, one ``r`` (m) for every track: the model every
-  tracker here was built on;
-- ``ToldStd()`` (``"data"``): the same with each track's own ``r``, the batch's ``r [B]``;
-- ``PerDetection()`` (``"detection"``): ``v ~ N(0, R_t)``, each detection's own covariance, the batch's
-  ``meas_cov [B, T, 3, 3]`` (``immnet.keys.MEAS_COV``; a polar plot's :func:`immnet.data.radar.converted`
-  covariance, or any sensor's);
+- ``Isotropic(r)`` (a number): ``z = H x + v``, ``v ~ N(0, r^2 I)``, one ``r`` (m) for every track, and ``ToldStd()``
+  (``"data"``), each track's own, the batch's ``r [B]``: the models every tracker here was built on;
+- ``PerDetection()`` (``"detection"``): ``v ~ N(0, R_t)``, each detection's own covariance, the batch's ``meas_cov
+  [B, T, 3, 3]`` (``immnet.keys.MEAS_COV``; a polar plot's :func:`immnet.data.radar.converted` covariance, or any's);
 - ``Polar(sigma_range, sigma_azimuth, sigma_elevation)`` (``{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}``):
-  the plot itself, ``h(x) = (rho, az, el)`` of the position rows (0, 3, 6) of the 9-D state
-  ``[x, vx, ax, y, vy, ay, z, vz, az]``, with independent Gaussian errors of those standard deviations (m, rad, rad;
-  numbers, one radar, or tensors ``[B, T]``, one per detection), updated by the extended Kalman filter
-  (:func:`polar_update`);
-- ``Estimated()`` (None): each track's ``r`` estimated from its own measurements, IMMNet's filter experts alone.
+  the plot itself, ``h(x) = (rho, az, el)`` of the position rows (0, 3, 6) of the 9-D state ``[x, vx, ax, y, vy, ay,
+  z, vz, az]``, with independent Gaussian errors of those standard deviations (m, rad, rad; numbers, one radar, or
+  tensors ``[B, T]``, one per detection), updated by the extended Kalman filter (:func:`polar_update`);
+- ``Estimated()`` (None): each track's ``r`` estimated from its own measurements, by IMMNet's filter experts alone.
 
-Each says what of the batch it ``needs`` and gives what an update needs: the first two a standard deviation
-(``std``), ``PerDetection`` a covariance for ``immnet.imm.kalman.update`` (``R``); ``Polar`` its update, ``measure``,
-for ``immnet.imm.runner.run``; a filter branches on the model's kind, never on its spelling. Every model's first
-detection starts a track with its own covariance (``initial_cov``). A ``Polar`` model reads a batch's measurements as the conversion of its plots
+Each says what of the batch it ``needs`` and gives what an update needs: the first two a std (``std``),
+``PerDetection`` a covariance for ``immnet.imm.kalman.update`` (``R``), ``Polar`` its update (``measure``, for
+``immnet.imm.runner.run``) and a track's start covariance (``initial_cov``); a filter branches on the model's kind,
+never on its spelling. A ``Polar`` model reads a batch's measurements as the conversion of its plots
 (``immnet.data.radar.from_polar``: the plain conversion is inverted exactly; an unbiased converted measurement
 differs from it by ``rho s^2 / 2``, under a tenth of the range error at the issue's stds).
 """
@@ -40,10 +36,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.imm.kalman import innovation_update, wide_dtype
 
-TOLD = "data"
-"""The configuration's spelling of ``ToldStd``: ``r: data``."""
-DETECTION = "detection"
-"""The configuration's spelling of ``PerDetection``: ``r: detection``."""
+TOLD, DETECTION = "data", "detection"  # a configuration's spellings of ToldStd and PerDetection (r: data, detection)
 
 
 def _positive(value) -> bool:
@@ -55,7 +48,6 @@ class Isotropic:
     """``R = r^2 I``, one ``r`` (m) for every track (configured as a number)."""
 
     r: float
-
     needs = ()
     spelling = "a positive number"
 
@@ -250,8 +242,7 @@ def polar_update(x: torch.Tensor, P: torch.Tensor, plot: torch.Tensor, sigma: to
     return tuple(v.to(dtype) for v in innovation_update(x, P, nu, HP, S, missed, robust))
 
 
-KINDS = (Isotropic, ToldStd, PerDetection, Polar, Estimated)
-"""Every measurement model's kind."""
+KINDS = (Isotropic, ToldStd, PerDetection, Polar, Estimated)  # every measurement model's kind
 
 
 def measurement_model(r, takes: tuple[type, ...] = (Isotropic, ToldStd, PerDetection, Polar)):

@@ -50,7 +50,7 @@ from immnet.imm.kalman import (
     as_covariance, check_robust, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul,
 )
 from immnet.imm import reacquire as reacq
-from immnet.imm.measurement import DETECTION, TOLD
+from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
@@ -467,9 +467,14 @@ class _FilterExperts:
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
     Mixed into a ``Stage`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
+    @property
+    def per_detection(self) -> bool:
+        """Whether the experts are told each detection's covariance (``r="detection"``, ``PerDetection``)."""
+        return isinstance(self.measurement, PerDetection)
+
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need (``FilterUpdate``, with this gain's ``turn_rate``)."""
-        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.r == DETECTION,
+        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.per_detection,
                             robust=getattr(self, "robust", None) is not None)
 
     def stages(self, model_set: ModelSet, dt: float) -> tuple[FilterInteraction, FilterPredict, FilterUpdate]:
@@ -505,16 +510,9 @@ class _FilterExperts:
                              f"per model ({len(model_set)}), got {start_acc_std!r}")
         stds = [None if v is None else float(v) for v in stds]  # per expert
         self.spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the start's CA prior
-        if isinstance(r, str):
-            if r not in (TOLD, DETECTION):
-                raise ValueError(f"r must be a number > 0, {TOLD!r} (told per track), {DETECTION!r} (each detection's "
-                                 f"covariance told) or None (estimated), got {r!r}")
-            # the step's input: r [B], each track's measurement std, or meas_cov [B, 3, 3], each detection's covariance
-            self.in_keys = [*self.in_keys, keys.R] if r == TOLD else [*self.in_keys, keys.MEAS_COV, keys.NOISE_VAR]
-        elif isinstance(r, bool) or r is not None and not (math.isfinite(r) and r > 0):
-            raise ValueError(f"r must be finite and > 0, {TOLD!r} (told per track), {DETECTION!r} (each detection's "
-                             f"covariance told) or None (estimated per track), got {r}")
-        self.r = r if r is None or isinstance(r, str) else float(r)
+        self.measurement = measurement_model(r, (Isotropic, ToldStd, PerDetection, Estimated))
+        # the step's input (r [B] or meas_cov [B, 3, 3]) and, per detection, the carried covariance (a missed scan's)
+        self.in_keys = [*self.in_keys, *self.measurement.needs, *((keys.NOISE_VAR,) if self.per_detection else ())]
         self.adapt = AdaptiveNoise.from_config(adapt)
         if self.adapt is not None:  # the track's log lambda is carried
             self.in_keys = [*self.in_keys, keys.Q_SCALE]
@@ -572,13 +570,13 @@ class _FilterExperts:
         """``r^2`` per track: the running mean ``(k0 r0^2 + total) / (k0 + count)`` of the third-difference
         samples, the fixed ``r^2`` where ``r`` was given, or the square of the step's input ``r`` (``td``'s ``"r"``
         ``[B]``) where ``r`` is told per track (``"data"``)."""
-        if self.r == TOLD:
+        if isinstance(self.measurement, ToldStd):
             told = told_r(td).to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
             return (told * told).expand_as(total)
-        if self.r == DETECTION:
+        if self.per_detection:
             return self._told_cov(td)
-        if self.r is not None:
-            return torch.full_like(total, self.r**2)
+        if isinstance(self.measurement, Isotropic):
+            return torch.full_like(total, self.measurement.r**2)
         return (self.k0 * self.r0**2 + total) / (self.k0 + count)
 
     def _told_cov(self, td, z: torch.Tensor | None = None) -> torch.Tensor:
@@ -639,9 +637,9 @@ class _FilterExperts:
         M = self.n_experts
         B = shape[0]
         adapt = {} if self.adapt is None else {keys.Q_SCALE: torch.zeros(shape, dtype=dtype, device=device)}
-        r2 = (self.r if isinstance(self.r, float) else self.r0) ** 2
+        r2 = (self.measurement.r if isinstance(self.measurement, Isotropic) else self.r0) ** 2
         noise = torch.full(shape, r2, dtype=dtype, device=device)
-        if self.r == DETECTION:  # a covariance per detection: r0^2 I until the track's first detection
+        if self.per_detection:  # a covariance per detection: r0^2 I until the track's first detection
             noise = noise[..., None, None] * torch.eye(3, dtype=dtype, device=device)
         return adapt | {
             keys.EXPERT_POST: torch.zeros(B, M, 9, dtype=dtype, device=device),
@@ -704,7 +702,7 @@ class _FilterExperts:
         gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
         gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
         gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
-        told = self.r == DETECTION
+        told = self.per_detection
         if told:
             r2_track = self._told_cov(carry, z)
         else:
@@ -726,7 +724,7 @@ class _FilterExperts:
     # --- one scan ----------------------------------------------------------------------------
     def _r2(self, td) -> torch.Tensor:
         """This scan's ``r^2`` estimate as ``[B, M, 1, 1]``."""
-        return noise_matrix(self.noise(td), self.n_experts, self.r == DETECTION)
+        return noise_matrix(self.noise(td), self.n_experts, self.per_detection)
 
     def _noise_scale(self, td, like: torch.Tensor) -> torch.Tensor | None:
         """Multipliers of the five noise components ``[B, M, 5]``: the track's ``lambda``
@@ -761,7 +759,7 @@ class _FilterExperts:
         ``r^2``). What a bank of networks weighs a network with an output correction by: its prediction moved by the
         correction it reported at the scan before (``IMMNet.predictive_loglik(reported=True)``)."""
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        r2 = noise_matrix(td.get(keys.NOISE_VAR), self.n_experts, self.r == DETECTION)
+        r2 = noise_matrix(td.get(keys.NOISE_VAR), self.n_experts, self.per_detection)
         S = innovation_cov(P, r2.to(P.dtype))
         S_inv, logdet = inv3(S)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR)) - shift.to(P.dtype).unsqueeze(1)
@@ -1005,7 +1003,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
 
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need: with ``state_correction``, one that adds it."""
-        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.r == DETECTION)
+        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.per_detection)
 
     def knock_out_correction(self) -> None:
         """Set the state correction's rows of FC2 to zero (the rest of the network as trained)."""
