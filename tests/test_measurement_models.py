@@ -17,7 +17,10 @@ from immnet import keys
 from immnet.data.radar import from_polar
 from immnet.filters.trackers import IMMTracker, KalmanFilterTracker
 from immnet.imm.kalman import huber, update
-from immnet.imm.measurement import PerDetection, Polar, measurement_model, polar_update, to_polar, wrap
+from immnet.imm.measurement import (Isotropic, PerDetection, Polar, ToldStd, measurement_model, polar_update, to_polar,
+                                    wrap)
+from immnet.motion import ModelSet
+from immnet.stages.filtering import FilterGain
 
 DEG = math.pi / 180
 REAL_IMM = yaml.safe_load(open("configs/methods/real-imm.yaml"))["init_args"]  # a real-flight IMMTracker
@@ -253,6 +256,41 @@ def test_a_measurement_model_that_is_none_is_refused(r, message):
         measurement_model(r)
     with pytest.raises(ValueError, match=message):
         IMMTracker(**{**REAL_IMM, "r": r})
+
+
+CV_KF = dict(model={"class_path": "immnet.motion.ConstantVelocity"}, sigma_q=5.0)
+POLAR = {"sigma_range": 30, "sigma_azimuth_deg": 0.1, "sigma_elevation_deg": 0.1}
+
+
+@pytest.mark.parametrize("make, r, kind", [("kf", None, "Estimated"), ("kf", "detection", "PerDetection"),
+                                           ("kf", POLAR, "Polar"), ("imm", None, "Estimated"), ("gain", POLAR, "Polar")])
+def test_a_measurement_model_a_filter_does_not_take_is_refused_by_its_kind(make, r, kind):
+    """One line naming the kinds the filter takes and the kind it was given: the Kalman filter neither an estimated
+    ``r``, each detection's covariance nor the polar model, the IMM no estimated ``r``, IMMNet's filter experts not the
+    polar model."""
+    build = {"kf": lambda: KalmanFilterTracker(**CV_KF, r=r), "imm": lambda: IMMTracker(**{**REAL_IMM, "r": r}),
+             "gain": lambda: FilterGain(ModelSet.from_config(REAL_IMM["model_set"]), r=r)}[make]
+    with pytest.raises(ValueError, match=rf"^r must be .+, got .+ \({kind}, which this filter does not take\)$") as err:
+        build()
+    if make == "kf" and r is None:
+        assert str(err.value) == ("r must be a positive number or 'data' (each track's own r), got None (Estimated, "
+                                  "which this filter does not take)")
+
+
+def test_a_model_given_as_itself_is_its_configurations_spelling(flights):
+    """A filter given the model itself filters as with its spelling in a configuration: the Kalman filter and the IMM
+    with ``Isotropic(30.0)`` as with ``30``, ``ToldStd()`` as with ``"data"``, ``PerDetection()`` as with
+    ``"detection"`` (bit for bit); IMMNet's filter experts read the same step inputs."""
+    batch = _with_cov(flights, 30.0**2 * torch.eye(3, dtype=torch.float64))
+    for spelling, model in ((30, Isotropic(30.0)), ("data", ToldStd()), ("detection", PerDetection())):
+        assert measurement_model(spelling) == model and measurement_model(model) is model
+        imm = [IMMTracker(**{**REAL_IMM, "r": r}).track(batch)[keys.STATE] for r in (spelling, model)]
+        assert torch.equal(imm[0].nan_to_num(0), imm[1].nan_to_num(0))
+        gains = [FilterGain(ModelSet.from_config(REAL_IMM["model_set"]), r=r) for r in (spelling, model)]
+        assert gains[0].in_keys == gains[1].in_keys and gains[0].measurement == gains[1].measurement == model
+        if not isinstance(model, PerDetection):
+            kf = [KalmanFilterTracker(**CV_KF, r=r).track(batch)[keys.STATE] for r in (spelling, model)]
+            assert torch.equal(kf[0].nan_to_num(0), kf[1].nan_to_num(0))
 
 
 def test_robust_setting_is_checked():
