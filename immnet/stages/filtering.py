@@ -465,7 +465,10 @@ def noise_matrix(noise: torch.Tensor, n_experts: int, told_cov: bool) -> torch.T
 class _FilterExperts:
     """What every filter-expert gain shares: the measurement-noise estimate, the carry of a starting
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
-    Mixed into a ``Stage`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
+    Mixed into a ``Gain`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
+
+    robust = None  # Huber's k (FilterGain's option; the KalmanNet filter experts have none)
+    reacquire = None  # re-acquisition's rule (FilterGain's option)
 
     @property
     def per_detection(self) -> bool:
@@ -475,7 +478,7 @@ class _FilterExperts:
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need (``FilterUpdate``, with this gain's ``turn_rate``)."""
         return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.per_detection,
-                            robust=getattr(self, "robust", None) is not None)
+                            robust=self.robust is not None)
 
     def stages(self, model_set: ModelSet, dt: float) -> tuple[FilterInteraction, FilterPredict, FilterUpdate]:
         """The interaction, predict and update these experts need (``Gain.stages``): the interaction with this gain's
@@ -777,7 +780,7 @@ class _FilterExperts:
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
-        robust = getattr(self, "robust", None)
+        robust = self.robust
         if robust is not None:  # Huber's weight on the innovation's Mahalanobis distance (immnet.imm.kalman)
             maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
             weight, rho = huber(maha, robust)
@@ -788,7 +791,7 @@ class _FilterExperts:
             td.set(keys.EXPERT_ROBUST_WEIGHT, weight)
         else:
             loglik, maha = self._loglik(nu, S, S_inv, logdet, has_z)
-        if getattr(self, "reacquire", None) is not None and td.get(keys.MEASUREMENT).dim() == 2:
+        if self.reacquire is not None and td.get(keys.MEASUREMENT).dim() == 2:
             rejected = self._watch(td, r2, maha)  # a far detection gated out: the experts take it as missed
             has_z = has_z & ~rejected[:, None, None]
             loglik = torch.where(rejected[:, None], 0.0, loglik)
