@@ -31,7 +31,8 @@ WEIGHTS_TABLE = PRETRAINED.with_name("weights.json")
 """The one table of shipped weights (docs/checkpoints.md "Shipped weights"): for each network its name, file,
 weights checksum (checked at every load of the file: ``load_checkpoint``), the scan intervals it serves, the data it
 was trained on, whether it keeps a range guard, a one-line summary and its provenance files; and the bank, the shipped
-networks as one tracker (``immnet.tracking.bank``), the default of ``Tracker.pretrained()`` and ``immnet track``."""
+networks as one tracker (``immnet.tracking.bank``), the default of ``Tracker.pretrained()`` and ``immnet track``: its
+members and how it weighs and runs them."""
 TABLE = json.loads(WEIGHTS_TABLE.read_text())
 WEIGHTS = {entry["name"]: entry for entry in TABLE["weights"]}
 """The table's networks by name."""
@@ -43,6 +44,9 @@ BANK = TABLE["bank"]["name"]
 """The shipped networks together as one tracker (the table's ``bank``), not a file of its own."""
 BANK_MEMBERS = tuple(TABLE["bank"]["members"])
 """The bank's networks by shipped name (``immnet.tracking.bank.DEFAULT_MEMBERS``)."""
+BANK_SETTINGS = {k: TABLE["bank"][k] for k in ("likelihood", "temper", "prune", "prune_after", "defer")}
+"""How the shipped bank weighs and runs its members (``immnet.tracking.bank``: ``LIKELIHOOD``, ``TEMPER``, ``PRUNE``,
+``PRUNE_AFTER``, ``DEFER``), chosen on the validation sets (docs/tracking.md "A bank of networks")."""
 DEFAULT_WEIGHTS = TABLE["default"]
 
 

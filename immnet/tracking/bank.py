@@ -11,7 +11,8 @@ prior times the likelihood of the track's measurements under the member's own pr
 
 (``IMMNet.predictive_loglik``: the member's IMM mixture of its filter experts' innovation likelihoods; by default of
 the track as the member reports it, each prediction moved by the member's output correction of the scan before, and
-``temper`` 0.5: ``LIKELIHOODS``, ``TEMPER``). This is the
+``temper`` 0.5: the shipped bank's ``LIKELIHOOD`` and ``TEMPER``, read with its members and its other settings from
+the table of shipped weights, immnet/pretrained/weights.json). This is the
 static multiple-model estimator (Magill 1965; Bar-Shalom, Li and Kirubarajan, *Estimation with Applications to
 Tracking and Navigation*, 2001, "the static multiple model estimator"): the members are hypotheses about the whole
 track (a real aircraft at 1 s, at 5 s, a 3D-LAST target), not about a scan, so, unlike an IMM's modes, no member's
@@ -38,7 +39,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import BANK_MEMBERS, SHIPPED, TABLE, shipped
+from immnet.checkpoints import BANK_MEMBERS, BANK_SETTINGS, SHIPPED, TABLE, shipped
 from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
@@ -105,18 +106,21 @@ def _weighed(loglik: torch.Tensor, takes: torch.Tensor) -> torch.Tensor:
 LIKELIHOODS = ("filter", "reported")
 """What a member is weighed by: its filter's predictive density (``IMMNet.predictive_loglik``), or the density of the
 track as it reports it (``reported=True``: the filter's prediction moved by the member's output correction of the
-scan before; the default, docs/tracking.md "A bank of networks")."""
-TEMPER = 0.5
-"""The shipped bank's power of each scan's likelihood (chosen on the validation sets, docs/tracking.md)."""
-PRUNE = 1e-3
-"""The shipped bank's pruning: a member whose probability on a track falls below it runs on that track no more
-(chosen on the validation sets, docs/tracking.md)."""
-PRUNE_AFTER = 20
+scan before; the shipped bank's, docs/tracking.md "A bank of networks")."""
+# The shipped bank's settings, read from the table of shipped weights (immnet/pretrained/weights.json, "bank"; chosen on
+# the validation sets, docs/tracking.md):
+LIKELIHOOD = BANK_SETTINGS["likelihood"]
+"""What the shipped bank weighs its members by (one of ``LIKELIHOODS``)."""
+TEMPER = float(BANK_SETTINGS["temper"])
+"""The shipped bank's power of each scan's likelihood."""
+PRUNE = float(BANK_SETTINGS["prune"])
+"""The shipped bank's pruning: a member whose probability on a track falls below it runs on that track no more."""
+PRUNE_AFTER = int(BANK_SETTINGS["prune_after"])
 """No member is pruned from a track in its first scans from its first detection, while the members' likelihoods
-still carry their start (chosen on the validation sets, docs/tracking.md)."""
-DEFER = {"general": ("3dlast",)}
+still carry their start."""
+DEFER = {k: tuple(v) for k, v in BANK_SETTINGS["defer"].items()}
 """The shipped bank's members that give way: the general network does not run on a track the 3D-LAST network takes
-(1 s scans), and, the bank's fallback for any interval, is never pruned (docs/tracking.md)."""
+(1 s scans), and, the bank's fallback for any interval, is never pruned."""
 
 
 def _check_defer(defer, names: list[str]) -> dict[str, tuple[str, ...]]:
@@ -154,7 +158,7 @@ class NetworkBank:
     none); the shipped bank's (``from_names``' defaults) are ``PRUNE``, ``PRUNE_AFTER`` and ``DEFER``."""
 
     def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER, max_coast: float = MAX_COAST,
+                 likelihood: str = LIKELIHOOD, temper: float = TEMPER, max_coast: float = MAX_COAST,
                  prune: float = 0.0, defer: dict | None = None, prune_after: int = 0):
         if not (isinstance(prune, (int, float)) and not isinstance(prune, bool) and 0 <= prune < 1):
             raise ValueError(f"a bank's prune is a probability in [0, 1), got {prune!r}")
@@ -197,7 +201,7 @@ class NetworkBank:
 
     @classmethod
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
-                   max_position: float = MAX_ABS_POSITION, likelihood: str = "reported",
+                   max_position: float = MAX_ABS_POSITION, likelihood: str = LIKELIHOOD,
                    temper: float = TEMPER, max_coast: float = MAX_COAST, prune: float = PRUNE,
                    defer: dict | None = None, prune_after: int = PRUNE_AFTER) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
@@ -517,7 +521,7 @@ class BankMethod:
 
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
                  guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
-                 likelihood: str = "reported", temper: float = TEMPER, prune: float = PRUNE,
+                 likelihood: str = LIKELIHOOD, temper: float = TEMPER, prune: float = PRUNE,
                  defer: dict | None = None, prune_after: int = PRUNE_AFTER):
         self.name = name
         self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
