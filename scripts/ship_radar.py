@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         "weights_sha256": checksum,
         "recipe": f"recipes/{a.name}.yaml",
         "init": (f"its untrained start (the output correction's last layer zero: radar-imm-robust-{s}s, the joint IMM "
-                 "told each plot's covariance with Huber's update, exactly)"),
+                 "told each plot's covariance with Huber's update and its re-acquisition, exactly)"),
         "made_by": f".venv/bin/python scripts/ship_radar.py --name {a.name}",
         "date": datetime.date.today().isoformat(),
         "commit": commit,
@@ -91,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
              f"`{registry}.ckpt` ({out.stat().st_size / 2**20:.2f} MB, `weights_sha256` {checksum}): an output "
              f"correction (one GRU layer of 64) reading the innovation whitened by each plot's covariance, on "
              f"radar-imm-robust-{s}s as IMMNet's step (its filter experts told each plot's covariance, `r: detection`, "
-             f"Huber's update, k = 2.5), only the correction learned; for a surveillance radar's plots at {scans} "
+             f"Huber's update, k = 2.5, its re-acquisition: immnet.imm.reacquire), only the correction learned; for a "
+             f"surveillance radar's plots at {scans} "
              f"scans, told each plot's covariance (the data's `meas_cov`; docs/radar.md). Trained by "
              f"`{prov['recipe']}` from {prov['init']} at commit `{commit[:10]}` ({prov['date']}), "
              f"{prov['global_step']} steps, chosen on the validation splits below; exported by `{prov['made_by']}`. "

@@ -194,3 +194,21 @@ def test_refusals_of_a_network_filter():
     assert tracker._t == 0.0 and tracker._scan == 0 and len(tracker.seed_z) == 1 and len(tracker) == 0
     tracker.step(16.0, np.array([[3000.0, 2000.0, 3000.0]]))  # longer than the range: coasted through, taken
     assert len(tracker) == 1
+
+
+def test_a_network_filter_runs_without_re_acquisition():
+    """A track's filter does not restart itself: the multi-target tracker starts and deletes tracks. A shipped radar
+    network whose gain carries re-acquisition (``immnet.imm.reacquire``) is loaded without it by name, its weights
+    the checkpoint's; one loaded with it is refused in one line."""
+    from immnet.checkpoints import shipped
+    from immnet.tracking.network_filter import NetworkFilter
+    from immnet.tracking.networks import load_network
+
+    f = TrackFilter.by_name("radar-5s")
+    assert f.net.gain.reacquire is None
+    ref = load_network(shipped("radar-5s"))
+    assert all(torch.equal(a, b) for a, b in zip(f.net.state_dict().values(), ref.state_dict().values()))
+    with pytest.raises(ValueError) as err:
+        NetworkFilter(Tracker(load_network(shipped("radar-5s"), reacquire=True)), "radar-5s")
+    assert str(err.value) == ("radar-5s restarts its own tracks (re-acquisition, immnet.imm.reacquire): the "
+                              "multi-target tracker starts and deletes them (load it with reacquire=None)")

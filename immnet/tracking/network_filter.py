@@ -32,8 +32,9 @@ import numpy as np
 import torch
 
 from immnet import keys
+from immnet.checkpoints import shipped
 from immnet.filters.multi import TrackFilter
-from immnet.tracking.networks import check_dt, coast_cuts, trained_for
+from immnet.tracking.networks import check_dt, coast_cuts, load_network, trained_for
 from immnet.tracking.tracker import Tracker
 
 
@@ -52,6 +53,9 @@ class NetworkFilter(TrackFilter):
         if net.start.told_r:
             raise ValueError(f"{name or tracker} is told each track's measurement std (r='data'): the multi-target "
                              f"tracker has none per track to tell it (load it with r=<metres> or without r)")
+        if getattr(net.gain, "reacquire", None) is not None:
+            raise ValueError(f"{name or tracker} restarts its own tracks (re-acquisition, immnet.imm.reacquire): the "
+                             f"multi-target tracker starts and deletes them (load it with reacquire=None)")
         self.net = net
         self.name = name or tracker.name or (tracker.path.name if tracker.path is not None else "network")
         self.told_cov = bool(net.start.told_cov)
@@ -64,8 +68,13 @@ class NetworkFilter(TrackFilter):
 
     @classmethod
     def pretrained(cls, name: str) -> "NetworkFilter":
-        """The shipped network ``name`` (``immnet.checkpoints.SHIPPED``) with its own settings."""
-        return cls(Tracker.pretrained(name), name)
+        """The shipped network ``name`` (``immnet.checkpoints.SHIPPED``) with its own settings but re-acquisition
+        (``radar-5s``, ``radar-11s``): the multi-target tracker's initiation and deletion take its place."""
+        tracker = Tracker.pretrained(name)
+        if getattr(tracker.net.gain, "reacquire", None) is not None:
+            tracker = Tracker(load_network(tracker.path, reacquire=None), tracker.max_position)
+            tracker.name, tracker.path = name, shipped(name)
+        return cls(tracker, name)
 
     def _fresh(self, like: Tracker) -> Tracker:
         tr = Tracker(self.net, like.max_position, float("inf"))
