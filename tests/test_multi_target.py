@@ -123,6 +123,43 @@ def test_filter_is_the_single_target_method(name):
     np.testing.assert_allclose(np.stack(out, 1), ref, rtol=1e-9, atol=1e-6)
 
 
+@pytest.mark.parametrize("name", ["real-imm-singer", "real-imm"])
+def test_a_robust_methods_filter_updates_as_its_track(name):
+    """A method's robust update (Huber's ``k``) is its multi-target filter's too: with outliers among a track's plots
+    the batched filter filters what the robust method's own ``track`` filters (and not what the plain one does); a
+    configured robust method brings its ``k`` (radar-imm-robust-5s: 2.5)."""
+    import torch
+    from tensordict import TensorDict
+
+    from immnet import keys
+    from immnet.filters.methods import build_method
+    from immnet.imm.measurement import Isotropic
+
+    assert TrackFilter.from_method("radar-imm-robust-5s").robust == 2.5
+    rng = np.random.default_rng(4)
+    B, T, dt, r, k = 3, 25, 2.0, 40.0, 2.0
+    z = np.cumsum(rng.normal(0, 60.0 * dt, (B, T, 3)), 1) + rng.normal(0, r, (B, T, 3))
+    z[:, 9] += 15 * r  # an outlier on every track
+    batch = TensorDict({keys.MEASUREMENTS: torch.tensor(z), keys.DT: torch.full((B,), dt, dtype=torch.float64)},
+                       batch_size=[B])
+    refs = []
+    for robust in (k, None):
+        method = build_method(name)
+        method.measurement, method.needs, method.robust = Isotropic(r), (), robust
+        refs.append(method.track(batch)[keys.STATE].numpy())
+    f = TrackFilter.from_method(name, r=r)
+    f.robust = k
+    R = np.broadcast_to(r * r * np.eye(3), (B, 3, 3))
+    f.start(z[:, 0], R)
+    out = [f.state()[0]]
+    for t in range(1, T):
+        f.predict(dt)
+        f.update(z[:, t], R)
+        out.append(f.state()[0])
+    np.testing.assert_allclose(np.stack(out, 1), refs[0], rtol=1e-9, atol=1e-6)
+    assert np.abs(refs[0] - refs[1])[:, 9:, 0::3].max() > 50.0  # the outlier moves the plain filter's track
+
+
 def test_mixture_update_with_certain_association_is_the_update():
     """``update_mixture`` with all the probability on one plot (or on none) is ``update`` with that plot (or NaN)."""
     rng = np.random.default_rng(2)

@@ -48,7 +48,7 @@ from scipy.stats import chi2
 from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
-from immnet.imm.kalman import gaussian_loglik, inv3, predict, update
+from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, update
 from immnet.motion import AXES, ModelSet, coupling
 from immnet.motion import AXIS_OF
 
@@ -124,9 +124,9 @@ class TrackFilter:
     def from_method(name: str, r: float | None = None) -> "IMMFilter":
         """The filter of the method ``name`` (``configs/methods/<name>.yaml``): a model-based IMM (``IMMTracker``
         with joint modes, ``PerAxisIMMTracker``) or a Kalman filter (``KalmanFilterTracker``), with its model set,
-        process noise, transition matrix and initial mode probabilities. ``r``: the measurement std to assume where
-        plots come without covariances; None: the method's own ``r`` where it is a number (``r: data`` assumes
-        none)."""
+        process noise, transition matrix, initial mode probabilities and robust update. ``r``: the measurement std to
+        assume where plots come without covariances; None: the method's own ``r`` where it is a number (``r: data``
+        assumes none). A method's re-acquisition is not taken: the multi-target tracker starts and deletes tracks."""
         from immnet.filters.methods import build_method
         from immnet.filters.per_axis import PerAxisIMMTracker
         from immnet.filters.trackers import IMMTracker, KalmanFilterTracker
@@ -136,15 +136,17 @@ class TrackFilter:
         own_r = method.measurement.r if isinstance(getattr(method, "measurement", None), Isotropic) else None
         r = own_r if r is None else r
         if isinstance(method, PerAxisIMMTracker):
-            return IMMFilter(method.model_set, method.sigma_q, method.Pi, groups="axis", r=r, name=name)
+            return IMMFilter(method.model_set, method.sigma_q, method.Pi, groups="axis", r=r, name=name,
+                             robust=method.robust)
         if isinstance(method, IMMTracker):
             if method.modes != "joint":
                 raise ValueError(f"{name}: an IMM with modes per {method.modes} is not a multi-target filter "
                                  f"(joint modes or a per-axis IMM are)")
             return IMMFilter(method.model_set, method.sigma_q, method.Pi, mu0=method.mu0, groups="joint", r=r,
-                             name=name)
+                             name=name, robust=method.robust)
         if isinstance(method, KalmanFilterTracker):
-            return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], groups="joint", r=r, name=name)
+            return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], groups="joint", r=r, name=name,
+                             robust=method.robust)
         raise ValueError(f"{name} is a {type(method).__name__}: the multi-target tracker's filters are the model-based "
                          f"IMMs and Kalman filters (IMMTracker, PerAxisIMMTracker, KalmanFilterTracker) and the "
                          f"shipped networks by their weights' name (radar-5s, real-5s, ...)")
@@ -171,10 +173,12 @@ class IMMFilter(TrackFilter):
     single-target IMMs' (``immnet.filters.imm.initial_state``: velocity std ``vel_std``, acceleration std
     ``acc_std``); a two-point start (``start(z, R, z_prev, R_prev, dt)``) differences the plots: velocity
     ``(z - z_prev) / dt`` with covariance ``(R + R_prev) / dt^2`` plus what an acceleration of std ``acc_std``
-    adds over the interval (``acc_std^2 dt^2 / 4``, the average velocity being the one at mid-interval)."""
+    adds over the interval (``acc_std^2 dt^2 / 4``, the average velocity being the one at mid-interval). ``robust``:
+    Huber's ``k`` of every update (``immnet.imm.kalman``: a plot's weight falls beyond ``k`` standard deviations of
+    its innovation), None the plain update."""
 
     def __init__(self, model_set, sigma_q, p_stay=0.98, mu0=None, groups: str = "joint", r: float | None = None,
-                 vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm"):
+                 vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm", robust: float | None = None):
         if groups not in GROUPS:
             raise ValueError(f"groups must be one of {', '.join(GROUPS)}, got {groups!r}")
         self.model_set = ModelSet.from_config(model_set)
@@ -188,6 +192,7 @@ class IMMFilter(TrackFilter):
         self.mu0 = torch.full((M,), 1.0 / M, dtype=torch.float64) if mu0 is None else _t(mu0).reshape(M)
         self.groups, self.G, self.d = groups, (1 if groups == "joint" else AXES), (9 if groups == "joint" else 3)
         self.r, self.name = (None if r is None else float(r)), name
+        self.robust = check_robust(robust)
         self.vel_std, self.acc_std = float(vel_std), float(acc_std)
         self.M = M
         f64 = torch.float64
@@ -294,7 +299,7 @@ class IMMFilter(TrackFilter):
             return
         z, R = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3)
         zm, Rm, H = self._measure(z, R)
-        x, P, ll = update(self.x, self.P, zm[:, 0], H, Rm[:, 0])
+        x, P, ll = update(self.x, self.P, zm[:, 0], H, Rm[:, 0], self.robust)
         self.x, self.P, self.mu = x, P, mode_update(torch.log(self.mu), ll)
 
     @torch.no_grad()
@@ -311,7 +316,7 @@ class IMMFilter(TrackFilter):
         z, R, beta, beta0 = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3), _t(beta), _t(beta0)
         n = len(track)
         zm, Rm, H = self._measure(z, R)
-        xh, Ph, ll = update(self.x[track], self.P[track], zm[:, 0], H, Rm[:, 0])  # [n, G, M, ...]
+        xh, Ph, ll = update(self.x[track], self.P[track], zm[:, 0], H, Rm[:, 0], self.robust)  # [n, G, M, ...]
         W = beta[:, None, None] * torch.softmax(torch.log(self.mu[track]) + ll, -1)  # beta_h P(mode | h)
         W0 = beta0[:, None, None] * self.mu
         mu = W0.index_add(0, track, W)  # [K, G, M]
