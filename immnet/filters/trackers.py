@@ -31,12 +31,11 @@ from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
 
 
-def _positive(name: str, value, allow_zero: bool = True) -> None:
+def _positive(name: str, value) -> None:
     values = [float(v) for v in (value if isinstance(value, (list, tuple)) else [value])]
     for v in values:
-        if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
-            bound = ">= 0" if allow_zero else "> 0"
-            raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
+        if not math.isfinite(v) or v < 0:
+            raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
 
 
 ISOTROPIC = (Isotropic, ToldStd)
