@@ -25,7 +25,6 @@ R = "r"
 DT = "dt"
 TIME = "t"
 MEAS_COV = "meas_cov"  # each detection's measurement covariance R [B, T, 3, 3] (m^2; NaN where missed), in the radar's ENU frame
-DATA_KEYS = (STATES, MEASUREMENTS, MODE, TURN_RATE, R, DT, TIME)
 
 # --- a method's output ------------------------------------------------------------------------
 STATE = "state"

@@ -572,6 +572,7 @@ def test_training_refuses_flights_another_set_keeps_for_validation_or_test(tmp_p
     in the run keeps for validation or test (sets at two scan intervals and two seeds: two partitions), unless told
     ``allow_seen_flights``; one partition (``--splits-from``) trains, as does a set alone or beside 3D-LAST."""
     from immnet.data import LASTDataModule
+    from immnet.data.datamodule import MixtureDataset
     from immnet.data.spec import DataSpec
     from immnet.data.storage import write_dataset
 
@@ -591,10 +592,11 @@ def test_training_refuses_flights_another_set_keeps_for_validation_or_test(tmp_p
     with pytest.raises(ValueError, match="--splits-from"):
         LASTDataModule(str(tmp_path / "b" / "train"), val_data=str(tmp_path / "b" / "val"),
                        test_data=str(tmp_path / "a" / "test"), batch_size=2).setup("fit")  # b trains on a's test
-    assert setup(["a/train", "b/train"], ["a/val", "b/val"], allow_seen_flights=True).mixture
-    assert setup(["a/train", "c/train"], ["a/val", "c/val"]).mixture  # one partition
+    assert isinstance(setup(["a/train", "b/train"], ["a/val", "b/val"], allow_seen_flights=True).dataset("train"),
+                      MixtureDataset)
+    assert isinstance(setup(["a/train", "c/train"], ["a/val", "c/val"]).dataset("train"), MixtureDataset)  # one partition
     write_dataset(tmp_path / "3dlast", 8, 0, DataSpec(T=40, min_segment=12), progress=False)  # trajectories, no flights
-    assert setup(["a/train", "3dlast"], ["a/val", None]).mixture
+    assert isinstance(setup(["a/train", "3dlast"], ["a/val", None]).dataset("train"), MixtureDataset)
 
 
 def test_turns_added_to_a_real_set(tmp_path, monkeypatch, capsys):

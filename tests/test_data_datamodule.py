@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from immnet.data import LASTDataModule, write_dataset
+from immnet.data.datamodule import MixtureDataset
 from immnet.data.spec import DataSpec
 
 SPEC = DataSpec(T=40, min_segment=10)
@@ -212,7 +213,7 @@ def test_a_mixture_draws_each_batch_from_one_set(sets, tmp_path):
     val = write_dataset(tmp_path / "short-val", 13, 6, DataSpec(T=25, min_segment=8))
     dm = LASTDataModule([sets["main"], short], val_data=[None, val], val_fraction=0.1, test_fraction=0.0,
                         batch_size=32, split_seed=2)
-    assert dm.mixture and len(dm.dataset("train")) == 900 + 90 and len(dm.dataset("val")) == 100 + 13
+    assert isinstance(dm.dataset("train"), MixtureDataset) and len(dm.dataset("train")) == 900 + 90 and len(dm.dataset("val")) == 100 + 13
     main_train = _ids(LASTDataModule(sets["main"], val_fraction=0.1, test_fraction=0.0, split_seed=2).split("train"))
     seen, lengths = set(), []
     loader = dm.train_dataloader()

@@ -608,20 +608,11 @@ def test_the_decoupled_imm_is_immnet_with_modes_per_axis(method):
                classifier=bayes, modes="axis")
 
 
-def test_a_network_written_with_per_axis_loads_with_modes_per_axis():
-    """Configurations written when modes per axis were ``per_axis: true`` (the modes-per-axis network of
-    ``recipes/real.yaml`` was saved so) read as ``modes: axis``, the components' own ``per_axis`` dropped; a
-    disagreement is refused by name. The shipped real-flight network is modes per axis."""
+def test_the_shipped_real_flight_network_has_modes_per_axis():
+    """The shipped real-flight network is modes per axis, in its saved configuration and as loaded."""
     from immnet.checkpoints import shipped
-    from immnet.stages.network import net_arguments
     from immnet.tracking.tracker import load_network, read_checkpoint
 
-    gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {"r": 3.0, "per_axis": False}}
-    args = net_arguments({"class_path": "immnet.stages.IMMNet", "init_args": {"per_axis": True, "gain": gain}})
-    assert args["modes"] == "axis" and "per_axis" not in args and args["gain"]["init_args"] == {"r": 3.0}
-    assert net_arguments({"gain": gain})["gain"]["init_args"] == {"r": 3.0} and "modes" not in net_arguments({"gain": gain})
-    with pytest.raises(ValueError, match="disagree"):
-        net_arguments({"per_axis": True, "modes": "channel"})
     assert read_checkpoint(shipped("real"))[0]["modes"] == "axis"
     assert load_network(shipped("real")).modes == "axis"
 

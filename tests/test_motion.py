@@ -15,6 +15,7 @@ from immnet.motion import (
     ModelSet,
     Singer,
     ct_matrix,
+    adaptive_ct_propagate,
     ct_propagate,
     noise_gain,
     process_noise,
@@ -148,13 +149,17 @@ def test_adaptive_turn_follows_the_state_within_its_bounds(w_deg):
     x = ct_matrix(w_deg * DEG, 1.0) @ _state()
     plus, minus = AdaptiveTurn(5.0), AdaptiveTurn(-5.0)
     own, other = (plus, minus) if w_deg > 0 else (minus, plus)
-    torch.testing.assert_close(own.propagate(x), ct_matrix(w_deg * DEG, 1.0) @ x, rtol=1e-12, atol=1e-9)
+
+    def step(model, x):  # the model's map: adaptive_ct_propagate at its bounds, as IMMNet's predict stage applies it
+        return adaptive_ct_propagate(x, *model.rate_bounds(), 1.0)
+
+    torch.testing.assert_close(step(own, x), ct_matrix(w_deg * DEG, 1.0) @ x, rtol=1e-12, atol=1e-9)
     # the other sign is bounded to its slowest rate, 1 deg/s the other way
     edge = -1.0 if w_deg > 0 else 1.0
-    torch.testing.assert_close(other.propagate(x), ct_matrix(edge * DEG, 1.0) @ x, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(step(other, x), ct_matrix(edge * DEG, 1.0) @ x, rtol=1e-12, atol=1e-9)
     # faster than max_deg is clamped to max_deg
     fast = ct_matrix(math.copysign(15.0, w_deg) * DEG, 1.0) @ _state()
-    torch.testing.assert_close(own.propagate(fast), ct_matrix(math.copysign(10.0, w_deg) * DEG, 1.0) @ fast, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(step(own, fast), ct_matrix(math.copysign(10.0, w_deg) * DEG, 1.0) @ fast, rtol=1e-12, atol=1e-9)
     assert own.mode == (2 if w_deg > 0 else 3) and own.state_dependent
     with pytest.raises(ValueError, match="min_deg"):
         AdaptiveTurn(5.0, min_deg=6.0)

@@ -407,11 +407,6 @@ class LASTDataModule(L.LightningDataModule):
             self._common_keys = sorted(common)
         self._ready = True
 
-    @property
-    def mixture(self) -> bool:
-        """Whether ``data`` is several data sets (batches then come from one set each)."""
-        return isinstance(self.data, (list, tuple)) and len(self.data) > 1
-
     def dataset(self, name: str) -> TrajectoryDataset | MixtureDataset:
         if name not in SPLITS:
             raise ValueError(f"unknown split {name!r}; valid: {', '.join(SPLITS)}")
@@ -428,18 +423,6 @@ class LASTDataModule(L.LightningDataModule):
             raise ValueError(f"split({name!r}) of a mixture: its data sets differ in length and interval, read each "
                              "set on its own (LASTDataModule(path).split(...))")
         return ds.__getitems__(torch.arange(len(ds)))
-
-    @property
-    def train_dataset(self):
-        return self.dataset("train")
-
-    @property
-    def val_dataset(self):
-        return self.dataset("val")
-
-    @property
-    def test_dataset(self):
-        return self.dataset("test")
 
     def on_after_batch_transfer(self, batch, dataloader_idx: int):
         """Lightning's hook on every batch on its device: a training batch becomes ``augment``'s view of it for the

@@ -112,7 +112,7 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
              return_bad: bool = False):
     """``m`` trajectories drawn from generator ``g``, float64, none redrawn.
 
-    With ``return_bad`` also the ``[m]`` mask of those leaving a hard bound (``out_of_bounds``).
+    With ``return_bad`` also the ``[m]`` mask of those leaving a hard bound at some step (or not finite).
     """
     T, dt = spec.T, spec.dt
     # --- draws, in a fixed order -----------------------------------------------------------
@@ -271,17 +271,6 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     if cov is not None:
         td.set(keys.MEAS_COV, cov)
     return (td, bad) if return_bad else td
-
-
-def out_of_bounds(td: TensorDict, spec: DataSpec) -> torch.Tensor:
-    """``[m]`` bool: the trajectory leaves a hard bound at some step."""
-    x = td[keys.STATES]
-    rho = torch.hypot(x[..., 0], x[..., 3])
-    hs = torch.hypot(x[..., 1], x[..., 4])
-    alt = x[..., 6]
-    bad = (rho < spec.hard_range_min) | (rho > spec.hard_range_max) | (hs > spec.hard_speed_max)
-    bad |= (alt < spec.hard_alt_min) | (alt > spec.hard_alt_max)
-    return bad.any(-1) | ~torch.isfinite(x).all(-1).all(-1)
 
 
 def generate_block(seed: int, block: int, n: int, spec: DataSpec = DataSpec(), single_mode=None) -> TensorDict:

@@ -577,7 +577,7 @@ def subset_flights(data, out, flights: float | None = None, seed: int = 0, overw
     td, meta = _real_split(data, out, overwrite, "a subset of flights")
     owners = window_flights(meta, td.batch_size[0], data)
     ids = sorted(set(owners))
-    seen = _flights_of(without, meta, data)
+    seen = _flights_of(without, meta)
     left = [f for f in ids if f not in seen]
     if not left:
         raise ValueError(f"{data}: every flight of it is in {', '.join(map(str, without))}; no window is left")
@@ -592,9 +592,9 @@ def subset_flights(data, out, flights: float | None = None, seed: int = 0, overw
                                       "window_flights": [owners[i] for i in rows], "subset": subset})
 
 
-def _flights_of(splits, meta: dict, data) -> set[str]:
+def _flights_of(splits, meta: dict) -> set[str]:
     """The flights the real-flight ``splits`` (directories) name, each checked to be a split of a set of the same
-    samples as ``data`` (``meta``), so that its flight ids are ``data``'s."""
+    samples as the set ``meta`` describes, so that its flight ids are that set's."""
     from immnet.data.storage import sample_digests
 
     digests = sample_digests(meta)

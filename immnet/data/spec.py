@@ -185,9 +185,6 @@ class DataSpec:
             raise ValueError(f"{path}: a data config is a mapping of DataSpec fields")
         return cls.from_dict(d)
 
-    def to_yaml(self, path: str | Path) -> None:
-        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
-
 
 PLOT_PAIRS = {"sigma_range": "", "sigma_azimuth": "_deg", "sigma_elevation": "_deg"}
 """The plots' std pairs: ``{name}_min{unit}`` and ``{name}_max{unit}`` fields of :class:`DataSpec`."""

@@ -26,7 +26,6 @@ import numpy as np
 
 TOLD = " (told association)"
 RAW = "raw plots"
-TRACKER_KEYS = ("gate", "confirm", "delete_after", "associator")
 
 
 def clutter_density(spec: dict) -> float:

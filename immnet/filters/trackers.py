@@ -26,17 +26,16 @@ from immnet.filters.imm import first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its users import it from here)
 from immnet.imm.measurement import Isotropic, PerDetection, Polar, ToldStd, measurement_model
-from immnet.imm.reacquire import Reacquire, Restarts, check_reacquire
+from immnet.imm.reacquire import Reacquire, Restarts
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
 
 
-def _positive(name: str, value, allow_zero: bool = True) -> None:
+def _positive(name: str, value) -> None:
     values = [float(v) for v in (value if isinstance(value, (list, tuple)) else [value])]
     for v in values:
-        if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
-            bound = ">= 0" if allow_zero else "> 0"
-            raise ValueError(f"{name} must be finite and {bound}, got {value!r}")
+        if not math.isfinite(v) or v < 0:
+            raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
 
 
 ISOTROPIC = (Isotropic, ToldStd)
@@ -115,7 +114,7 @@ class KalmanFilterTracker(Method):
         self.name = name or f"kf-{self.model.name}"
         self.return_cov = return_cov
         self.robust = check_robust(robust)
-        self.reacquire = check_reacquire(reacquire)
+        self.reacquire = Reacquire.from_config(reacquire)
 
     def network(self, dt: float = 1.0):
         """This filter as IMMNet with nothing learned: the one-model case of ``IMMTracker.network`` (its docstring)."""
@@ -207,7 +206,7 @@ class IMMTracker(Method):
         self.sigma_q = check_sigma_q(sigma_q, M)
         isotropic = isinstance(self.measurement, ISOTROPIC)
         self.robust = check_robust(robust)
-        self.reacquire = check_reacquire(reacquire)
+        self.reacquire = Reacquire.from_config(reacquire)
         if groups is not None and not (isotropic and self.robust is None and self.reacquire is None):
             raise ValueError(f"{name}: modes per {modes} track with IMMNet's step, which takes an isotropic r, no "
                              f"robust update and no re-acquisition")

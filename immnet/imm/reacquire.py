@@ -58,11 +58,6 @@ class Reacquire(Option):
                 raise ValueError(f"reacquire's {name} must be a finite number > 0, got {value!r}")
 
 
-def check_reacquire(config) -> Reacquire | None:
-    """``config`` as a ``Reacquire`` (``Option.from_config``: None/False off, True the defaults, a dict of fields)."""
-    return Reacquire.from_config(config)
-
-
 class Watch(NamedTuple):
     """What each track carries for re-acquisition: ``count [B]`` (in the state's dtype) -1 while the track waits for the
     detection that confirms its start, else the length of its run of far detections; ``plot [B, 3]`` the start's

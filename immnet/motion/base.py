@@ -32,7 +32,7 @@ class MotionModel:
     vertical: float = 1.0
     mode: int = 0
     state_dependent: bool = False
-    """True where the transition depends on the state (``propagate(x, dt)``), not ``F`` alone."""
+    """True where the transition depends on the state (``adaptive_ct_propagate``), not ``F`` alone."""
 
     @property
     def name(self) -> str:  # pragma: no cover - overridden

@@ -133,8 +133,8 @@ class AdaptiveTurn(CoordinatedTurn):
     expert turns at the slowest rate and its gain builds the acceleration up from the innovations.
     ``turn_rate_deg`` is the nominal rate, used where a constant ``F`` is needed (a learned
     expert's steady-state gain at initialization, the analytic-gain ablation's covariance).
-    ``propagate`` is ``adaptive_ct_propagate`` at this model's bounds; IMMNet's predict stage applies
-    that map to all its adaptive experts at once. The model-based IMM filters need a constant ``F``
+    Its map is ``adaptive_ct_propagate`` at its ``rate_bounds``; IMMNet's predict stage applies that map
+    to all its adaptive experts at once. The model-based IMM filters need a constant ``F``
     and refuse it.
     """
 
@@ -164,7 +164,3 @@ class AdaptiveTurn(CoordinatedTurn):
         """``(lo, hi)`` turn-rate bounds in rad/s."""
         lo, hi = self.min_deg * m.DEG, self.max_deg * m.DEG
         return (lo, hi) if self.turn_rate_deg > 0 else (-hi, -lo)
-
-    def propagate(self, x: torch.Tensor, dt: float = 1.0) -> torch.Tensor:
-        """``F_CT(w(x), dt) x`` with the bounded state-implied turn rate ``w(x)``."""
-        return m.adaptive_ct_propagate(x, *self.rate_bounds(), dt)

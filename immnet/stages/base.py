@@ -34,7 +34,7 @@ from immnet.motion import ModelSet
 KEY_NAMES = {
     name.lower(): unravel_key(value)
     for name, value in vars(keys).items()
-    if name.isupper() and name != "DATA_KEYS" and isinstance(value, (str, tuple))
+    if name.isupper() and isinstance(value, (str, tuple))
 }
 """``set_keys``'s vocabulary: the lower-case name of each key constant of ``immnet.keys``."""
 

@@ -889,7 +889,7 @@ class FilterGain(_FilterExperts, Gain):
                 raise ValueError(f"a robust update (robust={robust!r}) weighs the whole innovation: it takes modes "
                                  f"'joint', got modes={modes!r}")
             self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT]
-        self.reacquire = reacq.check_reacquire(reacquire)
+        self.reacquire = reacq.Reacquire.from_config(reacquire)
         if self.reacquire is not None:
             if mode_groups(modes) is not None:
                 raise ValueError(f"re-acquisition reads the whole innovation: it takes modes 'joint', got modes={modes!r}")

@@ -71,22 +71,6 @@ def net_arguments(config: dict | None) -> dict:
         if not (inspect.isclass(cls) and issubclass(cls, IMMNet)):
             raise ValueError(f"net must be an immnet.stages.IMMNet, got class_path {config['class_path']!r}")
         config = dict(config.get("init_args") or {})
-    return _migrate(config)
-
-
-def _migrate(config: dict) -> dict:
-    """A configuration written before modes per group were one setting, in today's words: the network's ``per_axis:
-    true`` is ``modes: axis``, and its components' own ``per_axis`` (which the network set) is dropped; anything else
-    as it is. Checkpoints written then load as they were trained."""
-    config = dict(config)
-    if config.pop("per_axis", False):
-        if config.get("modes", "axis") != "axis":
-            raise ValueError(f"per_axis: true and modes: {config['modes']!r} disagree (per_axis is modes: axis)")
-        config["modes"] = "axis"
-    for role in ("gain", "classifier"):
-        part = config.get(role)
-        if isinstance(part, dict) and isinstance(part.get("init_args"), dict) and "per_axis" in part["init_args"]:
-            config[role] = {**part, "init_args": {k: v for k, v in part["init_args"].items() if k != "per_axis"}}
     return config
 
 

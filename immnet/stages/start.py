@@ -37,8 +37,6 @@ from immnet import keys
 from immnet.motion import POS, VEL, ModelSet
 from immnet.stages.base import Stage, measured, step_input, track_where
 
-COUNTS = (keys.AGE, keys.START_SCANS, keys.START_TIME)
-"""The track-start counts ``TrackStart`` carries."""
 STEP_INPUTS = (keys.R, keys.MEAS_COV, keys.TRUE_MODE, keys.TRUE_TURN_RATE, keys.TRUE_RESTART)
 """The step's inputs per track that are neither carried nor measured: each track's measurement std or each detection's
 covariance ``[B, 3, 3]`` (a filter gain told it, ``r="data"``, ``r="detection"``) and an oracle's truth (the clairvoyant filters, docs/stages.md); ``IMMNet.scan`` sets them."""
