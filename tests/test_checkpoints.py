@@ -449,3 +449,27 @@ def test_weights_of_another_architecture_are_refused_by_file_and_weight(tmp_path
         assert list(file.shape) != list(built.shape) and 64 in built.shape and 32 in file.shape
         assert f"is {list(file.shape)} in the file, {list(built.shape)} in the network)" in message
     _refused_by_track_and_evaluate(path, why, tmp_path, capsys)
+
+
+def test_a_network_configuration_with_an_argument_immnet_does_not_take_is_refused_in_one_line(tmp_path, capsys):
+    """A checkpoint whose network configuration holds an argument ``IMMNet`` does not take (another version's, e.g.
+    the retired ``per_axis: true``, today ``modes: axis``) is refused by ``immnet track`` in one line naming the file
+    and the argument, with nothing written; ``NET_ARGUMENTS`` is exactly IMMNet's arguments."""
+    import inspect
+
+    from immnet.stages import IMMNet
+    from immnet.stages.network import NET_ARGUMENTS
+
+    assert set(NET_ARGUMENTS) == set(inspect.signature(IMMNet).parameters)
+    ckpt = _shipped()
+    ckpt["hyper_parameters"]["net"].pop("modes", None)
+    ckpt["hyper_parameters"]["net"]["per_axis"] = True
+    path = tmp_path / "old.ckpt"
+    torch.save(ckpt, path)
+    z = generate(2, seed=5, spec=DataSpec(T=30, min_segment=10))
+    np.savez(tmp_path / "in.npz", measurements=z["measurements"].numpy(), dt=1.0)
+    assert main(["track", "--input", str(tmp_path / "in.npz"), "--output", str(tmp_path / "o.npz"),
+                 "--checkpoint", str(path)]) == 2
+    line = _one_error_line(capsys.readouterr().err, "track")
+    assert f"{path}: the network's configuration holds 'per_axis', which IMMNet does not take" in line
+    assert not (tmp_path / "o.npz").exists()

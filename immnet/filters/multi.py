@@ -314,7 +314,6 @@ class IMMFilter(TrackFilter):
             return
         track = torch.from_numpy(np.asarray(track, dtype=np.int64))
         z, R, beta, beta0 = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3), _t(beta), _t(beta0)
-        n = len(track)
         zm, Rm, H = self._measure(z, R)
         xh, Ph, ll = update(self.x[track], self.P[track], zm[:, 0], H, Rm[:, 0], self.robust)  # [n, G, M, ...]
         W = beta[:, None, None] * torch.softmax(torch.log(self.mu[track]) + ll, -1)  # beta_h P(mode | h)

@@ -62,15 +62,25 @@ def component_config(component) -> dict:
     raise ValueError(f"a component is a class_path / init_args mapping, got {component!r}")
 
 
+NET_ARGUMENTS = ("model_set", "gain", "classifier", "dt", "p_stay", "guard", "interval_range", "cov_consistency",
+                 "start_detections", "modes", "correction")
+"""``IMMNet``'s arguments: what a ``net`` config (a checkpoint's hyper-parameters) may hold."""
+
+
 def net_arguments(config: dict | None) -> dict:
     """``IMMNet``'s keyword arguments from a ``net`` config: its arguments themselves (``model_set``, ``gain``,
-    ...), or the ``class_path: immnet.stages.IMMNet`` / ``init_args`` form LightningCLI writes."""
+    ...), or the ``class_path: immnet.stages.IMMNet`` / ``init_args`` form LightningCLI writes; an argument IMMNet
+    does not take (``NET_ARGUMENTS``) is refused in one line."""
     config = dict(config or {})
     if "class_path" in config:
         cls = import_class(config["class_path"])
         if not (inspect.isclass(cls) and issubclass(cls, IMMNet)):
             raise ValueError(f"net must be an immnet.stages.IMMNet, got class_path {config['class_path']!r}")
         config = dict(config.get("init_args") or {})
+    unknown = sorted(set(config) - set(NET_ARGUMENTS))
+    if unknown:
+        raise ValueError(f"the network's configuration holds {', '.join(map(repr, unknown))}, which IMMNet does not "
+                         f"take (its arguments: {', '.join(NET_ARGUMENTS)})")
     return config
 
 

@@ -41,7 +41,10 @@ def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
         raise ValueError(f"{path} is not an IMMNet checkpoint (its hyper_parameters' net is a {type(config).__name__})")
     state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if isinstance(k, str) and k.startswith("net.")}
     check_finite(state, path)
-    return net_arguments(copy.deepcopy(config)), state
+    try:
+        return net_arguments(copy.deepcopy(config)), state
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
 
 
 def check_finite(state: dict, path) -> None:
