@@ -92,10 +92,8 @@ from immnet.filters.multi import (  # noqa: E402
 )
 
 
-@pytest.mark.parametrize("name", ["real-imm-singer", "real-imm", "real-ca"])
-def test_filter_is_the_single_target_method(name):
-    """The batched filter of a method (per-axis IMM, joint IMM, Kalman filter), started at the first plot and stepped
-    with predict/update (a NaN row: missed), filters what the method's own ``track`` filters."""
+def _method_track(name: str, z: np.ndarray, dt: float, r: float, robust: float | None = None) -> np.ndarray:
+    """Method ``name``'s own ``track`` of ``z [B, T, 3]`` at interval ``dt``, told ``r`` (and Huber's ``robust``)."""
     import torch
     from tensordict import TensorDict
 
@@ -103,24 +101,36 @@ def test_filter_is_the_single_target_method(name):
     from immnet.filters.methods import build_method
     from immnet.imm.measurement import Isotropic
 
+    method = build_method(name)
+    method.measurement, method.needs, method.robust = Isotropic(r), (), robust
+    B = z.shape[0]
+    batch = TensorDict({keys.MEASUREMENTS: torch.tensor(z), keys.DT: torch.full((B,), dt, dtype=torch.float64)},
+                       batch_size=[B])
+    return method.track(batch)[keys.STATE].numpy()
+
+
+def _filter_track(f, z: np.ndarray, dt: float, r: float) -> np.ndarray:
+    """The batched filter ``f`` started at the first plot and stepped with predict/update over ``z [B, T, 3]``."""
+    R = np.broadcast_to(r * r * np.eye(3), (z.shape[0], 3, 3))
+    f.start(z[:, 0], R)
+    out = [f.state()[0]]
+    for k in range(1, z.shape[1]):
+        f.predict(dt)
+        f.update(z[:, k], R)
+        out.append(f.state()[0])
+    return np.stack(out, 1)
+
+
+@pytest.mark.parametrize("name", ["real-imm-singer", "real-imm", "real-ca"])
+def test_filter_is_the_single_target_method(name):
+    """The batched filter of a method (per-axis IMM, joint IMM, Kalman filter), started at the first plot and stepped
+    with predict/update (a NaN row: missed), filters what the method's own ``track`` filters."""
     rng = np.random.default_rng(1)
     B, T, dt, r = 3, 25, 2.0, 40.0
     z = np.cumsum(rng.normal(0, 60.0 * dt, (B, T, 3)), 1) + rng.normal(0, r, (B, T, 3))
     z[0, 5] = np.nan
-    method = build_method(name)
-    method.measurement, method.needs = Isotropic(r), ()
-    batch = TensorDict({keys.MEASUREMENTS: torch.tensor(z), keys.DT: torch.full((B,), dt, dtype=torch.float64)},
-                       batch_size=[B])
-    ref = method.track(batch)[keys.STATE].numpy()
-    f = TrackFilter.from_method(name, r=r)
-    R = np.broadcast_to(r * r * np.eye(3), (B, 3, 3))
-    f.start(z[:, 0], R)
-    out = [f.state()[0]]
-    for k in range(1, T):
-        f.predict(dt)
-        f.update(z[:, k], R)
-        out.append(f.state()[0])
-    np.testing.assert_allclose(np.stack(out, 1), ref, rtol=1e-9, atol=1e-6)
+    np.testing.assert_allclose(_filter_track(TrackFilter.from_method(name, r=r), z, dt, r), _method_track(name, z, dt, r),
+                               rtol=1e-9, atol=1e-6)
 
 
 @pytest.mark.parametrize("name", ["real-imm-singer", "real-imm"])
@@ -128,36 +138,16 @@ def test_a_robust_methods_filter_updates_as_its_track(name):
     """A method's robust update (Huber's ``k``) is its multi-target filter's too: with outliers among a track's plots
     the batched filter filters what the robust method's own ``track`` filters (and not what the plain one does); a
     configured robust method brings its ``k`` (radar-imm-robust-5s: 2.5)."""
-    import torch
-    from tensordict import TensorDict
-
-    from immnet import keys
-    from immnet.filters.methods import build_method
-    from immnet.imm.measurement import Isotropic
-
     assert TrackFilter.from_method("radar-imm-robust-5s").robust == 2.5
     rng = np.random.default_rng(4)
     B, T, dt, r, k = 3, 25, 2.0, 40.0, 2.0
     z = np.cumsum(rng.normal(0, 60.0 * dt, (B, T, 3)), 1) + rng.normal(0, r, (B, T, 3))
     z[:, 9] += 15 * r  # an outlier on every track
-    batch = TensorDict({keys.MEASUREMENTS: torch.tensor(z), keys.DT: torch.full((B,), dt, dtype=torch.float64)},
-                       batch_size=[B])
-    refs = []
-    for robust in (k, None):
-        method = build_method(name)
-        method.measurement, method.needs, method.robust = Isotropic(r), (), robust
-        refs.append(method.track(batch)[keys.STATE].numpy())
+    robust, plain = _method_track(name, z, dt, r, k), _method_track(name, z, dt, r)
     f = TrackFilter.from_method(name, r=r)
     f.robust = k
-    R = np.broadcast_to(r * r * np.eye(3), (B, 3, 3))
-    f.start(z[:, 0], R)
-    out = [f.state()[0]]
-    for t in range(1, T):
-        f.predict(dt)
-        f.update(z[:, t], R)
-        out.append(f.state()[0])
-    np.testing.assert_allclose(np.stack(out, 1), refs[0], rtol=1e-9, atol=1e-6)
-    assert np.abs(refs[0] - refs[1])[:, 9:, 0::3].max() > 50.0  # the outlier moves the plain filter's track
+    np.testing.assert_allclose(_filter_track(f, z, dt, r), robust, rtol=1e-9, atol=1e-6)
+    assert np.abs(robust - plain)[:, 9:, 0::3].max() > 50.0  # the outlier moves the plain filter's track
 
 
 def test_mixture_update_with_certain_association_is_the_update():
