@@ -158,22 +158,27 @@ class OutputCorrection(Stage):
             self.out.weight.zero_()
             self.out.bias.zero_()
 
-    def shift(self, td, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """This scan's correction of the reported position ``[B, 3]`` (m; zero where the track has no estimate yet
-        or is at its first detection) and the GRU's next state, from its state ``h [B, layers, hidden]``."""
+    def inputs(self, td) -> tuple[torch.Tensor, torch.Tensor]:
+        """What this scan's correction reads: the features ``f_t`` (module doc) and the noise's scale that turns a
+        correction into metres, the Cholesky factor ``L [B, 3, 3]`` (``whiten``) or the std ``r [B, 1]``."""
         z, x = td.get(keys.MEASUREMENT), td.get(keys.FUSED)
         noise = td.get(keys.NOISE_VAR).to(x.dtype)
         dt, _ = scan_interval(td, self.dt)
         if self.whiten:
             L = cholesky_noise(noise_covariance(noise))
-            f = whitened_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), L, dt)
-        else:
-            r = noise_std(noise)
-            f = correction_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), r, dt)
+            return whitened_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), L, dt), L
+        r = noise_std(noise)
+        return correction_features(z, x, td.get(keys.FUSED_COV), td.get(keys.EXPERT_PROBS), r, dt), r
+
+    def shift(self, td, h: torch.Tensor, inputs=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """This scan's correction of the reported position ``[B, 3]`` (m; zero where the track has no estimate yet
+        or is at its first detection) and the GRU's next state, from its state ``h [B, layers, hidden]``; ``inputs``:
+        this scan's ``inputs(td)`` where the caller has them."""
+        f, scale = self.inputs(td) if inputs is None else inputs
         w = self.inp.weight
         y, h_new = self.gru(torch.relu(self.inp(f.to(w.dtype))).unsqueeze(1), h.to(w.dtype).transpose(0, 1).contiguous())
-        delta = self.out(y[:, 0]).to(x.dtype)
-        step = (L @ delta.unsqueeze(-1)).squeeze(-1) if self.whiten else r * delta
+        delta = self.out(y[:, 0]).to(f.dtype)
+        step = (scale @ delta.unsqueeze(-1)).squeeze(-1) if self.whiten else scale * delta
         running = _has_estimate(td).reshape(-1, 1)
         # a track's first detection is reported as its filter reports it (the measurement, as every tracker's); the
         # correction starts at the scan after, when its state has seen the track
@@ -240,6 +245,7 @@ class CorrectionEnsemble(Stage):
 
     def forward(self, td):
         h = td.get(keys.OUTPUT_HIDDEN)
-        shifts, states = zip(*(member.shift(td, h[:, k]) for k, member in enumerate(self.members)))
+        inputs = self.members[0].inputs(td)  # every member reads the same features
+        shifts, states = zip(*(member.shift(td, h[:, k], inputs) for k, member in enumerate(self.members)))
         _report(td, torch.stack(shifts).mean(0), torch.stack(states, 1))
         return td
