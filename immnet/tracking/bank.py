@@ -44,6 +44,7 @@ from immnet.data.times import scan_intervals
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.interaction import moment_match
+from immnet.labels import N_MODES
 from immnet.stages import IMMNet
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
@@ -312,7 +313,7 @@ class NetworkBank:
         B, T, K = z.shape[0], z.shape[1], len(self.names)
         ran = takes.any(0).nonzero().flatten().tolist()  # the members that take a track: the others run on none
         state = torch.zeros(B, T, len(ran), 9, dtype=torch.float64)
-        probs = torch.zeros(B, T, len(ran), 4, dtype=torch.float64)
+        probs = torch.zeros(B, T, len(ran), N_MODES, dtype=torch.float64)
         cov = torch.zeros(B, T, len(ran), 9, 9, dtype=torch.float64) if return_cov else None
         loglik = torch.full((B, T, K), float("nan"), dtype=torch.float64)
         nets = list(self.members.values())
@@ -466,7 +467,7 @@ class NetworkBank:
         runs = takes | shadow
         K = len(self.names)
         state = torch.zeros(B, K, 9, dtype=torch.float64)
-        probs = torch.zeros(B, K, 4, dtype=torch.float64)
+        probs = torch.zeros(B, K, N_MODES, dtype=torch.float64)
         cov = torch.zeros(B, K, 9, 9, dtype=torch.float64)
         loglik = torch.full((B, K), float("nan"), dtype=torch.float64)
         age = torch.zeros(B, dtype=torch.long)
