@@ -133,6 +133,19 @@ class Stage(TensorDictModuleBase):
         """This stage as stage 1 runs it, each expert alone; itself where its keys are the same."""
         return self
 
+    # --- its learned weights ----------------------------------------------------------------------
+    knock_out = None
+    """A stage whose learned part corrects a model-based base: the method that sets that correction to zero, the
+    rest as trained (``IMMNet.knock_out``); None for a stage without one."""
+
+    def interval_columns(self) -> dict[str, int]:
+        """The weights that read the interval input (``log(interval / dt)``) and its column (``IMMNet``'s); none."""
+        return {}
+
+    def group_rows(self) -> dict[str, int]:
+        """The weights whose rows are one block per group of modes and the number of groups (``IMMNet``'s); none."""
+        return {}
+
     # --- the carry ------------------------------------------------------------------------------
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The keys this stage carries from one scan to the next, each with its value for ``batch``

@@ -66,6 +66,9 @@ class Gain(Stage):
     ``Update`` and no interaction; filter experts (``immnet.stages.filtering``), which keep their own covariances and
     mode parameters and mix as an IMM, their own interaction, predict and update."""
 
+    knock_out_correction = None
+    """A gain with a learned state correction: the method that sets it alone to zero (``IMMNet.knock_out``)."""
+
     def stages(self, model_set: ModelSet, dt: float) -> tuple[Stage | None, Stage, Stage]:
         """``(interaction or None, predict, update)`` of a step with this gain."""
         return None, Predict(model_set, dt), Update(model_set)

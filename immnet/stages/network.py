@@ -332,36 +332,38 @@ class IMMNet(TensorDictModuleBase):
         model-based base (the paper's Transformer alone) is refused."""
         for name in parts:
             if name == "state_correction":
-                stage, method = self.gain, "knock_out_correction"
+                stage = self.gain
+                knock_out = stage.knock_out_correction
             elif name in self.PARTS:
-                stage, method = self.part(name), "knock_out"
+                stage = self.part(name)
                 if stage is None:
                     what = "output correction" if name == "correction" else name
                     raise ValueError(f"this IMMNet has no {what} to knock out (IMMNet({name}=...))")
+                knock_out = stage.knock_out
             else:
                 raise ValueError(f"no learned part {name!r}; parts: {', '.join([*self.PARTS, 'state_correction'])}")
-            if not hasattr(stage, method):
+            if knock_out is None:
                 raise ValueError(f"the {name} {type(stage).__name__} has no model-based base to knock out to")
-            getattr(stage, method)()
+            knock_out()
         return self
 
     def interval_columns(self) -> dict[str, int]:
         """The weights that read the interval input (``log(interval / dt)``) and the input column it takes: a
         checkpoint without that input loads into the other columns (``Stage2Module.load_net``)."""
-        return self._weights_named("interval_columns")
+        return self._weights_named(lambda stage: stage.interval_columns())
 
     def group_rows(self) -> dict[str, int]:
         """The weights whose rows are one block per group of modes (``modes``: a classifier's logits per group) and
         the number of groups: a checkpoint with one joint set of modes loads into each block
         (``Stage2Module.load_net``)."""
-        return self._weights_named("group_rows")
+        return self._weights_named(lambda stage: stage.group_rows())
 
-    def _weights_named(self, method: str) -> dict:
-        """What the gain's and the classifier's ``method()`` say of their weights (stage-level name -> value), under
+    def _weights_named(self, said) -> dict:
+        """What ``said(stage)`` of the gain and the classifier says of their weights (stage-level name -> value), under
         every name this network's state dict gives those weights (each under every path that reaches it)."""
         reads = {}  # the parameters themselves
         for stage in (self.gain, self.classify):
-            reads.update({id(stage.get_parameter(k)): v for k, v in getattr(stage, method, dict)().items()})
+            reads.update({id(stage.get_parameter(k)): v for k, v in said(stage).items()})
         return {name: reads[id(p)] for name, p in self.named_parameters(remove_duplicate=False) if id(p) in reads}
 
     @property
