@@ -79,9 +79,9 @@ def test_generate_stays_the_function_after_its_module_is_imported():
 
 def test_select_methods_default_guard_keeps_each_as_configured():
     from immnet.evaluation.cli import select_methods
-    from immnet.filters.methods import KEEP_GUARD
+    from immnet.filters.methods import AS_CONFIGURED
 
-    assert inspect.signature(select_methods).parameters["guard"].default == KEEP_GUARD
+    assert inspect.signature(select_methods).parameters["guard"].default == AS_CONFIGURED
 
 
 def _evaluate_help_names(capsys, monkeypatch) -> list[str]:

@@ -136,7 +136,7 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
                    told_r: bool = False) -> dict:
     """``{name: method}``: the requested names (errors are errors) or, by default, every available
     method that builds, whose ``needs`` the data meet and whose ``check(data)`` (where it has one
-    and ``data`` is given) passes; the others skipped with a note. ``guard`` (default ``"checkpoint"``, ``KEEP_GUARD``:
+    and ``data`` is given) passes; the others skipped with a note. ``guard`` (default ``"checkpoint"``, ``AS_CONFIGURED``:
     each as configured) and ``told_r`` go to ``build_method``;
     a method with ``configure`` is told the data's ``meta`` and ``sigma_q`` (``--sigma-q``)."""
     from immnet.filters.methods import available_methods, build_method, missing_keys

@@ -125,17 +125,13 @@ def takes_checkpoint(name: str, methods_dir: Path | None = None) -> bool:
     return "checkpoint" in init_args or "checkpoint" in build_options(cls)
 
 
-KEEP_GUARD = AS_CONFIGURED
-"""``build_method``'s ``guard`` that leaves every method's range guard as configured."""
-
-
 def gives_cov(name: str, methods_dir: Path | None = None) -> bool:
     """Whether a method can give its state's covariance ``state_cov`` (its class takes ``return_cov``)."""
     cls, _ = _method_class(name, methods_dir)
     return "return_cov" in build_options(cls)
 
 
-def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None, guard=KEEP_GUARD,
+def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: Path | None = None, guard=AS_CONFIGURED,
                  return_cov: bool = False, told_r: bool = False):
     """The method configured as ``configs/methods/<name>.yaml`` (or a built-in), ready to ``track``.
 
@@ -164,7 +160,7 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
         init_args["r"] = "data"
     if return_cov and "return_cov" in options:
         init_args["return_cov"] = True
-    if not (isinstance(guard, str) and guard == KEEP_GUARD):
+    if not (isinstance(guard, str) and guard == AS_CONFIGURED):
         if "guard" in options and init_args.get("guard", options["guard"]) not in (None, False):
             init_args["guard"] = guard
     if checkpoint is not None:

@@ -190,7 +190,8 @@ def fresh_share(w: torch.Tensor, speed_share: torch.Tensor) -> torch.Tensor:
 
 
 AS_CONFIGURED = "checkpoint"
-"""A tracker's guard setting that keeps the range guard as its checkpoint or method configures it."""
+"""A setting left as the checkpoint or method configures it: a tracker's range guard (``build_method``,
+``load_network``), and a network's ``adapt``, ``r`` and ``reacquire`` (``load_network``)."""
 
 
 def parse_guard(text: str):

@@ -48,7 +48,7 @@ from immnet.labels import N_MODES
 from immnet.stages import IMMNet
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
-    KEEP, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
+    AS_CONFIGURED, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
     coast_scan, coast_step, guarded, network_from, next_origin, per_track, provenance_of, read_checkpoint, run_network,
     scans_served, select_rows, to_local, to_world, trained_for,
 )
@@ -201,7 +201,7 @@ class NetworkBank:
         # ``immnet track`` hands the bank each row at its own time, uncut (``track_rows`` without ``max_interval``)
 
     @classmethod
-    def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=KEEP, r=KEEP,
+    def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = LIKELIHOOD,
                    temper: float = TEMPER, max_coast: float = MAX_COAST, prune: float = PRUNE,
                    defer: dict | None = None, prune_after: int = PRUNE_AFTER) -> "NetworkBank":
@@ -521,7 +521,7 @@ class BankMethod:
     build_options = {"return_cov": False, "guard": None}
 
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
-                 guard=None, adapt=KEEP, r=KEEP, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
+                 guard=None, adapt=AS_CONFIGURED, r=AS_CONFIGURED, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
                  likelihood: str = LIKELIHOOD, temper: float = TEMPER, prune: float = PRUNE,
                  defer: dict | None = None, prune_after: int = PRUNE_AFTER):
         self.name = name

@@ -114,11 +114,11 @@ def register(subparsers) -> None:
 
 
 def _told_r(args):
-    """``--r`` as ``load_network``'s ``r`` (``KEEP`` where not given); a clear error unless a finite number > 0."""
-    from immnet.tracking.tracker import KEEP
+    """``--r`` as ``load_network``'s ``r`` (``AS_CONFIGURED`` where not given); a clear error unless a finite number > 0."""
+    from immnet.tracking.tracker import AS_CONFIGURED
 
     if args.r is None:
-        return KEEP
+        return AS_CONFIGURED
     if not (np.isfinite(args.r) and args.r > 0):
         raise ValueError(f"--r is the radar's measurement std in metres, a finite number > 0; got {args.r:g}")
     return float(args.r)
@@ -129,10 +129,10 @@ def _bank(args, limit: float, r):
     ``--guard`` gives one, ``--adapt`` and ``--r`` for every member."""
     from immnet.imm.guard import parse_guard
     from immnet.tracking.bank import BankMethod
-    from immnet.tracking.tracker import KEEP
+    from immnet.tracking.tracker import AS_CONFIGURED
 
     guard = None if args.guard == "checkpoint" else parse_guard(args.guard)
-    method = BankMethod(guard=guard, adapt=True if args.adapt else KEEP, r=r, return_cov=True, max_position=limit)
+    method = BankMethod(guard=guard, adapt=True if args.adapt else AS_CONFIGURED, r=r, return_cov=True, max_position=limit)
     method.net.max_coast = check_coast(args.max_coast, method.net.dt)  # the rows' segments are cut at it already
     return method
 
@@ -343,7 +343,7 @@ def _labelled(path: Path) -> bool:
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
     from immnet.imm.guard import parse_guard
-    from immnet.tracking.tracker import KEEP, Tracker
+    from immnet.tracking.tracker import AS_CONFIGURED, Tracker
 
     from immnet.tracking import multi_cli
 
@@ -372,7 +372,7 @@ def run(args) -> int:
             code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank", bank=True)
             _advise_bank(track_intervals(rows.ids, rows.t))
             return code
-        tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
+        tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r)
         tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)  # the rows' segments are cut at it already
         if tracker.net.start.told_r:
             raise ValueError(f"{weights}: this network's filter experts are told each track's measurement std, which a "
@@ -408,7 +408,7 @@ def run(args) -> int:
     if weights is None:
         _report_npz_cov_unused(data, "the bank", args.r)
         return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
-    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else KEEP, limit, r)
+    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r)
     tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
     if tracker.net.start.told_cov and not told:
         raise ValueError(f"{weights}: this network is told each detection's covariance, which {args.input} does not "

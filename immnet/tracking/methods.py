@@ -11,7 +11,7 @@ from immnet import keys
 from immnet.data.times import nominal_dt, scan_intervals
 from immnet.data.validate import gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
-from immnet.tracking.tracker import KEEP, PRETRAINED, Tracker, check_dt, load_network
+from immnet.tracking.tracker import AS_CONFIGURED, PRETRAINED, Tracker, check_dt, load_network
 
 
 def told_needs(net) -> tuple[str, ...]:
@@ -49,9 +49,9 @@ class IMMNetMethod(_LearnedMethod):
 
     build_options = {"checkpoint": None, "r": "checkpoint", "return_cov": False, "guard": "checkpoint"}
 
-    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=KEEP,
-                 adapt=KEEP, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = (), r=KEEP,
-                 reacquire=KEEP):
+    def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=AS_CONFIGURED,
+                 adapt=AS_CONFIGURED, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = (), r=AS_CONFIGURED,
+                 reacquire=AS_CONFIGURED):
         self.name = name
         self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r, reacquire).knock_out(*knock_out),
                                max_coast=math.inf)

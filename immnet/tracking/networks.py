@@ -25,7 +25,6 @@ from immnet.stages import IMMNet
 from immnet.stages.base import Stage
 from immnet.stages.network import DEFAULT_GAIN, _where, net_arguments
 
-KEEP = AS_CONFIGURED  # load_network's guard: as the checkpoint was trained
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
@@ -88,7 +87,8 @@ _NEEDS_FILTERS = {"guard": "a range guard needs filter experts", "adapt": "adapt
                   "reacquire": "re-acquisition needs the model-based filter experts (FilterGain)"}
 
 
-def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP, reacquire=KEEP) -> IMMNet:
+def load_network(path: str | Path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
+                 reacquire=AS_CONFIGURED) -> IMMNet:
     """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
 
     ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
@@ -106,11 +106,12 @@ def load_network(path: str | Path, guard=KEEP, adapt=KEEP, r=KEEP, reacquire=KEE
     return network_from(*read_checkpoint(path), path, guard, adapt, r, reacquire)
 
 
-def network_from(config: dict, state: dict, path, guard=KEEP, adapt=KEEP, r=KEEP, reacquire=KEEP) -> IMMNet:
+def network_from(config: dict, state: dict, path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
+                 reacquire=AS_CONFIGURED) -> IMMNet:
     """``load_network``'s IMMNet from a checkpoint read already (``read_checkpoint``'s ``config`` and ``state``, of
     the file ``path``, named in its errors)."""
     for name, value in (("guard", guard), ("adapt", adapt), ("r", r), ("reacquire", reacquire)):
-        if isinstance(value, str) and value == KEEP:
+        if isinstance(value, str) and value == AS_CONFIGURED:
             continue
         gain = config.get("gain") or DEFAULT_GAIN
         if name not in import_class(gain.get("class_path", ""), Stage).load_options:

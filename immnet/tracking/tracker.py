@@ -39,7 +39,7 @@ from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    KEEP, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals, coast_cuts, coast_long_gaps,
+    AS_CONFIGURED, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals, coast_cuts, coast_long_gaps,
     by_segments, coast_restarts, coast_scan, coast_step, frame_origin, guarded, load_network, next_origin,
     outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, to_local,
     trained_for,
@@ -92,8 +92,8 @@ class Tracker:
         return f"Tracker({name}: scans of {scans_served(self.net)}, {guard}; {provenance_of(self.path)})"
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
-                        r=KEEP) -> "Tracker":
+    def from_checkpoint(cls, path: str | Path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, max_position: float = MAX_ABS_POSITION,
+                        r=AS_CONFIGURED) -> "Tracker":
         """The IMMNet of a checkpoint; ``guard``, ``adapt`` and ``r`` as in ``load_network``; ``max_position`` the
         gate on measurements (``immnet.data.validate``)."""
         tracker = cls(load_network(path, guard, adapt, r), max_position)
@@ -101,8 +101,8 @@ class Tracker:
         return tracker
 
     @classmethod
-    def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=KEEP, adapt=KEEP, max_position: float = MAX_ABS_POSITION,
-                   r=KEEP):
+    def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, max_position: float = MAX_ABS_POSITION,
+                   r=AS_CONFIGURED):
         """Weights shipped inside the package by name (``immnet.checkpoints.SHIPPED``, provenance in
         ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (any scan interval from 0.5 to 12 s, real flights and
         3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range guard:
@@ -116,7 +116,7 @@ class Tracker:
         ``track`` as here, its ``member_probs`` in place of one network's expert outputs; no range guard unless
         ``guard`` asks)."""
         if name == BANK:
-            return NetworkBank.from_names(guard=None if isinstance(guard, str) and guard == KEEP else guard, adapt=adapt,
+            return NetworkBank.from_names(guard=None if isinstance(guard, str) and guard == AS_CONFIGURED else guard, adapt=adapt,
                                           r=r, max_position=max_position)
         tracker = cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
         tracker.name = name
