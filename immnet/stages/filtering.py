@@ -468,7 +468,6 @@ class _FilterExperts:
     Mixed into a ``Gain`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
     robust = None  # Huber's k (FilterGain's option; the KalmanNet filter experts have none)
-    reacquire = None  # re-acquisition's rule (FilterGain's option)
 
     @property
     def per_detection(self) -> bool:

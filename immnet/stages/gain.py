@@ -68,6 +68,9 @@ class Gain(Stage):
 
     knock_out_correction = None
     """A gain with a learned state correction: the method that sets it alone to zero (``IMMNet.knock_out``)."""
+    reacquire = None
+    """A gain whose filter experts restart a track themselves: its rule (``immnet.imm.reacquire.Reacquire``;
+    ``FilterGain``'s option), None for one without."""
 
     def stages(self, model_set: ModelSet, dt: float) -> tuple[Stage | None, Stage, Stage]:
         """``(interaction or None, predict, update)`` of a step with this gain."""

@@ -53,7 +53,7 @@ class NetworkFilter(TrackFilter):
         if net.start.told_r:
             raise ValueError(f"{name or tracker} is told each track's measurement std (r='data'): the multi-target "
                              f"tracker has none per track to tell it (load it with r=<metres> or without r)")
-        if getattr(net.gain, "reacquire", None) is not None:
+        if net.gain.reacquire is not None:
             raise ValueError(f"{name or tracker} restarts its own tracks (re-acquisition, immnet.imm.reacquire): the "
                              f"multi-target tracker starts and deletes them (load it with reacquire=None)")
         self.net = net
@@ -71,7 +71,7 @@ class NetworkFilter(TrackFilter):
         """The shipped network ``name`` (``immnet.checkpoints.SHIPPED``) with its own settings but re-acquisition
         (``radar-5s``, ``radar-11s``): the multi-target tracker's initiation and deletion take its place."""
         tracker = Tracker.pretrained(name)
-        if getattr(tracker.net.gain, "reacquire", None) is not None:
+        if tracker.net.gain.reacquire is not None:
             tracker = Tracker(load_network(tracker.path, reacquire=None), tracker.max_position)
             tracker.name, tracker.path = name, shipped(name)
         return cls(tracker, name)
