@@ -150,8 +150,9 @@ SHIPS = {
                           "edges": [0.5, 2, 4, 6, 8, 10, 12]},
     },
     "bank": {
-        # no weights of its own: the shipped networks above (and 3dlast) as they are, scored together as the default
-        "members": ["general", "real", "real-5s", "real-11s", "real-4.5-12s", "3dlast"],
+        # no weights of its own: the shipped networks above (and 3dlast) as they are, scored together as the default;
+        # its members and how it weighs them are the table's (immnet/pretrained/weights.json, "bank")
+        "bank": True,
         "what": ("The default tracker: the shipped networks general, real, real-5s, real-11s, real-4.5-12s and 3dlast "
                  "(without its range guard) "
                  "run side by side, each on the tracks whose scan intervals it was trained for and weighed per track by "
@@ -222,18 +223,14 @@ def claims_line(tests: dict) -> str:
 def ship_bank(name: str, ship: dict, commit: str) -> int:
     """The bank's provenance: its members' files and checksums, its tests and claims; nothing exported (it has no
     weights of its own)."""
-    from immnet.checkpoints import CHECKSUM_KEY, SHIPPED, load_checkpoint, shipped
+    from immnet.checkpoints import BANK_MEMBERS, BANK_SETTINGS, CHECKSUM_KEY, SHIPPED, load_checkpoint, shipped
     from immnet.tracking.advice import registry_name
 
     registry = registry_name(name)
     members = {m: {"file": f"immnet/pretrained/{SHIPPED[m]}", "weights_sha256": load_checkpoint(shipped(m))[CHECKSUM_KEY]}
-               for m in ship["members"]}
+               for m in BANK_MEMBERS}
     tests, tables = score(ship, registry)
-    from immnet.config import load_yaml
-    from immnet.filters.methods import method_config
-
-    config = load_yaml(method_config(registry))["init_args"]
-    weighing = {k: config[k] for k in ("likelihood", "temper", "prune", "prune_after", "defer") if k in config}
+    weighing = dict(BANK_SETTINGS)
     prov = {"members": members, "weighing": weighing,
             "made_by": f".venv/bin/python scripts/make_shipped.py --name {name}",
             "date": datetime.date.today().isoformat(), "commit": commit, "guard": None,
@@ -293,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
                             text=True).stdout.strip()
     if not commit:
         p.error(f"--commit {a.commit!r} is not a commit of this repository")
-    if "members" in ship:  # the bank: nothing trained or exported, so nothing to keep; scoring is all it does
+    if ship.get("bank"):  # the bank: nothing trained or exported, so nothing to keep; scoring is all it does
         if a.checkpoint or a.commit != "HEAD" or a.wandb_runs or a.note:
             p.error(f"{a.name} trains nothing: give no --checkpoint, --commit, --wandb-runs or --note")
         return ship_bank(a.name, ship, commit)
