@@ -94,5 +94,6 @@ REACQUIRE_COUNT = ("memory", "reacquire_count")  # re-acquisition: the track's r
 REACQUIRE_PLOT = ("memory", "reacquire_plot")  # the run's last detection [B, 3]
 REACQUIRE_COV = ("memory", "reacquire_cov")  # its covariance [B, 3, 3]
 REACQUIRE_ELAPSED = ("memory", "reacquire_elapsed")  # the time since it [B] (s)
+ROBUST_SPARE = ("memory", "robust_spare")  # 1 where the track's last plot lay beyond Huber's k of every filter [B] (immnet.imm.kalman)
 REACQUIRE = ("expert", "reacquire")  # the tracks whose run of far detections restarts them at this scan [B] bool
 START_CARRY = ("start", "carry")  # what each starting track carries after this scan, a TensorDict [B] like the carry

@@ -345,6 +345,55 @@ def _straight_tracks(n: int, T: int, r: float, seed: int):
     return states, z
 
 
+def test_huber_weighs_an_isolated_far_plot_and_takes_the_second_of_a_run_whole():
+    """``KalmanFilterTracker(robust=k)`` against FilterPy's Kalman filter run by hand in float64: a plot beyond ``k``
+    (``d = sqrt(y^T S^-1 y)``) that follows a plot within ``k`` is weighed by Huber (FilterPy's update with ``R' = R +
+    (1/w - 1) S``, ``w = k / d``), one that follows a far plot is taken whole (a maneuver gives far plots scan after
+    scan, an outlier one). Tracks with one outlier (scan 12) and a run of two (scans 25, 26), 800 m off at r = 20 m;
+    the second of the run moves the track by the plain gain, far from where weighing every plot would leave it."""
+    from immnet.filters.imm import initial_state
+
+    r, k, T, n = 20.0, 2.5, 40, 3
+    states, z = _straight_tracks(n, T, r, seed=7)
+    g = np.random.default_rng(3)
+    off = g.standard_normal((n, 3))
+    off = 800.0 * off / np.linalg.norm(off, axis=-1, keepdims=True)
+    for at in (12, 25, 26):
+        z[:, at] += off
+    model = {"class_path": "immnet.motion.ConstantVelocity", "init_args": {"noise": "continuous"}}
+    batch = TensorDict({keys.MEASUREMENTS: torch.tensor(z), keys.STATES: torch.tensor(states), keys.DT: torch.ones(n)},
+                       batch_size=[n])
+    tracker = KalmanFilterTracker(model, r=r, sigma_q=2.0, robust=k)
+    ours = tracker.track(batch)[keys.STATE].numpy()
+    F = tracker.model.F(1.0, dtype=torch.float64).numpy()
+    Q = tracker.model.Q(2.0, 1.0, dtype=torch.float64).numpy()
+    x0, P0 = initial_state(torch.tensor(z), r)
+    H = np.zeros((3, 9))
+    H[[0, 1, 2], [0, 3, 6]] = 1.0
+
+    def reference(isolated: bool):
+        out = np.zeros((n, T, 9))
+        for b in range(n):
+            kf = KalmanFilter(dim_x=9, dim_z=3)
+            kf.x, kf.P, kf.F, kf.Q, kf.H, kf.R = x0[b].numpy().copy(), P0[b].numpy().copy(), F, Q, H, r * r * np.eye(3)
+            out[b, 0], before = kf.x, False
+            for t in range(1, T):
+                kf.predict()
+                y = z[b, t] - H @ kf.x
+                S = H @ kf.P @ H.T + kf.R
+                d = math.sqrt(y @ np.linalg.solve(S, y))
+                w = k / d if d > k and not (isolated and before) else 1.0
+                kf.update(z[b, t], R=kf.R + (1.0 / w - 1.0) * S)
+                out[b, t], before = kf.x, d > k
+        return out
+
+    want = reference(isolated=True)
+    np.testing.assert_allclose(ours, want, rtol=0, atol=1e-6 * np.abs(want).max())
+    every = reference(isolated=False)  # Huber's weight on every far plot
+    assert np.allclose(want[:, :26], every[:, :26], rtol=0, atol=1e-6 * np.abs(want).max())
+    assert (np.linalg.norm(want[:, 26, 0::3] - every[:, 26, 0::3], axis=-1) > 100.0).all()
+
+
 def test_a_ten_r_outlier_moves_the_robust_imm_much_less_than_the_plain_one():
     """A seeded Monte Carlo: 200 straight tracks at r = 10 m, one detection 10 r off (scan 30) in a random direction;
     the error the outlier adds at that scan (RMSE over the tracks, less the same filter's without the outlier), plain

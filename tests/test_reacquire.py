@@ -47,8 +47,8 @@ def _error(method, data) -> torch.Tensor:
 def test_a_first_plot_3_km_off_restarts_at_the_next():
     """The first plot 3 km north of the truth: the second is 3.7 km from it, beyond 300 m/s over 5 s and three
     standard deviations of the two plots' noise (1.5 km + 0.85 km), so the track restarts there: its estimate at scan 1
-    is that plot exactly (a start's), and from scan 2 on it is within 600 m of the truth; Huber's update alone drags
-    the track more than 1 km off at scans 2 and 3."""
+    is that plot exactly (a start's), and from scan 2 on it is within 600 m of the truth; Huber's update alone (which
+    takes the second far plot of a run whole) leaves a track more than 2 km off at scan 2."""
     data = _scene()
     data[keys.MEASUREMENTS][:, 0, 1] += 3000.0
     z = data[keys.MEASUREMENTS]
@@ -58,13 +58,13 @@ def test_a_first_plot_3_km_off_restarts_at_the_next():
     after = _error(_robust(RULE), data)
     assert after[:, 2:].max() < 600.0
     before = _error(_robust(), data)
-    assert (before[:, 2:4] > 1000.0).all()
+    assert before[:, 2].max() > 2000.0
 
 
 def test_a_run_of_far_agreeing_plots_restarts_the_track_at_the_second():
     """From scan 20 on the plots lie 3 km east of where the track was (the track is off, as after a start on an
     outlier): scan 20 is far (d^2 far beyond 25 for every filter), scan 21 far again and 1 km from scan 20's, within
-    300 m/s of it: the track restarts at scan 21, its estimate that plot; Huber's update alone is still kilometres off."""
+    300 m/s of it: the track restarts at scan 21, its estimate that plot; Huber's update alone is still 1 km off there."""
     data = _scene()
     data[keys.MEASUREMENTS][:, 20:, 0] += 3000.0
     data[keys.STATES][:, 20:, 0] += 3000.0  # the truth moved with them: the track is what is off
@@ -73,7 +73,7 @@ def test_a_run_of_far_agreeing_plots_restarts_the_track_at_the_second():
     assert torch.equal(est[:, 21, 0::3], z[:, 21])
     assert not torch.equal(est[:, 20, 0::3], z[:, 20])  # one far plot is not a run
     assert _error(_robust(RULE), data)[:, 23:].max() < 600.0
-    assert (_error(_robust(), data)[:, 21:24] > 1000.0).all()
+    assert (_error(_robust(), data)[:, 21] > 1000.0).all()
 
 
 def test_a_far_plot_that_restarts_nothing_is_gated_out():
@@ -180,7 +180,7 @@ def test_refused_where_the_rule_cannot_run():
 
 def test_a_kalman_filter_restarts_too():
     """``KalmanFilterTracker(robust=2.5, reacquire=...)``: the first plot 3 km north, its start restarts at the second plot (the
-    estimate there is that plot), and from scan 2 on the track is within 600 m; with Huber's update alone scans 2-3 pass 1 km."""
+    estimate there is that plot), and from scan 2 on the track is within 600 m; with Huber's update alone a track is 2 km off at scan 2."""
     from immnet.filters.trackers import KalmanFilterTracker
 
     data = _scene()
@@ -189,7 +189,7 @@ def test_a_kalman_filter_restarts_too():
     kf = KalmanFilterTracker(model, r=120.0, sigma_q=1.0, robust=2.5, reacquire=RULE)
     assert torch.equal(kf.track(data)[keys.STATE][:, 1, 0::3], data[keys.MEASUREMENTS][:, 1])
     assert _error(kf, data)[:, 2:].max() < 600.0
-    assert (_error(KalmanFilterTracker(model, r=120.0, sigma_q=1.0, robust=2.5), data)[:, 2:4] > 1000.0).all()
+    assert _error(KalmanFilterTracker(model, r=120.0, sigma_q=1.0, robust=2.5), data)[:, 2].max() > 2000.0
 
 
 def test_the_shipped_radar_networks_take_the_rule_by_name_and_by_load():

@@ -242,11 +242,13 @@ def test_whitened_features_are_the_innovation_in_the_noise_frame():
 
 
 def _data_with_outliers():
-    """``_data()`` with two detections 1.5 and 2 km off (tracks 2 and 4) and each detection's anisotropic covariance."""
+    """``_data()`` with two detections 1.5 and 2 km off (tracks 2 and 4), a run of two 1.8 km off (track 1: Huber's
+    update takes the second whole, ``immnet.imm.kalman``) and each detection's anisotropic covariance."""
     data = _data()
     z = data[keys.MEASUREMENTS]
     z[2, 30] += 2000.0
     z[4, 10] -= 1500.0
+    z[1, 40:42] += 1800.0
     data[keys.MEASUREMENTS] = z
     data[keys.MEAS_COV] = _anisotropic(z)
     return data

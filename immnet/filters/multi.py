@@ -174,8 +174,9 @@ class IMMFilter(TrackFilter):
     ``acc_std``); a two-point start (``start(z, R, z_prev, R_prev, dt)``) differences the plots: velocity
     ``(z - z_prev) / dt`` with covariance ``(R + R_prev) / dt^2`` plus what an acceleration of std ``acc_std``
     adds over the interval (``acc_std^2 dt^2 / 4``, the average velocity being the one at mid-interval). ``robust``:
-    Huber's ``k`` of every update (``immnet.imm.kalman``: a plot's weight falls beyond ``k`` standard deviations of
-    its innovation), None the plain update."""
+    Huber's ``k`` of the update (``immnet.imm.kalman``: an isolated far plot's weight falls beyond ``k`` standard
+    deviations of its innovation; with JPDA a track's plot is far when every plot in its gate is), None the plain
+    update."""
 
     def __init__(self, model_set, sigma_q, p_stay=0.98, mu0=None, groups: str = "joint", r: float | None = None,
                  vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm", robust: float | None = None):
@@ -199,6 +200,7 @@ class IMMFilter(TrackFilter):
         self.x = torch.zeros(0, self.G, M, self.d, dtype=f64)
         self.P = torch.zeros(0, self.G, M, self.d, self.d, dtype=f64)
         self.mu = torch.zeros(0, self.G, M, dtype=f64)
+        self.spare = torch.zeros(0, self.G, 1, dtype=torch.bool)  # the robust update's (immnet.imm.kalman)
         self._cache = (None, None)
         self._H = torch.tensor([[1.0, 0.0, 0.0]], dtype=f64)
 
@@ -268,6 +270,7 @@ class IMMFilter(TrackFilter):
         self.x = torch.cat([self.x, self._split(x0)[:, :, None].expand(k, G, M, d)])
         self.P = torch.cat([self.P, self._split(P0)[:, :, None].expand(k, G, M, d, d)])
         self.mu = torch.cat([self.mu, self.mu0.expand(k, G, M)])
+        self.spare = torch.cat([self.spare, torch.zeros(k, G, 1, dtype=torch.bool)])
 
     @torch.no_grad()
     def predict(self, dt: float):
@@ -299,8 +302,13 @@ class IMMFilter(TrackFilter):
             return
         z, R = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3)
         zm, Rm, H = self._measure(z, R)
-        x, P, ll = update(self.x, self.P, zm[:, 0], H, Rm[:, 0], self.robust)
+        x, P, ll, *after = update(self.x, self.P, zm[:, 0], H, Rm[:, 0], self.robust, self._spare())
         self.x, self.P, self.mu = x, P, mode_update(torch.log(self.mu), ll)
+        self.spare = after[0] if after else self.spare
+
+    def _spare(self, rows=None):
+        """The robust update's ``spare`` of every track (of ``rows``), None without a robust update."""
+        return None if self.robust is None else (self.spare if rows is None else self.spare[rows])
 
     @torch.no_grad()
     def update_mixture(self, track, z, R, beta, beta0) -> None:
@@ -315,7 +323,12 @@ class IMMFilter(TrackFilter):
         track = torch.from_numpy(np.asarray(track, dtype=np.int64))
         z, R, beta, beta0 = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3), _t(beta), _t(beta0)
         zm, Rm, H = self._measure(z, R)
-        xh, Ph, ll = update(self.x[track], self.P[track], zm[:, 0], H, Rm[:, 0], self.robust)  # [n, G, M, ...]
+        xh, Ph, ll, *after = update(self.x[track], self.P[track], zm[:, 0], H, Rm[:, 0], self.robust,
+                                   self._spare(track))  # [n, G, M, ...]
+        if after:  # far: a track with plots in its gate, each beyond k of every filter
+            pairs = torch.zeros(K, G, 1, dtype=torch.long).index_add(0, track, torch.ones_like(after[0], dtype=torch.long))
+            near = torch.zeros(K, G, 1, dtype=torch.long).index_add(0, track, (~after[0]).long())
+            self.spare = torch.where(pairs > 0, near == 0, self.spare)
         W = beta[:, None, None] * torch.softmax(torch.log(self.mu[track]) + ll, -1)  # beta_h P(mode | h)
         W0 = beta0[:, None, None] * self.mu
         mu = W0.index_add(0, track, W)  # [K, G, M]
@@ -332,7 +345,7 @@ class IMMFilter(TrackFilter):
 
     def drop(self, keep) -> None:
         keep = torch.as_tensor(np.asarray(keep, dtype=bool))
-        self.x, self.P, self.mu = self.x[keep], self.P[keep], self.mu[keep]
+        self.x, self.P, self.mu, self.spare = self.x[keep], self.P[keep], self.mu[keep], self.spare[keep]
 
     @torch.no_grad()
     def state(self):

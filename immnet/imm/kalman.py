@@ -34,6 +34,12 @@ bounded influence), and the likelihood is Huber's least-favourable density, a Ga
 (its normalizing constant, the same for every filter of an IMM, is left out, so it cancels in the mode update): an
 outlier neither drags the state nor gives every filter but the widest a likelihood of ``e^{-d^2/2}``. Where
 ``d <= k`` the update is the plain one, bit for bit.
+
+An outlier is one plot; a maneuver the filters' models do not hold gives far plots scan after scan. So Huber's weight
+is for an isolated far plot only: a plot that follows a far one is taken by the plain update (``spare``), where a plot
+is far when it lies beyond ``k`` of every filter of the track (``far``; the filters on the last axis of ``d``). A scan
+without a plot leaves the track's ``spare`` as it is. The scan loops carry it per track (``immnet.imm.runner.run``,
+IMMNet's filter experts, the multi-target tracker's filters); ``spare`` None weighs every plot.
 """
 
 from __future__ import annotations
@@ -199,14 +205,23 @@ def check_robust(robust) -> float | None:
     return float(robust)
 
 
-def huber(maha: torch.Tensor, k: float):
+def huber(maha: torch.Tensor, k: float, spare: torch.Tensor | None = None):
     """Huber's weight ``w = min(1, k / d)`` of an innovation of squared Mahalanobis distance ``maha = d^2`` and the
     ``2 rho_k(d)`` that replaces ``d^2`` in its log-likelihood (module doc), each ``[...]``: ``(w, 2 rho_k(d))``; exactly
-    ``(1, maha)`` where ``d <= k``."""
+    ``(1, maha)`` where ``d <= k`` and where ``spare`` (bool, broadcasting to ``maha``: the plot follows a far one)."""
     d = torch.sqrt(maha)
     out = d > k
+    if spare is not None:
+        out = out & ~spare
     w = torch.where(out, k / torch.where(out, d, torch.ones_like(d)), torch.ones_like(d))
     return w, torch.where(out, 2 * k * d - k * k, maha)
+
+
+def far(maha: torch.Tensor, k: float, missed: torch.Tensor, spare: torch.Tensor) -> torch.Tensor:
+    """The ``spare`` of the next scan (module doc): whether this scan's plot lies beyond ``k`` of every filter,
+    ``maha [..., M]`` their squared Mahalanobis distances, ``missed [..., M]`` or ``[..., 1]`` (bool: no plot this
+    scan), ``spare [..., 1]`` this scan's: ``[..., 1]`` bool, ``spare`` where the plot is missed."""
+    return torch.where(missed.any(-1, keepdim=True), spare, maha.amin(-1, keepdim=True) > k * k)
 
 
 def _as_cov(R: torch.Tensor | float, m: int, like: torch.Tensor) -> torch.Tensor:
@@ -217,8 +232,8 @@ def _as_cov(R: torch.Tensor | float, m: int, like: torch.Tensor) -> torch.Tensor
     return R[..., None, None] * torch.eye(m, dtype=like.dtype, device=like.device)
 
 
-def update(x, P, z, H=None, R=1.0, robust: float | None = None):
-    """One measurement update; returns ``(x_post, P_post, loglik)``.
+def update(x, P, z, H=None, R=1.0, robust: float | None = None, spare: torch.Tensor | None = None):
+    """One measurement update; returns ``(x_post, P_post, loglik)``, and ``far`` with ``spare`` (``innovation_update``).
 
     ``x [..., n]``, ``P [..., n, n]``, ``z [..., m]`` (NaN anywhere = missed), ``H [m, n]`` or None
     (positions of the 9-D state), ``R`` a covariance ``[..., m, m]`` or a variance ``[...]``/scalar.
@@ -239,10 +254,15 @@ def update(x, P, z, H=None, R=1.0, robust: float | None = None):
         HP = H @ P
         S = HP @ H.transpose(-1, -2) + _as_cov(R, H.shape[-2], x)
     nu = torch.where(missed[..., None], torch.zeros_like(z), z - Hx)
-    return tuple(v.to(dtype) for v in innovation_update(x, P, nu, HP, S, missed, robust))
+    return narrow(innovation_update(x, P, nu, HP, S, missed, robust, spare), dtype)
 
 
-def innovation_update(x, P, nu, HP, S, missed, robust: float | None = None):
+def narrow(out: tuple, dtype) -> tuple:
+    """``innovation_update``'s ``(x, P, loglik[, far])`` with the first three in ``dtype``."""
+    return (*(v.to(dtype) for v in out[:3]), *out[3:])
+
+
+def innovation_update(x, P, nu, HP, S, missed, robust: float | None = None, spare: torch.Tensor | None = None):
     """The Kalman update every model-based filter runs, linear or extended: ``(x_post, P_post, loglik)`` from the
     prior ``x [..., n]``, ``P [..., n, n]``, the innovation ``nu [..., m]`` (0 where missed), the measured rows ``HP =
     H P [..., m, n]`` (``H`` the measurement's Jacobian for an extended filter), ``S = H P H^T + R [..., m, m]`` and
@@ -251,8 +271,10 @@ def innovation_update(x, P, nu, HP, S, missed, robust: float | None = None):
         K = (H P)^T S^-1     x_post = x + K nu     P_post = joseph_form(P, K, H P, S)     loglik = log N(nu; 0, S)
 
     ``S^-1`` is ``inv3``'s for ``m = 3``, a Cholesky solve otherwise. ``robust``: Huber's ``k`` (module doc: ``K -> w
-    K``, ``S -> S / w``). Where a measurement is missed the prior is kept and ``loglik`` is 0. In the inputs' dtype
-    (``update`` and the polar update give it float64 for float32 input, ``wide_dtype``)."""
+    K``, ``S -> S / w``), with ``spare [..., 1]`` (bool: the plot follows a far one, the filters on the last batch axis)
+    an isolated far plot's only, and a fourth output, the next scan's ``spare`` (``far``). Where a measurement is missed
+    the prior is kept and ``loglik`` is 0. In the inputs' dtype (``update`` and the polar update give it float64 for
+    float32 input, ``wide_dtype``)."""
     m = nu.shape[-1]
     if m == 3:
         Si, logdet = inv3(S)
@@ -263,18 +285,22 @@ def innovation_update(x, P, nu, HP, S, missed, robust: float | None = None):
     K = small_matmul(HP.transpose(-1, -2), Si)
     Siy = (Si @ nu.unsqueeze(-1)).squeeze(-1)
     maha = (nu * Siy).sum(-1)
+    after = None
     if robust is not None:
-        w, maha = huber(maha, robust)
+        if spare is not None:
+            after = far(maha, robust, missed, spare)
+        w, maha = huber(maha, robust, spare)
         K = K * w[..., None, None]
         S = S / w[..., None, None]
     x_post = x + (K @ nu.unsqueeze(-1)).squeeze(-1)
     P_post = joseph_form(P, K, HP, S)
     loglik = gaussian_loglik(maha, logdet, m)
+    tail = () if after is None else (after,)
     if not torch.is_grad_enabled() and missed.device.type == "cpu" and not torch.compiler.is_compiling() and not bool(missed.any()):
-        return x_post, P_post, loglik  # nothing missed: skip three passes over P (CPU only, no sync)
+        return x_post, P_post, loglik, *tail  # nothing missed: skip three passes over P (CPU only, no sync)
     # Broadcast ``missed`` over what F, Q or R may have added in front, then keep the prior.
     keep = missed.expand(loglik.shape)
     x_post = torch.where(keep[..., None], x.expand_as(x_post), x_post)
     P_post = torch.where(keep[..., None, None], P.expand_as(P_post), P_post)
     loglik = torch.where(keep, torch.zeros_like(loglik), loglik)
-    return x_post, P_post, loglik
+    return x_post, P_post, loglik, *tail

@@ -34,7 +34,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.imm.kalman import innovation_update, wide_dtype
+from immnet.imm.kalman import innovation_update, narrow, wide_dtype
 
 TOLD, DETECTION = "data", "detection"  # a configuration's spellings of ToldStd and PerDetection (r: data, detection)
 
@@ -172,13 +172,13 @@ class Polar:
         return torch.where(torch.isfinite(R).all(-1).all(-1)[:, None, None], R, fallback)
 
     def measure(self, z: torch.Tensor, robust: float | None = None) -> Callable:
-        """``run``'s ``measure(t, xp, Pp)`` over ENU measurements ``z [B, T, 3]``: :func:`polar_update` of each filter
+        """``run``'s ``measure(t, xp, Pp, spare)`` over ENU measurements ``z [B, T, 3]``: :func:`polar_update` of each filter
         ``[B, M, ...]`` with scan ``t``'s plot."""
         plots = self.measurements(z)
         sig = self.sigmas(z.shape[:2], z.dtype, z.device)
 
-        def measure(t: int, xp: torch.Tensor, Pp: torch.Tensor):
-            return polar_update(xp, Pp, plots[:, t, None], sig[:, t, None], robust=robust)
+        def measure(t: int, xp: torch.Tensor, Pp: torch.Tensor, spare: torch.Tensor | None = None):
+            return polar_update(xp, Pp, plots[:, t, None], sig[:, t, None], robust=robust, spare=spare)
 
         return measure
 
@@ -214,8 +214,9 @@ def polar_jacobian(pos: torch.Tensor) -> torch.Tensor:
 
 
 def polar_update(x: torch.Tensor, P: torch.Tensor, plot: torch.Tensor, sigma: torch.Tensor,
-                 robust: float | None = None):
-    """The extended Kalman filter's update with a polar plot; returns ``(x_post, P_post, loglik)``.
+                 robust: float | None = None, spare: torch.Tensor | None = None):
+    """The extended Kalman filter's update with a polar plot; returns ``(x_post, P_post, loglik)`` (and ``far`` with
+    ``spare``: ``kalman.innovation_update``).
 
     ``x [..., 9]``, ``P [..., 9, 9]`` (positions at rows 0, 3, 6), ``plot [..., 3]`` = ``(rho, az, el)`` (NaN anywhere:
     missed, the prior kept and ``loglik`` 0), ``sigma [..., 3]`` its standard deviations (m, rad, rad)::
@@ -239,7 +240,7 @@ def polar_update(x: torch.Tensor, P: torch.Tensor, plot: torch.Tensor, sigma: to
     nu = torch.cat([nu[..., :1], wrap(nu[..., 1:2]), nu[..., 2:]], -1)
     HP = J @ P[..., 0::3, :]  # [..., 3, 9]
     S = HP[..., 0::3] @ J.transpose(-1, -2) + torch.diag_embed(sigma * sigma)
-    return tuple(v.to(dtype) for v in innovation_update(x, P, nu, HP, S, missed, robust))
+    return narrow(innovation_update(x, P, nu, HP, S, missed, robust, spare), dtype)
 
 
 KINDS = (Isotropic, ToldStd, PerDetection, Polar, Estimated)  # every measurement model's kind

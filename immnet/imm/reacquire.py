@@ -1,9 +1,9 @@
 """Re-acquisition: a track that its detections have left restarts from them.
 
-A robust update (``immnet.imm.kalman``, Huber's) moves a track at most ``k`` standard deviations a scan towards a
-detection it cannot explain. That is right for an outlier and wrong for a track that is itself off: a track started on
-an outlier, or taken off by one before its velocity was known, or coasted through a maneuver, is pulled back ``k``
-sigma a scan and stays kilometres off for many scans. The radar engineer's rule: a detection far outside every
+A robust update (``immnet.imm.kalman``, Huber's) moves a track at most ``k`` standard deviations towards an isolated
+detection it cannot explain and takes the next far one by the plain gain. That is right for an outlier and for a
+maneuver, and slow for a track that is itself off: a track started on an outlier, or taken off by one before its
+velocity was known, or coasted through a maneuver, is pulled back by the Kalman gain over several scans. The radar engineer's rule: a detection far outside every
 filter's gate is set aside, and after ``scans`` consecutive such detections that agree with one another (each within
 ``speed`` of the one before it horizontally and ``climb`` vertically, over the time between them, to three standard
 deviations of the two plots' noise) the track restarts at the last of them as at its first detection (its position that plot's, its covariance the plot's,

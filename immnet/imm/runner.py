@@ -100,9 +100,10 @@ def run(
     and filters it once. None: every track starts at scan 0. ``restart [B, T]`` (bool, with ``onset``): where the
     truth draws anew what its mode draws without a mode switch (a turn's new rate within a turn), the filters enter
     from themselves with their onset priors too, after the mix. ``robust``: Huber's ``k`` of the update
-    (``immnet.imm.kalman``'s module doc), None: the plain update. ``measure(t, xp, Pp) -> (x, P, l)``: the update of
-    scan ``t`` in place of the linear one (a nonlinear measurement model's, ``immnet.imm.measurement.Polar``; ``z``,
-    ``H``, ``R`` and ``robust`` are then its business, ``z`` only says which scans are detections). ``reacquire``: an
+    (``immnet.imm.kalman``'s module doc: an isolated far plot's, each track's ``spare`` carried from scan to scan), None:
+    the plain update. ``measure(t, xp, Pp, spare) -> (x, P, l[, far])``: the update of scan ``t`` in place of the
+    linear one (a nonlinear measurement model's, ``immnet.imm.measurement.Polar``; ``z``, ``H``, ``R`` and ``robust``
+    are then its business, ``z`` only says which scans are detections). ``reacquire``: an
     ``immnet.imm.reacquire.Restarts`` (the positions' ``H``, the linear update): a track whose run of far detections
     agrees restarts at the last of them (that module's doc); None: none.
     """
@@ -122,6 +123,7 @@ def run(
     if return_experts:
         experts[:, 0] = x
     held = _holding(start, x, P, mu)
+    spare = None if robust is None else torch.zeros(B, 1, dtype=torch.bool, device=z.device)  # kalman's module doc
     watching = None if reacquire is None else reacquire.begin(x, P)
     restarts = None if restart is None else restart.any(0).tolist()  # one host read per sequence
     for t in range(1, T):
@@ -133,13 +135,15 @@ def run(
             x0, P0 = torch.where(again, xe, x0), torch.where(again[..., None], Pe, P0)
         xp, Pp = transition(t, x0, P0)
         if measure is not None:
-            x, P, ll = measure(t, xp, Pp)
+            x, P, ll, *after = measure(t, xp, Pp, spare)
         else:
             Rt = _per_filter(R(t) if callable(R) else R, z)
             zt = z[:, t]
             if watching is not None:  # re-acquisition: a far detection may be gated out, a track restarted
                 watching, zt, restarting = reacquire.observe(watching, t, zt, Rt, xp, Pp, start)
-            x, P, ll = update(xp, Pp, zt[:, None], H, Rt, robust=robust)
+            x, P, ll, *after = update(xp, Pp, zt[:, None], H, Rt, robust=robust, spare=spare)
+        if after:
+            spare = after[0]
         if onehot is not None:
             mu = onehot[:, t]
         else:
@@ -147,8 +151,12 @@ def run(
         if held is not None and t <= held[0]:
             x, P, held_mu = _hold(held, t, x, P, mu)
             mu = held_mu if onehot is None else mu  # an oracle's modes stand
+            if spare is not None:  # a track starts at its first detection with no far plot before it
+                spare = spare & (t > held[1])[:, None]
         if watching is not None:
             x, P, mu = reacquire.restart(restarting, z[:, t], Rt, x, P, mu)
+            if spare is not None:
+                spare = spare & ~restarting[:, None]
         if return_cov:
             states[:, t], covs[:, t] = combine(x, P, mu)
         else:

@@ -47,7 +47,7 @@ from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import (
-    as_covariance, check_robust, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul,
+    as_covariance, check_robust, far, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul,
 )
 from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
@@ -780,9 +780,13 @@ class _FilterExperts:
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         robust = self.robust
-        if robust is not None:  # Huber's weight on the innovation's Mahalanobis distance (immnet.imm.kalman)
+        spare = after = None
+        if robust is not None:  # Huber's weight on an isolated far plot's Mahalanobis distance (immnet.imm.kalman)
             maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
-            weight, rho = huber(maha, robust)
+            if td.get(keys.ROBUST_SPARE, None) is not None:
+                spare = td.get(keys.ROBUST_SPARE)[:, None] > 0
+                after = far(maha, robust, ~has_z[..., 0], spare)
+            weight, rho = huber(maha, robust, spare)
             weight = torch.where(has_z[..., 0], weight, torch.ones_like(weight))
             K = K * weight[..., None, None]
             gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
@@ -796,6 +800,10 @@ class _FilterExperts:
             loglik = torch.where(rejected[:, None], 0.0, loglik)
             if robust is not None:
                 td.set(keys.EXPERT_ROBUST_WEIGHT, torch.where(rejected[:, None], 1.0, td.get(keys.EXPERT_ROBUST_WEIGHT)))
+            if after is not None:  # a plot gated out is not taken; a restarted track has no far plot before it
+                after = torch.where(rejected[:, None], spare, after) & ~td.get(keys.REACQUIRE)[:, None]
+        if after is not None:
+            td.set(keys.ROBUST_SPARE, after[:, 0].to(P.dtype))
         td.set(keys.EXPERT_GAIN, torch.where(has_z.unsqueeze(-1), gain, 0.0))
         td.set(keys.EXPERT_RATE_GAIN, torch.where(has_z, K[..., RATE, :], 0.0))
         td.set(keys.EXPERT_AUG_PRIOR_COV, P)
@@ -887,7 +895,8 @@ class FilterGain(_FilterExperts, Gain):
             if mode_groups(modes) is not None:
                 raise ValueError(f"a robust update (robust={robust!r}) weighs the whole innovation: it takes modes "
                                  f"'joint', got modes={modes!r}")
-            self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT]
+            self.in_keys = [*self.in_keys, keys.ROBUST_SPARE]
+            self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT, keys.ROBUST_SPARE]
         self.reacquire = reacq.Reacquire.from_config(reacquire)
         if self.reacquire is not None:
             if mode_groups(modes) is not None:
@@ -898,15 +907,23 @@ class FilterGain(_FilterExperts, Gain):
                           onset, model_noise, start_acc_std, modes, turn_rate, restart)
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        """``_FilterExperts``' carry, and re-acquisition's watch where it has one (not experts alone)."""
+        """``_FilterExperts``' carry, re-acquisition's watch and the robust update's spare where it has them (not
+        experts alone)."""
         spec = super().carry_spec(batch, experts_alone, dtype, device)
-        if self.reacquire is None or experts_alone:
+        if experts_alone:
+            return spec
+        if self.robust is not None:
+            spec = spec | {keys.ROBUST_SPARE: torch.zeros(batch, dtype=dtype, device=device)}
+        if self.reacquire is None:
             return spec
         return spec | dict(zip(REACQUIRE_CARRY, reacq.watch(batch, dtype, device)))
 
     def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
-        """``_FilterExperts``' start, and a watch that waits for the detection confirming it (re-acquisition's)."""
+        """``_FilterExperts``' start, no far plot before it (the robust update's), and a watch that waits for the
+        detection confirming it (re-acquisition's)."""
         out = super().start_carry(carry, z, x, second)
+        if self.robust is not None and z.dim() == 2:
+            out = out | {keys.ROBUST_SPARE: torch.zeros(z.shape[0], dtype=z.dtype, device=z.device)}
         if self.reacquire is None or z.dim() != 2:
             return out
         return out | dict(zip(REACQUIRE_CARRY, reacq.started(z, reacq.per_track_cov(out[keys.NOISE_VAR], z.shape[0], z))))
