@@ -96,6 +96,44 @@ def test_a_far_plot_that_restarts_nothing_is_gated_out():
     assert ((huber[:, 12, 0::3] - gated[:, 12, 0::3]).norm(dim=-1) > 50.0).all()
 
 
+def test_reach_against_a_hand_computation():
+    """``reachable``: one filter predicting the origin with no uncertainty, a plot covariance of 100 m^2 per axis, 2 s:
+    horizontally ``60 * 2^2 / 2 + 3 sqrt(200) = 162.43`` m, vertically ``10 * 2^2 / 2 + 3 * 10 = 50`` m."""
+    from immnet.imm.reacquire import reachable
+
+    rule = Reacquire(**RULE)
+    x, P = torch.zeros(4, 1, 9, dtype=torch.float64), torch.zeros(4, 1, 9, 9, dtype=torch.float64)
+    R = 100.0 * torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
+    z = torch.tensor([[162.0, 0.0, 0.0], [163.0, 0.0, 0.0], [0.0, 0.0, 49.9], [0.0, 0.0, 50.1]], dtype=torch.float64)
+    assert reachable(rule, z, R, x, P, 2.0).tolist() == [True, False, True, False]
+    assert not reachable(Reacquire(**RULE, accel=None, vertical_accel=None), z, R, x, P, 2.0).any()
+
+
+def test_a_far_plot_within_the_targets_reach_is_taken_one_beyond_it_gated_out():
+    """A plot 700 m east of a straight track at scan 20 (far: d^2 beyond 25 for every filter) lies within an aircraft's
+    reach over 5 s (60 m/s^2: 750 m, plus three standard deviations): the update takes it (Huber's weight), where
+    without accelerations it is gated out (the estimates those of the same plots with scan 20 missed, bit for bit);
+    2.5 km up (10 m/s^2 vertically: 125 m plus three standard deviations) it is gated out either way. The network of
+    the filter (IMMNet's step) does the same to 1e-9 of the state's scale."""
+    no_reach = {**RULE, "accel": None, "vertical_accel": None}
+    for shift, taken in (((700.0, 0.0, 0.0), True), ((0.0, 0.0, 2500.0), False)):
+        data = _scene()
+        data[keys.MEASUREMENTS][:, 20] += torch.tensor(shift, dtype=torch.float64)
+        missed = data.clone()
+        missed[keys.MEASUREMENTS][:, 20] = float("nan")
+        as_missed = _robust(RULE).track(missed)[keys.STATE]
+        assert torch.equal(_robust(no_reach).track(data)[keys.STATE], as_missed)
+        method = _robust(RULE)
+        ours = method.track(data)[keys.STATE]
+        moved = (ours[:, 20, 0::3] - as_missed[:, 20, 0::3]).norm(dim=-1)
+        assert (moved > 50.0).all() if taken else torch.equal(ours, as_missed)
+        net = method.network(5.0)
+        with torch.no_grad():
+            out = net.rollout(data[keys.MEASUREMENTS], meas_cov=net.told_cov(data))[0][keys.STATE]
+        scale = ours.abs().amax()
+        assert ((out - ours).abs() <= 1e-9 * scale).all()
+
+
 def test_a_no_op_bit_for_bit_on_clean_plots():
     """Clean plots (missed scans, a late first detection included): the filter with re-acquisition is the filter
     without it, bit for bit, and so is the network of each."""
@@ -161,7 +199,12 @@ def test_the_network_and_the_streaming_tracker_restart_the_same_tracks():
     ({"speed": float("inf")}, "reacquire's speed must be a finite number > 0, got inf"),
     ({"climb": -1.0}, "reacquire's climb must be a finite number > 0, got -1.0"),
     ({"reject": 1}, "reacquire's reject must be true or false, got 1"),
-    ({"span": 3}, "unknown Reacquire field(s) ['span']; known: ['climb', 'gate', 'reject', 'scans', 'speed']"),
+    ({"span": 3}, "unknown Reacquire field(s) ['span']; known: ['accel', 'climb', 'gate', 'reject', 'scans', 'speed', "
+                  "'vertical_accel']"),
+    ({"accel": None}, "reacquire's accel and vertical_accel are both numbers or both None (every far detection "
+                      "rejected), got None and 10.0"),
+    ({"vertical_accel": -1.0}, "reacquire's vertical_accel must be a finite number >= 0 (m/s^2) or None, got -1.0"),
+    ({"accel": True}, "reacquire's accel must be a finite number >= 0 (m/s^2) or None, got True"),
 ])
 def test_refusals(config, message):
     with pytest.raises(ValueError) as err:

@@ -8,7 +8,9 @@ filter's gate is set aside, and after ``scans`` consecutive such detections that
 ``speed`` of the one before it horizontally and ``climb`` vertically, over the time between them, to three standard
 deviations of the two plots' noise) the track restarts at the last of them as at its first detection (its position that plot's, its covariance the plot's,
 the velocity and acceleration unknown, the modes the filters' prior). A detection inside some filter's gate clears the
-run; a missed scan leaves it as it is (the time between the plots grows).
+run; a missed scan leaves it as it is (the time between the plots grows). A far detection that the target could have
+reached (some filter's prediction plus its largest accelerations over the interval: ``reachable``) is not set aside,
+though it counts for the run: a maneuver sharper than the filters' models puts plots there, an outlier mostly not.
 
 ``Reacquire`` is the setting (``IMMTracker(reacquire=...)``, ``FilterGain(reacquire=...)``); ``Watch`` the state
 each track carries, ``advance`` one scan of it, the same function in the model-based scan loop
@@ -38,7 +40,10 @@ class Reacquire(Option):
     of the track (a chi-square with 3 degrees of freedom exceeds 25 with probability 1.5e-5, 50 with 1e-10);
     ``speed``, ``climb``: the largest horizontal and vertical speeds (m/s) between two detections that agree;
     ``reject``: a far detection that does not restart the track is not filtered (a gate: the filters predict through
-    it as through a missed scan), else the update takes it (Huber's, where the filter has one)."""
+    it as through a missed scan), else the update takes it (Huber's, where the filter has one); ``accel``,
+    ``vertical_accel``: the target's largest horizontal and vertical accelerations (m/s^2): a far detection within
+    their reach (``reachable``) is not rejected, for a maneuver the filters' models do not hold puts it there (None:
+    every far detection is rejected)."""
 
     ARG = "reacquire"
     scans: int = 2
@@ -46,6 +51,8 @@ class Reacquire(Option):
     speed: float = 300.0
     climb: float = 50.0
     reject: bool = True
+    accel: float | None = 60.0
+    vertical_accel: float | None = 10.0
 
     def __post_init__(self):
         if isinstance(self.scans, bool) or not isinstance(self.scans, int) or self.scans < 2:
@@ -56,6 +63,14 @@ class Reacquire(Option):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
                 raise ValueError(f"reacquire's {name} must be a finite number > 0, got {value!r}")
+        if (self.accel is None) != (self.vertical_accel is None):
+            raise ValueError(f"reacquire's accel and vertical_accel are both numbers or both None (every far detection "
+                             f"rejected), got {self.accel!r} and {self.vertical_accel!r}")
+        for name in ("accel", "vertical_accel"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                      or not (math.isfinite(value) and value >= 0)):
+                raise ValueError(f"reacquire's {name} must be a finite number >= 0 (m/s^2) or None, got {value!r}")
 
 
 class Watch(NamedTuple):
@@ -90,15 +105,32 @@ def mahalanobis(z: torch.Tensor, x: torch.Tensor, P: torch.Tensor, R: torch.Tens
     return (nu * (Si @ nu.unsqueeze(-1)).squeeze(-1)).sum(-1)
 
 
+def reachable(rule: Reacquire, z: torch.Tensor, R: torch.Tensor, x: torch.Tensor, P: torch.Tensor, interval) -> torch.Tensor:
+    """The tracks ``[B]`` (bool) whose detection ``z [B, 3]`` some filter's prediction ``x [B, M, n]``, ``P [B, M, n,
+    n]`` (the position at 0, 3, 6) reaches with the rule's accelerations over ``interval`` (a number or ``[B]``, s):
+    the horizontal distance within ``accel dt^2 / 2`` plus three standard deviations of the prediction and the plot
+    there (``sqrt`` of the horizontal trace of ``P + R``), the vertical within ``vertical_accel dt^2 / 2`` plus three of
+    its vertical ones. None of them where the rule has no accelerations."""
+    if rule.accel is None:
+        return torch.zeros(z.shape[0], dtype=torch.bool, device=z.device)
+    dt = torch.as_tensor(interval, dtype=z.dtype, device=z.device).reshape(-1, 1)
+    nu = torch.nan_to_num(z)[:, None, :] - x[..., 0:7:3].to(z.dtype)
+    C = torch.diagonal(P[..., 0:7:3, 0:7:3].to(z.dtype) + R[:, None].to(z.dtype), dim1=-2, dim2=-1).clamp_min(0)
+    horizontal = torch.linalg.vector_norm(nu[..., :2], dim=-1) <= 0.5 * rule.accel * dt**2 + 3.0 * C[..., :2].sum(-1).sqrt()
+    vertical = nu[..., 2].abs() <= 0.5 * rule.vertical_accel * dt**2 + 3.0 * C[..., 2].sqrt()
+    return (horizontal & vertical).any(-1)
+
+
 def advance(rule: Reacquire, state: Watch, z: torch.Tensor, R: torch.Tensor, interval, maha: torch.Tensor,
-            active: torch.Tensor | None = None) -> tuple[Watch, torch.Tensor, torch.Tensor]:
+            active: torch.Tensor | None = None, reach: torch.Tensor | None = None) -> tuple[Watch, torch.Tensor, torch.Tensor]:
     """One scan of re-acquisition for every track: the watch after it, the tracks that restart at it ``[B]`` (bool) and
     those whose detection the filters do not take (far, not restarting, with ``reject``; ``[B]`` bool).
 
     ``z [B, 3]`` the scan's detections (NaN: missed), ``R [B, 3, 3]`` their covariances (read where detected),
     ``interval`` the time since the previous scan (a number or ``[B]``, s), ``maha [B, M]`` each filter's squared
     Mahalanobis distance of the detection (``mahalanobis``; read where detected), ``active [B]`` the tracks that
-    started before this scan (None: all; the others' watch is left as it is).
+    started before this scan (None: all; the others' watch is left as it is), ``reach [B]`` the tracks whose detection
+    is within the target's reach (``reachable``: a far one is still far, and not rejected).
 
     Two detections agree where the second lies within ``speed`` times the time between them of the first horizontally
     and within ``climb`` times it vertically, each to three standard deviations of their noise there (``sqrt`` of the
@@ -129,7 +161,8 @@ def advance(rule: Reacquire, state: Watch, z: torch.Tensor, R: torch.Tensor, int
                 torch.where(mark[:, None], zc, plot),
                 torch.where(mark[:, None, None], Rc.to(cov.dtype), cov),
                 torch.where(mark, torch.zeros_like(since), since))
-    return new, restart, (far & ~restart) if rule.reject else torch.zeros_like(far)
+    rejected = far & ~restart if reach is None else far & ~restart & ~reach
+    return new, restart, rejected if rule.reject else torch.zeros_like(far)
 
 
 def per_track_cov(R, batch: int, like: torch.Tensor) -> torch.Tensor:
@@ -163,7 +196,7 @@ class Restarts:
         iv = self.intervals[:, t] if isinstance(self.intervals, torch.Tensor) and self.intervals.dim() == 2 else self.intervals
         active = None if start is None else t > start.to(z.device)
         state, restart, rejected = advance(self.rule, state, z, Rb, iv, mahalanobis(torch.nan_to_num(z), xp, Pp, Rb),
-                                           active)
+                                           active, reachable(self.rule, z, Rb, xp, Pp, iv))
         return state, torch.where(rejected[:, None], torch.full_like(z, float("nan")), z), restart
 
     def restart(self, restart: torch.Tensor, z: torch.Tensor, R, x, P, mu):
