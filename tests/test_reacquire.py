@@ -98,13 +98,13 @@ def test_a_far_plot_that_restarts_nothing_is_gated_out():
 
 def test_reach_against_a_hand_computation():
     """``reachable``: one filter predicting the origin with no uncertainty, a plot covariance of 100 m^2 per axis, 2 s:
-    horizontally ``60 * 2^2 / 2 + 3 sqrt(200) = 162.43`` m, vertically ``10 * 2^2 / 2 + 3 * 10 = 50`` m."""
+    horizontally ``60 * 2^2 / 2 + 3 sqrt(200) = 162.43`` m, vertically ``2 * 2^2 / 2 + 3 * 10 = 34`` m."""
     from immnet.imm.reacquire import reachable
 
     rule = Reacquire(**RULE)
     x, P = torch.zeros(4, 1, 9, dtype=torch.float64), torch.zeros(4, 1, 9, 9, dtype=torch.float64)
     R = 100.0 * torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
-    z = torch.tensor([[162.0, 0.0, 0.0], [163.0, 0.0, 0.0], [0.0, 0.0, 49.9], [0.0, 0.0, 50.1]], dtype=torch.float64)
+    z = torch.tensor([[162.0, 0.0, 0.0], [163.0, 0.0, 0.0], [0.0, 0.0, 33.9], [0.0, 0.0, 34.1]], dtype=torch.float64)
     assert reachable(rule, z, R, x, P, 2.0).tolist() == [True, False, True, False]
     assert not reachable(Reacquire(**RULE, accel=None, vertical_accel=None), z, R, x, P, 2.0).any()
 
@@ -113,7 +113,7 @@ def test_a_far_plot_within_the_targets_reach_is_taken_one_beyond_it_gated_out():
     """A plot 700 m east of a straight track at scan 20 (far: d^2 beyond 25 for every filter) lies within an aircraft's
     reach over 5 s (60 m/s^2: 750 m, plus three standard deviations): the update takes it (Huber's weight), where
     without accelerations it is gated out (the estimates those of the same plots with scan 20 missed, bit for bit);
-    2.5 km up (10 m/s^2 vertically: 125 m plus three standard deviations) it is gated out either way. The network of
+    2.5 km up (2 m/s^2 vertically: 25 m plus three standard deviations) it is gated out either way. The network of
     the filter (IMMNet's step) does the same to 1e-9 of the state's scale."""
     no_reach = {**RULE, "accel": None, "vertical_accel": None}
     for shift, taken in (((700.0, 0.0, 0.0), True), ((0.0, 0.0, 2500.0), False)):
@@ -202,7 +202,7 @@ def test_the_network_and_the_streaming_tracker_restart_the_same_tracks():
     ({"span": 3}, "unknown Reacquire field(s) ['span']; known: ['accel', 'climb', 'gate', 'reject', 'scans', 'speed', "
                   "'vertical_accel']"),
     ({"accel": None}, "reacquire's accel and vertical_accel are both numbers or both None (every far detection "
-                      "rejected), got None and 10.0"),
+                      "rejected), got None and 2.0"),
     ({"vertical_accel": -1.0}, "reacquire's vertical_accel must be a finite number >= 0 (m/s^2) or None, got -1.0"),
     ({"accel": True}, "reacquire's accel must be a finite number >= 0 (m/s^2) or None, got True"),
 ])

@@ -52,7 +52,7 @@ class Reacquire(Option):
     climb: float = 50.0
     reject: bool = True
     accel: float | None = 60.0
-    vertical_accel: float | None = 10.0
+    vertical_accel: float | None = 2.0
 
     def __post_init__(self):
         if isinstance(self.scans, bool) or not isinstance(self.scans, int) or self.scans < 2:
