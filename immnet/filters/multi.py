@@ -179,8 +179,9 @@ class IMMFilter(TrackFilter):
     deviations of its innovation; with JPDA a track's plot is far when every plot in its gate is), None the plain
     update."""
 
-    def __init__(self, model_set, sigma_q, p_stay=0.98, mu0=None, groups: Modes | str = Modes.JOINT, r: float | None = None,
-                 vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm", robust: float | None = None):
+    def __init__(self, model_set, sigma_q, p_stay=0.98, mu0=None, groups: Modes | str = Modes.JOINT,
+                 r: float | None = None, vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm",
+                 robust: float | None = None):
         kind = Modes.lookup(groups)  # a Modes or its spelling, one of GROUPS
         if kind not in GROUPS:
             raise ValueError(f"groups must be one of {', '.join(GROUPS)}, got {groups!r}")

@@ -361,8 +361,8 @@ class BayesianModeUpdate(_MarkovPrior, ModeUpdate):
         super().__init__(model_set)
         self.modes = Modes.parse(modes)
         if self.modes is not Modes.JOINT and not from_experts:
-            raise ValueError(f"modes per group (modes={self.modes.value!r}) need the filter experts' likelihoods per group: "
-                             "from_experts=True")
+            raise ValueError(f"modes per group (modes={self.modes.value!r}) need the filter experts' likelihoods per "
+                             "group: from_experts=True")
         from immnet.stages.gain import steady_state
 
         M = self.n_experts

@@ -245,9 +245,9 @@ class FilterInteraction(Stage):
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.p_stay = float(p_stay)
-        if interaction is Interaction.IMM:  # the mix reads the previous scan's mode probabilities and writes the transition
-            self.in_keys = [*self.in_keys, keys.EXPERT_PROBS]  # it mixed with, for the mode update (one p_stay)
-            self.out_keys = [*self.out_keys, keys.MODE_TRANSITION]
+        if interaction is Interaction.IMM:  # the mix reads the previous scan's mode probabilities and writes
+            self.in_keys = [*self.in_keys, keys.EXPERT_PROBS]  # the transition it mixed with, for the mode update
+            self.out_keys = [*self.out_keys, keys.MODE_TRANSITION]  # (one p_stay)
         if self.guard is not None:  # and the speed-bound shares it carries
             self.in_keys = [*self.in_keys, keys.GUARD_FRESH]
             self.out_keys = [*self.out_keys, keys.GUARD_FRESH]
@@ -507,8 +507,8 @@ class _FilterExperts:
         groups = self.modes.groups
         self.z_groups = None if groups is None else measured_groups(groups)  # each group's measured coordinates
         if groups is not None and self.guard is not None:
-            raise ValueError(f"modes per group (modes={self.modes.value!r}) and the range guard do not go together: the guard's "
-                             "transition is one per track and expert, from the whole state")
+            raise ValueError(f"modes per group (modes={self.modes.value!r}) and the range guard do not go together: the "
+                             "guard's transition is one per track and expert, from the whole state")
         self.onset = bool(onset)
         if model_noise is not None:  # each motion model's own Q(sigma_q_i, dt), as the linear IMMs'
             sq = model_noise if isinstance(model_noise, (list, tuple)) else [model_noise] * len(model_set)
