@@ -49,10 +49,11 @@ from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
 from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, update
-from immnet.motion import AXES, ModelSet, coupling
+from immnet.motion import AXES, ModelSet, Modes, coupling
 from immnet.motion import AXIS_OF
 
-GROUPS = ("joint", "axis")
+GROUPS = (Modes.JOINT, Modes.AXIS)
+"""The modes a multi-target IMM keeps (``IMMFilter(groups=...)``)."""
 
 
 # --- the per-track filter ------------------------------------------------------------------------------------------
@@ -136,16 +137,16 @@ class TrackFilter:
         own_r = method.measurement.r if isinstance(getattr(method, "measurement", None), Isotropic) else None
         r = own_r if r is None else r
         if isinstance(method, PerAxisIMMTracker):
-            return IMMFilter(method.model_set, method.sigma_q, method.Pi, groups="axis", r=r, name=name,
+            return IMMFilter(method.model_set, method.sigma_q, method.Pi, groups=Modes.AXIS, r=r, name=name,
                              robust=method.robust)
         if isinstance(method, IMMTracker):
-            if method.modes != "joint":
+            if method.modes is not Modes.JOINT:
                 raise ValueError(f"{name}: an IMM with modes per {method.modes} is not a multi-target filter "
                                  f"(joint modes or a per-axis IMM are)")
-            return IMMFilter(method.model_set, method.sigma_q, method.Pi, mu0=method.mu0, groups="joint", r=r,
+            return IMMFilter(method.model_set, method.sigma_q, method.Pi, mu0=method.mu0, groups=Modes.JOINT, r=r,
                              name=name, robust=method.robust)
         if isinstance(method, KalmanFilterTracker):
-            return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], groups="joint", r=r, name=name,
+            return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], groups=Modes.JOINT, r=r, name=name,
                              robust=method.robust)
         raise ValueError(f"{name} is a {type(method).__name__}: the multi-target tracker's filters are the model-based "
                          f"IMMs and Kalman filters (IMMTracker, PerAxisIMMTracker, KalmanFilterTracker) and the "
@@ -178,20 +179,24 @@ class IMMFilter(TrackFilter):
     deviations of its innovation; with JPDA a track's plot is far when every plot in its gate is), None the plain
     update."""
 
-    def __init__(self, model_set, sigma_q, p_stay=0.98, mu0=None, groups: str = "joint", r: float | None = None,
-                 vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm", robust: float | None = None):
-        if groups not in GROUPS:
+    def __init__(self, model_set, sigma_q, p_stay=0.98, mu0=None, groups: Modes | str = Modes.JOINT,
+                 r: float | None = None, vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm",
+                 robust: float | None = None):
+        kind = Modes.lookup(groups)  # a Modes or its spelling, one of GROUPS
+        if kind not in GROUPS:
             raise ValueError(f"groups must be one of {', '.join(GROUPS)}, got {groups!r}")
+        groups = kind
         self.model_set = ModelSet.from_config(model_set)
         M = len(self.model_set)
         if any(m.state_dependent for m in self.model_set):
             raise ValueError(f"{name}: the IMM needs a constant F per model")
-        if groups == "axis" and (moving := coupling(self.model_set, AXIS_OF)):
+        if groups is Modes.AXIS and (moving := coupling(self.model_set, AXIS_OF)):
             raise ValueError(f"{name}: a per-axis IMM needs models block diagonal per axis; {moving} couple the axes")
         self.sigma_q = [float(v) for v in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
         self.Pi = transition_matrix(p_stay, M) if not isinstance(p_stay, torch.Tensor) else p_stay.double()
         self.mu0 = torch.full((M,), 1.0 / M, dtype=torch.float64) if mu0 is None else _t(mu0).reshape(M)
-        self.groups, self.G, self.d = groups, (1 if groups == "joint" else AXES), (9 if groups == "joint" else 3)
+        joint = groups is Modes.JOINT
+        self.groups, self.G, self.d = groups, (1 if joint else AXES), (9 if joint else 3)
         self.r, self.name = (None if r is None else float(r)), name
         self.robust = check_robust(robust)
         self.vel_std, self.acc_std = float(vel_std), float(acc_std)
@@ -213,7 +218,7 @@ class IMMFilter(TrackFilter):
     # the 9-D state to the filter's groups and back
     def _split(self, A: torch.Tensor) -> torch.Tensor:
         """``[K, 9]`` or ``[K, 9, 9]`` -> ``[K, G, d]`` or ``[K, G, d, d]`` (the axis blocks; joint: one group)."""
-        if self.groups == "joint":
+        if self.groups is Modes.JOINT:
             return A[:, None]
         if A.dim() == 3:
             return torch.stack([A[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(AXES)], 1)
@@ -221,7 +226,7 @@ class IMMFilter(TrackFilter):
 
     def _join(self, x: torch.Tensor, P: torch.Tensor):
         """``[K, G, d]``, ``[K, G, d, d]`` -> ``[K, 9]``, ``[K, 9, 9]`` (axis blocks on the diagonal)."""
-        if self.groups == "joint":
+        if self.groups is Modes.JOINT:
             return x[:, 0], P[:, 0]
         K = x.shape[0]
         out = torch.zeros(K, 9, 9, dtype=P.dtype)
@@ -233,7 +238,7 @@ class IMMFilter(TrackFilter):
         if self._cache[0] != dt:
             F = self.model_set.F(dt, dtype=torch.float64)  # [M, 9, 9]
             Q = self.model_set.Q(self.sigma_q, dt, dtype=torch.float64)
-            if self.groups == "joint":
+            if self.groups is Modes.JOINT:
                 F, Q = F[None], Q[None]
             else:
                 F = torch.stack([F[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(AXES)])
@@ -283,7 +288,7 @@ class IMMFilter(TrackFilter):
         self.x, self.P = predict(x0.view(K, G, M, d), P0.view(K, G, M, d, d), F, Q)
         self.mu = self.mu @ self.Pi  # the predicted mode probabilities (the update's prior)
         xc, Pc = combine(self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d), self.mu.reshape(K * G, M))
-        if self.groups == "joint":
+        if self.groups is Modes.JOINT:
             return xc[:, 0::3].numpy(), Pc[:, 0::3, 0::3].numpy()
         xc, Pc = xc.view(K, G, d), Pc.view(K, G, d, d)
         return xc[..., 0].numpy(), torch.diag_embed(Pc[..., 0, 0]).numpy()
@@ -291,7 +296,7 @@ class IMMFilter(TrackFilter):
     def _measure(self, z: torch.Tensor, R: torch.Tensor):
         """A plot per track and hypothesis ``z [K, H, 3]``, ``R [K, H, 3, 3]`` as the filter's groups measure it:
         ``(z [K, H, G, 1, m], R [K, H, G, 1, m, m], H)`` (per axis: the coordinate and ``R``'s diagonal element)."""
-        if self.groups == "joint":
+        if self.groups is Modes.JOINT:
             return z[:, :, None, None, :], R[:, :, None, None], None
         diag = torch.diagonal(R, dim1=-2, dim2=-1)
         return z[..., None, None], diag[..., None, None, None], self._H
@@ -364,7 +369,7 @@ class IMMFilter(TrackFilter):
         """The probabilities of the data modes CV, CA, CT+, CT- ``[K, 4]`` (each model's summed into the mode it
         stands for, as the single-target IMMs report them); None for modes per axis (an axis has none of the data
         modes) and for one model (a Kalman filter: no mode to weigh)."""
-        if self.groups != "joint" or self.M == 1:
+        if self.groups is not Modes.JOINT or self.M == 1:
             return None
         from immnet.filters.base import data_mode_probs
 

@@ -29,7 +29,7 @@ from immnet.filters.trackers import (ISOTROPIC, _interval_or_intervals, _linear_
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.measurement import measurement_model
 from immnet.imm.runner import linear_transition, run
-from immnet.motion import AXES, AXIS_OF, ModelSet, coupling
+from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
 
 
 def axis_blocks(A: torch.Tensor) -> torch.Tensor:
@@ -87,7 +87,7 @@ class PerAxisIMMTracker(Method):
         if self.robust is not None:
             raise ValueError(f"{self.name}: IMMNet's filter experts have no robust update, this IMM has robust={self.robust!r}")
         return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
-                               modes="axis")
+                               modes=Modes.AXIS)
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)

@@ -28,7 +28,7 @@ from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its user
 from immnet.imm.measurement import Isotropic, PerDetection, Polar, ToldStd, measurement_model
 from immnet.imm.reacquire import Reacquire, Restarts
 from immnet.imm.runner import linear_transition, run
-from immnet.motion import ModelSet, MotionModel, coupling, instantiate, mode_groups
+from immnet.motion import ModelSet, Modes, MotionModel, coupling, instantiate
 
 
 def _positive(name: str, value) -> None:
@@ -66,7 +66,7 @@ def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Te
 
 
 def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | None, dt: float, dtype,
-                    modes: str = "joint", robust: float | None = None, reacquire=None):
+                    modes: Modes = Modes.JOINT, robust: float | None = None, reacquire=None):
     """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``modes``: ``IMMNet``'s
     (per axis: ``PerAxisIMMTracker.network``). ``p_stay`` None (a method given a full transition matrix): a
     ValueError naming the method ``name``."""
@@ -189,7 +189,8 @@ class IMMTracker(Method):
         reacquire: Reacquire | dict | bool | None = None,
     ):
         self.model_set = ModelSet.from_config(model_set)
-        self.modes, groups = modes, mode_groups(modes)
+        self.modes = Modes.parse(modes)
+        groups = self.modes.groups
         self._step_net = None  # the network a grouped IMM tracks with (_track_by_step)
         if groups is not None and (coupled := coupling(self.model_set, groups)):
             raise ValueError(f"{name}: modes per {modes} need models whose F is block diagonal per group; "
@@ -258,7 +259,7 @@ class IMMTracker(Method):
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
-        if self.modes != "joint":
+        if self.modes is not Modes.JOINT:
             return self._track_by_step(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         intervals = _interval_or_intervals(batch, self.dtype, z.device)

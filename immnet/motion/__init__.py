@@ -14,7 +14,7 @@ from immnet.motion.models import (
     CV,
     DEG,
     MODE_GROUPS,
-    MODES,
+    Modes,
     N_MODES,
     N_AUG,
     POS,
@@ -36,8 +36,6 @@ from immnet.motion.models import (
     groups_separate,
     measured_groups,
     measurement_matrix,
-    mode_groups,
-    n_groups,
     noise_gain,
     process_noise,
     singer_block,
@@ -47,9 +45,9 @@ from immnet.motion.models import (
 )
 
 __all__ = [
-    "ACC", "AXES", "AXIS_OF", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODES", "MODE_GROUPS", "MODE_LABELS", "MODE_NAMES", "N_AUG", "N_MODES", "POS", "RATE",
+    "ACC", "AXES", "AXIS_OF", "AdaptiveTurn", "CA", "CT_NEG", "CT_POS", "CV", "DEG", "MODE_GROUPS", "MODE_LABELS", "MODE_NAMES", "N_AUG", "N_MODES", "POS", "RATE",
     "TURN_ENTRIES", "TURN_RATE_LIMIT_DEG", "VEL", "ct_jacobian", "ct_jacobian_entries", "ct_rate_derivative",
-    "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "MotionModel",
+    "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "ModelSet", "Modes", "MotionModel",
     "adaptive_ct_propagate", "ca_matrix", "coupling", "ct_matrix", "ct_propagate", "cv_matrix", "fits_groups",
-    "group_members", "groups_separate", "instantiate", "measured_groups", "measurement_matrix", "mode_groups", "n_groups", "noise_gain", "process_noise", "Singer", "singer_block", "singer_matrix", "singer_noise", "turn_rate_of",
+    "group_members", "groups_separate", "instantiate", "measured_groups", "measurement_matrix", "noise_gain", "process_noise", "Singer", "singer_block", "singer_matrix", "singer_noise", "turn_rate_of",
 ]

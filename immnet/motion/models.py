@@ -30,6 +30,7 @@ import math
 
 import torch
 
+from immnet.choice import Choice
 from immnet.labels import N_MODES
 
 DEG = math.pi / 180.0
@@ -50,26 +51,32 @@ ACC = (2, 5, 8)
 AXES = 3  # Cartesian axes, each a block [l, v, a] of the state
 AXIS_OF = (0, 0, 0, 1, 1, 1, 2, 2, 2, 0)
 """The axis of each coordinate of ``[x, w]`` (the turn rate ``w`` with the first, horizontal, axis)."""
-MODE_GROUPS = {"axis": AXIS_OF, "channel": (0, 0, 0, 0, 0, 0, 1, 1, 1, 0)}
-"""How an IMM may keep its modes (``IMMNet(modes=...)``, docs/core.md "Modes per group"): the group of each
-coordinate of ``[x, w]``, each group with mode probabilities of its own. ``"axis"``: one group per Cartesian axis
-(the decoupled IMM); ``"channel"``: the horizontal plane (x, y and the turn rate) and the vertical (z). ``"joint"``
-(not in the table): one set of probabilities for the whole state, the IMM's."""
-MODES = ("joint", *MODE_GROUPS)
 
 
-def mode_groups(modes: str) -> tuple[int, ...] | None:
-    """The group of each coordinate of ``[x, w]`` for ``modes`` (``MODE_GROUPS``), None for ``"joint"``; a
-    ValueError naming the choices otherwise."""
-    if modes not in MODES:
-        raise ValueError(f"modes must be one of {MODES}, got {modes!r}")
-    return MODE_GROUPS.get(modes)
+class Modes(Choice):
+    """How an IMM keeps its modes (``IMMNet(modes=...)``, docs/core.md "Modes per group"), the setting ``modes``:
+    ``JOINT`` (``"joint"``) one set of mode probabilities for the whole state, the IMM's; ``AXIS`` (``"axis"``) one
+    per Cartesian axis (the decoupled IMM); ``CHANNEL`` (``"channel"``) one for the horizontal plane (x, y and the
+    turn rate) and one for the vertical (z). ``groups``: the group of each coordinate of ``[x, w]``
+    (``MODE_GROUPS``), None for ``JOINT``."""
+
+    JOINT = "joint"
+    AXIS = "axis"
+    CHANNEL = "channel"
+
+    @property
+    def groups(self) -> tuple[int, ...] | None:
+        return MODE_GROUPS.get(self)
+
+    @property
+    def n_groups(self) -> int | None:
+        """How many groups of mode probabilities these modes keep, None for one joint set."""
+        return None if self.groups is None else max(self.groups) + 1
 
 
-def n_groups(modes: str) -> int | None:
-    """How many groups of mode probabilities ``modes`` keeps, None for one joint set."""
-    groups = mode_groups(modes)
-    return None if groups is None else max(groups) + 1
+MODE_GROUPS = {Modes.AXIS: AXIS_OF, Modes.CHANNEL: (0, 0, 0, 0, 0, 0, 1, 1, 1, 0)}
+"""The group of each coordinate of ``[x, w]`` of the modes kept per group (``Modes``), each group with mode
+probabilities of its own."""
 
 
 def group_members(groups: tuple[int, ...]) -> list[list[int]]:

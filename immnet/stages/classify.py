@@ -22,7 +22,7 @@ from torch import nn
 from immnet import keys
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import gaussian_loglik, inv3
-from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, N_MODES, ModelSet, n_groups
+from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, N_MODES, ModelSet, Modes
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import slog
 from immnet.stages.update import innovation
@@ -31,10 +31,10 @@ _MODE_KEYS_IN = [keys.MEASUREMENT, keys.FUSED, keys.EXPERT_PRIOR]
 _MODE_KEYS_OUT = [keys.MODE_LOGITS, keys.EXPERT_PROBS]
 
 
-def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None, modes: str = "joint") -> dict:
+def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None, modes: Modes = Modes.JOINT) -> dict:
     """A classifier's carry before a track starts: the mode probabilities ``mu = 1/M`` ``[B, M]`` (per group,
     ``modes``, ``[B, G, M]``)."""
-    G = n_groups(modes)
+    G = Modes.parse(modes).n_groups
     shape = (batch, n_experts) if G is None else (batch, G, n_experts)
     return {keys.EXPERT_PROBS: torch.full(shape, 1.0 / n_experts, dtype=dtype, device=device)}
 
@@ -109,7 +109,8 @@ class TransformerClassifier(ModeUpdate):
         (``IMMNet``'s, set there once): the head gives logits per group and mode, ``[B, G, M]``."""
         super().__init__(model_set)
         self.window, self.dt, self.interval_input = window, dt, bool(interval_input)
-        self.modes, self.groups = modes, n_groups(modes)
+        self.modes = Modes.parse(modes)
+        self.groups = self.modes.n_groups
         self.embed = nn.Linear(6 + 12 + int(self.interval_input), d_model)
         self.pos = nn.Parameter(torch.randn(window, d_model) * 0.02)
         self.blocks = nn.ModuleList(_Block(d_model, heads, ff) for _ in range(layers))
@@ -264,7 +265,8 @@ class UniformMix(ModeUpdate):
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, modes: str = "joint"):
         super().__init__(model_set)
-        self.modes, self.groups = modes, n_groups(modes)
+        self.modes = Modes.parse(modes)
+        self.groups = self.modes.n_groups
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         return uniform_probs(batch, self.n_experts, dtype, device, self.modes)
@@ -295,9 +297,10 @@ class TrueModeUpdate(ModeUpdate):
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, experts: list[int] | None = None, modes: str = "joint"):
         super().__init__(model_set)
-        if n_groups(modes) is not None:
-            raise ValueError(f"the truth's modes are the whole target's: TrueModeUpdate takes modes='joint', got {modes!r}")
-        self.modes = modes
+        self.modes = Modes.parse(modes)
+        if self.modes is not Modes.JOINT:
+            raise ValueError(f"the truth's modes are the whole target's: TrueModeUpdate takes modes='joint', got "
+                             f"{self.modes.value!r}")
         M = self.n_experts
         if experts is None:
             own = model_set.modes.tolist()
@@ -356,10 +359,10 @@ class BayesianModeUpdate(_MarkovPrior, ModeUpdate):
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0,
                  from_experts: bool = False, modes: str = "joint"):
         super().__init__(model_set)
-        self.modes = modes
-        if n_groups(modes) is not None and not from_experts:
-            raise ValueError(f"modes per group (modes={modes!r}) need the filter experts' likelihoods per group: "
-                             "from_experts=True")
+        self.modes = Modes.parse(modes)
+        if self.modes is not Modes.JOINT and not from_experts:
+            raise ValueError(f"modes per group (modes={self.modes.value!r}) need the filter experts' likelihoods per "
+                             "group: from_experts=True")
         from immnet.stages.gain import steady_state
 
         M = self.n_experts

@@ -44,7 +44,7 @@ from torch import nn
 
 from immnet import keys
 from immnet.imm.kalman import as_covariance
-from immnet.motion import ACC, POS, VEL, mode_groups
+from immnet.motion import ACC, POS, VEL, Modes
 from immnet.stages.base import Stage, measured, scan_interval
 
 VEL_SCALE, ACC_SCALE, R_SCALE = 100.0, 1.0, 5.0
@@ -130,8 +130,7 @@ class OutputCorrection(Stage):
         self.whiten = whiten
         self.dt = float(dt)
         self.hidden, self.layers = int(hidden), int(layers)
-        groups = mode_groups(modes)
-        self.n_groups = 1 if groups is None else max(groups) + 1
+        self.n_groups = Modes.parse(modes).n_groups or 1
         self.n_features = (23 if whiten else 21) + self.n_groups * self.n_experts
         self.inp = nn.Linear(self.n_features, self.hidden)
         self.gru = nn.GRU(self.hidden, self.hidden, num_layers=self.layers, batch_first=True)

@@ -42,6 +42,7 @@ import math
 import torch
 
 from immnet import keys
+from immnet.choice import Choice
 from immnet.imm.adaptive import AdaptiveNoise
 from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
@@ -53,7 +54,7 @@ from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
 from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
-    ct_propagate, group_members, measured_groups, mode_groups, noise_gain,
+    ct_propagate, group_members, measured_groups, Modes, noise_gain,
 )
 from immnet.stages.base import Stage, measured, per_expert, scan_interval, step_input, told_r, track_where
 from immnet.stages.features import slog, state_scale
@@ -163,23 +164,30 @@ def _check_turn_rate(turn_rate: str | None) -> str | None:
     return turn_rate
 
 
-def _check_restart(restart: str | None, interaction: str, onset: bool) -> str | None:
+class Interaction(Choice):
+    """Where a filter expert's prediction starts (``FilterInteraction``), the setting ``interaction``: ``FUSED``
+    (``"fused"``, the paper's) the previous fused estimate with the expert's own mode parameter; ``IMM``
+    (``"imm"``, the recipes') the IMM's mix of the experts' posteriors."""
+
+    FUSED = "fused"
+    IMM = "imm"
+
+
+def _check_restart(restart: str | None, interaction: Interaction, onset: bool) -> str | None:
     if restart not in (None, TOLD):
         raise ValueError(f"restart must be None or {TOLD!r} (the truth's, an oracle), got {restart!r}")
-    if restart is not None and not (interaction == "imm" and onset):
+    if restart is not None and not (interaction is Interaction.IMM and onset):
         raise ValueError("restart='data' re-enters the experts with their onset priors: it needs interaction='imm' "
                          "and onset=True")
     return restart
 
 
-def _check_interaction(interaction: str, p_stay: float, guard=None) -> RangeGuard | None:
-    """Checks the interaction's arguments; returns the guard (``RangeGuard.from_config``)."""
-    if interaction not in ("fused", "imm"):
-        raise ValueError(f"interaction must be 'fused' or 'imm', got {interaction!r}")
+def _check_interaction(interaction: Interaction, p_stay: float, guard=None) -> RangeGuard | None:
+    """Checks the interaction's other arguments; returns the guard (``RangeGuard.from_config``)."""
     if not 0.0 < p_stay < 1.0:
         raise ValueError(f"p_stay must be in (0, 1), got {p_stay}")
     guard = RangeGuard.from_config(guard)
-    if guard is not None and interaction != "imm":
+    if guard is not None and interaction is not Interaction.IMM:
         raise ValueError("a guard changes the IMM's transition matrix: it needs interaction='imm'")
     return guard
 
@@ -223,22 +231,23 @@ class FilterInteraction(Stage):
         "restart")`` ``[B]``), every expert enters from its mix with its onset prior too (``immnet.imm.runner.run``'s
         ``restart``: the switch-clairvoyant reference)."""
         super().__init__(model_set)
+        self.interaction = interaction = Interaction.parse(interaction)
         self.restart = _check_restart(restart, interaction, onset)
         if restart is not None:
             self.in_keys = [*self.in_keys, keys.TRUE_RESTART]
         self.dt = dt
         self.onset = bool(onset)
-        groups = mode_groups(modes)
+        groups = Modes.parse(modes).groups
         members = [] if groups is None else group_members(groups)
         self.n_groups = len(members)
         for a, coords in enumerate(members):  # each group's coordinates of [x, w]
             self.register_buffer(f"group_{a}", torch.tensor(coords), persistent=False)
         spec = spec if isinstance(spec, DataSpec) else DataSpec.from_dict(spec)  # the onset priors' statistics
         self.guard = _check_interaction(interaction, p_stay, guard)
-        self.interaction, self.p_stay = interaction, float(p_stay)
-        if interaction == "imm":  # the mix reads the previous scan's mode probabilities and writes the transition
-            self.in_keys = [*self.in_keys, keys.EXPERT_PROBS]  # it mixed with, for the mode update (one p_stay)
-            self.out_keys = [*self.out_keys, keys.MODE_TRANSITION]
+        self.p_stay = float(p_stay)
+        if interaction is Interaction.IMM:  # the mix reads the previous scan's mode probabilities and writes
+            self.in_keys = [*self.in_keys, keys.EXPERT_PROBS]  # the transition it mixed with, for the mode update
+            self.out_keys = [*self.out_keys, keys.MODE_TRANSITION]  # (one p_stay)
         if self.guard is not None:  # and the speed-bound shares it carries
             self.in_keys = [*self.in_keys, keys.GUARD_FRESH]
             self.out_keys = [*self.out_keys, keys.GUARD_FRESH]
@@ -261,9 +270,9 @@ class FilterInteraction(Stage):
 
     def for_experts_alone(self) -> "FilterInteraction":
         """Experts alone start from their own posterior with either interaction: no mix, no guard."""
-        if self.interaction == "fused":
+        if self.interaction is Interaction.FUSED:
             return self
-        return FilterInteraction(self.model_set, self.dt, "fused", self.p_stay)
+        return FilterInteraction(self.model_set, self.dt, Interaction.FUSED, self.p_stay)
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The guard's speed-bound shares (none entered yet)."""
@@ -312,7 +321,7 @@ class FilterInteraction(Stage):
 
     def forward(self, td):
         own = td.get(keys.EXPERT_POST)
-        if self.interaction == "imm" and td.get(keys.FUSED).dim() == 2:  # not experts alone
+        if self.interaction is Interaction.IMM and td.get(keys.FUSED).dim() == 2:  # not experts alone
             y0, P0 = self._mix(td)
             if self.restart is not None:  # the truth's new draw within a mode: every expert enters with its prior
                 again = step_input(td, keys.TRUE_RESTART).to(torch.bool)
@@ -490,14 +499,16 @@ class _FilterExperts:
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
                      onset: bool = True, model_noise=None, start_acc_std=None, modes: str = "joint",
                      turn_rate: str | None = None, restart: str | None = None):
+        self.interaction = interaction = Interaction.parse(interaction)
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.turn_rate = _check_turn_rate(turn_rate)
         self.restart = _check_restart(restart, interaction, onset)  # the interaction's
-        self.modes, groups = modes, mode_groups(modes)
+        self.modes = Modes.parse(modes)
+        groups = self.modes.groups
         self.z_groups = None if groups is None else measured_groups(groups)  # each group's measured coordinates
         if groups is not None and self.guard is not None:
-            raise ValueError(f"modes per group (modes={modes!r}) and the range guard do not go together: the guard's "
-                             "transition is one per track and expert, from the whole state")
+            raise ValueError(f"modes per group (modes={self.modes.value!r}) and the range guard do not go together: the "
+                             "guard's transition is one per track and expert, from the whole state")
         self.onset = bool(onset)
         if model_noise is not None:  # each motion model's own Q(sigma_q_i, dt), as the linear IMMs'
             sq = model_noise if isinstance(model_noise, (list, tuple)) else [model_noise] * len(model_set)
@@ -522,7 +533,7 @@ class _FilterExperts:
         white = torch.zeros(N_NOISE, dtype=torch.bool)
         white[list(WHITE)] = True
         self.register_buffer("white_mask", white, persistent=False)
-        self.interaction, self.p_stay = interaction, float(p_stay)
+        self.p_stay = float(p_stay)
         if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
             raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")
         if len(noise_std) != N_NOISE or min(noise_std) < 0:
@@ -891,17 +902,19 @@ class FilterGain(_FilterExperts, Gain):
         the step's input ``("truth", "turn_rate")`` (``"data"``, an oracle: the clairvoyant bound's configuration;
         ``FilterPredict``). ``restart="data"``: the interaction's oracle restart (``FilterInteraction``)."""
         super().__init__(model_set)
+        modes = Modes.parse(modes)
         self.robust = check_robust(robust)
         if self.robust is not None:
-            if mode_groups(modes) is not None:
+            if modes is not Modes.JOINT:
                 raise ValueError(f"a robust update (robust={robust!r}) weighs the whole innovation: it takes modes "
-                                 f"'joint', got modes={modes!r}")
+                                 f"'joint', got modes={modes.value!r}")
             self.in_keys = [*self.in_keys, keys.ROBUST_SPARE]
             self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT, keys.ROBUST_SPARE]
         self.reacquire = reacq.Reacquire.from_config(reacquire)
         if self.reacquire is not None:
-            if mode_groups(modes) is not None:
-                raise ValueError(f"re-acquisition reads the whole innovation: it takes modes 'joint', got modes={modes!r}")
+            if modes is not Modes.JOINT:
+                raise ValueError(f"re-acquisition reads the whole innovation: it takes modes 'joint', got "
+                                 f"modes={modes.value!r}")
             self.in_keys = [*self.in_keys, *REACQUIRE_CARRY]
             self.out_keys = [*self.out_keys, *REACQUIRE_CARRY, keys.REACQUIRE]
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,

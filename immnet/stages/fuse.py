@@ -33,7 +33,7 @@ import torch
 
 from immnet import keys
 from immnet.imm.interaction import moment_match
-from immnet.motion import POS, mode_groups
+from immnet.motion import POS, Modes
 from immnet.stages.base import Stage, axis_probs, block_weights, coordinate_weights, measured
 
 COV_KEYS = (keys.EXPERT_COV, keys.EXPERT_AUG_COV)
@@ -52,7 +52,7 @@ class Fuse(Stage):
         ``consistency``: the weight of each scan in the reported covariance's scale (module doc), or None (off);
         not with ``per_expert`` (stage 1 reports no covariance). ``modes``: ``IMMNet``'s (module doc)."""
         super().__init__(model_set)
-        groups = mode_groups(modes)
+        groups = Modes.parse(modes).groups
         if groups is None:
             self.groups = None
         else:  # the group of each coordinate as a buffer: no copy to the device each scan

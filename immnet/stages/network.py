@@ -27,9 +27,10 @@ from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import unravel_key
 
 from immnet import keys
+from immnet.choice import Choice, spelled
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
-from immnet.motion import MODE_GROUPS, N_MODES, POS, ModelSet, coupling, mode_groups
+from immnet.motion import N_MODES, POS, ModelSet, Modes, coupling
 from immnet.stages.base import Stage, axis_probs, track_where
 from immnet.stages.classify import ModeUpdate
 from immnet.stages.fuse import Fuse
@@ -41,6 +42,35 @@ DEFAULT_CLASSIFIER = {"class_path": "immnet.stages.TransformerClassifier"}
 SET_ONCE = ("p_stay", "guard", "modes")
 """Settings the interaction and the mode update must agree on: ``IMMNet``'s own arguments, handed to each
 component that takes them (docs/configs.md, "IMMNet's configuration")."""
+
+
+
+class Likelihood(Choice):
+    """What a scan's measurement log-likelihood is taken under (``IMMNet.predictive_loglik``), the setting a bank of
+    networks weighs its members by (``immnet.tracking.bank``, ``likelihood``) and a rollout's ``return_loglik``:
+    ``FILTER`` (``"filter"``) the filter's prediction; ``REPORTED`` (``"reported"``) the track's as the network
+    reports it (``reported=True``: moved by its output correction of the scan before)."""
+
+    FILTER = "filter"
+    REPORTED = "reported"
+
+    @classmethod
+    def refusal(cls, value) -> str:
+        return f"a bank's likelihood is one of {', '.join(cls.spellings())}, got {value!r}"
+
+
+def loglik_asked(return_loglik) -> Likelihood | None:
+    """A rollout's ``return_loglik`` as the likelihood asked for: False (or None) none, True the filter's, else a
+    ``Likelihood`` or its spelling; anything else a ValueError in one line."""
+    if return_loglik is None or return_loglik is False:
+        return None
+    if return_loglik is True:
+        return Likelihood.FILTER
+    kind = Likelihood.lookup(return_loglik)
+    if kind is None:
+        raise ValueError(f"return_loglik must be False, True or one of {Likelihood.spellings()}, got {return_loglik!r}")
+    return kind
+
 
 Component = Callable[[ModelSet, float], Stage]
 """A stage to be built for the model set and interval: a ``class_path`` / ``init_args`` mapping, or what
@@ -94,11 +124,11 @@ def build_component(component, model_set: ModelSet, dt: float, settings: dict, r
     return cls(model_set=model_set, dt=dt, **args)
 
 
-def _check_modes(modes: str, model_set: ModelSet, gain, classifier) -> None:
+def _check_modes(modes: Modes, model_set: ModelSet, gain, classifier) -> None:
     """A ValueError where modes per group cannot be: models that couple the groups (per axis, a turn; per channel,
     none of ours), or a gain or classifier that has no ``modes`` (the filter gains refuse the range guard with it
     themselves)."""
-    coupled = coupling(model_set, MODE_GROUPS[modes])
+    coupled = coupling(model_set, modes.groups)
     if coupled:
         raise ValueError(f"modes per {modes} need motion models that keep the groups apart (F block diagonal per "
                          f"group, a turn's rate with the plane it turns in); {coupled} couple them")
@@ -193,14 +223,15 @@ class IMMNet(TensorDictModuleBase):
             interval_range = (lo, hi)
         self.interval_range = interval_range
         ms = self.model_set
+        self.modes = modes = Modes.parse(modes)
+        self.groups = modes.groups
         settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None} | {"modes": modes}
-        if mode_groups(modes) is not None:
+        if modes is not Modes.JOINT:
             _check_modes(modes, ms, gain or DEFAULT_GAIN, classifier or DEFAULT_CLASSIFIER)
         gain, classifier = component_config(gain or DEFAULT_GAIN), component_config(classifier or DEFAULT_CLASSIFIER)
-        self.config = {  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
+        self.config = spelled({  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
             "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt,
-            **{k: v for k, v in settings.items() if k != "modes" or v != "joint"}}
-        self.modes, self.groups = modes, mode_groups(modes)
+            **{k: v for k, v in settings.items() if k != "modes" or v is not Modes.JOINT}})
         if interval_range is not None:
             self.config["interval_range"] = list(interval_range)
         if cov_consistency is not None:
@@ -215,7 +246,7 @@ class IMMNet(TensorDictModuleBase):
         self.correct = None
         if correction is not None:
             correction = component_config(correction)
-            self.config["correction"] = correction
+            self.config["correction"] = spelled(correction)
             self.correct = build_component(correction, ms, dt, settings)
         first = () if self.interact is None else (self.interact,)
         # the step and the experts-alone step run the stages above between a track start's two stages; they are
@@ -561,10 +592,11 @@ class IMMNet(TensorDictModuleBase):
         covariance ``state_cov [B, T, 9, 9]`` (``[B, T, M, 9, 9]`` experts alone; a ValueError saying why where
         the experts carry none, ``has_cov``), and with ``return_loglik`` each scan's ``loglik [B, T]``
         (``predictive_loglik``; True or ``"filter"``: of the filter's prediction, ``"reported"``: of the track as
-        reported, ``immnet.tracking.bank.LIKELIHOODS``); ``carry`` continues the rollout
+        reported, ``Likelihood``; ``loglik_asked``); ``carry`` continues the rollout
         (truncated BPTT detaches it between chunks).
         """
         B, T = measurements.shape[0], measurements.shape[-2]
+        loglik = loglik_asked(return_loglik)
         if return_cov:
             fuse = next(m for m in self._steps(experts_alone) if isinstance(m, Fuse))
             if fuse.cov is None:
@@ -581,8 +613,8 @@ class IMMNet(TensorDictModuleBase):
             states.append(carry.get(keys.FUSED) if experts_alone else self.estimate(carry))
             if return_cov:
                 covs.append(self.reported_cov(carry))
-            if return_loglik and not experts_alone:
-                logliks.append(self.predictive_loglik(before, carry, reported=return_loglik == "reported"))
+            if loglik is not None and not experts_alone:
+                logliks.append(self.predictive_loglik(before, carry, reported=loglik is Likelihood.REPORTED))
             if not experts_alone:
                 probs.append(carry.get(keys.EXPERT_PROBS))
                 logits.append(carry.get(keys.MODE_LOGITS))

@@ -45,7 +45,9 @@ from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurement
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.interaction import moment_match
 from immnet.labels import N_MODES
+from immnet.motion import Modes
 from immnet.stages import IMMNet
+from immnet.stages.network import Likelihood
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
     AS_CONFIGURED, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
@@ -104,13 +106,14 @@ def _weighed(loglik: torch.Tensor, takes: torch.Tensor) -> torch.Tensor:
     return torch.where(every & takes, loglik, torch.zeros((), dtype=loglik.dtype))
 
 
-LIKELIHOODS = ("filter", "reported")
-"""What a member is weighed by: its filter's predictive density (``IMMNet.predictive_loglik``), or the density of the
-track as it reports it (``reported=True``: the filter's prediction moved by the member's output correction of the
-scan before; the shipped bank's, docs/tracking.md "A bank of networks")."""
+LIKELIHOODS = Likelihood.spellings()
+"""What a member is weighed by (``immnet.stages.network.Likelihood``): its filter's predictive density
+(``IMMNet.predictive_loglik``), or the density of the track as it reports it (``reported=True``: the filter's
+prediction moved by the member's output correction of the scan before; the shipped bank's, docs/tracking.md "A bank
+of networks")."""
 # The shipped bank's settings, read from the table of shipped weights (immnet/pretrained/weights.json, "bank"; chosen on
 # the validation sets, docs/tracking.md):
-LIKELIHOOD = BANK_SETTINGS["likelihood"]
+LIKELIHOOD = Likelihood.parse(BANK_SETTINGS["likelihood"])
 """What the shipped bank weighs its members by (one of ``LIKELIHOODS``)."""
 TEMPER = float(BANK_SETTINGS["temper"])
 """The shipped bank's power of each scan's likelihood."""
@@ -166,8 +169,7 @@ class NetworkBank:
         if not (isinstance(prune_after, int) and not isinstance(prune_after, bool) and prune_after >= 0):
             raise ValueError(f"a bank's prune_after is a whole number of scans, 0 or more, got {prune_after!r}")
         self.prune, self.prune_after = float(prune), prune_after
-        if likelihood not in LIKELIHOODS:
-            raise ValueError(f"a bank's likelihood is one of {', '.join(LIKELIHOODS)}, got {likelihood!r}")
+        likelihood = Likelihood.parse(likelihood)
         if not (isinstance(temper, (int, float)) and math.isfinite(temper) and 0 < temper <= 1):
             raise ValueError(f"a bank's temper is a number in (0, 1], got {temper!r}")
         self.likelihood, self.temper = likelihood, float(temper)
@@ -223,7 +225,7 @@ class NetworkBank:
         for m in members:
             path = _member_path(m)
             config, state = read_checkpoint(path)
-            joint = config.get("modes", "joint") == "joint"
+            joint = Modes.parse(config.get("modes", Modes.JOINT)) is Modes.JOINT
             nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r)
         bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer, prune_after)
         bank.paths = {str(m): _member_path(m) for m in members}
@@ -241,7 +243,7 @@ class NetworkBank:
             p is not None and provenance_of(p).startswith("provenance") for p in self.paths.values())
         about = f"; provenance immnet/pretrained/{TABLE['bank']['provenance']}" if shipped_bank else ""
         return (f"NetworkBank({len(self.names)} member{'s' if len(self.names) > 1 else ''}, each weighed per track by "
-                f"how well it predicts the track: likelihood {self.likelihood!r}, temper {self.temper:g}{about}\n"
+                f"how well it predicts the track: likelihood {self.likelihood.value!r}, temper {self.temper:g}{about}\n"
                 + "\n".join(lines) + ")")
 
     has_cov = True  # every member keeps one (checked when built)
@@ -387,7 +389,7 @@ class NetworkBank:
     def _keeps_report(self, net: IMMNet) -> bool:
         """The member's report of the scan before is kept in its carry: the bank weighs what the member reports and
         the member corrects its output."""
-        return self.likelihood == "reported" and net.correct is not None
+        return self.likelihood is Likelihood.REPORTED and net.correct is not None
 
     def _fresh(self, net: IMMNet, n_tracks: int) -> TensorDict:
         """A member's carry for tracks that have not started: its own, with the report of the scan before
@@ -482,7 +484,7 @@ class NetworkBank:
                 z = to_local(gated, at)
                 before, after = coast_scan(net, carry if every else carry[rows], z[rows], cut[k][0][rows],
                                            cut[k][1][rows], lambda td, net=net: self._kept(net, td))
-                loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood == "reported").double()
+                loglik[rows, k] = net.predictive_loglik(before, after, self.likelihood is Likelihood.REPORTED).double()
                 state[rows, k] = to_world(net.estimate(after), at[rows])
                 cov[rows, k] = net.reported_cov(after).double()
                 probs[rows, k] = net.to_mode_probs(after.get(keys.EXPERT_PROBS)).double()

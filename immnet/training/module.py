@@ -21,6 +21,7 @@ import lightning as L
 import torch
 
 from immnet import keys
+from immnet.choice import spelled
 from immnet.checkpoints import add_checksum, verify_checksum
 from immnet.evaluation.metrics import confusion, per_trajectory_rmse, position_error
 from immnet.stages import IMMNet
@@ -56,6 +57,8 @@ class _TrackerModule(L.LightningModule):
         self.net = net if isinstance(net, IMMNet) else IMMNet(**net_arguments(net))
         if isinstance(self.hparams.get("net"), torch.nn.Module):  # built in Python: keep plain data, not the module
             self.hparams["net"] = self.net.config
+        elif isinstance(self.hparams.get("net"), dict):  # a setting given as its type is kept as its spelling
+            self.hparams["net"] = spelled(self.hparams["net"])
         self.register_buffer("w_state", component_weights(*loss_weights), persistent=False)
         self.skipped = 0
         if lr_schedule not in ("constant", "cosine"):
