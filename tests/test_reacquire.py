@@ -99,14 +99,15 @@ def test_a_far_plot_that_restarts_nothing_is_gated_out():
 def test_reach_against_a_hand_computation():
     """``reachable``: one filter predicting the origin with no uncertainty, a plot covariance of 100 m^2 per axis, 2 s:
     horizontally ``60 * 2^2 / 2 + 3 sqrt(200) = 162.43`` m, vertically ``2 * 2^2 / 2 + 3 * 10 = 34`` m."""
-    from immnet.imm.reacquire import reachable
+    from immnet.imm.reacquire import innovations, reachable
 
     rule = Reacquire(**RULE)
     x, P = torch.zeros(4, 1, 9, dtype=torch.float64), torch.zeros(4, 1, 9, 9, dtype=torch.float64)
     R = 100.0 * torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
     z = torch.tensor([[162.0, 0.0, 0.0], [163.0, 0.0, 0.0], [0.0, 0.0, 33.9], [0.0, 0.0, 34.1]], dtype=torch.float64)
-    assert reachable(rule, z, R, x, P, 2.0).tolist() == [True, False, True, False]
-    assert not reachable(Reacquire(**RULE, accel=None, vertical_accel=None), z, R, x, P, 2.0).any()
+    nu, S = innovations(z, x, P, R)
+    assert reachable(rule, nu, S, 2.0).tolist() == [True, False, True, False]
+    assert not reachable(Reacquire(**RULE, accel=None, vertical_accel=None), nu, S, 2.0).any()
 
 
 def test_a_far_plot_within_the_targets_reach_is_taken_one_beyond_it_gated_out():

@@ -96,26 +96,30 @@ def started(z: torch.Tensor, R: torch.Tensor) -> Watch:
                  torch.zeros(z.shape[:1], dtype=z.dtype, device=z.device))
 
 
-def mahalanobis(z: torch.Tensor, x: torch.Tensor, P: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
-    """Each filter's squared Mahalanobis distance of the detection ``z [B, 3]`` from its prediction ``x [B, M, 9]``,
-    ``P [B, M, 9, 9]`` (the position's rows 0, 3, 6), measurement covariance ``R [B, 3, 3]``: ``[B, M]``."""
-    nu = z[:, None, :] - x[..., 0::3]
-    S = P[..., 0::3, 0::3] + R[:, None]
+def innovations(z: torch.Tensor, x: torch.Tensor, P: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each filter's innovation of the detection ``z [B, 3]`` from its prediction ``x [B, M, 9]``, ``P [B, M, 9, 9]``
+    (the position's rows 0, 3, 6) with the measurement covariance ``R [B, 3, 3]``: ``(nu [B, M, 3], S [B, M, 3, 3])``,
+    what ``mahalanobis`` and ``reachable`` read."""
+    return z[:, None, :] - x[..., 0::3], P[..., 0::3, 0::3] + R[:, None]
+
+
+def mahalanobis(nu: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+    """Each filter's squared Mahalanobis distance ``nu^T S^-1 nu`` of its innovation ``nu [B, M, 3]`` with covariance
+    ``S [B, M, 3, 3]`` (``innovations``): ``[B, M]``."""
     Si, _ = inv3(S)
     return (nu * (Si @ nu.unsqueeze(-1)).squeeze(-1)).sum(-1)
 
 
-def reachable(rule: Reacquire, z: torch.Tensor, R: torch.Tensor, x: torch.Tensor, P: torch.Tensor, interval) -> torch.Tensor:
-    """The tracks ``[B]`` (bool) whose detection ``z [B, 3]`` some filter's prediction ``x [B, M, n]``, ``P [B, M, n,
-    n]`` (the position at 0, 3, 6) reaches with the rule's accelerations over ``interval`` (a number or ``[B]``, s):
-    the horizontal distance within ``accel dt^2 / 2`` plus three standard deviations of the prediction and the plot
-    there (``sqrt`` of the horizontal trace of ``P + R``), the vertical within ``vertical_accel dt^2 / 2`` plus three of
-    its vertical ones. None of them where the rule has no accelerations."""
+def reachable(rule: Reacquire, nu: torch.Tensor, S: torch.Tensor, interval) -> torch.Tensor:
+    """The tracks ``[B]`` (bool) whose detection some filter reaches with the rule's accelerations over ``interval`` (a
+    number or ``[B]``, s), from each filter's innovation ``nu [B, M, 3]`` and its covariance ``S [B, M, 3, 3]`` (the
+    prediction's and the plot's, ``innovations``): the horizontal distance within ``accel dt^2 / 2`` plus three
+    standard deviations there (``sqrt`` of ``S``'s horizontal trace), the vertical within ``vertical_accel dt^2 / 2``
+    plus three of its vertical ones. None of them where the rule has no accelerations."""
     if rule.accel is None:
-        return torch.zeros(z.shape[0], dtype=torch.bool, device=z.device)
-    dt = torch.as_tensor(interval, dtype=z.dtype, device=z.device).reshape(-1, 1)
-    nu = torch.nan_to_num(z)[:, None, :] - x[..., 0:7:3].to(z.dtype)
-    C = torch.diagonal(P[..., 0:7:3, 0:7:3].to(z.dtype) + R[:, None].to(z.dtype), dim1=-2, dim2=-1).clamp_min(0)
+        return torch.zeros(nu.shape[0], dtype=torch.bool, device=nu.device)
+    dt = torch.as_tensor(interval, dtype=nu.dtype, device=nu.device).reshape(-1, 1)
+    C = torch.diagonal(S, dim1=-2, dim2=-1).clamp_min(0)
     horizontal = torch.linalg.vector_norm(nu[..., :2], dim=-1) <= 0.5 * rule.accel * dt**2 + 3.0 * C[..., :2].sum(-1).sqrt()
     vertical = nu[..., 2].abs() <= 0.5 * rule.vertical_accel * dt**2 + 3.0 * C[..., 2].sqrt()
     return (horizontal & vertical).any(-1)
@@ -195,8 +199,9 @@ class Restarts:
         Rb = per_track_cov(R, z.shape[0], z)
         iv = self.intervals[:, t] if isinstance(self.intervals, torch.Tensor) and self.intervals.dim() == 2 else self.intervals
         active = None if start is None else t > start.to(z.device)
-        state, restart, rejected = advance(self.rule, state, z, Rb, iv, mahalanobis(torch.nan_to_num(z), xp, Pp, Rb),
-                                           active, reachable(self.rule, z, Rb, xp, Pp, iv))
+        nu, S = innovations(torch.nan_to_num(z), xp, Pp, Rb)
+        state, restart, rejected = advance(self.rule, state, z, Rb, iv, mahalanobis(nu, S), active,
+                                           reachable(self.rule, nu, S, iv))
         return state, torch.where(rejected[:, None], torch.full_like(z, float("nan")), z), restart
 
     def restart(self, restart: torch.Tensor, z: torch.Tensor, R, x, P, mu):

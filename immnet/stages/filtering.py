@@ -806,7 +806,7 @@ class _FilterExperts:
         else:
             loglik, maha = self._loglik(nu, S, S_inv, logdet, has_z)
         if self.reacquire is not None and td.get(keys.MEASUREMENT).dim() == 2:
-            rejected = self._watch(td, r2, maha, P)  # a far detection gated out: the experts take it as missed
+            rejected = self._watch(td, r2, maha, nu, S)  # a far detection gated out: the experts take it as missed
             has_z = has_z & ~rejected[:, None, None]
             loglik = torch.where(rejected[:, None], 0.0, loglik)
             if robust is not None:
@@ -825,8 +825,9 @@ class _FilterExperts:
         return td
 
 
-    def _watch(self, td, r2: torch.Tensor, maha: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
-        """Re-acquisition's scan (``immnet.imm.reacquire.advance``): the carried watch after this scan's detection and
+    def _watch(self, td, r2: torch.Tensor, maha: torch.Tensor, nu: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+        """Re-acquisition's scan (``immnet.imm.reacquire.advance``) from the experts' innovations ``nu``, their
+        covariances ``S`` and squared Mahalanobis distances ``maha``: the carried watch after this scan's detection and
         ``("expert", "reacquire") [B]``, the tracks that restart here (``IMMNet.scan`` restarts them); returns the
         tracks whose detection the experts do not take (gated out) ``[B]``."""
         z = td.get(keys.MEASUREMENT)
@@ -835,7 +836,7 @@ class _FilterExperts:
         dt, per_track = scan_interval(td, self.dt)
         state = reacq.Watch(*(td.get(k) for k in REACQUIRE_CARRY))
         interval = dt[:, 0] if per_track else dt
-        reach = reacq.reachable(self.reacquire, z, R, td.get(keys.EXPERT_PRIOR).detach(), P.detach(), interval)
+        reach = reacq.reachable(self.reacquire, nu.detach(), S.detach(), interval)
         state, restart, rejected = reacq.advance(self.reacquire, state, z, R, interval, maha.detach(), reach=reach)
         for key, value in zip(REACQUIRE_CARRY, state):
             td.set(key, value)
