@@ -245,7 +245,25 @@ def test_the_shipped_radar_networks_take_the_rule_by_name_and_by_load():
     assert build_method("immnet-radar-5s").net.gain.reacquire == Reacquire(**RULE)
     assert build_method("radar-imm-robust-5s").reacquire == Reacquire(**RULE)
     assert load_network("immnet/pretrained/immnet-radar-5s.ckpt", reacquire=None).gain.reacquire is None
-    with pytest.raises(ValueError) as err:
-        load_network("immnet/pretrained/immnet.ckpt", reacquire=True)
-    assert str(err.value) == ("immnet/pretrained/immnet.ckpt: re-acquisition needs the model-based filter experts "
-                              "(FilterGain); this checkpoint's gain is immnet.stages.filtering.KalmanNetFilterGain")
+    kalmannet = load_network("immnet/pretrained/immnet.ckpt", reacquire=True, robust=2.5)  # KalmanNet filter experts
+    assert kalmannet.gain.reacquire == Reacquire() and kalmannet.gain.robust == 2.5
+
+
+def test_a_gain_without_filter_experts_refuses_the_rule_and_the_robust_update_in_one_line(tmp_path):
+    """The paper's KalmanNet gain learns its gain without a measurement model: re-acquisition and Huber's update, which
+    read each expert's innovation covariance, are refused at load, naming the file and its gain."""
+    import lightning as L
+
+    from immnet.tracking.networks import load_network
+    from immnet.training import Stage2Module
+
+    module = Stage2Module(net={"model_set": "configs/model_sets/imm4.yaml"})
+    trainer = L.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False, max_epochs=0)
+    trainer.strategy.connect(module)
+    path = tmp_path / "net.ckpt"
+    trainer.save_checkpoint(path)
+    for option, what in (("reacquire", "re-acquisition needs filter experts"),
+                         ("robust", "a robust update needs filter experts")):
+        with pytest.raises(ValueError) as err:
+            load_network(path, **{option: True if option == "reacquire" else 2.5})
+        assert str(err.value) == f"{path}: {what}; this checkpoint's gain is immnet.stages.KalmanNetGain"

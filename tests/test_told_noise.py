@@ -299,3 +299,67 @@ def test_each_radar_imm_is_immnet_with_nothing_learned(name):
     ours = method.track(data)[keys.STATE]
     seen = _after_first_detection(z)
     _assert_close_to_its_scale(out[keys.STATE], ours, seen)
+
+
+def _kalmannet_of(tracker: IMMTracker, **gain) -> IMMNet:
+    """``tracker.network()`` with KalmanNet filter experts in place of its ``FilterGain`` (the same model noise, ``r``,
+    start and interaction; ``gain`` more of ``KalmanNetFilterGain``'s arguments), its learned outputs zero: the noise
+    multipliers ``exp(0) = 1`` and no gain correction, so that it is the model-based filter until its weights move."""
+    net = tracker.network()
+    args = {"model_noise": tracker.sigma_q, "r": tracker.r, "interaction": "imm", "onset": False,
+            "start_acc_std": net.gain.start_acc_var[0, 0].sqrt().item(), **gain}
+    kn = IMMNet(model_set=net.model_set, dt=net.dt, p_stay=tracker._p_stay, start_detections=1,
+                gain={"class_path": "immnet.stages.filtering.KalmanNetFilterGain", "init_args": args},
+                classifier={"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}})
+    kn = kn.to(torch.float64).eval()
+    with torch.no_grad():
+        kn.gain.fc2b.weight.zero_()
+        kn.gain.fc2b.bias.zero_()
+    return kn
+
+
+@pytest.mark.parametrize("reacquire", [None, True])
+def test_robust_kalmannet_experts_are_the_robust_imm_until_they_learn(reacquire):
+    """``KalmanNetFilterGain(robust=k, reacquire=...)``: the KalmanNet filter experts take Huber's update and
+    re-acquisition as ``FilterGain`` does. With their learned outputs at zero they filter what the robust IMM filters
+    (``IMMTracker(robust=k, reacquire=...).track``, the core's loop) to 1e-9 of the state's scale, on tracks with
+    outliers 1.5-2 km off, where the same experts without the robust update are kilometres away (the test can fail)."""
+    data = _data_with_outliers()
+    z = data[keys.MEASUREMENTS]
+    args = yaml.safe_load(resolve_path("configs/methods/real-imm-5s.yaml").read_text())["init_args"]
+    tracker = IMMTracker(**{**args, "r": "detection", "robust": 2.0, "reacquire": reacquire, "name": "robust"})
+    kn = _kalmannet_of(tracker, robust=2.0, reacquire=reacquire)
+    assert kn.gain.robust == 2.0 and (kn.gain.reacquire is None) == (reacquire is None)
+    with torch.no_grad():
+        out, _ = kn.rollout(z, meas_cov=kn.told_cov(data))
+        plain, _ = _kalmannet_of(tracker).rollout(z, meas_cov=kn.told_cov(data))
+    ours = tracker.track(data)[keys.STATE]
+    seen = _after_first_detection(z)
+    _assert_close_to_its_scale(out[keys.STATE], ours, seen)
+    assert ((plain[keys.STATE] - ours).abs() > 500.0)[seen].any()
+
+
+def test_robust_weight_bounds_the_learned_gain_correction_too():
+    """Huber's weight ``w`` scales the KalmanNet experts' whole gain, ``w (K + delta)``, its learned correction
+    ``delta`` with the Kalman gain: from one carry, a network whose correction is not zero gives on a plot 2 km off
+    ``w`` times the gain the same network gives without the robust update, with weights below 1 (a correction added
+    after the weight, ``w K + delta``, fails it)."""
+    data = _data_with_outliers()
+    z = data[keys.MEASUREMENTS][2:3]  # track 2: one detection 2 km off at scan 30
+    cov = data[keys.MEAS_COV][2:3]
+    args = yaml.safe_load(resolve_path("configs/methods/real-imm-5s.yaml").read_text())["init_args"]
+    tracker = IMMTracker(**{**args, "r": "detection", "name": "robust"})
+    robust, plain = (_kalmannet_of(tracker, robust=k) for k in (2.0, None))
+    with torch.no_grad():
+        for net in (robust, plain):
+            net.gain.fc2b.bias[:, :27].fill_(0.5)  # a learned correction of every gain entry (bounded: gain_scale)
+        carry = plain.initial_carry(1, dtype=torch.float64)
+        for t in range(30):  # the track up to the far plot, by the network without the robust update
+            carry = plain.scan(carry, z[:, t], meas_cov=cov[:, t]).select(*plain.carry_keys)
+        spare = {keys.ROBUST_SPARE: torch.zeros(1, dtype=torch.float64)}  # no far plot before this one
+        outs = [net.scan(carry.clone().update(spare) if net is robust else carry, z[:, 30], meas_cov=cov[:, 30])
+                for net in (robust, plain)]
+    w = outs[0].get(keys.EXPERT_ROBUST_WEIGHT)
+    assert (w < 0.5).all()
+    delta = outs[1].get(keys.EXPERT_GAIN)
+    torch.testing.assert_close(outs[0].get(keys.EXPERT_GAIN), w[..., None, None] * delta, rtol=1e-9, atol=1e-12)

@@ -476,7 +476,6 @@ class _FilterExperts:
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
     Mixed into a ``Gain`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
-    robust = None  # Huber's k (FilterGain's option; the KalmanNet filter experts have none)
 
     @property
     def per_detection(self) -> bool:
@@ -498,7 +497,7 @@ class _FilterExperts:
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
                      onset: bool = True, model_noise=None, start_acc_std=None, modes: str = "joint",
-                     turn_rate: str | None = None, restart: str | None = None):
+                     turn_rate: str | None = None, restart: str | None = None, robust=None, reacquire=None):
         self.interaction = interaction = Interaction.parse(interaction)
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.turn_rate = _check_turn_rate(turn_rate)
@@ -509,6 +508,20 @@ class _FilterExperts:
         if groups is not None and self.guard is not None:
             raise ValueError(f"modes per group (modes={self.modes.value!r}) and the range guard do not go together: the "
                              "guard's transition is one per track and expert, from the whole state")
+        self.robust = check_robust(robust)
+        if self.robust is not None:
+            if groups is not None:
+                raise ValueError(f"a robust update (robust={robust!r}) weighs the whole innovation: it takes modes "
+                                 f"'joint', got modes={self.modes.value!r}")
+            self.in_keys = [*self.in_keys, keys.ROBUST_SPARE]
+            self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT, keys.ROBUST_SPARE]
+        self.reacquire = reacq.Reacquire.from_config(reacquire)
+        if self.reacquire is not None:
+            if groups is not None:
+                raise ValueError(f"re-acquisition reads the whole innovation: it takes modes 'joint', got "
+                                 f"modes={self.modes.value!r}")
+            self.in_keys = [*self.in_keys, *REACQUIRE_CARRY]
+            self.out_keys = [*self.out_keys, *REACQUIRE_CARRY, keys.REACQUIRE]
         self.onset = bool(onset)
         if model_noise is not None:  # each motion model's own Q(sigma_q_i, dt), as the linear IMMs'
             sq = model_noise if isinstance(model_noise, (list, tuple)) else [model_noise] * len(model_set)
@@ -638,12 +651,27 @@ class _FilterExperts:
 
     # --- a starting track ---------------------------------------------------------------------
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        """What the gain it is mixed into carries (KalmanNet's hidden states), and ``initial_memory``."""
+        """What the gain it is mixed into carries (KalmanNet's hidden states), ``initial_memory``, and the robust
+        update's spare and re-acquisition's watch where it has them (not experts alone)."""
         shape = (batch, self.n_experts) if experts_alone else (batch,)
-        return super().carry_spec(batch, experts_alone, dtype, device) | self.initial_memory(shape, dtype, device)
+        spec = super().carry_spec(batch, experts_alone, dtype, device) | self.initial_memory(shape, dtype, device)
+        if experts_alone:
+            return spec
+        if self.robust is not None:
+            spec = spec | {keys.ROBUST_SPARE: torch.zeros(batch, dtype=dtype, device=device)}
+        if self.reacquire is None:
+            return spec
+        return spec | dict(zip(REACQUIRE_CARRY, reacq.watch(batch, dtype, device)))
 
     def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
-        return super().start_carry(carry, z, x, second) | self.start_memory(carry, z, x, second)
+        """The start's carry, ``start_memory``, no far plot before it (the robust update's), and a watch that waits
+        for the detection confirming it (re-acquisition's)."""
+        out = super().start_carry(carry, z, x, second) | self.start_memory(carry, z, x, second)
+        if self.robust is not None and z.dim() == 2:
+            out = out | {keys.ROBUST_SPARE: torch.zeros(z.shape[0], dtype=z.dtype, device=z.device)}
+        if self.reacquire is None or z.dim() != 2:
+            return out
+        return out | dict(zip(REACQUIRE_CARRY, reacq.started(z, reacq.per_track_cov(out[keys.NOISE_VAR], z.shape[0], z))))
 
     def initial_memory(self, shape, dtype=torch.float32, device=None) -> dict:
         """The gain's part of a carry for tracks that have not started; ``shape`` is ``[B]`` or ``[B, M]``."""
@@ -800,6 +828,8 @@ class _FilterExperts:
             weight, rho = huber(maha, robust, spare)
             weight = torch.where(has_z[..., 0], weight, torch.ones_like(weight))
             K = K * weight[..., None, None]
+            if delta is not None:  # the learned correction pulls towards a far plot no more than the Kalman gain
+                delta = delta * weight[..., None, None]
             gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
             loglik = torch.where(has_z[..., 0], gaussian_loglik(rho, logdet, 3), 0.0)
             td.set(keys.EXPERT_ROBUST_WEIGHT, weight)
@@ -864,7 +894,7 @@ class FilterGain(_FilterExperts, Gain):
     out_keys = _FILTER_OUT
 
     shared = ("p_stay", "guard", "modes")
-    load_options = ("guard", "adapt", "r", "reacquire")
+    load_options = ("guard", "adapt", "r", "reacquire", "robust")
 
     def __init__(
         self,
@@ -903,45 +933,8 @@ class FilterGain(_FilterExperts, Gain):
         the step's input ``("truth", "turn_rate")`` (``"data"``, an oracle: the clairvoyant bound's configuration;
         ``FilterPredict``). ``restart="data"``: the interaction's oracle restart (``FilterInteraction``)."""
         super().__init__(model_set)
-        modes = Modes.parse(modes)
-        self.robust = check_robust(robust)
-        if self.robust is not None:
-            if modes is not Modes.JOINT:
-                raise ValueError(f"a robust update (robust={robust!r}) weighs the whole innovation: it takes modes "
-                                 f"'joint', got modes={modes.value!r}")
-            self.in_keys = [*self.in_keys, keys.ROBUST_SPARE]
-            self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT, keys.ROBUST_SPARE]
-        self.reacquire = reacq.Reacquire.from_config(reacquire)
-        if self.reacquire is not None:
-            if modes is not Modes.JOINT:
-                raise ValueError(f"re-acquisition reads the whole innovation: it takes modes 'joint', got "
-                                 f"modes={modes.value!r}")
-            self.in_keys = [*self.in_keys, *REACQUIRE_CARRY]
-            self.out_keys = [*self.out_keys, *REACQUIRE_CARRY, keys.REACQUIRE]
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, modes, turn_rate, restart)
-
-    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        """``_FilterExperts``' carry, re-acquisition's watch and the robust update's spare where it has them (not
-        experts alone)."""
-        spec = super().carry_spec(batch, experts_alone, dtype, device)
-        if experts_alone:
-            return spec
-        if self.robust is not None:
-            spec = spec | {keys.ROBUST_SPARE: torch.zeros(batch, dtype=dtype, device=device)}
-        if self.reacquire is None:
-            return spec
-        return spec | dict(zip(REACQUIRE_CARRY, reacq.watch(batch, dtype, device)))
-
-    def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
-        """``_FilterExperts``' start, no far plot before it (the robust update's), and a watch that waits for the
-        detection confirming it (re-acquisition's)."""
-        out = super().start_carry(carry, z, x, second)
-        if self.robust is not None and z.dim() == 2:
-            out = out | {keys.ROBUST_SPARE: torch.zeros(z.shape[0], dtype=z.dtype, device=z.device)}
-        if self.reacquire is None or z.dim() != 2:
-            return out
-        return out | dict(zip(REACQUIRE_CARRY, reacq.started(z, reacq.per_track_cov(out[keys.NOISE_VAR], z.shape[0], z))))
+                          onset, model_noise, start_acc_std, modes, turn_rate, restart, robust, reacquire)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -977,7 +970,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     out_keys = [keys.EXPERT_HIDDEN, keys.PREV_INTERVAL] + _FILTER_OUT
 
     shared = ("p_stay", "guard", "modes")
-    load_options = ("guard", "adapt", "r")
+    load_options = ("guard", "adapt", "r", "reacquire", "robust")
 
     def __init__(
         self,
@@ -1005,7 +998,11 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         start_acc_std: float | list[float | None] | None = None,
         modes: str = "joint",
         state_correction: tuple[float, float, float] | None = None,
+        robust: float | None = None,
+        reacquire: dict | bool | None = None,
     ):
+        """``robust``, ``reacquire``: ``FilterGain``'s (Huber's weight ``w`` bounds the whole gain, the learned
+        correction ``delta`` with the Kalman part: ``w (K + delta)``)."""
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
         if state_correction is not None and (len(state_correction) != 3 or not all(
@@ -1029,7 +1026,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, modes)
+                          onset, model_noise, start_acc_std, modes, robust=robust, reacquire=reacquire)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def base_gain(self, model_set: ModelSet, sigma_q: float, r: float, dt: float) -> None:
@@ -1037,7 +1034,8 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
 
     def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
         """The update these experts need: with ``state_correction``, one that adds it."""
-        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.per_detection)
+        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.per_detection,
+                            robust=self.robust is not None)
 
     def knock_out_correction(self) -> None:
         """Set the state correction's rows of FC2 to zero (the rest of the network as trained)."""

@@ -84,11 +84,11 @@ def fit_weights(net: torch.nn.Module, state: dict, path) -> None:
 
 _NEEDS_FILTERS = {"guard": "a range guard needs filter experts", "adapt": "adaptive process noise needs filter experts",
                   "r": "a measurement std needs filter experts",
-                  "reacquire": "re-acquisition needs the model-based filter experts (FilterGain)"}
+                  "reacquire": "re-acquisition needs filter experts", "robust": "a robust update needs filter experts"}
 
 
 def load_network(path: str | Path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
-                 reacquire=AS_CONFIGURED) -> IMMNet:
+                 reacquire=AS_CONFIGURED, robust=AS_CONFIGURED) -> IMMNet:
     """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
 
     ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
@@ -101,16 +101,18 @@ def load_network(path: str | Path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=A
     track (``"data"``: the step's input ``"r"``, ``Tracker.track(r=...)``); no weights either
     (``FilterGain``'s ``r``; docs/tracking.md "A radar that knows its accuracy").
     ``reacquire``: the filter experts' re-acquisition (``FilterGain``'s, ``immnet.imm.reacquire``), as the checkpoint
-    has it (``"checkpoint"``), off (None) or a dict of its fields; no weights either.
+    has it (``"checkpoint"``), off (None) or a dict of its fields; no weights either. ``robust``: the filter experts'
+    Huber update (``FilterGain``'s ``robust``, ``immnet.imm.kalman``), as the checkpoint has it (``"checkpoint"``), off
+    (None) or its ``k``; no weights either (modes per group refuse it).
     """
-    return network_from(*read_checkpoint(path), path, guard, adapt, r, reacquire)
+    return network_from(*read_checkpoint(path), path, guard, adapt, r, reacquire, robust)
 
 
 def network_from(config: dict, state: dict, path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
-                 reacquire=AS_CONFIGURED) -> IMMNet:
+                 reacquire=AS_CONFIGURED, robust=AS_CONFIGURED) -> IMMNet:
     """``load_network``'s IMMNet from a checkpoint read already (``read_checkpoint``'s ``config`` and ``state``, of
     the file ``path``, named in its errors)."""
-    for name, value in (("guard", guard), ("adapt", adapt), ("r", r), ("reacquire", reacquire)):
+    for name, value in (("guard", guard), ("adapt", adapt), ("r", r), ("reacquire", reacquire), ("robust", robust)):
         if isinstance(value, str) and value == AS_CONFIGURED:
             continue
         gain = config.get("gain") or DEFAULT_GAIN
