@@ -83,11 +83,11 @@ class PerAxisIMMTracker(Method):
         """This IMM as IMMNet with nothing learned and modes per axis (``IMMNet(modes="axis")``; otherwise as
         ``IMMTracker.network``): each axis's mix, mode update and fusion over the model set's filter experts, whose
         9-D filters are the three axes' filters side by side. It filters what ``track`` filters, to float64
-        rounding, each track from its first detection on. A ValueError for a full transition matrix or a robust update."""
-        if self.robust is not None:
-            raise ValueError(f"{self.name}: IMMNet's filter experts have no robust update, this IMM has robust={self.robust!r}")
+        rounding, each track from its first detection on; ``robust``: the experts' Huber update per axis (each axis's
+        weight from its own innovation, ``FilterGain(robust=k)`` with modes per group). A ValueError for a full
+        transition matrix."""
         return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
-                               modes=Modes.AXIS)
+                               modes=Modes.AXIS, robust=self.robust)
 
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)

@@ -124,26 +124,38 @@ def inv3(S: torch.Tensor):
     return inv, torch.log(d0) + torch.log(d1) + torch.log(d2)
 
 
-def group_loglik(nu: torch.Tensor, S: torch.Tensor, groups: list[list[int]]) -> torch.Tensor:
-    """``log N(nu_g; 0, S_gg)`` of each group ``g`` of the innovation's coordinates (``groups``, at most two
+def group_maha(nu: torch.Tensor, S: torch.Tensor, groups: list[list[int]]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(d^2, log det S_gg)`` of each group ``g`` of the innovation's coordinates (``groups``, at most two
     coordinates each: ``[[0], [1], [2]]`` per axis, ``[[0, 1], [2]]`` per channel), the marginal of those coordinates:
-    innovations ``nu [..., 3]``, covariances ``S [..., 3, 3]`` -> ``[..., G]``."""
-    out = []
+    innovations ``nu [..., 3]``, covariances ``S [..., 3, 3]`` -> two ``[..., G]``."""
+    maha, logdet = [], []
     for g in groups:
         if len(g) == 1:
             i = g[0]
             s, n = S[..., i, i], nu[..., i]
-            out.append(gaussian_loglik(n * n / s, torch.log(s), 1))
+            maha.append(n * n / s)
+            logdet.append(torch.log(s))
         elif len(g) == 2:
             i, j = g
             a, b, d = S[..., i, i], 0.5 * (S[..., i, j] + S[..., j, i]), S[..., j, j]
             n, m = nu[..., i], nu[..., j]
             d1 = torch.maximum(d - b * b / a, torch.finfo(S.dtype).eps * d)  # L D L^T, as inv3's pivots
             e = m - b / a * n  # the second coordinate's innovation given the first
-            out.append(gaussian_loglik(n * n / a + e * e / d1, torch.log(a) + torch.log(d1), 2))
+            maha.append(n * n / a + e * e / d1)
+            logdet.append(torch.log(a) + torch.log(d1))
         else:
             raise ValueError(f"group_loglik takes groups of one or two coordinates, got {g}")
-    return torch.stack(out, -1)
+    return torch.stack(maha, -1), torch.stack(logdet, -1)
+
+
+def group_loglik(nu: torch.Tensor, S: torch.Tensor, groups: list[list[int]], maha: torch.Tensor | None = None
+                 ) -> torch.Tensor:
+    """``log N(nu_g; 0, S_gg)`` of each group ``g`` of the innovation's coordinates (``group_maha``'s groups), the
+    marginal of those coordinates: innovations ``nu [..., 3]``, covariances ``S [..., 3, 3]`` -> ``[..., G]``;
+    ``maha [..., G]`` in place of each group's ``d^2`` (Huber's ``2 rho_k(d)``: ``huber``)."""
+    own, logdet = group_maha(nu, S, groups)
+    maha = own if maha is None else maha
+    return torch.stack([gaussian_loglik(maha[..., k], logdet[..., k], len(g)) for k, g in enumerate(groups)], -1)
 
 
 def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

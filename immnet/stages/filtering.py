@@ -48,7 +48,7 @@ from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import (
-    as_covariance, check_robust, far, gaussian_loglik, group_loglik, huber, inv3, joseph, small_matmul,
+    as_covariance, check_robust, far, gaussian_loglik, group_loglik, group_maha, huber, inv3, joseph, small_matmul,
 )
 from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
@@ -446,10 +446,14 @@ class FilterUpdate(Update):
         K = torch.cat([td.get(keys.EXPERT_GAIN), td.get(keys.EXPERT_RATE_GAIN).unsqueeze(-2)], -2)  # [B, M, 10, 3]
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = noise_matrix(td.get(keys.NOISE_VAR), P.shape[1], self.told_cov)
-        if self.robust:  # R' = R + (1 / w - 1) S
-            weight = td.get(keys.EXPERT_ROBUST_WEIGHT).to(P.dtype)[..., None, None]
+        if self.robust:  # R' = R + (1 / w - 1) S; per coordinate (modes per group) R + D S D, D = diag(sqrt(1/w - 1))
+            weight = td.get(keys.EXPERT_ROBUST_WEIGHT).to(P.dtype)
             r2 = as_covariance(r2.to(P.dtype), P)
-            r2 = r2 + (1.0 / weight - 1.0) * innovation_cov(P, r2)
+            if weight.dim() == 3:
+                D = torch.sqrt(1.0 / weight - 1.0)
+                r2 = r2 + D[..., :, None] * innovation_cov(P, r2) * D[..., None, :]
+            else:
+                r2 = r2 + (1.0 / weight[..., None, None] - 1.0) * innovation_cov(P, r2)
         td.set(keys.EXPERT_RATE, w)
         td.set(keys.EXPERT_AUG_COV, joseph(P, K, r2))
         return td
@@ -509,10 +513,10 @@ class _FilterExperts:
             raise ValueError(f"modes per group (modes={self.modes.value!r}) and the range guard do not go together: the "
                              "guard's transition is one per track and expert, from the whole state")
         self.robust = check_robust(robust)
+        # each measured coordinate's group (modes per group: the robust update weighs each group's innovation)
+        self.coordinate_group = None if groups is None else [
+            next(g for g, members in enumerate(self.z_groups) if i in members) for i in range(3)]
         if self.robust is not None:
-            if groups is not None:
-                raise ValueError(f"a robust update (robust={robust!r}) weighs the whole innovation: it takes modes "
-                                 f"'joint', got modes={self.modes.value!r}")
             self.in_keys = [*self.in_keys, keys.ROBUST_SPARE]
             self.out_keys = [*self.out_keys, keys.EXPERT_ROBUST_WEIGHT, keys.ROBUST_SPARE]
         self.reacquire = reacq.Reacquire.from_config(reacquire)
@@ -657,8 +661,8 @@ class _FilterExperts:
         spec = super().carry_spec(batch, experts_alone, dtype, device) | self.initial_memory(shape, dtype, device)
         if experts_alone:
             return spec
-        if self.robust is not None:
-            spec = spec | {keys.ROBUST_SPARE: torch.zeros(batch, dtype=dtype, device=device)}
+        if self.robust is not None:  # one per group with modes per group
+            spec = spec | {keys.ROBUST_SPARE: torch.zeros(self._spare_shape(batch), dtype=dtype, device=device)}
         if self.reacquire is None:
             return spec
         return spec | dict(zip(REACQUIRE_CARRY, reacq.watch(batch, dtype, device)))
@@ -668,10 +672,14 @@ class _FilterExperts:
         for the detection confirming it (re-acquisition's)."""
         out = super().start_carry(carry, z, x, second) | self.start_memory(carry, z, x, second)
         if self.robust is not None and z.dim() == 2:
-            out = out | {keys.ROBUST_SPARE: torch.zeros(z.shape[0], dtype=z.dtype, device=z.device)}
+            out = out | {keys.ROBUST_SPARE: torch.zeros(self._spare_shape(z.shape[0]), dtype=z.dtype, device=z.device)}
         if self.reacquire is None or z.dim() != 2:
             return out
         return out | dict(zip(REACQUIRE_CARRY, reacq.started(z, reacq.per_track_cov(out[keys.NOISE_VAR], z.shape[0], z))))
+
+    def _spare_shape(self, batch: int) -> tuple[int, ...]:
+        """The robust update's carried ``spare`` (a far plot at the scan before): ``[B]``, or ``[B, G]`` per group."""
+        return (batch,) if self.z_groups is None else (batch, len(self.z_groups))
 
     def initial_memory(self, shape, dtype=torch.float32, device=None) -> dict:
         """The gain's part of a carry for tracks that have not started; ``shape`` is ``[B]`` or ``[B, M]``."""
@@ -820,7 +828,9 @@ class _FilterExperts:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         robust = self.robust
         spare = after = None
-        if robust is not None:  # Huber's weight on an isolated far plot's Mahalanobis distance (immnet.imm.kalman)
+        if robust is not None and self.z_groups is not None:
+            K, gain, loglik, maha, after = self._robust_groups(td, P, S, S_inv, nu, has_z, delta)
+        elif robust is not None:  # Huber's weight on an isolated far plot's Mahalanobis distance (immnet.imm.kalman)
             maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
             if td.get(keys.ROBUST_SPARE, None) is not None:
                 spare = td.get(keys.ROBUST_SPARE)[:, None] > 0
@@ -854,6 +864,31 @@ class _FilterExperts:
             self._adapt(td, maha, has_z)
         return td
 
+
+    def _robust_groups(self, td, P, S, S_inv, nu, has_z, delta):
+        """Huber's update with modes per group (``_finish``'s ``(K, gain, loglik, maha, spare after)``): each group's
+        weight ``w_g = min(1, k / d_g)`` of its own marginal distance (``group_maha``; an isolated far plot's: the
+        group's ``spare`` ``[B, G]``, beyond ``k`` of every expert in that group), the gain of ``S' = S + D S D``,
+        ``D = diag(sqrt(1 / w - 1))`` per coordinate (``R' = R + D S D``: ``w_g`` times the Kalman gain where the groups'
+        innovations are uncorrelated, as the per-axis IMM's per axis; ``FilterUpdate`` forms ``R'`` from the
+        per-coordinate weights ``("expert", "robust_weight") [B, M, 3]``), the learned correction's columns weighted as
+        their group's, each group's likelihood Huber's."""
+        k = self.robust
+        gm, _ = group_maha(nu, S, self.z_groups)  # [B, M, G]
+        spare = td.get(keys.ROBUST_SPARE)[:, None] > 0  # [B, 1, G]
+        missed = ~has_z[..., 0].any(-1)  # [B]: has_z is one per track, every expert
+        after = torch.where(missed[:, None, None], spare, gm.amin(-2, keepdim=True) > k * k)
+        w, rho = huber(gm, k, spare)
+        w = torch.where(has_z, w, torch.ones_like(w))
+        wc = w[..., self.coordinate_group]  # [B, M, 3]
+        D = torch.sqrt(1.0 / wc - 1.0)
+        S2_inv, _ = inv3(S + D[..., :, None] * S * D[..., None, :])
+        K = small_matmul(P[..., :, 0:7:3], S2_inv)
+        gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta * wc[..., None, :]
+        td.set(keys.EXPERT_ROBUST_WEIGHT, wc)
+        loglik = torch.where(has_z, group_loglik(nu, S, self.z_groups, maha=rho), 0.0).transpose(1, 2)
+        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
+        return K, gain, loglik, maha, after
 
     def _watch(self, td, r2: torch.Tensor, maha: torch.Tensor, nu: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
         """Re-acquisition's scan (``immnet.imm.reacquire.advance``) from the experts' innovations ``nu``, their
