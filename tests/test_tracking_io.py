@@ -339,3 +339,41 @@ def test_a_field_over_the_csv_limit_is_refused_by_line(tmp_path, where, capsys):
     assert _one_error_line(capsys.readouterr().err) == (
         f"immnet track: error: line 3: not readable as CSV (field larger than field limit ({limit}))")
     assert sorted(os.listdir(tmp_path)) == ["in.csv"]
+
+
+@pytest.mark.parametrize("extra,why", [
+    (("--robust", "-1"), "--robust is Huber's k, a finite number of standard deviations > 0; got -1"),
+    (("--robust", "nan"), "--robust is Huber's k, a finite number of standard deviations > 0; got nan"),
+    (("--robust", "3", "--method", "imm-ekf"),
+     "--robust sets the networks' update; a --method has its own (robust: in its YAML)"),
+], ids=["negative", "nan", "method"])
+def test_robust_option_refusals(tmp_path, scans, extra, why, capsys):
+    _write(tmp_path / "in.csv", _rows(scans[0, :10]))
+    out = tmp_path / "o.csv"
+    assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(out), *extra]) == 2
+    assert _one_error_line(capsys.readouterr().err) == f"immnet track: error: {why}"
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("weights", [(), ("--weights", "general")], ids=["bank", "general"])
+def test_robust_option_tracks_as_the_api_and_holds_an_outlier(tmp_path, scans, weights):
+    """``immnet track --robust 3.5`` (the bank, or shipped weights) gives ``Tracker.pretrained(name, robust=3.5)``'s
+    track to the CSV's digits, and a plot 2 km off pulls it far less than without (Huber's update: k standard
+    deviations at most; the test can fail)."""
+    z = scans[0, :40].copy()
+    z[25] += 2000.0
+    rows = _rows(z)
+    _write(tmp_path / "in.csv", rows)
+    outs = {}
+    for k in ((), ("--robust", "3.5")):
+        out = tmp_path / f"o{len(k)}.csv"
+        assert main(["track", "--input", str(tmp_path / "in.csv"), "--output", str(out), *weights, *k]) == 0
+        with open(out, newline="") as f:
+            outs[len(k)] = np.stack([_values(r)[:9] for r in csv.DictReader(f)])
+    truth = scans[0, :40]
+    pull = {n: np.linalg.norm(o[25, [0, 3, 6]] - truth[25]) for n, o in outs.items()}
+    assert pull[2] < 0.5 * pull[0], pull
+    name = weights[1] if weights else "bank"
+    api = Tracker.pretrained(name, robust=3.5, guard=None if weights else "checkpoint")
+    want = api.track(torch.from_numpy(z[None]).double() if name == "bank" else torch.from_numpy(z[None]).float())
+    np.testing.assert_allclose(outs[2][:, [0, 3, 6]], want["state"][0, :, [0, 3, 6]].double().numpy(), rtol=1e-5, atol=TOL)

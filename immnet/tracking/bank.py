@@ -206,12 +206,13 @@ class NetworkBank:
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = LIKELIHOOD,
                    temper: float = TEMPER, max_coast: float = MAX_COAST, prune: float = PRUNE,
-                   defer: dict | None = None, prune_after: int = PRUNE_AFTER) -> "NetworkBank":
+                   defer: dict | None = None, prune_after: int = PRUNE_AFTER, robust=AS_CONFIGURED) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
         loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one
         asked for goes to the members whose modes are the whole target's, since a guard's transitions cannot be per
         axis: ``IMMNet(modes=...)``),
-        ``adapt`` and ``r`` (one number for every track: a radar that knows its accuracy); ``likelihood``, ``temper``,
+        ``adapt``, ``r`` (one number for every track: a radar that knows its accuracy) and ``robust`` (Huber's ``k`` of
+        every member's filter experts, per axis where its modes are); ``likelihood``, ``temper``,
         ``prune``, ``prune_after`` and ``defer``: the bank's (``defer`` None: ``DEFER``'s pairs among these members;
         ``{}`` none)."""
         members = list(members)
@@ -226,7 +227,8 @@ class NetworkBank:
             path = _member_path(m)
             config, state = read_checkpoint(path)
             joint = Modes.parse(config.get("modes", Modes.JOINT)) is Modes.JOINT
-            nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r)
+            nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r,
+                                        robust=robust)
         bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer, prune_after)
         bank.paths = {str(m): _member_path(m) for m in members}
         return bank
@@ -525,11 +527,11 @@ class BankMethod:
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
                  guard=None, adapt=AS_CONFIGURED, r=AS_CONFIGURED, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
                  likelihood: str = LIKELIHOOD, temper: float = TEMPER, prune: float = PRUNE,
-                 defer: dict | None = None, prune_after: int = PRUNE_AFTER):
+                 defer: dict | None = None, prune_after: int = PRUNE_AFTER, robust=AS_CONFIGURED):
         self.name = name
         self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
                                           likelihood=likelihood, temper=temper, max_coast=math.inf, prune=prune,
-                                          defer=defer, prune_after=prune_after)
+                                          defer=defer, prune_after=prune_after, robust=robust)
         self.batch_size = batch_size
         self.return_cov = return_cov
 

@@ -85,6 +85,12 @@ def register(subparsers) -> None:
              "place of each track's estimate from its measurements, and a --method told each track's r (the "
              "real-flight filters) reads it (docs/tracking.md, 'A radar that knows its accuracy')",
     )
+    p.add_argument(
+        "--robust", type=float, default=None, metavar="K",
+        help="Huber's robust update of the network's (or the bank's) filter experts, k standard deviations (e.g. 3.5): "
+             "an isolated plot beyond k pulls the track k deviations at most (plots with outliers; docs/radar.md, "
+             "'Outliers'). A CSV of plots with covariances and a --method carry their own",
+    )
     for option, unit, what in (("range", "METRES", "slant range (m)"), ("azimuth", "DEG", "azimuth (degrees)"),
                                ("elevation", "DEG", "elevation (degrees)")):
         p.add_argument(
@@ -124,6 +130,13 @@ def _told_r(args):
     return float(args.r)
 
 
+def _robust_arg(args):
+    """``--robust`` as ``load_network``'s ``robust``: the checkpoint's setting where not given."""
+    from immnet.tracking.tracker import AS_CONFIGURED
+
+    return AS_CONFIGURED if args.robust is None else float(args.robust)
+
+
 def _bank(args, limit: float, r):
     """``--weights bank``: the shipped bank as a method (``immnet.tracking.bank.BankMethod``), no range guard unless
     ``--guard`` gives one, ``--adapt`` and ``--r`` for every member."""
@@ -132,7 +145,8 @@ def _bank(args, limit: float, r):
     from immnet.tracking.tracker import AS_CONFIGURED
 
     guard = None if args.guard == "checkpoint" else parse_guard(args.guard)
-    method = BankMethod(guard=guard, adapt=True if args.adapt else AS_CONFIGURED, r=r, return_cov=True, max_position=limit)
+    method = BankMethod(guard=guard, adapt=True if args.adapt else AS_CONFIGURED, r=r, return_cov=True, max_position=limit,
+                        robust=_robust_arg(args))
     method.net.max_coast = check_coast(args.max_coast, method.net.dt)  # the rows' segments are cut at it already
     return method
 
@@ -150,7 +164,17 @@ def _weights(args) -> Path | None:
 
 def _check_options(args) -> None:
     """A clear error for options that cannot go together: ``--method`` tracks without a network, so with
-    ``--checkpoint`` or ``--weights`` one of them would be ignored; and it tracks CSV rows, not an .npz."""
+    ``--checkpoint``, ``--weights`` or ``--robust`` one of them would be ignored; and it tracks CSV rows, not an
+    .npz."""
+    if args.robust is not None:
+        from immnet.imm.kalman import check_robust
+
+        try:
+            check_robust(args.robust)
+        except ValueError:
+            raise ValueError(f"--robust is Huber's k, a finite number of standard deviations > 0; got {args.robust:g}") from None
+        if args.method is not None:
+            raise ValueError("--robust sets the networks' update; a --method has its own (robust: in its YAML)")
     if args.input.suffix.lower() != ".csv" and _sigmas(args) is not None:
         raise ValueError(f"--sigma-range, --sigma-azimuth, --sigma-elevation are the stds of a CSV of plots "
                          f"(range,azimuth,elevation); {args.input} is not a CSV")
@@ -354,6 +378,9 @@ def run(args) -> int:
     limit = check_limit(args.max_position)
     r = _told_r(args)
     if not labelled:
+        if args.robust is not None:
+            raise ValueError("--robust is for tracks with a track_id; the multi-target tracker's filter is a --method "
+                             "(e.g. radar-imm-robust-5s)")
         return multi_cli.track_plots(args, limit, _sigmas(args))
     if args.max_coast is None:
         args.max_coast = MAX_COAST
@@ -366,13 +393,17 @@ def run(args) -> int:
         if args.method is not None:
             return _track_rows_with_method(args, rows, limit)
         if rows.cov is not None and args.weights is None and args.checkpoint is None:
+            if args.robust is not None:
+                raise ValueError("--robust: the default for rows with covariances carries Huber's update already "
+                                 "(k 2.5, the radar networks'); give --weights or --checkpoint to set a network's")
             return _track_plots(args, rows, limit)
         weights = _weights(args)
         if weights is None:  # the bank: each row a scan at its own time, as for a network trained over a range
             code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank", bank=True)
             _advise_bank(track_intervals(rows.ids, rows.t))
             return code
-        tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r)
+        tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r,
+                                          _robust_arg(args))
         tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)  # the rows' segments are cut at it already
         if tracker.net.start.told_r:
             raise ValueError(f"{weights}: this network's filter experts are told each track's measurement std, which a "
@@ -408,7 +439,8 @@ def run(args) -> int:
     if weights is None:
         _report_npz_cov_unused(data, "the bank", args.r)
         return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
-    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r)
+    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r,
+                                      _robust_arg(args))
     tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
     if tracker.net.start.told_cov and not told:
         raise ValueError(f"{weights}: this network is told each detection's covariance, which {args.input} does not "

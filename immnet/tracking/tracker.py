@@ -93,16 +93,16 @@ class Tracker:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, max_position: float = MAX_ABS_POSITION,
-                        r=AS_CONFIGURED) -> "Tracker":
-        """The IMMNet of a checkpoint; ``guard``, ``adapt`` and ``r`` as in ``load_network``; ``max_position`` the
-        gate on measurements (``immnet.data.validate``)."""
-        tracker = cls(load_network(path, guard, adapt, r), max_position)
+                        r=AS_CONFIGURED, robust=AS_CONFIGURED) -> "Tracker":
+        """The IMMNet of a checkpoint; ``guard``, ``adapt``, ``r`` and ``robust`` as in ``load_network``;
+        ``max_position`` the gate on measurements (``immnet.data.validate``)."""
+        tracker = cls(load_network(path, guard, adapt, r, robust=robust), max_position)
         tracker.path = Path(path)
         return tracker
 
     @classmethod
     def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, max_position: float = MAX_ABS_POSITION,
-                   r=AS_CONFIGURED):
+                   r=AS_CONFIGURED, robust=AS_CONFIGURED):
         """Weights shipped inside the package by name (``immnet.checkpoints.SHIPPED``, provenance in
         ``immnet/pretrained/PROVENANCE-*.md``): ``general`` (any scan interval from 0.5 to 12 s, real flights and
         3D-LAST, no range guard), ``3dlast`` (the 3D-LAST benchmark network, 1 s, with 3D-LAST's range guard:
@@ -111,14 +111,15 @@ class Tracker:
         ``real-4.5-12s`` (real flights at any interval from 4.5 to 12 s).
         ``adapt=True`` adds adaptive process noise (targets noisier than the training data's; docs/immnet.md).
         ``r``: the radar's measurement std in metres where it is known (each shipped network estimates each track's
-        from its measurements; ``load_network``). ``bank``, the default: all six as one tracker, each weighed per
+        from its measurements; ``load_network``). ``robust``: Huber's ``k`` of the filter experts' update (plots with
+        outliers; ``load_network``). ``bank``, the default: all six as one tracker, each weighed per
         track by how well it predicts the track (``immnet.tracking.bank.NetworkBank``: ``reset``, ``step`` and
         ``track`` as here, its ``member_probs`` in place of one network's expert outputs; no range guard unless
         ``guard`` asks)."""
         if name == BANK:
             return NetworkBank.from_names(guard=None if isinstance(guard, str) and guard == AS_CONFIGURED else guard, adapt=adapt,
-                                          r=r, max_position=max_position)
-        tracker = cls.from_checkpoint(shipped(name), guard, adapt, max_position, r)
+                                          r=r, max_position=max_position, robust=robust)
+        tracker = cls.from_checkpoint(shipped(name), guard, adapt, max_position, r, robust)
         tracker.name = name
         return tracker
 
