@@ -390,3 +390,32 @@ def test_robust_update_per_axis_is_the_per_axis_imms(r):
     _assert_close_to_its_scale(out[keys.STATE], ours, seen)
     plain = PerAxisIMMTracker(**{**args, "r": r, "name": "plain"}).track(data)[keys.STATE]
     assert ((plain - ours).abs() > 500.0)[seen].any()
+
+
+@pytest.mark.parametrize("modes", ["joint", "axis"])
+def test_a_robust_update_passes_finite_gradients_to_a_learned_gain(modes):
+    """Training a KalmanNet gain with Huber's update: the loss's gradient through the weight is finite at missed
+    scans and plots within ``k`` (``sqrt(0)``'s infinite derivative once made every batch's gradient NaN, every
+    training step skipped), and nonzero."""
+    data = _data_with_outliers()
+    z = data[keys.MEASUREMENTS][:6, :40]
+    tracker = _real_imm(30.0) if modes == "joint" else None
+    if tracker is None:
+        from immnet.filters.per_axis import PerAxisIMMTracker
+
+        args = yaml.safe_load(resolve_path("configs/methods/real-imm-singer.yaml").read_text())["init_args"]
+        tracker = PerAxisIMMTracker(**{**args, "r": 30.0, "name": "axis"})
+        net = tracker.network()
+        kn = IMMNet(model_set=net.model_set, dt=net.dt, p_stay=tracker._p_stay, start_detections=1, modes="axis",
+                    gain={"class_path": "immnet.stages.filtering.KalmanNetFilterGain", "init_args": {
+                        "model_noise": tracker.sigma_q, "r": 30.0, "interaction": "imm", "onset": False, "robust": 2.0}},
+                    classifier={"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}})
+        kn = kn.double()
+    else:
+        kn = _kalmannet_of(tracker, robust=2.0).train()
+    out, _ = kn.rollout(z)
+    loss = out[keys.STATE].nan_to_num().square().mean()
+    loss.backward()
+    grads = [p.grad for p in kn.gain.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)

@@ -221,11 +221,11 @@ def huber(maha: torch.Tensor, k: float, spare: torch.Tensor | None = None):
     """Huber's weight ``w = min(1, k / d)`` of an innovation of squared Mahalanobis distance ``maha = d^2`` and the
     ``2 rho_k(d)`` that replaces ``d^2`` in its log-likelihood (module doc), each ``[...]``: ``(w, 2 rho_k(d))``; exactly
     ``(1, maha)`` where ``d <= k`` and where ``spare`` (bool, broadcasting to ``maha``: the plot follows a far one)."""
-    d = torch.sqrt(maha)
-    out = d > k
+    out = torch.sqrt(maha.detach()) > k
     if spare is not None:
         out = out & ~spare
-    w = torch.where(out, k / torch.where(out, d, torch.ones_like(d)), torch.ones_like(d))
+    d = torch.sqrt(torch.where(out, maha, torch.ones_like(maha)))  # no sqrt(0) in the graph: its gradient is inf
+    w = torch.where(out, k / d, torch.ones_like(d))
     return w, torch.where(out, 2 * k * d - k * k, maha)
 
 

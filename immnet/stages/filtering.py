@@ -450,13 +450,20 @@ class FilterUpdate(Update):
             weight = td.get(keys.EXPERT_ROBUST_WEIGHT).to(P.dtype)
             r2 = as_covariance(r2.to(P.dtype), P)
             if weight.dim() == 3:
-                D = torch.sqrt(1.0 / weight - 1.0)
+                D = _inflation(weight)
                 r2 = r2 + D[..., :, None] * innovation_cov(P, r2) * D[..., None, :]
             else:
                 r2 = r2 + (1.0 / weight[..., None, None] - 1.0) * innovation_cov(P, r2)
         td.set(keys.EXPERT_RATE, w)
         td.set(keys.EXPERT_AUG_COV, joseph(P, K, r2))
         return td
+
+
+def _inflation(w: torch.Tensor) -> torch.Tensor:
+    """``sqrt(1 / w - 1)`` of Huber's weights ``w`` in (0, 1] (``R' = R + D S D``), 0 where ``w = 1`` with a finite
+    gradient there (no ``sqrt(0)`` in the graph)."""
+    below = w < 1.0
+    return torch.where(below, torch.sqrt(torch.where(below, 1.0 / w - 1.0, torch.ones_like(w))), torch.zeros_like(w))
 
 
 def innovation_cov(P: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
@@ -881,7 +888,7 @@ class _FilterExperts:
         w, rho = huber(gm, k, spare)
         w = torch.where(has_z, w, torch.ones_like(w))
         wc = w[..., self.coordinate_group]  # [B, M, 3]
-        D = torch.sqrt(1.0 / wc - 1.0)
+        D = _inflation(wc)
         S2_inv, _ = inv3(S + D[..., :, None] * S * D[..., None, :])
         K = small_matmul(P[..., :, 0:7:3], S2_inv)
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta * wc[..., None, :]
