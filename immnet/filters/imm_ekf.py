@@ -43,7 +43,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.data.times import scan_intervals
 from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
-from immnet.filters.trackers import _positive
+from immnet.filters.trackers import _non_negative
 from immnet.motion import DEG, ModelSet
 from immnet.stages.network import IMMNet
 
@@ -73,8 +73,8 @@ class IMMEKF(Method):
         name: str = "imm-ekf",
         return_cov: bool = False,
     ):
-        _positive("sigma_q", sigma_q)
-        _positive("rate_noise_deg", rate_noise_deg)  # p_stay, r, r0 and k0 are checked by the network's stages
+        _non_negative("sigma_q", sigma_q)
+        _non_negative("rate_noise_deg", rate_noise_deg)  # p_stay, r, r0 and k0 are checked by the network's stages
         self.model_set = ModelSet.from_config(model_set)
         noise = (float(sigma_q), float(sigma_q), 0.0, 0.0, float(rate_noise_deg) * DEG)
         self.gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {

@@ -31,7 +31,8 @@ from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, Modes, MotionModel, coupling, instantiate
 
 
-def _positive(name: str, value) -> None:
+def _non_negative(name: str, value) -> None:
+    """A ValueError unless ``value`` (a number or a list of them) is finite and >= 0, naming ``name``."""
     values = [float(v) for v in (value if isinstance(value, (list, tuple)) else [value])]
     for v in values:
         if not math.isfinite(v) or v < 0:
@@ -44,7 +45,7 @@ ISOTROPIC = (Isotropic, ToldStd)
 
 def check_sigma_q(sigma_q, n_models: int) -> float | list[float]:
     """``sigma_q``, checked: one for every model or one per model."""
-    _positive("sigma_q", sigma_q)
+    _non_negative("sigma_q", sigma_q)
     if isinstance(sigma_q, (list, tuple)) and len(sigma_q) != n_models:
         raise ValueError(f"sigma_q has {len(sigma_q)} values for {n_models} models")
     return [float(v) for v in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
@@ -109,7 +110,7 @@ class KalmanFilterTracker(Method):
         self.model = model if isinstance(model, MotionModel) else instantiate(model)
         self.measurement = measurement_model(r, ISOTROPIC)
         self.r, self.needs = r, self.measurement.needs
-        _positive("sigma_q", sigma_q)
+        _non_negative("sigma_q", sigma_q)
         self.sigma_q, self.dtype = float(sigma_q), as_dtype(dtype)
         self.name = name or f"kf-{self.model.name}"
         self.return_cov = return_cov

@@ -39,7 +39,8 @@ from immnet.imm.kalman import innovation_update, narrow, wide_dtype
 TOLD, DETECTION = "data", "detection"  # a configuration's spellings of ToldStd and PerDetection (r: data, detection)
 
 
-def _positive(value) -> bool:
+def _is_positive(value) -> bool:
+    """Whether ``value`` is a finite number > 0 (not a bool)."""
     return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value) and value > 0
 
 
@@ -52,7 +53,7 @@ class Isotropic:
     spelling = "a positive number"
 
     def __post_init__(self):
-        if not _positive(self.r):
+        if not _is_positive(self.r):
             raise ValueError(f"Isotropic.r must be a positive number, got {self.r!r}")
 
     def std(self, batch: TensorDict, dtype, device) -> float:
@@ -117,7 +118,7 @@ def _sigma(value, name: str):
         if not (torch.isfinite(value).all() and (value > 0).all()):
             raise ValueError(f"Polar.{name} must be finite and > 0 everywhere")
         return value
-    if not _positive(value):
+    if not _is_positive(value):
         raise ValueError(f"Polar.{name} must be a positive number (or a tensor of them), got {value!r}")
     return float(value)
 
@@ -259,7 +260,7 @@ def measurement_model(r, takes: tuple[type, ...] = (Isotropic, ToldStd, PerDetec
         model = Estimated()
     elif isinstance(r, str):
         model = {TOLD: ToldStd(), DETECTION: PerDetection()}.get(r, r)
-    elif _positive(r):
+    elif _is_positive(r):
         model = Isotropic(float(r))
     if not isinstance(model, takes):
         kinds = [kind.spelling for kind in takes]

@@ -34,7 +34,7 @@ import torch
 from immnet import keys
 from immnet.checkpoints import shipped
 from immnet.filters.multi import TrackFilter
-from immnet.tracking.networks import check_dt, coast_cuts, load_network, trained_for
+from immnet.tracking.networks import check_dt, coast_cuts, network_from, read_checkpoint, trained_for
 from immnet.tracking.tracker import Tracker
 
 
@@ -70,10 +70,11 @@ class NetworkFilter(TrackFilter):
     def pretrained(cls, name: str) -> "NetworkFilter":
         """The shipped network ``name`` (``immnet.checkpoints.SHIPPED``) with its own settings but re-acquisition
         (``radar-5s``, ``radar-11s``): the multi-target tracker's initiation and deletion take its place."""
-        tracker = Tracker.pretrained(name)
-        if tracker.net.gain.reacquire is not None:
-            tracker = Tracker(load_network(tracker.path, reacquire=None), tracker.max_position)
-            tracker.name, tracker.path = name, shipped(name)
+        path = shipped(name)
+        config, state = read_checkpoint(path)  # read once; the rule taken off where the network has one
+        has_rule = ((config.get("gain") or {}).get("init_args") or {}).get("reacquire") is not None
+        tracker = Tracker(network_from(config, state, path, reacquire=None) if has_rule else network_from(config, state, path))
+        tracker.name, tracker.path = name, path
         return cls(tracker, name)
 
     def _fresh(self, like: Tracker) -> Tracker:
