@@ -419,3 +419,62 @@ def test_a_robust_update_passes_finite_gradients_to_a_learned_gain(modes):
     grads = [p.grad for p in kn.gain.parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads)
     assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_whitened_classifier_reads_positions_in_the_noise_stds_of_the_heading_frame():
+    """``TransformerClassifier(whiten=True)``: the plot's covariance ``R`` turned into the heading frame (``Rot R
+    Rot^T``, along-track, left, up) gives one std per axis, and each position feature is the rotated difference over
+    it (``slog(d / std, 1)``) in place of fixed metres; velocities and accelerations as before. Checked against a
+    hand computation with numpy in float64 for a track flying north (along-track = north, left = west) and at 30
+    degrees, a covariance with an east-north correlation."""
+    import math
+
+    import numpy as np
+
+    from immnet.motion import ModelSet
+    from immnet.stages.classify import TransformerClassifier, noise_scale
+
+    R = torch.tensor([[[400.0, 100.0, 0.0], [100.0, 2500.0, 0.0], [0.0, 0.0, 900.0]]], dtype=torch.float64)
+    for heading in (90.0, 30.0):  # degrees from east, counter-clockwise
+        h = math.radians(heading)
+        c, s = math.cos(h), math.sin(h)
+        rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        want = np.sqrt(np.diag(rot @ R[0].numpy() @ rot.T))
+        got = noise_scale(R, torch.tensor([c], dtype=torch.float64), torch.tensor([s], dtype=torch.float64))
+        np.testing.assert_allclose(got[0].numpy(), want, rtol=1e-12)
+    cls = TransformerClassifier(ModelSet.from_config("configs/model_sets/imm4.yaml"), dt=5.0, window=4, whiten=True)
+    g = torch.Generator().manual_seed(0)
+    hist = torch.randn(1, 4, 12, generator=g, dtype=torch.float64) * 300.0
+    fused = torch.zeros(1, 9, dtype=torch.float64)
+    fused[0, [0, 3, 6]] = torch.tensor([1000.0, -2000.0, 9000.0], dtype=torch.float64)
+    fused[0, [1, 4, 7]] = torch.tensor([0.0, 200.0, 0.0], dtype=torch.float64)  # north
+    tz, tx, (c, s, scale) = cls.tokens(hist, fused, None, R)
+    torch.testing.assert_close(scale[0], torch.tensor([50.0, 20.0, 30.0], dtype=torch.float64))
+    d = (hist[0, :, :3] - fused[0, [0, 3, 6]]).numpy()
+    rotated = np.stack([d[:, 1], -d[:, 0], d[:, 2]], -1) / np.array([50.0, 20.0, 30.0])
+    np.testing.assert_allclose(tz[0, :, :3].numpy(), np.sign(rotated) * np.log1p(np.abs(rotated)), rtol=1e-12)
+    plain = TransformerClassifier(ModelSet.from_config("configs/model_sets/imm4.yaml"), dt=5.0, window=4)
+    tz0, tx0, _ = plain.tokens(hist, fused, None)
+    torch.testing.assert_close(tx[..., 3:9], tx0[..., 3:9])  # velocities and accelerations: the same
+    assert not torch.allclose(tx[..., :3], tx0[..., :3])
+
+
+def test_an_untrained_whitened_classifier_is_the_imms_mode_update():
+    """A network told each plot's covariance with ``BayesTransformerClassifier(whiten=True)``: the classifier reads
+    the carried covariance (wired into the step), and untrained (its correction's last layer zero) it is the IMM's
+    Bayesian mode update exactly: the robust told IMM's outputs (``BayesianModeUpdate``), to 1e-12 of the scale."""
+    data = _data_with_outliers()
+    z = data[keys.MEASUREMENTS]
+    tracker = _real_imm("detection")
+    net = tracker.network()
+    gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {
+        "model_noise": tracker.sigma_q, "r": "detection", "interaction": "imm", "onset": False,
+        "start_acc_std": net.gain.start_acc_var[0, 0].sqrt().item(), "robust": 2.5}}
+    nets = [IMMNet(model_set=net.model_set, dt=net.dt, p_stay=tracker._p_stay, start_detections=1, gain=gain,
+                   classifier=classifier).double().eval()
+            for classifier in ({"class_path": "immnet.stages.BayesTransformerClassifier", "init_args": {"whiten": True}},
+                               {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}})]
+    assert keys.NOISE_VAR in nets[0].classify.in_keys
+    with torch.no_grad():
+        outs = [n.rollout(z, meas_cov=n.told_cov(data))[0][keys.STATE] for n in nets]
+    _assert_close_to_its_scale(outs[0], outs[1], _after_first_detection(z))

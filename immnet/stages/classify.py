@@ -24,6 +24,7 @@ from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import gaussian_loglik, inv3
 from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, N_MODES, ModelSet, Modes
 from immnet.stages.base import Stage, measured, per_expert
+from immnet.stages.correct import noise_covariance
 from immnet.stages.features import slog
 from immnet.stages.update import innovation
 
@@ -103,12 +104,19 @@ class TransformerClassifier(ModeUpdate):
         ff: int = 64,
         interval_input: bool = False,
         modes: str = "joint",
+        whiten: bool = False,
     ):
         """``interval_input``: each token also reads its scan's interval, ``log(interval / dt)`` (a network
         trained over a range of intervals, docs/stages.md "Any scan interval"). ``modes``: modes per group
-        (``IMMNet``'s, set there once): the head gives logits per group and mode, ``[B, G, M]``."""
+        (``IMMNet``'s, set there once): the head gives logits per group and mode, ``[B, G, M]``. ``whiten``: the
+        classifier is told the plot's noise (``("memory", "r2")``, each detection's covariance where the filter
+        experts are told it): every position feature in units of the noise's standard deviation along each axis of
+        the heading frame (``noise_scale``) in place of fixed metres, and the head also reads ``log(scale / 5 m)``."""
         super().__init__(model_set)
         self.window, self.dt, self.interval_input = window, dt, bool(interval_input)
+        self.whiten = bool(whiten)
+        if self.whiten:
+            self.in_keys = [*self.in_keys, keys.NOISE_VAR]
         self.modes = Modes.parse(modes)
         self.groups = self.modes.n_groups
         self.embed = nn.Linear(6 + 12 + int(self.interval_input), d_model)
@@ -116,7 +124,8 @@ class TransformerClassifier(ModeUpdate):
         self.blocks = nn.ModuleList(_Block(d_model, heads, ff) for _ in range(layers))
         self.norm = nn.LayerNorm(d_model)
         M = self.n_experts
-        self.head = nn.Sequential(nn.Linear(d_model + 3 * M, 64), nn.GELU(), nn.Linear(64, M * (self.groups or 1)))
+        self.head = nn.Sequential(nn.Linear(d_model + 3 * M + 3 * self.whiten, 64), nn.GELU(),
+                                  nn.Linear(64, M * (self.groups or 1)))
 
 
     def interval_columns(self) -> dict[str, int]:
@@ -145,12 +154,20 @@ class TransformerClassifier(ModeUpdate):
         return {keys.HISTORY_LEN: torch.ones_like(carry.get(keys.HISTORY_LEN)), keys.HISTORY: carry.get(keys.HISTORY),
                 keys.HISTORY_INTERVAL: carry.get(keys.HISTORY_INTERVAL)}
 
-    def tokens(self, hist, fused, gaps=None):
+    def tokens(self, hist, fused, gaps=None, noise=None):
         """Frame the window: ``hist [B, W, 12]`` of (z_tau, x_{tau-1}) against ``fused = x_{t-1|t-1}``;
-        ``gaps [B, W]`` the interval before each entry's scan (None: the nominal ``dt`` at every scan)."""
+        ``gaps [B, W]`` the interval before each entry's scan (None: the nominal ``dt`` at every scan); ``noise``
+        (``whiten``): the plot's covariance ``[B, 3, 3]``, the positions then in units of ``noise_scale``. Returns the
+        two streams' tokens and ``(c, s, scale)``, ``scale [B, 3]`` (None without ``noise``)."""
         W = self.window
         p_ref, v_ref = fused[:, [0, 3, 6]], fused[:, [1, 4, 7]]
         c, s = heading_frame(v_ref)
+        scale = None if noise is None else noise_scale(noise.to(fused.dtype), c, s)
+
+        def position(d, metres):  # a position difference, rotated: slog of metres, or of noise stds (whiten)
+            d = rotate(d, c, s)
+            return slog(d, metres) if scale is None else slog(d / scale[:, None], 1.0)
+
         # scan tau = t - W + 1 + k holds z_tau; its CV guess is p_ref + v_ref (time(tau) - time(t - 1))
         if gaps is None:  # (tau - t + 1) dt
             lag = torch.arange(W, device=hist.device, dtype=hist.dtype) - (W - 2)
@@ -160,20 +177,20 @@ class TransformerClassifier(ModeUpdate):
             rel = gaps[:, -1:] - after
             guess_z = p_ref[:, None] + v_ref[:, None] * rel[..., None]
         z = hist[..., :3]
-        tz = torch.cat([slog(rotate(z - p_ref[:, None], c, s), 100.0), slog(rotate(z - guess_z, c, s), 10.0)], -1)
+        tz = torch.cat([position(z - p_ref[:, None], 100.0), position(z - guess_z, 10.0)], -1)
         x = hist[..., 3:]
         px, vx, ax = x[..., [0, 3, 6]], x[..., [1, 4, 7]], x[..., [2, 5, 8]]
         guess_x = guess_z - v_ref[:, None] * (self.dt if gaps is None else gaps[..., None])
         tx = torch.cat(
             [
-                slog(rotate(px - p_ref[:, None], c, s), 100.0),
+                position(px - p_ref[:, None], 100.0),
                 slog(rotate(vx - v_ref[:, None], c, s), 10.0),
                 slog(rotate(ax, c, s), 1.0),
-                slog(rotate(px - guess_x, c, s), 10.0),
+                position(px - guess_x, 10.0),
             ],
             -1,
         )
-        return tz, tx, (c, s)
+        return tz, tx, (c, s, scale)
 
     def forward(self, td):
         # the window is an input, not a path for gradients into the experts: detaching it keeps
@@ -190,7 +207,8 @@ class TransformerClassifier(ModeUpdate):
         z_fill = torch.where(measured(z), z, fused[:, [0, 3, 6]] + fused[:, [1, 4, 7]] * step)
         hist = torch.cat([hist[:, 1:], torch.cat([z_fill, fused], -1)[:, None]], 1)
         n = (n + 1).clamp(max=self.window)
-        tz, tx, (c, s) = self.tokens(hist, fused, None if interval is None else gaps)
+        noise = noise_covariance(td.get(keys.NOISE_VAR)) if self.whiten else None
+        tz, tx, (c, s, scale) = self.tokens(hist, fused, None if interval is None else gaps, noise)
         feats = [tz, tx]
         if self.interval_input:
             feats.append(torch.log(gaps / self.dt).to(tz.dtype).unsqueeze(-1))
@@ -203,7 +221,11 @@ class TransformerClassifier(ModeUpdate):
         w = valid.to(h.dtype).unsqueeze(-1)
         pooled = (h * w).sum(1) / w.sum(1).clamp_min(1.0)
         nu = rotate(innovation(z, td.get(keys.EXPERT_PRIOR).detach()), c, s)
-        logits = self.head(torch.cat([pooled, slog(nu, 10.0).flatten(1)], -1))
+        if scale is None:
+            logits = self.head(torch.cat([pooled, slog(nu, 10.0).flatten(1)], -1))
+        else:  # each expert's innovation in noise stds, and the noise's scale
+            logits = self.head(torch.cat([pooled, slog(nu / scale[:, None], 1.0).flatten(1),
+                                          torch.log(scale / NOISE_UNIT)], -1))
         if self.groups is not None:
             logits = logits.unflatten(-1, (self.groups, self.n_experts))
         td.set(keys.MODE_LOGITS, logits)
@@ -212,6 +234,19 @@ class TransformerClassifier(ModeUpdate):
         td.set(keys.HISTORY_LEN, n)
         td.set(keys.HISTORY_INTERVAL, gaps)
         return td
+
+
+NOISE_UNIT = 5.0
+"""Metres: the noise scale the whitened classifier's head reads as ``log(scale / NOISE_UNIT)``."""
+
+
+def noise_scale(R: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """The standard deviations ``[B, 3]`` of noise ``R [B, 3, 3]`` (east, north, up) along the heading frame's axes
+    (``rotate``'s along-track, left, up; ``c``, ``s`` the heading's cosine and sine): the square roots of the diagonal
+    of ``Rot R Rot^T``."""
+    along = c * c * R[:, 0, 0] + 2 * c * s * R[:, 0, 1] + s * s * R[:, 1, 1]
+    left = s * s * R[:, 0, 0] - 2 * c * s * R[:, 0, 1] + c * c * R[:, 1, 1]
+    return torch.stack([along, left, R[:, 2, 2]], -1).clamp_min(1e-6).sqrt()
 
 
 def markov_prior(prev: torch.Tensor, log_pi: torch.Tensor, transition: torch.Tensor | None = None) -> torch.Tensor:
@@ -417,8 +452,8 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.995, window: int = 20,
                  d_model: int = 32, heads: int = 4, layers: int = 2, ff: int = 64, interval_input: bool = False,
-                 modes: str = "joint"):
-        super().__init__(model_set, dt, window, d_model, heads, layers, ff, interval_input, modes)
+                 modes: str = "joint", whiten: bool = False):
+        super().__init__(model_set, dt, window, d_model, heads, layers, ff, interval_input, modes, whiten)
         if not 0.0 < p_stay <= 1.0:
             raise ValueError(f"p_stay must be in (0, 1], got {p_stay}")
         self.p_stay = float(p_stay)
