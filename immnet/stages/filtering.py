@@ -487,7 +487,6 @@ class _FilterExperts:
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
     Mixed into a ``Gain`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
-
     @property
     def per_detection(self) -> bool:
         """Whether the experts are told each detection's covariance (``r="detection"``, ``PerDetection``)."""
@@ -870,7 +869,6 @@ class _FilterExperts:
         if self.adapt is not None:
             self._adapt(td, maha, has_z)
         return td
-
 
     def _robust_groups(self, td, P, S, S_inv, nu, has_z, delta):
         """Huber's update with modes per group (``_finish``'s ``(K, gain, loglik, maha, spare after)``): each group's
