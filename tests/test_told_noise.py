@@ -478,3 +478,23 @@ def test_an_untrained_whitened_classifier_is_the_imms_mode_update():
     with torch.no_grad():
         outs = [n.rollout(z, meas_cov=n.told_cov(data))[0][keys.STATE] for n in nets]
     _assert_close_to_its_scale(outs[0], outs[1], _after_first_detection(z))
+
+
+@pytest.mark.parametrize("name", ["real", "general"])
+def test_a_robust_shipped_network_streams_as_it_tracks(name):
+    """``Tracker.pretrained(name, robust=3.5)`` (``real``: modes per axis, the spare carried per group; ``general``:
+    KalmanNet filter experts): ``step`` scan by scan gives ``track``'s estimates on tracks with far plots, and the
+    robust update acts (over the scans of far plots the robust track's worst error is below half the plain one's; the
+    test can fail)."""
+    data = _data_with_outliers()
+    z = data[keys.MEASUREMENTS][:, :45].float()
+    robust, plain = Tracker.pretrained(name, robust=3.5), Tracker.pretrained(name)
+    whole = robust.track(z)[keys.STATE]
+    stream = Tracker.pretrained(name, robust=3.5)
+    steps = torch.stack([stream.step(z[:, t])[keys.FUSED] for t in range(z.shape[1])], 1)
+    torch.testing.assert_close(steps, whole, rtol=0, atol=1e-3, equal_nan=True)
+    far = ([2, 4, 1, 1], [30, 10, 40, 41])  # the scans of the far plots (and the one after the run's first)
+    truth = data[keys.STATES][far][:, [0, 3, 6]].float()
+    error = {n: (out[far][:, [0, 3, 6]] - truth).norm(dim=-1).max() for n, out in (
+        ("robust", whole), ("plain", plain.track(z)[keys.STATE]))}
+    assert error["robust"] < 0.5 * error["plain"], error
