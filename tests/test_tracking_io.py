@@ -377,3 +377,31 @@ def test_robust_option_tracks_as_the_api_and_holds_an_outlier(tmp_path, scans, w
     api = Tracker.pretrained(name, robust=3.5, guard=None if weights else "checkpoint")
     want = api.track(torch.from_numpy(z[None]).double() if name == "bank" else torch.from_numpy(z[None]).float())
     np.testing.assert_allclose(outs[2][:, [0, 3, 6]], want["state"][0, :, [0, 3, 6]].double().numpy(), rtol=1e-5, atol=TOL)
+
+
+def test_robust_option_is_refused_for_plots_without_track_id_and_for_rows_with_covariances(tmp_path, scans, capsys):
+    """``--robust`` sets a network's update: a radar's unlabelled plots go to the multi-target tracker, whose filter is
+    a ``--method``, and rows with covariances to the radar networks, which carry Huber's update already; each is
+    refused in one line, nothing written."""
+    plots = tmp_path / "plots.csv"
+    with open(plots, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t", "x", "y", "z"])
+        for k, zk in enumerate(scans[0, :10]):
+            w.writerow([_num(5.0 * k), *map(_num, zk)])
+    out = tmp_path / "o.csv"
+    assert main(["track", "--input", str(plots), "--output", str(out), "--robust", "3"]) == 2
+    assert _one_error_line(capsys.readouterr().err) == (
+        "immnet track: error: --robust is for tracks with a track_id; the multi-target tracker's filter is a --method "
+        "(e.g. radar-imm-robust-5s)")
+    told = tmp_path / "told.csv"
+    with open(told, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["track_id", "t", "x", "y", "z", "r_xx", "r_xy", "r_xz", "r_yy", "r_yz", "r_zz"])
+        for k, zk in enumerate(scans[0, :10]):
+            w.writerow(["a", _num(5.0 * k), *map(_num, zk), "900", "0", "0", "900", "0", "2500"])
+    assert main(["track", "--input", str(told), "--output", str(out), "--robust", "3"]) == 2
+    assert _one_error_line(capsys.readouterr().err) == (
+        "immnet track: error: --robust: the default for rows with covariances carries Huber's update already (k 2.5, "
+        "the radar networks'); give --weights or --checkpoint to set a network's")
+    assert not out.exists()
