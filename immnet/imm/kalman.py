@@ -148,13 +148,15 @@ def group_maha(nu: torch.Tensor, S: torch.Tensor, groups: list[list[int]]) -> tu
     return torch.stack(maha, -1), torch.stack(logdet, -1)
 
 
-def group_loglik(nu: torch.Tensor, S: torch.Tensor, groups: list[list[int]], maha: torch.Tensor | None = None
-                 ) -> torch.Tensor:
+def group_loglik(nu: torch.Tensor, S: torch.Tensor, groups: list[list[int]]) -> torch.Tensor:
     """``log N(nu_g; 0, S_gg)`` of each group ``g`` of the innovation's coordinates (``group_maha``'s groups), the
-    marginal of those coordinates: innovations ``nu [..., 3]``, covariances ``S [..., 3, 3]`` -> ``[..., G]``;
-    ``maha [..., G]`` in place of each group's ``d^2`` (Huber's ``2 rho_k(d)``: ``huber``)."""
-    own, logdet = group_maha(nu, S, groups)
-    maha = own if maha is None else maha
+    marginal of those coordinates: innovations ``nu [..., 3]``, covariances ``S [..., 3, 3]`` -> ``[..., G]``."""
+    return marginal_loglik(*group_maha(nu, S, groups), groups)
+
+
+def marginal_loglik(maha: torch.Tensor, logdet: torch.Tensor, groups: list[list[int]]) -> torch.Tensor:
+    """Each group's Gaussian log-likelihood ``[..., G]`` from ``group_maha``'s ``(d^2, log det S_gg)`` (or Huber's
+    ``2 rho_k(d)`` in place of ``d^2``: ``huber``)."""
     return torch.stack([gaussian_loglik(maha[..., k], logdet[..., k], len(g)) for k, g in enumerate(groups)], -1)
 
 

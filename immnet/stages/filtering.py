@@ -48,7 +48,8 @@ from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import (
-    as_covariance, check_robust, far, gaussian_loglik, group_loglik, group_maha, huber, inv3, joseph, small_matmul,
+    as_covariance, check_robust, far, gaussian_loglik, group_loglik, group_maha, huber, inv3, joseph,
+    marginal_loglik, small_matmul,
 )
 from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
@@ -879,10 +880,10 @@ class _FilterExperts:
         per-coordinate weights ``("expert", "robust_weight") [B, M, 3]``), the learned correction's columns weighted as
         their group's, each group's likelihood Huber's."""
         k = self.robust
-        gm, _ = group_maha(nu, S, self.z_groups)  # [B, M, G]
+        gm, logdet = group_maha(nu, S, self.z_groups)  # [B, M, G]
         spare = td.get(keys.ROBUST_SPARE)[:, None] > 0  # [B, 1, G]
-        missed = ~has_z[..., 0].any(-1)  # [B]: has_z is one per track, every expert
-        after = torch.where(missed[:, None, None], spare, gm.amin(-2, keepdim=True) > k * k)
+        # kalman.far over the experts, each group on its own: experts last, [B, G, M]
+        after = far(gm.transpose(1, 2), k, ~has_z[..., 0][:, None], spare.transpose(1, 2)).transpose(1, 2)
         w, rho = huber(gm, k, spare)
         w = torch.where(has_z, w, torch.ones_like(w))
         wc = w[..., self.coordinate_group]  # [B, M, 3]
@@ -891,7 +892,7 @@ class _FilterExperts:
         K = small_matmul(P[..., :, 0:7:3], S2_inv)
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta * wc[..., None, :]
         td.set(keys.EXPERT_ROBUST_WEIGHT, wc)
-        loglik = torch.where(has_z, group_loglik(nu, S, self.z_groups, maha=rho), 0.0).transpose(1, 2)
+        loglik = torch.where(has_z, marginal_loglik(rho, logdet, self.z_groups), 0.0).transpose(1, 2)
         maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
         return K, gain, loglik, maha, after
 
