@@ -717,29 +717,21 @@ class _FilterExperts:
         detection's covariance ``[B, M, 3, 3]`` (``r="detection"``): the position block ``R_1``, after two scans
         the velocity block ``(R_0 + R_1) / elapsed^2`` and the position-velocity block ``R_1 / elapsed``, ``R_0`` the
         first detection's (``r2_first``)."""
+        if r2.dim() == 2:  # one variance per track and expert: r^2 I
+            r2 = r2[..., None, None] * torch.eye(3, dtype=r2.dtype, device=r2.device)
         P = r2.new_zeros(B, self.n_experts, N_AUG, N_AUG)
-        told = r2.dim() == 4
-        lead = r2[..., 0, 0] if told else r2  # [B, M]
-        e = self.dt if elapsed is None else elapsed.to(r2.dtype).view(B, *([1] * (lead.dim() - 1)))
+        e = self.dt if elapsed is None else elapsed.to(r2.dtype).view(B, 1)
+        first = r2 if r2_first is None else r2_first.to(r2.dtype)
         acc = self.start_acc_var.to(P.dtype)  # [M, 3]
-        if told:
-            first = r2 if r2_first is None else r2_first.to(r2.dtype)
-            for a in range(3):
-                for b in range(3):
-                    P[..., POS[a], POS[b]] = r2[..., a, b]
-                    if second:
-                        P[..., VEL[a], VEL[b]] = (first[..., a, b] + r2[..., a, b]) / e**2
-                        P[..., POS[a], VEL[b]] = P[..., VEL[b], POS[a]] = r2[..., a, b] / e
         for a in range(3):
-            p, v, c = POS[a], VEL[a], ACC[a]
-            if not told:
-                P[..., p, p] = r2
-                P[..., v, v] = 2.0 * r2 / e**2 if second else 300.0**2
+            for b in range(3):
+                P[..., POS[a], POS[b]] = r2[..., a, b]
                 if second:
-                    P[..., p, v] = P[..., v, p] = r2 / e
-            elif not second:
-                P[..., v, v] = 300.0**2
-            P[..., c, c] = acc[:, a]
+                    P[..., VEL[a], VEL[b]] = (first[..., a, b] + r2[..., a, b]) / e**2
+                    P[..., POS[a], VEL[b]] = P[..., VEL[b], POS[a]] = r2[..., a, b] / e
+            if not second:
+                P[..., VEL[a], VEL[a]] = 300.0**2
+            P[..., ACC[a], ACC[a]] = acc[:, a]
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
 
