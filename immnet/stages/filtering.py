@@ -792,14 +792,13 @@ class _FilterExperts:
             nis, ok = maha, has_z[..., 0]
         td.set(keys.Q_SCALE, self.adapt.update(log_scale, torch.where(ok, nis, 0.0), ok))
 
-    def _loglik(self, nu, S, S_inv, logdet, has_z) -> tuple[torch.Tensor, torch.Tensor]:
+    def _loglik(self, nu, S, maha, logdet, has_z) -> torch.Tensor:
         """The innovation log-likelihood ``log N(nu; 0, S)`` per expert (``[B, M]``; modes per group each group's
-        marginal, ``[B, G, M]``), 0 where the measurement is missing, and the Mahalanobis distance ``[B, M]``."""
-        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
+        marginal, ``[B, G, M]``) of the squared Mahalanobis distance ``maha [B, M]``, 0 where the measurement is
+        missing."""
         if self.z_groups is not None:  # each group's own likelihood, the marginal of its coordinates: [B, G, M]
-            return torch.where(has_z, group_loglik(nu, S, self.z_groups), 0.0).transpose(1, 2), maha
-        loglik = gaussian_loglik(maha, logdet, 3)
-        return torch.where(has_z[..., 0], loglik, 0.0), maha
+            return torch.where(has_z, group_loglik(nu, S, self.z_groups), 0.0).transpose(1, 2)
+        return torch.where(has_z[..., 0], gaussian_loglik(maha, logdet, 3), 0.0)
 
     def shifted_loglik(self, td, shift: torch.Tensor) -> torch.Tensor:
         """``("expert", "loglik")`` of a scan's output ``td`` had each expert predicted the measurement ``shift
@@ -812,7 +811,8 @@ class _FilterExperts:
         S_inv, logdet = inv3(S)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR)) - shift.to(P.dtype).unsqueeze(1)
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))
-        return self._loglik(nu, S, S_inv, logdet, has_z)[0]
+        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
+        return self._loglik(nu, S, maha, logdet, has_z)
 
     def _finish(self, td, r2, P, delta=None, nu=None):
         """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
@@ -820,30 +820,30 @@ class _FilterExperts:
         (``nu`` the innovation, if the caller has it)."""
         S = innovation_cov(P, r2)
         S_inv, logdet = inv3(S)
-        K = small_matmul(P[..., :, 0:7:3], S_inv)  # [B, M, 10, 3]
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))  # [B, M, 1]
-        gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
+        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
         robust = self.robust
         spare = after = None
         if robust is not None and self.z_groups is not None:
-            K, gain, loglik, maha, after = self._robust_groups(td, P, S, S_inv, nu, has_z, delta)
-        elif robust is not None:  # Huber's weight on an isolated far plot's Mahalanobis distance (immnet.imm.kalman)
-            maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
-            if td.get(keys.ROBUST_SPARE, None) is not None:
-                spare = td.get(keys.ROBUST_SPARE)[:, None] > 0
-                after = far(maha, robust, ~has_z[..., 0], spare)
-            weight, rho = huber(maha, robust, spare)
-            weight = torch.where(has_z[..., 0], weight, torch.ones_like(weight))
-            K = K * weight[..., None, None]
-            if delta is not None:  # the learned correction pulls towards a far plot no more than the Kalman gain
-                delta = delta * weight[..., None, None]
-            gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
-            loglik = torch.where(has_z[..., 0], gaussian_loglik(rho, logdet, 3), 0.0)
-            td.set(keys.EXPERT_ROBUST_WEIGHT, weight)
+            K, gain, loglik, after = self._robust_groups(td, P, S, nu, has_z, delta)
         else:
-            loglik, maha = self._loglik(nu, S, S_inv, logdet, has_z)
+            K = small_matmul(P[..., :, 0:7:3], S_inv)  # [B, M, 10, 3]
+            if robust is None:
+                loglik = self._loglik(nu, S, maha, logdet, has_z)
+            else:  # Huber's weight on an isolated far plot's Mahalanobis distance (immnet.imm.kalman)
+                if td.get(keys.ROBUST_SPARE, None) is not None:
+                    spare = td.get(keys.ROBUST_SPARE)[:, None] > 0
+                    after = far(maha, robust, ~has_z[..., 0], spare)
+                weight, rho = huber(maha, robust, spare)
+                weight = torch.where(has_z[..., 0], weight, torch.ones_like(weight))
+                K = K * weight[..., None, None]
+                if delta is not None:  # the learned correction pulls towards a far plot no more than the Kalman gain
+                    delta = delta * weight[..., None, None]
+                loglik = torch.where(has_z[..., 0], gaussian_loglik(rho, logdet, 3), 0.0)
+                td.set(keys.EXPERT_ROBUST_WEIGHT, weight)
+            gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta
         if self.reacquire is not None and td.get(keys.MEASUREMENT).dim() == 2:
             rejected = self._watch(td, r2, maha, nu, S)  # a far detection gated out: the experts take it as missed
             has_z = has_z & ~rejected[:, None, None]
@@ -863,8 +863,8 @@ class _FilterExperts:
             self._adapt(td, maha, has_z)
         return td
 
-    def _robust_groups(self, td, P, S, S_inv, nu, has_z, delta):
-        """Huber's update with modes per group (``_finish``'s ``(K, gain, loglik, maha, spare after)``): each group's
+    def _robust_groups(self, td, P, S, nu, has_z, delta):
+        """Huber's update with modes per group (``_finish``'s ``(K, gain, loglik, spare after)``): each group's
         weight ``w_g = min(1, k / d_g)`` of its own marginal distance (``group_maha``; an isolated far plot's: the
         group's ``spare`` ``[B, G]``, beyond ``k`` of every expert in that group), the gain of ``S' = S + D S D``,
         ``D = diag(sqrt(1 / w - 1))`` per coordinate (``R' = R + D S D``: ``w_g`` times the Kalman gain where the groups'
@@ -885,8 +885,7 @@ class _FilterExperts:
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta * wc[..., None, :]
         td.set(keys.EXPERT_ROBUST_WEIGHT, wc)
         loglik = torch.where(has_z, marginal_loglik(rho, logdet, self.z_groups), 0.0).transpose(1, 2)
-        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
-        return K, gain, loglik, maha, after
+        return K, gain, loglik, after
 
     def _watch(self, td, r2: torch.Tensor, maha: torch.Tensor, nu: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
         """Re-acquisition's scan (``immnet.imm.reacquire.advance``) from the experts' innovations ``nu``, their
