@@ -37,7 +37,6 @@ from immnet.data.smoother import rts_smooth
 
 SPLITS = ("train", "val", "test")
 FORMAT_VERSION = 2  # 2: each split's meta.json names the flight of every window (window_flights)
-KNOT = 1852.0 / 3600.0
 
 
 @dataclass(frozen=True)
@@ -208,29 +207,40 @@ def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, pr
     done = 0
     for members in chunks:
         chunk = [prepared[i] for i in members]
-        K, B = max(steps[i] for i in members), 3 * len(chunk)
-        t, z, var = np.empty((K, B)), np.full((K, B), np.nan), np.ones((K, B))
-        for j, p in enumerate(chunk):
-            f = p["flight"]
-            times = np.r_[f.t - f.t[0], p["scans"] - f.t[0]]
-            srt = np.argsort(times, kind="stable")
-            p["where"] = np.flatnonzero(srt >= len(f.t))  # the steps of the scans, in scan order
-            n = len(times)
-            zz = np.r_[p["enu"], np.full((len(p["scans"]), 3), np.nan)][srt]
-            vv = np.r_[p["var"], np.ones((len(p["scans"]), 3))][srt]
-            t[:n, 3 * j : 3 * j + 3] = times[srt][:, None]
-            t[n:, 3 * j : 3 * j + 3] = times[srt][-1]
-            z[:n, 3 * j : 3 * j + 3], var[:n, 3 * j : 3 * j + 3] = zz, vv
-        xs = rts_smooth(t, z, var, np.tile(q, len(chunk)))
-        for j, p in enumerate(chunk):
-            s = xs[p["where"], 3 * j : 3 * j + 3].reshape(-1, 9)  # [S, axis, (p, v, a)] -> the 9-state layout
-            ok = p["ok"]
-            s[~ok] = np.nan
+        tracks = [(p["flight"].t, p["enu"], p["var"], p["scans"], p["flight"].t[0], p["ok"]) for p in chunk]
+        for p, s in zip(chunk, smooth_at_scans(tracks, q)):
             p["states"] = s
-            p["valid"] = ok & _covered(np.nan_to_num(s[:, [0, 3, 6]], nan=np.inf), spec)
+            p["valid"] = p["ok"] & _covered(np.nan_to_num(s[:, [0, 3, 6]], nan=np.inf), spec)
         done += len(chunk)
         _log(progress, f"truth: {done}/{len(order)} flights smoothed")
     return prepared
+
+
+def smooth_at_scans(tracks: list[tuple], q: np.ndarray) -> list[np.ndarray]:
+    """The truth ``[S, 9]`` at the scans of each track ``(fresh times [n], ENU [n, 3], their variances [n, 3], scans
+    [S], time origin, has truth [S])``, NaN rows where it has none: one run of the white-jerk RTS smoother (spectral
+    densities ``q [3]`` per axis) over each track's fresh positions and scans together, the tracks padded to the
+    longest."""
+    K, B = max(len(fresh) + len(scans) for fresh, _, _, scans, _, _ in tracks), 3 * len(tracks)
+    t, z, var = np.empty((K, B)), np.full((K, B), np.nan), np.ones((K, B))
+    where = []
+    for j, (fresh, enu, v, scans, origin, _) in enumerate(tracks):
+        times = np.r_[fresh, scans] - origin
+        srt = np.argsort(times, kind="stable")
+        where.append(np.flatnonzero(srt >= len(fresh)))  # the steps of the scans, in scan order
+        n = len(times)
+        cols = slice(3 * j, 3 * j + 3)
+        t[:n, cols] = times[srt][:, None]
+        t[n:, cols] = times[srt][-1]
+        z[:n, cols] = np.r_[enu, np.full((len(scans), 3), np.nan)][srt]
+        var[:n, cols] = np.r_[v, np.ones((len(scans), 3))][srt]
+    xs = rts_smooth(t, z, var, np.tile(q, len(tracks)))
+    out = []
+    for j, track in enumerate(tracks):
+        s = xs[where[j], 3 * j : 3 * j + 3].reshape(-1, 9)  # [S, axis, (p, v, a)] -> the 9-state layout
+        s[~track[-1]] = np.nan
+        out.append(s)
+    return out
 
 
 def _covered(pos: np.ndarray, spec: RealSpec) -> np.ndarray:

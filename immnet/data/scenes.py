@@ -293,40 +293,19 @@ def _counts(pos: np.ndarray, spec: SceneSpec) -> np.ndarray:
 def _smoothed(flights: list[adsb.Flight], site, scans: np.ndarray, spec: SceneSpec) -> np.ndarray:
     """Truth ``[F, S, 9]`` of the flights at ``scans`` (NaN where a scan lies in a gap of more than ``truth_gap``),
     from the white-jerk RTS smoother over their fresh positions near the window (:mod:`immnet.data.real`)."""
-    from immnet.data.real import RealSpec, _has_truth, _measurement_var
-    from immnet.data.smoother import rts_smooth
+    from immnet.data.real import RealSpec, _has_truth, _measurement_var, smooth_at_scans
 
     rs = RealSpec()
     pad = max(60.0, spec.truth_gap)
-    parts = []
+    tracks = []
     for f in flights:
         a = max(np.searchsorted(f.t, scans[0] - pad) - 1, 0)
         b = min(np.searchsorted(f.t, scans[-1] + pad, side="right") + 1, len(f.t))
         sub = adsb.Flight(f.id, f.icao24, f.t[a:b], f.lat[a:b], f.lon[a:b], f.h[a:b], f.exact_time[a:b])
         enu = geodetic_to_enu(sub.lat, sub.lon, sub.h, site)
         ok = _has_truth(sub.t, scans, spec.truth_gap)
-        parts.append((sub, enu, _measurement_var(sub, enu, rs), ok))
-    steps = [len(p[0].t) + len(scans) for p in parts]
-    K, B = max(steps), 3 * len(parts)
-    t, z, var = np.empty((K, B)), np.full((K, B), np.nan), np.ones((K, B))
-    where = []
-    for j, (sub, enu, v, ok) in enumerate(parts):
-        times = np.r_[sub.t, scans] - scans[0]
-        srt = np.argsort(times, kind="stable")
-        where.append(np.flatnonzero(srt >= len(sub.t)))
-        n = len(times)
-        cols = slice(3 * j, 3 * j + 3)
-        t[:n, cols] = times[srt][:, None]
-        t[n:, cols] = times[srt][-1]
-        z[:n, cols] = np.r_[enu, np.full((len(scans), 3), np.nan)][srt]
-        var[:n, cols] = np.r_[v, np.ones((len(scans), 3))][srt]
-    xs = rts_smooth(t, z, var, np.tile([rs.q_h, rs.q_h, rs.q_v], len(parts)))
-    out = np.empty((len(parts), len(scans), 9))
-    for j, (_, _, _, ok) in enumerate(parts):
-        s = xs[where[j], 3 * j : 3 * j + 3].reshape(-1, 9)
-        s[~ok] = np.nan
-        out[j] = s
-    return out
+        tracks.append((sub.t, enu, _measurement_var(sub, enu, rs), scans, scans[0], ok))
+    return np.stack(smooth_at_scans(tracks, np.array([rs.q_h, rs.q_h, rs.q_v])))
 
 
 def sample_flights(sample) -> tuple[list[adsb.Flight], Path]:
