@@ -105,6 +105,9 @@ def _floats(n: int, what: str):
     return parse
 
 
+_pair = _floats(2, "LOW,HIGH (two numbers)")
+
+
 def _splits(text: str) -> tuple[float, float, float]:
     if text == "all-test":
         return 0.0, 0.0, 1.0
@@ -163,16 +166,6 @@ def _turns(args) -> int:
           f"{t['bank'][0]:g}-{t['bank'][1]:g} deg, segments {t['segment'][0]:g}-{t['segment'][1]:g} s, "
           f"seed {t['seed']})")
     return 0
-
-
-def _pair(text: str) -> tuple[float, float]:
-    parts = text.split(",")
-    try:
-        if len(parts) != 2:
-            raise ValueError
-        return float(parts[0]), float(parts[1])
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected LOW,HIGH (two numbers), got {text!r}") from None
 
 
 def _flights(text: str) -> float:
