@@ -9,13 +9,13 @@ A radar's plots: ``range`` (slant range, m), ``azimuth`` (degrees clockwise from
 modulo 360) and ``elevation`` (degrees above the horizontal, in [-90, 90]) in place of ``x, y, z``, with the radar's
 stds given once (``read_tracks_csv(sigmas=...)``, ``immnet track --sigma-range/--sigma-azimuth/--sigma-elevation``) or
 per row (``SIGMA_COLUMNS``). Each plot is converted to the radar's east-north-up frame (x east, y north, z up, metres,
-origin at the radar) with its covariance (:func:`_converted`), in float64. A Cartesian CSV may give each detection's
-covariance (``R_COLUMNS``, m^2). An empty ``range, azimuth, elevation`` is a missed detection. How rows become tracked segments (scans ``dt``
-apart, the coasting limit) is ``immnet.tracking.segments``; the output has one line per input line,
-in input order, its ``t`` written exactly as the input gave it, and empty fields where there is no
-estimate (before a track's first detection, or after it was dropped for coasting too long). After the state
-and the mode probabilities come the 21 entries of the position-velocity covariance (``COV_COLUMNS``), empty
-throughout for a tracker that keeps no covariance.
+origin at the radar) with its covariance (:func:`immnet.data.radar.converted`), in float64. A Cartesian CSV may give
+each detection's covariance (``R_COLUMNS``, m^2). An empty ``range, azimuth, elevation`` is a missed detection. How
+rows become tracked segments (scans ``dt`` apart, the coasting limit) is ``immnet.tracking.segments``; the output has
+one line per input line, in input order, its ``t`` written exactly as the input gave it, and empty fields where there
+is no estimate (before a track's first detection, or after it was dropped for coasting too long). After the state and
+the mode probabilities come the 21 entries of the position-velocity covariance (``COV_COLUMNS``), empty throughout
+for a tracker that keeps no covariance.
 
 A radar's unlabelled plots (:func:`read_plots_csv`, the multi-target tracker's input; docs/multi-target.md): the same
 columns without ``track_id``, ``t, range, azimuth, elevation`` or ``t, x, y, z``, the rows of a scan sharing its ``t``
@@ -26,6 +26,7 @@ per confirmed track per scan (``PLOT_OUT_COLUMNS``: the state columns, ``updated
 from __future__ import annotations
 
 import csv
+import functools
 import math
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
@@ -33,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from immnet.data.radar import converted
 from immnet.data.scratch import publishing
 
 IN_COLUMNS = ("track_id", "t", "x", "y", "z")
@@ -106,14 +108,6 @@ def _time(value: str, line: int) -> Decimal:
     if not t.is_finite():
         raise ValueError(f"line {line}: column 't' is not a finite time: {value!r}")
     return t
-
-
-def _converted(rho, az, el, s_rho, s_az, s_el) -> tuple[np.ndarray, np.ndarray]:
-    """Plots (m, rad, rad) and their stds -> east-north-up ``[..., 3]`` and covariance ``[..., 3, 3]``, float64: the
-    unbiased converted measurement (``immnet.data.radar.converted``)."""
-    from immnet.data.radar import converted
-
-    return converted(rho, az, el, s_rho, s_az, s_el)
 
 
 def check_sigmas(sigmas) -> tuple[float, float, float] | None:
@@ -208,10 +202,11 @@ def _covariance(rec, col: dict, line: int) -> np.ndarray:
     return m
 
 
-def _read_rows(path: Path, reader, ids, times, ts, zs, lines, extras, sigmas=None) -> bool:
-    """The rows of ``reader`` (after its header) appended to the lists, each checked (module doc): ``zs`` the
-    positions as given (x, y, z or range, azimuth, elevation), ``extras`` each detection's stds or covariance
-    (None where missed; nothing appended where the file has neither). Returns whether the rows are plots."""
+def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
+    """The rows of ``reader`` after its header, each checked (module doc): ``zs`` the positions as given (x, y, z or
+    range, azimuth, elevation), ``extras`` each detection's stds or covariance (None where missed; nothing appended
+    where the file has neither)."""
+    ids, times, ts, zs, lines, extras = [], [], [], [], [], []
     last: dict[str, tuple[Decimal, str]] = {}
     header = next(reader, None)
     if header is None:
@@ -244,40 +239,6 @@ def _read_rows(path: Path, reader, ids, times, ts, zs, lines, extras, sigmas=Non
         ts.append(t)
         zs.append(xyz)
         lines.append(line)
-    return polar
-
-
-def _to_enu(plots: np.ndarray, extras: list, sigmas) -> tuple[np.ndarray, np.ndarray]:
-    """Plots ``[R, 3]`` (m, degrees, degrees) and each one's stds (``extras``, or ``sigmas`` for all) -> ENU
-    ``[R, 3]`` and covariances ``[R, 3, 3]``, NaN where a plot has an empty field."""
-    s = np.full((len(plots), 3), np.nan)
-    if sigmas is not None:
-        s[:] = sigmas
-    else:
-        for i, e in enumerate(extras):
-            if e is not None:
-                s[i] = e
-    rad = np.radians
-    enu, cov = _converted(plots[:, 0], rad(np.mod(plots[:, 1], 360.0)), rad(plots[:, 2]), s[:, 0], rad(s[:, 1]),
-                          rad(s[:, 2]))
-    cov[np.isnan(plots).any(-1)] = np.nan
-    return enu, cov
-
-
-def read_tracks_csv(path: str | Path, sigmas=None) -> CsvTracks:
-    """Parse and check a tracks CSV (module doc); memory proportional to its rows. ``sigmas``: the radar's stds
-    ``(range m, azimuth deg, elevation deg)`` for a CSV of plots without per-row ones (:func:`check_sigmas`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"input not found: {path}")
-    sigmas = check_sigmas(sigmas)
-    ids, times, ts, zs, lines, extras = [], [], [], [], [], []
-    with path.open(newline="", encoding="utf-8-sig") as f:  # utf-8-sig: a byte-order mark is not a column name
-        reader = csv.reader(f)
-        try:
-            polar = _read_rows(path, reader, ids, times, ts, zs, lines, extras, sigmas)
-        except csv.Error as err:  # a field over the csv module's limit, a quote left open at the end
-            raise ValueError(f"line {reader.line_num}: not readable as CSV ({err})") from None
     if not ids:
         raise ValueError(f"{path}: no data rows")
     z = np.asarray(zs, dtype=np.float64).reshape(-1, 3)
@@ -285,11 +246,51 @@ def read_tracks_csv(path: str | Path, sigmas=None) -> CsvTracks:
     if polar:
         z, cov = _to_enu(z, extras, sigmas)
     elif extras:
-        cov = np.full((len(ids), 3, 3), np.nan)
-        for i, e in enumerate(extras):
-            if e is not None:
-                cov[i] = e
+        cov = _filled(extras, (3, 3))
     return CsvTracks(ids, times, ts, z, lines, cov, polar)
+
+
+def _filled(extras: list, trail: tuple) -> np.ndarray:
+    """``extras`` as one array ``[R, *trail]``, NaN rows where an entry is None (a missed detection)."""
+    out = np.full((len(extras), *trail), np.nan)
+    for i, e in enumerate(extras):
+        if e is not None:
+            out[i] = e
+    return out
+
+
+def _to_enu(plots: np.ndarray, extras: list, sigmas) -> tuple[np.ndarray, np.ndarray]:
+    """Plots ``[R, 3]`` (m, degrees, degrees) and each one's stds (``extras``, or ``sigmas`` for all) -> ENU
+    ``[R, 3]`` and covariances ``[R, 3, 3]``, NaN where a plot has an empty field: the unbiased converted
+    measurement (``immnet.data.radar.converted``)."""
+    s = _filled(extras, (3,)) if sigmas is None else np.broadcast_to(np.asarray(sigmas, np.float64), plots.shape)
+    rad = np.radians
+    enu, cov = converted(plots[:, 0], rad(np.mod(plots[:, 1], 360.0)), rad(plots[:, 2]), s[:, 0], rad(s[:, 1]),
+                         rad(s[:, 2]))
+    cov[np.isnan(plots).any(-1)] = np.nan
+    return enu, cov
+
+
+def _parsed(path: str | Path, sigmas, parse):
+    """``parse(path, reader, sigmas)``: the rows of the CSV file ``path`` read and checked (``sigmas`` checked first,
+    :func:`check_sigmas`); a FileNotFoundError where there is no file, a ValueError naming the line of a row the csv
+    module cannot read."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"input not found: {path}")
+    sigmas = check_sigmas(sigmas)
+    with path.open(newline="", encoding="utf-8-sig") as f:  # utf-8-sig: a byte-order mark is not a column name
+        reader = csv.reader(f)
+        try:
+            return parse(path, reader, sigmas)
+        except csv.Error as err:  # a field over the csv module's limit, a quote left open at the end
+            raise ValueError(f"line {reader.line_num}: not readable as CSV ({err})") from None
+
+
+def read_tracks_csv(path: str | Path, sigmas=None) -> CsvTracks:
+    """Parse and check a tracks CSV (module doc); memory proportional to its rows. ``sigmas``: the radar's stds
+    ``(range m, azimuth deg, elevation deg)`` for a CSV of plots without per-row ones (:func:`check_sigmas`)."""
+    return _parsed(path, sigmas, _read_rows)
 
 
 PLOT_COLUMNS = ("t", "range", "azimuth", "elevation")
@@ -413,16 +414,7 @@ def read_plots_csv(path: str | Path, sigmas=None, convert: bool = True) -> CsvPl
     east-north-up with their covariance (``sigmas`` or the ``sigma_*`` columns, as ``read_tracks_csv``); with
     ``convert=False`` they are only read and checked (no stds needed). Every problem is a ValueError naming its
     line."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"input not found: {path}")
-    sigmas = check_sigmas(sigmas)
-    with path.open(newline="", encoding="utf-8-sig") as f:
-        reader = csv.reader(f)
-        try:
-            return _read_plot_rows(path, reader, sigmas, convert)
-        except csv.Error as err:
-            raise ValueError(f"line {reader.line_num}: not readable as CSV ({err})") from None
+    return _parsed(path, sigmas, functools.partial(_read_plot_rows, convert=convert))
 
 
 def plot_track_rows(time: str, ids, state: np.ndarray, mode_probs: np.ndarray | None, updated,
