@@ -40,6 +40,11 @@ TRAIL = {keys.MEASUREMENTS: ("T", 3), keys.STATES: ("T", 9), keys.MODE: ("T",), 
 _INT_OK = (keys.R, keys.DT, keys.MODE, keys.TIME)
 
 
+def trailing_shape(key: str, T: int) -> tuple[int, ...]:
+    """Array ``key``'s shape after ``[N]`` in a set of ``T`` scans (``TRAIL``'s, ``()`` for ``dt``)."""
+    return tuple(T if d == "T" else d for d in TRAIL.get(key, ()))
+
+
 def check_dtype(key: str, dtype, where: str) -> None:
     """A ValueError unless ``dtype`` suits array ``key`` (see the module docstring)."""
     dtype = np.dtype(dtype)
@@ -66,9 +71,9 @@ def check_shapes(shapes: dict[str, tuple], where: str) -> tuple[int, int]:
     if n < 1 or T < 1:
         raise ValueError(f"{where}: array 'measurements' has shape {shape}: a data set needs N >= 1 trajectories "
                          f"of T >= 1 scans")
-    for key, trail in TRAIL.items():
+    for key in TRAIL:
         if key in shapes:
-            want = (n, *(T if d == "T" else d for d in trail))
+            want = (n, *trailing_shape(key, T))
             if tuple(shapes[key]) != want:
                 raise ValueError(f"{where}: array {key!r} has shape {tuple(shapes[key])}, expected {want}")
     return n, T

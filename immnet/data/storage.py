@@ -41,7 +41,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.data.contract import TRAIL, check_arrays
+from immnet.data.contract import TRAIL, check_arrays, trailing_shape
 from immnet.data.generate import BLOCK, generate_block, mode_index, n_blocks
 from immnet.data.scratch import check_space, check_writable, publishing, reserve
 from immnet.data.spec import SPEC_VERSION, DataSpec
@@ -70,19 +70,12 @@ STORE_DTYPES = {
 OPTIONAL_DTYPES = {keys.MEAS_COV: torch.float32}
 """Tensors a set written whole may hold besides (``write_arrays``: real flights' detection covariances)."""
 ALL_DTYPES = {**STORE_DTYPES, **OPTIONAL_DTYPES}
-_TRAILS = {keys.STATES: (9,), keys.MEASUREMENTS: (3,), keys.MODE: (), keys.TURN_RATE: (), keys.R: (), keys.DT: (),
-           keys.TIME: (), keys.MEAS_COV: (3, 3)}  # after [N, T] for the per-scan tensors, [N] for r and dt
 
 
 def store_dtypes(spec: DataSpec) -> dict:
     """The tensors a generated set of ``spec`` holds, and their stored dtypes: ``STORE_DTYPES``, and ``meas_cov``
     where the measurements are a radar's plots."""
     return {**STORE_DTYPES, **({keys.MEAS_COV: OPTIONAL_DTYPES[keys.MEAS_COV]} if spec.plots else {})}
-
-
-def _trail(key: str, T: int) -> tuple[int, ...]:
-    return _TRAILS[key] if key in (keys.R, keys.DT) else (T, *_TRAILS[key])
-_NPZ_SHAPES = TRAIL  # trailing shapes after [N]: the arrays of a data set besides dt
 
 
 # --- writing ----------------------------------------------------------------------------------
@@ -97,7 +90,7 @@ def _allocate(tensors_dir: Path, n: int, T: int, out: Path, dtypes: dict = STORE
     """The data set's files (the keys of ``dtypes``) of ``n`` trajectories of ``T`` scans in ``tensors_dir``, their
     disk blocks allocated (:func:`immnet.data.scratch.reserve`): the blocks are then written through memory maps,
     where a full disk would be a SIGBUS. An ``OSError`` naming ``out``'s folder where the disk lacks the room."""
-    shapes = {key: _trail(key, T) for key in dtypes}
+    shapes = {key: trailing_shape(key, T) for key in dtypes}
     size = {key: n * math.prod(trail) * dtypes[key].itemsize for key, trail in shapes.items()}
     check_space(out.parent, sum(size.values()), f"the data set ({n} trajectories of {T} scans)")
     td = TensorDict({}, batch_size=[n])
@@ -324,7 +317,7 @@ def _load_dir(path: Path) -> tuple[TensorDict, dict]:
     n, T = meta["n"], meta["T"]
     if tuple(td.batch_size) != (n,):
         raise ValueError(f"{path}: {META} says n={n} but the tensors hold {tuple(td.batch_size)}")
-    arrays = {k: td[k].numpy() for k in (*_NPZ_SHAPES, keys.DT) if k in td.keys()}
+    arrays = {k: td[k].numpy() for k in (*TRAIL, keys.DT) if k in td.keys()}
     if arrays.get(keys.MEASUREMENTS) is not None and tuple(arrays[keys.MEASUREMENTS].shape[1:2]) != (T,):
         raise ValueError(f"{path}: {META} says T={T} but 'measurements' has shape "
                          f"{tuple(arrays[keys.MEASUREMENTS].shape)}")
@@ -404,7 +397,7 @@ def _load_npz(path: Path) -> tuple[TensorDict, dict]:
             z = np.load(f, allow_pickle=False)
             if not isinstance(z, np.lib.npyio.NpzFile):
                 raise ValueError("it holds one bare array, not an archive of named arrays")
-            arrays = {k: z[k] for k in (*_NPZ_SHAPES, keys.DT) if k in z.files}
+            arrays = {k: z[k] for k in (*TRAIL, keys.DT) if k in z.files}
             names = list(z.files)
     except _UNREADABLE as err:
         raise ValueError(f"{path}: not a readable .npz file ({type(err).__name__}: {err})") from None
@@ -478,11 +471,8 @@ def export_npz(path_in, out_npz) -> Path:
         raise ValueError(f"{out_npz}: the output must end in .npz")
     check_writable(out_npz)
     td, meta = load_dataset(path_in)
-    arrays = {}
-    for key in _NPZ_SHAPES:
-        if key in td.keys():
-            v = td[key]
-            arrays[key] = v.to(torch.int64).numpy() if key == keys.MODE else np.asarray(v.numpy())
+    arrays = {key: td[key].to(torch.int64).numpy() if key == keys.MODE else td[key].numpy()
+              for key in TRAIL if key in td.keys()}
     dts = td[keys.DT] if keys.DT in td.keys() else torch.ones(1)
     if keys.TIME not in td.keys() or bool((dts == dts[0]).all()):
         arrays[keys.DT] = np.asarray(float(dts[0]))
