@@ -387,6 +387,9 @@ def _mode_counts(mode: torch.Tensor) -> list[int]:
     return counts[1:].tolist()
 
 
+_NPZ_DTYPES = {keys.MODE: np.int64, keys.TIME: np.float64}
+"""The arrays of an ``.npz`` read in other dtypes than float32: ``mode``, and the scan times (epoch times keep their
+hundredths of a second)."""
 # what np.load raises on a file that is not a whole .npz (truncated, empty, corrupt member, pickled object)
 _UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
 
@@ -410,14 +413,8 @@ def _load_npz(path: Path) -> tuple[TensorDict, dict]:
         arrays[keys.DT] = np.asarray(1.0)
     n, T = check_arrays(arrays, str(path))
     dt = float(arrays.pop(keys.DT).reshape(()))
-    data = {}
-    for key, a in arrays.items():
-        if key == keys.MODE:
-            data[key] = torch.from_numpy(a.astype(np.int64))
-        elif key == keys.TIME:  # float64: epoch times keep their hundredths of a second
-            data[key] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
-        else:
-            data[key] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+    data = {key: torch.from_numpy(np.ascontiguousarray(a, dtype=_NPZ_DTYPES.get(key, np.float32)))
+            for key, a in arrays.items()}
     if given_dt or keys.TIME not in data:
         data[keys.DT] = torch.full((n,), dt, dtype=torch.float32)
     else:  # scan times without a nominal interval: the median spacing per track
@@ -451,17 +448,9 @@ def load_dataset(path) -> tuple[TensorDict, dict]:
 def as_batch(td: TensorDict, float_dtype=torch.float32) -> TensorDict:
     """A loaded (memmapped) slice as plain tensors: floats in ``float_dtype`` except the scan times ``t``
     (float64 whatever ``float_dtype``), ``mode`` int64."""
-    out = {}
-    for key, v in td.items():
-        if key == keys.MODE:
-            out[key] = v.to(torch.int64)
-        elif key == keys.TIME:  # scan times stay float64 (epoch times); trackers take their differences
-            out[key] = v.to(torch.float64)
-        elif v.is_floating_point():
-            out[key] = v.to(float_dtype)
-        else:
-            out[key] = v
-    return TensorDict(out, batch_size=td.batch_size)
+    fixed = {keys.MODE: torch.int64, keys.TIME: torch.float64}  # scan times stay float64 (epoch times)
+    return TensorDict({key: v.to(fixed[key]) if key in fixed else v.to(float_dtype) if v.is_floating_point() else v
+                       for key, v in td.items()}, batch_size=td.batch_size)
 
 
 def export_npz(path_in, out_npz) -> Path:
