@@ -57,7 +57,7 @@ def remove_stale(out: Path) -> list[Path]:
     for p in out.parent.iterdir():
         m = pattern.match(p.name)
         if m and not _alive(int(m.group(1))):
-            shutil.rmtree(p, ignore_errors=True) if p.is_dir() and not p.is_symlink() else p.unlink(missing_ok=True)
+            remove(p)
             removed.append(p)
     return removed
 
@@ -144,7 +144,7 @@ def check_writable(out, kind: str = "file") -> None:
         folder = folder.parent
     if not folder.is_dir():
         raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(folder))
-    probe = folder / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}.probe"
+    probe = tmp_sibling(folder / out.name, ".probe")
     try:
         probe.open("x").close()
     except OSError as err:
@@ -173,12 +173,9 @@ def reserve(file, nbytes: int) -> None:
     fd = os.open(file, os.O_RDWR)
     try:
         os.posix_fallocate(fd, 0, nbytes)
-    except AttributeError:  # no posix_fallocate on this platform
-        check_space(Path(file).parent, nbytes - os.fstat(fd).st_blocks * 512, Path(file).name)
-    except OSError as err:
-        if err.errno in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
-            check_space(Path(file).parent, nbytes - os.fstat(fd).st_blocks * 512, Path(file).name)
-        else:
+    except (AttributeError, OSError) as err:  # AttributeError: no posix_fallocate on this platform
+        if isinstance(err, OSError) and err.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
             raise OSError(err.errno, err.strerror, str(file)) from None
+        check_space(Path(file).parent, nbytes - os.fstat(fd).st_blocks * 512, Path(file).name)
     finally:
         os.close(fd)
