@@ -108,6 +108,21 @@ def _schedule(g, m, spec: DataSpec, single: int | None):
     return switches, modes
 
 
+def _segment_draws(g, m, spec: DataSpec, k: int) -> list[torch.Tensor]:
+    """``[m, k]`` each, in this order: the turn rate's magnitude (rad/s), the CA acceleration's horizontal magnitude,
+    direction and vertical, and the sign of a speed bound's turn."""
+    return [_uniform(g, m, spec.turn_rate_min_deg * DEG, spec.turn_rate_max_deg * DEG, k),
+            _uniform(g, m, spec.ca_acc_h_min, spec.ca_acc_h_max, k), _uniform(g, m, 0.0, 2 * math.pi, k),
+            _uniform(g, m, -spec.ca_acc_v_max, spec.ca_acc_v_max, k),
+            torch.randint(0, 2, (m, k), generator=g).to(_DT) * 2 - 1]
+
+
+def _out_of_bounds(rho, hs, lz, spec: DataSpec) -> torch.Tensor:
+    """Where a horizontal range ``rho``, horizontal speed ``hs`` or altitude ``lz`` leaves a hard bound."""
+    return ((rho < spec.hard_range_min) | (rho > spec.hard_range_max) | (hs > spec.hard_speed_max)
+            | (lz < spec.hard_alt_min) | (lz > spec.hard_alt_max))
+
+
 def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: int | None = None,
              return_bad: bool = False):
     """``m`` trajectories drawn from generator ``g``, float64, none redrawn.
@@ -125,18 +140,10 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     r = _uniform(g, m, spec.r_min, spec.r_max)
     switches, seg_mode = _schedule(g, m, spec, single)
     S = seg_mode.shape[1]
-    seg_w = _uniform(g, m, spec.turn_rate_min_deg * DEG, spec.turn_rate_max_deg * DEG, 3)
-    acc_mag = _uniform(g, m, spec.ca_acc_h_min, spec.ca_acc_h_max, 3)
-    acc_dir = _uniform(g, m, 0.0, 2 * math.pi, 3)
-    acc_z = _uniform(g, m, -spec.ca_acc_v_max, spec.ca_acc_v_max, 3)
-    bound_sign = torch.randint(0, 2, (m, 3), generator=g).to(_DT) * 2 - 1
+    draws = _segment_draws(g, m, spec, 3)
     if S > 3:  # more segments than the default: draw the extra parameters after the defaults
-        extra = S - 3
-        seg_w = torch.cat([seg_w, _uniform(g, m, spec.turn_rate_min_deg * DEG, spec.turn_rate_max_deg * DEG, extra)], 1)
-        acc_mag = torch.cat([acc_mag, _uniform(g, m, spec.ca_acc_h_min, spec.ca_acc_h_max, extra)], 1)
-        acc_dir = torch.cat([acc_dir, _uniform(g, m, 0.0, 2 * math.pi, extra)], 1)
-        acc_z = torch.cat([acc_z, _uniform(g, m, -spec.ca_acc_v_max, spec.ca_acc_v_max, extra)], 1)
-        bound_sign = torch.cat([bound_sign, torch.randint(0, 2, (m, extra), generator=g).to(_DT) * 2 - 1], 1)
+        draws = [torch.cat(pair, 1) for pair in zip(draws, _segment_draws(g, m, spec, S - 3))]
+    seg_w, acc_mag, acc_dir, acc_z, bound_sign = draws
     q = spec.sigma_q * torch.randn(T, 3, m, generator=g, dtype=_DT)  # time-major
     v = r[:, None, None] * torch.randn(m, T, 3, generator=g, dtype=_DT)
     # scan intervals (time-major [T, m]; row 0 unused): drawn only with jitter, so that a fixed dt draws as before
@@ -193,8 +200,7 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
         hs = torch.sqrt(vx * vx + vy * vy)
         vr = (lx * vx + ly * vy) / rho
         cross_sign = torch.where(lx * vy - ly * vx >= 0, 1.0, -1.0).to(_DT)
-        bad |= (rho < spec.hard_range_min) | (rho > spec.hard_range_max) | (hs > spec.hard_speed_max)
-        bad |= (lz < spec.hard_alt_min) | (lz > spec.hard_alt_max)
+        bad |= _out_of_bounds(rho, hs, lz, spec)
         free = (ovr == 0) | (ovr == 3)
         outer = free & (rho > spec.bound_range_outer) & (vr > 0)
         inner = free & (rho < spec.bound_range_inner) & (vr < 0)
@@ -257,8 +263,7 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
         missed[:, :2] = False  # a track starts from two detections
         meas[missed] = float("nan")
     rho, hs = torch.hypot(lx, ly), torch.hypot(vx, vy)  # the last state
-    bad |= (rho < spec.hard_range_min) | (rho > spec.hard_range_max) | (hs > spec.hard_speed_max)
-    bad |= (lz < spec.hard_alt_min) | (lz > spec.hard_alt_max) | ~torch.isfinite(lx + ly + lz + vx + vy + vz)
+    bad |= _out_of_bounds(rho, hs, lz, spec) | ~torch.isfinite(lx + ly + lz + vx + vy + vz)
     if steps_dt is None:
         times = (torch.arange(T, dtype=_DT) * spec.dt).expand(m, T).contiguous()
     else:
@@ -293,8 +298,7 @@ def generate_block(seed: int, block: int, n: int, spec: DataSpec = DataSpec(), s
         parts.append(sub[good])
         todo -= len(good)
         attempt += 1
-    td = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
-    return td
+    return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
 
 
 def generate(n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | None = None,
