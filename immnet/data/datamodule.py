@@ -42,8 +42,8 @@ first batch the training loop had not finished.
 
 from __future__ import annotations
 
+import itertools
 import math
-
 
 import lightning as L
 import torch
@@ -86,9 +86,7 @@ class MixtureDataset(Dataset):
 
     def __init__(self, parts: list[TrajectoryDataset]):
         self.parts = parts
-        self.offsets = [0]
-        for part in parts:
-            self.offsets.append(self.offsets[-1] + len(part))
+        self.offsets = [0, *itertools.accumulate(len(part) for part in parts)]
 
     def __len__(self) -> int:
         return self.offsets[-1]
@@ -120,7 +118,16 @@ def _set_weights(weights, n: int) -> list[float]:
     return [float(w) for w in weights]
 
 
-class _MixedBatches(torch.utils.data.Sampler):
+class _Epochs:
+    """A sampler whose pass is a function of its epoch, which Lightning's ``set_epoch`` sets."""
+
+    epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+
+class _MixedBatches(_Epochs, torch.utils.data.Sampler):
     """Training batches of a mixture: pass ``e`` (``set_epoch``) shuffles each part's rows, cuts them into batches
     of ``batch_size`` (a part's last batch may be short) and shuffles the batches of all parts together, seeded
     by ``(seed, e)`` alone (resumable as ``_EpochRandomSampler``).
@@ -130,12 +137,9 @@ class _MixedBatches(torch.utils.data.Sampler):
     the part listed twice and 0.5 half of its batches a pass; weights of 1 draw exactly the unweighted batches."""
 
     def __init__(self, sizes: list[int], batch_size: int, seed: int, weights: list[float] | None = None):
-        self.sizes, self.batch_size, self.seed, self.epoch = list(sizes), int(batch_size), int(seed), 0
+        self.sizes, self.batch_size, self.seed = list(sizes), int(batch_size), int(seed)
         self.counts = [max(1, round(w * math.ceil(n / self.batch_size)))
                        for w, n in zip(_set_weights(weights, len(self.sizes)), self.sizes)]
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
 
     def __len__(self) -> int:
         return sum(self.counts)
@@ -154,15 +158,12 @@ class _MixedBatches(torch.utils.data.Sampler):
             yield batches[j]
 
 
-class _EpochRandomSampler(torch.utils.data.Sampler):
+class _EpochRandomSampler(_Epochs, torch.utils.data.Sampler):
     """Pass ``e`` (``set_epoch(e)``) is exactly the ``e``-th pass of ``RandomSampler(range(n),
     generator=manual_seed(seed))`` (each full pass of it draws two permutations), whatever passes ran before."""
 
     def __init__(self, n: int, seed: int):
-        self.n, self.seed, self.epoch = n, seed, 0
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
+        self.n, self.seed = n, seed
 
     def __len__(self):
         return self.n
@@ -214,17 +215,13 @@ class ResumableLoader(DataLoader):
             self.batch_sampler.resume_at(state["epoch"], state["batches"])
 
 
-class _Stage1Sampler:
+class _Stage1Sampler(_Epochs):
     """Per batch, per expert: indices of its own-mode set and of the maneuvering train split."""
 
     def __init__(self, own_sizes, n_train, n_own, n_mix, n_batches, seed, rank: int = 0):
         self.own_sizes, self.n_train = own_sizes, n_train
         self.n_own, self.n_mix, self.n_batches, self.seed = n_own, n_mix, n_batches, seed
         self.rank = rank
-        self.epoch = 0
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
 
     def __len__(self):
         return self.n_batches
@@ -401,10 +398,7 @@ class LASTDataModule(L.LightningDataModule):
                     raise ValueError(f"single-mode set {name!r} has T={sm['measurements'].shape[1]}, data has T={T}")
             self._own = [TrajectoryDataset(loaded[name], torch.arange(loaded[name].batch_size[0]))
                          for name in self.expert_modes]
-            common = set(td.keys())
-            for sm in loaded.values():
-                common &= set(sm.keys())
-            self._common_keys = sorted(common)
+            self._common_keys = sorted(set(td.keys()).intersection(*(sm.keys() for sm in loaded.values())))
         self._ready = True
 
     def dataset(self, name: str) -> TrajectoryDataset | MixtureDataset:
