@@ -74,10 +74,15 @@ def mode_index(single_mode: str | None) -> int | None:
     return MODE_NAMES.index(single_mode)
 
 
+def hashed_generator(text: str) -> torch.Generator:
+    """A torch generator seeded by the SHA-256 of ``text`` (its first 8 bytes, little-endian, less one bit)."""
+    digest = hashlib.sha256(text.encode()).digest()
+    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") >> 1)
+
+
 def block_generator(seed: int, block: int, attempt: int = 0) -> torch.Generator:
     """The generator of one block (and redraw attempt), a hash of ``(seed, block, attempt)``."""
-    digest = hashlib.sha256(f"3dlast:{int(seed)}:{int(block)}:{int(attempt)}".encode()).digest()
-    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") >> 1)
+    return hashed_generator(f"3dlast:{int(seed)}:{int(block)}:{int(attempt)}")
 
 
 def n_blocks(n: int) -> int:

@@ -61,7 +61,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import hashlib
 import json
 import math
 import time
@@ -226,8 +225,7 @@ def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.rand
     A, S = states.shape[:2]
     s_rho, s_az, s_el = _sigmas(spec)
     pos = states[..., [0, 3, 6]]
-    finite = np.isfinite(states).all(-1)
-    inview = finite & radar.covered(np.where(finite[..., None], pos, np.inf), spec.max_range, spec.min_elevation)
+    inview = _in_cover(pos, np.isfinite(states).all(-1), spec)
     plot_off, truth_off = [0], [0]
     plots_polar, sources, truth_states, truth_ids = [], [], [], []
     lo_el, hi_el = math.radians(spec.min_elevation), math.radians(spec.max_elevation)
@@ -285,9 +283,9 @@ def _interp_positions(flights: list[adsb.Flight], site, grid: np.ndarray, gap: f
     return out
 
 
-def _counts(pos: np.ndarray, spec: SceneSpec) -> np.ndarray:
-    fin = np.isfinite(pos).all(-1)
-    return (fin & radar.covered(np.where(fin[..., None], pos, np.inf), spec.max_range, spec.min_elevation)).sum(0)
+def _in_cover(pos: np.ndarray, known: np.ndarray, spec: SceneSpec) -> np.ndarray:
+    """Where a position ``pos [..., 3]`` is known (``known [...]``, else NaN) and in the radar's cover."""
+    return known & radar.covered(np.where(known[..., None], pos, np.inf), spec.max_range, spec.min_elevation)
 
 
 def _smoothed(flights: list[adsb.Flight], site, scans: np.ndarray, spec: SceneSpec) -> np.ndarray:
@@ -363,7 +361,7 @@ def adsb_scenes(sample, n: int, spec: SceneSpec = SceneSpec(), seed: int = 0, si
     step = max(spec.dt, 10.0)
     grid = np.arange(t0, t1 + step, step)
     pos = _interp_positions(flights, site, grid, spec.truth_gap)
-    count = _counts(pos, spec)
+    count = _in_cover(pos, np.isfinite(pos).all(-1), spec).sum(0)
     w = int(math.ceil(spec.duration / step)) + 1
     if len(grid) < w:
         raise ValueError(f"sample {sample}: spans {t1 - t0:.0f} s, less than one scene of {spec.duration:g} s")
@@ -388,9 +386,7 @@ def adsb_scenes(sample, n: int, spec: SceneSpec = SceneSpec(), seed: int = 0, si
         near = [j for j in range(len(flights)) if np.isfinite(pos[j, i : i + w]).any()]
         # aircraft near the cover too: the smoother's truth decides who is in cover at each scan
         states = _smoothed([flights[j] for j in near], site, scans, spec)
-        fin = np.isfinite(states).all(-1)
-        inview = fin & radar.covered(np.where(fin[..., None], states[..., [0, 3, 6]], np.inf), spec.max_range,
-                                     spec.min_elevation)
+        inview = _in_cover(states[..., [0, 3, 6]], np.isfinite(states).all(-1), spec)
         per_scan = inview.sum(0)
         if per_scan.min() < spec.min_targets or per_scan.max() > spec.max_targets:
             continue
@@ -409,13 +405,6 @@ def adsb_scenes(sample, n: int, spec: SceneSpec = SceneSpec(), seed: int = 0, si
 
 
 # --- 3D-LAST scenes -------------------------------------------------------------------------------
-def _generator(seed: int, index: int):
-    import torch
-
-    digest = hashlib.sha256(f"scenes-3dlast:{int(seed)}:{int(index)}".encode()).digest()
-    return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") >> 1)
-
-
 def _heading(s: np.ndarray) -> float:
     return math.atan2(s[4], s[1])  # of velocity (vy, vx), counterclockwise from east
 
@@ -440,7 +429,7 @@ def last_scene(index: int, spec: SceneSpec = SceneSpec(), seed: int = 0, split: 
     """3D-LAST scene ``index``: ``spec.targets`` trajectories of the generator in one volume, with crossing and close
     pairs (the module docstring), seen by the radar at the origin."""
     from immnet import keys
-    from immnet.data.generate import simulate
+    from immnet.data.generate import hashed_generator, simulate
     from immnet.data.spec import DataSpec
 
     step = spec.last_step
@@ -452,7 +441,7 @@ def last_scene(index: int, spec: SceneSpec = SceneSpec(), seed: int = 0, split: 
     k_of = np.round(scans / step).astype(np.int64)
     scans = k_of * step
     pool = []
-    g = _generator(seed, index)
+    g = hashed_generator(f"scenes-3dlast:{int(seed)}:{int(index)}")
     for _ in range(8):  # batches of candidates until the pairs are placed
         td, bad = simulate(g, 4 * spec.targets, ds, return_bad=True)
         pool += [s for s, b in zip(td[keys.STATES].numpy(), bad.numpy()) if not b]
