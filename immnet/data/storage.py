@@ -29,6 +29,7 @@ with ``allow_pickle=False`` (nothing in it is executed).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import multiprocessing as mp
@@ -242,25 +243,20 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
 
             bar = progress_bar(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
         init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
-        if workers == 1 or len(blocks) == 1:
-            threads = torch.get_num_threads()
-            _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
-            try:
-                results = (_write_block(b) for b in blocks)
-                for b, c in zip(blocks, results):
-                    counts = [a + x for a, x in zip(counts, c)]
-                    if bar is not None:
-                        bar.update(min(BLOCK, n - b * BLOCK))
-            finally:
-                torch.set_num_threads(threads)
-                _WORKER.clear()
-        else:
-            ctx = mp.get_context("spawn")
-            with ctx.Pool(min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)) as pool:
-                for b, c in zip(blocks, pool.imap(_write_block, blocks)):
-                    counts = [a + x for a, x in zip(counts, c)]
-                    if bar is not None:
-                        bar.update(min(BLOCK, n - b * BLOCK))
+        with contextlib.ExitStack() as stack:
+            if workers == 1 or len(blocks) == 1:
+                stack.callback(_WORKER.clear)
+                stack.callback(torch.set_num_threads, torch.get_num_threads())
+                _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
+                results = map(_write_block, blocks)
+            else:
+                pool = stack.enter_context(mp.get_context("spawn").Pool(
+                    min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)))
+                results = pool.imap(_write_block, blocks)
+            for b, c in zip(blocks, results):
+                counts = [a + x for a, x in zip(counts, c)]
+                if bar is not None:
+                    bar.update(min(BLOCK, n - b * BLOCK))
         if bar is not None:
             bar.close()
         info = None
