@@ -161,6 +161,19 @@ def _layout(header: list[str], sigmas, ids: bool = True, need_stds: bool = True)
     return bool(pol), tuple(full if extra else ())
 
 
+def _header(path: Path, reader, sigmas, ids: bool = True, need_stds: bool = True) -> tuple[list, bool, tuple, dict]:
+    """``(header, polar, extra, col)`` from a CSV's first row: its names stripped, :func:`_layout`'s two (``ids``,
+    ``need_stds`` as there) and the column of each name read; a ValueError for an empty file."""
+    header = next(reader, None)
+    if header is None:
+        want = ','.join(IN_COLUMNS) if ids else f"{','.join(PLOT_COLUMNS)} or {','.join(CART_PLOT_COLUMNS)}"
+        raise ValueError(f"{path}: empty file (expected a header {want})")
+    header = [h.strip() for h in header]
+    polar, extra = _layout(header, sigmas, ids, need_stds)
+    names = (POLAR_COLUMNS if polar else IN_COLUMNS)[0 if ids else 1 :]
+    return header, polar, extra, {c: header.index(c) for c in (*names, *extra)}
+
+
 def _plot(rec, col: dict, line: int) -> list[float]:
     """A row's range, azimuth, elevation (m, degrees, degrees; NaN where empty), each checked."""
     rho, az, el = (_number(rec[col[c]], c, line) for c in POLAR_COLUMNS[2:])
@@ -208,13 +221,7 @@ def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
     where the file has neither)."""
     ids, times, ts, zs, lines, extras = [], [], [], [], [], []
     last: dict[str, tuple[Decimal, str]] = {}
-    header = next(reader, None)
-    if header is None:
-        raise ValueError(f"{path}: empty file (expected a header {','.join(IN_COLUMNS)})")
-    header = [h.strip() for h in header]
-    polar, extra = _layout(header, sigmas)
-    names = POLAR_COLUMNS if polar else IN_COLUMNS
-    col = {c: header.index(c) for c in (*names, *extra)}
+    header, polar, extra, col = _header(path, reader, sigmas)
     for line, rec in enumerate(reader, start=2):
         if not rec or all(not v.strip() for v in rec):
             continue
@@ -341,15 +348,8 @@ def csv_header(path: str | Path) -> list[str] | None:
 
 def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
     """The scans of ``reader``'s rows after its header, each row checked (``read_plots_csv``)."""
-    header = next(reader, None)
-    if header is None:
-        raise ValueError(f"{path}: empty file (expected a header {','.join(PLOT_COLUMNS)} or "
-                         f"{','.join(CART_PLOT_COLUMNS)})")
-    header = [h.strip() for h in header]
-    polar, extra = _layout(header, sigmas, ids=False, need_stds=convert)
-    names = PLOT_COLUMNS if polar else CART_PLOT_COLUMNS
-    pos = names[1:]
-    col = {c: header.index(c) for c in (*names, *extra)}
+    header, polar, extra, col = _header(path, reader, sigmas, ids=False, need_stds=convert)
+    pos = PLOT_COLUMNS[1:] if polar else CART_PLOT_COLUMNS[1:]
     times, ts, scan_lines, offsets, given, lines, extras = [], [], [], [0], [], [], []
     empty_line = None  # the line of the current scan's empty row (a scan without plots), if any
     for line, rec in enumerate(reader, start=2):
