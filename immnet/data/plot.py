@@ -31,10 +31,7 @@ def plot_trajectories(td, out, n: int = 400, seed: int = 0, title: str | None = 
     idx = torch.randperm(N, generator=g)[: min(n, N)].sort().values
     sub = td[idx]
     has_states = keys.STATES in sub.keys()
-    if has_states:
-        pos = sub[keys.STATES][..., [0, 3, 6]].double().numpy() / 1000.0
-    else:
-        pos = sub[keys.MEASUREMENTS].double().numpy() / 1000.0
+    pos = (sub[keys.STATES][..., [0, 3, 6]] if has_states else sub[keys.MEASUREMENTS]).double().numpy() / 1000.0
     mode = sub[keys.MODE].long().numpy() if keys.MODE in sub.keys() else None
 
     fig = plt.figure(figsize=(8, 7))

@@ -143,10 +143,6 @@ def _log(progress: bool, msg: str) -> None:
         print(f"[adsb] {msg}", file=sys.stderr, flush=True)
 
 
-def _rng(seed: int, fid: str) -> np.random.Generator:
-    return np.random.default_rng([int(seed), 0, zlib.crc32(fid.encode())])
-
-
 def turn_rate(states: np.ndarray) -> np.ndarray:
     """The horizontal turn rate ``(vx ay - vy ax) / (vx^2 + vy^2)`` (rad/s) of states ``[..., 9]``."""
     vx, ax, vy, ay = states[..., 1], states[..., 2], states[..., 4], states[..., 5]
@@ -183,7 +179,7 @@ def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, pr
     ``sites``: the radar site ``(lat, lon, h)`` of each flight."""
     prepared = []
     for f, site in zip(flights, sites):
-        rng = _rng(seed, f.id)
+        rng = np.random.default_rng([int(seed), 0, zlib.crc32(f.id.encode())])
         scans = radar.scan_times(f.t[0], f.t[-1], spec.dt, spec.dt_jitter, rng)
         enu = geodetic_to_enu(f.lat, f.lon, f.h, site)
         ok = _has_truth(f.t, scans, spec.truth_gap)
