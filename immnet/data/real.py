@@ -158,10 +158,10 @@ def _has_truth(fresh_t: np.ndarray, scans: np.ndarray, gap: float) -> np.ndarray
     return at | (inside & (span <= gap))
 
 
-def _longest_run(mask: np.ndarray) -> int:
-    """The length of the longest run of True in ``mask``."""
+def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(starts, stops)`` of the runs of True in ``mask``."""
     edges = np.flatnonzero(np.diff(np.r_[0, mask.astype(np.int8), 0]))
-    return int((edges[1::2] - edges[::2]).max()) if len(edges) else 0
+    return edges[::2], edges[1::2]
 
 
 def _measurement_var(f: adsb.Flight, enu: np.ndarray, spec: RealSpec) -> np.ndarray:
@@ -186,7 +186,7 @@ def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, pr
         prepared.append(dict(flight=f, rng=rng, scans=scans, enu=enu, var=_measurement_var(f, enu, spec), ok=ok))
     steps = [len(p["scans"]) + len(p["flight"].t) for p in prepared]
     # a flight without T scans of truth in a row can have no window: it is not smoothed (nothing else changes)
-    short = [i for i, p in enumerate(prepared) if _longest_run(p["ok"]) < spec.T]
+    short = [i for i, p in enumerate(prepared) if not any(b - a >= spec.T for a, b in zip(*_runs(p["ok"])))]
     for i in short:
         p = prepared[i]
         p["states"], p["valid"] = np.full((len(p["scans"]), 9), np.nan), np.zeros(len(p["scans"]), bool)
@@ -252,10 +252,8 @@ def _covered(pos: np.ndarray, spec: RealSpec) -> np.ndarray:
 def windows(p: dict, spec: RealSpec) -> list[int]:
     """Start indices of non-overlapping windows of ``T`` valid scans: in each run of valid scans of length
     ``L``, from a random offset in ``0..L mod T`` on."""
-    v = p["valid"]
-    edges = np.flatnonzero(np.diff(np.r_[0, v.astype(np.int8), 0]))
     starts = []
-    for a, b in zip(edges[::2], edges[1::2]):
+    for a, b in zip(*_runs(p["valid"])):
         L = b - a
         if L < spec.T:
             continue
