@@ -30,8 +30,8 @@ class LASTEnv(EnvBase):
     """Batch ``[B]`` of 3D-LAST trajectories replayed step by step (float32 by default)."""
 
     def __init__(self, data: TensorDictBase, dtype=torch.float32):
-        if keys.STATES not in data.keys() or keys.MEASUREMENTS not in data.keys():
-            missing = [k for k in (keys.STATES, keys.MEASUREMENTS) if k not in data.keys()]
+        missing = [k for k in (keys.STATES, keys.MEASUREMENTS) if k not in data.keys()]
+        if missing:
             raise ValueError(f"LASTEnv needs the arrays {missing} (the reward needs the true states)")
         B = data.batch_size[0]
         super().__init__(batch_size=torch.Size([B]))

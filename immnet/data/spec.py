@@ -104,11 +104,10 @@ class DataSpec:
                        ("hard_alt_min", "hard_alt_max")):
             if getattr(self, lo) > getattr(self, hi):
                 raise ValueError(f"{lo}={getattr(self, lo)} exceeds {hi}={getattr(self, hi)}")
-        given = [name for name in PLOT_PAIRS if getattr(self, f"{name}_min{PLOT_PAIRS[name]}")
-                 or getattr(self, f"{name}_max{PLOT_PAIRS[name]}")]
-        for name in given:
-            lo, hi = (getattr(self, f"{name}_{end}{PLOT_PAIRS[name]}") for end in ("min", "max"))
-            if not 0 < lo <= hi:
+        pairs = dict(zip(PLOT_PAIRS, self.plot_stds()))
+        given = [name for name, (lo, hi) in pairs.items() if lo or hi]
+        for name, (lo, hi) in pairs.items():
+            if name in given and not 0 < lo <= hi:
                 raise ValueError(f"{name} is a pair LOW,HIGH with 0 < LOW <= HIGH, got {lo:g},{hi:g}")
         check_plot_settings(given, self.outliers, self.outlier_scale)
         if self.outliers > 0 and not given:
