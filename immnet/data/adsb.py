@@ -317,9 +317,7 @@ def read_records(path) -> Records:
     names (``FIELDS``). Nothing in the file is executed. A ValueError names the file and what is wrong."""
     path = Path(path)
     value = _load_csv(path) if path.name.lower().endswith(CSV_SUFFIXES) else _load_json(path)
-    if isinstance(value, list) and not value:
-        raise ValueError(f"{path}: holds no records")
-    cols, names = _columns(value, path)
+    cols, names = _columns(value, path)  # an empty list: empty columns
     if not cols["timestamp"]:
         raise ValueError(f"{path}: holds no records")
     ts = _times(cols["timestamp"], names["timestamp"], path)
