@@ -212,10 +212,6 @@ class Scene:
 
 
 # --- the radar ------------------------------------------------------------------------------------
-def _sigmas(spec: SceneSpec) -> tuple[float, float, float]:
-    return spec.sigma_range, math.radians(spec.sigma_azimuth_deg), math.radians(spec.sigma_elevation_deg)
-
-
 def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.random.Generator,
             aircraft, site, meta: dict) -> Scene:
     """The scene a radar at the origin of the ENU frame makes of ``states [A, S, 9]`` (NaN rows: no truth at that
@@ -223,7 +219,7 @@ def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.rand
     ``spec.pd`` (polar noise), Poisson clutter of mean ``spec.clutter`` is added, the plots shuffled (the module
     docstring). Draws, per scan in order: detections, noise, the clutter count and positions, the order."""
     A, S = states.shape[:2]
-    s_rho, s_az, s_el = _sigmas(spec)
+    s_rho, s_az, s_el = spec.sigma_range, math.radians(spec.sigma_azimuth_deg), math.radians(spec.sigma_elevation_deg)
     pos = states[..., [0, 3, 6]]
     inview = _in_cover(pos, np.isfinite(states).all(-1), spec)
     plot_off, truth_off = [0], [0]
