@@ -438,19 +438,16 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     if not flights:
         raise ValueError(f"no flight of at least {spec.min_points} airborne fresh positions in {', '.join(map(str, samples))}")
     unique_ids(flights)
+    flights, sparse = select_flights(flights, spec)  # after the ids and sites: a kept flight's windows are a full set's
     per_sample = {src["name"]: src["counts"] for src in sources}
     reference = where = None
     if splits_from is not None:  # read and checked before any flight is smoothed
         reference, where = reference_partition(splits_from, {s["sha256"] for s in sources})
-    counts["sparse"] = 0
-    for c in per_sample.values():
-        c["sparse"] = 0
+    counts["sparse"] = len(sparse)
+    for name, c in per_sample.items():
+        c.update(sparse=sum(f.sample == name for f in sparse), windows=0, flights_with_windows=0)
     if reference is not None:
         counts["unsplit"] = 0
-    flights, sparse = select_flights(flights, spec)  # after the ids and sites: a kept flight's windows are a full set's
-    for f in sparse:
-        counts["sparse"] += 1
-        per_sample[f.sample]["sparse"] += 1
     if not flights:
         raise ValueError(f"no flight whose fresh positions are at most {spec.max_position_interval:g} s apart "
                          f"(median) in {', '.join(map(str, samples))}")
@@ -468,11 +465,8 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
         if wins:
             rows[p["flight"].id] = wins
         c = per_sample[p["flight"].sample]
-        c["windows"] = c.get("windows", 0) + len(wins)
-        c["flights_with_windows"] = c.get("flights_with_windows", 0) + bool(wins)
-    for src in sources:
-        src["counts"].setdefault("windows", 0)
-        src["counts"].setdefault("flights_with_windows", 0)
+        c["windows"] += len(wins)
+        c["flights_with_windows"] += bool(wins)
     ids = sorted(rows)
     if not ids and reference is not None and counts["unsplit"]:
         raise ValueError(f"--splits-from {where}: it names none of these flights with windows")
