@@ -30,21 +30,14 @@ def gate_measurements(z, limit: float = MAX_ABS_POSITION):
 
     The input is not modified; the output has the input's type, dtype and device.
     """
-    limit = check_limit(limit)
-    if isinstance(z, np.ndarray):
-        if z.shape[-1:] != (3,):
-            raise ValueError(f"measurements must be [..., 3], got shape {z.shape}")
-        missed = np.isnan(z).all(-1)
-        bad = ~(np.isfinite(z) & (np.abs(z) <= limit)).all(-1) & ~missed
-        out = z.copy()
-        out[bad] = np.nan
-        return out, int(bad.sum())
     import torch
 
-    z = torch.as_tensor(z)
+    limit = check_limit(limit)
+    xp = np if isinstance(z, np.ndarray) else torch
+    z = z if xp is np else torch.as_tensor(z)
     if z.shape[-1:] != (3,):
         raise ValueError(f"measurements must be [..., 3], got shape {tuple(z.shape)}")
-    missed = torch.isnan(z).all(-1)
-    bad = ~(torch.isfinite(z) & (z.abs() <= limit)).all(-1) & ~missed
-    out = torch.where(bad.unsqueeze(-1), torch.full_like(z, float("nan")), z)
+    bad = ~(xp.isfinite(z) & (abs(z) <= limit)).all(-1) & ~xp.isnan(z).all(-1)
+    out = z.copy() if xp is np else z.clone()
+    out[bad] = float("nan")
     return out, int(bad.sum())
