@@ -85,11 +85,24 @@ def load_split(path, split: str, limit: int | None = None):
         from immnet.data.datamodule import LASTDataModule
 
         data = LASTDataModule(path).split(split)
-    if limit is not None:
-        if limit < 1:
-            raise ValueError("--limit must be positive")
-        data = data[:limit]
-    return data, meta
+    return first(data, limit), meta
+
+
+def first(items, limit: int | None):
+    """The first ``limit`` of ``items`` (``--limit``; None: all); a ValueError unless it is positive."""
+    if limit is None:
+        return items
+    if limit < 1:
+        raise ValueError("--limit must be positive")
+    return items[:limit]
+
+
+def method_names(requested: str | None) -> list[str]:
+    """The names of ``--methods`` (comma-separated; None: not given, no names); a ValueError where it names none."""
+    names = [n.strip() for n in (requested or "").split(",") if n.strip()]
+    if requested is not None and not names:
+        raise ValueError("--methods is empty")
+    return names
 
 
 def pick_cases(data, n: int = 2, seed: int = 0) -> list[int]:
@@ -142,9 +155,7 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     from immnet.filters.methods import available_methods, build_method, missing_keys
 
     explicit = requested is not None
-    names = [n.strip() for n in requested.split(",") if n.strip()] if explicit else available_methods()
-    if explicit and not names:
-        raise ValueError("--methods is empty")
+    names = method_names(requested) if explicit else available_methods()
     ckpt = _checkpoints(checkpoints, names)
     methods = {}
     for name in names:
@@ -217,7 +228,7 @@ def scan_notes(scans: dict, results, limit: float) -> list[str]:
 # --- commands ---------------------------------------------------------------------------------
 def run_evaluate(args) -> int:
     from immnet.data.validate import MAX_ABS_POSITION, check_limit
-    from immnet.evaluation.runner import evaluate, finite_or_none, to_json
+    from immnet.evaluation.runner import evaluate, to_json
     from immnet.evaluation.table import format_markdown, format_table
     from immnet.imm.guard import parse_guard
 
@@ -252,14 +263,10 @@ def run_evaluate(args) -> int:
         note(msg)
     rows = to_json(results)
     print(format_table(rows))
-    if args.markdown:
-        _write_text(args.markdown, format_markdown(rows) + "\n")
-        note(f"wrote {args.markdown}")
-    if args.json:
-        doc = {"n_trajectories": data.batch_size[0], "data": str(args.data), "split": split, "seed": args.seed,
-               "guard": args.guard, "told_r": args.told_r, "max_position": limit, "scans": scans, "methods": rows}
-        _write_text(args.json, json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
-        note(f"wrote {args.json}")
+    _write_text(args.markdown, format_markdown(rows), note)
+    doc = {"n_trajectories": data.batch_size[0], "data": str(args.data), "split": split, "seed": args.seed,
+           "guard": args.guard, "told_r": args.told_r, "max_position": limit, "scans": scans, "methods": rows}
+    _write_json(args.json, doc, note)
     paths = []
     if figures:
         from immnet.evaluation.figures import write_figures
@@ -294,7 +301,6 @@ def run_scenes(args) -> int:
     told the association, and the raw plots, scored by GOSPA and the identity metrics (``immnet.evaluation.scenes``)."""
     from immnet.data.scenes import load_index, load_scene
     from immnet.evaluation import scenes as sc
-    from immnet.evaluation.runner import finite_or_none
     from immnet.filters.multi import DEFAULT_FILTER, MultiTargetTracker, TrackFilter
 
     for attr, option, default in SCENE_REFUSED:
@@ -306,14 +312,8 @@ def run_scenes(args) -> int:
     entries = [e for e in index["scenes"] if args.split == "all" or e["split"] == args.split]
     if not entries:
         raise ValueError(f"{args.data} has no {args.split} scenes (split {args.split}); --split all takes every scene")
-    if args.limit is not None:
-        if args.limit < 1:
-            raise ValueError("--limit must be positive")
-        entries = entries[: args.limit]
-    names = [n.strip() for n in (args.methods or "").split(",") if n.strip()]
-    if args.methods is not None and not names:
-        raise ValueError("--methods is empty")
-    names = names or [DEFAULT_FILTER]
+    entries = first(entries, args.limit)
+    names = method_names(args.methods) or [DEFAULT_FILTER]
     settings = {"associator": args.associator or "gnn"}
     for name in names:  # refused before any scene runs: a name that is not a multi-target filter (or not for JPDA)
         MultiTargetTracker(TrackFilter.by_name(name), associator=settings["associator"])
@@ -326,14 +326,10 @@ def run_scenes(args) -> int:
     for n, k in over.items():
         note(f"note: {n}: {k} scans took longer than the interval to the next scan")
     print(sc.format_table(results))
-    if args.markdown:
-        _write_text(args.markdown, sc.format_table(results, markdown=True) + "\n")
-        note(f"wrote {args.markdown}")
+    _write_text(args.markdown, sc.format_table(results, markdown=True), note)
     doc = {"data": str(args.data), "split": args.split, "kind": "scenes", "scenes": [s.name for s in scenes],
            "gospa": {"c": 200.0, "p": 2.0, "alpha": 2.0}, "tracker": settings, "methods": results}
-    if args.json:
-        _write_text(args.json, json.dumps(finite_or_none(doc), indent=2, allow_nan=False) + "\n")
-        note(f"wrote {args.json}")
+    _write_json(args.json, doc, note)
     if wandb_log.wanted(args.wandb):
         config = {"command": "evaluate", "data": {"path": str(args.data), "split": args.split, "kind": "scenes",
                                                   "scenes": doc["scenes"], "limit": args.limit,
@@ -341,9 +337,7 @@ def run_scenes(args) -> int:
                   "methods": {n: filter_info(n) for n in names}, "tracker": settings, "gospa": doc["gospa"]}
         run = wandb_log.start(config, args.wandb_project, args.wandb_group, args.wandb_name, args.wandb_dir)
         wandb_log.log_scenes(run, results)
-        where = wandb_log.finish(run)
-        if where:
-            note(f"W&B run {run.id} (offline): {where}; upload with `wandb sync {where}`")
+        _finish(run, note)
     return 0
 
 
@@ -369,13 +363,32 @@ def _check_outputs(args) -> None:
         check_writable(args.figures, "into")
 
 
-def _write_text(path: Path, text: str) -> None:
-    """``text`` written to ``path`` whole or not at all (through a temporary sibling), its folder made."""
+def _write_text(path: Path | None, text: str, note) -> None:
+    """``text`` and a newline written to ``path`` whole or not at all (through a temporary sibling), its folder made,
+    and noted; nothing where ``path`` is None (the option not given)."""
     from immnet.data.scratch import publishing
 
+    if path is None:
+        return
     path.parent.mkdir(parents=True, exist_ok=True)
     with publishing(path) as tmp:
-        tmp.write_text(text)
+        tmp.write_text(text + "\n")
+    note(f"wrote {path}")
+
+
+def _write_json(path: Path | None, doc: dict, note) -> None:
+    """``doc`` as JSON (every non-finite number ``null``) by :func:`_write_text`; nothing where ``path`` is None."""
+    from immnet.evaluation.runner import finite_or_none
+
+    if path is not None:
+        _write_text(path, json.dumps(finite_or_none(doc), indent=2, allow_nan=False), note)
+
+
+def _finish(run, note) -> None:
+    """Close the W&B ``run``; where it is offline, note how to upload it."""
+    where = wandb_log.finish(run)
+    if where:
+        note(f"W&B run {run.id} (offline): {where}; upload with `wandb sync {where}`")
 
 
 def log_run(args, results, rows, figures, data, meta, split, note) -> None:
@@ -393,9 +406,7 @@ def log_run(args, results, rows, figures, data, meta, split, note) -> None:
     run = wandb_log.start(config, args.wandb_project, args.wandb_group, args.wandb_name, args.wandb_dir)
     curves = {n: avg_curve(r["rmse_over_time"]) for n, r in results.items()}
     wandb_log.log_results(run, rows, curves, figures, dt=float(nominal_dt(data[:1])[0]))  # x: scan k at k dt
-    where = wandb_log.finish(run)
-    if where:
-        note(f"W&B run {run.id} (offline): {where}; upload with `wandb sync {where}`")
+    _finish(run, note)
 
 
 def run_tune(args) -> int:

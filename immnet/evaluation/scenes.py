@@ -225,10 +225,7 @@ def table_rows(results: dict) -> list[list]:
 def format_table(results: dict, markdown: bool = False) -> str:
     """The table of ``results`` (text, or Markdown)."""
     fmt = ("{}", "{:.1f}", "{:.0f}", "{:.0f}", "{:.0f}", "{}", "{}", "{:.3f}", "{:.2f}", "{:.2f}")
+    from immnet.evaluation.table import markdown_table, text_table
+
     rows = [[f.format(v) for f, v in zip(fmt, row)] for row in table_rows(results)]
-    if markdown:
-        return "\n".join(["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
-                         + ["| " + " | ".join(r) + " |" for r in rows])
-    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(COLUMNS)]
-    line = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
-    return "\n".join([line(COLUMNS), "  ".join("-" * w for w in widths)] + [line(r) for r in rows])
+    return markdown_table(COLUMNS, rows, "|" + "---|" * len(COLUMNS)) if markdown else text_table(COLUMNS, rows)

@@ -42,16 +42,23 @@ def _rows(results: Mapping[str, dict]):
 
 def format_table(results: Mapping[str, dict]) -> str:
     """A fixed-width text table for the terminal."""
+    return text_table(*_rows(results))
+
+
+def format_markdown(results: Mapping[str, dict]) -> str:
+    """The same table in GitHub markdown (numbers right-aligned), for the README."""
     header, rows = _rows(results)
+    return markdown_table(header, rows, "|" + "|".join([":---"] + ["---:"] * (len(header) - 1)) + "|")
+
+
+def text_table(header: list[str], rows: list[list[str]]) -> str:
+    """Fixed-width text: the first column left-aligned, the others right-aligned, a line of dashes under the header."""
     widths = [max(len(c[i]) for c in [header, *rows]) for i in range(len(header))]
     fmt = lambda cells: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
     lines = [fmt(header), "  ".join("-" * w for w in widths), *(fmt(r) for r in rows)]
     return "\n".join(lines)
 
 
-def format_markdown(results: Mapping[str, dict]) -> str:
-    """The same table in GitHub markdown (numbers right-aligned), for the README."""
-    header, rows = _rows(results)
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join([":---"] + ["---:"] * (len(header) - 1)) + "|"]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    return "\n".join(lines)
+def markdown_table(header: list[str], rows: list[list[str]], rule: str) -> str:
+    """A GitHub markdown table, ``rule`` the line under its header (the columns' alignment)."""
+    return "\n".join(["| " + " | ".join(header) + " |", rule, *("| " + " | ".join(r) + " |" for r in rows)])
