@@ -151,6 +151,18 @@ def _bank(args, limit: float, r):
     return method
 
 
+def _tracker(args, weights: Path, limit: float, r):
+    """The ``Tracker`` of ``weights`` as the options load it: ``--guard``, ``--adapt``, ``--max-position``, ``--r``,
+    ``--robust``, ``--max-coast``."""
+    from immnet.imm.guard import parse_guard
+    from immnet.tracking.tracker import AS_CONFIGURED, Tracker
+
+    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r,
+                                      _robust_arg(args))
+    tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
+    return tracker
+
+
 def _weights(args) -> Path | None:
     """The checkpoint ``immnet track`` loads: ``--checkpoint``, else the shipped ``--weights``; None for the bank
     (``--weights bank``, or neither option: the default)."""
@@ -202,10 +214,9 @@ def _detection_cov(args, rows, method, label: str, who: str | None = None):
     reads = keys.MEAS_COV in getattr(method, "needs", ())
     who = who or f"--method {label}"
     if rows.cov is not None:
-        if reads and args.r is not None:
-            raise ValueError(f"--r and the CSV's {'plots' if rows.polar else 'covariance columns'} both give the "
-                             f"measurement noise of {who}: give one of the two")
-        if not reads:
+        if reads:
+            _one_noise(args, rows, who)
+        else:
             print(f"{label} assumes its own measurement noise: each detection's covariance from the CSV is not used "
                   f"(docs/radar.md, 'Input')", file=sys.stderr)
         return rows.cov
@@ -214,8 +225,15 @@ def _detection_cov(args, rows, method, label: str, who: str | None = None):
     if args.r is None:
         raise ValueError(f"{who} is told each detection's covariance, which this CSV does not hold: give "
                          f"the columns r_xx..r_zz, a radar's plots with their stds, or one std for all with --r METRES")
-    cov = np.where(np.isnan(rows.z).any(-1)[:, None, None], np.nan, np.eye(3) * float(args.r) ** 2)
-    return cov
+    return np.where(np.isnan(rows.z).any(-1)[:, None, None], np.nan, np.eye(3) * float(args.r) ** 2)
+
+
+def _one_noise(args, rows, who: str) -> None:
+    """A ValueError where ``--r`` is given for CSV rows that carry each detection's covariance: two noises for
+    ``who``."""
+    if args.r is not None:
+        raise ValueError(f"--r and the CSV's {'plots' if rows.polar else 'covariance columns'} both give the "
+                         f"measurement noise of {who}: give one of the two")
 
 
 def _report_cov_unused(rows, what: str) -> None:
@@ -264,9 +282,7 @@ def _advise(weights: Path, intervals) -> None:
     from immnet.tracking.advice import interval_note, load_provenance, weights_note
 
     provenance = load_provenance(weights)
-    for note in (interval_note(provenance, intervals), weights_note(weights, provenance, intervals)):
-        if note:
-            print(note, file=sys.stderr)
+    _say(interval_note(provenance, intervals), weights_note(weights, provenance, intervals))
 
 
 def _advise_bank(intervals) -> None:
@@ -274,9 +290,14 @@ def _advise_bank(intervals) -> None:
     interval, with what another member trained for those scans measured (``immnet.tracking.advice.bank_note``)."""
     from immnet.tracking.advice import bank_note
 
-    note = bank_note(intervals)
-    if note:
-        print(note, file=sys.stderr)
+    _say(bank_note(intervals))
+
+
+def _say(*notes) -> None:
+    """Each of ``notes`` that there is (not None, not empty) on stderr."""
+    for note in notes:
+        if note:
+            print(note, file=sys.stderr)
 
 
 def _report_no_cov(why: str) -> None:
@@ -291,7 +312,6 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     A method told each detection's covariance (``keys.MEAS_COV`` in its ``needs``) is given the rows'."""
     from immnet.data.validate import gate_measurements
     from immnet.filters.methods import build_method, gives_cov
-    from immnet.data.csvio import write_tracks_csv
     from immnet.tracking.segments import split_rows, track_rows
 
     name = name or args.method
@@ -320,12 +340,22 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     state, probs, cov = track_rows(method, segs, offset, return_cov=True,
                                    max_interval=None if span is None else span[1], r=args.r, meas_cov=meas_cov,
                                    one_row_interval=pad)
-    write_tracks_csv(args.output, rows, state, probs, cov if has_cov else None)
-    if not has_cov:
+    return _write_rows(args, rows, z, n_gated, limit, len(segs.span), (state, probs, cov if has_cov else None), why,
+                       f" with {label}")
+
+
+def _write_rows(args, rows, z, n_gated: int, limit: float, n_segments: int, out: tuple, why: str, by: str = "") -> int:
+    """The CSV output of ``rows`` from their estimates ``out`` (state, mode probabilities, covariance: None, and ``why``
+    on stderr, where the tracker keeps none), then on stderr the gated detections (``z`` as tracked) and what was
+    tracked (``by``: with which tracker)."""
+    from immnet.data.csvio import write_tracks_csv
+
+    write_tracks_csv(args.output, rows, *out)
+    if out[2] is None:
         _report_no_cov(why)
     _report_gated(n_gated, limit, _gated_lines(rows, z))
-    print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows with {label} "
-          f"-> {args.output}", file=sys.stderr)
+    print(f"tracked {len(set(rows.ids))} tracks ({n_segments} segments), {len(rows)} rows{by} -> {args.output}",
+          file=sys.stderr)
     return 0
 
 
@@ -348,9 +378,7 @@ def _track_plots(args, rows, limit: float) -> int:
     name, line = radar_default(track_intervals(rows.ids, rows.t))
     _refuse_bank_options(args, "these rows carry each detection's covariance and are", name, "them")
     who = f"{name} (the default for rows with covariances)"
-    if args.r is not None:
-        raise ValueError(f"--r and the CSV's {'plots' if rows.polar else 'covariance columns'} both give the "
-                         f"measurement noise of {who}: give one of the two")
+    _one_noise(args, rows, who)
     print(line, file=sys.stderr)
     return _track_rows_with_method(args, rows, limit, name=name, who=who)
 
@@ -366,8 +394,6 @@ def _labelled(path: Path) -> bool:
 
 def run(args) -> int:
     from immnet.data.validate import check_limit, gate_measurements
-    from immnet.imm.guard import parse_guard
-    from immnet.tracking.tracker import AS_CONFIGURED, Tracker
 
     from immnet.tracking import multi_cli
 
@@ -386,7 +412,7 @@ def run(args) -> int:
         args.max_coast = MAX_COAST
     if args.input.suffix.lower() == ".csv":
         from immnet.tracking.advice import track_intervals
-        from immnet.data.csvio import read_tracks_csv, write_tracks_csv
+        from immnet.data.csvio import read_tracks_csv
         from immnet.tracking.segments import split_segments, track_segments
 
         rows = read_tracks_csv(args.input, _sigmas(args))
@@ -402,9 +428,7 @@ def run(args) -> int:
             code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank", bank=True)
             _advise_bank(track_intervals(rows.ids, rows.t))
             return code
-        tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r,
-                                          _robust_arg(args))
-        tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)  # the rows' segments are cut at it already
+        tracker = _tracker(args, weights, limit, r)  # its max_coast: the rows' segments are cut at it already
         if tracker.net.start.told_r:
             raise ValueError(f"{weights}: this network's filter experts are told each track's measurement std, which a "
                              f"CSV does not hold: give the radar's with --r METRES")
@@ -418,16 +442,9 @@ def run(args) -> int:
         _report_cov_unused(rows, str(weights))
         z, n_gated = gate_measurements(rows.z, limit)
         segs = split_segments(rows.ids, rows.t, z, tracker.net.dt, args.max_coast, rows.lines, rows.times)
-        has_cov = tracker.net.has_cov
-        state, probs, *cov = track_segments(tracker, segs, return_cov=has_cov)
-        write_tracks_csv(args.output, rows, state, probs, cov[0] if cov else None)
-        if not has_cov:
-            _report_no_cov(tracker.net.no_cov_reason())
-        _report_gated(n_gated, limit, _gated_lines(rows, z))
-        print(f"tracked {len(set(rows.ids))} tracks ({len(segs.span)} segments), {len(rows)} rows -> {args.output}",
-              file=sys.stderr)
-        return 0
-    from immnet.data.scratch import publishing
+        state, probs, *cov = track_segments(tracker, segs, return_cov=tracker.net.has_cov)
+        return _write_rows(args, rows, z, n_gated, limit, len(segs.span), (state, probs, cov[0] if cov else None),
+                           tracker.net.no_cov_reason())
     from immnet.data.storage import load_dataset
     from immnet.tracking.tracker import check_dt
 
@@ -439,9 +456,7 @@ def run(args) -> int:
     if weights is None:
         _report_npz_cov_unused(data, "the bank", args.r)
         return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
-    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r,
-                                      _robust_arg(args))
-    tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
+    tracker = _tracker(args, weights, limit, r)
     if tracker.net.start.told_cov and not told:
         raise ValueError(f"{weights}: this network is told each detection's covariance, which {args.input} does not "
                          f"hold: give the .npz its {keys.MEAS_COV!r} [N, T, 3, 3] (immnet data adsb --sigma-* writes "
@@ -458,11 +473,8 @@ def run(args) -> int:
     # the range coasted at intervals inside it), each track's r where the network's filter experts are told it
     out = tracker.track(data["measurements"], intervals=tracker.net.intervals_for(data), return_cov=has_cov,
                         r=tracker.net.told_r(data), meas_cov=tracker.net.told_cov(data))
-    with publishing(args.output, suffix=".npz") as tmp:
-        times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
-        cov = {"state_cov": out["state_cov"].numpy()} if has_cov else {}
-        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(),
-                 dt=np.float64(meta["dt"]), **times, **cov)
+    _save_npz(args.output, data, meta, {"state": out["state"].numpy(), "mode_probs": out["mode_probs"].numpy()},
+              {"state_cov": out["state_cov"].numpy()} if has_cov else {})
     if not has_cov:
         _report_no_cov(tracker.net.no_cov_reason())
     _report_gated(tracker.n_gated, limit)
@@ -475,20 +487,28 @@ def run(args) -> int:
 def _npz_with_bank(args, data, meta, bank, limit: float) -> int:
     """An .npz tracked by the bank: each scan at its own interval; ``member_probs [N, T, K]`` beside the state, the
     mode probabilities and the covariance (``member_names`` their order)."""
-    from immnet.data.scratch import publishing
     from immnet.data.times import scan_intervals
 
     intervals = scan_intervals(data)
     out = bank.track(data["measurements"], intervals=intervals, return_cov=True)
-    with publishing(args.output, suffix=".npz") as tmp:
-        times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
-        np.savez(tmp, state=out["state"].numpy(), mode_probs=out["mode_probs"].numpy(),
-                 state_cov=out["state_cov"].numpy(), member_probs=out[keys.MEMBER_PROBS].numpy(),
-                 member_names=np.array(bank.names), dt=np.float64(meta["dt"]), **times)
+    _save_npz(args.output, data, meta, {"state": out["state"].numpy(), "mode_probs": out["mode_probs"].numpy(),
+                                        "state_cov": out["state_cov"].numpy(),
+                                        "member_probs": out[keys.MEMBER_PROBS].numpy(),
+                                        "member_names": np.array(bank.names)})
     _report_gated(bank.n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks with the bank ({', '.join(bank.names)}) -> {args.output}", file=sys.stderr)
     _advise_bank(intervals.numpy()[:, 1:].ravel())
     return 0
+
+
+def _save_npz(path: Path, data, meta, arrays: dict, tail: dict | None = None) -> None:
+    """An .npz output written whole or not at all: ``arrays``, the data's ``dt`` (``meta``) and scan times ``t`` where it
+    has them, then ``tail``."""
+    from immnet.data.scratch import publishing
+
+    with publishing(path, suffix=".npz") as tmp:
+        times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
+        np.savez(tmp, **arrays, dt=np.float64(meta["dt"]), **times, **(tail or {}))
 
 
 def _report_npz_cov_unused(data, what: str, r: float | None = None) -> None:
@@ -503,7 +523,6 @@ def _npz_plots(args, data, meta, limit: float) -> int:
     ``immnet.tracking.advice.radar_default`` picks for its scan intervals (``t``, else ``dt``), as for CSV rows with
     covariances, told ``meas_cov``; each window tracked as ``immnet evaluate`` tracks it (a network's coasting limit
     ``--max-coast``; a model-based filter has none). Written as the other .npz outputs, the tracker named on stderr."""
-    from immnet.data.scratch import publishing
     from immnet.data.times import scan_intervals
     from immnet.data.validate import gate_measurements
     from immnet.filters.methods import build_method, gives_cov
@@ -526,11 +545,9 @@ def _npz_plots(args, data, meta, limit: float) -> int:
     z, n_gated = gate_measurements(data[keys.MEASUREMENTS], limit)
     batch = TensorDict({**dict(data.items()), keys.MEASUREMENTS: z}, batch_size=data.batch_size)
     out = method.track(batch)
-    with publishing(args.output, suffix=".npz") as tmp:
-        times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
-        probs = {"mode_probs": out[keys.MODE_PROBS].numpy()} if keys.MODE_PROBS in out.keys() else {}
-        cov = {"state_cov": out[keys.STATE_COV].numpy()} if has_cov else {}
-        np.savez(tmp, state=out[keys.STATE].numpy(), **probs, dt=np.float64(meta["dt"]), **times, **cov)
+    probs = {"mode_probs": out[keys.MODE_PROBS].numpy()} if keys.MODE_PROBS in out.keys() else {}
+    _save_npz(args.output, data, meta, {"state": out[keys.STATE].numpy(), **probs},
+              {"state_cov": out[keys.STATE_COV].numpy()} if has_cov else {})
     _report_gated(n_gated, limit)
     print(f"tracked {out.batch_size[0]} tracks with {name} -> {args.output}", file=sys.stderr)
     return 0
