@@ -26,6 +26,12 @@ class _LearnedMethod:
     needs: tuple[str, ...] = ()
     net = None
 
+    def _returns_cov(self, return_cov: bool) -> None:
+        """``return_cov`` kept; a ValueError naming why where the network's experts carry no covariance."""
+        if return_cov and not self.net.has_cov:
+            raise ValueError(f"{self.name}: {self.net.no_cov_reason()}")
+        self.return_cov = return_cov
+
     def check(self, batch: TensorDict) -> None:
         """A ValueError when the data's ``dt`` is not the one the network was trained at (:func:`check_dt`)."""
         if keys.DT in batch.keys() or keys.TIME in batch.keys():
@@ -52,25 +58,20 @@ class IMMNetMethod(_LearnedMethod):
     def __init__(self, checkpoint: str | None = None, name: str = "immnet", batch_size: int = 500, guard=AS_CONFIGURED,
                  adapt=AS_CONFIGURED, return_cov: bool = False, knock_out: list[str] | tuple[str, ...] = (), r=AS_CONFIGURED,
                  reacquire=AS_CONFIGURED):
-        self.name = name
-        self.tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r, reacquire).knock_out(*knock_out),
-                               max_coast=math.inf)
-        self.net = self.tracker.net
+        tracker = Tracker(load_network(checkpoint or PRETRAINED, guard, adapt, r, reacquire).knock_out(*knock_out),
+                          max_coast=math.inf)
+        self._use(tracker, name, batch_size, return_cov)
+
+    def _use(self, tracker: Tracker, name: str, batch_size: int, return_cov: bool) -> None:
+        self.name, self.tracker, self.net, self.batch_size = name, tracker, tracker.net, batch_size
         self.needs = told_needs(self.net)  # a network told each track's r (each detection's R) reads the data's
-        self.batch_size = batch_size
-        if return_cov and not self.net.has_cov:
-            raise ValueError(f"{name}: {self.net.no_cov_reason()}")
-        self.return_cov = return_cov
+        self._returns_cov(return_cov)
 
     @classmethod
     def from_tracker(cls, tracker: Tracker, name: str = "immnet", batch_size: int = 500, return_cov: bool = False):
         """The method of a loaded ``Tracker`` (its network as loaded: guard, adaptation, gate, coasting limit)."""
         self = cls.__new__(cls)
-        self.name, self.tracker, self.net, self.batch_size = name, tracker, tracker.net, batch_size
-        self.needs = told_needs(self.net)
-        if return_cov and not self.net.has_cov:
-            raise ValueError(f"{name}: {self.net.no_cov_reason()}")
-        self.return_cov = return_cov
+        self._use(tracker, name, batch_size, return_cov)
         return self
 
     def track(self, batch: TensorDict) -> TensorDict:
@@ -98,9 +99,7 @@ class KalmanNetMethod(_LearnedMethod):
                  return_cov: bool = False):
         self.name = name
         self.net = load_network(checkpoint or PRETRAINED)
-        if return_cov and not self.net.has_cov:
-            raise ValueError(f"{name}: {self.net.no_cov_reason()}")
-        self.return_cov = return_cov
+        self._returns_cov(return_cov)
         names = self.net.model_set.names
         if expert is None and len(names) > 1:
             raise ValueError(f"kalmannet needs `expert` naming one of {names} for a checkpoint with several experts")

@@ -211,17 +211,23 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
         if hasattr(method, "check"):
             method.check(batch)
         out = method.track(batch)
-        st = out[keys.STATE].double().numpy()
-        pr = out[keys.MODE_PROBS].double().numpy() if keys.MODE_PROBS in out.keys() else None
-        cv = out[keys.STATE_COV].double().numpy() if return_cov and keys.STATE_COV in out.keys() else None
-        for i, r in enumerate(rows):
-            pos = scans[int(r[0])][1]
-            state[r] = st[i, pos]
-            if pr is not None:
-                probs[r] = pr[i, pos]
-            if cv is not None:
-                cov[r] = cv[i, pos]
+        _scatter(out, return_cov, rows, [scans[int(r[0])][1] for r in rows], state, probs, cov)
     return (state, probs, cov) if return_cov else (state, probs)
+
+
+def _scatter(out, return_cov: bool, rows, scans, state, probs, cov) -> None:
+    """Each segment's rows' estimates from a batch's output ``out`` (segment ``i``'s rows ``rows[i]`` at its scans
+    ``scans[i]``) into the per-row ``state``, ``mode_probs`` and, with ``return_cov``, ``state_cov`` (float64; those
+    the output lacks stay NaN)."""
+    st = out[keys.STATE].double().numpy()
+    pr = out[keys.MODE_PROBS].double().numpy() if keys.MODE_PROBS in out.keys() else None
+    cv = out[keys.STATE_COV].double().numpy() if return_cov and keys.STATE_COV in out.keys() else None
+    for i, (r, pos) in enumerate(zip(rows, scans)):
+        state[r] = st[i, pos]
+        if pr is not None:
+            probs[r] = pr[i, pos]
+        if cv is not None:
+            cov[r] = cv[i, pos]
 
 
 def track_segments(tracker, segs: Segments, batch_size: int = 512, return_cov: bool = False):
@@ -234,11 +240,5 @@ def track_segments(tracker, segs: Segments, batch_size: int = 512, return_cov: b
         for i, r in enumerate(rows):
             z[i, segs.step[r]] = segs.z[r]
         out = tracker.track(z, batch_size=len(rows), return_cov=return_cov)
-        st, pr = out[keys.STATE].numpy(), out[keys.MODE_PROBS].numpy()
-        cv = out[keys.STATE_COV].numpy() if return_cov else None
-        for i, r in enumerate(rows):
-            state[r] = st[i, segs.step[r]]
-            probs[r] = pr[i, segs.step[r]]
-            if cv is not None:
-                cov[r] = cv[i, segs.step[r]]
+        _scatter(out, return_cov, rows, [segs.step[r] for r in rows], state, probs, cov)
     return (state, probs, cov) if return_cov else (state, probs)

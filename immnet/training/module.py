@@ -201,15 +201,20 @@ def widen_for_interval(weights: dict, own: dict, columns: dict[str, int]) -> dic
     (name -> the interval's input column) that lacks exactly that column gets it as zeros. The widened
     network computes what the checkpoint's does at any interval until training moves the new column
     (function-preserving); the other weights are returned as they are."""
+    return _widen(weights, own, columns,
+                  lambda w, target, col: w.shape[:-1] == target.shape[:-1] and w.shape[-1] + 1 == target.shape[-1],
+                  lambda w, col: torch.cat([w[..., :col], w.new_zeros(*w.shape[:-1], 1), w[..., col:]], -1))
+
+
+def _widen(weights: dict, own: dict, how: dict, fits, widen) -> dict:
+    """``weights`` with each weight named in ``how`` whose shape differs from ``own``'s and ``fits(w, target,
+    how[name])`` replaced by ``widen(w, how[name])``; a weight that does not fit is left for ``load_state_dict`` to
+    name the mismatch."""
     out = dict(weights)
-    for name, col in columns.items():
+    for name, arg in how.items():
         w, target = out.get(name), own.get(name)
-        if w is None or target is None or w.shape == target.shape:
-            continue
-        if w.shape[:-1] != target.shape[:-1] or w.shape[-1] + 1 != target.shape[-1]:
-            continue  # not the interval's column: load_state_dict names the mismatch
-        zero = w.new_zeros(*w.shape[:-1], 1)
-        out[name] = torch.cat([w[..., :col], zero, w[..., col:]], -1)
+        if w is not None and target is not None and w.shape != target.shape and fits(w, target, arg):
+            out[name] = widen(w, arg)
     return out
 
 
@@ -225,15 +230,9 @@ def widen_for_groups(weights: dict, own: dict, rows: dict[str, int]) -> dict:
     """``weights`` of a network with one joint set of modes, for one with modes per group: each weight in ``rows``
     (name -> the number of groups ``G``) that has ``1 / G`` of the rows gets them once per group. Each group then
     starts with the joint network's correction of the mode update; the other weights are returned as they are."""
-    out = dict(weights)
-    for name, groups in rows.items():
-        w, target = out.get(name), own.get(name)
-        if w is None or target is None or w.shape == target.shape:
-            continue
-        if w.shape[1:] != target.shape[1:] or w.shape[0] * groups != target.shape[0]:
-            continue  # not one block per group: load_state_dict names the mismatch
-        out[name] = w.repeat(groups, *([1] * (w.dim() - 1)))
-    return out
+    return _widen(weights, own, rows,
+                  lambda w, target, groups: w.shape[1:] == target.shape[1:] and w.shape[0] * groups == target.shape[0],
+                  lambda w, groups: w.repeat(groups, *([1] * (w.dim() - 1))))
 
 
 class Stage2Module(_TrackerModule):
@@ -398,16 +397,18 @@ class Stage2Module(_TrackerModule):
         self.log("train/skipped", float(self.skipped))
 
     def validation_step(self, batch, batch_idx):
-        probs = self._evaluate(batch, "val")
-        conf = confusion(probs.detach().cpu(), batch[keys.MODE].cpu())
-        self._confusion = conf if batch_idx == 0 else self._confusion + conf
+        self._score(batch, batch_idx, "val")
 
     def on_validation_epoch_end(self):
         """Log the validation confusion matrix as a figure (W&B), beside the scalar metrics."""
         self._log_confusion("val", f"validation, step {self.global_step}")
 
     def test_step(self, batch, batch_idx):
-        probs = self._evaluate(batch, "test")
+        self._score(batch, batch_idx, "test")
+
+    def _score(self, batch, batch_idx, prefix: str) -> None:
+        """A validation or test batch: its metrics logged (``_evaluate``), its confusion counts added to the epoch's."""
+        probs = self._evaluate(batch, prefix)
         conf = confusion(probs.detach().cpu(), batch[keys.MODE].cpu())
         self._confusion = conf if batch_idx == 0 else self._confusion + conf
 
