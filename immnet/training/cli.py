@@ -135,13 +135,14 @@ def _cli(args: list[str]) -> IMMNetCLI:
     )
 
 
-def _config_arg(argv: list[str]) -> str | None:
+def _configs(argv: list[str]):
+    """Each ``--config`` of ``argv`` as ``(index, width, value)``: ``--config VALUE`` (width 2) or ``--config=VALUE``
+    (width 1)."""
     for i, a in enumerate(argv):
         if a == "--config" and i + 1 < len(argv):
-            return argv[i + 1]
-        if a.startswith("--config="):
-            return a.split("=", 1)[1]
-    return None
+            yield i, 2, argv[i + 1]
+        elif a.startswith("--config="):
+            yield i, 1, a.split("=", 1)[1]
 
 
 def _found(value: str) -> str:
@@ -156,11 +157,8 @@ def resolve_configs(argv: list[str]) -> list[str]:
     given, among the packaged configs, in the checkout; docs/configs.md), so that a packaged ablation
     (``--config configs/ablations/no-guard.yaml``) runs from any directory."""
     out = list(argv)
-    for i, a in enumerate(out):
-        if a == "--config" and i + 1 < len(out):
-            out[i + 1] = _found(out[i + 1])
-        elif a.startswith("--config="):
-            out[i] = "--config=" + _found(a.split("=", 1)[1])
+    for i, width, value in _configs(argv):
+        out[i + width - 1] = _found(value) if width == 2 else "--config=" + _found(value)
     return out
 
 
@@ -280,15 +278,13 @@ def lightning_main(argv: list[str]) -> int:
     """Run Lightning's CLI; a first ``--config`` holding ``stages:`` runs the chain, and every
     further argument (another ``--config`` too, e.g. an ablation) applies to each stage."""
     argv = resolve_configs(argv)
-    config = _config_arg(argv)
+    i, width, config = next(_configs(argv), (None, 0, None))
     if argv[0] == "fit" and config is not None:
         try:
             recipe = yaml.safe_load(resolve_path(config).read_text())
         except OSError:  # no such file: a YAML string (an inline stage), or an error for Lightning's CLI to report
             recipe = None
         if isinstance(recipe, dict) and "stages" in recipe:
-            i = argv.index("--config") if "--config" in argv else argv.index(f"--config={config}")
-            width = 2 if argv[i] == "--config" else 1
             run_stages(recipe, argv[1:i] + argv[i + width :], label=Path(config).stem)
             return 0
     _run(argv)
