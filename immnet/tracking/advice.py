@@ -66,15 +66,21 @@ def _takes(provenance: dict, median: float) -> bool:
     network with the intervals its provenance names (a network trained over a range takes an interval longer than the
     range cut into equal ones by missed scans: ``real-5s`` takes 10 s scans as two of 5 s; one trained at one interval,
     that interval; a provenance that names none, the 3D-LAST network's, counts as none)."""
+    span, dt = provenance.get("interval_range"), provenance.get("scan_interval")
+    return (span is not None or dt is not None) and _accepts(span, dt, [median])
+
+
+def _accepts(span, dt, intervals) -> bool:
+    """Whether a network trained over the intervals ``span`` (or at the one interval ``dt``) takes every finite one of
+    ``intervals`` (s) between two scans of a track: ``immnet.tracking.bank.accepts`` (an interval longer than the
+    span cut into equal ones by missed scans, each then inside it, ``trained_for``'s tolerance)."""
     import torch
 
     from immnet.tracking.bank import accepts
 
-    span, dt = provenance.get("interval_range"), provenance.get("scan_interval")
-    if span is None and dt is None:
-        return False
-    # two scans: the first interval is scan 0's, which accepts takes as at most the range's end
-    return bool(accepts(SimpleNamespace(interval_range=span, dt=dt), torch.full((1, 2), float(median)))[0])
+    iv = np.asarray(intervals, dtype=np.float64)
+    track = torch.from_numpy(np.concatenate([[np.nan], iv[np.isfinite(iv)]]))[None]  # scan 0's interval: none
+    return bool(accepts(SimpleNamespace(interval_range=span, dt=dt), track)[0])
 
 
 def _table_scans(name: str) -> dict:
@@ -198,19 +204,6 @@ RADAR_BANDS = (("immnet-radar-5s", "radar-imm-robust-5s", (4.5, 5.5)),
 model-based filter it is built on (the joint IMM told each plot's covariance, Huber's update; docs/radar.md)."""
 
 
-def _band_takes(span: tuple[float, float], intervals) -> bool:
-    """Whether a network trained over the intervals ``span`` takes every one of ``intervals`` (s) as ``immnet track``
-    runs it: an interval longer than the span's end cut into equal ones by missed scans
-    (``immnet.tracking.segments._scan_times``), each then inside the span (``trained_for``'s tolerance)."""
-    lo, hi = span
-    tol = 1e-6 * max(1.0, hi)
-    dt = np.asarray(intervals, dtype=np.float64)
-    dt = dt[np.isfinite(dt)]
-    cuts = np.maximum(1, np.ceil(dt / (hi + 1e-6 * max(1.0, hi))))
-    each = dt / cuts
-    return bool(((each >= lo - tol) & (each <= hi + tol)).all())
-
-
 def radar_default(intervals) -> tuple[str, str]:
     """``(method, line)``: the registry method that tracks CSV rows with each detection's covariance by default, from
     their scan ``intervals`` (s, every track's together: :func:`track_intervals`), and the line ``immnet track`` says
@@ -226,7 +219,7 @@ def radar_default(intervals) -> tuple[str, str]:
                      f"each plot's covariance (no track has two rows to read a scan interval from; --method or "
                      f"--weights bank chooses another tracker)")
     for net, _, span in RADAR_BANDS:
-        if span[0] - 1e-6 * span[1] <= median <= span[1] * (1 + 1e-6) and _band_takes(span, intervals):
+        if span[0] - 1e-6 * span[1] <= median <= span[1] * (1 + 1e-6) and _accepts(span, None, intervals):
             return net, (f"note: the rows carry each detection's covariance and their median scan interval is "
                          f"{median:.3g} s: tracked by {net}, the shipped network told each plot's covariance for "
                          f"{span[0]:g}-{span[1]:g} s scans (--method or --weights bank chooses another tracker)")
