@@ -50,9 +50,9 @@ from immnet.stages import IMMNet
 from immnet.stages.network import Likelihood
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
-    AS_CONFIGURED, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals, coast_cuts, coast_restarts,
-    coast_scan, coast_step, guarded, network_from, next_origin, per_track, provenance_of, read_checkpoint, run_network,
-    scans_served, select_rows, to_local, to_world, trained_for,
+    AS_CONFIGURED, as_intervals, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals,
+    coast_cuts, coast_restarts, coast_scan, coast_step, guarded, listed, network_from, next_origin, per_track,
+    provenance_of, read_checkpoint, run_network, scans_served, select_rows, to_local, to_world, trained_for,
 )
 
 DEFAULT_MEMBERS = BANK_MEMBERS
@@ -273,8 +273,8 @@ class NetworkBank:
             spans = ", ".join(f"{name} {scans_served(net)}" for name, net in self.members.items())
             iv = torch.as_tensor(intervals, dtype=torch.float64)[lost[0]]
             iv = iv[~torch.isnan(iv)]
-            raise ValueError(f"no member of this bank takes track(s) {', '.join(str(int(i)) for i in named[:5])}"
-                             f"{', ...' if len(named) > 5 else ''}: the first has scan intervals of {float(iv.min()):g} to "
+            raise ValueError(f"no member of this bank takes track(s) {listed([int(i) for i in named])}: the first has "
+                             f"scan intervals of {float(iv.min()):g} to "
                              f"{float(iv.max()):g} s, and its members were trained for {spans}; resample the data, or use "
                              f"a method that takes any interval (the model-based ones, e.g. --method imm-tuned)")
 
@@ -292,10 +292,7 @@ class NetworkBank:
         z = as_measurements(measurements, 3)
         if intervals is None:
             intervals = torch.full(z.shape[:2], self.dt, dtype=torch.float64)
-        intervals = torch.as_tensor(intervals, dtype=torch.float64)
-        if tuple(intervals.shape) != tuple(z.shape[:2]):
-            raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
-        check_finite_intervals(intervals, "intervals")
+        intervals = check_finite_intervals(as_intervals(intervals, z), "intervals")
         gated, n_gated = gate_measurements(z, self.max_position)  # each member gates the same rows as it runs
         restart, taken = coast_restarts(~torch.isnan(gated).any(-1), intervals, self.max_coast)
         if bool(restart.any()):  # no detection for longer than max_coast: a track starts again, a fresh one

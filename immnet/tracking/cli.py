@@ -264,10 +264,10 @@ def check_paths(source: Path, target: Path) -> None:
 def _gated_lines(rows, z) -> str:
     """`` on line(s) L1, L2, ...``: the CSV lines of ``rows`` whose measurement ``z`` (gated) made a missed
     detection, the first five; empty where none was gated."""
+    from immnet.tracking.networks import listed
+
     gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
-    if not len(gated):
-        return ""
-    return " on line(s) " + ", ".join(str(rows.lines[i]) for i in gated[:5]) + (", ..." if len(gated) > 5 else "")
+    return " on line(s) " + listed([rows.lines[i] for i in gated]) if len(gated) else ""
 
 
 def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
@@ -502,8 +502,8 @@ def _npz_with_bank(args, data, meta, bank, limit: float) -> int:
 
 
 def _save_npz(path: Path, data, meta, arrays: dict, tail: dict | None = None) -> None:
-    """An .npz output written whole or not at all: ``arrays``, the data's ``dt`` (``meta``) and scan times ``t`` where it
-    has them, then ``tail``."""
+    """An .npz output written whole or not at all: ``arrays``, the data's ``dt`` (``meta``) and scan times ``t``
+    where it has them, then ``tail``."""
     from immnet.data.scratch import publishing
 
     with publishing(path, suffix=".npz") as tmp:

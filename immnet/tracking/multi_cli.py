@@ -107,14 +107,13 @@ def _gated(plots, limit: float) -> tuple[np.ndarray, np.ndarray]:
     """``(keep [P], z [P, 3])``: the plots a sensor can report (finite, ``|x|, |y|, |z| <= limit``), said on stderr
     where some cannot (they are left out of their scans)."""
     from immnet.data.validate import gate_measurements
+    from immnet.tracking.networks import listed
 
     z, n_gated = gate_measurements(plots.z, limit)
     keep = ~np.isnan(z).any(-1)
     if n_gated:
-        lines = plots.lines[~keep]
-        where = ", ".join(str(v) for v in lines[:5]) + (", ..." if len(lines) > 5 else "")
         print(f"left out {n_gated} plot(s) a sensor cannot report (non-finite, or |x|, |y| or |z| > {limit:g} m) on "
-              f"line(s) {where}", file=sys.stderr)
+              f"line(s) {listed(plots.lines[~keep])}", file=sys.stderr)
     return keep, z
 
 

@@ -150,24 +150,25 @@ def check_dt(net, dt, name: str = "immnet", method=None) -> None:
         return
     values = torch.unique(torch.as_tensor(dt, dtype=torch.float64).reshape(-1))
     values = values[~torch.isnan(values)]
-    bad = values[~trained_for(net, values)].tolist()
+    bad = listed([f"{v:g}" for v in values[~trained_for(net, values)].tolist()])
     span = getattr(net, "interval_range", None)
     others = "a method that takes any interval: the model-based ones, e.g. --method imm-tuned"
-    if span is not None:
-        lo, hi = float(span[0]), float(span[1])
-        if bad:
-            raise ValueError(
-                f"{name} was trained on intervals {lo:g}-{hi:g} s but this data has an interval of "
-                f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s, outside that range; "
-                f"resample the data, train a model over this range (DataSpec dt), or use {others}")
-        return
+    if bad and span is not None:
+        raise ValueError(
+            f"{name} was trained on intervals {float(span[0]):g}-{float(span[1]):g} s but this data has an interval of "
+            f"{bad} s, outside that range; resample the data, train a model over this range (DataSpec dt), or use "
+            f"{others}")
     if bad:
         raise ValueError(
-            f"{name} was trained on data sampled at dt = {net.dt:g} s but this data has dt = "
-            f"{', '.join(f'{v:g}' for v in bad[:5])}{', ...' if len(bad) > 5 else ''} s; it was trained at that one "
-            f"interval only, and a learned tracker only knows its training interval (its velocities would be off "
-            f"by the ratio): resample the data to dt = {net.dt:g} s, train a model at this dt (DataSpec dt), or use "
-            f"{others}")
+            f"{name} was trained on data sampled at dt = {net.dt:g} s but this data has dt = {bad} s; it was trained "
+            f"at that one interval only, and a learned tracker only knows its training interval (its velocities would "
+            f"be off by the ratio): resample the data to dt = {net.dt:g} s, train a model at this dt (DataSpec dt), or "
+            f"use {others}")
+
+
+def listed(values) -> str:
+    """``values`` as a refusal lists them: the first five, comma-separated, then ``, ...`` where there are more."""
+    return ", ".join(map(str, values[:5])) + (", ..." if len(values) > 5 else "")
 
 
 def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -310,9 +311,7 @@ def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: 
     z = to_local(z, origin)
     where = None
     if intervals is not None:
-        intervals = torch.as_tensor(intervals, dtype=torch.float64)
-        if tuple(intervals.shape) != tuple(z.shape[:2]):
-            raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(intervals.shape)}")
+        intervals = as_intervals(intervals, z)
         if meas_cov is None:
             z, intervals, where = coast_long_gaps(net, z, intervals)
         else:  # each detection's covariance moves with its scan
@@ -360,6 +359,15 @@ def as_measurements(z, dims: int) -> torch.Tensor:
         raise ValueError(f"{what} {shape} with at least one track{'' if dims == 2 else ' and one scan'}, "
                          f"got {tuple(z.shape)}")
     return z
+
+
+def as_intervals(intervals, z: torch.Tensor) -> torch.Tensor:
+    """``intervals`` as float64 ``[n_tracks, T]`` of sequences ``z [n_tracks, T, ...]``; a ValueError for another
+    shape."""
+    iv = torch.as_tensor(intervals, dtype=torch.float64)
+    if tuple(iv.shape) != tuple(z.shape[:2]):
+        raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(iv.shape)}")
+    return iv
 
 
 def check_n_tracks(n_tracks) -> int:

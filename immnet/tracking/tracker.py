@@ -39,8 +39,8 @@ from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    AS_CONFIGURED, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals, coast_cuts, coast_long_gaps,
-    by_segments, coast_restarts, coast_scan, coast_step, frame_origin, guarded, load_network, next_origin,
+    AS_CONFIGURED, as_intervals, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals,
+    coast_cuts, by_segments, coast_restarts, coast_scan, coast_step, guarded, load_network, next_origin,
     outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, to_local,
     trained_for,
 )
@@ -251,12 +251,7 @@ class Tracker:
             raise ValueError(f"meas_cov is [n_tracks, T, 3, 3] = {[*z.shape[:2], 3, 3]}, got {list(meas_cov.shape)}")
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
-        iv = None
-        if intervals is not None:
-            iv = torch.as_tensor(intervals, dtype=torch.float64)
-            if tuple(iv.shape) != tuple(z.shape[:2]):
-                raise ValueError(f"intervals are [n_tracks, T] = {tuple(z.shape[:2])}, got {tuple(iv.shape)}")
-            check_finite_intervals(iv, "intervals")
+        iv = None if intervals is None else check_finite_intervals(as_intervals(intervals, z), "intervals")
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
         gated, n_gated = gate_measurements(z, self.max_position)
         every = torch.full(z.shape[:2], float(self.net.dt), dtype=torch.float64) if iv is None else iv
