@@ -234,9 +234,7 @@ def plot_calibration(curves: Mapping[str, Mapping[float, float]], path, title="P
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120)
 
 
 def _ring_step(extent_km: float) -> float:

@@ -92,7 +92,7 @@ def track_metrics(truth_ids: Sequence, truth_pos: Sequence, est_ids: Sequence, e
     if len({len(v) for v in lists}) != 1:
         raise ValueError(f"track_metrics: truth_ids, truth_pos, est_ids and est_pos need one entry per scan, got "
                          f"{', '.join(str(len(v)) for v in lists)}")
-    per_scan, per_truth = [], {}
+    per_scan, per_truth, seen = [], {}, {}  # seen: each truth's last assigned id, a gap since it, its current run
     for s, (tid, tpos, eid, epos) in enumerate(zip(*lists)):
         tid, eid = np.asarray(tid).reshape(-1), np.asarray(eid).reshape(-1)
         g = gospa(tpos, epos, c, p, alpha)
@@ -101,27 +101,24 @@ def track_metrics(truth_ids: Sequence, truth_pos: Sequence, est_ids: Sequence, e
         per_scan.append(g)
         for k, truth in enumerate(tid.tolist()):
             j = g["assignment"][k]
-            rec = per_truth.setdefault(truth, {"present": 0, "assigned": 0, "switches": 0, "fragmentations": 0,
-                                               "longest": 0, "_last_id": None, "_gap": False, "_run": 0,
-                                               "_run_id": None})
+            rec = per_truth.setdefault(truth, dict.fromkeys(("present", "assigned", "switches", "fragmentations",
+                                                             "longest"), 0))
+            mem = seen.setdefault(truth, {"last_id": None, "gap": False, "run": 0, "run_id": None})
             rec["present"] += 1
             if j < 0:
-                if rec["_last_id"] is not None:
-                    rec["_gap"] = True
-                rec["_run"], rec["_run_id"] = 0, None
+                if mem["last_id"] is not None:
+                    mem["gap"] = True
+                mem["run"], mem["run_id"] = 0, None
                 continue
             est = eid[j].item()
             rec["assigned"] += 1
-            if rec["_last_id"] is not None:
-                rec["switches"] += int(est != rec["_last_id"])
-                rec["fragmentations"] += int(rec["_gap"])
-            rec["_last_id"], rec["_gap"] = est, False
-            rec["_run"] = rec["_run"] + 1 if rec["_run_id"] == est else 1
-            rec["_run_id"] = est
-            rec["longest"] = max(rec["longest"], rec["_run"])
-    for rec in per_truth.values():
-        for k in [k for k in rec if k.startswith("_")]:
-            del rec[k]
+            if mem["last_id"] is not None:
+                rec["switches"] += int(est != mem["last_id"])
+                rec["fragmentations"] += int(mem["gap"])
+            mem["last_id"], mem["gap"] = est, False
+            mem["run"] = mem["run"] + 1 if mem["run_id"] == est else 1
+            mem["run_id"] = est
+            rec["longest"] = max(rec["longest"], mem["run"])
     present = sum(r["present"] for r in per_truth.values())
 
     def mean(key):
