@@ -52,12 +52,6 @@ def make_tracker(setting: dict, name: str = "imm-tuned") -> IMMTracker:
     return IMMTracker(MODEL_SETS[setting["model_set"]], setting["r"], sq, setting["p_stay"], name=name)
 
 
-def score(setting: dict, batch: TensorDict) -> float:
-    """Average RMSE (m) of the setting's IMM on ``batch``, over the scans ``immnet evaluate`` scores
-    (truth there and the track started: ``scored_mask``)."""
-    return average_rmse(make_tracker(setting), batch)
-
-
 def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: str | None = None,
              max_passes: int = 2, grid: dict | None = None, start: dict | None = None) -> dict:
     """Coordinate search on ``val_batch``; writes the winner to ``out_path`` (YAML) and returns
@@ -68,8 +62,9 @@ def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: 
     start = {**START, **(start or {})}
     if keys.STATES not in val_batch.keys():
         raise ValueError("tune_imm needs 'states' (ground truth) in the validation data to score settings")
-    best, best_score, table = coordinate_search(lambda setting: score(setting, val_batch), grid, start,
-                                                max_passes, progress, tag="tune-imm")
+    # each setting scored by its IMM's Average RMSE on the batch, over the scans immnet evaluate scores
+    best, best_score, table = coordinate_search(lambda setting: average_rmse(make_tracker(setting), val_batch), grid,
+                                                start, max_passes, progress, tag="tune-imm")
     write_config(best, best_score, out_path, val_batch.batch_size[0], len(table), data_desc, grid)
     return {"best": best, "score": best_score, "table": table}
 
