@@ -20,9 +20,9 @@ import numpy as np
 
 from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, shipped
-from immnet.data.validate import MAX_ABS_POSITION
+from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.registry import MULTI_TARGET_FILTER
-from immnet.tracking.segments import MAX_COAST, check_coast
+from immnet.tracking.segments import MAX_COAST, check_coast, split_rows, split_segments, track_rows, track_segments
 
 DEFAULT_FILTER = MULTI_TARGET_FILTER
 """The multi-target tracker's per-track filter (``immnet.filters.registry``, read without torch for the help)."""
@@ -310,9 +310,7 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     the refusals name it): each row one scan at its own time (``segments.split_rows``); for a network trained over a
     range of intervals, a gap longer than the range is cut into missed scans inside it (``track_rows(max_interval=...)``).
     A method told each detection's covariance (``keys.MEAS_COV`` in its ``needs``) is given the rows'."""
-    from immnet.data.validate import gate_measurements
     from immnet.filters.methods import build_method, gives_cov
-    from immnet.tracking.segments import split_rows, track_rows
 
     name = name or args.method
     if method is None:
@@ -393,8 +391,6 @@ def _labelled(path: Path) -> bool:
 
 
 def run(args) -> int:
-    from immnet.data.validate import check_limit, gate_measurements
-
     from immnet.tracking import multi_cli
 
     _check_options(args)
@@ -413,7 +409,6 @@ def run(args) -> int:
     if args.input.suffix.lower() == ".csv":
         from immnet.tracking.advice import track_intervals
         from immnet.data.csvio import read_tracks_csv
-        from immnet.tracking.segments import split_segments, track_segments
 
         rows = read_tracks_csv(args.input, _sigmas(args))
         if args.method is not None:
@@ -524,7 +519,6 @@ def _npz_plots(args, data, meta, limit: float) -> int:
     covariances, told ``meas_cov``; each window tracked as ``immnet evaluate`` tracks it (a network's coasting limit
     ``--max-coast``; a model-based filter has none). Written as the other .npz outputs, the tracker named on stderr."""
     from immnet.data.times import scan_intervals
-    from immnet.data.validate import gate_measurements
     from immnet.filters.methods import build_method, gives_cov
     from immnet.tracking.advice import radar_default
     from tensordict import TensorDict

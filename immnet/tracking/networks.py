@@ -432,12 +432,6 @@ def provenance_of(path) -> str:
 
 
 # --- the coasting limit: a track with no detection for longer than ``max_coast`` seconds restarts ---------------------
-def _beyond(since: torch.Tensor, max_coast: float) -> torch.Tensor:
-    """Where ``since`` (s, float64) is past ``max_coast``, to 1e-9 of it (times summed from intervals round; the CSV
-    path's segments, ``segments._join``, keep a gap of exactly ``max_coast`` in its track)."""
-    return since > max_coast * (1 + 1e-9)
-
-
 def coast_restarts(detected: torch.Tensor, intervals: torch.Tensor, max_coast: float):
     """``(restart, taken)``: ``restart [B, T]`` bool, the scans at which a track restarts, as ``Tracker.step`` restarts
     it (:func:`coast_step`): where the time since its last detection (or its start) would pass ``max_coast`` seconds;
@@ -461,7 +455,9 @@ def coast_step(since: torch.Tensor, interval: torch.Tensor, detected: torch.Tens
     None: none is) has had no detection for longer than ``max_coast`` s by this scan; ``since [B]`` the seconds since
     each track's last detection, its start or its restart, after it."""
     total = since + interval
-    restart = _beyond(total, max_coast) if math.isfinite(max_coast) else torch.zeros_like(detected)
+    # past max_coast to 1e-9 of it (times summed from intervals round; the CSV path's segments, segments._join, keep a
+    # gap of exactly max_coast in its track)
+    restart = total > max_coast * (1 + 1e-9) if math.isfinite(max_coast) else torch.zeros_like(detected)
     if first is not None:
         restart = restart & ~first
         total = torch.where(first, torch.zeros_like(total), total)

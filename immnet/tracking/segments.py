@@ -179,10 +179,8 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
 
     told = None if r is None else float(r)  # ``r`` names rows below
     groups, (state, probs, cov) = _groups(segs, batch_size)
-    scans = {}  # per segment (its first row): its scan times and its rows' scans among them
-    for _, rows in groups:
-        for r in rows:
-            scans[int(r[0])] = _scan_times(offset[r], max_interval)
+    # per segment (its first row): its scan times and its rows' scans among them
+    scans = {int(r[0]): _scan_times(offset[r], max_interval) for _, rows in groups for r in rows}
     if max_interval is not None:  # regroup by the spans with the missed scans
         segs = Segments(segs.segment, segs.step, segs.span.copy(), segs.z)
         for r0, (full, _) in scans.items():
