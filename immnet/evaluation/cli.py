@@ -85,10 +85,10 @@ def load_split(path, split: str, limit: int | None = None):
         from immnet.data.datamodule import LASTDataModule
 
         data = LASTDataModule(path).split(split)
-    return first(data, limit), meta
+    return _first(data, limit), meta
 
 
-def first(items, limit: int | None):
+def _first(items, limit: int | None):
     """The first ``limit`` of ``items`` (``--limit``; None: all); a ValueError unless it is positive."""
     if limit is None:
         return items
@@ -97,7 +97,7 @@ def first(items, limit: int | None):
     return items[:limit]
 
 
-def method_names(requested: str | None) -> list[str]:
+def _method_names(requested: str | None) -> list[str]:
     """The names of ``--methods`` (comma-separated; None: not given, no names); a ValueError where it names none."""
     names = [n.strip() for n in (requested or "").split(",") if n.strip()]
     if requested is not None and not names:
@@ -155,7 +155,7 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     from immnet.filters.methods import available_methods, build_method, missing_keys
 
     explicit = requested is not None
-    names = method_names(requested) if explicit else available_methods()
+    names = _method_names(requested) if explicit else available_methods()
     ckpt = _checkpoints(checkpoints, names)
     methods = {}
     for name in names:
@@ -312,8 +312,8 @@ def run_scenes(args) -> int:
     entries = [e for e in index["scenes"] if args.split == "all" or e["split"] == args.split]
     if not entries:
         raise ValueError(f"{args.data} has no {args.split} scenes (split {args.split}); --split all takes every scene")
-    entries = first(entries, args.limit)
-    names = method_names(args.methods) or [DEFAULT_FILTER]
+    entries = _first(entries, args.limit)
+    names = _method_names(args.methods) or [DEFAULT_FILTER]
     settings = {"associator": args.associator or "gnn"}
     for name in names:  # refused before any scene runs: a name that is not a multi-target filter (or not for JPDA)
         MultiTargetTracker(TrackFilter.by_name(name), associator=settings["associator"])

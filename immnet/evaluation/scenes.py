@@ -187,13 +187,7 @@ def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bo
     ``settings``), its told-association reference where ``told`` (the same ``delete_after``), and the raw plots where
     ``raw``; every row runs on one scene before the next scene (the same machine state for each)."""
     settings = dict(settings or {})
-    names = []
-    for f in filters:
-        names.append(f)
-        if told:
-            names.append(f + TOLD)
-    if raw:
-        names.append(RAW)
+    names = [name for f in filters for name in ((f, f + TOLD) if told else (f,))] + ([RAW] if raw else [])
     per = {n: {} for n in names}
     for sc in scenes:
         for f in filters:
