@@ -117,12 +117,8 @@ def rmse_by_interval(err: torch.Tensor, dt: torch.Tensor, edges, mask: torch.Ten
     since the scan before) lies in each bin of :func:`interval_bin`; ``None`` for a bin without a scored pair. A bin
     holds a part of each track's scans, so the pairs are pooled, not averaged per track."""
     b = interval_bin(dt, edges).to(err.device)
-    m = _mask(err, mask)
-    out = []
-    for i in range(len(edges) - 1):
-        sel = m & (b == i)
-        out.append(rmse_pooled(err, sel)["avg"] if bool(sel.any()) else None)
-    return out
+    bins = [_mask(err, mask) & (b == i) for i in range(len(edges) - 1)]
+    return [rmse_pooled(err, sel)["avg"] if bool(sel.any()) else None for sel in bins]
 
 
 def rmse_over_time(err: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:

@@ -202,18 +202,17 @@ def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bo
     return {n: {"mean": combine(list(rows.values())), "scenes": rows} for n, rows in per.items()}
 
 
+SCALARS = ("gospa", "localisation", "missed", "false", "id_switches", "fragmentations", "continuity")
+"""A method's scores over scenes that are one number each (``combine``): the table's columns after the method's name,
+before the time per scan."""
 COLUMNS = ["method", "GOSPA [m]", "localisation [m^2]", "missed [m^2]", "false [m^2]", "id switches",
            "fragmentations", "continuity", "ms per scan (median)", "ms per scan (max)"]
 
 
 def table_rows(results: dict) -> list[list]:
     """One row per method: ``COLUMNS``' numbers from each method's ``mean``."""
-    out = []
-    for name, r in results.items():
-        m = r["mean"]
-        out.append([name, m["gospa"], m["localisation"], m["missed"], m["false"], m["id_switches"],
-                    m["fragmentations"], m["continuity"], m["ms_per_scan"]["median"], m["ms_per_scan"]["max"]])
-    return out
+    return [[name, *(r["mean"][k] for k in SCALARS), *(r["mean"]["ms_per_scan"][k] for k in ("median", "max"))]
+            for name, r in results.items()]
 
 
 def format_table(results: dict, markdown: bool = False) -> str:

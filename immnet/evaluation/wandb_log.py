@@ -131,18 +131,16 @@ def log_results(run, rows: Mapping[str, dict], curves: Mapping[str, object] | No
     run.summary.update({**scalars(rows), **(summary or {})})
 
 
-SCENE_SCALARS = ("gospa", "localisation", "missed", "false", "id_switches", "fragmentations", "continuity")
-
-
 def log_scenes(run, results: Mapping[str, dict]) -> None:
     """Log a scene set's evaluation (``immnet.evaluation.scenes.evaluate_scenes``) into ``run``: the ``results``
-    table (``scenes.COLUMNS``, one row per method), per-method scalars ``<method>/<metric>`` (``SCENE_SCALARS``,
+    table (``scenes.COLUMNS``, one row per method), per-method scalars ``<method>/<metric>`` (``scenes.SCALARS``,
     ``ms_per_scan_median``, ``ms_per_scan_max``) in the summary, and per method ``gospa_over_time/<method>``, a
     ``wandb.plot.line_series`` with a line per scene: GOSPA (m) at each scan against the time from the scene's first
     scan (s)."""
     import wandb
 
     from immnet.evaluation.scenes import COLUMNS as SCENE_COLUMNS
+    from immnet.evaluation.scenes import SCALARS
     from immnet.evaluation.scenes import table_rows as scene_rows
 
     logged = {"results": wandb.Table(columns=SCENE_COLUMNS, data=[[row[0], *map(_finite, row[1:])]
@@ -154,7 +152,7 @@ def log_scenes(run, results: Mapping[str, dict]) -> None:
             xs=[s["t"] for s in per.values()], ys=[[_finite(g) for g in s["gospa_per_scan"]] for s in per.values()],
             keys=list(per), xname="t [s]", title=f"{method}: GOSPA per scan [m]")
         m = r["mean"]
-        summary |= {f"{method}/{k}": m[k] for k in SCENE_SCALARS}
+        summary |= {f"{method}/{k}": m[k] for k in SCALARS}
         summary |= {f"{method}/ms_per_scan_median": m["ms_per_scan"]["median"],
                     f"{method}/ms_per_scan_max": m["ms_per_scan"]["max"]}
     run.log(logged)
