@@ -70,9 +70,7 @@ def plot_rmse_over_time(curves: Mapping[str, object], path, title="Position RMSE
     ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
     ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
     ax.tick_params(axis="y", which="minor", labelsize=7)
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("RMSE per axis [m]")
-    ax.set_title(title)
+    ax.set(xlabel="time [s]", ylabel="RMSE per axis [m]", title=title)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     return save_figure(fig, path)
@@ -102,10 +100,7 @@ def plot_track(truth, measurements, estimates: Mapping[str, object], path, mode=
     for j, s in enumerate(sw):
         ax.scatter(*(truth[s, i] / 1e3 for i in p), marker="*", s=140, color="red", depthshade=False)
         ax.text(*(truth[s, i] / 1e3 for i in p), f"  S{j + 1}", color="red", fontsize=10)
-    ax.set_xlabel("x [km]")
-    ax.set_ylabel("y [km]")
-    ax.set_zlabel("z [km]")
-    ax.set_title(title or "track (o start, * switch)")
+    ax.set(xlabel="x [km]", ylabel="y [km]", zlabel="z [km]", title=title or "track (o start, * switch)")
     ax.legend(loc="upper left", fontsize=8)
     T = truth.shape[0]
     for j, s in enumerate(sw or [None]):
@@ -148,8 +143,7 @@ def plot_mode_probs(mode_probs: Mapping[str, object], mode, path, dt=1.0):
             ax.fill_between(t, 1.03, 1.13, where=m == k, color=MODE_COLORS[k], step="mid", lw=0)
         ax.text(1.0, 1.15, "true mode ▲", transform=ax.transAxes, ha="right", va="bottom", fontsize=7)
         _mark_switches(ax, mode, label=False)
-        ax.set_ylim(0, 1.14)
-        ax.set_yticks([0, 0.5, 1])
+        ax.set(ylim=(0, 1.14), yticks=[0, 0.5, 1])
         ax.set_ylabel(name, fontsize=9)
     axes[0, 0].legend(loc="lower left", bbox_to_anchor=(0, 1.12), ncol=4, fontsize=8, frameon=False)
     axes[-1, 0].set_xlabel("time [s]")
@@ -169,8 +163,7 @@ def plot_confusion(conf, path, title="mode confusion"):
                     color="white" if share[i, j] > 0.6 else "black", fontsize=9)
     ax.set_xticks(range(k), MODE_LABELS[:k])
     ax.set_yticks(range(k), MODE_LABELS[:k])
-    ax.set_xlabel("predicted")
-    ax.set_ylabel("true")
+    ax.set(xlabel="predicted", ylabel="true")
     acc = np.trace(c) / max(c.sum(), 1)
     ax.set_title(f"{title}\naccuracy {100 * acc:.1f} %", fontsize=10)
     fig.colorbar(im, ax=ax, fraction=0.046)
@@ -226,10 +219,8 @@ def plot_calibration(curves: Mapping[str, Mapping[float, float]], path, title="P
     for name, curve in curves.items():
         points = sorted((float(p), float(c)) for p, c in curve.items())  # levels as floats or JSON's strings
         ax.plot(*zip(*points), marker=".", color=colors[name], label=name)
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1)
-    ax.set_xlabel("confidence level p of the position ellipsoid")
-    ax.set_ylabel("fraction of scans whose ellipsoid holds the truth")
+    ax.set(xlim=(0, 1), ylim=(0, 1), xlabel="confidence level p of the position ellipsoid",
+           ylabel="fraction of scans whose ellipsoid holds the truth")
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", fontsize=8)
@@ -274,12 +265,8 @@ def plot_radar_display(plots, tracks: Mapping[int, object], path, clutter=None, 
         ax.text(xy[-1, 0], xy[-1, 1], f" {tid}", color=color, fontsize=8, fontweight="bold", zorder=3)
     ax.plot([0.0], [0.0], marker="^", color="k", ms=7, ls="", label="radar", zorder=3)
     lim = extent + step * 0.25
-    ax.set_xlim(-lim, lim)
-    ax.set_ylim(-lim, lim)
-    ax.set_aspect("equal")
-    ax.set_xlabel("east (km)")
-    ax.set_ylabel("north (km)")
-    ax.set_title(title or f"{len(lines)} tracks, {len(P)} plots")
+    ax.set(xlim=(-lim, lim), ylim=(-lim, lim), aspect="equal", xlabel="east (km)", ylabel="north (km)",
+           title=title or f"{len(lines)} tracks, {len(P)} plots")
     ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
     fig.tight_layout()
     return save_figure(fig, path)
