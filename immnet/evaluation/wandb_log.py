@@ -207,11 +207,9 @@ def method_info(name: str, checkpoint=None) -> dict:
     _, init_args = _method_class(name)
     info = {"config": str(method_config(name)), "init_args": {k: str(v) for k, v in init_args.items()}}
     if checkpoint is None and takes_checkpoint(name):
-        checkpoint = init_args.get("checkpoint")
-        if checkpoint is None:
-            from immnet.checkpoints import PRETRAINED
+        from immnet.checkpoints import PRETRAINED
 
-            checkpoint = PRETRAINED
+        checkpoint = PRETRAINED if init_args.get("checkpoint") is None else init_args["checkpoint"]
     if checkpoint is not None:
         info["checkpoint"] = checkpoint_info(checkpoint)
     return info
