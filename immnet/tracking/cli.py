@@ -130,11 +130,13 @@ def _told_r(args):
     return float(args.r)
 
 
-def _robust_arg(args):
-    """``--robust`` as ``load_network``'s ``robust``: the checkpoint's setting where not given."""
+def _load_options(args) -> dict:
+    """``--adapt`` and ``--robust`` as ``load_network``'s ``adapt`` and ``robust``: the checkpoint's setting where not
+    given."""
     from immnet.tracking.tracker import AS_CONFIGURED
 
-    return AS_CONFIGURED if args.robust is None else float(args.robust)
+    robust = AS_CONFIGURED if args.robust is None else float(args.robust)
+    return {"adapt": True if args.adapt else AS_CONFIGURED, "robust": robust}
 
 
 def _bank(args, limit: float, r):
@@ -142,11 +144,9 @@ def _bank(args, limit: float, r):
     ``--guard`` gives one, ``--adapt`` and ``--r`` for every member."""
     from immnet.imm.guard import parse_guard
     from immnet.tracking.bank import BankMethod
-    from immnet.tracking.tracker import AS_CONFIGURED
 
     guard = None if args.guard == "checkpoint" else parse_guard(args.guard)
-    method = BankMethod(guard=guard, adapt=True if args.adapt else AS_CONFIGURED, r=r, return_cov=True, max_position=limit,
-                        robust=_robust_arg(args))
+    method = BankMethod(guard=guard, r=r, return_cov=True, max_position=limit, **_load_options(args))
     method.net.max_coast = check_coast(args.max_coast, method.net.dt)  # the rows' segments are cut at it already
     return method
 
@@ -155,10 +155,9 @@ def _tracker(args, weights: Path, limit: float, r):
     """The ``Tracker`` of ``weights`` as the options load it: ``--guard``, ``--adapt``, ``--max-position``, ``--r``,
     ``--robust``, ``--max-coast``."""
     from immnet.imm.guard import parse_guard
-    from immnet.tracking.tracker import AS_CONFIGURED, Tracker
+    from immnet.tracking.tracker import Tracker
 
-    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), True if args.adapt else AS_CONFIGURED, limit, r,
-                                      _robust_arg(args))
+    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), max_position=limit, r=r, **_load_options(args))
     tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
     return tracker
 
