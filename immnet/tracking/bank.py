@@ -341,16 +341,14 @@ class NetworkBank:
                         ) -> TensorDict:
         """``_track``'s outputs scan by scan (``step``, which gives ``track``'s numbers to the bit), so that a member
         pruned from a track (``prune``) runs on it no more; the streaming state is left as it was."""
-        kept = (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.seen,
-                self.n_gated)
+        kept = vars(self).copy()  # the streaming state (``reset`` and ``step`` set new objects, never change these)
         try:
             self.reset(z.shape[0])
             self.log_w = self.log_w.masked_fill(~takes, float("-inf"))  # the whole track's members (``takes``)
             with torch.inference_mode():  # no autograd bookkeeping; the outputs are stacked into new tensors below
                 outs = [self.step(z[:, t], dt=intervals[:, t]) for t in range(z.shape[1])]
         finally:
-            (self.carries, self.log_w, self.fresh, self.since, self.last, self.origin, self.stays, self.seen,
-             self.n_gated) = kept
+            vars(self).update(kept)
         names = {keys.STATE: keys.FUSED, keys.MODE_PROBS: keys.MODE_PROBS, keys.MEMBER_PROBS: keys.MEMBER_PROBS}
         if return_cov:
             names[keys.STATE_COV] = keys.FUSED_COV
