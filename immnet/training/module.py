@@ -66,6 +66,13 @@ class _TrackerModule(L.LightningModule):
         if not 0.0 <= lr_floor <= 1.0:
             raise ValueError(f"lr_floor must be in [0, 1], got {lr_floor}")
 
+    def _train_only(self, params) -> None:
+        """Freeze every parameter of the network but ``params`` (``requires_grad`` off: out of the optimizer and the
+        gradient clip)."""
+        keep = {id(p) for p in params}
+        for p in self.net.parameters():
+            p.requires_grad_(id(p) in keep)
+
     def trainable_parameters(self):
         """The parameters the optimizer and the gradient clip see: those that require a gradient (a stage may freeze
         some: stage 1 all but the gain's, ``Stage2Module(learn=...)`` all but the named components')."""
@@ -159,10 +166,7 @@ class Stage1Module(_TrackerModule):
 
     def __init__(self, net: IMMNet | None = None, lr: float = 1e-2, **kwargs):
         super().__init__(net=net, lr=lr, **kwargs)
-        # only the gain networks train; the rest is frozen, so that DDP finds no unused parameter
-        gain = {id(p) for p in self.net.gain.parameters()}
-        for p in self.parameters():
-            p.requires_grad_(id(p) in gain)
+        self._train_only(self.net.gain.parameters())  # the rest frozen, so that DDP finds no unused parameter
 
     def training_step(self, batch, batch_idx):
         M = self.net.n_experts
@@ -300,10 +304,7 @@ class Stage2Module(_TrackerModule):
         empty = [c for c in learn if c not in has]
         if empty:
             raise ValueError(f"learn: this IMMNet's {', '.join(empty)} has no parameters to learn")
-        stages = {c: self.net.part(c) for c in learn}
-        keep = {id(p) for stage in stages.values() for p in stage.parameters()}
-        for p in self.net.parameters():
-            p.requires_grad_(id(p) in keep)
+        self._train_only(p for c in learn for p in self.net.part(c).parameters())
 
     def load_parameters(self, path: str):
         """Start from the learned parameters of a trained IMMNet: every parameter of this network from the
