@@ -108,9 +108,7 @@ class NetworkFilter(TrackFilter):
             cov = torch.from_numpy(np.where(np.isnan(z.numpy()).any(-1)[:, None, None], np.eye(3), R))
         out = tr.step(z, dt=torch.as_tensor(dt, dtype=torch.float64), R=cov)
         tr.carry = tr.carry.select(*self.net.carry_keys)  # what the next scan reads
-        x = out.get(keys.FUSED).double()
-        P = out.get(keys.FUSED_COV).double()
-        self._out = (x.numpy(), P.numpy(), out.get(keys.MODE_PROBS).double().numpy())
+        self._out = tuple(out.get(k).double().numpy() for k in (keys.FUSED, keys.FUSED_COV, keys.MODE_PROBS))
 
     # -- the protocol -------------------------------------------------------------------------------------------------
     def check_interval(self, dt: float) -> None:
