@@ -21,26 +21,18 @@ is ``measurements`` (:class:`RawMeasurements`), which needs no configuration.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Sequence
 
 import torch
 from tensordict import TensorDict
 
 from immnet import keys
 from immnet.config import REPO_ROOT, import_class, load_yaml
-from immnet.filters.registry import METHODS_DIR, ORDER, USER_METHODS_DIR, configured_methods  # noqa: F401
+from immnet.filters.registry import ORDER, configured_methods  # noqa: F401  (ORDER: re-exported, scripts import it)
 from immnet.filters.registry import method_dirs as _method_dirs
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
 from immnet.motion import POS
-
-@runtime_checkable
-class Method(Protocol):
-    name: str
-    needs: tuple[str, ...]
-
-    def track(self, batch: TensorDict) -> TensorDict: ...
-
 
 class RawMeasurements:
     """The measurements as an estimate: ``x_hat_t = [z_t, 0, 0]`` per axis (no velocity/acceleration).
