@@ -49,8 +49,8 @@ from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
 from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, update
-from immnet.motion import AXES, ModelSet, Modes, coupling
-from immnet.motion import AXIS_OF
+from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
+from immnet.motion.models import axis_blocks, block_diagonal
 
 GROUPS = (Modes.JOINT, Modes.AXIS)
 """The modes a multi-target IMM keeps (``IMMFilter(groups=...)``)."""
@@ -220,30 +220,20 @@ class IMMFilter(TrackFilter):
         """``[K, 9]`` or ``[K, 9, 9]`` -> ``[K, G, d]`` or ``[K, G, d, d]`` (the axis blocks; joint: one group)."""
         if self.groups is Modes.JOINT:
             return A[:, None]
-        if A.dim() == 3:
-            return torch.stack([A[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(AXES)], 1)
-        return torch.stack([A[:, 3 * a:3 * a + 3] for a in range(AXES)], 1)
+        return axis_blocks(A).movedim(0, 1) if A.dim() == 3 else A.reshape(len(A), AXES, 3)
 
     def _join(self, x: torch.Tensor, P: torch.Tensor):
         """``[K, G, d]``, ``[K, G, d, d]`` -> ``[K, 9]``, ``[K, 9, 9]`` (axis blocks on the diagonal)."""
         if self.groups is Modes.JOINT:
             return x[:, 0], P[:, 0]
-        K = x.shape[0]
-        out = torch.zeros(K, 9, 9, dtype=P.dtype)
-        for a in range(AXES):
-            out[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] = P[:, a]
-        return x.reshape(K, 9), out
+        return x.reshape(len(x), 9), block_diagonal(P.unbind(1))
 
     def _matrices(self, dt: float):
         if self._cache[0] != dt:
             F = self.model_set.F(dt, dtype=torch.float64)  # [M, 9, 9]
             Q = self.model_set.Q(self.sigma_q, dt, dtype=torch.float64)
-            if self.groups is Modes.JOINT:
-                F, Q = F[None], Q[None]
-            else:
-                F = torch.stack([F[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(AXES)])
-                Q = torch.stack([Q[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] for a in range(AXES)])
-            self._cache = (dt, (F, Q))  # [G, M, d, d]
+            joint = self.groups is Modes.JOINT
+            self._cache = (dt, tuple(A[None] if joint else axis_blocks(A) for A in (F, Q)))  # [G, M, d, d]
         return self._cache[1]
 
     @torch.no_grad()

@@ -30,16 +30,7 @@ from immnet.imm.interaction import transition_matrix
 from immnet.imm.measurement import measurement_model
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
-
-
-def axis_blocks(A: torch.Tensor) -> torch.Tensor:
-    """The three per-axis blocks of ``A [..., 9, 9]`` (or of a state ``[..., 9]``), on a new leading dimension:
-    ``[3, ..., 3, 3]`` (``[3, ..., 3]``)."""
-    if A.shape[-1] != 9:
-        raise ValueError(f"expected a 9-D state or matrix, got trailing shape {tuple(A.shape[-2:])}")
-    if A.dim() >= 2 and A.shape[-2] == 9:
-        return torch.stack([A[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] for a in range(AXES)])
-    return torch.stack([A[..., 3 * a : 3 * a + 3] for a in range(AXES)])
+from immnet.motion.models import axis_blocks, block_diagonal
 
 
 class PerAxisIMMTracker(Method):
@@ -122,8 +113,5 @@ class PerAxisIMMTracker(Method):
         probs = probs.reshape(AXES, B, T, M).permute(1, 2, 0, 3)
         extra = {keys.EXPERT_PROBS: probs}
         if cov:  # the axes' 3x3 blocks on the diagonal of the 9-D covariance (the axes are independent)
-            blocks = cov[0].reshape(AXES, B, T, 3, 3)
-            extra[keys.STATE_COV] = torch.zeros(B, T, 9, 9, dtype=self.dtype, device=dev)
-            for a in range(AXES):
-                extra[keys.STATE_COV][..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = blocks[a]
+            extra[keys.STATE_COV] = block_diagonal(cov[0].reshape(AXES, B, T, 3, 3))
         return output(state, extra, measurements=z)

@@ -103,12 +103,23 @@ _CONTINUOUS = "continuous"
 NOISE_KINDS = (_WHITE, _WIENER, _CONTINUOUS)
 
 
-def _per_axis(block: torch.Tensor) -> torch.Tensor:
-    """Block-diagonal ``[..., 9, 9]`` from one ``[..., 3, 3]`` per-axis block."""
-    out = block.new_zeros(*block.shape[:-2], 9, 9)
-    for a in range(3):
-        out[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = block
+def block_diagonal(blocks) -> torch.Tensor:
+    """Block-diagonal ``[..., 9, 9]`` from the three per-axis blocks ``blocks[a] [..., 3, 3]`` (a sequence, or
+    ``axis_blocks``' ``[3, ..., 3, 3]``)."""
+    out = blocks[0].new_zeros(*blocks[0].shape[:-2], 9, 9)
+    for a in range(AXES):
+        out[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = blocks[a]
     return out
+
+
+def axis_blocks(A: torch.Tensor) -> torch.Tensor:
+    """The three per-axis blocks of ``A [..., 9, 9]`` (or of a state ``[..., 9]``), on a new leading dimension:
+    ``[3, ..., 3, 3]`` (``[3, ..., 3]``)."""
+    if A.shape[-1] != 9:
+        raise ValueError(f"expected a 9-D state or matrix, got trailing shape {tuple(A.shape[-2:])}")
+    if A.dim() >= 2 and A.shape[-2] == 9:
+        return torch.stack([A[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] for a in range(AXES)])
+    return torch.stack([A[..., 3 * a : 3 * a + 3] for a in range(AXES)])
 
 
 def fits_groups(model, groups: tuple[int, ...]) -> bool:
@@ -140,13 +151,13 @@ def _block(rows, dt: torch.Tensor) -> torch.Tensor:
 def cv_matrix(dt, dtype=torch.float64, device=None) -> torch.Tensor:
     """Constant-velocity transition ``F_CV(dt)``, ``[9, 9]`` (``[..., 9, 9]`` for a tensor ``dt [...]``)."""
     d = _dt(dt, dtype, device)
-    return _per_axis(_block([[1.0, d, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]], d))
+    return block_diagonal([_block([[1.0, d, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]], d)] * AXES)
 
 
 def ca_matrix(dt, dtype=torch.float64, device=None) -> torch.Tensor:
     """Constant-acceleration transition ``F_CA(dt)``, ``[9, 9]`` (``[..., 9, 9]`` for a tensor ``dt [...]``)."""
     d = _dt(dt, dtype, device)
-    return _per_axis(_block([[1.0, d, 0.5 * d * d], [0.0, 1.0, d], [0.0, 0.0, 1.0]], d))
+    return block_diagonal([_block([[1.0, d, 0.5 * d * d], [0.0, 1.0, d], [0.0, 0.0, 1.0]], d)] * AXES)
 
 
 def ct_matrix(turn_rate, dt, dtype=torch.float64, device=None) -> torch.Tensor:
@@ -310,7 +321,7 @@ def singer_block(tau: float, dt, dtype=torch.float64, device=None) -> torch.Tens
 
 def singer_matrix(tau: float, dt, dtype=torch.float64, device=None) -> torch.Tensor:
     """Singer transition ``F(dt)``, ``[9, 9]`` (``[..., 9, 9]`` for a tensor ``dt [...]``): ``singer_block`` per axis."""
-    return _per_axis(singer_block(tau, dt, dtype=dtype, device=device))
+    return block_diagonal([singer_block(tau, dt, dtype=dtype, device=device)] * AXES)
 
 
 def _singer_noise_closed_form(b: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -388,7 +399,7 @@ def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=N
     if not (math.isfinite(vertical) and vertical >= 0):
         raise ValueError(f"vertical must be finite and >= 0, got {vertical}")
     if kind == _CONTINUOUS:
-        Q = _per_axis(continuous_noise(dt, order, dtype=dtype, device=device, tau=tau))
+        Q = block_diagonal([continuous_noise(dt, order, dtype=dtype, device=device, tau=tau)] * AXES)
     else:
         G = noise_gain(dt, kind, dtype=dtype, device=device)
         Q = G @ G.transpose(-1, -2)
