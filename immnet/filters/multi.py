@@ -381,19 +381,24 @@ def gate_pairs(z_pred: np.ndarray, S: np.ndarray, plots: np.ndarray, R: np.ndarr
         return empty
     tree = cKDTree(plots) if tree is None else tree
     rmax = float(np.trace(R, axis1=1, axis2=2).max())
-    radius = np.sqrt(threshold * (np.trace(S, axis1=1, axis2=2) + rmax))
-    found = tree.query_ball_point(z_pred, radius)
-    counts = np.fromiter((len(f) for f in found), np.int64, K)
-    if counts.sum() == 0:
+    ti, pj = ball_pairs(tree, z_pred, np.sqrt(threshold * (np.trace(S, axis1=1, axis2=2) + rmax)))
+    if len(ti) == 0:
         return empty
-    ti = np.repeat(np.arange(K), counts)
-    pj = np.fromiter((j for f in found for j in f), np.int64, int(counts.sum()))
     nu = torch.from_numpy(plots[pj] - z_pred[ti])
     Si, logdet = inv3(torch.from_numpy(S[ti] + R[pj]))
     maha = (nu * (Si @ nu[..., None])[..., 0]).sum(-1)
     keep = (maha <= threshold).numpy()
     ll = gaussian_loglik(maha, logdet, 3).numpy()
     return ti[keep], pj[keep], ll[keep]
+
+
+def ball_pairs(tree: cKDTree, points: np.ndarray, radius) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs ``(i, j)`` of a point ``points[i]`` and a point ``j`` of ``tree`` within ``radius`` (one per point) of
+    it, by the tree: ``(i [P], j [P])``, in the order of ``i``."""
+    found = tree.query_ball_point(points, radius)
+    counts = np.fromiter((len(f) for f in found), np.int64, len(found))
+    pairs = np.fromiter((j for f in found for j in f), np.int64, int(counts.sum()))
+    return np.repeat(np.arange(len(found)), counts), pairs
 
 
 def _clusters(ti: np.ndarray, pj: np.ndarray):
@@ -519,6 +524,8 @@ DELETE_AFTER = 3
 """The consecutive misses that delete a confirmed track, unless told otherwise (chosen on the training scenes)."""
 MAX_POS_STD = 5000.0
 """The position standard deviation (m) beyond which any track is deleted, unless told otherwise."""
+SEEDS = ("seed_z", "seed_R", "seed_t", "seed_scan")
+"""A tracker's arrays of the seeds, one row per seed (the plots left over for two-point initiation)."""
 
 
 class MultiTargetTracker:
@@ -675,9 +682,7 @@ class MultiTargetTracker:
 
     def _initiate(self, t, plots, R, tree):
         """Pair this scan's free plots with the seeds, start a tentative track per pair, keep the rest as seeds."""
-        live = self._scan - self.seed_scan <= self.seed_life
-        self.seed_z, self.seed_R = self.seed_z[live], self.seed_R[live]
-        self.seed_t, self.seed_scan = self.seed_t[live], self.seed_scan[live]
+        self._keep(SEEDS, self._scan - self.seed_scan <= self.seed_life)
         n = len(plots)
         paired = np.zeros(n, bool)
         if n and len(self.seed_z):
@@ -686,10 +691,7 @@ class MultiTargetTracker:
             tr_seed = np.trace(self.seed_R, axis1=1, axis2=2)
             tr_plot = np.trace(R, axis1=1, axis2=2)
             sig = self.init.sigma
-            found = tree.query_ball_point(self.seed_z, self.init.max_speed * dt + sig * np.sqrt(tr_seed + tr_plot.max()))
-            counts = np.fromiter((len(f) for f in found), np.int64, len(found))
-            si = np.repeat(np.arange(len(found)), counts)
-            pq = np.fromiter((j for f in found for j in f), np.int64, int(counts.sum()))
+            si, pq = ball_pairs(tree, self.seed_z, self.init.max_speed * dt + sig * np.sqrt(tr_seed + tr_plot.max()))
             dist = np.linalg.norm(plots[pq] - self.seed_z[si], axis=1)
             ok = dist <= self.init.max_speed * dt[si] + sig * np.sqrt(tr_seed[si] + tr_plot[pq])
             si, pq, dist = si[ok], pq[ok], dist[ok]
@@ -698,23 +700,26 @@ class MultiTargetTracker:
             if len(si):
                 self.filter.start(plots[pq], R[pq], self.seed_z[si], self.seed_R[si], dt[si])
                 k = len(si)
-                self.ids = np.concatenate([self.ids, np.arange(self._next_id, self._next_id + k)])
+                self._append(ids=np.arange(self._next_id, self._next_id + k), confirmed=np.zeros(k, bool),
+                             hits=np.full(k, 2), scans=self._scan - self.seed_scan[si] + 1,
+                             misses=np.zeros(k, np.int64), updated=np.ones(k, bool))
                 self._next_id += k
-                self.confirmed = np.concatenate([self.confirmed, np.zeros(k, bool)])
-                self.hits = np.concatenate([self.hits, np.full(k, 2)])
-                self.scans = np.concatenate([self.scans, self._scan - self.seed_scan[si] + 1])
-                self.misses = np.concatenate([self.misses, np.zeros(k, np.int64)])
-                self.updated = np.concatenate([self.updated, np.ones(k, bool)])
                 paired[pq] = True
-                used = np.zeros(len(self.seed_z), bool)
-                used[si] = True
-                self.seed_z, self.seed_R = self.seed_z[~used], self.seed_R[~used]
-                self.seed_t, self.seed_scan = self.seed_t[~used], self.seed_scan[~used]
+                self._keep(SEEDS, np.delete(np.arange(len(self.seed_z)), si))
         rest = ~paired
-        self.seed_z = np.concatenate([self.seed_z, plots[rest]])
-        self.seed_R = np.concatenate([self.seed_R, R[rest]])
-        self.seed_t = np.concatenate([self.seed_t, np.full(int(rest.sum()), t)])
-        self.seed_scan = np.concatenate([self.seed_scan, np.full(int(rest.sum()), self._scan)])
+        n_rest = int(rest.sum())
+        self._append(seed_z=plots[rest], seed_R=R[rest], seed_t=np.full(n_rest, t),
+                     seed_scan=np.full(n_rest, self._scan))
+
+    def _keep(self, names, keep) -> None:
+        """The rows ``keep`` (a mask or indices) of each of the arrays ``names``."""
+        for name in names:
+            setattr(self, name, getattr(self, name)[keep])
+
+    def _append(self, **rows) -> None:
+        """Each array named by a keyword with its rows appended."""
+        for name, value in rows.items():
+            setattr(self, name, np.concatenate([getattr(self, name), value]))
 
     def _confirm_and_delete(self):
         self.confirmed = self.confirmed | (self.hits >= self.M) & (self.scans <= self.N)
@@ -726,8 +731,7 @@ class MultiTargetTracker:
         if keep.all():
             return
         self.filter.drop(keep)
-        for name in ("ids", "confirmed", "hits", "scans", "misses", "updated", "_x", "_P"):
-            setattr(self, name, getattr(self, name)[keep])
+        self._keep(("ids", "confirmed", "hits", "scans", "misses", "updated", "_x", "_P"), keep)
 
     def data_mode_probs(self) -> np.ndarray | None:
         """Every live track's data-mode probabilities ``[K, 4]`` (CV, CA, CT+, CT-) as of the last scan, in the order
