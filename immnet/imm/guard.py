@@ -39,12 +39,11 @@ bound turn made, so that the interaction can give a turn entered at the bound it
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
-from immnet.imm.option import Option
+from immnet.imm.option import Option, is_number
 from immnet.motion import DEG
 
 G_MAX = 0.999  # the most probable a guard event is made
@@ -75,11 +74,9 @@ class RangeGuard(Option):
     bound_speed_soft: float = 1.0  # m/s: logistic width of the speed bounds (a CA filter's speed error)
 
     def __post_init__(self):
-        for name in ("outer", "inner", "rate_deg", "clear_share", "clear_margin", "range_soft", "speed_soft",
-                     "share_soft", "rate_tol_deg", "rate_std_deg", "speed_min", "speed_max", "vz_max",
-                     "bound_speed_soft"):
+        for name in (f.name for f in fields(self) if f.name != "speeds"):  # every field but speeds is a number
             value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if not (is_number(value) and value > 0):
                 raise ValueError(f"RangeGuard.{name} must be a positive number, got {value!r}")
         if not isinstance(self.speeds, bool):
             raise ValueError(f"RangeGuard.speeds must be true or false, got {self.speeds!r}")

@@ -35,13 +35,9 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.imm.kalman import innovation_update, narrow, wide_dtype
+from immnet.imm.option import is_number
 
 TOLD, DETECTION = "data", "detection"  # a configuration's spellings of ToldStd and PerDetection (r: data, detection)
-
-
-def _is_positive(value) -> bool:
-    """Whether ``value`` is a finite number > 0 (not a bool)."""
-    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value) and value > 0
 
 
 @dataclass(frozen=True)
@@ -53,7 +49,7 @@ class Isotropic:
     spelling = "a positive number"
 
     def __post_init__(self):
-        if not _is_positive(self.r):
+        if not (is_number(self.r) and self.r > 0):
             raise ValueError(f"Isotropic.r must be a positive number, got {self.r!r}")
 
     def std(self, batch: TensorDict, dtype, device) -> float:
@@ -118,7 +114,7 @@ def _sigma(value, name: str):
         if not (torch.isfinite(value).all() and (value > 0).all()):
             raise ValueError(f"Polar.{name} must be finite and > 0 everywhere")
         return value
-    if not _is_positive(value):
+    if not (is_number(value) and value > 0):
         raise ValueError(f"Polar.{name} must be a positive number (or a tensor of them), got {value!r}")
     return float(value)
 
@@ -260,7 +256,7 @@ def measurement_model(r, takes: tuple[type, ...] = (Isotropic, ToldStd, PerDetec
         model = Estimated()
     elif isinstance(r, str):
         model = {TOLD: ToldStd(), DETECTION: PerDetection()}.get(r, r)
-    elif _is_positive(r):
+    elif is_number(r) and r > 0:
         model = Isotropic(float(r))
     if not isinstance(model, takes):
         kinds = [kind.spelling for kind in takes]

@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, fields
+
+
+def is_number(value) -> bool:
+    """Whether ``value`` is a finite ``int`` or ``float`` (a bool is not): what a configured number must be."""
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
 
 
 class Option:

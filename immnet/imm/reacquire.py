@@ -27,7 +27,7 @@ from typing import NamedTuple
 import torch
 
 from immnet.imm.kalman import _as_cov, inv3, start_state
-from immnet.imm.option import Option
+from immnet.imm.option import Option, is_number
 
 
 @dataclass(frozen=True)
@@ -61,15 +61,14 @@ class Reacquire(Option):
             raise ValueError(f"reacquire's reject must be true or false, got {self.reject!r}")
         for name in ("gate", "speed", "climb"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+            if not (is_number(value) and value > 0):
                 raise ValueError(f"reacquire's {name} must be a finite number > 0, got {value!r}")
         if (self.accel is None) != (self.vertical_accel is None):
             raise ValueError(f"reacquire's accel and vertical_accel are both numbers or both None (every far detection "
                              f"rejected), got {self.accel!r} and {self.vertical_accel!r}")
         for name in ("accel", "vertical_accel"):
             value = getattr(self, name)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                      or not (math.isfinite(value) and value >= 0)):
+            if value is not None and not (is_number(value) and value >= 0):
                 raise ValueError(f"reacquire's {name} must be a finite number >= 0 (m/s^2) or None, got {value!r}")
 
 
