@@ -28,14 +28,11 @@ class ConstantVelocity(MotionModel):
     """CV: ``F`` per axis ``[[1, dt, 0], [0, 1, 0], [0, 0, 0]]``; white-noise acceleration ``Q``."""
 
     mode = 0
+    name = "cv"
 
     def __init__(self, noise: str = "white", vertical: float = 1.0):
         self.noise = noise
         self.vertical = _vertical(vertical)
-
-    @property
-    def name(self) -> str:
-        return "cv"
 
     def init_args(self) -> dict:
         return _args(self)
@@ -50,14 +47,11 @@ class ConstantAcceleration(MotionModel):
 
     mode = 1
     order = 2
+    name = "ca"
 
     def __init__(self, noise: str = "wiener", vertical: float = 1.0):
         self.noise = noise
         self.vertical = _vertical(vertical)
-
-    @property
-    def name(self) -> str:
-        return "ca"
 
     def init_args(self) -> dict:
         return _args(self)

@@ -97,10 +97,8 @@ def groups_separate(F: torch.Tensor, groups: tuple[int, ...]) -> bool:
     g = torch.tensor(groups[:n])
     return not bool((F[..., g[:, None] != g[None, :]] != 0).any())
 
-_WHITE = "white"
-_WIENER = "wiener"
-_CONTINUOUS = "continuous"
-NOISE_KINDS = (_WHITE, _WIENER, _CONTINUOUS)
+
+NOISE_KINDS = ("white", "wiener", "continuous")
 
 
 def block_diagonal(blocks) -> torch.Tensor:
@@ -279,13 +277,13 @@ def adaptive_ct_propagate(x: torch.Tensor, lo, hi, dt: float) -> torch.Tensor:
     return ct_propagate(x, torch.clamp(turn_rate_of(x), lo, hi), dt)
 
 
-def noise_gain(dt, kind: str = _WHITE, dtype=torch.float64, device=None) -> torch.Tensor:
+def noise_gain(dt, kind: str = "white", dtype=torch.float64, device=None) -> torch.Tensor:
     """Noise gain ``G`` ``[9, 3]`` (``[..., 9, 3]`` for a tensor ``dt [...]``): per axis ``[dt^2/2, dt, 0]``
     (white) or ``[dt^2/2, dt, 1]`` (wiener)."""
-    if kind not in (_WHITE, _WIENER):
+    if kind not in ("white", "wiener"):
         raise ValueError(f"noise kind must be 'white' or 'wiener', got {kind!r}")
     d = _dt(dt, dtype, device)
-    g = torch.stack([0.5 * d * d, d, torch.full_like(d, 1.0 if kind == _WIENER else 0.0)], -1)
+    g = torch.stack([0.5 * d * d, d, torch.full_like(d, 1.0 if kind == "wiener" else 0.0)], -1)
     G = d.new_zeros(*d.shape, 9, 3)
     for a in range(3):
         G[..., 3 * a : 3 * a + 3, a] = g
@@ -381,7 +379,7 @@ def continuous_noise(dt, order: int, dtype=torch.float64, device=None, tau: floa
     return _block(rows, d)
 
 
-def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=None, order: int = 1,
+def process_noise(sigma_q, dt, kind: str = "white", dtype=torch.float64, device=None, order: int = 1,
                   vertical: float = 1.0, tau: float | None = None) -> torch.Tensor:
     """``Q = sigma_q^2 G G^T`` (white, wiener) or ``sigma_q^2 Q_c(dt)`` (continuous, on derivative ``order``; with
     ``tau``, the Singer model's); a batch of ``sigma_q`` or of intervals ``dt`` ``[...]`` gives ``[..., 9, 9]``.
@@ -389,7 +387,7 @@ def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=N
     up)."""
     if kind not in NOISE_KINDS:
         raise ValueError(f"noise kind must be one of {', '.join(NOISE_KINDS)}, got {kind!r}")
-    if tau is not None and kind != _CONTINUOUS:
+    if tau is not None and kind != "continuous":
         raise ValueError(f"the Singer model's noise is continuous, got noise kind {kind!r}")
     # a python number checked as one: no tensor to read back (torch.compile traces a step that builds Q)
     negative = sigma_q < 0 if isinstance(sigma_q, (int, float)) else bool((torch.as_tensor(sigma_q) < 0).any())
@@ -398,7 +396,7 @@ def process_noise(sigma_q, dt, kind: str = _WHITE, dtype=torch.float64, device=N
     sq = torch.as_tensor(sigma_q, dtype=dtype, device=device)
     if not (math.isfinite(vertical) and vertical >= 0):
         raise ValueError(f"vertical must be finite and >= 0, got {vertical}")
-    if kind == _CONTINUOUS:
+    if kind == "continuous":
         Q = block_diagonal([continuous_noise(dt, order, dtype=dtype, device=device, tau=tau)] * AXES)
     else:
         G = noise_gain(dt, kind, dtype=dtype, device=device)
