@@ -152,6 +152,17 @@ def test_scaled_is_the_imm_configured_with_that_noise(sigma_q):
     plain = imm.track(data)[keys.STATE]
     assert imm.sigma_q == sigma_q and not torch.equal(torch.nan_to_num(got), torch.nan_to_num(plain))
 
+def test_per_axis_imm_tracks_a_batch_of_nine():
+    """Nine tracks, whose starts ``[9, 9]`` are no matrix to split (they were once read as one and refused): each
+    track's state is the one it has tracked alone."""
+    data = _irregular(*SCANS["0.5-6 s"], seed=7, B=9, T=120)
+    imm = PerAxisIMMTracker(ModelSet([ConstantVelocity(), ConstantAcceleration()]), 4.0, 0.5)
+    together = imm.track(data)[keys.STATE]
+    for b in (0, 8):
+        torch.testing.assert_close(together[b], imm.track(data[b : b + 1])[keys.STATE][0], rtol=1e-12, atol=1e-9,
+                                   equal_nan=True)
+
+
 def test_per_axis_imm_refuses_a_turn():
     with pytest.raises(ValueError, match="couple the axes"):
         PerAxisIMMTracker(ModelSet([ConstantVelocity(), CoordinatedTurn(3.0)]), 4.0, 1.0)

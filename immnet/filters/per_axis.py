@@ -99,8 +99,8 @@ class PerAxisIMMTracker(Method):
                 blocks = blocks[:, None].expand(AXES, B, *blocks.shape[1:])
             return blocks.reshape(AXES * B, *blocks.shape[2:])
 
-        x = per_track(x0)[:, None].expand(AXES * B, M, 3).contiguous()
-        P = per_track(P0)[:, None].expand(AXES * B, M, 3, 3).contiguous()
+        x = per_track(x0[:, None]).expand(AXES * B, M, 3).contiguous()  # [:, None]: never read as a 9x9 matrix
+        P = per_track(P0[:, None]).expand(AXES * B, M, 3, 3).contiguous()
         mu = torch.full((AXES * B, M), 1.0 / M, dtype=self.dtype, device=dev)
         R = variance(r, self.dtype, dev)
         R = R.repeat(AXES) if R.dim() == 1 else R
