@@ -49,7 +49,7 @@ from immnet import keys
 from immnet.data.spec import DataSpec
 from immnet.data.times import scan_intervals
 from immnet.filters.base import Method, as_dtype, fixed_interval, output
-from immnet.filters.imm import first_detection, initial_state
+from immnet.filters.imm import ACC_STD, first_detection, initial_state
 from immnet.imm.interaction import enter, onset_priors
 from immnet.imm.kalman import predict
 from immnet.imm.runner import run
@@ -135,7 +135,6 @@ class ClairvoyantKF(Method):
         """IMMNet with nothing learned and the truth's modes (``network()``): filter experts of CV, CA (white
         acceleration noise, the CA expert starting with the draw's acceleration variance) and ``turns``, told each
         track's ``r``, the IMM's mix with the spec's onset priors; ``gain``: the filter gain's other arguments."""
-        from immnet.filters.imm import ACC_STD
         from immnet.stages.network import IMMNet
 
         if tuple(self.acc_var) != tuple(self.spec.ca_acc_var()):

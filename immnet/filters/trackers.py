@@ -22,7 +22,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.data.times import scan_intervals
 from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
-from immnet.filters.imm import first_detection, imm_filter, initial_state
+from immnet.filters.imm import ACC_STD, VEL_STD, first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its users import it from here)
 from immnet.imm.measurement import Isotropic, PerDetection, Polar, ToldStd, measurement_model
@@ -71,7 +71,6 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
     """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``modes``: ``IMMNet``'s
     (per axis: ``PerAxisIMMTracker.network``). ``p_stay`` None (a method given a full transition matrix): a
     ValueError naming the method ``name``."""
-    from immnet.filters.imm import ACC_STD
     from immnet.stages.network import IMMNet
 
     if p_stay is None:
@@ -92,8 +91,6 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
 def _restarts(rule, intervals, mu0: torch.Tensor) -> Restarts | None:
     """The scan loop's re-acquisition (``immnet.imm.reacquire.Restarts``) of ``rule`` at ``intervals`` (a number or
     ``[B, T]``), restarting at the start's velocity and acceleration stds and ``mu0``; None where ``rule`` is."""
-    from immnet.filters.imm import ACC_STD, VEL_STD
-
     return None if rule is None else Restarts(rule, intervals, VEL_STD, ACC_STD, mu0)
 
 
@@ -217,14 +214,11 @@ class IMMTracker(Method):
                              f"'detection'), not the polar one")
         self.Pi = transition_matrix(p_stay, M)
         self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
-        if mu0 is None:
-            self.mu0 = torch.full((M,), 1.0 / M, dtype=torch.float64)
-        else:
-            self.mu0 = torch.as_tensor(mu0, dtype=torch.float64)
-            if self.mu0.shape != (M,):
-                raise ValueError(f"mu0 must have one probability per model ({M}), got shape {tuple(self.mu0.shape)}")
-            if (self.mu0 < 0).any() or abs(float(self.mu0.sum()) - 1.0) > 1e-6:
-                raise ValueError(f"mu0 must be non-negative and sum to 1, got {self.mu0.tolist()}")
+        self.mu0 = torch.as_tensor([1.0 / M] * M if mu0 is None else mu0, dtype=torch.float64)  # uniform by default
+        if self.mu0.shape != (M,):
+            raise ValueError(f"mu0 must have one probability per model ({M}), got shape {tuple(self.mu0.shape)}")
+        if (self.mu0 < 0).any() or abs(float(self.mu0.sum()) - 1.0) > 1e-6:
+            raise ValueError(f"mu0 must be non-negative and sum to 1, got {self.mu0.tolist()}")
         self.dtype = as_dtype(dtype)
         self.name = name
         self.return_experts = return_experts
