@@ -57,7 +57,8 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
 
 
 def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False,
-               return_cov: bool = False, start: torch.Tensor | None = None, robust: float | None = None, reacquire=None):
+               return_cov: bool = False, start: torch.Tensor | None = None, robust: float | None = None, reacquire=None,
+               measure=None):
     """Run the IMM over ``z [B, T, 3]`` from ``x0 [B, 9]``, ``P0 [B, 9, 9]`` and ``mu0 [M]``.
 
     At ``t = 0`` the output is the initial state (every expert at ``x0, P0``); steps ``t >= 1``
@@ -73,12 +74,14 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
     ``R``: a variance (a number or ``[B]``), one covariance ``[3, 3]`` or one per track ``[B, 3, 3]``, or one per
     detection ``[B, T, 3, 3]`` (``immnet.imm.measurement.PerDetection``: finite where a scan is missed). ``robust``:
     Huber's ``k`` of the update (``immnet.imm.kalman``), None: the plain update. ``reacquire``: ``runner.run``'s
-    re-acquisition (``immnet.imm.reacquire.Restarts``), None: none.
+    re-acquisition (``immnet.imm.reacquire.Restarts``), None: none. ``measure``: ``runner.run``'s update in place of
+    the linear one (``immnet.imm.measurement.Polar.measure``; ``R`` is then unused, and ``robust`` is the update's).
     """
     B, T, _ = z.shape
     M = Pi.shape[-1]
-    R = torch.as_tensor(R, dtype=z.dtype, device=z.device)
-    if compile and not (return_cov or robust is not None or reacquire is not None) and _fused_ok(F, Q, R, M, x0.shape[-1]):
+    R = torch.as_tensor(0.0 if measure is not None else R, dtype=z.dtype, device=z.device)  # R unused with measure
+    eager = return_cov or robust is not None or reacquire is not None or measure is not None
+    if compile and not eager and _fused_ok(F, Q, R, M, x0.shape[-1]):
         from immnet.filters.imm_fused import imm_filter_fused
 
         out = imm_filter_fused(z, x0, P0, F, Q, R, Pi, mu0, return_experts, start=start)
@@ -93,7 +96,7 @@ def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compil
         per_detection = R
         R = lambda t: per_detection[:, t, None]  # noqa: E731 (each detection's [B, 1, 3, 3], for every filter)
     return run(z, x, P, mu, Pi, linear_transition(F, Q), R, return_experts=return_experts, return_cov=return_cov,
-               start=start, robust=robust, reacquire=reacquire)
+               start=start, robust=robust, reacquire=reacquire, measure=measure)
 
 
 def _fused_ok(F, Q, R, M, n) -> bool:

@@ -260,41 +260,28 @@ class IMMTracker(Method):
         intervals = _interval_or_intervals(batch, self.dtype, z.device)
         F, Q, Pi, mu0 = self.matrices(intervals, z.device)
         first = first_detection(z)
-        model = self.measurement
-        if isinstance(model, Polar):
-            states, probs, experts, *cov = self._track_polar(z, F, Q, Pi, mu0, first)
+        model, rows = self.measurement, torch.arange(len(first), device=z.device)
+        robust, measure, R = self.robust, None, None
+        if isinstance(model, Polar):  # the EKF's update (Huber's k its own); a track starts with its converted plot
+            sig0 = model.sigmas(z.shape[:2], z.dtype, z.device)[rows, first]
+            x0, P0 = initial_state(z, None, cov0=model.initial_cov(z[rows, first], sig0))
+            robust, measure = None, model.measure(z, self.robust)
+        elif isinstance(model, PerDetection):
+            R = model.R(batch, self.dtype, z.device)
+            x0, P0 = initial_state(z, None, cov0=R[rows, first])
         else:
-            if isinstance(model, PerDetection):
-                R = model.R(batch, self.dtype, z.device)
-                x0, P0 = initial_state(z, None, cov0=R[torch.arange(len(first), device=z.device), first])
-            else:
-                r = model.std(batch, self.dtype, z.device)
-                x0, P0 = initial_state(z, r)
-                R = variance(r, self.dtype, z.device)
-            states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
-                                                      compile=self.compile, return_cov=self.return_cov, start=first,
-                                                      robust=self.robust,
-                                                      reacquire=_restarts(self.reacquire, intervals, mu0))
+            r = model.std(batch, self.dtype, z.device)
+            x0, P0 = initial_state(z, r)
+            R = variance(r, self.dtype, z.device)
+        states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
+                                                  compile=self.compile, return_cov=self.return_cov, start=first,
+                                                  robust=robust, reacquire=_restarts(self.reacquire, intervals, mu0),
+                                                  measure=measure)
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None}
         if self.return_experts:
             extra[keys.EXPERT_POST] = experts
             extra[keys.EXPERT_PROBS] = probs
         return output(states, extra, measurements=z)
-
-    def _track_polar(self, z, F, Q, Pi, mu0, first):
-        """``track``'s filters with the polar model: the core's loop (``runner.run``) with the extended Kalman
-        filter's update (``Polar.measure``), each track started at its first detection with its converted covariance."""
-        model = self.measurement
-        B, M = z.shape[0], len(mu0)
-        rows = torch.arange(B, device=z.device)
-        sig0 = model.sigmas(z.shape[:2], z.dtype, z.device)[rows, first]
-        z0 = z[rows, first]
-        x0, P0 = initial_state(z, None, cov0=model.initial_cov(z0, sig0))
-        x = x0[:, None].expand(B, M, 9).contiguous()
-        P = P0[:, None].expand(B, M, 9, 9).contiguous()
-        mu = mu0.expand(B, M).contiguous()
-        return run(z, x, P, mu, Pi, linear_transition(F, Q), None, return_experts=self.return_experts,
-                   return_cov=self.return_cov, start=first, measure=model.measure(z, self.robust))
 
     @torch.no_grad()
     def _track_by_step(self, batch: TensorDict) -> TensorDict:
