@@ -27,7 +27,6 @@ from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its users import it from here)
 from immnet.imm.measurement import Isotropic, PerDetection, Polar, ToldStd, measurement_model
 from immnet.imm.reacquire import Reacquire, Restarts
-from immnet.imm.runner import linear_transition, run
 from immnet.motion import ModelSet, Modes, MotionModel, coupling, instantiate
 
 
@@ -130,10 +129,10 @@ class KalmanFilterTracker(Method):
         r = self.measurement.std(batch, self.dtype, dev)
         x, P = initial_state(z, r)
         R = variance(r, self.dtype, dev)
-        one = torch.ones(z.shape[0], 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1
-        states, _, _, *cov = run(z, x[:, None], P[:, None], one, one[:1], linear_transition(F.unsqueeze(-3), Q.unsqueeze(-3)),
-                                 R, return_cov=self.return_cov, start=first_detection(z), robust=self.robust,
-                                 reacquire=_restarts(self.reacquire, dt, one[0]))
+        one = torch.ones(1, 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1, Pi = [[1]]
+        states, _, _, *cov = imm_filter(z, x, P, F.unsqueeze(-3), Q.unsqueeze(-3), R, one, one[0],
+                                        return_cov=self.return_cov, start=first_detection(z), robust=self.robust,
+                                        reacquire=_restarts(self.reacquire, dt, one[0]))
         return output(states, {keys.STATE_COV: cov[0] if cov else None}, measurements=z)
 
 
