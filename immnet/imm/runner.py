@@ -117,11 +117,17 @@ def run(
     states, probs = z.new_empty(B, T, x.shape[-1]), z.new_empty(B, T, M)
     experts = z.new_empty(B, T, M, x.shape[-1]) if return_experts else None
     covs = z.new_empty(B, T, x.shape[-1], x.shape[-1]) if return_cov else None
-    states[:, 0], probs[:, 0] = combine(x, None, mu)[0], mu
-    if return_cov:
-        covs[:, 0] = combine(x, P, mu)[1]
-    if return_experts:
-        experts[:, 0] = x
+
+    def record(t: int, x, P, mu):
+        """Scan ``t``'s outputs: the combined state (and covariance), the mode probabilities and the filters'."""
+        states[:, t], cov = combine(x, P if return_cov else None, mu)
+        probs[:, t] = mu
+        if return_cov:
+            covs[:, t] = cov
+        if return_experts:
+            experts[:, t] = x
+
+    record(0, x, P, mu)
     held = _holding(start, x, P, mu)
     spare = None if robust is None else torch.zeros(B, 1, dtype=torch.bool, device=z.device)  # kalman's module doc
     watching = None if reacquire is None else reacquire.begin(x, P)
@@ -157,11 +163,5 @@ def run(
             x, P, mu = reacquire.restart(restarting, z[:, t], Rt, x, P, mu)
             if spare is not None:
                 spare = spare & ~restarting[:, None]
-        if return_cov:
-            states[:, t], covs[:, t] = combine(x, P, mu)
-        else:
-            states[:, t] = combine(x, None, mu)[0]
-        probs[:, t] = mu
-        if return_experts:
-            experts[:, t] = x
+        record(t, x, P, mu)
     return (states, probs, experts, covs) if return_cov else (states, probs, experts)
