@@ -99,11 +99,9 @@ class IMMEKF(Method):
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         intervals = scan_intervals(batch, self.dtype, z.device)
-        one = fixed_interval(intervals)
-        if one is not None:  # one interval for every track and scan: the network at that interval
-            out, _ = self.network(one).to(z.device).rollout(z, return_cov=self.return_cov)
-        else:  # each scan's interval per track (docs/baselines.md, "Scan intervals")
-            out, _ = self.network(1.0).to(z.device).rollout(z, intervals=intervals, return_cov=self.return_cov)
+        one = fixed_interval(intervals)  # one interval for every track and scan: the network at that interval; else
+        net = self.network(1.0 if one is None else one).to(z.device)  # each scan's (docs/baselines.md "Scan intervals")
+        out, _ = net.rollout(z, intervals=intervals if one is None else None, return_cov=self.return_cov)
         probs = data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], self.model_set.modes)
         cov = out[keys.STATE_COV] if self.return_cov else None
         return output(out[keys.STATE], {keys.MODE_PROBS: probs, keys.STATE_COV: cov}, measurements=z)
