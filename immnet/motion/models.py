@@ -102,11 +102,12 @@ NOISE_KINDS = ("white", "wiener", "continuous")
 
 
 def block_diagonal(blocks) -> torch.Tensor:
-    """Block-diagonal ``[..., 9, 9]`` from the three per-axis blocks ``blocks[a] [..., 3, 3]`` (a sequence, or
-    ``axis_blocks``' ``[3, ..., 3, 3]``)."""
-    out = blocks[0].new_zeros(*blocks[0].shape[:-2], 9, 9)
+    """Block-diagonal ``[..., 3 r, 3 c]`` from the three per-axis blocks ``blocks[a] [..., r, c]`` (a sequence, or
+    ``axis_blocks``' ``[3, ..., 3, 3]``): ``[..., 9, 9]`` of 3x3 blocks."""
+    r, c = blocks[0].shape[-2:]
+    out = blocks[0].new_zeros(*blocks[0].shape[:-2], AXES * r, AXES * c)
     for a in range(AXES):
-        out[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] = blocks[a]
+        out[..., r * a : r * a + r, c * a : c * a + c] = blocks[a]
     return out
 
 
@@ -284,10 +285,7 @@ def noise_gain(dt, kind: str = "white", dtype=torch.float64, device=None) -> tor
         raise ValueError(f"noise kind must be 'white' or 'wiener', got {kind!r}")
     d = _dt(dt, dtype, device)
     g = torch.stack([0.5 * d * d, d, torch.full_like(d, 1.0 if kind == "wiener" else 0.0)], -1)
-    G = d.new_zeros(*d.shape, 9, 3)
-    for a in range(3):
-        G[..., 3 * a : 3 * a + 3, a] = g
-    return G
+    return block_diagonal([g[..., None]] * AXES)  # each axis's column g on its rows
 
 
 def _singer_system(tau: float, dtype, device) -> torch.Tensor:
@@ -409,6 +407,4 @@ def process_noise(sigma_q, dt, kind: str = "white", dtype=torch.float64, device=
 
 def measurement_matrix(dtype=torch.float64, device=None) -> torch.Tensor:
     """``H`` of shape ``[3, 9]`` picking the three positions."""
-    H = torch.zeros(3, 9, dtype=dtype, device=device)
-    H[0, 0] = H[1, 3] = H[2, 6] = 1.0
-    return H
+    return torch.eye(9, dtype=dtype, device=device)[list(POS)]
