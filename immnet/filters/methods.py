@@ -20,6 +20,7 @@ is ``measurements`` (:class:`RawMeasurements`), which needs no configuration.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Sequence
 
@@ -93,12 +94,9 @@ def available_methods(methods_dir: Path | None = None) -> list[str]:
     """Configured methods whose class imports, in table order."""
     out = []
     for name in configured_methods(methods_dir):
-        if name in BUILTIN:
-            out.append(name)
-            continue
         try:
-            spec = load_yaml(method_config(name, methods_dir)) or {}
-            import_class(spec["class_path"])
+            if name not in BUILTIN:
+                import_class((load_yaml(method_config(name, methods_dir)) or {})["class_path"])
         except Exception:  # noqa: BLE001 - anything that stops the import makes it unavailable
             continue
         out.append(name)
@@ -166,10 +164,8 @@ def build_method(name: str, checkpoint: str | Path | None = None, methods_dir: P
         else:
             raise FileNotFoundError(f"method {name!r}: checkpoint not found: {ckpt}")
     method = cls(**init_args)
-    try:
+    with contextlib.suppress(AttributeError):  # a read-only property: keep the method's own name
         method.name = name
-    except AttributeError:  # a read-only property: keep the method's own name
-        pass
     return method
 
 
