@@ -135,19 +135,16 @@ class TrackFilter:
 
         method = build_method(name)
         own_r = method.measurement.r if isinstance(getattr(method, "measurement", None), Isotropic) else None
-        r = own_r if r is None else r
+        common = {"r": own_r if r is None else r, "name": name, "robust": getattr(method, "robust", None)}
         if isinstance(method, PerAxisIMMTracker):
-            return IMMFilter(method.model_set, method.sigma_q, method.Pi, groups=Modes.AXIS, r=r, name=name,
-                             robust=method.robust)
+            return IMMFilter(method.model_set, method.sigma_q, method.Pi, groups=Modes.AXIS, **common)
         if isinstance(method, IMMTracker):
             if method.modes is not Modes.JOINT:
                 raise ValueError(f"{name}: an IMM with modes per {method.modes} is not a multi-target filter "
                                  f"(joint modes or a per-axis IMM are)")
-            return IMMFilter(method.model_set, method.sigma_q, method.Pi, mu0=method.mu0, groups=Modes.JOINT, r=r,
-                             name=name, robust=method.robust)
+            return IMMFilter(method.model_set, method.sigma_q, method.Pi, mu0=method.mu0, **common)
         if isinstance(method, KalmanFilterTracker):
-            return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], groups=Modes.JOINT, r=r, name=name,
-                             robust=method.robust)
+            return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], **common)
         raise ValueError(f"{name} is a {type(method).__name__}: the multi-target tracker's filters are the model-based "
                          f"IMMs and Kalman filters (IMMTracker, PerAxisIMMTracker, KalmanFilterTracker) and the "
                          f"shipped networks by their weights' name (radar-5s, real-5s, ...)")
@@ -277,11 +274,16 @@ class IMMFilter(TrackFilter):
         x0, P0 = mix(w, self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d))
         self.x, self.P = predict(x0.view(K, G, M, d), P0.view(K, G, M, d, d), F, Q)
         self.mu = self.mu @ self.Pi  # the predicted mode probabilities (the update's prior)
-        xc, Pc = combine(self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d), self.mu.reshape(K * G, M))
+        xc, Pc = self._combined()
         if self.groups is Modes.JOINT:
-            return xc[:, 0::3].numpy(), Pc[:, 0::3, 0::3].numpy()
-        xc, Pc = xc.view(K, G, d), Pc.view(K, G, d, d)
+            return xc[:, 0, 0::3].numpy(), Pc[:, 0, 0::3, 0::3].numpy()
         return xc[..., 0].numpy(), torch.diag_embed(Pc[..., 0, 0]).numpy()
+
+    def _combined(self):
+        """Each group's moment-matched estimate over the modes, ``[K, G, d]`` and ``[K, G, d, d]``."""
+        K, G, M, d = len(self), self.G, self.M, self.d
+        xc, Pc = combine(self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d), self.mu.reshape(K * G, M))
+        return xc.view(K, G, d), Pc.view(K, G, d, d)
 
     def _measure(self, z: torch.Tensor, R: torch.Tensor):
         """A plot per track and hypothesis ``z [K, H, 3]``, ``R [K, H, 3, 3]`` as the filter's groups measure it:
@@ -344,11 +346,9 @@ class IMMFilter(TrackFilter):
 
     @torch.no_grad()
     def state(self):
-        K, G, M, d = len(self), self.G, self.M, self.d
-        if K == 0:
+        if len(self) == 0:
             return np.zeros((0, 9)), np.zeros((0, 9, 9))
-        xc, Pc = combine(self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d), self.mu.reshape(K * G, M))
-        x, P = self._join(xc.view(K, G, d), Pc.view(K, G, d, d))
+        x, P = self._join(*self._combined())
         return x.numpy(), P.numpy()
 
     def mode_probs(self) -> np.ndarray:
