@@ -99,8 +99,8 @@ class IMMEKF(Method):
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         intervals = scan_intervals(batch, self.dtype, z.device)
-        one = fixed_interval(intervals)  # one interval for every track and scan: the network at that interval; else
-        net = self.network(1.0 if one is None else one).to(z.device)  # each scan's (docs/baselines.md "Scan intervals")
+        one = fixed_interval(intervals)  # one for every scan: the network at it; else at 1 s told each scan's interval
+        net = self.network(1.0 if one is None else one).to(z.device)  # (docs/baselines.md, "Scan intervals")
         out, _ = net.rollout(z, intervals=intervals if one is None else None, return_cov=self.return_cov)
         probs = data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], self.model_set.modes)
         cov = out[keys.STATE_COV] if self.return_cov else None
