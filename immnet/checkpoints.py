@@ -148,13 +148,11 @@ def load_checkpoint(path: str | Path, map_location="cpu", check_table: bool = Tr
         with torch.serialization.safe_globals(list(ALLOWED_GLOBALS)), warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Detected pickle protocol")
             ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError as err:
-        found = re.search(r"GLOBAL ([\w.]+)", str(err))
+    except Exception as err:  # a global off the allow-list; or a truncated, empty or foreign file
+        found = isinstance(err, pickle.UnpicklingError) and re.search(r"GLOBAL ([\w.]+)", str(err))
         if found:
             raise CheckpointError(f"{path} is refused: it holds the global {found.group(1)}, which is not on "
                                   "the checkpoint allow-list (docs/checkpoints.md); nothing in it was run") from None
-        raise CheckpointError(f"{path} is not a readable checkpoint: {_reason(err)}") from None
-    except Exception as err:  # a truncated, empty or foreign file
         raise CheckpointError(f"{path} is not a readable checkpoint: {_reason(err)}") from None
     if not isinstance(ckpt, dict):
         raise CheckpointError(f"{path} is not a checkpoint: it holds a {type(ckpt).__name__}, not a dict")
