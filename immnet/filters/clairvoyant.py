@@ -155,9 +155,6 @@ class ClairvoyantKF(Method):
         rate ``[B, T]``."""
         return {keys.TRUE_MODE: batch[keys.MODE], keys.TRUE_TURN_RATE: batch[keys.TURN_RATE]}
 
-    def _acc_cov(self, like: torch.Tensor) -> torch.Tensor:
-        return torch.diag(torch.tensor(self.acc_var, dtype=like.dtype, device=like.device))
-
     def track(self, batch: TensorDict) -> TensorDict:
         """One Kalman filter with the truth's transition at each scan: the core's scan loop
         (``immnet.imm.runner.run``) over the filters CV, CA and CT at the true rate, whose mode
@@ -170,7 +167,8 @@ class ClairvoyantKF(Method):
         x, P = initial_state(z, r)
         start = first_detection(z)
         at_start = mode.gather(1, start.to(mode.device)[:, None])[:, 0]
-        P[at_start == CA, 2::3, 2::3] = self._acc_cov(z)  # the CA segment's draw (the generator writes the first into x_0)
+        # the CA segment's draw (the generator writes the first into x_0)
+        P[at_start == CA, 2::3, 2::3] = torch.diag(torch.tensor(self.acc_var, dtype=dtype, device=dev))
         onset = onset_priors([False, True, False], [False] * 3, [0.0] * 3, n=9, acc_var=self.acc_var)
 
         def matrices(d):

@@ -32,8 +32,7 @@ ACC_STD = 10.0
 
 def first_detection(z: torch.Tensor) -> torch.Tensor:
     """The scan of each track's first detection ``[B]`` (long; 0 for a track with none) of ``z [B, T, 3]``."""
-    finite = ~torch.isnan(z).any(-1)  # [B, T]
-    return torch.where(finite.any(-1), finite.long().argmax(-1), torch.zeros_like(finite[:, 0], dtype=torch.long))
+    return (~torch.isnan(z).any(-1)).long().argmax(-1)  # argmax: the first detected scan, 0 where none is
 
 
 def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float = ACC_STD, cov0=None):
