@@ -169,17 +169,20 @@ def ct_matrix(turn_rate, dt, dtype=torch.float64, device=None) -> torch.Tensor:
     w = torch.as_tensor(turn_rate, dtype=dtype, device=device)
     d = _dt(dt, dtype, w.device)
     w, d = torch.broadcast_tensors(w, d)
-    _, _, s, c, s_w, c_w = _turn_terms(w, d, 1e-9)
     F = cv_matrix(d, dtype=dtype, device=w.device).clone()
-    lx, vx, ax, ly, vy, ay = 0, 1, 2, 3, 4, 5
-    F[..., lx, vx], F[..., lx, vy] = s_w, -c_w
-    F[..., ly, vx], F[..., ly, vy] = c_w, s_w
-    F[..., vx, vx], F[..., vx, vy] = c, -s
-    F[..., vy, vx], F[..., vy, vy] = s, c
-    # ax' = -w vy' = -w (s vx + c vy);  ay' = w vx' = w (c vx - s vy)
-    F[..., ax, vx], F[..., ax, vy] = -w * s, -w * c
-    F[..., ay, vx], F[..., ay, vy] = w * c, -w * s
+    for (row, col), value in zip(TURN_ENTRIES, _turn_entries(w, d, 1e-9)):
+        F[..., row, col] = value
     return F
+
+
+def _turn_entries(w: torch.Tensor, dt, eps: float) -> list[torch.Tensor]:
+    """The entries of ``F_CT(w, dt)`` at the first 12 ``TURN_ENTRIES``, those of the plane's velocity columns::
+
+        lx: s/w, -(1-c)/w   ly: (1-c)/w, s/w   vx: c, -s   vy: s, c   ax' = -w vy': -w s, -w c   ay' = w vx': w c, -w s
+
+    (``s, c = sin(w dt), cos(w dt)``; ``_turn_terms``' limits for ``|w| < eps``)."""
+    _, _, s, c, s_w, c_w = _turn_terms(w, dt, eps)
+    return [s_w, -c_w, c_w, s_w, c, -s, s, c, -w * s, -w * c, w * c, -w * s]
 
 
 def _turn_terms(w: torch.Tensor, dt, eps: float):
@@ -239,12 +242,8 @@ state ``[x, w]``) that depend on ``w`` or the velocity; the rest of it is consta
 
 def ct_jacobian_entries(x: torch.Tensor, w: torch.Tensor, dt) -> torch.Tensor:
     """The values of ``TURN_ENTRIES`` of ``d ct_propagate(x, w) / d[x, w]``, ``[..., 18]``."""
-    small, _, s, c, s_w, c_w = _turn_terms(w, dt, 1e-6)
     d = ct_rate_derivative(x, w, dt)
-    return torch.stack(
-        [s_w, -c_w, c_w, s_w, c, -s, s, c, -w * s, -w * c, w * c, -w * s, d[..., 0], d[..., 1], d[..., 2], d[..., 3], d[..., 4], d[..., 5]],
-        -1,
-    )
+    return torch.stack([*_turn_entries(w, dt, 1e-6), *d[..., :6].unbind(-1)], -1)  # then the rate's column
 
 
 def ct_jacobian(x: torch.Tensor, w: torch.Tensor, dt) -> torch.Tensor:
