@@ -149,10 +149,6 @@ class Polar:
         return torch.stack([torch.as_tensor(s, dtype=dtype, device=device).expand(shape)
                             for s in (self.sigma_range, self.sigma_azimuth, self.sigma_elevation)], -1)
 
-    def measurements(self, z: torch.Tensor) -> torch.Tensor:
-        """ENU positions ``[..., 3]`` -> plots ``(rho, az, el) [..., 3]`` (az in ``[0, 2 pi)``; NaN stays NaN)."""
-        return to_polar(z)
-
     def initial_cov(self, z0: torch.Tensor, sig0: torch.Tensor) -> torch.Tensor:
         """The first detection's Cartesian covariance ``[B, 3, 3]`` to first order, ``J diag(sigma^2) J^T`` with ``J``
         the Jacobian of the conversion at the plot of ``z0 [B, 3]`` (``immnet.data.radar.polar_covariance``'s; a
@@ -171,7 +167,7 @@ class Polar:
     def measure(self, z: torch.Tensor, robust: float | None = None) -> Callable:
         """``run``'s ``measure(t, xp, Pp, spare)`` over ENU measurements ``z [B, T, 3]``: :func:`polar_update` of each filter
         ``[B, M, ...]`` with scan ``t``'s plot."""
-        plots = self.measurements(z)
+        plots = to_polar(z)  # the plots (rho, az, el); NaN stays NaN
         sig = self.sigmas(z.shape[:2], z.dtype, z.device)
 
         def measure(t: int, xp: torch.Tensor, Pp: torch.Tensor, spare: torch.Tensor | None = None):
