@@ -95,8 +95,6 @@ def output(state: torch.Tensor, extra: dict | None = None, *, measurements: torc
     """A method's output ``TensorDict [B]``: ``state`` plus any non-None ``extra`` entries, each NaN
     before its track's first detection in ``measurements [B, T, 3]`` (no estimate yet)."""
     waiting = before_first_detection(measurements)
-    td = TensorDict({keys.STATE: blank_before_first_detection(state, waiting)}, batch_size=[state.shape[0]])
-    for key, value in (extra or {}).items():
-        if value is not None:
-            td[key] = blank_before_first_detection(value, waiting)
-    return td
+    entries = {keys.STATE: state, **(extra or {})}
+    return TensorDict({key: blank_before_first_detection(value, waiting) for key, value in entries.items()
+                       if value is not None}, batch_size=[state.shape[0]])
