@@ -276,10 +276,8 @@ class IMMTracker(Method):
                                                   compile=self.compile, return_cov=self.return_cov, start=first,
                                                   robust=robust, reacquire=_restarts(self.reacquire, intervals, mu0),
                                                   measure=measure)
-        extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None}
-        if self.return_experts:
-            extra[keys.EXPERT_POST] = experts
-            extra[keys.EXPERT_PROBS] = probs
+        extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None,
+                 keys.EXPERT_POST: experts, keys.EXPERT_PROBS: probs if self.return_experts else None}  # None: left out
         return output(states, extra, measurements=z)
 
     @torch.no_grad()
