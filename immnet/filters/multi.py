@@ -285,21 +285,20 @@ class IMMFilter(TrackFilter):
         xc, Pc = combine(self.x.reshape(K * G, M, d), self.P.reshape(K * G, M, d, d), self.mu.reshape(K * G, M))
         return xc.view(K, G, d), Pc.view(K, G, d, d)
 
-    def _measure(self, z: torch.Tensor, R: torch.Tensor):
-        """A plot per track and hypothesis ``z [K, H, 3]``, ``R [K, H, 3, 3]`` as the filter's groups measure it:
-        ``(z [K, H, G, 1, m], R [K, H, G, 1, m, m], H)`` (per axis: the coordinate and ``R``'s diagonal element)."""
+    def _measure(self, z, R):
+        """A plot per row, ``z [K, 3]``, ``R [K, 3, 3]`` (numpy), as the filter's groups measure it: ``(z [K, G, 1, m],
+        R [K, G, 1, m, m], H)`` (per axis: the coordinate and ``R``'s diagonal element)."""
+        z, R = _t(z).reshape(-1, 3), _t(R).reshape(-1, 3, 3)
         if self.groups is Modes.JOINT:
-            return z[:, :, None, None, :], R[:, :, None, None], None
-        diag = torch.diagonal(R, dim1=-2, dim2=-1)
-        return z[..., None, None], diag[..., None, None, None], self._H
+            return z[:, None, None, :], R[:, None, None], None
+        return z[..., None, None], torch.diagonal(R, dim1=-2, dim2=-1)[..., None, None, None], self._H
 
     @torch.no_grad()
     def update(self, z, R) -> None:
         if len(self) == 0:
             return
-        z, R = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3)
         zm, Rm, H = self._measure(z, R)
-        x, P, ll, *after = update(self.x, self.P, zm[:, 0], H, Rm[:, 0], self.robust, self._spare())
+        x, P, ll, *after = update(self.x, self.P, zm, H, Rm, self.robust, self._spare())
         self.x, self.P, self.mu = x, P, mode_update(torch.log(self.mu), ll)
         self.spare = after[0] if after else self.spare
 
@@ -318,10 +317,9 @@ class IMMFilter(TrackFilter):
         if K == 0:
             return
         track = torch.from_numpy(np.asarray(track, dtype=np.int64))
-        z, R, beta, beta0 = _t(z).reshape(-1, 1, 3), _t(R).reshape(-1, 1, 3, 3), _t(beta), _t(beta0)
+        beta, beta0 = _t(beta), _t(beta0)
         zm, Rm, H = self._measure(z, R)
-        xh, Ph, ll, *after = update(self.x[track], self.P[track], zm[:, 0], H, Rm[:, 0], self.robust,
-                                   self._spare(track))  # [n, G, M, ...]
+        xh, Ph, ll, *after = update(self.x[track], self.P[track], zm, H, Rm, self.robust, self._spare(track))
         if after:  # far: a track with plots in its gate, each beyond k of every filter
             pairs = torch.zeros(K, G, 1, dtype=torch.long).index_add(0, track, torch.ones_like(after[0], dtype=torch.long))
             near = torch.zeros(K, G, 1, dtype=torch.long).index_add(0, track, (~after[0]).long())
