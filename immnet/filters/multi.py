@@ -48,7 +48,7 @@ from scipy.stats import chi2
 from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
-from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, update
+from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, start_state, update
 from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
 from immnet.motion.models import axis_blocks, block_diagonal
 
@@ -239,17 +239,11 @@ class IMMFilter(TrackFilter):
         k = z.shape[0]
         if k == 0:
             return
-        x0 = torch.zeros(k, 9, dtype=torch.float64)
-        P0 = torch.zeros(k, 9, 9, dtype=torch.float64)
-        pos, vel, acc = slice(0, 9, 3), slice(1, 9, 3), slice(2, 9, 3)
-        x0[:, pos] = z
-        P0[:, pos, pos] = R
-        eye = torch.eye(3, dtype=torch.float64)
-        qa = self.acc_std**2
-        P0[:, acc, acc] = qa * eye
-        if z_prev is None:
-            P0[:, vel, vel] = self.vel_std**2 * eye
-        else:
+        x0, P0 = start_state(z, R, self.vel_std, self.acc_std)  # one point: the single-target IMMs' start
+        if z_prev is not None:  # two: the differenced velocity
+            pos, vel, acc = slice(0, 9, 3), slice(1, 9, 3), slice(2, 9, 3)
+            eye = torch.eye(3, dtype=torch.float64)
+            qa = self.acc_std**2
             zp, Rp = _t(z_prev).reshape(-1, 3), _t(R_prev).reshape(-1, 3, 3)
             dt = _t(dt).reshape(-1).expand(k)[:, None]
             x0[:, vel] = (z - zp) / dt
