@@ -251,10 +251,9 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         def matrices(d):
             """``F_CV``, ``F_CA`` and ``Q`` of ``[x, w]`` over an interval ``d`` (``[10, 10]``; ``[B, 10, 10]`` for ``d [B]``),
             ``w`` dropped (a turn filter's own rate enters with its onset prior)."""
-            lead = () if isinstance(d, float) else (B,)
-            Fcv, Fca, Q = (torch.zeros(*lead, 10, 10, dtype=dtype, device=dev) for _ in range(3))
-            Fcv[..., :9, :9], Fca[..., :9, :9] = cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev)
-            Q[..., :9, :9] = process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev)
+            blocks = (cv_matrix(d, dtype, dev), ca_matrix(d, dtype, dev),
+                      process_noise(self.sigma_q, d, "white", dtype=dtype, device=dev))
+            Fcv, Fca, Q = (torch.nn.functional.pad(A, (0, 1, 0, 1)) for A in blocks)  # w's row and column zero
             return Fcv.expand(B, 10, 10), Fca.expand(B, 10, 10), Q if Q.dim() == 2 else Q[:, None]
 
         fixed = matrices(interval(0)) if isinstance(interval(0), float) else None  # one interval: built once
