@@ -274,9 +274,7 @@ class SwitchClairvoyantKF(ClairvoyantKF):
                              acc_var=self.acc_var, rate_prior_deg=self.turn_prior_deg)
         keep, mean, cov = (v.to(dtype=dtype, device=dev) for v in onset)
         x9, P9 = initial_state(z, r)
-        x = torch.cat([x9, x9.new_zeros(B, 1)], -1)
-        P = torch.zeros(B, 10, 10, dtype=dtype, device=dev)
-        P[:, :9, :9] = P9
+        x, P = torch.nn.functional.pad(x9, (0, 1)), torch.nn.functional.pad(P9, (0, 1, 0, 1))  # w 0, its variance 0
         x, P = enter(x[:, None], P[:, None], keep, mean, cov)  # each filter as the track starts in its mode
         one = torch.full((N_MODES, N_MODES), 1.0 / N_MODES, dtype=dtype, device=dev)
         states, _, _ = run(z, x, P, one[0].expand(B, N_MODES), one, transition, r**2, onset=onset, oracle=mode, H=H,
