@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import contextlib
 from pathlib import Path
-from typing import Sequence
+from typing import Protocol, Sequence, runtime_checkable
 
 import torch
 from tensordict import TensorDict
@@ -34,6 +34,16 @@ from immnet.filters.registry import method_dirs as _method_dirs
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
 from immnet.motion import POS
+
+@runtime_checkable
+class Method(Protocol):
+    """The method protocol (module doc), checked by structure (``immnet.evaluation.Method``)."""
+
+    name: str
+    needs: tuple[str, ...]
+
+    def track(self, batch: TensorDict) -> TensorDict: ...
+
 
 class RawMeasurements:
     """The measurements as an estimate: ``x_hat_t = [z_t, 0, 0]`` per axis (no velocity/acceleration).
