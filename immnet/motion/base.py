@@ -16,9 +16,8 @@ from pathlib import Path
 from typing import Sequence
 
 import torch
-import yaml
 
-from immnet.config import instantiate, resolve_path
+from immnet.config import instantiate, load_yaml
 from immnet.motion import models as m
 
 
@@ -118,7 +117,7 @@ class ModelSet:
         if isinstance(spec, ModelSet):
             return spec
         if isinstance(spec, (str, Path)):
-            spec = yaml.safe_load(resolve_path(spec).read_text())
+            spec = load_yaml(spec)
         if isinstance(spec, dict):
             if "models" not in spec:
                 raise ValueError("a model set mapping needs a 'models' list")
