@@ -109,14 +109,13 @@ class PerDetection:
         return torch.where(detected[..., None, None], R, eye)
 
 
-def _sigma(value, name: str):
+def _check_sigma(value, name: str) -> None:
+    """A ValueError unless ``Polar``'s standard deviation ``name`` is a positive number or a tensor of them."""
     if isinstance(value, torch.Tensor):
         if not (torch.isfinite(value).all() and (value > 0).all()):
             raise ValueError(f"Polar.{name} must be finite and > 0 everywhere")
-        return value
-    if not (is_number(value) and value > 0):
+    elif not (is_number(value) and value > 0):
         raise ValueError(f"Polar.{name} must be a positive number (or a tensor of them), got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -134,7 +133,7 @@ class Polar:
 
     def __post_init__(self):
         for name in ("sigma_range", "sigma_azimuth", "sigma_elevation"):
-            _sigma(getattr(self, name), name)
+            _check_sigma(getattr(self, name), name)
 
     @classmethod
     def from_config(cls, config: dict) -> "Polar":
