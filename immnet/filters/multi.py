@@ -373,9 +373,7 @@ def gate_pairs(z_pred: np.ndarray, S: np.ndarray, plots: np.ndarray, R: np.ndarr
         return empty
     tree = cKDTree(plots) if tree is None else tree
     rmax = float(np.trace(R, axis1=1, axis2=2).max())
-    ti, pj = ball_pairs(tree, z_pred, np.sqrt(threshold * (np.trace(S, axis1=1, axis2=2) + rmax)))
-    if len(ti) == 0:
-        return empty
+    ti, pj = ball_pairs(tree, z_pred, np.sqrt(threshold * (np.trace(S, axis1=1, axis2=2) + rmax)))  # none: none kept
     nu = torch.from_numpy(plots[pj] - z_pred[ti])
     Si, logdet = inv3(torch.from_numpy(S[ti] + R[pj]))
     maha = (nu * (Si @ nu[..., None])[..., 0]).sum(-1)
