@@ -270,3 +270,36 @@ def test_learned_parts_rows_are_the_parts_the_network_has():
     assert _filter().network().learned_parts() == [] and list(variants([]).values()) == [()]
     with pytest.raises(ValueError, match="no learned part 'output'; parts: gain, classifier, correction"):
         _filter().network().part("output")
+
+
+def test_the_correction_features_have_finite_gradients_where_a_variance_is_zero():
+    """A track before its first detection carries a zero covariance and its features are not used: their gradient (0)
+    must not turn into NaN through sqrt's infinite derivative at 0 (it did, and a training whose batch held such a
+    track skipped that step). A zero variance in a used feature (a CV filter's acceleration) gets a zero gradient too.
+    The features' values stay the square roots of the variances (float64 numpy)."""
+    import numpy as np
+
+    from immnet.stages.correct import cholesky_noise, correction_features, whitened_features
+
+    torch.manual_seed(0)
+    B = 3
+    z = torch.randn(B, 3, dtype=torch.float64) * 10
+    z[0] = float("nan")  # no detection yet
+    x = torch.randn(B, 9, dtype=torch.float64, requires_grad=True)
+    A = torch.randn(B, 9, 9, dtype=torch.float64)
+    P0 = A @ A.transpose(-1, -2)
+    P0[0] = 0.0  # a track that has not started
+    P0[1, 2, :] = 0.0
+    P0[1, :, 2] = 0.0  # x's acceleration variance zero
+    P = P0.clone().requires_grad_(True)
+    mu = torch.full((B, 4), 0.25, dtype=torch.float64)
+    r = torch.full((B, 1), 5.0, dtype=torch.float64)
+    L = cholesky_noise(25.0 * torch.eye(3, dtype=torch.float64).expand(B, 3, 3))
+    for f in (correction_features(z, x, P, mu, r, 1.0), whitened_features(z, x, P, mu, L, 1.0)):
+        x.grad = P.grad = None
+        f[1:].sum().backward()  # the track that has not started: its features unused
+        assert torch.isfinite(x.grad).all() and torch.isfinite(P.grad).all()
+        assert P.grad[1, 2, 2] == 0.0
+        var = np.diagonal(P0.numpy(), axis1=-2, axis2=-1)
+        np.testing.assert_allclose(f[:, 13:16].detach().numpy(), np.sqrt(var[:, [1, 4, 7]]), rtol=1e-12)
+        np.testing.assert_allclose(f[:, 16:19].detach().numpy(), np.sqrt(var[:, [2, 5, 8]]), rtol=1e-12)

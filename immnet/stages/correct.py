@@ -72,18 +72,25 @@ def noise_std(noise: torch.Tensor) -> torch.Tensor:
     return noise.clamp_min(1e-12).sqrt().reshape(-1, 1)
 
 
+def std_of(var: torch.Tensor) -> torch.Tensor:
+    """``sqrt(max(var, 0))``, with a zero gradient where that is 0: ``sqrt``'s derivative at 0 is infinite, and a
+    feature no scan uses (a track before its first detection, whose covariance is zero) gets a zero gradient, which
+    ``0 * inf`` would turn into NaN in every weight."""
+    live = var > 0
+    return torch.where(live, torch.where(live, var, torch.ones_like(var)).sqrt(), torch.zeros_like(var))
+
+
 def _features(z, x, P, mu, dt, scaled, pos_std, noise) -> torch.Tensor:
     """``f_t`` (module doc) with the innovation ``scaled(z_t - p_t)`` (0 where missed), the position's standard
     deviations ``pos_std [B, 3]`` and the noise's features ``noise [B, 1 or 3]`` as the caller scales them; a
     non-finite entry is 0."""
     seen = measured(z)
     d = scaled(torch.where(seen, z - x[..., list(POS)], torch.zeros_like(z)))
-    var = P.diagonal(dim1=-2, dim2=-1).clamp_min(0)
+    std = std_of(P.diagonal(dim1=-2, dim2=-1))
     log_dt = torch.log(torch.as_tensor(dt, dtype=x.dtype, device=x.device)).expand(x.shape[0], 1)
     f = torch.cat([
         d, seen.to(x.dtype), x[..., list(VEL)] / VEL_SCALE, x[..., list(ACC)] / ACC_SCALE,
-        pos_std, var[..., list(VEL)].sqrt(), var[..., list(ACC)].sqrt(), mu.reshape(mu.shape[0], -1).to(x.dtype),
-        noise, log_dt,
+        pos_std, std[..., list(VEL)], std[..., list(ACC)], mu.reshape(mu.shape[0], -1).to(x.dtype), noise, log_dt,
     ], -1)
     return torch.where(torch.isfinite(f), f, torch.zeros_like(f))
 
@@ -96,16 +103,15 @@ def whitened_features(z, x, P, mu, L, dt) -> torch.Tensor:
     white_pos = torch.linalg.solve_triangular(L, Li_P.transpose(-1, -2), upper=False)  # L^-1 P L^-T
     R_std = (L * L).sum(-1).clamp_min(1e-12).sqrt()  # sqrt(diag(L L^T))
     white_d = lambda d: torch.linalg.solve_triangular(L, d.unsqueeze(-1), upper=False).squeeze(-1)  # noqa: E731
-    return _features(z, x, P, mu, dt, white_d, white_pos.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt(),
-                     torch.log(R_std / R_SCALE))
+    return _features(z, x, P, mu, dt, white_d, std_of(white_pos.diagonal(dim1=-2, dim2=-1)), torch.log(R_std / R_SCALE))
 
 
 def correction_features(z, x, P, mu, r, dt) -> torch.Tensor:
     """``f_t`` of the module doc ``[B, 21 + G M]``: measurements ``z [B, 3]`` (NaN: missed), fused estimate
     ``x [B, 9]``, its covariance ``P [B, 9, 9]``, mode probabilities ``mu [B, M]`` or ``[B, G, M]``, ``r [B, 1]``,
     ``dt`` a float or ``[B, 1]``; a non-finite entry is 0."""
-    var = P.diagonal(dim1=-2, dim2=-1).clamp_min(0)
-    return _features(z, x, P, mu, dt, lambda d: d / r, var[..., list(POS)].sqrt() / r, r / R_SCALE)
+    pos_std = std_of(P.diagonal(dim1=-2, dim2=-1)[..., list(POS)]) / r
+    return _features(z, x, P, mu, dt, lambda d: d / r, pos_std, r / R_SCALE)
 
 
 class OutputCorrection(Stage):
