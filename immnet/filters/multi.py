@@ -48,7 +48,7 @@ from scipy.stats import chi2
 from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
-from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, start_state, update
+from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, quadratic, start_state, update
 from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
 from immnet.motion.models import axis_blocks, block_diagonal
 
@@ -376,7 +376,7 @@ def gate_pairs(z_pred: np.ndarray, S: np.ndarray, plots: np.ndarray, R: np.ndarr
     ti, pj = ball_pairs(tree, z_pred, np.sqrt(threshold * (np.trace(S, axis1=1, axis2=2) + rmax)))  # none: none kept
     nu = torch.from_numpy(plots[pj] - z_pred[ti])
     Si, logdet = inv3(torch.from_numpy(S[ti] + R[pj]))
-    maha = (nu * (Si @ nu[..., None])[..., 0]).sum(-1)
+    maha = quadratic(Si, nu)
     keep = (maha <= threshold).numpy()
     ll = gaussian_loglik(maha, logdet, 3).numpy()
     return ti[keep], pj[keep], ll[keep]

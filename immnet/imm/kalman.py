@@ -87,6 +87,12 @@ def gaussian_loglik(maha: torch.Tensor, logdet: torch.Tensor, m: int) -> torch.T
     return -0.5 * (maha + logdet + m * LOG_2PI)
 
 
+def quadratic(S_inv: torch.Tensor, nu: torch.Tensor) -> torch.Tensor:
+    """The squared Mahalanobis distance ``nu^T S^-1 nu`` ``[...]`` of innovations ``nu [..., m]`` from the inverse of
+    their covariance ``S_inv [..., m, m]`` (``inv3``'s)."""
+    return ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
+
+
 def inv3(S: torch.Tensor):
     """Inverse and log-determinant of symmetric positive-definite 3x3 matrices ``[..., 3, 3]`` (covariances), in
     closed form by their ``L D L^T`` factorization: ``(S^{-1}, log det S)``.
@@ -297,8 +303,7 @@ def innovation_update(x, P, nu, HP, S, missed, robust: float | None = None, spar
         Si = torch.cholesky_inverse(L)
         logdet = 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
     K = small_matmul(HP.transpose(-1, -2), Si)
-    Siy = (Si @ nu.unsqueeze(-1)).squeeze(-1)
-    maha = (nu * Siy).sum(-1)
+    maha = quadratic(Si, nu)
     after = None
     if robust is not None:
         if spare is not None:

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import torch
 
-from immnet.imm.kalman import _as_cov, inv3, start_state
+from immnet.imm.kalman import _as_cov, inv3, quadratic, start_state
 from immnet.imm.option import Option, is_number
 
 
@@ -105,8 +105,7 @@ def innovations(z: torch.Tensor, x: torch.Tensor, P: torch.Tensor, R: torch.Tens
 def mahalanobis(nu: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
     """Each filter's squared Mahalanobis distance ``nu^T S^-1 nu`` of its innovation ``nu [B, M, 3]`` with covariance
     ``S [B, M, 3, 3]`` (``innovations``): ``[B, M]``."""
-    Si, _ = inv3(S)
-    return (nu * (Si @ nu.unsqueeze(-1)).squeeze(-1)).sum(-1)
+    return quadratic(inv3(S)[0], nu)
 
 
 def reachable(rule: Reacquire, nu: torch.Tensor, S: torch.Tensor, interval) -> torch.Tensor:

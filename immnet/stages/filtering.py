@@ -49,7 +49,7 @@ from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import (
     as_covariance, check_robust, far, gaussian_loglik, group_loglik, group_maha, huber, inv3, joseph,
-    marginal_loglik, small_matmul,
+    marginal_loglik, quadratic, small_matmul,
 )
 from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
@@ -811,7 +811,7 @@ class _FilterExperts:
         S_inv, logdet = inv3(S)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR)) - shift.to(P.dtype).unsqueeze(1)
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))
-        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
+        maha = quadratic(S_inv, nu)
         return self._loglik(nu, S, maha, logdet, has_z)
 
     def _finish(self, td, r2, P, delta=None, nu=None):
@@ -823,7 +823,7 @@ class _FilterExperts:
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))  # [B, M, 1]
         if nu is None:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
-        maha = ((S_inv @ nu.unsqueeze(-1)).squeeze(-1) * nu).sum(-1)
+        maha = quadratic(S_inv, nu)
         robust = self.robust
         spare = after = None
         if robust is not None and self.z_groups is not None:
