@@ -163,6 +163,19 @@ def test_per_axis_imm_tracks_a_batch_of_nine():
                                    equal_nan=True)
 
 
+def test_axis_blocks_take_matrices_and_axis_states_take_states():
+    """A batch of nine states ``[9, 9]`` is split by ``axis_states`` (each axis's position, velocity, acceleration);
+    ``axis_blocks`` takes only ``[..., 9, 9]`` matrices and refuses a state in one line."""
+    from immnet.motion.models import axis_states
+
+    x = torch.arange(81.0).reshape(9, 9)
+    for a in range(3):
+        torch.testing.assert_close(axis_states(x)[a], x[:, 3 * a : 3 * a + 3], rtol=0, atol=0)
+        torch.testing.assert_close(axis_blocks(x)[a], x[3 * a : 3 * a + 3, 3 * a : 3 * a + 3], rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"expected \[\.\.\., 9, 9\] matrices"):
+        axis_blocks(torch.zeros(4, 9))
+
+
 def test_per_axis_imm_refuses_a_turn():
     with pytest.raises(ValueError, match="couple the axes"):
         PerAxisIMMTracker(ModelSet([ConstantVelocity(), CoordinatedTurn(3.0)]), 4.0, 1.0)

@@ -30,7 +30,7 @@ from immnet.imm.interaction import transition_matrix
 from immnet.imm.measurement import measurement_model
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
-from immnet.motion.models import axis_blocks, block_diagonal
+from immnet.motion.models import axis_blocks, axis_states, block_diagonal
 
 
 class PerAxisIMMTracker(Method):
@@ -92,22 +92,22 @@ class PerAxisIMMTracker(Method):
         r = self.measurement.std(batch, self.dtype, dev)
         x0, P0 = initial_state(z, r)
 
-        def per_track(A: torch.Tensor, shared: bool = False) -> torch.Tensor:
-            """``[B, ...]`` (or, ``shared``, one for every track) -> the axis blocks ``[3 B, ...]``, axis-major."""
-            blocks = axis_blocks(A)
+        def per_track(blocks: torch.Tensor, shared: bool = False) -> torch.Tensor:
+            """Axis blocks ``[3, B, ...]`` (or, ``shared``, ``[3, ...]``, one for every track) -> ``[3 B, ...]``,
+            axis-major."""
             if shared:
                 blocks = blocks[:, None].expand(AXES, B, *blocks.shape[1:])
             return blocks.reshape(AXES * B, *blocks.shape[2:])
 
-        x = per_track(x0[:, None]).expand(AXES * B, M, 3).contiguous()  # [:, None]: never read as a 9x9 matrix
-        P = per_track(P0[:, None]).expand(AXES * B, M, 3, 3).contiguous()
+        x = per_track(axis_states(x0))[:, None].expand(AXES * B, M, 3).contiguous()
+        P = per_track(axis_blocks(P0))[:, None].expand(AXES * B, M, 3, 3).contiguous()
         mu = torch.full((AXES * B, M), 1.0 / M, dtype=self.dtype, device=dev)
         R = variance(r, self.dtype, dev)
         R = R.repeat(AXES) if R.dim() == 1 else R
         za = z.permute(2, 0, 1).reshape(AXES * B, T, 1)
         H = torch.tensor([[1.0, 0.0, 0.0]], dtype=self.dtype, device=dev)
-        states, probs, _, *cov = run(za, x, P, mu, self.Pi.to(dtype=self.dtype, device=dev),
-                                     linear_transition(per_track(F, F.dim() == 3), per_track(Q, Q.dim() == 3)), R, H=H,
+        transition = linear_transition(per_track(axis_blocks(F), F.dim() == 3), per_track(axis_blocks(Q), Q.dim() == 3))
+        states, probs, _, *cov = run(za, x, P, mu, self.Pi.to(dtype=self.dtype, device=dev), transition, R, H=H,
                                      return_cov=self.return_cov, start=first_detection(z).repeat(AXES), robust=self.robust)
         state = states.reshape(AXES, B, T, 3).permute(1, 2, 0, 3).reshape(B, T, 9)
         probs = probs.reshape(AXES, B, T, M).permute(1, 2, 0, 3)

@@ -112,13 +112,19 @@ def block_diagonal(blocks) -> torch.Tensor:
 
 
 def axis_blocks(A: torch.Tensor) -> torch.Tensor:
-    """The three per-axis blocks of ``A [..., 9, 9]`` (or of a state ``[..., 9]``), on a new leading dimension:
-    ``[3, ..., 3, 3]`` (``[3, ..., 3]``)."""
-    if A.shape[-1] != 9:
-        raise ValueError(f"expected a 9-D state or matrix, got trailing shape {tuple(A.shape[-2:])}")
-    if A.dim() >= 2 and A.shape[-2] == 9:
-        return torch.stack([A[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] for a in range(AXES)])
-    return torch.stack([A[..., 3 * a : 3 * a + 3] for a in range(AXES)])
+    """The three per-axis 3x3 blocks of matrices ``A [..., 9, 9]`` on a new leading dimension: ``[3, ..., 3, 3]``
+    (states: ``axis_states``; a batch of nine states ``[9, 9]`` would read as one matrix)."""
+    if A.dim() < 2 or tuple(A.shape[-2:]) != (9, 9):
+        raise ValueError(f"expected [..., 9, 9] matrices, got shape {tuple(A.shape)}")
+    return torch.stack([A[..., 3 * a : 3 * a + 3, 3 * a : 3 * a + 3] for a in range(AXES)])
+
+
+def axis_states(x: torch.Tensor) -> torch.Tensor:
+    """The three per-axis parts (position, velocity, acceleration) of states ``x [..., 9]`` on a new leading
+    dimension: ``[3, ..., 3]``."""
+    if x.shape[-1] != 9:
+        raise ValueError(f"expected [..., 9] states, got shape {tuple(x.shape)}")
+    return x.unflatten(-1, (AXES, 3)).movedim(-2, 0)
 
 
 def fits_groups(model, groups: tuple[int, ...]) -> bool:
