@@ -95,6 +95,28 @@ def clutter_density(scene: Scene) -> float:
     return s["clutter"] / vol
 
 
+def outside_cover(scene: Scene, pos) -> bool:
+    """Whether an ENU position lies outside the scene's radar cover (``immnet.filters.multi.Cover``)."""
+    from immnet.evaluation.scenes import cover
+
+    return not bool(cover(scene.meta["spec"]).contains(np.asarray(pos, float).reshape(3)))
+
+
+def in_cover(scene: Scene, deleter):
+    """``deleter``, and also a track that got no plot at a scan while its estimate lies outside the radar's cover:
+    the rule our tracker applies (``MultiTargetTracker(cover=...)``), given to Stone Soup alike."""
+    from stonesoup.deleter.base import Deleter
+    from stonesoup.deleter.multi import CompositeDeleter
+    from stonesoup.types.update import Update
+
+    class OutOfCover(Deleter):
+        def check_for_deletion(self, track, **kwargs):
+            return not isinstance(track.state, Update) and outside_cover(
+                scene, np.asarray(track.state_vector, float).ravel()[[0, 2, 4]])
+
+    return CompositeDeleter([deleter, OutOfCover()], intersect=False)
+
+
 def stonesoup_tracker(kind: str, scene: Scene, q: float, delete_steps: int, min_points: int, missed_distance: float,
                       init_speed: float, tentative_steps: int, prob_gate: float):
     """A Stone Soup GNN or JPDA tracker for the scene's radar (module doc), and its measurement model."""
@@ -123,10 +145,10 @@ def stonesoup_tracker(kind: str, scene: Scene, q: float, delete_steps: int, min_
     gnn_hyp = DistanceHypothesiser(predictor, updater, measure=Mahalanobis(), missed_distance=missed_distance)
     prior = GaussianState(StateVector(np.zeros(6)), CovarianceMatrix(np.diag([0.0, init_speed ** 2] * 3)))
     initiator = MultiMeasurementInitiator(prior_state=prior, measurement_model=mm,
-                                          deleter=UpdateTimeStepsDeleter(tentative_steps),
+                                          deleter=in_cover(scene, UpdateTimeStepsDeleter(tentative_steps)),
                                           data_associator=GNNWith2DAssignment(gnn_hyp), updater=updater,
                                           min_points=min_points)
-    deleter = UpdateTimeStepsDeleter(delete_steps)
+    deleter = in_cover(scene, UpdateTimeStepsDeleter(delete_steps))
     if kind == "gnn":
         return MultiTargetTracker(initiator=initiator, deleter=deleter, detector=None,
                                   data_associator=GNNWith2DAssignment(gnn_hyp), updater=updater), mm
@@ -160,7 +182,7 @@ def run_stonesoup(kind: str, scene: Scene, params: dict, out: dict | None = None
         tracks = sorted(tracks, key=lambda tr: tr.id)
         est_ids.append(np.array([number.setdefault(tr.id, len(number)) for tr in tracks], dtype=np.int64))
         est_pos.append(np.array([np.asarray(tr.state_vector, float).ravel()[[0, 2, 4]] for tr in tracks]).reshape(-1, 3))
-        seconds.append(took)  # the update's seconds, appended last: a scan counts once its estimates are in: a scan counts once its estimates are in
+        seconds.append(took)  # the update's seconds, appended last: a scan counts once its estimates are in
     return out
 
 
@@ -224,7 +246,8 @@ def run_stonesoup_told(scene: Scene, params: dict) -> dict:
             else:
                 tracks[ac].append(pred)
                 misses[ac] += 1
-                if misses[ac] >= params["delete_steps"]:
+                if misses[ac] >= params["delete_steps"] or outside_cover(
+                        scene, np.asarray(pred.state_vector, float).ravel()[[0, 2, 4]]):
                     del tracks[ac], misses[ac], ids[ac]
         for ac, det in plot_of.items():
             tracks[ac] = next(iter(initiator.initiate({det}, when)))

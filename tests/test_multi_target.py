@@ -88,7 +88,7 @@ def test_track_metrics_counts_switches_fragments_continuity():
 # --- the per-track filter ------------------------------------------------------------------------------------------
 
 from immnet.filters.multi import (  # noqa: E402
-    IMMFilter, MultiTargetTracker, TrackFilter, assign, gate_pairs, jpda_probabilities,
+    Cover, IMMFilter, MultiTargetTracker, TrackFilter, assign, gate_pairs, jpda_probabilities,
 )
 
 
@@ -414,6 +414,37 @@ def test_missed_scan_coasts_then_deletes(filt, dt):
     for k in (8, 9):
         assert [t.track_id for t in tracker.step(k * dt, np.zeros((0, 3)))] == [rep.track_id]
     assert tracker.step(10 * dt, np.zeros((0, 3))) == [] and tracker.tracks() == []
+
+
+@pytest.mark.parametrize("associator", ["gnn", "jpda"])
+def test_track_leaving_the_cover_is_deleted_at_its_first_miss_outside(associator):
+    """A radar with a cover of 20 km: an aircraft flying outward at 200 m/s is plotted every 2 s while its range
+    is at most 20 km. Told the cover, the tracker deletes its track at the first scan without a plot where the
+    estimate lies beyond 20 km (at the scan it leaves, not ``delete_after`` scans later); a miss inside the cover
+    coasts as before. Not told it, the track coasts its ``delete_after`` scans outside. The range is computed by
+    hand."""
+    v, dt = np.array([200.0, 0.0, 0.0]), 2.0
+    p0 = np.array([12000.0, 0.0, 3000.0])
+    reported = {}
+    for cover in (None, Cover(20000.0)):
+        tracker = MultiTargetTracker("real-imm-singer", r=20.0, delete_after=3, associator=associator, cover=cover)
+        rows = []
+        for k in range(24):
+            p = p0 + v * k * dt
+            inside = np.sqrt(p @ p) <= 20000.0
+            plots = p[None] if inside and k != 8 else np.zeros((0, 3))  # scan 8: a miss inside the cover
+            rows.append([(r.track_id, r.updated) for r in tracker.step(k * dt, plots)])
+        reported[cover is None] = rows
+    last_in = max(k for k in range(24) if np.linalg.norm(p0 + v * k * dt) <= 20000.0)
+    told, blind = reported[False], reported[True]
+    (tid, _), = told[3]
+    assert told[8] == [(tid, False)] == blind[8]  # a miss inside the cover coasts, told the cover or not
+    assert told[last_in] == [(tid, True)] and all(r == [] for r in told[last_in + 1:])
+    assert [len(r) for r in blind[last_in + 1:last_in + 3]] == [1, 1] and blind[last_in + 3] == []
+    with pytest.raises(ValueError, match="a cover needs 0 < max_range < inf"):
+        Cover(0.0)
+    with pytest.raises(TypeError, match="cover must be a Cover or None"):
+        MultiTargetTracker("real-imm-singer", cover=20000.0)
 
 
 @pytest.mark.parametrize("associator,filt", [("gnn", "real-imm-singer"), ("jpda", "real-imm-singer"),

@@ -58,13 +58,13 @@ def _read(path):
         return list(csv.DictReader(f))
 
 
-def _are_the_trackers_tracks(rows, scene, filter_name):
-    """The CSV rows are the tracks of ``MultiTargetTracker(filter_name)`` stepped through the scene's own arrays: the
-    same ids at the same scans (at least three tracks), positions within a metre (the CSV's covariances are converted
-    from its text)."""
+def _are_the_trackers_tracks(rows, scene, filter_name, cover=None):
+    """The CSV rows are the tracks of ``MultiTargetTracker(filter_name, cover=cover)`` stepped through the scene's own
+    arrays: the same ids at the same scans (at least three tracks), positions within a metre (the CSV's covariances
+    are converted from its text)."""
     from immnet.filters.multi import MultiTargetTracker
 
-    tracker = MultiTargetTracker(filter_name)
+    tracker = MultiTargetTracker(filter_name, cover=cover)
     want = [(str(rep.track_id), repr(t), rep.state[[0, 3, 6]]) for t, z, cov in scene.scans()
             for rep in tracker.step(t, z, cov)]
     assert len({w[0] for w in want}) >= 3
@@ -240,6 +240,12 @@ REFUSALS = [
      "--pd is the probability that an aircraft is detected, in (0, 1]; got 1.5"),
     (CART, GOOD, ("--r", "30", "--associator", "jpda", "--clutter-density", "0"),
      "--clutter-density is the false plots per m^3, a finite number > 0; got 0"),
+    (CART, GOOD, ("--r", "30", "--min-elevation", "2"),
+     "--min-elevation is the radar's cover with --max-range: give --max-range METRES too"),
+    (CART, GOOD, ("--r", "30", "--max-range", "-5"),
+     "--max-range is the slant range the radar sees up to, a finite number of metres > 0; got -5"),
+    (CART, GOOD, ("--r", "30", "--max-range", "9e4", "--min-elevation", "90"),
+     "--min-elevation is in degrees, in [-90, 90); got 90"),
     (CART, GOOD, ("--r", "30", "--scene", "s.npz"),
      "--scene marks the clutter on --figure's radar display: give --figure FILE.png too"),
     (CART, GOOD, ("--r", "30", "--figure", "radar.jpg"),
@@ -290,6 +296,16 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
     rows = _read(out)
     _are_the_trackers_tracks(rows, scene, DEFAULT_FILTER)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    from immnet.filters.multi import Cover
+
+    out.unlink()  # told a cover that ends inside the scene: tracks beyond it end at their first miss there
+    edge = float(np.median(np.linalg.norm(scene.plots, axis=1)))
+    assert main(["track", "--input", str(plots), "--output", str(out), *stds, "--max-range", repr(edge),
+                 "--min-elevation", "1"]) == 0
+    capsys.readouterr()
+    covered = _read(out)
+    assert len(covered) < len(rows)
+    _are_the_trackers_tracks(covered, scene, DEFAULT_FILTER, Cover(edge, 1.0))
     _, other, _ = _scene(tmp_path, 1)
     out.unlink()
     png.unlink()

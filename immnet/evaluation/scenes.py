@@ -36,13 +36,21 @@ def clutter_density(spec: dict) -> float:
     return max(spec["clutter"], 1e-3) / vol
 
 
+def cover(spec: dict):
+    """A scene's radar cover (``immnet.filters.multi.Cover``): what a track beyond it has left."""
+    from immnet.filters.multi import Cover
+
+    return Cover(spec["max_range"], spec["min_elevation"])
+
+
 def run_tracker(scene, filter: str, **settings) -> dict:
-    """One scene through ``MultiTargetTracker(filter, **settings)``, told the scene's detection probability and
-    clutter density (JPDA's; GNN reads neither): per scan the confirmed tracks' ids and positions, and the seconds of
-    each ``step``."""
+    """One scene through ``MultiTargetTracker(filter, **settings)``, told the scene's radar cover (``cover``), detection
+    probability and clutter density (JPDA's; GNN reads neither): per scan the confirmed tracks' ids and positions,
+    and the seconds of each ``step``."""
     from immnet.filters.multi import MultiTargetTracker
 
     spec = scene.meta["spec"]
+    settings = {"cover": cover(spec), **settings}
     tracker = MultiTargetTracker(filter, pd=spec["pd"], clutter_density=clutter_density(spec), **settings)
     est_ids, est_pos, seconds = [], [], []
     for t, plots, cov in scene.scans():
@@ -59,14 +67,16 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
     tracker's), on each aircraft's own plots alone (``plot_source``; clutter never reaches it). A track starts from
     its aircraft's first two plots (the tracker's two-point start: a plot, then the aircraft's next plot), is
     predicted to every scan, updated with its aircraft's plot where there is one (else it coasts), and deleted after
-    ``delete_after`` consecutive scans without one or once its position std exceeds ``max_pos_std`` (the tracker's
-    defaults where None); its aircraft's next plot then seeds a new track. A track is reported at every scan from its
-    start to its deletion, under its own id. Returns what :func:`run_tracker` returns."""
+    ``delete_after`` consecutive scans without one, at a scan without one outside the radar's cover, or once its
+    position std exceeds ``max_pos_std`` (the tracker's defaults where None); its aircraft's next plot then seeds a
+    new track. A track is reported at every scan from its start to its deletion, under its own id. Returns what
+    :func:`run_tracker` returns."""
     from immnet.filters.multi import DELETE_AFTER, MAX_POS_STD, TrackFilter
 
     delete_after = DELETE_AFTER if delete_after is None else int(delete_after)
     max_pos_std = MAX_POS_STD if max_pos_std is None else float(max_pos_std)
     f = TrackFilter.by_name(filter)
+    seen = cover(scene.meta["spec"])
     A = len(scene.aircraft)
     track_of = np.full(A, -1, np.int64)  # each aircraft's row in the filter (-1: none)
     ids = np.zeros(0, np.int64)
@@ -98,7 +108,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
             plot_of[rows_ac[hit]] = -1  # taken by its track
             x, P = f.state()
             pos_std = np.sqrt(np.maximum(np.trace(P[:, 0::3, 0::3], axis1=1, axis2=2), 0.0))
-            keep = (misses < delete_after) & (pos_std <= max_pos_std)
+            keep = (misses < delete_after) & (pos_std <= max_pos_std) & (hit | seen.contains(x[:, [0, 3, 6]]))
             if not keep.all():
                 f.drop(keep)
                 gone = rows_ac[~keep]

@@ -26,7 +26,8 @@ One scan, for every live track at once:
    a k-d tree finds; a pair starts a tentative track (two-point differencing); the plots left over become seeds;
 6. confirmation after M hits within the first N scans (the seed's scan the first); a tentative track that can no
    longer reach M is dropped; a confirmed track is deleted after ``delete_after`` consecutive misses, any track
-   once its position standard deviation ``sqrt(tr P_pos)`` exceeds ``max_pos_std``.
+   once its position standard deviation ``sqrt(tr P_pos)`` exceeds ``max_pos_std`` or, told the radar's ``Cover``,
+   at a miss while its estimate lies outside it.
 
 Every step of gating, association and initiation touches only the pairs inside a gate (the trees find them), so a
 scan costs about ``N log N + K log N + pairs``: clutter far from every track adds plots, not plots times tracks.
@@ -45,6 +46,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
+from immnet.data.radar import covered
 from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
@@ -495,6 +497,25 @@ class TwoPointStart:
 
 
 @dataclass(frozen=True)
+class Cover:
+    """The radar's cover, centred at the origin of the plots' frame: slant range up to ``max_range`` (m), elevation
+    from ``min_elevation`` (degrees) up. A track that gets no plot at a scan and whose estimate lies outside it is
+    deleted at that scan: the radar can no longer see it."""
+
+    max_range: float
+    min_elevation: float = 0.0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.max_range) and self.max_range > 0) or not -90 <= self.min_elevation < 90:
+            raise ValueError(f"a cover needs 0 < max_range < inf and min_elevation in [-90, 90), got "
+                             f"{self.max_range}, {self.min_elevation}")
+
+    def contains(self, pos: np.ndarray) -> np.ndarray:
+        """Where positions ``[..., 3]`` (ENU, m) lie in the cover."""
+        return covered(pos, self.max_range, self.min_elevation)
+
+
+@dataclass(frozen=True)
 class TrackReport:
     """One track at a scan: ``track_id`` (stable: a track keeps it from its start to its deletion, and no other
     track ever takes it), ``state [9]`` (``x, vx, ax, y, vy, ay, z, vz, az``, ENU m), ``cov [9, 9]``, ``confirmed``,
@@ -525,12 +546,12 @@ class MultiTargetTracker:
     misses that delete a confirmed track; ``max_pos_std``: the position standard deviation (m) beyond which any track
     is deleted; ``associator``: ``"gnn"`` or ``"jpda"`` (with ``pd`` the detection probability and
     ``clutter_density`` the false plots per m^3); ``r``: the measurement std (m) of plots given without ``R`` (None:
-    the filter's)."""
+    the filter's); ``cover``: the radar's ``Cover`` (None: none), beyond which a track without a plot is deleted."""
 
     def __init__(self, filter: TrackFilter | str = DEFAULT_FILTER, gate: float = 0.9999,
                  init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = DELETE_AFTER,
                  max_pos_std: float = MAX_POS_STD, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
-                 clutter_density: float = 1e-12, jpda_max_events: int = 20000):
+                 clutter_density: float = 1e-12, jpda_max_events: int = 20000, cover: Cover | None = None):
         if isinstance(filter, str):
             filter = TrackFilter.by_name(filter)
         if not isinstance(filter, TrackFilter):
@@ -563,6 +584,9 @@ class MultiTargetTracker:
         self.init, self.M, self.N, self.delete_after = init, M, N, int(delete_after)
         self.max_pos_std, self.associator, self.pd = float(max_pos_std), associator, float(pd)
         self.clutter_density, self.jpda_max_events = float(clutter_density), int(jpda_max_events)
+        if cover is not None and not isinstance(cover, Cover):
+            raise TypeError(f"cover must be a Cover or None, got {type(cover).__name__}")
+        self.cover = cover
         self.r = filter.r if r is None else float(r)
         self.seed_life = N - M + 1  # the latest scan after a seed whose pair can still reach M hits within N scans
         self._t, self._scan, self._next_id = None, -1, 1
@@ -718,6 +742,8 @@ class MultiTargetTracker:
         pos = np.trace(self._P[:, 0::3, 0::3], axis1=1, axis2=2)
         vague = ~(np.sqrt(np.maximum(pos, 0.0)) <= self.max_pos_std)  # NaN too
         keep = ~(hopeless | lost | vague)
+        if self.cover is not None:
+            keep &= self.updated | self.cover.contains(self._x[:, [0, 3, 6]])
         if keep.all():
             return
         self.filter.drop(keep)

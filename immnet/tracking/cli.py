@@ -105,6 +105,11 @@ def register(subparsers) -> None:
                    help="--associator jpda: the probability that an aircraft is detected at a scan (default 0.9)")
     p.add_argument("--clutter-density", type=float, default=None, metavar="PER_M3",
                    help="--associator jpda: false plots per m^3 (default 1e-12)")
+    p.add_argument("--max-range", type=float, default=None, metavar="METRES",
+                   help="plots without track_id: the radar's cover, the slant range it sees up to; a track that gets "
+                        "no plot beyond it is deleted at that scan (default: no cover)")
+    p.add_argument("--min-elevation", type=float, default=None, metavar="DEG",
+                   help="with --max-range: the lowest elevation the radar sees (default 0)")
     p.add_argument("--figure", type=Path, default=None, metavar="FILE.png",
                    help="plots without track_id: draw the run as a radar display (plots, tracks with their ids, "
                         "range rings)")

@@ -16,7 +16,7 @@ import numpy as np
 LONG = 1000
 """Scans from which a run says on stderr where it is (``immnet.progress``)."""
 
-MULTI_OPTIONS = ("associator", "pd", "clutter_density", "figure", "scene")
+MULTI_OPTIONS = ("associator", "pd", "clutter_density", "max_range", "min_elevation", "figure", "scene")
 """The options of the multi-target tracker alone (None where not given)."""
 SINGLE_OPTIONS = {
     "weights": "its per-track filter is named by --method NAME (a model-based method, or a shipped network such as "
@@ -37,7 +37,8 @@ def _option(name: str) -> str:
 def check_options(args, labelled: bool) -> None:
     """A clear error for an option of the other path: the multi-target tracker's options for tracks that name their
     ids (or an .npz), and the options of the tracker of labelled tracks for unlabelled plots; for plots, ``--pd`` and
-    ``--clutter-density`` without ``--associator jpda``, ``--scene`` without ``--figure``, and the values."""
+    ``--clutter-density`` without ``--associator jpda``, ``--min-elevation`` without ``--max-range``, ``--scene``
+    without ``--figure``, and the values."""
     if labelled:
         for name in MULTI_OPTIONS:
             if getattr(args, name) is not None:
@@ -62,6 +63,13 @@ def check_options(args, labelled: bool) -> None:
     if args.clutter_density is not None and not (np.isfinite(args.clutter_density) and args.clutter_density > 0):
         raise ValueError(f"--clutter-density is the false plots per m^3, a finite number > 0; got "
                          f"{args.clutter_density:g}")
+    if args.min_elevation is not None and args.max_range is None:
+        raise ValueError("--min-elevation is the radar's cover with --max-range: give --max-range METRES too")
+    if args.max_range is not None and not (np.isfinite(args.max_range) and args.max_range > 0):
+        raise ValueError(f"--max-range is the slant range the radar sees up to, a finite number of metres > 0; got "
+                         f"{args.max_range:g}")
+    if args.min_elevation is not None and not -90.0 <= args.min_elevation < 90.0:
+        raise ValueError(f"--min-elevation is in degrees, in [-90, 90); got {args.min_elevation:g}")
     if args.scene is not None and args.figure is None:
         raise ValueError("--scene marks the clutter on --figure's radar display: give --figure FILE.png too")
     if args.figure is not None:
@@ -122,7 +130,7 @@ def track_plots(args, limit: float, sigmas) -> int:
     from immnet.data.scratch import publishing
     from immnet.progress import progress
     from immnet.data.csvio import PLOT_OUT_COLUMNS, R_COLUMNS, plot_track_rows, read_plots_csv
-    from immnet.filters.multi import DEFAULT_FILTER, MultiTargetTracker, TrackFilter
+    from immnet.filters.multi import DEFAULT_FILTER, Cover, MultiTargetTracker, TrackFilter
 
     plots = read_plots_csv(args.input, sigmas)
     clutter = _scene_clutter(Path(args.scene), plots) if args.scene is not None else None
@@ -136,7 +144,8 @@ def track_plots(args, limit: float, sigmas) -> int:
                          f"{name} does not assume: give --r METRES")
     assoc = args.associator or "gnn"
     jpda = {k: getattr(args, k) for k in ("pd", "clutter_density") if getattr(args, k) is not None}
-    tracker = MultiTargetTracker(filt, associator=assoc, r=args.r, **jpda)
+    cover = None if args.max_range is None else Cover(args.max_range, args.min_elevation or 0.0)
+    tracker = MultiTargetTracker(filt, associator=assoc, r=args.r, cover=cover, **jpda)
     keep, z = _gated(plots, limit)
     paths: dict[int, list] = {}
     n_rows = 0
