@@ -303,3 +303,20 @@ def test_the_correction_features_have_finite_gradients_where_a_variance_is_zero(
         var = np.diagonal(P0.numpy(), axis1=-2, axis2=-1)
         np.testing.assert_allclose(f[:, 13:16].detach().numpy(), np.sqrt(var[:, [1, 4, 7]]), rtol=1e-12)
         np.testing.assert_allclose(f[:, 16:19].detach().numpy(), np.sqrt(var[:, [2, 5, 8]]), rtol=1e-12)
+
+
+def test_the_heading_frame_has_a_finite_gradient_at_rest():
+    """A track at rest (a one-point start's zero velocity) has heading 0 (cos 1, sin 0) and a zero gradient there,
+    not sqrt's 0 * inf = NaN; elsewhere the heading is atan2's (float64)."""
+    import math
+
+    from immnet.stages.classify import heading_frame
+
+    v = torch.tensor([[0.0, 0.0, 3.0], [3.0, -4.0, 0.0], [-1.0, 2.0, 5.0]], dtype=torch.float64, requires_grad=True)
+    c, s = heading_frame(v)
+    (c + s).sum().backward()
+    assert torch.isfinite(v.grad).all() and (v.grad[0] == 0).all()
+    for k in (1, 2):
+        h = math.atan2(v[k, 1].item(), v[k, 0].item())
+        assert abs(c[k].item() - math.cos(h)) < 1e-12 and abs(s[k].item() - math.sin(h)) < 1e-12
+    assert (c[0].item(), s[0].item()) == (1.0, 0.0)

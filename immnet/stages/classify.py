@@ -24,7 +24,7 @@ from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import gaussian_loglik, inv3
 from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, N_MODES, ModelSet, Modes
 from immnet.stages.base import Stage, measured, per_expert
-from immnet.stages.correct import noise_covariance
+from immnet.stages.correct import noise_covariance, std_of
 from immnet.stages.features import slog
 from immnet.stages.update import innovation
 
@@ -41,8 +41,9 @@ def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None, 
 
 
 def heading_frame(v: torch.Tensor):
-    """cos and sin of the horizontal heading of velocities ``v [B, 3]`` (heading 0 when at rest)."""
-    speed = torch.sqrt(v[:, 0] ** 2 + v[:, 1] ** 2)
+    """cos and sin of the horizontal heading of velocities ``v [B, 3]`` (heading 0 when at rest, with a zero gradient
+    there: ``std_of``)."""
+    speed = std_of(v[:, 0] ** 2 + v[:, 1] ** 2)
     ok = speed > 1e-3
     c = torch.where(ok, v[:, 0] / speed.clamp_min(1e-3), 1.0)
     s = torch.where(ok, v[:, 1] / speed.clamp_min(1e-3), 0.0)
