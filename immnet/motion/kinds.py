@@ -24,40 +24,41 @@ def _args(model: MotionModel, **args) -> dict:
     return {**args, "noise": model.noise, **({"vertical": model.vertical} if model.vertical != 1.0 else {})}
 
 
-class ConstantVelocity(MotionModel):
-    """CV: ``F`` per axis ``[[1, dt, 0], [0, 1, 0], [0, 0, 0]]``; white-noise acceleration ``Q``."""
+class _Polynomial(MotionModel):
+    """A model whose ``F`` is a constant-derivative block per axis (``matrix``), with its ``noise`` (None: the
+    class's) and ``vertical``."""
 
-    mode = 0
-    name = "cv"
+    matrix = staticmethod(m.cv_matrix)
 
-    def __init__(self, noise: str = "white", vertical: float = 1.0):
-        self.noise = noise
+    def __init__(self, noise: str | None = None, vertical: float = 1.0):
+        self.noise = type(self).noise if noise is None else noise
         self.vertical = _vertical(vertical)
 
     def init_args(self) -> dict:
         return _args(self)
 
     def F(self, dt=1.0, dtype=torch.float64, device=None):
-        return m.cv_matrix(dt, dtype=dtype, device=device)
+        return self.matrix(dt, dtype=dtype, device=device)
 
 
-class ConstantAcceleration(MotionModel):
+class ConstantVelocity(_Polynomial):
+    """CV: ``F`` per axis ``[[1, dt, 0], [0, 1, 0], [0, 0, 0]]``; white-noise acceleration ``Q`` (``noise`` None:
+    ``white``)."""
+
+    mode = 0
+    name = "cv"
+    noise = "white"
+
+
+class ConstantAcceleration(_Polynomial):
     """CA: ``F`` per axis ``[[1, dt, dt^2/2], [0, 1, dt], [0, 0, 1]]``; Wiener-process acceleration ``Q``
-    (``noise: continuous``: white jerk)."""
+    (``noise`` None: ``wiener``; ``continuous``: white jerk)."""
 
     mode = 1
     order = 2
     name = "ca"
-
-    def __init__(self, noise: str = "wiener", vertical: float = 1.0):
-        self.noise = noise
-        self.vertical = _vertical(vertical)
-
-    def init_args(self) -> dict:
-        return _args(self)
-
-    def F(self, dt=1.0, dtype=torch.float64, device=None):
-        return m.ca_matrix(dt, dtype=dtype, device=device)
+    noise = "wiener"
+    matrix = staticmethod(m.ca_matrix)
 
 
 class Singer(MotionModel):
