@@ -201,6 +201,15 @@ def _ints2(text: str) -> tuple[int, int]:
     return int(lo), int(hi)
 
 
+def _writes(parser, func, progress: str | None = "no progress lines") -> None:
+    """A writing subcommand's last options: ``--overwrite`` (its output directory), ``--quiet`` (where it says
+    ``progress``), and its function."""
+    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
+    if progress:
+        parser.add_argument("--quiet", action="store_true", help=progress)
+    parser.set_defaults(func=func)
+
+
 def register(subparsers) -> None:
     data = subparsers.add_parser("data", help="generate, merge, export and plot 3D-LAST data sets; real ADS-B flights",
                                  description=__doc__.splitlines()[0])
@@ -222,19 +231,15 @@ def register(subparsers) -> None:
                    help="with the plots: share of the detections whose noise is --outlier-scale times larger "
                         "(default 0)")
     g.add_argument("--outlier-scale", type=float, default=None, help="an outlier's noise factor (default 10)")
-    g.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
     g.add_argument("--workers", type=int, default=1, help="processes to shard generation over (same bytes)")
     g.add_argument("--shard", type=_shard, default=None, metavar="I/K",
                    help="write only shard I of K (whole blocks; for several machines), joined by `immnet data merge`")
-    g.add_argument("--quiet", action="store_true", help="no progress bar")
-    g.set_defaults(func=_generate)
+    _writes(g, _generate, "no progress bar")
 
     m = sub.add_parser("merge", help="join the K shards of one data set (generate --shard I/K) into one directory")
     m.add_argument("--out", required=True, type=Path, help="output directory (must be absent or empty)")
     m.add_argument("shards", nargs="+", type=Path, metavar="SHARD_DIR", help="every shard directory, any order")
-    m.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
-    m.add_argument("--quiet", action="store_true", help="no progress bar")
-    m.set_defaults(func=_merge)
+    _writes(m, _merge, "no progress bar")
 
     e = sub.add_parser("export", help="write a data set as one .npz interchange file")
     e.add_argument("--data", required=True, type=Path, help="data set directory or .npz")
@@ -292,9 +297,7 @@ def register(subparsers) -> None:
     a.add_argument("--npz", action="store_true", help="also write OUT/<split>.npz")
     a.add_argument("--skip-unreadable", action="store_true",
                    help="skip a sample that is not readable state vectors (listed in meta.json) instead of stopping")
-    a.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
-    a.add_argument("--quiet", action="store_true", help="no progress lines")
-    a.set_defaults(func=_adsb)
+    _writes(a, _adsb)
 
     s = sub.add_parser("subset", help="the windows of some of a real-flight set's flights (a data-scaling curve)")
     s.add_argument("--data", required=True, type=Path, help="a split of `immnet data adsb` (e.g. OUT/train)")
@@ -306,8 +309,7 @@ def register(subparsers) -> None:
                    help="leave out the flights these splits of real-flight sets name (e.g. the training and "
                         "validation splits of a set of the same samples at another scan interval)")
     s.add_argument("--seed", type=int, default=0, help="seed of the flights' permutation (default 0)")
-    s.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
-    s.set_defaults(func=_subset)
+    _writes(s, _subset, None)
 
     t = sub.add_parser("turns", help="a real-flight set's windows with turns added to some (patterns, orbits)")
     t.add_argument("--data", required=True, type=Path, help="a split of `immnet data adsb` (e.g. OUT/val)")
@@ -318,8 +320,7 @@ def register(subparsers) -> None:
     t.add_argument("--segment", type=_pair, default=(20.0, 120.0), metavar="LOW,HIGH",
                    help="seconds of each straight or turning segment (default 20,120)")
     t.add_argument("--seed", type=int, default=0, help="seed of the turns and the new noise (default 0)")
-    t.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
-    t.set_defaults(func=_turns)
+    _writes(t, _turns, None)
 
     sc = sub.add_parser("scenes", help="multi-target scenes: several aircraft, one radar, missed detections and "
                                        "clutter (docs/data.md)")
@@ -354,6 +355,4 @@ def register(subparsers) -> None:
     sc.add_argument("--close-pairs", type=int, default=2, help="close pairs per 3D-LAST scene (default 2)")
     sc.add_argument("--csv", action="store_true", help="also write each scene's plots as NAME.csv "
                                                       "(t,range,azimuth,elevation)")
-    sc.add_argument("--overwrite", action="store_true", help="replace a non-empty output directory")
-    sc.add_argument("--quiet", action="store_true", help="no progress lines")
-    sc.set_defaults(func=_scenes)
+    _writes(sc, _scenes)
