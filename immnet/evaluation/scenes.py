@@ -71,7 +71,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
     position std exceeds ``max_pos_std`` (the tracker's defaults where None); its aircraft's next plot then seeds a
     new track. A track is reported at every scan from its start to its deletion, under its own id. Returns what
     :func:`run_tracker` returns."""
-    from immnet.filters.multi import DELETE_AFTER, MAX_POS_STD, TrackFilter
+    from immnet.filters.multi import DELETE_AFTER, MAX_POS_STD, TrackFilter, kept
 
     delete_after = DELETE_AFTER if delete_after is None else int(delete_after)
     max_pos_std = MAX_POS_STD if max_pos_std is None else float(max_pos_std)
@@ -107,8 +107,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
             misses = np.where(hit, 0, misses + 1)
             plot_of[rows_ac[hit]] = -1  # taken by its track
             x, P = f.state()
-            pos_std = np.sqrt(np.maximum(np.trace(P[:, 0::3, 0::3], axis1=1, axis2=2), 0.0))
-            keep = (misses < delete_after) & (pos_std <= max_pos_std) & (hit | seen.contains(x[:, [0, 3, 6]]))
+            keep = kept(x, P, hit, misses, delete_after, max_pos_std, seen)  # the tracker's deletion rules
             if not keep.all():
                 f.drop(keep)
                 gone = rows_ac[~keep]

@@ -515,6 +515,19 @@ class Cover:
         return covered(pos, self.max_range, self.min_elevation)
 
 
+def kept(x: np.ndarray, P: np.ndarray, updated: np.ndarray, misses: np.ndarray, delete_after: int,
+         max_pos_std: float, cover: Cover | None = None) -> np.ndarray:
+    """``[K]``: the tracks the deletion rules keep (module doc, step 6), from their estimates ``x [K, 9]``, ``P [K, 9,
+    9]``, whether a plot updated them this scan and their consecutive misses: fewer than ``delete_after`` misses, a
+    position standard deviation ``sqrt(tr P_pos)`` within ``max_pos_std`` (NaN: not) and, told the radar's ``cover``,
+    a plot this scan or an estimate inside it."""
+    pos_std = np.sqrt(np.maximum(np.trace(P[:, 0::3, 0::3], axis1=1, axis2=2), 0.0))
+    keep = (misses < delete_after) & (pos_std <= max_pos_std)
+    if cover is not None:
+        keep &= updated | cover.contains(x[:, [0, 3, 6]])
+    return keep
+
+
 @dataclass(frozen=True)
 class TrackReport:
     """One track at a scan: ``track_id`` (stable: a track keeps it from its start to its deletion, and no other
@@ -738,12 +751,9 @@ class MultiTargetTracker:
     def _confirm_and_delete(self):
         self.confirmed = self.confirmed | (self.hits >= self.M) & (self.scans <= self.N)
         hopeless = ~self.confirmed & (self.hits + (self.N - self.scans) < self.M)
-        lost = self.confirmed & (self.misses >= self.delete_after)
-        pos = np.trace(self._P[:, 0::3, 0::3], axis1=1, axis2=2)
-        vague = ~(np.sqrt(np.maximum(pos, 0.0)) <= self.max_pos_std)  # NaN too
-        keep = ~(hopeless | lost | vague)
-        if self.cover is not None:
-            keep &= self.updated | self.cover.contains(self._x[:, [0, 3, 6]])
+        misses = np.where(self.confirmed, self.misses, 0)  # a tentative track is not deleted for its misses
+        keep = ~hopeless & kept(self._x, self._P, self.updated, misses, self.delete_after, self.max_pos_std,
+                                self.cover)
         if keep.all():
             return
         self.filter.drop(keep)
