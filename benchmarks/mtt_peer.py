@@ -95,11 +95,10 @@ def clutter_density(scene: Scene) -> float:
     return s["clutter"] / vol
 
 
-def outside_cover(scene: Scene, pos) -> bool:
-    """Whether an ENU position lies outside the scene's radar cover (``immnet.filters.multi.Cover``)."""
-    from immnet.evaluation.scenes import cover
-
-    return not bool(cover(scene.meta["spec"]).contains(np.asarray(pos, float).reshape(3)))
+def outside(seen, state) -> bool:
+    """Whether a Stone Soup state's position lies outside the radar's cover ``seen`` (``immnet.filters.multi.Cover``,
+    ``immnet.evaluation.scenes.cover``)."""
+    return not bool(seen.contains(np.asarray(state.state_vector, float).ravel()[[0, 2, 4]]))
 
 
 def in_cover(scene: Scene, deleter):
@@ -109,10 +108,13 @@ def in_cover(scene: Scene, deleter):
     from stonesoup.deleter.multi import CompositeDeleter
     from stonesoup.types.update import Update
 
+    from immnet.evaluation.scenes import cover
+
+    seen = cover(scene.meta["spec"])
+
     class OutOfCover(Deleter):
         def check_for_deletion(self, track, **kwargs):
-            return not isinstance(track.state, Update) and outside_cover(
-                scene, np.asarray(track.state_vector, float).ravel()[[0, 2, 4]])
+            return not isinstance(track.state, Update) and outside(seen, track.state)
 
     return CompositeDeleter([deleter, OutOfCover()], intersect=False)
 
@@ -214,7 +216,8 @@ def run_stonesoup_told(scene: Scene, params: dict) -> dict:
     """Stone Soup's EKF with the nearly-constant-velocity model (the tuned ``q``) told the association: per aircraft a
     track started by ``SimpleMeasurementInitiator`` from its first plot (zero-velocity prior, ``init_speed`` std), then
     predicted to every scan and updated with its aircraft's plot (``SingleHypothesis``) where there is one; deleted
-    after ``delete_steps`` scans without one (its next plot starts a new track); reported from its start."""
+    after ``delete_steps`` scans without one, or at a scan without one outside the radar's cover (its next plot starts
+    a new track); reported from its start."""
     from stonesoup.initiator.simple import SimpleMeasurementInitiator
     from stonesoup.types.angle import Bearing, Elevation
     from stonesoup.types.array import CovarianceMatrix, StateVector
@@ -222,8 +225,11 @@ def run_stonesoup_told(scene: Scene, params: dict) -> dict:
     from stonesoup.types.hypothesis import SingleHypothesis
     from stonesoup.types.state import GaussianState
 
+    from immnet.evaluation.scenes import cover
+
     tracker, mm = stonesoup_tracker("gnn", scene, **params)
     predictor, updater = tracker.data_associator.hypothesiser.predictor, tracker.updater
+    seen = cover(scene.meta["spec"])
     prior = GaussianState(StateVector(np.zeros(6)), CovarianceMatrix(np.diag([0.0, params["init_speed"] ** 2] * 3)))
     initiator = SimpleMeasurementInitiator(prior_state=prior, measurement_model=mm)
     tracks, misses, ids, next_id = {}, {}, {}, 0
@@ -246,8 +252,7 @@ def run_stonesoup_told(scene: Scene, params: dict) -> dict:
             else:
                 tracks[ac].append(pred)
                 misses[ac] += 1
-                if misses[ac] >= params["delete_steps"] or outside_cover(
-                        scene, np.asarray(pred.state_vector, float).ravel()[[0, 2, 4]]):
+                if misses[ac] >= params["delete_steps"] or outside(seen, pred):
                     del tracks[ac], misses[ac], ids[ac]
         for ac, det in plot_of.items():
             tracks[ac] = next(iter(initiator.initiate({det}, when)))
