@@ -117,7 +117,8 @@ def rmse_by_interval(err: torch.Tensor, dt: torch.Tensor, edges, mask: torch.Ten
     since the scan before) lies in each bin of :func:`interval_bin`; ``None`` for a bin without a scored pair. A bin
     holds a part of each track's scans, so the pairs are pooled, not averaged per track."""
     b = interval_bin(dt, edges).to(err.device)
-    bins = [_mask(err, mask) & (b == i) for i in range(len(edges) - 1)]
+    m = _mask(err, mask)
+    bins = [m & (b == i) for i in range(len(edges) - 1)]
     return [rmse_pooled(err, sel)["avg"] if bool(sel.any()) else None for sel in bins]
 
 

@@ -226,8 +226,8 @@ def table_rows(results: dict) -> list[list]:
 
 def format_table(results: dict, markdown: bool = False) -> str:
     """The table of ``results`` (text, or Markdown)."""
-    fmt = ("{}", "{:.1f}", "{:.0f}", "{:.0f}", "{:.0f}", "{}", "{}", "{:.3f}", "{:.2f}", "{:.2f}")
     from immnet.evaluation.table import markdown_table, text_table
 
+    fmt = ("{}", "{:.1f}", "{:.0f}", "{:.0f}", "{:.0f}", "{}", "{}", "{:.3f}", "{:.2f}", "{:.2f}")
     rows = [[f.format(v) for f, v in zip(fmt, row)] for row in table_rows(results)]
     return markdown_table(COLUMNS, rows, "|" + "---|" * len(COLUMNS)) if markdown else text_table(COLUMNS, rows)
