@@ -127,6 +127,11 @@ def test_a_shipped_network_is_a_method_of_the_scenes(scene_set, tmp_path):
     assert info["network"] == "radar-5s"
     assert info["checkpoint"]["weights_sha256"] == WEIGHTS["radar-5s"]["weights_sha256"]
     assert "config" in filter_info(FILTER)
+    # the default, the IMMs by scan interval: each band's method with its config
+    bands = filter_info("real-imm-by-interval")["by_interval"]
+    assert [(b["longest_interval"], b["method"]) for b in bands] == [(3.0, "real-imm"), (6.0, "real-imm-5s"),
+                                                                      (float("inf"), "real-imm-11s")]
+    assert all(b["config"].endswith(f"{b['method']}.yaml") for b in bands)
 
 
 def test_told_association_is_one_filter_per_aircraft_by_hand():

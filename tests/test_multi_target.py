@@ -338,6 +338,28 @@ def test_crossing_targets_keep_their_ids(associator, filt, dt):
     assert all(r["assigned"] == T - (tracker.M - 1) for r in out["per_truth"].values())
 
 
+
+@pytest.mark.parametrize("dt,chosen", [(1.0, "real-imm"), (3.0, "real-imm"), (5.2, "real-imm-5s"), (6.0, "real-imm-5s"),
+                                       (7.0, "real-imm-11s"), (11.5, "real-imm-11s")])
+def test_default_filter_is_the_imm_tuned_at_the_scan_interval(dt, chosen):
+    """The default per-track filter (``real-imm-by-interval``) chooses, at the second scan, the IMM of the band that
+    holds the scan interval (``MULTI_TARGET_BANDS``: up to 3 s, up to 6 s, beyond), and the tracker then reports, to
+    the bit, what it reports built with that method by name; before its second scan it holds no filter."""
+    from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
+
+    assert [name for _, name in MULTI_TARGET_BANDS] == ["real-imm", "real-imm-5s", "real-imm-11s"]
+    scans = list(_scene(np.random.default_rng(3), [[-5e3, 0.0, 5e3], [5e3, 2e3, 6e3]],
+                        [[150.0, 20.0, 0.0], [-120.0, 60.0, 2.0]], 12, dt, 30.0, pd=0.9, clutter=2.0))
+    default, named = MultiTargetTracker(r=30.0), MultiTargetTracker(chosen, r=30.0)
+    assert default.filter.name == MULTI_TARGET_FILTER and default.filter.chosen is None
+    for k, (t, _, plots, _) in enumerate(scans):
+        a, b = default.step(t, plots), named.step(t, plots)
+        assert default.filter.chosen == (None if k == 0 else chosen)
+        assert [r.track_id for r in a] == [r.track_id for r in b]
+        assert all(np.array_equal(x.state, y.state) and np.array_equal(x.cov, y.cov) for x, y in zip(a, b))
+    assert len(named.tracks()) == len(default.tracks()) >= 2
+
+
 @pytest.mark.parametrize("filt,dt", FILTERS)
 def test_plot_outside_every_gate_starts_a_tentative_track(filt, dt):
     """A confirmed track; a plot far outside its gate is kept as a seed, and the next scan's plot within the

@@ -343,11 +343,16 @@ def run_scenes(args) -> int:
 
 def filter_info(name: str) -> dict:
     """A multi-target filter in a W&B run's config: a shipped network's name and checkpoint
-    (``wandb_log.checkpoint_info``), or a method's config (``wandb_log.method_info``)."""
+    (``wandb_log.checkpoint_info``), a method's config (``wandb_log.method_info``), or the bands of the IMMs by scan
+    interval and each one's config (``immnet.filters.registry.MULTI_TARGET_BANDS``)."""
     from immnet.checkpoints import SHIPPED, shipped
+    from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
 
     if name in SHIPPED:
         return {"network": name, "checkpoint": wandb_log.checkpoint_info(shipped(name))}
+    if name == MULTI_TARGET_FILTER:
+        return {"by_interval": [{"longest_interval": longest, "method": m, **wandb_log.method_info(m)}
+                                for longest, m in MULTI_TARGET_BANDS]}
     return wandb_log.method_info(name)
 
 

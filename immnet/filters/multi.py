@@ -1,8 +1,8 @@
 """Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, M-of-N confirmation,
 coasting and deletion around a batched per-track filter (docs/multi-target.md, "The tracker").
 
-    tracker = MultiTargetTracker("real-imm-5s", r=50.0)          # a model-based IMM or Kalman filter, or a network,
-                                                                  # by name ("radar-5s": immnet.tracking.network_filter)
+    tracker = MultiTargetTracker(r=50.0)                         # the IMM tuned at the scan interval, or a filter
+                                                                  # by name ("real-imm-5s"; a network: "radar-5s")
     for t, plots in scans:                                        # plots [N, 3] ENU (m); R [N, 3, 3] optional
         for rep in tracker.step(t, plots):                        # the confirmed tracks
             rep.track_id, rep.state, rep.cov, rep.updated
@@ -48,7 +48,7 @@ from scipy.stats import chi2
 
 from immnet.data.radar import covered
 from immnet.filters.imm import ACC_STD, VEL_STD
-from immnet.filters.registry import MULTI_TARGET_FILTER
+from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
 from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, quadratic, start_state, update
 from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
@@ -109,14 +109,16 @@ class TrackFilter:
     def by_name(name: str, r: float | None = None) -> "TrackFilter":
         """The filter named ``name``: a shipped network (``immnet.checkpoints.SHIPPED``: ``radar-5s``, ``real-5s``,
         ...; ``immnet.tracking.network_filter.NetworkFilter``, built from its class path as a method config's class
-        is, so that this layer imports nothing of ``immnet.tracking``) or a model-based method (``from_method``).
-        ``r``: the measurement std to assume where plots come without covariances (a method's; a network assumes
+        is, so that this layer imports nothing of ``immnet.tracking``), a model-based method (``from_method``) or
+        ``MULTI_TARGET_FILTER``, the IMM tuned at the scan interval (``ByInterval``). ``r``: the measurement std to assume where plots come without covariances (a method's; a network assumes
         none)."""
         from immnet.checkpoints import BANK, BANK_MEMBERS, SHIPPED
 
         if name == BANK:
             raise ValueError(f"{name} is several networks weighed per track, not one: the multi-target tracker's "
                              f"network filters are the shipped networks by name ({', '.join(BANK_MEMBERS)}, ...)")
+        if name == MULTI_TARGET_FILTER:
+            return ByInterval(r=r)
         if name in SHIPPED:
             from immnet.config import import_class
 
@@ -358,6 +360,58 @@ class IMMFilter(TrackFilter):
         from immnet.filters.base import data_mode_probs
 
         return data_mode_probs(self.mu[:, 0], self.model_set.modes).numpy()
+
+
+class ByInterval(TrackFilter):
+    """The IMM tuned at the radar's scan interval (``immnet.filters.registry.MULTI_TARGET_BANDS``: the first band
+    whose longest interval holds it), chosen at the first interval it is given (the tracker's second scan, before any
+    track starts): ``check_interval``, or a ``start``'s or ``predict``'s ``dt``. It is then that method's filter
+    (``TrackFilter.from_method``); ``chosen`` names it (None before). ``r``: as ``from_method``'s."""
+
+    plot_noise = True
+
+    def __init__(self, bands=MULTI_TARGET_BANDS, r: float | None = None):
+        self.bands, self.r, self.name, self.chosen = tuple(bands), r, MULTI_TARGET_FILTER, None
+        self._filter = None
+
+    def _at(self, dt) -> TrackFilter:
+        if self._filter is None:
+            dt = float(np.asarray(dt, dtype=np.float64).reshape(-1)[0])
+            self.chosen = next(name for longest, name in self.bands if dt <= longest)
+            self._filter = TrackFilter.from_method(self.chosen, self.r)
+        return self._filter
+
+    def __len__(self) -> int:
+        return 0 if self._filter is None else len(self._filter)
+
+    def __repr__(self) -> str:
+        return f"ByInterval({self.chosen or 'not chosen yet'})"
+
+    def check_interval(self, dt: float) -> None:
+        self._at(dt).check_interval(dt)
+
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:
+        if self._filter is None and dt is None:
+            raise ValueError(f"{self.name} chooses its filter by the scan interval: its first start needs dt")
+        self._at(dt).start(z, R, z_prev, R_prev, dt)
+
+    def predict(self, dt: float):
+        return self._at(dt).predict(dt)
+
+    def update(self, z, R) -> None:
+        self._filter.update(z, R)
+
+    def update_mixture(self, track, z, R, beta, beta0) -> None:
+        self._filter.update_mixture(track, z, R, beta, beta0)
+
+    def drop(self, keep) -> None:
+        self._filter.drop(keep)
+
+    def state(self):
+        return (np.zeros((0, 9)), np.zeros((0, 9, 9))) if self._filter is None else self._filter.state()
+
+    def data_mode_probs(self) -> np.ndarray | None:
+        return None if self._filter is None else self._filter.data_mode_probs()
 
 
 # --- association ---------------------------------------------------------------------------------------------------

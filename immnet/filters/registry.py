@@ -14,10 +14,15 @@ METHODS_DIR = packaged_configs() / "methods"
 """Where the packaged ``<name>.yaml`` method configs live."""
 USER_METHODS_DIR = Path("configs") / "methods"
 """The working directory's own method configs, looked in before ``METHODS_DIR``."""
-MULTI_TARGET_FILTER = "real-imm-5s"
+MULTI_TARGET_FILTER = "real-imm-by-interval"
 """The per-track filter a multi-target tracker (``immnet.filters.multi.MultiTargetTracker``) builds unless told
-another: the joint IMM over CV, CA and two turns tuned on real flights at 4.5-5.5 s (chosen by mean GOSPA on training
-scenes, docs/multi-target.md "Defaults"); here, torch-free, so that ``immnet track --help`` names it."""
+another: the joint IMM over CV, CA and two turns tuned on real flights at the radar's scan interval
+(``MULTI_TARGET_BANDS``, ``immnet.filters.multi.ByInterval``); here, torch-free, so that ``immnet track --help`` names
+it."""
+MULTI_TARGET_BANDS = ((3.0, "real-imm"), (6.0, "real-imm-5s"), (float("inf"), "real-imm-11s"))
+"""``MULTI_TARGET_FILTER``'s choice, (the longest scan interval in s, the method) in order, the first band that holds
+the interval: the IMM tuned at 1 s, at 4.5-5.5 s, at 10-12 s. Each was the best of the tuned IMMs by mean GOSPA on
+training scenes scanned every 1, 5, 7 and 11 s (docs/multi-target.md, "Defaults"); the edges lie between those."""
 BUILTIN_NAMES = ("measurements",)
 """Methods that need no config (``immnet.filters.methods.BUILTIN``)."""
 
