@@ -366,19 +366,20 @@ class ByInterval(TrackFilter):
     """The IMM tuned at the radar's scan interval (``immnet.filters.registry.MULTI_TARGET_BANDS``: the first band
     whose longest interval holds it), chosen at the first interval it is given (the tracker's second scan, before any
     track starts): ``check_interval``, or a ``start``'s or ``predict``'s ``dt``. It is then that method's filter
-    (``TrackFilter.from_method``); ``chosen`` names it (None before). ``r``: as ``from_method``'s."""
+    (``TrackFilter.from_method``, each band's built here, so that the scan that chooses costs no more than another);
+    ``chosen`` names it (None before). ``r``: as ``from_method``'s."""
 
     plot_noise = True
 
     def __init__(self, bands=MULTI_TARGET_BANDS, r: float | None = None):
-        self.bands, self.r, self.name, self.chosen = tuple(bands), r, MULTI_TARGET_FILTER, None
+        self.r, self.name, self.chosen = r, MULTI_TARGET_FILTER, None
+        self.bands = [(float(longest), name, TrackFilter.from_method(name, r)) for longest, name in bands]
         self._filter = None
 
     def _at(self, dt) -> TrackFilter:
         if self._filter is None:
             dt = float(np.asarray(dt, dtype=np.float64).reshape(-1)[0])
-            self.chosen = next(name for longest, name in self.bands if dt <= longest)
-            self._filter = TrackFilter.from_method(self.chosen, self.r)
+            _, self.chosen, self._filter = next(band for band in self.bands if dt <= band[0])
         return self._filter
 
     def __len__(self) -> int:
