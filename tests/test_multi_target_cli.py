@@ -292,7 +292,7 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
     assert main(["track", "--input", str(plots), "--output", str(out), *stds, "--figure", str(png),
                  "--scene", str(npz)]) == 0
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
-        f"tracked {len(scene)} scans, {len(scene.plots)} plots with {DEFAULT_FILTER} (GNN)")
+        f"tracked {len(scene)} scans, {len(scene.plots)} plots with {DEFAULT_FILTER}: real-imm-5s (GNN)")
     rows = _read(out)
     _are_the_trackers_tracks(rows, scene, DEFAULT_FILTER)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
