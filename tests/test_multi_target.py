@@ -338,7 +338,6 @@ def test_crossing_targets_keep_their_ids(associator, filt, dt):
     assert all(r["assigned"] == T - (tracker.M - 1) for r in out["per_truth"].values())
 
 
-
 @pytest.mark.parametrize("dt,chosen", [(1.0, "real-imm"), (3.0, "real-imm"), (5.2, "real-imm-5s"), (6.0, "real-imm-5s"),
                                        (7.0, "real-imm-11s"), (11.5, "real-imm-11s")])
 def test_default_filter_is_the_imm_tuned_at_the_scan_interval(dt, chosen):

@@ -110,8 +110,8 @@ class TrackFilter:
         """The filter named ``name``: a shipped network (``immnet.checkpoints.SHIPPED``: ``radar-5s``, ``real-5s``,
         ...; ``immnet.tracking.network_filter.NetworkFilter``, built from its class path as a method config's class
         is, so that this layer imports nothing of ``immnet.tracking``), a model-based method (``from_method``) or
-        ``MULTI_TARGET_FILTER``, the IMM tuned at the scan interval (``ByInterval``). ``r``: the measurement std to assume where plots come without covariances (a method's; a network assumes
-        none)."""
+        ``MULTI_TARGET_FILTER``, the IMM tuned at the scan interval (``ByInterval``). ``r``: the measurement std to
+        assume where plots come without covariances (a method's; a network assumes none)."""
         from immnet.checkpoints import BANK, BANK_MEMBERS, SHIPPED
 
         if name == BANK:
@@ -368,8 +368,6 @@ class ByInterval(TrackFilter):
     track starts): ``check_interval``, or a ``start``'s or ``predict``'s ``dt``. It is then that method's filter
     (``TrackFilter.from_method``, each band's built here, so that the scan that chooses costs no more than another);
     ``chosen`` names it (None before). ``r``: as ``from_method``'s."""
-
-    plot_noise = True
 
     def __init__(self, bands=MULTI_TARGET_BANDS, r: float | None = None):
         self.r, self.name, self.chosen = r, MULTI_TARGET_FILTER, None

@@ -63,8 +63,8 @@ def register(subparsers) -> None:
                    help="CSV: a method of immnet evaluate instead of the checkpoint's IMMNet; one that takes any "
                         "interval (e.g. imm-tuned) tracks each row as a scan at its own time (any spacing). Plots "
                         f"without track_id: the multi-target tracker's per-track filter, a model-based IMM or Kalman "
-                        f"filter by name (default {DEFAULT_FILTER}, the joint IMM tuned on real flights at the scan interval) "
-                        f"or a shipped network by its weights' name (e.g. radar-5s; GNN only)")
+                        f"filter by name (default {DEFAULT_FILTER}, the joint IMM tuned on real flights at the scan "
+                        f"interval) or a shipped network by its weights' name (e.g. radar-5s; GNN only)")
     p.add_argument("--max-position", type=float, default=MAX_ABS_POSITION,
                    help="largest |x|, |y|, |z| (m) a detection may have; beyond it, or non-finite, a measurement "
                         "is a missed detection (counted on stderr); 'inf' keeps every finite one")
