@@ -315,6 +315,27 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
     assert not out.exists() and not png.exists()
 
 
+def test_the_default_filter_takes_the_csvs_median_scan_interval(tmp_path, capsys):
+    """The default per-track filter (``real-imm-by-interval``) is chosen by the median interval between the CSV's
+    scans, not by its first: a CSV of 4.5-5.5 s scans whose second scan was left out (its first interval about 10 s)
+    is still tracked by ``real-imm-5s``, to the row as by that filter by name."""
+    scene, _, plots = _scene(tmp_path)
+    lines = plots.read_text().splitlines()
+    second = sorted({line.split(",")[0] for line in lines[1:]}, key=float)[1]
+    cut = tmp_path / "cut.csv"
+    cut.write_text("\n".join(line for line in lines if line.split(",")[0] != second) + "\n")
+    spec = scene.meta["spec"]
+    stds = ("--sigma-range", repr(spec["sigma_range"]), "--sigma-azimuth", repr(spec["sigma_azimuth_deg"]),
+            "--sigma-elevation", repr(spec["sigma_elevation_deg"]))
+    out, named = tmp_path / "default.csv", tmp_path / "named.csv"
+    assert main(["track", "--input", str(cut), "--output", str(out), *stds]) == 0
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
+        f"tracked {len(scene) - 1} scans, {len(scene.plots) - len(scene.scan(1)[1])} plots with {DEFAULT_FILTER}: "
+        f"real-imm-5s (GNN)")
+    assert main(["track", "--input", str(cut), "--output", str(named), *stds, "--method", "real-imm-5s"]) == 0
+    assert out.read_text() == named.read_text()
+
+
 def test_a_shipped_network_as_the_per_track_filter(tmp_path, capsys):
     """``--method radar-5s``: the scene's CSV tracked with the network as each track's filter gives the tracks of
     ``MultiTargetTracker("radar-5s")`` stepped through the scene's own arrays (within a metre: the CSV's covariances

@@ -364,7 +364,8 @@ class IMMFilter(TrackFilter):
 
 class ByInterval(TrackFilter):
     """The IMM tuned at the radar's scan interval (``immnet.filters.registry.MULTI_TARGET_BANDS``: the first band
-    whose longest interval holds it), chosen at the first interval it is given (the tracker's second scan, before any
+    whose longest interval holds it), chosen by ``choose(dt)``: by the caller who knows the scan interval (``immnet
+    track``: the median of its CSV's), else at the first interval it is given (the tracker's second scan, before any
     track starts): ``check_interval``, or a ``start``'s or ``predict``'s ``dt``. It is then that method's filter
     (``TrackFilter.from_method``, each band's built here, so that the scan that chooses costs no more than another);
     ``chosen`` names it (None before). ``r``: as ``from_method``'s."""
@@ -374,7 +375,9 @@ class ByInterval(TrackFilter):
         self.bands = [(float(longest), name, TrackFilter.from_method(name, r)) for longest, name in bands]
         self._filter = None
 
-    def _at(self, dt) -> TrackFilter:
+    def choose(self, dt) -> TrackFilter:
+        """The filter for scans ``dt`` s apart (its first element where an array), chosen once: later calls return
+        it whatever their ``dt``."""
         if self._filter is None:
             dt = float(np.asarray(dt, dtype=np.float64).reshape(-1)[0])
             _, self.chosen, self._filter = next(band for band in self.bands if dt <= band[0])
@@ -387,15 +390,15 @@ class ByInterval(TrackFilter):
         return f"ByInterval({self.chosen or 'not chosen yet'})"
 
     def check_interval(self, dt: float) -> None:
-        self._at(dt).check_interval(dt)
+        self.choose(dt).check_interval(dt)
 
     def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:
         if self._filter is None and dt is None:
             raise ValueError(f"{self.name} chooses its filter by the scan interval: its first start needs dt")
-        self._at(dt).start(z, R, z_prev, R_prev, dt)
+        self.choose(dt).start(z, R, z_prev, R_prev, dt)
 
     def predict(self, dt: float):
-        return self._at(dt).predict(dt)
+        return self.choose(dt).predict(dt)
 
     def update(self, z, R) -> None:
         self._filter.update(z, R)

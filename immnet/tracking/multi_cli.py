@@ -130,12 +130,14 @@ def track_plots(args, limit: float, sigmas) -> int:
     from immnet.data.scratch import publishing
     from immnet.progress import progress
     from immnet.data.csvio import PLOT_OUT_COLUMNS, R_COLUMNS, plot_track_rows, read_plots_csv
-    from immnet.filters.multi import DEFAULT_FILTER, Cover, MultiTargetTracker, TrackFilter
+    from immnet.filters.multi import DEFAULT_FILTER, ByInterval, Cover, MultiTargetTracker, TrackFilter
 
     plots = read_plots_csv(args.input, sigmas)
     clutter = _scene_clutter(Path(args.scene), plots) if args.scene is not None else None
     name = args.method or DEFAULT_FILTER
     filt = TrackFilter.by_name(name)
+    if isinstance(filt, ByInterval) and len(plots.t) > 1:  # the radar's interval, whatever scans the CSV left out
+        filt.choose(float(np.median(np.diff(np.array(plots.t, dtype=np.float64)))))
     if plots.cov is not None and args.r is not None:
         raise ValueError(f"--r and the CSV's {'plots' if plots.polar else 'covariance columns'} both give the "
                          f"plots' measurement noise: give one of the two")
