@@ -359,6 +359,16 @@ def test_default_filter_is_the_imm_tuned_at_the_scan_interval(dt, chosen):
     assert len(named.tracks()) == len(default.tracks()) >= 2
 
 
+def test_the_default_filter_is_no_single_target_method():
+    """Named where a method of labelled tracks is asked for, the multi-target default is refused in one line that says
+    what it is and names its IMMs."""
+    from immnet.filters.methods import build_method
+
+    with pytest.raises(ValueError, match=r"^real-imm-by-interval is the multi-target tracker's per-track filter .*"
+                                         r"\(real-imm, real-imm-5s, real-imm-11s\)$"):
+        build_method("real-imm-by-interval")
+
+
 @pytest.mark.parametrize("filt,dt", FILTERS)
 def test_plot_outside_every_gate_starts_a_tentative_track(filt, dt):
     """A confirmed track; a plot far outside its gate is kept as a seed, and the next scan's plot within the

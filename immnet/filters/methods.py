@@ -31,6 +31,7 @@ from immnet import keys
 from immnet.config import REPO_ROOT, import_class, load_yaml
 from immnet.filters.registry import ORDER, configured_methods  # noqa: F401  (ORDER: re-exported, scripts import it)
 from immnet.filters.registry import method_dirs as _method_dirs
+from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
 from immnet.motion import POS
@@ -80,6 +81,10 @@ def method_config(name: str, methods_dir: Path | None = None) -> Path:
     for path in paths:
         if path.is_file():
             return path
+    if name == MULTI_TARGET_FILTER:
+        raise ValueError(f"{name} is the multi-target tracker's per-track filter (plots without a track_id), the IMM "
+                         f"tuned at the scan interval: name one of its IMMs here "
+                         f"({', '.join(m for _, m in MULTI_TARGET_BANDS)})")
     raise ValueError(f"unknown method {name!r} (no {' or '.join(map(str, paths))}); "
                      f"available: {', '.join(available_methods(methods_dir))}")
 
