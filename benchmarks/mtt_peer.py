@@ -27,7 +27,7 @@ Tuning (training scenes only, the first ``--tune-scenes`` of split ``train``, of
 scenes. The chosen settings then run on every ``test`` scene (``--split train``: on the training scenes instead, to
 choose among our filters there; the table then holds no held-out number). Ours runs with its defaults (tuned on
 training scenes by ``benchmarks/mtt_tune.py``; ``--filter`` another per-track filter, or several, comma-separated: a
-row each, e.g. ``--filter real-imm-5s,radar-5s`` for the model-based default beside a shipped network), told the
+row each, e.g. ``--filter real-imm-5s,radar-5s`` for the model-based IMM of 5 s scans beside a network), told the
 scenes' detection probability and clutter density (nothing of it tuned on the test scenes).
 
 References told the association (``--trackers ... told``): ours (``immnet.evaluation.scenes.run_told``: our filter on
