@@ -169,8 +169,8 @@ def track_plots(args, limit: float, sigmas) -> int:
             n_rows += len(rows)
             for i, s in zip(ids, state):
                 paths.setdefault(i, []).append(s[[0, 3]])
-        chosen = getattr(filt, "chosen", None)  # the filter by scan interval: the one it took
-        name = name if chosen is None else f"{name}: {chosen}"
+        if isinstance(filt, ByInterval) and filt.chosen is not None:  # the filter by scan interval: the one it took
+            name = f"{name}: {filt.chosen}"
         if args.figure is not None:
             from immnet.evaluation.figures import plot_radar_display
 
