@@ -13,7 +13,7 @@ import immnet.cli
 from immnet.cli import main
 from immnet.data.scenes import SceneSpec, load_scene, observe, save_scene
 from immnet.evaluation.scenes import RAW, TOLD, run_told
-from immnet.filters.multi import MultiTargetTracker, TrackFilter
+from immnet.filters.multi import MultiTargetTracker, TrackFilter, TwoPointStart
 
 FILTER = "real-ca-5s"
 
@@ -160,7 +160,8 @@ def test_told_association_is_one_filter_per_aircraft_by_hand():
                     seed = (t, *plot)
                 else:
                     f = TrackFilter.from_method(FILTER)
-                    f.start(plot[0][None], plot[1][None], seed[1][None], seed[2][None], t - seed[0])
+                    f.start(plot[0][None], plot[1][None], seed[1][None], seed[2][None], t - seed[0],
+                            TwoPointStart().vz_std)  # the tracker's start, its vertical-speed prior
                     seed, misses = None, 0
             if f is not None:
                 want[k].append(f.state()[0][0, [0, 3, 6]])

@@ -88,7 +88,7 @@ def test_track_metrics_counts_switches_fragments_continuity():
 # --- the per-track filter ------------------------------------------------------------------------------------------
 
 from immnet.filters.multi import (  # noqa: E402
-    Cover, IMMFilter, MultiTargetTracker, TrackFilter, assign, gate_pairs, jpda_probabilities,
+    Cover, IMMFilter, MultiTargetTracker, TrackFilter, TwoPointStart, assign, gate_pairs, jpda_probabilities,
 )
 
 
@@ -119,6 +119,40 @@ def _filter_track(f, z: np.ndarray, dt: float, r: float) -> np.ndarray:
         f.update(z[:, k], R)
         out.append(f.state()[0])
     return np.stack(out, 1)
+
+
+@pytest.mark.parametrize("name", ["real-imm-singer", "real-imm"])
+def test_two_point_start_with_a_vertical_speed_prior_is_the_bayes_posterior(name):
+    """A pair's start fused with the prior ``vz ~ N(0, s^2)`` (``vz_std``) is the Gaussian posterior in information
+    form, computed apart in float64: ``P = (P0^-1 + e e^T / s^2)^-1``, ``x = P P0^-1 x0``, from the pair's start
+    without the prior (``x0``, ``P0``); per-axis and joint modes alike. A huge ``s`` leaves the start as it was."""
+    rng = np.random.default_rng(3)
+    k, dt, s = 4, 5.0, 5.0
+    z_prev = rng.uniform(-40e3, 40e3, (k, 3))
+    z = z_prev + rng.normal(0, 200.0, (k, 3)) * dt
+    R = np.stack([np.diag(v) for v in rng.uniform(30.0, 150.0, (k, 3)) ** 2])
+    Rp = np.stack([np.diag(v) for v in rng.uniform(30.0, 150.0, (k, 3)) ** 2])
+    states = {}
+    for prior in (None, s, 1e9):
+        f = TrackFilter.from_method(name)
+        f.start(z, R, z_prev, Rp, np.full(k, dt), prior)
+        states[prior] = f.state()
+    x0, P0 = states[None]
+    e = np.zeros(9)
+    e[7] = 1.0
+    for i in range(k):
+        info = np.linalg.inv(P0[i])
+        P = np.linalg.inv(info + np.outer(e, e) / s**2)
+        np.testing.assert_allclose(states[s][1][i], P, rtol=1e-7, atol=1e-9 * np.abs(P).max())
+        np.testing.assert_allclose(states[s][0][i], P @ info @ x0[i], rtol=1e-7, atol=1e-6)
+    assert np.abs(states[s][0][:, 7]).max() < np.abs(x0[:, 7]).max()
+    np.testing.assert_allclose(states[1e9][0], x0, atol=1e-6)
+    # the tracker starts its tracks with its initiation's prior
+    tracker = MultiTargetTracker(name, init=TwoPointStart(vz_std=s))
+    tracker.step(0.0, z_prev[:1], Rp[:1])
+    tracker.step(dt, z[:1], R[:1])
+    (track,) = tracker.tracks()
+    np.testing.assert_allclose(track.state, states[s][0][0], rtol=1e-9, atol=1e-6)
 
 
 @pytest.mark.parametrize("name", ["real-imm-singer", "real-imm", "real-ca"])
@@ -375,7 +409,7 @@ def test_plot_outside_every_gate_starts_a_tentative_track(filt, dt):
     velocity gate of it starts a tentative track of a new id at that plot, with the velocity the two plots give
     (the IMM's two-point start; a network's start is its own, within a few noise stds of it)."""
     r = 20.0
-    tracker = MultiTargetTracker(filt, r=r)
+    tracker = MultiTargetTracker(filt, r=r, init=TwoPointStart(vz_std=None))  # the pair alone (no prior)
     far0 = np.array([15000.0, 15000.0, 8000.0])
     far1 = far0 + np.array([-150.0, 100.0, 5.0]) * dt
     for k in range(4):

@@ -62,19 +62,22 @@ def run_tracker(scene, filter: str, **settings) -> dict:
     return {"est_ids": est_ids, "est_pos": est_pos, "seconds": seconds}
 
 
-def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: float | None = None) -> dict:
+def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: float | None = None,
+             init=None) -> dict:
     """The filter ``filter`` told the association: one track per aircraft, stepped together (one batch, as the
     tracker's), on each aircraft's own plots alone (``plot_source``; clutter never reaches it). A track starts from
-    its aircraft's first two plots (the tracker's two-point start: a plot, then the aircraft's next plot), is
+    its aircraft's first two plots (the tracker's two-point start ``init``, a ``TwoPointStart``, its default where
+    None: a plot, then the aircraft's next plot, with the start's vertical-speed prior), is
     predicted to every scan, updated with its aircraft's plot where there is one (else it coasts), and deleted after
     ``delete_after`` consecutive scans without one, at a scan without one outside the radar's cover, or once its
     position std exceeds ``max_pos_std`` (the tracker's defaults where None); its aircraft's next plot then seeds a
     new track. A track is reported at every scan from its start to its deletion, under its own id. Returns what
     :func:`run_tracker` returns."""
-    from immnet.filters.multi import DELETE_AFTER, MAX_POS_STD, TrackFilter, kept
+    from immnet.filters.multi import DELETE_AFTER, MAX_POS_STD, TrackFilter, TwoPointStart, kept
 
     delete_after = DELETE_AFTER if delete_after is None else int(delete_after)
     max_pos_std = MAX_POS_STD if max_pos_std is None else float(max_pos_std)
+    vz_std = (TwoPointStart() if init is None else init).vz_std
     f = TrackFilter.by_name(filter)
     seen = cover(scene.meta["spec"])
     A = len(scene.aircraft)
@@ -120,7 +123,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
         start = free[np.isfinite(seed_t[free])]
         if len(start):
             j = plot_of[start]
-            f.start(plots[j], cov[j], seed_z[start], seed_R[start], t - seed_t[start])
+            f.start(plots[j], cov[j], seed_z[start], seed_R[start], t - seed_t[start], vz_std)
             track_of[start] = len(ids) + np.arange(len(start))
             ids = np.concatenate([ids, next_id + np.arange(len(start))])
             misses = np.concatenate([misses, np.zeros(len(start), np.int64)])
@@ -193,8 +196,8 @@ def combine(rows: list[dict]) -> dict:
 def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bool = True, settings: dict | None = None,
                     c: float = 200.0, p: float = 2.0, alpha: float = 2.0, note=None) -> dict:
     """``{row: {"mean": combine(...), "scenes": {scene name: score(...)}}}`` for each filter (the tracker with
-    ``settings``), its told-association reference where ``told`` (the same ``delete_after``), and the raw plots where
-    ``raw``; every row runs on one scene before the next scene (the same machine state for each)."""
+    ``settings``), its told-association reference where ``told`` (the same ``delete_after`` and ``init``), and the
+    raw plots where ``raw``; every row runs on one scene before the next scene (the same machine state for each)."""
     settings = dict(settings or {})
     names = [name for f in filters for name in ((f, f + TOLD) if told else (f,))] + ([RAW] if raw else [])
     per = {n: {} for n in names}
@@ -202,7 +205,8 @@ def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bo
         for f in filters:
             per[f][sc.name] = score(sc, run_tracker(sc, f, **settings), c, p, alpha)
             if told:
-                per[f + TOLD][sc.name] = score(sc, run_told(sc, f, settings.get("delete_after")), c, p, alpha)
+                told_run = run_told(sc, f, settings.get("delete_after"), init=settings.get("init"))
+                per[f + TOLD][sc.name] = score(sc, told_run, c, p, alpha)
             if note:
                 note(f"[{sc.name}] {f}: GOSPA {per[f][sc.name]['gospa']:.1f} m, "
                      f"{per[f][sc.name]['ms_per_scan']['median']:.1f} ms per scan")

@@ -62,7 +62,8 @@ GROUPS = (Modes.JOINT, Modes.AXIS)
 
 class TrackFilter:
     """What the multi-target tracker asks of a filter: a batch of ``K`` live tracks (rows, in order), stepped
-    together. ``start`` appends tracks at the end; ``predict`` moves every track to the next scan and gives its
+    together. ``start`` appends tracks at the end (from a plot, or a pair: ``z_prev``, ``R_prev`` ``dt`` earlier,
+    with ``vz_std`` the prior std of the vertical speed where the filter takes one); ``predict`` moves every track to the next scan and gives its
     predicted position ``[K, 3]`` and that position's covariance ``H P H^T`` ``[K, 3, 3]`` (without the measurement
     noise, which the tracker adds per plot); ``update`` takes one plot per track (a NaN row: missed, the posterior
     is the prior); ``update_mixture`` (JPDA) the gated pairs' plots with their association probabilities;
@@ -83,7 +84,7 @@ class TrackFilter:
     def __len__(self) -> int:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:  # pragma: no cover - interface
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
     def predict(self, dt: float):  # pragma: no cover - interface
@@ -175,7 +176,8 @@ class IMMFilter(TrackFilter):
     single-target IMMs' (``immnet.filters.imm.initial_state``: velocity std ``vel_std``, acceleration std
     ``acc_std``); a two-point start (``start(z, R, z_prev, R_prev, dt)``) differences the plots: velocity
     ``(z - z_prev) / dt`` with covariance ``(R + R_prev) / dt^2`` plus what an acceleration of std ``acc_std``
-    adds over the interval (``acc_std^2 dt^2 / 4``, the average velocity being the one at mid-interval). ``robust``:
+    adds over the interval (``acc_std^2 dt^2 / 4``, the average velocity being the one at mid-interval), then, given
+    ``vz_std``, fused with the prior ``vz ~ N(0, vz_std^2)`` (an update measuring ``vz`` as 0). ``robust``:
     Huber's ``k`` of the update (``immnet.imm.kalman``: an isolated far plot's weight falls beyond ``k`` standard
     deviations of its innovation; with JPDA a track's plot is far when every plot in its gate is), None the plain
     update."""
@@ -209,6 +211,7 @@ class IMMFilter(TrackFilter):
         self.spare = torch.zeros(0, self.G, 1, dtype=torch.bool)  # the robust update's (immnet.imm.kalman)
         self._cache = (None, None)
         self._H = torch.tensor([[1.0, 0.0, 0.0]], dtype=f64)
+        self._H_VZ = torch.eye(9, dtype=f64)[7:8]  # the vertical speed of the 9-D state
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -238,7 +241,7 @@ class IMMFilter(TrackFilter):
         return self._cache[1]
 
     @torch.no_grad()
-    def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None) -> None:
         z, R = _t(z).reshape(-1, 3), _t(R).reshape(-1, 3, 3)
         k = z.shape[0]
         if k == 0:
@@ -256,6 +259,8 @@ class IMMFilter(TrackFilter):
             P0[:, vel, vel] = (R + Rp) / dt[..., None] ** 2 + qa * dt[..., None] ** 2 / 4 * eye
             P0[:, vel, acc] = qa * dt[..., None] / 2 * eye
             P0[:, acc, vel] = qa * dt[..., None] / 2 * eye
+            if vz_std is not None:
+                x0, P0, _ = update(x0, P0, torch.zeros(k, 1, dtype=x0.dtype), self._H_VZ, float(vz_std) ** 2)
         G, M, d = self.G, self.M, self.d
         self.x = torch.cat([self.x, self._split(x0)[:, :, None].expand(k, G, M, d)])
         self.P = torch.cat([self.P, self._split(P0)[:, :, None].expand(k, G, M, d, d)])
@@ -392,10 +397,10 @@ class ByInterval(TrackFilter):
     def check_interval(self, dt: float) -> None:
         self.choose(dt).check_interval(dt)
 
-    def start(self, z, R, z_prev=None, R_prev=None, dt=None) -> None:
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None) -> None:
         if self._filter is None and dt is None:
             raise ValueError(f"{self.name} chooses its filter by the scan interval: its first start needs dt")
-        self.choose(dt).start(z, R, z_prev, R_prev, dt)
+        self.choose(dt).start(z, R, z_prev, R_prev, dt, vz_std)
 
     def predict(self, dt: float):
         return self.choose(dt).predict(dt)
@@ -546,10 +551,15 @@ def jpda_probabilities(ti: np.ndarray, pj: np.ndarray, loglik: np.ndarray, n_tra
 @dataclass(frozen=True)
 class TwoPointStart:
     """Initiation from two plots: a plot nobody took pairs with a seed (a plot left over ``dt`` earlier) within
-    ``max_speed dt + sigma sqrt(tr R + tr R_seed)`` (m/s, and measurement standard deviations)."""
+    ``max_speed dt + sigma sqrt(tr R + tr R_seed)`` (m/s, and measurement standard deviations). ``vz_std``: the
+    prior standard deviation (m/s) of an aircraft's vertical speed, fused with the pair's differenced velocity
+    (``TrackFilter.start``; a network filter starts by its own steps and takes none); None: the pair alone. Aircraft
+    climb and descend at a few m/s where a far pair's difference is uncertain by tens (chosen on the training
+    scenes: docs/multi-target.md, "Defaults")."""
 
     max_speed: float = 350.0
     sigma: float = 3.0
+    vz_std: float | None = 5.0
 
 
 @dataclass(frozen=True)
@@ -642,6 +652,7 @@ class MultiTargetTracker:
         if associator == "jpda" and filter.no_mixture:
             raise ValueError(filter.no_mixture)
         for label, v in (("max_pos_std", max_pos_std), ("init.max_speed", init.max_speed),
+                         ("init.vz_std", 1.0 if init.vz_std is None else init.vz_std),
                          ("clutter_density", clutter_density)):
             if not v > 0:
                 raise ValueError(f"{label} must be > 0, got {v}")
@@ -781,7 +792,7 @@ class MultiTargetTracker:
             chosen = assign(si, pq, dist / (self.init.max_speed * dt[si]))
             si, pq = si[chosen], pq[chosen]
             if len(si):
-                self.filter.start(plots[pq], R[pq], self.seed_z[si], self.seed_R[si], dt[si])
+                self.filter.start(plots[pq], R[pq], self.seed_z[si], self.seed_R[si], dt[si], self.init.vz_std)
                 k = len(si)
                 self._append(ids=np.arange(self._next_id, self._next_id + k), confirmed=np.zeros(k, bool),
                              hits=np.full(k, 2), scans=self._scan - self.seed_scan[si] + 1,
