@@ -588,7 +588,8 @@ def test_refusals_name_what_is_wrong():
                         ({"gate": 1.0}, r"gate is a probability in \(0, 1\)"),
                         ({"delete_after": 0}, "delete_after must be a whole number of scans >= 1"),
                         ({"pd": 0.0}, r"pd is a probability in \(0, 1\]"),
-                        ({"r": -1.0}, "r must be finite and > 0")):
+                        ({"r": -1.0}, "r must be finite and > 0"),
+                        ({"init": TwoPointStart(vz_std=0.0)}, r"init.vz_std must be > 0, got 0.0")):
         with pytest.raises(ValueError, match=msg):
             MultiTargetTracker("real-imm-singer", **kwargs)
     with pytest.raises(ValueError, match="the multi-target tracker's filters are the model-based IMMs"):

@@ -63,11 +63,11 @@ GROUPS = (Modes.JOINT, Modes.AXIS)
 class TrackFilter:
     """What the multi-target tracker asks of a filter: a batch of ``K`` live tracks (rows, in order), stepped
     together. ``start`` appends tracks at the end (from a plot, or a pair: ``z_prev``, ``R_prev`` ``dt`` earlier,
-    with ``vz_std`` the prior std of the vertical speed where the filter takes one); ``predict`` moves every track to the next scan and gives its
-    predicted position ``[K, 3]`` and that position's covariance ``H P H^T`` ``[K, 3, 3]`` (without the measurement
-    noise, which the tracker adds per plot); ``update`` takes one plot per track (a NaN row: missed, the posterior
-    is the prior); ``update_mixture`` (JPDA) the gated pairs' plots with their association probabilities;
-    ``drop(keep)`` keeps the rows of ``keep [K]``; ``state()`` gives the combined estimate ``x [K, 9]``,
+    with ``vz_std`` the prior std of the vertical speed where the filter takes one); ``predict`` moves every track to
+    the next scan and gives its predicted position ``[K, 3]`` and that position's covariance ``H P H^T`` ``[K, 3, 3]``
+    (without the measurement noise, which the tracker adds per plot); ``update`` takes one plot per track (a NaN row:
+    missed, the posterior is the prior); ``update_mixture`` (JPDA) the gated pairs' plots with their association
+    probabilities; ``drop(keep)`` keeps the rows of ``keep [K]``; ``state()`` gives the combined estimate ``x [K, 9]``,
     ``P [K, 9, 9]`` in the layout ``[x, vx, ax, y, vy, ay, z, vz, az]``. Arrays in and out are numpy float64.
 
     ``r``: the measurement std (m) the filter assumes where plots come without covariances (None: it assumes
@@ -555,7 +555,7 @@ class TwoPointStart:
     prior standard deviation (m/s) of an aircraft's vertical speed, fused with the pair's differenced velocity
     (``TrackFilter.start``; a network filter starts by its own steps and takes none); None: the pair alone. Aircraft
     climb and descend at a few m/s where a far pair's difference is uncertain by tens (chosen on the training
-    scenes: docs/multi-target.md, "Defaults")."""
+    scenes: docs/multi-target.md, "Initiation")."""
 
     max_speed: float = 350.0
     sigma: float = 3.0
