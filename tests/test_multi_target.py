@@ -481,6 +481,24 @@ def test_missed_scan_coasts_then_deletes(filt, dt):
     assert tracker.step(10 * dt, np.zeros((0, 3))) == [] and tracker.tracks() == []
 
 
+def test_misses_delete_a_track_once_they_span_min_coast_seconds():
+    """At 1 s scans, ``delete_after=3`` misses span 3 s: with ``min_coast`` 4 s (the default) the track outlives its
+    third miss and is deleted at its fourth (4 s after its last plot); with ``min_coast=0`` at its third. At 2 s scans
+    three misses span 6 s and the default deletes at the third, as ``delete_after`` says."""
+    v, p0 = np.array([150.0, -80.0, 2.0]), np.array([0.0, 0.0, 4000.0])
+    for dt, min_coast, gone_at in ((1.0, None, 4), (1.0, 0.0, 3), (2.0, None, 3)):
+        kw = {} if min_coast is None else {"min_coast": min_coast}
+        tracker = MultiTargetTracker("real-imm-singer", r=10.0, delete_after=3, **kw)
+        for k in range(6):
+            reps = tracker.step(k * dt, (p0 + v * k * dt)[None])
+        (rep,) = reps
+        for miss in range(1, 6):
+            ids = [t.track_id for t in tracker.step((5 + miss) * dt, np.zeros((0, 3)))]
+            assert ids == ([] if miss >= gone_at else [rep.track_id]), (dt, min_coast, miss)
+    with pytest.raises(ValueError, match=r"min_coast must be a finite number of seconds >= 0, got -1.0"):
+        MultiTargetTracker("real-imm-singer", min_coast=-1.0)
+
+
 @pytest.mark.parametrize("associator", ["gnn", "jpda"])
 def test_track_leaving_the_cover_is_deleted_at_its_first_miss_outside(associator):
     """A radar with a cover of 20 km: an aircraft flying outward at 200 m/s is plotted every 2 s while its range

@@ -63,20 +63,21 @@ def run_tracker(scene, filter: str, **settings) -> dict:
 
 
 def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: float | None = None,
-             init=None) -> dict:
+             init=None, min_coast: float | None = None) -> dict:
     """The filter ``filter`` told the association: one track per aircraft, stepped together (one batch, as the
     tracker's), on each aircraft's own plots alone (``plot_source``; clutter never reaches it). A track starts from
     its aircraft's first two plots (the tracker's two-point start ``init``, a ``TwoPointStart``, its default where
     None: a plot, then the aircraft's next plot, with the start's vertical-speed prior), is
     predicted to every scan, updated with its aircraft's plot where there is one (else it coasts), and deleted after
-    ``delete_after`` consecutive scans without one, at a scan without one outside the radar's cover, or once its
-    position std exceeds ``max_pos_std`` (the tracker's defaults where None); its aircraft's next plot then seeds a
-    new track. A track is reported at every scan from its start to its deletion, under its own id. Returns what
-    :func:`run_tracker` returns."""
-    from immnet.filters.multi import DELETE_AFTER, MAX_POS_STD, TrackFilter, TwoPointStart, kept
+    ``delete_after`` consecutive scans without one spanning ``min_coast`` s since its last, at a scan without one
+    outside the radar's cover, or once its position std exceeds ``max_pos_std`` (the tracker's defaults where None);
+    its aircraft's next plot then seeds a new track. A track is reported at every scan from its start to its deletion,
+    under its own id. Returns what :func:`run_tracker` returns."""
+    from immnet.filters.multi import DELETE_AFTER, MAX_POS_STD, MIN_COAST, TrackFilter, TwoPointStart, kept
 
     delete_after = DELETE_AFTER if delete_after is None else int(delete_after)
     max_pos_std = MAX_POS_STD if max_pos_std is None else float(max_pos_std)
+    min_coast = MIN_COAST if min_coast is None else float(min_coast)
     vz_std = (TwoPointStart() if init is None else init).vz_std
     f = TrackFilter.by_name(filter)
     seen = cover(scene.meta["spec"])
@@ -84,6 +85,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
     track_of = np.full(A, -1, np.int64)  # each aircraft's row in the filter (-1: none)
     ids = np.zeros(0, np.int64)
     misses = np.zeros(0, np.int64)
+    last = np.zeros(0)  # each track's last plot's time (s)
     seed_z, seed_R, seed_t = np.full((A, 3), np.nan), np.zeros((A, 3, 3)), np.full(A, np.nan)
     next_id, t_prev = 0, None
     est_ids, est_pos, seconds = [], [], []
@@ -108,16 +110,17 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
             z[hit], R[hit] = plots[j[hit]], cov[j[hit]]
             f.update(z, R)
             misses = np.where(hit, 0, misses + 1)
+            last = np.where(hit, t, last)
             plot_of[rows_ac[hit]] = -1  # taken by its track
             x, P = f.state()
-            keep = kept(x, P, hit, misses, delete_after, max_pos_std, seen)  # the tracker's deletion rules
+            keep = kept(x, P, hit, misses, delete_after, max_pos_std, seen, t - last, min_coast)  # the tracker's rules
             if not keep.all():
                 f.drop(keep)
                 gone = rows_ac[~keep]
                 track_of[gone] = -1
                 new_row = np.cumsum(keep) - 1
                 track_of[track_of >= 0] = new_row[track_of[track_of >= 0]]
-                ids, misses = ids[keep], misses[keep]
+                ids, misses, last = ids[keep], misses[keep], last[keep]
         # plots of aircraft without a track: a second plot starts one, a first one seeds
         free = np.flatnonzero(plot_of >= 0)
         start = free[np.isfinite(seed_t[free])]
@@ -127,6 +130,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
             track_of[start] = len(ids) + np.arange(len(start))
             ids = np.concatenate([ids, next_id + np.arange(len(start))])
             misses = np.concatenate([misses, np.zeros(len(start), np.int64)])
+            last = np.concatenate([last, np.full(len(start), t)])
             next_id += len(start)
             seed_t[start] = np.nan
         first = free[~np.isin(free, start)]
@@ -196,8 +200,9 @@ def combine(rows: list[dict]) -> dict:
 def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bool = True, settings: dict | None = None,
                     c: float = 200.0, p: float = 2.0, alpha: float = 2.0, note=None) -> dict:
     """``{row: {"mean": combine(...), "scenes": {scene name: score(...)}}}`` for each filter (the tracker with
-    ``settings``), its told-association reference where ``told`` (the same ``delete_after`` and ``init``), and the
-    raw plots where ``raw``; every row runs on one scene before the next scene (the same machine state for each)."""
+    ``settings``), its told-association reference where ``told`` (the same ``delete_after``, ``min_coast`` and
+    ``init``), and the raw plots where ``raw``; every row runs on one scene before the next scene (the same machine
+    state for each)."""
     settings = dict(settings or {})
     names = [name for f in filters for name in ((f, f + TOLD) if told else (f,))] + ([RAW] if raw else [])
     per = {n: {} for n in names}
@@ -205,7 +210,8 @@ def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bo
         for f in filters:
             per[f][sc.name] = score(sc, run_tracker(sc, f, **settings), c, p, alpha)
             if told:
-                told_run = run_told(sc, f, settings.get("delete_after"), init=settings.get("init"))
+                told_run = run_told(sc, f, settings.get("delete_after"), init=settings.get("init"),
+                                    min_coast=settings.get("min_coast"))
                 per[f + TOLD][sc.name] = score(sc, told_run, c, p, alpha)
             if note:
                 note(f"[{sc.name}] {f}: GOSPA {per[f][sc.name]['gospa']:.1f} m, "

@@ -25,8 +25,8 @@ One scan, for every live track at once:
    speed of at most ``max_speed`` (plus ``sigma`` measurement standard deviations), by an assignment over the pairs
    a k-d tree finds; a pair starts a tentative track (two-point differencing); the plots left over become seeds;
 6. confirmation after M hits within the first N scans (the seed's scan the first); a tentative track that can no
-   longer reach M is dropped; a confirmed track is deleted after ``delete_after`` consecutive misses, any track
-   once its position standard deviation ``sqrt(tr P_pos)`` exceeds ``max_pos_std`` or, told the radar's ``Cover``,
+   longer reach M is dropped; a confirmed track is deleted after ``delete_after`` consecutive misses spanning at
+   least ``min_coast`` seconds since its last plot, any track once its position standard deviation ``sqrt(tr P_pos)`` exceeds ``max_pos_std`` or, told the radar's ``Cover``,
    at a miss while its estimate lies outside it.
 
 Every step of gating, association and initiation touches only the pairs inside a gate (the trees find them), so a
@@ -582,13 +582,16 @@ class Cover:
 
 
 def kept(x: np.ndarray, P: np.ndarray, updated: np.ndarray, misses: np.ndarray, delete_after: int,
-         max_pos_std: float, cover: Cover | None = None) -> np.ndarray:
+         max_pos_std: float, cover: Cover | None = None, coasted: np.ndarray | None = None,
+         min_coast: float = 0.0) -> np.ndarray:
     """``[K]``: the tracks the deletion rules keep (module doc, step 6), from their estimates ``x [K, 9]``, ``P [K, 9,
-    9]``, whether a plot updated them this scan and their consecutive misses: fewer than ``delete_after`` misses, a
-    position standard deviation ``sqrt(tr P_pos)`` within ``max_pos_std`` (NaN: not) and, told the radar's ``cover``,
-    a plot this scan or an estimate inside it."""
+    9]``, whether a plot updated them this scan, their consecutive misses and the seconds since their last plot
+    ``coasted [K]``: fewer than ``delete_after`` misses or less than ``min_coast`` s, a position standard deviation
+    ``sqrt(tr P_pos)`` within ``max_pos_std`` (NaN: not) and, told the radar's ``cover``, a plot this scan or an
+    estimate inside it."""
     pos_std = np.sqrt(np.maximum(np.trace(P[:, 0::3, 0::3], axis1=1, axis2=2), 0.0))
-    keep = (misses < delete_after) & (pos_std <= max_pos_std)
+    short = False if coasted is None else coasted < min_coast
+    keep = ((misses < delete_after) | short) & (pos_std <= max_pos_std)
     if cover is not None:
         keep &= updated | cover.contains(x[:, [0, 3, 6]])
     return keep
@@ -612,6 +615,9 @@ DEFAULT_FILTER = MULTI_TARGET_FILTER
 """The per-track filter a ``MultiTargetTracker`` builds unless told another (``immnet.filters.registry``)."""
 DELETE_AFTER = 3
 """The consecutive misses that delete a confirmed track, unless told otherwise (chosen on the training scenes)."""
+MIN_COAST = 4.0
+"""The seconds since its last plot before a confirmed track's misses can delete it, unless told otherwise (chosen on
+the training scenes at 1 s scans; at 4.5 s and longer, ``DELETE_AFTER`` misses span more)."""
 MAX_POS_STD = 5000.0
 """The position standard deviation (m) beyond which any track is deleted, unless told otherwise."""
 SEEDS = ("seed_z", "seed_R", "seed_t", "seed_scan")
@@ -622,7 +628,7 @@ class MultiTargetTracker:
     """Tracks from unlabelled plots (module doc). ``filter``: a ``TrackFilter`` with no tracks, or a method's or a
     shipped network's name (``TrackFilter.by_name``; a network refuses ``associator="jpda"``); ``gate``: the gate probability ``pg`` (the chi-square threshold with 3 degrees of
     freedom); ``init``: ``TwoPointStart``; ``confirm``: ``(M, N)``, ``2 <= M <= N``; ``delete_after``: the consecutive
-    misses that delete a confirmed track; ``max_pos_std``: the position standard deviation (m) beyond which any track
+    misses that delete a confirmed track, once they span ``min_coast`` seconds since its last plot; ``max_pos_std``: the position standard deviation (m) beyond which any track
     is deleted; ``associator``: ``"gnn"`` or ``"jpda"`` (with ``pd`` the detection probability and
     ``clutter_density`` the false plots per m^3); ``r``: the measurement std (m) of plots given without ``R`` (None:
     the filter's); ``cover``: the radar's ``Cover`` (None: none), beyond which a track without a plot is deleted."""
@@ -630,7 +636,8 @@ class MultiTargetTracker:
     def __init__(self, filter: TrackFilter | str = DEFAULT_FILTER, gate: float = 0.9999,
                  init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = DELETE_AFTER,
                  max_pos_std: float = MAX_POS_STD, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
-                 clutter_density: float = 1e-12, jpda_max_events: int = 20000, cover: Cover | None = None):
+                 clutter_density: float = 1e-12, jpda_max_events: int = 20000, cover: Cover | None = None,
+                 min_coast: float = MIN_COAST):
         if isinstance(filter, str):
             filter = TrackFilter.by_name(filter)
         if not isinstance(filter, TrackFilter):
@@ -647,6 +654,8 @@ class MultiTargetTracker:
             raise ValueError(f"confirm (M, N) needs 2 <= M <= N (a track starts from two plots), got {confirm!r}")
         if int(delete_after) != delete_after or delete_after < 1:
             raise ValueError(f"delete_after must be a whole number of scans >= 1, got {delete_after!r}")
+        if not (math.isfinite(min_coast) and min_coast >= 0):
+            raise ValueError(f"min_coast must be a finite number of seconds >= 0, got {min_coast!r}")
         if associator not in ASSOCIATORS:
             raise ValueError(f"associator must be one of {', '.join(ASSOCIATORS)}, got {associator!r}")
         if associator == "jpda" and filter.no_mixture:
@@ -662,6 +671,7 @@ class MultiTargetTracker:
             raise ValueError(f"r must be finite and > 0, got {r}")
         self.filter, self.pg, self.threshold = filter, float(gate), float(chi2.ppf(gate, 3))
         self.init, self.M, self.N, self.delete_after = init, M, N, int(delete_after)
+        self.min_coast = float(min_coast)
         self.max_pos_std, self.associator, self.pd = float(max_pos_std), associator, float(pd)
         self.clutter_density, self.jpda_max_events = float(clutter_density), int(jpda_max_events)
         if cover is not None and not isinstance(cover, Cover):
@@ -676,6 +686,7 @@ class MultiTargetTracker:
         self.scans = np.zeros(0, np.int64)  # scans since the seed's, inclusive (tentative tracks' window)
         self.misses = np.zeros(0, np.int64)  # consecutive
         self.updated = np.zeros(0, bool)
+        self.last_plot = np.zeros(0)  # the time of each track's last plot (s)
         self.seed_z, self.seed_R = np.zeros((0, 3)), np.zeros((0, 3, 3))
         self.seed_t, self.seed_scan = np.zeros(0), np.zeros(0, np.int64)
         self._x, self._P = np.zeros((0, 9)), np.zeros((0, 9, 9))
@@ -756,6 +767,7 @@ class MultiTargetTracker:
             else:
                 self._update_jpda(ti[conf], pj[conf], beta, beta0, tt, tp, plots, R, updated)
             self.updated = updated
+            self.last_plot = np.where(updated, t, self.last_plot)
             self.hits = self.hits + updated
             self.misses = np.where(updated, 0, self.misses + 1)
             self.scans = self.scans + 1
@@ -796,7 +808,7 @@ class MultiTargetTracker:
                 k = len(si)
                 self._append(ids=np.arange(self._next_id, self._next_id + k), confirmed=np.zeros(k, bool),
                              hits=np.full(k, 2), scans=self._scan - self.seed_scan[si] + 1,
-                             misses=np.zeros(k, np.int64), updated=np.ones(k, bool))
+                             misses=np.zeros(k, np.int64), updated=np.ones(k, bool), last_plot=np.full(k, t))
                 self._next_id += k
                 paired[pq] = True
                 self._keep(SEEDS, np.delete(np.arange(len(self.seed_z)), si))
@@ -820,11 +832,11 @@ class MultiTargetTracker:
         hopeless = ~self.confirmed & (self.hits + (self.N - self.scans) < self.M)
         misses = np.where(self.confirmed, self.misses, 0)  # a tentative track is not deleted for its misses
         keep = ~hopeless & kept(self._x, self._P, self.updated, misses, self.delete_after, self.max_pos_std,
-                                self.cover)
+                                self.cover, self._t - self.last_plot, self.min_coast)
         if keep.all():
             return
         self.filter.drop(keep)
-        self._keep(("ids", "confirmed", "hits", "scans", "misses", "updated", "_x", "_P"), keep)
+        self._keep(("ids", "confirmed", "hits", "scans", "misses", "updated", "last_plot", "_x", "_P"), keep)
 
     def data_mode_probs(self) -> np.ndarray | None:
         """Every live track's data-mode probabilities ``[K, 4]`` (CV, CA, CT+, CT-) as of the last scan, in the order
