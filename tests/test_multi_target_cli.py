@@ -229,7 +229,7 @@ REFUSALS = [
      "shipped networks by name (general, real, real-5s, real-11s, real-4.5-12s, 3dlast, ...)"),
     (CART, GOOD, ("--r", "30", "--max-coast", "60"),
      "--max-coast does not apply to plots without a track_id column (the multi-target tracker): a confirmed track "
-     "is deleted after missed scans in a row, not after seconds"),
+     "is deleted after missed scans in a row (once they span its min_coast seconds), not after a time alone"),
     (CART, GOOD, ("--r", "30", "--guard", "none"),
      "--guard does not apply to plots without a track_id column (the multi-target tracker): it has no range guard"),
     (CART, GOOD, ("--r", "30", "--adapt"),

@@ -24,7 +24,8 @@ SINGLE_OPTIONS = {
     "checkpoint": "its per-track filter is named by --method NAME (a model-based method, or a shipped network such as "
                   "radar-5s), not a checkpoint file",
     "adapt": "its filters keep the method's own process noise",
-    "max_coast": "a confirmed track is deleted after missed scans in a row, not after seconds",
+    "max_coast": "a confirmed track is deleted after missed scans in a row (once they span its min_coast seconds), "
+                 "not after a time alone",
 }
 """The options of the tracker of labelled tracks alone, and why the multi-target tracker has no use for them
 (``--guard`` too: it has no range guard)."""
