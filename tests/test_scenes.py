@@ -212,6 +212,12 @@ def test_cli_writes_a_set_and_refuses_bad_settings(tmp_path, capsys):
     assert "pd (detection probability) must be in (0, 1], got 0.0" in capsys.readouterr().err
     assert immnet.cli.main(["data", "scenes", "--out", str(bad)]) == 2
     assert "no scenes asked for" in capsys.readouterr().err
+    # no window fits: the line names the sample, what was asked and the options that would change it
+    assert immnet.cli.main(["data", "scenes", "--samples", "collections/quickstart", "--out", str(bad),
+                            "--targets-in-cover", "40,50"]) == 2
+    err = capsys.readouterr().err
+    assert "sample collections/quickstart: no window of 300 s with 40-50 aircraft in cover" in err
+    assert err.rstrip().endswith("(try --max-range, --site or --targets-in-cover)")
     assert not bad.exists() and not list(tmp_path.glob(".bad*"))
 
 

@@ -367,7 +367,7 @@ def adsb_scenes(sample, n: int, spec: SceneSpec = SceneSpec(), seed: int = 0, si
         raise ValueError(f"sample {sample}: no window of {spec.duration:g} s with {spec.min_targets}-"
                          f"{spec.max_targets} aircraft in cover ({spec.max_range / 1000:g} km of site "
                          f"{site[0]:.4f},{site[1]:.4f}) at every moment; the count ranges over "
-                         f"{int(count.min())}-{int(count.max())} (try --max-range or --min-targets/--max-targets)")
+                         f"{int(count.min())}-{int(count.max())} (try --max-range, --site or --targets-in-cover)")
     order = np.random.default_rng([int(seed), zlib.crc32(str(sample).encode())]).permutation(ok)
     scenes, taken, tried = [], [], 0
     for i in order:
