@@ -78,6 +78,11 @@ def test_scores_are_gospa_of_the_confirmed_tracks(scene_set, tmp_path, capsys):
     doc = run_cli(scene_set, tmp_path)
     table = capsys.readouterr().out
     assert doc["kind"] == "scenes" and doc["scenes"] == ["tiny-01", "tiny-02"]  # --split test: the held-out ones
+    # the record holds every setting the tracker ran with, the start's prior and min_coast among them
+    want = {k: v for k, v in MultiTargetTracker(FILTER).settings().items() if k not in ("pd", "clutter_density")}
+    assert doc["tracker"] == json.loads(json.dumps(want))
+    assert doc["tracker"]["init"] == {"max_speed": 350.0, "sigma": 3.0, "vz_std": 5.0}
+    assert doc["tracker"]["min_coast"] == 4.0 and doc["tracker"]["confirm"] == [4, 5]
     assert list(doc["methods"]) == [FILTER, FILTER + TOLD, RAW]
     for name in doc["methods"]:
         assert name in table
@@ -199,6 +204,7 @@ def test_wandb_offline_logs_the_table_and_gospa_over_time_per_scene(scene_set, t
     run = next(r["run"] for r in recs if r["type"] == "run")
     config = {**run["config"]["update"]}
     assert config["data"]["kind"] == "scenes" and config["data"]["scenes"] == ["tiny-00", "tiny-01", "tiny-02"]
+    assert config["tracker"] == doc["tracker"]
     table = json.loads((runs[0] / "files" / history["results.path"]).read_text())
     rows = {row[0]: dict(zip(table["columns"], row)) for row in table["data"]}
     assert list(rows) == list(doc["methods"])

@@ -316,7 +316,9 @@ def run_scenes(args) -> int:
     names = _method_names(args.methods) or [DEFAULT_FILTER]
     settings = {"associator": args.associator or "gnn"}
     for name in names:  # refused before any scene runs: a name that is not a multi-target filter (or not for JPDA)
-        MultiTargetTracker(TrackFilter.by_name(name), associator=settings["associator"])
+        tracker = MultiTargetTracker(TrackFilter.by_name(name), associator=settings["associator"])
+    # the record: every setting of the tracker (pd and clutter density are each scene's, its cover too)
+    record = {k: v for k, v in tracker.settings().items() if k not in ("pd", "clutter_density")}
     scenes = [load_scene(Path(args.data) / e["file"]) for e in entries]
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     note(f"evaluating the multi-target tracker with {', '.join(names)} ({settings['associator']}) on {len(scenes)} "
@@ -328,13 +330,13 @@ def run_scenes(args) -> int:
     print(sc.format_table(results))
     _write_text(args.markdown, sc.format_table(results, markdown=True), note)
     doc = {"data": str(args.data), "split": args.split, "kind": "scenes", "scenes": [s.name for s in scenes],
-           "gospa": {"c": 200.0, "p": 2.0, "alpha": 2.0}, "tracker": settings, "methods": results}
+           "gospa": {"c": 200.0, "p": 2.0, "alpha": 2.0}, "tracker": record, "methods": results}
     _write_json(args.json, doc, note)
     if wandb_log.wanted(args.wandb):
         config = {"command": "evaluate", "data": {"path": str(args.data), "split": args.split, "kind": "scenes",
                                                   "scenes": doc["scenes"], "limit": args.limit,
                                                   "spec": scenes[0].meta.get("spec")},
-                  "methods": {n: filter_info(n) for n in names}, "tracker": settings, "gospa": doc["gospa"]}
+                  "methods": {n: filter_info(n) for n in names}, "tracker": record, "gospa": doc["gospa"]}
         run = wandb_log.start(config, args.wandb_project, args.wandb_group, args.wandb_name, args.wandb_dir)
         wandb_log.log_scenes(run, results)
         _finish(run, note)

@@ -36,7 +36,7 @@ scan costs about ``N log N + K log N + pairs``: clutter far from every track add
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
@@ -693,6 +693,13 @@ class MultiTargetTracker:
 
     def __len__(self) -> int:
         return len(self.ids)
+
+    def settings(self) -> dict:
+        """What the tracker was built with, for a run's record (``immnet evaluate``'s JSON and W&B config): gate,
+        confirmation, deletion, initiation and association (its filter and a scene's cover are recorded apart)."""
+        return {"gate": self.pg, "confirm": [self.M, self.N], "delete_after": self.delete_after,
+                "min_coast": self.min_coast, "max_pos_std": self.max_pos_std, "init": asdict(self.init),
+                "associator": self.associator, "pd": self.pd, "clutter_density": self.clutter_density}
 
     # -- input --------------------------------------------------------------------------------------------------------
     def _inputs(self, t, plots, R):
