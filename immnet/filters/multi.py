@@ -26,8 +26,9 @@ One scan, for every live track at once:
    a k-d tree finds; a pair starts a tentative track (two-point differencing); the plots left over become seeds;
 6. confirmation after M hits within the first N scans (the seed's scan the first); a tentative track that can no
    longer reach M is dropped; a confirmed track is deleted after ``delete_after`` consecutive misses spanning at
-   least ``min_coast`` seconds since its last plot, any track once its position standard deviation ``sqrt(tr P_pos)`` exceeds ``max_pos_std`` or, told the radar's ``Cover``,
-   at a miss while its estimate lies outside it.
+   least ``min_coast`` seconds since its last plot, any track once its position standard deviation
+   ``sqrt(tr P_pos)`` exceeds ``max_pos_std`` or, told the radar's ``Cover``, at a miss while its estimate lies
+   outside it.
 
 Every step of gating, association and initiation touches only the pairs inside a gate (the trees find them), so a
 scan costs about ``N log N + K log N + pairs``: clutter far from every track adds plots, not plots times tracks.
@@ -626,12 +627,14 @@ SEEDS = ("seed_z", "seed_R", "seed_t", "seed_scan")
 
 class MultiTargetTracker:
     """Tracks from unlabelled plots (module doc). ``filter``: a ``TrackFilter`` with no tracks, or a method's or a
-    shipped network's name (``TrackFilter.by_name``; a network refuses ``associator="jpda"``); ``gate``: the gate probability ``pg`` (the chi-square threshold with 3 degrees of
-    freedom); ``init``: ``TwoPointStart``; ``confirm``: ``(M, N)``, ``2 <= M <= N``; ``delete_after``: the consecutive
-    misses that delete a confirmed track, once they span ``min_coast`` seconds since its last plot; ``max_pos_std``: the position standard deviation (m) beyond which any track
-    is deleted; ``associator``: ``"gnn"`` or ``"jpda"`` (with ``pd`` the detection probability and
-    ``clutter_density`` the false plots per m^3); ``r``: the measurement std (m) of plots given without ``R`` (None:
-    the filter's); ``cover``: the radar's ``Cover`` (None: none), beyond which a track without a plot is deleted."""
+    shipped network's name (``TrackFilter.by_name``; a network refuses ``associator="jpda"``); ``gate``: the gate
+    probability ``pg`` (the chi-square threshold with 3 degrees of freedom); ``init``: ``TwoPointStart``;
+    ``confirm``: ``(M, N)``, ``2 <= M <= N``; ``delete_after``: the consecutive misses that delete a confirmed
+    track, once they span ``min_coast`` seconds since its last plot; ``max_pos_std``: the position standard
+    deviation (m) beyond which any track is deleted; ``associator``: ``"gnn"`` or ``"jpda"`` (with ``pd`` the
+    detection probability and ``clutter_density`` the false plots per m^3); ``r``: the measurement std (m) of plots
+    given without ``R`` (None: the filter's); ``cover``: the radar's ``Cover`` (None: none), beyond which a track
+    without a plot is deleted. ``min_coast``: seconds (see ``delete_after``)."""
 
     def __init__(self, filter: TrackFilter | str = DEFAULT_FILTER, gate: float = 0.9999,
                  init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] = (4, 5), delete_after: int = DELETE_AFTER,
