@@ -456,6 +456,11 @@ def main(argv=None) -> int:
                 f"{row['ms_per_scan_median']:.1f} ms/scan")
         rows_of[RAW].append(evaluate(raw_plots(sc), sc))
     result["filter"] = a.filter
+    if {"ours", "told"} & set(trackers):  # what our tracker ran with (each scene's pd, clutter and cover aside)
+        from immnet.filters.multi import MultiTargetTracker
+
+        ours = MultiTargetTracker(*[f for f in filters[:1] if f is not None]).settings()
+        result["ours"] = {k: v for k, v in ours.items() if k not in ("pd", "clutter_density")}
     result["split"] = a.split
     result["time_limit"] = a.time_limit
     for name, rows in rows_of.items():
