@@ -192,23 +192,19 @@ def run_stonesoup(kind: str, scene: Scene, params: dict, out: dict | None = None
 def run_ours(scene: Scene, filter: str | None = None, associator: str = "gnn") -> dict:
     """Our ``MultiTargetTracker`` with its defaults (the settings tuned on training scenes: benchmarks/mtt_tune.py),
     ``filter`` the per-track filter (None: the default), told the scene's Pd and clutter density."""
-    import inspect
-
     from immnet.evaluation.scenes import run_tracker
-    from immnet.filters.multi import MultiTargetTracker
+    from immnet.filters.multi import DEFAULT_FILTER
 
-    filter = filter or inspect.signature(MultiTargetTracker).parameters["filter"].default
+    filter = filter or DEFAULT_FILTER
     return run_tracker(scene, filter, associator=associator)
 
 
 def run_ours_told(scene: Scene, filter: str | None = None) -> dict:
     """Our per-track filter told the association (``immnet.evaluation.scenes.run_told``)."""
-    import inspect
-
     from immnet.evaluation.scenes import run_told
-    from immnet.filters.multi import MultiTargetTracker
+    from immnet.filters.multi import DEFAULT_FILTER
 
-    filter = filter or inspect.signature(MultiTargetTracker).parameters["filter"].default
+    filter = filter or DEFAULT_FILTER
     return run_told(scene, filter)
 
 
@@ -456,11 +452,11 @@ def main(argv=None) -> int:
                 f"{row['ms_per_scan_median']:.1f} ms/scan")
         rows_of[RAW].append(evaluate(raw_plots(sc), sc))
     result["filter"] = a.filter
-    if {"ours", "told"} & set(trackers):  # what our tracker ran with (each scene's pd, clutter and cover aside)
+    if {"ours", "told"} & set(trackers):  # what our tracker ran with (its defaults; each filter a row of its own)
+        from immnet.evaluation.scenes import recorded
         from immnet.filters.multi import MultiTargetTracker
 
-        ours = MultiTargetTracker(*[f for f in filters[:1] if f is not None]).settings()
-        result["ours"] = {k: v for k, v in ours.items() if k not in ("pd", "clutter_density")}
+        result["ours"] = recorded(MultiTargetTracker())
     result["split"] = a.split
     result["time_limit"] = a.time_limit
     for name, rows in rows_of.items():

@@ -317,8 +317,7 @@ def run_scenes(args) -> int:
     settings = {"associator": args.associator or "gnn"}
     for name in names:  # refused before any scene runs: a name that is not a multi-target filter (or not for JPDA)
         tracker = MultiTargetTracker(TrackFilter.by_name(name), associator=settings["associator"])
-    # the record: every setting of the tracker (pd and clutter density are each scene's, its cover too)
-    record = {k: v for k, v in tracker.settings().items() if k not in ("pd", "clutter_density")}
+    record = sc.recorded(tracker)  # its settings but those each scene gives (the same with every filter)
     scenes = [load_scene(Path(args.data) / e["file"]) for e in entries]
     note = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
     note(f"evaluating the multi-target tracker with {', '.join(names)} ({settings['associator']}) on {len(scenes)} "

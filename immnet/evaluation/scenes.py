@@ -43,6 +43,16 @@ def cover(spec: dict):
     return Cover(spec["max_range"], spec["min_elevation"])
 
 
+SCENE_GIVEN = ("pd", "clutter_density")
+"""The tracker's settings that ``run_tracker`` takes from each scene (its cover too), left out of a run's record."""
+
+
+def recorded(tracker) -> dict:
+    """What a run's record says the tracker ran with: its ``settings()`` but those each scene gives (``SCENE_GIVEN``;
+    ``immnet evaluate``'s JSON and W&B config, ``benchmarks/mtt_peer.py``'s JSON)."""
+    return {k: v for k, v in tracker.settings().items() if k not in SCENE_GIVEN}
+
+
 def run_tracker(scene, filter: str, **settings) -> dict:
     """One scene through ``MultiTargetTracker(filter, **settings)``, told the scene's radar cover (``cover``), detection
     probability and clutter density (JPDA's; GNN reads neither): per scan the confirmed tracks' ids and positions,
