@@ -35,12 +35,14 @@ def first_detection(z: torch.Tensor) -> torch.Tensor:
     return (~torch.isnan(z).any(-1)).long().argmax(-1)  # argmax: the first detected scan, 0 where none is
 
 
-def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float = ACC_STD, cov0=None):
+def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float = ACC_STD, cov0=None,
+                  vz_std: float | None = None):
     """``x0``, ``P0`` from the first measurement of each track (docs/spec.md section 3).
 
     ``z [B, T, 3]``; ``r`` the filter's assumed measurement standard deviation (scalar or ``[B]``).
     ``x0 = [z0x, 0, 0, z0y, 0, 0, z0z, 0, 0]`` and ``P0 = diag(r^2, vel_std^2, acc_std^2)`` per axis; ``cov0 [B, 3, 3]``
-    (given, ``r`` unused): the first detection's own measurement covariance as ``P0``'s position block.
+    (given, ``r`` unused): the first detection's own measurement covariance as ``P0``'s position block; ``vz_std``: a
+    prior on the vertical speed (``start_state``).
     A track whose first measurement is missing starts at its first detected position (zeros if it
     has none), at the scan of that detection (``first_detection``; give it to ``imm_filter``/``runner.run`` as
     ``start``, so that the filters hold this state until then and never filter that detection a second time); the
@@ -52,7 +54,7 @@ def initial_state(z: torch.Tensor, r, vel_std: float = VEL_STD, acc_std: float =
     if cov0 is None:
         r2 = torch.as_tensor(r, dtype=z.dtype, device=z.device) ** 2
         cov0 = _as_cov(r2.expand(z.shape[0]), 3, z)
-    return start_state(z0, cov0, vel_std, acc_std)
+    return start_state(z0, cov0, vel_std, acc_std, vz_std)
 
 
 def imm_filter(z, x0, P0, F, Q, R, Pi, mu0, return_experts: bool = False, compile: bool = False,

@@ -24,7 +24,7 @@ from immnet.data.times import scan_intervals
 from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
 from immnet.filters.imm import ACC_STD, VEL_STD, first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
-from immnet.imm.kalman import check_robust  # noqa: F401  (re-exported: its users import it from here)
+from immnet.imm.kalman import check_robust, check_vz_std
 from immnet.imm.measurement import Isotropic, PerDetection, Polar, ToldStd, measurement_model
 from immnet.imm.reacquire import Reacquire, Restarts
 from immnet.motion import ModelSet, Modes, MotionModel, coupling, instantiate
@@ -66,7 +66,7 @@ def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Te
 
 
 def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | None, dt: float, dtype,
-                    modes: Modes = Modes.JOINT, robust: float | None = None, reacquire=None):
+                    modes: Modes = Modes.JOINT, robust: float | None = None, reacquire=None, vz_std=None):
     """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``modes``: ``IMMNet``'s
     (per axis: ``PerAxisIMMTracker.network``). ``p_stay`` None (a method given a full transition matrix): a
     ValueError naming the method ``name``."""
@@ -81,16 +81,19 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
         gain["init_args"]["robust"] = robust
     if reacquire is not None:
         gain["init_args"]["reacquire"] = reacquire.to_config()
+    if vz_std is not None:
+        gain["init_args"]["start_vz_std"] = vz_std
     bayes = {"class_path": "immnet.stages.BayesianModeUpdate", "init_args": {"from_experts": True}}
     net = IMMNet(model_set=model_set, gain=gain, classifier=bayes, dt=dt, p_stay=p_stay, start_detections=1,
                  modes=modes)
     return net.to(dtype).eval()
 
 
-def _restarts(rule, intervals, mu0: torch.Tensor) -> Restarts | None:
+def _restarts(rule, intervals, mu0: torch.Tensor, vz_std: float | None = None) -> Restarts | None:
     """The scan loop's re-acquisition (``immnet.imm.reacquire.Restarts``) of ``rule`` at ``intervals`` (a number or
-    ``[B, T]``), restarting at the start's velocity and acceleration stds and ``mu0``; None where ``rule`` is."""
-    return None if rule is None else Restarts(rule, intervals, VEL_STD, ACC_STD, mu0)
+    ``[B, T]``), restarting at the start's velocity and acceleration stds, its prior on the vertical speed and
+    ``mu0``; None where ``rule`` is."""
+    return None if rule is None else Restarts(rule, intervals, VEL_STD, ACC_STD, mu0, vz_std)
 
 
 class KalmanFilterTracker(Method):
@@ -162,7 +165,9 @@ class IMMTracker(Method):
     Huber's density), None: off. ``reacquire``: re-acquisition (``immnet.imm.reacquire.Reacquire``, its fields as a dict,
     True its defaults; None: off): after ``scans`` consecutive detections each beyond ``gate`` (``d^2``) of every filter
     and within ``speed`` of the one before, the track restarts at the last as at its first detection; a Cartesian ``r``.
-    The last four are the joint IMM's (``modes="joint"``).
+    ``vz_std``: a prior on a track's vertical speed at its start, ``N(0, vz_std^2)`` m/s (``immnet.imm.kalman.
+    start_state``; aircraft climb and descend at a few m/s where one plot says nothing of the speed), None: off.
+    The last five are the joint IMM's (``modes="joint"``).
     """
 
     any_interval = True
@@ -184,6 +189,7 @@ class IMMTracker(Method):
         modes: str = "joint",
         robust: float | None = None,
         reacquire: Reacquire | dict | bool | None = None,
+        vz_std: float | None = None,
     ):
         self.model_set = ModelSet.from_config(model_set)
         self.modes = Modes.parse(modes)
@@ -205,9 +211,11 @@ class IMMTracker(Method):
         isotropic = isinstance(self.measurement, ISOTROPIC)
         self.robust = check_robust(robust)
         self.reacquire = Reacquire.from_config(reacquire)
-        if groups is not None and not (isotropic and self.robust is None and self.reacquire is None):
+        self.vz_std = check_vz_std(vz_std)
+        if groups is not None and not (isotropic and self.robust is None and self.reacquire is None
+                                       and self.vz_std is None):
             raise ValueError(f"{name}: modes per {modes} track with IMMNet's step, which takes an isotropic r, no "
-                             f"robust update and no re-acquisition")
+                             f"robust update, no re-acquisition and no vz_std")
         if self.reacquire is not None and isinstance(self.measurement, Polar):
             raise ValueError(f"{name}: re-acquisition takes a Cartesian measurement model (a number, 'data' or "
                              f"'detection'), not the polar one")
@@ -242,7 +250,7 @@ class IMMTracker(Method):
         if not torch.allclose(self.mu0, torch.full_like(self.mu0, 1.0 / len(self.mu0))):
             raise ValueError(f"{self.name}: IMMNet starts a track with uniform mode probabilities, mu0 is {self.mu0.tolist()}")
         return _linear_network(self.name, self.model_set, self.sigma_q, self.r, self._p_stay, dt, self.dtype,
-                               self.modes, self.robust, self.reacquire)
+                               self.modes, self.robust, self.reacquire, self.vz_std)
 
     def matrices(self, dt, device=None):
         """``F, Q`` of the experts, ``Pi``, ``mu0``: ``F, Q`` ``[M, 9, 9]`` for a float ``dt``, ``[..., M, 9, 9]``
@@ -263,18 +271,19 @@ class IMMTracker(Method):
         robust, measure, R = self.robust, None, None
         if isinstance(model, Polar):  # the EKF's update (Huber's k its own); a track starts with its converted plot
             sig0 = model.sigmas(z.shape[:2], z.dtype, z.device)[rows, first]
-            x0, P0 = initial_state(z, None, cov0=model.initial_cov(z[rows, first], sig0))
+            x0, P0 = initial_state(z, None, cov0=model.initial_cov(z[rows, first], sig0), vz_std=self.vz_std)
             robust, measure = None, model.measure(z, self.robust)
         elif isinstance(model, PerDetection):
             R = model.R(batch, self.dtype, z.device)
-            x0, P0 = initial_state(z, None, cov0=R[rows, first])
+            x0, P0 = initial_state(z, None, cov0=R[rows, first], vz_std=self.vz_std)
         else:
             r = model.std(batch, self.dtype, z.device)
-            x0, P0 = initial_state(z, r)
+            x0, P0 = initial_state(z, r, vz_std=self.vz_std)
             R = variance(r, self.dtype, z.device)
         states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
                                                   compile=self.compile, return_cov=self.return_cov, start=first,
-                                                  robust=robust, reacquire=_restarts(self.reacquire, intervals, mu0),
+                                                  robust=robust,
+                                                  reacquire=_restarts(self.reacquire, intervals, mu0, self.vz_std),
                                                   measure=measure)
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None,
                  keys.EXPERT_POST: experts, keys.EXPERT_PROBS: probs if self.return_experts else None}  # None: left out

@@ -66,10 +66,13 @@ def predict(x: torch.Tensor, P: torch.Tensor, F: torch.Tensor, Q: torch.Tensor):
     return x, P
 
 
-def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float) -> tuple[torch.Tensor, torch.Tensor]:
+def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float,
+                vz_std: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """A track started at a detection ``z [B, 3]`` with covariance ``R [B, 3, 3]``: ``x = [z, 0, 0]`` per axis and
     ``P`` with the position block ``R``, velocity and acceleration variances ``vel_std^2``, ``acc_std^2`` on every axis
-    (the 9-D state ``[x, vx, ax, y, vy, ay, z, vz, az]``)."""
+    (the 9-D state ``[x, vx, ax, y, vy, ay, z, vz, az]``); ``vz_std``: the vertical speed's variance that of
+    ``N(0, vel_std^2)`` fused with a prior ``N(0, vz_std^2)`` (``check_vz_std``), ``vel_std^2 vz_std^2 / (vel_std^2 +
+    vz_std^2)``."""
     B = z.shape[0]
     x = z.new_zeros(B, 9)
     x[:, 0::3] = z
@@ -78,7 +81,19 @@ def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float
     diag[:, 2::3] = acc_std**2
     P = torch.diag_embed(diag)
     P[:, 0::3, 0::3] = R.to(P)
+    if vz_std is not None:
+        P[:, 7, 7] = vel_std**2 * vz_std**2 / (vel_std**2 + vz_std**2)
     return x, P
+
+
+def check_vz_std(vz_std) -> float | None:
+    """A start's prior standard deviation of the vertical speed (m/s), finite and > 0, as a float; None: no prior."""
+    if vz_std is None:
+        return None
+    if isinstance(vz_std, bool) or not isinstance(vz_std, (int, float)) or not (math.isfinite(vz_std) and vz_std > 0):
+        raise ValueError(f"vz_std (the start's prior std of the vertical speed, m/s) must be a number > 0 or None, got "
+                         f"{vz_std!r}")
+    return float(vz_std)
 
 
 def gaussian_loglik(maha: torch.Tensor, logdet: torch.Tensor, m: int) -> torch.Tensor:

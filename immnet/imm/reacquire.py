@@ -179,10 +179,13 @@ def per_track_cov(R, batch: int, like: torch.Tensor) -> torch.Tensor:
 class Restarts:
     """Re-acquisition in the model-based scan loop (``immnet.imm.runner.run(reacquire=...)``): the ``rule``, the
     interval before each scan ``intervals`` (a number, or ``[B, T]``), the start's velocity and acceleration stds
-    (``immnet.filters.imm``'s ``VEL_STD``, ``ACC_STD``) and the filters' prior mode probabilities ``mu0 [M]``."""
+    (``immnet.filters.imm``'s ``VEL_STD``, ``ACC_STD``), the filters' prior mode probabilities ``mu0 [M]`` and the
+    start's prior on the vertical speed ``vz_std`` (``start_state``)."""
 
-    def __init__(self, rule: Reacquire, intervals, vel_std: float, acc_std: float, mu0: torch.Tensor):
+    def __init__(self, rule: Reacquire, intervals, vel_std: float, acc_std: float, mu0: torch.Tensor,
+                 vz_std: float | None = None):
         self.rule, self.intervals, self.vel_std, self.acc_std, self.mu0 = rule, intervals, vel_std, acc_std, mu0
+        self.vz_std = vz_std
 
     def begin(self, x: torch.Tensor, P: torch.Tensor) -> Watch:
         """The watch of tracks that start at the filters' states ``x [B, M, 9]``, ``P`` (their first detection's
@@ -207,7 +210,8 @@ class Restarts:
         ``restart [B]`` at their detection ``z [B, 3]`` (``start_state``, its covariance ``R``) with ``mu0``."""
         if not bool(restart.any()):  # one host read per scan, with re-acquisition on
             return x, P, mu
-        x1, P1 = start_state(torch.nan_to_num(z), per_track_cov(R, z.shape[0], z), self.vel_std, self.acc_std)
+        x1, P1 = start_state(torch.nan_to_num(z), per_track_cov(R, z.shape[0], z), self.vel_std, self.acc_std,
+                             self.vz_std)
         again = restart[:, None]
         x = torch.where(again[..., None], x1[:, None].to(x.dtype), x)
         P = torch.where(again[..., None, None], P1[:, None].to(P.dtype), P)

@@ -16,7 +16,8 @@ Each stage tells the truth about itself (docs/stages.md; ``tests/test_stage_cont
   interaction writes one);
 * ``carry_spec(batch, experts_alone, dtype, device)``: the state it carries from one scan to the
   next, with its value for a track that has not started (TorchRL's primer), and
-  ``start_carry(carry, z, x, second)`` its value after a track's first or second detection;
+  ``start_carry(carry, z, x, second)`` its value after a track's first or second detection (``start_estimate``: a
+  prior it adds to the start estimate ``x`` before);
 * ``for_experts_alone()``: the stage as stage 1 runs it (each expert alone), where its keys differ.
 """
 
@@ -156,6 +157,12 @@ class Stage(TensorDictModuleBase):
         """The carried keys that a track's first (``second=False``) or second detection ``z`` sets
         (start estimate ``x``), from the ``carry`` before it; the others take ``carry_spec``'s value."""
         return {}
+
+    def start_estimate(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> torch.Tensor:
+        """The start estimate ``x`` after a track's first or second detection ``z`` with what this stage knows of a
+        starting track beside its detections (a filter gain's prior on the vertical speed), before any stage's
+        ``start_carry`` reads it: ``x`` itself unless a stage knows more."""
+        return x
 
 
 def per_expert(x: torch.Tensor, n_experts: int, event_dims: int = 1) -> torch.Tensor:

@@ -48,7 +48,7 @@ from immnet.data.spec import DataSpec
 from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import (
-    as_covariance, check_robust, far, gaussian_loglik, group_loglik, group_maha, huber, inv3, joseph,
+    as_covariance, check_robust, check_vz_std, far, gaussian_loglik, group_loglik, group_maha, huber, inv3, joseph,
     marginal_loglik, quadratic, small_matmul,
 )
 from immnet.imm import reacquire as reacq
@@ -508,8 +508,10 @@ class _FilterExperts:
     def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
                      interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
                      onset: bool = True, model_noise=None, start_acc_std=None, modes: str = "joint",
-                     turn_rate: str | None = None, restart: str | None = None, robust=None, reacquire=None):
+                     turn_rate: str | None = None, restart: str | None = None, robust=None, reacquire=None,
+                     start_vz_std=None):
         self.interaction = interaction = Interaction.parse(interaction)
+        self.start_vz_std = check_vz_std(start_vz_std)
         self.guard = _check_interaction(interaction, p_stay, guard)
         self.turn_rate = _check_turn_rate(turn_rate)
         self.restart = _check_restart(restart, interaction, onset)  # the interaction's
@@ -735,8 +737,35 @@ class _FilterExperts:
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
 
+    def _start(self, carry, z: torch.Tensor, second: bool):
+        """``(r2_track, P, K, s)`` of a track's first or second detection ``z``: the noise the gain carries from it,
+        the start covariance ``start_cov`` ``[B, M, 10, 10]`` and, with ``start_vz_std``, the gain ``K [B, M, 10]``
+        and innovation variance ``s [B, M]`` of the prior ``vz ~ N(0, start_vz_std^2)`` (an update measuring ``vz``
+        as 0; else None, None)."""
+        M, told = self.n_experts, self.per_detection
+        if told:
+            r2_track = self._told_cov(carry, z)
+        else:
+            r2_track = self.noise_var(carry.get(keys.NOISE_SUM), carry.get(keys.NOISE_COUNT), carry)
+        r2 = per_expert(r2_track, M, event_dims=2 if told else 0)
+        first = per_expert(carry.get(keys.NOISE_VAR), M, event_dims=2) if told and second else None
+        elapsed = carry.get(keys.START_TIME) if second else None  # the time since the first detection
+        P = self.start_cov(z.shape[0], r2, second, elapsed, first)
+        if self.start_vz_std is None:
+            return r2_track, P, None, None
+        s = P[..., VEL[2], VEL[2]] + self.start_vz_std**2
+        return r2_track, P, P[..., :, VEL[2]] / s.unsqueeze(-1), s
+
+    def start_estimate(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> torch.Tensor:
+        """The start estimate fused with the prior on the vertical speed (``start_vz_std``; ``Stage.start_estimate``):
+        every expert's start covariance has the same velocity column, so every expert's estimate is the same."""
+        if self.start_vz_std is None:
+            return x
+        K = self._start(carry, z, second)[2][..., :9]
+        return x - (K if x.dim() == 3 else K[:, 0]) * x[..., VEL[2] : VEL[2] + 1]
+
     def start_memory(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
-        """The gain's carry after a track's first or second detection ``z`` (start estimate ``x``)."""
+        """The gain's carry after a track's first or second detection ``z`` (``x``: ``start_estimate``'s)."""
         M = self.n_experts
         B = z.shape[0]
         hist = carry.get(keys.Z_HISTORY)
@@ -746,22 +775,18 @@ class _FilterExperts:
         else:
             prev = torch.full_like(z, float("nan"))
         nan = torch.full_like(z, float("nan"))
-        elapsed = carry.get(keys.START_TIME) if second else None  # the time since the first detection
+        elapsed = carry.get(keys.START_TIME) if second else None
         gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
         gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
         gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
-        told = self.per_detection
-        if told:
-            r2_track = self._told_cov(carry, z)
-        else:
-            r2_track = self.noise_var(carry.get(keys.NOISE_SUM), carry.get(keys.NOISE_COUNT), carry)
-        r2 = per_expert(r2_track, M, event_dims=2 if told else 0)
-        first = per_expert(carry.get(keys.NOISE_VAR), M, event_dims=2) if told and second else None
+        r2_track, P, K, s = self._start(carry, z, second)
+        if K is not None:  # the prior's update of the covariance (start_estimate's of the estimate)
+            P = P - K.unsqueeze(-1) * K.unsqueeze(-2) * s[..., None, None]
         adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
         return adapt | {
             keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
             keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
-            keys.EXPERT_AUG_COV: self.start_cov(B, r2, second, elapsed, first),
+            keys.EXPERT_AUG_COV: P,
             keys.Z_HISTORY: torch.stack([z, prev, nan], -2),
             keys.INTERVAL_HISTORY: gaps.clone(),
             keys.NOISE_VAR: r2_track,
@@ -950,6 +975,7 @@ class FilterGain(_FilterExperts, Gain):
         restart: str | None = None,
         robust: float | None = None,
         reacquire: dict | bool | None = None,
+        start_vz_std: float | None = None,
     ):
         """``reacquire``: re-acquisition (``immnet.imm.reacquire.Reacquire``'s fields as a dict, True its defaults,
         None off; the model-based IMMs' ``reacquire``): a track whose run of detections far from every expert agrees
@@ -958,15 +984,17 @@ class FilterGain(_FilterExperts, Gain):
         IMMs' ``robust``), None: the plain update. ``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
         model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
         the ``noise_std`` components; ``start_acc_std``: the start covariance's acceleration standard deviation on
-        every axis (None: the CA draw's), one for every expert or one per expert. The three make the linear IMMs'
-        filters (docs/core.md). ``modes``: modes per group (``IMMNet``'s, set there once): the experts' likelihood per
+        every axis (None: the CA draw's), one for every expert or one per expert; ``start_vz_std``: a prior on the
+        vertical speed at a track's start, ``N(0, start_vz_std^2)`` m/s fused with the start's (the model-based IMMs'
+        ``vz_std``), None: none. They make the linear IMMs' filters (docs/core.md). ``modes``: modes per group
+        (``IMMNet``'s, set there once): the experts' likelihood per
         group (``group_loglik``), ``("expert", "loglik")`` ``[B, G, M]``. ``turn_rate``: the turn filters' rate,
         their own bounded to the model's range (None), their own unbounded (``"free"``) or the truth's of each scan,
         the step's input ``("truth", "turn_rate")`` (``"data"``, an oracle: the clairvoyant bound's configuration;
         ``FilterPredict``). ``restart="data"``: the interaction's oracle restart (``FilterInteraction``)."""
         super().__init__(model_set)
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, modes, turn_rate, restart, robust, reacquire)
+                          onset, model_noise, start_acc_std, modes, turn_rate, restart, robust, reacquire, start_vz_std)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -1032,9 +1060,10 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         state_correction: tuple[float, float, float] | None = None,
         robust: float | None = None,
         reacquire: dict | bool | None = None,
+        start_vz_std: float | None = None,
     ):
-        """``robust``, ``reacquire``: ``FilterGain``'s (Huber's weight ``w`` bounds the whole gain, the learned
-        correction ``delta`` with the Kalman part: ``w (K + delta)``)."""
+        """``robust``, ``reacquire``, ``start_vz_std``: ``FilterGain``'s (Huber's weight ``w`` bounds the whole gain,
+        the learned correction ``delta`` with the Kalman part: ``w (K + delta)``)."""
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
         if state_correction is not None and (len(state_correction) != 3 or not all(
@@ -1058,7 +1087,8 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
         self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, modes, robust=robust, reacquire=reacquire)
+                          onset, model_noise, start_acc_std, modes, robust=robust, reacquire=reacquire,
+                          start_vz_std=start_vz_std)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def base_gain(self, model_set: ModelSet, sigma_q: float, r: float, dt: float) -> None:

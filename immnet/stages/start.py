@@ -114,6 +114,8 @@ class TrackStart(Stage):
         else:
             fresh.set(keys.START_SCANS, torch.ones_like(carry.get(keys.AGE)))
         for stage in self._stages:
+            x = stage.start_estimate(carry, z, x, second)
+        for stage in self._stages:
             for key, value in stage.start_carry(carry, z, x, second).items():
                 fresh.set(key, value)
         fresh.set(keys.AGE, carry.get(keys.AGE) + 1)
