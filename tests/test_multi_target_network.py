@@ -212,3 +212,31 @@ def test_a_network_filter_runs_without_re_acquisition():
         NetworkFilter(Tracker(load_network(shipped("radar-5s"), reacquire=True)), "radar-5s")
     assert str(err.value) == ("radar-5s restarts its own tracks (re-acquisition, immnet.imm.reacquire): the "
                               "multi-target tracker starts and deletes them (load it with reacquire=None)")
+
+
+def test_a_network_filter_starts_without_its_own_vertical_speed_prior():
+    """The multi-target tracker starts its tracks: a shipped radar network whose gain fuses a prior on the vertical
+    speed at a start (``start_vz_std``) is loaded by name without it (the weights the checkpoint's), and one with it is
+    refused in one line. With it, Huber's update takes a pair's second plot 1.5 km above the first as an outlier and the
+    track stays wide (the horizontal position's std over 1 km after the pair, against the plots' 50 m without it)."""
+    from immnet.checkpoints import shipped
+    from immnet.tracking.network_filter import NetworkFilter
+    from immnet.tracking.networks import load_network
+
+    own = load_network(shipped("radar-5s"), reacquire=None)
+    assert own.gain.start_vz_std is not None
+    with pytest.raises(ValueError) as err:
+        NetworkFilter(Tracker(own), "radar-5s")
+    assert str(err.value) == ("radar-5s starts a track with its own prior on the vertical speed (start_vz_std): the "
+                              "multi-target tracker starts them (set its gain's start_vz_std to None)")
+    f = TrackFilter.by_name("radar-5s")
+    assert f.net.gain.start_vz_std is None
+    R = np.eye(3)[None] * 2500.0
+    pair = (np.array([[10500.0, 10000.0, 6500.0]]), R, np.array([[10000.0, 10000.0, 5000.0]]), R, np.array([5.0]))
+    f.start(*pair)
+    assert np.sqrt(f._P[0, 0, 0]) < 60.0
+    own.gain.start_vz_std = None  # the same network, its prior put back by hand: the wide track
+    wide = NetworkFilter(Tracker(own), "radar-5s")
+    own.gain.start_vz_std = 5.0
+    wide.start(*pair)
+    assert np.sqrt(wide._P[0, 0, 0]) > 1000.0
