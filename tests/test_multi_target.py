@@ -356,14 +356,18 @@ FILTERS = [("real-imm-singer", 1.0), ("radar-5s", 5.0)]
 @pytest.mark.parametrize("associator,filt,dt", [("gnn", "real-imm-singer", 2.0), ("jpda", "real-imm-singer", 2.0),
                                                ("gnn", "radar-5s", 5.0)])
 def test_crossing_targets_keep_their_ids(associator, filt, dt):
-    """Two flights crossing at 30 degrees, at the same point at the same scan: after the crossing each is still
-    followed by the track that followed it before (no id switch), by two different tracks, without a break."""
+    """Two flights crossing at 30 degrees over the same point at the same scan, 300 m (1000 ft, the least vertical
+    separation of two aircraft under instrument flight rules) apart in height: after the crossing each is still
+    followed by the track that followed it before (no id switch), by two different tracks, without a break. (At the
+    same point, no separation, every filter swapped the two in 25-60 % of 20 seeds, the IMMs at 2 s and 5 s included:
+    plots 30 m apart at one scan say nothing of which aircraft is which; 100 m and 300 m: none of 20.)"""
     rng = np.random.default_rng(10)
     v = 200.0
     a = np.deg2rad(15.0)
     vels = [[v * np.cos(a), v * np.sin(a), 0.0], [v * np.cos(a), -v * np.sin(a), 0.0]]
     T = 40
-    starts = [[-np.array(w[0]) * 20 * dt, -np.array(w[1]) * 20 * dt, 5000.0] for w in vels]  # the same point at scan 20
+    starts = [[-np.array(w[0]) * 20 * dt, -np.array(w[1]) * 20 * dt, 5000.0 + 300.0 * i]  # over one point at scan 20
+              for i, w in enumerate(vels)]
     tracker = MultiTargetTracker(filt, r=30.0, associator=associator)
     ti, tp, ei, ep = _run(tracker, _scene(rng, starts, vels, T, dt, 30.0))
     out = track_metrics(ti, tp, ei, ep, c=200.0)

@@ -27,10 +27,12 @@ def _flights(rng, T, n=3):
 
 def _alone(name, t, z, missed=()):
     """The network alone on one track's plots (``Tracker.step``, scan by scan; the first scan at the second's
-    interval, as the tracker's two-point start takes it; ``missed``: scans without a plot): its reported state and
+    interval, as the tracker's two-point start takes it; ``missed``: scans without a plot), without its own start prior
+    on the vertical speed as the multi-target tracker loads it (``NetworkFilter.pretrained``): its reported state and
     covariance per scan."""
     tr = Tracker.pretrained(name)
     tr.max_coast = float("inf")
+    tr.net.gain.start_vz_std = None
     told = tr.net.start.told_cov
     out = []
     for k in range(len(t)):
