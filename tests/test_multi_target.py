@@ -155,6 +155,24 @@ def test_two_point_start_with_a_vertical_speed_prior_is_the_bayes_posterior(name
     np.testing.assert_allclose(track.state, states[s][0][0], rtol=1e-9, atol=1e-6)
 
 
+@pytest.mark.parametrize("name, want", [("real-imm", [0.9, 0.1 / 3, 0.1 / 3, 0.1 / 3]),  # cv, ca, ct+2, ct-2
+                                        ("real-imm-singer", [0.9, 0.05, 0.05]),  # cv, ca, singer (on every axis)
+                                        ("real-ca", [1.0])])  # one model: a Kalman filter
+def test_a_new_track_starts_likely_straight(name, want):
+    """``TwoPointStart(p_cv=0.9)`` (the default): a new track's first mode probabilities are 0.9 on the
+    constant-velocity model and the rest spread evenly over the others, on every axis of a per-axis IMM; ``p_cv=None``
+    gives the filter's own (uniform); a filter of one model keeps its one mode."""
+    z0, z1 = np.array([[1000.0, 2000.0, 8000.0]]), np.array([[2000.0, 2500.0, 8010.0]])
+    R = np.eye(3)[None] * 900.0
+    for p_cv, expected in ((0.9, want), (None, [1.0 / len(want)] * len(want))):
+        tracker = MultiTargetTracker(name, init=TwoPointStart(p_cv=p_cv))
+        tracker.step(0.0, z0, R)
+        tracker.step(5.0, z1, R)
+        mu = tracker.filter.mu.numpy()
+        assert mu.shape[0] == 1
+        np.testing.assert_allclose(mu[0], np.broadcast_to(expected, mu[0].shape), rtol=0, atol=1e-15)
+
+
 @pytest.mark.parametrize("name", ["real-imm-singer", "real-imm", "real-ca"])
 def test_filter_is_the_single_target_method(name):
     """The batched filter of a method (per-axis IMM, joint IMM, Kalman filter), started at the first plot and stepped
@@ -614,7 +632,9 @@ def test_refusals_name_what_is_wrong():
                         ({"delete_after": 0}, "delete_after must be a whole number of scans >= 1"),
                         ({"pd": 0.0}, r"pd is a probability in \(0, 1\]"),
                         ({"r": -1.0}, "r must be finite and > 0"),
-                        ({"init": TwoPointStart(vz_std=0.0)}, r"init.vz_std must be > 0, got 0.0")):
+                        ({"init": TwoPointStart(vz_std=0.0)}, r"init.vz_std must be > 0, got 0.0"),
+                        ({"init": TwoPointStart(p_cv=1.0)}, r"init.p_cv is a probability in \(0, 1\), got 1.0"),
+                        ({"init": TwoPointStart(p_cv=0.0)}, r"init.p_cv is a probability in \(0, 1\), got 0.0")):
         with pytest.raises(ValueError, match=msg):
             MultiTargetTracker("real-imm-singer", **kwargs)
     with pytest.raises(ValueError, match="the multi-target tracker's filters are the model-based IMMs"):

@@ -88,7 +88,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
     delete_after = DELETE_AFTER if delete_after is None else int(delete_after)
     max_pos_std = MAX_POS_STD if max_pos_std is None else float(max_pos_std)
     min_coast = MIN_COAST if min_coast is None else float(min_coast)
-    vz_std = (TwoPointStart() if init is None else init).vz_std
+    init = TwoPointStart() if init is None else init
     f = TrackFilter.by_name(filter)
     seen = cover(scene.meta["spec"])
     A = len(scene.aircraft)
@@ -136,7 +136,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
         start = free[np.isfinite(seed_t[free])]
         if len(start):
             j = plot_of[start]
-            f.start(plots[j], cov[j], seed_z[start], seed_R[start], t - seed_t[start], vz_std)
+            f.start(plots[j], cov[j], seed_z[start], seed_R[start], t - seed_t[start], init.vz_std, init.p_cv)
             track_of[start] = len(ids) + np.arange(len(start))
             ids = np.concatenate([ids, next_id + np.arange(len(start))])
             misses = np.concatenate([misses, np.zeros(len(start), np.int64)])

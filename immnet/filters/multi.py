@@ -52,7 +52,7 @@ from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
 from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, quadratic, start_state, update
-from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
+from immnet.motion import AXES, AXIS_OF, CV, ModelSet, Modes, coupling
 from immnet.motion.models import axis_blocks, block_diagonal
 
 GROUPS = (Modes.JOINT, Modes.AXIS)
@@ -64,7 +64,8 @@ GROUPS = (Modes.JOINT, Modes.AXIS)
 class TrackFilter:
     """What the multi-target tracker asks of a filter: a batch of ``K`` live tracks (rows, in order), stepped
     together. ``start`` appends tracks at the end (from a plot, or a pair: ``z_prev``, ``R_prev`` ``dt`` earlier,
-    with ``vz_std`` the prior std of the vertical speed where the filter takes one); ``predict`` moves every track to
+    with ``vz_std`` the prior std of the vertical speed and ``p_cv`` the first probability of the constant-velocity
+    mode, where the filter takes them); ``predict`` moves every track to
     the next scan and gives its predicted position ``[K, 3]`` and that position's covariance ``H P H^T`` ``[K, 3, 3]``
     (without the measurement noise, which the tracker adds per plot); ``update`` takes one plot per track (a NaN row:
     missed, the posterior is the prior); ``update_mixture`` (JPDA) the gated pairs' plots with their association
@@ -85,7 +86,8 @@ class TrackFilter:
     def __len__(self) -> int:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None) -> None:  # pragma: no cover - interface
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None,
+              p_cv=None) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
     def predict(self, dt: float):  # pragma: no cover - interface
@@ -178,7 +180,9 @@ class IMMFilter(TrackFilter):
     ``acc_std``); a two-point start (``start(z, R, z_prev, R_prev, dt)``) differences the plots: velocity
     ``(z - z_prev) / dt`` with covariance ``(R + R_prev) / dt^2`` plus what an acceleration of std ``acc_std``
     adds over the interval (``acc_std^2 dt^2 / 4``, the average velocity being the one at mid-interval), then, given
-    ``vz_std``, fused with the prior ``vz ~ N(0, vz_std^2)`` (an update measuring ``vz`` as 0). ``robust``:
+    ``vz_std``, fused with the prior ``vz ~ N(0, vz_std^2)`` (an update measuring ``vz`` as 0); given ``p_cv``, a new
+    track's mode probabilities are ``p_cv`` on the constant-velocity models and the rest spread evenly over the others
+    (``mu0`` otherwise, and where the models are all or none constant-velocity ones). ``robust``:
     Huber's ``k`` of the update (``immnet.imm.kalman``: an isolated far plot's weight falls beyond ``k`` standard
     deviations of its innovation; with JPDA a track's plot is far when every plot in its gate is), None the plain
     update."""
@@ -242,7 +246,7 @@ class IMMFilter(TrackFilter):
         return self._cache[1]
 
     @torch.no_grad()
-    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None) -> None:
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None, p_cv=None) -> None:
         z, R = _t(z).reshape(-1, 3), _t(R).reshape(-1, 3, 3)
         k = z.shape[0]
         if k == 0:
@@ -265,10 +269,19 @@ class IMMFilter(TrackFilter):
         G, M, d = self.G, self.M, self.d
         self.x = torch.cat([self.x, self._split(x0)[:, :, None].expand(k, G, M, d)])
         self.P = torch.cat([self.P, self._split(P0)[:, :, None].expand(k, G, M, d, d)])
-        self.mu = torch.cat([self.mu, self.mu0.expand(k, G, M)])
+        self.mu = torch.cat([self.mu, (self.mu0 if p_cv is None else self.cv_weighted(p_cv)).expand(k, G, M)])
         self.spare = torch.cat([self.spare, torch.zeros(k, G, 1, dtype=torch.bool)])
 
     @torch.no_grad()
+    def cv_weighted(self, p_cv: float) -> torch.Tensor:
+        """Mode probabilities ``[M]``: ``p_cv`` spread evenly over the constant-velocity models, the rest over the
+        others; ``mu0`` where the filter has no constant-velocity model or only such models (a Kalman filter)."""
+        cv = self.model_set.modes.to(torch.long) == CV
+        if not bool(cv.any()) or bool(cv.all()):
+            return self.mu0
+        n = cv.sum().to(torch.float64)
+        return torch.where(cv, p_cv / n, (1.0 - p_cv) / (len(cv) - n))
+
     def predict(self, dt: float):
         K, G, M, d = len(self), self.G, self.M, self.d
         if K == 0:
@@ -398,10 +411,10 @@ class ByInterval(TrackFilter):
     def check_interval(self, dt: float) -> None:
         self.choose(dt).check_interval(dt)
 
-    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None) -> None:
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None, p_cv=None) -> None:
         if self._filter is None and dt is None:
             raise ValueError(f"{self.name} chooses its filter by the scan interval: its first start needs dt")
-        self.choose(dt).start(z, R, z_prev, R_prev, dt, vz_std)
+        self.choose(dt).start(z, R, z_prev, R_prev, dt, vz_std, p_cv)
 
     def predict(self, dt: float):
         return self.choose(dt).predict(dt)
@@ -556,11 +569,14 @@ class TwoPointStart:
     prior standard deviation (m/s) of an aircraft's vertical speed, fused with the pair's differenced velocity
     (``TrackFilter.start``; a network filter starts by its own steps and takes none); None: the pair alone. Aircraft
     climb and descend at a few m/s where a far pair's difference is uncertain by tens (chosen on the training
-    scenes: docs/multi-target.md, "Initiation")."""
+    scenes: docs/multi-target.md, "Initiation"). ``p_cv``: a new track's probability of flying straight, its
+    constant-velocity models' share of its first mode probabilities (the rest spread evenly over the other models;
+    ``IMMFilter.start``; a network filter starts by its own steps and takes none); None: the filter's own (uniform)."""
 
     max_speed: float = 350.0
     sigma: float = 3.0
     vz_std: float | None = 5.0
+    p_cv: float | None = 0.9
 
 
 @dataclass(frozen=True)
@@ -670,6 +686,8 @@ class MultiTargetTracker:
                 raise ValueError(f"{label} must be > 0, got {v}")
         if not 0.0 < pd <= 1.0:
             raise ValueError(f"pd is a probability in (0, 1], got {pd}")
+        if init.p_cv is not None and not 0.0 < init.p_cv < 1.0:
+            raise ValueError(f"init.p_cv is a probability in (0, 1), got {init.p_cv}")
         if r is not None and not (math.isfinite(r) and r > 0):
             raise ValueError(f"r must be finite and > 0, got {r}")
         self.filter, self.pg, self.threshold = filter, float(gate), float(chi2.ppf(gate, 3))
@@ -814,7 +832,8 @@ class MultiTargetTracker:
             chosen = assign(si, pq, dist / (self.init.max_speed * dt[si]))
             si, pq = si[chosen], pq[chosen]
             if len(si):
-                self.filter.start(plots[pq], R[pq], self.seed_z[si], self.seed_R[si], dt[si], self.init.vz_std)
+                self.filter.start(plots[pq], R[pq], self.seed_z[si], self.seed_R[si], dt[si], self.init.vz_std,
+                                  self.init.p_cv)
                 k = len(si)
                 self._append(ids=np.arange(self._next_id, self._next_id + k), confirmed=np.zeros(k, bool),
                              hits=np.full(k, 2), scans=self._scan - self.seed_scan[si] + 1,

@@ -137,7 +137,7 @@ class NetworkFilter(TrackFilter):
         return np.where(whole, k, 1).astype(np.int64)
 
     @torch.no_grad()
-    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None) -> None:
+    def start(self, z, R, z_prev=None, R_prev=None, dt=None, vz_std=None, p_cv=None) -> None:
         z, R = np.asarray(z, dtype=np.float64).reshape(-1, 3), np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
         k = len(z)
         if k == 0:
