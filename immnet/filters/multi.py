@@ -272,7 +272,6 @@ class IMMFilter(TrackFilter):
         self.mu = torch.cat([self.mu, (self.mu0 if p_cv is None else self.cv_weighted(p_cv)).expand(k, G, M)])
         self.spare = torch.cat([self.spare, torch.zeros(k, G, 1, dtype=torch.bool)])
 
-    @torch.no_grad()
     def cv_weighted(self, p_cv: float) -> torch.Tensor:
         """Mode probabilities ``[M]``: ``p_cv`` spread evenly over the constant-velocity models, the rest over the
         others; ``mu0`` where the filter has no constant-velocity model or only such models (a Kalman filter)."""
@@ -282,6 +281,7 @@ class IMMFilter(TrackFilter):
         n = cv.sum().to(torch.float64)
         return torch.where(cv, p_cv / n, (1.0 - p_cv) / (len(cv) - n))
 
+    @torch.no_grad()
     def predict(self, dt: float):
         K, G, M, d = len(self), self.G, self.M, self.d
         if K == 0:
