@@ -49,7 +49,7 @@ from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import (
     as_covariance, check_robust, check_vz_std, far, gaussian_loglik, group_loglik, group_maha, huber, inv3, joseph,
-    marginal_loglik, quadratic, small_matmul,
+    marginal_loglik, quadratic, small_matmul, update,
 )
 from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
@@ -737,11 +737,12 @@ class _FilterExperts:
         P[..., RATE, RATE] = torch.where(self.own_rate, self.rate_var0, 0.0).to(P.dtype)
         return P
 
-    def _start(self, carry, z: torch.Tensor, second: bool):
-        """``(r2_track, P, K, s)`` of a track's first or second detection ``z``: the noise the gain carries from it,
-        the start covariance ``start_cov`` ``[B, M, 10, 10]`` and, with ``start_vz_std``, the gain ``K [B, M, 10]``
-        and innovation variance ``s [B, M]`` of the prior ``vz ~ N(0, start_vz_std^2)`` (an update measuring ``vz``
-        as 0; else None, None)."""
+    def _start(self, carry, z: torch.Tensor, second: bool, x: torch.Tensor | None = None):
+        """``(r2_track, P, x)`` of a track's first or second detection ``z``: the noise the gain carries from it, the
+        start covariance ``start_cov`` ``[B, M, 10, 10]`` and the start estimate ``x`` (``[B, 9]`` or ``[B, M, 9]``;
+        None: not asked), each, with ``start_vz_std``, updated by the prior ``vz ~ N(0, start_vz_std^2)``
+        (``immnet.imm.kalman.update`` measuring ``vz`` as 0). Every expert's start covariance has the same velocity
+        column, so every expert's estimate is the same: a ``[B, 9]`` ``x`` stays one."""
         M, told = self.n_experts, self.per_detection
         if told:
             r2_track = self._told_cov(carry, z)
@@ -752,17 +753,18 @@ class _FilterExperts:
         elapsed = carry.get(keys.START_TIME) if second else None  # the time since the first detection
         P = self.start_cov(z.shape[0], r2, second, elapsed, first)
         if self.start_vz_std is None:
-            return r2_track, P, None, None
-        s = P[..., VEL[2], VEL[2]] + self.start_vz_std**2
-        return r2_track, P, P[..., :, VEL[2]] / s.unsqueeze(-1), s
+            return r2_track, P, x
+        xa = P.new_zeros(P.shape[:-1])  # the augmented state [x, w]; w's row of P is its own, untouched
+        if x is not None:
+            xa[..., :9] = per_expert(x, M)
+        H = P.new_zeros(1, N_AUG)
+        H[0, VEL[2]] = 1.0
+        xa, P, _ = update(xa, P, P.new_zeros(*P.shape[:-2], 1), H, self.start_vz_std**2)
+        return r2_track, P, None if x is None else (xa[..., :9] if x.dim() == 3 else xa[:, 0, :9])
 
     def start_estimate(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> torch.Tensor:
-        """The start estimate fused with the prior on the vertical speed (``start_vz_std``; ``Stage.start_estimate``):
-        every expert's start covariance has the same velocity column, so every expert's estimate is the same."""
-        if self.start_vz_std is None:
-            return x
-        K = self._start(carry, z, second)[2][..., :9]
-        return x - (K if x.dim() == 3 else K[:, 0]) * x[..., VEL[2] : VEL[2] + 1]
+        """The start estimate fused with the prior on the vertical speed (``start_vz_std``; ``Stage.start_estimate``)."""
+        return x if self.start_vz_std is None else self._start(carry, z, second, x)[2]
 
     def start_memory(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
         """The gain's carry after a track's first or second detection ``z`` (``x``: ``start_estimate``'s)."""
@@ -779,9 +781,7 @@ class _FilterExperts:
         gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
         gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
         gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
-        r2_track, P, K, s = self._start(carry, z, second)
-        if K is not None:  # the prior's update of the covariance (start_estimate's of the estimate)
-            P = P - K.unsqueeze(-1) * K.unsqueeze(-2) * s[..., None, None]
+        r2_track, P, _ = self._start(carry, z, second)  # the covariance with the prior (start_estimate: the estimate)
         adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
         return adapt | {
             keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
