@@ -13,7 +13,7 @@ from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
 from immnet.motion import ModelSet, ct_propagate, ct_rate_derivative, process_noise
 from immnet.stages import IMMNet
-from immnet.stages.filtering import KalmanNetFilterGain
+from immnet.stages.filtering import FilterGain, KalmanNetFilterGain
 from immnet.tracking.tracker import Tracker
 from immnet.training import Stage2Module
 
@@ -246,6 +246,12 @@ def test_filter_gain_refuses_bad_settings():
         KalmanNetFilterGain(ModelSet.from_config(ADAPTIVE), u_max=0.0)
     with pytest.raises(ValueError, match="noise_std"):
         KalmanNetFilterGain(ModelSet.from_config(ADAPTIVE), noise_std=(0.2, 0.2, 0.01))
+    # the two gains share one list of filter options (_FilterExperts._init_filter); the oracles are FilterGain's
+    with pytest.raises(ValueError, match="KalmanNetFilterGain takes no restart, turn_rate"):
+        KalmanNetFilterGain(ModelSet.from_config(ADAPTIVE), turn_rate="data", restart="data")
+    for gain in (FilterGain, KalmanNetFilterGain):
+        with pytest.raises(TypeError, match="noise_sd"):
+            gain(ModelSet.from_config(ADAPTIVE), noise_sd=(0.2,) * 5)
 
 
 def test_bayes_mode_update_from_filter_experts_is_the_imm_mode_update(data):

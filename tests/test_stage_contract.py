@@ -385,6 +385,8 @@ def test_what_a_stage_declares_it_takes_is_what_its_constructor_takes(cls):
     from immnet.tracking.networks import _NEEDS_FILTERS
 
     params = set(inspect.signature(cls).parameters)
+    if "options" in params:  # the filter experts' gains: their options are _FilterExperts._init_filter's
+        params |= set(inspect.signature(cls._init_filter).parameters)
     assert set(cls.shared) == params & set(SET_ONCE)
     if issubclass(cls, Gain):
         assert set(cls.load_options) == params & set(_NEEDS_FILTERS)

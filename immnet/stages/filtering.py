@@ -505,11 +505,38 @@ class _FilterExperts:
                                   self.modes, self.restart),
                 FilterPredict(model_set, dt, turn_rate=self.turn_rate), self.update_stage(model_set, dt))
 
-    def _init_filter(self, model_set: ModelSet, dt: float, noise_std, r0: float, k0: float, rate_std0_deg: float,
-                     interaction: str = "fused", p_stay: float = 0.995, guard=None, adapt=None, r=None, spec=None,
-                     onset: bool = True, model_noise=None, start_acc_std=None, modes: str = "joint",
-                     turn_rate: str | None = None, restart: str | None = None, robust=None, reacquire=None,
-                     start_vz_std=None):
+    def _init_filter(self, model_set: ModelSet, dt: float = 1.0, *,
+                     noise_std: tuple[float, float, float, float, float] = (0.2, 0.2, 0.01, 0.002, 1e-5),
+                     r0: float = 4.0, k0: float = 3.0, rate_std0_deg: float = 5.0, interaction: str = "fused",
+                     p_stay: float = 0.995, guard: bool | dict | None = None, adapt: bool | dict | None = None,
+                     r: float | str | None = None, spec: DataSpec | dict | None = None, onset: bool = True,
+                     model_noise: float | list[float] | None = None,
+                     start_acc_std: float | list[float | None] | None = None, modes: str = "joint",
+                     turn_rate: str | None = None, restart: str | None = None, robust: float | None = None,
+                     reacquire: dict | bool | None = None, start_vz_std: float | None = None):
+        """The filter experts' options, the keyword arguments of ``FilterGain`` and ``KalmanNetFilterGain`` (one
+        signature for both). ``noise_std``: base standard deviations of the five process-noise components (velocity h
+        / v in m/s^2 of white acceleration, acceleration h / v in m/s^2 per scan, turn rate in rad/s per scan);
+        ``r0``, ``k0``: the prior of the measurement-noise estimate; ``rate_std0_deg``: a turn filter's start std of
+        its rate; ``interaction``, ``p_stay``, ``guard``, ``onset``, ``restart``: ``FilterInteraction``'s (``onset``:
+        its onset priors; ``restart="data"``: its oracle restart); ``adapt``: adaptive process noise
+        (``AdaptiveNoise.from_config``; off by default); ``r``: the measurement model (``measurement_model``: a
+        number, ``"data"``, ``"detection"``, None estimated). ``reacquire``: re-acquisition
+        (``immnet.imm.reacquire.Reacquire``'s fields as a dict, True its defaults, None off; the model-based IMMs'
+        ``reacquire``): a track whose run of detections far from every expert agrees restarts at the last of them as
+        at its first detection (``IMMNet.scan``); experts alone (stage 1) run without it. ``robust``: Huber's ``k`` of
+        each expert's update (``immnet.imm.kalman``'s module doc: the gain ``w K``, ``w = min(1, k / d)`` of the
+        innovation's Mahalanobis distance ``d``, the likelihood Huber's; the model-based IMMs' ``robust``), None: the
+        plain update. ``model_noise``: each motion model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q``
+        for all models or one per model) in place of the ``noise_std`` components; ``start_acc_std``: the start
+        covariance's acceleration standard deviation on every axis (None: the CA draw's), one for every expert or one
+        per expert; ``start_vz_std``: a prior on the vertical speed at a track's start, ``N(0, start_vz_std^2)`` m/s
+        fused with the start's (the model-based IMMs' ``vz_std``), None: none. They make the linear IMMs' filters
+        (docs/core.md). ``modes``: modes per group (``IMMNet``'s, set there once): the experts' likelihood per group
+        (``group_loglik``), ``("expert", "loglik")`` ``[B, G, M]``. ``turn_rate``: the turn filters' rate, their own
+        bounded to the model's range (None), their own unbounded (``"free"``) or the truth's of each scan, the step's
+        input ``("truth", "turn_rate")`` (``"data"``, an oracle: the clairvoyant bound's configuration;
+        ``FilterPredict``)."""
         self.interaction = interaction = Interaction.parse(interaction)
         self.start_vz_std = check_vz_std(start_vz_std)
         self.guard = _check_interaction(interaction, p_stay, guard)
@@ -953,48 +980,11 @@ class FilterGain(_FilterExperts, Gain):
     shared = ("p_stay", "guard", "modes")
     load_options = ("guard", "adapt", "r", "reacquire", "robust")
 
-    def __init__(
-        self,
-        model_set: ModelSet,
-        dt: float = 1.0,
-        noise_std: tuple[float, float, float, float, float] = (0.2, 0.2, 0.01, 0.002, 1e-5),
-        r0: float = 4.0,
-        k0: float = 3.0,
-        rate_std0_deg: float = 5.0,
-        interaction: str = "fused",
-        p_stay: float = 0.995,
-        guard: bool | dict | None = None,
-        adapt: bool | dict | None = None,
-        r: float | str | None = None,
-        spec: DataSpec | dict | None = None,
-        onset: bool = True,
-        model_noise: float | list[float] | None = None,
-        start_acc_std: float | list[float | None] | None = None,
-        modes: str = "joint",
-        turn_rate: str | None = None,
-        restart: str | None = None,
-        robust: float | None = None,
-        reacquire: dict | bool | None = None,
-        start_vz_std: float | None = None,
-    ):
-        """``reacquire``: re-acquisition (``immnet.imm.reacquire.Reacquire``'s fields as a dict, True its defaults,
-        None off; the model-based IMMs' ``reacquire``): a track whose run of detections far from every expert agrees
-        restarts at the last of them as at its first detection (``IMMNet.scan``); experts alone (stage 1) run without it. ``robust``: Huber's ``k`` of each expert's update (``immnet.imm.kalman``'s module doc: the gain ``w K``,
-        ``w = min(1, k / d)`` of the innovation's Mahalanobis distance ``d``, the likelihood Huber's; the model-based
-        IMMs' ``robust``), None: the plain update. ``onset``: the IMM interaction's onset priors (``FilterInteraction``); ``model_noise``: each motion
-        model's own process noise ``Q(sigma_q_i, dt)`` (one ``sigma_q`` for all models or one per model) in place of
-        the ``noise_std`` components; ``start_acc_std``: the start covariance's acceleration standard deviation on
-        every axis (None: the CA draw's), one for every expert or one per expert; ``start_vz_std``: a prior on the
-        vertical speed at a track's start, ``N(0, start_vz_std^2)`` m/s fused with the start's (the model-based IMMs'
-        ``vz_std``), None: none. They make the linear IMMs' filters (docs/core.md). ``modes``: modes per group
-        (``IMMNet``'s, set there once): the experts' likelihood per
-        group (``group_loglik``), ``("expert", "loglik")`` ``[B, G, M]``. ``turn_rate``: the turn filters' rate,
-        their own bounded to the model's range (None), their own unbounded (``"free"``) or the truth's of each scan,
-        the step's input ``("truth", "turn_rate")`` (``"data"``, an oracle: the clairvoyant bound's configuration;
-        ``FilterPredict``). ``restart="data"``: the interaction's oracle restart (``FilterInteraction``)."""
+    def __init__(self, model_set: ModelSet, dt: float = 1.0, **options):
+        """``options``: the filter experts' (``_FilterExperts._init_filter``: noise, interaction, measurement model,
+        start, robust update, re-acquisition, modes per group)."""
         super().__init__(model_set)
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, modes, turn_rate, restart, robust, reacquire, start_vz_std)
+        self._init_filter(model_set, dt, **options)
 
     def forward(self, td):
         r2 = self._r2(td)
@@ -1008,15 +998,12 @@ class FilterGain(_FilterExperts, Gain):
 class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     """KalmanNet architecture 2 that sets each filter expert's process noise and corrects its gain.
 
-    ``noise_std``: base standard deviations of the five noise components (velocity h / v in m/s^2 of
-    white acceleration, acceleration h / v in m/s^2 per scan, turn rate in rad/s per scan);
-    ``u_max`` bounds the learned log-multiplier of each component's variance (``u = u_max tanh(u_slope
-    raw / u_max)``: a maneuver onset needs a turn-rate variance ~1e8 times the steady one, which the
-    slope lets the network reach without large weights); ``gain_scale`` bounds the learned
-    correction of the gain rows (position, velocity, acceleration). ``r0``, ``k0``: the prior of the
-    measurement-noise estimate. ``adapt``: adaptive process noise (``AdaptiveNoise.from_config``; off by
-    default). ``onset``, ``model_noise``, ``start_acc_std``, ``modes``: as ``FilterGain``'s (with ``model_noise``
-    the network scales the motion models' own ``Q``, the first component, and the others are zero). Beside F1..F4,
+    ``u_max`` bounds the learned log-multiplier of each of the five process-noise components' variance (``u = u_max
+    tanh(u_slope raw / u_max)``: a maneuver onset needs a turn-rate variance ~1e8 times the steady one, which the
+    slope lets the network reach without large weights); ``gain_scale`` bounds the learned correction of the gain
+    rows (position, velocity, acceleration). The filter experts' options (``noise_std``, ``r``, ``adapt``, ...) as
+    ``FilterGain``'s (with ``model_noise`` the network scales the motion models' own ``Q``, the first component, and
+    the others are zero). Beside F1..F4,
     GRU_S reads the innovation whitened by the base noise's ``S`` (times the adaptive scale, where on)
     (``nu / sqrt(diag S)``, a maneuver detector's statistic).
     """
@@ -1038,32 +1025,20 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         dt: float = 1.0,
         in_mult: int = 5,
         out_mult: int = 4,
-        noise_std: tuple[float, float, float, float, float] = (0.2, 0.2, 0.01, 0.002, 1e-5),
         u_max: float = 20.0,
         u_slope: float = 4.0,
         gain_scale: tuple[float, float, float] = (0.3, 0.3, 0.1),
         init_out_scale: float = 0.01,
-        r0: float = 4.0,
-        k0: float = 3.0,
-        rate_std0_deg: float = 5.0,
-        interaction: str = "fused",
-        p_stay: float = 0.995,
-        guard: bool | dict | None = None,
-        adapt: bool | dict | None = None,
-        r: float | str | None = None,
-        spec: DataSpec | dict | None = None,
         interval_input: bool = False,
-        onset: bool = True,
-        model_noise: float | list[float] | None = None,
-        start_acc_std: float | list[float | None] | None = None,
-        modes: str = "joint",
         state_correction: tuple[float, float, float] | None = None,
-        robust: float | None = None,
-        reacquire: dict | bool | None = None,
-        start_vz_std: float | None = None,
+        **options,
     ):
-        """``robust``, ``reacquire``, ``start_vz_std``: ``FilterGain``'s (Huber's weight ``w`` bounds the whole gain,
-        the learned correction ``delta`` with the Kalman part: ``w (K + delta)``)."""
+        """``options``: the filter experts' (``_FilterExperts._init_filter``) but the oracles ``turn_rate`` and
+        ``restart`` (Huber's weight ``w`` bounds the whole gain, the learned correction ``delta`` with the Kalman part:
+        ``w (K + delta)``)."""
+        oracles = sorted(name for name in ("turn_rate", "restart") if options.get(name) is not None)
+        if oracles:
+            raise ValueError(f"KalmanNetFilterGain takes no {', '.join(oracles)} (FilterGain's oracles)")
         if not (u_max > 0 and u_slope > 0):
             raise ValueError(f"u_max and u_slope must be > 0, got {u_max}, {u_slope}")
         if state_correction is not None and (len(state_correction) != 3 or not all(
@@ -1086,9 +1061,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         with torch.no_grad():
             self.fc2b.weight.mul_(init_out_scale)
             self.fc2b.bias.zero_()
-        self._init_filter(model_set, dt, noise_std, r0, k0, rate_std0_deg, interaction, p_stay, guard, adapt, r, spec,
-                          onset, model_noise, start_acc_std, modes, robust=robust, reacquire=reacquire,
-                          start_vz_std=start_vz_std)
+        self._init_filter(model_set, dt, **options)
         self.u_max, self.u_slope = float(u_max), float(u_slope)
 
     def base_gain(self, model_set: ModelSet, sigma_q: float, r: float, dt: float) -> None:
