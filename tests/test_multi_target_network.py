@@ -230,9 +230,12 @@ def test_a_network_filter_starts_without_its_own_vertical_speed_prior():
     with pytest.raises(ValueError) as err:
         NetworkFilter(Tracker(own), "radar-5s")
     assert str(err.value) == ("radar-5s starts a track with its own prior on the vertical speed (start_vz_std): the "
-                              "multi-target tracker starts them (set its gain's start_vz_std to None)")
+                              "multi-target tracker starts them (load it with start_vz_std=None)")
     f = TrackFilter.by_name("radar-5s")
     assert f.net.gain.start_vz_std is None
+    loaded = load_network(shipped("radar-5s"), reacquire=None, start_vz_std=None)  # as the refusal says
+    assert loaded.gain.start_vz_std is None and loaded.gain.reacquire is None
+    NetworkFilter(Tracker(loaded), "radar-5s")
     R = np.eye(3)[None] * 2500.0
     pair = (np.array([[10500.0, 10000.0, 6500.0]]), R, np.array([[10000.0, 10000.0, 5000.0]]), R, np.array([5.0]))
     f.start(*pair)

@@ -262,8 +262,9 @@ def test_a_gain_without_filter_experts_refuses_the_rule_and_the_robust_update_in
     trainer.strategy.connect(module)
     path = tmp_path / "net.ckpt"
     trainer.save_checkpoint(path)
-    for option, what in (("reacquire", "re-acquisition needs filter experts"),
-                         ("robust", "a robust update needs filter experts")):
+    for option, value, what in (("reacquire", True, "re-acquisition needs filter experts"),
+                                ("robust", 2.5, "a robust update needs filter experts"),
+                                ("start_vz_std", 5.0, "a start's prior on the vertical speed needs filter experts")):
         with pytest.raises(ValueError) as err:
-            load_network(path, **{option: True if option == "reacquire" else 2.5})
+            load_network(path, **{option: value})
         assert str(err.value) == f"{path}: {what}; this checkpoint's gain is immnet.stages.KalmanNetGain"

@@ -978,7 +978,7 @@ class FilterGain(_FilterExperts, Gain):
     out_keys = _FILTER_OUT
 
     shared = ("p_stay", "guard", "modes")
-    load_options = ("guard", "adapt", "r", "reacquire", "robust")
+    load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, **options):
         """``options``: the filter experts' (``_FilterExperts._init_filter``: noise, interaction, measurement model,
@@ -1017,7 +1017,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     out_keys = [keys.EXPERT_HIDDEN, keys.PREV_INTERVAL] + _FILTER_OUT
 
     shared = ("p_stay", "guard", "modes")
-    load_options = ("guard", "adapt", "r", "reacquire", "robust")
+    load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
 
     def __init__(
         self,

@@ -58,7 +58,7 @@ class NetworkFilter(TrackFilter):
                              f"multi-target tracker starts and deletes them (load it with reacquire=None)")
         if getattr(net.gain, "start_vz_std", None) is not None:
             raise ValueError(f"{name or tracker} starts a track with its own prior on the vertical speed "
-                             f"(start_vz_std): the multi-target tracker starts them (set its gain's start_vz_std to None)")
+                             f"(start_vz_std): the multi-target tracker starts them (load it with start_vz_std=None)")
         self.net = net
         self.name = name or tracker.name or (tracker.path.name if tracker.path is not None else "network")
         self.told_cov = bool(net.start.told_cov)
@@ -76,11 +76,10 @@ class NetworkFilter(TrackFilter):
         deletion take their place. (With its prior, Huber's update weighs a pair's second plot far from a level start
         as an outlier: a pair of clutter plots 1.5 km apart in height became a track 1.3 km wide that gated clutter.)"""
         path = shipped(name)
-        config, state = read_checkpoint(path)  # read once; the rule taken off where the network has one
-        has_rule = ((config.get("gain") or {}).get("init_args") or {}).get("reacquire") is not None
-        net = network_from(config, state, path, reacquire=None) if has_rule else network_from(config, state, path)
-        if getattr(net.gain, "start_vz_std", None) is not None:
-            net.gain.start_vz_std = None
+        config, state = read_checkpoint(path)  # read once; the settings taken off where the network has them
+        given = (config.get("gain") or {}).get("init_args") or {}
+        net = network_from(config, state, path,
+                           **{name: None for name in ("reacquire", "start_vz_std") if given.get(name) is not None})
         tracker = Tracker(net)
         tracker.name, tracker.path = name, path
         return cls(tracker, name)

@@ -84,11 +84,12 @@ def fit_weights(net: torch.nn.Module, state: dict, path) -> None:
 
 _NEEDS_FILTERS = {"guard": "a range guard needs filter experts", "adapt": "adaptive process noise needs filter experts",
                   "r": "a measurement std needs filter experts",
-                  "reacquire": "re-acquisition needs filter experts", "robust": "a robust update needs filter experts"}
+                  "reacquire": "re-acquisition needs filter experts", "robust": "a robust update needs filter experts",
+                  "start_vz_std": "a start's prior on the vertical speed needs filter experts"}
 
 
 def load_network(path: str | Path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
-                 reacquire=AS_CONFIGURED, robust=AS_CONFIGURED) -> IMMNet:
+                 reacquire=AS_CONFIGURED, robust=AS_CONFIGURED, start_vz_std=AS_CONFIGURED) -> IMMNet:
     """Rebuild the IMMNet of a Lightning checkpoint (stage 1 or stage 2) with its weights.
 
     ``guard``: the checkpoint's range guard (``"checkpoint"``), none (``None``), or another region
@@ -103,16 +104,18 @@ def load_network(path: str | Path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=A
     ``reacquire``: the filter experts' re-acquisition (``FilterGain``'s, ``immnet.imm.reacquire``), as the checkpoint
     has it (``"checkpoint"``), off (None) or a dict of its fields; no weights either. ``robust``: the filter experts'
     Huber update (``FilterGain``'s ``robust``, ``immnet.imm.kalman``), as the checkpoint has it (``"checkpoint"``), off
-    (None) or its ``k``; no weights either (modes per group refuse it).
+    (None) or its ``k``; no weights either (modes per group refuse it). ``start_vz_std``: the filter experts' prior on
+    a track's vertical speed at its start (``FilterGain``'s), as the checkpoint has it, off (None) or its std (m/s).
     """
-    return network_from(*read_checkpoint(path), path, guard, adapt, r, reacquire, robust)
+    return network_from(*read_checkpoint(path), path, guard, adapt, r, reacquire, robust, start_vz_std)
 
 
 def network_from(config: dict, state: dict, path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
-                 reacquire=AS_CONFIGURED, robust=AS_CONFIGURED) -> IMMNet:
+                 reacquire=AS_CONFIGURED, robust=AS_CONFIGURED, start_vz_std=AS_CONFIGURED) -> IMMNet:
     """``load_network``'s IMMNet from a checkpoint read already (``read_checkpoint``'s ``config`` and ``state``, of
     the file ``path``, named in its errors)."""
-    for name, value in (("guard", guard), ("adapt", adapt), ("r", r), ("reacquire", reacquire), ("robust", robust)):
+    for name, value in (("guard", guard), ("adapt", adapt), ("r", r), ("reacquire", reacquire), ("robust", robust),
+                        ("start_vz_std", start_vz_std)):
         if isinstance(value, str) and value == AS_CONFIGURED:
             continue
         gain = config.get("gain") or DEFAULT_GAIN
