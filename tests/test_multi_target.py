@@ -88,7 +88,8 @@ def test_track_metrics_counts_switches_fragments_continuity():
 # --- the per-track filter ------------------------------------------------------------------------------------------
 
 from immnet.filters.multi import (  # noqa: E402
-    Cover, IMMFilter, MultiTargetTracker, TrackFilter, TwoPointStart, assign, gate_pairs, jpda_probabilities,
+    Cover, IMMFilter, MultiTargetTracker, TrackFilter, TrackScore, TwoPointStart, assign, gate_pairs,
+    jpda_probabilities,
 )
 
 
@@ -569,6 +570,87 @@ def test_clutter_alone_confirms_no_track(associator, filt):
     assert started >= 3  # initiation ran: tentative tracks were started and dropped
 
 
+def test_track_score_adds_the_log_likelihood_ratio():
+    """A TrackScore's score by hand: a pair starts at ``log(pd / (beta_fa V))`` (``V`` the start's ball), a miss adds
+    ``log(1 - pd pg)``, a plot ``log(pd N(nu; 0, S + R) / beta_fa)`` (the gate's log-likelihood); without a cover
+    ``beta_fa`` is the tracker's ``clutter_density``, with one the plots per scan no confirmed track took over its
+    volume; ``start=False`` starts at 0."""
+    import copy
+
+    r, dt, pd, lam = 20.0, 5.0, 0.9, 1e-12
+    p = np.array([1000.0, 2000.0, 3000.0])
+    v = np.array([100.0, 0.0, 0.0])
+    tracker = MultiTargetTracker("real-imm-singer", r=r, pd=pd, clutter_density=lam, confirm=TrackScore(alpha=1e-30))
+    for k in (0, 1):
+        tracker.step(k * dt, (p + v * k * dt)[None])
+    radius = tracker.init.max_speed * dt + tracker.init.sigma * np.sqrt(6 * r**2)
+    start = np.log(pd / (lam * 4 / 3 * np.pi * radius**3))
+    np.testing.assert_allclose(tracker.score, [start], rtol=1e-12)
+    tracker.step(2 * dt, np.zeros((0, 3)))
+    np.testing.assert_allclose(tracker.score, [start + np.log1p(-pd * tracker.pg)], rtol=1e-12)
+    probe = copy.deepcopy(tracker.filter)  # the next scan's gate, the tracker's filter untouched
+    z_pred, S = probe.predict(dt)
+    before = tracker.score.copy()
+    plot = p + v * 3 * dt + [30.0, -20.0, 10.0]
+    _, _, ll = gate_pairs(z_pred, S, plot[None], r**2 * np.eye(3)[None], tracker.threshold)
+    tracker.step(3 * dt, plot[None])
+    np.testing.assert_allclose(tracker.score, before + np.log(pd) + ll - np.log(lam), rtol=1e-12)
+    # told a cover: the density is the plots per scan over its volume (one plot a scan here, none taken by a
+    # confirmed track), the first scan's count alone, then the exponential average
+    cover = Cover(20000.0)
+    told = MultiTargetTracker("real-imm-singer", r=r, pd=pd, cover=cover, confirm=TrackScore(alpha=1e-30,
+                                                                                             smoothing=0.5))
+    told.step(0.0, np.stack([p, -p]))
+    assert told.clutter_per_scan == 2.0
+    told.step(dt, (p + v * dt)[None])
+    assert told.clutter_per_scan == 1.5 and told.clutter_density_now() == pytest.approx(1.5 / cover.volume)
+    plain = MultiTargetTracker("real-imm-singer", r=r, confirm=TrackScore(start=False))
+    for k in (0, 1):
+        plain.step(k * dt, (p + v * k * dt)[None])
+    assert plain.score.tolist() == [0.0]
+
+
+@pytest.mark.parametrize("clutter,confirmed_at", [(2.0, 2), (20.0, 3)])
+def test_track_score_confirms_a_target_not_clutter(clutter, confirmed_at):
+    """One flight among ``clutter`` false plots a scan (uniform over 40 x 40 x 10 km) at 5 s, told a cover of 30 km
+    and no clutter density: the score confirms one track, on the flight, and none on the clutter, estimating the
+    clutter plots per scan within 25 %; with little clutter on the flight's third plot (scan 2), with more on its
+    fourth (scan 3), where (4, 5) confirms it either way."""
+    first = {}
+    for confirm in (TrackScore(), (4, 5)):
+        rng = np.random.default_rng(14)
+        tracker = MultiTargetTracker("real-imm-singer", r=50.0, cover=Cover(30000.0), confirm=confirm)
+        ti, tp, ei, ep = _run(tracker, _scene(rng, [[-15000.0, -5000.0, 6000.0]], [[120.0, 40.0, 0.0]], 40, 5.0,
+                                              50.0, clutter=clutter))
+        out = track_metrics(ti, tp, ei, ep, c=200.0)
+        assert len({int(i) for e in ei for i in e}) == 1 and out["per_truth"][0]["assigned"] == 40 - len(
+            [e for e in ei if not len(e)])
+        first[str(confirm)] = next(s for s, e in enumerate(ei) if len(e))
+        if isinstance(confirm, TrackScore):
+            assert tracker.clutter_per_scan == pytest.approx(clutter, rel=0.25)
+    assert first == {str(TrackScore()): confirmed_at, "(4, 5)": 3}
+
+
+def test_track_score_settings_and_cover_volume():
+    """A TrackScore is recorded as its fields (``(M, N)`` as ``[M, N]``); a cover's volume is the ball above its
+    lowest elevation; a TrackScore's thresholds are Wald's."""
+    assert MultiTargetTracker("real-imm-singer").settings()["confirm"] == [4, 5]
+    rec = MultiTargetTracker("real-imm-singer", confirm=TrackScore(alpha=1e-5)).settings()["confirm"]
+    assert rec == {"alpha": 1e-5, "beta": 0.5, "max_scans": 8, "smoothing": 0.1, "start": True, "seed_scans": 2}
+    assert Cover(1000.0).volume == pytest.approx(2 * np.pi / 3 * 1e9)
+    assert Cover(1000.0, 30.0).volume == pytest.approx(np.pi / 3 * 1e9)
+    rule = TrackScore(alpha=1e-4, beta=0.1)
+    assert rule.confirm_at == pytest.approx(np.log(0.9 / 1e-4)) and rule.drop_at == pytest.approx(np.log(0.1 / 0.9999))
+    for kwargs, msg in (({"alpha": 0.0}, r"TrackScore.alpha is a probability in \(0, 1\), got 0.0"),
+                        ({"beta": 1.0}, r"TrackScore.beta is a probability in \(0, 1\), got 1.0"),
+                        ({"alpha": 0.6, "beta": 0.5}, "TrackScore needs alpha \\+ beta < 1"),
+                        ({"max_scans": 1}, "TrackScore.max_scans must be a whole number of scans >= 2, got 1"),
+                        ({"seed_scans": 1.5}, "TrackScore.seed_scans must be a whole number of scans >= 1, got 1.5"),
+                        ({"smoothing": 0.0}, r"TrackScore.smoothing is a weight in \(0, 1\], got 0.0")):
+        with pytest.raises(ValueError, match=msg):
+            TrackScore(**kwargs)
+
+
 @pytest.mark.parametrize("filt,dt", [("real-imm-singer", 2.0), ("radar-5s", 5.0)])
 def test_one_target_at_pd_09_keeps_one_id(filt, dt):
     """One flight, detected with probability 0.9, among 5 false plots a scan, 120 scans: one confirmed track follows
@@ -627,6 +709,7 @@ def test_refusals_name_what_is_wrong():
     for kwargs, msg in (({"confirm": (1, 3)}, r"confirm \(M, N\) needs 2 <= M <= N"),
                         ({"confirm": (5, 4)}, r"confirm \(M, N\) needs 2 <= M <= N"),
                         ({"confirm": "x"}, r"confirm must be \(M, N\)"),
+                        ({"confirm": "x"}, r"confirm must be \(M, N\) or a TrackScore, got 'x'"),
                         ({"associator": "nn"}, "associator must be one of gnn, jpda"),
                         ({"gate": 1.0}, r"gate is a probability in \(0, 1\)"),
                         ({"delete_after": 0}, "delete_after must be a whole number of scans >= 1"),
