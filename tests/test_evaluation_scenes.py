@@ -82,7 +82,7 @@ def test_scores_are_gospa_of_the_confirmed_tracks(scene_set, tmp_path, capsys):
     want = {k: v for k, v in MultiTargetTracker(FILTER).settings().items() if k not in ("pd", "clutter_density")}
     assert doc["tracker"] == json.loads(json.dumps(want))
     assert doc["tracker"]["init"] == {"max_speed": 350.0, "sigma": 3.0, "vz_std": 5.0, "p_cv": 0.9}
-    assert doc["tracker"]["min_coast"] == 4.0 and doc["tracker"]["confirm"] == [4, 5]
+    assert doc["tracker"]["min_coast"] == 4.0 and doc["tracker"]["confirm"]["alpha"] == 1e-7  # TrackScore()
     assert list(doc["methods"]) == [FILTER, FILTER + TOLD, RAW]
     for name in doc["methods"]:
         assert name in table

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import datetime
 
+from dataclasses import asdict
+
 import numpy as np
 import pytest
 
@@ -394,8 +396,9 @@ def test_crossing_targets_keep_their_ids(associator, filt, dt):
     ids = {truth: {int(e[g["assignment"][k]]) for e, g in zip(ei, out["per_scan"]) if g["assignment"][k] >= 0}
            for k, truth in enumerate([0, 1])}
     assert all(len(s) == 1 for s in ids.values()) and ids[0] != ids[1]
-    # confirmed at the M-th scan (M of N), followed throughout since
-    assert all(r["assigned"] == T - (tracker.M - 1) for r in out["per_truth"].values())
+    # confirmed by the third or fourth scan, followed throughout since
+    first = next(k for k, e in enumerate(ei) if len(e))
+    assert first <= 3 and all(r["assigned"] == T - first for r in out["per_truth"].values())
 
 
 @pytest.mark.parametrize("dt,chosen", [(1.0, "real-imm"), (3.0, "real-imm"), (5.2, "real-imm-5s"), (6.0, "real-imm-5s"),
@@ -572,17 +575,22 @@ def test_clutter_alone_confirms_no_track(associator, filt):
 
 def test_track_score_adds_the_log_likelihood_ratio():
     """A TrackScore's score by hand: a pair starts at ``log(pd / (beta_fa V))`` (``V`` the start's ball), a miss adds
-    ``log(1 - pd pg)``, a plot ``log(pd N(nu; 0, S + R) / beta_fa)`` (the gate's log-likelihood); without a cover
-    ``beta_fa`` is the tracker's ``clutter_density``, with one the plots per scan no confirmed track took over its
-    volume; ``start=False`` starts at 0."""
+    ``log(1 - pd pg)``, a plot ``log(pd N(nu; 0, S + R) / beta_fa)`` (the gate's log-likelihood); ``beta_fa`` is the
+    plots per scan no confirmed track took over the cover's volume, without a cover over the half ball out to the
+    farthest plot so far, before any plot the tracker's ``clutter_density``; ``start=False`` starts at 0."""
     import copy
 
     r, dt, pd, lam = 20.0, 5.0, 0.9, 1e-12
     p = np.array([1000.0, 2000.0, 3000.0])
     v = np.array([100.0, 0.0, 0.0])
-    tracker = MultiTargetTracker("real-imm-singer", r=r, pd=pd, clutter_density=lam, confirm=TrackScore(alpha=1e-30))
+    tracker = MultiTargetTracker("real-imm-singer", r=r, pd=pd, clutter_density=lam,
+                                 confirm=TrackScore(alpha=1e-30, beta=1e-30))  # neither confirmed nor dropped
+    assert tracker.clutter_density_now() == lam  # no plot yet
     for k in (0, 1):
         tracker.step(k * dt, (p + v * k * dt)[None])
+    reach = np.linalg.norm(p + v * dt)  # the farther of the two plots; one plot a scan, none taken
+    lam = 1.0 / (2 * np.pi / 3 * reach**3)
+    assert tracker.clutter_density_now() == pytest.approx(lam, rel=1e-12)
     radius = tracker.init.max_speed * dt + tracker.init.sigma * np.sqrt(6 * r**2)
     start = np.log(pd / (lam * 4 / 3 * np.pi * radius**3))
     np.testing.assert_allclose(tracker.score, [start], rtol=1e-12)
@@ -594,6 +602,8 @@ def test_track_score_adds_the_log_likelihood_ratio():
     plot = p + v * 3 * dt + [30.0, -20.0, 10.0]
     _, _, ll = gate_pairs(z_pred, S, plot[None], r**2 * np.eye(3)[None], tracker.threshold)
     tracker.step(3 * dt, plot[None])
+    # the reach grown to the new plot; the plots a scan (1, 1, 0, 1) averaged with weight 0.1: 0.9 * 0.9 + 0.1
+    lam = 0.91 / (2 * np.pi / 3 * np.linalg.norm(plot) ** 3)
     np.testing.assert_allclose(tracker.score, before + np.log(pd) + ll - np.log(lam), rtol=1e-12)
     # told a cover: the density is the plots per scan over its volume (one plot a scan here, none taken by a
     # confirmed track), the first scan's count alone, then the exponential average
@@ -634,7 +644,8 @@ def test_track_score_confirms_a_target_not_clutter(clutter, confirmed_at):
 def test_track_score_settings_and_cover_volume():
     """A TrackScore is recorded as its fields (``(M, N)`` as ``[M, N]``); a cover's volume is the ball above its
     lowest elevation; a TrackScore's thresholds are Wald's."""
-    assert MultiTargetTracker("real-imm-singer").settings()["confirm"] == [4, 5]
+    assert MultiTargetTracker("real-imm-singer", confirm=(4, 5)).settings()["confirm"] == [4, 5]
+    assert MultiTargetTracker("real-imm-singer").settings()["confirm"] == asdict(TrackScore())  # the default
     rec = MultiTargetTracker("real-imm-singer", confirm=TrackScore(alpha=1e-5)).settings()["confirm"]
     assert rec == {"alpha": 1e-5, "beta": 0.5, "max_scans": 8, "smoothing": 0.1, "start": True, "seed_scans": 2}
     assert Cover(1000.0).volume == pytest.approx(2 * np.pi / 3 * 1e9)

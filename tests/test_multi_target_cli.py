@@ -83,10 +83,10 @@ def _track(tmp_path, header, scans, *extra):
 def _check_crossing(rows, tol):
     """Two ids, each following one target throughout, before and after the crossing (the nearest truth, within
     ``tol`` m at every scan, the same one wherever they are apart); rows only
-    from the confirming scan (4 of 5: the seed's scan 0, confirmed at scan 3) on, two a scan; ``updated`` 0 only for
-    the missed target's track at its missed scan."""
+    from the confirming scan (the track score: the seed's scan 0, confirmed on the third plot, at scan 2) on, two a
+    scan; ``updated`` 0 only for the missed target's track at its missed scan."""
     truth = _truth()
-    assert [r["t"] for r in rows[:2]] == [repr(3 * DT + 100.0)] * 2 and len(rows) == 2 * (T - 3)
+    assert [r["t"] for r in rows[:2]] == [repr(2 * DT + 100.0)] * 2 and len(rows) == 2 * (T - 2)
     follows = {}
     for r in rows:
         k = round((float(r["t"]) - 100.0) / DT)

@@ -1,5 +1,5 @@
-"""Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, M-of-N confirmation,
-coasting and deletion around a batched per-track filter (docs/multi-target.md, "The tracker").
+"""Many targets from unlabelled plots: gating, association (GNN or JPDA), two-point initiation, confirmation by a track
+score (or M of N), coasting and deletion around a batched per-track filter (docs/multi-target.md, "The tracker").
 
     tracker = MultiTargetTracker(r=50.0)                         # the IMM tuned at the scan interval, or a filter
                                                                   # by name ("real-imm-5s"; a network: "radar-5s")
@@ -24,9 +24,10 @@ One scan, for every live track at once:
 5. initiation: a plot nobody took pairs with a seed, an unpaired plot of an earlier scan, whose distance fits a
    speed of at most ``max_speed`` (plus ``sigma`` measurement standard deviations), by an assignment over the pairs
    a k-d tree finds; a pair starts a tentative track (two-point differencing); the plots left over become seeds;
-6. confirmation after M hits within the first N scans (the seed's scan the first); a tentative track that can no
-   longer reach M is dropped (or, with ``confirm=TrackScore(...)``, by a sequential track score: ``TrackScore``);
-   a confirmed track is deleted after ``delete_after`` consecutive misses spanning at
+6. confirmation by a sequential track score (``TrackScore``: each plot's likelihood against the clutter density
+   estimated from the plots; confirmed at a threshold, dropped at another or after a window), or after M hits within
+   the first N scans (``confirm=(M, N)``; a tentative track that can no longer reach M is dropped); a confirmed
+   track is deleted after ``delete_after`` consecutive misses spanning at
    least ``min_coast`` seconds since its last plot, any track once its position standard deviation
    ``sqrt(tr P_pos)`` exceeds ``max_pos_std`` or, told the radar's ``Cover``, at a miss while its estimate lies
    outside it.
@@ -593,7 +594,8 @@ class TrackScore:
 
     ``beta_fa``, the clutter plots per m^3, is estimated from the data: per scan, the plots no confirmed track took,
     averaged over scans exponentially (each scan's count weighing ``smoothing``; the first scan's count alone), over
-    the volume of the tracker's ``Cover``; without a cover the tracker's ``clutter_density`` instead. The score
+    the volume of the tracker's ``Cover`` (without one, the half ball out to the farthest plot seen so far; before any
+    plot, the tracker's ``clutter_density``). The score
     starts, at a two-point start, with the pair's own evidence where ``start``: ``log(pd / (beta_fa V))``, the
     second plot lying uniformly in the start's ball of volume ``V`` (radius ``max_speed dt + sigma sqrt(tr R +
     tr R_seed)``, m) under a target and being clutter with density ``beta_fa`` otherwise, plus ``log(1 - pd pg)``
@@ -719,7 +721,7 @@ class MultiTargetTracker:
     without a plot is deleted. ``min_coast``: seconds (see ``delete_after``)."""
 
     def __init__(self, filter: TrackFilter | str = DEFAULT_FILTER, gate: float = 0.9999,
-                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] | TrackScore = (4, 5),
+                 init: TwoPointStart = TwoPointStart(), confirm: tuple[int, int] | TrackScore = TrackScore(),
                  delete_after: int = DELETE_AFTER,
                  max_pos_std: float = MAX_POS_STD, associator: str = "gnn", r: float | None = None, pd: float = 0.9,
                  clutter_density: float = 1e-12, jpda_max_events: int = 20000, cover: Cover | None = None,
@@ -774,6 +776,7 @@ class MultiTargetTracker:
         # the latest scan after a seed whose pair can still reach M hits within N scans (a score: its seed_scans)
         self.seed_life = N - M + 1 if score is None else int(score.seed_scans)
         self.clutter_per_scan = None  # a score's estimate of the clutter plots per scan (None: no scan yet)
+        self._reach = 0.0  # without a cover: the farthest plot's slant range so far (m)
         self._t, self._scan, self._next_id = None, -1, 1
         self.ids = np.zeros(0, np.int64)
         self.confirmed = np.zeros(0, bool)
@@ -858,7 +861,7 @@ class MultiTargetTracker:
                                                  self.clutter_density, self.jpda_max_events)
                 free[pj[conf]] = False
                 ct, cp = np.zeros(0, np.int64), np.zeros(0, np.int64)
-            self._estimate_clutter(int(free.sum()))
+            self._estimate_clutter(int(free.sum()), plots)
             tent = ~conf & free[pj]
             chosen = assign(ti[tent], pj[tent], -ll[tent])
             tt, tp = ti[tent][chosen], pj[tent][chosen]
@@ -881,28 +884,33 @@ class MultiTargetTracker:
             self.misses = np.where(updated, 0, self.misses + 1)
             self.scans = self.scans + 1
         else:
-            self._estimate_clutter(N)
+            self._estimate_clutter(N, plots)
         self._initiate(t, plots[free], R[free], tree if free.all() else None)
         self._t = t
         self._x, self._P = self.filter.state()
         self._confirm_and_delete()
         return [r for r in self.tracks() if r.confirmed]
 
-    def _estimate_clutter(self, n: int) -> None:
+    def _estimate_clutter(self, n: int, plots: np.ndarray) -> None:
         """A score's estimate of the clutter plots per scan, with ``n`` plots no confirmed track took this scan: the
-        exponential average (``TrackScore.smoothing``; the first scan's count alone)."""
+        exponential average (``TrackScore.smoothing``; the first scan's count alone); without a cover, the reach
+        grown to this scan's ``plots``."""
         if self.score_rule is None:
             return
         w = self.score_rule.smoothing
+        if self.cover is None and len(plots):
+            self._reach = max(self._reach, float(np.linalg.norm(plots, axis=1).max()))
         self.clutter_per_scan = float(n) if self.clutter_per_scan is None else (
             (1.0 - w) * self.clutter_per_scan + w * n)
 
     def clutter_density_now(self) -> float:
         """The clutter density (plots per m^3) a score takes now: the estimated clutter plots per scan (at least
-        1e-3) over the cover's volume; without a cover or an estimate, ``clutter_density``."""
-        if self.cover is None or self.clutter_per_scan is None:
+        1e-3) over the cover's volume, without a cover over the half ball out to the farthest plot seen so far (the
+        radar's reach, as its plots show it); before any plot, ``clutter_density``."""
+        if self.clutter_per_scan is None or (self.cover is None and not self._reach > 0):
             return self.clutter_density
-        return max(self.clutter_per_scan, 1e-3) / self.cover.volume
+        volume = self.cover.volume if self.cover is not None else 2.0 * math.pi / 3.0 * self._reach**3
+        return max(self.clutter_per_scan, 1e-3) / volume
 
     def _start_score(self, dt: np.ndarray, radius: np.ndarray, scans: np.ndarray) -> np.ndarray:
         """New tracks' first scores (``TrackScore.start``): the pair's evidence, from the seeds' ages ``dt`` (s),
