@@ -725,12 +725,20 @@ def test_refusals_name_what_is_wrong():
                         ({"gate": 1.0}, r"gate is a probability in \(0, 1\)"),
                         ({"delete_after": 0}, "delete_after must be a whole number of scans >= 1"),
                         ({"pd": 0.0}, r"pd is a probability in \(0, 1\]"),
-                        ({"r": -1.0}, "r must be finite and > 0"),
-                        ({"init": TwoPointStart(vz_std=0.0)}, r"init.vz_std must be > 0, got 0.0"),
-                        ({"init": TwoPointStart(p_cv=1.0)}, r"init.p_cv is a probability in \(0, 1\), got 1.0"),
-                        ({"init": TwoPointStart(p_cv=0.0)}, r"init.p_cv is a probability in \(0, 1\), got 0.0")):
+                        ({"r": -1.0}, "r must be finite and > 0")):
         with pytest.raises(ValueError, match=msg):
             MultiTargetTracker("real-imm-singer", **kwargs)
+    with pytest.raises(TypeError, match="init must be a TwoPointStart, got dict"):
+        MultiTargetTracker("real-imm-singer", init={"vz_std": 5.0})
+    # the start refuses its own bad settings when it is made, in one line each
+    for kwargs, msg in (({"vz_std": 0.0}, r"vz_std \(the start's prior std of the vertical speed, m/s\) must be a "
+                                          r"number > 0 or None, got 0.0"),
+                        ({"p_cv": 1.0}, r"TwoPointStart.p_cv is a probability in \(0, 1\), got 1.0"),
+                        ({"p_cv": 0.0}, r"TwoPointStart.p_cv is a probability in \(0, 1\), got 0.0"),
+                        ({"max_speed": 0.0}, r"TwoPointStart.max_speed must be finite and > 0, got 0.0"),
+                        ({"sigma": float("nan")}, r"TwoPointStart.sigma must be finite and > 0, got nan")):
+        with pytest.raises(ValueError, match=msg):
+            TwoPointStart(**kwargs)
     with pytest.raises(ValueError, match="the multi-target tracker's filters are the model-based IMMs"):
         TrackFilter.from_method("clairvoyant")
     tracker = MultiTargetTracker("real-imm-singer")  # r: data, so plots need R

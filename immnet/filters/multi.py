@@ -53,7 +53,8 @@ from immnet.data.radar import covered
 from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
-from immnet.imm.kalman import check_robust, gaussian_loglik, inv3, predict, quadratic, start_state, update
+from immnet.imm.kalman import (check_robust, check_vz_std, gaussian_loglik, inv3, predict, quadratic, start_state,
+                               update)
 from immnet.motion import AXES, AXIS_OF, CV, ModelSet, Modes, coupling
 from immnet.motion.models import axis_blocks, block_diagonal
 
@@ -580,6 +581,14 @@ class TwoPointStart:
     vz_std: float | None = 5.0
     p_cv: float | None = 0.9
 
+    def __post_init__(self):
+        for label, v in (("max_speed", self.max_speed), ("sigma", self.sigma)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"TwoPointStart.{label} must be finite and > 0, got {v}")
+        check_vz_std(self.vz_std)
+        if self.p_cv is not None and not 0.0 < self.p_cv < 1.0:
+            raise ValueError(f"TwoPointStart.p_cv is a probability in (0, 1), got {self.p_cv}")
+
 
 @dataclass(frozen=True)
 class TrackScore:
@@ -752,15 +761,13 @@ class MultiTargetTracker:
             raise ValueError(f"associator must be one of {', '.join(ASSOCIATORS)}, got {associator!r}")
         if associator == "jpda" and filter.no_mixture:
             raise ValueError(filter.no_mixture)
-        for label, v in (("max_pos_std", max_pos_std), ("init.max_speed", init.max_speed),
-                         ("init.vz_std", 1.0 if init.vz_std is None else init.vz_std),
-                         ("clutter_density", clutter_density)):
+        if not isinstance(init, TwoPointStart):
+            raise TypeError(f"init must be a TwoPointStart, got {type(init).__name__}")
+        for label, v in (("max_pos_std", max_pos_std), ("clutter_density", clutter_density)):
             if not v > 0:
                 raise ValueError(f"{label} must be > 0, got {v}")
         if not 0.0 < pd <= 1.0:
             raise ValueError(f"pd is a probability in (0, 1], got {pd}")
-        if init.p_cv is not None and not 0.0 < init.p_cv < 1.0:
-            raise ValueError(f"init.p_cv is a probability in (0, 1), got {init.p_cv}")
         if r is not None and not (math.isfinite(r) and r > 0):
             raise ValueError(f"r must be finite and > 0, got {r}")
         self.filter, self.pg, self.threshold = filter, float(gate), float(chi2.ppf(gate, 3))
