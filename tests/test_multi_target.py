@@ -642,8 +642,12 @@ def test_track_score_confirms_a_target_not_clutter(clutter, confirmed_at):
 
 
 def test_track_score_settings_and_cover_volume():
-    """A TrackScore is recorded as its fields (``(M, N)`` as ``[M, N]``); a cover's volume is the ball above its
-    lowest elevation; a TrackScore's thresholds are Wald's."""
+    """A TrackScore is recorded as its fields (``(M, N)`` as ``[M, N]``) and printed with the tracker; a cover's volume
+    is the ball above its lowest elevation; a TrackScore's thresholds are Wald's."""
+    assert repr(MultiTargetTracker(r=30.0)) == ("MultiTargetTracker(ByInterval(not chosen yet), GNN, confirm "
+                                                f"{TrackScore()!r}; 0 confirmed of 0 tracks)")
+    assert repr(MultiTargetTracker("real-imm-singer", associator="jpda", confirm=(4, 5))).startswith(
+        "MultiTargetTracker(IMMFilter(real-imm-singer")
     assert MultiTargetTracker("real-imm-singer", confirm=(4, 5)).settings()["confirm"] == [4, 5]
     assert MultiTargetTracker("real-imm-singer").settings()["confirm"] == asdict(TrackScore())  # the default
     rec = MultiTargetTracker("real-imm-singer", confirm=TrackScore(alpha=1e-5)).settings()["confirm"]

@@ -800,6 +800,11 @@ class MultiTargetTracker:
     def __len__(self) -> int:
         return len(self.ids)
 
+    def __repr__(self) -> str:
+        confirm = f"{self.M} of {self.N}" if self.score_rule is None else repr(self.score_rule)
+        return (f"MultiTargetTracker({self.filter!r}, {self.associator.upper()}, confirm {confirm}; "
+                f"{int(self.confirmed.sum())} confirmed of {len(self)} tracks)")
+
     def settings(self) -> dict:
         """What the tracker was built with, for a run's record (``immnet evaluate``'s JSON and W&B config): gate,
         confirmation, deletion, initiation and association (its filter and a scene's cover are recorded apart)."""
