@@ -44,9 +44,9 @@ BANK = TABLE["bank"]["name"]
 """The shipped networks together as one tracker (the table's ``bank``), not a file of its own."""
 BANK_MEMBERS = tuple(TABLE["bank"]["members"])
 """The bank's networks by shipped name (``immnet.tracking.bank.DEFAULT_MEMBERS``)."""
-BANK_SETTINGS = {k: TABLE["bank"][k] for k in ("likelihood", "temper", "prune", "prune_after", "defer", "envelope")}
+BANK_SETTINGS = {k: TABLE["bank"][k] for k in ("likelihood", "temper", "prune", "prune_after", "defer")}
 """How the shipped bank weighs and runs its members (``immnet.tracking.bank``: ``LIKELIHOOD``, ``TEMPER``, ``PRUNE``,
-``PRUNE_AFTER``, ``DEFER``, ``ENVELOPE``), chosen on the validation sets (docs/tracking.md "A bank of networks")."""
+``PRUNE_AFTER``, ``DEFER``), chosen on the validation sets (docs/tracking.md "A bank of networks")."""
 DEFAULT_WEIGHTS = TABLE["default"]
 
 

@@ -13,7 +13,7 @@ import torch
 from immnet import keys
 from immnet.data.generate import generate
 from immnet.data.spec import DataSpec
-from immnet.tracking.bank import DEFER, ENVELOPE, PRUNE, PRUNE_AFTER, BankMethod, NetworkBank
+from immnet.tracking.bank import DEFER, PRUNE, PRUNE_AFTER, BankMethod, NetworkBank
 from immnet.tracking.networks import run_network
 
 
@@ -88,7 +88,7 @@ def test_pruning_follows_the_posterior_and_a_pruned_member_runs_no_more(tracks, 
 def test_pruning_that_removes_nothing_is_the_bank_to_the_bit(tracks):
     """The shipped bank with a prune below every member probability the tracks reach (scan by scan, ``step``) gives
     the unpruned bank's estimate, covariance, mode and member probabilities to the bit."""
-    bank = NetworkBank.from_names(prune=0.0, envelope={})  # the whole sequence at once (no pruning, no envelope)
+    bank = NetworkBank.from_names(prune=0.0)
     iv = torch.ones(tracks.shape[:2], dtype=torch.float64)
     ref = bank.track(tracks, intervals=iv, return_cov=True)
     w = ref[keys.MEMBER_PROBS]
@@ -109,17 +109,16 @@ def test_the_general_network_gives_way_to_the_3dlast_network(tracks):
     td5 = generate(2, seed=4, spec=DataSpec(T=80, min_segment=20, dt=5.0))
     z = torch.cat([tracks, td5[keys.MEASUREMENTS].double()])
     iv = torch.cat([torch.ones(6, 80), torch.full((2, 80), 5.0)]).double()
-    bank = NetworkBank.from_names(prune=0.0, envelope={})  # the whole sequence at once (no pruning, no envelope)
+    bank = NetworkBank.from_names(prune=0.0)
     assert bank.defer == {"general": ("3dlast",)}
     rows = _counting(bank)
     out = bank.track(z, intervals=iv, return_cov=True)
     assert set(rows["general"]) == {2}  # the two 5 s tracks only
     assert (out[keys.MEMBER_PROBS][:6, :, 0].nan_to_num() == 0).all()
-    without = NetworkBank.from_names(["real", "real-5s", "real-11s", "real-4.5-12s", "3dlast"], prune=0.0,
-                                     envelope={})
+    without = NetworkBank.from_names(["real", "real-5s", "real-11s", "real-4.5-12s", "3dlast"], prune=0.0)
     alone = without.track(tracks, intervals=iv[:6], return_cov=True)
     torch.testing.assert_close(out[keys.STATE][:6], alone[keys.STATE], equal_nan=True, rtol=0, atol=1e-9)
-    every = NetworkBank.from_names(prune=0.0, defer={}, envelope={})
+    every = NetworkBank.from_names(prune=0.0, defer={})
     five = every.track(z[6:], intervals=iv[6:], return_cov=True)  # each member on the same rows as in ``out``
     for key in (keys.STATE, keys.STATE_COV, keys.MEMBER_PROBS):
         torch.testing.assert_close(out[key][6:], five[key], equal_nan=True, rtol=0, atol=0)
@@ -133,9 +132,7 @@ def test_the_shipped_bank_prunes_and_defers():
     assert 0 < PRUNE < 0.01 and PRUNE_AFTER > 0
     for bank in (BankMethod().net, NetworkBank.from_names()):
         assert bank.prune == PRUNE and bank.defer == DEFER and bank.prune_after == PRUNE_AFTER
-        assert bank.envelope == ENVELOPE
     assert NetworkBank.from_names(["general", "real"]).defer == {}
-    assert NetworkBank.from_names(["general", "real"]).envelope == {}  # the shipped envelope of the members present
 
 
 def test_prune_and_defer_are_checked_by_name():

@@ -35,14 +35,12 @@ def test_the_bank_and_the_default_are_the_tables():
     assert set(bank["members"]) <= set(checkpoints.SHIPPED)
     assert checkpoints.BANK_MEMBERS == tuple(bank["members"]) and checkpoints.DEFAULT_WEIGHTS == checkpoints.TABLE["default"]
     assert (checkpoints.PRETRAINED.parent / bank["provenance"]).is_file()
-    from immnet.tracking.bank import (DEFAULT_MEMBERS, DEFER, ENVELOPE, LIKELIHOOD, LIKELIHOODS, PRUNE, PRUNE_AFTER,
-                                      TEMPER)
+    from immnet.tracking.bank import DEFAULT_MEMBERS, DEFER, LIKELIHOOD, LIKELIHOODS, PRUNE, PRUNE_AFTER, TEMPER
 
     # how the bank weighs and runs its members is the table's too, and the method immnet-bank says none of it again
     assert (LIKELIHOOD, TEMPER, PRUNE, PRUNE_AFTER) == (bank["likelihood"], bank["temper"], bank["prune"],
                                                        bank["prune_after"]) and LIKELIHOOD in LIKELIHOODS
     assert DEFER == {k: tuple(v) for k, v in bank["defer"].items()} and set(DEFER) <= set(bank["members"])
-    assert ENVELOPE == bank["envelope"] and set(ENVELOPE) <= set(bank["members"])
     from immnet.config import load_yaml
     from immnet.filters.methods import method_config
 

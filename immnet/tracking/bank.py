@@ -22,9 +22,7 @@ data modes), and ``member_probs [B, T, K]`` says which member carries each track
 
 A member whose probability on a track falls below ``prune`` runs on it no more (``PRUNE``, from a track's
 ``PRUNE_AFTER``-th scan), and a member may give way, on the tracks another takes, to that one (``DEFER``: the general
-network to the 3D-LAST network, at 1 s); a member leaves a track at its first detection beyond the member's
-``ENVELOPE`` (the 3D-LAST network beyond 40 km horizontal range: no 3D-LAST target flies there); where it prunes or
-has an envelope, ``track`` runs scan by scan (``step``).
+network to the 3D-LAST network, at 1 s); where it prunes, ``track`` runs scan by scan (``step``).
 
 Only the scans that every member taking the track predicted are weighed (a member that starts from two detections
 predicts from the third); until then the members keep their prior. A scan without a detection weighs nothing. The
@@ -127,25 +125,6 @@ still carry their start."""
 DEFER = {k: tuple(v) for k, v in BANK_SETTINGS["defer"].items()}
 """The shipped bank's members that give way: the general network does not run on a track the 3D-LAST network takes
 (1 s scans), and, the bank's fallback for any interval, is never pruned."""
-ENVELOPE = {k: float(v) for k, v in BANK_SETTINGS["envelope"].items()}
-"""The shipped bank's members that run only inside their training data's reach: the 3D-LAST network leaves a track at
-its first detection beyond 40 km horizontal range from the radar (3D-LAST's hard bound is 37,040 m: its own data
-never reaches it), where a target cannot be one of 3D-LAST's."""
-
-
-def _check_envelope(envelope, names: list[str]) -> dict[str, float]:
-    """``envelope`` (member -> the largest horizontal range from the radar, m, of its training data) as checked: every
-    name a member's, every range a number > 0; a ValueError naming what is wrong."""
-    if envelope is None:
-        return {}
-    if not isinstance(envelope, dict):
-        raise ValueError(f"a bank's envelope maps a member to a horizontal range in metres, got {envelope!r}")
-    for k, v in envelope.items():
-        if k not in names:
-            raise ValueError(f"a bank's envelope names {k!r}, not a member ({', '.join(names)})")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-            raise ValueError(f"a bank's envelope for {k!r} is a horizontal range in metres > 0, got {v!r}")
-    return {k: float(v) for k, v in envelope.items()}
 
 
 def _check_defer(defer, names: list[str]) -> dict[str, tuple[str, ...]]:
@@ -179,15 +158,12 @@ class NetworkBank:
     themselves weigh less). ``max_position``: the gate on measurements, ``max_coast`` the coasting limit, as
     ``Tracker``'s. ``prune``: a member whose probability on a track falls below it, from the ``prune_after``-th scan
     since the track's first detection, runs on that track no more (never the most probable, never a member that gives
-    way); ``defer``: member name -> the members it gives way to, on the tracks they take; ``envelope``: member name ->
-    the horizontal range from the radar (m) beyond which it cannot be a track's hypothesis: it leaves a track, as
-    pruned, at the track's first detection beyond it (never the last member weighed on the track). None of them here
-    (0, 0, none, none); the shipped bank's (``from_names``' defaults) are ``PRUNE``, ``PRUNE_AFTER``, ``DEFER`` and
-    ``ENVELOPE``."""
+    way); ``defer``: member name -> the members it gives way to, on the tracks they take. None of them here (0, 0,
+    none); the shipped bank's (``from_names``' defaults) are ``PRUNE``, ``PRUNE_AFTER`` and ``DEFER``."""
 
     def __init__(self, members: dict[str, IMMNet], prior=None, max_position: float = MAX_ABS_POSITION,
                  likelihood: str = LIKELIHOOD, temper: float = TEMPER, max_coast: float = MAX_COAST,
-                 prune: float = 0.0, defer: dict | None = None, prune_after: int = 0, envelope: dict | None = None):
+                 prune: float = 0.0, defer: dict | None = None, prune_after: int = 0):
         if not (isinstance(prune, (int, float)) and not isinstance(prune, bool) and 0 <= prune < 1):
             raise ValueError(f"a bank's prune is a probability in [0, 1), got {prune!r}")
         if not (isinstance(prune_after, int) and not isinstance(prune_after, bool) and prune_after >= 0):
@@ -211,8 +187,6 @@ class NetworkBank:
         self.members = {name: net.eval() for name, net in members.items()}
         self.defer = _check_defer(defer, self.names)
         self._defers = {self.names.index(k): [self.names.index(o) for o in others] for k, others in self.defer.items()}
-        self.envelope = _check_envelope(envelope, self.names)
-        self._envelope = {self.names.index(k): v for k, v in self.envelope.items()}
         self.max_position = check_limit(max_position)
         prior = [1.0] * len(members) if prior is None else [float(p) for p in prior]
         if len(prior) != len(members) or not all(math.isfinite(p) and p > 0 for p in prior):
@@ -232,16 +206,15 @@ class NetworkBank:
     def from_names(cls, members=DEFAULT_MEMBERS, prior=None, guard=None, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
                    max_position: float = MAX_ABS_POSITION, likelihood: str = LIKELIHOOD,
                    temper: float = TEMPER, max_coast: float = MAX_COAST, prune: float = PRUNE,
-                   defer: dict | None = None, prune_after: int = PRUNE_AFTER, robust=AS_CONFIGURED,
-                   envelope: dict | None = None) -> "NetworkBank":
+                   defer: dict | None = None, prune_after: int = PRUNE_AFTER, robust=AS_CONFIGURED) -> "NetworkBank":
         """Members by shipped name (``immnet.checkpoints.SHIPPED``) or checkpoint path, each loaded as ``load_network``
         loads it (each file read once) with ``guard`` (default none: no member keeps a range guard unless asked; one
         asked for goes to the members whose modes are the whole target's, since a guard's transitions cannot be per
         axis: ``IMMNet(modes=...)``),
         ``adapt``, ``r`` (one number for every track: a radar that knows its accuracy) and ``robust`` (Huber's ``k`` of
         every member's filter experts, per axis where its modes are); ``likelihood``, ``temper``,
-        ``prune``, ``prune_after``, ``defer`` and ``envelope``: the bank's (``defer`` and ``envelope`` None:
-        ``DEFER``'s pairs and ``ENVELOPE``'s ranges among these members; ``{}`` none)."""
+        ``prune``, ``prune_after`` and ``defer``: the bank's (``defer`` None: ``DEFER``'s pairs among these members;
+        ``{}`` none)."""
         members = list(members)
         if len(set(map(str, members))) != len(members):
             raise ValueError(f"a bank's members are named once each, got {members}")
@@ -256,9 +229,7 @@ class NetworkBank:
             joint = Modes.parse(config.get("modes", Modes.JOINT)) is Modes.JOINT
             nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r,
                                         robust=robust)
-        if envelope is None:  # the shipped bank's, for the members present
-            envelope = {k: v for k, v in ENVELOPE.items() if k in nets}
-        bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer, prune_after, envelope)
+        bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer, prune_after)
         bank.paths = {str(m): _member_path(m) for m in members}
         return bank
 
@@ -338,7 +309,7 @@ class NetworkBank:
         their numbers in the caller's, where they are segments of its tracks)."""
         takes = self.takes(intervals)
         self.check(intervals, takes, tracks)
-        if self.prune > 0 or self._envelope:
+        if self.prune > 0:
             return self._track_by_scans(z, intervals, takes, return_cov)
         B, T, K = z.shape[0], z.shape[1], len(self.names)
         ran = takes.any(0).nonzero().flatten().tolist()  # the members that take a track: the others run on none
@@ -482,16 +453,6 @@ class NetworkBank:
         fits = torch.stack([trained_for(net, each) for net, (_, each) in zip(self.members.values(), cut)], -1)
         stays = fits if self.carries is None else fits & (self.stays | fresh[:, None])  # every scan since the start
         takes, shadow = self._in_track(stays, log_w > -math.inf)
-        if self._envelope:  # a detection beyond a member's reach: the member leaves the track, as pruned, for good
-            beyond = torch.zeros_like(takes)
-            reach = torch.linalg.vector_norm(gated[:, :2], dim=-1)  # horizontal; NaN (no detection) is not beyond
-            for k, metres in self._envelope.items():
-                beyond[:, k] = reach > metres
-            drop = beyond & (takes | shadow)
-            drop &= (takes & ~drop).any(-1, keepdim=True)  # never the last member weighed on a track
-            if bool(drop.any()):
-                log_w = log_w.masked_fill(drop, float("-inf"))
-                takes, shadow = self._in_track(stays, log_w > -math.inf)
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
@@ -561,12 +522,11 @@ class BankMethod:
     def __init__(self, members=DEFAULT_MEMBERS, prior=None, name: str = "immnet-bank", batch_size: int = 500,
                  guard=None, adapt=AS_CONFIGURED, r=AS_CONFIGURED, return_cov: bool = False, max_position: float = MAX_ABS_POSITION,
                  likelihood: str = LIKELIHOOD, temper: float = TEMPER, prune: float = PRUNE,
-                 defer: dict | None = None, prune_after: int = PRUNE_AFTER, robust=AS_CONFIGURED,
-                 envelope: dict | None = None):
+                 defer: dict | None = None, prune_after: int = PRUNE_AFTER, robust=AS_CONFIGURED):
         self.name = name
         self.net = NetworkBank.from_names(members, prior, guard, adapt, r, max_position=max_position,
                                           likelihood=likelihood, temper=temper, max_coast=math.inf, prune=prune,
-                                          defer=defer, prune_after=prune_after, robust=robust, envelope=envelope)
+                                          defer=defer, prune_after=prune_after, robust=robust)
         self.batch_size = batch_size
         self.return_cov = return_cov
 
