@@ -12,6 +12,7 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 csv=$(realpath "$1")
 runs=${2:-5}
 python=${3:-$root/.venv/bin/python}
+case $python in */*) python=$(cd "$(dirname "$python")" && pwd)/$(basename "$python") ;; esac  # BEFORE runs it too
 before=${4:+$(cd "$4" && pwd)}
 export PYTHONPATH=$root OMP_NUM_THREADS=1 WANDB_MODE=offline WANDB_SILENT=true
 cd "$root"  # python -m puts the working directory first on sys.path
