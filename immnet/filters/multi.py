@@ -54,7 +54,7 @@ from immnet.filters.imm import ACC_STD, VEL_STD
 from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
 from immnet.imm.interaction import combine, mix, mixing_weights, mode_update, moment_match, transition_matrix
 from immnet.imm.kalman import (check_robust, check_vz_std, gaussian_loglik, inv3, predict, quadratic, start_state,
-                               update)
+                               update, vertical_speed_prior)
 from immnet.motion import AXES, AXIS_OF, CV, ModelSet, Modes, coupling
 from immnet.motion.models import axis_blocks, block_diagonal
 
@@ -219,7 +219,6 @@ class IMMFilter(TrackFilter):
         self.spare = torch.zeros(0, self.G, 1, dtype=torch.bool)  # the robust update's (immnet.imm.kalman)
         self._cache = (None, None)
         self._H = torch.tensor([[1.0, 0.0, 0.0]], dtype=f64)
-        self._H_VZ = torch.eye(9, dtype=f64)[7:8]  # the vertical speed of the 9-D state
 
     def __len__(self) -> int:
         return self.x.shape[0]
@@ -268,7 +267,7 @@ class IMMFilter(TrackFilter):
             P0[:, vel, acc] = qa * dt[..., None] / 2 * eye
             P0[:, acc, vel] = qa * dt[..., None] / 2 * eye
             if vz_std is not None:
-                x0, P0, _ = update(x0, P0, torch.zeros(k, 1, dtype=x0.dtype), self._H_VZ, float(vz_std) ** 2)
+                x0, P0 = vertical_speed_prior(x0, P0, vz_std)
         G, M, d = self.G, self.M, self.d
         self.x = torch.cat([self.x, self._split(x0)[:, :, None].expand(k, G, M, d)])
         self.P = torch.cat([self.P, self._split(P0)[:, :, None].expand(k, G, M, d, d)])
@@ -955,11 +954,11 @@ class MultiTargetTracker:
             sig = self.init.sigma
             si, pq = ball_pairs(tree, self.seed_z, self.init.max_speed * dt + sig * np.sqrt(tr_seed + tr_plot.max()))
             dist = np.linalg.norm(plots[pq] - self.seed_z[si], axis=1)
-            ok = dist <= self.init.max_speed * dt[si] + sig * np.sqrt(tr_seed[si] + tr_plot[pq])
-            si, pq, dist = si[ok], pq[ok], dist[ok]
+            radius = self.init.max_speed * dt[si] + sig * np.sqrt(tr_seed[si] + tr_plot[pq])  # each pair's ball
+            ok = dist <= radius
+            si, pq, dist, radius = si[ok], pq[ok], dist[ok], radius[ok]
             chosen = assign(si, pq, dist / (self.init.max_speed * dt[si]))
-            si, pq = si[chosen], pq[chosen]
-            radius = self.init.max_speed * dt[si] + sig * np.sqrt(tr_seed[si] + tr_plot[pq])
+            si, pq, radius = si[chosen], pq[chosen], radius[chosen]
             if len(si):
                 self.filter.start(plots[pq], R[pq], self.seed_z[si], self.seed_R[si], dt[si], self.init.vz_std,
                                   self.init.p_cv)

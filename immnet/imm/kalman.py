@@ -71,8 +71,8 @@ def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float
     """A track started at a detection ``z [B, 3]`` with covariance ``R [B, 3, 3]``: ``x = [z, 0, 0]`` per axis and
     ``P`` with the position block ``R``, velocity and acceleration variances ``vel_std^2``, ``acc_std^2`` on every axis
     (the 9-D state ``[x, vx, ax, y, vy, ay, z, vz, az]``); ``vz_std``: fused with a prior on the vertical speed,
-    ``N(0, vz_std^2)`` (``check_vz_std``; ``update`` measuring ``vz`` as 0, as the filter experts' start does: its
-    variance ``vel_std^2 vz_std^2 / (vel_std^2 + vz_std^2)``)."""
+    ``N(0, vz_std^2)`` (``check_vz_std``; ``vertical_speed_prior``: its variance ``vel_std^2 vz_std^2 / (vel_std^2 +
+    vz_std^2)``)."""
     B = z.shape[0]
     x = z.new_zeros(B, 9)
     x[:, 0::3] = z
@@ -81,10 +81,16 @@ def start_state(z: torch.Tensor, R: torch.Tensor, vel_std: float, acc_std: float
     diag[:, 2::3] = acc_std**2
     P = torch.diag_embed(diag)
     P[:, 0::3, 0::3] = R.to(P)
-    if vz_std is not None:  # the prior as a measurement of the vertical speed, 0 with variance vz_std^2
-        H = P.new_zeros(1, 9)
-        H[0, 7] = 1.0
-        x, P, _ = update(x, P, P.new_zeros(B, 1), H, vz_std**2)
+    return (x, P) if vz_std is None else vertical_speed_prior(x, P, vz_std)
+
+
+def vertical_speed_prior(x: torch.Tensor, P: torch.Tensor, vz_std: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x [..., n]``, ``P [..., n, n]`` (the 9-D state first, ``vz`` its 8th entry; ``n`` 9, or 10 for the filter
+    experts' ``[x, w]``) fused with the prior ``vz ~ N(0, vz_std^2)``: ``update`` measuring the vertical speed as 0
+    with variance ``vz_std^2``. Every start that takes the prior takes it here."""
+    H = P.new_zeros(1, P.shape[-1])
+    H[0, 7] = 1.0
+    x, P, _ = update(x, P, P.new_zeros(*P.shape[:-2], 1), H, float(vz_std) ** 2)
     return x, P
 
 

@@ -49,7 +49,7 @@ from immnet.imm.guard import RangeGuard, fresh_share, guarded_transition
 from immnet.imm.interaction import enter, mix, mixing_weights, onset_priors, transition_matrix
 from immnet.imm.kalman import (
     as_covariance, check_robust, check_vz_std, far, gaussian_loglik, group_loglik, group_maha, huber, inv3, joseph,
-    marginal_loglik, quadratic, small_matmul, update,
+    marginal_loglik, quadratic, small_matmul, vertical_speed_prior,
 )
 from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
@@ -784,9 +784,7 @@ class _FilterExperts:
         xa = P.new_zeros(P.shape[:-1])  # the augmented state [x, w]; w's row of P is its own, untouched
         if x is not None:
             xa[..., :9] = per_expert(x, M)
-        H = P.new_zeros(1, N_AUG)
-        H[0, VEL[2]] = 1.0
-        xa, P, _ = update(xa, P, P.new_zeros(*P.shape[:-2], 1), H, self.start_vz_std**2)
+        xa, P = vertical_speed_prior(xa, P, self.start_vz_std)
         return r2_track, P, None if x is None else (xa[..., :9] if x.dim() == 3 else xa[:, 0, :9])
 
     def start_estimate(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> torch.Tensor:

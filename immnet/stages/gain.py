@@ -71,6 +71,9 @@ class Gain(Stage):
     reacquire = None
     """A gain whose filter experts restart a track themselves: its rule (``immnet.imm.reacquire.Reacquire``;
     ``FilterGain``'s option), None for one without."""
+    start_vz_std = None
+    """A gain whose filter experts start a track with a prior on its vertical speed: that prior's std (m/s;
+    ``FilterGain``'s option), None for one without."""
 
     def stages(self, model_set: ModelSet, dt: float) -> tuple[Stage | None, Stage, Stage]:
         """``(interaction or None, predict, update)`` of a step with this gain."""

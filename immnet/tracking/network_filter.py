@@ -56,7 +56,7 @@ class NetworkFilter(TrackFilter):
         if net.gain.reacquire is not None:
             raise ValueError(f"{name or tracker} restarts its own tracks (re-acquisition, immnet.imm.reacquire): the "
                              f"multi-target tracker starts and deletes them (load it with reacquire=None)")
-        if getattr(net.gain, "start_vz_std", None) is not None:
+        if net.gain.start_vz_std is not None:
             raise ValueError(f"{name or tracker} starts a track with its own prior on the vertical speed "
                              f"(start_vz_std): the multi-target tracker starts them (load it with start_vz_std=None)")
         self.net = net
