@@ -768,7 +768,7 @@ class _FilterExperts:
         """``(r2_track, P, x)`` of a track's first or second detection ``z``: the noise the gain carries from it, the
         start covariance ``start_cov`` ``[B, M, 10, 10]`` and the start estimate ``x`` (``[B, 9]`` or ``[B, M, 9]``;
         None: not asked), each, with ``start_vz_std``, updated by the prior ``vz ~ N(0, start_vz_std^2)``
-        (``immnet.imm.kalman.update`` measuring ``vz`` as 0). Every expert's start covariance has the same velocity
+        (``immnet.imm.kalman.vertical_speed_prior``). Every expert's start covariance has the same velocity
         column, so every expert's estimate is the same: a ``[B, 9]`` ``x`` stays one."""
         M, told = self.n_experts, self.per_detection
         if told:
