@@ -152,7 +152,8 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     and ``data`` is given) passes; the others skipped with a note. ``guard`` (default ``"checkpoint"``, ``AS_CONFIGURED``:
     each as configured) and ``told_r`` go to ``build_method``;
     a method with ``configure`` is told the data's ``meta`` and ``sigma_q`` (``--sigma-q``)."""
-    from immnet.filters.methods import available_methods, build_method, missing_keys
+    from immnet.evaluation.runner import check_method
+    from immnet.filters.methods import available_methods, build_method
 
     explicit = requested is not None
     names = _method_names(requested) if explicit else available_methods()
@@ -161,26 +162,12 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     for name in names:
         try:
             method = build_method(name, checkpoint=ckpt.get(name), guard=guard, told_r=told_r)
+            check_method(name, method, data_keys, data)
         except (ValueError, FileNotFoundError, TypeError) as err:
             if explicit:
                 raise
             note(f"note: skipping {name}: {err}")
             continue
-        missing = missing_keys(method, data_keys)
-        if missing:
-            msg = f"method {name!r} needs {', '.join(missing)}, which the data lacks"
-            if explicit:
-                raise ValueError(msg)
-            note(f"note: skipping {name}: {msg}")
-            continue
-        if data is not None and callable(getattr(method, "check", None)):
-            try:
-                method.check(data)
-            except ValueError as err:
-                if explicit:
-                    raise
-                note(f"note: skipping {name}: {err}")
-                continue
         methods[name] = method
     if not methods:
         raise ValueError("no method to evaluate")
@@ -422,10 +409,8 @@ def run_tune(args) -> int:
         raise ValueError("--n must be positive")
     if not Path(args.data).is_dir():
         raise ValueError(f"tune-imm needs a generated data directory (it tunes on its validation split): {args.data}")
-    try:
-        from immnet.evaluation.tuning import tune_imm
-    except ImportError as err:
-        raise ValueError(f"the IMM tuning search is not available ({err})") from None
+    from immnet.evaluation.tuning import tune_imm
+
     data, _ = load_split(args.data, args.split, args.n)
     out = args.out or (checkout() or Path(".")) / "configs" / "methods" / "imm-tuned.yaml"
     Path(out).parent.mkdir(parents=True, exist_ok=True)

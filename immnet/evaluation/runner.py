@@ -29,6 +29,16 @@ def _as_mapping(methods) -> dict:
     return {m.name: m for m in methods}
 
 
+def check_method(name: str, method, data_keys, data: TensorDict | None = None) -> None:
+    """A ValueError where ``method`` cannot run on the data: an array it needs is not among ``data_keys``, or its
+    ``check(data)`` (where it has one and ``data`` is given; e.g. a learned tracker refusing another dt) refuses."""
+    missing = missing_keys(method, data_keys)
+    if missing:
+        raise ValueError(f"method {name!r} needs {', '.join(missing)}, which the data lacks")
+    if data is not None and callable(getattr(method, "check", None)):
+        method.check(data)
+
+
 def evaluate(
     methods: Mapping[str, object] | Sequence[object],
     data: TensorDict,
@@ -53,11 +63,7 @@ def evaluate(
     if keys.STATES not in data.keys():
         raise ValueError("evaluation needs ground-truth 'states' in the data to score the estimates")
     for name, method in methods.items():
-        missing = missing_keys(method, list(data.keys()))
-        if missing:
-            raise ValueError(f"method {name!r} needs {', '.join(missing)}, which the data lacks")
-        if callable(getattr(method, "check", None)):
-            method.check(data)  # e.g. a learned tracker refusing another dt: before any method runs
+        check_method(name, method, list(data.keys()), data)  # before any method runs
     has_mode = keys.MODE in data.keys()
     n = data.batch_size[0]
     keep = sorted(set(keep))
@@ -91,11 +97,8 @@ def evaluate(
                 kept.setdefault(keys.MEASUREMENTS, []).append(z[local].cpu())  # as the method saw them
                 if probs is not None:
                     kept.setdefault(keys.MODE_PROBS, []).append(probs[local].detach().cpu())
-        result = acc.compute()
-        result["seconds"] = seconds
-        result["gated"] = gated
-        result["kept"] = {k: torch.cat(v) for k, v in kept.items()}
-        results[name] = result
+        results[name] = {**acc.compute(), "seconds": seconds, "gated": gated,
+                         "kept": {k: torch.cat(v) for k, v in kept.items()}}
     return results
 
 
