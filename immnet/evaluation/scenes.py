@@ -92,7 +92,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
     f = TrackFilter.by_name(filter)
     seen = cover(scene.meta["spec"])
     A = len(scene.aircraft)
-    track_of = np.full(A, -1, np.int64)  # each aircraft's row in the filter (-1: none)
+    ac = np.zeros(0, np.int64)  # each track's aircraft (a track per row of the filter)
     ids = np.zeros(0, np.int64)
     misses = np.zeros(0, np.int64)
     last = np.zeros(0)  # each track's last plot's time (s)
@@ -110,10 +110,7 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
         K = len(ids)
         if K:
             f.predict(t - t_prev)
-            rows_ac = np.full(K, -1, np.int64)
-            live = track_of >= 0
-            rows_ac[track_of[live]] = np.flatnonzero(live)
-            j = plot_of[rows_ac]
+            j = plot_of[ac]
             hit = j >= 0
             z = np.full((K, 3), np.nan)
             R = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()
@@ -121,23 +118,19 @@ def run_told(scene, filter: str, delete_after: int | None = None, max_pos_std: f
             f.update(z, R)
             misses = np.where(hit, 0, misses + 1)
             last = np.where(hit, t, last)
-            plot_of[rows_ac[hit]] = -1  # taken by its track
+            plot_of[ac[hit]] = -1  # taken by its track
             x, P = f.state()
             keep = kept(x, P, hit, misses, delete_after, max_pos_std, seen, t - last, min_coast)  # the tracker's rules
             if not keep.all():
                 f.drop(keep)
-                gone = rows_ac[~keep]
-                track_of[gone] = -1
-                new_row = np.cumsum(keep) - 1
-                track_of[track_of >= 0] = new_row[track_of[track_of >= 0]]
-                ids, misses, last = ids[keep], misses[keep], last[keep]
+                ids, misses, last, ac = ids[keep], misses[keep], last[keep], ac[keep]
         # plots of aircraft without a track: a second plot starts one, a first one seeds
         free = np.flatnonzero(plot_of >= 0)
         start = free[np.isfinite(seed_t[free])]
         if len(start):
             j = plot_of[start]
             f.start(plots[j], cov[j], seed_z[start], seed_R[start], t - seed_t[start], init.vz_std, init.p_cv)
-            track_of[start] = len(ids) + np.arange(len(start))
+            ac = np.concatenate([ac, start])
             ids = np.concatenate([ids, next_id + np.arange(len(start))])
             misses = np.concatenate([misses, np.zeros(len(start), np.int64)])
             last = np.concatenate([last, np.full(len(start), t)])
