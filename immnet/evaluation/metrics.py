@@ -189,7 +189,11 @@ def confusion(mode_probs: torch.Tensor, mode: torch.Tensor, n_modes: int = N_MOD
 
 def mode_accuracy(mode_probs: torch.Tensor, mode: torch.Tensor, mask=None) -> float:
     """Fraction of scored, labelled steps whose most probable mode is the true one."""
-    c = confusion(mode_probs, mode, mode_probs.shape[-1], mask)
+    return _accuracy(confusion(mode_probs, mode, mode_probs.shape[-1], mask))
+
+
+def _accuracy(c: torch.Tensor) -> float:
+    """The share of a confusion matrix's counts on its diagonal (0 without any count)."""
     return float(c.diagonal().sum()) / max(int(c.sum()), 1)
 
 
@@ -259,17 +263,14 @@ class MetricAccumulator:
         if not scored.any():
             raise ValueError("no trajectory has a scan with both truth and a detection to score")
         ok = counts["diverged"] == 0
-        out = {
+        labelled = self.conf is not None and ok and int(self.conf.sum()) > 0  # real flights have no mode labels
+        return {
             "rmse": _axes(traj[scored].mean(dim=0)) if ok else None,
             "rmse_pooled": _axes((self.sq_time.sum(dim=0) / counts["scored"]).sqrt()) if ok else None,
             "rmse_post_switch": _axes((self.post_sq / self.post_count).sqrt()) if ok and self.post_count else None,
             "rmse_over_time": (self.sq_time / self.n_time.unsqueeze(-1)).sqrt(),
             "per_trajectory": traj,
-            "mode_accuracy": None,
-            "confusion": None,
+            "mode_accuracy": _accuracy(self.conf) if labelled else None,
+            "confusion": self.conf if labelled else None,
             "counts": counts,
         }
-        if self.conf is not None and ok and int(self.conf.sum()) > 0:  # real flights have no mode labels
-            out["confusion"] = self.conf
-            out["mode_accuracy"] = float(self.conf.diagonal().sum()) / max(int(self.conf.sum()), 1)
-        return out

@@ -100,12 +100,8 @@ def table_rows(rows: Mapping[str, dict]) -> list[list]:
 def scalars(rows: Mapping[str, dict]) -> dict[str, float]:
     """Per-method scalars for the run's summary: ``<method>/rmse_<axis>``, ``<method>/post_switch_avg``,
     ``<method>/mode_accuracy``, ``<method>/ratio_to_bound``, where the method has them."""
-    out = {}
     names = ("rmse_x", "rmse_y", "rmse_z", "rmse_avg", "post_switch_avg", "mode_accuracy", "ratio_to_bound")
-    for row in table_rows(rows):
-        method, values = row[0], row[1:8]
-        out |= {f"{method}/{k}": v for k, v in zip(names, values) if v is not None}
-    return out
+    return {f"{row[0]}/{k}": v for row in table_rows(rows) for k, v in zip(names, row[1:8]) if v is not None}
 
 
 def log_results(run, rows: Mapping[str, dict], curves: Mapping[str, object] | None = None, figures=(), dt: float = 1.0,
@@ -153,8 +149,7 @@ def log_scenes(run, results: Mapping[str, dict]) -> None:
             keys=list(per), xname="t [s]", title=f"{method}: GOSPA per scan [m]")
         m = r["mean"]
         summary |= {f"{method}/{k}": m[k] for k in SCALARS}
-        summary |= {f"{method}/ms_per_scan_median": m["ms_per_scan"]["median"],
-                    f"{method}/ms_per_scan_max": m["ms_per_scan"]["max"]}
+        summary |= {f"{method}/ms_per_scan_{k}": m["ms_per_scan"][k] for k in ("median", "max")}
     run.log(logged)
     run.summary.update(summary)
 
