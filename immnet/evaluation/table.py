@@ -4,9 +4,32 @@ estimate is not finite on a scored scan shows "diverged (K tracks)" instead of n
 
 from __future__ import annotations
 
+import math
 from typing import Mapping
 
 BOUND = "clairvoyant"
+AXES = ("x", "y", "z", "avg")
+
+
+def finite(x):
+    """``x`` where it is a finite number, else ``None``."""
+    return x if isinstance(x, (int, float)) and math.isfinite(x) else None
+
+
+def table_rows(rows: Mapping[str, dict]) -> list[list]:
+    """The table's numbers from ``runner.to_json``'s mapping, one row per method: its name, RMSE x, y, z, Average,
+    post-switch Average, mode accuracy, the ratio of Average to the bound's and the diverged tracks (0 for a finite
+    method); ``None`` where the table shows "-" (no labels, no mode probabilities, a diverged method)."""
+    bound = finite(((rows.get(BOUND) or {}).get("rmse") or {}).get("avg"))
+    out = []
+    for method, r in rows.items():
+        rm = r.get("rmse") or {}
+        post = r.get("rmse_post_switch") or {}
+        avg = finite(rm.get("avg"))
+        out.append([method, *(finite(rm.get(a)) for a in AXES), finite(post.get("avg")),
+                    finite(r.get("mode_accuracy")), avg / bound if avg is not None and bound else None,
+                    int(r.get("diverged", 0))])
+    return out
 
 
 def _num(x) -> str:
@@ -14,28 +37,27 @@ def _num(x) -> str:
 
 
 def _rows(results: Mapping[str, dict]):
-    """Header and string cells; ``results`` maps a method to its JSON row (see ``runner.to_json``)."""
-    has_mode = any(r.get("mode_accuracy") is not None for r in results.values())
-    bound = (results.get(BOUND, {}).get("rmse") or {}).get("avg")
+    """Header and string cells (of :func:`table_rows`' numbers); ``results`` maps a method to its JSON row (see
+    ``runner.to_json``)."""
+    numbers = table_rows(results)
+    has_mode = any(row[6] is not None for row in numbers)
+    has_bound = any(row[7] is not None for row in numbers)  # where there is a bound, its own row's ratio is 1
     header = ["method", "x [m]", "y [m]", "z [m]", "Average [m]", "post-switch [m]"]
     if has_mode:
         header.append("mode acc.")
-    if bound:
+    if has_bound:
         header.append("/ bound")
     rows = []
-    for name, r in results.items():
-        rm = r["rmse"]
-        post = r.get("rmse_post_switch")
-        if rm is None:  # a non-finite estimate on a scored scan: no number to show (runner.to_json)
-            cells = ["-", "-", "-", f"diverged ({r.get('diverged', '?')} tracks)"]
+    for name, *rmse, post, acc, ratio, diverged in numbers:
+        if results[name]["rmse"] is None:  # a non-finite estimate on a scored scan: no number to show (runner.to_json)
+            cells = ["-", "-", "-", f"diverged ({diverged} tracks)"]
         else:
-            cells = [_num(rm[a]) for a in ("x", "y", "z", "avg")]
-        row = [name, *cells, _num(post["avg"]) if post else "-"]
+            cells = [_num(v) for v in rmse]
+        row = [name, *cells, _num(post)]
         if has_mode:
-            acc = r.get("mode_accuracy")
             row.append(f"{100 * acc:.1f} %" if acc is not None else "-")
-        if bound:
-            row.append(_num(rm["avg"] / bound) if rm is not None and rm["avg"] is not None else "-")
+        if has_bound:
+            row.append(_num(ratio))
         rows.append(row)
     return header, rows
 

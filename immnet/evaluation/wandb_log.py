@@ -21,16 +21,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 from pathlib import Path
 from typing import Mapping
 
-from immnet.evaluation.table import BOUND
+from immnet.evaluation.table import finite, table_rows
 from immnet.labels import MODE_LABELS
 
 PROJECT = "immnet"
-AXES = ("x", "y", "z", "avg")
 COLUMNS = ["method", "x [m]", "y [m]", "z [m]", "Average [m]", "post-switch [m]", "mode accuracy", "ratio to bound",
            "diverged tracks"]
 """The ``results`` table's columns (the results table's, as numbers; ``diverged tracks`` 0 for a finite method)."""
@@ -78,25 +76,6 @@ def start(config: dict, project: str | None = None, group: str | None = None, na
                       **{k: v for k, v in kw.items() if v is not None})
 
 
-def _finite(x):
-    return x if isinstance(x, (int, float)) and math.isfinite(x) else None
-
-
-def table_rows(rows: Mapping[str, dict]) -> list[list]:
-    """The ``results`` table's rows from ``runner.to_json``'s mapping: numbers where the results table
-    has them, ``None`` where it shows "-" (no labels, no mode probabilities, a diverged method)."""
-    bound = _finite(((rows.get(BOUND) or {}).get("rmse") or {}).get("avg"))
-    out = []
-    for method, r in rows.items():
-        rm = r.get("rmse") or {}
-        post = r.get("rmse_post_switch") or {}
-        avg = _finite(rm.get("avg"))
-        out.append([method, *(_finite(rm.get(a)) for a in AXES), _finite(post.get("avg")),
-                    _finite(r.get("mode_accuracy")), avg / bound if avg is not None and bound else None,
-                    int(r.get("diverged", 0))])
-    return out
-
-
 def scalars(rows: Mapping[str, dict]) -> dict[str, float]:
     """Per-method scalars for the run's summary: ``<method>/rmse_<axis>``, ``<method>/post_switch_avg``,
     ``<method>/mode_accuracy``, ``<method>/ratio_to_bound``, where the method has them."""
@@ -114,7 +93,7 @@ def log_results(run, rows: Mapping[str, dict], curves: Mapping[str, object] | No
     logged = {"results": wandb.Table(columns=COLUMNS, data=table_rows(rows))}
     if curves:
         names = list(curves)
-        values = [[_finite(float(v)) for v in curves[n]] for n in names]
+        values = [[finite(float(v)) for v in curves[n]] for n in names]
         t = [k * dt for k in range(max(len(v) for v in values))]
         logged["rmse_over_time"] = wandb.plot.line_series(xs=t, ys=values, keys=names, xname="t [s]",
                                                           title="Position RMSE over time [m]")
@@ -139,13 +118,13 @@ def log_scenes(run, results: Mapping[str, dict]) -> None:
     from immnet.evaluation.scenes import SCALARS
     from immnet.evaluation.scenes import table_rows as scene_rows
 
-    logged = {"results": wandb.Table(columns=SCENE_COLUMNS, data=[[row[0], *map(_finite, row[1:])]
+    logged = {"results": wandb.Table(columns=SCENE_COLUMNS, data=[[row[0], *map(finite, row[1:])]
                                                                   for row in scene_rows(results)])}
     summary = {}
     for method, r in results.items():
         per = r["scenes"]
         logged[f"gospa_over_time/{method}"] = wandb.plot.line_series(
-            xs=[s["t"] for s in per.values()], ys=[[_finite(g) for g in s["gospa_per_scan"]] for s in per.values()],
+            xs=[s["t"] for s in per.values()], ys=[[finite(g) for g in s["gospa_per_scan"]] for s in per.values()],
             keys=list(per), xname="t [s]", title=f"{method}: GOSPA per scan [m]")
         m = r["mean"]
         summary |= {f"{method}/{k}": m[k] for k in SCALARS}
