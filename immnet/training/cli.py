@@ -121,20 +121,6 @@ def _report(fd: str | None, best: str) -> None:
             pass
 
 
-def _cli(args: list[str]) -> IMMNetCLI:
-    from immnet.data.datamodule import LASTDataModule
-
-    os.environ.setdefault("WANDB_SILENT", "true")
-    return IMMNetCLI(
-        L.LightningModule,
-        LASTDataModule,
-        subclass_mode_model=True,
-        args=args,
-        save_config_kwargs={"overwrite": True},
-        auto_configure_optimizers=False,
-    )
-
-
 def _configs(argv: list[str]):
     """Each ``--config`` of ``argv`` as ``(index, width, value)``: ``--config VALUE`` (width 2) or ``--config=VALUE``
     (width 1)."""
@@ -267,9 +253,19 @@ def run_stages(recipe: dict, extra: list[str], label: str | None = None) -> str:
 
 def _run(argv: list[str]) -> IMMNetCLI:
     """One Lightning run; ``sys.argv`` becomes its command line (what a DDP launcher re-runs)."""
+    from immnet.data.datamodule import LASTDataModule
+
+    os.environ.setdefault("WANDB_SILENT", "true")
     saved, sys.argv = sys.argv, [sys.argv[0], *argv]
     try:
-        return _cli(argv)
+        return IMMNetCLI(
+            L.LightningModule,
+            LASTDataModule,
+            subclass_mode_model=True,
+            args=argv,
+            save_config_kwargs={"overwrite": True},
+            auto_configure_optimizers=False,
+        )
     finally:
         sys.argv = saved
 
