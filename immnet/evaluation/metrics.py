@@ -145,20 +145,15 @@ def post_switch_mask(mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, interva
     """Boolean ``[N, T]``: inside ``[s, s + steps)`` for at least one switch ``s`` (clipped to T); with
     ``intervals [N, T]`` (s, :func:`immnet.data.times.scan_intervals`) the scans ``t >= s`` less than
     ``seconds`` after a switch ``s`` instead (``steps`` then unused)."""
-    if intervals is not None:
-        if intervals.shape != mode.shape:
-            raise ValueError(f"intervals have shape {tuple(intervals.shape)}, expected the mode's {tuple(mode.shape)}")
-        sw = switch_steps(mode)
-        tau = intervals.to(torch.float64).cumsum(-1)  # any origin: only differences count
-        # the latest switch at or before t is the nearest one: covered by some window iff by its window
-        last = torch.where(sw, tau, torch.full_like(tau, -torch.inf)).cummax(dim=-1).values
-        return (tau - last) < seconds
-    sw = switch_steps(mode).to(torch.int64)
-    # a step t is covered when a switch lies in (t - steps, t]: a running sum over the last `steps`.
-    c = torch.cumsum(sw, dim=-1)
-    lagged = torch.zeros_like(c)
-    lagged[..., steps:] = c[..., :-steps]
-    return (c - lagged) > 0
+    if intervals is None:  # every scan one step: the window in steps
+        intervals, seconds = torch.ones(mode.shape, dtype=torch.float64, device=mode.device), steps
+    if intervals.shape != mode.shape:
+        raise ValueError(f"intervals have shape {tuple(intervals.shape)}, expected the mode's {tuple(mode.shape)}")
+    sw = switch_steps(mode)
+    tau = intervals.to(torch.float64).cumsum(-1)  # any origin: only differences count
+    # the latest switch at or before t is the nearest one: covered by some window iff by its window
+    last = torch.where(sw, tau, torch.full_like(tau, -torch.inf)).cummax(dim=-1).values
+    return (tau - last) < seconds
 
 
 def post_switch_sums(err: torch.Tensor, mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, mask=None,
