@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from immnet import keys  # noqa: E402
-from immnet.evaluation.metrics import avg_curve, switch_steps  # noqa: E402
+from immnet.evaluation.metrics import avg_curve, position_error, switch_steps  # noqa: E402
 from immnet.motion import MODE_LABELS, POS  # noqa: E402
 
 MODE_COLORS = ("#4c72b0", "#dd8452", "#55a868", "#c44e52")
@@ -196,8 +196,7 @@ def write_figures(results: Mapping[str, dict], data, cases: Sequence[int], out_d
         traj = data[i]
         mode = traj[keys.MODE] if has_mode else None
         states = {n: r["kept"][keys.STATE][row] for n, r in results.items()}
-        err = {n: avg_curve((s[..., list(POS)].double() - traj[keys.STATES][..., list(POS)].double()).abs())
-               for n, s in states.items()}
+        err = {n: avg_curve(position_error(s, traj[keys.STATES]).abs()) for n, s in states.items()}
         written.append(plot_rmse_over_time(err, out / f"case{i}_rmse.png", title=f"trajectory {i}: position error per axis (RMS over axes)", mode=mode))
         kept = next(iter(results.values()))["kept"]
         z = kept[keys.MEASUREMENTS][row] if keys.MEASUREMENTS in kept else traj[keys.MEASUREMENTS]  # gated

@@ -120,12 +120,9 @@ def track_metrics(truth_ids: Sequence, truth_pos: Sequence, est_ids: Sequence, e
             mem["run_id"] = est
             rec["longest"] = max(rec["longest"], mem["run"])
     present = sum(r["present"] for r in per_truth.values())
-
-    def mean(key):
-        return float(np.mean([g[key] for g in per_scan])) if per_scan else 0.0
-
     return {
-        "gospa": mean("gospa"), "localisation": mean("localisation"), "missed": mean("missed"), "false": mean("false"),
+        **{k: float(np.mean([g[k] for g in per_scan])) if per_scan else 0.0
+           for k in ("gospa", "localisation", "missed", "false")},
         "id_switches": sum(r["switches"] for r in per_truth.values()),
         "fragmentations": sum(r["fragmentations"] for r in per_truth.values()),
         "continuity": float(np.mean([r["longest"] / r["present"] for r in per_truth.values()])) if per_truth else 1.0,
