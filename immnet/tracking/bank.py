@@ -50,9 +50,10 @@ from immnet.stages import IMMNet
 from immnet.stages.network import Likelihood
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
-    AS_CONFIGURED, as_intervals, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals,
-    coast_cuts, coast_restarts, coast_scan, coast_step, guarded, listed, network_from, next_origin, per_track,
-    provenance_of, read_checkpoint, run_network, scans_served, select_rows, to_local, to_world, trained_for,
+    AS_CONFIGURED, as_intervals, as_measurements, begin_scan, by_segments, check_batch, check_n_tracks,
+    check_finite_intervals, coast_cuts, coast_restarts, coast_scan, fresh_tracks, guarded, listed, network_from,
+    next_origin, provenance_of, read_checkpoint, run_network, scans_served, select_rows, to_local, to_world,
+    trained_for,
 )
 
 DEFAULT_MEMBERS = BANK_MEMBERS
@@ -406,13 +407,9 @@ class NetworkBank:
         n_tracks = check_n_tracks(n_tracks)
         self.carries = {name: self._fresh(net, n_tracks) for name, net in self.members.items()}
         self.log_w = self.log_prior.expand(n_tracks, -1).clone()
-        self.fresh = torch.ones(n_tracks, dtype=torch.bool)  # no scan yet: the first one's interval is nominal
-        self.since = torch.zeros(n_tracks, dtype=torch.float64)
-        self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)  # the interval of each one's last scan
-        self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)  # each one's frame (frame_origin)
+        fresh_tracks(self, n_tracks)
         self.stays = torch.ones(n_tracks, len(self.names), dtype=torch.bool)  # each member took every scan so far
         self.seen = torch.zeros(n_tracks, dtype=torch.long)  # scans since each one's first detection
-        self.n_gated = 0
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
@@ -428,39 +425,26 @@ class NetworkBank:
         first detection. Over a sequence, ``track``'s numbers."""
         z = as_measurements(z, 2)
         B = z.shape[0]
-        check_batch(None if self.carries is None else self.log_w.shape[0], B)
-        interval = per_track(self.dt if dt is None else dt, B, "dt")
-        check_finite_intervals(interval, "dt")
-        reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
-        if self.carries is None:  # the first scan without a reset: as after reset(B)
-            log_w, fresh = self.log_prior.expand(B, -1).clone(), torch.ones(B, dtype=torch.bool)
-        else:
-            log_w, fresh = self.log_w.clone(), self.fresh.clone()
-        if reset is not None:
+        started = self.carries is not None
+        check_batch(self.log_w.shape[0] if started else None, B)
+        gated, n_gated, reset, fresh, interval, since = begin_scan(self, z, reset, self.dt if dt is None else dt,
+                                                                   self.dt, started)
+        log_w = self.log_w.clone() if started else self.log_prior.expand(B, -1).clone()  # as after reset(B)
+        if reset is not None:  # each member at its prior again
             log_w[reset] = self.log_prior
-            fresh |= reset
-        gated, n_gated = gate_measurements(z, self.max_position)
-        since = torch.zeros(B, dtype=torch.float64) if self.carries is None else self.since
-        since, restart = coast_step(since, interval, ~torch.isnan(gated).any(-1), fresh, self.max_coast)
-        if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset
-            reset = restart if reset is None else reset | restart  # its first scan at the interval of the scan before
-            log_w[restart] = self.log_prior
-            fresh |= restart
-            interval = torch.where(restart, self.last, interval)
         # Tracker.step's check per track: each scan, as the member coasts a long interval (coast_cuts), inside its
         # range, or its one interval
         cut = [coast_cuts(net, interval, fresh) for net in self.members.values()]  # (scans, each's interval) per member
         fits = torch.stack([trained_for(net, each) for net, (_, each) in zip(self.members.values(), cut)], -1)
-        stays = fits if self.carries is None else fits & (self.stays | fresh[:, None])  # every scan since the start
+        stays = fits if not started else fits & (self.stays | fresh[:, None])  # every scan since the start
         takes, shadow = self._in_track(stays, log_w > -math.inf)
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
                              f"a scan after {float(interval[lost[0]]):g} s")
-        if self.carries is None:
+        if not started:
             self.reset(B)
-        origin = self.origin if reset is None else torch.where(reset[:, None], float("nan"), self.origin)
-        origin = next_origin(origin, gated)  # the members' frame (a member with a range guard keeps the radar's)
+        origin = next_origin(self.origin, gated, reset)  # the members' frame (one with a range guard keeps the radar's)
         self.n_gated += n_gated
         self.since, self.last, self.origin, self.stays = since, interval, origin, stays
         runs = takes | shadow

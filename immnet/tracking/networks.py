@@ -263,12 +263,15 @@ def frame_origin(net, z: torch.Tensor) -> torch.Tensor:
     return origin
 
 
-def next_origin(origin: torch.Tensor, z: torch.Tensor, radar: bool = False) -> torch.Tensor:
+def next_origin(origin: torch.Tensor, z: torch.Tensor, reset: torch.Tensor | None,
+                radar: bool = False) -> torch.Tensor:
     """The streaming trackers' :func:`frame_origin` after one scan ``z [B, 3]`` (gated): ``origin [B, 3]`` (NaN: the
-    track has had no detection since its start or restart) set to this scan's detection where it has none yet; zero
-    where the network keeps the radar's frame (``radar``: it has a range guard)."""
+    track has had no detection since its start or restart; ``reset [B]``, or None: the tracks that restart at this
+    scan) set to this scan's detection where it has none yet; zero where the network keeps the radar's frame
+    (``radar``: it has a range guard)."""
     if radar:
         return torch.zeros_like(origin)
+    origin = origin if reset is None else torch.where(reset[:, None], float("nan"), origin)
     new = torch.isnan(origin).any(-1) & ~torch.isnan(z).any(-1)
     return torch.where(new[:, None], z.to(torch.float64), origin)
 
@@ -465,6 +468,42 @@ def coast_step(since: torch.Tensor, interval: torch.Tensor, detected: torch.Tens
         restart = restart & ~first
         total = torch.where(first, torch.zeros_like(total), total)
     return torch.where(restart | detected, torch.zeros_like(total), total), restart
+
+
+def fresh_tracks(tracker, n_tracks: int) -> None:
+    """The per-track memory a streaming tracker (``Tracker``, ``NetworkBank``) keeps beside its carry, for ``n_tracks``
+    tracks that have not started: ``fresh`` (no scan yet: the first one's interval is nominal), ``since`` (s since the
+    last detection or the start: ``max_coast``'s), ``last`` (the interval of the last scan; NaN: none yet) and
+    ``origin`` (the track's frame, :func:`next_origin`; NaN: no detection yet); ``n_gated`` back to 0."""
+    tracker.fresh = torch.ones(n_tracks, dtype=torch.bool)
+    tracker.since = torch.zeros(n_tracks, dtype=torch.float64)
+    tracker.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)
+    tracker.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)
+    tracker.n_gated = 0
+
+
+def begin_scan(tracker, z: torch.Tensor, reset, dt, nominal: float, started: bool):
+    """What a streaming tracker (``Tracker``, ``NetworkBank``: its ``fresh``, ``since``, ``last``, ``max_position`` and
+    ``max_coast``; ``started``: it holds tracks) reads of one scan ``z [B, 3]`` before anything of its state changes:
+    ``(gated, n_gated, reset, first, now, since)``: ``z`` gated, the number gated, ``reset [B]`` (None: none) the
+    tracks that restart at this scan, given or after no detection for longer than ``max_coast`` s (:func:`coast_step`),
+    ``first [B]`` each track's first scan since a restart, ``now [B]`` the scan's interval (``dt``, a number or ``[B]``;
+    None: ``nominal``), a restarted track's at the interval of its scan before where ``dt`` is given, and ``since [B]``
+    after the scan."""
+    B = z.shape[0]
+    reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
+    first = tracker.fresh if started else torch.ones(B, dtype=torch.bool)
+    first = first if reset is None else first | reset
+    now = torch.full((B,), float(nominal), dtype=torch.float64) if dt is None else per_track(dt, B, "dt")
+    check_finite_intervals(now, "dt")
+    gated, n_gated = gate_measurements(z, tracker.max_position)
+    since = tracker.since if started else torch.zeros(B, dtype=torch.float64)
+    since, restart = coast_step(since, now, ~torch.isnan(gated).any(-1), first, tracker.max_coast)
+    if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset,
+        reset = restart if reset is None else reset | restart  # its first scan at the interval of the scan before
+        first = first | restart
+        now = now if dt is None else torch.where(restart, tracker.last, now)
+    return gated, n_gated, reset, first, now, since
 
 
 def by_segments(run, restart: torch.Tensor, z: torch.Tensor, intervals: torch.Tensor | None) -> TensorDict:

@@ -39,10 +39,10 @@ from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    AS_CONFIGURED, as_intervals, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals,
-    coast_cuts, by_segments, coast_restarts, coast_scan, coast_step, guarded, load_network, next_origin,
-    outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, to_local,
-    trained_for,
+    AS_CONFIGURED, as_intervals, as_measurements, begin_scan, check_batch, check_dt, check_n_tracks,
+    check_finite_intervals, coast_cuts, by_segments, coast_restarts, coast_scan, fresh_tracks, guarded, load_network,
+    next_origin, outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows,
+    to_local, trained_for,
 )
 
 
@@ -127,11 +127,7 @@ class Tracker:
         """``n_tracks`` (a whole number, at least 1) tracks that have not started; ``n_gated`` back to 0."""
         n_tracks = check_n_tracks(n_tracks)
         self.carry = self.net.initial_carry(n_tracks)
-        self.fresh = torch.ones(n_tracks, dtype=torch.bool)
-        self.since = torch.zeros(n_tracks, dtype=torch.float64)
-        self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)
-        self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)
-        self.n_gated = 0
+        fresh_tracks(self, n_tracks)
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None, r=None, R=None) -> TensorDict:
@@ -174,31 +170,19 @@ class Tracker:
             warnings.warn("Tracker.step: this network does not use R (each detection's covariance): it was checked and "
                           "left unused (docs/radar.md, 'Input')", UserWarning, stacklevel=3)
         check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
-        mask = None if reset is None else per_track(reset, z.shape[0], "reset", torch.bool)
-        fresh = torch.ones(z.shape[0], dtype=torch.bool) if self.carry is None else self.fresh
-        first = fresh if mask is None else fresh | mask  # each track's first scan since a reset
-        interval = None if dt is None else check_finite_intervals(per_track(dt, z.shape[0], "dt"), "dt")
+        gated, n_gated, mask, first, now, since = begin_scan(self, z, reset, dt, self.net.dt, self.carry is not None)
+        interval = None if dt is None else now
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
-        gated, n_gated = gate_measurements(z, self.max_position)
-        since = torch.zeros(z.shape[0], dtype=torch.float64) if self.carry is None else self.since
-        now = torch.full_like(since, float(self.net.dt)) if interval is None else interval
-        since, restart = coast_step(since, now, ~torch.isnan(gated).any(-1), first, self.max_coast)
-        if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset,
-            mask = restart if mask is None else mask | restart  # its first scan at the interval of the scan before
-            first = first | restart
-            interval = None if interval is None else torch.where(restart, self.last, interval)
         if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
             cuts, each = coast_cuts(self.net, interval, first)
             bad = ~trained_for(self.net, each)
             check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
         if self.carry is None:  # the first scan without a reset: its number of tracks
             self.reset(z.shape[0])
-        origin = self.origin if mask is None else torch.where(mask[:, None], float("nan"), self.origin)
-        origin = next_origin(origin, gated, guarded(self.net))
+        origin = next_origin(self.origin, gated, mask, guarded(self.net))
         z = to_local(gated, origin.nan_to_num())
         self.n_gated += n_gated
-        self.since, self.origin = since, origin
-        self.last = now if interval is None else interval
+        self.since, self.origin, self.last = since, origin, now
         if mask is not None:
             self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
         cov = None if not told_cov else torch.where(torch.isnan(z).any(-1)[:, None, None], torch.eye(3, dtype=cov.dtype),
