@@ -22,6 +22,7 @@ from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, shipped
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.registry import MULTI_TARGET_FILTER
+from immnet.tracking.multi_cli import check_positive
 from immnet.tracking.segments import MAX_COAST, check_coast, split_rows, split_segments, track_rows, track_segments
 
 DEFAULT_FILTER = MULTI_TARGET_FILTER
@@ -129,8 +130,7 @@ def _load_options(args) -> dict:
     setting (``AS_CONFIGURED``) where not given; a clear error unless ``--r`` is a finite number > 0."""
     from immnet.tracking.tracker import AS_CONFIGURED
 
-    if args.r is not None and not (np.isfinite(args.r) and args.r > 0):
-        raise ValueError(f"--r is the radar's measurement std in metres, a finite number > 0; got {args.r:g}")
+    check_positive(args.r, "--r is the radar's measurement std in metres, a finite number")
     robust = AS_CONFIGURED if args.robust is None else float(args.robust)
     r = AS_CONFIGURED if args.r is None else float(args.r)
     return {"adapt": True if args.adapt else AS_CONFIGURED, "robust": robust, "r": r}
@@ -174,15 +174,9 @@ def _check_options(args) -> None:
     """A clear error for options that cannot go together: ``--method`` tracks without a network, so with
     ``--checkpoint``, ``--weights`` or ``--robust`` one of them would be ignored; and it tracks CSV rows, not an
     .npz."""
-    if args.robust is not None:
-        from immnet.imm.kalman import check_robust
-
-        try:
-            check_robust(args.robust)
-        except ValueError:
-            raise ValueError(f"--robust is Huber's k, a finite number of standard deviations > 0; got {args.robust:g}") from None
-        if args.method is not None:
-            raise ValueError("--robust sets the networks' update; a --method has its own (robust: in its YAML)")
+    check_positive(args.robust, "--robust is Huber's k, a finite number of standard deviations")
+    if args.robust is not None and args.method is not None:
+        raise ValueError("--robust sets the networks' update; a --method has its own (robust: in its YAML)")
     if args.input.suffix.lower() != ".csv" and _sigmas(args) is not None:
         raise ValueError(f"--sigma-range, --sigma-azimuth, --sigma-elevation are the stds of a CSV of plots "
                          f"(range,azimuth,elevation); {args.input} is not a CSV")
