@@ -41,7 +41,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.checkpoints import BANK_MEMBERS, BANK_SETTINGS, SHIPPED, TABLE, shipped
 from immnet.data.times import scan_intervals
-from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
+from immnet.data.validate import MAX_ABS_POSITION, check_limit
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.interaction import moment_match
 from immnet.labels import N_MODES
@@ -50,10 +50,9 @@ from immnet.stages import IMMNet
 from immnet.stages.network import Likelihood
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
-    AS_CONFIGURED, as_intervals, as_measurements, begin_scan, by_segments, check_batch, check_n_tracks,
-    check_finite_intervals, coast_cuts, coast_restarts, coast_scan, fresh_tracks, guarded, listed, network_from,
-    next_origin, provenance_of, read_checkpoint, run_network, scans_served, select_rows, to_local, to_world,
-    trained_for,
+    AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_batch, check_n_tracks, coast_cuts, coast_scan,
+    fresh_tracks, guarded, listed, network_from, next_origin, provenance_of, read_checkpoint, run_network,
+    scans_served, select_rows, to_local, to_world, trained_for,
 )
 
 DEFAULT_MEMBERS = BANK_MEMBERS
@@ -70,9 +69,7 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     gap it coasts through, ``immnet.tracking.networks.coast_long_gaps``; scan 0's taken at most the range's end); for
     one trained at one interval, every interval its ``dt`` (``check_dt``'s rule, per track)."""
     intervals = torch.as_tensor(intervals, dtype=torch.float64)
-    first = torch.zeros(intervals.shape, dtype=torch.bool)
-    first[:, :1] = True
-    each = coast_cuts(net, intervals, first)[1]  # each interval as coast_long_gaps cuts it
+    each = coast_cuts(net, intervals, torch.arange(intervals.shape[-1]) == 0)[1]  # as coast_long_gaps cuts it
     return (trained_for(net, each) | torch.isnan(intervals)).all(-1)
 
 
@@ -293,16 +290,8 @@ class NetworkBank:
         z = as_measurements(measurements, 3)
         if intervals is None:
             intervals = torch.full(z.shape[:2], self.dt, dtype=torch.float64)
-        intervals = check_finite_intervals(as_intervals(intervals, z), "intervals")
-        gated, n_gated = gate_measurements(z, self.max_position)  # each member gates the same rows as it runs
-        restart, taken = coast_restarts(~torch.isnan(gated).any(-1), intervals, self.max_coast)
-        if bool(restart.any()):  # no detection for longer than max_coast: a track starts again, a fresh one
-            out = by_segments(lambda zs, ivs, rows: self._track(zs, ivs, batch_size, return_cov, rows), restart, z,
-                              taken)
-        else:
-            out = self._track(z, intervals, batch_size, return_cov)
-        self.n_gated = n_gated
-        return out
+        return by_segments(self, lambda zs, ivs, rows: self._track(zs, ivs, batch_size, return_cov, rows), z,
+                           intervals, self.dt)
 
     def _track(self, z: torch.Tensor, intervals: torch.Tensor, batch_size: int, return_cov: bool,
                tracks: torch.Tensor | None = None) -> TensorDict:

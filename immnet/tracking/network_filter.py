@@ -34,7 +34,7 @@ import torch
 from immnet import keys
 from immnet.checkpoints import shipped
 from immnet.filters.multi import TrackFilter
-from immnet.tracking.networks import check_dt, coast_cuts, network_from, read_checkpoint, trained_for
+from immnet.tracking.networks import check_scan, network_from, read_checkpoint
 from immnet.tracking.tracker import Tracker
 
 
@@ -122,9 +122,7 @@ class NetworkFilter(TrackFilter):
         """A ValueError, before anything changes, unless the network takes a scan ``dt`` seconds after the last:
         an interval it was trained at, or (a network trained over a range) one longer than the range, coasted through
         in equal intervals inside it (``Tracker.step``'s rule)."""
-        iv = torch.tensor([float(dt)], dtype=torch.float64)
-        _, each = coast_cuts(self.net, iv, torch.zeros(1, dtype=torch.bool))
-        check_dt(self.net, each if bool(trained_for(self.net, each).all()) else iv, f"{self.name}")
+        check_scan(self.net, torch.tensor([float(dt)], dtype=torch.float64), torch.zeros(1, dtype=torch.bool), self.name)
 
     def _multiples(self, dt: np.ndarray) -> np.ndarray:
         """The scans each start's interval spans for a network of one interval (its ``dt`` times a whole number: the

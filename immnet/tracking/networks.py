@@ -139,18 +139,15 @@ def trained_for(net, intervals) -> torch.Tensor:
     return (iv >= lo - tol) & (iv <= hi + tol)
 
 
-def check_dt(net, dt, name: str = "immnet", method=None) -> None:
+def check_dt(net, dt, name: str = "immnet") -> None:
     """A ValueError unless every sampling interval in ``dt`` is one the network was trained at.
 
-    A method that takes any interval (``any_interval``: the model-based filters, which build ``F(dt)``
-    and ``Q(dt)`` per scan) is never refused. A learned tracker is tied to its training intervals: a
-    network trained over a range (``net.interval_range = (lo, hi)``) takes any interval in it; one
-    trained at one interval (``interval_range`` absent or None) only ``net.dt``: on other data it
-    would run as if each step lasted ``net.dt`` (a velocity of ``(z_1 - z_0) / net.dt``, turn rates and
-    accelerations per step), off by ``dt / net.dt`` without any sign of it.
+    A learned tracker is tied to its training intervals (the model-based filters, which build ``F(dt)`` and ``Q(dt)``
+    per scan, take any): a network trained over a range (``net.interval_range = (lo, hi)``) takes any interval in it;
+    one trained at one interval (``interval_range`` absent or None) only ``net.dt``: on other data it would run as if
+    each step lasted ``net.dt`` (a velocity of ``(z_1 - z_0) / net.dt``, turn rates and accelerations per step), off
+    by ``dt / net.dt`` without any sign of it.
     """
-    if getattr(method, "any_interval", False) or getattr(net, "any_interval", False):
-        return
     values = torch.unique(torch.as_tensor(dt, dtype=torch.float64).reshape(-1))
     values = values[~torch.isnan(values)]
     bad = listed([f"{v:g}" for v in values[~trained_for(net, values)].tolist()])
@@ -178,8 +175,8 @@ def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
     """``(scans, each)``: how many scans ``net`` takes each interval (s) in, and each scan's interval, as
     :func:`coast_long_gaps` cuts a sequence's: for a network trained over a range, an interval longer than the range
     is ``ceil(interval / end)`` equal intervals inside it, the scans before the last missed detections (a gap the
-    track coasts through); where ``first`` (bool, the intervals' shape: a track's first scan, whose interval is the
-    nominal one) it is one scan of at most the range's end. Otherwise one scan of the interval as given (NaN too)."""
+    track coasts through); where ``first`` (bool, broadcasting to the intervals' shape: a track's first scan, whose
+    interval is the nominal one) it is one scan of at most the range's end. Otherwise one scan of the interval as given (NaN too)."""
     iv = torch.as_tensor(intervals, dtype=torch.float64)
     span = getattr(net, "interval_range", None)
     if span is None:
@@ -193,6 +190,15 @@ def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
     cuts = torch.ceil(iv / end).clamp(min=1)
     cuts = torch.where(torch.isnan(cuts), torch.ones_like(cuts), cuts)
     return cuts.long(), iv / cuts
+
+
+def check_scan(net, interval: torch.Tensor, first: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`coast_cuts` of one scan's ``interval [B]`` (``first [B]``: a track's first scan), checked: a ValueError
+    (:func:`check_dt`, naming the intervals as given) unless ``net`` was trained at every interval it is cut into."""
+    cuts, each = coast_cuts(net, interval, first)
+    bad = ~trained_for(net, each)
+    check_dt(net, interval[bad] if bool(bad.any()) else each, name)
+    return cuts, each
 
 
 def coast_scan(net: IMMNet, carry: TensorDict, z: torch.Tensor, cuts: torch.Tensor, each: torch.Tensor, keep,
@@ -227,9 +233,7 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
     span = getattr(net, "interval_range", None)
     if span is None:
         return z, intervals, None
-    first = torch.zeros(intervals.shape, dtype=torch.bool)
-    first[:, :1] = True
-    cuts, each = coast_cuts(net, intervals, first)
+    cuts, each = coast_cuts(net, intervals, torch.arange(intervals.shape[-1]) == 0)  # scan 0: a track's start
     if not bool((cuts > 1).any()):
         return z, each, None  # scan 0's at most the range's end
     where = cuts.cumsum(-1) - 1  # each scan is the last of its interval's
@@ -506,8 +510,24 @@ def begin_scan(tracker, z: torch.Tensor, reset, dt, nominal: float, started: boo
     return gated, n_gated, reset, first, now, since
 
 
-def by_segments(run, restart: torch.Tensor, z: torch.Tensor, intervals: torch.Tensor | None) -> TensorDict:
-    """``run(z [S, L, 3], intervals [S, L] or None, rows [S])`` over each track's segments (a track cut at each scan
+def by_segments(tracker, run, z: torch.Tensor, intervals, nominal: float) -> TensorDict:
+    """``run(z, intervals, rows)`` over whole sequences ``z [B, T, 3 + ...]`` (each scan's measurement, then what else
+    the scan carries) as a streaming tracker's ``track`` runs them (``Tracker``, ``NetworkBank``: its ``max_position``
+    and ``max_coast``): ``intervals [B, T]`` checked (None: ``nominal`` s at every scan, and None to ``run``); a track
+    with no detection for longer than ``max_coast`` s restarts (:func:`coast_restarts`): each part of it between
+    restarts run as a fresh track (``rows [S]``: each one's track, None where no track restarts; :func:`_segments`).
+    ``tracker.n_gated``: the measurements gated."""
+    iv = None if intervals is None else check_finite_intervals(as_intervals(intervals, z), "intervals")
+    gated, n_gated = gate_measurements(z[..., :3], tracker.max_position)
+    every = torch.full(z.shape[:2], float(nominal), dtype=torch.float64) if iv is None else iv
+    restart, taken = coast_restarts(~torch.isnan(gated).any(-1), every, tracker.max_coast)
+    out = _segments(run, restart, z, None if iv is None else taken) if bool(restart.any()) else run(z, iv, None)
+    tracker.n_gated = n_gated
+    return out
+
+
+def _segments(run, restart: torch.Tensor, z: torch.Tensor, intervals: torch.Tensor | None) -> TensorDict:
+    """``run(z [S, L, ...], intervals [S, L] or None, rows [S])`` over each track's segments (a track cut at each scan
     of ``restart [B, T]``, each segment a fresh track from there; ``rows`` each one's track), segments of one length
     together; their outputs put back in place ``[B, T]``."""
     B, T = restart.shape

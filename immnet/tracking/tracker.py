@@ -33,16 +33,15 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, PRETRAINED, shipped  # PRETRAINED: re-exported here too
-from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
+from immnet.data.validate import MAX_ABS_POSITION, check_limit
 from immnet.filters.base import blank_before_first_detection
 from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    AS_CONFIGURED, as_intervals, as_measurements, begin_scan, check_batch, check_dt, check_n_tracks,
-    check_finite_intervals, coast_cuts, by_segments, coast_restarts, coast_scan, fresh_tracks, guarded, load_network,
-    next_origin, outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows,
-    to_local, trained_for,
+    AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_batch, check_dt, check_n_tracks, check_scan,
+    coast_scan, fresh_tracks, guarded, load_network, next_origin, outputs_to_world, per_track, provenance_of,
+    read_checkpoint, run_network, scans_served, select_rows, to_local,
 )
 
 
@@ -174,9 +173,7 @@ class Tracker:
         interval = None if dt is None else now
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
         if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
-            cuts, each = coast_cuts(self.net, interval, first)
-            bad = ~trained_for(self.net, each)
-            check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
+            cuts, each = check_scan(self.net, interval, first, "this tracker")
         if self.carry is None:  # the first scan without a reset: its number of tracks
             self.reset(z.shape[0])
         origin = next_origin(self.origin, gated, mask, guarded(self.net))
@@ -235,22 +232,13 @@ class Tracker:
             raise ValueError(f"meas_cov is [n_tracks, T, 3, 3] = {[*z.shape[:2], 3, 3]}, got {list(meas_cov.shape)}")
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
-        iv = None if intervals is None else check_finite_intervals(as_intervals(intervals, z), "intervals")
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
-        gated, n_gated = gate_measurements(z, self.max_position)
-        every = torch.full(z.shape[:2], float(self.net.dt), dtype=torch.float64) if iv is None else iv
-        restart, taken = coast_restarts(~torch.isnan(gated).any(-1), every, self.max_coast)
-        if not bool(restart.any()):
-            out, self.n_gated = run_network(self.net, z, batch_size, iv, return_cov, told, return_loglik,
-                                            self.max_position, meas_cov)
-            return out
 
-        def run(zs, ivs, rows):  # each segment a fresh track (its detections' covariances after its measurements)
+        def run(zs, ivs, rows):  # a track, or a segment of one (its detections' covariances after its measurements)
             cov = None if meas_cov is None else zs[..., 3:].unflatten(-1, (3, 3))
-            return run_network(self.net, zs[..., :3], batch_size, ivs, return_cov, None if told is None else told[rows],
-                               return_loglik, self.max_position, cov)[0]
+            return run_network(self.net, zs[..., :3], batch_size, ivs, return_cov,
+                               told if told is None or rows is None else told[rows], return_loglik, self.max_position,
+                               cov)[0]
 
-        rows = z if meas_cov is None else torch.cat([z, meas_cov.to(z.dtype).flatten(-2)], -1)
-        out = by_segments(run, restart, rows, None if iv is None else taken)
-        self.n_gated = n_gated
-        return out
+        rows = z if meas_cov is None else torch.cat([z, torch.as_tensor(meas_cov).to(z.dtype).flatten(-2)], -1)
+        return by_segments(self, run, rows, intervals, self.net.dt)
