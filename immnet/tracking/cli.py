@@ -22,7 +22,7 @@ from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, shipped
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.registry import MULTI_TARGET_FILTER
-from immnet.tracking.multi_cli import check_positive
+from immnet.tracking.multi_cli import check_output, check_positive
 from immnet.tracking.segments import MAX_COAST, check_coast, split_rows, split_segments, track_rows, track_segments
 
 DEFAULT_FILTER = MULTI_TARGET_FILTER
@@ -240,13 +240,9 @@ def check_paths(source: Path, target: Path) -> None:
         raise ValueError(f"--input and --output must both be .csv or both .npz (got {source.name}, {target.name})")
     if not source.is_file():
         raise FileNotFoundError(f"input not found: {source}")
-    if not target.parent.is_dir():
-        raise FileNotFoundError(f"the folder of --output does not exist: {target.parent}")
     if target.is_dir():
         raise ValueError(f"--output {target} is a folder; name the file to write")
-    from immnet.data.scratch import check_writable
-
-    check_writable(target)  # a read-only folder refused now, not after the tracking
+    check_output(target, "--output")
     if target.resolve() == source.resolve() or (target.exists() and os.path.samefile(source, target)):
         raise FileExistsError(f"--output {target} is the input file {source}: refusing to overwrite the input")
 

@@ -38,6 +38,16 @@ def check_positive(value, what: str) -> None:
         raise ValueError(f"{what} > 0; got {value:g}")
 
 
+def check_output(path: Path, option: str) -> None:
+    """A clear error, before any work, unless the folder of ``option``'s ``path`` exists and a file can be written
+    there (``immnet.data.scratch.check_writable``: a read-only folder refused now, not after the tracking)."""
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"the folder of {option} does not exist: {path.parent}")
+    from immnet.data.scratch import check_writable
+
+    check_writable(path)
+
+
 def _option(name: str) -> str:
     return "--" + name.replace("_", "-")
 
@@ -80,11 +90,7 @@ def check_options(args, labelled: bool) -> None:
         figure = Path(args.figure)
         if figure.suffix.lower() != ".png":
             raise ValueError(f"--figure {figure}: the radar display is a PNG file (a name ending .png)")
-        if not figure.parent.is_dir():
-            raise FileNotFoundError(f"the folder of --figure does not exist: {figure.parent}")
-        from immnet.data.scratch import check_writable
-
-        check_writable(figure)
+        check_output(figure, "--figure")
 
 
 def _scene_clutter(path: Path, plots) -> np.ndarray:
