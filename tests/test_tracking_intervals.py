@@ -290,6 +290,11 @@ def test_check_dt_names_the_interval_and_the_range():
     with pytest.raises(ValueError, match=r"trained on intervals 0.5-12 s but this data has an interval of 20 s"):
         check_dt(net, torch.tensor([5.0, 20.0]))
 
+    class AnyInterval:
+        any_interval = True
+
+    check_dt(_Net(), torch.tensor([3.3]), method=AnyInterval())
+
 
 def test_step_at_the_nominal_interval_equals_step_without_one():
     """``Tracker.step(z, dt=net.dt)`` is ``step(z)``; another interval with a fixed-interval network: an error

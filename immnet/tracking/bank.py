@@ -50,9 +50,9 @@ from immnet.stages import IMMNet
 from immnet.stages.network import Likelihood
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
-    AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_batch, check_n_tracks, coast_cuts, coast_scan,
-    fresh_tracks, guarded, listed, network_from, next_origin, provenance_of, read_checkpoint, run_network,
-    scans_served, select_rows, to_local, to_world, trained_for,
+    AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_n_tracks, coast_cuts, coast_scan, fresh_tracks,
+    guarded, listed, network_from, next_origin, provenance_of, read_checkpoint, run_network, scans_served, select_rows,
+    to_local, to_world, trained_for,
 )
 
 DEFAULT_MEMBERS = BANK_MEMBERS
@@ -415,9 +415,8 @@ class NetworkBank:
         z = as_measurements(z, 2)
         B = z.shape[0]
         started = self.carries is not None
-        check_batch(self.log_w.shape[0] if started else None, B)
         gated, n_gated, reset, fresh, interval, since = begin_scan(self, z, reset, self.dt if dt is None else dt,
-                                                                   self.dt, started)
+                                                                   self.dt, self.log_w.shape[0] if started else None)
         log_w = self.log_w.clone() if started else self.log_prior.expand(B, -1).clone()  # as after reset(B)
         if reset is not None:  # each member at its prior again
             log_w[reset] = self.log_prior

@@ -61,8 +61,7 @@ class NetworkFilter(TrackFilter):
                              f"(start_vz_std): the multi-target tracker starts them (load it with start_vz_std=None)")
         self.net = net
         self.name = name or tracker.name or (tracker.path.name if tracker.path is not None else "network")
-        self.told_cov = bool(net.start.told_cov)
-        self.plot_noise = self.told_cov
+        self.plot_noise = bool(net.start.told_cov)  # told each plot's covariance: the tracker adds it per plot
         self.no_mixture = no_mixture(self.name)
         self.r = None
         self._tr = self._fresh(tracker)
@@ -80,14 +79,10 @@ class NetworkFilter(TrackFilter):
         given = (config.get("gain") or {}).get("init_args") or {}
         net = network_from(config, state, path,
                            **{name: None for name in ("reacquire", "start_vz_std") if given.get(name) is not None})
-        tracker = Tracker(net)
-        tracker.name, tracker.path = name, path
-        return cls(tracker, name)
+        return cls(Tracker(net, name=name, path=path), name)
 
     def _fresh(self, like: Tracker) -> Tracker:
-        tr = Tracker(self.net, like.max_position, float("inf"))
-        tr.name, tr.path = like.name, like.path
-        return tr
+        return Tracker(self.net, like.max_position, float("inf"), like.name, like.path)
 
     def __len__(self) -> int:
         return 0 if self._tr.carry is None else int(self._tr.carry.batch_size[0])
@@ -110,7 +105,7 @@ class NetworkFilter(TrackFilter):
         keeps the reported estimate, covariance and data-mode probabilities."""
         z = torch.from_numpy(np.ascontiguousarray(z, dtype=np.float64))
         cov = None
-        if self.told_cov:
+        if self.plot_noise:
             R = np.broadcast_to(np.eye(3), (len(z), 3, 3)) if R is None else np.asarray(R, dtype=np.float64)
             cov = torch.from_numpy(np.where(np.isnan(z.numpy()).any(-1)[:, None, None], np.eye(3), R))
         out = tr.step(z, dt=torch.as_tensor(dt, dtype=torch.float64), R=cov)

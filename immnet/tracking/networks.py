@@ -139,15 +139,18 @@ def trained_for(net, intervals) -> torch.Tensor:
     return (iv >= lo - tol) & (iv <= hi + tol)
 
 
-def check_dt(net, dt, name: str = "immnet") -> None:
+def check_dt(net, dt, name: str = "immnet", method=None) -> None:
     """A ValueError unless every sampling interval in ``dt`` is one the network was trained at.
 
-    A learned tracker is tied to its training intervals (the model-based filters, which build ``F(dt)`` and ``Q(dt)``
-    per scan, take any): a network trained over a range (``net.interval_range = (lo, hi)``) takes any interval in it;
-    one trained at one interval (``interval_range`` absent or None) only ``net.dt``: on other data it would run as if
-    each step lasted ``net.dt`` (a velocity of ``(z_1 - z_0) / net.dt``, turn rates and accelerations per step), off
-    by ``dt / net.dt`` without any sign of it.
+    A method that takes any interval (``any_interval``: the model-based filters, which build ``F(dt)``
+    and ``Q(dt)`` per scan) is never refused. A learned tracker is tied to its training intervals: a
+    network trained over a range (``net.interval_range = (lo, hi)``) takes any interval in it; one
+    trained at one interval (``interval_range`` absent or None) only ``net.dt``: on other data it
+    would run as if each step lasted ``net.dt`` (a velocity of ``(z_1 - z_0) / net.dt``, turn rates and
+    accelerations per step), off by ``dt / net.dt`` without any sign of it.
     """
+    if getattr(method, "any_interval", False) or getattr(net, "any_interval", False):
+        return
     values = torch.unique(torch.as_tensor(dt, dtype=torch.float64).reshape(-1))
     values = values[~torch.isnan(values)]
     bad = listed([f"{v:g}" for v in values[~trained_for(net, values)].tolist()])
@@ -486,15 +489,17 @@ def fresh_tracks(tracker, n_tracks: int) -> None:
     tracker.n_gated = 0
 
 
-def begin_scan(tracker, z: torch.Tensor, reset, dt, nominal: float, started: bool):
+def begin_scan(tracker, z: torch.Tensor, reset, dt, nominal: float, held: int | None):
     """What a streaming tracker (``Tracker``, ``NetworkBank``: its ``fresh``, ``since``, ``last``, ``max_position`` and
-    ``max_coast``; ``started``: it holds tracks) reads of one scan ``z [B, 3]`` before anything of its state changes:
+    ``max_coast``; ``held``: the number of tracks it holds, None: none yet) reads of one scan ``z [B, 3]`` (a row per
+    track held: :func:`check_batch`) before anything of its state changes:
     ``(gated, n_gated, reset, first, now, since)``: ``z`` gated, the number gated, ``reset [B]`` (None: none) the
     tracks that restart at this scan, given or after no detection for longer than ``max_coast`` s (:func:`coast_step`),
     ``first [B]`` each track's first scan since a restart, ``now [B]`` the scan's interval (``dt``, a number or ``[B]``;
     None: ``nominal``), a restarted track's at the interval of its scan before where ``dt`` is given, and ``since [B]``
     after the scan."""
-    B = z.shape[0]
+    B, started = z.shape[0], held is not None
+    check_batch(held, B)
     reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
     first = tracker.fresh if started else torch.ones(B, dtype=torch.bool)
     first = first if reset is None else first | reset

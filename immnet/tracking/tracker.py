@@ -39,9 +39,9 @@ from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_batch, check_dt, check_n_tracks, check_scan,
-    coast_scan, fresh_tracks, guarded, load_network, next_origin, outputs_to_world, per_track, provenance_of,
-    read_checkpoint, run_network, scans_served, select_rows, to_local,
+    AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_dt, check_n_tracks, check_scan, coast_scan,
+    fresh_tracks, guarded, load_network, next_origin, outputs_to_world, per_track, provenance_of, read_checkpoint,
+    run_network, scans_served, select_rows, to_local,
 )
 
 
@@ -70,9 +70,11 @@ class Tracker:
     ``max_position``: the largest ``|z_a|`` (m) a detection may have; beyond it, or non-finite, a
     measurement is a missed detection, counted in ``n_gated`` (module doc). ``max_coast``: the seconds a track may go
     without a detection before it restarts (``step``; ``immnet.tracking.segments.MAX_COAST``, ``inf``: never).
+    ``name``, ``path``: what ``repr`` names, the shipped name or the checkpoint it was loaded from (None: neither).
     """
 
-    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION, max_coast: float = MAX_COAST):
+    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION, max_coast: float = MAX_COAST,
+                 name: str | None = None, path: str | Path | None = None):
         self.net = net.eval()
         self.max_position = check_limit(max_position)
         self.max_coast = check_coast(max_coast, float(self.net.dt))
@@ -82,7 +84,7 @@ class Tracker:
         self.last: torch.Tensor | None = None  # [B] the interval each track's last scan was taken at (NaN: none yet)
         self.origin: torch.Tensor | None = None  # [B, 3] float64: each track's frame, its first detection (NaN: none)
         self.n_gated = 0
-        self.name, self.path = None, None  # what ``repr`` names: the shipped name or checkpoint it was loaded from
+        self.name, self.path = name, None if path is None else Path(path)
 
     def __repr__(self) -> str:
         """What the tracker is: its network, the scan intervals it serves, its range guard and its provenance."""
@@ -95,9 +97,7 @@ class Tracker:
                         r=AS_CONFIGURED, robust=AS_CONFIGURED) -> "Tracker":
         """The IMMNet of a checkpoint; ``guard``, ``adapt``, ``r`` and ``robust`` as in ``load_network``;
         ``max_position`` the gate on measurements (``immnet.data.validate``)."""
-        tracker = cls(load_network(path, guard, adapt, r, robust=robust), max_position)
-        tracker.path = Path(path)
-        return tracker
+        return cls(load_network(path, guard, adapt, r, robust=robust), max_position, path=path)
 
     @classmethod
     def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, max_position: float = MAX_ABS_POSITION,
@@ -168,12 +168,11 @@ class Tracker:
         if R is not None and not told_cov:
             warnings.warn("Tracker.step: this network does not use R (each detection's covariance): it was checked and "
                           "left unused (docs/radar.md, 'Input')", UserWarning, stacklevel=3)
-        check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
-        gated, n_gated, mask, first, now, since = begin_scan(self, z, reset, dt, self.net.dt, self.carry is not None)
-        interval = None if dt is None else now
+        held = None if self.carry is None else self.carry.batch_size[0]
+        gated, n_gated, mask, first, now, since = begin_scan(self, z, reset, dt, self.net.dt, held)
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
-        if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
-            cuts, each = check_scan(self.net, interval, first, "this tracker")
+        if dt is not None:  # checked as the network takes it, before anything of the tracker's state changes
+            cuts, each = check_scan(self.net, now, first, "this tracker")
         if self.carry is None:  # the first scan without a reset: its number of tracks
             self.reset(z.shape[0])
         origin = next_origin(self.origin, gated, mask, guarded(self.net))
@@ -184,7 +183,7 @@ class Tracker:
             self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
         cov = None if not told_cov else torch.where(torch.isnan(z).any(-1)[:, None, None], torch.eye(3, dtype=cov.dtype),
                                                      cov).to(z.dtype)
-        if interval is None:
+        if dt is None:
             self.carry = self.net.scan(self.carry, z, r=told, meas_cov=cov)
         else:
             keep = lambda td: td.select(*self.net.carry_keys)  # noqa: E731
