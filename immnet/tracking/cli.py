@@ -22,7 +22,7 @@ from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, shipped
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.registry import MULTI_TARGET_FILTER
-from immnet.tracking.multi_cli import check_output, check_positive
+from immnet.tracking import multi_cli
 from immnet.tracking.segments import MAX_COAST, check_coast, split_rows, split_segments, track_rows, track_segments
 
 DEFAULT_FILTER = MULTI_TARGET_FILTER
@@ -130,7 +130,7 @@ def _load_options(args) -> dict:
     setting (``AS_CONFIGURED``) where not given; a clear error unless ``--r`` is a finite number > 0."""
     from immnet.tracking.tracker import AS_CONFIGURED
 
-    check_positive(args.r, "--r is the radar's measurement std in metres, a finite number")
+    multi_cli.check_positive(args.r, "--r is the radar's measurement std in metres, a finite number")
     robust = AS_CONFIGURED if args.robust is None else float(args.robust)
     r = AS_CONFIGURED if args.r is None else float(args.r)
     return {"adapt": True if args.adapt else AS_CONFIGURED, "robust": robust, "r": r}
@@ -174,7 +174,7 @@ def _check_options(args) -> None:
     """A clear error for options that cannot go together: ``--method`` tracks without a network, so with
     ``--checkpoint``, ``--weights`` or ``--robust`` one of them would be ignored; and it tracks CSV rows, not an
     .npz."""
-    check_positive(args.robust, "--robust is Huber's k, a finite number of standard deviations")
+    multi_cli.check_positive(args.robust, "--robust is Huber's k, a finite number of standard deviations")
     if args.robust is not None and args.method is not None:
         raise ValueError("--robust sets the networks' update; a --method has its own (robust: in its YAML)")
     if args.input.suffix.lower() != ".csv" and _sigmas(args) is not None:
@@ -242,7 +242,7 @@ def check_paths(source: Path, target: Path) -> None:
         raise FileNotFoundError(f"input not found: {source}")
     if target.is_dir():
         raise ValueError(f"--output {target} is a folder; name the file to write")
-    check_output(target, "--output")
+    multi_cli.check_output(target, "--output")
     if target.resolve() == source.resolve() or (target.exists() and os.path.samefile(source, target)):
         raise FileExistsError(f"--output {target} is the input file {source}: refusing to overwrite the input")
 
@@ -378,8 +378,6 @@ def _labelled(path: Path) -> bool:
 
 
 def run(args) -> int:
-    from immnet.tracking import multi_cli
-
     _check_options(args)
     check_paths(args.input, args.output)
     labelled = args.input.suffix.lower() != ".csv" or _labelled(args.input)

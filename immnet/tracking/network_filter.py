@@ -117,7 +117,8 @@ class NetworkFilter(TrackFilter):
         """A ValueError, before anything changes, unless the network takes a scan ``dt`` seconds after the last:
         an interval it was trained at, or (a network trained over a range) one longer than the range, coasted through
         in equal intervals inside it (``Tracker.step``'s rule)."""
-        check_scan(self.net, torch.tensor([float(dt)], dtype=torch.float64), torch.zeros(1, dtype=torch.bool), self.name)
+        iv = torch.tensor([float(dt)], dtype=torch.float64)
+        check_scan(self.net, iv, torch.zeros(1, dtype=torch.bool), self.name)
 
     def _multiples(self, dt: np.ndarray) -> np.ndarray:
         """The scans each start's interval spans for a network of one interval (its ``dt`` times a whole number: the

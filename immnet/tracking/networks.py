@@ -179,7 +179,8 @@ def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
     :func:`coast_long_gaps` cuts a sequence's: for a network trained over a range, an interval longer than the range
     is ``ceil(interval / end)`` equal intervals inside it, the scans before the last missed detections (a gap the
     track coasts through); where ``first`` (bool, broadcasting to the intervals' shape: a track's first scan, whose
-    interval is the nominal one) it is one scan of at most the range's end. Otherwise one scan of the interval as given (NaN too)."""
+    interval is the nominal one) it is one scan of at most the range's end. Otherwise one scan of the interval as
+    given (NaN too)."""
     iv = torch.as_tensor(intervals, dtype=torch.float64)
     span = getattr(net, "interval_range", None)
     if span is None:
