@@ -41,7 +41,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.checkpoints import BANK_MEMBERS, BANK_SETTINGS, SHIPPED, TABLE, shipped
 from immnet.data.times import scan_intervals
-from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
+from immnet.data.validate import MAX_ABS_POSITION, check_limit
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.interaction import moment_match
 from immnet.labels import N_MODES
@@ -50,9 +50,9 @@ from immnet.stages import IMMNet
 from immnet.stages.network import Likelihood
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
-    AS_CONFIGURED, as_intervals, as_measurements, by_segments, check_batch, check_n_tracks, check_finite_intervals,
-    coast_cuts, coast_restarts, coast_scan, coast_step, guarded, listed, network_from, next_origin, per_track,
-    provenance_of, read_checkpoint, run_network, scans_served, select_rows, to_local, to_world, trained_for,
+    AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_n_tracks, coast_cuts, coast_scan, fresh_tracks,
+    guarded, listed, network_from, next_origin, provenance_of, read_checkpoint, run_network, scans_served, select_rows,
+    to_local, to_world, trained_for,
 )
 
 DEFAULT_MEMBERS = BANK_MEMBERS
@@ -69,9 +69,7 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     gap it coasts through, ``immnet.tracking.networks.coast_long_gaps``; scan 0's taken at most the range's end); for
     one trained at one interval, every interval its ``dt`` (``check_dt``'s rule, per track)."""
     intervals = torch.as_tensor(intervals, dtype=torch.float64)
-    first = torch.zeros(intervals.shape, dtype=torch.bool)
-    first[:, :1] = True
-    each = coast_cuts(net, intervals, first)[1]  # each interval as coast_long_gaps cuts it
+    each = coast_cuts(net, intervals, torch.arange(intervals.shape[-1]) == 0)[1]  # as coast_long_gaps cuts it
     return (trained_for(net, each) | torch.isnan(intervals)).all(-1)
 
 
@@ -292,16 +290,8 @@ class NetworkBank:
         z = as_measurements(measurements, 3)
         if intervals is None:
             intervals = torch.full(z.shape[:2], self.dt, dtype=torch.float64)
-        intervals = check_finite_intervals(as_intervals(intervals, z), "intervals")
-        gated, n_gated = gate_measurements(z, self.max_position)  # each member gates the same rows as it runs
-        restart, taken = coast_restarts(~torch.isnan(gated).any(-1), intervals, self.max_coast)
-        if bool(restart.any()):  # no detection for longer than max_coast: a track starts again, a fresh one
-            out = by_segments(lambda zs, ivs, rows: self._track(zs, ivs, batch_size, return_cov, rows), restart, z,
-                              taken)
-        else:
-            out = self._track(z, intervals, batch_size, return_cov)
-        self.n_gated = n_gated
-        return out
+        return by_segments(self, lambda zs, ivs, rows: self._track(zs, ivs, batch_size, return_cov, rows), z,
+                           intervals, self.dt)
 
     def _track(self, z: torch.Tensor, intervals: torch.Tensor, batch_size: int, return_cov: bool,
                tracks: torch.Tensor | None = None) -> TensorDict:
@@ -406,13 +396,9 @@ class NetworkBank:
         n_tracks = check_n_tracks(n_tracks)
         self.carries = {name: self._fresh(net, n_tracks) for name, net in self.members.items()}
         self.log_w = self.log_prior.expand(n_tracks, -1).clone()
-        self.fresh = torch.ones(n_tracks, dtype=torch.bool)  # no scan yet: the first one's interval is nominal
-        self.since = torch.zeros(n_tracks, dtype=torch.float64)
-        self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)  # the interval of each one's last scan
-        self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)  # each one's frame (frame_origin)
+        fresh_tracks(self, n_tracks)
         self.stays = torch.ones(n_tracks, len(self.names), dtype=torch.bool)  # each member took every scan so far
         self.seen = torch.zeros(n_tracks, dtype=torch.long)  # scans since each one's first detection
-        self.n_gated = 0
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None) -> TensorDict:
@@ -428,39 +414,25 @@ class NetworkBank:
         first detection. Over a sequence, ``track``'s numbers."""
         z = as_measurements(z, 2)
         B = z.shape[0]
-        check_batch(None if self.carries is None else self.log_w.shape[0], B)
-        interval = per_track(self.dt if dt is None else dt, B, "dt")
-        check_finite_intervals(interval, "dt")
-        reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
-        if self.carries is None:  # the first scan without a reset: as after reset(B)
-            log_w, fresh = self.log_prior.expand(B, -1).clone(), torch.ones(B, dtype=torch.bool)
-        else:
-            log_w, fresh = self.log_w.clone(), self.fresh.clone()
-        if reset is not None:
+        started = self.carries is not None
+        gated, n_gated, reset, fresh, interval, since = begin_scan(self, z, reset, self.dt if dt is None else dt,
+                                                                   self.dt, self.log_w.shape[0] if started else None)
+        log_w = self.log_w.clone() if started else self.log_prior.expand(B, -1).clone()  # as after reset(B)
+        if reset is not None:  # each member at its prior again
             log_w[reset] = self.log_prior
-            fresh |= reset
-        gated, n_gated = gate_measurements(z, self.max_position)
-        since = torch.zeros(B, dtype=torch.float64) if self.carries is None else self.since
-        since, restart = coast_step(since, interval, ~torch.isnan(gated).any(-1), fresh, self.max_coast)
-        if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset
-            reset = restart if reset is None else reset | restart  # its first scan at the interval of the scan before
-            log_w[restart] = self.log_prior
-            fresh |= restart
-            interval = torch.where(restart, self.last, interval)
         # Tracker.step's check per track: each scan, as the member coasts a long interval (coast_cuts), inside its
         # range, or its one interval
         cut = [coast_cuts(net, interval, fresh) for net in self.members.values()]  # (scans, each's interval) per member
         fits = torch.stack([trained_for(net, each) for net, (_, each) in zip(self.members.values(), cut)], -1)
-        stays = fits if self.carries is None else fits & (self.stays | fresh[:, None])  # every scan since the start
+        stays = fits if not started else fits & (self.stays | fresh[:, None])  # every scan since the start
         takes, shadow = self._in_track(stays, log_w > -math.inf)
         lost = (~takes.any(-1)).nonzero().flatten()
         if len(lost):
             raise ValueError(f"no member of this bank still in track(s) {', '.join(str(int(i)) for i in lost[:5])} takes "
                              f"a scan after {float(interval[lost[0]]):g} s")
-        if self.carries is None:
+        if not started:
             self.reset(B)
-        origin = self.origin if reset is None else torch.where(reset[:, None], float("nan"), self.origin)
-        origin = next_origin(origin, gated)  # the members' frame (a member with a range guard keeps the radar's)
+        origin = next_origin(self.origin, gated, reset)  # the members' frame (one with a range guard keeps the radar's)
         self.n_gated += n_gated
         self.since, self.last, self.origin, self.stays = since, interval, origin, stays
         runs = takes | shadow

@@ -22,6 +22,7 @@ from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, SHIPPED, TABLE, WEIGHTS, shipped
 from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
 from immnet.filters.registry import MULTI_TARGET_FILTER
+from immnet.tracking import multi_cli
 from immnet.tracking.segments import MAX_COAST, check_coast, split_rows, split_segments, track_rows, track_segments
 
 DEFAULT_FILTER = MULTI_TARGET_FILTER
@@ -124,45 +125,36 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _told_r(args):
-    """``--r`` as ``load_network``'s ``r`` (``AS_CONFIGURED`` where not given); a clear error unless a finite number > 0."""
-    from immnet.tracking.tracker import AS_CONFIGURED
-
-    if args.r is None:
-        return AS_CONFIGURED
-    if not (np.isfinite(args.r) and args.r > 0):
-        raise ValueError(f"--r is the radar's measurement std in metres, a finite number > 0; got {args.r:g}")
-    return float(args.r)
-
-
 def _load_options(args) -> dict:
-    """``--adapt`` and ``--robust`` as ``load_network``'s ``adapt`` and ``robust``: the checkpoint's setting where not
-    given."""
+    """``--adapt``, ``--robust`` and ``--r`` as ``load_network``'s ``adapt``, ``robust`` and ``r``: the checkpoint's
+    setting (``AS_CONFIGURED``) where not given; a clear error unless ``--r`` is a finite number > 0."""
     from immnet.tracking.tracker import AS_CONFIGURED
 
+    multi_cli.check_positive(args.r, "--r is the radar's measurement std in metres, a finite number")
     robust = AS_CONFIGURED if args.robust is None else float(args.robust)
-    return {"adapt": True if args.adapt else AS_CONFIGURED, "robust": robust}
+    r = AS_CONFIGURED if args.r is None else float(args.r)
+    return {"adapt": True if args.adapt else AS_CONFIGURED, "robust": robust, "r": r}
 
 
-def _bank(args, limit: float, r):
+def _bank(args, limit: float, options: dict):
     """``--weights bank``: the shipped bank as a method (``immnet.tracking.bank.BankMethod``), no range guard unless
-    ``--guard`` gives one, ``--adapt`` and ``--r`` for every member."""
+    ``--guard`` gives one, ``--adapt``, ``--robust`` and ``--r`` (``options``) for every member."""
     from immnet.imm.guard import parse_guard
     from immnet.tracking.bank import BankMethod
 
     guard = None if args.guard == "checkpoint" else parse_guard(args.guard)
-    method = BankMethod(guard=guard, r=r, return_cov=True, max_position=limit, **_load_options(args))
+    method = BankMethod(guard=guard, return_cov=True, max_position=limit, **options)
     method.net.max_coast = check_coast(args.max_coast, method.net.dt)  # the rows' segments are cut at it already
     return method
 
 
-def _tracker(args, weights: Path, limit: float, r):
-    """The ``Tracker`` of ``weights`` as the options load it: ``--guard``, ``--adapt``, ``--max-position``, ``--r``,
-    ``--robust``, ``--max-coast``."""
+def _tracker(args, weights: Path, limit: float, options: dict):
+    """The ``Tracker`` of ``weights`` as the options load it: ``--guard``, ``--max-position``, ``--max-coast`` and
+    ``options`` (``--adapt``, ``--robust``, ``--r``)."""
     from immnet.imm.guard import parse_guard
     from immnet.tracking.tracker import Tracker
 
-    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), max_position=limit, r=r, **_load_options(args))
+    tracker = Tracker.from_checkpoint(weights, parse_guard(args.guard), max_position=limit, **options)
     tracker.max_coast = check_coast(args.max_coast, tracker.net.dt)
     return tracker
 
@@ -182,15 +174,9 @@ def _check_options(args) -> None:
     """A clear error for options that cannot go together: ``--method`` tracks without a network, so with
     ``--checkpoint``, ``--weights`` or ``--robust`` one of them would be ignored; and it tracks CSV rows, not an
     .npz."""
-    if args.robust is not None:
-        from immnet.imm.kalman import check_robust
-
-        try:
-            check_robust(args.robust)
-        except ValueError:
-            raise ValueError(f"--robust is Huber's k, a finite number of standard deviations > 0; got {args.robust:g}") from None
-        if args.method is not None:
-            raise ValueError("--robust sets the networks' update; a --method has its own (robust: in its YAML)")
+    multi_cli.check_positive(args.robust, "--robust is Huber's k, a finite number of standard deviations")
+    if args.robust is not None and args.method is not None:
+        raise ValueError("--robust sets the networks' update; a --method has its own (robust: in its YAML)")
     if args.input.suffix.lower() != ".csv" and _sigmas(args) is not None:
         raise ValueError(f"--sigma-range, --sigma-azimuth, --sigma-elevation are the stds of a CSV of plots "
                          f"(range,azimuth,elevation); {args.input} is not a CSV")
@@ -254,13 +240,9 @@ def check_paths(source: Path, target: Path) -> None:
         raise ValueError(f"--input and --output must both be .csv or both .npz (got {source.name}, {target.name})")
     if not source.is_file():
         raise FileNotFoundError(f"input not found: {source}")
-    if not target.parent.is_dir():
-        raise FileNotFoundError(f"the folder of --output does not exist: {target.parent}")
     if target.is_dir():
         raise ValueError(f"--output {target} is a folder; name the file to write")
-    from immnet.data.scratch import check_writable
-
-    check_writable(target)  # a read-only folder refused now, not after the tracking
+    multi_cli.check_output(target, "--output")
     if target.resolve() == source.resolve() or (target.exists() and os.path.samefile(source, target)):
         raise FileExistsError(f"--output {target} is the input file {source}: refusing to overwrite the input")
 
@@ -309,7 +291,7 @@ def _report_no_cov(why: str) -> None:
 
 
 def _track_rows_with_method(args, rows, limit: float, method=None, label: str | None = None,
-                            name: str | None = None, who: str | None = None, bank: bool = False) -> int:
+                            name: str | None = None, who: str | None = None) -> int:
     """CSV rows tracked by ``--method`` (or the registry method ``name``, or ``method``, built; ``who``: the tracker as
     the refusals name it): each row one scan at its own time (``segments.split_rows``); for a network trained over a
     range of intervals, a gap longer than the range is cut into missed scans inside it (``track_rows(max_interval=...)``).
@@ -337,8 +319,9 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
     if meas_cov is not None:  # a gated detection is a missed one: no covariance
         meas_cov = np.where(np.isnan(z).any(-1)[:, None, None], np.nan, meas_cov)
     segs, offset = split_rows(rows.ids, rows.t, z, args.max_coast)
-    # a segment of one row padded at an interval the method takes (the bank's members choose by it: kept at 1 s)
-    pad = 1.0 if span is None or bank else (float(span[0]) + float(span[1])) / 2
+    # a segment of one row padded at an interval the method takes (the bank, without a range, keeps 1 s: its members
+    # choose by it)
+    pad = 1.0 if span is None else (float(span[0]) + float(span[1])) / 2
     state, probs, cov = track_rows(method, segs, offset, return_cov=True,
                                    max_interval=None if span is None else span[1], r=args.r, meas_cov=meas_cov,
                                    one_row_interval=pad)
@@ -395,14 +378,12 @@ def _labelled(path: Path) -> bool:
 
 
 def run(args) -> int:
-    from immnet.tracking import multi_cli
-
     _check_options(args)
     check_paths(args.input, args.output)
     labelled = args.input.suffix.lower() != ".csv" or _labelled(args.input)
     multi_cli.check_options(args, labelled)
     limit = check_limit(args.max_position)
-    r = _told_r(args)
+    options = _load_options(args)
     if not labelled:
         if args.robust is not None:
             raise ValueError("--robust is for tracks with a track_id; the multi-target tracker's filter is a --method "
@@ -424,10 +405,10 @@ def run(args) -> int:
             return _track_plots(args, rows, limit)
         weights = _weights(args)
         if weights is None:  # the bank: each row a scan at its own time, as for a network trained over a range
-            code = _track_rows_with_method(args, rows, limit, _bank(args, limit, r), "the bank", bank=True)
+            code = _track_rows_with_method(args, rows, limit, _bank(args, limit, options), "the bank")
             _advise_bank(track_intervals(rows.ids, rows.t))
             return code
-        tracker = _tracker(args, weights, limit, r)  # its max_coast: the rows' segments are cut at it already
+        tracker = _tracker(args, weights, limit, options)  # its max_coast: the rows' segments are cut at it already
         if tracker.net.start.told_r:
             raise ValueError(f"{weights}: this network's filter experts are told each track's measurement std, which a "
                              f"CSV does not hold: give the radar's with --r METRES")
@@ -454,8 +435,8 @@ def run(args) -> int:
     weights = _weights(args)
     if weights is None:
         _report_npz_cov_unused(data, "the bank", args.r)
-        return _npz_with_bank(args, data, meta, _bank(args, limit, r).net, limit)
-    tracker = _tracker(args, weights, limit, r)
+        return _npz_with_bank(args, data, meta, _bank(args, limit, options).net, limit)
+    tracker = _tracker(args, weights, limit, options)
     if tracker.net.start.told_cov and not told:
         raise ValueError(f"{weights}: this network is told each detection's covariance, which {args.input} does not "
                          f"hold: give the .npz its {keys.MEAS_COV!r} [N, T, 3, 3] (immnet data adsb --sigma-* writes "
@@ -472,12 +453,9 @@ def run(args) -> int:
     # the range coasted at intervals inside it), each track's r where the network's filter experts are told it
     out = tracker.track(data["measurements"], intervals=tracker.net.intervals_for(data), return_cov=has_cov,
                         r=tracker.net.told_r(data), meas_cov=tracker.net.told_cov(data))
-    _save_npz(args.output, data, meta, {"state": out["state"].numpy(), "mode_probs": out["mode_probs"].numpy()},
-              {"state_cov": out["state_cov"].numpy()} if has_cov else {})
-    if not has_cov:
-        _report_no_cov(tracker.net.no_cov_reason())
-    _report_gated(tracker.n_gated, limit)
-    print(f"tracked {out.batch_size[0]} tracks -> {args.output}", file=sys.stderr)
+    _write_npz(args, data, meta, {"state": out["state"].numpy(), "mode_probs": out["mode_probs"].numpy()},
+               {"state_cov": out["state_cov"].numpy()} if has_cov else {}, tracker.n_gated, limit,
+               why=None if has_cov else tracker.net.no_cov_reason())
     if tracker.net.interval_range is not None:
         _advise(weights, np.asarray(intervals, dtype=np.float64).ravel())
     return 0
@@ -490,24 +468,30 @@ def _npz_with_bank(args, data, meta, bank, limit: float) -> int:
 
     intervals = scan_intervals(data)
     out = bank.track(data["measurements"], intervals=intervals, return_cov=True)
-    _save_npz(args.output, data, meta, {"state": out["state"].numpy(), "mode_probs": out["mode_probs"].numpy(),
-                                        "state_cov": out["state_cov"].numpy(),
-                                        "member_probs": out[keys.MEMBER_PROBS].numpy(),
-                                        "member_names": np.array(bank.names)})
-    _report_gated(bank.n_gated, limit)
-    print(f"tracked {out.batch_size[0]} tracks with the bank ({', '.join(bank.names)}) -> {args.output}", file=sys.stderr)
+    _write_npz(args, data, meta, {"state": out["state"].numpy(), "mode_probs": out["mode_probs"].numpy(),
+                                  "state_cov": out["state_cov"].numpy(),
+                                  "member_probs": out[keys.MEMBER_PROBS].numpy(),
+                                  "member_names": np.array(bank.names)}, {}, bank.n_gated, limit,
+               f" with the bank ({', '.join(bank.names)})")
     _advise_bank(intervals.numpy()[:, 1:].ravel())
     return 0
 
 
-def _save_npz(path: Path, data, meta, arrays: dict, tail: dict | None = None) -> None:
-    """An .npz output written whole or not at all: ``arrays``, the data's ``dt`` (``meta``) and scan times ``t``
-    where it has them, then ``tail``."""
+def _write_npz(args, data, meta, arrays: dict, tail: dict, n_gated: int, limit: float, by: str = "",
+               why: str | None = None) -> int:
+    """The .npz output, written whole or not at all: ``arrays``, the data's ``dt`` (``meta``) and scan times ``t``
+    where it has them, then ``tail``; then on stderr why it holds no covariance (``why``, where the tracker keeps
+    none), the gated measurements and what was tracked (``by``: with which tracker)."""
     from immnet.data.scratch import publishing
 
-    with publishing(path, suffix=".npz") as tmp:
+    with publishing(args.output, suffix=".npz") as tmp:
         times = {"t": np.asarray(data["t"], dtype=np.float64)} if "t" in data.keys() else {}
-        np.savez(tmp, **arrays, dt=np.float64(meta["dt"]), **times, **(tail or {}))
+        np.savez(tmp, **arrays, dt=np.float64(meta["dt"]), **times, **tail)
+    if why is not None:
+        _report_no_cov(why)
+    _report_gated(n_gated, limit)
+    print(f"tracked {len(arrays['state'])} tracks{by} -> {args.output}", file=sys.stderr)
+    return 0
 
 
 def _report_npz_cov_unused(data, what: str, r: float | None = None) -> None:
@@ -544,8 +528,5 @@ def _npz_plots(args, data, meta, limit: float) -> int:
     batch = TensorDict({**dict(data.items()), keys.MEASUREMENTS: z}, batch_size=data.batch_size)
     out = method.track(batch)
     probs = {"mode_probs": out[keys.MODE_PROBS].numpy()} if keys.MODE_PROBS in out.keys() else {}
-    _save_npz(args.output, data, meta, {"state": out[keys.STATE].numpy(), **probs},
-              {"state_cov": out[keys.STATE_COV].numpy()} if has_cov else {})
-    _report_gated(n_gated, limit)
-    print(f"tracked {out.batch_size[0]} tracks with {name} -> {args.output}", file=sys.stderr)
-    return 0
+    return _write_npz(args, data, meta, {"state": out[keys.STATE].numpy(), **probs},
+                      {"state_cov": out[keys.STATE_COV].numpy()} if has_cov else {}, n_gated, limit, f" with {name}")

@@ -31,6 +31,23 @@ SINGLE_OPTIONS = {
 (``--guard`` too: it has no range guard)."""
 
 
+def check_positive(value, what: str) -> None:
+    """A ValueError ``{what} > 0; got {value}`` unless an option's ``value`` (None: not given) is a finite number > 0
+    (``what``: the option and what it is, e.g. ``--r is the radar's measurement std in metres, a finite number``)."""
+    if value is not None and not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{what} > 0; got {value:g}")
+
+
+def check_output(path: Path, option: str) -> None:
+    """A clear error, before any work, unless the folder of ``option``'s ``path`` exists and a file can be written
+    there (``immnet.data.scratch.check_writable``: a read-only folder refused now, not after the tracking)."""
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"the folder of {option} does not exist: {path.parent}")
+    from immnet.data.scratch import check_writable
+
+    check_writable(path)
+
+
 def _option(name: str) -> str:
     return "--" + name.replace("_", "-")
 
@@ -61,14 +78,10 @@ def check_options(args, labelled: bool) -> None:
                 raise ValueError(f"{_option(name)} is JPDA's (--associator jpda): GNN does not use it")
     if args.pd is not None and not 0.0 < args.pd <= 1.0:
         raise ValueError(f"--pd is the probability that an aircraft is detected, in (0, 1]; got {args.pd:g}")
-    if args.clutter_density is not None and not (np.isfinite(args.clutter_density) and args.clutter_density > 0):
-        raise ValueError(f"--clutter-density is the false plots per m^3, a finite number > 0; got "
-                         f"{args.clutter_density:g}")
+    check_positive(args.clutter_density, "--clutter-density is the false plots per m^3, a finite number")
     if args.min_elevation is not None and args.max_range is None:
         raise ValueError("--min-elevation is the radar's cover with --max-range: give --max-range METRES too")
-    if args.max_range is not None and not (np.isfinite(args.max_range) and args.max_range > 0):
-        raise ValueError(f"--max-range is the slant range the radar sees up to, a finite number of metres > 0; got "
-                         f"{args.max_range:g}")
+    check_positive(args.max_range, "--max-range is the slant range the radar sees up to, a finite number of metres")
     if args.min_elevation is not None and not -90.0 <= args.min_elevation < 90.0:
         raise ValueError(f"--min-elevation is in degrees, in [-90, 90); got {args.min_elevation:g}")
     if args.scene is not None and args.figure is None:
@@ -77,11 +90,7 @@ def check_options(args, labelled: bool) -> None:
         figure = Path(args.figure)
         if figure.suffix.lower() != ".png":
             raise ValueError(f"--figure {figure}: the radar display is a PNG file (a name ending .png)")
-        if not figure.parent.is_dir():
-            raise FileNotFoundError(f"the folder of --figure does not exist: {figure.parent}")
-        from immnet.data.scratch import check_writable
-
-        check_writable(figure)
+        check_output(figure, "--figure")
 
 
 def _scene_clutter(path: Path, plots) -> np.ndarray:

@@ -34,7 +34,7 @@ import torch
 from immnet import keys
 from immnet.checkpoints import shipped
 from immnet.filters.multi import TrackFilter
-from immnet.tracking.networks import check_dt, coast_cuts, network_from, read_checkpoint, trained_for
+from immnet.tracking.networks import check_scan, network_from, read_checkpoint
 from immnet.tracking.tracker import Tracker
 
 
@@ -61,8 +61,7 @@ class NetworkFilter(TrackFilter):
                              f"(start_vz_std): the multi-target tracker starts them (load it with start_vz_std=None)")
         self.net = net
         self.name = name or tracker.name or (tracker.path.name if tracker.path is not None else "network")
-        self.told_cov = bool(net.start.told_cov)
-        self.plot_noise = self.told_cov
+        self.plot_noise = bool(net.start.told_cov)  # told each plot's covariance: the tracker adds it per plot
         self.no_mixture = no_mixture(self.name)
         self.r = None
         self._tr = self._fresh(tracker)
@@ -80,14 +79,10 @@ class NetworkFilter(TrackFilter):
         given = (config.get("gain") or {}).get("init_args") or {}
         net = network_from(config, state, path,
                            **{name: None for name in ("reacquire", "start_vz_std") if given.get(name) is not None})
-        tracker = Tracker(net)
-        tracker.name, tracker.path = name, path
-        return cls(tracker, name)
+        return cls(Tracker(net, name=name, path=path), name)
 
     def _fresh(self, like: Tracker) -> Tracker:
-        tr = Tracker(self.net, like.max_position, float("inf"))
-        tr.name, tr.path = like.name, like.path
-        return tr
+        return Tracker(self.net, like.max_position, float("inf"), like.name, like.path)
 
     def __len__(self) -> int:
         return 0 if self._tr.carry is None else int(self._tr.carry.batch_size[0])
@@ -110,7 +105,7 @@ class NetworkFilter(TrackFilter):
         keeps the reported estimate, covariance and data-mode probabilities."""
         z = torch.from_numpy(np.ascontiguousarray(z, dtype=np.float64))
         cov = None
-        if self.told_cov:
+        if self.plot_noise:
             R = np.broadcast_to(np.eye(3), (len(z), 3, 3)) if R is None else np.asarray(R, dtype=np.float64)
             cov = torch.from_numpy(np.where(np.isnan(z.numpy()).any(-1)[:, None, None], np.eye(3), R))
         out = tr.step(z, dt=torch.as_tensor(dt, dtype=torch.float64), R=cov)
@@ -123,8 +118,7 @@ class NetworkFilter(TrackFilter):
         an interval it was trained at, or (a network trained over a range) one longer than the range, coasted through
         in equal intervals inside it (``Tracker.step``'s rule)."""
         iv = torch.tensor([float(dt)], dtype=torch.float64)
-        _, each = coast_cuts(self.net, iv, torch.zeros(1, dtype=torch.bool))
-        check_dt(self.net, each if bool(trained_for(self.net, each).all()) else iv, f"{self.name}")
+        check_scan(self.net, iv, torch.zeros(1, dtype=torch.bool), self.name)
 
     def _multiples(self, dt: np.ndarray) -> np.ndarray:
         """The scans each start's interval spans for a network of one interval (its ``dt`` times a whole number: the

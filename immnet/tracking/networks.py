@@ -178,8 +178,9 @@ def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
     """``(scans, each)``: how many scans ``net`` takes each interval (s) in, and each scan's interval, as
     :func:`coast_long_gaps` cuts a sequence's: for a network trained over a range, an interval longer than the range
     is ``ceil(interval / end)`` equal intervals inside it, the scans before the last missed detections (a gap the
-    track coasts through); where ``first`` (bool, the intervals' shape: a track's first scan, whose interval is the
-    nominal one) it is one scan of at most the range's end. Otherwise one scan of the interval as given (NaN too)."""
+    track coasts through); where ``first`` (bool, broadcasting to the intervals' shape: a track's first scan, whose
+    interval is the nominal one) it is one scan of at most the range's end. Otherwise one scan of the interval as
+    given (NaN too)."""
     iv = torch.as_tensor(intervals, dtype=torch.float64)
     span = getattr(net, "interval_range", None)
     if span is None:
@@ -193,6 +194,15 @@ def coast_cuts(net, intervals, first=None) -> tuple[torch.Tensor, torch.Tensor]:
     cuts = torch.ceil(iv / end).clamp(min=1)
     cuts = torch.where(torch.isnan(cuts), torch.ones_like(cuts), cuts)
     return cuts.long(), iv / cuts
+
+
+def check_scan(net, interval: torch.Tensor, first: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`coast_cuts` of one scan's ``interval [B]`` (``first [B]``: a track's first scan), checked: a ValueError
+    (:func:`check_dt`, naming the intervals as given) unless ``net`` was trained at every interval it is cut into."""
+    cuts, each = coast_cuts(net, interval, first)
+    bad = ~trained_for(net, each)
+    check_dt(net, interval[bad] if bool(bad.any()) else each, name)
+    return cuts, each
 
 
 def coast_scan(net: IMMNet, carry: TensorDict, z: torch.Tensor, cuts: torch.Tensor, each: torch.Tensor, keep,
@@ -227,9 +237,7 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
     span = getattr(net, "interval_range", None)
     if span is None:
         return z, intervals, None
-    first = torch.zeros(intervals.shape, dtype=torch.bool)
-    first[:, :1] = True
-    cuts, each = coast_cuts(net, intervals, first)
+    cuts, each = coast_cuts(net, intervals, torch.arange(intervals.shape[-1]) == 0)  # scan 0: a track's start
     if not bool((cuts > 1).any()):
         return z, each, None  # scan 0's at most the range's end
     where = cuts.cumsum(-1) - 1  # each scan is the last of its interval's
@@ -263,12 +271,15 @@ def frame_origin(net, z: torch.Tensor) -> torch.Tensor:
     return origin
 
 
-def next_origin(origin: torch.Tensor, z: torch.Tensor, radar: bool = False) -> torch.Tensor:
+def next_origin(origin: torch.Tensor, z: torch.Tensor, reset: torch.Tensor | None,
+                radar: bool = False) -> torch.Tensor:
     """The streaming trackers' :func:`frame_origin` after one scan ``z [B, 3]`` (gated): ``origin [B, 3]`` (NaN: the
-    track has had no detection since its start or restart) set to this scan's detection where it has none yet; zero
-    where the network keeps the radar's frame (``radar``: it has a range guard)."""
+    track has had no detection since its start or restart; ``reset [B]``, or None: the tracks that restart at this
+    scan) set to this scan's detection where it has none yet; zero where the network keeps the radar's frame
+    (``radar``: it has a range guard)."""
     if radar:
         return torch.zeros_like(origin)
+    origin = origin if reset is None else torch.where(reset[:, None], float("nan"), origin)
     new = torch.isnan(origin).any(-1) & ~torch.isnan(z).any(-1)
     return torch.where(new[:, None], z.to(torch.float64), origin)
 
@@ -467,8 +478,62 @@ def coast_step(since: torch.Tensor, interval: torch.Tensor, detected: torch.Tens
     return torch.where(restart | detected, torch.zeros_like(total), total), restart
 
 
-def by_segments(run, restart: torch.Tensor, z: torch.Tensor, intervals: torch.Tensor | None) -> TensorDict:
-    """``run(z [S, L, 3], intervals [S, L] or None, rows [S])`` over each track's segments (a track cut at each scan
+def fresh_tracks(tracker, n_tracks: int) -> None:
+    """The per-track memory a streaming tracker (``Tracker``, ``NetworkBank``) keeps beside its carry, for ``n_tracks``
+    tracks that have not started: ``fresh`` (no scan yet: the first one's interval is nominal), ``since`` (s since the
+    last detection or the start: ``max_coast``'s), ``last`` (the interval of the last scan; NaN: none yet) and
+    ``origin`` (the track's frame, :func:`next_origin`; NaN: no detection yet); ``n_gated`` back to 0."""
+    tracker.fresh = torch.ones(n_tracks, dtype=torch.bool)
+    tracker.since = torch.zeros(n_tracks, dtype=torch.float64)
+    tracker.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)
+    tracker.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)
+    tracker.n_gated = 0
+
+
+def begin_scan(tracker, z: torch.Tensor, reset, dt, nominal: float, held: int | None):
+    """What a streaming tracker (``Tracker``, ``NetworkBank``: its ``fresh``, ``since``, ``last``, ``max_position`` and
+    ``max_coast``; ``held``: the number of tracks it holds, None: none yet) reads of one scan ``z [B, 3]`` (a row per
+    track held: :func:`check_batch`) before anything of its state changes:
+    ``(gated, n_gated, reset, first, now, since)``: ``z`` gated, the number gated, ``reset [B]`` (None: none) the
+    tracks that restart at this scan, given or after no detection for longer than ``max_coast`` s (:func:`coast_step`),
+    ``first [B]`` each track's first scan since a restart, ``now [B]`` the scan's interval (``dt``, a number or ``[B]``;
+    None: ``nominal``), a restarted track's at the interval of its scan before where ``dt`` is given, and ``since [B]``
+    after the scan."""
+    B, started = z.shape[0], held is not None
+    check_batch(held, B)
+    reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
+    first = tracker.fresh if started else torch.ones(B, dtype=torch.bool)
+    first = first if reset is None else first | reset
+    now = torch.full((B,), float(nominal), dtype=torch.float64) if dt is None else per_track(dt, B, "dt")
+    check_finite_intervals(now, "dt")
+    gated, n_gated = gate_measurements(z, tracker.max_position)
+    since = tracker.since if started else torch.zeros(B, dtype=torch.float64)
+    since, restart = coast_step(since, now, ~torch.isnan(gated).any(-1), first, tracker.max_coast)
+    if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset,
+        reset = restart if reset is None else reset | restart  # its first scan at the interval of the scan before
+        first = first | restart
+        now = now if dt is None else torch.where(restart, tracker.last, now)
+    return gated, n_gated, reset, first, now, since
+
+
+def by_segments(tracker, run, z: torch.Tensor, intervals, nominal: float) -> TensorDict:
+    """``run(z, intervals, rows)`` over whole sequences ``z [B, T, 3 + ...]`` (each scan's measurement, then what else
+    the scan carries) as a streaming tracker's ``track`` runs them (``Tracker``, ``NetworkBank``: its ``max_position``
+    and ``max_coast``): ``intervals [B, T]`` checked (None: ``nominal`` s at every scan, and None to ``run``); a track
+    with no detection for longer than ``max_coast`` s restarts (:func:`coast_restarts`): each part of it between
+    restarts run as a fresh track (``rows [S]``: each one's track, None where no track restarts; :func:`_segments`).
+    ``tracker.n_gated``: the measurements gated."""
+    iv = None if intervals is None else check_finite_intervals(as_intervals(intervals, z), "intervals")
+    gated, n_gated = gate_measurements(z[..., :3], tracker.max_position)
+    every = torch.full(z.shape[:2], float(nominal), dtype=torch.float64) if iv is None else iv
+    restart, taken = coast_restarts(~torch.isnan(gated).any(-1), every, tracker.max_coast)
+    out = _segments(run, restart, z, None if iv is None else taken) if bool(restart.any()) else run(z, iv, None)
+    tracker.n_gated = n_gated
+    return out
+
+
+def _segments(run, restart: torch.Tensor, z: torch.Tensor, intervals: torch.Tensor | None) -> TensorDict:
+    """``run(z [S, L, ...], intervals [S, L] or None, rows [S])`` over each track's segments (a track cut at each scan
     of ``restart [B, T]``, each segment a fresh track from there; ``rows`` each one's track), segments of one length
     together; their outputs put back in place ``[B, T]``."""
     B, T = restart.shape

@@ -130,16 +130,17 @@ def batches(span: np.ndarray, batch_size: int = 512) -> list[np.ndarray]:
     return groups
 
 
-def _groups(segs: Segments, batch_size: int):
-    """The batches of segments to track together: ``(T, rows)`` with ``T`` their longest span and ``rows``
-    each segment's row indices in order; and the blank per-row outputs ``state [R, 9]``, ``mode_probs [R, 4]``,
-    ``state_cov [R, 9, 9]``."""
-    R = len(segs.segment)
-    blank = (np.full((R, 9), np.nan), np.full((R, 4), np.nan), np.full((R, 9, 9), np.nan))
-    rows_of = np.argsort(segs.segment, kind="stable")
-    first = np.searchsorted(segs.segment[rows_of], np.arange(len(segs.span) + 1))
-    groups = [(int(segs.span[g].max()), [rows_of[first[s] : first[s + 1]] for s in g]) for g in batches(segs.span, batch_size)]
-    return groups, blank
+def _segment_rows(segs: Segments) -> list[np.ndarray]:
+    """Each segment's row indices, in order."""
+    order = np.argsort(segs.segment, kind="stable")
+    first = np.searchsorted(segs.segment[order], np.arange(len(segs.span) + 1))
+    return [order[first[s] : first[s + 1]] for s in range(len(segs.span))]
+
+
+def _blank(R: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The per-row outputs before anything is tracked: ``state [R, 9]``, ``mode_probs [R, 4]``, ``state_cov [R, 9,
+    9]``, NaN."""
+    return np.full((R, 9), np.nan), np.full((R, 4), np.nan), np.full((R, 9, 9), np.nan)
 
 
 def _scan_times(times: np.ndarray, max_interval: float | None) -> tuple[np.ndarray, np.ndarray]:
@@ -178,20 +179,17 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
     import torch
 
     told = None if r is None else float(r)  # ``r`` names rows below
-    groups, (state, probs, cov) = _groups(segs, batch_size)
-    # per segment (its first row): its scan times and its rows' scans among them
-    scans = {int(r[0]): _scan_times(offset[r], max_interval) for _, rows in groups for r in rows}
-    if max_interval is not None:  # regroup by the spans with the missed scans
-        segs = Segments(segs.segment, segs.step, segs.span.copy(), segs.z)
-        for r0, (full, _) in scans.items():
-            segs.span[segs.segment[r0]] = len(full)
-        groups, _ = _groups(segs, batch_size)
-    for T, rows in groups:
+    state, probs, cov = _blank(len(segs.segment))
+    segment_rows = _segment_rows(segs)
+    scans = [_scan_times(offset[r], max_interval) for r in segment_rows]  # its scan times, its rows' scans among them
+    span = np.array([len(full) for full, _ in scans], dtype=np.int64)  # the rows and the missed scans cut in
+    for g in batches(span, batch_size):
+        T, rows = int(span[g].max()), [segment_rows[s] for s in g]
         z = np.full((len(rows), T, 3), np.nan)
         t = np.zeros((len(rows), T))
         dt = np.ones(len(rows))
         for i, r in enumerate(rows):
-            full, pos = scans[int(r[0])]
+            full, pos = scans[g[i]]
             z[i, pos] = segs.z[r]
             t[i, : len(full)] = full
             gaps = np.diff(full)
@@ -204,12 +202,12 @@ def track_rows(method, segs: Segments, offset: np.ndarray, batch_size: int = 512
         if meas_cov is not None:
             c = np.full((len(rows), T, 3, 3), np.nan)
             for i, r in enumerate(rows):
-                c[i, scans[int(r[0])][1]] = meas_cov[r]
+                c[i, scans[g[i]][1]] = meas_cov[r]
             batch.set(keys.MEAS_COV, torch.from_numpy(c))
         if hasattr(method, "check"):
             method.check(batch)
         out = method.track(batch)
-        _scatter(out, return_cov, rows, [scans[int(r[0])][1] for r in rows], state, probs, cov)
+        _scatter(out, return_cov, rows, [scans[s][1] for s in g], state, probs, cov)
     return (state, probs, cov) if return_cov else (state, probs)
 
 
@@ -232,8 +230,10 @@ def track_segments(tracker, segs: Segments, batch_size: int = 512, return_cov: b
     """``state [R, 9]``, ``mode_probs [R, 4]`` (float64) per row: each row's estimate at its scan of its
     segment, each segment tracked as a fresh track by ``tracker.track``; NaN where a row has none. With
     ``return_cov`` a third, ``state_cov [R, 9, 9]`` (``Tracker.track``'s, which refuses experts without one)."""
-    groups, (state, probs, cov) = _groups(segs, batch_size)
-    for T, rows in groups:
+    state, probs, cov = _blank(len(segs.segment))
+    segment_rows = _segment_rows(segs)
+    for g in batches(segs.span, batch_size):
+        T, rows = int(segs.span[g].max()), [segment_rows[s] for s in g]
         z = np.full((len(rows), T, 3), np.nan)  # float64: the tracker moves each track into its frame first
         for i, r in enumerate(rows):
             z[i, segs.step[r]] = segs.z[r]

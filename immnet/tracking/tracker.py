@@ -33,16 +33,15 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.checkpoints import BANK, DEFAULT_WEIGHTS, PRETRAINED, shipped  # PRETRAINED: re-exported here too
-from immnet.data.validate import MAX_ABS_POSITION, check_limit, gate_measurements
+from immnet.data.validate import MAX_ABS_POSITION, check_limit
 from immnet.filters.base import blank_before_first_detection
 from immnet.stages import IMMNet
 from immnet.tracking.bank import NetworkBank
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
-    AS_CONFIGURED, as_intervals, as_measurements, check_batch, check_dt, check_n_tracks, check_finite_intervals,
-    coast_cuts, by_segments, coast_restarts, coast_scan, coast_step, guarded, load_network, next_origin,
-    outputs_to_world, per_track, provenance_of, read_checkpoint, scans_served, run_network, select_rows, to_local,
-    trained_for,
+    AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_dt, check_n_tracks, check_scan, coast_scan,
+    fresh_tracks, guarded, load_network, next_origin, outputs_to_world, per_track, provenance_of, read_checkpoint,
+    run_network, scans_served, select_rows, to_local,
 )
 
 
@@ -71,9 +70,11 @@ class Tracker:
     ``max_position``: the largest ``|z_a|`` (m) a detection may have; beyond it, or non-finite, a
     measurement is a missed detection, counted in ``n_gated`` (module doc). ``max_coast``: the seconds a track may go
     without a detection before it restarts (``step``; ``immnet.tracking.segments.MAX_COAST``, ``inf``: never).
+    ``name``, ``path``: what ``repr`` names, the shipped name or the checkpoint it was loaded from (None: neither).
     """
 
-    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION, max_coast: float = MAX_COAST):
+    def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION, max_coast: float = MAX_COAST,
+                 name: str | None = None, path: str | Path | None = None):
         self.net = net.eval()
         self.max_position = check_limit(max_position)
         self.max_coast = check_coast(max_coast, float(self.net.dt))
@@ -83,7 +84,7 @@ class Tracker:
         self.last: torch.Tensor | None = None  # [B] the interval each track's last scan was taken at (NaN: none yet)
         self.origin: torch.Tensor | None = None  # [B, 3] float64: each track's frame, its first detection (NaN: none)
         self.n_gated = 0
-        self.name, self.path = None, None  # what ``repr`` names: the shipped name or checkpoint it was loaded from
+        self.name, self.path = name, None if path is None else Path(path)
 
     def __repr__(self) -> str:
         """What the tracker is: its network, the scan intervals it serves, its range guard and its provenance."""
@@ -96,9 +97,7 @@ class Tracker:
                         r=AS_CONFIGURED, robust=AS_CONFIGURED) -> "Tracker":
         """The IMMNet of a checkpoint; ``guard``, ``adapt``, ``r`` and ``robust`` as in ``load_network``;
         ``max_position`` the gate on measurements (``immnet.data.validate``)."""
-        tracker = cls(load_network(path, guard, adapt, r, robust=robust), max_position)
-        tracker.path = Path(path)
-        return tracker
+        return cls(load_network(path, guard, adapt, r, robust=robust), max_position, path=path)
 
     @classmethod
     def pretrained(cls, name: str = DEFAULT_WEIGHTS, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, max_position: float = MAX_ABS_POSITION,
@@ -127,11 +126,7 @@ class Tracker:
         """``n_tracks`` (a whole number, at least 1) tracks that have not started; ``n_gated`` back to 0."""
         n_tracks = check_n_tracks(n_tracks)
         self.carry = self.net.initial_carry(n_tracks)
-        self.fresh = torch.ones(n_tracks, dtype=torch.bool)
-        self.since = torch.zeros(n_tracks, dtype=torch.float64)
-        self.last = torch.full((n_tracks,), float("nan"), dtype=torch.float64)
-        self.origin = torch.full((n_tracks, 3), float("nan"), dtype=torch.float64)
-        self.n_gated = 0
+        fresh_tracks(self, n_tracks)
 
     @torch.no_grad()
     def step(self, z: torch.Tensor, reset: torch.Tensor | None = None, dt=None, r=None, R=None) -> TensorDict:
@@ -173,37 +168,22 @@ class Tracker:
         if R is not None and not told_cov:
             warnings.warn("Tracker.step: this network does not use R (each detection's covariance): it was checked and "
                           "left unused (docs/radar.md, 'Input')", UserWarning, stacklevel=3)
-        check_batch(None if self.carry is None else self.carry.batch_size[0], z.shape[0])
-        mask = None if reset is None else per_track(reset, z.shape[0], "reset", torch.bool)
-        fresh = torch.ones(z.shape[0], dtype=torch.bool) if self.carry is None else self.fresh
-        first = fresh if mask is None else fresh | mask  # each track's first scan since a reset
-        interval = None if dt is None else check_finite_intervals(per_track(dt, z.shape[0], "dt"), "dt")
+        held = None if self.carry is None else self.carry.batch_size[0]
+        gated, n_gated, mask, first, now, since = begin_scan(self, z, reset, dt, self.net.dt, held)
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
-        gated, n_gated = gate_measurements(z, self.max_position)
-        since = torch.zeros(z.shape[0], dtype=torch.float64) if self.carry is None else self.since
-        now = torch.full_like(since, float(self.net.dt)) if interval is None else interval
-        since, restart = coast_step(since, now, ~torch.isnan(gated).any(-1), first, self.max_coast)
-        if bool(restart.any()):  # no detection for longer than max_coast: the track starts again, as after a reset,
-            mask = restart if mask is None else mask | restart  # its first scan at the interval of the scan before
-            first = first | restart
-            interval = None if interval is None else torch.where(restart, self.last, interval)
-        if interval is not None:  # checked as the network takes it, before anything of the tracker's state changes
-            cuts, each = coast_cuts(self.net, interval, first)
-            bad = ~trained_for(self.net, each)
-            check_dt(self.net, interval[bad] if bool(bad.any()) else each, "this tracker")
+        if dt is not None:  # checked as the network takes it, before anything of the tracker's state changes
+            cuts, each = check_scan(self.net, now, first, "this tracker")
         if self.carry is None:  # the first scan without a reset: its number of tracks
             self.reset(z.shape[0])
-        origin = self.origin if mask is None else torch.where(mask[:, None], float("nan"), self.origin)
-        origin = next_origin(origin, gated, guarded(self.net))
+        origin = next_origin(self.origin, gated, mask, guarded(self.net))
         z = to_local(gated, origin.nan_to_num())
         self.n_gated += n_gated
-        self.since, self.origin = since, origin
-        self.last = now if interval is None else interval
+        self.since, self.origin, self.last = since, origin, now
         if mask is not None:
             self.carry = select_rows(mask, self.net.initial_carry(z.shape[0]), self.carry)
         cov = None if not told_cov else torch.where(torch.isnan(z).any(-1)[:, None, None], torch.eye(3, dtype=cov.dtype),
                                                      cov).to(z.dtype)
-        if interval is None:
+        if dt is None:
             self.carry = self.net.scan(self.carry, z, r=told, meas_cov=cov)
         else:
             keep = lambda td: td.select(*self.net.carry_keys)  # noqa: E731
@@ -251,22 +231,13 @@ class Tracker:
             raise ValueError(f"meas_cov is [n_tracks, T, 3, 3] = {[*z.shape[:2], 3, 3]}, got {list(meas_cov.shape)}")
         if return_cov and not self.net.has_cov:
             raise ValueError(self.net.no_cov_reason())
-        iv = None if intervals is None else check_finite_intervals(as_intervals(intervals, z), "intervals")
         told = None if r is None else per_track(r, z.shape[0], "r", torch.float32)
-        gated, n_gated = gate_measurements(z, self.max_position)
-        every = torch.full(z.shape[:2], float(self.net.dt), dtype=torch.float64) if iv is None else iv
-        restart, taken = coast_restarts(~torch.isnan(gated).any(-1), every, self.max_coast)
-        if not bool(restart.any()):
-            out, self.n_gated = run_network(self.net, z, batch_size, iv, return_cov, told, return_loglik,
-                                            self.max_position, meas_cov)
-            return out
 
-        def run(zs, ivs, rows):  # each segment a fresh track (its detections' covariances after its measurements)
+        def run(zs, ivs, rows):  # a track, or a segment of one (its detections' covariances after its measurements)
             cov = None if meas_cov is None else zs[..., 3:].unflatten(-1, (3, 3))
-            return run_network(self.net, zs[..., :3], batch_size, ivs, return_cov, None if told is None else told[rows],
-                               return_loglik, self.max_position, cov)[0]
+            return run_network(self.net, zs[..., :3], batch_size, ivs, return_cov,
+                               told if told is None or rows is None else told[rows], return_loglik, self.max_position,
+                               cov)[0]
 
-        rows = z if meas_cov is None else torch.cat([z, meas_cov.to(z.dtype).flatten(-2)], -1)
-        out = by_segments(run, restart, rows, None if iv is None else taken)
-        self.n_gated = n_gated
-        return out
+        rows = z if meas_cov is None else torch.cat([z, torch.as_tensor(meas_cov).to(z.dtype).flatten(-2)], -1)
+        return by_segments(self, run, rows, intervals, self.net.dt)
