@@ -89,56 +89,6 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
     return net.to(dtype).eval()
 
 
-def _restarts(rule, intervals, mu0: torch.Tensor, vz_std: float | None = None) -> Restarts | None:
-    """The scan loop's re-acquisition (``immnet.imm.reacquire.Restarts``) of ``rule`` at ``intervals`` (a number or
-    ``[B, T]``), restarting at the start's velocity and acceleration stds, its prior on the vertical speed and
-    ``mu0``; None where ``rule`` is."""
-    return None if rule is None else Restarts(rule, intervals, VEL_STD, ACC_STD, mu0, vz_std)
-
-
-class KalmanFilterTracker(Method):
-    """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r``; ``robust``: Huber's
-    ``k`` of the update (``IMMTracker``'s)."""
-
-    any_interval = True
-
-    build_options = {"return_cov": False}
-
-    def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None,
-                 return_cov: bool = False, robust: float | None = None, reacquire=None):
-        self.model = model if isinstance(model, MotionModel) else instantiate(model)
-        self.measurement = measurement_model(r, ISOTROPIC)
-        self.r, self.needs = r, self.measurement.needs
-        _non_negative("sigma_q", sigma_q)
-        self.sigma_q, self.dtype = float(sigma_q), as_dtype(dtype)
-        self.name = name or f"kf-{self.model.name}"
-        self.return_cov = return_cov
-        self.robust = check_robust(robust)
-        self.reacquire = Reacquire.from_config(reacquire)
-
-    def network(self, dt: float = 1.0):
-        """This filter as IMMNet with nothing learned: the one-model case of ``IMMTracker.network`` (its docstring)."""
-        # one model: Pi = [[1]] whatever p_stay (which the interaction holds to (0, 1))
-        return _linear_network(self.name, ModelSet([self.model]), self.sigma_q, self.r, 0.5, dt, self.dtype,
-                               robust=self.robust, reacquire=self.reacquire)
-
-    def track(self, batch: TensorDict) -> TensorDict:
-        self.check(batch)
-        z = batch[keys.MEASUREMENTS].to(self.dtype)
-        dev = z.device
-        dt = _interval_or_intervals(batch, self.dtype, dev)
-        F = self.model.F(dt, dtype=self.dtype, device=dev)
-        Q = self.model.Q(self.sigma_q, dt, dtype=self.dtype, device=dev)
-        r = self.measurement.std(batch, self.dtype, dev)
-        x, P = initial_state(z, r)
-        R = variance(r, self.dtype, dev)
-        one = torch.ones(1, 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1, Pi = [[1]]
-        states, _, _, *cov = imm_filter(z, x, P, F.unsqueeze(-3), Q.unsqueeze(-3), R, one, one[0],
-                                        return_cov=self.return_cov, start=first_detection(z), robust=self.robust,
-                                        reacquire=_restarts(self.reacquire, dt, one[0]))
-        return output(states, {keys.STATE_COV: cov[0] if cov else None}, measurements=z)
-
-
 class IMMTracker(Method):
     """The standard IMM over a model set.
 
@@ -280,11 +230,11 @@ class IMMTracker(Method):
             r = model.std(batch, self.dtype, z.device)
             x0, P0 = initial_state(z, r, vz_std=self.vz_std)
             R = variance(r, self.dtype, z.device)
+        reacquire = None if self.reacquire is None else Restarts(self.reacquire, intervals, VEL_STD, ACC_STD, mu0,
+                                                                  self.vz_std)  # restarting as a track starts
         states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
                                                   compile=self.compile, return_cov=self.return_cov, start=first,
-                                                  robust=robust,
-                                                  reacquire=_restarts(self.reacquire, intervals, mu0, self.vz_std),
-                                                  measure=measure)
+                                                  robust=robust, reacquire=reacquire, measure=measure)
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None,
                  keys.EXPERT_POST: experts, keys.EXPERT_PROBS: probs if self.return_experts else None}  # None: left out
         return output(states, extra, measurements=z)
@@ -306,3 +256,20 @@ class IMMTracker(Method):
         if self.return_experts:
             extra[keys.EXPERT_POST], extra[keys.EXPERT_PROBS] = out[keys.ROLLOUT_EXPERT_POST], probs
         return output(out[keys.STATE], extra, measurements=z)
+
+
+class KalmanFilterTracker(IMMTracker):
+    """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r`` (a number or
+    ``"data"``): the IMM of that one model (``IMMTracker``: its ``robust``, ``reacquire`` and ``network()``), whose
+    output has no ``mode_probs`` (one model, no mode to weigh)."""
+
+    def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64",
+                 name: str | None = None, return_cov: bool = False, robust: float | None = None, reacquire=None):
+        self.model = model if isinstance(model, MotionModel) else instantiate(model)
+        measurement_model(r, ISOTROPIC)  # one r per track: no detection's covariance, no polar model
+        # one model: Pi = [[1]] whatever p_stay (which IMMNet's interaction holds to (0, 1): network())
+        super().__init__(ModelSet([self.model]), r, sigma_q, 0.5, dtype=dtype, name=name or f"kf-{self.model.name}",
+                         return_cov=return_cov, robust=robust, reacquire=reacquire)
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        return super().track(batch).exclude(keys.MODE_PROBS)
