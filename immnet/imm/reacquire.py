@@ -27,7 +27,7 @@ from typing import NamedTuple
 import torch
 
 from immnet.imm.kalman import _as_cov, inv3, quadratic, start_state
-from immnet.imm.option import Option, is_number
+from immnet.imm.option import Option, is_number, positive
 
 
 @dataclass(frozen=True)
@@ -60,9 +60,7 @@ class Reacquire(Option):
         if not isinstance(self.reject, bool):
             raise ValueError(f"reacquire's reject must be true or false, got {self.reject!r}")
         for name in ("gate", "speed", "climb"):
-            value = getattr(self, name)
-            if not (is_number(value) and value > 0):
-                raise ValueError(f"reacquire's {name} must be a finite number > 0, got {value!r}")
+            positive(getattr(self, name), f"reacquire's {name} must be a finite number > 0")
         if (self.accel is None) != (self.vertical_accel is None):
             raise ValueError(f"reacquire's accel and vertical_accel are both numbers or both None (every far detection "
                              f"rejected), got {self.accel!r} and {self.vertical_accel!r}")
