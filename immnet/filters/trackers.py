@@ -25,7 +25,7 @@ from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interva
 from immnet.filters.imm import ACC_STD, VEL_STD, first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust, check_vz_std
-from immnet.imm.measurement import Isotropic, PerDetection, Polar, ToldStd, measurement_model
+from immnet.imm.measurement import MODEL_BASED, Isotropic, PerDetection, Polar, ToldStd, measurement_model
 from immnet.imm.reacquire import Reacquire, Restarts
 from immnet.motion import ModelSet, Modes, MotionModel, coupling, instantiate
 
@@ -89,7 +89,31 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
     return net.to(dtype).eval()
 
 
-class IMMTracker(Method):
+class _ModelSetIMM(Method):
+    """What the IMMs over a model set (``IMMTracker``, ``PerAxisIMMTracker``) hold alike: the ``ModelSet`` of
+    ``model_set``, the measurement model of ``r`` (one of ``takes``, ``measurement_model``'s), ``sigma_q`` checked
+    (``check_sigma_q``), the transition matrix ``Pi`` of ``p_stay`` (and ``_p_stay``, IMMNet's for ``network()``:
+    None for a full matrix), the dtype, ``name``, ``return_cov`` and Huber's ``robust``."""
+
+    any_interval = True
+
+    build_options = {"return_cov": False}
+
+    def __init__(self, model_set, r, sigma_q, p_stay, dtype, name: str, return_cov: bool, robust,
+                 takes: tuple[type, ...] = MODEL_BASED):
+        self.model_set = ModelSet.from_config(model_set)
+        M = len(self.model_set)
+        self.measurement = measurement_model(r, takes)
+        self.r, self.needs, self.sigma_q = r, self.measurement.needs, check_sigma_q(sigma_q, M)
+        self.Pi = transition_matrix(p_stay, M)
+        self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
+        self.dtype = as_dtype(dtype)
+        self.name = name
+        self.return_cov = return_cov
+        self.robust = check_robust(robust)
+
+
+class IMMTracker(_ModelSetIMM):
     """The standard IMM over a model set.
 
     ``model_set``: a YAML path, a list of ``class_path`` entries or a ``ModelSet``; ``r``: the
@@ -120,10 +144,6 @@ class IMMTracker(Method):
     The last five are the joint IMM's (``modes="joint"``).
     """
 
-    any_interval = True
-
-    build_options = {"return_cov": False}
-
     def __init__(
         self,
         model_set,
@@ -141,7 +161,7 @@ class IMMTracker(Method):
         reacquire: Reacquire | dict | bool | None = None,
         vz_std: float | None = None,
     ):
-        self.model_set = ModelSet.from_config(model_set)
+        super().__init__(model_set, r, sigma_q, p_stay, dtype, name, return_cov, robust)
         self.modes = Modes.parse(modes)
         groups = self.modes.groups
         self._step_net = None  # the network a grouped IMM tracks with (_track_by_step)
@@ -155,11 +175,7 @@ class IMMTracker(Method):
         moving = [m.name for m in self.model_set if m.state_dependent]
         if moving:
             raise ValueError(f"the IMM needs a constant F per model; {moving} are state-dependent (IMMNet experts only)")
-        self.measurement = measurement_model(r)
-        self.r, self.needs = r, self.measurement.needs
-        self.sigma_q = check_sigma_q(sigma_q, M)
         isotropic = isinstance(self.measurement, ISOTROPIC)
-        self.robust = check_robust(robust)
         self.reacquire = Reacquire.from_config(reacquire)
         self.vz_std = check_vz_std(vz_std)
         if groups is not None and not (isotropic and self.robust is None and self.reacquire is None
@@ -169,18 +185,13 @@ class IMMTracker(Method):
         if self.reacquire is not None and isinstance(self.measurement, Polar):
             raise ValueError(f"{name}: re-acquisition takes a Cartesian measurement model (a number, 'data' or "
                              f"'detection'), not the polar one")
-        self.Pi = transition_matrix(p_stay, M)
-        self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
         self.mu0 = torch.as_tensor([1.0 / M] * M if mu0 is None else mu0, dtype=torch.float64)  # uniform by default
         if self.mu0.shape != (M,):
             raise ValueError(f"mu0 must have one probability per model ({M}), got shape {tuple(self.mu0.shape)}")
         if (self.mu0 < 0).any() or abs(float(self.mu0.sum()) - 1.0) > 1e-6:
             raise ValueError(f"mu0 must be non-negative and sum to 1, got {self.mu0.tolist()}")
-        self.dtype = as_dtype(dtype)
-        self.name = name
         self.return_experts = return_experts
         self.compile = compile
-        self.return_cov = return_cov
 
     def network(self, dt: float = 1.0):
         """This IMM as IMMNet with nothing learned (docs/core.md, "Every tracker as a configuration"): filter

@@ -235,9 +235,10 @@ def polar_update(x: torch.Tensor, P: torch.Tensor, plot: torch.Tensor, sigma: to
 
 
 KINDS = (Isotropic, ToldStd, PerDetection, Polar, Estimated)  # every measurement model's kind
+MODEL_BASED = KINDS[:4]  # the kinds a model-based tracker takes: all but Estimated (IMMNet's filter experts alone)
 
 
-def measurement_model(r, takes: tuple[type, ...] = (Isotropic, ToldStd, PerDetection, Polar)):
+def measurement_model(r, takes: tuple[type, ...] = MODEL_BASED):
     """A configuration's ``r`` as its measurement model, one of ``takes`` (the kinds the caller filters with; a
     model-based tracker's by default): a positive number (``Isotropic``), ``"data"`` (``ToldStd``), ``"detection"``
     (``PerDetection``), a dict ``{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}`` (``Polar.from_config``),
