@@ -22,9 +22,9 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.filters.base import output
+from immnet.filters.base import interval_or_intervals, output
 from immnet.filters.imm import first_detection, initial_state
-from immnet.filters.trackers import ISOTROPIC, _interval_or_intervals, _linear_network, _ModelSetIMM, variance
+from immnet.filters.trackers import ISOTROPIC, _linear_network, _ModelSetIMM, variance
 from immnet.imm.runner import linear_transition, run
 from immnet.motion import AXES, AXIS_OF, Modes, coupling
 from immnet.motion.models import axis_blocks, axis_states, block_diagonal
@@ -70,7 +70,7 @@ class PerAxisIMMTracker(_ModelSetIMM):
         B, T, _ = z.shape
         dev = z.device
         M = len(self.model_set)
-        dt = _interval_or_intervals(batch, self.dtype, dev)
+        dt = interval_or_intervals(batch, self.dtype, dev)
         F = self.model_set.F(dt, dtype=self.dtype, device=dev)  # [M | B, T, M, 9, 9]
         Q = self.model_set.Q(self.sigma_q, dt, dtype=self.dtype, device=dev)
         r = self.measurement.std(batch, self.dtype, dev)

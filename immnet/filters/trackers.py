@@ -20,8 +20,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.data.times import scan_intervals
-from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
+from immnet.filters.base import Method, as_dtype, data_mode_probs, interval_or_intervals, output
 from immnet.filters.imm import ACC_STD, VEL_STD, first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust, check_vz_std
@@ -55,14 +54,6 @@ def variance(r: float | torch.Tensor, dtype, device) -> torch.Tensor:
     if isinstance(r, torch.Tensor):
         return r * r
     return torch.tensor(r**2, dtype=dtype, device=device)
-
-
-def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Tensor:
-    """The one interval of every scan of ``batch`` as a float (the fast paths' shared ``F``, ``Q``), else the
-    intervals before each scan ``[B, T]`` (``scan_intervals``) for ``F``, ``Q`` per track and scan."""
-    intervals = scan_intervals(batch, dtype, device)
-    fixed = fixed_interval(intervals)
-    return intervals if fixed is None else fixed
 
 
 def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | None, dt: float, dtype,
@@ -225,7 +216,7 @@ class IMMTracker(_ModelSetIMM):
         if self.modes is not Modes.JOINT:
             return self._track_by_step(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
-        intervals = _interval_or_intervals(batch, self.dtype, z.device)
+        intervals = interval_or_intervals(batch, self.dtype, z.device)
         F, Q, Pi, mu0 = self.matrices(intervals, z.device)
         first = first_detection(z)
         model, rows = self.measurement, torch.arange(len(first), device=z.device)
