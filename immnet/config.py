@@ -45,17 +45,12 @@ def packaged_configs() -> Path:
     return _packaged_dir("configs")
 
 
-def packaged_recipes() -> Path:
-    """The recipes that ship with the package (``immnet/recipes``; the checkout's ``recipes/`` in a checkout):
-    the ablations of ``configs/ablations`` start from them."""
-    return _packaged_dir("recipes")
-
-
 def _packaged(path: Path) -> Path:
-    """Where ``path`` lies among the packaged files: ``recipes/X`` among the recipes, the rest among the
+    """Where ``path`` lies among the packaged files: ``recipes/X`` among the recipes (``immnet/recipes``, the
+    checkout's ``recipes/`` in a checkout: the ablations of ``configs/ablations`` start from them), the rest among the
     configs with a leading ``configs/`` dropped."""
     if path.parts[:1] == ("recipes",):
-        return packaged_recipes() / Path(*path.parts[1:])
+        return _packaged_dir("recipes") / Path(*path.parts[1:])
     return packaged_configs() / (Path(*path.parts[1:]) if path.parts[:1] == ("configs",) else path)
 
 

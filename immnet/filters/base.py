@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.data.times import regular
+from immnet.data.times import regular, scan_intervals
 from immnet.motion import N_MODES
 
 _DTYPES = {"float64": torch.float64, "float32": torch.float32, "double": torch.float64, "float": torch.float32}
@@ -58,16 +58,17 @@ def as_dtype(dtype) -> torch.dtype:
     return _DTYPES[dtype]
 
 
-def fixed_interval(intervals: torch.Tensor) -> float | None:
-    """The one interval of every scan after scan 0 of ``intervals [B, T]`` (``scan_intervals``'), or None
-    where they differ (per track or per scan). With one scan, scan 0's interval where all tracks share it:
-    no step uses it. The fixed-interval fast paths build ``F`` and ``Q`` once from this float."""
+def interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Tensor:
+    """The one interval of every scan after scan 0 of ``batch`` as a float, from which the fixed-interval fast paths
+    build ``F`` and ``Q`` once (with one scan, scan 0's interval where all tracks share it: no step uses it); else,
+    where they differ (per track or per scan), the intervals before each scan ``[B, T]`` (``scan_intervals``)."""
+    intervals = scan_intervals(batch, dtype, device)
     if intervals.numel() == 0:
-        return None
+        return intervals
     if intervals.shape[1] == 1:
         first = intervals[:, 0]
-        return float(first[0]) if bool((first == first[0]).all()) else None
-    return float(intervals[0, 1]) if regular(intervals) else None
+        return float(first[0]) if bool((first == first[0]).all()) else intervals
+    return float(intervals[0, 1]) if regular(intervals) else intervals
 
 
 def data_mode_probs(probs: torch.Tensor, modes: torch.Tensor) -> torch.Tensor:

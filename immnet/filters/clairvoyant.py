@@ -47,8 +47,7 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.data.spec import DataSpec
-from immnet.data.times import scan_intervals
-from immnet.filters.base import Method, as_dtype, fixed_interval, output
+from immnet.filters.base import Method, as_dtype, interval_or_intervals, output
 from immnet.filters.imm import ACC_STD, first_detection, initial_state
 from immnet.imm.interaction import enter, onset_priors
 from immnet.imm.kalman import predict
@@ -111,9 +110,8 @@ class ClairvoyantKF(Method):
         z = batch[keys.MEASUREMENTS].to(self.dtype)
         dev = z.device
         r = torch.as_tensor(batch[keys.R], dtype=self.dtype, device=dev).reshape(z.shape[0])
-        intervals = scan_intervals(batch, self.dtype, dev)
-        fixed = fixed_interval(intervals)
-        interval = (lambda t: fixed) if fixed is not None else (lambda t: intervals[:, t])
+        dt = interval_or_intervals(batch, self.dtype, dev)
+        interval = (lambda t: dt) if isinstance(dt, float) else (lambda t: dt[:, t])
         return z, batch[keys.MODE].to(dev), batch[keys.TURN_RATE].to(self.dtype), r, interval
 
     def network(self, dt: float = 1.0):

@@ -41,8 +41,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.data.times import scan_intervals
-from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
+from immnet.filters.base import Method, as_dtype, data_mode_probs, interval_or_intervals, output
 from immnet.filters.trackers import _non_negative
 from immnet.motion import DEG, ModelSet
 from immnet.stages.network import IMMNet
@@ -98,10 +97,10 @@ class IMMEKF(Method):
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
-        intervals = scan_intervals(batch, self.dtype, z.device)
-        one = fixed_interval(intervals)  # one for every scan: the network at it; else at 1 s told each scan's interval
-        net = self.network(1.0 if one is None else one).to(z.device)  # (docs/baselines.md, "Scan intervals")
-        out, _ = net.rollout(z, intervals=intervals if one is None else None, return_cov=self.return_cov)
+        dt = interval_or_intervals(batch, self.dtype, z.device)
+        one = isinstance(dt, float)  # one for every scan: the network at it; else at 1 s told each scan's interval
+        net = self.network(dt if one else 1.0).to(z.device)  # (docs/baselines.md, "Scan intervals")
+        out, _ = net.rollout(z, intervals=None if one else dt, return_cov=self.return_cov)
         probs = data_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS], self.model_set.modes)
         cov = out[keys.STATE_COV] if self.return_cov else None
         return output(out[keys.STATE], {keys.MODE_PROBS: probs, keys.STATE_COV: cov}, measurements=z)

@@ -32,7 +32,7 @@ from immnet.config import REPO_ROOT, import_class, load_yaml
 from immnet.filters.registry import ORDER, configured_methods  # noqa: F401  (ORDER: re-exported, scripts import it)
 from immnet.filters.registry import method_dirs as _method_dirs
 from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
-from immnet.filters.base import before_first_detection, blank_before_first_detection
+from immnet.filters.base import output
 from immnet.imm.guard import AS_CONFIGURED
 from immnet.motion import POS
 
@@ -66,8 +66,7 @@ class RawMeasurements:
         filled = torch.gather(z, 1, idx.unsqueeze(-1).expand(B, T, 3))
         state = z.new_zeros(B, T, 9)
         state[..., list(POS)] = filled
-        state = blank_before_first_detection(state, before_first_detection(z))
-        return TensorDict({keys.STATE: state}, batch_size=batch.batch_size, device=batch.device)
+        return output(state, measurements=z)
 
 
 BUILTIN = {RawMeasurements.name: RawMeasurements}

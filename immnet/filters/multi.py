@@ -141,7 +141,7 @@ class TrackFilter:
         assumes none). A method's re-acquisition is not taken: the multi-target tracker starts and deletes tracks."""
         from immnet.filters.methods import build_method
         from immnet.filters.per_axis import PerAxisIMMTracker
-        from immnet.filters.trackers import IMMTracker, KalmanFilterTracker
+        from immnet.filters.trackers import IMMTracker
         from immnet.imm.measurement import Isotropic
 
         method = build_method(name)
@@ -154,8 +154,6 @@ class TrackFilter:
                 raise ValueError(f"{name}: an IMM with modes per {method.modes} is not a multi-target filter "
                                  f"(joint modes or a per-axis IMM are)")
             return IMMFilter(method.model_set, method.sigma_q, method.Pi, mu0=method.mu0, **common)
-        if isinstance(method, KalmanFilterTracker):
-            return IMMFilter(ModelSet([method.model]), method.sigma_q, [[1.0]], **common)
         raise ValueError(f"{name} is a {type(method).__name__}: the multi-target tracker's filters are the model-based "
                          f"IMMs and Kalman filters (IMMTracker, PerAxisIMMTracker, KalmanFilterTracker) and the "
                          f"shipped networks by their weights' name (radar-5s, real-5s, ...)")

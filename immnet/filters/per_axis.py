@@ -22,18 +22,15 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.filters.base import Method, as_dtype, output
+from immnet.filters.base import interval_or_intervals, output
 from immnet.filters.imm import first_detection, initial_state
-from immnet.filters.trackers import (ISOTROPIC, _interval_or_intervals, _linear_network, check_robust, check_sigma_q,
-                                     variance)
-from immnet.imm.interaction import transition_matrix
-from immnet.imm.measurement import measurement_model
+from immnet.filters.trackers import ISOTROPIC, _linear_network, _ModelSetIMM, variance
 from immnet.imm.runner import linear_transition, run
-from immnet.motion import AXES, AXIS_OF, ModelSet, Modes, coupling
+from immnet.motion import AXES, AXIS_OF, Modes, coupling
 from immnet.motion.models import axis_blocks, axis_states, block_diagonal
 
 
-class PerAxisIMMTracker(Method):
+class PerAxisIMMTracker(_ModelSetIMM):
     """Three independent IMMs, one per axis, over a model set of axis-separable models (CV, CA).
 
     ``r``: the assumed measurement std (m), or ``"data"`` (each track's own ``r``); ``sigma_q`` one for all
@@ -44,25 +41,12 @@ class PerAxisIMMTracker(Method):
     None: off.
     """
 
-    any_interval = True
-
-    build_options = {"return_cov": False}
-
     def __init__(self, model_set, r: float | str, sigma_q: float | Sequence[float], p_stay=0.98,
                  dtype="float64", name: str = "imm-axis", return_cov: bool = False, robust: float | None = None):
-        self.model_set = ModelSet.from_config(model_set)
-        M = len(self.model_set)
+        super().__init__(model_set, r, sigma_q, p_stay, dtype, name, return_cov, robust, ISOTROPIC)
         moving = coupling(self.model_set, AXIS_OF)
         if moving:
             raise ValueError(f"a per-axis IMM needs models whose F is block diagonal per axis; {moving} couple the axes")
-        self.measurement = measurement_model(r, ISOTROPIC)
-        self.r, self.needs, self.sigma_q = r, self.measurement.needs, check_sigma_q(sigma_q, M)
-        self.Pi = transition_matrix(p_stay, M)
-        self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
-        self.dtype = as_dtype(dtype)
-        self.name = name
-        self.return_cov = return_cov
-        self.robust = check_robust(robust)
 
     def scaled(self, factor: float) -> "PerAxisIMMTracker":
         """A copy whose process noise is ``factor`` times this one's (every model's ``sigma_q``); the rest shared."""
@@ -86,7 +70,7 @@ class PerAxisIMMTracker(Method):
         B, T, _ = z.shape
         dev = z.device
         M = len(self.model_set)
-        dt = _interval_or_intervals(batch, self.dtype, dev)
+        dt = interval_or_intervals(batch, self.dtype, dev)
         F = self.model_set.F(dt, dtype=self.dtype, device=dev)  # [M | B, T, M, 9, 9]
         Q = self.model_set.Q(self.sigma_q, dt, dtype=self.dtype, device=dev)
         r = self.measurement.std(batch, self.dtype, dev)

@@ -20,12 +20,11 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.data.times import scan_intervals
-from immnet.filters.base import Method, as_dtype, data_mode_probs, fixed_interval, output
+from immnet.filters.base import Method, as_dtype, data_mode_probs, interval_or_intervals, output
 from immnet.filters.imm import ACC_STD, VEL_STD, first_detection, imm_filter, initial_state
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import check_robust, check_vz_std
-from immnet.imm.measurement import Isotropic, PerDetection, Polar, ToldStd, measurement_model
+from immnet.imm.measurement import MODEL_BASED, Isotropic, PerDetection, Polar, ToldStd, measurement_model
 from immnet.imm.reacquire import Reacquire, Restarts
 from immnet.motion import ModelSet, Modes, MotionModel, coupling, instantiate
 
@@ -57,14 +56,6 @@ def variance(r: float | torch.Tensor, dtype, device) -> torch.Tensor:
     return torch.tensor(r**2, dtype=dtype, device=device)
 
 
-def _interval_or_intervals(batch: TensorDict, dtype, device) -> float | torch.Tensor:
-    """The one interval of every scan of ``batch`` as a float (the fast paths' shared ``F``, ``Q``), else the
-    intervals before each scan ``[B, T]`` (``scan_intervals``) for ``F``, ``Q`` per track and scan."""
-    intervals = scan_intervals(batch, dtype, device)
-    fixed = fixed_interval(intervals)
-    return intervals if fixed is None else fixed
-
-
 def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | None, dt: float, dtype,
                     modes: Modes = Modes.JOINT, robust: float | None = None, reacquire=None, vz_std=None):
     """A linear model set's filters as IMMNet with nothing learned (``IMMTracker.network``); ``modes``: ``IMMNet``'s
@@ -89,57 +80,31 @@ def _linear_network(name: str, model_set: ModelSet, sigma_q, r, p_stay: float | 
     return net.to(dtype).eval()
 
 
-def _restarts(rule, intervals, mu0: torch.Tensor, vz_std: float | None = None) -> Restarts | None:
-    """The scan loop's re-acquisition (``immnet.imm.reacquire.Restarts``) of ``rule`` at ``intervals`` (a number or
-    ``[B, T]``), restarting at the start's velocity and acceleration stds, its prior on the vertical speed and
-    ``mu0``; None where ``rule`` is."""
-    return None if rule is None else Restarts(rule, intervals, VEL_STD, ACC_STD, mu0, vz_std)
-
-
-class KalmanFilterTracker(Method):
-    """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r``; ``robust``: Huber's
-    ``k`` of the update (``IMMTracker``'s)."""
+class _ModelSetIMM(Method):
+    """What the IMMs over a model set (``IMMTracker``, ``PerAxisIMMTracker``) hold alike: the ``ModelSet`` of
+    ``model_set``, the measurement model of ``r`` (one of ``takes``, ``measurement_model``'s), ``sigma_q`` checked
+    (``check_sigma_q``), the transition matrix ``Pi`` of ``p_stay`` (and ``_p_stay``, IMMNet's for ``network()``:
+    None for a full matrix), the dtype, ``name``, ``return_cov`` and Huber's ``robust``."""
 
     any_interval = True
 
     build_options = {"return_cov": False}
 
-    def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64", name: str | None = None,
-                 return_cov: bool = False, robust: float | None = None, reacquire=None):
-        self.model = model if isinstance(model, MotionModel) else instantiate(model)
-        self.measurement = measurement_model(r, ISOTROPIC)
-        self.r, self.needs = r, self.measurement.needs
-        _non_negative("sigma_q", sigma_q)
-        self.sigma_q, self.dtype = float(sigma_q), as_dtype(dtype)
-        self.name = name or f"kf-{self.model.name}"
+    def __init__(self, model_set, r, sigma_q, p_stay, dtype, name: str, return_cov: bool, robust,
+                 takes: tuple[type, ...] = MODEL_BASED):
+        self.model_set = ModelSet.from_config(model_set)
+        M = len(self.model_set)
+        self.measurement = measurement_model(r, takes)
+        self.r, self.needs, self.sigma_q = r, self.measurement.needs, check_sigma_q(sigma_q, M)
+        self.Pi = transition_matrix(p_stay, M)
+        self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
+        self.dtype = as_dtype(dtype)
+        self.name = name
         self.return_cov = return_cov
         self.robust = check_robust(robust)
-        self.reacquire = Reacquire.from_config(reacquire)
-
-    def network(self, dt: float = 1.0):
-        """This filter as IMMNet with nothing learned: the one-model case of ``IMMTracker.network`` (its docstring)."""
-        # one model: Pi = [[1]] whatever p_stay (which the interaction holds to (0, 1))
-        return _linear_network(self.name, ModelSet([self.model]), self.sigma_q, self.r, 0.5, dt, self.dtype,
-                               robust=self.robust, reacquire=self.reacquire)
-
-    def track(self, batch: TensorDict) -> TensorDict:
-        self.check(batch)
-        z = batch[keys.MEASUREMENTS].to(self.dtype)
-        dev = z.device
-        dt = _interval_or_intervals(batch, self.dtype, dev)
-        F = self.model.F(dt, dtype=self.dtype, device=dev)
-        Q = self.model.Q(self.sigma_q, dt, dtype=self.dtype, device=dev)
-        r = self.measurement.std(batch, self.dtype, dev)
-        x, P = initial_state(z, r)
-        R = variance(r, self.dtype, dev)
-        one = torch.ones(1, 1, dtype=self.dtype, device=dev)  # one model: the IMM's case M = 1, Pi = [[1]]
-        states, _, _, *cov = imm_filter(z, x, P, F.unsqueeze(-3), Q.unsqueeze(-3), R, one, one[0],
-                                        return_cov=self.return_cov, start=first_detection(z), robust=self.robust,
-                                        reacquire=_restarts(self.reacquire, dt, one[0]))
-        return output(states, {keys.STATE_COV: cov[0] if cov else None}, measurements=z)
 
 
-class IMMTracker(Method):
+class IMMTracker(_ModelSetIMM):
     """The standard IMM over a model set.
 
     ``model_set``: a YAML path, a list of ``class_path`` entries or a ``ModelSet``; ``r``: the
@@ -170,10 +135,6 @@ class IMMTracker(Method):
     The last five are the joint IMM's (``modes="joint"``).
     """
 
-    any_interval = True
-
-    build_options = {"return_cov": False}
-
     def __init__(
         self,
         model_set,
@@ -191,7 +152,7 @@ class IMMTracker(Method):
         reacquire: Reacquire | dict | bool | None = None,
         vz_std: float | None = None,
     ):
-        self.model_set = ModelSet.from_config(model_set)
+        super().__init__(model_set, r, sigma_q, p_stay, dtype, name, return_cov, robust)
         self.modes = Modes.parse(modes)
         groups = self.modes.groups
         self._step_net = None  # the network a grouped IMM tracks with (_track_by_step)
@@ -205,11 +166,7 @@ class IMMTracker(Method):
         moving = [m.name for m in self.model_set if m.state_dependent]
         if moving:
             raise ValueError(f"the IMM needs a constant F per model; {moving} are state-dependent (IMMNet experts only)")
-        self.measurement = measurement_model(r)
-        self.r, self.needs = r, self.measurement.needs
-        self.sigma_q = check_sigma_q(sigma_q, M)
         isotropic = isinstance(self.measurement, ISOTROPIC)
-        self.robust = check_robust(robust)
         self.reacquire = Reacquire.from_config(reacquire)
         self.vz_std = check_vz_std(vz_std)
         if groups is not None and not (isotropic and self.robust is None and self.reacquire is None
@@ -219,18 +176,13 @@ class IMMTracker(Method):
         if self.reacquire is not None and isinstance(self.measurement, Polar):
             raise ValueError(f"{name}: re-acquisition takes a Cartesian measurement model (a number, 'data' or "
                              f"'detection'), not the polar one")
-        self.Pi = transition_matrix(p_stay, M)
-        self._p_stay = float(p_stay) if isinstance(p_stay, (int, float)) else None  # a full matrix: None
         self.mu0 = torch.as_tensor([1.0 / M] * M if mu0 is None else mu0, dtype=torch.float64)  # uniform by default
         if self.mu0.shape != (M,):
             raise ValueError(f"mu0 must have one probability per model ({M}), got shape {tuple(self.mu0.shape)}")
         if (self.mu0 < 0).any() or abs(float(self.mu0.sum()) - 1.0) > 1e-6:
             raise ValueError(f"mu0 must be non-negative and sum to 1, got {self.mu0.tolist()}")
-        self.dtype = as_dtype(dtype)
-        self.name = name
         self.return_experts = return_experts
         self.compile = compile
-        self.return_cov = return_cov
 
     def network(self, dt: float = 1.0):
         """This IMM as IMMNet with nothing learned (docs/core.md, "Every tracker as a configuration"): filter
@@ -264,7 +216,7 @@ class IMMTracker(Method):
         if self.modes is not Modes.JOINT:
             return self._track_by_step(batch)
         z = batch[keys.MEASUREMENTS].to(self.dtype)
-        intervals = _interval_or_intervals(batch, self.dtype, z.device)
+        intervals = interval_or_intervals(batch, self.dtype, z.device)
         F, Q, Pi, mu0 = self.matrices(intervals, z.device)
         first = first_detection(z)
         model, rows = self.measurement, torch.arange(len(first), device=z.device)
@@ -280,11 +232,11 @@ class IMMTracker(Method):
             r = model.std(batch, self.dtype, z.device)
             x0, P0 = initial_state(z, r, vz_std=self.vz_std)
             R = variance(r, self.dtype, z.device)
+        reacquire = None if self.reacquire is None else Restarts(self.reacquire, intervals, VEL_STD, ACC_STD, mu0,
+                                                                  self.vz_std)  # restarting as a track starts
         states, probs, experts, *cov = imm_filter(z, x0, P0, F, Q, R, Pi, mu0, self.return_experts,
                                                   compile=self.compile, return_cov=self.return_cov, start=first,
-                                                  robust=robust,
-                                                  reacquire=_restarts(self.reacquire, intervals, mu0, self.vz_std),
-                                                  measure=measure)
+                                                  robust=robust, reacquire=reacquire, measure=measure)
         extra = {keys.MODE_PROBS: data_mode_probs(probs, self.model_set.modes), keys.STATE_COV: cov[0] if cov else None,
                  keys.EXPERT_POST: experts, keys.EXPERT_PROBS: probs if self.return_experts else None}  # None: left out
         return output(states, extra, measurements=z)
@@ -306,3 +258,20 @@ class IMMTracker(Method):
         if self.return_experts:
             extra[keys.EXPERT_POST], extra[keys.EXPERT_PROBS] = out[keys.ROLLOUT_EXPERT_POST], probs
         return output(out[keys.STATE], extra, measurements=z)
+
+
+class KalmanFilterTracker(IMMTracker):
+    """A Kalman filter with one motion model, noise ``sigma_q`` and assumed measurement std ``r`` (a number or
+    ``"data"``): the IMM of that one model (``IMMTracker``: its ``robust``, ``reacquire`` and ``network()``), whose
+    output has no ``mode_probs`` (one model, no mode to weigh)."""
+
+    def __init__(self, model: MotionModel | dict, r: float | str, sigma_q: float, dtype="float64",
+                 name: str | None = None, return_cov: bool = False, robust: float | None = None, reacquire=None):
+        self.model = model if isinstance(model, MotionModel) else instantiate(model)
+        measurement_model(r, ISOTROPIC)  # one r per track: no detection's covariance, no polar model
+        # one model: Pi = [[1]] whatever p_stay (which IMMNet's interaction holds to (0, 1): network())
+        super().__init__(ModelSet([self.model]), r, sigma_q, 0.5, dtype=dtype, name=name or f"kf-{self.model.name}",
+                         return_cov=return_cov, robust=robust, reacquire=reacquire)
+
+    def track(self, batch: TensorDict) -> TensorDict:
+        return super().track(batch).exclude(keys.MODE_PROBS)

@@ -43,7 +43,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from immnet.imm.option import Option, is_number
+from immnet.imm.option import Option, positive
 from immnet.motion import DEG
 
 G_MAX = 0.999  # the most probable a guard event is made
@@ -75,9 +75,7 @@ class RangeGuard(Option):
 
     def __post_init__(self):
         for name in (f.name for f in fields(self) if f.name != "speeds"):  # every field but speeds is a number
-            value = getattr(self, name)
-            if not (is_number(value) and value > 0):
-                raise ValueError(f"RangeGuard.{name} must be a positive number, got {value!r}")
+            positive(getattr(self, name), f"RangeGuard.{name} must be a positive number")
         if not isinstance(self.speeds, bool):
             raise ValueError(f"RangeGuard.speeds must be true or false, got {self.speeds!r}")
         if self.inner >= self.outer:

@@ -48,6 +48,8 @@ import math
 
 import torch
 
+from immnet.imm.option import positive
+
 LOG_2PI = math.log(2.0 * math.pi)
 
 
@@ -96,12 +98,8 @@ def vertical_speed_prior(x: torch.Tensor, P: torch.Tensor, vz_std: float) -> tup
 
 def check_vz_std(vz_std) -> float | None:
     """A start's prior standard deviation of the vertical speed (m/s), finite and > 0, as a float; None: no prior."""
-    if vz_std is None:
-        return None
-    if isinstance(vz_std, bool) or not isinstance(vz_std, (int, float)) or not (math.isfinite(vz_std) and vz_std > 0):
-        raise ValueError(f"vz_std (the start's prior std of the vertical speed, m/s) must be a number > 0 or None, got "
-                         f"{vz_std!r}")
-    return float(vz_std)
+    return None if vz_std is None else positive(vz_std, "vz_std (the start's prior std of the vertical speed, m/s) "
+                                                        "must be a number > 0 or None")
 
 
 def gaussian_loglik(maha: torch.Tensor, logdet: torch.Tensor, m: int) -> torch.Tensor:
@@ -241,11 +239,8 @@ def as_covariance(r2: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 def check_robust(robust) -> float | None:
     """``robust`` as Huber's ``k`` of the update (``immnet.imm.kalman``'s module doc): None (off) or a positive number."""
-    if robust is None:
-        return None
-    if isinstance(robust, bool) or not (isinstance(robust, (int, float)) and math.isfinite(robust) and robust > 0):
-        raise ValueError(f"robust must be None (off) or Huber's k, a positive number of standard deviations, got {robust!r}")
-    return float(robust)
+    return None if robust is None else positive(robust, "robust must be None (off) or Huber's k, a positive number "
+                                                        "of standard deviations")
 
 
 def huber(maha: torch.Tensor, k: float, spare: torch.Tensor | None = None):

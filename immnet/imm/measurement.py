@@ -35,7 +35,7 @@ from tensordict import TensorDict
 
 from immnet import keys
 from immnet.imm.kalman import innovation_update, narrow, wide_dtype
-from immnet.imm.option import is_number
+from immnet.imm.option import is_number, positive
 
 TOLD, DETECTION = "data", "detection"  # a configuration's spellings of ToldStd and PerDetection (r: data, detection)
 
@@ -49,8 +49,7 @@ class Isotropic:
     spelling = "a positive number"
 
     def __post_init__(self):
-        if not (is_number(self.r) and self.r > 0):
-            raise ValueError(f"Isotropic.r must be a positive number, got {self.r!r}")
+        positive(self.r, "Isotropic.r must be a positive number")
 
     def std(self, batch: TensorDict, dtype, device) -> float:
         return float(self.r)
@@ -114,8 +113,8 @@ def _check_sigma(value, name: str) -> None:
     if isinstance(value, torch.Tensor):
         if not (torch.isfinite(value).all() and (value > 0).all()):
             raise ValueError(f"Polar.{name} must be finite and > 0 everywhere")
-    elif not (is_number(value) and value > 0):
-        raise ValueError(f"Polar.{name} must be a positive number (or a tensor of them), got {value!r}")
+    else:
+        positive(value, f"Polar.{name} must be a positive number (or a tensor of them)")
 
 
 @dataclass(frozen=True)
@@ -236,9 +235,10 @@ def polar_update(x: torch.Tensor, P: torch.Tensor, plot: torch.Tensor, sigma: to
 
 
 KINDS = (Isotropic, ToldStd, PerDetection, Polar, Estimated)  # every measurement model's kind
+MODEL_BASED = KINDS[:4]  # the kinds a model-based tracker takes: all but Estimated (IMMNet's filter experts alone)
 
 
-def measurement_model(r, takes: tuple[type, ...] = (Isotropic, ToldStd, PerDetection, Polar)):
+def measurement_model(r, takes: tuple[type, ...] = MODEL_BASED):
     """A configuration's ``r`` as its measurement model, one of ``takes`` (the kinds the caller filters with; a
     model-based tracker's by default): a positive number (``Isotropic``), ``"data"`` (``ToldStd``), ``"detection"``
     (``PerDetection``), a dict ``{sigma_range, sigma_azimuth_deg, sigma_elevation_deg}`` (``Polar.from_config``),

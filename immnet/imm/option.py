@@ -11,6 +11,14 @@ def is_number(value) -> bool:
     return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
 
 
+def positive(value, refusal: str) -> float:
+    """``value`` as a float where it is a positive number (``is_number``), else a ValueError: ``refusal`` and the
+    value given."""
+    if not (is_number(value) and value > 0):
+        raise ValueError(f"{refusal}, got {value!r}")
+    return float(value)
+
+
 class Option:
     """Mixin of a frozen dataclass that a tracker takes as an optional setting (``RangeGuard``,
     ``AdaptiveNoise``); ``ARG`` names the constructor argument in error messages."""

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import torch
 
 from immnet.imm.kalman import _as_cov, inv3, quadratic, start_state
-from immnet.imm.option import Option, is_number
+from immnet.imm.option import Option, is_number, positive
 
 
 @dataclass(frozen=True)
@@ -60,9 +60,7 @@ class Reacquire(Option):
         if not isinstance(self.reject, bool):
             raise ValueError(f"reacquire's reject must be true or false, got {self.reject!r}")
         for name in ("gate", "speed", "climb"):
-            value = getattr(self, name)
-            if not (is_number(value) and value > 0):
-                raise ValueError(f"reacquire's {name} must be a finite number > 0, got {value!r}")
+            positive(getattr(self, name), f"reacquire's {name} must be a finite number > 0")
         if (self.accel is None) != (self.vertical_accel is None):
             raise ValueError(f"reacquire's accel and vertical_accel are both numbers or both None (every far detection "
                              f"rejected), got {self.accel!r} and {self.vertical_accel!r}")
@@ -98,14 +96,8 @@ def started(z: torch.Tensor, R: torch.Tensor) -> Watch:
 def innovations(z: torch.Tensor, x: torch.Tensor, P: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Each filter's innovation of the detection ``z [B, 3]`` from its prediction ``x [B, M, 9]``, ``P [B, M, 9, 9]``
     (the position's rows 0, 3, 6) with the measurement covariance ``R [B, 3, 3]``: ``(nu [B, M, 3], S [B, M, 3, 3])``,
-    what ``mahalanobis`` and ``reachable`` read."""
+    what the squared Mahalanobis distances (``kalman.quadratic``) and ``reachable`` read."""
     return z[:, None, :] - x[..., 0::3], P[..., 0::3, 0::3] + R[:, None]
-
-
-def mahalanobis(nu: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
-    """Each filter's squared Mahalanobis distance ``nu^T S^-1 nu`` of its innovation ``nu [B, M, 3]`` with covariance
-    ``S [B, M, 3, 3]`` (``innovations``): ``[B, M]``."""
-    return quadratic(inv3(S)[0], nu)
 
 
 def reachable(rule: Reacquire, nu: torch.Tensor, S: torch.Tensor, interval) -> torch.Tensor:
@@ -130,9 +122,9 @@ def advance(rule: Reacquire, state: Watch, z: torch.Tensor, R: torch.Tensor, int
 
     ``z [B, 3]`` the scan's detections (NaN: missed), ``R [B, 3, 3]`` their covariances (read where detected),
     ``interval`` the time since the previous scan (a number or ``[B]``, s), ``maha [B, M]`` each filter's squared
-    Mahalanobis distance of the detection (``mahalanobis``; read where detected), ``active [B]`` the tracks that
-    started before this scan (None: all; the others' watch is left as it is), ``reach [B]`` the tracks whose detection
-    is within the target's reach (``reachable``: a far one is still far, and not rejected).
+    Mahalanobis distance of the detection (``nu^T S^-1 nu`` of ``innovations``; read where detected), ``active [B]``
+    the tracks that started before this scan (None: all; the others' watch is left as it is), ``reach [B]`` the tracks
+    whose detection is within the target's reach (``reachable``: a far one is still far, and not rejected).
 
     Two detections agree where the second lies within ``speed`` times the time between them of the first horizontally
     and within ``climb`` times it vertically, each to three standard deviations of their noise there (``sqrt`` of the
@@ -201,7 +193,7 @@ class Restarts:
         iv = self.intervals[:, t] if isinstance(self.intervals, torch.Tensor) and self.intervals.dim() == 2 else self.intervals
         active = None if start is None else t > start.to(z.device)
         nu, S = innovations(torch.nan_to_num(z), xp, Pp, Rb)
-        state, restart, rejected = advance(self.rule, state, z, Rb, iv, mahalanobis(nu, S), active,
+        state, restart, rejected = advance(self.rule, state, z, Rb, iv, quadratic(inv3(S)[0], nu), active,
                                            reachable(self.rule, nu, S, iv))
         return state, torch.where(rejected[:, None], torch.full_like(z, float("nan")), z), restart
 

@@ -12,13 +12,6 @@ from immnet.motion import models as m
 from immnet.motion.base import MotionModel
 
 
-def _vertical(value) -> float:
-    value = float(value)
-    if not (value >= 0 and value != float("inf")):
-        raise ValueError(f"vertical must be finite and >= 0, got {value}")
-    return value
-
-
 def _args(model: MotionModel, **args) -> dict:
     """``init_args`` with ``vertical`` only where it is not the default 1 (configs written before it stay)."""
     return {**args, "noise": model.noise, **({"vertical": model.vertical} if model.vertical != 1.0 else {})}
@@ -32,7 +25,7 @@ class _Polynomial(MotionModel):
 
     def __init__(self, noise: str | None = None, vertical: float = 1.0):
         self.noise = type(self).noise if noise is None else noise
-        self.vertical = _vertical(vertical)
+        self.vertical = m._check_vertical(vertical)
 
     def init_args(self) -> dict:
         return _args(self)
@@ -75,7 +68,7 @@ class Singer(MotionModel):
 
     def __init__(self, tau: float = 20.0, vertical: float = 1.0):
         self.tau = m._check_tau(tau)
-        self.vertical = _vertical(vertical)
+        self.vertical = m._check_vertical(vertical)
 
     @property
     def name(self) -> str:
@@ -100,7 +93,7 @@ class CoordinatedTurn(MotionModel):
             raise ValueError("a coordinated turn needs a non-zero turn_rate_deg (use ConstantVelocity)")
         self.turn_rate_deg = float(turn_rate_deg)
         self.noise = noise
-        self.vertical = _vertical(vertical)
+        self.vertical = m._check_vertical(vertical)
         self.mode = 2 if turn_rate_deg > 0 else 3
 
     @property

@@ -302,6 +302,14 @@ def _singer_system(tau: float, dtype, device) -> torch.Tensor:
     return A
 
 
+def _check_vertical(vertical) -> float:
+    """A model's ``vertical``, the z axis's share of ``sigma_q``, as a float: finite and >= 0."""
+    vertical = float(vertical)
+    if not (math.isfinite(vertical) and vertical >= 0):
+        raise ValueError(f"vertical must be finite and >= 0, got {vertical}")
+    return vertical
+
+
 def _check_tau(tau) -> float:
     tau = float(tau)
     if not (tau > 0 and math.isfinite(tau)):
@@ -397,8 +405,7 @@ def process_noise(sigma_q, dt, kind: str = "white", dtype=torch.float64, device=
     if negative:
         raise ValueError(f"sigma_q must be non-negative, got {sigma_q}")
     sq = torch.as_tensor(sigma_q, dtype=dtype, device=device)
-    if not (math.isfinite(vertical) and vertical >= 0):
-        raise ValueError(f"vertical must be finite and >= 0, got {vertical}")
+    vertical = _check_vertical(vertical)
     if kind == "continuous":
         Q = block_diagonal([continuous_noise(dt, order, dtype=dtype, device=device, tau=tau)] * AXES)
     else:
