@@ -498,7 +498,6 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
         meta["site_from"] = (f"one radar per flight, U[{spec.range_km[0]:g}, {spec.range_km[1]:g}] km from its median "
                              f"position, height 0")
         meta["sites"] = {i: dict(zip(("lat", "lon", "h"), flight_sites[i])) for i in sorted(flight_sites)}
-    out.parent.mkdir(parents=True, exist_ok=True)  # a new directory's parents, as every other writer makes them
     with publishing(out) as tmp:
         tmp.mkdir()
         for split in SPLITS:
@@ -548,7 +547,6 @@ def _write_split(out: Path, arrays: dict, meta: dict) -> dict:
     from immnet.data.storage import load_dataset, write_arrays
 
     kept = {k: v for k, v in meta.items() if k not in ("n", "T", "counts_per_mode", "dtype")}
-    out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         write_arrays(tmp, arrays, kept)
     return load_dataset(out)[1]

@@ -502,7 +502,6 @@ def save_scene(scene: Scene, path) -> Path:
     if path.suffix != ".npz":
         raise ValueError(f"{path}: a scene file must end in .npz")
     check_writable(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with publishing(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, meta=np.asarray(json.dumps(scene.meta, allow_nan=False)), **scene.arrays())
     return path
@@ -560,7 +559,6 @@ def write_plots_csv(scene: Scene, path) -> Path:
     float's shortest repr), so that reading gives the same values."""
     path = Path(path)
     check_writable(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with publishing(path, suffix=".csv") as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(CSV_COLUMNS)
@@ -620,7 +618,6 @@ def make_scenes(out, samples=(), n: int = 3, spec: SceneSpec = SceneSpec(), seed
         scenes.append(last_scene(i, spec, seed, split=last_split))
     index = {"format": FORMAT, "version": FORMAT_VERSION, "seed": int(seed), "spec": spec.to_dict(),
              "train_samples": list(train_samples), "scenes": []}
-    out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         tmp.mkdir()
         for s in scenes:

@@ -106,12 +106,13 @@ def terminating_raises():
 
 @contextlib.contextmanager
 def publishing(out, suffix: str = ""):
-    """Write ``out`` (a file or a directory) through a temporary sibling: removes the stale siblings
-    of dead writers, yields a fresh :func:`tmp_sibling` (nothing created: the body makes the file or
-    directory), moves it onto ``out`` when the body ends normally, and removes it on any exception,
+    """Write ``out`` (a file or a directory) through a temporary sibling: makes ``out``'s missing parent folders,
+    removes the stale siblings of dead writers, yields a fresh :func:`tmp_sibling` (nothing created: the body makes
+    the file or directory), moves it onto ``out`` when the body ends normally, and removes it on any exception,
     SIGTERM included (:func:`terminating_raises`); an ``OSError`` that names no file (a write to an open one: a
     full disk) is raised again naming ``out``."""
     out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     remove_stale(out)
     tmp = tmp_sibling(out, suffix)
     with terminating_raises():

@@ -110,7 +110,6 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
     first = shards[0][1]
     n_total, T, block = first["shard"]["n_total"], first["T"], first["block"]
     _check_out(out, overwrite)
-    out.parent.mkdir(parents=True, exist_ok=True)
     bar = None
     if progress:
         from immnet.progress import progress as progress_bar

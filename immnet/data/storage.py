@@ -231,7 +231,6 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     row0, row1 = _block_rows(blocks, n)
     _check_out(out, overwrite)
     check_writable(out, "folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         tmp.mkdir()
         _allocate(tmp / TENSORS, row1 - row0, spec.T, out, store_dtypes(spec))
@@ -463,7 +462,6 @@ def export_npz(path_in, out_npz) -> Path:
         arrays[keys.DT] = np.asarray(float(dts[0]))
     # else: nominal intervals that differ per track are not a scalar; the reader takes each track's median
     # spacing of ``t``, which is what a loaded .npz without ``dt`` holds
-    out_npz.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out_npz, suffix=".npz") as tmp:
         np.savez(tmp, **arrays)
     return out_npz
