@@ -439,7 +439,7 @@ def last_scene(index: int, spec: SceneSpec = SceneSpec(), seed: int = 0, split: 
     pool = []
     g = hashed_generator(f"scenes-3dlast:{int(seed)}:{int(index)}")
     for _ in range(8):  # batches of candidates until the pairs are placed
-        td, bad = simulate(g, 4 * spec.targets, ds, return_bad=True)
+        td, bad = simulate(g, 4 * spec.targets, ds)
         pool += [s for s, b in zip(td[keys.STATES].numpy(), bad.numpy()) if not b]
         if len(pool) >= 2 * spec.targets:
             break
