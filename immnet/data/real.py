@@ -262,26 +262,21 @@ def windows(p: dict, spec: RealSpec) -> list[int]:
     return starts
 
 
-def _plots(pos: np.ndarray, spec: RealSpec, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray]:
-    """A window's detections of true positions ``pos [T, 3]`` as a radar's plots (:func:`immnet.data.radar.plots`
-    with ``spec``'s ``sigma_*``, ``p_miss`` and outliers): ``(z [T, 3], r, cov [T, 3, 3])``."""
-    z, r, cov = radar.plots(pos, spec.sigma_range, spec.sigma_azimuth, spec.sigma_elevation, spec.p_miss,
-                            spec.outliers, spec.outlier_scale, rng)
-    return z, float(r), cov
-
-
 def simulate(p: dict, spec: RealSpec, with_cov: bool = False) -> list[tuple]:
     """The radar's windows of one flight (``truth``'s ``p``; draws from its generator): per window ``(states [T, 9],
     measurements [T, 3], r, scans [T])``, the scans' times in epoch seconds; ``with_cov``: and each detection's
     covariance ``[T, 3, 3]`` (m^2, NaN where missed). 3D-LAST's noise ``r N(0, I3)`` (covariance ``r^2 I``) unless
-    ``spec.plots`` (:func:`_plots`); a share ``outliers`` of the detections with ``outlier_scale`` times the noise
-    (drawn after the rest of the window's, none drawn at share 0)."""
+    ``spec.plots`` (a radar's plots, :func:`immnet.data.radar.plots` with ``spec``'s ``sigma_*``, ``p_miss`` and
+    outliers); a share ``outliers`` of the detections with ``outlier_scale`` times the noise (drawn after the rest of
+    the window's, none drawn at share 0)."""
     out = []
     for s in windows(p, spec):
         st = p["states"][s : s + spec.T]
         pos = st[:, [0, 3, 6]]
         if spec.plots:
-            z, r, cov = _plots(pos, spec, p["rng"])
+            z, r, cov = radar.plots(pos, spec.sigma_range, spec.sigma_azimuth, spec.sigma_elevation, spec.p_miss,
+                                    spec.outliers, spec.outlier_scale, p["rng"])
+            r = float(r)
         else:
             r = float(p["rng"].uniform(spec.r_min, spec.r_max))
             z = radar.measure(pos, r, spec.p_miss, p["rng"])
@@ -361,10 +356,8 @@ def set_flights(meta: dict, where="the set") -> tuple[list[adsb.Flight], dict[st
         if adsb.file_digest(path) != sample["sha256"]:
             raise ValueError(f"{path}: not the file {where} was built from (its SHA-256 differs)")
         rec = records[sample["name"]] = adsb.read_records(path)
-        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points).flights
-        for f in got:
-            f.sample = sample["name"]
-        flights += got
+        flights += adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points,
+                                sample["name"]).flights
     unique_ids(flights)
     return select_flights(flights, spec)[0], records
 
@@ -422,9 +415,8 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
             skipped.append({"name": str(name), "error": why})
             _log(progress, f"skipped {name}: {why}")
             continue
-        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points)
-        for f in got.flights:
-            f.sample = str(name)
+        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points,
+                           str(name))
         if got.flights:
             sites[str(name)] = (tuple(float(v) for v in site) if site is not None else
                                 radar.median_site(np.concatenate([f.lat for f in got.flights]),

@@ -305,10 +305,7 @@ def _smoothed(flights: list[adsb.Flight], site, scans: np.ndarray, spec: SceneSp
 def sample_flights(sample) -> tuple[list[adsb.Flight], Path]:
     """The flights of one sample (a name or a file) with ``.sample`` set, and the file."""
     path = adsb.resolve_sample(sample)
-    fl = adsb.flights(adsb.read_records(path)).flights
-    for f in fl:
-        f.sample = str(sample)
-    return fl, path
+    return adsb.flights(adsb.read_records(path), sample=str(sample)).flights, path
 
 
 def split_of(sample, train_samples=TRAIN_SAMPLES) -> str:
