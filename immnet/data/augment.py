@@ -46,12 +46,9 @@ class FlightAugment:
                  seed: int = 0, turns: float = 0.0, turn_bank: tuple[float, float] = (10.0, 30.0),
                  turn_segment: tuple[float, float] = (20.0, 120.0)):
         if r_range is not None:
-            if len(r_range) != 2 or not all(math.isfinite(float(v)) for v in r_range) or not (
-                    0 < float(r_range[0]) <= float(r_range[1])):
-                raise ValueError(f"r_range must be [r_min, r_max] with 0 < r_min <= r_max (m), or None, got {r_range!r}")
+            r_range = _range("r_range", r_range, "m; or None")
             if not renoise:
                 raise ValueError("r_range draws new measurement noise: it needs renoise=True")
-            r_range = (float(r_range[0]), float(r_range[1]))
         if not (math.isfinite(float(turns)) and 0.0 <= float(turns) <= 1.0):
             raise ValueError(f"turns is the share of tracks given added turns, in [0, 1], got {turns!r}")
         if float(turns) > 0 and not renoise:

@@ -169,10 +169,7 @@ def _turns(args) -> int:
 
 
 def _flights(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a count such as 40 or a fraction such as 0.25, got {text!r}") from None
+    return _floats(1, "a count such as 40 or a fraction such as 0.25")(text)[0]
 
 
 def _scenes(args) -> int:
@@ -210,6 +207,17 @@ def _writes(parser, func, progress: str | None = "no progress lines") -> None:
     parser.set_defaults(func=func)
 
 
+def _sigma_options(parser, where: str, per: str, instead: str) -> None:
+    """``--sigma-range``, ``--sigma-azimuth``, ``--sigma-elevation``: a radar's plots (``where`` it stands), each a
+    noise std drawn per ``per``; ``instead``: what the three replace."""
+    for option, unit, what in (("range", "m", "slant range"), ("azimuth", "degrees", "azimuth"),
+                               ("elevation", "degrees", "elevation")):
+        parser.add_argument(f"--sigma-{option}", type=_floats(2, "LOW,HIGH such as 20,60"), default=None,
+                            metavar="LOW,HIGH", help=f"a radar's plots{' ' + where if where else ''}: the {what} noise "
+                                                     f"std per {per}, U[LOW, HIGH] ({unit}); the three --sigma-* "
+                                                     f"together, {instead}")
+
+
 def register(subparsers) -> None:
     data = subparsers.add_parser("data", help="generate, merge, export and plot 3D-LAST data sets; real ADS-B flights",
                                  description=__doc__.splitlines()[0])
@@ -222,11 +230,7 @@ def register(subparsers) -> None:
     g.add_argument("--single-mode", choices=MODE_NAMES, default=None,
                    help="one-segment trajectories of this mode (stage-1 data)")
     g.add_argument("--config", default=None, help="YAML of DataSpec fields to override (e.g. configs/data/tiny.yaml)")
-    for option, unit, what in (("range", "m", "slant range"), ("azimuth", "degrees", "azimuth"),
-                               ("elevation", "degrees", "elevation")):
-        g.add_argument(f"--sigma-{option}", type=_floats(2, "LOW,HIGH such as 20,60"), default=None, metavar="LOW,HIGH",
-                       help=f"a radar's plots from the origin: the {what} noise std per trajectory, U[LOW, HIGH] "
-                            f"({unit}); the three --sigma-* together, in place of r N(0, I3), writing meas_cov")
+    _sigma_options(g, "from the origin", "trajectory", "in place of r N(0, I3), writing meas_cov")
     g.add_argument("--outliers", type=float, default=None,
                    help="with the plots: share of the detections whose noise is --outlier-scale times larger "
                         "(default 0)")
@@ -265,11 +269,7 @@ def register(subparsers) -> None:
     a.add_argument("--p-miss", type=float, default=0.0, help="missed-detection probability (default 0)")
     a.add_argument("--r", type=_floats(2, "RMIN,RMAX such as 1,7"), default=(1.0, 7.0), metavar="RMIN,RMAX",
                    help="measurement noise std per window, U[RMIN, RMAX] (m, default 1,7)")
-    for option, unit, what in (("range", "m", "slant range"), ("azimuth", "degrees", "azimuth"),
-                               ("elevation", "degrees", "elevation")):
-        a.add_argument(f"--sigma-{option}", type=_floats(2, "LOW,HIGH such as 20,60"), default=None, metavar="LOW,HIGH",
-                       help=f"a radar's plots: the {what} noise std per window, U[LOW, HIGH] ({unit}); the three "
-                            f"--sigma-* together, in place of --r (default: 3D-LAST's noise r N(0, I3))")
+    _sigma_options(a, "", "window", "in place of --r (default: 3D-LAST's noise r N(0, I3))")
     a.add_argument("--outliers", type=float, default=0.0,
                    help="share of the detections whose noise is --outlier-scale times larger (default 0)")
     a.add_argument("--outlier-scale", type=float, default=10.0, help="an outlier's noise factor (default 10)")

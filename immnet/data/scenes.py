@@ -312,17 +312,16 @@ def split_of(sample, train_samples=TRAIN_SAMPLES) -> str:
     """``train`` for a sample among ``train_samples`` (by name, or by being the same file), else ``test``."""
     if str(sample) in train_samples:
         return "train"
+    path = _resolved(sample)
+    return "train" if path is not None and any(_resolved(name) == path for name in train_samples) else "test"
+
+
+def _resolved(sample) -> Path | None:
+    """The resolved file of a sample (a name or a file), None where there is none."""
     try:
-        path = adsb.resolve_sample(sample).resolve()
+        return adsb.resolve_sample(sample).resolve()
     except FileNotFoundError:
-        return "test"
-    for name in train_samples:
-        try:
-            if adsb.resolve_sample(name).resolve() == path:
-                return "train"
-        except FileNotFoundError:
-            pass
-    return "test"
+        return None
 
 
 def _stem(sample) -> str:
