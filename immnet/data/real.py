@@ -34,6 +34,7 @@ from immnet.data.contract import NO_LABEL
 from immnet.data.geodesy import enu_to_geodetic, geodetic_to_enu
 from immnet.data.scratch import publishing
 from immnet.data.smoother import rts_smooth
+from immnet.data.spec import check_numbers
 
 SPLITS = ("train", "val", "test")
 FORMAT_VERSION = 2  # 2: each split's meta.json names the flight of every window (window_flights)
@@ -77,10 +78,7 @@ class RealSpec:
     range_km: tuple = ()  # (low, high): a radar per flight, U[low, high] km from it, seeing slant ranges in [low, high]
 
     def __post_init__(self):
-        bad = [f.name for f in dataclasses.fields(self) if f.name not in ("splits", *PAIRS)
-               and not np.isfinite(float(getattr(self, f.name)))]
-        if bad:
-            raise ValueError(f"parameter(s) {', '.join(bad)} must be finite numbers")
+        check_numbers(self)
         if self.max_position_interval < 0:
             raise ValueError(f"max_position_interval must be >= 0 (0: no limit), got {self.max_position_interval}")
         if self.T < 1 or self.min_points < 2 or self.chunk < 1 or self.max_flights < 0:

@@ -74,6 +74,7 @@ import numpy as np
 from immnet.data import adsb, radar
 from immnet.data.geodesy import geodetic_to_enu
 from immnet.data.scratch import check_writable, publishing
+from immnet.data.spec import check_numbers
 
 # the plot CSV is immnet track's: one reader of it, immnet.data.csvio's
 from immnet.data.csvio import PLOT_COLUMNS as CSV_COLUMNS
@@ -116,11 +117,7 @@ class SceneSpec:
     last_step: float = 0.1  # the 3D-LAST simulation's step (s); scans fall on it
 
     def __post_init__(self):
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            vals = v if isinstance(v, tuple) else (v,)
-            if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in vals):
-                raise ValueError(f"scene parameter {f.name} must be a finite number, got {v!r}")
+        check_numbers(self)
         if not (self.dt > 0 and 0 <= self.dt_jitter < self.dt):
             raise ValueError(f"the scan interval needs dt > 0 and 0 <= dt_jitter < dt, got dt={self.dt}, "
                              f"dt_jitter={self.dt_jitter}")
