@@ -189,14 +189,12 @@ def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, pr
         p = prepared[i]
         p["states"], p["valid"] = np.full((len(p["scans"]), 9), np.nan), np.zeros(len(p["scans"]), bool)
     order = sorted(set(range(len(prepared))) - set(short), key=lambda i: (steps[i], i))
-    chunks, c = [], []
+    chunks = []
     for i in order:  # flights of similar lengths together, at most `chunk` x 3 tracks of steps per chunk
-        if c and steps[i] * 3 * (len(c) + 1) > spec.chunk:
-            chunks.append(c)
-            c = []
-        c.append(i)
-    if c:
-        chunks.append(c)
+        if chunks and steps[i] * 3 * (len(chunks[-1]) + 1) <= spec.chunk:
+            chunks[-1].append(i)
+        else:
+            chunks.append([i])
     q = np.array([spec.q_h, spec.q_h, spec.q_v])
     done = 0
     for members in chunks:
@@ -274,15 +272,14 @@ def simulate(p: dict, spec: RealSpec, with_cov: bool = False) -> list[tuple]:
         if spec.plots:
             z, r, cov = radar.plots(pos, spec.sigma_range, spec.sigma_azimuth, spec.sigma_elevation, spec.p_miss,
                                     spec.outliers, spec.outlier_scale, p["rng"])
-            r = float(r)
         else:
-            r = float(p["rng"].uniform(spec.r_min, spec.r_max))
+            r = p["rng"].uniform(spec.r_min, spec.r_max)
             z = radar.measure(pos, r, spec.p_miss, p["rng"])
             if spec.outliers > 0:
                 wild = p["rng"].random(len(z)) < spec.outliers
                 z[wild] = pos[wild] + spec.outlier_scale * (z[wild] - pos[wild])
             cov = np.where(np.isnan(z).any(-1)[:, None, None], np.nan, r * r * np.eye(3))
-        out.append((st, z, r, p["scans"][s : s + spec.T], *((cov,) if with_cov else ())))
+        out.append((st, z, float(r), p["scans"][s : s + spec.T], *((cov,) if with_cov else ())))
     return out
 
 

@@ -263,8 +263,7 @@ def _interp_positions(flights: list[adsb.Flight], site, grid: np.ndarray, gap: f
     ``gap`` apart (NaN elsewhere): a quick count of the aircraft in cover, for choosing windows."""
     out = np.full((len(flights), len(grid), 3), np.nan)
     for i, f in enumerate(flights):
-        a, b = np.searchsorted(grid, [f.t[0], f.t[-1]], side="left")
-        b = np.searchsorted(grid, f.t[-1], side="right")
+        a, b = np.searchsorted(grid, f.t[0]), np.searchsorted(grid, f.t[-1], side="right")
         if b <= a:
             continue
         g = grid[a:b]
