@@ -58,6 +58,7 @@ from immnet import keys
 from immnet.data import radar
 from immnet.data.spec import DataSpec
 from immnet.motion import DEG, MODE_NAMES, N_MODES
+from immnet.progress import progress as progress_bar
 
 BLOCK = 4096
 MAX_REDRAWS = 64
@@ -308,9 +309,5 @@ def generate(n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | 
     if n <= 0:
         raise ValueError(f"n must be a positive number of trajectories, got {n}")
     mode_index(single_mode)  # validates the name
-    blocks = range(n_blocks(n))
-    if progress:
-        from immnet.progress import progress as progress_bar
-
-        blocks = progress_bar(blocks, desc="3D-LAST", unit="block")
+    blocks = progress_bar(range(n_blocks(n)), desc="3D-LAST", unit="block", disable=not progress)
     return torch.cat([generate_block(seed, b, n, spec, single_mode) for b in blocks], 0)

@@ -48,6 +48,7 @@ from immnet.data.scratch import check_space, check_writable, publishing, reserve
 from immnet.data.spec import SPEC_VERSION, DataSpec
 from immnet.data.times import nominal_dt
 from immnet.motion import MODE_NAMES, N_MODES
+from immnet.progress import progress as progress_bar
 
 META = "meta.json"
 TENSORS = "tensors"
@@ -139,8 +140,8 @@ def _rows(filename, dtype, trail, start: int, m: int, mode: str) -> np.memmap:
     return np.memmap(filename, dtype=dtype, mode=mode, offset=start * row, shape=(m, *trail))
 
 
-def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, threads=1, row0=0):
-    torch.set_num_threads(threads)
+def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, row0):
+    torch.set_num_threads(1)  # elementwise ops on ~4k elements: one thread is fastest
     td = TensorDict.load_memmap(tensors_dir)
     spec = DataSpec.from_dict(spec_dict)
     dtypes = store_dtypes(spec)
@@ -236,28 +237,22 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
         _allocate(tmp / TENSORS, row1 - row0, spec.T, out, store_dtypes(spec))
         counts = [0] * N_MODES
         blocks = list(blocks)
-        bar = None
-        if progress:
-            from immnet.progress import progress as progress_bar
-
-            bar = progress_bar(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
+        bar = progress_bar(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj", disable=not progress)
         init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
         with contextlib.ExitStack() as stack:
             if workers == 1 or len(blocks) == 1:
                 stack.callback(_WORKER.clear)
                 stack.callback(torch.set_num_threads, torch.get_num_threads())
-                _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
+                _init_worker(*init, row0)
                 results = map(_write_block, blocks)
             else:
                 pool = stack.enter_context(mp.get_context("spawn").Pool(
-                    min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)))
+                    min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, row0)))
                 results = pool.imap(_write_block, blocks)
             for b, c in zip(blocks, results):
                 counts = [a + x for a, x in zip(counts, c)]
-                if bar is not None:
-                    bar.update(min(BLOCK, n - b * BLOCK))
-        if bar is not None:
-            bar.close()
+                bar.update(min(BLOCK, n - b * BLOCK))
+        bar.close()
         info = None
         if shard is not None:
             info = {"index": int(shard[0]), "count": int(shard[1]), "n_total": n, "rows": [row0, row1],
