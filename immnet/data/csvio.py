@@ -216,10 +216,10 @@ def _covariance(rec, col: dict, line: int) -> np.ndarray:
 
 
 def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
-    """The rows of ``reader`` after its header, each checked (module doc): ``zs`` the positions as given (x, y, z or
-    range, azimuth, elevation), ``extras`` each detection's stds or covariance (None where missed; nothing appended
-    where the file has neither)."""
-    ids, times, ts, zs, lines, extras = [], [], [], [], [], []
+    """The rows of ``reader`` after its header, each checked (module doc): ``rows`` each row's track, ``t`` text,
+    ``t``, position as given (x, y, z or range, azimuth, elevation) and line, ``extras`` each detection's stds or
+    covariance (None where missed; nothing appended where the file has neither)."""
+    rows, extras = [], []
     last: dict[str, tuple[Decimal, str]] = {}
     header, polar, extra, col = _header(path, reader, sigmas)
     for line, rec in enumerate(reader, start=2):
@@ -241,13 +241,10 @@ def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
             raise ValueError(f"line {line}: time {text} of track {tid!r} is not after its previous time "
                              f"{last[tid][1]} (rows of a track must be in time order)")
         last[tid] = (t, text)
-        ids.append(tid)
-        times.append(text)
-        ts.append(t)
-        zs.append(xyz)
-        lines.append(line)
-    if not ids:
+        rows.append((tid, text, t, xyz, line))
+    if not rows:
         raise ValueError(f"{path}: no data rows")
+    ids, times, ts, zs, lines = map(list, zip(*rows))
     z = np.asarray(zs, dtype=np.float64).reshape(-1, 3)
     cov = None
     if polar:
@@ -350,7 +347,7 @@ def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
     """The scans of ``reader``'s rows after its header, each row checked (``read_plots_csv``)."""
     header, polar, extra, col = _header(path, reader, sigmas, ids=False, need_stds=convert)
     pos = PLOT_COLUMNS[1:] if polar else CART_PLOT_COLUMNS[1:]
-    times, ts, scan_lines, offsets, given, lines, extras = [], [], [], [0], [], [], []
+    times, ts, scan_lines, offsets, given, lines, extras = [], [], [], [], [], [], []
     empty_line = None  # the line of the current scan's empty row (a scan without plots), if any
     for line, rec in enumerate(reader, start=2):
         if not rec or all(not v.strip() for v in rec):
@@ -373,8 +370,7 @@ def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
             if ts and float(t) <= float(ts[-1]):
                 raise ValueError(f"line {line}: time {text} and the previous scan's time {times[-1]} are one number in "
                                  f"float64: give the plots of one scan one t")
-            if ts:
-                offsets.append(len(given))
+            offsets.append(len(given))
             times.append(text)
             ts.append(t)
             scan_lines.append(line)
