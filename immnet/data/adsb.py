@@ -402,8 +402,7 @@ def flights(records: Records, max_gap: float = 600.0, max_speed: float = 350.0, 
     """Clean one sample's rows and cut them into flights (the module docstring's steps 1-4), each flight's
     ``.sample`` the name ``sample``."""
     r = records
-    counts = {"rows": len(r)}
-    counts["onground"] = int(r.onground.sum())
+    counts = {"rows": len(r), "onground": int(r.onground.sum())}
     good = np.isfinite(r.t) & np.isfinite(r.lat) & np.isfinite(r.lon) & np.isfinite(r.h) & (r.icao24 != "")
     air = good & ~r.onground
     counts["incomplete"] = int((~good & ~r.onground).sum())

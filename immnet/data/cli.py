@@ -23,7 +23,7 @@ from immnet.labels import MODE_NAMES
 
 
 def _generate(args) -> int:
-    from immnet.data.spec import DataSpec
+    from immnet.data.spec import PLOT_PAIRS, DataSpec
     from immnet.data.storage import write_dataset
 
     spec = DataSpec()
@@ -32,10 +32,10 @@ def _generate(args) -> int:
 
         spec = DataSpec.from_yaml(resolve_path(args.config))
     plots = {}
-    for option, unit in (("range", ""), ("azimuth", "_deg"), ("elevation", "_deg")):
-        pair = getattr(args, f"sigma_{option}")
+    for name, unit in PLOT_PAIRS.items():
+        pair = getattr(args, name)
         if pair is not None:
-            plots.update({f"sigma_{option}_min{unit}": pair[0], f"sigma_{option}_max{unit}": pair[1]})
+            plots.update({f"{name}_min{unit}": pair[0], f"{name}_max{unit}": pair[1]})
     plots.update({k: getattr(args, k) for k in ("outliers", "outlier_scale") if getattr(args, k) is not None})
     if plots:
         spec = DataSpec.from_dict({**spec.to_dict(), **plots})

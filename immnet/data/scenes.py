@@ -159,10 +159,8 @@ class SceneSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SceneSpec":
-        d = dict(d)
-        if "close_separation" in d:
-            d["close_separation"] = tuple(d["close_separation"])
-        return cls(**d)
+        """The spec of ``to_dict`` (a scene's ``meta["spec"]``), its JSON lists tuples again."""
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
 @dataclass
