@@ -215,6 +215,24 @@ def _covariance(rec, col: dict, line: int) -> np.ndarray:
     return m
 
 
+def _data_rows(reader, header: list[str], col: dict, polar: bool, pos, exact: bool):
+    """``(line, rec, t text, t, position)`` of each row of ``reader`` after its header that is not blank: its fields
+    counted (as many as the header, or with ``exact`` False at least as many), its ``track_id`` (where the file has
+    one) not empty, its ``t`` read (the text stripped, and as an exact decimal) and its position (a plot's range,
+    azimuth, elevation, or the columns ``pos``) read, each checked; a ValueError names the line."""
+    for line, rec in enumerate(reader, start=2):
+        if not rec or all(not v.strip() for v in rec):
+            continue
+        if len(rec) < len(header) or exact and len(rec) > len(header):
+            raise ValueError(f"line {line}: {len(rec)} fields, but the header has {len(header)} ({','.join(header)})")
+        if "track_id" in col and not rec[col["track_id"]].strip():
+            raise ValueError(f"line {line}: column 'track_id' is empty: in a CSV with a track_id column every row "
+                             f"names its track (unlabelled plots, for the multi-target tracker, have no such column)")
+        text = rec[col["t"]].strip()
+        t = _time(text, line)
+        yield line, rec, text, t, _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in pos]
+
+
 def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
     """The rows of ``reader`` after its header, each checked (module doc): ``rows`` each row's track, ``t`` text,
     ``t``, position as given (x, y, z or range, azimuth, elevation) and line, ``extras`` each detection's stds or
@@ -222,18 +240,8 @@ def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
     rows, extras = [], []
     last: dict[str, tuple[Decimal, str]] = {}
     header, polar, extra, col = _header(path, reader, sigmas)
-    for line, rec in enumerate(reader, start=2):
-        if not rec or all(not v.strip() for v in rec):
-            continue
-        if len(rec) < len(header):
-            raise ValueError(f"line {line}: {len(rec)} fields, expected {len(header)}")
+    for line, rec, text, t, xyz in _data_rows(reader, header, col, polar, "xyz", exact=False):
         tid = rec[col["track_id"]].strip()
-        if not tid:
-            raise ValueError(f"line {line}: column 'track_id' is empty: in a CSV with a track_id column every row "
-                             f"names its track (unlabelled plots, for the multi-target tracker, have no such column)")
-        text = rec[col["t"]].strip()
-        t = _time(text, line)
-        xyz = _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in "xyz"]
         if extra:
             detected = not all(math.isnan(v) for v in xyz)
             extras.append(None if not detected else _stds(rec, col, line) if polar else _covariance(rec, col, line))
@@ -349,14 +357,7 @@ def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
     pos = PLOT_COLUMNS[1:] if polar else CART_PLOT_COLUMNS[1:]
     times, ts, scan_lines, offsets, given, lines, extras = [], [], [], [], [], [], []
     empty_line = None  # the line of the current scan's empty row (a scan without plots), if any
-    for line, rec in enumerate(reader, start=2):
-        if not rec or all(not v.strip() for v in rec):
-            continue
-        if len(rec) != len(header):
-            raise ValueError(f"line {line}: {len(rec)} fields, but the header has {len(header)} ({','.join(header)})")
-        text = rec[col["t"]].strip()
-        t = _time(text, line)
-        xyz = _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in pos]
+    for line, rec, text, t, xyz in _data_rows(reader, header, col, polar, pos, exact=True):
         empty = [repr(c) for c, v in zip(pos, xyz) if math.isnan(v)]
         if 0 < len(empty) < 3:
             raise ValueError(f"line {line}: column{'s' if len(empty) > 1 else ''} {', '.join(empty)} "
