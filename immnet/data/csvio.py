@@ -253,13 +253,17 @@ def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
     if not rows:
         raise ValueError(f"{path}: no data rows")
     ids, times, ts, zs, lines = map(list, zip(*rows))
-    z = np.asarray(zs, dtype=np.float64).reshape(-1, 3)
-    cov = None
-    if polar:
-        z, cov = _to_enu(z, extras, sigmas)
-    elif extras:
-        cov = _filled(extras, (3, 3))
+    z, cov = _enu(np.asarray(zs, dtype=np.float64).reshape(-1, 3), extras, polar, extra, sigmas)
     return CsvTracks(ids, times, ts, z, lines, cov, polar)
+
+
+def _enu(given: np.ndarray, extras: list, polar: bool, extra: tuple, sigmas) -> tuple[np.ndarray, np.ndarray | None]:
+    """Positions ``[R, 3]`` as the file gives them -> east-north-up and each one's covariance: a radar's plots
+    converted (:func:`_to_enu`), ``x, y, z`` as they are with their ``R_COLUMNS`` covariance (NaN where an entry of
+    ``extras`` is None), None where the file gives none."""
+    if polar:
+        return _to_enu(given, extras, sigmas)
+    return given, _filled(extras, (3, 3)) if extra else None
 
 
 def _filled(extras: list, trail: tuple) -> np.ndarray:
@@ -392,15 +396,9 @@ def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
         raise ValueError(f"{path}: no data rows")
     offsets.append(len(given))
     given = np.asarray(given, dtype=np.float64).reshape(-1, 3)
-    out = CsvPlots(times, ts, scan_lines, np.asarray(offsets, np.int64), given, np.asarray(lines, np.int64),
-                   polar=polar)
-    if polar and convert:
-        out.z, out.cov = _to_enu(given, extras, sigmas)
-    elif not polar:
-        out.z = given
-        if extra:
-            out.cov = np.asarray(extras, dtype=np.float64).reshape(-1, 3, 3)
-    return out
+    z, cov = _enu(given, extras, polar, extra, sigmas) if convert or not polar else (None, None)
+    return CsvPlots(times, ts, scan_lines, np.asarray(offsets, np.int64), given, np.asarray(lines, np.int64), z, cov,
+                    polar)
 
 
 def read_plots_csv(path: str | Path, sigmas=None, convert: bool = True) -> CsvPlots:
