@@ -115,18 +115,14 @@ def _splits(text: str) -> tuple[float, float, float]:
 
 
 def _adsb(args) -> int:
-    from immnet.data.real import RealSpec, make_adsb
+    from immnet.data.real import PAIRS, RealSpec, make_adsb
 
     if args.splits is not None and args.splits_from is not None:
         raise ValueError("give --splits or --splits-from, not both: --splits-from takes the other set's partition")
-    spec = RealSpec(T=args.T, dt=args.dt, dt_jitter=args.dt_jitter, p_miss=args.p_miss, r_min=args.r[0],
-                    r_max=args.r[1], max_range=args.max_range, splits=args.splits or RealSpec.splits,
-                    max_gap=args.max_gap,
-                    max_flights=args.max_flights, truth_gap=args.truth_gap,
-                    max_position_interval=args.max_position_interval,
-                    sigma_range=args.sigma_range or (), sigma_azimuth=args.sigma_azimuth or (),
-                    sigma_elevation=args.sigma_elevation or (), outliers=args.outliers,
-                    outlier_scale=args.outlier_scale, range_km=args.range_km or ())
+    same = ("T", "dt", "dt_jitter", "p_miss", "max_range", "max_gap", "max_flights", "truth_gap",
+            "max_position_interval", "outliers", "outlier_scale")  # the options named as RealSpec's fields
+    spec = RealSpec(**{k: getattr(args, k) for k in same}, **{k: getattr(args, k) or () for k in PAIRS},
+                    r_min=args.r[0], r_max=args.r[1], splits=args.splits or RealSpec.splits)
     meta = make_adsb(args.out, args.samples, spec, seed=args.seed, site=args.site, npz=args.npz,
                      overwrite=args.overwrite, progress=not args.quiet, skip_unreadable=args.skip_unreadable,
                      splits_from=args.splits_from)
