@@ -171,12 +171,11 @@ def _flights(text: str) -> float:
 def _scenes(args) -> int:
     from immnet.data.scenes import SceneSpec, make_scenes
 
-    spec = SceneSpec(duration=args.duration, dt=args.dt, dt_jitter=args.dt_jitter, pd=args.pd, clutter=args.clutter,
-                     sigma_range=args.sigma_range, sigma_azimuth_deg=args.sigma_azimuth,
-                     sigma_elevation_deg=args.sigma_elevation, max_range=args.max_range,
-                     max_elevation=args.max_elevation, min_targets=args.targets_in_cover[0],
-                     max_targets=args.targets_in_cover[1], truth_gap=args.truth_gap, targets=args.last_targets,
-                     crossing_pairs=args.crossing_pairs, close_pairs=args.close_pairs)
+    same = ("duration", "dt", "dt_jitter", "pd", "clutter", "sigma_range", "max_range", "max_elevation", "truth_gap",
+            "crossing_pairs", "close_pairs")  # the options named as SceneSpec's fields
+    spec = SceneSpec(**{k: getattr(args, k) for k in same}, sigma_azimuth_deg=args.sigma_azimuth,
+                     sigma_elevation_deg=args.sigma_elevation, min_targets=args.targets_in_cover[0],
+                     max_targets=args.targets_in_cover[1], targets=args.last_targets)
     index = make_scenes(args.out, args.samples, n=args.n, spec=spec, seed=args.seed, site=args.site, last=args.last,
                         last_split=args.last_split, write_csv=args.csv, overwrite=args.overwrite, progress=not args.quiet)
     per = {}
