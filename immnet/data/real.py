@@ -612,16 +612,11 @@ def reference_partition(path, digests: set[str]) -> tuple[dict[str, str], str]:
 def _reference_meta(path: Path, digests: set[str], option: str) -> dict:
     """The ``meta.json`` of a real-flight split at ``path`` (read as JSON), refused by name unless it is one and it
     was made from at least one of the samples of SHA-256 ``digests`` (its flight ids are then theirs)."""
-    import json
-
-    from immnet.data.storage import REAL_FORMAT, sample_digests
+    from immnet.data.storage import REAL_FORMAT, read_json, sample_digests
 
     if not (path / "meta.json").is_file():
         raise ValueError(f"{option} {path}: not a data set directory (no meta.json)")
-    try:
-        meta = json.loads((path / "meta.json").read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{option} {path}: meta.json unreadable ({err})") from None
+    meta = read_json(path / "meta.json", f"{option} {path}/meta.json")
     if not isinstance(meta, dict) or meta.get("format") != REAL_FORMAT:
         raise ValueError(f"{option} {path}: not a set of `immnet data adsb` (format "
                          f"{meta.get('format') if isinstance(meta, dict) else None!r})")

@@ -624,13 +624,12 @@ def make_scenes(out, samples=(), n: int = 3, spec: SceneSpec = SceneSpec(), seed
 
 def load_index(directory) -> dict:
     """``scenes.json`` of a set written by :func:`make_scenes`."""
+    from immnet.data.storage import read_json
+
     p = Path(directory) / INDEX
     if not p.is_file():
         raise FileNotFoundError(f"no scene set at {directory} (no {INDEX})")
-    try:
-        index = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"{p}: not valid JSON ({err})") from None
+    index = read_json(p)
     if not isinstance(index, dict) or index.get("format") != FORMAT or not isinstance(index.get("scenes"), list):
         raise ValueError(f"{p}: not the index of a scene set (format {FORMAT!r})")
     return index

@@ -284,14 +284,20 @@ def _shown(value, width: int = 60) -> str:
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
+def read_json(path: Path, where=None):
+    """The JSON value of the file ``path``; a ValueError beginning with ``where`` (default the file) where the file
+    cannot be read or holds no JSON."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{where or path}: not readable as JSON ({type(err).__name__}: {err})") from None
+
+
 def _load_dir(path: Path) -> tuple[TensorDict, dict]:
     meta_path = path / META
     if not meta_path.exists():
         raise FileNotFoundError(f"{path} is not a 3D-LAST data set: {META} is missing")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{meta_path}: not valid JSON ({err})") from None
+    meta = read_json(meta_path)
     if not isinstance(meta, dict) or meta.get("format") not in FORMATS:
         got = meta.get("format") if isinstance(meta, dict) else meta
         raise ValueError(f"{meta_path}: format is {got!r}, expected one of {', '.join(map(repr, FORMATS))}")
@@ -327,10 +333,7 @@ def tensor_files(tensors_dir) -> tuple[dict[str, tuple[Path, torch.dtype, tuple[
     a pickle, which runs code when it is loaded, so such a directory is refused before anything in it is read."""
     tensors_dir = Path(tensors_dir)
     where = tensors_dir / META
-    try:
-        meta = json.loads(where.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{where}: cannot be read ({type(err).__name__}: {err})") from None
+    meta = read_json(where)
     if not isinstance(meta, dict) or not isinstance(meta.get("shape"), list) or len(meta["shape"]) != 1:
         raise ValueError(f"{where}: not the meta of a data set's tensors (no batch shape [n])")
     n = meta["shape"][0]
