@@ -64,7 +64,6 @@ import dataclasses
 import json
 import math
 import time
-import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -499,23 +498,19 @@ def save_scene(scene: Scene, path) -> Path:
 
 def load_scene(path) -> Scene:
     """A scene file (:func:`save_scene`), read with ``allow_pickle=False``; a ValueError names what is wrong."""
+    from immnet.data.storage import read_npz
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no scene file at {path}")
+    arrays, names = read_npz(path, (*_ARRAYS, "meta"))
+    missing = [k for k in (*_ARRAYS, "meta") if k not in names]
+    if missing:
+        raise ValueError(f"{path}: not a scene: the array(s) {', '.join(missing)} are missing (has {sorted(names)})")
     try:
-        with open(path, "rb") as f:
-            z = np.load(f, allow_pickle=False)
-            if not isinstance(z, np.lib.npyio.NpzFile):
-                raise ValueError("it holds one bare array, not an archive of named arrays")
-            missing = [k for k in (*_ARRAYS, "meta") if k not in z.files]
-            if missing:
-                raise ValueError(f"not a scene: the array(s) {', '.join(missing)} are missing (has {sorted(z.files)})")
-            arrays = {k: z[k] for k in _ARRAYS}
-            meta = json.loads(str(z["meta"]))
-    except (OSError, EOFError, KeyError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: not a readable scene file ({type(err).__name__}: {err})") from None
-    except ValueError as err:
-        raise ValueError(f"{path}: {err}") from None
+        meta = json.loads(str(arrays.pop("meta")))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not a readable scene file (its meta is not JSON: {err})") from None
     for k, (ndim, dtype) in _ARRAYS.items():
         a = arrays[k]
         if a.ndim != ndim or (dtype is not None and a.dtype != dtype) or (dtype is None and a.dtype.kind != "U"):

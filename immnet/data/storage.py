@@ -387,16 +387,22 @@ hundredths of a second)."""
 _UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
 
 
-def _load_npz(path: Path) -> tuple[TensorDict, dict]:
+def read_npz(path: Path, keys_read) -> tuple[dict, list[str]]:
+    """``(arrays, names)``: those of the arrays ``keys_read`` that the ``.npz`` file ``path`` holds, and the names of
+    all it holds, read with ``allow_pickle=False`` (nothing in it is executed); a ValueError naming the file where it
+    is not a whole archive of named arrays."""
     try:
         with open(path, "rb") as f:  # ours to close, whatever np.load raises
             z = np.load(f, allow_pickle=False)
             if not isinstance(z, np.lib.npyio.NpzFile):
                 raise ValueError("it holds one bare array, not an archive of named arrays")
-            arrays = {k: z[k] for k in (*TRAIL, keys.DT) if k in z.files}
-            names = list(z.files)
+            return {k: z[k] for k in keys_read if k in z.files}, list(z.files)
     except _UNREADABLE as err:
         raise ValueError(f"{path}: not a readable .npz file ({type(err).__name__}: {err})") from None
+
+
+def _load_npz(path: Path) -> tuple[TensorDict, dict]:
+    arrays, names = read_npz(path, (*TRAIL, keys.DT))
     if keys.MEASUREMENTS not in arrays:
         raise ValueError(f"{path}: the required array 'measurements' [N,T,3] is missing (has {names})")
     if keys.DT in arrays and arrays[keys.DT].size != 1:
