@@ -194,9 +194,7 @@ class _ResumableBatches:
         self.pass_epoch = int(getattr(self.sampler, "epoch", 0))
         skip = self._resume[1] if self._resume is not None and self._resume[0] == self.pass_epoch else 0
         self._resume = None
-        for i, batch in enumerate(self.batches):
-            if i >= skip:
-                yield batch
+        yield from itertools.islice(self.batches, skip, None)
 
 
 class ResumableLoader(DataLoader):

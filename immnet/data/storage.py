@@ -459,8 +459,7 @@ def export_npz(path_in, out_npz) -> Path:
         raise ValueError(f"{out_npz}: the output must end in .npz")
     check_writable(out_npz)
     td, meta = load_dataset(path_in)
-    arrays = {key: td[key].to(torch.int64).numpy() if key == keys.MODE else td[key].numpy()
-              for key in TRAIL if key in td.keys()}
+    arrays = {key: td[key].numpy() for key in TRAIL if key in td.keys()}  # mode: int64 as loaded
     dts = td[keys.DT] if keys.DT in td.keys() else torch.ones(1)
     if keys.TIME not in td.keys() or bool((dts == dts[0]).all()):
         arrays[keys.DT] = np.asarray(float(dts[0]))
