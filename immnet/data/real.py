@@ -637,17 +637,15 @@ def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), se
     flights that turns as much as patterns and orbits do (docs/notebook/real-flights.md, "Turns added to the training
     flights"). ``meta.json`` is the source's with ``turns`` added (``turns``, ``bank``, ``segment``, ``seed``)."""
     import torch
-    from tensordict import TensorDict
 
     from immnet.data.augment import FlightAugment
+    from immnet.data.storage import as_batch
 
     data, out = Path(data), Path(out)
     td, meta = _real_split(data, out, overwrite, "adding turns")
     aug = FlightAugment(rotate=False, renoise=True, r_range=None, seed=seed, turns=turns, turn_bank=bank,
                         turn_segment=segment)
-    batch = TensorDict({k: v.to(torch.float64) if v.is_floating_point() else v for k, v in td.items()},
-                       batch_size=td.batch_size)
-    arrays = {k: v.numpy() for k, v in aug(batch, 0).items()}
+    arrays = {k: v.numpy() for k, v in aug(as_batch(td, torch.float64), 0).items()}
     turns = {"turns": aug.turns, "bank": list(aug.turn_bank), "segment": list(aug.turn_segment), "seed": int(seed)}
     return _write_split(out, arrays, {**meta, "turns": turns})
 
