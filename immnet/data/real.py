@@ -598,9 +598,8 @@ def reference_partition(path, digests: set[str]) -> tuple[dict[str, str], str]:
     """``({flight id: split}, where)``: the partition of the flights of the real-flight set at ``path`` (one of its
     split directories, or its ``OUT``), checked to be made from some of the samples of SHA-256 ``digests``."""
     path = Path(path)
-    if not (path / "meta.json").is_file():
-        found = [path / k for k in SPLITS if (path / k / "meta.json").is_file()]
-        path = found[0] if found else path
+    if not (path / "meta.json").is_file():  # the set's OUT: its first split
+        path = next((path / k for k in SPLITS if (path / k / "meta.json").is_file()), path)
     meta = _reference_meta(path, digests, "--splits-from")
     flights = meta.get("flights")
     if not isinstance(flights, dict) or not all(isinstance(flights.get(k, []), list) for k in SPLITS):
