@@ -216,14 +216,12 @@ def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.rand
     s_rho, s_az, s_el = spec.sigma_range, math.radians(spec.sigma_azimuth_deg), math.radians(spec.sigma_elevation_deg)
     pos = states[..., [0, 3, 6]]
     inview = _in_cover(pos, np.isfinite(states).all(-1), spec)
-    plot_off, truth_off = [0], [0]
     plots_polar, sources, truth_states, truth_ids = [], [], [], []
     lo_el, hi_el = math.radians(spec.min_elevation), math.radians(spec.max_elevation)
     for k in range(S):
         ids = np.flatnonzero(inview[:, k])
         truth_states.append(states[ids, k])
         truth_ids.append(ids)
-        truth_off.append(truth_off[-1] + len(ids))
         det = ids[rng.random(len(ids)) < spec.pd]
         rho, az, el = radar.polar(pos[det, k])
         noise = rng.standard_normal((len(det), 3)) * np.array([s_rho, s_az, s_el])
@@ -237,7 +235,7 @@ def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.rand
         order = rng.permutation(len(allp))
         plots_polar.append(allp[order])
         sources.append(src[order])
-        plot_off.append(plot_off[-1] + len(allp))
+    plot_off, truth_off = (np.cumsum([0, *map(len, rows)], dtype=np.int64) for rows in (sources, truth_ids))
     polar_all = np.concatenate(plots_polar) if plots_polar else np.empty((0, 3))
     polar_all[:, 1] = np.mod(polar_all[:, 1], 2 * np.pi)
     enu = radar.from_polar(polar_all[:, 0], polar_all[:, 1], polar_all[:, 2])
@@ -246,9 +244,9 @@ def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.rand
               "detections": int(sum((s >= 0).sum() for s in sources)),
               "clutter": int(sum((s < 0).sum() for s in sources)), "truth": int(truth_off[-1]),
               "in_cover": [int(min(np.diff(truth_off))), int(max(np.diff(truth_off)))] if S else [0, 0]}
-    return Scene(t=np.asarray(scans, np.float64), plot_offsets=np.asarray(plot_off, np.int64), plots=enu,
+    return Scene(t=np.asarray(scans, np.float64), plot_offsets=plot_off, plots=enu,
                  plot_polar=polar_all, plot_cov=cov, plot_source=np.concatenate(sources).astype(np.int64),
-                 truth_offsets=np.asarray(truth_off, np.int64),
+                 truth_offsets=truth_off,
                  truth_states=np.concatenate(truth_states) if truth_states else np.empty((0, 9)),
                  truth_id=np.concatenate(truth_ids).astype(np.int64), aircraft=np.asarray(list(aircraft), dtype=str),
                  site=np.asarray(site, np.float64), meta={**meta, "counts": counts})
