@@ -318,8 +318,7 @@ def _resolved(sample) -> Path | None:
 def _stem(sample) -> str:
     s = str(sample)
     for suf in (*adsb.SUFFIXES, *adsb.CSV_SUFFIXES):
-        if s.endswith(suf):
-            s = s[: -len(suf)]
+        s = s.removesuffix(suf)
     return Path(s).name.replace(" ", "_") or "sample"
 
 
@@ -597,8 +596,7 @@ def make_scenes(out, samples=(), n: int = 3, spec: SceneSpec = SceneSpec(), seed
         scenes += got
         if progress:
             print(f"[scenes] {sample}: {len(got)} scene(s)", flush=True)
-    for i in range(last):
-        scenes.append(last_scene(i, spec, seed, split=last_split))
+    scenes += [last_scene(i, spec, seed, split=last_split) for i in range(last)]
     index = {"format": FORMAT, "version": FORMAT_VERSION, "seed": int(seed), "spec": spec.to_dict(),
              "train_samples": list(train_samples), "scenes": []}
     with publishing(out) as tmp:

@@ -53,12 +53,9 @@ def remove_stale(out: Path) -> list[Path]:
     if not out.parent.is_dir():
         return []
     pattern = re.compile(rf"^\.{re.escape(out.name)}\.tmp-(\d+)-[0-9a-f]+")
-    removed = []
-    for p in out.parent.iterdir():
-        m = pattern.match(p.name)
-        if m and not _alive(int(m.group(1))):
-            remove(p)
-            removed.append(p)
+    removed = [p for p in out.parent.iterdir() if (m := pattern.match(p.name)) and not _alive(int(m.group(1)))]
+    for p in removed:
+        remove(p)
     return removed
 
 
