@@ -84,14 +84,12 @@ class RealSpec:
         if self.T < 1 or self.min_points < 2 or self.chunk < 1 or self.max_flights < 0:
             raise ValueError(f"T >= 1, min_points >= 2, chunk >= 1 and max_flights >= 0 needed, got {self.T}, "
                              f"{self.min_points}, {self.chunk}, {self.max_flights}")
-        if not (self.dt > 0 and 0 <= self.dt_jitter < self.dt):
-            raise ValueError(f"the scan interval needs dt > 0 and 0 <= dt_jitter < dt, got {self.dt}, {self.dt_jitter}")
+        radar.check_scan_interval(self.dt, self.dt_jitter)
         if not (0 < self.r_min <= self.r_max):
             raise ValueError(f"the noise levels need 0 < r_min <= r_max, got {self.r_min}, {self.r_max}")
         if not 0 <= self.p_miss < 1:
             raise ValueError(f"p_miss must be in [0, 1), got {self.p_miss}")
-        s = tuple(float(f) for f in self.splits)
-        if len(s) != 3 or min(s) < 0 or abs(sum(s) - 1) > 1e-9:
+        if len(self.splits) != 3 or min(self.splits) < 0 or abs(sum(self.splits) - 1) > 1e-9:
             raise ValueError(f"splits must be three fractions >= 0 (train, val, test) summing to 1, got {self.splits}")
         for name in ("max_range", "max_gap", "max_speed", "max_climb", "sigma_h", "sigma_v", "q_h", "q_v", "truth_gap"):
             if not getattr(self, name) > 0:

@@ -117,9 +117,7 @@ class SceneSpec:
 
     def __post_init__(self):
         check_numbers(self)
-        if not (self.dt > 0 and 0 <= self.dt_jitter < self.dt):
-            raise ValueError(f"the scan interval needs dt > 0 and 0 <= dt_jitter < dt, got dt={self.dt}, "
-                             f"dt_jitter={self.dt_jitter}")
+        radar.check_scan_interval(self.dt, self.dt_jitter)
         if not self.duration >= self.dt:
             raise ValueError(f"duration must be at least one scan interval ({self.dt:g} s), got {self.duration}")
         if not 0 < self.pd <= 1:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import yaml
 
-from immnet.data.radar import check_plot_settings
+from immnet.data.radar import check_plot_settings, check_scan_interval
 
 SPEC_VERSION = 1
 """Bumped whenever the generator's output for a given (seed, n, spec) changes. ``dt_jitter`` (0 by default)
@@ -82,11 +82,7 @@ class DataSpec:
         check_numbers(self)
         if self.T < 1:
             raise ValueError(f"T must be >= 1, got {self.T}")
-        if self.dt <= 0:
-            raise ValueError(f"dt must be > 0, got {self.dt}")
-        if not 0.0 <= self.dt_jitter < self.dt:
-            raise ValueError(f"dt_jitter must be in [0, dt) = [0, {self.dt:g}) so that every scan interval "
-                             f"U[dt - dt_jitter, dt + dt_jitter] is > 0, got {self.dt_jitter}")
+        check_scan_interval(self.dt, self.dt_jitter)
         if not 0.0 <= self.p_miss < 1.0:
             raise ValueError(f"p_miss must be in [0, 1), got {self.p_miss}")
         if self.n_segments < 1:
