@@ -332,14 +332,14 @@ def read_records(path) -> Records:
         onground = np.array([bool(v) if isinstance(v, (bool, int, float)) else False for v in ground])
     onground = onground.astype(bool)
     si = names["altitude"] in METRES
-    return Records(path=path, timestamp=ts, t=t, icao24=icao,
-                   lat=_floats(cols["latitude"], names["latitude"], path),
-                   lon=_floats(cols["longitude"], names["longitude"], path),
-                   h=_floats(cols["altitude"], names["altitude"], path) * (1.0 if si else FEET),
-                   onground=onground, exact=np.isfinite(lp),
-                   groundspeed=_floats(cols["groundspeed"], names["groundspeed"], path) * (1.0 if si else KNOT),
-                   track=_floats(cols["track"], names["track"], path),
-                   vertical_rate=_floats(cols["vertical_rate"], names["vertical_rate"], path) * (1.0 if si else FEET / 60))
+
+    def column(k):  # a numeric field, read as floats
+        return _floats(cols[k], names[k], path)
+
+    return Records(path=path, timestamp=ts, t=t, icao24=icao, lat=column("latitude"), lon=column("longitude"),
+                   h=column("altitude") * (1.0 if si else FEET), onground=onground, exact=np.isfinite(lp),
+                   groundspeed=column("groundspeed") * (1.0 if si else KNOT), track=column("track"),
+                   vertical_rate=column("vertical_rate") * (1.0 if si else FEET / 60))
 
 
 # --- flights ------------------------------------------------------------------------------------
