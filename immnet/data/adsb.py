@@ -99,12 +99,8 @@ def available_samples(root: Path | None = None) -> list[str]:
     root = samples_dir() if root is None else Path(root)
     if root is None:
         return []
-    names = []
-    for p in root.rglob("*"):
-        for suf in SUFFIXES:
-            if p.is_file() and p.name.endswith(suf):
-                names.append(p.relative_to(root).as_posix()[: -len(suf)])
-    return sorted(names)
+    return sorted(p.relative_to(root).as_posix()[: -len(suf)] for p in root.rglob("*") for suf in SUFFIXES
+                  if p.is_file() and p.name.endswith(suf))
 
 
 def resolve_sample(name) -> Path:
@@ -336,14 +332,14 @@ def read_records(path) -> Records:
         onground = np.array([bool(v) if isinstance(v, (bool, int, float)) else False for v in ground])
     onground = onground.astype(bool)
     si = names["altitude"] in METRES
-    return Records(path=path, timestamp=ts, t=t, icao24=icao,
-                   lat=_floats(cols["latitude"], names["latitude"], path),
-                   lon=_floats(cols["longitude"], names["longitude"], path),
-                   h=_floats(cols["altitude"], names["altitude"], path) * (1.0 if si else FEET),
-                   onground=onground, exact=np.isfinite(lp),
-                   groundspeed=_floats(cols["groundspeed"], names["groundspeed"], path) * (1.0 if si else KNOT),
-                   track=_floats(cols["track"], names["track"], path),
-                   vertical_rate=_floats(cols["vertical_rate"], names["vertical_rate"], path) * (1.0 if si else FEET / 60))
+
+    def column(k):  # a numeric field, read as floats
+        return _floats(cols[k], names[k], path)
+
+    return Records(path=path, timestamp=ts, t=t, icao24=icao, lat=column("latitude"), lon=column("longitude"),
+                   h=column("altitude") * (1.0 if si else FEET), onground=onground, exact=np.isfinite(lp),
+                   groundspeed=column("groundspeed") * (1.0 if si else KNOT), track=column("track"),
+                   vertical_rate=column("vertical_rate") * (1.0 if si else FEET / 60))
 
 
 # --- flights ------------------------------------------------------------------------------------
@@ -359,7 +355,7 @@ class Flight:
     lon: np.ndarray
     h: np.ndarray
     exact_time: np.ndarray
-    sample: str = ""  # the sample it comes from (set by its reader's caller)
+    sample: str = ""  # the sample it comes from (``flights``' ``sample``)
 
 
 @dataclass
@@ -402,11 +398,11 @@ def _glitches(t, lat, lon, h, max_speed, max_climb, time_slack, max_gap) -> tupl
 
 
 def flights(records: Records, max_gap: float = 600.0, max_speed: float = 350.0, max_climb: float = 100.0,
-            time_slack: float = 0.5, min_points: int = 10) -> Flights:
-    """Clean one sample's rows and cut them into flights (the module docstring's steps 1-4)."""
+            time_slack: float = 0.5, min_points: int = 10, sample: str = "") -> Flights:
+    """Clean one sample's rows and cut them into flights (the module docstring's steps 1-4), each flight's
+    ``.sample`` the name ``sample``."""
     r = records
-    counts = {"rows": len(r)}
-    counts["onground"] = int(r.onground.sum())
+    counts = {"rows": len(r), "onground": int(r.onground.sum())}
     good = np.isfinite(r.t) & np.isfinite(r.lat) & np.isfinite(r.lon) & np.isfinite(r.h) & (r.icao24 != "")
     air = good & ~r.onground
     counts["incomplete"] = int((~good & ~r.onground).sum())
@@ -438,7 +434,7 @@ def flights(records: Records, max_gap: float = 600.0, max_speed: float = 350.0, 
                 continue
             fid = f"{icao[a]}-{int(math.floor(ta[s]))}"
             out.append(Flight(fid, str(icao[a]), ta[s:e].copy(), la[s:e].copy(), lo[s:e].copy(), ha[s:e].copy(),
-                              xa[s:e].copy()))
+                              xa[s:e].copy(), sample))
     counts["flights"] = len(out)
     counts["fresh_points"] = int(sum(len(f.t) for f in out))
     return Flights(out, counts)

@@ -46,12 +46,9 @@ class FlightAugment:
                  seed: int = 0, turns: float = 0.0, turn_bank: tuple[float, float] = (10.0, 30.0),
                  turn_segment: tuple[float, float] = (20.0, 120.0)):
         if r_range is not None:
-            if len(r_range) != 2 or not all(math.isfinite(float(v)) for v in r_range) or not (
-                    0 < float(r_range[0]) <= float(r_range[1])):
-                raise ValueError(f"r_range must be [r_min, r_max] with 0 < r_min <= r_max (m), or None, got {r_range!r}")
+            r_range = _range("r_range", r_range, "m; or None")
             if not renoise:
                 raise ValueError("r_range draws new measurement noise: it needs renoise=True")
-            r_range = (float(r_range[0]), float(r_range[1]))
         if not (math.isfinite(float(turns)) and 0.0 <= float(turns) <= 1.0):
             raise ValueError(f"turns is the share of tracks given added turns, in [0, 1], got {turns!r}")
         if float(turns) > 0 and not renoise:
@@ -85,17 +82,13 @@ class FlightAugment:
         if self.rotate:
             theta = torch.rand(lead, generator=g, dtype=torch.float64) * (2 * math.pi)
             c, s = theta.cos()[..., None], theta.sin()[..., None]
-
-            def turn(x, y):
-                return c * x - s * y, s * x + c * y
-
             turned = states.to(torch.float64, copy=True)  # in float64: positions are ~1e5 m from the site
             for ix, iy in zip((POS[0], VEL[0], ACC[0]), (POS[1], VEL[1], ACC[1])):
-                turned[..., ix], turned[..., iy] = turn(turned[..., ix].clone(), turned[..., iy].clone())
+                turned[..., ix], turned[..., iy] = _rotated(c, s, turned[..., ix].clone(), turned[..., iy].clone())
             states = turned.to(states.dtype)
             out[keys.STATES] = states
             if not self.renoise:
-                x, y = turn(z[..., 0].to(torch.float64), z[..., 1].to(torch.float64))
+                x, y = _rotated(c, s, z[..., 0].to(torch.float64), z[..., 1].to(torch.float64))
                 z = torch.stack([x.to(z.dtype), y.to(z.dtype), z[..., 2]], -1)
         if self.renoise:
             if self.r_range is None:
@@ -169,6 +162,11 @@ ROLL_S = 5.0
 rate-one turn (25-30 deg of bank) in about five seconds."""
 
 
+def _rotated(c, s, x, y):
+    """``(x, y)`` turned by the angle of cosine ``c`` and sine ``s`` (counterclockwise)."""
+    return c * x - s * y, s * x + c * y
+
+
 def _range(name: str, value, unit: str) -> tuple[float, float]:
     if len(value) != 2 or not all(math.isfinite(float(v)) for v in value) or not 0 < float(value[0]) <= float(value[1]):
         raise ValueError(f"{name} must be [low, high] with 0 < low <= high ({unit}), got {value!r}")
@@ -200,13 +198,10 @@ def add_turns(states: torch.Tensor, intervals: torch.Tensor, boundaries: torch.T
     dt = intervals[:, 1:]
     _, phi_mid = _turn_phase(tau[:, :-1] + 0.5 * dt, boundaries, rates)
 
-    def rot(angle, x, y):
-        c, s = angle.cos(), angle.sin()
-        return c * x - s * y, s * x + c * y
-
     out = states.clone()
-    vx, vy = rot(phi, states[..., VEL[0]], states[..., VEL[1]])
-    ax, ay = rot(phi, states[..., ACC[0]], states[..., ACC[1]])
+    c, s = phi.cos(), phi.sin()
+    vx, vy = _rotated(c, s, states[..., VEL[0]], states[..., VEL[1]])
+    ax, ay = _rotated(c, s, states[..., ACC[0]], states[..., ACC[1]])
     out[..., VEL[0]], out[..., VEL[1]] = vx, vy
     out[..., ACC[0]], out[..., ACC[1]] = ax - w * vy, ay + w * vx
 
@@ -216,7 +211,7 @@ def add_turns(states: torch.Tensor, intervals: torch.Tensor, boundaries: torch.T
     old = [hermite(states[..., VEL[i]], states[..., ACC[i]]) for i in (0, 1)]
     new = [hermite(out[..., VEL[i]], out[..., ACC[i]]) for i in (0, 1)]
     dx, dy = (states[:, 1:, POS[i]] - states[:, :-1, POS[i]] - old[i] for i in (0, 1))  # what the cubic misses
-    dx, dy = rot(phi_mid, dx, dy)
+    dx, dy = _rotated(phi_mid.cos(), phi_mid.sin(), dx, dy)
     for i, d in zip((0, 1), (dx, dy)):
         out[:, 1:, POS[i]] = states[:, :1, POS[i]] + (new[i] + d).cumsum(-1)
     return out

@@ -23,7 +23,7 @@ from immnet.labels import MODE_NAMES
 
 
 def _generate(args) -> int:
-    from immnet.data.spec import DataSpec
+    from immnet.data.spec import PLOT_PAIRS, DataSpec
     from immnet.data.storage import write_dataset
 
     spec = DataSpec()
@@ -32,10 +32,10 @@ def _generate(args) -> int:
 
         spec = DataSpec.from_yaml(resolve_path(args.config))
     plots = {}
-    for option, unit in (("range", ""), ("azimuth", "_deg"), ("elevation", "_deg")):
-        pair = getattr(args, f"sigma_{option}")
+    for name, unit in PLOT_PAIRS.items():
+        pair = getattr(args, name)
         if pair is not None:
-            plots.update({f"sigma_{option}_min{unit}": pair[0], f"sigma_{option}_max{unit}": pair[1]})
+            plots.update({f"{name}_min{unit}": pair[0], f"{name}_max{unit}": pair[1]})
     plots.update({k: getattr(args, k) for k in ("outliers", "outlier_scale") if getattr(args, k) is not None})
     if plots:
         spec = DataSpec.from_dict({**spec.to_dict(), **plots})
@@ -115,18 +115,14 @@ def _splits(text: str) -> tuple[float, float, float]:
 
 
 def _adsb(args) -> int:
-    from immnet.data.real import RealSpec, make_adsb
+    from immnet.data.real import PAIRS, RealSpec, make_adsb
 
     if args.splits is not None and args.splits_from is not None:
         raise ValueError("give --splits or --splits-from, not both: --splits-from takes the other set's partition")
-    spec = RealSpec(T=args.T, dt=args.dt, dt_jitter=args.dt_jitter, p_miss=args.p_miss, r_min=args.r[0],
-                    r_max=args.r[1], max_range=args.max_range, splits=args.splits or RealSpec.splits,
-                    max_gap=args.max_gap,
-                    max_flights=args.max_flights, truth_gap=args.truth_gap,
-                    max_position_interval=args.max_position_interval,
-                    sigma_range=args.sigma_range or (), sigma_azimuth=args.sigma_azimuth or (),
-                    sigma_elevation=args.sigma_elevation or (), outliers=args.outliers,
-                    outlier_scale=args.outlier_scale, range_km=args.range_km or ())
+    same = ("T", "dt", "dt_jitter", "p_miss", "max_range", "max_gap", "max_flights", "truth_gap",
+            "max_position_interval", "outliers", "outlier_scale")  # the options named as RealSpec's fields
+    spec = RealSpec(**{k: getattr(args, k) for k in same}, **{k: getattr(args, k) or () for k in PAIRS},
+                    r_min=args.r[0], r_max=args.r[1], splits=args.splits or RealSpec.splits)
     meta = make_adsb(args.out, args.samples, spec, seed=args.seed, site=args.site, npz=args.npz,
                      overwrite=args.overwrite, progress=not args.quiet, skip_unreadable=args.skip_unreadable,
                      splits_from=args.splits_from)
@@ -169,21 +165,17 @@ def _turns(args) -> int:
 
 
 def _flights(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a count such as 40 or a fraction such as 0.25, got {text!r}") from None
+    return _floats(1, "a count such as 40 or a fraction such as 0.25")(text)[0]
 
 
 def _scenes(args) -> int:
     from immnet.data.scenes import SceneSpec, make_scenes
 
-    spec = SceneSpec(duration=args.duration, dt=args.dt, dt_jitter=args.dt_jitter, pd=args.pd, clutter=args.clutter,
-                     sigma_range=args.sigma_range, sigma_azimuth_deg=args.sigma_azimuth,
-                     sigma_elevation_deg=args.sigma_elevation, max_range=args.max_range,
-                     max_elevation=args.max_elevation, min_targets=args.targets_in_cover[0],
-                     max_targets=args.targets_in_cover[1], truth_gap=args.truth_gap, targets=args.last_targets,
-                     crossing_pairs=args.crossing_pairs, close_pairs=args.close_pairs)
+    same = ("duration", "dt", "dt_jitter", "pd", "clutter", "sigma_range", "max_range", "max_elevation", "truth_gap",
+            "crossing_pairs", "close_pairs")  # the options named as SceneSpec's fields
+    spec = SceneSpec(**{k: getattr(args, k) for k in same}, sigma_azimuth_deg=args.sigma_azimuth,
+                     sigma_elevation_deg=args.sigma_elevation, min_targets=args.targets_in_cover[0],
+                     max_targets=args.targets_in_cover[1], targets=args.last_targets)
     index = make_scenes(args.out, args.samples, n=args.n, spec=spec, seed=args.seed, site=args.site, last=args.last,
                         last_split=args.last_split, write_csv=args.csv, overwrite=args.overwrite, progress=not args.quiet)
     per = {}
@@ -210,6 +202,17 @@ def _writes(parser, func, progress: str | None = "no progress lines") -> None:
     parser.set_defaults(func=func)
 
 
+def _sigma_options(parser, where: str, per: str, instead: str) -> None:
+    """``--sigma-range``, ``--sigma-azimuth``, ``--sigma-elevation``: a radar's plots (``where`` it stands), each a
+    noise std drawn per ``per``; ``instead``: what the three replace."""
+    for option, unit, what in (("range", "m", "slant range"), ("azimuth", "degrees", "azimuth"),
+                               ("elevation", "degrees", "elevation")):
+        parser.add_argument(f"--sigma-{option}", type=_floats(2, "LOW,HIGH such as 20,60"), default=None,
+                            metavar="LOW,HIGH", help=f"a radar's plots{' ' + where if where else ''}: the {what} noise "
+                                                     f"std per {per}, U[LOW, HIGH] ({unit}); the three --sigma-* "
+                                                     f"together, {instead}")
+
+
 def register(subparsers) -> None:
     data = subparsers.add_parser("data", help="generate, merge, export and plot 3D-LAST data sets; real ADS-B flights",
                                  description=__doc__.splitlines()[0])
@@ -222,11 +225,7 @@ def register(subparsers) -> None:
     g.add_argument("--single-mode", choices=MODE_NAMES, default=None,
                    help="one-segment trajectories of this mode (stage-1 data)")
     g.add_argument("--config", default=None, help="YAML of DataSpec fields to override (e.g. configs/data/tiny.yaml)")
-    for option, unit, what in (("range", "m", "slant range"), ("azimuth", "degrees", "azimuth"),
-                               ("elevation", "degrees", "elevation")):
-        g.add_argument(f"--sigma-{option}", type=_floats(2, "LOW,HIGH such as 20,60"), default=None, metavar="LOW,HIGH",
-                       help=f"a radar's plots from the origin: the {what} noise std per trajectory, U[LOW, HIGH] "
-                            f"({unit}); the three --sigma-* together, in place of r N(0, I3), writing meas_cov")
+    _sigma_options(g, "from the origin", "trajectory", "in place of r N(0, I3), writing meas_cov")
     g.add_argument("--outliers", type=float, default=None,
                    help="with the plots: share of the detections whose noise is --outlier-scale times larger "
                         "(default 0)")
@@ -265,11 +264,7 @@ def register(subparsers) -> None:
     a.add_argument("--p-miss", type=float, default=0.0, help="missed-detection probability (default 0)")
     a.add_argument("--r", type=_floats(2, "RMIN,RMAX such as 1,7"), default=(1.0, 7.0), metavar="RMIN,RMAX",
                    help="measurement noise std per window, U[RMIN, RMAX] (m, default 1,7)")
-    for option, unit, what in (("range", "m", "slant range"), ("azimuth", "degrees", "azimuth"),
-                               ("elevation", "degrees", "elevation")):
-        a.add_argument(f"--sigma-{option}", type=_floats(2, "LOW,HIGH such as 20,60"), default=None, metavar="LOW,HIGH",
-                       help=f"a radar's plots: the {what} noise std per window, U[LOW, HIGH] ({unit}); the three "
-                            f"--sigma-* together, in place of --r (default: 3D-LAST's noise r N(0, I3))")
+    _sigma_options(a, "", "window", "in place of --r (default: 3D-LAST's noise r N(0, I3))")
     a.add_argument("--outliers", type=float, default=0.0,
                    help="share of the detections whose noise is --outlier-scale times larger (default 0)")
     a.add_argument("--outlier-scale", type=float, default=10.0, help="an outlier's noise factor (default 10)")

@@ -215,25 +215,33 @@ def _covariance(rec, col: dict, line: int) -> np.ndarray:
     return m
 
 
-def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
-    """The rows of ``reader`` after its header, each checked (module doc): ``zs`` the positions as given (x, y, z or
-    range, azimuth, elevation), ``extras`` each detection's stds or covariance (None where missed; nothing appended
-    where the file has neither)."""
-    ids, times, ts, zs, lines, extras = [], [], [], [], [], []
-    last: dict[str, tuple[Decimal, str]] = {}
-    header, polar, extra, col = _header(path, reader, sigmas)
+def _data_rows(reader, header: list[str], col: dict, polar: bool, pos, exact: bool):
+    """``(line, rec, t text, t, position)`` of each row of ``reader`` after its header that is not blank: its fields
+    counted (as many as the header, or with ``exact`` False at least as many), its ``track_id`` (where the file has
+    one) not empty, its ``t`` read (the text stripped, and as an exact decimal) and its position (a plot's range,
+    azimuth, elevation, or the columns ``pos``) read, each checked; a ValueError names the line."""
     for line, rec in enumerate(reader, start=2):
         if not rec or all(not v.strip() for v in rec):
             continue
-        if len(rec) < len(header):
-            raise ValueError(f"line {line}: {len(rec)} fields, expected {len(header)}")
-        tid = rec[col["track_id"]].strip()
-        if not tid:
+        if len(rec) < len(header) or exact and len(rec) > len(header):
+            raise ValueError(f"line {line}: {len(rec)} fields, but the header has {len(header)} ({','.join(header)})")
+        if "track_id" in col and not rec[col["track_id"]].strip():
             raise ValueError(f"line {line}: column 'track_id' is empty: in a CSV with a track_id column every row "
                              f"names its track (unlabelled plots, for the multi-target tracker, have no such column)")
         text = rec[col["t"]].strip()
         t = _time(text, line)
-        xyz = _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in "xyz"]
+        yield line, rec, text, t, _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in pos]
+
+
+def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
+    """The rows of ``reader`` after its header, each checked (module doc): ``rows`` each row's track, ``t`` text,
+    ``t``, position as given (x, y, z or range, azimuth, elevation) and line, ``extras`` each detection's stds or
+    covariance (None where missed; nothing appended where the file has neither)."""
+    rows, extras = [], []
+    last: dict[str, tuple[Decimal, str]] = {}
+    header, polar, extra, col = _header(path, reader, sigmas)
+    for line, rec, text, t, xyz in _data_rows(reader, header, col, polar, "xyz", exact=False):
+        tid = rec[col["track_id"]].strip()
         if extra:
             detected = not all(math.isnan(v) for v in xyz)
             extras.append(None if not detected else _stds(rec, col, line) if polar else _covariance(rec, col, line))
@@ -241,20 +249,21 @@ def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
             raise ValueError(f"line {line}: time {text} of track {tid!r} is not after its previous time "
                              f"{last[tid][1]} (rows of a track must be in time order)")
         last[tid] = (t, text)
-        ids.append(tid)
-        times.append(text)
-        ts.append(t)
-        zs.append(xyz)
-        lines.append(line)
-    if not ids:
+        rows.append((tid, text, t, xyz, line))
+    if not rows:
         raise ValueError(f"{path}: no data rows")
-    z = np.asarray(zs, dtype=np.float64).reshape(-1, 3)
-    cov = None
-    if polar:
-        z, cov = _to_enu(z, extras, sigmas)
-    elif extras:
-        cov = _filled(extras, (3, 3))
+    ids, times, ts, zs, lines = map(list, zip(*rows))
+    z, cov = _enu(np.asarray(zs, dtype=np.float64).reshape(-1, 3), extras, polar, extra, sigmas)
     return CsvTracks(ids, times, ts, z, lines, cov, polar)
+
+
+def _enu(given: np.ndarray, extras: list, polar: bool, extra: tuple, sigmas) -> tuple[np.ndarray, np.ndarray | None]:
+    """Positions ``[R, 3]`` as the file gives them -> east-north-up and each one's covariance: a radar's plots
+    converted (:func:`_to_enu`), ``x, y, z`` as they are with their ``R_COLUMNS`` covariance (NaN where an entry of
+    ``extras`` is None), None where the file gives none."""
+    if polar:
+        return _to_enu(given, extras, sigmas)
+    return given, _filled(extras, (3, 3)) if extra else None
 
 
 def _filled(extras: list, trail: tuple) -> np.ndarray:
@@ -350,16 +359,9 @@ def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
     """The scans of ``reader``'s rows after its header, each row checked (``read_plots_csv``)."""
     header, polar, extra, col = _header(path, reader, sigmas, ids=False, need_stds=convert)
     pos = PLOT_COLUMNS[1:] if polar else CART_PLOT_COLUMNS[1:]
-    times, ts, scan_lines, offsets, given, lines, extras = [], [], [], [0], [], [], []
+    times, ts, scan_lines, offsets, given, lines, extras = [], [], [], [], [], [], []
     empty_line = None  # the line of the current scan's empty row (a scan without plots), if any
-    for line, rec in enumerate(reader, start=2):
-        if not rec or all(not v.strip() for v in rec):
-            continue
-        if len(rec) != len(header):
-            raise ValueError(f"line {line}: {len(rec)} fields, but the header has {len(header)} ({','.join(header)})")
-        text = rec[col["t"]].strip()
-        t = _time(text, line)
-        xyz = _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in pos]
+    for line, rec, text, t, xyz in _data_rows(reader, header, col, polar, pos, exact=True):
         empty = [repr(c) for c, v in zip(pos, xyz) if math.isnan(v)]
         if 0 < len(empty) < 3:
             raise ValueError(f"line {line}: column{'s' if len(empty) > 1 else ''} {', '.join(empty)} "
@@ -373,8 +375,7 @@ def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
             if ts and float(t) <= float(ts[-1]):
                 raise ValueError(f"line {line}: time {text} and the previous scan's time {times[-1]} are one number in "
                                  f"float64: give the plots of one scan one t")
-            if ts:
-                offsets.append(len(given))
+            offsets.append(len(given))
             times.append(text)
             ts.append(t)
             scan_lines.append(line)
@@ -395,15 +396,9 @@ def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
         raise ValueError(f"{path}: no data rows")
     offsets.append(len(given))
     given = np.asarray(given, dtype=np.float64).reshape(-1, 3)
-    out = CsvPlots(times, ts, scan_lines, np.asarray(offsets, np.int64), given, np.asarray(lines, np.int64),
-                   polar=polar)
-    if polar and convert:
-        out.z, out.cov = _to_enu(given, extras, sigmas)
-    elif not polar:
-        out.z = given
-        if extra:
-            out.cov = np.asarray(extras, dtype=np.float64).reshape(-1, 3, 3)
-    return out
+    z, cov = _enu(given, extras, polar, extra, sigmas) if convert or not polar else (None, None)
+    return CsvPlots(times, ts, scan_lines, np.asarray(offsets, np.int64), given, np.asarray(lines, np.int64), z, cov,
+                    polar)
 
 
 def read_plots_csv(path: str | Path, sigmas=None, convert: bool = True) -> CsvPlots:

@@ -194,9 +194,7 @@ class _ResumableBatches:
         self.pass_epoch = int(getattr(self.sampler, "epoch", 0))
         skip = self._resume[1] if self._resume is not None and self._resume[0] == self.pass_epoch else 0
         self._resume = None
-        for i, batch in enumerate(self.batches):
-            if i >= skip:
-                yield batch
+        yield from itertools.islice(self.batches, skip, None)
 
 
 class ResumableLoader(DataLoader):
@@ -279,9 +277,7 @@ def check_flights(train: list, others: list) -> None:
         for other_path, other, other_digests in everything:
             if not digests & other_digests:
                 continue
-            for split in ("val", "test"):
-                if split == meta.get("split"):
-                    continue
+            for split in [s for s in ("val", "test") if s != meta.get("split")]:
                 seen = sorted(trained & set(other["flights"].get(split, [])))
                 if seen:
                     raise ValueError(
@@ -378,12 +374,10 @@ class LASTDataModule(L.LightningDataModule):
         g = torch.Generator().manual_seed(int(self.split_seed))
         self._parts = [self._split(p, v, g) for p, v in zip(data, vals)]
         self.meta = self._parts[0]["meta"]
-        test_meta = None
+        self._test = test_meta = None
         if self.test_data is not None:
             test_td, test_meta = load_dataset(self.test_data)
             self._test = (test_td, torch.arange(test_td.batch_size[0]))
-        else:
-            self._test = None
         if not self.allow_seen_flights:
             check_flights([(p["path"], p["meta"]) for p in self._parts],
                           [(p["val_path"], p["val_meta"]) for p in self._parts if p["val_meta"] is not None]

@@ -58,6 +58,7 @@ from immnet import keys
 from immnet.data import radar
 from immnet.data.spec import DataSpec
 from immnet.motion import DEG, MODE_NAMES, N_MODES
+from immnet.progress import progress as progress_bar
 
 BLOCK = 4096
 MAX_REDRAWS = 64
@@ -128,12 +129,9 @@ def _out_of_bounds(rho, hs, lz, spec: DataSpec) -> torch.Tensor:
             | (lz < spec.hard_alt_min) | (lz > spec.hard_alt_max))
 
 
-def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: int | None = None,
-             return_bad: bool = False):
-    """``m`` trajectories drawn from generator ``g``, float64, none redrawn.
-
-    With ``return_bad`` also the ``[m]`` mask of those leaving a hard bound at some step (or not finite).
-    """
+def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: int | None = None):
+    """``(trajectories, bad)``: ``m`` trajectories drawn from generator ``g``, float64, none redrawn, and the ``[m]``
+    mask of those leaving a hard bound at some step (or not finite)."""
     T, dt = spec.T, spec.dt
     # --- draws, in a fixed order -----------------------------------------------------------
     rng = _uniform(g, m, spec.range_min, spec.range_max)
@@ -168,7 +166,6 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     lx, ly, lz = rng * torch.cos(az), rng * torch.sin(az), alt
     vx, vy, vz = spd * torch.cos(hdg), spd * torch.sin(hdg), vz0
     zero = torch.zeros(m, dtype=_DT)
-    ax, ay, azz = zero, zero, zero
     m0, w0 = seg_mode[:, 0], torch.where(seg_mode[:, 0] >= CTP, seg_w[:, 0], zero)
     is_ca = m0 == CA
     ax = torch.where(is_ca, seg_ax[:, 0], -w0 * vy)
@@ -191,13 +188,9 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     for t in range(1, T):
         dt = spec.dt if steps_dt is None else steps_dt[t]  # this step's interval: a float, or [m]
         half_dt2 = 0.5 * dt * dt
-        if switches.shape[1]:
-            seg = (switches <= t).sum(1)
-            new_seg = (switches == t).any(1)
-            ovr = torch.where(new_seg & (ovr == 3), 0, ovr)
-        else:
-            seg = torch.zeros(m, dtype=torch.long)
-            new_seg = torch.zeros(m, dtype=torch.bool)
+        seg = (switches <= t).sum(1)  # switches [m, 0] (one segment): 0 and False throughout
+        new_seg = (switches == t).any(1)
+        ovr = torch.where(new_seg & (ovr == 3), 0, ovr)
         segi = seg[:, None]
         smode = seg_mode.gather(1, segi)[:, 0]
         # soft bounds on x_{t-1}
@@ -280,12 +273,12 @@ def simulate(g: torch.Generator, m: int, spec: DataSpec = DataSpec(), single: in
     )
     if cov is not None:
         td.set(keys.MEAS_COV, cov)
-    return (td, bad) if return_bad else td
+    return td, bad
 
 
 def generate_block(seed: int, block: int, n: int, spec: DataSpec = DataSpec(), single_mode=None) -> TensorDict:
     """Block ``block`` of a data set of ``n`` trajectories: trajectories ``[block*BLOCK, ...)``."""
-    single = mode_index(single_mode) if isinstance(single_mode, str) or single_mode is None else int(single_mode)
+    single = mode_index(single_mode)
     m = min(BLOCK, n - block * BLOCK)
     if m <= 0:
         raise ValueError(f"block {block} is past the end of a data set of {n} trajectories")
@@ -297,8 +290,7 @@ def generate_block(seed: int, block: int, n: int, spec: DataSpec = DataSpec(), s
                 "check the DataSpec bounds"
             )
         # spare trajectories so that one attempt nearly always suffices; the first in-bounds ones are kept
-        sub, bad = simulate(block_generator(seed, block, attempt), todo + todo // 4 + 64, spec, single,
-                            return_bad=True)
+        sub, bad = simulate(block_generator(seed, block, attempt), todo + todo // 4 + 64, spec, single)
         good = (~bad).nonzero()[:, 0][:todo]
         parts.append(sub[good])
         todo -= len(good)
@@ -316,10 +308,6 @@ def generate(n: int, seed: int, spec: DataSpec = DataSpec(), single_mode: str | 
     n = int(n)
     if n <= 0:
         raise ValueError(f"n must be a positive number of trajectories, got {n}")
-    single = mode_index(single_mode)
-    blocks = range(n_blocks(n))
-    if progress:
-        from immnet.progress import progress as progress_bar
-
-        blocks = progress_bar(blocks, desc="3D-LAST", unit="block")
-    return torch.cat([generate_block(seed, b, n, spec, single) for b in blocks], 0)
+    mode_index(single_mode)  # validates the name
+    blocks = progress_bar(range(n_blocks(n)), desc="3D-LAST", unit="block", disable=not progress)
+    return torch.cat([generate_block(seed, b, n, spec, single_mode) for b in blocks], 0)

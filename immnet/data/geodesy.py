@@ -76,27 +76,17 @@ def enu_rotation(lat0, lon0) -> np.ndarray:
                      np.stack([cp * cl, cp * sl, sp], -1)], -2)
 
 
-def ecef_to_enu(xyz, site) -> np.ndarray:
-    """ECEF ``[..., 3]`` -> ENU ``[..., 3]`` (m) at ``site = (lat0, lon0, h0)`` (degrees, degrees, m)."""
-    lat0, lon0, h0 = _site(site)
-    d = np.asarray(xyz, np.float64) - geodetic_to_ecef(lat0, lon0, h0)
-    return d @ enu_rotation(lat0, lon0).T
-
-
-def enu_to_ecef(enu, site) -> np.ndarray:
-    """ENU ``[..., 3]`` (m) at ``site`` -> ECEF ``[..., 3]`` (m)."""
-    lat0, lon0, h0 = _site(site)
-    return np.asarray(enu, np.float64) @ enu_rotation(lat0, lon0) + geodetic_to_ecef(lat0, lon0, h0)
-
-
 def geodetic_to_enu(lat, lon, h, site) -> np.ndarray:
-    """Latitude, longitude (degrees) and height (m) -> ENU ``[..., 3]`` (m) at ``site``."""
-    return ecef_to_enu(geodetic_to_ecef(lat, lon, h), site)
+    """Latitude, longitude (degrees) and height (m) -> ENU ``[..., 3]`` (m) at ``site = (lat0, lon0, h0)`` (degrees,
+    degrees, m): ``R (P - P0)`` in ECEF."""
+    lat0, lon0, h0 = _site(site)
+    return (geodetic_to_ecef(lat, lon, h) - geodetic_to_ecef(lat0, lon0, h0)) @ enu_rotation(lat0, lon0).T
 
 
 def enu_to_geodetic(enu, site) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ENU ``[..., 3]`` (m) at ``site`` -> ``(lat, lon, h)`` (degrees, degrees, m)."""
-    return ecef_to_geodetic(enu_to_ecef(enu, site))
+    """ENU ``[..., 3]`` (m) at ``site`` -> ``(lat, lon, h)`` (degrees, degrees, m), through ECEF ``R^T enu + P0``."""
+    lat0, lon0, h0 = _site(site)
+    return ecef_to_geodetic(np.asarray(enu, np.float64) @ enu_rotation(lat0, lon0) + geodetic_to_ecef(lat0, lon0, h0))
 
 
 def local_step(lat, lon) -> np.ndarray:

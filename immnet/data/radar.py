@@ -133,11 +133,17 @@ def covered(enu, max_range: float, min_elevation: float = 0.0) -> np.ndarray:
     return (rho <= max_range) & (el >= np.radians(min_elevation))
 
 
+def check_scan_interval(dt: float, dt_jitter: float) -> None:
+    """A ValueError unless ``dt > 0`` and ``0 <= dt_jitter < dt``, so that every scan interval ``U[dt - dt_jitter,
+    dt + dt_jitter]`` is > 0: the one check of ``DataSpec``, ``RealSpec``, ``SceneSpec`` and :func:`scan_times`."""
+    if not (dt > 0 and 0 <= dt_jitter < dt):
+        raise ValueError(f"the scan interval needs dt > 0 and 0 <= dt_jitter < dt, got dt={dt}, dt_jitter={dt_jitter}")
+
+
 def scan_times(t0: float, t1: float, dt: float, jitter: float, rng: np.random.Generator) -> np.ndarray:
     """Scan times from ``t0 + u dt`` (``u ~ U[0, 1)``) up to ``t1``: a fixed ``dt`` or intervals
     ``U[dt - jitter, dt + jitter]`` (``0 <= jitter < dt``)."""
-    if not (dt > 0 and 0 <= jitter < dt):
-        raise ValueError(f"the scan interval needs dt > 0 and 0 <= jitter < dt, got dt={dt}, jitter={jitter}")
+    check_scan_interval(dt, jitter)
     start = t0 + rng.uniform(0.0, dt)
     n = max(int(np.floor((t1 - start) / max(dt - jitter, 1e-9))) + 1, 1)
     if jitter == 0:

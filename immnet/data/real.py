@@ -34,6 +34,7 @@ from immnet.data.contract import NO_LABEL
 from immnet.data.geodesy import enu_to_geodetic, geodetic_to_enu
 from immnet.data.scratch import publishing
 from immnet.data.smoother import rts_smooth
+from immnet.data.spec import check_numbers
 
 SPLITS = ("train", "val", "test")
 FORMAT_VERSION = 2  # 2: each split's meta.json names the flight of every window (window_flights)
@@ -77,23 +78,18 @@ class RealSpec:
     range_km: tuple = ()  # (low, high): a radar per flight, U[low, high] km from it, seeing slant ranges in [low, high]
 
     def __post_init__(self):
-        bad = [f.name for f in dataclasses.fields(self) if f.name not in ("splits", *PAIRS)
-               and not np.isfinite(float(getattr(self, f.name)))]
-        if bad:
-            raise ValueError(f"parameter(s) {', '.join(bad)} must be finite numbers")
+        check_numbers(self)
         if self.max_position_interval < 0:
             raise ValueError(f"max_position_interval must be >= 0 (0: no limit), got {self.max_position_interval}")
         if self.T < 1 or self.min_points < 2 or self.chunk < 1 or self.max_flights < 0:
             raise ValueError(f"T >= 1, min_points >= 2, chunk >= 1 and max_flights >= 0 needed, got {self.T}, "
                              f"{self.min_points}, {self.chunk}, {self.max_flights}")
-        if not (self.dt > 0 and 0 <= self.dt_jitter < self.dt):
-            raise ValueError(f"the scan interval needs dt > 0 and 0 <= dt_jitter < dt, got {self.dt}, {self.dt_jitter}")
+        radar.check_scan_interval(self.dt, self.dt_jitter)
         if not (0 < self.r_min <= self.r_max):
             raise ValueError(f"the noise levels need 0 < r_min <= r_max, got {self.r_min}, {self.r_max}")
         if not 0 <= self.p_miss < 1:
             raise ValueError(f"p_miss must be in [0, 1), got {self.p_miss}")
-        s = tuple(float(f) for f in self.splits)
-        if len(s) != 3 or min(s) < 0 or abs(sum(s) - 1) > 1e-9:
+        if len(self.splits) != 3 or min(self.splits) < 0 or abs(sum(self.splits) - 1) > 1e-9:
             raise ValueError(f"splits must be three fractions >= 0 (train, val, test) summing to 1, got {self.splits}")
         for name in ("max_range", "max_gap", "max_speed", "max_climb", "sigma_h", "sigma_v", "q_h", "q_v", "truth_gap"):
             if not getattr(self, name) > 0:
@@ -191,14 +187,12 @@ def truth(flights: list[adsb.Flight], sites: list, spec: RealSpec, seed: int, pr
         p = prepared[i]
         p["states"], p["valid"] = np.full((len(p["scans"]), 9), np.nan), np.zeros(len(p["scans"]), bool)
     order = sorted(set(range(len(prepared))) - set(short), key=lambda i: (steps[i], i))
-    chunks, c = [], []
+    chunks = []
     for i in order:  # flights of similar lengths together, at most `chunk` x 3 tracks of steps per chunk
-        if c and steps[i] * 3 * (len(c) + 1) > spec.chunk:
-            chunks.append(c)
-            c = []
-        c.append(i)
-    if c:
-        chunks.append(c)
+        if chunks and steps[i] * 3 * (len(chunks[-1]) + 1) <= spec.chunk:
+            chunks[-1].append(i)
+        else:
+            chunks.append([i])
     q = np.array([spec.q_h, spec.q_h, spec.q_v])
     done = 0
     for members in chunks:
@@ -262,34 +256,28 @@ def windows(p: dict, spec: RealSpec) -> list[int]:
     return starts
 
 
-def _plots(pos: np.ndarray, spec: RealSpec, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray]:
-    """A window's detections of true positions ``pos [T, 3]`` as a radar's plots (:func:`immnet.data.radar.plots`
-    with ``spec``'s ``sigma_*``, ``p_miss`` and outliers): ``(z [T, 3], r, cov [T, 3, 3])``."""
-    z, r, cov = radar.plots(pos, spec.sigma_range, spec.sigma_azimuth, spec.sigma_elevation, spec.p_miss,
-                            spec.outliers, spec.outlier_scale, rng)
-    return z, float(r), cov
-
-
 def simulate(p: dict, spec: RealSpec, with_cov: bool = False) -> list[tuple]:
     """The radar's windows of one flight (``truth``'s ``p``; draws from its generator): per window ``(states [T, 9],
     measurements [T, 3], r, scans [T])``, the scans' times in epoch seconds; ``with_cov``: and each detection's
     covariance ``[T, 3, 3]`` (m^2, NaN where missed). 3D-LAST's noise ``r N(0, I3)`` (covariance ``r^2 I``) unless
-    ``spec.plots`` (:func:`_plots`); a share ``outliers`` of the detections with ``outlier_scale`` times the noise
-    (drawn after the rest of the window's, none drawn at share 0)."""
+    ``spec.plots`` (a radar's plots, :func:`immnet.data.radar.plots` with ``spec``'s ``sigma_*``, ``p_miss`` and
+    outliers); a share ``outliers`` of the detections with ``outlier_scale`` times the noise (drawn after the rest of
+    the window's, none drawn at share 0)."""
     out = []
     for s in windows(p, spec):
         st = p["states"][s : s + spec.T]
         pos = st[:, [0, 3, 6]]
         if spec.plots:
-            z, r, cov = _plots(pos, spec, p["rng"])
+            z, r, cov = radar.plots(pos, spec.sigma_range, spec.sigma_azimuth, spec.sigma_elevation, spec.p_miss,
+                                    spec.outliers, spec.outlier_scale, p["rng"])
         else:
-            r = float(p["rng"].uniform(spec.r_min, spec.r_max))
+            r = p["rng"].uniform(spec.r_min, spec.r_max)
             z = radar.measure(pos, r, spec.p_miss, p["rng"])
             if spec.outliers > 0:
                 wild = p["rng"].random(len(z)) < spec.outliers
                 z[wild] = pos[wild] + spec.outlier_scale * (z[wild] - pos[wild])
             cov = np.where(np.isnan(z).any(-1)[:, None, None], np.nan, r * r * np.eye(3))
-        out.append((st, z, r, p["scans"][s : s + spec.T], *((cov,) if with_cov else ())))
+        out.append((st, z, float(r), p["scans"][s : s + spec.T], *((cov,) if with_cov else ())))
     return out
 
 
@@ -361,10 +349,8 @@ def set_flights(meta: dict, where="the set") -> tuple[list[adsb.Flight], dict[st
         if adsb.file_digest(path) != sample["sha256"]:
             raise ValueError(f"{path}: not the file {where} was built from (its SHA-256 differs)")
         rec = records[sample["name"]] = adsb.read_records(path)
-        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points).flights
-        for f in got:
-            f.sample = sample["name"]
-        flights += got
+        flights += adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points,
+                                sample["name"]).flights
     unique_ids(flights)
     return select_flights(flights, spec)[0], records
 
@@ -422,9 +408,8 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
             skipped.append({"name": str(name), "error": why})
             _log(progress, f"skipped {name}: {why}")
             continue
-        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points)
-        for f in got.flights:
-            f.sample = str(name)
+        got = adsb.flights(rec, spec.max_gap, spec.max_speed, spec.max_climb, spec.time_slack, spec.min_points,
+                           str(name))
         if got.flights:
             sites[str(name)] = (tuple(float(v) for v in site) if site is not None else
                                 radar.median_site(np.concatenate([f.lat for f in got.flights]),
@@ -498,7 +483,6 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
         meta["site_from"] = (f"one radar per flight, U[{spec.range_km[0]:g}, {spec.range_km[1]:g}] km from its median "
                              f"position, height 0")
         meta["sites"] = {i: dict(zip(("lat", "lon", "h"), flight_sites[i])) for i in sorted(flight_sites)}
-    out.parent.mkdir(parents=True, exist_ok=True)  # a new directory's parents, as every other writer makes them
     with publishing(out) as tmp:
         tmp.mkdir()
         for split in SPLITS:
@@ -548,7 +532,6 @@ def _write_split(out: Path, arrays: dict, meta: dict) -> dict:
     from immnet.data.storage import load_dataset, write_arrays
 
     kept = {k: v for k, v in meta.items() if k not in ("n", "T", "counts_per_mode", "dtype")}
-    out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         write_arrays(tmp, arrays, kept)
     return load_dataset(out)[1]
@@ -613,9 +596,8 @@ def reference_partition(path, digests: set[str]) -> tuple[dict[str, str], str]:
     """``({flight id: split}, where)``: the partition of the flights of the real-flight set at ``path`` (one of its
     split directories, or its ``OUT``), checked to be made from some of the samples of SHA-256 ``digests``."""
     path = Path(path)
-    if not (path / "meta.json").is_file():
-        found = [path / k for k in SPLITS if (path / k / "meta.json").is_file()]
-        path = found[0] if found else path
+    if not (path / "meta.json").is_file():  # the set's OUT: its first split
+        path = next((path / k for k in SPLITS if (path / k / "meta.json").is_file()), path)
     meta = _reference_meta(path, digests, "--splits-from")
     flights = meta.get("flights")
     if not isinstance(flights, dict) or not all(isinstance(flights.get(k, []), list) for k in SPLITS):
@@ -627,16 +609,11 @@ def reference_partition(path, digests: set[str]) -> tuple[dict[str, str], str]:
 def _reference_meta(path: Path, digests: set[str], option: str) -> dict:
     """The ``meta.json`` of a real-flight split at ``path`` (read as JSON), refused by name unless it is one and it
     was made from at least one of the samples of SHA-256 ``digests`` (its flight ids are then theirs)."""
-    import json
-
-    from immnet.data.storage import REAL_FORMAT, sample_digests
+    from immnet.data.storage import REAL_FORMAT, read_json, sample_digests
 
     if not (path / "meta.json").is_file():
         raise ValueError(f"{option} {path}: not a data set directory (no meta.json)")
-    try:
-        meta = json.loads((path / "meta.json").read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{option} {path}: meta.json unreadable ({err})") from None
+    meta = read_json(path / "meta.json", f"{option} {path}/meta.json")
     if not isinstance(meta, dict) or meta.get("format") != REAL_FORMAT:
         raise ValueError(f"{option} {path}: not a set of `immnet data adsb` (format "
                          f"{meta.get('format') if isinstance(meta, dict) else None!r})")
@@ -657,17 +634,15 @@ def turned_flights(data, out, turns: float, seed: int = 0, bank=(10.0, 30.0), se
     flights that turns as much as patterns and orbits do (docs/notebook/real-flights.md, "Turns added to the training
     flights"). ``meta.json`` is the source's with ``turns`` added (``turns``, ``bank``, ``segment``, ``seed``)."""
     import torch
-    from tensordict import TensorDict
 
     from immnet.data.augment import FlightAugment
+    from immnet.data.storage import as_batch
 
     data, out = Path(data), Path(out)
     td, meta = _real_split(data, out, overwrite, "adding turns")
     aug = FlightAugment(rotate=False, renoise=True, r_range=None, seed=seed, turns=turns, turn_bank=bank,
                         turn_segment=segment)
-    batch = TensorDict({k: v.to(torch.float64) if v.is_floating_point() else v for k, v in td.items()},
-                       batch_size=td.batch_size)
-    arrays = {k: v.numpy() for k, v in aug(batch, 0).items()}
+    arrays = {k: v.numpy() for k, v in aug(as_batch(td, torch.float64), 0).items()}
     turns = {"turns": aug.turns, "bank": list(aug.turn_bank), "segment": list(aug.turn_segment), "seed": int(seed)}
     return _write_split(out, arrays, {**meta, "turns": turns})
 

@@ -64,7 +64,6 @@ import dataclasses
 import json
 import math
 import time
-import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,6 +73,7 @@ import numpy as np
 from immnet.data import adsb, radar
 from immnet.data.geodesy import geodetic_to_enu
 from immnet.data.scratch import check_writable, publishing
+from immnet.data.spec import check_numbers
 
 # the plot CSV is immnet track's: one reader of it, immnet.data.csvio's
 from immnet.data.csvio import PLOT_COLUMNS as CSV_COLUMNS
@@ -116,14 +116,8 @@ class SceneSpec:
     last_step: float = 0.1  # the 3D-LAST simulation's step (s); scans fall on it
 
     def __post_init__(self):
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            vals = v if isinstance(v, tuple) else (v,)
-            if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in vals):
-                raise ValueError(f"scene parameter {f.name} must be a finite number, got {v!r}")
-        if not (self.dt > 0 and 0 <= self.dt_jitter < self.dt):
-            raise ValueError(f"the scan interval needs dt > 0 and 0 <= dt_jitter < dt, got dt={self.dt}, "
-                             f"dt_jitter={self.dt_jitter}")
+        check_numbers(self)
+        radar.check_scan_interval(self.dt, self.dt_jitter)
         if not self.duration >= self.dt:
             raise ValueError(f"duration must be at least one scan interval ({self.dt:g} s), got {self.duration}")
         if not 0 < self.pd <= 1:
@@ -162,10 +156,8 @@ class SceneSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SceneSpec":
-        d = dict(d)
-        if "close_separation" in d:
-            d["close_separation"] = tuple(d["close_separation"])
-        return cls(**d)
+        """The spec of ``to_dict`` (a scene's ``meta["spec"]``), its JSON lists tuples again."""
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
 
 
 @dataclass
@@ -222,14 +214,12 @@ def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.rand
     s_rho, s_az, s_el = spec.sigma_range, math.radians(spec.sigma_azimuth_deg), math.radians(spec.sigma_elevation_deg)
     pos = states[..., [0, 3, 6]]
     inview = _in_cover(pos, np.isfinite(states).all(-1), spec)
-    plot_off, truth_off = [0], [0]
     plots_polar, sources, truth_states, truth_ids = [], [], [], []
     lo_el, hi_el = math.radians(spec.min_elevation), math.radians(spec.max_elevation)
     for k in range(S):
         ids = np.flatnonzero(inview[:, k])
         truth_states.append(states[ids, k])
         truth_ids.append(ids)
-        truth_off.append(truth_off[-1] + len(ids))
         det = ids[rng.random(len(ids)) < spec.pd]
         rho, az, el = radar.polar(pos[det, k])
         noise = rng.standard_normal((len(det), 3)) * np.array([s_rho, s_az, s_el])
@@ -243,7 +233,7 @@ def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.rand
         order = rng.permutation(len(allp))
         plots_polar.append(allp[order])
         sources.append(src[order])
-        plot_off.append(plot_off[-1] + len(allp))
+    plot_off, truth_off = (np.cumsum([0, *map(len, rows)], dtype=np.int64) for rows in (sources, truth_ids))
     polar_all = np.concatenate(plots_polar) if plots_polar else np.empty((0, 3))
     polar_all[:, 1] = np.mod(polar_all[:, 1], 2 * np.pi)
     enu = radar.from_polar(polar_all[:, 0], polar_all[:, 1], polar_all[:, 2])
@@ -252,9 +242,9 @@ def observe(states: np.ndarray, scans: np.ndarray, spec: SceneSpec, rng: np.rand
               "detections": int(sum((s >= 0).sum() for s in sources)),
               "clutter": int(sum((s < 0).sum() for s in sources)), "truth": int(truth_off[-1]),
               "in_cover": [int(min(np.diff(truth_off))), int(max(np.diff(truth_off)))] if S else [0, 0]}
-    return Scene(t=np.asarray(scans, np.float64), plot_offsets=np.asarray(plot_off, np.int64), plots=enu,
+    return Scene(t=np.asarray(scans, np.float64), plot_offsets=plot_off, plots=enu,
                  plot_polar=polar_all, plot_cov=cov, plot_source=np.concatenate(sources).astype(np.int64),
-                 truth_offsets=np.asarray(truth_off, np.int64),
+                 truth_offsets=truth_off,
                  truth_states=np.concatenate(truth_states) if truth_states else np.empty((0, 9)),
                  truth_id=np.concatenate(truth_ids).astype(np.int64), aircraft=np.asarray(list(aircraft), dtype=str),
                  site=np.asarray(site, np.float64), meta={**meta, "counts": counts})
@@ -266,8 +256,7 @@ def _interp_positions(flights: list[adsb.Flight], site, grid: np.ndarray, gap: f
     ``gap`` apart (NaN elsewhere): a quick count of the aircraft in cover, for choosing windows."""
     out = np.full((len(flights), len(grid), 3), np.nan)
     for i, f in enumerate(flights):
-        a, b = np.searchsorted(grid, [f.t[0], f.t[-1]], side="left")
-        b = np.searchsorted(grid, f.t[-1], side="right")
+        a, b = np.searchsorted(grid, f.t[0]), np.searchsorted(grid, f.t[-1], side="right")
         if b <= a:
             continue
         g = grid[a:b]
@@ -305,34 +294,29 @@ def _smoothed(flights: list[adsb.Flight], site, scans: np.ndarray, spec: SceneSp
 def sample_flights(sample) -> tuple[list[adsb.Flight], Path]:
     """The flights of one sample (a name or a file) with ``.sample`` set, and the file."""
     path = adsb.resolve_sample(sample)
-    fl = adsb.flights(adsb.read_records(path)).flights
-    for f in fl:
-        f.sample = str(sample)
-    return fl, path
+    return adsb.flights(adsb.read_records(path), sample=str(sample)).flights, path
 
 
 def split_of(sample, train_samples=TRAIN_SAMPLES) -> str:
     """``train`` for a sample among ``train_samples`` (by name, or by being the same file), else ``test``."""
     if str(sample) in train_samples:
         return "train"
+    path = _resolved(sample)
+    return "train" if path is not None and any(_resolved(name) == path for name in train_samples) else "test"
+
+
+def _resolved(sample) -> Path | None:
+    """The resolved file of a sample (a name or a file), None where there is none."""
     try:
-        path = adsb.resolve_sample(sample).resolve()
+        return adsb.resolve_sample(sample).resolve()
     except FileNotFoundError:
-        return "test"
-    for name in train_samples:
-        try:
-            if adsb.resolve_sample(name).resolve() == path:
-                return "train"
-        except FileNotFoundError:
-            pass
-    return "test"
+        return None
 
 
 def _stem(sample) -> str:
     s = str(sample)
     for suf in (*adsb.SUFFIXES, *adsb.CSV_SUFFIXES):
-        if s.endswith(suf):
-            s = s[: -len(suf)]
+        s = s.removesuffix(suf)
     return Path(s).name.replace(" ", "_") or "sample"
 
 
@@ -439,7 +423,7 @@ def last_scene(index: int, spec: SceneSpec = SceneSpec(), seed: int = 0, split: 
     pool = []
     g = hashed_generator(f"scenes-3dlast:{int(seed)}:{int(index)}")
     for _ in range(8):  # batches of candidates until the pairs are placed
-        td, bad = simulate(g, 4 * spec.targets, ds, return_bad=True)
+        td, bad = simulate(g, 4 * spec.targets, ds)
         pool += [s for s, b in zip(td[keys.STATES].numpy(), bad.numpy()) if not b]
         if len(pool) >= 2 * spec.targets:
             break
@@ -502,7 +486,6 @@ def save_scene(scene: Scene, path) -> Path:
     if path.suffix != ".npz":
         raise ValueError(f"{path}: a scene file must end in .npz")
     check_writable(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with publishing(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, meta=np.asarray(json.dumps(scene.meta, allow_nan=False)), **scene.arrays())
     return path
@@ -510,23 +493,19 @@ def save_scene(scene: Scene, path) -> Path:
 
 def load_scene(path) -> Scene:
     """A scene file (:func:`save_scene`), read with ``allow_pickle=False``; a ValueError names what is wrong."""
+    from immnet.data.storage import read_npz
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no scene file at {path}")
+    arrays, names = read_npz(path, (*_ARRAYS, "meta"))
+    missing = [k for k in (*_ARRAYS, "meta") if k not in names]
+    if missing:
+        raise ValueError(f"{path}: not a scene: the array(s) {', '.join(missing)} are missing (has {sorted(names)})")
     try:
-        with open(path, "rb") as f:
-            z = np.load(f, allow_pickle=False)
-            if not isinstance(z, np.lib.npyio.NpzFile):
-                raise ValueError("it holds one bare array, not an archive of named arrays")
-            missing = [k for k in (*_ARRAYS, "meta") if k not in z.files]
-            if missing:
-                raise ValueError(f"not a scene: the array(s) {', '.join(missing)} are missing (has {sorted(z.files)})")
-            arrays = {k: z[k] for k in _ARRAYS}
-            meta = json.loads(str(z["meta"]))
-    except (OSError, EOFError, KeyError, zipfile.BadZipFile, zlib.error, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: not a readable scene file ({type(err).__name__}: {err})") from None
-    except ValueError as err:
-        raise ValueError(f"{path}: {err}") from None
+        meta = json.loads(str(arrays.pop("meta")))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not a readable scene file (its meta is not JSON: {err})") from None
     for k, (ndim, dtype) in _ARRAYS.items():
         a = arrays[k]
         if a.ndim != ndim or (dtype is not None and a.dtype != dtype) or (dtype is None and a.dtype.kind != "U"):
@@ -560,7 +539,6 @@ def write_plots_csv(scene: Scene, path) -> Path:
     float's shortest repr), so that reading gives the same values."""
     path = Path(path)
     check_writable(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with publishing(path, suffix=".csv") as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(CSV_COLUMNS)
@@ -616,11 +594,9 @@ def make_scenes(out, samples=(), n: int = 3, spec: SceneSpec = SceneSpec(), seed
         scenes += got
         if progress:
             print(f"[scenes] {sample}: {len(got)} scene(s)", flush=True)
-    for i in range(last):
-        scenes.append(last_scene(i, spec, seed, split=last_split))
+    scenes += [last_scene(i, spec, seed, split=last_split) for i in range(last)]
     index = {"format": FORMAT, "version": FORMAT_VERSION, "seed": int(seed), "spec": spec.to_dict(),
              "train_samples": list(train_samples), "scenes": []}
-    out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         tmp.mkdir()
         for s in scenes:
@@ -637,13 +613,12 @@ def make_scenes(out, samples=(), n: int = 3, spec: SceneSpec = SceneSpec(), seed
 
 def load_index(directory) -> dict:
     """``scenes.json`` of a set written by :func:`make_scenes`."""
+    from immnet.data.storage import read_json
+
     p = Path(directory) / INDEX
     if not p.is_file():
         raise FileNotFoundError(f"no scene set at {directory} (no {INDEX})")
-    try:
-        index = json.loads(p.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"{p}: not valid JSON ({err})") from None
+    index = read_json(p)
     if not isinstance(index, dict) or index.get("format") != FORMAT or not isinstance(index.get("scenes"), list):
         raise ValueError(f"{p}: not the index of a scene set (format {FORMAT!r})")
     return index

@@ -53,12 +53,9 @@ def remove_stale(out: Path) -> list[Path]:
     if not out.parent.is_dir():
         return []
     pattern = re.compile(rf"^\.{re.escape(out.name)}\.tmp-(\d+)-[0-9a-f]+")
-    removed = []
-    for p in out.parent.iterdir():
-        m = pattern.match(p.name)
-        if m and not _alive(int(m.group(1))):
-            remove(p)
-            removed.append(p)
+    removed = [p for p in out.parent.iterdir() if (m := pattern.match(p.name)) and not _alive(int(m.group(1)))]
+    for p in removed:
+        remove(p)
     return removed
 
 
@@ -106,12 +103,13 @@ def terminating_raises():
 
 @contextlib.contextmanager
 def publishing(out, suffix: str = ""):
-    """Write ``out`` (a file or a directory) through a temporary sibling: removes the stale siblings
-    of dead writers, yields a fresh :func:`tmp_sibling` (nothing created: the body makes the file or
-    directory), moves it onto ``out`` when the body ends normally, and removes it on any exception,
+    """Write ``out`` (a file or a directory) through a temporary sibling: makes ``out``'s missing parent folders,
+    removes the stale siblings of dead writers, yields a fresh :func:`tmp_sibling` (nothing created: the body makes
+    the file or directory), moves it onto ``out`` when the body ends normally, and removes it on any exception,
     SIGTERM included (:func:`terminating_raises`); an ``OSError`` that names no file (a write to an open one: a
     full disk) is raised again naming ``out``."""
     out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     remove_stale(out)
     tmp = tmp_sibling(out, suffix)
     with terminating_raises():

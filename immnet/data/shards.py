@@ -28,6 +28,7 @@ from immnet.data.storage import (
     tensor_files,
 )
 from immnet.motion import MODE_NAMES, N_MODES
+from immnet.progress import progress as progress_bar
 
 _SAME = ("format", "spec_version", "seed", "T", "single_mode", "block", "spec", "dtype")
 """``meta.json`` fields every shard of one whole shares (plus ``shard.count`` and ``shard.n_total``)."""
@@ -110,12 +111,7 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
     first = shards[0][1]
     n_total, T, block = first["shard"]["n_total"], first["T"], first["block"]
     _check_out(out, overwrite)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    bar = None
-    if progress:
-        from immnet.progress import progress as progress_bar
-
-        bar = progress_bar(total=n_total, desc=f"merge -> {out.name}", unit="traj")
+    bar = progress_bar(total=n_total, desc=f"merge -> {out.name}", unit="traj", disable=not progress)
     try:
         with publishing(out) as tmp:
             tmp.mkdir()
@@ -141,13 +137,11 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
                         dst.flush()
                         del src, dst
                 counts = [c + int(meta["counts_per_mode"][name]) for c, name in zip(counts, MODE_NAMES)]
-                if bar is not None:
-                    bar.update(n)
+                bar.update(n)
             del dst_td
             _write_meta(tmp, _meta(first["seed"], n_total, first["spec"], first["single_mode"], counts))
             load_dataset(tmp)  # the merged set passes the same checks as any other
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     return out
 

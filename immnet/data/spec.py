@@ -14,7 +14,7 @@ from pathlib import Path
 
 import yaml
 
-from immnet.data.radar import check_plot_settings
+from immnet.data.radar import check_plot_settings, check_scan_interval
 
 SPEC_VERSION = 1
 """Bumped whenever the generator's output for a given (seed, n, spec) changes. ``dt_jitter`` (0 by default)
@@ -79,17 +79,10 @@ class DataSpec:
     outlier_scale: float = 10.0
 
     def __post_init__(self):
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if not isinstance(v, numbers.Real) or not math.isfinite(v):
-                raise ValueError(f"DataSpec field {f.name!r} must be a finite number, got {v!r}")
+        check_numbers(self)
         if self.T < 1:
             raise ValueError(f"T must be >= 1, got {self.T}")
-        if self.dt <= 0:
-            raise ValueError(f"dt must be > 0, got {self.dt}")
-        if not 0.0 <= self.dt_jitter < self.dt:
-            raise ValueError(f"dt_jitter must be in [0, dt) = [0, {self.dt:g}) so that every scan interval "
-                             f"U[dt - dt_jitter, dt + dt_jitter] is > 0, got {self.dt_jitter}")
+        check_scan_interval(self.dt, self.dt_jitter)
         if not 0.0 <= self.p_miss < 1.0:
             raise ValueError(f"p_miss must be in [0, 1), got {self.p_miss}")
         if self.n_segments < 1:
@@ -183,6 +176,16 @@ class DataSpec:
         if not isinstance(d, dict):
             raise ValueError(f"{path}: a data config is a mapping of DataSpec fields")
         return cls.from_dict(d)
+
+
+def check_numbers(spec) -> None:
+    """A ValueError naming the first field of the dataclass ``spec`` (``DataSpec``, ``RealSpec``, ``SceneSpec``) that
+    is not a finite number (not a bool), or a tuple or list of them."""
+    for f in dataclasses.fields(spec):
+        v = getattr(spec, f.name)
+        if not all(isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
+                   for x in (v if isinstance(v, (tuple, list)) else (v,))):
+            raise ValueError(f"{type(spec).__name__} field {f.name!r} must be a finite number, got {v!r}")
 
 
 PLOT_PAIRS = {"sigma_range": "", "sigma_azimuth": "_deg", "sigma_elevation": "_deg"}

@@ -48,6 +48,7 @@ from immnet.data.scratch import check_space, check_writable, publishing, reserve
 from immnet.data.spec import SPEC_VERSION, DataSpec
 from immnet.data.times import nominal_dt
 from immnet.motion import MODE_NAMES, N_MODES
+from immnet.progress import progress as progress_bar
 
 META = "meta.json"
 TENSORS = "tensors"
@@ -139,8 +140,8 @@ def _rows(filename, dtype, trail, start: int, m: int, mode: str) -> np.memmap:
     return np.memmap(filename, dtype=dtype, mode=mode, offset=start * row, shape=(m, *trail))
 
 
-def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, threads=1, row0=0):
-    torch.set_num_threads(threads)
+def _init_worker(tensors_dir, seed, n, spec_dict, single_mode, row0):
+    torch.set_num_threads(1)  # elementwise ops on ~4k elements: one thread is fastest
     td = TensorDict.load_memmap(tensors_dir)
     spec = DataSpec.from_dict(spec_dict)
     dtypes = store_dtypes(spec)
@@ -231,34 +232,27 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     row0, row1 = _block_rows(blocks, n)
     _check_out(out, overwrite)
     check_writable(out, "folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         tmp.mkdir()
         _allocate(tmp / TENSORS, row1 - row0, spec.T, out, store_dtypes(spec))
         counts = [0] * N_MODES
         blocks = list(blocks)
-        bar = None
-        if progress:
-            from immnet.progress import progress as progress_bar
-
-            bar = progress_bar(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj")
+        bar = progress_bar(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj", disable=not progress)
         init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
         with contextlib.ExitStack() as stack:
             if workers == 1 or len(blocks) == 1:
                 stack.callback(_WORKER.clear)
                 stack.callback(torch.set_num_threads, torch.get_num_threads())
-                _init_worker(*init, threads=1, row0=row0)  # elementwise ops on ~4k elements: one thread is fastest
+                _init_worker(*init, row0)
                 results = map(_write_block, blocks)
             else:
                 pool = stack.enter_context(mp.get_context("spawn").Pool(
-                    min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, 1, row0)))
+                    min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, row0)))
                 results = pool.imap(_write_block, blocks)
             for b, c in zip(blocks, results):
                 counts = [a + x for a, x in zip(counts, c)]
-                if bar is not None:
-                    bar.update(min(BLOCK, n - b * BLOCK))
-        if bar is not None:
-            bar.close()
+                bar.update(min(BLOCK, n - b * BLOCK))
+        bar.close()
         info = None
         if shard is not None:
             info = {"index": int(shard[0]), "count": int(shard[1]), "n_total": n, "rows": [row0, row1],
@@ -290,14 +284,20 @@ def _shown(value, width: int = 60) -> str:
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
+def read_json(path: Path, where=None):
+    """The JSON value of the file ``path``; a ValueError beginning with ``where`` (default the file) where the file
+    cannot be read or holds no JSON."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{where or path}: not readable as JSON ({type(err).__name__}: {err})") from None
+
+
 def _load_dir(path: Path) -> tuple[TensorDict, dict]:
     meta_path = path / META
     if not meta_path.exists():
         raise FileNotFoundError(f"{path} is not a 3D-LAST data set: {META} is missing")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{meta_path}: not valid JSON ({err})") from None
+    meta = read_json(meta_path)
     if not isinstance(meta, dict) or meta.get("format") not in FORMATS:
         got = meta.get("format") if isinstance(meta, dict) else meta
         raise ValueError(f"{meta_path}: format is {got!r}, expected one of {', '.join(map(repr, FORMATS))}")
@@ -333,10 +333,7 @@ def tensor_files(tensors_dir) -> tuple[dict[str, tuple[Path, torch.dtype, tuple[
     a pickle, which runs code when it is loaded, so such a directory is refused before anything in it is read."""
     tensors_dir = Path(tensors_dir)
     where = tensors_dir / META
-    try:
-        meta = json.loads(where.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{where}: cannot be read ({type(err).__name__}: {err})") from None
+    meta = read_json(where)
     if not isinstance(meta, dict) or not isinstance(meta.get("shape"), list) or len(meta["shape"]) != 1:
         raise ValueError(f"{where}: not the meta of a data set's tensors (no batch shape [n])")
     n = meta["shape"][0]
@@ -390,16 +387,22 @@ hundredths of a second)."""
 _UNREADABLE = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
 
 
-def _load_npz(path: Path) -> tuple[TensorDict, dict]:
+def read_npz(path: Path, keys_read) -> tuple[dict, list[str]]:
+    """``(arrays, names)``: those of the arrays ``keys_read`` that the ``.npz`` file ``path`` holds, and the names of
+    all it holds, read with ``allow_pickle=False`` (nothing in it is executed); a ValueError naming the file where it
+    is not a whole archive of named arrays."""
     try:
         with open(path, "rb") as f:  # ours to close, whatever np.load raises
             z = np.load(f, allow_pickle=False)
             if not isinstance(z, np.lib.npyio.NpzFile):
                 raise ValueError("it holds one bare array, not an archive of named arrays")
-            arrays = {k: z[k] for k in (*TRAIL, keys.DT) if k in z.files}
-            names = list(z.files)
+            return {k: z[k] for k in keys_read if k in z.files}, list(z.files)
     except _UNREADABLE as err:
         raise ValueError(f"{path}: not a readable .npz file ({type(err).__name__}: {err})") from None
+
+
+def _load_npz(path: Path) -> tuple[TensorDict, dict]:
+    arrays, names = read_npz(path, (*TRAIL, keys.DT))
     if keys.MEASUREMENTS not in arrays:
         raise ValueError(f"{path}: the required array 'measurements' [N,T,3] is missing (has {names})")
     if keys.DT in arrays and arrays[keys.DT].size != 1:
@@ -456,14 +459,12 @@ def export_npz(path_in, out_npz) -> Path:
         raise ValueError(f"{out_npz}: the output must end in .npz")
     check_writable(out_npz)
     td, meta = load_dataset(path_in)
-    arrays = {key: td[key].to(torch.int64).numpy() if key == keys.MODE else td[key].numpy()
-              for key in TRAIL if key in td.keys()}
+    arrays = {key: td[key].numpy() for key in TRAIL if key in td.keys()}  # mode: int64 as loaded
     dts = td[keys.DT] if keys.DT in td.keys() else torch.ones(1)
     if keys.TIME not in td.keys() or bool((dts == dts[0]).all()):
         arrays[keys.DT] = np.asarray(float(dts[0]))
     # else: nominal intervals that differ per track are not a scalar; the reader takes each track's median
     # spacing of ``t``, which is what a loaded .npz without ``dt`` holds
-    out_npz.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out_npz, suffix=".npz") as tmp:
         np.savez(tmp, **arrays)
     return out_npz
