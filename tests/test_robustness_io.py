@@ -75,8 +75,10 @@ def no_work(monkeypatch):
     def work(*args, **kwargs):
         raise AssertionError("the work started before the output was checked")
 
-    monkeypatch.setattr("immnet.tracking.segments.track_rows", work)
-    monkeypatch.setattr("immnet.tracking.segments.track_segments", work)
+    import immnet.tracking.cli  # the names patched where the command reads them (bound when it is imported)
+
+    monkeypatch.setattr(immnet.tracking.cli, "track_rows", work)
+    monkeypatch.setattr(immnet.tracking.cli, "track_segments", work)
     monkeypatch.setattr("immnet.tracking.tracker.Tracker.track", work)
     monkeypatch.setattr("immnet.evaluation.runner.evaluate", work)
     monkeypatch.setattr("immnet.data.storage.generate_block", work)
@@ -222,28 +224,45 @@ def test_generate_allocates_every_byte_it_writes(tmp_path, monkeypatch):
 
 
 class _FullDisk:
-    """A csv writer whose file system fills up after ``rows`` rows."""
+    """A file opened for writing on a file system that fills up after ``room`` characters: the write that would pass
+    them writes what fits and raises ENOSPC, as a write to an open file does (no file name)."""
 
-    real = csv.writer
+    real = Path.open
 
-    def __init__(self, f, rows: int = 5):
-        self.w, self.left = _FullDisk.real(f), rows
+    def __init__(self, f, room: int = 500):
+        self.f, self.room = f, room
 
-    def writerow(self, row):
-        self.left -= 1
-        if self.left < 0:
-            raise OSError(errno.ENOSPC, NOSPC)  # as a write to an open file raises it: no file name
-        return self.w.writerow(row)
+    @staticmethod
+    def open(path, mode="r", *args, **kwargs):
+        f = _FullDisk.real(path, mode, *args, **kwargs)
+        return _FullDisk(f) if set(mode) & set("wxa") else f
 
-    def writerows(self, rows):
-        for r in rows:
-            self.writerow(r)
+    def write(self, text: str) -> int:
+        if len(text) > self.room:
+            self.f.write(text[: self.room])
+            self.room = 0
+            raise OSError(errno.ENOSPC, NOSPC)
+        self.room -= len(text)
+        return self.f.write(text)
+
+    def writelines(self, lines) -> None:
+        for line in lines:
+            self.write(line)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return self.f.__exit__(*exc)
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
 
 
 def test_track_on_a_full_disk_ends_in_one_line_and_leaves_nothing(inputs, tmp_path, monkeypatch, capsys):
     """``immnet track`` onto a disk that fills up while it writes: an OSError traceback; now one line naming the
-    output and the reason, no output, no temporary file (CSV: the writer's rows; .npz: numpy's savez)."""
-    monkeypatch.setattr("immnet.data.csvio.csv.writer", _FullDisk)
+    output and the reason, no output, no temporary file (CSV: the file's writes; .npz: numpy's savez)."""
+    monkeypatch.setattr(Path, "open", _FullDisk.open)
     out = tmp_path / "o.csv"
     assert main(["track", "--input", str(inputs / "in.csv"), "--output", str(out), "--method", "imm-ekf"]) == 2
     assert _error(capsys, "track") == f"{out}: {NOSPC}"

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import io
 import math
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
@@ -413,21 +414,39 @@ def read_plots_csv(path: str | Path, sigmas=None, convert: bool = True) -> CsvPl
 
 
 def plot_track_rows(time: str, ids, state: np.ndarray, mode_probs: np.ndarray | None, updated,
-                    state_cov: np.ndarray) -> list[list]:
-    """The ``PLOT_OUT_COLUMNS`` rows of a scan's confirmed tracks: ``ids [K]``, ``state [K, 9]``, ``mode_probs
+                    state_cov: np.ndarray) -> list[str]:
+    """The ``PLOT_OUT_COLUMNS`` lines of a scan's confirmed tracks: ``ids [K]``, ``state [K, 9]``, ``mode_probs
     [K, 4]`` (None: empty fields), ``updated [K]`` (written 1/0), ``state_cov [K, 9, 9]``."""
-    cov = cov_columns(state_cov)
     probs = np.full((len(ids), 4), np.nan) if mode_probs is None else mode_probs
-    return [[int(i), time, *map(_field, state[k]), *map(_field, probs[k]), int(bool(updated[k])),
-             *map(_cov_field, cov[k])] for k, i in enumerate(ids)]
+    fields = zip(_fields(np.concatenate([state, probs], 1), STATE_FORMAT), _fields(cov_columns(state_cov), COV_FORMAT))
+    at = _quoted([time])[time]
+    return [f"{int(i)},{at},{a},{int(bool(u))},{b}\r\n" for i, u, (a, b) in zip(ids, updated, fields)]
 
 
-def _field(v: float) -> str:
-    return "" if math.isnan(v) else f"{v:.6f}"
+STATE_FORMAT = ",".join(["%.6f"] * 13)
+"""The fields of the state and the mode probabilities: six decimals."""
+COV_FORMAT = ",".join(["%.9g"] * len(COV_COLUMNS))
+"""The covariance fields: 9 significant digits, a float32 exactly."""
 
 
-def _cov_field(v: float) -> str:
-    return "" if math.isnan(v) else f"{v:.9g}"  # 9 significant digits: a float32 exactly
+def _fields(numbers: np.ndarray, fmt: str) -> list[str]:
+    """Each row of ``numbers [R, C]`` as its CSV fields by ``fmt`` (a %-format per column), NaN an empty field (no
+    number these formats write contains "nan" otherwise)."""
+    return [(fmt % tuple(row)).replace("nan", "") for row in numbers.tolist()]
+
+
+def _quoted(values) -> dict[str, str]:
+    """Each distinct string of ``values`` as the csv module writes it as a field (quoted where it must be)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    out: dict[str, str] = {}
+    for v in values:
+        if v not in out:
+            buf.seek(0)
+            buf.truncate()
+            w.writerow([v, ""])
+            out[v] = buf.getvalue()[:-2]  # the field, without the empty one's comma and the line's end
+    return out
 
 
 def cov_columns(state_cov: np.ndarray) -> np.ndarray:
@@ -442,9 +461,9 @@ def write_tracks_csv(path: str | Path, tracks: CsvTracks, state: np.ndarray, mod
     ``state_cov [R, 9, 9]``, empty throughout where None; NaN -> an empty field), written to a temporary sibling
     of ``path`` and moved onto it only when complete (``immnet.data.scratch``)."""
     cov = np.full((len(tracks), len(COV_COLUMNS)), np.nan) if state_cov is None else cov_columns(state_cov)
+    ids, times = _quoted(tracks.ids), _quoted(tracks.times)
+    fields = zip(tracks.ids, tracks.times, _fields(np.concatenate([state, mode_probs], 1), STATE_FORMAT),
+                 _fields(cov, COV_FORMAT))
     with publishing(path) as tmp, tmp.open("x", newline="") as f:  # "x": never onto an existing file
-        w = csv.writer(f)
-        w.writerow(OUT_COLUMNS)
-        for r in range(len(tracks)):
-            w.writerow([tracks.ids[r], tracks.times[r], *map(_field, state[r]), *map(_field, mode_probs[r]),
-                        *map(_cov_field, cov[r])])
+        csv.writer(f).writerow(OUT_COLUMNS)
+        f.write("".join(f"{ids[i]},{times[t]},{a},{b}\r\n" for i, t, a, b in fields))

@@ -162,8 +162,7 @@ def track_plots(args, limit: float, sigmas) -> int:
     paths: dict[int, list] = {}
     n_rows = 0
     with publishing(args.output) as tmp, tmp.open("x", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(PLOT_OUT_COLUMNS)
+        csv.writer(f).writerow(PLOT_OUT_COLUMNS)
         for k in progress(range(len(plots)), desc="track", unit="scans", disable=len(plots) < LONG):
             a, b = plots.offsets[k], plots.offsets[k + 1]
             m = keep[a:b]
@@ -175,7 +174,7 @@ def track_plots(args, limit: float, sigmas) -> int:
             state = np.stack([r.state for r in reports])
             rows = plot_track_rows(plots.times[k], ids, state, None if probs is None else probs[tracker.confirmed],
                                    [r.updated for r in reports], np.stack([r.cov for r in reports]))
-            w.writerows(rows)
+            f.writelines(rows)
             n_rows += len(rows)
             for i, s in zip(ids, state):
                 paths.setdefault(i, []).append(s[[0, 3]])
