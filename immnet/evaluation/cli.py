@@ -363,7 +363,6 @@ def _write_text(path: Path | None, text: str, note) -> None:
 
     if path is None:
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
     with publishing(path) as tmp:
         tmp.write_text(text + "\n")
     note(f"wrote {path}")

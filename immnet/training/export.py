@@ -53,7 +53,6 @@ def _write(slim: dict, out) -> Path:
     """``slim`` with the checksum of its weights, written to ``out`` under a temporary name renamed when complete."""
     add_checksum(slim)
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     with publishing(out) as tmp:
         torch.save(slim, tmp)
     return out
