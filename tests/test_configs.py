@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from immnet.config import REPO_ROOT
-from immnet.training.cli import _cli, config_args, stage_entry
+from immnet.training.cli import _run, config_args, stage_entry
 
 RECIPES = sorted((REPO_ROOT / "recipes").glob("*.yaml"))
 STAGE_RECIPES = [p for p in RECIPES if "stages" not in yaml.safe_load(p.read_text())]
@@ -17,7 +17,7 @@ ABLATIONS = sorted((REPO_ROOT / "configs" / "ablations").glob("*.yaml"))
 
 def _print_config(args, capsys) -> dict:
     with pytest.raises(SystemExit) as exit_:
-        _cli(["fit", *args, "--print_config"])
+        _run(["fit", *args, "--print_config"])
     assert exit_.value.code in (0, None)
     return yaml.safe_load(capsys.readouterr().out)
 
