@@ -1088,25 +1088,14 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         white = slog(nu / torch.diagonal(S0, dim1=-2, dim2=-1).sqrt(), 1.0)
         f1, f2, f3, f4, white = (f.transpose(0, 1) for f in (*self.features(td), white))
-        h = td.get(keys.EXPERT_HIDDEN)
-        relu = torch.relu
-        h_q = self.gru_q(relu(self.fc5(f4)), h.get("q").transpose(0, 1))
-        h_sigma = self.gru_sigma(torch.cat([h_q, relu(self.fc6(f3))], -1), h.get("sigma").transpose(0, 1))
-        out_fc1 = relu(self.fc1(h_sigma))
-        out_fc7 = relu(self.fc7(torch.cat([f1, f2, white], -1)))
-        h_s = self.gru_s(torch.cat([out_fc1, out_fc7], -1), h.get("s").transpose(0, 1))
-        out = self.fc2b(relu(self.fc2a(torch.cat([h_sigma, h_s], -1))))
-        out_fc2 = out[..., : 9 * 3]
-        out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
-        h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
+        out = self.recur(td, f1, torch.cat([f2, white], -1), f3, f4)
         u = out[..., 9 * 3 : 9 * 3 + N_NOISE].transpose(0, 1)
         u = self.u_max * torch.tanh(u * (self.u_slope / self.u_max))  # [B, M, 5]
         if self.state_correction is not None:  # a bounded additive correction of each expert's posterior
             c = torch.tanh(out[..., 9 * 3 + N_NOISE :].transpose(0, 1))
             td.set(keys.EXPERT_CORRECTION, self.correction_scale.to(c.dtype) * c)
         P = base + _noise(torch.exp(u) if scale is None else torch.exp(u) * scale, Q_parts)
-        delta = self.K_scale * torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
-        td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
+        delta = self.K_scale * torch.tanh(out[..., : 9 * 3].transpose(0, 1).unflatten(-1, (9, 3)))
         return self._finish(td, r2, P, delta, nu)
 
 
