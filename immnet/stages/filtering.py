@@ -57,7 +57,7 @@ from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, Modes, noise_gain,
 )
-from immnet.stages.base import Stage, measured, per_expert, scan_interval, step_input, told_r, track_where
+from immnet.stages.base import Stage, measured, per_expert, scan_interval, step_input, track_where
 from immnet.stages.features import slog, state_scale
 from immnet.stages.gain import Gain, KalmanNetGain
 from immnet.stages.layers import StackedLinear
@@ -637,7 +637,7 @@ class _FilterExperts:
         samples, the fixed ``r^2`` where ``r`` was given, or the square of the step's input ``r`` (``td``'s ``"r"``
         ``[B]``) where ``r`` is told per track (``"data"``)."""
         if isinstance(self.measurement, ToldStd):
-            told = told_r(td).to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
+            told = step_input(td, keys.R).to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
             return (told * told).expand_as(total)
         if self.per_detection:
             return self._told_cov(td)

@@ -42,10 +42,6 @@ STEP_INPUTS = (keys.R, keys.MEAS_COV, keys.TRUE_MODE, keys.TRUE_TURN_RATE, keys.
 covariance ``[B, 3, 3]`` (a filter gain told it, ``r="data"``, ``r="detection"``) and an oracle's truth (the clairvoyant filters, docs/stages.md); ``IMMNet.scan`` sets them."""
 
 
-def _compiling() -> bool:
-    return torch.compiler.is_compiling()
-
-
 class TrackStart(Stage):
     """The first stage of a step: what each starting track carries after this scan (module doc)."""
 
@@ -125,7 +121,7 @@ class TrackStart(Stage):
         age = td.get(keys.AGE)
         starting = age < self.detections
         td.set(keys.STARTING, starting)
-        if not _compiling() and not bool(starting.any()):  # every track running: nothing starts
+        if not torch.compiler.is_compiling() and not bool(starting.any()):  # every track running: nothing starts
             return td
         z = td.get(keys.MEASUREMENT)
         interval = td.get(keys.INTERVAL, None)
