@@ -369,9 +369,6 @@ class FilterPredict(Predict):
         self.register_buffer("J_base", _jacobian_base(model_set, own_rate, dt), persistent=False)
         self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in TURN_ENTRIES]), persistent=False)
 
-    def for_experts_alone(self) -> "FilterPredict":
-        return self
-
     def forward(self, td):
         M = self.n_experts
         y0, P0 = td.get(keys.EXPERT_MIXED), td.get(keys.EXPERT_MIXED_COV)
@@ -488,22 +485,25 @@ class _FilterExperts:
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
     Mixed into a ``Gain`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
+    shared = ("p_stay", "guard", "modes")
+    load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
+    state_correction = None
+    """``KalmanNetFilterGain``'s learned state correction's bounds, None without one (``FilterUpdate(correction=...)``)."""
+
     @property
     def per_detection(self) -> bool:
         """Whether the experts are told each detection's covariance (``r="detection"``, ``PerDetection``)."""
         return isinstance(self.measurement, PerDetection)
 
-    def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
-        """The update these experts need (``FilterUpdate``, with this gain's ``turn_rate``)."""
-        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.per_detection,
-                            robust=self.robust is not None)
-
     def stages(self, model_set: ModelSet, dt: float) -> tuple[FilterInteraction, FilterPredict, FilterUpdate]:
         """The interaction, predict and update these experts need (``Gain.stages``): the interaction with this gain's
-        ``interaction``, ``p_stay`` and ``guard``, the predict with its ``turn_rate``, its ``update_stage``."""
+        ``interaction``, ``p_stay`` and ``guard``, the predict with its ``turn_rate``, the update with its ``turn_rate``,
+        measurement model, robust update and state correction (``FilterUpdate``)."""
         return (FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset,
                                   self.modes, self.restart),
-                FilterPredict(model_set, dt, turn_rate=self.turn_rate), self.update_stage(model_set, dt))
+                FilterPredict(model_set, dt, turn_rate=self.turn_rate),
+                FilterUpdate(model_set, dt, correction=self.state_correction is not None, turn_rate=self.turn_rate,
+                             told_cov=self.per_detection, robust=self.robust is not None))
 
     def _init_filter(self, model_set: ModelSet, dt: float = 1.0, *,
                      noise_std: tuple[float, float, float, float, float] = (0.2, 0.2, 0.01, 0.002, 1e-5),
@@ -824,13 +824,16 @@ class _FilterExperts:
         """This scan's ``r^2`` estimate as ``[B, M, 1, 1]``."""
         return noise_matrix(self.noise(td), self.n_experts, self.per_detection)
 
-    def _noise_scale(self, td, like: torch.Tensor) -> torch.Tensor | None:
-        """Multipliers of the five noise components ``[B, M, 5]``: the track's ``lambda``
-        (``AdaptiveNoise``) on the white-acceleration ones, 1 on the rest; None without adaptation."""
+    def base_noise(self, td, like: torch.Tensor):
+        """This scan's base process noise ``(Q_parts, scale, Q)``: its components (``q_parts``), their multipliers
+        ``scale [B, M, 5]`` (the track's ``lambda``, ``AdaptiveNoise``, on the white-acceleration ones, 1 on the rest;
+        None without adaptation) and ``Q [B, M, 10, 10]``, the components' sum with their multipliers."""
+        Q_parts = self.q_parts(td, like)
         if self.adapt is None:
-            return None
+            return Q_parts, None, Q_parts.sum(-3)
         lam = per_expert(AdaptiveNoise.scale(td.get(keys.Q_SCALE)).to(like.dtype), self.n_experts, event_dims=0)
-        return torch.where(self.white_mask, lam.unsqueeze(-1), torch.ones_like(lam).unsqueeze(-1))
+        scale = torch.where(self.white_mask, lam.unsqueeze(-1), torch.ones_like(lam).unsqueeze(-1))
+        return Q_parts, scale, _noise(scale, Q_parts)
 
     def _adapt(self, td, maha: torch.Tensor, has_z: torch.Tensor) -> None:
         """The track's next ``log lambda`` from this scan's NIS ``maha [B, M]``: the smallest of the experts'
@@ -975,9 +978,6 @@ class FilterGain(_FilterExperts, Gain):
     in_keys = _FILTER_IN
     out_keys = _FILTER_OUT
 
-    shared = ("p_stay", "guard", "modes")
-    load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
-
     def __init__(self, model_set: ModelSet, dt: float = 1.0, **options):
         """``options``: the filter experts' (``_FilterExperts._init_filter``: noise, interaction, measurement model,
         start, robust update, re-acquisition, modes per group)."""
@@ -987,10 +987,7 @@ class FilterGain(_FilterExperts, Gain):
     def forward(self, td):
         r2 = self._r2(td)
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        Q_parts = self.q_parts(td, P)
-        scale = self._noise_scale(td, P)
-        Q = Q_parts.sum(-3) if scale is None else _noise(scale, Q_parts)
-        return self._finish(td, r2, P + Q)
+        return self._finish(td, r2, P + self.base_noise(td, P)[2])
 
 
 class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
@@ -1013,9 +1010,6 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         keys.PREV_INTERVAL,
     ] + _FILTER_IN
     out_keys = [keys.EXPERT_HIDDEN, keys.PREV_INTERVAL] + _FILTER_OUT
-
-    shared = ("p_stay", "guard", "modes")
-    load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
 
     def __init__(
         self,
@@ -1065,11 +1059,6 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     def base_gain(self, model_set: ModelSet, sigma_q: float, r: float, dt: float) -> None:
         """None: the base gain is each filter expert's own Kalman gain (no steady-state ``K_ss``)."""
 
-    def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
-        """The update these experts need: with ``state_correction``, one that adds it."""
-        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.per_detection,
-                            robust=self.robust is not None)
-
     def knock_out_correction(self) -> None:
         """Set the state correction's rows of FC2 to zero (the rest of the network as trained)."""
         if self.state_correction is None:
@@ -1081,9 +1070,7 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     def forward(self, td):
         r2 = self._r2(td)
         base = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        Q_parts = self.q_parts(td, base)
-        scale = self._noise_scale(td, base)  # [B, M, 5] or None; the whitening below uses the scaled noise too
-        Q0 = Q_parts.sum(-3) if scale is None else _noise(scale, Q_parts)
+        Q_parts, scale, Q0 = self.base_noise(td, base)  # the whitening below uses the scaled noise too
         S0 = innovation_cov(base + Q0, r2)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         white = slog(nu / torch.diagonal(S0, dim1=-2, dim2=-1).sqrt(), 1.0)
