@@ -117,13 +117,10 @@ def _noise_components(own_acc, own_rate, dt, nominal: float | None = None) -> to
     out = torch.zeros(*lead, len(own_acc), N_NOISE, N_AUG, N_AUG, dtype=dtype, device=G.device)
     for i, (acc, rate) in enumerate(zip(own_acc, own_rate)):
         for axis, k in ((0, 0), (1, 0), (2, 1)):
-            g = G.new_zeros(*lead, N_AUG)
-            g[..., :9] = G[..., axis]
-            out[..., i, k, :, :] += g[..., :, None] * g[..., None, :]
+            out[..., i, k, :9, :9] += G[..., :, axis, None] * G[..., None, :, axis]
         if acc:
             for axis, k in ((0, 2), (1, 2), (2, 3)):
-                a = ACC[axis]
-                out[..., i, k, a, a] = walk
+                out[..., i, k, ACC[axis], ACC[axis]] = walk
         if rate:
             out[..., i, 4, RATE, RATE] = walk
     return out
@@ -583,9 +580,7 @@ class _FilterExperts:
         if self.adapt is not None:  # the track's log lambda is carried
             self.in_keys = [*self.in_keys, keys.Q_SCALE]
             self.out_keys = [*self.out_keys, keys.Q_SCALE]
-        white = torch.zeros(N_NOISE, dtype=torch.bool)
-        white[list(WHITE)] = True
-        self.register_buffer("white_mask", white, persistent=False)
+        self.register_buffer("white_mask", torch.isin(torch.arange(N_NOISE), torch.tensor(WHITE)), persistent=False)
         self.p_stay = float(p_stay)
         if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
             raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")

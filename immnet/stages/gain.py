@@ -161,17 +161,12 @@ class KalmanNetGain(Gain):
         prev = td.get(keys.PREV_INTERVAL)
         if interval is None:
             td.set(keys.PREV_INTERVAL, prev.clone())  # unchanged: the nominal interval
-            extra = None
-            if self.interval_input:
-                extra = like.new_zeros(*like.shape[:2], 1)
-            return 1.0, 1.0, extra
+            return 1.0, 1.0, like.new_zeros(*like.shape[:2], 1) if self.interval_input else None
         d = interval.to(like.dtype)
         view = (-1, *([1] * (like.dim() - 1)))
         now, before = (self.dt / d).view(view), (self.dt / prev.to(like.dtype)).view(view)
         td.set(keys.PREV_INTERVAL, interval.to(prev.dtype))
-        extra = None
-        if self.interval_input:
-            extra = torch.log(d / self.dt).view(-1, 1, 1).expand(*like.shape[:2], 1)
+        extra = torch.log(d / self.dt).view(-1, 1, 1).expand(*like.shape[:2], 1) if self.interval_input else None
         return now, before, extra
 
     def features(self, td):
