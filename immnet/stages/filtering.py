@@ -804,7 +804,7 @@ class _FilterExperts:
         r2_track, P, _ = self._start(carry, z, second)  # the covariance with the prior (start_estimate: the estimate)
         adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
         return adapt | {
-            keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
+            keys.EXPERT_POST: per_expert(x, M).clone(),
             keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
             keys.EXPERT_AUG_COV: P,
             keys.Z_HISTORY: torch.stack([z, prev, nan], -2),

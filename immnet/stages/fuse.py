@@ -34,7 +34,7 @@ import torch
 from immnet import keys
 from immnet.imm.interaction import moment_match
 from immnet.motion import POS, Modes
-from immnet.stages.base import Stage, axis_probs, block_weights, coordinate_weights, measured
+from immnet.stages.base import Stage, axis_probs, block_weights, coordinate_weights, measured, per_expert
 
 COV_KEYS = (keys.EXPERT_COV, keys.EXPERT_AUG_COV)
 """The experts' covariances ``Fuse`` fuses, first found first: the analytic gain's, the filter experts'."""
@@ -109,7 +109,7 @@ class Fuse(Stage):
         return scale | {
             keys.PREV_FUSED: carry.get(keys.FUSED) if second else x,
             keys.FUSED: x,
-            keys.PREV_EXPERT_PRIOR: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, self.n_experts, -1)).clone(),
+            keys.PREV_EXPERT_PRIOR: per_expert(x, self.n_experts).clone(),
             keys.PREV_MEASUREMENT: z,
         }
 

@@ -35,7 +35,7 @@ from tensordict.utils import unravel_key
 
 from immnet import keys
 from immnet.motion import POS, VEL, ModelSet
-from immnet.stages.base import Stage, measured, step_input, track_where
+from immnet.stages.base import Stage, measured, per_expert, step_input, track_where
 
 STEP_INPUTS = (keys.R, keys.MEAS_COV, keys.TRUE_MODE, keys.TRUE_TURN_RATE, keys.TRUE_RESTART)
 """The step's inputs per track that are neither carried nor measured: each track's measurement std or each detection's
@@ -180,7 +180,7 @@ class JoinStarts(Stage):
         # (the step ran on its carry before the start, so its posteriors there mean nothing)
         fused = td.get(keys.FUSED)
         post = td.get(keys.EXPERT_POST)
-        td.set(keys.EXPERT_POST, track_where(starting, fused if fused.dim() == 3 else fused.unsqueeze(1).expand_as(post), post))
+        td.set(keys.EXPERT_POST, track_where(starting, per_expert(fused, post.shape[1]), post))
         if self.fused_cov:  # fused from the experts' start covariances, not carried
             td.set(keys.FUSED_COV, track_where(starting, self._fuse.covariance(td, fused), td.get(keys.FUSED_COV)))
         return td
