@@ -791,14 +791,12 @@ class _FilterExperts:
         M = self.n_experts
         B = z.shape[0]
         hist = carry.get(keys.Z_HISTORY)
+        nan = prev = torch.full_like(z, float("nan"))
         if second:  # the first detection is the previous scan's only where no scan was missed between
             adjacent = (carry.get(keys.START_SCANS) == 1).view(-1, *([1] * (z.dim() - 1)))
             prev = torch.where(adjacent, hist[..., 0, :], float("nan"))
-        else:
-            prev = torch.full_like(z, float("nan"))
-        nan = torch.full_like(z, float("nan"))
-        elapsed = carry.get(keys.START_TIME) if second else None
-        gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
+        elapsed = carry.get(keys.START_TIME)  # the time since the first detection
+        gap = (elapsed if second else torch.full_like(elapsed, float(self.dt))).to(z.dtype)
         gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
         gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
         r2_track, P, _ = self._start(carry, z, second)  # the covariance with the prior (start_estimate: the estimate)

@@ -136,13 +136,10 @@ class TrackStart(Stage):
             # a detection: the first or the second; none: the carry as it was
             value = carry.get(key) if second is None else track_where(has & (age == 1), second.get(key), carry.get(key))
             start.set(key, track_where(has & (age == 0), first.get(key), value))
-        if self.detections == 1:
-            td.set(keys.START_CARRY, start)
-            return td
-        waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
-        start.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, start.get(keys.START_SCANS)))
-        step_time = self.dt if interval is None else interval
-        start.set(keys.START_TIME, torch.where(waiting, carry.get(keys.START_TIME) + step_time, start.get(keys.START_TIME)))
+        if self.detections == 2:  # a started track that missed its second detection: one more scan elapses
+            waiting = (age == 1) & ~has
+            for key, elapsed in ((keys.START_SCANS, 1), (keys.START_TIME, self.dt if interval is None else interval)):
+                start.set(key, torch.where(waiting, carry.get(key) + elapsed, start.get(key)))
         td.set(keys.START_CARRY, start)
         return td
 
