@@ -52,11 +52,8 @@ class Fuse(Stage):
         ``consistency``: the weight of each scan in the reported covariance's scale (module doc), or None (off);
         not with ``per_expert`` (stage 1 reports no covariance). ``modes``: ``IMMNet``'s (module doc)."""
         super().__init__(model_set)
-        groups = Modes.parse(modes).groups
-        if groups is None:
-            self.groups = None
-        else:  # the group of each coordinate as a buffer: no copy to the device each scan
-            self.register_buffer("groups", torch.tensor(groups), persistent=False)
+        groups = Modes.parse(modes).groups  # the group of each coordinate as a buffer: no copy to the device each scan
+        self.register_buffer("groups", None if groups is None else torch.tensor(groups), persistent=False)
         if consistency is not None:
             consistency = float(consistency)
             if not 0.0 < consistency <= 1.0:

@@ -272,9 +272,7 @@ class IMMNet(TensorDictModuleBase):
         self.carry_keys = carry
         self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry, *self.start.inputs]
         self.out_keys = [keys.ACTION, *(("next", *k) for k in carry)]
-        onehot = torch.zeros(len(ms), N_MODES)
-        onehot[torch.arange(len(ms)), ms.modes] = 1.0
-        self.register_buffer("mode_onehot", onehot)
+        self.register_buffer("mode_onehot", torch.nn.functional.one_hot(ms.modes, N_MODES).float())
 
     def _starts(self, stages, experts_alone: bool, after=()) -> tuple[TrackStart, JoinStarts]:
         """The stages a step begins and ends with: a track's start (``immnet.stages.start``) around ``stages``;
