@@ -485,7 +485,8 @@ class _FilterExperts:
     shared = ("p_stay", "guard", "modes")
     load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
     state_correction = None
-    """``KalmanNetFilterGain``'s learned state correction's bounds, None without one (``FilterUpdate(correction=...)``)."""
+    """The bounds of ``KalmanNetFilterGain``'s learned state correction, None without one
+    (``FilterUpdate(correction=...)``)."""
 
     @property
     def per_detection(self) -> bool:
@@ -494,8 +495,8 @@ class _FilterExperts:
 
     def stages(self, model_set: ModelSet, dt: float) -> tuple[FilterInteraction, FilterPredict, FilterUpdate]:
         """The interaction, predict and update these experts need (``Gain.stages``): the interaction with this gain's
-        ``interaction``, ``p_stay`` and ``guard``, the predict with its ``turn_rate``, the update with its ``turn_rate``,
-        measurement model, robust update and state correction (``FilterUpdate``)."""
+        ``interaction``, ``p_stay`` and ``guard``, the predict with its ``turn_rate``, the update with its
+        ``turn_rate``, measurement model, robust update and state correction (``FilterUpdate``)."""
         return (FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset,
                                   self.modes, self.restart),
                 FilterPredict(model_set, dt, turn_rate=self.turn_rate),

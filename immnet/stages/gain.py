@@ -201,7 +201,8 @@ class KalmanNetGain(Gain):
         out = self.fc2b(relu(self.fc2a(torch.cat([h_sigma, h_s], -1))))
         out_fc3 = relu(self.fc3(torch.cat([h_s, out[..., : 9 * 3]], -1)))
         h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
-        td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
+        hidden = {"q": h_q, "sigma": h_sigma, "s": h_s}
+        td.set(keys.EXPERT_HIDDEN, {k: v.transpose(0, 1) for k, v in hidden.items()})
         return out
 
     def forward(self, td):
