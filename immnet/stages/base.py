@@ -177,31 +177,23 @@ def track_where(cond: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.T
     return torch.where(cond.view(-1, *([1] * (b.dim() - 1))), a.to(b.dtype), b)
 
 
-def told_r(td) -> torch.Tensor:
-    """The step's input ``"r"`` ``[B]``, each track's measurement std, for stages told it (a filter gain's
-    ``r="data"``); a ValueError saying what to give where the step has none."""
-    r = None if td is None else td.get(keys.R, None)
-    if r is None:
+def step_input(td, key) -> torch.Tensor:
+    """The step's input ``key`` ``[B]`` (``immnet.stages.start.STEP_INPUTS``); where the step has none, a ValueError
+    saying what to give: each track's measurement std ``"r"`` or each detection's covariance ``"meas_cov"`` for a
+    filter gain told it (``r="data"``, ``r="detection"``), the truth's ``("truth", ...)`` for an oracle."""
+    value = None if td is None else td.get(key, None)
+    if value is not None:
+        return value
+    if key == keys.R:
         raise ValueError("this step's filter gain is told each track's measurement std (r='data'): give the step its "
                          "input 'r' [B] (IMMNet.rollout(..., r=...), IMMNet.scan(..., r=...))")
-    return r
-
-
-def step_input(td, key) -> torch.Tensor:
-    """The step's input ``key`` ``[B]`` (``immnet.stages.start.STEP_INPUTS``): ``told_r``'s for ``"r"``; for an
-    oracle's truth (``("truth", ...)``) a ValueError saying what to give where the step has none."""
-    if key == keys.R:
-        return told_r(td)
-    value = None if td is None else td.get(key, None)
-    if value is None and key == keys.MEAS_COV:
+    if key == keys.MEAS_COV:
         raise ValueError("this step's filter gain is told each detection's measurement covariance (r='detection'): "
                          f"give the step its input {key!r} [B, 3, 3] (IMMNet.rollout(..., meas_cov=...), "
                          "IMMNet.scan(..., meas_cov=...))")
-    if value is None:
-        raise ValueError(f"this step reads the truth's {key[-1]!r} at each scan (an oracle: the clairvoyant filters' "
-                         f"configuration): give the step its input {key} [B] (IMMNet.rollout(..., truth=...), "
-                         "IMMNet.scan(..., truth=...))")
-    return value
+    raise ValueError(f"this step reads the truth's {key[-1]!r} at each scan (an oracle: the clairvoyant filters' "
+                     f"configuration): give the step its input {key} [B] (IMMNet.rollout(..., truth=...), "
+                     "IMMNet.scan(..., truth=...))")
 
 
 def group_ids(groups, like: torch.Tensor) -> torch.Tensor:

@@ -86,6 +86,17 @@ class ModeUpdate(Stage):
     predicts the modes with, None for one that has none (``IMMNet.innovation_loglik`` weighs a track by it)."""
 
     markov_prior = None
+    modes = Modes.JOINT
+
+    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
+        """The mode probabilities before a track starts: uniform (``uniform_probs``)."""
+        return uniform_probs(batch, self.n_experts, dtype, device, self.modes)
+
+    @staticmethod
+    def set_logits(td, logits: torch.Tensor) -> None:
+        """Write the mode logits and the experts' probabilities, their softmax."""
+        td.set(keys.MODE_LOGITS, logits)
+        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
 
 
 class TransformerClassifier(ModeUpdate):
@@ -128,7 +139,6 @@ class TransformerClassifier(ModeUpdate):
         self.head = nn.Sequential(nn.Linear(d_model + 3 * M + 3 * self.whiten, 64), nn.GELU(),
                                   nn.Linear(64, M * (self.groups or 1)))
 
-
     def interval_columns(self) -> dict[str, int]:
         """The weights that read the interval input and its column (each token's last feature)."""
         return {"embed.weight": 6 + 12} if self.interval_input else {}
@@ -137,13 +147,11 @@ class TransformerClassifier(ModeUpdate):
         """The weights whose rows are one block per group of modes (the head's last layer: ``G M`` logits) and the
         number of groups; none with one joint set of modes."""
         return {} if self.groups is None else {"head.2.weight": self.groups, "head.2.bias": self.groups}
-    def initial_history(self, batch: int, dtype=torch.float32, device=None):
-        return torch.zeros(batch, self.window, 12, dtype=dtype, device=device)
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The mode probabilities (uniform) and an empty window."""
-        return uniform_probs(batch, self.n_experts, dtype, device, self.modes) | {
-            keys.HISTORY: self.initial_history(batch, dtype=dtype, device=device),
+        return super().carry_spec(batch, experts_alone, dtype, device) | {
+            keys.HISTORY: torch.zeros(batch, self.window, 12, dtype=dtype, device=device),
             keys.HISTORY_LEN: torch.zeros(batch, dtype=torch.long, device=device),
             keys.HISTORY_INTERVAL: torch.full((batch, self.window), float(self.dt), dtype=dtype, device=device),
         }
@@ -229,8 +237,7 @@ class TransformerClassifier(ModeUpdate):
                                           torch.log(scale / NOISE_UNIT)], -1))
         if self.groups is not None:
             logits = logits.unflatten(-1, (self.groups, self.n_experts))
-        td.set(keys.MODE_LOGITS, logits)
-        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        self.set_logits(td, logits)
         td.set(keys.HISTORY, hist)
         td.set(keys.HISTORY_LEN, n)
         td.set(keys.HISTORY_INTERVAL, gaps)
@@ -281,11 +288,6 @@ class _MarkovPrior:
             self.reads_transition = True
             self.in_keys = [*self.in_keys, keys.MODE_TRANSITION]
 
-    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        """The mode probabilities ``mu_{t-1}`` the prior predicts from (uniform), and what else the stage carries."""
-        probs = uniform_probs(batch, self.n_experts, dtype, device, self.modes)
-        return super().carry_spec(batch, experts_alone, dtype, device) | probs
-
     def markov_prior(self, td, prev: torch.Tensor) -> torch.Tensor:
         transition = td.get(keys.MODE_TRANSITION) if self.reads_transition else None
         return markov_prior(prev, self.log_pi.to(prev.dtype), transition)
@@ -304,14 +306,10 @@ class UniformMix(ModeUpdate):
         self.modes = Modes.parse(modes)
         self.groups = self.modes.n_groups
 
-    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        return uniform_probs(batch, self.n_experts, dtype, device, self.modes)
-
     def forward(self, td):
         x = td.get(keys.FUSED)
         logits = x.new_zeros(x.shape[0], *(() if self.groups is None else (self.groups,)), self.n_experts)
-        td.set(keys.MODE_LOGITS, logits)
-        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        self.set_logits(td, logits)
         return td
 
 
@@ -353,9 +351,6 @@ class TrueModeUpdate(ModeUpdate):
         self.experts = list(experts)
         self.register_buffer("expert_of", torch.tensor(self.experts), persistent=False)
         self.register_buffer("onehot", torch.eye(M), persistent=False)  # each expert's row, in the network's dtype
-
-    def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        return uniform_probs(batch, self.n_experts, dtype, device, self.modes)
 
     def _onehot(self, mode: torch.Tensor) -> torch.Tensor:
         """``[B, M]``: 1 on the expert of each track's data mode ``mode [B]``; a ValueError (eager) where a mode is
@@ -426,10 +421,7 @@ class BayesianModeUpdate(_MarkovPrior, ModeUpdate):
             loglik = self.log_norm - 0.5 * torch.einsum("bmi,mij,bmj->bm", nu, self.S_inv, nu)
             loglik = torch.where(has_z, loglik, 0.0)
         prev = td.get(keys.EXPERT_PROBS)
-        log_pred = self.markov_prior(td, prev)
-        logits = log_pred + loglik
-        td.set(keys.MODE_LOGITS, logits)
-        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        self.set_logits(td, self.markov_prior(td, prev) + loglik)
         return td
 
 
@@ -473,7 +465,5 @@ class BayesTransformerClassifier(_MarkovPrior, TransformerClassifier):
         prev = td.get(keys.EXPERT_PROBS)
         bayes = self.markov_prior(td, prev) + td.get(keys.EXPERT_LOGLIK)
         td = super().forward(td)
-        logits = bayes + td.get(keys.MODE_LOGITS)
-        td.set(keys.MODE_LOGITS, logits)
-        td.set(keys.EXPERT_PROBS, torch.softmax(logits, -1))
+        self.set_logits(td, bayes + td.get(keys.MODE_LOGITS))
         return td

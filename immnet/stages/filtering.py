@@ -57,7 +57,7 @@ from immnet.motion import (
     ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, Modes, noise_gain,
 )
-from immnet.stages.base import Stage, measured, per_expert, scan_interval, step_input, told_r, track_where
+from immnet.stages.base import Stage, measured, per_expert, scan_interval, step_input, track_where
 from immnet.stages.features import slog, state_scale
 from immnet.stages.gain import Gain, KalmanNetGain
 from immnet.stages.layers import StackedLinear
@@ -117,13 +117,10 @@ def _noise_components(own_acc, own_rate, dt, nominal: float | None = None) -> to
     out = torch.zeros(*lead, len(own_acc), N_NOISE, N_AUG, N_AUG, dtype=dtype, device=G.device)
     for i, (acc, rate) in enumerate(zip(own_acc, own_rate)):
         for axis, k in ((0, 0), (1, 0), (2, 1)):
-            g = G.new_zeros(*lead, N_AUG)
-            g[..., :9] = G[..., axis]
-            out[..., i, k, :, :] += g[..., :, None] * g[..., None, :]
+            out[..., i, k, :9, :9] += G[..., :, axis, None] * G[..., None, :, axis]
         if acc:
             for axis, k in ((0, 2), (1, 2), (2, 3)):
-                a = ACC[axis]
-                out[..., i, k, a, a] = walk
+                out[..., i, k, ACC[axis], ACC[axis]] = walk
         if rate:
             out[..., i, 4, RATE, RATE] = walk
     return out
@@ -369,9 +366,6 @@ class FilterPredict(Predict):
         self.register_buffer("J_base", _jacobian_base(model_set, own_rate, dt), persistent=False)
         self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in TURN_ENTRIES]), persistent=False)
 
-    def for_experts_alone(self) -> "FilterPredict":
-        return self
-
     def forward(self, td):
         M = self.n_experts
         y0, P0 = td.get(keys.EXPERT_MIXED), td.get(keys.EXPERT_MIXED_COV)
@@ -488,22 +482,26 @@ class _FilterExperts:
     track, the base process noise, and the Kalman gain and log-likelihood of a prior covariance.
     Mixed into a ``Gain`` (``FilterGain``) or a ``KalmanNetGain`` (``KalmanNetFilterGain``)."""
 
+    shared = ("p_stay", "guard", "modes")
+    load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
+    state_correction = None
+    """The bounds of ``KalmanNetFilterGain``'s learned state correction, None without one
+    (``FilterUpdate(correction=...)``)."""
+
     @property
     def per_detection(self) -> bool:
         """Whether the experts are told each detection's covariance (``r="detection"``, ``PerDetection``)."""
         return isinstance(self.measurement, PerDetection)
 
-    def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
-        """The update these experts need (``FilterUpdate``, with this gain's ``turn_rate``)."""
-        return FilterUpdate(model_set, dt, turn_rate=self.turn_rate, told_cov=self.per_detection,
-                            robust=self.robust is not None)
-
     def stages(self, model_set: ModelSet, dt: float) -> tuple[FilterInteraction, FilterPredict, FilterUpdate]:
         """The interaction, predict and update these experts need (``Gain.stages``): the interaction with this gain's
-        ``interaction``, ``p_stay`` and ``guard``, the predict with its ``turn_rate``, its ``update_stage``."""
+        ``interaction``, ``p_stay`` and ``guard``, the predict with its ``turn_rate``, the update with its
+        ``turn_rate``, measurement model, robust update and state correction (``FilterUpdate``)."""
         return (FilterInteraction(model_set, dt, self.interaction, self.p_stay, self.guard, self.spec, self.onset,
                                   self.modes, self.restart),
-                FilterPredict(model_set, dt, turn_rate=self.turn_rate), self.update_stage(model_set, dt))
+                FilterPredict(model_set, dt, turn_rate=self.turn_rate),
+                FilterUpdate(model_set, dt, correction=self.state_correction is not None, turn_rate=self.turn_rate,
+                             told_cov=self.per_detection, robust=self.robust is not None))
 
     def _init_filter(self, model_set: ModelSet, dt: float = 1.0, *,
                      noise_std: tuple[float, float, float, float, float] = (0.2, 0.2, 0.01, 0.002, 1e-5),
@@ -583,9 +581,7 @@ class _FilterExperts:
         if self.adapt is not None:  # the track's log lambda is carried
             self.in_keys = [*self.in_keys, keys.Q_SCALE]
             self.out_keys = [*self.out_keys, keys.Q_SCALE]
-        white = torch.zeros(N_NOISE, dtype=torch.bool)
-        white[list(WHITE)] = True
-        self.register_buffer("white_mask", white, persistent=False)
+        self.register_buffer("white_mask", torch.isin(torch.arange(N_NOISE), torch.tensor(WHITE)), persistent=False)
         self.p_stay = float(p_stay)
         if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
             raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")
@@ -637,7 +633,7 @@ class _FilterExperts:
         samples, the fixed ``r^2`` where ``r`` was given, or the square of the step's input ``r`` (``td``'s ``"r"``
         ``[B]``) where ``r`` is told per track (``"data"``)."""
         if isinstance(self.measurement, ToldStd):
-            told = told_r(td).to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
+            told = step_input(td, keys.R).to(total.dtype).reshape(-1, *([1] * (total.dim() - 1)))
             return (told * told).expand_as(total)
         if self.per_detection:
             return self._told_cov(td)
@@ -796,20 +792,18 @@ class _FilterExperts:
         M = self.n_experts
         B = z.shape[0]
         hist = carry.get(keys.Z_HISTORY)
+        nan = prev = torch.full_like(z, float("nan"))
         if second:  # the first detection is the previous scan's only where no scan was missed between
             adjacent = (carry.get(keys.START_SCANS) == 1).view(-1, *([1] * (z.dim() - 1)))
             prev = torch.where(adjacent, hist[..., 0, :], float("nan"))
-        else:
-            prev = torch.full_like(z, float("nan"))
-        nan = torch.full_like(z, float("nan"))
-        elapsed = carry.get(keys.START_TIME) if second else None
-        gap = (elapsed if second else torch.full_like(carry.get(keys.START_TIME), float(self.dt))).to(z.dtype)
+        elapsed = carry.get(keys.START_TIME)  # the time since the first detection
+        gap = (elapsed if second else torch.full_like(elapsed, float(self.dt))).to(z.dtype)
         gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
         gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
         r2_track, P, _ = self._start(carry, z, second)  # the covariance with the prior (start_estimate: the estimate)
         adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
         return adapt | {
-            keys.EXPERT_POST: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, M, -1)).clone(),
+            keys.EXPERT_POST: per_expert(x, M).clone(),
             keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
             keys.EXPERT_AUG_COV: P,
             keys.Z_HISTORY: torch.stack([z, prev, nan], -2),
@@ -824,13 +818,16 @@ class _FilterExperts:
         """This scan's ``r^2`` estimate as ``[B, M, 1, 1]``."""
         return noise_matrix(self.noise(td), self.n_experts, self.per_detection)
 
-    def _noise_scale(self, td, like: torch.Tensor) -> torch.Tensor | None:
-        """Multipliers of the five noise components ``[B, M, 5]``: the track's ``lambda``
-        (``AdaptiveNoise``) on the white-acceleration ones, 1 on the rest; None without adaptation."""
+    def base_noise(self, td, like: torch.Tensor):
+        """This scan's base process noise ``(Q_parts, scale, Q)``: its components (``q_parts``), their multipliers
+        ``scale [B, M, 5]`` (the track's ``lambda``, ``AdaptiveNoise``, on the white-acceleration ones, 1 on the rest;
+        None without adaptation) and ``Q [B, M, 10, 10]``, the components' sum with their multipliers."""
+        Q_parts = self.q_parts(td, like)
         if self.adapt is None:
-            return None
+            return Q_parts, None, Q_parts.sum(-3)
         lam = per_expert(AdaptiveNoise.scale(td.get(keys.Q_SCALE)).to(like.dtype), self.n_experts, event_dims=0)
-        return torch.where(self.white_mask, lam.unsqueeze(-1), torch.ones_like(lam).unsqueeze(-1))
+        scale = torch.where(self.white_mask, lam.unsqueeze(-1), torch.ones_like(lam).unsqueeze(-1))
+        return Q_parts, scale, _noise(scale, Q_parts)
 
     def _adapt(self, td, maha: torch.Tensor, has_z: torch.Tensor) -> None:
         """The track's next ``log lambda`` from this scan's NIS ``maha [B, M]``: the smallest of the experts'
@@ -975,9 +972,6 @@ class FilterGain(_FilterExperts, Gain):
     in_keys = _FILTER_IN
     out_keys = _FILTER_OUT
 
-    shared = ("p_stay", "guard", "modes")
-    load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
-
     def __init__(self, model_set: ModelSet, dt: float = 1.0, **options):
         """``options``: the filter experts' (``_FilterExperts._init_filter``: noise, interaction, measurement model,
         start, robust update, re-acquisition, modes per group)."""
@@ -987,10 +981,7 @@ class FilterGain(_FilterExperts, Gain):
     def forward(self, td):
         r2 = self._r2(td)
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        Q_parts = self.q_parts(td, P)
-        scale = self._noise_scale(td, P)
-        Q = Q_parts.sum(-3) if scale is None else _noise(scale, Q_parts)
-        return self._finish(td, r2, P + Q)
+        return self._finish(td, r2, P + self.base_noise(td, P)[2])
 
 
 class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
@@ -1013,9 +1004,6 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
         keys.PREV_INTERVAL,
     ] + _FILTER_IN
     out_keys = [keys.EXPERT_HIDDEN, keys.PREV_INTERVAL] + _FILTER_OUT
-
-    shared = ("p_stay", "guard", "modes")
-    load_options = ("guard", "adapt", "r", "reacquire", "robust", "start_vz_std")
 
     def __init__(
         self,
@@ -1065,11 +1053,6 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     def base_gain(self, model_set: ModelSet, sigma_q: float, r: float, dt: float) -> None:
         """None: the base gain is each filter expert's own Kalman gain (no steady-state ``K_ss``)."""
 
-    def update_stage(self, model_set: ModelSet, dt: float) -> FilterUpdate:
-        """The update these experts need: with ``state_correction``, one that adds it."""
-        return FilterUpdate(model_set, dt, correction=self.state_correction is not None, told_cov=self.per_detection,
-                            robust=self.robust is not None)
-
     def knock_out_correction(self) -> None:
         """Set the state correction's rows of FC2 to zero (the rest of the network as trained)."""
         if self.state_correction is None:
@@ -1081,32 +1064,19 @@ class KalmanNetFilterGain(_FilterExperts, KalmanNetGain):
     def forward(self, td):
         r2 = self._r2(td)
         base = td.get(keys.EXPERT_AUG_PRIOR_COV)
-        Q_parts = self.q_parts(td, base)
-        scale = self._noise_scale(td, base)  # [B, M, 5] or None; the whitening below uses the scaled noise too
-        Q0 = Q_parts.sum(-3) if scale is None else _noise(scale, Q_parts)
+        Q_parts, scale, Q0 = self.base_noise(td, base)  # the whitening below uses the scaled noise too
         S0 = innovation_cov(base + Q0, r2)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         white = slog(nu / torch.diagonal(S0, dim1=-2, dim2=-1).sqrt(), 1.0)
         f1, f2, f3, f4, white = (f.transpose(0, 1) for f in (*self.features(td), white))
-        h = td.get(keys.EXPERT_HIDDEN)
-        relu = torch.relu
-        h_q = self.gru_q(relu(self.fc5(f4)), h.get("q").transpose(0, 1))
-        h_sigma = self.gru_sigma(torch.cat([h_q, relu(self.fc6(f3))], -1), h.get("sigma").transpose(0, 1))
-        out_fc1 = relu(self.fc1(h_sigma))
-        out_fc7 = relu(self.fc7(torch.cat([f1, f2, white], -1)))
-        h_s = self.gru_s(torch.cat([out_fc1, out_fc7], -1), h.get("s").transpose(0, 1))
-        out = self.fc2b(relu(self.fc2a(torch.cat([h_sigma, h_s], -1))))
-        out_fc2 = out[..., : 9 * 3]
-        out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
-        h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
+        out = self.recur(td, f1, torch.cat([f2, white], -1), f3, f4)
         u = out[..., 9 * 3 : 9 * 3 + N_NOISE].transpose(0, 1)
         u = self.u_max * torch.tanh(u * (self.u_slope / self.u_max))  # [B, M, 5]
         if self.state_correction is not None:  # a bounded additive correction of each expert's posterior
             c = torch.tanh(out[..., 9 * 3 + N_NOISE :].transpose(0, 1))
             td.set(keys.EXPERT_CORRECTION, self.correction_scale.to(c.dtype) * c)
         P = base + _noise(torch.exp(u) if scale is None else torch.exp(u) * scale, Q_parts)
-        delta = self.K_scale * torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
-        td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
+        delta = self.K_scale * torch.tanh(out[..., : 9 * 3].transpose(0, 1).unflatten(-1, (9, 3)))
         return self._finish(td, r2, P, delta, nu)
 
 

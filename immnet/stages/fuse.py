@@ -34,7 +34,7 @@ import torch
 from immnet import keys
 from immnet.imm.interaction import moment_match
 from immnet.motion import POS, Modes
-from immnet.stages.base import Stage, axis_probs, block_weights, coordinate_weights, measured
+from immnet.stages.base import Stage, axis_probs, block_weights, coordinate_weights, measured, per_expert
 
 COV_KEYS = (keys.EXPERT_COV, keys.EXPERT_AUG_COV)
 """The experts' covariances ``Fuse`` fuses, first found first: the analytic gain's, the filter experts'."""
@@ -52,11 +52,8 @@ class Fuse(Stage):
         ``consistency``: the weight of each scan in the reported covariance's scale (module doc), or None (off);
         not with ``per_expert`` (stage 1 reports no covariance). ``modes``: ``IMMNet``'s (module doc)."""
         super().__init__(model_set)
-        groups = Modes.parse(modes).groups
-        if groups is None:
-            self.groups = None
-        else:  # the group of each coordinate as a buffer: no copy to the device each scan
-            self.register_buffer("groups", torch.tensor(groups), persistent=False)
+        groups = Modes.parse(modes).groups  # the group of each coordinate as a buffer: no copy to the device each scan
+        self.register_buffer("groups", None if groups is None else torch.tensor(groups), persistent=False)
         if consistency is not None:
             consistency = float(consistency)
             if not 0.0 < consistency <= 1.0:
@@ -109,7 +106,7 @@ class Fuse(Stage):
         return scale | {
             keys.PREV_FUSED: carry.get(keys.FUSED) if second else x,
             keys.FUSED: x,
-            keys.PREV_EXPERT_PRIOR: (x if x.dim() == 3 else x.unsqueeze(1).expand(-1, self.n_experts, -1)).clone(),
+            keys.PREV_EXPERT_PRIOR: per_expert(x, self.n_experts).clone(),
             keys.PREV_MEASUREMENT: z,
         }
 

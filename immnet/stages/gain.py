@@ -147,16 +147,10 @@ class KalmanNetGain(Gain):
         """The weights that read the interval input and its column (``log(interval / dt)`` rides after F2 into FC7)."""
         return {"fc7.weight": 2 * 3} if self.interval_input else {}
 
-    def initial_hidden(self, batch: int) -> dict:
-        return {
-            "q": self.h0_q.expand(batch, -1, -1),
-            "sigma": self.h0_sigma.expand(batch, -1, -1),
-            "s": self.h0_s.expand(batch, -1, -1),
-        }
-
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The GRUs' hidden states, started at their learned ``h0``, and the previous scan's interval."""
-        return {keys.EXPERT_HIDDEN: {k: v.to(dtype) for k, v in self.initial_hidden(batch).items()},
+        h0 = {"q": self.h0_q, "sigma": self.h0_sigma, "s": self.h0_s}
+        return {keys.EXPERT_HIDDEN: {k: v.expand(batch, -1, -1).to(dtype) for k, v in h0.items()},
                 keys.PREV_INTERVAL: torch.full((batch,), float(self.dt), dtype=dtype, device=device)}
 
     def interval_features(self, td, like: torch.Tensor):
@@ -167,17 +161,12 @@ class KalmanNetGain(Gain):
         prev = td.get(keys.PREV_INTERVAL)
         if interval is None:
             td.set(keys.PREV_INTERVAL, prev.clone())  # unchanged: the nominal interval
-            extra = None
-            if self.interval_input:
-                extra = like.new_zeros(*like.shape[:2], 1)
-            return 1.0, 1.0, extra
+            return 1.0, 1.0, like.new_zeros(*like.shape[:2], 1) if self.interval_input else None
         d = interval.to(like.dtype)
         view = (-1, *([1] * (like.dim() - 1)))
         now, before = (self.dt / d).view(view), (self.dt / prev.to(like.dtype)).view(view)
         td.set(keys.PREV_INTERVAL, interval.to(prev.dtype))
-        extra = None
-        if self.interval_input:
-            extra = torch.log(d / self.dt).view(-1, 1, 1).expand(*like.shape[:2], 1)
+        extra = torch.log(d / self.dt).view(-1, 1, 1).expand(*like.shape[:2], 1) if self.interval_input else None
         return now, before, extra
 
     def features(self, td):
@@ -198,9 +187,10 @@ class KalmanNetGain(Gain):
             slog(f1, F1_SCALE), slog(f2, F2_SCALE), slog(f3, self.f3_scale), slog(f4, self.f4_scale)
         )
 
-    def forward(self, td):
-        # the layers run expert-major ([M, B, .]): features and hidden states turn once per step
-        f1, f2, f3, f4 = (f.transpose(0, 1) for f in self.features(td))
+    def recur(self, td, f1, f2, f3, f4) -> torch.Tensor:
+        """One scan of the GRUs and layers on expert-major features ``[M, B, .]`` (``f2`` with whatever rides with
+        it into FC7); writes the next hidden states and returns FC2's output ``[M, B, .]``, its first 27 columns the
+        gain correction."""
         h = td.get(keys.EXPERT_HIDDEN)
         relu = torch.relu
         h_q = self.gru_q(relu(self.fc5(f4)), h.get("q").transpose(0, 1))
@@ -208,12 +198,18 @@ class KalmanNetGain(Gain):
         out_fc1 = relu(self.fc1(h_sigma))
         out_fc7 = relu(self.fc7(torch.cat([f1, f2], -1)))
         h_s = self.gru_s(torch.cat([out_fc1, out_fc7], -1), h.get("s").transpose(0, 1))
-        out_fc2 = self.fc2b(relu(self.fc2a(torch.cat([h_sigma, h_s], -1))))
-        out_fc3 = relu(self.fc3(torch.cat([h_s, out_fc2], -1)))
+        out = self.fc2b(relu(self.fc2a(torch.cat([h_sigma, h_s], -1))))
+        out_fc3 = relu(self.fc3(torch.cat([h_s, out[..., : 9 * 3]], -1)))
         h_sigma = relu(self.fc4(torch.cat([h_sigma, out_fc3], -1)))
+        hidden = {"q": h_q, "sigma": h_sigma, "s": h_s}
+        td.set(keys.EXPERT_HIDDEN, {k: v.transpose(0, 1) for k, v in hidden.items()})
+        return out
+
+    def forward(self, td):
+        # the layers run expert-major ([M, B, .]): features and hidden states turn once per step
+        out_fc2 = self.recur(td, *(f.transpose(0, 1) for f in self.features(td)))
         delta = torch.tanh(out_fc2.transpose(0, 1).unflatten(-1, (9, 3)))
         td.set(keys.EXPERT_GAIN, self.K_ss + self.K_scale * delta)
-        td.set(keys.EXPERT_HIDDEN, {"q": h_q.transpose(0, 1), "sigma": h_sigma.transpose(0, 1), "s": h_s.transpose(0, 1)})
         return td
 
 

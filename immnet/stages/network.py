@@ -272,9 +272,7 @@ class IMMNet(TensorDictModuleBase):
         self.carry_keys = carry
         self.in_keys = [keys.MEASUREMENT, keys.IS_INIT, *carry, *self.start.inputs]
         self.out_keys = [keys.ACTION, *(("next", *k) for k in carry)]
-        onehot = torch.zeros(len(ms), N_MODES)
-        onehot[torch.arange(len(ms)), ms.modes] = 1.0
-        self.register_buffer("mode_onehot", onehot)
+        self.register_buffer("mode_onehot", torch.nn.functional.one_hot(ms.modes, N_MODES).float())
 
     def _starts(self, stages, experts_alone: bool, after=()) -> tuple[TrackStart, JoinStarts]:
         """The stages a step begins and ends with: a track's start (``immnet.stages.start``) around ``stages``;
@@ -509,12 +507,9 @@ class IMMNet(TensorDictModuleBase):
             if bool(restart.any()):  # those tracks restart at this detection as at their first
                 fresh = self.initial_carry(z.shape[0], dtype=z.dtype, device=z.device)
                 out = _where(restart, self.step(self._scan_input(fresh, z, interval, r, meas_cov, truth)), out)
-        if interval is not None:
-            out.del_(keys.INTERVAL)
-        if r is not None:
-            out.del_(keys.R)
-        if meas_cov is not None:
-            out.del_(keys.MEAS_COV)
+        for key, value in ((keys.INTERVAL, interval), (keys.R, r), (keys.MEAS_COV, meas_cov)):
+            if value is not None:
+                out.del_(key)
         if truth:
             out.del_(unravel_key(next(iter(truth)))[0])  # the ("truth", ...) inputs
         return out
@@ -524,11 +519,9 @@ class IMMNet(TensorDictModuleBase):
         """The step's input of ``scan``: the carry with the scan's measurement and inputs set."""
         td = carry.copy()
         td.set(keys.MEASUREMENT, z)
-        if interval is not None:
-            interval = torch.as_tensor(interval, dtype=z.dtype, device=z.device).reshape(-1).expand(z.shape[0])
-            td.set(keys.INTERVAL, interval)
-        if r is not None:
-            td.set(keys.R, torch.as_tensor(r, dtype=z.dtype, device=z.device).reshape(-1).expand(z.shape[0]))
+        for key, value in ((keys.INTERVAL, interval), (keys.R, r)):  # a number or [B]
+            if value is not None:
+                td.set(key, torch.as_tensor(value, dtype=z.dtype, device=z.device).reshape(-1).expand(z.shape[0]))
         if meas_cov is not None:
             td.set(keys.MEAS_COV, torch.as_tensor(meas_cov, dtype=z.dtype, device=z.device).expand(z.shape[0], 3, 3))
         for key, value in (truth or {}).items():
@@ -603,7 +596,10 @@ class IMMNet(TensorDictModuleBase):
                 raise ValueError(self.no_cov_reason() or "these experts carry no covariance")
         if carry is None:
             carry = self.initial_carry(B, experts_alone, measurements.dtype, measurements.device)
-        states, probs, logits, posts, covs, logliks = [], [], [], [], [], []
+        per_scan = {} if experts_alone else {keys.ROLLOUT_EXPERT_PROBS: keys.EXPERT_PROBS,
+                                             keys.ROLLOUT_MODE_LOGITS: keys.MODE_LOGITS,
+                                             keys.ROLLOUT_EXPERT_POST: keys.EXPERT_POST}
+        states, covs, logliks, seqs = [], [], [], {k: [] for k in per_scan}
         for t in range(T):
             before = carry
             carry = self.scan(carry, measurements[..., t, :], experts_alone,
@@ -615,15 +611,9 @@ class IMMNet(TensorDictModuleBase):
                 covs.append(self.reported_cov(carry))
             if loglik is not None and not experts_alone:
                 logliks.append(self.predictive_loglik(before, carry, reported=loglik is Likelihood.REPORTED))
-            if not experts_alone:
-                probs.append(carry.get(keys.EXPERT_PROBS))
-                logits.append(carry.get(keys.MODE_LOGITS))
-                posts.append(carry.get(keys.EXPERT_POST))
-        out = {keys.STATE: torch.stack(states, 1)}
-        if not experts_alone:
-            out[keys.ROLLOUT_EXPERT_PROBS] = torch.stack(probs, 1)
-            out[keys.ROLLOUT_MODE_LOGITS] = torch.stack(logits, 1)
-            out[keys.ROLLOUT_EXPERT_POST] = torch.stack(posts, 1)
+            for name, key in per_scan.items():
+                seqs[name].append(carry.get(key))
+        out = {keys.STATE: torch.stack(states, 1), **{name: torch.stack(seq, 1) for name, seq in seqs.items()}}
         if return_cov:
             out[keys.STATE_COV] = torch.stack(covs, 1)
         if logliks:

@@ -35,15 +35,11 @@ from tensordict.utils import unravel_key
 
 from immnet import keys
 from immnet.motion import POS, VEL, ModelSet
-from immnet.stages.base import Stage, measured, step_input, track_where
+from immnet.stages.base import Stage, measured, per_expert, step_input, track_where
 
 STEP_INPUTS = (keys.R, keys.MEAS_COV, keys.TRUE_MODE, keys.TRUE_TURN_RATE, keys.TRUE_RESTART)
 """The step's inputs per track that are neither carried nor measured: each track's measurement std or each detection's
 covariance ``[B, 3, 3]`` (a filter gain told it, ``r="data"``, ``r="detection"``) and an oracle's truth (the clairvoyant filters, docs/stages.md); ``IMMNet.scan`` sets them."""
-
-
-def _compiling() -> bool:
-    return torch.compiler.is_compiling()
 
 
 class TrackStart(Stage):
@@ -125,7 +121,7 @@ class TrackStart(Stage):
         age = td.get(keys.AGE)
         starting = age < self.detections
         td.set(keys.STARTING, starting)
-        if not _compiling() and not bool(starting.any()):  # every track running: nothing starts
+        if not torch.compiler.is_compiling() and not bool(starting.any()):  # every track running: nothing starts
             return td
         z = td.get(keys.MEASUREMENT)
         interval = td.get(keys.INTERVAL, None)
@@ -140,13 +136,10 @@ class TrackStart(Stage):
             # a detection: the first or the second; none: the carry as it was
             value = carry.get(key) if second is None else track_where(has & (age == 1), second.get(key), carry.get(key))
             start.set(key, track_where(has & (age == 0), first.get(key), value))
-        if self.detections == 1:
-            td.set(keys.START_CARRY, start)
-            return td
-        waiting = (age == 1) & ~has  # a started track missed its second detection: one more scan elapses
-        start.set(keys.START_SCANS, torch.where(waiting, carry.get(keys.START_SCANS) + 1, start.get(keys.START_SCANS)))
-        step_time = self.dt if interval is None else interval
-        start.set(keys.START_TIME, torch.where(waiting, carry.get(keys.START_TIME) + step_time, start.get(keys.START_TIME)))
+        if self.detections == 2:  # a started track that missed its second detection: one more scan elapses
+            waiting = (age == 1) & ~has
+            for key, elapsed in ((keys.START_SCANS, 1), (keys.START_TIME, self.dt if interval is None else interval)):
+                start.set(key, torch.where(waiting, carry.get(key) + elapsed, start.get(key)))
         td.set(keys.START_CARRY, start)
         return td
 
@@ -184,7 +177,7 @@ class JoinStarts(Stage):
         # (the step ran on its carry before the start, so its posteriors there mean nothing)
         fused = td.get(keys.FUSED)
         post = td.get(keys.EXPERT_POST)
-        td.set(keys.EXPERT_POST, track_where(starting, fused if fused.dim() == 3 else fused.unsqueeze(1).expand_as(post), post))
+        td.set(keys.EXPERT_POST, track_where(starting, per_expert(fused, post.shape[1]), post))
         if self.fused_cov:  # fused from the experts' start covariances, not carried
             td.set(keys.FUSED_COV, track_where(starting, self._fuse.covariance(td, fused), td.get(keys.FUSED_COV)))
         return td
