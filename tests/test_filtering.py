@@ -843,3 +843,24 @@ def test_init_parameters_widens_a_network_without_the_interval_input():
         else:
             assert torch.equal(p, w), name
     assert module.net.gain.noise_var_std[0].item() == pytest.approx(0.25)
+
+
+def test_experts_alone_take_huber_update_with_modes_per_group():
+    """Stage 1 (experts alone) with Huber's update and modes per group carries no far plot between scans, as the
+    joint update experts alone: every plot within ``k`` is the plain update exactly (Huber's weight 1), and a plot
+    2 km off (hundreds of standard deviations) moves each expert less than the plain update lets it."""
+    torch.manual_seed(0)
+    t = torch.arange(30.0)
+    truth = torch.stack([100 * t, 50 * t, 0 * t], -1)  # [T, 3]
+    z = truth + 3 * torch.randn(2, 3, 30, 3)  # [B, M, T, 3]: each expert its own sequence
+
+    def run(zz, **options):
+        gain = {"class_path": "immnet.stages.filtering.FilterGain", "init_args": {"r": 4.0, **options}}
+        net = IMMNet(model_set="configs/model_sets/imm3.yaml", gain=gain, modes="channel")
+        return net.rollout(zz, experts_alone=True)[0]["state"]  # [B, T, M, 9]
+
+    assert torch.equal(run(z, robust=100.0), run(z))
+    far = z.clone()
+    far[:, :, 15] += 2000.0
+    error = lambda state: (state[:, 15, :, 0:7:3] - truth[15]).norm(dim=-1)  # noqa: E731
+    assert bool((error(run(far, robust=3.0)) < 0.6 * error(run(far))).all())

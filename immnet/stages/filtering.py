@@ -920,9 +920,11 @@ class _FilterExperts:
         their group's, each group's likelihood Huber's."""
         k = self.robust
         gm, logdet = group_maha(nu, S, self.z_groups)  # [B, M, G]
-        spare = td.get(keys.ROBUST_SPARE)[:, None] > 0  # [B, 1, G]
+        carried = td.get(keys.ROBUST_SPARE, None)  # none experts alone (no far plot before), as the joint update's
+        spare = None if carried is None else carried[:, None] > 0  # [B, 1, G]
         # kalman.far over the experts, each group on its own: experts last, [B, G, M]
-        after = far(gm.transpose(1, 2), k, ~has_z[..., 0][:, None], spare.transpose(1, 2)).transpose(1, 2)
+        after = None if spare is None else far(gm.transpose(1, 2), k, ~has_z[..., 0][:, None],
+                                               spare.transpose(1, 2)).transpose(1, 2)
         w, rho = huber(gm, k, spare)
         w = torch.where(has_z, w, torch.ones_like(w))
         wc = w[..., self.coordinate_group]  # [B, M, 3]
