@@ -864,3 +864,33 @@ def test_experts_alone_take_huber_update_with_modes_per_group():
     far[:, :, 15] += 2000.0
     error = lambda state: (state[:, 15, :, 0:7:3] - truth[15]).norm(dim=-1)  # noqa: E731
     assert bool((error(run(far, robust=3.0)) < 0.6 * error(run(far))).all())
+
+
+@pytest.mark.parametrize("gain", ["FilterGain", "KalmanNetFilterGain"])
+@pytest.mark.parametrize("modes", ["joint", "channel", "axis"])
+@pytest.mark.parametrize("alone", [False, True], ids=["full", "experts-alone"])
+def test_huber_update_with_k_beyond_every_plot_is_the_plain_update(gain, modes, alone):
+    """Huber's weight is 1 for a plot within ``k`` standard deviations (``kalman.huber``'s closed form), so with ``k``
+    beyond every plot the robust update is the plain one, to the bit: in every mode grouping, in the full step and
+    experts alone (stage 1), with a missed scan and an irregular interval."""
+    from immnet.motion import ConstantAcceleration, ConstantVelocity
+
+    per_axis = ModelSet([ConstantVelocity(), ConstantAcceleration()])  # block diagonal per axis
+    model_set = per_axis if modes == "axis" else "configs/model_sets/imm3.yaml"
+    t = torch.arange(12.0)
+    truth = torch.stack([100 * t, 50 * t, 0 * t], -1)
+
+    def run(**options):
+        torch.manual_seed(0)  # the same weights for both (the robust update adds none)
+        init = {"r": 4.0, **options} | ({"interval_input": True} if gain == "KalmanNetFilterGain" else {})
+        net = IMMNet(model_set=model_set, gain={"class_path": f"immnet.stages.filtering.{gain}", "init_args": init},
+                     modes=modes)
+        z = truth + 3 * torch.randn((2, net.n_experts, 12, 3) if alone else (2, 12, 3))
+        z[..., 5, :] = float("nan")
+        intervals = torch.ones(2, 12)
+        intervals[:, 8] = 1.3
+        return net.rollout(z, experts_alone=alone, intervals=intervals if gain == "KalmanNetFilterGain" else None)[0]
+
+    plain, robust = run(), run(robust=1e6)
+    assert torch.isfinite(plain["state"][:, -1]).all()
+    assert torch.equal(plain["state"], robust["state"])
