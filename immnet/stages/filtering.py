@@ -872,16 +872,19 @@ class _FilterExperts:
             nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR))
         maha = quadratic(S_inv, nu)
         robust = self.robust
-        spare = after = None
+        after = None
+        # the robust update's far plot at the scan before ([B, 1], per group [B, 1, G]); none experts alone, where
+        # it is not carried
+        carried = None if robust is None else td.get(keys.ROBUST_SPARE, None)
+        spare = None if carried is None else carried[:, None] > 0
         if robust is not None and self.z_groups is not None:
-            K, gain, loglik, after = self._robust_groups(td, P, S, nu, has_z, delta)
+            K, gain, loglik, after = self._robust_groups(td, P, S, nu, has_z, delta, spare)
         else:
             K = small_matmul(P[..., :, 0:7:3], S_inv)  # [B, M, 10, 3]
             if robust is None:
                 loglik = self._loglik(nu, S, maha, logdet, has_z)
             else:  # Huber's weight on an isolated far plot's Mahalanobis distance (immnet.imm.kalman)
-                if td.get(keys.ROBUST_SPARE, None) is not None:
-                    spare = td.get(keys.ROBUST_SPARE)[:, None] > 0
+                if spare is not None:
                     after = far(maha, robust, ~has_z[..., 0], spare)
                 weight, rho = huber(maha, robust, spare)
                 weight = torch.where(has_z[..., 0], weight, torch.ones_like(weight))
@@ -910,18 +913,17 @@ class _FilterExperts:
             self._adapt(td, maha, has_z)
         return td
 
-    def _robust_groups(self, td, P, S, nu, has_z, delta):
+    def _robust_groups(self, td, P, S, nu, has_z, delta, spare):
         """Huber's update with modes per group (``_finish``'s ``(K, gain, loglik, spare after)``): each group's
         weight ``w_g = min(1, k / d_g)`` of its own marginal distance (``group_maha``; an isolated far plot's: the
-        group's ``spare`` ``[B, G]``, beyond ``k`` of every expert in that group), the gain of ``S' = S + D S D``,
+        group's ``spare`` ``[B, 1, G]``, beyond ``k`` of every expert in that group; None: no far plot before, experts
+        alone), the gain of ``S' = S + D S D``,
         ``D = diag(sqrt(1 / w - 1))`` per coordinate (``R' = R + D S D``: ``w_g`` times the Kalman gain where the groups'
         innovations are uncorrelated, as the per-axis IMM's per axis; ``FilterUpdate`` forms ``R'`` from the
         per-coordinate weights ``("expert", "robust_weight") [B, M, 3]``), the learned correction's columns weighted as
         their group's, each group's likelihood Huber's."""
         k = self.robust
         gm, logdet = group_maha(nu, S, self.z_groups)  # [B, M, G]
-        carried = td.get(keys.ROBUST_SPARE, None)  # none experts alone (no far plot before), as the joint update's
-        spare = None if carried is None else carried[:, None] > 0  # [B, 1, G]
         # kalman.far over the experts, each group on its own: experts last, [B, G, M]
         after = None if spare is None else far(gm.transpose(1, 2), k, ~has_z[..., 0][:, None],
                                                spare.transpose(1, 2)).transpose(1, 2)
