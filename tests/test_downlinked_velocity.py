@@ -104,6 +104,60 @@ def test_the_filter_told_a_late_velocity_is_filterpys(tmp_path, dv):
         keys.STATE].double(), plain, rtol=0, atol=1e-6)
 
 
+def test_a_joint_filter_told_each_plots_covariance_and_a_late_velocity_is_filterpys(tmp_path, dv):
+    """A joint one-model CA IMM told each plot's covariance ``R_p`` (``r: detection``) and the velocity ``L`` s late:
+    FilterPy's KalmanFilter of the 9-D state with ``z = (p, v)``, ``H`` the positions' rows and ``[0, 1, -L]`` per axis,
+    ``R = blockdiag(R_p, diag(s^2))``, the velocity's rows at a variance of ``NO_REPORT`` where a scan has no report;
+    from the package's start at the first detection. Told no report at all, it is the IMM itself."""
+    batch = as_batch(load_dataset(write_dataset(tmp_path / "d", 3, seed=4, spec=TINY))[0], torch.float64)
+    B, T = batch[keys.MEASUREMENTS].shape[:2]
+    g = torch.Generator().manual_seed(1)
+    A = torch.randn(B, T, 3, 3, generator=g, dtype=torch.float64) * 3.0
+    batch[keys.MEAS_COV] = A @ A.transpose(-1, -2) + 4.0 * torch.eye(3, dtype=torch.float64)  # anisotropic, per plot
+    reports = batch[keys.STATES][..., [1, 4, 7]] + torch.randn(B, T, 3, generator=g, dtype=torch.float64)
+    reports[torch.rand(B, T, 3, generator=g) < 0.3] = float("nan")
+    sq, lag, sigma = 0.7, 1.5, (2.0, 0.5)
+    config = {"class_path": "immnet.filters.IMMTracker",
+              "init_args": {"name": "ca", "r": "detection", "sigma_q": [sq],
+                            "model_set": {"models": [{"class_path": "immnet.motion.ConstantAcceleration",
+                                                      "init_args": {"noise": "continuous"}}]}}}
+    ours = dv["told_velocity"](dv["decoupled"](config), batch, reports, sigma, lag)[keys.STATE].double()
+    dts = torch.diff(batch[keys.TIME].double(), dim=1)
+    H = np.zeros((6, 9))
+    for a in range(3):
+        H[a, 3 * a], H[3 + a, 3 * a + 1], H[3 + a, 3 * a + 2] = 1.0, 1.0, -lag
+    for b in range(B):
+        z = batch[keys.MEASUREMENTS][b].double().numpy()
+        R = batch[keys.MEAS_COV][b].numpy()
+        start = int(np.isfinite(z).all(-1).nonzero()[0][0])
+        kf = KalmanFilter(dim_x=9, dim_z=6)
+        kf.x = ours[b, start].numpy().copy()  # the package's start: the first plot, its covariance R_p's block
+        kf.P = np.diag(np.tile([0.0, VEL_STD**2, ACC_STD**2], 3))
+        kf.P[np.ix_([0, 3, 6], [0, 3, 6])] = R[start]
+        np.testing.assert_allclose(kf.x[[0, 3, 6]], z[start], atol=1e-9)
+        for t in range(start + 1, T):
+            h = float(dts[b, t - 1])
+            F1 = np.array([[1, h, h * h / 2], [0, 1, h], [0, 0, 1]])
+            Q1 = sq**2 * np.array([[h**5 / 20, h**4 / 8, h**3 / 6], [h**4 / 8, h**3 / 3, h**2 / 2],
+                                   [h**3 / 6, h**2 / 2, h]])
+            kf.predict(F=np.kron(np.eye(3), F1), Q=np.kron(np.eye(3), Q1))
+            if np.isfinite(z[t]).all():
+                v = reports[b, t].numpy()
+                Rt = np.zeros((6, 6))
+                Rt[:3, :3] = R[t]
+                Rt[3:, 3:] = np.diag([sigma[0] ** 2 if np.isfinite(v[a]) else dv["NO_REPORT"] for a in range(2)]
+                                     + [sigma[1] ** 2 if np.isfinite(v[2]) else dv["NO_REPORT"]])
+                kf.update(np.concatenate([z[t], np.nan_to_num(v)]), R=Rt, H=H)
+            np.testing.assert_allclose(ours[b, t].numpy(), kf.x, atol=1e-5, rtol=1e-8)
+    none = torch.full_like(reports, float("nan"))
+    plain = dv["decoupled"](config).track(batch)[keys.STATE].double()
+    torch.testing.assert_close(dv["told_velocity"](dv["decoupled"](config), batch, none, sigma, lag)[keys.STATE].double(),
+                               plain, rtol=0, atol=1e-6)
+    robust = {**config, "init_args": {**config["init_args"], "robust": 2.5}}
+    with pytest.raises(ValueError, match="the plain one"):
+        dv["told_velocity"](dv["decoupled"](robust), batch, reports, sigma, lag)
+
+
 def _with_velocity(recs: list[dict]) -> list[dict]:
     """Each record with the velocity its aircraft reports: the central difference of its neighbours' positions in its
     own east-north-up frame (geodesy only), as ground speed (kt), track (deg) and vertical rate (ft/min)."""
@@ -192,6 +246,6 @@ def test_the_rows_are_the_filters_run_here(tmp_path, dv, capsys):
     assert "on --tune" in capsys.readouterr().err
     write_dataset(tmp_path / "last", 4, seed=1, spec=TINY)
     assert dv["main"](["--tune", str(tmp_path / "last"), "--data", str(data), "--imm", "real-imm-axis"]) == 2
-    assert dv["main"](["--tune", str(tune), "--data", str(data), "--imm", "imm-tuned"]) == 2
+    assert dv["main"](["--tune", str(tune), "--data", str(data), "--imm", "imm-ekf"]) == 2
     err = capsys.readouterr().err
     assert "not a real-flight set" in err and "decoupled IMM" in err
