@@ -134,7 +134,7 @@ def test_a_shipped_network_is_a_method_of_the_scenes(scene_set, tmp_path):
     assert "config" in filter_info(FILTER)
     # the default, the IMMs by scan interval: each band's method with its config
     bands = filter_info("real-imm-by-interval")["by_interval"]
-    assert [(b["longest_interval"], b["method"]) for b in bands] == [(3.0, "real-imm"), (6.0, "real-imm-5s"),
+    assert [(b["longest_interval"], b["method"]) for b in bands] == [(3.0, "real-imm"), (6.0, "mtt-imm-5s"),
                                                                       (float("inf"), "real-imm-11s")]
     assert all(b["config"].endswith(f"{b['method']}.yaml") for b in bands)
 
@@ -250,3 +250,53 @@ def test_no_scenes_of_the_split_and_associator_on_trajectories(scene_set, tmp_pa
     np.savez(npz, measurements=np.zeros((1, 4, 3)))
     assert main(["evaluate", "--data", str(npz), "--associator", "jpda", "--quiet"]) == 2
     assert f"--associator is for scene sets (immnet data scenes); {npz} is not one" in capsys.readouterr().err
+
+
+def test_immnet_tune_on_scenes_scores_the_trackers_gospa_on_training_scenes_only(scene_set, tmp_path, capsys,
+                                                                                  monkeypatch):
+    """``immnet tune --scenes``: the written filter's score is the multi-target tracker's mean GOSPA with it on the
+    set's training scenes (scored here by ``evaluate_scenes``, the table's own scoring), at least as low as the
+    search's start; the test scenes are never read (made unreadable here); a set without training scenes is
+    refused in one line."""
+    import shutil
+
+    import yaml
+
+    from immnet.config import build, instantiate
+    from immnet.evaluation.scenes import evaluate_scenes
+    from immnet.evaluation.search import Search
+
+    monkeypatch.setattr(immnet.cli, "_COMMAND_MODULES", ("immnet.evaluation.tune_cli",))
+    scenes = tmp_path / "scenes"
+    shutil.copytree(scene_set, scenes)
+    for path in (scenes / "test").iterdir():
+        path.write_bytes(b"not a scene")
+    search = tmp_path / "ca.yaml"
+    search.write_text(yaml.safe_dump({
+        "method": {"class_path": "immnet.filters.KalmanFilterTracker",
+                   "init_args": {"name": "ca", "r": "data", "sigma_q": 0.05,
+                                 "model": {"class_path": "immnet.motion.ConstantAcceleration",
+                                           "init_args": {"noise": "continuous"}}}},
+        "grid": {"sigma_q": [0.05, 0.5, 2.0]}}))
+    out = tmp_path / "ca-scenes.yaml"
+    assert main(["tune", "--search", str(search), "--scenes", str(scenes), "--out", str(out), "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    train = [load_scene(scenes / "train" / "tiny-00.npz")]
+
+    def gospa(method) -> float:
+        filt = TrackFilter.of_method(method, "ca")
+        return evaluate_scenes(train, [filt], told=False, raw=False)[filt]["mean"]["gospa"]
+
+    start = gospa(instantiate(Search.from_yaml(search).config({"sigma_q": 0.05})))
+    assert gospa(build(out)) == pytest.approx(result["score"], rel=1e-12) and result["score"] <= start
+    header = out.read_text().splitlines()[0]
+    assert f"--scenes {scenes}" in header and "1 training scenes, never a test scene" in header
+    empty = tmp_path / "no-train"
+    empty.mkdir()
+    index = json.loads((scene_set / "scenes.json").read_text())
+    (empty / "scenes.json").write_text(json.dumps({**index, "scenes": [e for e in index["scenes"]
+                                                                          if e["split"] == "test"]}))
+    assert main(["tune", "--search", str(search), "--scenes", str(empty), "--out", str(tmp_path / "x.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{empty}: no training scenes (split train) to tune on" in err[0]
+    assert not (tmp_path / "x.yaml").exists()

@@ -112,3 +112,15 @@ def test_immnet_tune_on_several_sets_scores_the_geometric_mean_of_each_sets_rmse
     assert result["score"] == pytest.approx((per_set[0] * per_set[1]) ** 0.5, rel=1e-9)
     assert "geometric mean of the 2 sets' Average RMSE" in out.read_text()
     assert "28 tracks" in out.read_text().splitlines()[0]
+
+
+def test_a_knob_of_several_paths_sets_each_to_its_value():
+    """A grid knob naming paths joined by commas (the two turns of an IMM alike) sets every one of them; its start
+    is the first path's value; a wrong path among them is refused by name."""
+    config = {"sigma_q": [0.7, 0.2, 0.5, 0.5], "p_stay": 0.95}
+    search = Search({"class_path": "x", "init_args": config}, {"sigma_q.2,sigma_q.3": [1.0, 2.0], "p_stay": [0.9]})
+    assert search.start == {"sigma_q.2,sigma_q.3": 0.5, "p_stay": 0.95}
+    assert search.config({"sigma_q.2,sigma_q.3": 2.0, "p_stay": 0.9})["init_args"] == {
+        "sigma_q": [0.7, 0.2, 2.0, 2.0], "p_stay": 0.9}
+    with pytest.raises(ValueError, match="'sigma_q.4' is not a path"):
+        Search({"class_path": "x", "init_args": config}, {"sigma_q.2,sigma_q.4": [1.0]})

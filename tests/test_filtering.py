@@ -430,7 +430,7 @@ def test_guarded_interaction_is_the_imm_mixing_with_state_dependent_transitions_
 IMM_EKF = ["imm-ekf", "imm-ekf-guard", "imm-ekf-guard-sticky", "imm-ekf-adaptive", "imm-ekf-guard-sticky-adaptive",
            "imm-ekf-general", "imm-ekf-general-4sets"]
 LINEAR = ["imm-min", "imm-max", "imm-accurate", "imm-tuned", "real-imm", "real-imm-5s", "real-imm-7s", "real-imm-11s",
-          "real-ca", "real-ca-5s", "real-ca-7s", "real-ca-11s"]
+          "mtt-imm-5s", "real-ca", "real-ca-5s", "real-ca-7s", "real-ca-11s"]
 PER_AXIS = ["real-imm-axis", "real-imm-axis-5s", "real-imm-axis-7s", "real-imm-axis-11s", "real-imm-singer",
             "real-imm-singer-5s", "real-imm-singer-7s", "real-imm-singer-11s"]
 ORACLES = ["clairvoyant", "clairvoyant-switch"]  # tests/test_filters_clairvoyant.py

@@ -401,7 +401,7 @@ def test_crossing_targets_keep_their_ids(associator, filt, dt):
     assert first == 2 and all(r["assigned"] == T - first for r in out["per_truth"].values())
 
 
-@pytest.mark.parametrize("dt,chosen", [(1.0, "real-imm"), (3.0, "real-imm"), (5.2, "real-imm-5s"), (6.0, "real-imm-5s"),
+@pytest.mark.parametrize("dt,chosen", [(1.0, "real-imm"), (3.0, "real-imm"), (5.2, "mtt-imm-5s"), (6.0, "mtt-imm-5s"),
                                        (7.0, "real-imm-11s"), (11.5, "real-imm-11s")])
 def test_default_filter_is_the_imm_tuned_at_the_scan_interval(dt, chosen):
     """The default per-track filter (``real-imm-by-interval``) chooses, at the second scan, the IMM of the band that
@@ -409,7 +409,7 @@ def test_default_filter_is_the_imm_tuned_at_the_scan_interval(dt, chosen):
     the bit, what it reports built with that method by name; before its second scan it holds no filter."""
     from immnet.filters.registry import MULTI_TARGET_BANDS, MULTI_TARGET_FILTER
 
-    assert [name for _, name in MULTI_TARGET_BANDS] == ["real-imm", "real-imm-5s", "real-imm-11s"]
+    assert [name for _, name in MULTI_TARGET_BANDS] == ["real-imm", "mtt-imm-5s", "real-imm-11s"]
     scans = list(_scene(np.random.default_rng(3), [[-5e3, 0.0, 5e3], [5e3, 2e3, 6e3]],
                         [[150.0, 20.0, 0.0], [-120.0, 60.0, 2.0]], 12, dt, 30.0, pd=0.9, clutter=2.0))
     default, named = MultiTargetTracker(r=30.0), MultiTargetTracker(chosen, r=30.0)
@@ -428,7 +428,7 @@ def test_the_default_filter_is_no_single_target_method():
     from immnet.filters.methods import build_method
 
     with pytest.raises(ValueError, match=r"^real-imm-by-interval is the multi-target tracker's per-track filter .*"
-                                         r"\(real-imm, real-imm-5s, real-imm-11s\)$"):
+                                         r"\(real-imm, mtt-imm-5s, real-imm-11s\)$"):
         build_method("real-imm-by-interval")
 
 

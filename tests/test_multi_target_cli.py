@@ -292,7 +292,7 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
     assert main(["track", "--input", str(plots), "--output", str(out), *stds, "--figure", str(png),
                  "--scene", str(npz)]) == 0
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
-        f"tracked {len(scene)} scans, {len(scene.plots)} plots with {DEFAULT_FILTER}: real-imm-5s (GNN)")
+        f"tracked {len(scene)} scans, {len(scene.plots)} plots with {DEFAULT_FILTER}: mtt-imm-5s (GNN)")
     rows = _read(out)
     _are_the_trackers_tracks(rows, scene, DEFAULT_FILTER)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
@@ -318,7 +318,7 @@ def test_the_scene_writers_csv_is_what_track_reads(tmp_path, capsys):
 def test_the_default_filter_takes_the_csvs_median_scan_interval(tmp_path, capsys):
     """The default per-track filter (``real-imm-by-interval``) is chosen by the median interval between the CSV's
     scans, not by its first: a CSV of 4.5-5.5 s scans whose second scan was left out (its first interval about 10 s)
-    is still tracked by ``real-imm-5s``, to the row as by that filter by name."""
+    is still tracked by ``mtt-imm-5s``, to the row as by that filter by name."""
     scene, _, plots = _scene(tmp_path)
     lines = plots.read_text().splitlines()
     second = sorted({line.split(",")[0] for line in lines[1:]}, key=float)[1]
@@ -331,8 +331,8 @@ def test_the_default_filter_takes_the_csvs_median_scan_interval(tmp_path, capsys
     assert main(["track", "--input", str(cut), "--output", str(out), *stds]) == 0
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
         f"tracked {len(scene) - 1} scans, {len(scene.plots) - len(scene.scan(1)[1])} plots with {DEFAULT_FILTER}: "
-        f"real-imm-5s (GNN)")
-    assert main(["track", "--input", str(cut), "--output", str(named), *stds, "--method", "real-imm-5s"]) == 0
+        f"mtt-imm-5s (GNN)")
+    assert main(["track", "--input", str(cut), "--output", str(named), *stds, "--method", "mtt-imm-5s"]) == 0
     assert out.read_text() == named.read_text()
 
 

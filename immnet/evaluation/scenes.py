@@ -224,6 +224,12 @@ def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bo
     return {n: {"mean": combine(list(rows.values())), "scenes": rows} for n, rows in per.items()}
 
 
+def tracker_gospa(scenes: list, make_filter, **settings) -> float:
+    """The mean GOSPA (``combine``'s) of ``MultiTargetTracker(make_filter(), **settings)`` over ``scenes``, a fresh
+    filter for each scene: what ``immnet tune --scenes`` minimizes."""
+    return combine([score(sc, run_tracker(sc, make_filter(), **settings)) for sc in scenes])["gospa"]
+
+
 SCALARS = ("gospa", "localisation", "missed", "false", "id_switches", "fragmentations", "continuity")
 """A method's scores over scenes that are one number each (``combine``): the table's columns after the method's name,
 before the time per scan."""

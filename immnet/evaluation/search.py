@@ -8,6 +8,7 @@ A search is a YAML file (``configs/tuning/*.yaml``, docs/baselines.md "Filters f
     grid:                        # dotted paths into init_args (list items by index) -> values to try
       sigma_q.0: [0.02, 0.05, 0.1]
       model_set.models.1.init_args.vertical: [0.1, 0.3, 1.0]
+      sigma_q.2,sigma_q.3: [0.5, 1.0]   # one knob of several paths (comma-separated): each takes the value
 
 From the method as written, ``coordinate_search`` sweeps each knob in turn with the others held at the best
 so far, and repeats the sweep until a full pass changes nothing (at most ``max_passes``); a setting already
@@ -129,13 +130,14 @@ class Search:
             raise ValueError("a search needs 'grid': dotted paths into the method's init_args -> values to try")
         self.method, self.grid, self.max_passes = method, grid, int(max_passes)
         args = method.get("init_args") or {}
-        for path, values in grid.items():
-            try:
-                get_path(args, path)
-            except (KeyError, IndexError, ValueError, TypeError):
-                raise ValueError(f"grid knob {path!r} is not a path into the method's init_args") from None
+        for knob, values in grid.items():
+            for path in knob.split(","):
+                try:
+                    get_path(args, path)
+                except (KeyError, IndexError, ValueError, TypeError):
+                    raise ValueError(f"grid knob {path!r} is not a path into the method's init_args") from None
             if not isinstance(values, list) or not values:
-                raise ValueError(f"grid knob {path!r} needs a non-empty list of values, got {values!r}")
+                raise ValueError(f"grid knob {knob!r} needs a non-empty list of values, got {values!r}")
 
     @classmethod
     def from_yaml(cls, path) -> "Search":
@@ -147,34 +149,42 @@ class Search:
     @property
     def start(self) -> dict:
         args = self.method.get("init_args") or {}
-        return {path: get_path(args, path) for path in self.grid}
+        return {knob: get_path(args, knob.split(",")[0]) for knob in self.grid}
 
     def config(self, setting: dict) -> dict:
         """The method config of one setting."""
         args = copy.deepcopy(self.method.get("init_args") or {})
-        for path, value in setting.items():
-            args = set_path(args, path, value)
+        for knob, value in setting.items():
+            for path in knob.split(","):
+                args = set_path(args, path, value)
         return {"class_path": self.method["class_path"], "init_args": args}
 
-    def run(self, data, progress: bool = True) -> dict:
+    def run(self, data, progress: bool = True, score: Callable | None = None) -> dict:
         """The search on ``data`` (a batch, or a list of batches scored by ``mixture_rmse``): ``{"best", "score",
-        "config", "table"}``."""
-        for batch in [data] if isinstance(data, TensorDict) else data:
-            if keys.STATES not in batch.keys():
-                raise ValueError("a search needs 'states' (ground truth) in its data to score settings")
+        "config", "table"}``. ``score``: a setting's method -> its score, in place of ``mixture_rmse`` on ``data``
+        (``immnet tune --scenes``: the multi-target tracker's mean GOSPA)."""
+        if score is None:
+            for batch in [data] if isinstance(data, TensorDict) else data:
+                if keys.STATES not in batch.keys():
+                    raise ValueError("a search needs 'states' (ground truth) in its data to score settings")
+            score = lambda method: mixture_rmse(method, data)  # noqa: E731
         name = (self.method.get("init_args") or {}).get("name", "search")
-        best, score, table = coordinate_search(lambda s: mixture_rmse(instantiate(self.config(s)), data),
+        best, value, table = coordinate_search(lambda s: score(instantiate(self.config(s))),
                                                self.grid, self.start, self.max_passes, progress, tag=name)
-        return {"best": best, "score": score, "config": self.config(best), "table": table}
+        return {"best": best, "score": value, "config": self.config(best), "table": table}
 
-    def write(self, result: dict, out, search_path, data_desc: str, n: int, sets: int = 1) -> Path:
-        """Write the best setting's method config to ``out``, named after its file (the registry's name)."""
+    def write(self, result: dict, out, search_path, data_desc: str, n: int, sets: int = 1, command: str = "",
+              what: str = "tracks, never a test split", score_desc: str | None = None) -> Path:
+        """Write the best setting's method config to ``out``, named after its file (the registry's name); ``command``:
+        the tune command's options beside ``--search`` (as a reader reruns it), ``what`` the data's unit,
+        ``score_desc`` what the score is (``score_name`` where None)."""
         out = Path(out)
         config = {**result["config"], "init_args": {**result["config"]["init_args"], "name": out.stem}}
         header = [
-            f"# Tuned by `immnet tune --search {search_path}` on {data_desc} ({n} tracks, never a test split):",
+            f"# Tuned by `immnet tune --search {search_path}{command}` on {data_desc} ({n} {what}):",
             f"# coordinate search over {self.grid} ({len(result['table'])} settings scored);",
-            f"# {score_name(sets)} {result['score']:.4f} m there; {datetime.date.today().isoformat()}. Do not edit by hand.",
+            f"# {score_desc or score_name(sets)} {result['score']:.4f} m there; {datetime.date.today().isoformat()}. "
+            f"Do not edit by hand.",
         ]
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text("\n".join(header) + "\n" + yaml.safe_dump(config, sort_keys=False))

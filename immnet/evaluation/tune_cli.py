@@ -16,11 +16,16 @@ def register(subparsers) -> None:
                               description="Coordinate search over the knobs of a search file (configs/tuning/) on "
                                           "a training or validation data set; writes the winner's method config.")
     t.add_argument("--search", required=True, help="a search file (configs/tuning/*.yaml)")
-    t.add_argument("--data", required=True, nargs="+",
-                   help="data set directories or .npz files to tune on, taken whole (never a test split); several: "
-                        "the geometric mean of each set's Average RMSE is the score")
+    given = t.add_mutually_exclusive_group(required=True)
+    given.add_argument("--data", nargs="+",
+                       help="data set directories or .npz files to tune on, taken whole (never a test split); several: "
+                            "the geometric mean of each set's Average RMSE is the score")
+    given.add_argument("--scenes", nargs="+",
+                       help="multi-target scene sets (immnet data scenes) whose training scenes score a per-track "
+                            "filter: the mean GOSPA of the multi-target tracker with it (its other settings its "
+                            "defaults); a set's test scenes are never read; several: the geometric mean")
     t.add_argument("--out", type=Path, required=True, help="the method config to write (configs/methods/NAME.yaml)")
-    t.add_argument("--limit", type=int, help="only the first N tracks of each data set")
+    t.add_argument("--limit", type=int, help="only the first N tracks (training scenes) of each set")
     t.add_argument("--quiet", action="store_true", help="no line per scored setting")
     t.set_defaults(func=run_tune)
 
@@ -43,11 +48,56 @@ def tuning_data(paths, limit: int | None = None):
     return parts if len(parts) > 1 else parts[0]
 
 
+def tuning_scenes(paths, limit: int | None = None) -> list[list]:
+    """The training scenes (split ``train``) of each scene set in ``paths``, the first ``limit`` of each; a set's test
+    scenes are never read, and a set without training scenes is refused."""
+    from immnet.data.scenes import load_index, load_scene
+
+    sets = []
+    for path in map(Path, paths):
+        entries = [e for e in load_index(path)["scenes"] if e["split"] == "train"][:limit]
+        if not entries:
+            raise ValueError(f"{path}: no training scenes (split train) to tune on")
+        sets.append([load_scene(path / e["file"]) for e in entries])
+    return sets
+
+
+def tune_on_scenes(args, search) -> int:
+    """``immnet tune --scenes``: each setting's filter scored by the multi-target tracker's mean GOSPA on the sets'
+    training scenes (the geometric mean over sets)."""
+    import math
+
+    from immnet.evaluation.runner import finite_or_none
+    from immnet.evaluation.scenes import tracker_gospa
+    from immnet.filters.multi import TrackFilter
+
+    sets = tuning_scenes(args.scenes, args.limit)
+    n = sum(map(len, sets))
+    desc = ("mean GOSPA" if len(sets) == 1 else f"geometric mean of the {len(sets)} sets' mean GOSPA") + \
+        " (c 200 m, p 2) of the multi-target tracker"
+    print(f"tuning {args.search} on {n} training scenes of {', '.join(map(str, args.scenes))} ({desc})",
+          file=sys.stderr)
+
+    def score(method) -> float:
+        g = [tracker_gospa(scenes, lambda: TrackFilter.of_method(method, method.name)) for scenes in sets]
+        return math.exp(sum(map(math.log, g)) / len(g))
+
+    result = search.run(None, progress=not args.quiet, score=score)
+    out = search.write(result, args.out, args.search, ", ".join(map(str, args.scenes)), n, len(sets),
+                       command=" --scenes " + " ".join(map(str, args.scenes)),
+                       what="training scenes, never a test scene", score_desc=desc)
+    print(json.dumps(finite_or_none({k: result[k] for k in ("best", "score")}), indent=2, default=str, allow_nan=False))
+    print(f"wrote {out}", file=sys.stderr)
+    return 0
+
+
 def run_tune(args) -> int:
     from immnet.evaluation.runner import finite_or_none
     from immnet.evaluation.search import Search, score_name
 
     search = Search.from_yaml(args.search)
+    if args.scenes:
+        return tune_on_scenes(args, search)
     data = tuning_data(args.data, args.limit)
     sets = data if isinstance(data, list) else [data]
     n = sum(batch.batch_size[0] for batch in sets)

@@ -140,11 +140,16 @@ class TrackFilter:
         assume where plots come without covariances; None: the method's own ``r`` where it is a number (``r: data``
         assumes none). A method's re-acquisition is not taken: the multi-target tracker starts and deletes tracks."""
         from immnet.filters.methods import build_method
+
+        return TrackFilter.of_method(build_method(name), name, r)
+
+    @staticmethod
+    def of_method(method, name: str, r: float | None = None) -> "IMMFilter":
+        """``from_method`` of a method already built (``immnet tune --scenes`` scores each setting so)."""
         from immnet.filters.per_axis import PerAxisIMMTracker
         from immnet.filters.trackers import IMMTracker
         from immnet.imm.measurement import Isotropic
 
-        method = build_method(name)
         own_r = method.measurement.r if isinstance(getattr(method, "measurement", None), Isotropic) else None
         common = {"r": own_r if r is None else r, "name": name, "robust": getattr(method, "robust", None)}
         if isinstance(method, PerAxisIMMTracker):

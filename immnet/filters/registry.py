@@ -19,7 +19,7 @@ MULTI_TARGET_FILTER = "real-imm-by-interval"
 another: the joint IMM over CV, CA and two turns tuned on real flights at the radar's scan interval
 (``MULTI_TARGET_BANDS``, ``immnet.filters.multi.ByInterval``); here, torch-free, so that ``immnet track --help`` names
 it."""
-MULTI_TARGET_BANDS = ((3.0, "real-imm"), (6.0, "real-imm-5s"), (float("inf"), "real-imm-11s"))
+MULTI_TARGET_BANDS = ((3.0, "real-imm"), (6.0, "mtt-imm-5s"), (float("inf"), "real-imm-11s"))
 """``MULTI_TARGET_FILTER``'s choice, (the longest scan interval in s, the method) in order, the first band that holds
 the interval: the IMM tuned at 1 s, at 4.5-5.5 s, at 10-12 s. Each was the best of the tuned IMMs by mean GOSPA on
 training scenes scanned every 1, 5, 7 and 11 s (docs/multi-target.md, "Defaults"); the edges lie between those."""
