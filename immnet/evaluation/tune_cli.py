@@ -55,7 +55,7 @@ def tuning_scenes(paths, limit: int | None = None) -> list[list]:
 
     sets = []
     for path in map(Path, paths):
-        entries = [e for e in load_index(path)["scenes"] if e["split"] == "train"][:limit]
+        entries = [e for e in load_index(path)["scenes"] if e["split"] == "train"][:limit or None]
         if not entries:
             raise ValueError(f"{path}: no training scenes (split train) to tune on")
         sets.append([load_scene(path / e["file"]) for e in entries])
