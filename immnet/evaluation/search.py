@@ -82,12 +82,17 @@ def states_rmse(state: torch.Tensor, batch: TensorDict) -> float:
     return rmse(position_error(state, batch[keys.STATES]), mask)["avg"]
 
 
+def geometric_mean(scores) -> float:
+    """``(prod scores)^(1/n)``: each score counts by its relative size, none by its scale (module doc)."""
+    scores = list(scores)
+    return math.exp(sum(math.log(s) for s in scores) / len(scores))
+
+
 def mixture_rmse(method, sets) -> float:
     """``average_rmse`` of ``method`` on one batch, or the geometric mean of it over a list of batches (module doc)."""
     if isinstance(sets, TensorDict):
         return average_rmse(method, sets)
-    scores = [average_rmse(method, batch) for batch in sets]
-    return math.exp(sum(math.log(s) for s in scores) / len(scores))
+    return geometric_mean(average_rmse(method, batch) for batch in sets)
 
 
 def score_name(sets: int) -> str:
@@ -173,18 +178,17 @@ class Search:
                                                self.grid, self.start, self.max_passes, progress, tag=name)
         return {"best": best, "score": value, "config": self.config(best), "table": table}
 
-    def write(self, result: dict, out, search_path, data_desc: str, n: int, sets: int = 1, command: str = "",
-              what: str = "tracks, never a test split", score_desc: str | None = None) -> Path:
-        """Write the best setting's method config to ``out``, named after its file (the registry's name); ``command``:
-        the tune command's options beside ``--search`` (as a reader reruns it), ``what`` the data's unit,
-        ``score_desc`` what the score is (``score_name`` where None)."""
+    def write(self, result: dict, out, search_path, data_desc: str, n: int, score_desc: str, command: str = "",
+              what: str = "tracks, never a test split") -> Path:
+        """Write the best setting's method config to ``out``, named after its file (the registry's name);
+        ``score_desc``: what the score is (``score_name``'s, or the multi-target tracker's GOSPA); ``command``: the
+        tune command's options beside ``--search`` (as a reader reruns it); ``what``: the data's unit."""
         out = Path(out)
         config = {**result["config"], "init_args": {**result["config"]["init_args"], "name": out.stem}}
         header = [
             f"# Tuned by `immnet tune --search {search_path}{command}` on {data_desc} ({n} {what}):",
             f"# coordinate search over {self.grid} ({len(result['table'])} settings scored);",
-            f"# {score_desc or score_name(sets)} {result['score']:.4f} m there; {datetime.date.today().isoformat()}. "
-            f"Do not edit by hand.",
+            f"# {score_desc} {result['score']:.4f} m there; {datetime.date.today().isoformat()}. Do not edit by hand.",
         ]
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text("\n".join(header) + "\n" + yaml.safe_dump(config, sort_keys=False))

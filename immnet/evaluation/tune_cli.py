@@ -62,33 +62,23 @@ def tuning_scenes(paths, limit: int | None = None) -> list[list]:
     return sets
 
 
-def tune_on_scenes(args, search) -> int:
-    """``immnet tune --scenes``: each setting's filter scored by the multi-target tracker's mean GOSPA on the sets'
-    training scenes (the geometric mean over sets)."""
-    import math
-
-    from immnet.evaluation.runner import finite_or_none
+def scene_score(args):
+    """``(score, n, what the score is)`` of ``immnet tune --scenes``: a setting's method -> the multi-target tracker's
+    mean GOSPA with it as the per-track filter on the sets' training scenes (the geometric mean over sets), and the
+    number of those scenes."""
     from immnet.evaluation.scenes import tracker_gospa
+    from immnet.evaluation.search import geometric_mean
     from immnet.filters.multi import TrackFilter
 
     sets = tuning_scenes(args.scenes, args.limit)
-    n = sum(map(len, sets))
     desc = ("mean GOSPA" if len(sets) == 1 else f"geometric mean of the {len(sets)} sets' mean GOSPA") + \
         " (c 200 m, p 2) of the multi-target tracker"
-    print(f"tuning {args.search} on {n} training scenes of {', '.join(map(str, args.scenes))} ({desc})",
-          file=sys.stderr)
 
     def score(method) -> float:
-        g = [tracker_gospa(scenes, lambda: TrackFilter.of_method(method, method.name)) for scenes in sets]
-        return math.exp(sum(map(math.log, g)) / len(g))
+        return geometric_mean(tracker_gospa(scenes, lambda: TrackFilter.of_method(method, method.name))
+                              for scenes in sets)
 
-    result = search.run(None, progress=not args.quiet, score=score)
-    out = search.write(result, args.out, args.search, ", ".join(map(str, args.scenes)), n, len(sets),
-                       command=" --scenes " + " ".join(map(str, args.scenes)),
-                       what="training scenes, never a test scene", score_desc=desc)
-    print(json.dumps(finite_or_none({k: result[k] for k in ("best", "score")}), indent=2, default=str, allow_nan=False))
-    print(f"wrote {out}", file=sys.stderr)
-    return 0
+    return score, sum(map(len, sets)), desc
 
 
 def run_tune(args) -> int:
@@ -97,14 +87,16 @@ def run_tune(args) -> int:
 
     search = Search.from_yaml(args.search)
     if args.scenes:
-        return tune_on_scenes(args, search)
-    data = tuning_data(args.data, args.limit)
-    sets = data if isinstance(data, list) else [data]
-    n = sum(batch.batch_size[0] for batch in sets)
-    print(f"tuning {args.search} on {n} tracks of {', '.join(map(str, args.data))} ({score_name(len(sets))})",
-          file=sys.stderr)
-    result = search.run(data, progress=not args.quiet)
-    out = search.write(result, args.out, args.search, ", ".join(map(str, args.data)), n, len(sets))
+        given, data, (score, n, desc) = args.scenes, None, scene_score(args)
+        unit, what, command = "training scenes", "training scenes, never a test scene", " --scenes " + " ".join(given)
+    else:
+        given, data, score = args.data, tuning_data(args.data, args.limit), None
+        sets = data if isinstance(data, list) else [data]
+        n, desc = sum(batch.batch_size[0] for batch in sets), score_name(len(sets))
+        unit, what, command = "tracks", "tracks, never a test split", ""
+    print(f"tuning {args.search} on {n} {unit} of {', '.join(map(str, given))} ({desc})", file=sys.stderr)
+    result = search.run(data, progress=not args.quiet, score=score)
+    out = search.write(result, args.out, args.search, ", ".join(map(str, given)), n, desc, command, what)
     print(json.dumps(finite_or_none({k: result[k] for k in ("best", "score")}), indent=2, default=str, allow_nan=False))
     print(f"wrote {out}", file=sys.stderr)
     return 0
