@@ -37,7 +37,6 @@ property of the file, ``row_interval``): traffic's resampled samples hold a repo
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 from pathlib import Path
@@ -245,15 +244,6 @@ def decoupled(config: dict):
     return method
 
 
-def scaled(method, factor: float):
-    """``method`` with its process noise times ``factor`` (every model's ``sigma_q``)."""
-    if isinstance(method, per_axis.PerAxisIMMTracker):
-        return method.scaled(factor)
-    out = copy.copy(method)
-    out.sigma_q = [q * factor for q in method.sigma_q] if isinstance(method.sigma_q, list) else method.sigma_q * factor
-    return out
-
-
 def _numbers(text: str) -> list[float]:
     try:
         return [float(v) for v in text.split(",") if v]
@@ -307,7 +297,7 @@ def main(argv=None) -> int:
 
     def told(batch, v, lag, scale, k, axes):  # the reports' error measured on --tune, whichever set is scored
         h, vert, _ = report_errors(tune_v.numpy(), tune_states, lag)
-        return told_velocity(scaled(imm, scale), batch, v, (k * h, k * vert), lag, axes)[keys.STATE]
+        return told_velocity(imm.scaled(scale), batch, v, (k * h, k * vert), lag, axes)[keys.STATE]
 
     def score(batch, v, lag, scale, k, axes):
         return states_rmse(told(batch, v, lag, scale, k, axes), batch)

@@ -152,6 +152,22 @@ def test_scaled_is_the_imm_configured_with_that_noise(sigma_q):
     plain = imm.track(data)[keys.STATE]
     assert imm.sigma_q == sigma_q and not torch.equal(torch.nan_to_num(got), torch.nan_to_num(plain))
 
+
+@pytest.mark.parametrize("modes", ["joint", "channel"])
+def test_a_joint_imms_scaled_is_the_imm_configured_with_that_noise(modes):
+    """``IMMTracker.scaled(f)`` (the joint IMM's, and with modes per channel, whose ``track`` runs a step network it
+    builds once): the same IMM built with every ``sigma_q`` times ``f``, to the bit, after the original has tracked."""
+    from immnet.filters import IMMTracker
+
+    data = _irregular(*SCANS["0.5-6 s"], seed=6, B=2, T=120)
+    ms = ModelSet([ConstantVelocity(noise="continuous", vertical=0.5), ConstantAcceleration(noise="continuous")])
+    imm = IMMTracker(ms, "data", [0.2, 1.1], 0.97, modes=modes)
+    plain = imm.track(data)[keys.STATE]
+    got = imm.scaled(0.3).track(data)[keys.STATE]
+    want = IMMTracker(ms, "data", [0.2 * 0.3, 1.1 * 0.3], 0.97, modes=modes).track(data)[keys.STATE]
+    torch.testing.assert_close(got, want, rtol=0, atol=0, equal_nan=True)
+    assert not torch.equal(torch.nan_to_num(got), torch.nan_to_num(plain))
+
 def test_per_axis_imm_tracks_a_batch_of_nine():
     """Nine tracks, whose starts ``[9, 9]`` are no matrix to split (they were once read as one and refused): each
     track's state is the one it has tracked alone."""

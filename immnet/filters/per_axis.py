@@ -15,7 +15,6 @@ coordinated turn) have no per-axis form and are refused.
 
 from __future__ import annotations
 
-import copy
 from typing import Sequence
 
 import torch
@@ -47,12 +46,6 @@ class PerAxisIMMTracker(_ModelSetIMM):
         moving = coupling(self.model_set, AXIS_OF)
         if moving:
             raise ValueError(f"a per-axis IMM needs models whose F is block diagonal per axis; {moving} couple the axes")
-
-    def scaled(self, factor: float) -> "PerAxisIMMTracker":
-        """A copy whose process noise is ``factor`` times this one's (every model's ``sigma_q``); the rest shared."""
-        out = copy.copy(self)
-        out.sigma_q = [v * factor for v in self.sigma_q] if isinstance(self.sigma_q, list) else self.sigma_q * factor
-        return out
 
     def network(self, dt: float = 1.0):
         """This IMM as IMMNet with nothing learned and modes per axis (``IMMNet(modes="axis")``; otherwise as

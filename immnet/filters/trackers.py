@@ -13,6 +13,7 @@ else per track and scan, ``[B, T, M, 9, 9]``, from the motion models' tensor ``d
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Sequence
 
@@ -103,6 +104,12 @@ class _ModelSetIMM(Method):
         self.return_cov = return_cov
         self.robust = check_robust(robust)
 
+    def scaled(self, factor: float):
+        """A copy whose process noise is ``factor`` times this one's (every model's ``sigma_q``); the rest shared."""
+        out = copy.copy(self)
+        out.sigma_q = [v * factor for v in self.sigma_q] if isinstance(self.sigma_q, list) else self.sigma_q * factor
+        return out
+
 
 class IMMTracker(_ModelSetIMM):
     """The standard IMM over a model set.
@@ -183,6 +190,12 @@ class IMMTracker(_ModelSetIMM):
             raise ValueError(f"mu0 must be non-negative and sum to 1, got {self.mu0.tolist()}")
         self.return_experts = return_experts
         self.compile = compile
+
+    def scaled(self, factor: float) -> "IMMTracker":
+        """``_ModelSetIMM.scaled``, its grouped step network (``_track_by_step``) built again for the new noise."""
+        out = super().scaled(factor)
+        out._step_net = None
+        return out
 
     def network(self, dt: float = 1.0):
         """This IMM as IMMNet with nothing learned (docs/core.md, "Every tracker as a configuration"): filter
