@@ -52,7 +52,7 @@ from immnet.data import adsb, real
 from immnet.data.geodesy import enu_rotation
 from immnet.data.storage import as_batch, load_dataset
 from immnet.filters.methods import method_config
-from immnet.evaluation.metrics import position_error, scored_mask
+from immnet.evaluation.metrics import position_error, scored_distance, scored_mask
 from immnet.evaluation.search import average_rmse, states_rmse
 from immnet.filters import imm as joint_imm
 from immnet.filters import per_axis
@@ -231,8 +231,7 @@ def _told_joint(method: IMMTracker, batch, v: torch.Tensor, sigma: tuple[float, 
 def over_limit(state: torch.Tensor, batch, limit: float) -> int:
     """The tracks of ``batch`` whose position error (3-D) ever exceeds ``limit`` m at a scored scan."""
     mask = scored_mask(batch[keys.STATES], batch[keys.MEASUREMENTS])
-    dist = torch.linalg.vector_norm(position_error(state, batch[keys.STATES]), dim=-1)
-    return int((dist.where(mask, torch.zeros((), dtype=dist.dtype)) > limit).any(1).sum())
+    return int((scored_distance(position_error(state, batch[keys.STATES]), mask).amax(1) > limit).sum())
 
 
 def decoupled(config: dict):

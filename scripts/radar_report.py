@@ -30,12 +30,12 @@ def report(method, data, from_scan: int, limit_m: float, from_plot: int = 3) -> 
 
     from immnet import keys
     from immnet.evaluation.calibration import coverage, position_nees
-    from immnet.evaluation.metrics import position_error, rmse_pooled, scored_mask
+    from immnet.evaluation.metrics import position_error, rmse_pooled, scored_distance, scored_mask
 
     out = method.track(data)
     mask = scored_mask(data[keys.STATES], data[keys.MEASUREMENTS])
     err = position_error(out[keys.STATE], data[keys.STATES])  # [N, T, 3], float64
-    dist = torch.linalg.vector_norm(err, dim=-1).where(mask, torch.zeros((), dtype=err.dtype))
+    dist = scored_distance(err, mask)
     worst = dist.amax(1)  # [N]
     plots = torch.isfinite(data[keys.MEASUREMENTS]).all(-1).cumsum(1)  # [N, T] the track's detections so far
     later = dist.where(plots >= from_plot, torch.zeros((), dtype=dist.dtype)).amax(1)

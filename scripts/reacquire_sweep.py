@@ -12,7 +12,7 @@ import sys, time, json, yaml, torch
 from immnet import keys
 from immnet.config import resolve_path
 from immnet.evaluation.cli import load_split
-from immnet.evaluation.metrics import position_error, rmse, scored_mask
+from immnet.evaluation.metrics import position_error, rmse, scored_distance, scored_mask
 from immnet.filters.trackers import IMMTracker
 from immnet.tracking.methods import IMMNetMethod
 import immnet.imm.reacquire as R_
@@ -31,7 +31,7 @@ def row(method, data):
     out = method.track(data)
     mask = scored_mask(data[keys.STATES], data[keys.MEASUREMENTS])
     err = position_error(out[keys.STATE], data[keys.STATES])
-    dist = torch.linalg.vector_norm(err, dim=-1).where(mask, torch.zeros((), dtype=err.dtype)).amax(1)
+    dist = scored_distance(err, mask).amax(1)
     r = rmse(err, mask)
     return {"avg": r["avg"], "z": r["z"], "worst": float(dist.max()), "over1km": int((dist > 1000).sum()),
             "n": int(dist.numel()), "start_restarts": count[0], "run_restarts": count[1]}

@@ -249,3 +249,15 @@ def test_post_switch_window_in_seconds_by_hand(case):
     assert five[0].sum() == 4 and five[0, 10:14].all()  # 20 s at 5 s per scan: the switch scan and 3 more
     with pytest.raises(ValueError, match="intervals have shape"):
         M.post_switch_mask(mode, intervals=torch.ones(2, 3))
+
+
+def test_scored_distance_is_the_euclidean_norm_on_the_mask_and_zero_off_it():
+    """``scored_distance``: numpy's norm of each position error where scored, 0 where not (NaN errors included)."""
+    g = torch.Generator().manual_seed(0)
+    err = torch.randn(3, 7, 3, generator=g, dtype=torch.float64) * 100
+    err[1, 2] = float("nan")
+    mask = torch.rand(3, 7, generator=g) > 0.3
+    mask[1, 2] = False
+    got = M.scored_distance(err, mask).numpy()
+    want = np.where(mask.numpy(), np.linalg.norm(np.nan_to_num(err.numpy()), axis=-1), 0.0)
+    np.testing.assert_allclose(got, want, rtol=1e-15, atol=0)

@@ -46,6 +46,12 @@ def position_error(state: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return state[..., pos].double() - truth[..., pos].double()
 
 
+def scored_distance(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The 3-D distance ``|e|`` ``[N, T]`` of position errors ``err [N, T, 3]`` at the scored pairs ``mask``, 0 elsewhere
+    (a track's worst error is its ``amax(1)``)."""
+    return torch.linalg.vector_norm(err, dim=-1).where(mask, torch.zeros((), dtype=err.dtype))
+
+
 def has_truth(truth: torch.Tensor) -> torch.Tensor:
     """Boolean ``[N, T]``: the true position is finite (a NaN row of ``states`` is no truth)."""
     return torch.isfinite(truth[..., list(POS)]).all(dim=-1)
