@@ -262,13 +262,11 @@ class IMMFilter(TrackFilter):
             eye = torch.eye(3, dtype=torch.float64)
             qa = self.acc_std**2
             zp, Rp = _t(z_prev).reshape(-1, 3), _t(R_prev).reshape(-1, 3, 3)
-            dt = _t(dt).reshape(-1).expand(k)[:, None]
-            x0[:, vel] = (z - zp) / dt
-            P0[:, pos, vel] = R / dt[..., None]
-            P0[:, vel, pos] = R / dt[..., None]
-            P0[:, vel, vel] = (R + Rp) / dt[..., None] ** 2 + qa * dt[..., None] ** 2 / 4 * eye
-            P0[:, vel, acc] = qa * dt[..., None] / 2 * eye
-            P0[:, acc, vel] = qa * dt[..., None] / 2 * eye
+            dt = _t(dt).reshape(-1).expand(k)[:, None, None]
+            x0[:, vel] = (z - zp) / dt[..., 0]
+            P0[:, vel, vel] = (R + Rp) / dt**2 + qa * dt**2 / 4 * eye
+            for a, b, cross in ((pos, vel, R / dt), (vel, acc, qa * dt / 2 * eye)):  # and their transposes
+                P0[:, a, b] = P0[:, b, a] = cross
             if vz_std is not None:
                 x0, P0 = vertical_speed_prior(x0, P0, vz_std)
         G, M, d = self.G, self.M, self.d
@@ -677,16 +675,14 @@ class Cover:
 
 
 def kept(x: np.ndarray, P: np.ndarray, updated: np.ndarray, misses: np.ndarray, delete_after: int,
-         max_pos_std: float, cover: Cover | None = None, coasted: np.ndarray | None = None,
-         min_coast: float = 0.0) -> np.ndarray:
+         max_pos_std: float, cover: Cover | None, coasted: np.ndarray, min_coast: float) -> np.ndarray:
     """``[K]``: the tracks the deletion rules keep (module doc, step 6), from their estimates ``x [K, 9]``, ``P [K, 9,
     9]``, whether a plot updated them this scan, their consecutive misses and the seconds since their last plot
     ``coasted [K]``: fewer than ``delete_after`` misses or less than ``min_coast`` s, a position standard deviation
     ``sqrt(tr P_pos)`` within ``max_pos_std`` (NaN: not) and, told the radar's ``cover``, a plot this scan or an
     estimate inside it."""
     pos_std = np.sqrt(np.maximum(np.trace(P[:, 0::3, 0::3], axis1=1, axis2=2), 0.0))
-    short = False if coasted is None else coasted < min_coast
-    keep = ((misses < delete_after) | short) & (pos_std <= max_pos_std)
+    keep = ((misses < delete_after) | (coasted < min_coast)) & (pos_std <= max_pos_std)
     if cover is not None:
         keep &= updated | cover.contains(x[:, [0, 3, 6]])
     return keep
