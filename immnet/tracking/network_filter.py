@@ -62,7 +62,9 @@ class NetworkFilter(TrackFilter):
         self.net = net
         self.name = name or tracker.name or (tracker.path.name if tracker.path is not None else "network")
         self.plot_noise = bool(net.start.told_cov)  # told each plot's covariance: the tracker adds it per plot
-        self.no_mixture = no_mixture(self.name)
+        self.no_mixture = (f"{self.name} is a network: JPDA needs a mixture update over a track's gated plots, and a "
+                           f"network's carry (its recurrent memory and noise estimate) is one track's history, which "
+                           f"no weighted blend stands for; use GNN (associator gnn)")  # why JPDA is refused
         self.r = None
         self._tr = self._fresh(tracker)
         self._x, self._P = np.zeros((0, 9)), np.zeros((0, 9, 9))
@@ -137,8 +139,7 @@ class NetworkFilter(TrackFilter):
             return
         if z_prev is None:
             raise ValueError(f"{self.name}: a network's track starts from two plots (z_prev, R_prev and dt)")
-        zp, Rp = np.asarray(z_prev, dtype=np.float64).reshape(-1, 3), np.asarray(R_prev, dtype=np.float64)
-        Rp = Rp.reshape(-1, 3, 3)
+        zp, Rp = np.asarray(z_prev, np.float64).reshape(-1, 3), np.asarray(R_prev, np.float64).reshape(-1, 3, 3)
         dt = np.broadcast_to(np.asarray(dt, dtype=np.float64).reshape(-1), (k,)).copy()
         spans = self._multiples(dt)
         parts, order = [], []
@@ -207,9 +208,3 @@ class NetworkFilter(TrackFilter):
         """Every track's data-mode probabilities ``[K, 4]`` (CV, CA, CT+, CT-) as the network reports them."""
         return self._probs.copy()
 
-
-def no_mixture(name: str) -> str:
-    """Why a network filter refuses JPDA, in one line."""
-    return (f"{name} is a network: JPDA needs a mixture update over a track's gated plots, and a network's carry (its "
-            f"recurrent memory and noise estimate) is one track's history, which no weighted blend stands for; use "
-            f"GNN (associator gnn)")
