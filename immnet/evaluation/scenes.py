@@ -187,17 +187,12 @@ def combine(rows: list[dict]) -> dict:
     n = np.array([r["scans"] for r in rows], dtype=np.float64)
     out = {k: float(np.mean(np.concatenate([r[f"{k}_per_scan"] for r in rows]))) for k in
            ("gospa", "localisation", "missed", "false")}
-    out |= {"id_switches": int(sum(r["id_switches"] for r in rows)),
-            "fragmentations": int(sum(r["fragmentations"] for r in rows)),
-            "continuity": float(np.mean([r["continuity"] for r in rows])),
-            "coverage": float(np.mean([r["coverage"] for r in rows])),
-            "scans": int(n.sum()),
-            "ms_per_scan": {"median": float(np.average([r["ms_per_scan"]["median"] for r in rows], weights=n)),
-                            "mean": float(np.average([r["ms_per_scan"]["mean"] for r in rows], weights=n)),
-                            "max": float(max(r["ms_per_scan"]["max"] for r in rows))},
-            "over_interval": int(sum(r["over_interval"] for r in rows)),
-            "min_interval": float(min(r["min_interval"] for r in rows))}
-    return out
+    out |= {k: int(sum(r[k] for r in rows)) for k in ("id_switches", "fragmentations")}
+    out |= {k: float(np.mean([r[k] for r in rows])) for k in ("continuity", "coverage")}
+    ms = {k: float(np.average([r["ms_per_scan"][k] for r in rows], weights=n)) for k in ("median", "mean")}
+    ms["max"] = float(max(r["ms_per_scan"]["max"] for r in rows))
+    return out | {"scans": int(n.sum()), "ms_per_scan": ms, "over_interval": int(sum(r["over_interval"] for r in rows)),
+                  "min_interval": float(min(r["min_interval"] for r in rows))}
 
 
 def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bool = True, settings: dict | None = None,
