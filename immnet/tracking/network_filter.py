@@ -193,13 +193,9 @@ class NetworkFilter(TrackFilter):
     def drop(self, keep) -> None:
         keep = np.asarray(keep, dtype=bool)
         self._x, self._P, self._probs = self._x[keep], self._P[keep], self._probs[keep]
-        if keep.all():
-            return
-        if not keep.any():
-            self._restore(dict.fromkeys(self._FIELDS))
-            return
-        rows = torch.from_numpy(keep)
-        self._restore({f: v[rows] for f, v in self._save().items()})
+        if not keep.all():  # the carry's rows kept (none kept: no carry)
+            rows = torch.from_numpy(keep)
+            self._restore({f: v[rows] if keep.any() else None for f, v in self._save().items()})
 
     def state(self):
         return self._x.copy(), self._P.copy()
