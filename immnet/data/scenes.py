@@ -394,13 +394,11 @@ def _rotate_move(traj: np.ndarray, k: int, angle: float, to: np.ndarray) -> np.n
     that position is ``to [3]``: velocities and accelerations rotate with it (the motion is unchanged)."""
     c, s = math.cos(angle), math.sin(angle)
     out = traj.copy()
-    for i in range(3):  # position, velocity, acceleration
-        x, y = traj[:, i], traj[:, 3 + i]
-        if i == 0:
-            x, y = x - traj[k, 0], y - traj[k, 3]
-        out[:, i], out[:, 3 + i] = c * x - s * y, s * x + c * y
-    out[:, 0] += to[0]
-    out[:, 3] += to[1]
+    x, y = traj[:, 0:3].copy(), traj[:, 3:6].copy()  # east and north: position, velocity, acceleration
+    x[:, 0] -= traj[k, 0]
+    y[:, 0] -= traj[k, 3]
+    out[:, 0:3], out[:, 3:6] = c * x - s * y, s * x + c * y
+    out[:, [0, 3]] += to[:2]
     out[:, 6] += to[2] - traj[k, 6]
     return out
 
@@ -548,8 +546,7 @@ def write_plots_csv(scene: Scene, path) -> Path:
             if a == b:  # a scan without plots is a row of its time alone
                 w.writerow([repr(float(scene.t[k])), "", "", ""])
             for i in range(a, b):
-                w.writerow([repr(float(scene.t[k])), repr(float(scene.plot_polar[i, 0])), repr(float(deg[i, 0])),
-                            repr(float(deg[i, 1]))])
+                w.writerow([repr(float(v)) for v in (scene.t[k], scene.plot_polar[i, 0], *deg[i])])
     return path
 
 
