@@ -172,8 +172,8 @@ def score(scene, run: dict, c: float = 200.0, p: float = 2.0, alpha: float = 2.0
     sec = np.asarray(run["seconds"], dtype=np.float64)
     gaps = np.diff(scene.t)
     interval = np.append(gaps, gaps.min() if len(gaps) else np.inf)
-    return {**m, "scans": len(scene), "gospa_per_scan": [float(g["gospa"]) for g in per],
-            **{f"{k}_per_scan": [float(g[k]) for g in per] for k in ("localisation", "missed", "false")},
+    return {**m, "scans": len(scene),
+            **{f"{k}_per_scan": [float(g[k]) for g in per] for k in ("gospa", "localisation", "missed", "false")},
             "t": (scene.t - scene.t[0]).tolist(),
             "ms_per_scan": {"median": float(np.median(sec) * 1e3), "mean": float(sec.mean() * 1e3),
                             "max": float(sec.max() * 1e3)},
