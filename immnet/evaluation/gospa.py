@@ -106,8 +106,7 @@ def track_metrics(truth_ids: Sequence, truth_pos: Sequence, est_ids: Sequence, e
             mem = seen.setdefault(truth, {"last_id": None, "gap": False, "run": 0, "run_id": None})
             rec["present"] += 1
             if j < 0:
-                if mem["last_id"] is not None:
-                    mem["gap"] = True
+                mem["gap"] = mem["last_id"] is not None  # a gap once assigned (gap is False until then)
                 mem["run"], mem["run_id"] = 0, None
                 continue
             est = eid[j].item()
