@@ -196,25 +196,22 @@ class IMMFilter(TrackFilter):
     def __init__(self, model_set, sigma_q, p_stay=0.98, mu0=None, groups: Modes | str = Modes.JOINT,
                  r: float | None = None, vel_std: float = VEL_STD, acc_std: float = ACC_STD, name: str = "imm",
                  robust: float | None = None):
-        kind = Modes.lookup(groups)  # a Modes or its spelling, one of GROUPS
-        if kind not in GROUPS:
+        if (kind := Modes.lookup(groups)) not in GROUPS:  # a Modes or its spelling, one of GROUPS
             raise ValueError(f"groups must be one of {', '.join(GROUPS)}, got {groups!r}")
-        groups = kind
         self.model_set = ModelSet.from_config(model_set)
-        M = len(self.model_set)
+        self.M = M = len(self.model_set)
         if any(m.state_dependent for m in self.model_set):
             raise ValueError(f"{name}: the IMM needs a constant F per model")
-        if groups is Modes.AXIS and (moving := coupling(self.model_set, AXIS_OF)):
+        if kind is Modes.AXIS and (moving := coupling(self.model_set, AXIS_OF)):
             raise ValueError(f"{name}: a per-axis IMM needs models block diagonal per axis; {moving} couple the axes")
         self.sigma_q = [float(v) for v in sigma_q] if isinstance(sigma_q, (list, tuple)) else float(sigma_q)
         self.Pi = transition_matrix(p_stay, M) if not isinstance(p_stay, torch.Tensor) else p_stay.double()
         self.mu0 = torch.full((M,), 1.0 / M, dtype=torch.float64) if mu0 is None else _t(mu0).reshape(M)
-        joint = groups is Modes.JOINT
-        self.groups, self.G, self.d = groups, (1 if joint else AXES), (9 if joint else 3)
+        joint = kind is Modes.JOINT
+        self.groups, self.G, self.d = kind, (1 if joint else AXES), (9 if joint else 3)
         self.r, self.name = (None if r is None else float(r)), name
         self.robust = check_robust(robust)
         self.vel_std, self.acc_std = float(vel_std), float(acc_std)
-        self.M = M
         f64 = torch.float64
         self.x = torch.zeros(0, self.G, M, self.d, dtype=f64)
         self.P = torch.zeros(0, self.G, M, self.d, self.d, dtype=f64)
