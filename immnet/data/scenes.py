@@ -154,11 +154,6 @@ class SceneSpec:
         d["close_separation"] = [float(v) for v in self.close_separation]
         return d
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "SceneSpec":
-        """The spec of ``to_dict`` (a scene's ``meta["spec"]``), its JSON lists tuples again."""
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
-
 
 @dataclass
 class Scene:
