@@ -300,3 +300,16 @@ def test_immnet_tune_on_scenes_scores_the_trackers_gospa_on_training_scenes_only
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{empty}: no training scenes (split train) to tune on" in err[0]
     assert not (tmp_path / "x.yaml").exists()
+
+
+def test_the_told_reference_deletes_by_the_trackers_position_std():
+    """``evaluate_scenes``' told-association row is ``run_told`` with the tracker's deletion rules, ``max_pos_std``
+    among them: at 60 m (a track's position std passes it between plots) its GOSPA is ``run_told``'s at 60 m, not
+    at the default."""
+    from immnet.evaluation.scenes import evaluate_scenes, score
+
+    sc = _scene(11, "pos-std", "test", pd=0.6, clutter=5.0, S=25)
+    told = evaluate_scenes([sc], [FILTER], raw=False, settings={"max_pos_std": 60.0})[FILTER + TOLD]
+    got = told["scenes"][sc.name]["gospa"]
+    assert got == score(sc, run_told(sc, FILTER, max_pos_std=60.0))["gospa"]
+    assert got != score(sc, run_told(sc, FILTER))["gospa"]

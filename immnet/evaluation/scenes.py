@@ -198,8 +198,8 @@ def combine(rows: list[dict]) -> dict:
 def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bool = True, settings: dict | None = None,
                     c: float = 200.0, p: float = 2.0, alpha: float = 2.0, note=None) -> dict:
     """``{row: {"mean": combine(...), "scenes": {scene name: score(...)}}}`` for each filter (the tracker with
-    ``settings``), its told-association reference where ``told`` (the same ``delete_after``, ``min_coast`` and
-    ``init``), and the raw plots where ``raw``; every row runs on one scene before the next scene (the same machine
+    ``settings``), its told-association reference where ``told`` (the same ``delete_after``, ``max_pos_std``,
+    ``min_coast`` and ``init``), and the raw plots where ``raw``; every row runs on one scene before the next scene (the same machine
     state for each)."""
     settings = dict(settings or {})
     names = [name for f in filters for name in ((f, f + TOLD) if told else (f,))] + ([RAW] if raw else [])
@@ -208,8 +208,8 @@ def evaluate_scenes(scenes: list, filters: list[str], told: bool = True, raw: bo
         for f in filters:
             per[f][sc.name] = score(sc, run_tracker(sc, f, **settings), c, p, alpha)
             if told:
-                told_run = run_told(sc, f, settings.get("delete_after"), init=settings.get("init"),
-                                    min_coast=settings.get("min_coast"))
+                told_run = run_told(sc, f, settings.get("delete_after"), settings.get("max_pos_std"),
+                                    settings.get("init"), settings.get("min_coast"))
                 per[f + TOLD][sc.name] = score(sc, told_run, c, p, alpha)
             if note:
                 note(f"[{sc.name}] {f}: GOSPA {per[f][sc.name]['gospa']:.1f} m, "
