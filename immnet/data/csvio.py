@@ -126,10 +126,16 @@ def check_sigmas(sigmas) -> tuple[float, float, float] | None:
     return tuple(float(v) for v in sigmas)
 
 
-def _layout(header: list[str], sigmas, ids: bool = True, need_stds: bool = True) -> tuple[bool, tuple[str, ...]]:
-    """``(polar, extra)``: whether the rows are a radar's plots, and the optional columns read beside the
-    positions (``SIGMA_COLUMNS``, ``R_COLUMNS`` or none); a ValueError for a header this module does not read.
-    ``ids``: the rows name their track (``track_id``); ``need_stds``: plots are converted, so need their stds."""
+def _header(path: Path, reader, sigmas, ids: bool = True, need_stds: bool = True) -> tuple[list, bool, tuple, dict]:
+    """``(header, polar, extra, col)`` from a CSV's first row: its names stripped, whether the rows are a radar's
+    plots, the optional columns read beside the positions (``SIGMA_COLUMNS``, ``R_COLUMNS`` or none) and the column
+    of each name read; a ValueError for an empty file or a header this module does not read. ``ids``: the rows name
+    their track (``track_id``); ``need_stds``: plots are converted, so need their stds."""
+    header = next(reader, None)
+    if header is None:
+        want = ','.join(IN_COLUMNS) if ids else f"{','.join(PLOT_COLUMNS)} or {','.join(CART_PLOT_COLUMNS)}"
+        raise ValueError(f"{path}: empty file (expected a header {want})")
+    header = [h.strip() for h in header]
     cart = [c for c in "xyz" if c in header]
     pol = [c for c in POLAR_COLUMNS[2:] if c in header]
     sig = [c for c in SIGMA_COLUMNS if c in header]
@@ -159,20 +165,8 @@ def _layout(header: list[str], sigmas, ids: bool = True, need_stds: bool = True)
     if not pol and sigmas is not None:
         raise ValueError(f"{', '.join(SIGMA_OPTIONS)} are the stds of range,azimuth,elevation rows; this CSV has "
                          f"x,y,z (each row's covariance: the columns {','.join(R_COLUMNS)})")
-    return bool(pol), tuple(full if extra else ())
-
-
-def _header(path: Path, reader, sigmas, ids: bool = True, need_stds: bool = True) -> tuple[list, bool, tuple, dict]:
-    """``(header, polar, extra, col)`` from a CSV's first row: its names stripped, :func:`_layout`'s two (``ids``,
-    ``need_stds`` as there) and the column of each name read; a ValueError for an empty file."""
-    header = next(reader, None)
-    if header is None:
-        want = ','.join(IN_COLUMNS) if ids else f"{','.join(PLOT_COLUMNS)} or {','.join(CART_PLOT_COLUMNS)}"
-        raise ValueError(f"{path}: empty file (expected a header {want})")
-    header = [h.strip() for h in header]
-    polar, extra = _layout(header, sigmas, ids, need_stds)
-    names = (POLAR_COLUMNS if polar else IN_COLUMNS)[0 if ids else 1 :]
-    return header, polar, extra, {c: header.index(c) for c in (*names, *extra)}
+    extra = full if extra else ()
+    return header, bool(pol), extra, {c: header.index(c) for c in (*want, *extra)}
 
 
 def _plot(rec, col: dict, line: int) -> list[float]:
@@ -216,11 +210,11 @@ def _covariance(rec, col: dict, line: int) -> np.ndarray:
     return m
 
 
-def _data_rows(reader, header: list[str], col: dict, polar: bool, pos, exact: bool):
+def _data_rows(reader, header: list[str], col: dict, polar: bool, exact: bool):
     """``(line, rec, t text, t, position)`` of each row of ``reader`` after its header that is not blank: its fields
     counted (as many as the header, or with ``exact`` False at least as many), its ``track_id`` (where the file has
     one) not empty, its ``t`` read (the text stripped, and as an exact decimal) and its position (a plot's range,
-    azimuth, elevation, or the columns ``pos``) read, each checked; a ValueError names the line."""
+    azimuth, elevation, or its x, y, z) read, each checked; a ValueError names the line."""
     for line, rec in enumerate(reader, start=2):
         if not rec or all(not v.strip() for v in rec):
             continue
@@ -231,7 +225,7 @@ def _data_rows(reader, header: list[str], col: dict, polar: bool, pos, exact: bo
                              f"names its track (unlabelled plots, for the multi-target tracker, have no such column)")
         text = rec[col["t"]].strip()
         t = _time(text, line)
-        yield line, rec, text, t, _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in pos]
+        yield line, rec, text, t, _plot(rec, col, line) if polar else [_number(rec[col[c]], c, line) for c in "xyz"]
 
 
 def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
@@ -241,7 +235,7 @@ def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
     rows, extras = [], []
     last: dict[str, tuple[Decimal, str]] = {}
     header, polar, extra, col = _header(path, reader, sigmas)
-    for line, rec, text, t, xyz in _data_rows(reader, header, col, polar, "xyz", exact=False):
+    for line, rec, text, t, xyz in _data_rows(reader, header, col, polar, exact=False):
         tid = rec[col["track_id"]].strip()
         if extra:
             detected = not all(math.isnan(v) for v in xyz)
@@ -259,12 +253,18 @@ def _read_rows(path: Path, reader, sigmas) -> CsvTracks:
 
 
 def _enu(given: np.ndarray, extras: list, polar: bool, extra: tuple, sigmas) -> tuple[np.ndarray, np.ndarray | None]:
-    """Positions ``[R, 3]`` as the file gives them -> east-north-up and each one's covariance: a radar's plots
-    converted (:func:`_to_enu`), ``x, y, z`` as they are with their ``R_COLUMNS`` covariance (NaN where an entry of
-    ``extras`` is None), None where the file gives none."""
-    if polar:
-        return _to_enu(given, extras, sigmas)
-    return given, _filled(extras, (3, 3)) if extra else None
+    """Positions ``[R, 3]`` as the file gives them -> east-north-up and each one's covariance: ``x, y, z`` as they are
+    with their ``R_COLUMNS`` covariance (NaN where an entry of ``extras`` is None), None where the file gives none; a
+    radar's plots (m, degrees, degrees) with each one's stds (``extras``, or ``sigmas`` for all) as the unbiased
+    converted measurement (``immnet.data.radar.converted``), NaN where a plot has an empty field."""
+    if not polar:
+        return given, _filled(extras, (3, 3)) if extra else None
+    s = _filled(extras, (3,)) if sigmas is None else np.broadcast_to(np.asarray(sigmas, np.float64), given.shape)
+    rad = np.radians
+    enu, cov = converted(given[:, 0], rad(np.mod(given[:, 1], 360.0)), rad(given[:, 2]), s[:, 0], rad(s[:, 1]),
+                         rad(s[:, 2]))
+    cov[np.isnan(given).any(-1)] = np.nan
+    return enu, cov
 
 
 def _filled(extras: list, trail: tuple) -> np.ndarray:
@@ -274,18 +274,6 @@ def _filled(extras: list, trail: tuple) -> np.ndarray:
         if e is not None:
             out[i] = e
     return out
-
-
-def _to_enu(plots: np.ndarray, extras: list, sigmas) -> tuple[np.ndarray, np.ndarray]:
-    """Plots ``[R, 3]`` (m, degrees, degrees) and each one's stds (``extras``, or ``sigmas`` for all) -> ENU
-    ``[R, 3]`` and covariances ``[R, 3, 3]``, NaN where a plot has an empty field: the unbiased converted
-    measurement (``immnet.data.radar.converted``)."""
-    s = _filled(extras, (3,)) if sigmas is None else np.broadcast_to(np.asarray(sigmas, np.float64), plots.shape)
-    rad = np.radians
-    enu, cov = converted(plots[:, 0], rad(np.mod(plots[:, 1], 360.0)), rad(plots[:, 2]), s[:, 0], rad(s[:, 1]),
-                         rad(s[:, 2]))
-    cov[np.isnan(plots).any(-1)] = np.nan
-    return enu, cov
 
 
 def _parsed(path: str | Path, sigmas, parse):
@@ -362,7 +350,7 @@ def _read_plot_rows(path: Path, reader, sigmas, convert: bool) -> CsvPlots:
     pos = PLOT_COLUMNS[1:] if polar else CART_PLOT_COLUMNS[1:]
     times, ts, scan_lines, offsets, given, lines, extras = [], [], [], [], [], [], []
     empty_line = None  # the line of the current scan's empty row (a scan without plots), if any
-    for line, rec, text, t, xyz in _data_rows(reader, header, col, polar, pos, exact=True):
+    for line, rec, text, t, xyz in _data_rows(reader, header, col, polar, exact=True):
         empty = [repr(c) for c, v in zip(pos, xyz) if math.isnan(v)]
         if 0 < len(empty) < 3:
             raise ValueError(f"line {line}: column{'s' if len(empty) > 1 else ''} {', '.join(empty)} "
