@@ -73,11 +73,6 @@ def accepts(net: IMMNet, intervals: torch.Tensor) -> torch.Tensor:
     return (trained_for(net, each) | torch.isnan(intervals)).all(-1)
 
 
-def _member_path(member: str | Path) -> Path:
-    """A shipped network's file by name (``immnet.checkpoints.SHIPPED``), else the path as given."""
-    return shipped(member) if isinstance(member, str) and member in SHIPPED else Path(member)
-
-
 def _mix(log_w: torch.Tensor, state: torch.Tensor, probs: torch.Tensor, cov: torch.Tensor | None,
          ran: list[int] | None = None) -> dict:
     """The members' outputs ``[..., K, ...]`` weighted by ``softmax(log_w [..., K])``: ``state``, ``mode_probs``,
@@ -220,15 +215,15 @@ class NetworkBank:
             named = set(map(str, members))
             defer = {k: tuple(o for o in others if o in named) for k, others in DEFER.items() if k in named}
             defer = {k: others for k, others in defer.items() if others}
-        nets = {}
-        for m in members:
-            path = _member_path(m)
+        nets, paths = {}, {}
+        for m in members:  # a shipped network's file by name (``immnet.checkpoints.SHIPPED``), else the path as given
+            path = paths[str(m)] = shipped(m) if isinstance(m, str) and m in SHIPPED else Path(m)
             config, state = read_checkpoint(path)
             joint = Modes.parse(config.get("modes", Modes.JOINT)) is Modes.JOINT
             nets[str(m)] = network_from(config, state, path, guard=guard if joint else None, adapt=adapt, r=r,
                                         robust=robust)
         bank = cls(nets, prior, max_position, likelihood, temper, max_coast, prune, defer, prune_after)
-        bank.paths = {str(m): _member_path(m) for m in members}
+        bank.paths = paths
         return bank
 
     def __repr__(self) -> str:
