@@ -108,15 +108,6 @@ class PerDetection:
         return torch.where(detected[..., None, None], R, eye)
 
 
-def _check_sigma(value, name: str) -> None:
-    """A ValueError unless ``Polar``'s standard deviation ``name`` is a positive number or a tensor of them."""
-    if isinstance(value, torch.Tensor):
-        if not (torch.isfinite(value).all() and (value > 0).all()):
-            raise ValueError(f"Polar.{name} must be finite and > 0 everywhere")
-    else:
-        positive(value, f"Polar.{name} must be a positive number (or a tensor of them)")
-
-
 @dataclass(frozen=True)
 class Polar:
     """A plot's slant range, azimuth and elevation with independent Gaussian errors of standard deviations
@@ -130,9 +121,13 @@ class Polar:
     needs = ()
     spelling = "a polar model {sigma_range, sigma_azimuth_deg, sigma_elevation_deg}"
 
-    def __post_init__(self):
+    def __post_init__(self):  # each standard deviation a positive number or a tensor of them
         for name in ("sigma_range", "sigma_azimuth", "sigma_elevation"):
-            _check_sigma(getattr(self, name), name)
+            value = getattr(self, name)
+            if not isinstance(value, torch.Tensor):
+                positive(value, f"Polar.{name} must be a positive number (or a tensor of them)")
+            elif not (torch.isfinite(value).all() and (value > 0).all()):
+                raise ValueError(f"Polar.{name} must be finite and > 0 everywhere")
 
     @classmethod
     def from_config(cls, config: dict) -> "Polar":
