@@ -247,15 +247,6 @@ def check_paths(source: Path, target: Path) -> None:
         raise FileExistsError(f"--output {target} is the input file {source}: refusing to overwrite the input")
 
 
-def _gated_lines(rows, z) -> str:
-    """`` on line(s) L1, L2, ...``: the CSV lines of ``rows`` whose measurement ``z`` (gated) made a missed
-    detection, the first five; empty where none was gated."""
-    from immnet.tracking.networks import listed
-
-    gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
-    return " on line(s) " + listed([rows.lines[i] for i in gated]) if len(gated) else ""
-
-
 def _report_gated(n_gated: int, limit: float, where: str = "") -> None:
     if n_gated:
         print(f"gated {n_gated} measurement(s) a sensor cannot report (non-finite, or |x|, |y| or |z| > {limit:g} m)"
@@ -331,14 +322,16 @@ def _track_rows_with_method(args, rows, limit: float, method=None, label: str | 
 
 def _write_rows(args, rows, z, n_gated: int, limit: float, n_segments: int, out: tuple, why: str, by: str = "") -> int:
     """The CSV output of ``rows`` from their estimates ``out`` (state, mode probabilities, covariance: None, and ``why``
-    on stderr, where the tracker keeps none), then on stderr the gated detections (``z`` as tracked) and what was
-    tracked (``by``: with which tracker)."""
+    on stderr, where the tracker keeps none), then on stderr the gated detections (``z`` as tracked: the CSV lines
+    whose measurement it made a missed detection, the first five) and what was tracked (``by``: with which tracker)."""
     from immnet.data.csvio import write_tracks_csv
+    from immnet.tracking.networks import listed
 
     write_tracks_csv(args.output, rows, *out)
     if out[2] is None:
         _report_no_cov(why)
-    _report_gated(n_gated, limit, _gated_lines(rows, z))
+    gated = np.flatnonzero(np.isnan(z).all(-1) & ~np.isnan(rows.z).all(-1))
+    _report_gated(n_gated, limit, " on line(s) " + listed([rows.lines[i] for i in gated]) if len(gated) else "")
     print(f"tracked {len(set(rows.ids))} tracks ({n_segments} segments), {len(rows)} rows{by} -> {args.output}",
           file=sys.stderr)
     return 0
@@ -368,19 +361,15 @@ def _track_plots(args, rows, limit: float) -> int:
     return _track_rows_with_method(args, rows, limit, name=name, who=who)
 
 
-def _labelled(path: Path) -> bool:
-    """Whether a CSV's rows name their track (a ``track_id`` column; an empty file too, which its reader refuses):
-    else they are a radar's unlabelled plots, for the multi-target tracker."""
-    from immnet.data.csvio import csv_header
-
-    header = csv_header(path)
-    return header is None or "track_id" in header
-
-
 def run(args) -> int:
+    from immnet.data.csvio import csv_header, read_tracks_csv
+
     _check_options(args)
     check_paths(args.input, args.output)
-    labelled = args.input.suffix.lower() != ".csv" or _labelled(args.input)
+    header = csv_header(args.input) if args.input.suffix.lower() == ".csv" else None
+    # CSV rows that name their track (a track_id column; an empty file too, which its reader refuses), or an .npz: else
+    # a radar's unlabelled plots, for the multi-target tracker
+    labelled = header is None or "track_id" in header
     multi_cli.check_options(args, labelled)
     limit = check_limit(args.max_position)
     options = _load_options(args)
@@ -393,7 +382,6 @@ def run(args) -> int:
         args.max_coast = MAX_COAST
     if args.input.suffix.lower() == ".csv":
         from immnet.tracking.advice import track_intervals
-        from immnet.data.csvio import read_tracks_csv
 
         rows = read_tracks_csv(args.input, _sigmas(args))
         if args.method is not None:
