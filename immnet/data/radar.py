@@ -153,14 +153,21 @@ def scan_times(t0: float, t1: float, dt: float, jitter: float, rng: np.random.Ge
     return t[t <= t1]
 
 
+def _missed(shape: tuple, p_miss: float, rng: np.random.Generator) -> np.ndarray:
+    """Which scans ``shape`` (scans on the last axis) are missed: each after the second with probability ``p_miss``
+    (drawn only where it is > 0)."""
+    miss = np.zeros(shape, bool)
+    if p_miss > 0:
+        miss = rng.random(shape) < p_miss
+        miss[..., :2] = False
+    return miss
+
+
 def measure(pos: np.ndarray, r: float, p_miss: float, rng: np.random.Generator) -> np.ndarray:
     """Measurements ``[T, 3]`` of true positions ``pos [T, 3]``: ``pos + r N(0, I3)``, scans after the
     second missed (NaN) with probability ``p_miss``."""
     z = pos + r * rng.standard_normal(pos.shape)
-    if p_miss > 0:
-        miss = rng.random(len(pos)) < p_miss
-        miss[:2] = False
-        z[miss] = np.nan
+    z[_missed(pos.shape[:-1], p_miss, rng)] = np.nan
     return z
 
 
@@ -181,10 +188,7 @@ def plots(pos: np.ndarray, sigma_range, sigma_azimuth, sigma_elevation, p_miss: 
     s = np.stack([rng.uniform(*sigma_range, size=batch), np.radians(rng.uniform(*sigma_azimuth, size=batch)),
                   np.radians(rng.uniform(*sigma_elevation, size=batch))], -1)
     noise = rng.standard_normal(pos.shape) * s[..., None, :]
-    miss = np.zeros(pos.shape[:-1], bool)
-    if p_miss > 0:
-        miss = rng.random(pos.shape[:-1]) < p_miss
-        miss[..., :2] = False
+    miss = _missed(pos.shape[:-1], p_miss, rng)
     if outliers > 0:
         noise[rng.random(pos.shape[:-1]) < outliers] *= outlier_scale
     rho, az, el = polar(pos)
