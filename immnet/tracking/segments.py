@@ -94,10 +94,10 @@ def split_rows(ids, t, z: np.ndarray, max_coast: float = MAX_COAST) -> tuple[Seg
     return Segments(segment, step, spans, z), offset
 
 
-def split_segments(ids, t, z: np.ndarray, dt: float, max_coast: float = MAX_COAST, lines=None, texts=None) -> Segments:
+def split_segments(ids, t, z: np.ndarray, dt: float, max_coast: float, lines, texts) -> Segments:
     """Segments of rows ``ids [R]`` (track), ``t [R]`` (Decimal or float times, increasing per track)
     and ``z [R, 3]`` on a fixed scan grid ``dt`` (a tracker trained at one interval; module doc).
-    ``lines``/``texts`` name a row in the error for an off-grid time."""
+    ``lines``/``texts`` (each row's line and ``t`` as written) name a row in the error for an off-grid time."""
     segment, times, starts, n = _join(ids, t, z, check_coast(max_coast, dt))
     step_dt = Decimal(dt)
     step = np.zeros(len(ids), dtype=np.int64)
@@ -106,8 +106,7 @@ def split_segments(ids, t, z: np.ndarray, dt: float, max_coast: float = MAX_COAS
         k_exact = (times[r] - starts[r]) / step_dt
         k = int(k_exact.to_integral_value())
         if abs(k_exact - k) > Decimal("1e-6"):
-            where = f"line {lines[r]}: " if lines is not None else ""
-            raise ValueError(f"{where}time {texts[r] if texts is not None else times[r]} of track {ids[r]!r} is not a "
+            raise ValueError(f"line {lines[r]}: time {texts[r]} of track {ids[r]!r} is not a "
                              f"whole number of scans (dt = {dt:g}) after its start {starts[r]}: this tracker was trained "
                              f"at one interval, dt = {dt:g} s; for any scan interval use a method that takes any "
                              f"interval (e.g. --method imm-tuned)")
