@@ -99,6 +99,10 @@ def _weighed(loglik: torch.Tensor, takes: torch.Tensor) -> torch.Tensor:
     return torch.where(every & takes, loglik, torch.zeros((), dtype=loglik.dtype))
 
 
+_STEP_OUTPUTS = {keys.FUSED: keys.STATE, keys.MODE_PROBS: keys.MODE_PROBS, keys.MEMBER_PROBS: keys.MEMBER_PROBS,
+                 keys.FUSED_COV: keys.STATE_COV}
+"""``step``'s outputs, each with the name of the mixture's output (``_mix``, ``track``'s) it is, in ``track``'s order."""
+
 LIKELIHOODS = Likelihood.spellings()
 """What a member is weighed by (``immnet.stages.network.Likelihood``): its filter's predictive density
 (``IMMNet.predictive_loglik``), or the density of the track as it reports it (``reported=True``: the filter's
@@ -248,12 +252,9 @@ class NetworkBank:
 
     def takes(self, intervals: torch.Tensor) -> torch.Tensor:
         """``[B, K]`` bool: which member takes which track: :func:`accepts`, but not a member that ``defer``s to one
-        that accepts the track."""
+        that accepts the track (``_in_track``'s rule over the whole track)."""
         fits = torch.stack([accepts(net, intervals) for net in self.members.values()], -1)
-        takes = fits.clone()
-        for k, others in self._defers.items():
-            takes[:, k] &= ~fits[:, others].any(-1)
-        return takes
+        return self._in_track(fits, fits)[0]
 
     def check(self, intervals: torch.Tensor, takes: torch.Tensor | None = None, tracks: torch.Tensor | None = None
               ) -> None:
@@ -334,11 +335,8 @@ class NetworkBank:
                 outs = [self.step(z[:, t], dt=intervals[:, t]) for t in range(z.shape[1])]
         finally:
             vars(self).update(kept)
-        names = {keys.STATE: keys.FUSED, keys.MODE_PROBS: keys.MODE_PROBS, keys.MEMBER_PROBS: keys.MEMBER_PROBS}
-        if return_cov:
-            names[keys.STATE_COV] = keys.FUSED_COV
-        return TensorDict({key: torch.stack([o[name] for o in outs], 1) for key, name in names.items()},
-                          batch_size=list(z.shape[:2]))
+        return TensorDict({key: torch.stack([o[name] for o in outs], 1) for name, key in _STEP_OUTPUTS.items()
+                           if return_cov or key != keys.STATE_COV}, batch_size=list(z.shape[:2]))
 
     # --- streaming: one scan at a time, as ``Tracker.step`` -----------------------------------------------------
     @property
@@ -468,10 +466,8 @@ class NetworkBank:
         self.seen = seen + (age > 0)
         self.log_w = log_w.masked_fill(self._pruned(out[keys.MEMBER_PROBS], takes, self.seen), float("-inf"))
         waiting = (age == 0)[:, None]  # no detection yet: no estimate
-        names = {keys.FUSED: keys.STATE, keys.FUSED_COV: keys.STATE_COV, keys.MODE_PROBS: keys.MODE_PROBS,
-                 keys.MEMBER_PROBS: keys.MEMBER_PROBS}
         return TensorDict({key: blank_before_first_detection(out[name].unsqueeze(1), waiting).squeeze(1)
-                           for key, name in names.items()}, batch_size=[B])
+                           for key, name in _STEP_OUTPUTS.items()}, batch_size=[B])
 
 
 class BankMethod:
