@@ -328,11 +328,6 @@ class CsvPlots:
     def __len__(self) -> int:
         return len(self.times)
 
-    def scan(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """Scan ``k``'s plots ``z [N, 3]`` and their covariances ``[N, 3, 3]`` (None where the file gives none)."""
-        a, b = self.offsets[k], self.offsets[k + 1]
-        return self.z[a:b], None if self.cov is None else self.cov[a:b]
-
 
 def csv_header(path: str | Path) -> list[str] | None:
     """A CSV's first row, each name stripped (a byte-order mark dropped); None for an empty file."""
