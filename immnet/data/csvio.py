@@ -181,27 +181,25 @@ def _plot(rec, col: dict, line: int) -> list[float]:
     return [rho, az, el]
 
 
+def _detection_field(rec, col: dict, c: str, line: int, std: bool) -> float:
+    """A detection's column ``c`` (``SIGMA_COLUMNS``, ``R_COLUMNS``): a finite number, > 0 where it is a ``std``."""
+    v = _number(rec[col[c]], c, line)
+    if not (math.isfinite(v) and (v > 0 or not std)):
+        what = "standard deviation is a finite number > 0" if std else "covariance entries are finite numbers (m^2)"
+        raise ValueError(f"line {line}: column {c!r} is {'empty' if math.isnan(v) else f'{v:g}'}: a detection's {what}")
+    return v
+
+
 def _stds(rec, col: dict, line: int) -> list[float]:
     """A detection's ``sigma_*`` columns, each a finite number > 0."""
-    out = []
-    for c in SIGMA_COLUMNS:
-        v = _number(rec[col[c]], c, line)
-        if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"line {line}: column {c!r} is {'empty' if math.isnan(v) else f'{v:g}'}: a detection's "
-                             f"standard deviation is a finite number > 0")
-        out.append(v)
-    return out
+    return [_detection_field(rec, col, c, line, std=True) for c in SIGMA_COLUMNS]
 
 
 def _covariance(rec, col: dict, line: int) -> np.ndarray:
     """A detection's ``r_*`` columns as a symmetric 3x3 matrix, positive definite."""
     m = np.empty((3, 3))
     for c, (i, j) in zip(R_COLUMNS, _R_INDEX):
-        v = _number(rec[col[c]], c, line)
-        if not math.isfinite(v):
-            raise ValueError(f"line {line}: column {c!r} is {'empty' if math.isnan(v) else f'{v:g}'}: a detection's "
-                             f"covariance entries are finite numbers (m^2)")
-        m[i, j] = m[j, i] = v
+        m[i, j] = m[j, i] = _detection_field(rec, col, c, line, std=False)
     try:
         np.linalg.cholesky(m)
     except np.linalg.LinAlgError:
