@@ -101,7 +101,8 @@ def _weighed(loglik: torch.Tensor, takes: torch.Tensor) -> torch.Tensor:
 
 _STEP_OUTPUTS = {keys.FUSED: keys.STATE, keys.MODE_PROBS: keys.MODE_PROBS, keys.MEMBER_PROBS: keys.MEMBER_PROBS,
                  keys.FUSED_COV: keys.STATE_COV}
-"""``step``'s outputs, each with the name of the mixture's output (``_mix``, ``track``'s) it is, in ``track``'s order."""
+"""``step``'s outputs, each with the name of the mixture's output it is (``_mix``'s, ``track``'s), in ``track``'s
+order."""
 
 LIKELIHOODS = Likelihood.spellings()
 """What a member is weighed by (``immnet.stages.network.Likelihood``): its filter's predictive density
