@@ -31,6 +31,7 @@ import io
 import math
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
+from itertools import combinations_with_replacement, product
 from pathlib import Path
 
 import numpy as np
@@ -53,14 +54,9 @@ STATE_COLUMNS = (
 _NAMES = {"x": 0, "y": 3, "z": 6, "vx": 1, "vy": 4, "vz": 7}  # a name's index in the state [x, vx, ax, y, vy, ay, z, vz, az]
 
 
-def _pairs(rows: str, cols: str, upper: bool) -> tuple:
-    names_r, names_c = rows.split(), cols.split()
-    return tuple((a, b) for i, a in enumerate(names_r) for j, b in enumerate(names_c) if not upper or j >= i)
-
-
-COV_PAIRS = (
-    _pairs("x y z", "x y z", True) + _pairs("vx vy vz", "vx vy vz", True) + _pairs("x y z", "vx vy vz", False)
-)
+_POSITION, _VELOCITY = ("x", "y", "z"), ("vx", "vy", "vz")
+COV_PAIRS = (*combinations_with_replacement(_POSITION, 2), *combinations_with_replacement(_VELOCITY, 2),
+             *product(_POSITION, _VELOCITY))
 """The covariance entries written: the position block's upper triangle (m^2), the velocity block's (m^2/s^2),
 then the whole position-velocity block (m^2/s), row-major: 21 entries, the 6x6 position-velocity covariance."""
 COV_COLUMNS = tuple(f"cov_{a}{b}" for a, b in COV_PAIRS)  # cov_xx, cov_xy, ..., cov_vzvz, cov_xvx, ..., cov_zvz
