@@ -291,9 +291,13 @@ def place_site(f: adsb.Flight, range_km, seed: int) -> tuple[float, float, float
     return float(lat), float(lon), 0.0
 
 
-def split_counts(n: int, fractions) -> list[int]:
-    """Flights per split: ``round(f n)`` for validation and test (at least 1 where ``f > 0``), the rest to
-    train; a ValueError if a split with ``f > 0`` would be empty."""
+def partition(ids: list[str], fractions, seed: int) -> dict[str, list[str]]:
+    """The flights ``ids`` (sorted) of each split: a permutation drawn from ``(seed, 1)``, cut into ``round(f n)``
+    flights for validation and test (at least 1 where ``f > 0``) and the rest for train; a ValueError if a split
+    with ``f > 0`` would be empty. A function of the flights selected and the seed alone, not of the scan settings,
+    so the sets of one region at several scan intervals (a flight may have windows at one and none at another)
+    split its flights alike."""
+    n = len(ids)
     f_train, f_val, f_test = (float(f) for f in fractions)
     val = max(int(round(f_val * n)), 1 if f_val > 0 else 0)
     test = max(int(round(f_test * n)), 1 if f_test > 0 else 0)
@@ -303,17 +307,8 @@ def split_counts(n: int, fractions) -> list[int]:
     if train < 0 or (f_train > 0 and train < 1):
         raise ValueError(f"{n} flight(s) cannot fill the splits {list(fractions)} (each split with a "
                          f"positive fraction needs a flight); use fewer splits or more data")
-    return [train, val, test]
-
-
-def partition(ids: list[str], fractions, seed: int) -> dict[str, list[str]]:
-    """The flights ``ids`` (sorted) of each split: a permutation drawn from ``(seed, 1)``, cut by
-    :func:`split_counts`. A function of the flights selected and the seed alone, not of the scan settings, so
-    the sets of one region at several scan intervals (a flight may have windows at one and none at another)
-    split its flights alike."""
-    perm = np.random.default_rng([int(seed), 1]).permutation(len(ids))
-    n_train, n_val, _ = split_counts(len(ids), fractions)
-    cut = {"train": perm[:n_train], "val": perm[n_train : n_train + n_val], "test": perm[n_train + n_val :]}
+    perm = np.random.default_rng([int(seed), 1]).permutation(n)
+    cut = {"train": perm[:train], "val": perm[train : train + val], "test": perm[train + val :]}
     return {k: sorted(ids[i] for i in v) for k, v in cut.items()}
 
 
@@ -436,11 +431,9 @@ def make_adsb(out, samples: list[str], spec: RealSpec = RealSpec(), seed: int = 
     if not flights:
         raise ValueError(f"no flight whose fresh positions are at most {spec.max_position_interval:g} s apart "
                          f"(median) in {', '.join(map(str, samples))}")
-    if spec.range_km:  # a radar per flight, placed from the flight's own generator
-        flight_sites = {f.id: place_site(f, spec.range_km, seed) for f in flights}
-        prepared = truth(flights, [flight_sites[f.id] for f in flights], spec, seed, progress)
-    else:
-        prepared = truth(flights, [sites[f.sample] for f in flights], spec, seed, progress)
+    # with range_km a radar per flight, placed from the flight's own generator; else its sample's
+    flight_sites = {f.id: place_site(f, spec.range_km, seed) if spec.range_km else sites[f.sample] for f in flights}
+    prepared = truth(flights, [flight_sites[f.id] for f in flights], spec, seed, progress)
     rows = {}
     for p in sorted(prepared, key=lambda p: p["flight"].id):
         wins = [(st, z, r, scans - scans[0], *cov) for st, z, r, scans, *cov in simulate(p, spec, spec.writes_cov)]
