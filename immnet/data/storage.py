@@ -69,15 +69,15 @@ STORE_DTYPES = {
     keys.TURN_RATE: torch.float32, keys.R: torch.float32, keys.DT: torch.float32, keys.TIME: torch.float64,
 }
 """The tensors every generated data set holds, and their stored dtypes."""
-OPTIONAL_DTYPES = {keys.MEAS_COV: torch.float32}
-"""Tensors a set written whole may hold besides (``write_arrays``: real flights' detection covariances)."""
-ALL_DTYPES = {**STORE_DTYPES, **OPTIONAL_DTYPES}
+ALL_DTYPES = {**STORE_DTYPES, keys.MEAS_COV: torch.float32}
+"""Every tensor a data set may hold and its stored dtype: ``STORE_DTYPES`` and the detection covariances
+``meas_cov`` of a radar's plots (a generated set of plots; real flights', written whole by ``write_arrays``)."""
 
 
 def store_dtypes(spec: DataSpec) -> dict:
     """The tensors a generated set of ``spec`` holds, and their stored dtypes: ``STORE_DTYPES``, and ``meas_cov``
-    where the measurements are a radar's plots."""
-    return {**STORE_DTYPES, **({keys.MEAS_COV: OPTIONAL_DTYPES[keys.MEAS_COV]} if spec.plots else {})}
+    where the measurements are a radar's plots (``ALL_DTYPES``)."""
+    return ALL_DTYPES if spec.plots else STORE_DTYPES
 
 
 # --- writing ----------------------------------------------------------------------------------
@@ -228,7 +228,7 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     mode_index(single_mode)  # validates the name
-    blocks = range(n_blocks(n)) if shard is None else shard_blocks(n, *shard)
+    blocks = list(range(n_blocks(n)) if shard is None else shard_blocks(n, *shard))
     row0, row1 = _block_rows(blocks, n)
     _check_out(out, overwrite)
     check_writable(out, "folder")
@@ -236,27 +236,24 @@ def write_dataset(out, n: int, seed: int, spec: DataSpec = DataSpec(), single_mo
         tmp.mkdir()
         _allocate(tmp / TENSORS, row1 - row0, spec.T, out, store_dtypes(spec))
         counts = [0] * N_MODES
-        blocks = list(blocks)
         bar = progress_bar(total=row1 - row0, desc=f"3D-LAST -> {out.name}", unit="traj", disable=not progress)
-        init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode)
+        init = (str(tmp / TENSORS), seed, n, spec.to_dict(), single_mode, row0)
         with contextlib.ExitStack() as stack:
             if workers == 1 or len(blocks) == 1:
                 stack.callback(_WORKER.clear)
                 stack.callback(torch.set_num_threads, torch.get_num_threads())
-                _init_worker(*init, row0)
+                _init_worker(*init)
                 results = map(_write_block, blocks)
             else:
                 pool = stack.enter_context(mp.get_context("spawn").Pool(
-                    min(workers, len(blocks)), initializer=_init_worker, initargs=(*init, row0)))
+                    min(workers, len(blocks)), initializer=_init_worker, initargs=init))
                 results = pool.imap(_write_block, blocks)
             for b, c in zip(blocks, results):
                 counts = [a + x for a, x in zip(counts, c)]
                 bar.update(min(BLOCK, n - b * BLOCK))
         bar.close()
-        info = None
-        if shard is not None:
-            info = {"index": int(shard[0]), "count": int(shard[1]), "n_total": n, "rows": [row0, row1],
-                    "blocks": [blocks[0], blocks[-1] + 1]}
+        info = None if shard is None else {"index": int(shard[0]), "count": int(shard[1]), "n_total": n,
+                                           "rows": [row0, row1], "blocks": [blocks[0], blocks[-1] + 1]}
         _write_meta(tmp, _meta(seed, row1 - row0, spec.to_dict(), single_mode, counts, info))
     return out
 
