@@ -108,16 +108,6 @@ class MixtureDataset(Dataset):
         return self.__getitems__([i])[0]
 
 
-def _set_weights(weights, n: int) -> list[float]:
-    """``weights`` of a mixture's ``n`` sets as floats (None: 1 each); a ValueError unless one number > 0 per set."""
-    if weights is None:
-        return [1.0] * n
-    if not (isinstance(weights, (list, tuple)) and len(weights) == n
-            and all(math.isfinite(float(w)) and float(w) > 0 for w in weights)):
-        raise ValueError(f"weights must be one number > 0 per data set of the mixture ({n}), got {weights!r}")
-    return [float(w) for w in weights]
-
-
 class _Epochs:
     """A sampler whose pass is a function of its epoch, which Lightning's ``set_epoch`` sets."""
 
@@ -132,14 +122,15 @@ class _MixedBatches(_Epochs, torch.utils.data.Sampler):
     of ``batch_size`` (a part's last batch may be short) and shuffles the batches of all parts together, seeded
     by ``(seed, e)`` alone (resumable as ``_EpochRandomSampler``).
 
-    ``weights`` (one per part, > 0; default 1): a part's batches per pass are ``round(weight x its batches)``, at
-    least one, taken from as many fresh shuffles of its rows as they need (each cut as above), so a weight of 2 is
-    the part listed twice and 0.5 half of its batches a pass; weights of 1 draw exactly the unweighted batches."""
+    ``weights`` (one per part, > 0, as ``LASTDataModule`` checks them; default 1): a part's batches per pass are
+    ``round(weight x its batches)``, at least one, taken from as many fresh shuffles of its rows as they need (each
+    cut as above), so a weight of 2 is the part listed twice and 0.5 half of its batches a pass; weights of 1 draw
+    exactly the unweighted batches."""
 
     def __init__(self, sizes: list[int], batch_size: int, seed: int, weights: list[float] | None = None):
         self.sizes, self.batch_size, self.seed = list(sizes), int(batch_size), int(seed)
         self.counts = [max(1, round(w * math.ceil(n / self.batch_size)))
-                       for w, n in zip(_set_weights(weights, len(self.sizes)), self.sizes)]
+                       for w, n in zip(weights or [1.0] * len(self.sizes), self.sizes)]
 
     def __len__(self) -> int:
         return sum(self.counts)
@@ -304,7 +295,10 @@ class LASTDataModule(L.LightningDataModule):
         self.allow_seen_flights = allow_seen_flights
         self.augment = augment
         sets = len(data) if isinstance(data, (list, tuple)) else 0  # weights are a mixture's (checked now, not at fit)
-        self.weights = None if weights is None else _set_weights(weights, sets)
+        if weights is not None and not (isinstance(weights, (list, tuple)) and len(weights) == sets
+                                        and all(math.isfinite(float(w)) and float(w) > 0 for w in weights)):
+            raise ValueError(f"weights must be one number > 0 per data set of the mixture ({sets}), got {weights!r}")
+        self.weights = None if weights is None else [float(w) for w in weights]
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         for name, f in (("val_fraction", val_fraction), ("test_fraction", test_fraction),
@@ -421,13 +415,12 @@ class LASTDataModule(L.LightningDataModule):
         return batch
 
     # --- loaders ------------------------------------------------------------------------------
-    def _loader(self, ds, sampler) -> DataLoader:
-        return DataLoader(ds, batch_sampler=sampler, collate_fn=_identity, num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0)
-
-    def _train_loader(self, ds, sampler) -> ResumableLoader:
-        return ResumableLoader(ds, sampler, self._train_position, collate_fn=_identity, num_workers=self.num_workers,
-                               persistent_workers=self.num_workers > 0)
+    def _loader(self, ds, sampler, train: bool = False) -> DataLoader:
+        """The loader of ``ds`` by the batches of ``sampler``; ``train``: the resumable training loader."""
+        kwargs = dict(collate_fn=_identity, num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+        if train:
+            return ResumableLoader(ds, sampler, self._train_position, **kwargs)
+        return DataLoader(ds, batch_sampler=sampler, **kwargs)
 
     def _train_position(self) -> int:
         """The training batches of the current pass the attached trainer has finished."""
@@ -444,9 +437,8 @@ class LASTDataModule(L.LightningDataModule):
         if getattr(self, "_trainable", False):
             return
         self.setup()
-        data, vals = self._paths()
-        sets = [(f"data {p}", part["train"][0]) for p, part in zip(data, self._parts)]
-        sets += [(f"val_data {v}", part["val"][0]) for v, part in zip(vals, self._parts) if v is not None]
+        sets = [(f"data {part['path']}", part["train"][0]) for part in self._parts]
+        sets += [(f"val_data {p['val_path']}", p["val"][0]) for p in self._parts if p["val_path"] is not None]
         sets += [(f"single-mode set {k!r}", o.td) for k, o in zip(self.expert_modes or (), self._own or ())]
         for name, td in sets:
             check_complete({k: td[k].numpy() for k in (keys.STATES, keys.MODE) if k in td.keys()}, name)
@@ -461,17 +453,17 @@ class LASTDataModule(L.LightningDataModule):
                 raise ValueError("a mixture of data sets trains on one device (world size 1), not on "
                                  f"{world}: its batches are drawn per set")
             sizes = [len(p) for p in ds.parts]
-            return self._train_loader(ds, _MixedBatches(sizes, self.batch_size, int(self.split_seed) + 1, self.weights))
+            return self._loader(ds, _MixedBatches(sizes, self.batch_size, int(self.split_seed) + 1, self.weights), True)
         if not self.single_mode:
             if world > 1:
                 sampler = DistributedSampler(ds, num_replicas=world, rank=rank, shuffle=True, seed=int(self.split_seed) + 1)
             else:
                 sampler = _EpochRandomSampler(len(ds), int(self.split_seed) + 1)
-            return self._train_loader(ds, BatchSampler(sampler, self.batch_size, drop_last=False))
+            return self._loader(ds, BatchSampler(sampler, self.batch_size, drop_last=False), True)
         n_own = round(self.own_fraction * self.batch_size)
         sampler = _Stage1Sampler([len(o) for o in self._own], len(ds), n_own, self.batch_size - n_own,
                                  max(1, math.ceil(len(ds) / (self.batch_size * world))), self.split_seed, rank)
-        return self._train_loader(_Stage1Dataset(self._own, ds, self._common_keys), sampler)
+        return self._loader(_Stage1Dataset(self._own, ds, self._common_keys), sampler, True)
 
     def _eval_loader(self, name) -> DataLoader:
         ds = self.dataset(name)
