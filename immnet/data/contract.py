@@ -160,9 +160,7 @@ def check_complete(arrays: dict, where: str) -> None:
     flights have no mode labels and train on the state loss alone). Assumes :func:`check_arrays` passed, so
     that a row's first component tells whether it is NaN."""
     for key, a in arrays.items():
-        if key not in (keys.STATES, keys.MODE):
-            continue
-        if key == keys.MODE and _unlabelled(a):
+        if key not in (keys.STATES, keys.MODE) or (key == keys.MODE and _unlabelled(a)):
             continue
         for start in range(0, a.shape[0], ROWS):
             chunk = np.asarray(a[start : start + ROWS])
