@@ -119,8 +119,7 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
             _allocate(tmp / TENSORS, n_total, T, out, dtypes)
             dst_td = TensorDict.load_memmap(tmp / TENSORS)
             counts = [0] * N_MODES
-            for d, meta in shards:
-                src_td, _ = load_dataset(d)
+            for d, meta in shards:  # each checked by load_dataset in _read_shards: its files are read directly
                 src_files, _ = tensor_files(d / TENSORS)
                 row0, n = meta["shard"]["rows"][0], meta["n"]
                 for key, dtype in dtypes.items():
@@ -128,8 +127,9 @@ def merge_shards(out, shard_dirs, overwrite: bool = False, progress: bool = Fals
                     trail = tuple(dst_td[key].shape[1:])
                     for a in range(0, n, block):
                         m = min(block, n - a)
-                        if key not in src_td.keys():  # a shard written before scan times were stored: k dt
-                            src = np.arange(T, dtype=np.float64) * src_td[keys.DT][a : a + m].double().numpy()[:, None]
+                        if key not in src_files:  # a shard written before scan times were stored: k dt
+                            dt = _rows(src_files[keys.DT][0], np.float32, (), a, m, "r").astype(np.float64)
+                            src = np.arange(T, dtype=np.float64) * dt[:, None]
                         else:
                             src = _rows(src_files[key][0], dtype, trail, a, m, "r")
                         dst = _rows(dst_td[key].filename, dtype, trail, row0 + a, m, "r+")
