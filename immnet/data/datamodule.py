@@ -241,12 +241,9 @@ class _Stage1Dataset(Dataset):
 
     def __getitems__(self, plan) -> TensorDict:
         rows = []
-        for m, own_idx, mix_idx in plan:
-            parts = []
-            if len(own_idx):
-                parts.append(self.own[m].__getitems__(own_idx).select(*self.keys))
-            if len(mix_idx):
-                parts.append(self.train.__getitems__(mix_idx).select(*self.keys))
+        for m, own_idx, mix_idx in plan:  # expert m's own-mode rows, then its maneuvering ones
+            parts = [ds.__getitems__(idx).select(*self.keys)
+                     for ds, idx in ((self.own[m], own_idx), (self.train, mix_idx)) if len(idx)]
             rows.append(torch.cat(parts, 0))
         return torch.stack(rows, 0)
 
