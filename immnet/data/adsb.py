@@ -118,8 +118,7 @@ def resolve_sample(name) -> Path:
         hint = ("no sample directory: traffic's sample files are not installed "
                 "(pip install --no-deps 'traffic==2.13', or pip install 'immnet[real]')")
     else:
-        names = available_samples(root)
-        hint = f"available samples in {root}: {', '.join(names)}"
+        hint = f"available samples in {root}: {', '.join(available_samples(root))}"
     raise FileNotFoundError(f"no ADS-B sample {str(name)!r}: neither a file nor a sample name; {hint}")
 
 
