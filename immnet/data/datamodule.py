@@ -406,9 +406,8 @@ class LASTDataModule(L.LightningDataModule):
     def on_after_batch_transfer(self, batch, dataloader_idx: int):
         """Lightning's hook on every batch on its device: a training batch becomes ``augment``'s view of it for the
         trainer's global step (a resumed run sees the same views)."""
-        trainer = getattr(self, "trainer", None)
-        if self.augment is not None and trainer is not None and trainer.training:
-            return self.augment(batch, trainer.global_step)
+        if self.augment is not None and self.trainer is not None and self.trainer.training:
+            return self.augment(batch, self.trainer.global_step)
         return batch
 
     # --- loaders ------------------------------------------------------------------------------
@@ -421,13 +420,11 @@ class LASTDataModule(L.LightningDataModule):
 
     def _train_position(self) -> int:
         """The training batches of the current pass the attached trainer has finished."""
-        trainer = getattr(self, "trainer", None)
-        return trainer.fit_loop.epoch_loop.batch_progress.current.completed if trainer is not None else 0
+        return self.trainer.fit_loop.epoch_loop.batch_progress.current.completed if self.trainer is not None else 0
 
     def _ranks(self) -> tuple[int, int]:
         """``(world_size, rank)`` of the attached trainer; ``(1, 0)`` without one."""
-        trainer = getattr(self, "trainer", None)
-        return (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
+        return (self.trainer.world_size, self.trainer.global_rank) if self.trainer is not None else (1, 0)
 
     def _check_trainable(self) -> None:
         """Training and validation batches need truth and a label at every scan (contract.check_complete)."""
