@@ -413,7 +413,7 @@ class LASTDataModule(L.LightningDataModule):
     # --- loaders ------------------------------------------------------------------------------
     def _loader(self, ds, sampler, train: bool = False) -> DataLoader:
         """The loader of ``ds`` by the batches of ``sampler``; ``train``: the resumable training loader."""
-        kwargs = dict(collate_fn=_identity, num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+        kwargs = {"collate_fn": _identity, "num_workers": self.num_workers, "persistent_workers": self.num_workers > 0}
         if train:
             return ResumableLoader(ds, sampler, self._train_position, **kwargs)
         return DataLoader(ds, batch_sampler=sampler, **kwargs)
