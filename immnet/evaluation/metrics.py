@@ -146,13 +146,13 @@ def switch_steps(mode: torch.Tensor) -> torch.Tensor:
     return sw
 
 
-def post_switch_mask(mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, intervals: torch.Tensor | None = None,
-                     seconds: float = POST_SWITCH_S) -> torch.Tensor:
-    """Boolean ``[N, T]``: inside ``[s, s + steps)`` for at least one switch ``s`` (clipped to T); with
+def post_switch_mask(mode: torch.Tensor, intervals: torch.Tensor | None = None) -> torch.Tensor:
+    """Boolean ``[N, T]``: inside ``[s, s + POST_SWITCH_STEPS)`` for at least one switch ``s`` (clipped to T); with
     ``intervals [N, T]`` (s, :func:`immnet.data.times.scan_intervals`) the scans ``t >= s`` less than
-    ``seconds`` after a switch ``s`` instead (``steps`` then unused)."""
+    ``POST_SWITCH_S`` seconds after a switch ``s`` instead."""
+    seconds = POST_SWITCH_S
     if intervals is None:  # every scan one step: the window in steps
-        intervals, seconds = torch.ones(mode.shape, dtype=torch.float64, device=mode.device), steps
+        intervals, seconds = torch.ones(mode.shape, dtype=torch.float64, device=mode.device), POST_SWITCH_STEPS
     if intervals.shape != mode.shape:
         raise ValueError(f"intervals have shape {tuple(intervals.shape)}, expected the mode's {tuple(mode.shape)}")
     sw = switch_steps(mode)
@@ -162,18 +162,16 @@ def post_switch_mask(mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, interva
     return (tau - last) < seconds
 
 
-def post_switch_sums(err: torch.Tensor, mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, mask=None,
-                     intervals: torch.Tensor | None = None, seconds: float = POST_SWITCH_S):
+def post_switch_sums(err: torch.Tensor, mode: torch.Tensor, mask=None, intervals: torch.Tensor | None = None):
     """``(sum of e^2 over the scored pairs of the windows [3], number of them)``, for accumulation."""
-    window = post_switch_mask(mode, steps, intervals, seconds).to(err.device) & _mask(err, mask)
+    window = post_switch_mask(mode, intervals).to(err.device) & _mask(err, mask)
     return _sq(err, window).sum(dim=(0, 1)), int(window.sum())
 
 
-def rmse_post_switch(err: torch.Tensor, mode: torch.Tensor, steps: int = POST_SWITCH_STEPS, mask=None,
-                     intervals: torch.Tensor | None = None, seconds: float = POST_SWITCH_S):
-    """RMSE pooled over the ``steps`` steps (with ``intervals``: the ``seconds``) after every switch;
-    ``None`` without any switch."""
-    sq, count = post_switch_sums(err, mode, steps, mask, intervals, seconds)
+def rmse_post_switch(err: torch.Tensor, mode: torch.Tensor, mask=None, intervals: torch.Tensor | None = None):
+    """RMSE pooled over the ``POST_SWITCH_STEPS`` steps (with ``intervals``: the ``POST_SWITCH_S`` seconds) after
+    every switch; ``None`` without any switch."""
+    sq, count = post_switch_sums(err, mode, mask, intervals)
     return _axes((sq / count).sqrt()) if count else None
 
 
@@ -209,8 +207,7 @@ class MetricAccumulator:
     instead of its numbers: a failure is never averaged away.
     """
 
-    def __init__(self, steps: int = POST_SWITCH_STEPS, n_modes: int = N_MODES, post_switch_s: float = POST_SWITCH_S):
-        self.steps, self.n_modes, self.post_switch_s = steps, n_modes, post_switch_s
+    def __init__(self):
         self.traj_rmse: list[torch.Tensor] = []
         self.traj_scored: list[torch.Tensor] = []
         self.sq_time = None  # sum_n m e^2, [T, 3]
@@ -224,10 +221,10 @@ class MetricAccumulator:
         """One batch: estimates ``state [B,T,9]`` against ``truth``; ``measurements`` (as the
         method saw them) mark the scans before each track's first detection, not scored; ``intervals
         [B,T]`` (s, :func:`immnet.data.times.scan_intervals`) make the post-switch window
-        ``post_switch_s`` seconds (without them: ``steps`` scans)."""
+        ``POST_SWITCH_S`` seconds (without them: ``POST_SWITCH_STEPS`` scans)."""
         err = position_error(state, truth).cpu()
         truth_ok = has_truth(truth).cpu()
-        mask = truth_ok & started(measurements).cpu() if measurements is not None else truth_ok
+        mask = scored_mask(truth, measurements).cpu()
         failed = mask & ~torch.isfinite(err).all(dim=-1)
         c = self.counts
         c["scans"] += mask.numel()
@@ -243,11 +240,11 @@ class MetricAccumulator:
         if mode is not None:
             mode = mode.cpu()
             iv = None if intervals is None else intervals.cpu()
-            s, k = post_switch_sums(err, mode, self.steps, mask, iv, self.post_switch_s)
+            s, k = post_switch_sums(err, mode, mask, iv)
             self.post_sq += s
             self.post_count += k
             if mode_probs is not None:
-                k = confusion(mode_probs.cpu(), mode, self.n_modes, mask)
+                k = confusion(mode_probs.cpu(), mode, mask=mask)
                 self.conf = k if self.conf is None else self.conf + k
 
     def compute(self) -> dict:
