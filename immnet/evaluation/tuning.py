@@ -52,10 +52,10 @@ def make_tracker(setting: dict, name: str = "imm-tuned") -> IMMTracker:
     return IMMTracker(MODEL_SETS[setting["model_set"]], setting["r"], sq, setting["p_stay"], name=name)
 
 
-def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: str | None = None,
-             max_passes: int = 2, grid: dict | None = None, start: dict | None = None) -> dict:
-    """Coordinate search on ``val_batch``; writes the winner to ``out_path`` (YAML) and returns
-    ``{"best": setting, "score": avg_rmse, "table": [{**setting, "score", "seconds"}, ...]}``.
+def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, max_passes: int = 2, grid: dict | None = None,
+             start: dict | None = None) -> dict:
+    """Coordinate search on ``val_batch``; writes the winner to ``out_path`` (YAML, the search in its header) and
+    returns ``{"best": setting, "score": avg_rmse, "table": [{**setting, "score", "seconds"}, ...]}``.
 
     ``grid`` / ``start`` replace (some knobs of) ``GRID`` / ``START`` for a cheaper search."""
     grid = {**GRID, **(grid or {})}
@@ -65,28 +65,22 @@ def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, data_desc: 
     # each setting scored by its IMM's Average RMSE on the batch, over the scans immnet evaluate scores
     best, best_score, table = coordinate_search(lambda setting: average_rmse(make_tracker(setting), val_batch), grid,
                                                 start, max_passes, progress, tag="tune-imm")
-    write_config(best, best_score, out_path, val_batch.batch_size[0], len(table), data_desc, grid)
-    return {"best": best, "score": best_score, "table": table}
-
-
-def write_config(setting: dict, avg_rmse: float, out_path, n: int, evaluated: int, data_desc: str | None,
-                 grid: dict | None = None) -> None:
-    tracker = make_tracker(setting)
     header = [
         "# IMM-Tuned (docs/spec.md section 3): written by immnet.evaluation.tuning.tune_imm, do not edit by hand.",
-        f"# Coordinate search over {grid or GRID} ({evaluated} settings scored),",
-        f"# chosen on validation data only: {data_desc or 'validation batch'}, {n} trajectories.",
-        f"# Validation Average RMSE {avg_rmse:.4f} m; {datetime.date.today().isoformat()}.",
-        f"# Setting: {setting}",
+        f"# Coordinate search over {grid} ({len(table)} settings scored),",
+        f"# chosen on validation data only: validation batch, {val_batch.batch_size[0]} trajectories.",
+        f"# Validation Average RMSE {best_score:.4f} m; {datetime.date.today().isoformat()}.",
+        f"# Setting: {best}",
     ]
     config = {
         "class_path": "immnet.filters.IMMTracker",
         "init_args": {
             "name": "imm-tuned",
-            "model_set": MODEL_SETS[setting["model_set"]],
-            "r": float(setting["r"]),
-            "sigma_q": tracker.sigma_q,
-            "p_stay": float(setting["p_stay"]),
+            "model_set": MODEL_SETS[best["model_set"]],
+            "r": float(best["r"]),
+            "sigma_q": make_tracker(best).sigma_q,
+            "p_stay": float(best["p_stay"]),
         },
     }
     Path(out_path).write_text("\n".join(header) + "\n" + yaml.safe_dump(config, sort_keys=False))
+    return {"best": best, "score": best_score, "table": table}
