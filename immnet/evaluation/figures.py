@@ -198,8 +198,7 @@ def write_figures(results: Mapping[str, dict], data, cases: Sequence[int], out_d
         states = {n: r["kept"][keys.STATE][row] for n, r in results.items()}
         err = {n: avg_curve(position_error(s, traj[keys.STATES]).abs()) for n, s in states.items()}
         written.append(plot_rmse_over_time(err, out / f"case{i}_rmse.png", title=f"trajectory {i}: position error per axis (RMS over axes)", mode=mode))
-        kept = next(iter(results.values()))["kept"]
-        z = kept[keys.MEASUREMENTS][row] if keys.MEASUREMENTS in kept else traj[keys.MEASUREMENTS]  # gated
+        z = next(iter(results.values()))["kept"][keys.MEASUREMENTS][row]  # gated: as the methods saw them
         written.append(plot_track(traj[keys.STATES], z, states, out / f"case{i}_track.png",
                                   mode=mode, title=f"trajectory {i}"))
         probs = {n: r["kept"][keys.MODE_PROBS][row] for n, r in results.items() if keys.MODE_PROBS in r["kept"]}
