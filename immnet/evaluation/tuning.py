@@ -45,11 +45,11 @@ GRID = {
 START = {"model_set": "imm6", "sigma_q_cv_ct": 1.0, "sigma_q_ca": 0.2, "p_stay": 0.9, "r": 4.0}
 
 
-def make_tracker(setting: dict, name: str = "imm-tuned") -> IMMTracker:
+def make_tracker(setting: dict) -> IMMTracker:
     """The IMM of one search setting (CA experts get ``sigma_q_ca``, all others ``sigma_q_cv_ct``)."""
     ms = ModelSet.from_config(MODEL_SETS[setting["model_set"]])
     sq = [setting["sigma_q_ca"] if m.mode == 1 else setting["sigma_q_cv_ct"] for m in ms]
-    return IMMTracker(MODEL_SETS[setting["model_set"]], setting["r"], sq, setting["p_stay"], name=name)
+    return IMMTracker(MODEL_SETS[setting["model_set"]], setting["r"], sq, setting["p_stay"], name="imm-tuned")
 
 
 def tune_imm(val_batch: TensorDict, out_path, progress: bool = True, max_passes: int = 2, grid: dict | None = None,

@@ -34,10 +34,10 @@ COLUMNS = ["method", "x [m]", "y [m]", "z [m]", "Average [m]", "post-switch [m]"
 """The ``results`` table's columns (the results table's, as numbers; ``diverged tracks`` 0 for a finite method)."""
 
 
-def add_arguments(parser, default: bool = False) -> None:
+def add_arguments(parser) -> None:
     """``--wandb`` / ``--no-wandb`` and the run's project, group, name and directory."""
     g = parser.add_argument_group("W&B (docs/wandb.md)")
-    g.add_argument("--wandb", action=argparse.BooleanOptionalAction, default=default,
+    g.add_argument("--wandb", action=argparse.BooleanOptionalAction, default=False,
                    help="log the results, the figures and the config as a W&B run (offline unless "
                         "WANDB_MODE=online; WANDB_MODE=disabled writes nothing)")
     g.add_argument("--wandb-project", default=None, help=f"W&B project (default: WANDB_PROJECT, else {PROJECT})")

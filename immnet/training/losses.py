@@ -15,8 +15,8 @@ import torch
 from immnet.motion import ACC, POS, VEL
 
 
-def component_weights(pos: float = 1.0, vel: float = 0.1, acc: float = 0.02, device=None) -> torch.Tensor:
-    w = torch.zeros(9, device=device)
+def component_weights(pos: float = 1.0, vel: float = 0.1, acc: float = 0.02) -> torch.Tensor:
+    w = torch.zeros(9)
     w[list(POS)], w[list(VEL)], w[list(ACC)] = pos, vel, acc
     return w
 
