@@ -126,7 +126,8 @@ def stopped_short(trainer) -> str | None:
     timers = [c for c in trainer.callbacks if isinstance(c, Timer) and c._duration is not None]
     if timers and (timers[0].time_remaining("train") or 0.0) <= 0.0:
         t = int(timers[0]._duration)
-        return f"its time limit max_time ({t // 86400:02d}:{t % 86400 // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}) ran out"
+        return (f"its time limit max_time ({t // 86400:02d}:{t % 86400 // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}) "
+                "ran out")
     if trainer.should_stop:
         return "a callback stopped the trainer"
     return "the trainer ended with no training batch left to run"
