@@ -41,15 +41,16 @@ def _np(x) -> np.ndarray:
     return x.detach().cpu().double().numpy() if isinstance(x, torch.Tensor) else np.asarray(x, dtype=float)
 
 
-def _switches(mode) -> list[int]:
+def _switches(mode) -> tuple[list[int], np.ndarray | None]:
+    """The switch steps of ``mode [T]`` and its labels as integers (``[]`` and ``None`` without ``mode``)."""
     if mode is None:
-        return []
-    return torch.nonzero(switch_steps(torch.as_tensor(mode))).flatten().tolist()
+        return [], None
+    return torch.nonzero(switch_steps(torch.as_tensor(mode))).flatten().tolist(), _np(mode).astype(int)
 
 
 def _mark_switches(ax, mode, label=True) -> None:
-    m = None if mode is None else _np(mode).astype(int)
-    for s in _switches(mode):
+    switches, m = _switches(mode)
+    for s in switches:
         ax.axvline(s, color="k", ls=":", lw=1)
         if label:
             ax.annotate(
@@ -83,8 +84,7 @@ def plot_track(truth, measurements, estimates: Mapping[str, object], path, mode=
     truth, z = _np(truth), _np(measurements)
     est = {k: _np(v) for k, v in estimates.items() if k != "measurements"}
     colors = method_colors(list(est))
-    sw = _switches(mode)
-    m = None if mode is None else _np(mode).astype(int)
+    sw, m = _switches(mode)
     n_zoom = max(len(sw), 1)
     cols = 1 if n_zoom <= 2 else 2
     rows = -(-n_zoom // cols)
