@@ -155,3 +155,20 @@ def test_the_training_logger_writes_nothing_when_disabled(tmp_path, monkeypatch)
     finally:
         wandb.teardown()
     assert not (tmp_path / "runs" / "wandb").exists() and not (tmp_path / "wandb").exists()
+
+
+def test_a_checkpoint_for_a_skipped_method_does_not_stop_the_run_after_scoring(npz, tmp_path, monkeypatch):
+    """Without ``--methods`` a method the data does not allow is skipped (a note); a ``--checkpoint NAME=CKPT`` named
+    for it was taken when the methods were chosen, so the W&B run's config takes it too rather than refusing it after
+    every method was scored (here the 5 s network on 1 s data)."""
+    import immnet.filters.methods as methods
+
+    monkeypatch.setattr(methods, "available_methods", lambda methods_dir=None: ["measurements", "immnet-real-5s"])
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    monkeypatch.chdir(tmp_path)
+    ckpt = REPO_ROOT / "immnet" / "pretrained" / "immnet-real-5s.ckpt"
+    assert main(["evaluate", "--data", str(npz), "--json", str(tmp_path / "r.json"), "--quiet", "--wandb",
+                 "--wandb-dir", str(tmp_path / "w"), "--checkpoint", f"immnet-real-5s={ckpt}"]) == 0
+    assert len(list((tmp_path / "w" / "wandb").glob("offline-run-*"))) == 1
+    assert list(json.loads((tmp_path / "r.json").read_text())["methods"]) == ["measurements"]

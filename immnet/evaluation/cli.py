@@ -144,6 +144,13 @@ def _checkpoints(specs: list[str], names: list[str]) -> dict[str, str]:
     return named
 
 
+def _candidates(requested: str | None) -> list[str]:
+    """The methods ``select_methods`` tries: ``--methods``' names, or every available method where it is not given."""
+    from immnet.filters.methods import available_methods
+
+    return _method_names(requested) if requested is not None else available_methods()
+
+
 def select_methods(requested: str | None, checkpoints: list[str], data_keys, note=print, data=None,
                    meta: dict | None = None, guard="checkpoint", sigma_q: float | None = None,
                    told_r: bool = False) -> dict:
@@ -153,10 +160,10 @@ def select_methods(requested: str | None, checkpoints: list[str], data_keys, not
     each as configured) and ``told_r`` go to ``build_method``;
     a method with ``configure`` is told the data's ``meta`` and ``sigma_q`` (``--sigma-q``)."""
     from immnet.evaluation.runner import check_method
-    from immnet.filters.methods import available_methods, build_method
+    from immnet.filters.methods import build_method
 
     explicit = requested is not None
-    names = _method_names(requested) if explicit else available_methods()
+    names = _candidates(requested)
     ckpt = _checkpoints(checkpoints, names)
     methods = {}
     for name in names:
@@ -388,7 +395,7 @@ def log_run(args, results, rows, figures, data, meta, split, note) -> None:
     from immnet.data.times import nominal_dt
     from immnet.evaluation.metrics import avg_curve
 
-    ckpt = _checkpoints(args.checkpoint, list(results))
+    ckpt = _checkpoints(args.checkpoint, _candidates(args.methods))  # select_methods' mapping (a skipped one's too)
     config = {"command": "evaluate",
               "data": {"path": str(args.data), "split": split, "n_trajectories": data.batch_size[0], "limit": args.limit,
                        "meta": meta},
