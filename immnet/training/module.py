@@ -378,7 +378,7 @@ class Stage2Module(_TrackerModule):
     def training_step(self, batch, batch_idx):
         z = batch[keys.MEASUREMENTS]
         intervals = self.net.intervals_for(batch)  # None at the network's own dt
-        carry, tot = None, torch.zeros(4)
+        carry, tot = None, z.new_zeros(4)  # on the batch's device, where the losses are
         told = self.net.told_r(batch)  # each track's r, where the filter experts are told it
         cov = self.net.told_cov(batch)  # each detection's covariance, where they are told it
         for s, e in self.chunks(z.shape[1]):
