@@ -248,12 +248,14 @@ def test_the_shipped_weights_carry_their_checksum_and_load_as_plain_data(tmp_pat
 
 def test_fit_refuses_a_checkpoint_before_building_anything(tmp_path, capsys):
     """Issue 20, item 1: ``immnet fit --ckpt_path`` / ``validate --ckpt_path`` / ``--model.init_args.
-    stage1_checkpoint`` naming a file that would run code: one line naming it, exit code 2, nothing runs."""
+    stage1_checkpoint`` (and ``init_checkpoint``, ``init_parameters``) naming a file that would run code: one line
+    naming it, exit code 2, nothing runs."""
     path, sentinel = _hostile(tmp_path, "os.system")
     for argv in (["fit", "--config", STAGE1, *FAST, "--ckpt_path", str(path)],
                  ["validate", "--config", STAGE1, "--ckpt_path", str(path)],
                  ["fit", "--config", STAGE2, *FAST, "--model.init_args.stage1_checkpoint", str(path)],
-                 ["fit", "--config", STAGE2, *FAST, "--model.init_args.init_checkpoint", str(path)]):
+                 ["fit", "--config", STAGE2, *FAST, "--model.init_args.init_checkpoint", str(path)],
+                 ["fit", "--config", STAGE2, *FAST, "--model.init_args.init_parameters", str(path)]):
         assert main(argv) == 2, argv
         line = _one_error_line(capsys.readouterr().err, argv[0])
         assert f"error: {path} is refused" in line, line

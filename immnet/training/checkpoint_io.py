@@ -24,7 +24,7 @@ class SafeCheckpointIO(TorchCheckpointIO):
 
 def check_checkpoints(config) -> None:
     """Read the checkpoint files a parsed LightningCLI config names (``ckpt_path``, and the model's
-    ``stage1_checkpoint`` / ``init_checkpoint``) before anything is built from them: LightningCLI reads
+    ``stage1_checkpoint`` / ``init_checkpoint`` / ``init_parameters``) before anything is built from them: LightningCLI reads
     ``ckpt_path``'s hyperparameters itself, and an error inside the model's constructor reaches the user
     as jsonargparse's traceback. A refused file raises ``CheckpointError`` (one line, naming the file)."""
     sub = config.get("subcommand")
@@ -34,7 +34,7 @@ def check_checkpoints(config) -> None:
     if path and Path(path).is_file():  # not "last" / "best", which the trainer resolves and reads through SafeCheckpointIO
         load_checkpoint(path)
     init = (config[sub].get("model") or {}).get("init_args") or {}
-    for arg in ("stage1_checkpoint", "init_checkpoint"):
+    for arg in ("stage1_checkpoint", "init_checkpoint", "init_parameters"):
         path = init.get(arg)
         if path and not Path(path).is_file():
             raise CheckpointError(f"model.init_args.{arg}: checkpoint not found: {path}")
