@@ -180,3 +180,15 @@ def test_a_track_of_one_plot_is_tracked_by_the_radar_network(tmp_path, capsys):
         got = [r for r in csv.DictReader(f) if r["track_id"] == "lone"]
     assert len(got) == 1
     np.testing.assert_allclose([float(got[0][k]) for k in ("x", "y", "z")], rows.z[-1], rtol=0, atol=1e-5)
+
+
+def test_the_note_names_the_interval_the_bands_network_refuses():
+    """A track at the band's scans with one longer gap that missed scans cut below the band (7 s: two of 3.5 s) falls
+    back to the filter; the note names that interval, not the shortest (5 s, inside the band) as "below" it."""
+    method, line = radar_default(np.array([5.0, 5.0, 5.0, 7.0, 5.0]))
+    assert method == "radar-imm-robust-5s"
+    assert ("but an interval of 7 s, 2 scans of 3.5 s with missed scans, is below 4.5-5.5 s, where immnet-radar-5s "
+            "was trained") in line
+    assert "shortest" not in line
+    method, line = radar_default(np.array([5.0, 5.0, 4.0, 5.0, np.nan]))
+    assert "but their shortest, 4 s, is below 4.5-5.5 s, where immnet-radar-5s was trained" in line

@@ -18,6 +18,7 @@ what another member's provenance measured where one was trained for those scans 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -67,20 +68,22 @@ def _takes(provenance: dict, median: float) -> bool:
     range cut into equal ones by missed scans: ``real-5s`` takes 10 s scans as two of 5 s; one trained at one interval,
     that interval; a provenance that names none, the 3D-LAST network's, counts as none)."""
     span, dt = provenance.get("interval_range"), provenance.get("scan_interval")
-    return (span is not None or dt is not None) and _accepts(span, dt, [median])
+    return (span is not None or dt is not None) and bool(_accepts(span, dt, [median]).all())
 
 
-def _accepts(span, dt, intervals) -> bool:
-    """Whether a network trained over the intervals ``span`` (or at the one interval ``dt``) takes every finite one of
-    ``intervals`` (s) between two scans of a track: ``immnet.tracking.bank.accepts`` (an interval longer than the
-    span cut into equal ones by missed scans, each then inside it, ``trained_for``'s tolerance)."""
+def _accepts(span, dt, intervals) -> np.ndarray:
+    """Whether a network trained over the intervals ``span`` (or at the one interval ``dt``) takes each finite one of
+    ``intervals`` (s) between two scans of a track (a non-finite one: True): ``immnet.tracking.bank.accepts`` (an
+    interval longer than the span cut into equal ones by missed scans, each then inside it, ``trained_for``'s
+    tolerance), per interval."""
     import torch
 
     from immnet.tracking.bank import accepts
 
-    iv = np.asarray(intervals, dtype=np.float64)
-    track = torch.from_numpy(np.concatenate([[np.nan], iv[np.isfinite(iv)]]))[None]  # scan 0's interval: none
-    return bool(accepts(SimpleNamespace(interval_range=span, dt=dt), track)[0])
+    iv = np.asarray(intervals, dtype=np.float64).reshape(-1)
+    iv = np.where(np.isfinite(iv), iv, np.nan)
+    rows = torch.from_numpy(np.stack([np.full(iv.shape, np.nan), iv], -1))  # each a track; scan 0's interval: none
+    return accepts(SimpleNamespace(interval_range=span, dt=dt), rows).numpy()
 
 
 def _table_scans(name: str) -> dict:
@@ -219,18 +222,21 @@ def radar_default(intervals) -> tuple[str, str]:
                      f"each plot's covariance (no track has two rows to read a scan interval from; --method or "
                      f"--weights bank chooses another tracker)")
     for net, _, span in RADAR_BANDS:
-        if span[0] - 1e-6 * span[1] <= median <= span[1] * (1 + 1e-6) and _accepts(span, None, intervals):
+        if span[0] - 1e-6 * span[1] <= median <= span[1] * (1 + 1e-6) and _accepts(span, None, intervals).all():
             return net, (f"note: the rows carry each detection's covariance and their median scan interval is "
                          f"{median:.3g} s: tracked by {net}, the shipped network told each plot's covariance for "
                          f"{span[0]:g}-{span[1]:g} s scans (--method or --weights bank chooses another tracker)")
     distance = [max(span[0] - median, median - span[1], 0.0) for _, _, span in RADAR_BANDS]
     net, filt, span = RADAR_BANDS[int(np.argmin(distance))]
     bands = ", ".join(f"{s[0]:g}-{s[1]:g} s" for _, _, s in RADAR_BANDS)
-    dt = np.asarray(intervals, dtype=np.float64)
-    shortest = float(np.min(dt[np.isfinite(dt)]))
-    why = (f"but their shortest, {shortest:.3g} s, is below {span[0]:g}-{span[1]:g} s, where {net} was trained"
-           if distance[int(np.argmin(distance))] == 0
-           else f"whose scans the shipped radar networks ({bands}) were not trained at")
+    why = f"whose scans the shipped radar networks ({bands}) were not trained at"
+    if distance[int(np.argmin(distance))] == 0:  # the band's network refuses an interval: the shortest, or a longer one
+        dt = np.unique(np.asarray(intervals, dtype=np.float64))  # that missed scans cut below the band
+        refused = float(dt[~_accepts(span, None, dt)][0])
+        cut = math.ceil(refused / (span[1] * (1 + 1e-6)))
+        why = (f"but their shortest, {refused:.3g} s, is below {span[0]:g}-{span[1]:g} s, where {net} was trained"
+               if refused == dt[0] else f"but an interval of {refused:.3g} s, {cut} scans of {refused / cut:.3g} s "
+               f"with missed scans, is below {span[0]:g}-{span[1]:g} s, where {net} was trained")
     return filt, (f"note: the rows carry each detection's covariance and their median scan interval is {median:.3g} s, "
                   f"{why}: tracked by {filt}, the "
                   f"model-based filter told each plot's covariance tuned at {span[0]:g}-{span[1]:g} s scans, which "
