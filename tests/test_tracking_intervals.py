@@ -459,3 +459,24 @@ def test_the_bank_note_counts_a_member_where_the_bank_runs_it():
                 assert _takes(prov, float(dt)) == took, (name, dt)
     assert bank_note(np.ones(10)) is None
     assert _takes(load_provenance(shipped("real-5s")), 10.0) and not _takes(load_provenance(shipped("real-11s")), 13.0)
+
+
+def test_plain_kalmannet_tracks_at_the_datas_intervals():
+    """KalmanNetMethod on a network trained over a range of intervals runs its expert at each scan's interval (5 s
+    here), as its check accepts them, not at the network's nominal dt; at the nominal dt as before."""
+    from tensordict import TensorDict
+
+    from immnet.checkpoints import shipped
+    from immnet.tracking.methods import KalmanNetMethod
+
+    method = KalmanNetMethod(str(shipped("general")), expert="cv")
+    g = torch.Generator().manual_seed(0)
+    z = torch.cumsum(torch.randn(3, 12, 3, generator=g, dtype=torch.float64) * 30 + 200, 1)
+    out = {}
+    for dt in (method.net.dt, 5.0):
+        out[dt] = method.track(TensorDict({keys.MEASUREMENTS: z, keys.DT: torch.full((3,), dt)}, batch_size=[3]))
+    with torch.no_grad():
+        alone = method.net.rollout(z.float().unsqueeze(1).expand(-1, method.net.n_experts, -1, -1), experts_alone=True,
+                                   intervals=torch.full((3, 12), 5.0))[0][keys.STATE][:, :, 0]
+    assert torch.equal(out[5.0][keys.STATE], alone.double())
+    assert not torch.equal(out[5.0][keys.STATE], out[method.net.dt][keys.STATE])

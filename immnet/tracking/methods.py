@@ -112,10 +112,12 @@ class KalmanNetMethod(_LearnedMethod):
     def track(self, batch: TensorDict) -> TensorDict:
         self.check(batch)
         z, _ = gate_measurements(batch[keys.MEASUREMENTS].float())
+        intervals = self.net.intervals_for(batch)  # None where every one is the network's dt
         M, states, covs = self.net.n_experts, [], []
         for i in range(0, z.shape[0], self.batch_size):
             zi = z[i : i + self.batch_size].unsqueeze(1).expand(-1, M, -1, -1)
-            out, _ = self.net.rollout(zi, experts_alone=True, return_cov=self.return_cov)
+            gaps = None if intervals is None else intervals[i : i + self.batch_size].to(z.dtype)
+            out, _ = self.net.rollout(zi, experts_alone=True, intervals=gaps, return_cov=self.return_cov)
             states.append(out[keys.STATE][:, :, self.index])
             if self.return_cov:
                 covs.append(out[keys.STATE_COV][:, :, self.index])
