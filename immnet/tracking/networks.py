@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDict
 
 from immnet import keys
-from immnet.checkpoints import CheckpointError, load_checkpoint
+from immnet.checkpoints import CheckpointError, load_checkpoint, shipped_entry
 from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
@@ -82,10 +82,9 @@ def fit_weights(net: torch.nn.Module, state: dict, path) -> None:
                           f"({why})")
 
 
-_NEEDS_FILTERS = {"guard": "a range guard needs filter experts", "adapt": "adaptive process noise needs filter experts",
-                  "r": "a measurement std needs filter experts",
-                  "reacquire": "re-acquisition needs filter experts", "robust": "a robust update needs filter experts",
-                  "start_vz_std": "a start's prior on the vertical speed needs filter experts"}
+_NEEDS_FILTERS = {"guard": "a range guard", "adapt": "adaptive process noise", "r": "a measurement std",
+                  "reacquire": "re-acquisition", "robust": "a robust update",
+                  "start_vz_std": "a start's prior on the vertical speed"}  # each: "... needs filter experts"
 
 
 def load_network(path: str | Path, guard=AS_CONFIGURED, adapt=AS_CONFIGURED, r=AS_CONFIGURED,
@@ -120,8 +119,8 @@ def network_from(config: dict, state: dict, path, guard=AS_CONFIGURED, adapt=AS_
             continue
         gain = config.get("gain") or DEFAULT_GAIN
         if name not in import_class(gain.get("class_path", ""), Stage).load_options:
-            what = _NEEDS_FILTERS[name]
-            raise ValueError(f"{path}: {what}; this checkpoint's gain is {gain.get('class_path')}")
+            raise ValueError(f"{path}: {_NEEDS_FILTERS[name]} needs filter experts; this checkpoint's gain is "
+                             f"{gain.get('class_path')}")
         config.pop(name, None)  # set once: on the gain, for this load
         config["gain"] = {**gain, "init_args": {**(gain.get("init_args") or {}), name: value}}
     net = IMMNet(**config)
@@ -323,23 +322,18 @@ def run_network(net: IMMNet, z: torch.Tensor, batch_size: int = 512, intervals: 
     z, n_gated = gate_measurements(z, max_position)
     origin = frame_origin(net, z)
     z = to_local(z, origin)
-    where = None
-    if intervals is not None:
-        intervals = as_intervals(intervals, z)
-        if meas_cov is None:
-            z, intervals, where = coast_long_gaps(net, z, intervals)
-        else:  # each detection's covariance moves with its scan
-            rows = torch.cat([z, torch.as_tensor(meas_cov).to(z.dtype).flatten(-2)], -1)
-            rows, intervals, where = coast_long_gaps(net, rows, intervals)
-            z, meas_cov = rows[..., :3], rows[..., 3:].unflatten(-1, (3, 3))
+    where, cov = None, None if meas_cov is None else torch.as_tensor(meas_cov).to(z.dtype)
+    if intervals is not None:  # each detection's covariance moves with its scan
+        rows = z if cov is None else torch.cat([z, cov.flatten(-2)], -1)
+        rows, intervals, where = coast_long_gaps(net, rows, as_intervals(intervals, z))
+        z, cov = rows[..., :3], None if cov is None else rows[..., 3:].unflatten(-1, (3, 3))
         check_dt(net, intervals, "this tracker")
     outs = []
     for i in range(0, z.shape[0], batch_size):
         gaps = None if intervals is None else intervals[i : i + batch_size].to(z.dtype)
         told = None if r is None else torch.as_tensor(r, dtype=z.dtype).reshape(-1)[i : i + batch_size]
-        cov = None if meas_cov is None else torch.as_tensor(meas_cov).to(z.dtype)[i : i + batch_size]
         out, _ = net.rollout(z[i : i + batch_size], intervals=gaps, return_cov=return_cov, r=told,
-                             return_loglik=return_loglik, meas_cov=cov)
+                             return_loglik=return_loglik, meas_cov=None if cov is None else cov[i : i + batch_size])
         out.set(keys.MODE_PROBS, net.to_mode_probs(out[keys.ROLLOUT_EXPERT_PROBS]))
         waiting = before_first_detection(z[i : i + batch_size])
         outs.append(out.apply(lambda v, w=waiting: blank_before_first_detection(v, w)))
@@ -393,14 +387,6 @@ def check_n_tracks(n_tracks) -> int:
     return int(n_tracks)
 
 
-def check_batch(held: int | None, n: int) -> None:
-    """A ValueError where a scan of ``n`` rows comes to a tracker holding ``held`` tracks (None: none yet, the scan
-    sizes it)."""
-    if held is not None and held != n:
-        raise ValueError(f"this tracker holds {held} tracks but the scan has {n} rows: give one row per track (NaN for "
-                         f"a missed detection), or reset({n}) first")
-
-
 def per_track(value, n: int, name: str, dtype=torch.float64) -> torch.Tensor:
     """``value`` (one number or one per track) as ``[n]``; a ValueError naming both lengths otherwise."""
     v = torch.as_tensor(value, dtype=dtype).reshape(-1)
@@ -435,8 +421,6 @@ def scans_served(net) -> str:
 def provenance_of(path) -> str:
     """Where shipped weights' provenance is (the weights table's ``PROVENANCE-NAME.md``: ``immnet.checkpoints``),
     else the checkpoint's path (a network of one's own: no provenance shipped)."""
-    from immnet.checkpoints import shipped_entry
-
     if path is None:
         return "no provenance (built in Python)"
     entry = shipped_entry(path)
@@ -493,14 +477,16 @@ def fresh_tracks(tracker, n_tracks: int) -> None:
 def begin_scan(tracker, z: torch.Tensor, reset, dt, nominal: float, held: int | None):
     """What a streaming tracker (``Tracker``, ``NetworkBank``: its ``fresh``, ``since``, ``last``, ``max_position`` and
     ``max_coast``; ``held``: the number of tracks it holds, None: none yet) reads of one scan ``z [B, 3]`` (a row per
-    track held: :func:`check_batch`) before anything of its state changes:
+    track held; a ValueError for another number) before anything of its state changes:
     ``(gated, n_gated, reset, first, now, since)``: ``z`` gated, the number gated, ``reset [B]`` (None: none) the
     tracks that restart at this scan, given or after no detection for longer than ``max_coast`` s (:func:`coast_step`),
     ``first [B]`` each track's first scan since a restart, ``now [B]`` the scan's interval (``dt``, a number or ``[B]``;
     None: ``nominal``), a restarted track's at the interval of its scan before where ``dt`` is given, and ``since [B]``
     after the scan."""
     B, started = z.shape[0], held is not None
-    check_batch(held, B)
+    if started and held != B:
+        raise ValueError(f"this tracker holds {held} tracks but the scan has {B} rows: give one row per track (NaN for "
+                         f"a missed detection), or reset({B}) first")
     reset = None if reset is None else per_track(reset, B, "reset", torch.bool)
     first = tracker.fresh if started else torch.ones(B, dtype=torch.bool)
     first = first if reset is None else first | reset
