@@ -24,12 +24,12 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from immnet.checkpoints import GENERAL, SHIPPED, WEIGHTS, provenance_file, shipped
+
 
 def load_provenance(ckpt) -> dict | None:
     """The provenance JSON beside shipped weights (``immnet.checkpoints.provenance_file``), or None where there is
     none (a checkpoint of one's own) or it cannot be read as JSON."""
-    from immnet.checkpoints import provenance_file
-
     path = provenance_file(Path(ckpt))
     try:
         return json.loads(path.read_text())
@@ -89,8 +89,6 @@ def _accepts(span, dt, intervals) -> np.ndarray:
 def _table_scans(name: str) -> dict:
     """The intervals of the shipped network ``name`` as a provenance names them, from the weights table's ``scans``
     (``immnet/pretrained/weights.json``: ``[lo, hi]``, one interval where they are equal), for :func:`_takes`."""
-    from immnet.checkpoints import WEIGHTS
-
     lo, hi = (float(v) for v in WEIGHTS[name]["scans"])
     return {"interval_range": [lo, hi]} if lo < hi else {"scan_interval": lo}
 
@@ -136,7 +134,6 @@ def bank_note(intervals) -> str | None:
     filter, the note says so too, of the first such member (one trained at these scans first: ``real-11s`` at 10-12 s,
     ``real-4.5-12s`` at 8-10 s, each on real flights), so that the user, who knows which motion the data holds, has
     both measurements."""
-    from immnet.checkpoints import GENERAL, shipped
     from immnet.tracking.bank import DEFAULT_MEMBERS, DEFER
 
     median = _median(intervals)
@@ -179,8 +176,6 @@ def weights_note(loaded, provenance: dict | None, intervals) -> str | None:
     ``interval_range``, or its one ``scan_interval``) and a provenance, its own or the general one's, measured it ahead
     of the general network on one test set, both in one run there; None otherwise (other weights loaded, no such
     network, no intervals)."""
-    from immnet.checkpoints import GENERAL, SHIPPED, shipped
-
     median, mine = _median(intervals), provenance or {}
     if Path(loaded).resolve() != shipped(GENERAL).resolve() or median is None:
         return None
