@@ -14,12 +14,6 @@ from immnet.filters.base import before_first_detection, blank_before_first_detec
 from immnet.tracking.tracker import AS_CONFIGURED, PRETRAINED, Tracker, check_dt, load_network
 
 
-def told_needs(net) -> tuple[str, ...]:
-    """What of the data a network's filter experts are told: each track's ``r`` (``r="data"``), each detection's
-    ``meas_cov`` (``r="detection"``)."""
-    return ((keys.R,) if net.start.told_r else ()) + ((keys.MEAS_COV,) if net.start.told_cov else ())
-
-
 class _LearnedMethod:
     """What the learned methods share: ``net`` (an ``IMMNet``), ``name``, and the ``dt`` check."""
 
@@ -64,7 +58,8 @@ class IMMNetMethod(_LearnedMethod):
 
     def _use(self, tracker: Tracker, name: str, batch_size: int, return_cov: bool) -> None:
         self.name, self.tracker, self.net, self.batch_size = name, tracker, tracker.net, batch_size
-        self.needs = told_needs(self.net)  # a network told each track's r (each detection's R) reads the data's
+        start = self.net.start  # its filter experts read what they are told: each track's r, each detection's R
+        self.needs = ((keys.R,) if start.told_r else ()) + ((keys.MEAS_COV,) if start.told_cov else ())
         self._returns_cov(return_cov)
 
     @classmethod
