@@ -687,10 +687,26 @@ class _FilterExperts:
 
     # --- a starting track ---------------------------------------------------------------------
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        """What the gain it is mixed into carries (KalmanNet's hidden states), ``initial_memory``, and the robust
-        update's spare and re-acquisition's watch where it has them (not experts alone)."""
-        shape = (batch, self.n_experts) if experts_alone else (batch,)
-        spec = super().carry_spec(batch, experts_alone, dtype, device) | self.initial_memory(shape, dtype, device)
+        """What the gain it is mixed into carries (KalmanNet's hidden states), the gain's own part for tracks that have
+        not started (``[B]``, or ``[B, M]`` per expert experts alone), and the robust update's spare and
+        re-acquisition's watch where it has them (not experts alone)."""
+        M = self.n_experts
+        shape = (batch, M) if experts_alone else (batch,)
+        adapt = {} if self.adapt is None else {keys.Q_SCALE: torch.zeros(shape, dtype=dtype, device=device)}
+        r2 = (self.measurement.r if isinstance(self.measurement, Isotropic) else self.r0) ** 2
+        noise = torch.full(shape, r2, dtype=dtype, device=device)
+        if self.per_detection:  # a covariance per detection: r0^2 I until the track's first detection
+            noise = noise[..., None, None] * torch.eye(3, dtype=dtype, device=device)
+        spec = super().carry_spec(batch, experts_alone, dtype, device) | adapt | {
+            keys.EXPERT_POST: torch.zeros(batch, M, 9, dtype=dtype, device=device),
+            keys.EXPERT_RATE: self.rate_nominal.to(dtype).expand(batch, M).clone(),
+            keys.EXPERT_AUG_COV: self.start_cov(batch, torch.full((batch, M), r2, dtype=dtype, device=device), False),
+            keys.NOISE_VAR: noise,
+            keys.NOISE_SUM: torch.zeros(shape, dtype=dtype, device=device),
+            keys.NOISE_COUNT: torch.zeros(shape, dtype=dtype, device=device),
+            keys.Z_HISTORY: torch.full((*shape, 3, 3), float("nan"), dtype=dtype, device=device),
+            keys.INTERVAL_HISTORY: torch.full((*shape, 2), float(self.dt), dtype=dtype, device=device),
+        }
         if experts_alone:
             return spec
         if self.robust is not None:  # one per group with modes per group
@@ -700,38 +716,41 @@ class _FilterExperts:
         return spec | dict(zip(REACQUIRE_CARRY, reacq.watch(batch, dtype, device)))
 
     def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
-        """The start's carry, ``start_memory``, no far plot before it (the robust update's), and a watch that waits
-        for the detection confirming it (re-acquisition's)."""
-        out = super().start_carry(carry, z, x, second) | self.start_memory(carry, z, x, second)
+        """The gain's carry after a track's first or second detection ``z`` (``x``: ``start_estimate``'s) with what
+        the gain it is mixed into sets, no far plot before it (the robust update's), and a watch that waits for the
+        detection confirming it (re-acquisition's)."""
+        M = self.n_experts
+        B = z.shape[0]
+        hist = carry.get(keys.Z_HISTORY)
+        nan = prev = torch.full_like(z, float("nan"))
+        if second:  # the first detection is the previous scan's only where no scan was missed between
+            adjacent = (carry.get(keys.START_SCANS) == 1).view(-1, *([1] * (z.dim() - 1)))
+            prev = torch.where(adjacent, hist[..., 0, :], float("nan"))
+        elapsed = carry.get(keys.START_TIME)  # the time since the first detection
+        gap = (elapsed if second else torch.full_like(elapsed, float(self.dt))).to(z.dtype)
+        gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
+        gaps = gaps.view(B, *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
+        r2_track, P, _ = self._start(carry, z, second)  # the covariance with the prior (start_estimate: the estimate)
+        adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
+        out = super().start_carry(carry, z, x, second) | adapt | {
+            keys.EXPERT_POST: per_expert(x, M).clone(),
+            keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
+            keys.EXPERT_AUG_COV: P,
+            keys.Z_HISTORY: torch.stack([z, prev, nan], -2),
+            keys.INTERVAL_HISTORY: gaps.clone(),
+            keys.NOISE_VAR: r2_track,
+            keys.NOISE_SUM: carry.get(keys.NOISE_SUM),
+            keys.NOISE_COUNT: carry.get(keys.NOISE_COUNT),
+        }
         if self.robust is not None and z.dim() == 2:
-            out = out | {keys.ROBUST_SPARE: torch.zeros(self._spare_shape(z.shape[0]), dtype=z.dtype, device=z.device)}
+            out = out | {keys.ROBUST_SPARE: torch.zeros(self._spare_shape(B), dtype=z.dtype, device=z.device)}
         if self.reacquire is None or z.dim() != 2:
             return out
-        return out | dict(zip(REACQUIRE_CARRY, reacq.started(z, reacq.per_track_cov(out[keys.NOISE_VAR], z.shape[0], z))))
+        return out | dict(zip(REACQUIRE_CARRY, reacq.started(z, reacq.per_track_cov(out[keys.NOISE_VAR], B, z))))
 
     def _spare_shape(self, batch: int) -> tuple[int, ...]:
         """The robust update's carried ``spare`` (a far plot at the scan before): ``[B]``, or ``[B, G]`` per group."""
         return (batch,) if self.z_groups is None else (batch, len(self.z_groups))
-
-    def initial_memory(self, shape, dtype=torch.float32, device=None) -> dict:
-        """The gain's part of a carry for tracks that have not started; ``shape`` is ``[B]`` or ``[B, M]``."""
-        M = self.n_experts
-        B = shape[0]
-        adapt = {} if self.adapt is None else {keys.Q_SCALE: torch.zeros(shape, dtype=dtype, device=device)}
-        r2 = (self.measurement.r if isinstance(self.measurement, Isotropic) else self.r0) ** 2
-        noise = torch.full(shape, r2, dtype=dtype, device=device)
-        if self.per_detection:  # a covariance per detection: r0^2 I until the track's first detection
-            noise = noise[..., None, None] * torch.eye(3, dtype=dtype, device=device)
-        return adapt | {
-            keys.EXPERT_POST: torch.zeros(B, M, 9, dtype=dtype, device=device),
-            keys.EXPERT_RATE: self.rate_nominal.to(dtype).expand(B, M).clone(),
-            keys.EXPERT_AUG_COV: self.start_cov(B, torch.full((B, M), r2, dtype=dtype, device=device), False),
-            keys.NOISE_VAR: noise,
-            keys.NOISE_SUM: torch.zeros(shape, dtype=dtype, device=device),
-            keys.NOISE_COUNT: torch.zeros(shape, dtype=dtype, device=device),
-            keys.Z_HISTORY: torch.full((*shape, 3, 3), float("nan"), dtype=dtype, device=device),
-            keys.INTERVAL_HISTORY: torch.full((*shape, 2), float(self.dt), dtype=dtype, device=device),
-        }
 
     def start_cov(self, B: int, r2: torch.Tensor, second: bool, elapsed=None, r2_first=None) -> torch.Tensor:
         """Covariance of a starting track ``[B, M, 10, 10]``: after one scan position ``r^2``,
@@ -786,32 +805,6 @@ class _FilterExperts:
     def start_estimate(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> torch.Tensor:
         """The start estimate fused with the prior on the vertical speed (``start_vz_std``; ``Stage.start_estimate``)."""
         return x if self.start_vz_std is None else self._start(carry, z, second, x)[2]
-
-    def start_memory(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
-        """The gain's carry after a track's first or second detection ``z`` (``x``: ``start_estimate``'s)."""
-        M = self.n_experts
-        B = z.shape[0]
-        hist = carry.get(keys.Z_HISTORY)
-        nan = prev = torch.full_like(z, float("nan"))
-        if second:  # the first detection is the previous scan's only where no scan was missed between
-            adjacent = (carry.get(keys.START_SCANS) == 1).view(-1, *([1] * (z.dim() - 1)))
-            prev = torch.where(adjacent, hist[..., 0, :], float("nan"))
-        elapsed = carry.get(keys.START_TIME)  # the time since the first detection
-        gap = (elapsed if second else torch.full_like(elapsed, float(self.dt))).to(z.dtype)
-        gaps = torch.stack([gap, torch.full_like(gap, float(self.dt))], -1)
-        gaps = gaps.view(z.shape[0], *([1] * (z.dim() - 2)), 2).expand(*z.shape[:-1], 2)
-        r2_track, P, _ = self._start(carry, z, second)  # the covariance with the prior (start_estimate: the estimate)
-        adapt = {} if self.adapt is None else {keys.Q_SCALE: carry.get(keys.Q_SCALE)}
-        return adapt | {
-            keys.EXPERT_POST: per_expert(x, M).clone(),
-            keys.EXPERT_RATE: self.rate_nominal.to(z.dtype).expand(B, M).clone(),
-            keys.EXPERT_AUG_COV: P,
-            keys.Z_HISTORY: torch.stack([z, prev, nan], -2),
-            keys.INTERVAL_HISTORY: gaps.clone(),
-            keys.NOISE_VAR: r2_track,
-            keys.NOISE_SUM: carry.get(keys.NOISE_SUM),
-            keys.NOISE_COUNT: carry.get(keys.NOISE_COUNT),
-        }
 
     # --- one scan ----------------------------------------------------------------------------
     def _r2(self, td) -> torch.Tensor:
