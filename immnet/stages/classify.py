@@ -32,14 +32,6 @@ _MODE_KEYS_IN = [keys.MEASUREMENT, keys.FUSED, keys.EXPERT_PRIOR]
 _MODE_KEYS_OUT = [keys.MODE_LOGITS, keys.EXPERT_PROBS]
 
 
-def uniform_probs(batch: int, n_experts: int, dtype=torch.float32, device=None, modes: Modes = Modes.JOINT) -> dict:
-    """A classifier's carry before a track starts: the mode probabilities ``mu = 1/M`` ``[B, M]`` (per group,
-    ``modes``, ``[B, G, M]``)."""
-    G = Modes.parse(modes).n_groups
-    shape = (batch, n_experts) if G is None else (batch, G, n_experts)
-    return {keys.EXPERT_PROBS: torch.full(shape, 1.0 / n_experts, dtype=dtype, device=device)}
-
-
 def heading_frame(v: torch.Tensor):
     """cos and sin of the horizontal heading of velocities ``v [B, 3]`` (heading 0 when at rest, with a zero gradient
     there: ``std_of``)."""
@@ -86,11 +78,19 @@ class ModeUpdate(Stage):
     predicts the modes with, None for one that has none (``IMMNet.innovation_loglik`` weighs a track by it)."""
 
     markov_prior = None
-    modes = Modes.JOINT
+    shared = ("modes",)
+
+    def __init__(self, model_set: ModelSet, modes: str = "joint"):
+        """``modes``: one set of mode probabilities or one per group (``IMMNet``'s, set there once)."""
+        super().__init__(model_set)
+        self.modes = Modes.parse(modes)
+        self.groups = self.modes.n_groups
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
-        """The mode probabilities before a track starts: uniform (``uniform_probs``)."""
-        return uniform_probs(batch, self.n_experts, dtype, device, self.modes)
+        """The mode probabilities before a track starts: uniform, ``mu = 1/M`` ``[B, M]`` (per group, ``[B, G, M]``)."""
+        M = self.n_experts
+        shape = (batch, M) if self.groups is None else (batch, self.groups, M)
+        return {keys.EXPERT_PROBS: torch.full(shape, 1.0 / M, dtype=dtype, device=device)}
 
     @staticmethod
     def set_logits(td, logits: torch.Tensor) -> None:
@@ -102,8 +102,6 @@ class ModeUpdate(Stage):
 class TransformerClassifier(ModeUpdate):
     in_keys = _MODE_KEYS_IN + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
     out_keys = _MODE_KEYS_OUT + [keys.HISTORY, keys.HISTORY_LEN, keys.HISTORY_INTERVAL]
-
-    shared = ("modes",)
 
     def __init__(
         self,
@@ -124,13 +122,11 @@ class TransformerClassifier(ModeUpdate):
         classifier is told the plot's noise (``("memory", "r2")``, each detection's covariance where the filter
         experts are told it): every position feature in units of the noise's standard deviation along each axis of
         the heading frame (``noise_scale``) in place of fixed metres, and the head also reads ``log(scale / 5 m)``."""
-        super().__init__(model_set)
+        super().__init__(model_set, modes)
         self.window, self.dt, self.interval_input = window, dt, bool(interval_input)
         self.whiten = bool(whiten)
         if self.whiten:
             self.in_keys = [*self.in_keys, keys.NOISE_VAR]
-        self.modes = Modes.parse(modes)
-        self.groups = self.modes.n_groups
         self.embed = nn.Linear(6 + 12 + int(self.interval_input), d_model)
         self.pos = nn.Parameter(torch.randn(window, d_model) * 0.02)
         self.blocks = nn.ModuleList(_Block(d_model, heads, ff) for _ in range(layers))
@@ -299,12 +295,8 @@ class UniformMix(ModeUpdate):
     in_keys = [keys.FUSED]
     out_keys = _MODE_KEYS_OUT
 
-    shared = ("modes",)
-
     def __init__(self, model_set: ModelSet, dt: float = 1.0, modes: str = "joint"):
-        super().__init__(model_set)
-        self.modes = Modes.parse(modes)
-        self.groups = self.modes.n_groups
+        super().__init__(model_set, modes)
 
     def forward(self, td):
         x = td.get(keys.FUSED)
@@ -327,11 +319,8 @@ class TrueModeUpdate(ModeUpdate):
     in_keys = [keys.TRUE_MODE]
     out_keys = _MODE_KEYS_OUT
 
-    shared = ("modes",)
-
     def __init__(self, model_set: ModelSet, dt: float = 1.0, experts: list[int] | None = None, modes: str = "joint"):
-        super().__init__(model_set)
-        self.modes = Modes.parse(modes)
+        super().__init__(model_set, modes)
         if self.modes is not Modes.JOINT:
             raise ValueError(f"the truth's modes are the whole target's: TrueModeUpdate takes modes='joint', got "
                              f"{self.modes.value!r}")
@@ -389,8 +378,7 @@ class BayesianModeUpdate(_MarkovPrior, ModeUpdate):
 
     def __init__(self, model_set: ModelSet, dt: float = 1.0, p_stay: float = 0.9, sigma_q: float = 1.0, r: float = 4.0,
                  from_experts: bool = False, modes: str = "joint"):
-        super().__init__(model_set)
-        self.modes = Modes.parse(modes)
+        super().__init__(model_set, modes)
         if self.modes is not Modes.JOINT and not from_experts:
             raise ValueError(f"modes per group (modes={self.modes.value!r}) need the filter experts' likelihoods per "
                              "group: from_experts=True")
