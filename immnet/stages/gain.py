@@ -234,26 +234,25 @@ class AnalyticGain(Gain):
         self.register_buffer("F", model_set.F(dt))
         self.register_buffer("Q", model_set.Q(sigma_q, dt))
 
-    def initial_cov(self, shape, first: bool, elapsed=None) -> torch.Tensor:
-        """Covariance of a starting track: after one scan ``diag(r^2, 300^2, 10^2)`` per axis;
-        after two (differenced velocity over ``elapsed [B]``, the nominal ``dt`` where None)
+    def initial_cov(self, shape, elapsed=None) -> torch.Tensor:
+        """Covariance of a starting track: after one scan (``elapsed`` None) ``diag(r^2, 300^2, 10^2)`` per axis;
+        after two (differenced velocity over ``elapsed [B]``, the time between the detections)
         ``diag(r^2, 2 r^2 / elapsed^2, 10^2)``."""
         r2 = self.r**2
         d = torch.tensor([r2, 300.0**2, 100.0] * 3, dtype=self.F.dtype, device=self.F.device)
-        if not first:
-            e = torch.full(shape[:1], float(self.dt), dtype=d.dtype, device=d.device) if elapsed is None else elapsed
-            d = d.expand(*shape[:1], 9).clone()
-            d[:, 1::3] = (2.0 * r2 / e.to(d.dtype) ** 2)[:, None]
-            d = d.view(shape[0], *([1] * (len(shape) - 1)), 9).expand(*shape, 9)
-            return torch.diag_embed(d).clone()
-        return torch.diag(d).expand(*shape, 9, 9).clone()
+        if elapsed is None:
+            return torch.diag(d).expand(*shape, 9, 9).clone()
+        d = d.expand(*shape[:1], 9).clone()
+        d[:, 1::3] = (2.0 * r2 / elapsed.to(d.dtype) ** 2)[:, None]
+        d = d.view(shape[0], *([1] * (len(shape) - 1)), 9).expand(*shape, 9)
+        return torch.diag_embed(d).clone()
 
     def carry_spec(self, batch: int, experts_alone: bool = False, dtype=torch.float32, device=None) -> dict:
         """The fused covariance, a one-scan track's (what a first detection sets)."""
-        return {keys.FUSED_COV: self.initial_cov((batch, self.n_experts) if experts_alone else (batch,), first=True)}
+        return {keys.FUSED_COV: self.initial_cov((batch, self.n_experts) if experts_alone else (batch,))}
 
     def start_carry(self, carry, z: torch.Tensor, x: torch.Tensor, second: bool) -> dict:
-        return {keys.FUSED_COV: self.initial_cov(z.shape[:-1], first=False, elapsed=carry.get(keys.START_TIME))} if second else {}
+        return {keys.FUSED_COV: self.initial_cov(z.shape[:-1], carry.get(keys.START_TIME))} if second else {}
 
     def forward(self, td):
         P = per_expert(td.get(keys.FUSED_COV), self.n_experts, event_dims=2).to(self.F.dtype)
