@@ -254,6 +254,18 @@ def test_filter_gain_refuses_bad_settings():
             gain(ModelSet.from_config(ADAPTIVE), noise_sd=(0.2,) * 5)
 
 
+
+def test_filter_gain_refuses_settings_that_are_not_finite():
+    """A NaN or infinite process-noise std, noise prior or start rate std is refused as a negative one is, not taken
+    (a NaN noise_std made every entry of the process noise NaN: NaN times the zeros of its component)."""
+    ms = ModelSet.from_config(ADAPTIVE)
+    for std in ((math.nan, 0.2, 0.01, 0.002, 1e-5), (0.2, math.inf, 0.01, 0.002, 1e-5)):
+        with pytest.raises(ValueError, match="noise_std needs 5 standard deviations >= 0"):
+            FilterGain(ms, noise_std=std)
+    for bad in ({"r0": math.inf}, {"k0": math.nan}, {"rate_std0_deg": math.inf}):
+        with pytest.raises(ValueError, match="r0 and k0 must be > 0 and rate_std0_deg >= 0"):
+            FilterGain(ms, **bad)
+
 def test_bayes_mode_update_from_filter_experts_is_the_imm_mode_update(data):
     """``mu_t ∝ N(nu; 0, S) (Pi^T mu_{t-1})`` with each filter expert's own prior covariance and r^2
     estimate, recomputed in numpy from what the step wrote."""

@@ -583,9 +583,9 @@ class _FilterExperts:
             self.out_keys = [*self.out_keys, keys.Q_SCALE]
         self.register_buffer("white_mask", torch.isin(torch.arange(N_NOISE), torch.tensor(WHITE)), persistent=False)
         self.p_stay = float(p_stay)
-        if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0):
+        if not (r0 > 0 and k0 > 0 and rate_std0_deg >= 0 and math.isfinite(r0 + k0 + rate_std0_deg)):
             raise ValueError(f"r0 and k0 must be > 0 and rate_std0_deg >= 0, got {r0}, {k0}, {rate_std0_deg}")
-        if len(noise_std) != N_NOISE or min(noise_std) < 0:
+        if len(noise_std) != N_NOISE or not all(math.isfinite(v) and v >= 0 for v in noise_std):
             raise ValueError(f"noise_std needs {N_NOISE} standard deviations >= 0, got {noise_std}")
         own_acc, own_rate, lo, hi, nominal = _kinds(model_set, dt)
         std = torch.tensor(noise_std, dtype=torch.float64)
