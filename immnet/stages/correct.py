@@ -141,8 +141,7 @@ class OutputCorrection(Stage):
         self.inp = nn.Linear(self.n_features, self.hidden)
         self.gru = nn.GRU(self.hidden, self.hidden, num_layers=self.layers, batch_first=True)
         self.out = nn.Linear(self.hidden, 3)
-        nn.init.zeros_(self.out.weight)  # untrained, it corrects nothing: the step is its filter's
-        nn.init.zeros_(self.out.bias)
+        self.knock_out()  # untrained, it corrects nothing: the step is its filter's
 
     def wire(self, upstream: set) -> None:
         """It reads the fused covariance and the filters' measurement variance: the stages before it must write them

@@ -92,14 +92,18 @@ def _rate_limits(lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torc
     return torch.where(lo < 0, lo.clamp(max=-limit), lo), torch.where(hi > 0, hi.clamp(min=limit), hi)
 
 
-def _register_rate_bounds(stage, lo: list, hi: list) -> None:
-    """The model set's rate range ``rate_lo``, ``rate_hi`` (kept in checkpoints) and the bounds derived from
-    it once, ``rate_min``, ``rate_max`` (``_rate_limits``, float64 so that a ``.double()`` model is exact)."""
+def _register_rate_bounds(stage, model_set: ModelSet, dt: float) -> tuple:
+    """Registers on ``stage`` which experts turn at their own rate, ``own_rate``, and the model set's rate range
+    ``rate_lo``, ``rate_hi`` (kept in checkpoints), and the bounds derived from it once, ``rate_min``, ``rate_max``
+    (``_rate_limits``, float64 so that a ``.double()`` model is exact); returns the experts' ``_kinds``."""
+    kinds = _, own_rate, lo, hi, _ = _kinds(model_set, dt)
+    stage.register_buffer("own_rate", torch.tensor(own_rate))
     stage.register_buffer("rate_lo", torch.tensor(lo))
     stage.register_buffer("rate_hi", torch.tensor(hi))
     rate_min, rate_max = _rate_limits(torch.tensor(lo, dtype=torch.float64), torch.tensor(hi, dtype=torch.float64))
     stage.register_buffer("rate_min", rate_min, persistent=False)
     stage.register_buffer("rate_max", rate_max, persistent=False)
+    return kinds
 
 
 def _noise_components(own_acc, own_rate, dt, nominal: float | None = None) -> torch.Tensor:
@@ -355,13 +359,11 @@ class FilterPredict(Predict):
         self.turn_rate = _check_turn_rate(turn_rate)
         if self.turn_rate == TOLD:
             self.in_keys = [*self.in_keys, keys.TRUE_TURN_RATE]
-        own_acc, own_rate, lo, hi, _ = _kinds(model_set, dt)
+        own_acc, own_rate, _, _, _ = _register_rate_bounds(self, model_set, dt)
         self.register_buffer("own_acc", torch.tensor(own_acc))  # the model set's, kept with the weights
-        self.register_buffer("own_rate", torch.tensor(own_rate))
         # a told rate is known: the turn filters' rate row and column of the covariance [M, N_AUG], built once
         self.register_buffer("rate_known", self.own_rate[:, None] & (torch.arange(N_AUG) == RATE), persistent=False)
         self.has_turn = any(own_rate)  # a python bool: no data-dependent branch in a compiled step
-        _register_rate_bounds(self, lo, hi)
         self._own_rate = own_rate
         self.register_buffer("J_base", _jacobian_base(model_set, own_rate, dt), persistent=False)
         self.register_buffer("turn_index", torch.tensor([r * N_AUG + c for r, c in TURN_ENTRIES]), persistent=False)
@@ -419,9 +421,7 @@ class FilterUpdate(Update):
         model's range where None, else kept as it is."""
         super().__init__(model_set)
         self.turn_rate = _check_turn_rate(turn_rate)
-        _, own_rate, lo, hi, _ = _kinds(model_set, dt)
-        self.register_buffer("own_rate", torch.tensor(own_rate))
-        _register_rate_bounds(self, lo, hi)
+        _register_rate_bounds(self, model_set, dt)
         self.correction = bool(correction)
         self.told_cov = bool(told_cov)
         self.robust = bool(robust)

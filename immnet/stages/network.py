@@ -126,14 +126,13 @@ def build_component(component, model_set: ModelSet, dt: float, settings: dict, r
 
 def _check_modes(modes: Modes, model_set: ModelSet, gain, classifier) -> None:
     """A ValueError where modes per group cannot be: models that couple the groups (per axis, a turn; per channel,
-    none of ours), or a gain or classifier that has no ``modes`` (the filter gains refuse the range guard with it
-    themselves)."""
+    none of ours), or a gain or classifier (``component_config``'s mappings) that has no ``modes`` (the filter gains
+    refuse the range guard with it themselves)."""
     coupled = coupling(model_set, modes.groups)
     if coupled:
         raise ValueError(f"modes per {modes} need motion models that keep the groups apart (F block diagonal per "
                          f"group, a turn's rate with the plane it turns in); {coupled} couple them")
-    for role, component in (("gain", gain), ("classifier", classifier)):
-        config = component_config(component)
+    for role, config in (("gain", gain), ("classifier", classifier)):
         if "modes" not in import_class(config["class_path"], Stage).shared:
             raise ValueError(f"modes per {modes}: the {role} {config['class_path']} has none (filter experts, "
                              "immnet.stages.filtering, and the Bayesian or Transformer mode updates have)")
@@ -226,9 +225,9 @@ class IMMNet(TensorDictModuleBase):
         self.modes = modes = Modes.parse(modes)
         self.groups = modes.groups
         settings = {k: v for k, v in zip(SET_ONCE, (p_stay, guard)) if v is not None} | {"modes": modes}
-        if modes is not Modes.JOINT:
-            _check_modes(modes, ms, gain or DEFAULT_GAIN, classifier or DEFAULT_CLASSIFIER)
         gain, classifier = component_config(gain or DEFAULT_GAIN), component_config(classifier or DEFAULT_CLASSIFIER)
+        if modes is not Modes.JOINT:
+            _check_modes(modes, ms, gain, classifier)
         self.config = spelled({  # plain data: what a checkpoint's hyper_parameters hold to rebuild this network
             "model_set": self.model_set_config["models"], "gain": gain, "classifier": classifier, "dt": dt,
             **{k: v for k, v in settings.items() if k != "modes" or v is not Modes.JOINT}})
