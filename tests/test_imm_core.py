@@ -137,3 +137,17 @@ def test_one_gaussian_loglik_one_3x3_solve_one_moment_match():
         torch.testing.assert_close(xf[b], mean, rtol=1e-12, atol=1e-12)
         torch.testing.assert_close(Pf[b], cov, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(moment_match(mu[..., None, None], x, xf, P), Pf, rtol=0, atol=0)
+
+
+def test_onset_priors_follow_the_filters_device():
+    """``mix`` and ``enter`` take ``onset_priors``' float64 CPU tensors to the filters' dtype and device: the
+    clairvoyant bounds hand them to ``runner.run`` as built, which on a GPU combined CPU priors with the states. The
+    meta device stands for a GPU here."""
+    from immnet.imm.interaction import enter, mix, onset_priors
+
+    onset = onset_priors([False, True, False], [False] * 3, [0.0] * 3, n=9)
+    x = torch.zeros(2, 3, 9, device="meta", dtype=torch.float32)
+    P = torch.zeros(2, 3, 9, 9, device="meta", dtype=torch.float32)
+    w = torch.zeros(2, 3, 3, device="meta", dtype=torch.float32)
+    for out in (mix(w, x, P, onset), enter(x, P, *onset)):
+        assert all(v.device.type == "meta" and v.dtype == torch.float32 for v in out)

@@ -83,8 +83,8 @@ def onset_priors(own_acc, own_rate, nominal, n: int = RATE + 1, acc_var=None, ra
 def enter(x: torch.Tensor, P: torch.Tensor, keep: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor):
     """One posterior ``x [..., n]``, ``P [..., n, n]`` entering a filter it is not, with that filter's onset
     prior (a row of ``onset_priors``: ``keep [..., n]``, ``mean [..., n]``, ``cov [..., n, n]``):
-    ``keep x + mean`` and ``(keep keep^T) P + cov``."""
-    keep, mean, cov = keep.to(x.dtype), mean.to(x.dtype), cov.to(x.dtype)
+    ``keep x + mean`` and ``(keep keep^T) P + cov``; the prior taken to ``x``'s dtype and device."""
+    keep, mean, cov = keep.to(x), mean.to(x), cov.to(x)
     return x * keep + mean, P * (keep[..., :, None] * keep[..., None, :]) + cov
 
 
@@ -135,7 +135,7 @@ def mix(w: torch.Tensor, x: torch.Tensor, P: torch.Tensor, priors=None, bound=No
     if priors is None:
         xc, mask, cov = x.unsqueeze(2).expand(*w.shape, x.shape[-1]), None, None
     else:
-        keep, mean, cov = (v.to(x.dtype) for v in priors)
+        keep, mean, cov = (v.to(x) for v in priors)  # onset_priors' are float64 on the CPU
         xc, mask = entering(x, keep, mean), keep[:, :, None] * keep[:, None, :]
     if bound is None:
         x0 = (w.unsqueeze(-1) * xc).sum(1)
