@@ -270,10 +270,9 @@ class SwitchClairvoyantKF(ClairvoyantKF):
         # in the mode's sign), and where a turn's rate changes within it: the onset priors of CV, CA, CT+, CT-
         onset = onset_priors([False, True, False, False], [False, False, True, True], [0.0, 0.0, 1.0, -1.0], n=10,
                              acc_var=self.acc_var, rate_prior_deg=self.turn_prior_deg)
-        keep, mean, cov = (v.to(dtype=dtype, device=dev) for v in onset)
         x9, P9 = initial_state(z, r)
         x, P = torch.nn.functional.pad(x9, (0, 1)), torch.nn.functional.pad(P9, (0, 1, 0, 1))  # w 0, its variance 0
-        x, P = enter(x[:, None], P[:, None], keep, mean, cov)  # each filter as the track starts in its mode
+        x, P = enter(x[:, None], P[:, None], *onset)  # each filter as the track starts in its mode
         one = torch.full((N_MODES, N_MODES), 1.0 / N_MODES, dtype=dtype, device=dev)
         states, _, _ = run(z, x, P, one[0].expand(B, N_MODES), one, transition, r**2, onset=onset, oracle=mode, H=H,
                            restart=self.restarts(mode, rate), start=first_detection(z))
