@@ -285,9 +285,7 @@ def adaptive_ct_propagate(x: torch.Tensor, lo, hi, dt: float) -> torch.Tensor:
 
 def noise_gain(dt, kind: str = "white", dtype=torch.float64, device=None) -> torch.Tensor:
     """Noise gain ``G`` ``[9, 3]`` (``[..., 9, 3]`` for a tensor ``dt [...]``): per axis ``[dt^2/2, dt, 0]``
-    (white) or ``[dt^2/2, dt, 1]`` (wiener)."""
-    if kind not in ("white", "wiener"):
-        raise ValueError(f"noise kind must be 'white' or 'wiener', got {kind!r}")
+    (wiener; any other ``kind``: white, ``process_noise`` has checked it)."""
     d = _dt(dt, dtype, device)
     g = torch.stack([0.5 * d * d, d, torch.full_like(d, 1.0 if kind == "wiener" else 0.0)], -1)
     return block_diagonal([g[..., None]] * AXES)  # each axis's column g on its rows
@@ -322,9 +320,10 @@ def singer_block(tau: float, dt, dtype=torch.float64, device=None) -> torch.Tens
 
         [[1, dt, (b dt - 1 + e) / b^2], [0, 1, (1 - e) / b], [0, 0, e]]
 
-    computed as the matrix exponential in float64 (no cancellation for ``dt << tau``), then cast to ``dtype``."""
+    computed as the matrix exponential in float64 (no cancellation for ``dt << tau``), then cast to ``dtype``; ``tau``
+    as ``Singer`` has checked it."""
     d = _dt(dt, torch.float64, device)
-    A = _singer_system(_check_tau(tau), torch.float64, device)
+    A = _singer_system(tau, torch.float64, device)
     return torch.linalg.matrix_exp(d[..., None, None] * A).to(dtype)
 
 
@@ -354,8 +353,7 @@ def singer_noise(tau: float, dt, dtype=torch.float64, device=None) -> torch.Tens
     F^T]]``, ``Q = F G``; IEEE TAC 1978), where the closed form's terms cancel (its ``q11`` is a difference of O(1)
     terms of size ``(dt / tau)^5``); beyond, by the closed form (``exp(dt / tau)`` in Van Loan's blocks would cost
     digits). ``tau -> inf`` is the CA model's white jerk; the acceleration's stationary variance is ``q tau / 2``
-    (Singer, IEEE TAES 1970, with ``q = 2 sigma_m^2 / tau``)."""
-    tau = _check_tau(tau)
+    (Singer, IEEE TAES 1970, with ``q = 2 sigma_m^2 / tau``); ``tau`` as ``Singer`` has checked it."""
     d = _dt(dt, torch.float64, device)
     near = d <= tau
     A = _singer_system(tau, torch.float64, device)
@@ -374,19 +372,15 @@ def singer_noise(tau: float, dt, dtype=torch.float64, device=None) -> torch.Tens
 
 def continuous_noise(dt, order: int, dtype=torch.float64, device=None, tau: float | None = None) -> torch.Tensor:
     """Per-axis ``Q / q`` ``[..., 3, 3]`` of continuous white noise on derivative ``order`` (1: acceleration,
-    the CV model's; 2: jerk, the CA model's), integrated exactly over ``dt`` (a float or a tensor ``[...]``);
-    with ``tau`` (order 2 only), the Singer model's (``singer_noise``)."""
+    the CV model's; 2: jerk, the CA model's: a ``MotionModel``'s ``order``), integrated exactly over ``dt`` (a float or
+    a tensor ``[...]``); with ``tau`` (the Singer model's, of order 2), ``singer_noise``."""
     if tau is not None:
-        if order != 2:
-            raise ValueError(f"a correlation time tau is the Singer model's, on the acceleration (order 2), got order {order}")
         return singer_noise(tau, dt, dtype=dtype, device=device)
     d = _dt(dt, dtype, device)
     if order == 1:
         rows = [[d**3 / 3, d**2 / 2, 0.0], [d**2 / 2, d, 0.0], [0.0, 0.0, 0.0]]
-    elif order == 2:
-        rows = [[d**5 / 20, d**4 / 8, d**3 / 6], [d**4 / 8, d**3 / 3, d**2 / 2], [d**3 / 6, d**2 / 2, d]]
     else:
-        raise ValueError(f"continuous noise is on acceleration (order 1) or jerk (order 2), got order {order}")
+        rows = [[d**5 / 20, d**4 / 8, d**3 / 6], [d**4 / 8, d**3 / 3, d**2 / 2], [d**3 / 6, d**2 / 2, d]]
     return _block(rows, d)
 
 
@@ -395,7 +389,7 @@ def process_noise(sigma_q, dt, kind: str = "white", dtype=torch.float64, device=
     """``Q = sigma_q^2 G G^T`` (white, wiener) or ``sigma_q^2 Q_c(dt)`` (continuous, on derivative ``order``; with
     ``tau``, the Singer model's); a batch of ``sigma_q`` or of intervals ``dt`` ``[...]`` gives ``[..., 9, 9]``.
     ``vertical`` scales the z axis's ``sigma_q`` (aircraft climb and descend more gently than they turn and speed
-    up)."""
+    up; a model's, checked by its constructor)."""
     if kind not in NOISE_KINDS:
         raise ValueError(f"noise kind must be one of {', '.join(NOISE_KINDS)}, got {kind!r}")
     if tau is not None and kind != "continuous":
@@ -405,7 +399,6 @@ def process_noise(sigma_q, dt, kind: str = "white", dtype=torch.float64, device=
     if negative:
         raise ValueError(f"sigma_q must be non-negative, got {sigma_q}")
     sq = torch.as_tensor(sigma_q, dtype=dtype, device=device)
-    vertical = _check_vertical(vertical)
     if kind == "continuous":
         Q = block_diagonal([continuous_noise(dt, order, dtype=dtype, device=device, tau=tau)] * AXES)
     else:
