@@ -40,30 +40,9 @@ def linear_transition(F: torch.Tensor, Q: torch.Tensor) -> Callable:
     return transition
 
 
-def _per_filter(R, like: torch.Tensor) -> torch.Tensor:
-    """The measurement variance or covariance broadcast over the filters: ``[B]`` -> ``[B, 1]``."""
-    R = torch.as_tensor(R, dtype=like.dtype, device=like.device)
-    return R[:, None] if R.dim() == 1 else R
-
-
 def late_starts(start: torch.Tensor | None) -> int:
     """The last scan at which a track starts (``start [B]``, one host read per sequence), 0 where none is given."""
     return 0 if start is None or start.numel() == 0 else int(start.max())
-
-
-def _holding(start, x, P, mu):
-    """``(last, start, x, P, mu)``: what ``_hold`` restores, and the last scan a track is held at; None where no
-    track starts after scan 0."""
-    last = late_starts(start)
-    return None if last == 0 else (last, start.to(x.device), x, P, mu)
-
-
-def _hold(held, t: int, *now):
-    """The filters' ``now`` (each ``[B, ...]``) with the tracks that start at scan ``t`` or later back at their
-    starting values (``_holding``)."""
-    _, start, *initial = held
-    h = t <= start
-    return tuple(torch.where(h.view(-1, *[1] * (v.dim() - 1)), v0, v) for v, v0 in zip(now, initial))
 
 
 def run(
@@ -128,7 +107,7 @@ def run(
             experts[:, t] = x
 
     record(0, x, P, mu)
-    held = _holding(start, x, P, mu)
+    last, initial = late_starts(start), (x, P, mu)  # the last scan a track is held at, and what it holds
     spare = None if robust is None else torch.zeros(B, 1, dtype=torch.bool, device=z.device)  # kalman's module doc
     watching = None if reacquire is None else reacquire.begin(x, P)
     restarts = None if restart is None else restart.any(0).tolist()  # one host read per sequence
@@ -143,7 +122,8 @@ def run(
         if measure is not None:
             x, P, ll, *after = measure(t, xp, Pp, spare)
         else:
-            Rt = _per_filter(R(t) if callable(R) else R, z)
+            Rt = torch.as_tensor(R(t) if callable(R) else R, dtype=z.dtype, device=z.device)
+            Rt = Rt[:, None] if Rt.dim() == 1 else Rt  # a variance per track [B], for every filter
             zt = z[:, t]
             if watching is not None:  # re-acquisition: a far detection may be gated out, a track restarted
                 watching, zt, restarting = reacquire.observe(watching, t, zt, Rt, xp, Pp, start)
@@ -154,11 +134,12 @@ def run(
             mu = onehot[:, t]
         else:
             mu = mode_update(torch.log(mu @ Pi), ll)
-        if held is not None and t <= held[0]:
-            x, P, held_mu = _hold(held, t, x, P, mu)
+        if t <= last:  # the tracks that start at scan t or later back at their starting values
+            h = t <= start.to(x.device)
+            x, P, held_mu = (torch.where(h.view(-1, *[1] * (v.dim() - 1)), v0, v) for v, v0 in zip((x, P, mu), initial))
             mu = held_mu if onehot is None else mu  # an oracle's modes stand
             if spare is not None:  # a track starts at its first detection with no far plot before it
-                spare = spare & (t > held[1])[:, None]
+                spare = spare & ~h[:, None]
         if watching is not None:
             x, P, mu = reacquire.restart(restarting, z[:, t], Rt, x, P, mu)
             if spare is not None:
