@@ -122,3 +122,28 @@ def test_compiled_imm_tracker_equals_eager():
     eager, compiled = IMMTracker(**args).track(batch), IMMTracker(**args, compile=True).track(batch)
     torch.testing.assert_close(compiled[keys.STATE], eager[keys.STATE], rtol=1e-9, atol=1e-7)
     torch.testing.assert_close(compiled[keys.MODE_PROBS], eager[keys.MODE_PROBS], rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("compile_step", [False, True])
+def test_a_mode_that_nothing_enters_keeps_the_track_finite(compile_step):
+    """``p_stay`` 1 (accepted: a bank of filters that never switch) once a mode's probability underflows to 0: its
+    mixing weights were ``0 / 0`` and the NaN reached every filter and the track. They are 0 now, in the core's loop
+    and in the fused step (run eagerly here), and the mode keeps probability 0."""
+    from immnet.data.generate import generate
+    from immnet.filters.imm import initial_state
+    from immnet.filters.imm_fused import fused_step, imm_filter_fused
+
+    data = generate(2, seed=1)
+    models = [{"class_path": "immnet.motion.ConstantVelocity"}, {"class_path": "immnet.motion.ConstantAcceleration"}]
+    imm = IMMTracker(models, r=3.0, sigma_q=[0.01, 1.0], p_stay=1.0)
+    if compile_step:
+        z = data["measurements"]
+        x0, P0 = initial_state(z, 3.0)
+        F, Q, Pi, mu0 = imm.matrices(1.0)
+        state, probs, _ = imm_filter_fused(z, x0, P0, F, Q, torch.tensor(9.0, dtype=z.dtype), Pi, mu0, False,
+                                           step=fused_step)
+    else:
+        out = imm.track(data)
+        state, probs = out["state"], out["mode_probs"][..., :2]
+    assert torch.isfinite(state).all() and torch.isfinite(probs).all()
+    assert (probs == 0).any()  # a mode did underflow

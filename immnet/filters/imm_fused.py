@@ -47,7 +47,7 @@ def fused_step(x, P, mu, z, miss, F, Q, PiT, R):
     """
     M = PiT.shape[0]
     cbar = _dot(PiT, mu, -2)  # [j, B]
-    w = PiT * (mu * cbar.reciprocal()[:, None])  # [j, i, B]
+    w = PiT * (mu * cbar.clamp_min(torch.finfo(cbar.dtype).tiny).reciprocal()[:, None])  # [j, i, B]; 0 where cbar 0
     xm = _dot(w[:, :, None], x, -3)  # [j, 9, B]
     Pm = None
     for i in range(M):  # P0_j = sum_i w_ji (P_i + d d^T), d = x_i - x0_j

@@ -90,9 +90,11 @@ def enter(x: torch.Tensor, P: torch.Tensor, keep: torch.Tensor, mean: torch.Tens
 
 def mixing_weights(mu: torch.Tensor, Pi: torch.Tensor) -> torch.Tensor:
     """``mu_{i|j} = Pi_ij mu_i / sum_k Pi_kj mu_k``, ``[B, i, j]``, from ``mu [B, M]`` and ``Pi`` ``[M, M]``
-    or ``[B, M, M]``."""
+    or ``[B, M, M]``. Where nothing can enter ``j`` (``cbar_j = 0``: a transition matrix with zeros, ``p_stay`` 1,
+    once ``mu`` of every mode that reaches ``j`` has underflowed to 0) the weights are 0, not ``0 / 0``: the filter
+    restarts from nothing and its mode keeps probability 0."""
     joint = mu.unsqueeze(-1) * Pi
-    return joint / joint.sum(-2, keepdim=True)
+    return joint / joint.sum(-2, keepdim=True).clamp_min(torch.finfo(joint.dtype).tiny)
 
 
 def entering(x: torch.Tensor, keep: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
