@@ -43,6 +43,7 @@ from tensordict import TensorDict
 from immnet import keys
 from immnet.filters.base import Method, as_dtype, data_mode_probs, interval_or_intervals, output
 from immnet.filters.trackers import _non_negative
+from immnet.imm.option import is_number
 from immnet.motion import DEG, ModelSet
 from immnet.stages.network import IMMNet
 
@@ -72,6 +73,9 @@ class IMMEKF(Method):
         name: str = "imm-ekf",
         return_cov: bool = False,
     ):
+        for arg, value in (("sigma_q", sigma_q), ("p_stay", p_stay)):  # one number each: float() below
+            if not is_number(value):
+                raise ValueError(f"{arg} must be one number, got {value!r}")
         _non_negative("sigma_q", sigma_q)
         _non_negative("rate_noise_deg", rate_noise_deg)  # p_stay, r, r0 and k0 are checked by the network's stages
         self.model_set = ModelSet.from_config(model_set)
