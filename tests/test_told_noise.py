@@ -498,3 +498,16 @@ def test_a_robust_shipped_network_streams_as_it_tracks(name):
     error = {n: (out[far][:, [0, 3, 6]] - truth).norm(dim=-1).max() for n, out in (
         ("robust", whole), ("plain", plain.track(z)[keys.STATE]))}
     assert error["robust"] < 0.5 * error["plain"], error
+
+
+@pytest.mark.parametrize("stage, arg", [("TransformerClassifier", "whiten"), ("TransformerClassifier", "interval_input"),
+                                        ("KalmanNetGain", "interval_input")])
+def test_a_switch_that_is_not_a_bool_is_refused(stage, arg):
+    """A network's switches are true or false: ``"false"`` (a quoted YAML value) is refused by name rather than read
+    as true through ``bool``, as the output correction's ``whiten`` already was."""
+    import immnet.stages as stages
+
+    model_set = IMMNet(model_set=ADAPTIVE).model_set
+    with pytest.raises(ValueError, match=f"{arg} must be true or false, got 'false'"):
+        getattr(stages, stage)(model_set, **{arg: "false"})
+    assert getattr(getattr(stages, stage)(model_set, **{arg: True}), arg) is True

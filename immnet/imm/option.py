@@ -19,6 +19,14 @@ def positive(value, refusal: str) -> float:
     return float(value)
 
 
+def flag(value, name: str) -> bool:
+    """``value`` where it is a bool, else a ValueError naming ``name``: a configured switch (``"false"`` would read as
+    true through ``bool``)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{name} must be true or false, got {value!r}")
+    return value
+
+
 class Option:
     """Mixin of a frozen dataclass that a tracker takes as an optional setting (``RangeGuard``,
     ``AdaptiveNoise``); ``ARG`` names the constructor argument in error messages."""

@@ -22,6 +22,7 @@ from torch import nn
 from immnet import keys
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import gaussian_loglik, inv3
+from immnet.imm.option import flag
 from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, N_MODES, ModelSet, Modes
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.correct import noise_covariance, std_of
@@ -123,8 +124,8 @@ class TransformerClassifier(ModeUpdate):
         experts are told it): every position feature in units of the noise's standard deviation along each axis of
         the heading frame (``noise_scale``) in place of fixed metres, and the head also reads ``log(scale / 5 m)``."""
         super().__init__(model_set, modes)
-        self.window, self.dt, self.interval_input = window, dt, bool(interval_input)
-        self.whiten = bool(whiten)
+        self.window, self.dt, self.interval_input = window, dt, flag(interval_input, "interval_input")
+        self.whiten = flag(whiten, "whiten")
         if self.whiten:
             self.in_keys = [*self.in_keys, keys.NOISE_VAR]
         self.embed = nn.Linear(6 + 12 + int(self.interval_input), d_model)

@@ -44,6 +44,7 @@ from torch import nn
 
 from immnet import keys
 from immnet.imm.kalman import as_covariance
+from immnet.imm.option import flag
 from immnet.motion import ACC, POS, VEL, Modes
 from immnet.stages.base import Stage, measured, scan_interval
 
@@ -131,9 +132,7 @@ class OutputCorrection(Stage):
         super().__init__(model_set)
         if int(hidden) < 1 or int(layers) < 1:
             raise ValueError(f"hidden and layers must be at least 1, got hidden={hidden!r}, layers={layers!r}")
-        if not isinstance(whiten, bool):
-            raise ValueError(f"whiten must be true or false, got {whiten!r}")
-        self.whiten = whiten
+        self.whiten = flag(whiten, "whiten")
         self.dt = float(dt)
         self.hidden, self.layers = int(hidden), int(layers)
         self.n_groups = Modes.parse(modes).n_groups or 1

@@ -28,6 +28,7 @@ from torch import nn
 
 from immnet import keys
 from immnet.imm.kalman import inv3, joseph
+from immnet.imm.option import flag
 from immnet.motion import POS, ModelSet
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.features import F1_SCALE, F2_SCALE, F3_SCALE, F4_SCALE, slog, state_scale
@@ -102,7 +103,7 @@ class KalmanNetGain(Gain):
         interval_input: bool = False,
     ):
         super().__init__(model_set)
-        self.dt, self.interval_input = dt, bool(interval_input)
+        self.dt, self.interval_input = dt, flag(interval_input, "interval_input")
         M, m, n = self.n_experts, 9, 3
         self.d_q, self.d_sigma, self.d_s = m * m, m * m, n * n
         self.fc5 = StackedLinear(M, m, m * in_mult)  # F4 -> GRU_Q
