@@ -253,6 +253,7 @@ def test_imm_ekf_keeps_finite_states_through_a_long_gap(data):
 @pytest.mark.parametrize(
     "kwargs, words",
     [({"p_stay": 1.5}, "p_stay"), ({"rate_noise_deg": -1.0}, "rate_noise_deg"), ({"r": -1.0}, "r must"),
+     ({"rate_noise_deg": "fast"}, "rate_noise_deg must be finite and >= 0, got 'fast'"),
      ({"sigma_q": float("nan")}, "sigma_q"), ({"sigma_q": [0.1, 0.2]}, "sigma_q must be one number"),
      ({"p_stay": [[0.9, 0.1], [0.1, 0.9]]}, "p_stay must be one number")],
 )
