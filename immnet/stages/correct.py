@@ -182,7 +182,7 @@ class OutputCorrection(Stage):
         y, h_new = self.gru(torch.relu(self.inp(f.to(w.dtype))).unsqueeze(1), h.to(w.dtype).transpose(0, 1).contiguous())
         delta = self.out(y[:, 0]).to(f.dtype)
         step = (scale @ delta.unsqueeze(-1)).squeeze(-1) if self.whiten else scale * delta
-        running = (td.get(keys.AGE) >= 1).reshape(-1, 1)  # the track has an estimate
+        running = _has_estimate(td).reshape(-1, 1)
         # a track's first detection is reported as its filter reports it (the measurement, as every tracker's); the
         # correction starts at the scan after, when its state has seen the track
         corrects = running & (td.get(keys.OUTPUT_SEEN) >= 1).reshape(-1, 1)
@@ -195,6 +195,11 @@ class OutputCorrection(Stage):
         return td
 
 
+def _has_estimate(td) -> torch.Tensor:
+    """``[B]`` bool: the track has an estimate, from its first detection on."""
+    return td.get(keys.AGE) >= 1
+
+
 def _report(td, shift: torch.Tensor, h: torch.Tensor) -> None:
     """Write the step's output (the fused estimate, its position shifted by ``shift``), the correction's state ``h``
     and whether it has seen the track (from the scan the track has an estimate on)."""
@@ -203,7 +208,7 @@ def _report(td, shift: torch.Tensor, h: torch.Tensor) -> None:
     out[..., list(POS)] = x[..., list(POS)] + shift
     td.set(keys.OUTPUT, out)
     td.set(keys.OUTPUT_HIDDEN, h)
-    running = (td.get(keys.AGE) >= 1).reshape(seen.shape)  # from its first detection on
+    running = _has_estimate(td).reshape(seen.shape)
     td.set(keys.OUTPUT_SEEN, torch.where(running, torch.ones_like(seen), seen))
 
 
