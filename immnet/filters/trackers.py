@@ -32,13 +32,13 @@ from immnet.motion import ModelSet, Modes, MotionModel, coupling, instantiate
 
 def _non_negative(name: str, value) -> None:
     """A ValueError unless ``value`` (a number or a list of them) is finite and >= 0, naming ``name``."""
+    items = value if isinstance(value, (list, tuple)) else [value]
     try:
-        values = [float(v) for v in (value if isinstance(value, (list, tuple)) else [value])]
+        ok = all(math.isfinite(float(v)) and float(v) >= 0 for v in items)
     except (TypeError, ValueError):  # not a number: float()'s own message would not name the setting
-        values = [math.nan]
-    for v in values:
-        if not math.isfinite(v) or v < 0:
-            raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+        ok = False
+    if not ok:
+        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
 
 
 ISOTROPIC = (Isotropic, ToldStd)
