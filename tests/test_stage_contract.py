@@ -392,3 +392,19 @@ def test_what_a_stage_declares_it_takes_is_what_its_constructor_takes(cls):
         assert set(cls.load_options) == params & set(_NEEDS_FILTERS)
     else:
         assert cls.load_options == ()
+
+
+@pytest.mark.parametrize("settings", [{"p_stay": 0.9}, {"guard": True}, {"p_stay": 0.9, "guard": {"speeds": False}}])
+def test_a_setting_no_component_takes_is_refused_in_one_line(settings):
+    """IMMNet's p_stay and guard reach only the components whose ``shared`` names them: on a network of KalmanNet
+    gain experts and the Transformer classifier (neither takes them) a value would change nothing, so it is refused;
+    ``guard=False`` (no guard) is what that network has, and the same p_stay is taken by the Bayesian update."""
+    kalmannet = {"gain": {"class_path": "immnet.stages.KalmanNetGain"},
+                 "classifier": {"class_path": "immnet.stages.TransformerClassifier"}}
+    with pytest.raises(ValueError, match=" ".join(n for n in ("p_stay", "and", "guard")
+                                                  if n in settings or (n == "and" and len(settings) == 2))):
+        IMMNet(**kalmannet, **settings)
+    IMMNet(**kalmannet, guard=False)
+    bayes = IMMNet(gain=kalmannet["gain"], classifier={"class_path": "immnet.stages.BayesTransformerClassifier"},
+                   p_stay=0.9)
+    assert bayes.classify.p_stay == 0.9

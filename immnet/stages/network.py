@@ -138,6 +138,18 @@ def _check_modes(modes: Modes, model_set: ModelSet, gain, classifier) -> None:
                              "immnet.stages.filtering, and the Bayesian or Transformer mode updates have)")
 
 
+def _check_taken(settings: dict, stages) -> None:
+    """A ValueError where ``p_stay`` or a range guard is set on ``IMMNet`` and none of its ``stages`` takes it (its
+    ``Stage.shared``): set, it would change nothing. ``guard=False`` (no guard) is what such a network has."""
+    taken = {name for stage in stages if stage is not None for name in stage.shared}
+    unused = [name for name in ("p_stay", "guard") if name in settings and name not in taken
+              and settings[name] is not False]
+    if unused:
+        raise ValueError(f"IMMNet's {' and '.join(unused)} would change nothing: no component of this network takes "
+                         f"{'them' if len(unused) > 1 else 'it'} (filter experts, immnet.stages.filtering, take both; "
+                         "the Bayesian mode updates p_stay)")
+
+
 def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:
     """Leafwise ``where(cond, a, b)`` with a batch mask ``cond [B]`` broadcast over each leaf (``track_where``)."""
     out = b.empty()
@@ -247,6 +259,7 @@ class IMMNet(TensorDictModuleBase):
             correction = component_config(correction)
             self.config["correction"] = spelled(correction)
             self.correct = build_component(correction, ms, dt, settings)
+        _check_taken(settings, (self.gain, self.classify, self.correct))
         first = () if self.interact is None else (self.interact,)
         # the step and the experts-alone step run the stages above between a track start's two stages; they are
         # not submodules of their own, so a state dict names each weight once, by the stage's role
