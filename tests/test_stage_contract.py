@@ -408,3 +408,17 @@ def test_a_setting_no_component_takes_is_refused_in_one_line(settings):
     bayes = IMMNet(gain=kalmannet["gain"], classifier={"class_path": "immnet.stages.BayesTransformerClassifier"},
                    p_stay=0.9)
     assert bayes.classify.p_stay == 0.9
+
+
+def test_a_checkpoint_written_with_a_setting_no_component_takes_still_loads(tmp_path):
+    """A checkpoint saved before IMMNet refused such a setting holds it in its net config: read as a checkpoint
+    (``net_arguments(saved=True)``) it is dropped, as that IMMNet dropped it, and the network is the same."""
+    from immnet.stages.network import net_arguments
+
+    config = {"gain": {"class_path": "immnet.stages.KalmanNetGain"},
+              "classifier": {"class_path": "immnet.stages.TransformerClassifier"}, "p_stay": 0.999, "guard": True}
+    assert net_arguments(config, saved=True) == {k: config[k] for k in ("gain", "classifier")}
+    with pytest.raises(ValueError, match="p_stay and guard would change nothing"):
+        IMMNet(**net_arguments(config))
+    kept = dict(config, gain={"class_path": "immnet.stages.filtering.FilterGain"})
+    assert net_arguments(kept, saved=True) == kept  # filter experts take both

@@ -97,10 +97,11 @@ NET_ARGUMENTS = ("model_set", "gain", "classifier", "dt", "p_stay", "guard", "in
 """``IMMNet``'s arguments: what a ``net`` config (a checkpoint's hyper-parameters) may hold."""
 
 
-def net_arguments(config: dict | None) -> dict:
+def net_arguments(config: dict | None, saved: bool = False) -> dict:
     """``IMMNet``'s keyword arguments from a ``net`` config: its arguments themselves (``model_set``, ``gain``,
     ...), or the ``class_path: immnet.stages.IMMNet`` / ``init_args`` form LightningCLI writes; an argument IMMNet
-    does not take (``NET_ARGUMENTS``) is refused in one line."""
+    does not take (``NET_ARGUMENTS``) is refused in one line. ``saved``: a checkpoint's, whose ``p_stay`` or guard
+    that no component takes is dropped (written before ``IMMNet`` refused one, which then changed nothing)."""
     config = dict(config or {})
     if "class_path" in config:
         cls = import_class(config["class_path"])
@@ -111,6 +112,12 @@ def net_arguments(config: dict | None) -> dict:
     if unknown:
         raise ValueError(f"the network's configuration holds {', '.join(map(repr, unknown))}, which IMMNet does not "
                          f"take (its arguments: {', '.join(NET_ARGUMENTS)})")
+    if saved:
+        roles = {"gain": (DEFAULT_GAIN, Gain), "classifier": (DEFAULT_CLASSIFIER, ModeUpdate),
+                 "correction": (None, Stage)}
+        taken = _taken(import_class(component_config(config.get(name) or default)["class_path"], role)
+                       for name, (default, role) in roles.items() if config.get(name) or default)
+        config = {k: v for k, v in config.items() if k not in ("p_stay", "guard") or k in taken}
     return config
 
 
@@ -141,13 +148,18 @@ def _check_modes(modes: Modes, model_set: ModelSet, gain, classifier) -> None:
 def _check_taken(settings: dict, stages) -> None:
     """A ValueError where ``p_stay`` or a range guard is set on ``IMMNet`` and none of its ``stages`` takes it (its
     ``Stage.shared``): set, it would change nothing. ``guard=False`` (no guard) is what such a network has."""
-    taken = {name for stage in stages if stage is not None for name in stage.shared}
+    taken = _taken(stage for stage in stages if stage is not None)
     unused = [name for name in ("p_stay", "guard") if name in settings and name not in taken
               and settings[name] is not False]
     if unused:
         raise ValueError(f"IMMNet's {' and '.join(unused)} would change nothing: no component of this network takes "
                          f"{'them' if len(unused) > 1 else 'it'} (filter experts, immnet.stages.filtering, take both; "
                          "the Bayesian mode updates p_stay)")
+
+
+def _taken(stages) -> set:
+    """The settings of ``SET_ONCE`` that some of ``stages`` (stage classes or instances) take (``Stage.shared``)."""
+    return {name for stage in stages for name in stage.shared}
 
 
 def _where(cond: torch.Tensor, a: TensorDict, b: TensorDict) -> TensorDict:

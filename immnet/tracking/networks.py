@@ -41,7 +41,7 @@ def read_checkpoint(path: str | Path) -> tuple[dict, dict]:
     state = {k[len("net."):]: v for k, v in ckpt["state_dict"].items() if isinstance(k, str) and k.startswith("net.")}
     check_finite(state, path)
     try:
-        return net_arguments(copy.deepcopy(config)), state
+        return net_arguments(copy.deepcopy(config), saved=True), state
     except ValueError as err:
         raise ValueError(f"{path}: {err}") from None
 

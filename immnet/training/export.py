@@ -44,7 +44,7 @@ def _read(ckpt) -> tuple[dict, dict, dict]:
     src = load_checkpoint(ckpt)
     if not (isinstance(src.get("state_dict"), dict) and isinstance(src.get("hyper_parameters"), dict)):
         raise ValueError(f"{ckpt} is not a Lightning checkpoint of an IMMNet module")
-    net = net_arguments(src["hyper_parameters"].get("net"))
+    net = net_arguments(src["hyper_parameters"].get("net"), saved=True)
     net["model_set"] = ModelSet.from_config(net.get("model_set", "configs/model_sets/imm4.yaml")).to_config()["models"]
     return src, net, {k: v for k, v in src["state_dict"].items() if k.startswith("net.")}
 
