@@ -179,15 +179,21 @@ class OutputCorrection(Stage):
         this scan's ``inputs(td)`` where the caller has them."""
         f, scale = self.inputs(td) if inputs is None else inputs
         w = self.inp.weight
-        y, h_new = self.gru(torch.relu(self.inp(f.to(w.dtype))).unsqueeze(1), h.to(w.dtype).transpose(0, 1).contiguous())
-        delta = self.out(y[:, 0]).to(f.dtype)
+        y, states, g = torch.relu(self.inp(f.to(w.dtype))), [], self.gru
+        for layer in range(self.layers):  # one scan: the GRU's cells, layer by layer (nn.GRU's numbers)
+            y = torch.gru_cell(y, h[:, layer].to(w.dtype), getattr(g, f"weight_ih_l{layer}"),
+                               getattr(g, f"weight_hh_l{layer}"), getattr(g, f"bias_ih_l{layer}"),
+                               getattr(g, f"bias_hh_l{layer}"))
+            states.append(y)
+        h_new = torch.stack(states, 1)
+        delta = self.out(y).to(f.dtype)
         step = (scale @ delta.unsqueeze(-1)).squeeze(-1) if self.whiten else scale * delta
         running = _has_estimate(td).reshape(-1, 1)
         # a track's first detection is reported as its filter reports it (the measurement, as every tracker's); the
         # correction starts at the scan after, when its state has seen the track
         corrects = running & (td.get(keys.OUTPUT_SEEN) >= 1).reshape(-1, 1)
         return (torch.where(corrects, step, torch.zeros_like(delta)),
-                torch.where(running[..., None], h_new.transpose(0, 1).to(h.dtype), h))
+                torch.where(running[..., None], h_new.to(h.dtype), h))
 
     def forward(self, td):
         shift, h = self.shift(td, td.get(keys.OUTPUT_HIDDEN))

@@ -183,6 +183,7 @@ class NetworkBank:
                 raise ValueError(f"bank member {name!r} cannot be weighed: {net.no_cov_reason()}")
         self.names = list(members)
         self.members = {name: net.eval() for name, net in members.items()}
+        self._guarded = {name: guarded(net) for name, net in self.members.items()}  # read at every scan
         self.defer = _check_defer(defer, self.names)
         self._defers = {self.names.index(k): [self.names.index(o) for o in others] for k, others in self.defer.items()}
         self.max_position = check_limit(max_position)
@@ -443,7 +444,7 @@ class NetworkBank:
             rows = runs[:, k].nonzero().flatten()
             every = len(rows) == B  # the whole batch: the carry as ``Tracker.step`` keeps it, not a copy of its rows
             if len(rows):
-                at = torch.zeros_like(origin) if guarded(net) else origin.nan_to_num()
+                at = torch.zeros_like(origin) if self._guarded[name] else origin.nan_to_num()
                 z = to_local(gated, at)
                 before, after = coast_scan(net, carry if every else carry[rows], z[rows], cut[k][0][rows],
                                            cut[k][1][rows], lambda td, net=net: self._kept(net, td))
@@ -454,9 +455,8 @@ class NetworkBank:
                 age[rows] = torch.maximum(age[rows], after.get(keys.AGE))
                 if every:
                     carry = self._kept(net, after)
-                else:
-                    carry = carry.clone()
-                    carry[rows] = self._kept(net, after)
+                else:  # the carry with those rows replaced (one copy of each leaf)
+                    carry = carry.apply(lambda old, new: old.index_copy(0, rows, new), self._kept(net, after))
             self.carries[name] = carry
         inc = _weighed(loglik, takes) + torch.where(shadow & torch.isfinite(loglik), loglik, 0.0)
         log_w = (log_w + self.temper * inc).masked_fill(~runs, float("-inf"))
