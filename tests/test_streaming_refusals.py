@@ -227,3 +227,18 @@ def test_evaluate_scores_a_window_as_one_track_through_a_long_stretch_without_de
     torch.testing.assert_close(got, ref.double(), rtol=0, atol=0, equal_nan=True)
     vel = [1, 4, 7]
     assert got[0, 55:].isfinite().all() and got[0, 55, vel].ne(0).all()  # coasted through: it has a velocity
+
+
+def test_a_network_off_the_cpu_is_refused_where_the_tracker_is_built():
+    """The trackers keep each track's frame, intervals and coasting on the CPU: a network on another device (here
+    the meta device, which holds no data) is refused in one line naming it, before any scan (it failed inside the
+    first scan, with torch's message)."""
+    from immnet.checkpoints import shipped
+    from immnet.tracking.networks import load_network
+
+    net = load_network(shipped("real")).to("meta")
+    with pytest.raises(ValueError, match="a Tracker runs on the CPU; this network is on meta"):
+        Tracker(net)
+    with pytest.raises(ValueError, match=r"member 'real'\) runs on the CPU; this network is on meta"):
+        NetworkBank({"real": net})
+    Tracker(net.to_empty(device="cpu"))  # on the CPU again: taken

@@ -51,8 +51,8 @@ from immnet.stages.network import Likelihood
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (
     AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_n_tracks, coast_cuts, coast_scan, fresh_tracks,
-    guarded, listed, network_from, next_origin, provenance_of, read_checkpoint, run_network, scans_served, select_rows,
-    to_local, to_world, trained_for,
+    guarded, listed, network_from, next_origin, on_cpu, provenance_of, read_checkpoint, run_network, scans_served,
+    select_rows, to_local, to_world, trained_for,
 )
 
 DEFAULT_MEMBERS = BANK_MEMBERS
@@ -181,6 +181,7 @@ class NetworkBank:
                                  f"members estimate it from the measurements")
             if not net.has_cov:
                 raise ValueError(f"bank member {name!r} cannot be weighed: {net.no_cov_reason()}")
+            on_cpu(net, f"a bank of networks (member {name!r})")
         self.names = list(members)
         self.members = {name: net.eval() for name, net in members.items()}
         self._guarded = {name: guarded(net) for name, net in self.members.items()}  # read at every scan

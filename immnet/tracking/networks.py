@@ -407,6 +407,15 @@ def check_finite_intervals(intervals: torch.Tensor, name: str) -> torch.Tensor:
     return intervals
 
 
+def on_cpu(net, who: str):
+    """``net``, refused in one line unless its weights and buffers are on the CPU: the trackers keep each track's
+    frame, intervals and coasting (``frame_origin``, ``begin_scan``, ``coast_long_gaps``) as CPU tensors."""
+    devices = sorted({str(t.device) for t in (*net.parameters(), *net.buffers())} - {"cpu"})
+    if devices:
+        raise ValueError(f"{who} runs on the CPU; this network is on {', '.join(devices)}: give it net.cpu()")
+    return net
+
+
 def guarded(net) -> bool:
     """Whether ``net`` keeps a range guard (``immnet.imm.guard``: its rules read positions as radar-centred)."""
     return any(getattr(m, "guard", None) is not None for m in net.modules())

@@ -40,8 +40,8 @@ from immnet.tracking.bank import NetworkBank
 from immnet.tracking.segments import MAX_COAST, check_coast
 from immnet.tracking.networks import (  # noqa: F401  (re-exported: where the trackers' users import them from)
     AS_CONFIGURED, as_measurements, begin_scan, by_segments, check_dt, check_n_tracks, check_scan, coast_scan,
-    fresh_tracks, guarded, load_network, next_origin, outputs_to_world, per_track, provenance_of, read_checkpoint,
-    run_network, scans_served, select_rows, to_local,
+    fresh_tracks, guarded, load_network, next_origin, on_cpu, outputs_to_world, per_track, provenance_of,
+    read_checkpoint, run_network, scans_served, select_rows, to_local,
 )
 
 
@@ -75,7 +75,7 @@ class Tracker:
 
     def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION, max_coast: float = MAX_COAST,
                  name: str | None = None, path: str | Path | None = None):
-        self.net = net.eval()
+        self.net = on_cpu(net, "a Tracker").eval()
         self.max_position = check_limit(max_position)
         self.max_coast = check_coast(max_coast, float(self.net.dt))
         self.carry: TensorDict | None = None
