@@ -848,11 +848,12 @@ class _FilterExperts:
         P = td.get(keys.EXPERT_AUG_PRIOR_COV)
         r2 = noise_matrix(td.get(keys.NOISE_VAR), self.n_experts, self.per_detection)
         S = innovation_cov(P, r2.to(P.dtype))
-        S_inv, logdet = inv3(S)
         nu = innovation(td.get(keys.MEASUREMENT), td.get(keys.EXPERT_PRIOR)) - shift.to(P.dtype).unsqueeze(1)
         has_z = measured(per_expert(td.get(keys.MEASUREMENT), self.n_experts))
-        maha = quadratic(S_inv, nu)
-        return self._loglik(nu, S, maha, logdet, has_z)
+        if self.z_groups is not None:  # each group's marginal (_loglik): no inverse of the whole S
+            return self._loglik(nu, S, None, None, has_z)
+        S_inv, logdet = inv3(S)
+        return self._loglik(nu, S, quadratic(S_inv, nu), logdet, has_z)
 
     def _finish(self, td, r2, P, delta=None, nu=None):
         """Gain ``K = P H^T S^-1`` (+ the correction ``delta``, 9 x 3) of the prior covariance ``P``,
