@@ -20,7 +20,6 @@ from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
-from immnet.motion import POS
 from immnet.stages import IMMNet
 from immnet.stages.base import Stage
 from immnet.stages.network import DEFAULT_GAIN, _where, net_arguments
@@ -251,7 +250,6 @@ def coast_long_gaps(net, z: torch.Tensor, intervals: torch.Tensor):
 
 
 # --- the local frame: each track tracked around its first detection, so that float32 keeps its digits anywhere -----
-POSITIONS = list(POS)  # the state's position components [x, y, z] (``immnet.motion.POS``)
 WORLD = (keys.STATE, keys.ROLLOUT_EXPERT_POST, keys.FUSED, keys.EXPERT_POST)  # outputs that hold positions
 
 
@@ -295,7 +293,7 @@ def to_world(v: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
     [B, 3]`` in float64 (the output is float64; velocities and accelerations as the network gave them)."""
     at = origin.view(origin.shape[0], *([1] * (v.dim() - 2)), 3)
     v = v.to(torch.float64).clone()
-    v[..., POSITIONS] = v[..., POSITIONS] + at
+    v[..., 0:7:3] = v[..., 0:7:3] + at  # the positions (POS)
     return v
 
 
