@@ -316,8 +316,8 @@ class FilterInteraction(Stage):
             priors = None
             if self.onset:
                 priors = (self.mix_keep[:, idx], self.mix_mean[:, idx], self.mix_cov[:, idx[:, None], idx])
-            xa, Pa = mix(w[:, a], y[..., idx], P[..., idx[:, None], idx], priors)
-            x0[..., idx] = xa
+            xa, Pa = mix(w[:, a], y.index_select(-1, idx), P.index_select(-2, idx).index_select(-1, idx), priors)
+            x0.index_copy_(-1, idx, xa)
             P0[..., idx[:, None], idx] = Pa
         return x0, P0
 
