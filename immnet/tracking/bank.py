@@ -457,7 +457,8 @@ class NetworkBank:
                 if every:
                     carry = self._kept(net, after)
                 else:  # the carry with those rows replaced (one copy of each leaf)
-                    carry = carry.apply(lambda old, new: old.index_copy(0, rows, new), self._kept(net, after))
+                    carry = carry.apply(lambda old, new, rows=rows: old.index_copy(0, rows, new),
+                                        self._kept(net, after))
             self.carries[name] = carry
         inc = _weighed(loglik, takes) + torch.where(shadow & torch.isfinite(loglik), loglik, 0.0)
         log_w = (log_w + self.temper * inc).masked_fill(~runs, float("-inf"))
