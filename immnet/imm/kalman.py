@@ -49,6 +49,7 @@ import math
 import torch
 
 from immnet.imm.option import positive
+from immnet.motion import POS_VIEW
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -224,8 +225,8 @@ def joseph(P: torch.Tensor, K: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     scan later, so a float32 covariance is updated in float64 (``wide_dtype``) and rounded back."""
     wide = wide_dtype(P.dtype, P.device)
     Pw, Kw = P.to(wide), K.to(wide)
-    HP = Pw[..., 0:7:3, :]  # the position rows (POS)
-    S = HP[..., 0:7:3] + as_covariance(r2.to(wide), Pw)
+    HP = Pw[..., POS_VIEW, :]
+    S = HP[..., POS_VIEW] + as_covariance(r2.to(wide), Pw)
     return joseph_form(Pw, Kw, HP, S).to(P.dtype)
 
 

@@ -48,6 +48,7 @@ N_AUG = 10
 POS = (0, 3, 6)
 VEL = (1, 4, 7)
 ACC = (2, 5, 8)
+POS_VIEW, VEL_VIEW, ACC_VIEW = slice(0, 7, 3), slice(1, 8, 3), slice(2, 9, 3)  # the same, read as views (no copy)
 AXES = 3  # Cartesian axes, each a block [l, v, a] of the state
 AXIS_OF = (0, 0, 0, 1, 1, 1, 2, 2, 2, 0)
 """The axis of each coordinate of ``[x, w]`` (the turn rate ``w`` with the first, horizontal, axis)."""

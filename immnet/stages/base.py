@@ -30,7 +30,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import unravel_key
 
 from immnet import keys
-from immnet.motion import ModelSet
+from immnet.motion import POS_VIEW, ModelSet
 
 KEY_NAMES = {
     name.lower(): unravel_key(value)
@@ -226,7 +226,7 @@ def axis_probs(mu: torch.Tensor, groups) -> torch.Tensor:
     """Modes per group ``mu [..., G, M]`` as each Cartesian axis's, ``[..., 3, M]`` (an axis's are its position's
     group's; ``groups`` a tuple or a tensor): what the data modes and the reported covariance's scale average over,
     so that an axis counts once."""
-    return mu.index_select(-2, group_ids(groups, mu)[0:7:3])  # the positions' (POS)
+    return mu.index_select(-2, group_ids(groups, mu)[POS_VIEW])
 
 
 def measured(z: torch.Tensor) -> torch.Tensor:

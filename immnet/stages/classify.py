@@ -23,7 +23,7 @@ from immnet import keys
 from immnet.imm.interaction import transition_matrix
 from immnet.imm.kalman import gaussian_loglik, inv3
 from immnet.imm.option import flag
-from immnet.motion import CT_NEG, CT_POS, MODE_NAMES, N_MODES, ModelSet, Modes
+from immnet.motion import ACC_VIEW, CT_NEG, CT_POS, MODE_NAMES, N_MODES, POS_VIEW, VEL_VIEW, ModelSet, Modes
 from immnet.stages.base import Stage, measured, per_expert
 from immnet.stages.correct import noise_covariance, std_of
 from immnet.stages.features import slog
@@ -166,7 +166,7 @@ class TransformerClassifier(ModeUpdate):
         (``whiten``): the plot's covariance ``[B, 3, 3]``, the positions then in units of ``noise_scale``. Returns the
         two streams' tokens and ``(c, s, scale)``, ``scale [B, 3]`` (None without ``noise``)."""
         W = self.window
-        p_ref, v_ref = fused[:, 0:7:3], fused[:, 1:8:3]  # POS, VEL
+        p_ref, v_ref = fused[:, POS_VIEW], fused[:, VEL_VIEW]
         c, s = heading_frame(v_ref)
         scale = None if noise is None else noise_scale(noise.to(fused.dtype), c, s)
 
@@ -185,7 +185,7 @@ class TransformerClassifier(ModeUpdate):
         z = hist[..., :3]
         tz = torch.cat([position(z - p_ref[:, None], 100.0), position(z - guess_z, 10.0)], -1)
         x = hist[..., 3:]
-        px, vx, ax = x[..., 0:7:3], x[..., 1:8:3], x[..., 2:9:3]
+        px, vx, ax = x[..., POS_VIEW], x[..., VEL_VIEW], x[..., ACC_VIEW]
         guess_x = guess_z - v_ref[:, None] * (self.dt if gaps is None else gaps[..., None])
         tx = torch.cat(
             [
@@ -210,7 +210,7 @@ class TransformerClassifier(ModeUpdate):
         gaps = gaps.clone() if interval is None else torch.cat([gaps[:, 1:], interval.to(gaps.dtype)[:, None]], 1)
         step = self.dt if interval is None else interval.to(fused.dtype)[:, None]
         # a missing measurement enters the window as the predicted position of the fused estimate
-        z_fill = torch.where(measured(z), z, fused[:, 0:7:3] + fused[:, 1:8:3] * step)
+        z_fill = torch.where(measured(z), z, fused[:, POS_VIEW] + fused[:, VEL_VIEW] * step)
         hist = torch.cat([hist[:, 1:], torch.cat([z_fill, fused], -1)[:, None]], 1)
         n = (n + 1).clamp(max=self.window)
         noise = noise_covariance(td.get(keys.NOISE_VAR)) if self.whiten else None

@@ -45,7 +45,7 @@ from torch import nn
 from immnet import keys
 from immnet.imm.kalman import as_covariance
 from immnet.imm.option import flag
-from immnet.motion import POS, Modes
+from immnet.motion import ACC_VIEW, POS, POS_VIEW, VEL_VIEW, Modes
 from immnet.stages.base import Stage, measured, scan_interval
 
 VEL_SCALE, ACC_SCALE, R_SCALE = 100.0, 1.0, 5.0
@@ -86,12 +86,12 @@ def _features(z, x, P, mu, dt, scaled, pos_std, noise) -> torch.Tensor:
     deviations ``pos_std [B, 3]`` and the noise's features ``noise [B, 1 or 3]`` as the caller scales them; a
     non-finite entry is 0."""
     seen = measured(z)
-    d = scaled(torch.where(seen, z - x[..., 0:7:3], torch.zeros_like(z)))  # POS, VEL, ACC: 0:7:3, 1:8:3, 2:9:3
+    d = scaled(torch.where(seen, z - x[..., POS_VIEW], torch.zeros_like(z)))
     std = std_of(P.diagonal(dim1=-2, dim2=-1))
     log_dt = torch.log(torch.as_tensor(dt, dtype=x.dtype, device=x.device)).expand(x.shape[0], 1)
     f = torch.cat([
-        d, seen.to(x.dtype), x[..., 1:8:3] / VEL_SCALE, x[..., 2:9:3] / ACC_SCALE,
-        pos_std, std[..., 1:8:3], std[..., 2:9:3], mu.reshape(mu.shape[0], -1).to(x.dtype), noise, log_dt,
+        d, seen.to(x.dtype), x[..., VEL_VIEW] / VEL_SCALE, x[..., ACC_VIEW] / ACC_SCALE,
+        pos_std, std[..., VEL_VIEW], std[..., ACC_VIEW], mu.reshape(mu.shape[0], -1).to(x.dtype), noise, log_dt,
     ], -1)
     return torch.where(torch.isfinite(f), f, torch.zeros_like(f))
 
@@ -111,7 +111,7 @@ def correction_features(z, x, P, mu, r, dt) -> torch.Tensor:
     """``f_t`` of the module doc ``[B, 21 + G M]``: measurements ``z [B, 3]`` (NaN: missed), fused estimate
     ``x [B, 9]``, its covariance ``P [B, 9, 9]``, mode probabilities ``mu [B, M]`` or ``[B, G, M]``, ``r [B, 1]``,
     ``dt`` a float or ``[B, 1]``; a non-finite entry is 0."""
-    pos_std = std_of(P.diagonal(dim1=-2, dim2=-1)[..., 0:7:3]) / r  # the positions (POS)
+    pos_std = std_of(P.diagonal(dim1=-2, dim2=-1)[..., POS_VIEW]) / r
     return _features(z, x, P, mu, dt, lambda d: d / r, pos_std, r / R_SCALE)
 
 
@@ -211,7 +211,7 @@ def _report(td, shift: torch.Tensor, h: torch.Tensor) -> None:
     and whether it has seen the track (from the scan the track has an estimate on)."""
     x, seen = td.get(keys.FUSED), td.get(keys.OUTPUT_SEEN)
     out = x.clone()
-    out[..., 0:7:3] = x[..., 0:7:3] + shift  # the positions (POS)
+    out[..., POS_VIEW] = x[..., POS_VIEW] + shift
     td.set(keys.OUTPUT, out)
     td.set(keys.OUTPUT_HIDDEN, h)
     running = _has_estimate(td).reshape(seen.shape)

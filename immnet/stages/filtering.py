@@ -54,7 +54,7 @@ from immnet.imm.kalman import (
 from immnet.imm import reacquire as reacq
 from immnet.imm.measurement import TOLD, Estimated, Isotropic, PerDetection, ToldStd, measurement_model
 from immnet.motion import (
-    ACC, N_AUG, POS, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
+    ACC, N_AUG, POS, POS_VIEW, RATE, TURN_ENTRIES, TURN_RATE_LIMIT_DEG, VEL, ModelSet, ct_jacobian_entries,
     ct_propagate, group_members, measured_groups, Modes, noise_gain,
 )
 from immnet.stages.base import Stage, measured, per_expert, scan_interval, step_input, track_where
@@ -465,7 +465,7 @@ def innovation_cov(P: torch.Tensor, r2: torch.Tensor) -> torch.Tensor:
     """``S = H P H^T + R`` of a prior covariance ``P [..., 9 or 10, 9 or 10]`` (its positions' block, ``POS``) and
     the measurement noise ``r2``: a variance broadcasting as ``[..., 1, 1]`` (``R = r^2 I``) or a covariance
     ``[..., 3, 3]`` (``noise_matrix``)."""
-    return P[..., 0:7:3, 0:7:3] + as_covariance(r2, P)
+    return P[..., POS_VIEW, POS_VIEW] + as_covariance(r2, P)
 
 
 def noise_matrix(noise: torch.Tensor, n_experts: int, told_cov: bool) -> torch.Tensor:
@@ -874,7 +874,7 @@ class _FilterExperts:
         if robust is not None and self.z_groups is not None:
             K, gain, loglik, after = self._robust_groups(td, P, S, nu, has_z, delta, spare)
         else:
-            K = small_matmul(P[..., :, 0:7:3], S_inv)  # [B, M, 10, 3]
+            K = small_matmul(P[..., :, POS_VIEW], S_inv)  # [B, M, 10, 3]
             if robust is None:
                 loglik = self._loglik(nu, S, maha, logdet, has_z)
             else:  # Huber's weight on an isolated far plot's Mahalanobis distance (immnet.imm.kalman)
@@ -926,7 +926,7 @@ class _FilterExperts:
         wc = w[..., self.coordinate_group]  # [B, M, 3]
         D = _inflation(wc)
         S2_inv, _ = inv3(S + D[..., :, None] * S * D[..., None, :])
-        K = small_matmul(P[..., :, 0:7:3], S2_inv)
+        K = small_matmul(P[..., :, POS_VIEW], S2_inv)
         gain = K[..., :9, :] if delta is None else K[..., :9, :] + delta * wc[..., None, :]
         td.set(keys.EXPERT_ROBUST_WEIGHT, wc)
         loglik = torch.where(has_z, marginal_loglik(rho, logdet, self.z_groups), 0.0).transpose(1, 2)

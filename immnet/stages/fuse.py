@@ -33,7 +33,7 @@ import torch
 
 from immnet import keys
 from immnet.imm.interaction import moment_match
-from immnet.motion import Modes
+from immnet.motion import POS_VIEW, Modes
 from immnet.stages.base import Stage, axis_probs, block_weights, coordinate_weights, measured, per_expert
 
 COV_KEYS = (keys.EXPERT_COV, keys.EXPERT_AUG_COV)
@@ -144,7 +144,7 @@ class Fuse(Stage):
         has_z = measured(z)
         if self.consistency is not None:
             td.set(keys.COV_SCALE, self.consistency_scale(td.get(keys.COV_SCALE), mu, td.get(keys.EXPERT_NIS), has_z))
-        z_next = torch.where(has_z, z, fused[..., 0:7:3])  # the positions (POS)
+        z_next = torch.where(has_z, z, fused[..., POS_VIEW])
         td.set(keys.PREV_FUSED, td.get(keys.FUSED))
         td.set(keys.PREV_EXPERT_PRIOR, td.get(keys.EXPERT_PRIOR))
         td.set(keys.PREV_MEASUREMENT, z_next)

@@ -30,7 +30,7 @@ from immnet import keys
 from immnet.choice import Choice, spelled
 from immnet.config import import_class
 from immnet.data.times import scan_intervals
-from immnet.motion import N_MODES, ModelSet, Modes, coupling
+from immnet.motion import N_MODES, POS_VIEW, ModelSet, Modes, coupling
 from immnet.stages.base import Stage, axis_probs, track_where
 from immnet.stages.classify import ModeUpdate
 from immnet.stages.fuse import Fuse
@@ -491,7 +491,7 @@ class IMMNet(TensorDictModuleBase):
         names = carry.keys(True, True)
         if keys.OUTPUT not in names or keys.FUSED not in names:
             return None
-        shift = carry.get(keys.OUTPUT)[..., 0:7:3] - carry.get(keys.FUSED)[..., 0:7:3]  # the positions (POS)
+        shift = carry.get(keys.OUTPUT)[..., POS_VIEW] - carry.get(keys.FUSED)[..., POS_VIEW]
         return torch.nan_to_num(shift, nan=0.0, posinf=0.0, neginf=0.0)
 
     # --- the carry ------------------------------------------------------------------------

@@ -8,13 +8,14 @@ from __future__ import annotations
 import torch
 
 from immnet import keys
+from immnet.motion import POS_VIEW
 from immnet.stages.base import Stage, per_expert
 
 
 def innovation(z: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
     """``z_t - H x_{t|t-1}^(i)`` with NaN measurements giving zero, shape ``[B, M, 3]``."""
     z = per_expert(z, prior.shape[1])
-    nu = z - prior[..., 0:7:3]  # the positions (POS)
+    nu = z - prior[..., POS_VIEW]
     return torch.nan_to_num(nu, nan=0.0)
 
 

@@ -20,6 +20,7 @@ from immnet.config import import_class
 from immnet.data.validate import MAX_ABS_POSITION, gate_measurements
 from immnet.filters.base import before_first_detection, blank_before_first_detection
 from immnet.imm.guard import AS_CONFIGURED
+from immnet.motion import POS_VIEW
 from immnet.stages import IMMNet
 from immnet.stages.base import Stage
 from immnet.stages.network import DEFAULT_GAIN, _where, net_arguments
@@ -293,7 +294,7 @@ def to_world(v: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
     [B, 3]`` in float64 (the output is float64; velocities and accelerations as the network gave them)."""
     at = origin.view(origin.shape[0], *([1] * (v.dim() - 2)), 3)
     v = v.to(torch.float64).clone()
-    v[..., 0:7:3] = v[..., 0:7:3] + at  # the positions (POS)
+    v[..., POS_VIEW] = v[..., POS_VIEW] + at
     return v
 
 
