@@ -45,7 +45,7 @@ from torch import nn
 from immnet import keys
 from immnet.imm.kalman import as_covariance
 from immnet.imm.option import flag
-from immnet.motion import ACC_VIEW, POS, POS_VIEW, VEL_VIEW, Modes
+from immnet.motion import ACC_VIEW, POS_VIEW, VEL_VIEW, Modes
 from immnet.stages.base import Stage, measured, scan_interval
 
 VEL_SCALE, ACC_SCALE, R_SCALE = 100.0, 1.0, 5.0
@@ -99,7 +99,7 @@ def _features(z, x, P, mu, dt, scaled, pos_std, noise) -> torch.Tensor:
 def whitened_features(z, x, P, mu, L, dt) -> torch.Tensor:
     """``f_t`` with ``whiten`` (module doc) ``[B, 23 + G M]``: as :func:`correction_features`, in the frame of the
     measurement noise's Cholesky factor ``L [B, 3, 3]``; a non-finite entry is 0."""
-    pos = P[..., list(POS), :][..., list(POS)]
+    pos = P[..., POS_VIEW, POS_VIEW]
     Li_P = torch.linalg.solve_triangular(L, pos, upper=False)
     white_pos = torch.linalg.solve_triangular(L, Li_P.transpose(-1, -2), upper=False)  # L^-1 P L^-T
     R_std = (L * L).sum(-1).clamp_min(1e-12).sqrt()  # sqrt(diag(L L^T))

@@ -76,6 +76,7 @@ class Tracker:
     def __init__(self, net: IMMNet, max_position: float = MAX_ABS_POSITION, max_coast: float = MAX_COAST,
                  name: str | None = None, path: str | Path | None = None):
         self.net = on_cpu(net, "a Tracker").eval()
+        self._guarded = guarded(self.net)  # read at every scan
         self.max_position = check_limit(max_position)
         self.max_coast = check_coast(max_coast, float(self.net.dt))
         self.carry: TensorDict | None = None
@@ -175,7 +176,7 @@ class Tracker:
             cuts, each = check_scan(self.net, now, first, "this tracker")
         if self.carry is None:  # the first scan without a reset: its number of tracks
             self.reset(z.shape[0])
-        origin = next_origin(self.origin, gated, mask, guarded(self.net))
+        origin = next_origin(self.origin, gated, mask, self._guarded)
         z = to_local(gated, origin.nan_to_num())
         self.n_gated += n_gated
         self.since, self.origin, self.last = since, origin, now
